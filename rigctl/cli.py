@@ -1,0 +1,102 @@
+"""Command-line interface: ``rigctl run | validate | ...``.
+
+Exit codes: 0 done, 1 failure at run time, 2 invalid input, 130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from pathlib import Path
+
+from . import __version__
+from .config import load_config, resolve_config_path
+from .estimate import data_volume_bytes, estimate
+from .procedure import load_procedure, parse_overrides
+from .rig import describe
+from .runner import EXIT_INVALID, run_procedure
+from .units import format_bytes, format_duration
+from .yamlio import InputError
+
+#: Modules that add their own sub-commands through ``register(subparsers)``.
+COMMAND_MODULES: tuple[str, ...] = ()
+
+
+def _load(args: argparse.Namespace):
+    cfg_path = resolve_config_path(args.config)
+    cfg = load_config(cfg_path)
+    proc = load_procedure(args.procedure, parse_overrides(args.param), cfg.limits)
+    return cfg_path, cfg, proc
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg_path, cfg, proc = _load(args)
+    print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
+    result = run_procedure(proc, cfg, Path(args.out))
+    return result.exit_code
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    cfg_path, cfg, proc = _load(args)
+    print(f"procedure {proc.name} ({proc.path}) against config {cfg_path}: {describe(cfg)}")
+    if proc.parameters:
+        print("parameters: " + ", ".join(f"{k}={v}" for k, v in proc.parameters.items()))
+    plan = estimate(proc.steps, cfg)
+    elapsed = 0.0
+    for n, e in enumerate(plan, 1):
+        elapsed += e.total_s
+        extra = f"sample {format_duration(e.step.sample_s)}" if e.step.is_motion else "after the run"
+        print(f"{n:4d}  {e.step.describe():<70s} {extra:<18s} ~{format_duration(e.total_s):>12s}"
+              f"  (t+{format_duration(elapsed)})")
+    total = sum(e.total_s for e in plan)
+    counts: dict[str, int] = {}
+    for s in proc.steps:
+        counts[s.kind] = counts.get(s.kind, 0) + 1
+    print("steps: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
+    print(f"total duration: about {format_duration(total)} ({total:.0f} s)")
+    print(f"expected data volume: about {format_bytes(data_volume_bytes(total, cfg))} "
+          f"(IMU at {cfg.imu_rate_hz:g} Hz)")
+    print("valid")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rigctl", description="Test automation for inertial sensor labs: "
+                                "turntable procedures, HDF5 recording, calibration and noise analysis.")
+    p.add_argument("--version", action="version", version=f"rigctl {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("procedure", help="procedure YAML file, e.g. procedures/24pos.yaml")
+        sp.add_argument("--config", help="rig config YAML (default: configs/sim.yaml, the emulator)")
+        sp.add_argument("-p", "--param", action="append", metavar="NAME=VALUE",
+                        help="override a procedure parameter (repeatable), e.g. -p warmup='5 min'")
+
+    r = sub.add_parser("run", help="run a procedure and record it")
+    common(r)
+    r.add_argument("--out", default="runs", help="directory the run folder is created in (default: runs)")
+    r.set_defaults(func=cmd_run)
+    v = sub.add_parser("validate", help="check a procedure and print its steps, duration and data volume")
+    common(v)
+    v.set_defaults(func=cmd_validate)
+    for mod in COMMAND_MODULES:
+        importlib.import_module(mod).register(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""Rig configuration: which devices, the table's limits, the site, the clock, the recorder."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import schema as S
+from .frames import normal_gravity
+from .yamlio import InputError, LocDict, load_file
+
+#: Where the project's shipped files live (beside the package in a checkout / editable install).
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_CONFIG = "configs/sim.yaml"
+
+TABLE_DRIVERS = ("sim", "acl", "modbus")
+IMU_DRIVERS = ("sim", "xsens")
+PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
+CLOCKS = ("virtual", "real", "scaled")
+
+
+@dataclass(frozen=True)
+class TableLimits:
+    """Demand limits per axis [outer, middle, inner]: rate rad/s, acceleration rad/s^2,
+    angle range rad ((-inf, inf) for a continuous axis)."""
+
+    rate: np.ndarray
+    accel: np.ndarray
+    angle_min: np.ndarray
+    angle_max: np.ndarray
+
+    def check(self, angles: np.ndarray | None = None, rates: np.ndarray | None = None) -> None:
+        """Raise ValueError naming the axis and the limit when a demand is out of range."""
+        names = ("outer", "middle", "inner")
+        if angles is not None:
+            for i, a in enumerate(angles):
+                if not (self.angle_min[i] <= a <= self.angle_max[i]):
+                    raise ValueError(
+                        f"{names[i]} angle {math.degrees(a):.3f} deg is outside the table's range "
+                        f"[{math.degrees(self.angle_min[i]):.1f}, {math.degrees(self.angle_max[i]):.1f}] deg")
+        if rates is not None:
+            for i, r in enumerate(rates):
+                if not math.isnan(r) and abs(r) > self.rate[i] * (1 + 1e-12):
+                    raise ValueError(
+                        f"{names[i]} rate {math.degrees(r):.3f} deg/s exceeds the table's limit "
+                        f"{math.degrees(self.rate[i]):.1f} deg/s")
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    driver: str
+    options: LocDict
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """A validated rig configuration. Angles in rad, rates in rad/s, times in s."""
+
+    path: str
+    text: str
+    name: str
+    clock: str
+    speed: float
+    latitude: float
+    height_m: float
+    gravity_measured: float | None
+    limits: TableLimits
+    table: DeviceConfig
+    imu: DeviceConfig
+    imu_rate_hz: float
+    pulses: DeviceConfig
+    flush_interval_s: float = 0.5
+    table_rate_hz: float = 10.0
+    seed: int = 0
+    raw: LocDict = field(default_factory=LocDict, repr=False)
+
+    @property
+    def gravity(self) -> float:
+        """Local gravity, m/s^2: the measured value if configured, else WGS-84 normal gravity."""
+        if self.gravity_measured is not None:
+            return self.gravity_measured
+        return normal_gravity(self.latitude, self.height_m)
+
+    @property
+    def is_simulated(self) -> bool:
+        return self.table.driver == "sim" and self.imu.driver == "sim"
+
+
+def _three(m: LocDict, key: str, default: list[float]) -> np.ndarray:
+    v = S.number_list(m, key, default, length=3)
+    if any(x <= 0 for x in v):
+        raise S.error(m, key, f"{key!r} entries must be positive")
+    return np.radians(np.asarray(v, dtype=float))
+
+
+def _angle_ranges(m: LocDict) -> tuple[np.ndarray, np.ndarray]:
+    v = S.get_list(m, "angle_deg", [None, None, None], length=3)
+    lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
+    for i, r in enumerate(v):
+        if r is None:
+            continue
+        if not (isinstance(r, list) and len(r) == 2 and all(isinstance(x, (int, float)) for x in r)
+                and r[0] < r[1]):
+            raise S.error(m, "angle_deg", f"angle_deg entry {i + 1} must be null (continuous) or "
+                          "[min, max] in degrees with min < max")
+        lo[i], hi[i] = math.radians(r[0]), math.radians(r[1])
+    return lo, hi
+
+
+def _device(m: LocDict, key: str, drivers: tuple[str, ...], default_driver: str | None,
+            extra: tuple[str, ...] = ()) -> tuple[DeviceConfig, LocDict]:
+    if key not in m:
+        if default_driver is None:
+            raise S.error(m, None, f"the config has no {key!r} section", f"add '{key}:' with a driver")
+        d = LocDict(driver=default_driver)
+        d.key_lines = {}
+        return DeviceConfig(default_driver, d), d
+    d = S.require_mapping(m[key], f"the {key!r} section", m, key)
+    driver = S.get_str(d, "driver", choices=drivers)
+    return DeviceConfig(driver, d), d
+
+
+def load_config(path: str | Path) -> RigConfig:
+    """Load and validate a rig config file; InputError names the file and line of any problem."""
+    p = Path(path)
+    raw = load_file(p)
+    if raw is None:
+        raise InputError("the config file is empty", p)
+    m = S.require_mapping(raw, "a rig config")
+    S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder"),
+                 "the rig config")
+    name = S.get_str(m, "rig", p.stem)
+    clock = S.get_str(m, "clock", "virtual", choices=CLOCKS)
+    speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)
+    seed = S.get_number(m, "seed", 0, minimum=0, integer=True)
+
+    site = S.require_mapping(m.get("site", LocDict()), "'site'", m, "site") if "site" in m else None
+    lat, h, g = math.radians(45.0), 0.0, None
+    if site is not None:
+        S.check_keys(site, ("latitude_deg", "height_m", "gravity_m_s2"), "'site'")
+        lat = math.radians(S.get_number(site, "latitude_deg", 45.0, minimum=-90, maximum=90))
+        h = S.get_number(site, "height_m", 0.0, minimum=-500, maximum=10000)
+        g = S.get_number(site, "gravity_m_s2", None, minimum=9.7, maximum=9.9, allow_none=True)
+
+    table, t = _device(m, "table", TABLE_DRIVERS, None)
+    S.check_keys(t, ("driver", "limits", "sim", "port", "host", "tcp_port", "baudrate", "unit_id",
+                     "timeout_s", "word_order", "interlock", "open_interlocks_on_stop",
+                     "poll_interval_s"), "'table'")
+    lim = S.require_mapping(t.get("limits", LocDict()), "'table.limits'", t, "limits") \
+        if "limits" in t else None
+    if lim is None:
+        lim = LocDict()
+        lim.key_lines = {}
+    S.check_keys(lim, ("rate_dps", "accel_dps2", "angle_deg"), "'table.limits'")
+    lo, hi = _angle_ranges(lim)
+    limits = TableLimits(rate=_three(lim, "rate_dps", [300.0, 300.0, 500.0]),
+                         accel=_three(lim, "accel_dps2", [200.0, 200.0, 400.0]),
+                         angle_min=lo, angle_max=hi)
+
+    imu, i = _device(m, "imu", IMU_DRIVERS, None)
+    imu_rate = S.get_number(i, "rate_hz", 100.0, minimum=1.0, maximum=10000.0)
+    pulses, _ = _device(m, "pulses", PULSE_DRIVERS, "none")
+
+    flush, table_rate = 0.5, 10.0
+    if "recorder" in m:
+        r = S.require_mapping(m["recorder"], "'recorder'", m, "recorder")
+        S.check_keys(r, ("flush_interval_s", "table_rate_hz"), "'recorder'")
+        flush = S.get_number(r, "flush_interval_s", 0.5, minimum=0.01, maximum=1.0)
+        table_rate = S.get_number(r, "table_rate_hz", 10.0, minimum=0.1, maximum=1000.0)
+
+    return RigConfig(path=str(p), text=p.read_text(encoding="utf-8"), name=name, clock=clock,
+                     speed=speed, latitude=lat, height_m=h, gravity_measured=g, limits=limits,
+                     table=table, imu=imu, imu_rate_hz=imu_rate, pulses=pulses,
+                     flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, raw=m)
+
+
+def resolve_config_path(path: str | Path | None) -> Path:
+    """The config to use: the given path, else configs/sim.yaml (current dir, then the project)."""
+    if path is not None:
+        return Path(path)
+    for base in (Path.cwd(), PROJECT_ROOT):
+        candidate = base / DEFAULT_CONFIG
+        if candidate.is_file():
+            return candidate
+    raise InputError(f"no --config given and {DEFAULT_CONFIG} was not found",
+                     hint="run from the rigctl checkout or pass --config FILE")
+
+
+def describe_options(options: LocDict) -> dict[str, Any]:
+    """Plain dict copy of a device's options (for provenance)."""
+    return {k: v for k, v in options.items()}

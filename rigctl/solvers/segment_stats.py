@@ -1,0 +1,218 @@
+"""Mean of a static or constant-rate segment and its standard uncertainty from the noise model.
+
+Why not sigma/sqrt(n): that is the uncertainty of a mean only for white noise. Under coloured
+noise (Gauss-Markov, bias instability, random walk) neighbouring samples are correlated and the
+mean of a T-second window scatters more. The Allan variance at cluster time tau = T is by
+definition half the mean squared difference of two adjacent T-second means, so
+
+    Var(mean over T)  ~=  sigma_A^2(T)
+
+(exact for white noise, where sigma_A^2(T) = sigma^2 t0 / T = sigma^2 / n; larger for coloured
+noise; for random walk the "variance of a mean" is only defined relative to a neighbour, which
+is exactly what a calibration comparing segments needs).
+
+Noise models accepted:
+
+* :class:`NoiseModel`: IEEE Std 952 coefficients per axis (SI units), summed:
+
+      sigma_A^2(tau) = 3 Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2
+
+  Q [unit*s], N [unit*sqrt(s)] (= unit/sqrt(Hz)), B [unit], K [unit/sqrt(s)], R [unit/s],
+  where "unit" is rad/s for gyros and m/s^2 for accelerometers.
+* :class:`AllanCurve`: a measured Allan deviation curve, interpolated linearly in log-log and
+  extrapolated with the end slopes.
+* none: estimated from the segment itself (:func:`self_noise_sigma`): the overlapping Allan
+  variance within the segment at the longest cluster time it supports, extrapolated to T with
+  the slope observed over the last octaves (never steeper than white noise).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+_TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """IEEE Std 952 noise coefficients per axis, SI units (see module docstring).
+
+    Each field is a float or a (3,) array; missing terms are zero.
+    """
+
+    Q: ArrayLike = 0.0
+    N: ArrayLike = 0.0
+    B: ArrayLike = 0.0
+    K: ArrayLike = 0.0
+    R: ArrayLike = 0.0
+
+    def avar(self, tau_s: ArrayLike) -> NDArray[np.float64]:
+        """Allan variance (unit^2) at cluster times tau (s): shape (..., 3) for (...,) tau."""
+        tau = np.asarray(tau_s, dtype=np.float64)[..., None]
+        q, n, b, k, r = (np.broadcast_to(np.asarray(v, dtype=np.float64), (3,))
+                         for v in (self.Q, self.N, self.B, self.K, self.R))
+        return (3.0 * q**2 / tau**2 + n**2 / tau + _TWO_LN2_OVER_PI * b**2
+                + k**2 * tau / 3.0 + r**2 * tau**2 / 2.0)
+
+
+@dataclass(frozen=True)
+class AllanCurve:
+    """A tabulated Allan deviation: tau (M,) in s, adev (M, 3) in the signal's unit."""
+
+    tau: NDArray[np.float64]
+    adev: NDArray[np.float64]
+
+    def avar(self, tau_s: ArrayLike) -> NDArray[np.float64]:
+        """Allan variance at tau (log-log interpolation, end slopes extrapolated): (..., 3)."""
+        t = np.asarray(self.tau, dtype=np.float64)
+        a = np.asarray(self.adev, dtype=np.float64).reshape(t.size, -1)
+        lt, la = np.log(t), np.log(a)
+        x = np.log(np.asarray(tau_s, dtype=np.float64))
+        out = np.empty(np.shape(x) + (a.shape[1],))
+        for j in range(a.shape[1]):
+            y = np.interp(x, lt, la[:, j])
+            if t.size >= 2:
+                lo_slope = (la[1, j] - la[0, j]) / (lt[1] - lt[0])
+                hi_slope = (la[-1, j] - la[-2, j]) / (lt[-1] - lt[-2])
+                y = np.where(x < lt[0], la[0, j] + lo_slope * (x - lt[0]), y)
+                y = np.where(x > lt[-1], la[-1, j] + hi_slope * (x - lt[-1]), y)
+            out[..., j] = np.exp(2.0 * y)
+        return out
+
+
+@dataclass(frozen=True)
+class SegmentMean:
+    """Mean of a segment and its standard uncertainty.
+
+    mean, sigma: (3,) in the samples' unit; duration_s: T = n / fs;
+    method: "noise_model", "allan_curve" or "self"; naive_sigma: the white-noise figure
+    std/sqrt(n), kept for comparison only.
+    """
+
+    mean: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    duration_s: float
+    n: int
+    method: str
+    naive_sigma: NDArray[np.float64]
+
+
+def mean_sigma_from_model(duration_s: float, model: NoiseModel | AllanCurve) -> NDArray[np.float64]:
+    """Standard uncertainty of a T-second mean: sqrt(sigma_A^2(T)), (3,)."""
+    return np.sqrt(model.avar(float(duration_s)))
+
+
+def overlapping_avar(x: NDArray[np.float64], m_list: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Overlapping Allan variance of samples x (n, c) at cluster sizes m (in samples).
+
+        sigma^2(m t0) = 1/(2 (n - 2m + 1)) sum_k (xbar_{k+m} - xbar_k)^2
+
+    with xbar_k the mean of x[k:k+m]; computed from cumulative sums. Returns (len(m), c).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x - x.mean(axis=0), axis=0)])
+    out = np.full((len(m_list), x.shape[1]), np.nan)
+    for i, m in enumerate(m_list):
+        m = int(m)
+        if m < 1 or 2 * m > n:
+            continue
+        means = (c[m:] - c[:-m]) / m  # means of windows starting at 0..n-m
+        d = means[m:] - means[:-m]
+        out[i] = 0.5 * np.mean(d**2, axis=0)
+    return out
+
+
+def self_noise_sigma(x: ArrayLike, fs_hz: float, min_clusters: int = 8) -> NDArray[np.float64]:
+    """Uncertainty of the mean of one segment estimated from the segment itself.
+
+    The overlapping Allan variance is computed at octave cluster sizes up to n/min_clusters
+    (so each point rests on >= min_clusters independent cluster pairs). Its log-log slope over
+    the last two octaves, alpha (sigma_A^2 ~ tau^alpha), is clamped to [-1, 1] ... white noise
+    is alpha = -1, flicker 0, random walk +1; the variance is extrapolated to tau = T:
+
+        sigma_mean^2 = sigma_A^2(tau_max) * (T / tau_max)^max(alpha, -1)
+
+    This never falls below the white-noise value and grows when the noise is coloured.
+    Returns (c,) standard uncertainties.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    if n < 4 * min_clusters:
+        return x.std(axis=0, ddof=1) / np.sqrt(n) * 2.0  # too short to say more: be generous
+    m_max = max(1, n // min_clusters)
+    m_list = np.unique(np.concatenate([2 ** np.arange(0, int(np.log2(m_max)) + 1), [m_max]]))
+    av = overlapping_avar(x, m_list)
+    T = n / fs_hz
+    tau = m_list / fs_hz
+    k = len(m_list)
+    i0 = max(0, k - 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = (np.log(av[-1]) - np.log(av[i0])) / (np.log(tau[-1]) - np.log(tau[i0])) if k > 1 \
+            else -np.ones(x.shape[1])
+    alpha = np.clip(np.nan_to_num(alpha, nan=-1.0), -1.0, 1.0)
+    var = av[-1] * (T / tau[-1]) ** alpha
+    white = x.var(axis=0, ddof=1) / n
+    return np.sqrt(np.maximum(var, white))
+
+
+def segment_mean(
+    samples: ArrayLike,
+    fs_hz: float,
+    noise: NoiseModel | AllanCurve | None = None,
+) -> SegmentMean:
+    """Mean of a segment's samples (n, 3) and its standard uncertainty.
+
+    Args:
+        samples: (n, 3) (or (n,)) samples of a static or constant-rate window, SI units.
+        fs_hz: sample rate, Hz (T = n / fs).
+        noise: the sensor's noise model; None estimates it from the segment (see
+            :func:`self_noise_sigma`).
+    """
+    x = np.asarray(samples, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    if n < 2:
+        raise ValueError("a segment needs at least two samples")
+    T = n / float(fs_hz)
+    naive = x.std(axis=0, ddof=1) / np.sqrt(n)
+    if noise is None:
+        sig, method = self_noise_sigma(x, fs_hz), "self"
+    else:
+        sig = mean_sigma_from_model(T, noise)[: x.shape[1]]
+        method = "noise_model" if isinstance(noise, NoiseModel) else "allan_curve"
+    return SegmentMean(mean=x.mean(axis=0), sigma=np.asarray(sig, dtype=np.float64), duration_s=T,
+                       n=n, method=method, naive_sigma=naive)
+
+
+def allan_curve_from_samples(samples: ArrayLike, fs_hz: float, min_clusters: int = 8) -> AllanCurve:
+    """Overlapping Allan deviation of a (long, static) record at octave cluster times.
+
+    Useful to build a noise model from an initial static period when no characterisation of
+    the sensor exists (e.g. hand-held multi-position data).
+    """
+    x = np.asarray(samples, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n = x.shape[0]
+    m_max = max(1, n // min_clusters)
+    m_list = np.unique(2 ** np.arange(0, int(np.log2(m_max)) + 1))
+    av = overlapping_avar(x, m_list)
+    return AllanCurve(tau=m_list / float(fs_hz), adev=np.sqrt(av))
+
+
+def gauss_markov_avar(tau_s: ArrayLike, sigma: float, tc_s: float) -> NDArray[np.float64]:
+    """Allan variance of a first-order Gauss-Markov process (variance sigma^2, time const Tc):
+
+        sigma_A^2(tau) = (2 sigma^2 Tc / tau) [1 - Tc/(2 tau) (3 - 4 e^{-tau/Tc} + e^{-2 tau/Tc})]
+    """
+    tau = np.asarray(tau_s, dtype=np.float64)
+    r = tau / tc_s
+    return 2.0 * sigma**2 * tc_s / tau * (1.0 - (3.0 - 4.0 * np.exp(-r) + np.exp(-2.0 * r)) / (2.0 * r))

@@ -1,0 +1,155 @@
+"""Per-segment table: the input of the calibration solvers and of the closed loop.
+
+One row per static or constant-rate segment (K rows). The lead builds it from a recording:
+the means and their uncertainties from :mod:`rigctl.solvers.segment_stats`, the references
+from :func:`rigctl.frames.body_references` (gravity along up and Earth rate rotated into the
+body frame, plus the table rate), the attitude from :func:`rigctl.frames.gimbal_dcm`.
+
+Required fields (SI units):
+
+=================  ========  =====================================================
+field              shape     meaning
+=================  ========  =====================================================
+kind               (K,)      "orientation" (static), "rate" (constant rate), "ramp"
+                             (window with angular acceleration), or any other label
+f                  (K, 3)    measured mean specific force, m/s^2
+w                  (K, 3)    measured mean angular rate, rad/s
+f_sigma            (K, 3)    standard uncertainty of f, m/s^2 (Allan deviation at T)
+w_sigma            (K, 3)    standard uncertainty of w, rad/s
+f_ref              (K, 3)    true mean specific force in the body frame, m/s^2
+w_ref              (K, 3)    true mean angular rate in the body frame (Earth + table), rad/s
+=================  ========  =====================================================
+
+Optional fields (None when unknown; candidates needing them are then "not available"):
+
+=================  ==========  ===================================================
+label              (K,)        human label of the segment
+time               (K,)        segment mid time since run start, s
+temperature        (K,)        mean IMU temperature, degC
+table_rate         (K, 3)      gimbal rates [outer, middle, inner], rad/s
+ang_accel          (K, 3)      mean body angular acceleration, rad/s^2 (0 for constant rate)
+attitude           (K, 3, 3)   C_b^n, body-to-ENU of the (nominally level) table
+earth_rate_n       (3,)        Earth rate in ENU, rad/s (for the levelling candidate)
+gravity_m_s2       float       local gravity used in f_ref
+f_ref_outer        (K, 3, 3)   mean of f f^T over the segment, m^2/s^4
+w_ref_outer        (K, 3, 3)   mean of w w^T over the segment, rad^2/s^2
+w_ref_cube         (K, 3)      mean of w_i^3, rad^3/s^3
+w_ref_abs          (K, 3)      mean of |w_i|, rad/s
+f_ref_abs          (K, 3)      mean of |f_i|, m/s^2
+=================  ==========  ===================================================
+
+The moment fields matter only for segments whose reference changes within the window
+(ramps, rotation about a horizontal axis): nonlinear terms act on the moments, not on the
+mean. For constant segments they equal the functions of the mean, which are the defaults.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros.
+CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+
+
+@dataclass
+class SegmentTable:
+    """Per-segment means, uncertainties and references (see the module docstring)."""
+
+    kind: NDArray[Any]
+    f: NDArray[np.float64]
+    w: NDArray[np.float64]
+    f_sigma: NDArray[np.float64]
+    w_sigma: NDArray[np.float64]
+    f_ref: NDArray[np.float64]
+    w_ref: NDArray[np.float64]
+    label: NDArray[Any] | None = None
+    time: NDArray[np.float64] | None = None
+    temperature: NDArray[np.float64] | None = None
+    table_rate: NDArray[np.float64] | None = None
+    ang_accel: NDArray[np.float64] | None = None
+    attitude: NDArray[np.float64] | None = None
+    earth_rate_n: NDArray[np.float64] | None = None
+    gravity_m_s2: float | None = None
+    f_ref_outer: NDArray[np.float64] | None = None
+    w_ref_outer: NDArray[np.float64] | None = None
+    w_ref_cube: NDArray[np.float64] | None = None
+    w_ref_abs: NDArray[np.float64] | None = None
+    f_ref_abs: NDArray[np.float64] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.kind = np.asarray(self.kind).astype(str)
+        k = self.kind.shape[0]
+        for name in ("f", "w", "f_sigma", "w_sigma", "f_ref", "w_ref"):
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+            if a.shape != (k, 3):
+                raise ValueError(f"SegmentTable.{name} must have shape ({k}, 3), got {a.shape}")
+            setattr(self, name, a)
+        for name in ("f_sigma", "w_sigma"):
+            a = getattr(self, name)
+            if np.any(a[np.isfinite(a)] <= 0):
+                raise ValueError(f"SegmentTable.{name} must be positive")
+        for name, shape in (("time", (k,)), ("temperature", (k,)), ("table_rate", (k, 3)),
+                            ("ang_accel", (k, 3)), ("attitude", (k, 3, 3)),
+                            ("f_ref_outer", (k, 3, 3)), ("w_ref_outer", (k, 3, 3)),
+                            ("w_ref_cube", (k, 3)), ("w_ref_abs", (k, 3)), ("f_ref_abs", (k, 3))):
+            v = getattr(self, name)
+            if v is not None:
+                a = np.asarray(v, dtype=np.float64)
+                if a.shape != shape:
+                    raise ValueError(f"SegmentTable.{name} must have shape {shape}, got {a.shape}")
+                setattr(self, name, a)
+        if self.label is None:
+            self.label = np.array([f"{kd}{i}" for i, kd in enumerate(self.kind)])
+        else:
+            self.label = np.asarray(self.label).astype(str)
+
+    def __len__(self) -> int:
+        return int(self.kind.shape[0])
+
+    # moments with defaults from the means --------------------------------------------------
+    def f_outer(self) -> NDArray[np.float64]:
+        """(K, 3, 3) mean of f_ref f_ref^T (default: outer product of the means)."""
+        if self.f_ref_outer is not None:
+            return self.f_ref_outer
+        return np.einsum("ki,kj->kij", self.f_ref, self.f_ref)
+
+    def w_outer(self) -> NDArray[np.float64]:
+        """(K, 3, 3) mean of w_ref w_ref^T."""
+        if self.w_ref_outer is not None:
+            return self.w_ref_outer
+        return np.einsum("ki,kj->kij", self.w_ref, self.w_ref)
+
+    def w_cube(self) -> NDArray[np.float64]:
+        """(K, 3) mean of w_i^3."""
+        return self.w_ref_cube if self.w_ref_cube is not None else self.w_ref**3
+
+    def w_abs(self) -> NDArray[np.float64]:
+        """(K, 3) mean of |w_i|."""
+        return self.w_ref_abs if self.w_ref_abs is not None else np.abs(self.w_ref)
+
+    def f_abs(self) -> NDArray[np.float64]:
+        """(K, 3) mean of |f_i|."""
+        return self.f_ref_abs if self.f_ref_abs is not None else np.abs(self.f_ref)
+
+    def y(self) -> NDArray[np.float64]:
+        """(K, 6) observations [f, w] in channel order :data:`CHANNELS`."""
+        return np.concatenate([self.f, self.w], axis=1)
+
+    def sigma(self) -> NDArray[np.float64]:
+        """(K, 6) standard uncertainties of :meth:`y`."""
+        return np.concatenate([self.f_sigma, self.w_sigma], axis=1)
+
+    def subset(self, mask: NDArray[np.bool_]) -> "SegmentTable":
+        """Rows selected by a boolean mask or an index array."""
+        idx = np.arange(len(self))[mask]
+        kw: dict[str, Any] = {}
+        for name in ("kind", "f", "w", "f_sigma", "w_sigma", "f_ref", "w_ref", "label", "time",
+                     "temperature", "table_rate", "ang_accel", "attitude", "f_ref_outer",
+                     "w_ref_outer", "w_ref_cube", "w_ref_abs", "f_ref_abs"):
+            v = getattr(self, name)
+            kw[name] = None if v is None else np.asarray(v)[idx]
+        return replace(self, **kw)

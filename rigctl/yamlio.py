@@ -1,0 +1,128 @@
+"""Safe YAML loading that remembers where every value came from (file and line).
+
+Every mapping is loaded as a :class:`LocDict` and every sequence as a :class:`LocList`; both
+carry the source file and the line of each key / item so that validation errors can say
+"procedures/24pos.yaml:12: ...". Only ``yaml.SafeLoader`` is used: no arbitrary objects.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class InputError(Exception):
+    """Invalid user input (procedure or config): carries file, line and a hint on what to do."""
+
+    def __init__(self, message: str, file: str | Path | None = None, line: int | None = None,
+                 hint: str | None = None) -> None:
+        self.message = message
+        self.file = str(file) if file is not None else None
+        self.line = line
+        self.hint = hint
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        where = ""
+        if self.file:
+            where = f"{self.file}:{self.line}: " if self.line else f"{self.file}: "
+        text = f"{where}{self.message}"
+        if self.hint:
+            text += f" ({self.hint})"
+        return text
+
+
+class InputErrors(InputError):
+    """Several input errors found in one pass."""
+
+    def __init__(self, errors: list[InputError]) -> None:
+        self.errors = errors
+        first = errors[0]
+        super().__init__(first.message, first.file, first.line, first.hint)
+
+    def __str__(self) -> str:
+        return "\n".join(InputError.__str__(e) for e in self.errors)
+
+
+class LocDict(dict):
+    """A dict that knows its source file, its own line and the line of each key."""
+
+    file: str = "<string>"
+    line: int = 0
+    key_lines: dict
+
+    def line_of(self, key: Any) -> int:
+        return self.key_lines.get(key, self.line)
+
+
+class LocList(list):
+    """A list that knows its source file, its own line and the line of each item."""
+
+    file: str = "<string>"
+    line: int = 0
+    item_lines: list
+
+    def line_of(self, index: int) -> int:
+        return self.item_lines[index] if 0 <= index < len(self.item_lines) else self.line
+
+
+def _make_loader(file: str) -> type[yaml.SafeLoader]:
+    class _Loader(yaml.SafeLoader):
+        pass
+
+    def construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode) -> LocDict:
+        loader.flatten_mapping(node)
+        out = LocDict()
+        out.file, out.line, out.key_lines = file, node.start_mark.line + 1, {}
+        for key_node, value_node in node.value:
+            key = loader.construct_object(key_node, deep=True)
+            if not isinstance(key, (str, int, float, bool)) and key is not None:
+                raise InputError("mapping keys must be plain scalars", file,
+                                 key_node.start_mark.line + 1)
+            if key in out:
+                raise InputError(f"duplicate key {key!r}", file, key_node.start_mark.line + 1,
+                                 "remove one of the two")
+            out[key] = loader.construct_object(value_node, deep=True)
+            out.key_lines[key] = key_node.start_mark.line + 1
+        return out
+
+    def construct_sequence(loader: yaml.SafeLoader, node: yaml.SequenceNode) -> LocList:
+        out = LocList(loader.construct_object(child, deep=True) for child in node.value)
+        out.file, out.line = file, node.start_mark.line + 1
+        out.item_lines = [child.start_mark.line + 1 for child in node.value]
+        return out
+
+    _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
+    _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, construct_sequence)
+    return _Loader
+
+
+def load_text(text: str, file: str | Path = "<string>") -> Any:
+    """Parse YAML text with the safe loader, keeping line numbers; errors name file and line."""
+    loader_cls = _make_loader(str(file))
+    try:
+        return yaml.load(text, Loader=loader_cls)  # noqa: S506 - _Loader derives SafeLoader
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else None
+        raise InputError(f"YAML syntax error: {exc.problem or exc.context}", file, line,
+                         "check indentation and quoting on that line") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"YAML error: {exc}", file) from None
+
+
+def load_file(path: str | Path) -> Any:
+    """Read and parse a YAML file (safe loader, line numbers kept)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("file not found", p, hint="check the path") from None
+    except IsADirectoryError:
+        raise InputError("is a directory, expected a YAML file", p) from None
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 text file", p) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", p) from None
+    return load_text(text, p)
