@@ -116,7 +116,6 @@ def _device(m: LocDict, key: str, drivers: tuple[str, ...], default_driver: str 
         if default_driver is None:
             raise S.error(m, None, f"the config has no {key!r} section", f"add '{key}:' with a driver")
         d = LocDict(driver=default_driver)
-        d.key_lines = {}
         return DeviceConfig(default_driver, d), d
     d = S.require_mapping(m[key], f"the {key!r} section", m, key)
     driver = S.get_str(d, "driver", choices=drivers)
@@ -153,7 +152,6 @@ def load_config(path: str | Path) -> RigConfig:
         if "limits" in t else None
     if lim is None:
         lim = LocDict()
-        lim.key_lines = {}
     S.check_keys(lim, ("rate_dps", "accel_dps2", "angle_deg"), "'table.limits'")
     lo, hi = _angle_ranges(lim)
     limits = TableLimits(rate=_three(lim, "rate_dps", [300.0, 300.0, 500.0]),

@@ -180,9 +180,28 @@ class Engine:
                 on_step(step, seg)
         return segments
 
-    def safe_state(self) -> None:
-        """Stop the table (rate zero, mode off); never raises."""
+    def safe_state(self, wait_s: float = 2.0) -> bool:
+        """Command the table to stop (rate zero, mode off), then record its state until it is
+        still or ``wait_s`` has passed. Returns True when the table reported standing still.
+        Never raises: the caller still has to close the file."""
+        self.abort_requested = None
         try:
             self.rig.table.stop()
         except Exception as exc:  # noqa: BLE001 - reported, the caller still closes the file
             self.log("error", f"could not stop the table: {exc}")
+            return False
+        clock = self.rig.clock
+        t0 = clock.now()
+        try:
+            while True:
+                state = self.poll()
+                if not state.any_has(AxisStatus.MOVING):
+                    self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
+                    return True
+                if clock.now() - t0 >= wait_s:
+                    self.log("error", "the table still reports motion after the stop command")
+                    return False
+                clock.sleep(self.settle_poll_s)
+        except Exception as exc:  # noqa: BLE001
+            self.log("error", f"could not read the table after stopping it: {exc}")
+            return False

@@ -235,9 +235,7 @@ class _Compiler:
             S.check_keys(item, (*STEP_KINDS, "include"), "the step")  # raises: unknown kind
         body = self.subst(body if body is not None else LocDict(), item, kind)
         opts = S.require_mapping(body, f"the {kind!r} step", item, kind)
-        if not opts.key_lines:
-            opts.line = item.line_of(kind)
-            opts.file = item.file
+        opts.line, opts.file = item.line_of(kind), item.file  # "missing ..." points at the step
         getattr(self, f"_{kind}")(opts, defaults)
 
     def _policy(self, o: LocDict, defaults: dict[str, Any]) -> tuple[SettlePolicy, float, float]:

@@ -28,11 +28,7 @@ def require_mapping(obj: Any, what: str, parent: Any = None, key: Any = None) ->
     if not isinstance(obj, dict):
         raise error(parent if parent is not None else obj, key,
                     f"{what} must be a mapping (key: value lines), got {_kind(obj)}")
-    if not isinstance(obj, LocDict):  # built in code, not parsed: give it empty locations
-        loc = LocDict(obj)
-        loc.key_lines = {}
-        return loc
-    return obj
+    return obj if isinstance(obj, LocDict) else LocDict(obj)
 
 
 def _kind(obj: Any) -> str:

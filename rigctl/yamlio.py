@@ -48,9 +48,11 @@ class InputErrors(InputError):
 class LocDict(dict):
     """A dict that knows its source file, its own line and the line of each key."""
 
-    file: str = "<string>"
-    line: int = 0
-    key_lines: dict
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.file: str = "<string>"
+        self.line: int = 0
+        self.key_lines: dict = {}
 
     def line_of(self, key: Any) -> int:
         return self.key_lines.get(key, self.line)
@@ -59,9 +61,11 @@ class LocDict(dict):
 class LocList(list):
     """A list that knows its source file, its own line and the line of each item."""
 
-    file: str = "<string>"
-    line: int = 0
-    item_lines: list
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.file: str = "<string>"
+        self.line: int = 0
+        self.item_lines: list = []
 
     def line_of(self, index: int) -> int:
         return self.item_lines[index] if 0 <= index < len(self.item_lines) else self.line

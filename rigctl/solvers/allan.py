@@ -1,0 +1,443 @@
+"""Allan-family deviations as pure functions of numpy arrays.
+
+Conventions (IEEE Std 952-1997, NIST SP 1065 "Handbook of Frequency Stability Analysis"):
+
+* ``rate`` input ``y`` (frequency-like: gyro rad/s, accelerometer m/s^2, fractional frequency)
+  sampled every ``tau0`` seconds, or ``phase`` input ``x`` (integrated output: delta-angle
+  running sum in rad, delta-velocity running sum in m/s, clock phase in s).
+  ``x[k] = tau0 * sum_{j<k} y[j]`` (so ``N`` rate samples give ``N + 1`` phase points).
+* Deviations come out in the units of ``y`` (rate units); ``tau = m * tau0`` in s.
+
+Estimators, for phase points x[0..N-1] and averaging factor m (tau = m tau0):
+
+* overlapping Allan (primary)::
+
+      AVAR(tau) = sum_{i=0}^{N-2m-1} (x[i+2m] - 2 x[i+m] + x[i])^2 / (2 tau^2 (N - 2m))
+
+* non-overlapping Allan: the same sum over i = 0, m, 2m, ... (floor((N-1)/m) - 1 terms)
+* modified Allan::
+
+      MVAR(tau) = sum_{j=0}^{N-3m} (sum_{i=j}^{j+m-1} x[i+2m] - 2x[i+m] + x[i])^2
+                  / (2 m^2 tau^2 (N - 3m + 1))
+
+  time deviation TDEV = tau * MDEV / sqrt(3)
+* overlapping Hadamard::
+
+      HVAR(tau) = sum_{i=0}^{N-3m-1} (x[i+3m] - 3x[i+2m] + 3x[i+m] - x[i])^2 / (6 tau^2 (N-3m))
+
+  (non-overlapping Hadamard: every m-th term)
+* total deviation (Howe): the overlapping Allan sum over the phase extended by uninverted
+  even reflection at both ends, x*[1-j] = 2x[1] - x[1+j], x*[N+j] = 2x[N] - x[N-j]::
+
+      TOTVAR(tau) = sum_{i=2}^{N-1} (x*[i-m] - 2x*[i] + x*[i+m])^2 / (2 tau^2 (N - 2))
+
+Two ways to compute the overlapping Allan deviation: ``mode="exact"`` evaluates every term of
+the fully overlapping sum in float64; ``mode="fast"`` (default) evaluates, for long taus, only
+every s-th term (s a power of two, s <= m/8, i.e. the overlapping estimator on the phase
+decimated by s: a decimated-phase pyramid). Consecutive terms at lags below m/8 are almost
+perfectly correlated, so the equivalent degrees of freedom are kept (tested). The streaming
+:class:`OadevAccumulator` computes the same sums from chunks with bounded memory.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence, Union
+
+import numpy as np
+
+TauSpec = Union[str, int, Sequence[int]]
+
+#: maximum averaging factor as a fraction of (N - 1) phase intervals (Stable32's limits)
+_MAX_FRACTION = {"adev": 5, "hdev": 5, "oadev": 4, "mdev": 4, "tdev": 4, "ohdev": 4,
+                 "totdev": 2}
+_BLOCK = 1 << 16  # samples per in-cache block in the hot loops
+#: below this many phase points mode="fast" computes the exact sums (they are cheap there)
+FAST_MIN_POINTS = 1 << 20
+
+
+@dataclass
+class DevResult:
+    """One deviation curve. ``dev`` in rate units; ``tau_s`` in s; ``n_terms`` summed terms;
+    ``stride`` the spacing of the terms actually summed (1 = fully overlapping)."""
+
+    kind: str
+    tau0_s: float
+    m: np.ndarray
+    tau_s: np.ndarray
+    dev: np.ndarray
+    n_terms: np.ndarray
+    n_phase: int
+    stride: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind, "tau0_s": self.tau0_s, "n_phase": int(self.n_phase),
+                "m": self.m.tolist(), "tau_s": self.tau_s.tolist(), "dev": self.dev.tolist(),
+                "n_terms": self.n_terms.tolist(), "stride": self.stride.tolist()}
+
+
+# --------------------------------------------------------------------------- input handling
+def phase_from_rate(rate: np.ndarray, tau0: float, offset: float | None = None) -> np.ndarray:
+    """Integrate a rate series to phase, float64: x[0] = 0, x[k] = tau0 * sum_{j<k}(y[j] - c).
+
+    ``c`` (``offset``, default the mean of ``rate``) is removed first: a constant rate adds a
+    linear phase term that every deviation here cancels exactly, and removing it keeps the
+    running sum small (a float32 sum with gravity on the axis is wrong by orders of magnitude).
+    """
+    y = np.asarray(rate, dtype=np.float64)
+    if y.ndim != 1:
+        raise ValueError("rate must be one-dimensional")
+    c = float(np.mean(y)) if offset is None else float(offset)
+    x = np.empty(y.size + 1, dtype=np.float64)
+    x[0] = 0.0
+    np.subtract(y, c, out=x[1:])
+    np.cumsum(x[1:], out=x[1:])
+    x[1:] *= tau0
+    return x
+
+
+def _phase(data: np.ndarray, tau0: float, data_type: str) -> np.ndarray:
+    if data_type == "phase":
+        x = np.asarray(data, dtype=np.float64)
+        if x.ndim != 1:
+            raise ValueError("phase must be one-dimensional")
+        return x
+    if data_type in ("rate", "freq"):
+        return phase_from_rate(data, tau0)
+    raise ValueError(f"data_type must be 'rate' or 'phase', not {data_type!r}")
+
+
+def max_factor(n_phase: int, kind: str) -> int:
+    """Largest averaging factor Stable32 reports for ``kind`` with ``n_phase`` phase points."""
+    return max(1, (n_phase - 1) // _MAX_FRACTION[kind])
+
+
+def tau_factors(n_phase: int, taus: TauSpec = "octave", kind: str = "oadev") -> np.ndarray:
+    """Averaging factors m for a tau set.
+
+    ``"octave"``: 1, 2, 4, ...; ``"decade"``: 1, 2, 4, 10, 20, 40, ... (Stable32);
+    ``"all"``: every integer; an int ``n``: n log-spaced factors (unique after rounding);
+    a sequence: the given factors. All are clipped to :func:`max_factor`.
+    """
+    mmax = max_factor(n_phase, kind)
+    if isinstance(taus, str):
+        if taus == "octave":
+            m = 2 ** np.arange(0, int(np.log2(mmax)) + 1)
+        elif taus == "decade":
+            dec = [k * 10 ** e for e in range(0, 19) for k in (1, 2, 4)]
+            m = np.array([v for v in dec if v <= mmax])
+        elif taus == "all":
+            m = np.arange(1, mmax + 1)
+        else:
+            raise ValueError(f"unknown tau set {taus!r} (octave, decade, all or an integer)")
+    elif isinstance(taus, (int, np.integer)):
+        if taus < 1:
+            raise ValueError("number of taus must be >= 1")
+        m = np.unique(np.round(np.logspace(0, np.log10(mmax), int(taus))).astype(np.int64))
+    else:
+        m = np.unique(np.asarray(list(taus), dtype=np.int64))
+    m = np.asarray(m, dtype=np.int64)
+    return m[(m >= 1) & (m <= mmax)]
+
+
+def fast_stride(m: int) -> int:
+    """Stride of the fast estimator: the largest power of two s with s <= m/8 that divides m."""
+    s = 1
+    while (m % (2 * s) == 0) and (2 * s * 8 <= m):
+        s *= 2
+    return s
+
+
+def snap_fast(m: np.ndarray) -> np.ndarray:
+    """Round factors >= 16 to k * 2^j with 8 <= k < 16 (so the fast stride is m/16..m/8)."""
+    out = []
+    for v in np.asarray(m, dtype=np.int64):
+        if v < 16:
+            out.append(int(v))
+            continue
+        j = int(np.floor(np.log2(v / 8.0)))
+        k = int(round(v / 2 ** j))
+        if k >= 16:
+            j, k = j + 1, 8
+        out.append(k * 2 ** j)
+    return np.unique(np.array(out, dtype=np.int64))
+
+
+# --------------------------------------------------------------------------- kernels
+def _sum_d2(x: np.ndarray, k: int, lo: int, hi: int, scratch: np.ndarray) -> float:
+    """sum_{i=lo}^{hi-1} (x[i+2k] - 2 x[i+k] + x[i])^2, blocked to stay in cache."""
+    total = 0.0
+    for a in range(lo, hi, _BLOCK):
+        b = min(hi, a + _BLOCK)
+        d = scratch[: b - a]
+        np.add(x[a + 2 * k: b + 2 * k], x[a:b], out=d)
+        d -= x[a + k: b + k]
+        d -= x[a + k: b + k]
+        total += float(np.dot(d, d))
+    return total
+
+
+def _oadev_exact_sums(x: np.ndarray, ms: np.ndarray) -> np.ndarray:
+    scratch = np.empty(_BLOCK)
+    return np.array([_sum_d2(x, int(m), 0, x.size - 2 * int(m), scratch) for m in ms])
+
+
+# --------------------------------------------------------------------------- streaming
+class _Level:
+    """Overlapping-Allan sums at lags ``ks`` on the phase decimated by ``s`` (streamed)."""
+
+    def __init__(self, s: int, ks: list[int]):
+        self.s = s
+        self.ks = sorted(ks)
+        self.keep = 2 * self.ks[-1]
+        self.tail = np.empty(0)
+        self.b0 = 0  # decimated index of tail[0]
+        self.next_start = {k: 0 for k in self.ks}
+        self.sums = {k: 0.0 for k in self.ks}
+        self.counts = {k: 0 for k in self.ks}
+
+    def feed(self, x_chunk: np.ndarray, g0: int, scratch: np.ndarray) -> None:
+        start = (-g0) % self.s
+        new = x_chunk[start:: self.s]
+        if new.size == 0:
+            return
+        buf = np.concatenate((self.tail, new)) if self.tail.size else np.ascontiguousarray(new)
+        end = self.b0 + buf.size
+        for k in self.ks:
+            lo = self.next_start[k] - self.b0
+            hi = buf.size - 2 * k
+            if hi > lo:
+                self.sums[k] += _sum_d2(buf, k, lo, hi, scratch)
+                self.counts[k] += hi - lo
+                self.next_start[k] = end - 2 * k
+        cut = max(0, buf.size - self.keep)
+        self.tail = buf[cut:].copy()
+        self.b0 += cut
+
+
+class OadevAccumulator:
+    """Streaming overlapping Allan deviation with bounded memory.
+
+    Feed rate chunks (``add_rate``) or phase chunks (``add_phase``) of an arbitrarily long
+    series; :meth:`result` gives the same sums as the one-shot estimator. Phase is built with
+    float64 cumulative sums after removing a constant offset (the first chunk's mean, or
+    ``offset``), so gravity on an accelerometer axis costs no precision. Memory: a tail of at
+    most 2 * max(m / stride) phase points per decimation level, i.e. kilobytes in fast mode
+    and 2 * m_max points in exact mode.
+    """
+
+    def __init__(self, tau0: float, ms: Iterable[int], mode: str = "fast",
+                 offset: float | None = None):
+        if mode not in ("fast", "exact"):
+            raise ValueError("mode must be 'fast' or 'exact'")
+        self.tau0 = float(tau0)
+        self.ms = np.unique(np.asarray(list(ms), dtype=np.int64))
+        if self.ms.size == 0 or self.ms[0] < 1:
+            raise ValueError("need at least one averaging factor >= 1")
+        self.mode = mode
+        self.strides = np.array([fast_stride(int(m)) if mode == "fast" else 1 for m in self.ms])
+        levels: dict[int, list[int]] = {}
+        for m, s in zip(self.ms, self.strides):
+            levels.setdefault(int(s), []).append(int(m) // int(s))
+        self.levels = [_Level(s, ks) for s, ks in sorted(levels.items())]
+        self.offset = offset
+        self.n_phase = 0
+        self._x_last = 0.0
+        self._scratch = np.empty(_BLOCK)
+
+    def add_rate(self, y: np.ndarray) -> None:
+        """Append rate samples (any float dtype); converted to float64 per chunk."""
+        y = np.asarray(y, dtype=np.float64).ravel()
+        if y.size == 0:
+            return
+        if self.offset is None:
+            self.offset = float(np.mean(y))
+        if self.n_phase == 0:
+            self._feed(np.zeros(1))
+        x = y - self.offset
+        np.cumsum(x, out=x)
+        x *= self.tau0
+        x += self._x_last
+        self._feed(x)
+
+    def add_phase(self, x: np.ndarray) -> None:
+        """Append phase points (rate units x s). A constant offset is removed (float64)."""
+        x = np.array(x, dtype=np.float64).ravel()
+        if x.size == 0:
+            return
+        if self.offset is None:
+            self.offset = float(x[0])
+        x -= self.offset
+        self._feed(x)
+
+    def _feed(self, x: np.ndarray) -> None:
+        for lev in self.levels:
+            lev.feed(x, self.n_phase, self._scratch)
+        self.n_phase += x.size
+        self._x_last = float(x[-1])
+
+    def result(self) -> DevResult:
+        """Deviations for every factor with at least one complete term."""
+        devs, ns = [], []
+        for m, s in zip(self.ms, self.strides):
+            lev = next(lv for lv in self.levels if lv.s == s)
+            k = int(m) // int(s)
+            n = lev.counts[k]
+            ns.append(n)
+            tau = m * self.tau0
+            devs.append(np.sqrt(lev.sums[k] / (2.0 * tau * tau * n)) if n > 0 else np.nan)
+        ok = np.array(ns) > 0
+        n_terms = np.where(self.strides == 1, np.array(ns), self.n_phase - 2 * self.ms)
+        return DevResult("oadev", self.tau0, self.ms[ok], self.ms[ok] * self.tau0,
+                         np.array(devs)[ok], n_terms[ok], self.n_phase, self.strides[ok])
+
+
+# --------------------------------------------------------------------------- deviations
+def oadev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+          data_type: str = "rate", mode: str = "fast") -> DevResult:
+    """Overlapping Allan deviation (see module docstring); ``mode`` "fast" or "exact".
+
+    ``n_terms`` is the term count of the fully overlapping estimator, N - 2m, in both modes;
+    ``stride`` says which terms the fast mode actually summed.
+    """
+    if mode not in ("fast", "exact"):
+        raise ValueError("mode must be 'fast' or 'exact'")
+    arr = np.asarray(data)
+    n_phase = arr.size + (1 if data_type != "phase" else 0)
+    _check_length(n_phase)
+    ms = tau_factors(n_phase, taus, "oadev")
+    if mode == "exact" or n_phase < FAST_MIN_POINTS:
+        x = _phase(arr, tau0, data_type)
+        sums = _oadev_exact_sums(x, ms)
+        n = x.size - 2 * ms
+        tau = ms * tau0
+        return DevResult("oadev", tau0, ms, tau, np.sqrt(sums / (2.0 * tau * tau * n)), n,
+                         x.size, np.ones_like(ms))
+    acc = OadevAccumulator(tau0, ms, "fast")
+    add = acc.add_phase if data_type == "phase" else acc.add_rate
+    if data_type == "phase":
+        acc.offset = float(arr[0])
+    else:
+        acc.offset = float(np.mean(arr))
+    step = 1 << 20
+    for a in range(0, arr.size, step):
+        add(arr[a: a + step])
+    return acc.result()
+
+
+def _check_length(n_phase: int) -> None:
+    if n_phase < 3:
+        raise ValueError(f"need at least 3 phase points (2 rate samples), got {n_phase}")
+
+
+def _second_diff(x: np.ndarray, m: int) -> np.ndarray:
+    d = x[2 * m:] - x[m:-m]
+    d -= x[m:-m]
+    d += x[: x.size - 2 * m]
+    return d
+
+
+def adev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+         data_type: str = "rate") -> DevResult:
+    """Non-overlapping Allan deviation (terms at i = 0, m, 2m, ...)."""
+    x = _phase(data, tau0, data_type)
+    _check_length(x.size)
+    ms = tau_factors(x.size, taus, "adev")
+    devs, ns = [], []
+    for m in ms:
+        xs = x[:: m]
+        d = xs[2:] - 2 * xs[1:-1] + xs[:-2]
+        ns.append(d.size)
+        devs.append(np.sqrt(np.dot(d, d) / (2.0 * (m * tau0) ** 2 * d.size)))
+    return DevResult("adev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
+                     ms.copy())
+
+
+def mdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+         data_type: str = "rate") -> DevResult:
+    """Modified Allan deviation (see module docstring)."""
+    x = _phase(data, tau0, data_type)
+    _check_length(x.size)
+    ms = tau_factors(x.size, taus, "mdev")
+    devs, ns = [], []
+    for m in ms:
+        m = int(m)
+        c = np.empty(x.size - 2 * m + 1)
+        c[0] = 0.0
+        np.cumsum(_second_diff(x, m), out=c[1:])
+        s = c[m:] - c[:-m]
+        ns.append(s.size)
+        tau = m * tau0
+        devs.append(np.sqrt(np.dot(s, s) / (2.0 * m * m * tau * tau * s.size)))
+    return DevResult("mdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
+                     np.ones_like(ms))
+
+
+def tdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+         data_type: str = "rate") -> DevResult:
+    """Time deviation TDEV = tau * MDEV / sqrt(3) (units of phase)."""
+    r = mdev(data, tau0, taus, data_type)
+    r.kind = "tdev"
+    r.dev = r.tau_s * r.dev / np.sqrt(3.0)
+    return r
+
+
+def _third_diff(x: np.ndarray, m: int) -> np.ndarray:
+    n = x.size - 3 * m
+    return x[3 * m:] - 3.0 * x[2 * m: 2 * m + n] + 3.0 * x[m: m + n] - x[:n]
+
+
+def ohdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+          data_type: str = "rate") -> DevResult:
+    """Overlapping Hadamard deviation (see module docstring)."""
+    x = _phase(data, tau0, data_type)
+    _check_length(x.size)
+    ms = tau_factors(x.size, taus, "ohdev")
+    devs, ns = [], []
+    for m in ms:
+        d = _third_diff(x, int(m))
+        ns.append(d.size)
+        devs.append(np.sqrt(np.dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
+    return DevResult("ohdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
+                     np.ones_like(ms))
+
+
+def hdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+         data_type: str = "rate") -> DevResult:
+    """Non-overlapping Hadamard deviation (every m-th term)."""
+    x = _phase(data, tau0, data_type)
+    _check_length(x.size)
+    ms = tau_factors(x.size, taus, "hdev")
+    devs, ns = [], []
+    for m in ms:
+        d = _third_diff(x[:: int(m)], 1)
+        ns.append(d.size)
+        devs.append(np.sqrt(np.dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
+    return DevResult("hdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
+                     ms.copy())
+
+
+def totdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
+           data_type: str = "rate") -> DevResult:
+    """Total deviation (Howe; NIST SP 1065 eq. 25; see module docstring)."""
+    x = _phase(data, tau0, data_type)
+    n = x.size
+    _check_length(n)
+    ms = tau_factors(n, taus, "totdev")
+    # extended series: reflections of n-2 points each side; index of x[0] is n-2
+    head = 2.0 * x[0] - x[n - 2: 0: -1]
+    tail = 2.0 * x[-1] - x[-2: 0: -1]
+    xe = np.concatenate((head, x, tail))
+    off = n - 2
+    devs = []
+    for m in ms:
+        m = int(m)
+        c = xe[off + 1: off + n - 1]
+        d = xe[off + 1 - m: off + n - 1 - m] + xe[off + 1 + m: off + n - 1 + m] - 2.0 * c
+        tau = m * tau0
+        devs.append(np.sqrt(np.dot(d, d) / (2.0 * tau * tau * (n - 2))))
+    return DevResult("totdev", tau0, ms, ms * tau0, np.array(devs),
+                     np.full(ms.size, n - 2), n, np.ones_like(ms))
+
+
+DEVIATIONS = {"adev": adev, "oadev": oadev, "mdev": mdev, "tdev": tdev, "hdev": hdev,
+              "ohdev": ohdev, "totdev": totdev}

@@ -1,0 +1,402 @@
+"""The closed loop: fit the declared model, trace residual structure to a named effect, add it.
+
+All segments and all six channels (accel x, y, z, gyro x, y, z) form one weighted linear
+least-squares problem y = X beta + v, Var(v_i) = s_i^2 (segment means and their uncertainties
+from the noise model). The declared model is A2 for both sensors (accel bias + 3x3 [+ quadratic],
+gyro drift + 3x3), with local gravity and Earth rate in the references.
+
+Loop (every decision is recorded in ``explain``):
+
+1. fit the current model; chi2_0, p_0 parameters, n observations.
+2. for each library candidate not yet in the model: append its regressors (columns that the
+   current model already spans are dropped as not identifiable), refit, and compute
+
+       F = ((chi2_0 - chi2_c) / k) / (chi2_c / (n - p_c)),   p = P(F_{k, n-p_c} > F)
+       BIC = n ln(chi2 / n) + p ln n,   dBIC = BIC_c - BIC_0
+
+   (both are invariant to a common scale error of the noise model).
+3. candidates with p * m < alpha (Bonferroni over the m candidates tested in the round; family-
+   wise alpha = 0.01) and dBIC < 0 are ranked by dBIC; the best one is confirmed by
+   leave-one-segment-out cross-validation, CV = sum_g |e_g,loo|^2 with
+   e_g,loo = (I - H_gg)^-1 e_g (H the hat matrix of the whitened design, g the rows of segment
+   g). It is added only if CV drops; otherwise the next is tried. Repeat until none qualifies.
+4. the residuals of the final model are scanned for correlation with the physical variables
+   (time, temperature, specific force, rate, |rate|, angular acceleration); a significant
+   correlation (Bonferroni-corrected p < alpha) or a chi2 with p < alpha that no candidate
+   explained is reported as *unexplained*, naming the variable.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+import scipy.linalg
+import scipy.stats
+from numpy.typing import NDArray
+
+from .accel24 import accel_columns
+from .calibration_result import CalibrationResult, _jsonable, fit_linear
+from .effect_library import LIBRARY, Effect
+from .gyro_rate import gyro_columns
+from .segments import CHANNELS, SegmentTable
+
+MG_PER_M_S2 = 1.0 / 9.80665e-3
+DEG_H_PER_RAD_S = 180.0 / np.pi * 3600.0
+
+
+def declared_design(seg: SegmentTable, quadratic: bool = True) -> tuple[NDArray[np.float64], list[str]]:
+    """(K, 6, p) design of the declared A2 model for both sensors, and the names."""
+    Xa, na = accel_columns(seg, quadratic)
+    Xg, ng = gyro_columns(seg)
+    K = len(seg)
+    X = np.zeros((K, 6, len(na) + len(ng)))
+    X[:, 0:3, : len(na)] = Xa
+    X[:, 3:6, len(na):] = Xg
+    return X, na + ng
+
+
+@dataclass
+class _Problem:
+    """Flattened, whitened observation rows (finite ones only)."""
+
+    y: NDArray[np.float64]
+    s: NDArray[np.float64]
+    group: NDArray[np.int64]
+    channel: NDArray[np.int64]
+    keep: NDArray[np.bool_]
+
+    @classmethod
+    def from_table(cls, seg: SegmentTable) -> "_Problem":
+        y = seg.y().ravel()
+        s = seg.sigma().ravel()
+        keep = np.isfinite(y) & np.isfinite(s)
+        K = len(seg)
+        group = np.repeat(np.arange(K), 6)[keep]
+        channel = np.tile(np.arange(6), K)[keep]
+        return cls(y[keep], s[keep], group, channel, keep)
+
+    def rows(self, X3: NDArray[np.float64]) -> NDArray[np.float64]:
+        return X3.reshape(-1, X3.shape[-1])[self.keep]
+
+
+def _fit(prob: _Problem, X: NDArray[np.float64], names: list[str], method: str) -> CalibrationResult:
+    return fit_linear(X, prob.y, prob.s, names, method=method, rescale_if_poor=False)
+
+
+def _identifiable(prob: _Problem, q: NDArray[np.float64], Xc: NDArray[np.float64],
+                  rtol: float = 1e-6) -> NDArray[np.bool_]:
+    """Columns of Xc that add something the whitened span (orthonormal basis q) lacks."""
+    B = Xc / prob.s[:, None]
+    Bp = B - q @ (q.T @ B)
+    norms = np.linalg.norm(B, axis=0)
+    keep = np.zeros(B.shape[1], dtype=bool)
+    if not np.any(norms > 0):
+        return keep
+    _, r, piv = scipy.linalg.qr(Bp / np.where(norms > 0, norms, 1.0), mode="economic", pivoting=True)
+    d = np.abs(np.diag(r))
+    keep[piv[d > rtol]] = True
+    return keep & (norms > 0)
+
+
+def loso_cv(prob: _Problem, X: NDArray[np.float64], segments: NDArray[np.int64] | None = None) -> float:
+    """Leave-one-segment-out prediction error sum_g |(I - H_gg)^-1 e_g|^2 (whitened)."""
+    A = X / prob.s[:, None]
+    q, r = np.linalg.qr(A)
+    e = prob.y / prob.s - q @ (q.T @ (prob.y / prob.s))
+    total = 0.0
+    groups = np.unique(prob.group) if segments is None else segments
+    for g in groups:
+        idx = np.flatnonzero(prob.group == g)
+        qg = q[idx]
+        m = np.eye(len(idx)) - qg @ qg.T
+        try:
+            eg = np.linalg.solve(m, e[idx])
+        except np.linalg.LinAlgError:
+            continue
+        total += float(eg @ eg)
+    return total
+
+
+def _cv_groups(prob: _Problem, X_full: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Segments whose omission keeps the larger model estimable (leverage below 1)."""
+    A = X_full / prob.s[:, None]
+    q, _ = np.linalg.qr(A)
+    ok = []
+    for g in np.unique(prob.group):
+        idx = np.flatnonzero(prob.group == g)
+        ev = np.linalg.eigvalsh(q[idx] @ q[idx].T)
+        if ev.max() < 1.0 - 1e-8:
+            ok.append(g)
+    return np.array(ok, dtype=np.int64)
+
+
+VARIABLES = ("time", "temperature", "f_x", "f_y", "f_z", "w_x", "w_y", "w_z", "|w|", "|wdot|")
+
+
+def _variables(seg: SegmentTable) -> dict[str, NDArray[np.float64]]:
+    out: dict[str, NDArray[np.float64]] = {}
+    if seg.time is not None:
+        out["time"] = seg.time
+    if seg.temperature is not None:
+        out["temperature"] = seg.temperature
+    for i, a in enumerate("xyz"):
+        out[f"f_{a}"] = seg.f_ref[:, i]
+    for i, a in enumerate("xyz"):
+        out[f"w_{a}"] = seg.w_ref[:, i]
+    out["|w|"] = np.linalg.norm(seg.w_ref, axis=1)
+    if seg.ang_accel is not None:
+        out["|wdot|"] = np.linalg.norm(seg.ang_accel, axis=1)
+    return out
+
+
+def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> list[dict[str, Any]]:
+    """Correlation of each channel's normalised residuals with each physical variable."""
+    var = _variables(seg)
+    rows = []
+    for c in range(6):
+        m = prob.channel == c
+        r = fit.normalized_residuals[m]
+        g = prob.group[m]
+        nr = len(r)
+        if nr < 4:
+            continue
+        rc = r - r.mean()
+        for vn, v in var.items():
+            x = v[g] - v[g].mean()
+            den = np.sqrt((x @ x) * (rc @ rc))
+            if den == 0:
+                continue
+            rr = float(np.clip((x @ rc) / den, -1.0, 1.0))
+            tstat = rr * np.sqrt((nr - 2) / max(1e-300, 1.0 - rr**2))
+            p = float(2.0 * scipy.stats.t.sf(abs(tstat), nr - 2))
+            rows.append({"channel": CHANNELS[c], "variable": vn, "r": rr, "p": p})
+    n_tests = max(1, len(rows))
+    for row in rows:
+        row["p_adj"] = min(1.0, row["p"] * n_tests)
+    return sorted(rows, key=lambda d: d["p"])
+
+
+def _pattern(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> str:
+    rms = [float(np.sqrt(np.mean(fit.normalized_residuals[prob.channel == c] ** 2)))
+           if np.any(prob.channel == c) else float("nan") for c in range(6)]
+    c = int(np.nanargmax(rms))
+    scan = [r for r in residual_scan(seg, prob, fit) if r["channel"] == CHANNELS[c]]
+    top = f", follows {scan[0]['variable']} (r = {scan[0]['r']:+.2f})" if scan else ""
+    return (f"chi2/dof = {fit.chi2_per_dof:.3g}; largest residual in {CHANNELS[c]} "
+            f"({rms[c]:.2f} x its noise){top}")
+
+
+@dataclass
+class ClosedLoopResult:
+    """Output of :func:`closed_loop` (see the module docstring). ``to_dict`` is JSON-able."""
+
+    declared: CalibrationResult
+    final: CalibrationResult
+    effects: list[dict[str, Any]]
+    explain: list[dict[str, Any]]
+    rms_table: list[dict[str, Any]]
+    unexplained: list[dict[str, Any]]
+    not_available: dict[str, str]
+    truth_errors: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [e["name"] for e in self.effects]
+
+    def to_dict(self) -> dict[str, Any]:
+        return _jsonable({
+            "declared": self.declared.to_dict(), "final": self.final.to_dict(),
+            "effects": self.effects, "explain": self.explain, "rms_table": self.rms_table,
+            "unexplained": self.unexplained, "not_available": self.not_available,
+            "truth_errors": self.truth_errors})
+
+
+def _rms_table(prob: _Problem, before: CalibrationResult, after: CalibrationResult) -> list[dict[str, Any]]:
+    rows = []
+    for c, ch in enumerate(CHANNELS):
+        m = prob.channel == c
+        if not np.any(m):
+            continue
+        f, unit = (MG_PER_M_S2, "mg") if c < 3 else (DEG_H_PER_RAD_S, "deg_h")
+        rows.append({"channel": ch, "unit": unit,
+                     f"noise_floor_{unit}": float(np.sqrt(np.mean(prob.s[m] ** 2)) * f),
+                     f"rms_before_{unit}": float(np.sqrt(np.mean(before.residuals[m] ** 2)) * f),
+                     f"rms_after_{unit}": float(np.sqrt(np.mean(after.residuals[m] ** 2)) * f)})
+    rows.append({"channel": "all", "unit": "1", "chi2_per_dof_before": before.chi2_per_dof,
+                 "chi2_per_dof_after": after.chi2_per_dof})
+    return rows
+
+
+def closed_loop(
+    seg: SegmentTable,
+    quadratic: bool = True,
+    alpha: float = 0.01,
+    library: Sequence[Effect] = LIBRARY,
+    truth: dict[str, float] | None = None,
+    max_effects: int = 6,
+) -> ClosedLoopResult:
+    """Declared fit, then add library effects while one is significant and passes CV.
+
+    Args:
+        seg: per-segment means, uncertainties and references.
+        quadratic: declare the accelerometer quadratic term (A2) or not.
+        alpha: family-wise significance level (Bonferroni within each round).
+        library: candidate effects (default :data:`~rigctl.solvers.effect_library.LIBRARY`).
+        truth: optional {parameter name: true value} for before/after errors.
+        max_effects: safety bound on the number of effects added.
+    """
+    prob = _Problem.from_table(seg)
+    n = prob.y.size
+    X3, names = declared_design(seg, quadratic)
+    X = prob.rows(X3)
+    declared = _fit(prob, X, names, "closed_loop_declared")
+    current, cur_names, fit = X, list(names), declared
+    effects: list[dict[str, Any]] = []
+    explain: list[dict[str, Any]] = []
+    not_available: dict[str, str] = {}
+    built: dict[str, tuple[NDArray[np.float64], list[str]]] = {}
+    for eff in library:
+        if quadratic and eff.name == "accel_quadratic":
+            not_available[eff.name] = "already in the declared model"
+            continue
+        b = eff.build(seg)
+        if isinstance(b, str):
+            not_available[eff.name] = b
+            continue
+        built[eff.name] = (prob.rows(b[0]), b[1])
+    in_model: set[str] = set()
+    step = 0
+    while len(effects) < max_effects:
+        step += 1
+        pattern = _pattern(seg, prob, fit)
+        q_cur, _ = np.linalg.qr(current / prob.s[:, None])
+        cands = []
+        for eff in library:
+            if eff.name not in built or eff.name in in_model:
+                continue
+            Xc, cn = built[eff.name]
+            keep = _identifiable(prob, q_cur, Xc)
+            if not np.any(keep):
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": eff.name,
+                                "statistic": "-", "decision": "not identifiable with these segments"})
+                in_model.add(eff.name)
+                continue
+            Xn = np.hstack([current, Xc[:, keep]])
+            fc = _fit(prob, Xn, cur_names + [c for c, k in zip(cn, keep) if k], "candidate")
+            k = int(keep.sum())
+            p_c = Xn.shape[1]
+            dchi = fit.chi2 - fc.chi2
+            F = (dchi / k) / (fc.chi2 / (n - p_c)) if n > p_c else 0.0
+            pv = float(scipy.stats.f.sf(F, k, n - p_c)) if n > p_c else 1.0
+            dbic = n * np.log(fc.chi2 / fit.chi2) + k * np.log(n)
+            cands.append({"effect": eff, "X": Xn, "names": fc.names, "fit": fc, "F": float(F),
+                          "p": pv, "k": k, "dBIC": float(dbic)})
+        m = max(1, len(cands))
+        for c in cands:
+            c["p_adj"] = min(1.0, c["p"] * m)
+        sig = sorted([c for c in cands if c["p_adj"] < alpha and c["dBIC"] < 0], key=lambda c: c["dBIC"])
+        for c in sorted(cands, key=lambda c: c["p"]):
+            if c not in sig:
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
+                                "statistic": _stat(c), "decision": "not significant"})
+        added = None
+        for c in sig:
+            groups = _cv_groups(prob, c["X"])
+            cv0 = loso_cv(prob, current, groups)
+            cv1 = loso_cv(prob, c["X"], groups)
+            stat = _stat(c) + f", LOSO-CV {cv0:.4g} -> {cv1:.4g}"
+            if added is None and cv1 < cv0:
+                added = c
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
+                                "statistic": stat, "decision": "added (significant, best BIC, CV improves)"})
+                c["cv"] = (cv0, cv1)
+            elif added is None:
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
+                                "statistic": stat, "decision": "rejected: fails cross-validation"})
+            else:
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
+                                "statistic": stat, "decision": f"deferred: {added['effect'].name} ranked first"})
+        if added is None:
+            break
+        current, cur_names, fit = added["X"], list(added["names"]), added["fit"]
+        in_model.add(added["effect"].name)
+        effects.append({"name": added["effect"].name, "description": added["effect"].description,
+                        "F": added["F"], "p": added["p"], "p_adj": added["p_adj"], "dBIC": added["dBIC"],
+                        "cv_before": added["cv"][0], "cv_after": added["cv"][1], "step": step})
+    final = fit_linear(current, prob.y, prob.s, cur_names, method="closed_loop_final")
+    for e in effects:
+        idx = [i for i, nm in enumerate(final.names) if nm not in names and
+               nm in built[e["name"]][1]]
+        e["parameters"] = [{"name": final.names[i], "value": float(final.values[i]),
+                            "sigma": float(final.sigma[i]), "ci95": final.ci95[i].tolist()} for i in idx]
+    unexplained = _unexplained(seg, prob, final, alpha)
+    for u in unexplained:
+        explain.append({"step": step, "residual_pattern": u["pattern"], "candidate": "(none)",
+                        "statistic": u["statistic"], "decision": "unexplained"})
+    res = ClosedLoopResult(declared=declared, final=final, effects=effects, explain=explain,
+                           rms_table=_rms_table(prob, declared, final), unexplained=unexplained,
+                           not_available=not_available)
+    if truth:
+        for nm in names:
+            if nm in truth:
+                t = truth[nm]
+                res.truth_errors.append({
+                    "name": nm, "truth": t,
+                    "error_before": declared.value(nm) - t, "sigma_before": declared.sigma_of(nm),
+                    "error_after": final.value(nm) - t, "sigma_after": final.sigma_of(nm)})
+    return res
+
+
+def _stat(c: dict[str, Any]) -> str:
+    return f"F({c['k']},.) = {c['F']:.3g}, p = {c['p']:.2g}, p_adj = {c['p_adj']:.2g}, dBIC = {c['dBIC']:.3g}"
+
+
+def _unexplained(seg: SegmentTable, prob: _Problem, fit: CalibrationResult, alpha: float) -> list[dict[str, Any]]:
+    out = []
+    scan = residual_scan(seg, prob, fit)
+    for row in scan:
+        if row["p_adj"] < alpha:
+            out.append({"channel": row["channel"], "variable": row["variable"],
+                        "pattern": f"{row['channel']} residuals follow {row['variable']}",
+                        "statistic": f"r = {row['r']:+.3f}, p_adj = {row['p_adj']:.2g}"})
+    if fit.dof > 0 and fit.chi2_p_value < alpha and not out:
+        top = scan[0] if scan else None
+        out.append({"channel": top["channel"] if top else "all",
+                    "variable": top["variable"] if top else "unknown",
+                    "pattern": f"chi2/dof = {fit.chi2_per_dof:.3g} beyond the noise model",
+                    "statistic": f"chi2 p = {fit.chi2_p_value:.2g}"
+                                 + (f"; strongest: {top['channel']} vs {top['variable']} r = {top['r']:+.2f}" if top else "")})
+    return out
+
+
+def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
+    """Human text: effects found, before/after RMS table, truth errors, and the explain chain."""
+    lines = ["Closed loop: effects found" if res.effects else "Closed loop: no undeclared effect found"]
+    for e in res.effects:
+        lines.append(f"  {e['name']}: {e['description']} (p_adj = {e['p_adj']:.2g}, dBIC = {e['dBIC']:.3g})")
+        for p in e["parameters"]:
+            lines.append(f"      {p['name']:<40} {p['value']:+.4g} +- {p['sigma']:.2g}  "
+                         f"95% [{p['ci95'][0]:+.4g}, {p['ci95'][1]:+.4g}]")
+    lines.append(f"  {'channel':<10} {'noise floor':>14} {'RMS before':>14} {'RMS after':>14}")
+    for r in res.rms_table:
+        if r["channel"] == "all":
+            lines.append(f"  chi2/dof   {r['chi2_per_dof_before']:>29.3g} {r['chi2_per_dof_after']:>14.3g}")
+            continue
+        u = r["unit"]
+        lines.append(f"  {r['channel']:<10} {r[f'noise_floor_{u}']:>11.4g} {u:<2} {r[f'rms_before_{u}']:>11.4g} "
+                     f"{u:<2} {r[f'rms_after_{u}']:>11.4g} {u}")
+    for u in res.unexplained:
+        lines.append(f"  UNEXPLAINED: {u['pattern']} ({u['statistic']})")
+    if res.truth_errors:
+        lines.append(f"  {'parameter':<28} {'|err|/sigma before':>18} {'|err|/sigma after':>18}")
+        for t in res.truth_errors:
+            lines.append(f"  {t['name']:<28} {abs(t['error_before']) / t['sigma_before']:>18.2f} "
+                         f"{abs(t['error_after']) / t['sigma_after']:>18.2f}")
+    if explain:
+        lines.append("  explain:")
+        for x in res.explain:
+            lines.append(f"    [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | {x['decision']}")
+    for k, v in res.not_available.items():
+        lines.append(f"  not available: {k}: {v}")
+    return "\n".join(lines)

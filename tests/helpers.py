@@ -1,0 +1,37 @@
+"""Test helpers: configs derived from the shipped ones, and the rigctl command."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def derived_config(tmp_path: Path, name: str = "sim.yaml", **changes: Any) -> Path:
+    """A copy of configs/<name> with dotted-key changes, e.g. ``**{"clock": "scaled"}``."""
+    data = yaml.safe_load((ROOT / "configs" / name).read_text())
+    for dotted, value in changes.items():
+        node = data
+        keys = dotted.split("__")
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+        node[keys[-1]] = value
+    out = tmp_path / f"derived-{name}"
+    out.write_text(yaml.safe_dump(data))
+    return out
+
+
+def rigctl_cmd() -> list[str]:
+    exe = Path(sys.executable).parent / "rigctl"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "rigctl.cli"]
+
+
+def run_rigctl(*args: str, timeout: float = 120, **kw: Any) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.run([*rigctl_cmd(), *args], capture_output=True, text=True, timeout=timeout,
+                          cwd=kw.pop("cwd", ROOT), env=env, **kw)

@@ -1,0 +1,122 @@
+"""The command line, end to end, as a user runs it."""
+import os
+import signal
+import subprocess
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from helpers import ROOT, derived_config, rigctl_cmd, run_rigctl
+
+
+def test_version_and_help():
+    r = run_rigctl("--version")
+    assert r.returncode == 0 and r.stdout.startswith("rigctl ")
+    for sub in ([], ["run"], ["validate"]):
+        r = run_rigctl(*sub, "--help")
+        assert r.returncode == 0 and "usage: rigctl" in r.stdout
+
+
+def test_validate_full_calibration_prints_steps_total_and_volume():
+    r = run_rigctl("validate", "procedures/full-calibration.yaml")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert sum("orientation" in line and "north" in line for line in lines) == 24
+    assert sum(" rate " in line for line in lines) == 18
+    assert any(line.startswith("total duration: about 3") for line in lines)  # ~33 min
+    assert any(line.startswith("expected data volume:") and "MB" in line for line in lines)
+
+
+def test_invalid_procedure_exits_2_naming_the_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("steps:\n  - warmup:\n      duration: 15 mn\n")
+    r = run_rigctl("validate", str(bad))
+    assert r.returncode == 2
+    assert f"{bad}:3:" in r.stderr and "Traceback" not in r.stderr
+    r = run_rigctl("run", str(bad), "--out", str(tmp_path))
+    assert r.returncode == 2 and not any(tmp_path.glob("*-*/"))  # nothing ran, no run folder
+
+
+def test_run_24pos_end_to_end_readable_with_bare_h5py(tmp_path):
+    r = run_rigctl("run", "procedures/24pos.yaml", "--out", str(tmp_path), timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    lines = r.stdout.splitlines()
+    assert "configs/sim.yaml" in lines[0] and "emulated" in lines[0]
+    assert lines[-1].startswith("recording: ")
+    path = lines[-1].split("recording: ", 1)[1]
+    run_dir = os.path.dirname(path)
+    assert os.path.dirname(run_dir) == str(tmp_path) and run_dir.endswith("-24pos")
+    assert os.path.exists(os.path.join(run_dir, "run.log.jsonl"))
+    # Only what docs/data-format.md says:
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format"] == "rigctl-recording" and f.attrs["schema_version"] == 1
+        assert f["run/status"][0] == b"complete"
+        kinds = list(f["segments/kind"][()])
+        assert kinds.count(b"warmup") == 1 and kinds.count(b"orientation") == 24 and len(kinds) == 25
+        n = f["imu/time"].shape[0]
+        rate = f["imu"].attrs["sample_rate_hz"]
+        assert n >= (15 * 60 + 24 * 30) * rate
+        assert np.all(np.diff(f["imu/counter"][()].astype(np.int64)) == 1)
+        for group in ("imu", "table", "pulses", "segments", "events"):
+            for name, ds in f[group].items():
+                assert "units" in ds.attrs, f"{group}/{name} has no units"
+        assert f["imu/specific_force"].attrs["units"] == "m/s^2"
+        warm = int(np.flatnonzero(f["segments/kind"][()] == b"warmup")[0])
+        assert f["segments/last_sample"][warm] - f["segments/first_sample"][warm] == 15 * 60 * rate
+        assert f["meta"].attrs["ended_utc"] != ""
+        assert "24-position" in f["meta"].attrs["procedure_text"]
+
+
+def test_swmr_read_during_run_then_sigint_leaves_interrupted_file(tmp_path):
+    cfg = derived_config(tmp_path, clock="scaled", speed=50.0)
+    proc = subprocess.Popen([*rigctl_cmd(), "run", "procedures/24pos.yaml", "--config", str(cfg),
+                             "--out", str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        files = []
+        while time.monotonic() < deadline and not files:
+            files = list(tmp_path.glob("*-24pos/recording.h5"))
+            time.sleep(0.1)
+        assert files, "no recording appeared"
+        path = files[0]
+        seen = []
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end and len(seen) < 3:
+            try:
+                with h5py.File(path, "r", libver="latest", swmr=True) as f:
+                    ds = f["imu/time"]
+                    ds.refresh()
+                    status = f["run/status"][0]
+                    if ds.shape[0] > 0:
+                        seen.append((ds.shape[0], float(ds[-1]), status))
+            except OSError:
+                pass  # file not yet in SWMR mode
+            time.sleep(0.7)
+        assert len(seen) >= 3
+        assert seen[0][0] < seen[1][0] < seen[2][0]  # growing while being written
+        assert all(s[2] == b"running" for s in seen)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out + err
+    with h5py.File(path, "r") as f:
+        assert f["run/status"][0] == b"interrupted"
+        last = int(f["table/status"][-1])
+        for axis in range(3):
+            assert not (last >> (16 * axis)) & 0x2  # servo off on every axis
+        assert np.all(np.abs(f["table/rate"][-1]) < 1e-3)
+        assert b"safe-state" in f["events/kind"][()]
+        assert f["imu/time"].shape[0] >= seen[-1][0]  # nothing already written was lost
+
+
+def test_readme_commands_are_the_ci_commands():
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text()
+    test_cmd = [line for line in ci.splitlines() if "pytest" in line and not line.startswith("#")]
+    assert len(test_cmd) == 1 and test_cmd[0] in readme
+    assert "rigctl run procedures/24pos.yaml" in readme.split("```")[1]

@@ -1,0 +1,174 @@
+"""Procedure language: shipped procedures compile; broken files give errors naming their line."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.config import load_config
+from rigctl.estimate import estimate
+from rigctl.procedure import load_procedure, parse_overrides
+from rigctl.yamlio import InputError
+
+ROOT = Path(__file__).resolve().parent.parent
+PROC = ROOT / "procedures"
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(ROOT / "configs" / "sim.yaml")
+
+
+def test_24pos_has_warmup_and_24_orientations(cfg):
+    p = load_procedure(PROC / "24pos.yaml", limits=cfg.limits)
+    kinds = [s.kind for s in p.steps]
+    assert kinds.count("warmup") == 1 and kinds.count("orientation") == 24
+    assert p.steps[0].sample_s == 15 * 60
+    labels = {s.label for s in p.steps if s.kind == "orientation"}
+    assert len(labels) == 24
+
+
+def test_rates_has_18_windows_of_whole_revolutions():
+    p = load_procedure(PROC / "rates.yaml")
+    rates = [s for s in p.steps if s.kind == "rate"]
+    assert len(rates) == 18
+    mags = sorted({round(math.degrees(np.nanmax(np.abs(s.rates)))) for s in rates})
+    assert mags == [40, 63, 100]
+    for s in rates:
+        w = np.nanmax(np.abs(s.rates))
+        assert s.sample_s * w == pytest.approx(2 * 2 * math.pi)  # 2 revolutions
+        assert np.sum(~np.isnan(s.rates)) == 1
+    signs = [np.sign(np.nansum(s.rates)) for s in rates]
+    assert signs.count(1) == 9 and signs.count(-1) == 9
+
+
+def test_full_calibration_estimate(cfg):
+    p = load_procedure(PROC / "full-calibration.yaml", limits=cfg.limits)
+    est = estimate(p.steps, cfg)
+    total = sum(e.total_s for e in est)
+    kinds = [s.kind for s in p.steps]
+    assert kinds.count("orientation") == 24 and kinds.count("rate") == 18 and kinds[-1] == "solve"
+    # 15 min warm-up + 24 x (30 s sample + settle + moves) + 18 short windows
+    assert 15 * 60 + 24 * 33 < total < 15 * 60 + 24 * 60 + 18 * 30
+
+
+def test_allan_overnight_is_12_hours():
+    p = load_procedure(PROC / "allan-overnight.yaml")
+    cap = [s for s in p.steps if s.kind == "capture"]
+    assert len(cap) == 1 and cap[0].sample_s == 12 * 3600
+
+
+def test_parameter_override_reaches_included_file():
+    p = load_procedure(PROC / "24pos.yaml", parse_overrides(["warmup=5 min", "sample=10"]))
+    assert p.steps[0].sample_s == 300
+    assert p.steps[1].sample_s == 10
+    with pytest.raises(InputError, match="no parameter 'nope'"):
+        load_procedure(PROC / "24pos.yaml", {"nope": 1})
+
+
+BROKEN = {
+    "unknown_key": """procedure: t
+steps:
+  - warmup:
+      duration: 10 s
+      durration: 5 s   # <-
+""",
+    "wrong_type": """procedure: t
+steps:
+  - capture:
+      duration: ten minutes   # <-
+""",
+    "missing_field": """procedure: t
+steps:
+  - capture:             # <-
+      label: no duration
+""",
+    "unknown_kind": """procedure: t
+steps:
+  - warmup: {duration: 1 s}
+  - warmpu: {duration: 1 s}   # <-
+""",
+    "rate_over_limit": """procedure: t
+steps:
+  - rates:
+      axes: [z]
+      rates_dps: [40, 900]   # <-
+""",
+    "angle_not_triplet": """procedure: t
+steps:
+  - orientations:
+      angles_deg:
+        - [0, 0, 0]
+        - [90, 0]    # <-
+""",
+    "yaml_syntax": """procedure: t
+steps:
+  - warmup: {duration: 1 s
+  - capture: {duration: 2 s}   # <-
+""",
+    "unknown_parameter": """procedure: t
+steps:
+  - warmup:
+      duration: ${warm}   # <-
+""",
+    "negative_duration": """procedure: t
+steps:
+  - wait:
+      duration: -3 s   # <-
+""",
+    "unknown_solver": """procedure: t
+steps:
+  - solve:
+      solvers:
+        - accel24
+        - kalman   # <-
+""",
+    "bad_settle_key": """procedure: t
+defaults:
+  settle: {hold: 1 s, window: 2}   # <-
+steps:
+  - capture: {duration: 1 s}
+""",
+    "missing_include": """procedure: t
+steps:
+  - include: nowhere.yaml   # <-
+""",
+}
+
+
+@pytest.mark.parametrize("name", sorted(BROKEN))
+def test_broken_procedure_names_file_and_line(name, tmp_path, cfg):
+    text = BROKEN[name]
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text)
+    expected_line = next(i for i, line in enumerate(text.splitlines(), 1) if "# <-" in line)
+    with pytest.raises(InputError) as info:
+        load_procedure(path, limits=cfg.limits)
+    err = info.value
+    assert err.file == str(path)
+    assert err.line == expected_line, str(err)
+    assert f"{path}:{expected_line}:" in str(err)
+
+
+def test_include_cycle_is_reported(tmp_path):
+    (tmp_path / "a.yaml").write_text("steps:\n  - include: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("steps:\n  - include: a.yaml\n")
+    with pytest.raises(InputError, match="include cycle"):
+        load_procedure(tmp_path / "a.yaml")
+
+
+def test_several_errors_are_all_reported(tmp_path):
+    path = tmp_path / "two.yaml"
+    path.write_text("steps:\n  - capture: {duration: x}\n  - wait: {durat: 1}\n")
+    with pytest.raises(InputError) as info:
+        load_procedure(path)
+    text = str(info.value)
+    assert f"{path}:2:" in text and f"{path}:3:" in text
+
+
+def test_yaml_tags_are_not_executed(tmp_path):
+    path = tmp_path / "evil.yaml"
+    path.write_text("steps:\n  - wait: !!python/object/apply:os.system ['echo pwned']\n")
+    with pytest.raises(InputError) as info:
+        load_procedure(path)
+    assert info.value.line == 2
