@@ -1,14 +1,12 @@
 """Running a procedure: the run directory, the recording, signals, safe state, exit codes."""
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import re
 import signal
 import time
 import traceback
-from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,12 +19,11 @@ from .procedure import Procedure
 from .recorder import Recorder, library_versions
 from .rig import open_rig
 from .runlog import RunLog
+from .solve import run_solvers
 from .units import format_duration
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
 
-#: solver name -> "module:function" called as fn(recording_path, log) after the recording closes.
-SOLVER_HOOKS: dict[str, str] = {}
 
 
 @dataclass
@@ -51,18 +48,6 @@ def make_run_dir(parent: Path, procedure_name: str) -> Path:
         except FileExistsError:
             continue
     raise RunError(f"could not create a run directory in {parent}")
-
-
-def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:
-    for step in proc.steps:
-        for name in step.solvers:
-            hook = SOLVER_HOOKS.get(name)
-            if hook is None:
-                log("warning", f"solver {name!r}: not available in this version of rigctl; "
-                               f"run it later on {recording}")
-                continue
-            mod, fn = hook.split(":")
-            getattr(importlib.import_module(mod), fn)(recording, log)
 
 
 def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,

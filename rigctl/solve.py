@@ -1,0 +1,23 @@
+"""Solvers a procedure's ``solve`` step names, run on the recording once it is closed."""
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from pathlib import Path
+
+from .procedure import Procedure
+
+#: solver name -> "module:function", called as fn(recording_path, log) -> None.
+SOLVER_HOOKS: dict[str, str] = {}
+
+
+def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:
+    for step in proc.steps:
+        for name in step.solvers:
+            hook = SOLVER_HOOKS.get(name)
+            if hook is None:
+                log("warning", f"solver {name!r}: not available in this version of rigctl; "
+                               f"run it later on {recording}")
+                continue
+            mod, fn = hook.split(":")
+            getattr(importlib.import_module(mod), fn)(recording, log)
