@@ -1,0 +1,42 @@
+"""End-to-end: wall time of `rigctl run procedures/24pos.yaml` on the emulator (virtual time).
+
+Prints the run's wall time and its simulated-time / wall-time ratio. Last line: one JSON object.
+"""
+from __future__ import annotations
+
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from rigctl.config import load_config  # noqa: E402
+from rigctl.procedure import load_procedure  # noqa: E402
+from rigctl.runner import run_procedure  # noqa: E402
+
+
+def main() -> None:
+    cfg = load_config(ROOT / "configs" / "sim.yaml")
+    proc = load_procedure(ROOT / "procedures" / "24pos.yaml", limits=cfg.limits)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        res = run_procedure(proc, cfg, Path(tmp), console=io.StringIO(), install_signals=False)
+        wall = time.perf_counter() - t0
+        import h5py
+
+        with h5py.File(res.recording, "r") as f:
+            sim_s = float(f["imu/time"][-1])
+            n = f["imu/time"].shape[0]
+    assert res.exit_code == 0, res.message
+    print(f"24pos on the emulator: {sim_s:.0f} s of rig time, {n} IMU samples at {cfg.imu_rate_hz:g} Hz")
+    print(f"wall time {wall:.2f} s (target <= 30 s), simulated/wall = {sim_s / wall:.0f}x")
+    print(json.dumps({"wall_s": round(wall, 3), "sim_time_s": round(sim_s, 1),
+                      "sim_to_wall_ratio": round(sim_s / wall, 1)}))
+
+
+if __name__ == "__main__":
+    main()
