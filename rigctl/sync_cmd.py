@@ -35,6 +35,7 @@ class SyncOptions:
     outlier_k: float = 5.0
     outlier_floor_s: float = 1e-3
     group_gap_s: float = 30.0
+    saturation_m_s2: float | None = None  # None: auto (repeated extreme values)
 
 
 @dataclass
@@ -59,22 +60,34 @@ def synchronise(counter: np.ndarray, accel: np.ndarray, rate_hz: float,
     a = np.asarray(accel, dtype=float)
     period = 1.0 / rate_hz
     t_imu = c * period
-    det = tap_detect.first_difference_detect(a)
+    det = tap_detect.first_difference_detect(
+        a, saturation_level=opts.saturation_m_s2,
+        min_separation=max(3, int(round(0.3 * rate_hz))))  # one event per 0.3 s
     if det.index.size < 3:
         raise ValueError(f"only {det.index.size} taps detected; need at least 3")
-    sat = tap_detect.saturation_mask(a)
+    sat = tap_detect.saturation_mask(a, opts.saturation_m_s2)
+    post = max(8, int(round(0.2 * rate_hz)))  # fit window: 0.2 s after the tap
     response = None
     timing = "half_sample"
     tap_t = tap_match.half_sample_correction(t_imu[det.index], period)
     if opts.response in ("auto", "learn", "second-order"):
-        if opts.response == "second-order":
-            response = tap_detect.SecondOrderResponse(opts.natural_freq_hz, opts.damping)
-        else:
-            response = tap_detect.learn_response(t_imu, a, det.index, saturated=sat)
-        on = tap_detect.fit_onsets(t_imu, a, det.index, response, saturated=sat)
+        try:
+            if opts.response == "second-order":
+                response = tap_detect.SecondOrderResponse(opts.natural_freq_hz, opts.damping)
+            else:
+                response = tap_detect.learn_response(t_imu, a, det.index, saturated=sat,
+                                                     post=post)
+            on = tap_detect.fit_onsets(t_imu, a, det.index, response, post=post,
+                                       saturated=sat)
+        except (ValueError, np.linalg.LinAlgError):
+            if opts.response != "auto":
+                raise
+            on = None
         noise = det.sigma_diff / np.sqrt(2.0)
-        fits = np.nanmedian(on.rms_residual) < 3.0 * noise and response.natural_freq_hz < 0.5 * rate_hz
-        if fits or opts.response != "auto":
+        fits = (on is not None and response is not None
+                and np.nanmedian(on.rms_residual) < 3.0 * noise
+                and response.natural_freq_hz < 0.5 * rate_hz)
+        if on is not None and (fits or opts.response != "auto"):
             ok = np.isfinite(on.t0)
             tap_t = np.where(ok, on.t0, tap_t)
             timing = "subsample"
@@ -153,6 +166,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--timescale", choices=["run", "gps"], default="run",
                    help="pulse times from /pulses/time (run) or gps_week/gps_seconds (gps)")
     p.add_argument("--tolerance-s", type=float, default=0.05, help="matching gate (s)")
+    p.add_argument("--range-m-s2", type=float, default=None,
+                   help="accelerometer saturation level (default: repeated extreme values)")
     p.set_defaults(func=run)
 
 
@@ -275,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
     opts = SyncOptions(response=args.response, natural_freq_hz=args.natural_freq_hz,
                        damping=args.damping,
                        wander=None if args.wander == "none" else args.wander,
-                       tolerance_s=args.tolerance_s)
+                       tolerance_s=args.tolerance_s, saturation_m_s2=args.range_m_s2)
     try:
         res = synchronise(counter, accel, rate, pulses, opts)
     except ValueError as exc:

@@ -9,7 +9,8 @@ Model, with ``x = (n - n_ref) / f_nom`` the IMU's own elapsed time (s) at counte
 * ``c0``: reference time at the centring counter ``n_ref`` (s); offset at counter 0 is
   ``c0 - (1 + d) n_ref / f_nom``.
 * ``d``: drift (reported in ppm, ``d * 1e6``); positive = the IMU clock is slow (its counts
-  last longer than nominal, so fewer samples than nominal are recorded).
+  last longer than nominal, so fewer samples than nominal are recorded). With a wander
+  term, ``d`` is the drift at the centring counter ``n_ref`` (mean of the matched taps).
 * ``w(x)``: optional wander: ``"quadratic"`` ``q x^2``, or ``"piecewise"`` linear hinges
   ``sum_j r_j max(0, x - x_j)`` at given knots (rate changes, ppm-like).
 * ``s_k``: whole-sample steps at counters ``b_k`` where samples were lost without the counter

@@ -1,0 +1,133 @@
+"""`rigctl sync` on real HDF5 recordings written with plain h5py (schema_version 1 layout)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl import sync_cmd
+from rigctl.sim import taps
+
+RATE = 100.0
+
+
+@pytest.fixture(scope="module")
+def session() -> taps.TapSession:
+    sched = taps.ScheduleParams((30.0, 330.0, 630.0, 900.0), 10, (1.0, 3.0))
+    params = taps.TapParams(response="second_order", jitter_s=2e-4, missed_count=1,
+                            spurious_spikes=2)
+    return taps.simulate_taps(RATE, 960.0, sched, params,
+                              taps.ClockParams(offset_s=0.2, drift_ppm=60.0),
+                              random_dropouts=1, dropout_length=32, seed=11)
+
+
+def write_recording(path: Path, s: taps.TapSession, *, pulses: bool = True) -> None:
+    """Minimal recording following the brief's layout."""
+    n = s.counter.size
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"format": "rigctl-recording", "schema_version": 1,
+                        "rigctl_version": "0.1.0"})
+        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
+        imu = f.create_group("imu")
+        imu.attrs["sample_rate_hz"] = RATE
+        for name, data, units in [("time", s.counter.astype(float) / RATE, "s"),
+                                  ("counter", s.counter, "1"),
+                                  ("specific_force", s.specific_force, "m/s^2"),
+                                  ("angular_rate", np.zeros((n, 3)), "rad/s"),
+                                  ("temperature", np.full(n, 25.0), "degC")]:
+            imu.create_dataset(name, data=data).attrs["units"] = units
+        if pulses:
+            p = f.create_group("pulses")
+            gps0 = 33000.0
+            for name, data, units in [
+                    ("time", s.pulse_time, "s"),
+                    ("gps_week", np.full(s.pulse_time.size, 2300, dtype=np.int32), "week"),
+                    ("gps_seconds", s.pulse_time + gps0, "s"),
+                    ("source", np.full(s.pulse_time.size, b"sim", dtype="S16"), "1")]:
+                p.create_dataset(name, data=data).attrs["units"] = units
+        t = f.create_group("truth")
+        t.attrs["params_json"] = s.truth.params_json()
+
+
+def _args(path: Path, *extra: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="rigctl")
+    sync_cmd.register(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["sync", str(path), *extra])
+
+
+def test_sync_writes_results_and_reference_time(tmp_path: Path, session, capsys) -> None:
+    rec = tmp_path / "run.h5"
+    write_recording(rec, session)
+    args = _args(rec)
+    assert args.func is sync_cmd.run
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "drift" in out and "ppm" in out and "counter gap: 32 samples" in out
+    with h5py.File(rec, "r") as f:
+        g = f["results/sync"]
+        assert g.attrs["schema_version"] == 1 and "T" in g.attrs["created_utc"]
+        summary = json.loads(g.attrs["json"])
+        ref = g["reference_time"][()]
+        assert g["reference_time"].attrs["units"] == "s"
+        assert g["pulse_time"].shape == g["tap_time_imu"].shape
+    assert summary["timing"] == "subsample"
+    assert summary["n_taps_without_pulse"] == 3  # one missed pulse + two spurious spikes
+    assert summary["n_pulses_without_tap"] == 0
+    assert abs(summary["drift_ppm"] - 60.0) < 3 * summary["drift_sigma_ppm"] + 0.05
+    assert summary["counter_gaps"][0]["n_samples"] == 32
+    true_ref = session.truth.time_of_counter(session.counter.astype(float))
+    assert ref.shape == (session.counter.size,)
+    assert np.max(np.abs(ref - true_ref)) < 0.5e-3
+
+
+def test_sync_plots(tmp_path: Path, session) -> None:
+    pytest.importorskip("matplotlib")  # optional extra rigctl[report]
+    rec = tmp_path / "run.h5"
+    write_recording(rec, session)
+    assert sync_cmd.main(["sync", str(rec), "--plot-dir", str(tmp_path / "plots")]) == 0
+    for name in ("sync_matching_error_hist.png", "sync_residual_vs_time.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 1000
+
+
+def test_sync_rerun_replaces_results_and_gps_timescale(tmp_path: Path, session) -> None:
+    rec = tmp_path / "run.h5"
+    write_recording(rec, session)
+    assert sync_cmd.main(["sync", str(rec)]) == 0
+    assert sync_cmd.main(["sync", str(rec), "--timescale", "gps", "--response", "none"]) == 0
+    with h5py.File(rec, "r") as f:
+        summary = json.loads(f["results/sync"].attrs["json"])
+        assert list(f["results"].keys()) == ["sync"]
+    assert summary["timing"] == "half_sample"
+    gps_offset = 2300 * sync_cmd.GPS_WEEK_S + 33000.0
+    assert summary["offset_s"] == pytest.approx(0.2 + gps_offset, abs=5e-3)
+    assert summary["options"]["timescale"] == "gps"
+
+
+def test_sync_invalid_inputs_exit_2(tmp_path: Path, session, capsys) -> None:
+    missing = tmp_path / "nope.h5"
+    assert sync_cmd.main(["sync", str(missing)]) == 2
+    assert "nope.h5 does not exist" in capsys.readouterr().err
+    junk = tmp_path / "junk.h5"
+    junk.write_text("not hdf5")
+    assert sync_cmd.main(["sync", str(junk)]) == 2
+    assert "cannot open" in capsys.readouterr().err
+    nopulse = tmp_path / "nopulse.h5"
+    write_recording(nopulse, session, pulses=False)
+    assert sync_cmd.main(["sync", str(nopulse)]) == 2
+    err = capsys.readouterr().err
+    assert "nopulse.h5" in err and "/pulses/time" in err
+    with h5py.File(nopulse, "r") as f:
+        assert "results" not in f  # nothing written on invalid input
+
+
+def test_sync_fails_cleanly_without_taps(tmp_path: Path, capsys) -> None:
+    s = taps.simulate_taps(RATE, 60.0, taps.ScheduleParams((10.0,), 10, (1, 2)),
+                           taps.TapParams(amplitude_median_m_s2=1e-3), seed=2)  # taps in noise
+    rec = tmp_path / "quiet.h5"
+    write_recording(rec, s)
+    assert sync_cmd.main(["sync", str(rec)]) == 1
+    assert "taps detected" in capsys.readouterr().err
