@@ -259,9 +259,13 @@ def set_output_configuration(items: list[OutputItem]) -> bytes:
 
 
 def resolve_output_rate(items: list[OutputItem], max_rate_hz: int) -> int:
-    """Packet rate in Hz implied by a configuration: the highest item rate (FREQ_MAX/0 = max)."""
-    rates = [max_rate_hz if it.freq_hz in (0, FREQ_MAX) else it.freq_hz for it in items]
-    return max(rates) if rates else 0
+    """Packet rate in Hz implied by a configuration: the highest explicit item rate.
+
+    Items at FREQ_MAX (or 0) ride in every packet; if every item is FREQ_MAX the device's
+    maximum rate ``max_rate_hz`` applies.
+    """
+    rates = [it.freq_hz for it in items if it.freq_hz not in (0, FREQ_MAX)]
+    return max(rates) if rates else max_rate_hz
 
 
 # ------------------------------------------------------------------------- bandwidth check

@@ -65,7 +65,8 @@ class MTData2Batch:
 
     counter: unwrapped PacketCounter (int64); sample_time_fine: unwrapped ticks of 1e-4 s;
     time_s: sample_time_fine / 10 kHz (s); acceleration m/s^2, rate_of_turn rad/s, delta_v m/s,
-    delta_q (w,x,y,z), temperature degC, status_word u32.
+    delta_q (w,x,y,z), temperature degC, status_word u32; offsets: byte offset of each frame in
+    the stream fed so far (diagnostics).
     """
 
     counter: np.ndarray
@@ -77,6 +78,7 @@ class MTData2Batch:
     status_word: np.ndarray
     delta_v: np.ndarray
     delta_q: np.ndarray
+    offsets: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
     messages: list[Message] = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -192,6 +194,7 @@ class MTData2Stream:
         self._run_last = -1
         self._prev_stf: int | None = None
         self._prev_stf_raw = 0
+        self._abs = 0                # stream offset of the first byte of the retained tail
 
     def reset_counters(self) -> None:
         """Forget counter/time history (call after the device re-enters measurement)."""
@@ -277,7 +280,9 @@ class MTData2Stream:
                 for s, t, h in zip(a_start[~a_d2].tolist(), tc[acc][~a_d2].tolist(), hc[acc][~a_d2].tolist())]
         self.counters.messages += len(msgs)
         batch = self._decode(acc[a_d2], groups, layout_id, layouts)
+        batch.offsets = pc[acc[a_d2]] + self._abs
         batch.messages = msgs
+        self._abs += consumed
         return self._unwrap(batch)
 
     def flush(self) -> MTData2Batch:
@@ -401,7 +406,7 @@ class MTData2Stream:
             self._prev_stf, self._prev_stf_raw = int(stf_ext[si[-1]]), int(t[-1])
         time_s = np.where(stf_ext >= 0, stf_ext / SAMPLE_TIME_FINE_HZ, np.nan)
         return MTData2Batch(counter=ext[keep], sample_time_fine=stf_ext, time_s=time_s,
-                            messages=batch.messages, **{k: v for k, v in out.items() if k != "sample_time_fine"})
+                            messages=batch.messages, offsets=batch.offsets[keep], **{k: v for k, v in out.items() if k != "sample_time_fine"})
 
     def _unwrap_slow(self, hi: np.ndarray, r: np.ndarray, ext: np.ndarray, keep: np.ndarray) -> None:
         c = self.counters

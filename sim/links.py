@@ -1,0 +1,226 @@
+"""Byte-stream plumbing for the emulated hardware: raw ptys, a pty null-modem bridge, TCP.
+
+- :class:`PtyEndpoint`: the server keeps the pty master; clients open ``endpoint.path``
+  (``/dev/pts/N``) with ``serial.serial_for_url``. The server also keeps the slave open so a
+  client closing and reopening the port never makes the master read EIO. Output is written
+  non-blocking: if no one drains the port, bytes are dropped and counted (``overflow_bytes``),
+  like a UART with nobody listening, instead of stalling the emulator.
+- :class:`PtyBridge`: two ptys joined master-to-master (a null-modem cable) for servers that
+  want to open a port path themselves (pymodbus RTU): ``bridge.path_a`` <-> ``bridge.path_b``.
+- :class:`TcpEndpoint`: a listening socket on 127.0.0.1 (port 0 = OS-picked), one thread and one
+  handler (from ``make_handler()``) per connection.
+
+All of them deliver received bytes to ``on_data(data: bytes, write: Callable[[bytes], None])``
+from a reader thread and are torn down by ``close()`` (idempotent; joins the threads).
+"""
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import select
+import socket
+import threading
+import tty
+from collections.abc import Callable
+
+log = logging.getLogger(__name__)
+OnData = Callable[[bytes, Callable[[bytes], None]], None]
+
+
+def open_raw_pty() -> tuple[int, int, str]:
+    """(master_fd, slave_fd, slave_path) with the slave in raw mode (no echo, no line editing)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    return master, slave, os.ttyname(slave)
+
+
+class PtyEndpoint:
+    """Server side of a pty; ``path`` is what the client opens."""
+
+    def __init__(self, on_data: OnData | None = None, name: str = "pty") -> None:
+        self.master, self._slave, self.path = open_raw_pty()
+        os.set_blocking(self.master, False)
+        self.on_data = on_data
+        self.overflow_bytes = 0
+        self._wlock = threading.Lock()
+        self._stop_r, self._stop_w = os.pipe()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"{name}-reader", daemon=True)
+        self._thread.start()
+
+    def write(self, data: bytes) -> int:
+        """Write without blocking; bytes that do not fit the pty buffer are dropped and counted."""
+        with self._wlock:
+            if self._closed:
+                return 0
+            view, sent = memoryview(data), 0
+            while sent < len(view):
+                try:
+                    sent += os.write(self.master, view[sent:])
+                except BlockingIOError:
+                    break
+                except OSError as exc:
+                    if exc.errno in (errno.EIO, errno.EBADF):
+                        break
+                    raise
+            self.overflow_bytes += len(view) - sent
+            return sent
+
+    def _run(self) -> None:
+        while True:
+            try:
+                r, _, _ = select.select([self.master, self._stop_r], [], [], 1.0)
+            except (OSError, ValueError):
+                return
+            if self._stop_r in r:
+                return
+            if self.master in r:
+                try:
+                    data = os.read(self.master, 65536)
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    return
+                if data and self.on_data is not None:
+                    try:
+                        self.on_data(data, self.write)
+                    except Exception:       # a handler bug must not kill the port silently
+                        log.exception("pty handler failed")
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        os.write(self._stop_w, b"x")
+        self._thread.join(timeout=5)
+        with self._wlock:
+            self._closed = True
+            for fd in (self.master, self._slave, self._stop_r, self._stop_w):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    def __enter__(self) -> PtyEndpoint:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class PtyBridge:
+    """Null-modem pair: whatever is written to ``path_a`` is read from ``path_b`` and vice versa."""
+
+    def __init__(self, name: str = "bridge") -> None:
+        self._a = open_raw_pty()
+        self._b = open_raw_pty()
+        self.path_a, self.path_b = self._a[2], self._b[2]
+        self._stop_r, self._stop_w = os.pipe()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"{name}-copier", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        ma, mb = self._a[0], self._b[0]
+        peer = {ma: mb, mb: ma}
+        while True:
+            try:
+                r, _, _ = select.select([ma, mb, self._stop_r], [], [], 1.0)
+            except (OSError, ValueError):
+                return
+            if self._stop_r in r:
+                return
+            for fd in r:
+                try:
+                    data = os.read(fd, 65536)
+                    if data:
+                        os.write(peer[fd], data)
+                except OSError:
+                    continue
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        os.write(self._stop_w, b"x")
+        self._thread.join(timeout=5)
+        for fd in (self._a[0], self._a[1], self._b[0], self._b[1], self._stop_r, self._stop_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class TcpEndpoint:
+    """Threaded TCP listener on ``host``; ``address`` is (host, port) after construction."""
+
+    def __init__(self, make_handler: Callable[[], OnData], host: str = "127.0.0.1", port: int = 0,
+                 name: str = "tcp") -> None:
+        self.make_handler = make_handler
+        self._srv = socket.create_server((host, port))
+        self._srv.settimeout(0.2)
+        self.address: tuple[str, int] = self._srv.getsockname()[:2]
+        self._conns: set[socket.socket] = set()
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._name = name
+        t = threading.Thread(target=self._accept, name=f"{name}-accept", daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _accept(self) -> None:
+        while not self._closed.is_set():
+            try:
+                conn, _ = self._srv.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._conns.add(conn)
+            t = threading.Thread(target=self._serve, args=(conn,), name=f"{self._name}-conn", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _serve(self, conn: socket.socket) -> None:
+        wlock = threading.Lock()
+        on_data = self.make_handler()
+
+        def write(data: bytes) -> None:
+            with wlock:
+                try:
+                    conn.sendall(data)
+                except OSError:
+                    pass
+        try:
+            while not self._closed.is_set():
+                try:
+                    data = conn.recv(65536)
+                except OSError:
+                    return
+                if not data:
+                    return
+                try:
+                    on_data(data, write)
+                except Exception:
+                    log.exception("tcp handler failed")
+        finally:
+            with self._lock:
+                self._conns.discard(conn)
+            conn.close()
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        self._srv.close()
+        with self._lock:
+            for c in list(self._conns):
+                try:
+                    c.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+        for t in self._threads:
+            t.join(timeout=5)
