@@ -19,7 +19,7 @@ from .units import format_bytes, format_duration
 from .yamlio import InputError
 
 #: Modules that add their own sub-commands through ``register(subparsers)``.
-COMMAND_MODULES: tuple[str, ...] = ("rigctl.sync_cmd",)
+COMMAND_MODULES: tuple[str, ...] = ("rigctl.sync_cmd", "rigctl.daemon")
 
 
 def _load(args: argparse.Namespace):

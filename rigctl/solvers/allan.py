@@ -111,14 +111,26 @@ def max_factor(n_phase: int, kind: str) -> int:
     return max(1, (n_phase - 1) // _MAX_FRACTION[kind])
 
 
+def computable_factor(n_phase: int, kind: str) -> int:
+    """Largest averaging factor giving at least one term of estimator ``kind``."""
+    n = n_phase
+    lim = {"adev": (n - 1) // 2, "oadev": (n - 1) // 2, "mdev": (n + 1) // 3,
+           "tdev": (n + 1) // 3, "hdev": (n - 1) // 3, "ohdev": (n - 1) // 3,
+           "totdev": n - 2}[kind]
+    return max(1, lim)
+
+
 def tau_factors(n_phase: int, taus: TauSpec = "octave", kind: str = "oadev") -> np.ndarray:
     """Averaging factors m for a tau set.
 
     ``"octave"``: 1, 2, 4, ...; ``"decade"``: 1, 2, 4, 10, 20, 40, ... (Stable32);
     ``"all"``: every integer; an int ``n``: n log-spaced factors (unique after rounding);
-    a sequence: the given factors. All are clipped to :func:`max_factor`.
+    a sequence: the given factors. Named and counted sets stop at Stable32's limit
+    (:func:`max_factor`), explicit factors at the estimator's (:func:`computable_factor`).
     """
     mmax = max_factor(n_phase, kind)
+    if not isinstance(taus, (str, int, np.integer)):
+        mmax = computable_factor(n_phase, kind)
     if isinstance(taus, str):
         if taus == "octave":
             m = 2 ** np.arange(0, int(np.log2(mmax)) + 1)
@@ -296,6 +308,10 @@ def oadev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
           data_type: str = "rate", mode: str = "fast") -> DevResult:
     """Overlapping Allan deviation (see module docstring); ``mode`` "fast" or "exact".
 
+    In fast mode (with at least ``FAST_MIN_POINTS`` phase points) a named or counted tau set
+    is snapped to factors k * 2^j, 8 <= k < 16, so that long taus use stride m/16..m/8;
+    explicitly listed factors are kept and use the largest admissible stride.
+
     ``n_terms`` is the term count of the fully overlapping estimator, N - 2m, in both modes;
     ``stride`` says which terms the fast mode actually summed.
     """
@@ -312,6 +328,9 @@ def oadev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
         tau = ms * tau0
         return DevResult("oadev", tau0, ms, tau, np.sqrt(sums / (2.0 * tau * tau * n)), n,
                          x.size, np.ones_like(ms))
+    if isinstance(taus, (str, int, np.integer)):
+        ms = snap_fast(ms)
+        ms = ms[ms <= max_factor(n_phase, "oadev")]
     acc = OadevAccumulator(tau0, ms, "fast")
     add = acc.add_phase if data_type == "phase" else acc.add_rate
     if data_type == "phase":

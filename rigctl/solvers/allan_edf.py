@@ -253,9 +253,13 @@ def noise_id_b1(x: np.ndarray, m: int, dmax: int = 2) -> int:
 
 
 def noise_id(x: np.ndarray, m: int, kind: str = "oadev") -> int:
-    """Stable32's per-tau noise ID: lag-1 ACF with >= 30 decimated points, else B1/R(n)."""
+    """Stable32's per-tau noise ID: lag-1 ACF with >= 30 decimated points (>= 30
+    non-overlapped intervals for adev/hdev), else B1/R(n)."""
     dmax = 3 if kind in ("hdev", "ohdev") else 2
-    if (np.asarray(x).size - 1) // int(m) + 1 >= 30:
+    n_dec = (np.asarray(x).size - 1) // int(m)  # non-overlapped intervals
+    if kind not in ("adev", "hdev"):
+        n_dec += 1  # decimated phase points
+    if n_dec >= 30:
         return noise_id_lag1(x, m, dmax)
     return noise_id_b1(x, m, dmax)
 

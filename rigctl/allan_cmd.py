@@ -1,0 +1,343 @@
+"""``rigctl allan RECORDING.h5``: Allan analysis of a recording's IMU channels.
+
+Streams /imu/angular_rate (rad/s) and /imu/specific_force (m/s^2) in chunks (bounded
+memory, all selected axes in one pass), computes the overlapping Allan deviation (fast mode by
+default, ``--exact`` for the fully overlapping sums), Stable32-style noise identification, EDF
+and 68 % / 95 % intervals, the joint IEEE 952 fit, prints a table per axis and stores
+everything under /results/allan of the recording (attrs schema_version, created_utc, json;
+curves as datasets with ``units``). ``--plot FILE`` writes a log-log plot (needs matplotlib).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import math
+import os
+import sys
+from typing import Any
+
+import numpy as np
+
+from rigctl.solvers import allan as A
+from rigctl.solvers import allan_edf as E
+from rigctl.solvers import allan_fit as F
+
+AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
+        "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
+        "ay": ("/imu/specific_force", 1, "accel"), "az": ("/imu/specific_force", 2, "accel")}
+#: display unit of the deviation per sensor: (label, factor from SI)
+DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
+MIN_SAMPLES = 64
+CHUNK_ROWS = 1 << 18
+HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
+DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
+SCHEMA_VERSION = 1
+
+
+class UsageError(Exception):
+    """Invalid input: exit code 2 with this message."""
+
+
+class _AxisStream:
+    """Accumulates one axis: Allan sums, a full-resolution head and a decimated phase."""
+
+    def __init__(self, tau0: float, ms: np.ndarray, mode: str, n_rate: int):
+        self.acc = A.OadevAccumulator(tau0, ms, mode)
+        self.dec = 1
+        while (n_rate + 1) // self.dec > DEC_POINTS:
+            self.dec *= 2
+        self.head: list[np.ndarray] = []
+        self.n_head = 0
+        self.decs: list[np.ndarray] = []
+        self.tau0 = tau0
+        self.x_last = 0.0
+        self.n_phase = 0
+
+    def add(self, y: np.ndarray) -> None:
+        acc = self.acc
+        acc.add_rate(y)
+        # rebuild this chunk's phase (same float64 arithmetic as the accumulator)
+        x = np.asarray(y, dtype=np.float64) - acc.offset
+        np.cumsum(x, out=x)
+        x *= self.tau0
+        x += self.x_last
+        if self.n_phase == 0:
+            x = np.concatenate(([0.0], x))
+        if self.n_head < HEAD_POINTS:
+            part = x[: HEAD_POINTS - self.n_head]
+            self.head.append(part.copy())
+            self.n_head += part.size
+        start = (-self.n_phase) % self.dec
+        self.decs.append(x[start:: self.dec].copy())
+        self.n_phase += x.size
+        self.x_last = float(x[-1])
+
+    def noise_id(self, m: int) -> int:
+        if not hasattr(self, "_head"):
+            self._head = np.concatenate(self.head)
+            self._dec = np.concatenate(self.decs)
+        if m % self.dec == 0:
+            return E.noise_id(self._dec, m // self.dec, "oadev")
+        return E.noise_id(self._head, m, "oadev")
+
+
+def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+    """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
+    res = stream.acc.result()
+    alphas = np.array([E.clamp_alpha(stream.noise_id(int(m)), "oadev") for m in res.m])
+    edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
+    lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
+    lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
+    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor)
+    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
+    unit, fac = DEV_UNITS[sensor]
+    si = "rad/s" if sensor == "gyro" else "m/s^2"
+    return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
+            "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
+            f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
+            f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
+            f"lo95_{unit}": lo95 * fac, f"hi95_{unit}": hi95 * fac,
+            "alpha": alphas, "edf": edfs, "fit": fit, "piecewise": pw,
+            "_si": si, "_unit": unit}
+
+
+def _fail(msg: str) -> int:
+    print(f"rigctl allan: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def _open_checked(path: str, axes: list[str]):
+    import h5py
+
+    if not os.path.isfile(path):
+        raise UsageError(f"{path}: no such file; give the path of a rigctl HDF5 recording")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise UsageError(f"{path}: not an HDF5 file ({exc}); give a rigctl recording") from exc
+    if f.attrs.get("format") not in ("rigctl-recording", b"rigctl-recording"):
+        f.close()
+        raise UsageError(f"{path}: not a rigctl recording (root attribute format != "
+                         "'rigctl-recording'); record with rigctl first")
+    for name in sorted({AXES[a][0] for a in axes}):
+        if name not in f or f[name].ndim != 2 or f[name].shape[1] != 3:
+            f.close()
+            raise UsageError(f"{path}: dataset {name} (N, 3) is missing; choose --axes "
+                             "that the recording contains")
+    return f
+
+
+def _sample_rate(f, path: str) -> float:
+    rate = f["/imu"].attrs.get("sample_rate_hz") if "/imu" in f else None
+    if rate is None and "/imu/time" in f and f["/imu/time"].shape[0] > 1:
+        t = f["/imu/time"][:2]
+        rate = 1.0 / float(t[1] - t[0])
+    if rate is None or not np.isfinite(rate) or float(rate) <= 0:
+        raise UsageError(f"{path}: /imu has no valid sample_rate_hz attribute")
+    return float(rate)
+
+
+def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False
+            ) -> dict[str, Any]:
+    """Stream the recording and analyse ``axes``; raises UsageError on invalid input."""
+    with _open_checked(path, axes) as f:
+        fs = _sample_rate(f, path)
+        dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
+        n = min(d.shape[0] for d in dsets.values())
+        if n < MIN_SAMPLES:
+            raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
+                             "for an Allan analysis (record longer)")
+        tau0 = 1.0 / fs
+        ms = A.tau_factors(n + 1, taus, "oadev")
+        mode = "exact" if exact else "fast"
+        if mode == "fast" and not isinstance(taus, (list, tuple)):
+            ms = A.snap_fast(ms)
+            ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+        streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
+        for a0 in range(0, n, CHUNK_ROWS):
+            a1 = min(n, a0 + CHUNK_ROWS)
+            blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+            for a in axes:
+                name, col, _ = AXES[a]
+                streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
+    out = {"file": os.path.basename(path), "sample_rate_hz": fs, "n_samples": int(n),
+           "axes": {}}
+    for a in axes:
+        out["axes"][a] = analyse_axis(streams[a], AXES[a][2])
+        streams[a] = None  # free the per-axis buffers
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items() if not k.startswith("_")}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    return obj
+
+
+def store(path: str, result: dict[str, Any]) -> None:
+    """Write /results/allan (replacing an earlier one): JSON summary + curve datasets."""
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        grp = f.require_group("results")
+        if "allan" in grp:
+            del grp["allan"]
+        g = grp.create_group("allan")
+        summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
+                   "n_samples": result["n_samples"],
+                   "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
+                                "fit": _jsonable(r["fit"]),
+                                "piecewise": _jsonable(r["piecewise"])}
+                            for a, r in result["axes"].items()}}
+        g.attrs["schema_version"] = SCHEMA_VERSION
+        g.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+        g.attrs["json"] = json.dumps(summary)
+        for a, r in result["axes"].items():
+            ga = g.create_group(a)
+            unit = r["_unit"]
+            for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
+                               (f"adev_{r['_si']}", r["_si"]), (f"adev_{unit}", unit),
+                               (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
+                               (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
+                               ("alpha", "1"), ("edf", "1")):
+                name = key.replace("/", "_per_")
+                ds = ga.create_dataset(name, data=np.asarray(r[key]))
+                ds.attrs["units"] = units
+
+
+def format_table(axis: str, r: dict[str, Any]) -> str:
+    """Human-readable table of one axis plus its fitted terms."""
+    unit = r["_unit"]
+    lines = [f"== {axis} ({r['sensor']}, {r['n_samples']} samples, {r['mode']} mode)",
+             f"{'tau_s':>12} {'adev_' + unit:>14} {'lo68':>12} {'hi68':>12} "
+             f"{'alpha':>5} {'edf':>10}"]
+    for i in range(len(r["tau_s"])):
+        lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
+                     f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
+                     f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
+    lines.append("fitted terms (joint EDF-weighted fit; 95 % intervals):")
+    for t, e in r["fit"]["terms"].items():
+        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        if e["supported"]:
+            lo, hi = e[f"ci95_{unit_f}"]
+            lines.append(f"  {e['name']:>26}: {e[f'value_{unit_f}']:.5g} {unit_f} "
+                         f"[{lo:.5g}, {hi:.5g}]")
+        else:
+            lines.append(f"  {e['name']:>26}: < {e[f'upper95_{unit_f}']:.5g} {unit_f} "
+                         "(95 % upper bound; not supported by the data)")
+    pw = r["piecewise"]["terms"]
+    parts = []
+    for t in ("N", "B", "K"):
+        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        v = pw[t][f"value_{unit_f}"]
+        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
+    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
+    return "\n".join(lines)
+
+
+def plot(result: dict[str, Any], out_path: str) -> None:
+    """Log-log plot: deviation with 68 % bars, fitted total and each term's line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes = list(result["axes"].items())
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.2 * len(axes)), squeeze=False)
+    for ax, (name, r) in zip(subs[:, 0], axes):
+        unit, fac = DEV_UNITS[r["sensor"]]
+        tau = np.asarray(r["tau_s"])
+        dev = np.asarray(r[f"adev_{unit}"])
+        err = [dev - r[f"lo68_{unit}"], r[f"hi68_{unit}"] - dev]
+        ax.errorbar(tau, dev, yerr=err, fmt=".", ms=3, lw=0.8, label="overlapping ADEV (68 %)")
+        tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
+        cols = F.design_matrix(tt)
+        p = r["fit"]["coeff_sq_si"]
+        total = np.zeros_like(tt)
+        for j, t in enumerate(F.TERMS):
+            part = cols[:, j] * p.get(t, 0.0)
+            total += part
+            if p.get(t, 0.0) > 0:
+                ax.loglog(tt, np.sqrt(part) * fac, "--", lw=0.8, label=f"{t} term")
+        ax.loglog(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(name)
+        ax.set_xlabel("tau [s]")
+        ax.set_ylabel(f"Allan deviation [{unit}]")
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out_path, dpi=120)
+    plt.close(fig)
+
+
+def _parse_taus(text: str) -> A.TauSpec:
+    if text in ("octave", "decade", "all"):
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        raise UsageError(f"--taus {text!r}: use octave, decade, all or a number") from None
+    if n < 2:
+        raise UsageError("--taus N needs N >= 2")
+    return n
+
+
+def _parse_axes(text: str) -> list[str]:
+    axes = [a.strip() for a in text.split(",") if a.strip()]
+    bad = [a for a in axes if a not in AXES]
+    if not axes or bad:
+        raise UsageError(f"--axes {text!r}: choose from {','.join(AXES)}")
+    return axes
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of ``rigctl allan``: 0 ok, 2 invalid input, 1 failure."""
+    try:
+        axes = _parse_axes(args.axes)
+        taus = _parse_taus(str(args.taus))
+        if args.plot:
+            try:
+                import matplotlib  # noqa: F401
+            except ImportError:
+                raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+        result = compute(args.recording, axes, taus, args.exact)
+    except UsageError as exc:
+        return _fail(str(exc))
+    try:
+        for a, r in result["axes"].items():
+            print(format_table(a, r))
+        store(args.recording, result)
+        print(f"results written to {args.recording}:/results/allan")
+        if args.plot:
+            plot(result, args.plot)
+            print(f"plot written to {args.plot}")
+    except (OSError, ValueError) as exc:
+        print(f"rigctl allan: failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``allan`` subcommand (sets ``func=run``)."""
+    p = subparsers.add_parser("allan", help="Allan analysis of a recording's IMU channels",
+                              description=__doc__.splitlines()[0])
+    p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
+    p.add_argument("--axes", default="gx,gy,gz,ax,ay,az",
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all)")
+    p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
+    p.add_argument("--taus", default="95",
+                   help="octave, decade, all, or N log-spaced taus (default 95)")
+    p.add_argument("--exact", action="store_true",
+                   help="fully overlapping sums for every tau (slower; default: fast mode)")
+    p.set_defaults(func=run)

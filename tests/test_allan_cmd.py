@@ -1,0 +1,115 @@
+"""`rigctl allan` on real HDF5 recordings written with h5py (layout of schema_version 1)."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl import allan_cmd
+
+
+def write_recording(path: Path, n: int, fs: float = 100.0, seed: int = 0,
+                    with_accel: bool = True) -> dict:
+    rng = np.random.default_rng(seed)
+    arw = 0.3 * math.pi / 180 / 60  # rad/sqrt(s)
+    vrw = 0.04 / 60  # m/s/sqrt(s)
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "rigctl-recording"
+        f.attrs["schema_version"] = 1
+        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
+        imu = f.create_group("imu")
+        imu.attrs["sample_rate_hz"] = fs
+        t = imu.create_dataset("time", data=np.arange(n) / fs)
+        t.attrs["units"] = "s"
+        imu.create_dataset("counter", data=np.arange(n, dtype=np.uint64))
+        g = rng.standard_normal((n, 3)) * arw * math.sqrt(fs) + 7.29e-5
+        d = imu.create_dataset("angular_rate", data=g, chunks=(min(4096, n), 3))
+        d.attrs["units"] = "rad/s"
+        if with_accel:
+            a = rng.standard_normal((n, 3)) * vrw * math.sqrt(fs) + [0.0, 0.0, 9.80665]
+            d = imu.create_dataset("specific_force", data=a.astype(np.float32),
+                                   chunks=(min(4096, n), 3))
+            d.attrs["units"] = "m/s^2"
+    return {"arw_deg_rt_h": 0.3, "vrw_m_s_rt_h": 0.04}
+
+
+def _args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="rigctl")
+    sub = parser.add_subparsers()
+    allan_cmd.register(sub)
+    return parser.parse_args(["allan", *argv])
+
+
+def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    rec = tmp_path / "rec.h5"
+    truth = write_recording(rec, 200_000)
+    png = tmp_path / "allan.png"
+    args = _args([str(rec), "--plot", str(png), "--taus", "40"])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "== gx (gyro" in out and "== az (accel" in out and "angle_random_walk" in out
+    assert png.stat().st_size > 10_000
+    with h5py.File(rec, "r") as f:
+        g = f["results/allan"]
+        assert g.attrs["schema_version"] == 1 and "T" in g.attrs["created_utc"]
+        summary = json.loads(g.attrs["json"])
+        tau = f["results/allan/gx/tau_s"][:]
+        assert f["results/allan/gx/tau_s"].attrs["units"] == "s"
+        assert f["results/allan/az/adev_mg"].attrs["units"] == "mg"
+        lo, hi = f["results/allan/gx/lo68_deg_per_h"][:], f["results/allan/gx/hi68_deg_per_h"][:]
+        dev = f["results/allan/gx/adev_deg_per_h"][:]
+    assert np.all(np.diff(tau) > 0) and np.all(lo < dev) and np.all(dev < hi)
+    n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    n_az = summary["axes"]["az"]["fit"]["terms"]["N"]["value_m/s/sqrt(h)"]
+    assert abs(n_gx / truth["arw_deg_rt_h"] - 1) < 0.05
+    assert abs(n_az / truth["vrw_m_s_rt_h"] - 1) < 0.05  # float32 with 1 g on the axis
+    # running again replaces the results group
+    args = _args([str(rec), "--axes", "gz", "--taus", "octave"])
+    assert args.func(args) == 0
+    with h5py.File(rec, "r") as f:
+        assert list(json.loads(f["results/allan"].attrs["json"])["axes"]) == ["gz"]
+
+
+def test_stream_matches_in_memory(tmp_path: Path) -> None:
+    rec = tmp_path / "rec.h5"
+    write_recording(rec, 150_000, seed=3)
+    res = allan_cmd.compute(str(rec), ["gy"], "octave", exact=True)
+    from rigctl.solvers import allan as A
+
+    with h5py.File(rec, "r") as f:
+        y = f["imu/angular_rate"][:, 1]
+    ref = A.oadev(y, 0.01, "octave", data_type="rate", mode="exact")
+    np.testing.assert_allclose(res["axes"]["gy"]["adev_rad/s"], ref.dev, rtol=1e-10)
+
+
+@pytest.mark.parametrize("case", ["missing", "not_hdf5", "not_rigctl", "no_accel", "short",
+                                  "bad_axes", "bad_taus"])
+def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: str) -> None:
+    rec = tmp_path / "rec.h5"
+    argv = [str(rec)]
+    if case == "not_hdf5":
+        rec.write_text("hello")
+    elif case == "not_rigctl":
+        with h5py.File(rec, "w") as f:
+            f.create_dataset("x", data=[1, 2, 3])
+    elif case == "no_accel":
+        write_recording(rec, 1000, with_accel=False)
+    elif case == "short":
+        write_recording(rec, 20)
+    elif case == "bad_axes":
+        write_recording(rec, 1000)
+        argv += ["--axes", "gx,qq"]
+    elif case == "bad_taus":
+        write_recording(rec, 1000)
+        argv += ["--taus", "weekly"]
+    args = _args(argv)
+    assert args.func(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rigctl allan: error:") and "Traceback" not in err
+    if case in ("missing", "not_hdf5", "not_rigctl", "no_accel", "short"):
+        assert str(rec) in err

@@ -1,0 +1,90 @@
+"""Joint IEEE 952 fit: recovers N, B, K on synthetic noise; bounds; units."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import lfilter
+
+from rigctl.solvers import allan as A
+from rigctl.solvers import allan_edf as E
+from rigctl.solvers import allan_fit as F
+
+D2R = math.pi / 180.0
+
+
+def synth_rate(n: int, fs: float, n_arw: float, b: float, k: float, seed: int) -> np.ndarray:
+    """White (N, u sqrt(s)) + flicker (B, u; octave-spaced Gauss-Markov bank) + random-walk
+    (K, u/sqrt(s)) rate noise. Flicker PSD B^2/(2 pi f): each process has variance
+    B^2 ln2 / pi (octave spacing)."""
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / fs
+    y = rng.standard_normal(n) * (n_arw / math.sqrt(dt))
+    if b > 0:
+        q = b * b * math.log(2.0) / math.pi
+        tc = 0.5
+        while tc <= 4 * n * dt:
+            rep = max(1, int(round(tc / 16.0 / dt)))
+            phi = math.exp(-rep * dt / tc)
+            w = rng.standard_normal(-(-n // rep)) * math.sqrt(q * (1 - phi * phi))
+            g = lfilter([1.0], [1.0, -phi], w, zi=[rng.standard_normal() * math.sqrt(q) * phi])[0]
+            y += np.repeat(g, rep)[:n]
+            tc *= 2.0
+    if k > 0:
+        y += np.cumsum(rng.standard_normal(n)) * (k * math.sqrt(dt))
+    return y
+
+
+def _analyse(y: np.ndarray, fs: float, sensor: str = "gyro") -> tuple[dict, dict]:
+    r = A.oadev(y, 1.0 / fs, 60, data_type="rate")
+    x = A.phase_from_rate(y, 1.0 / fs)
+    c = E.confidence("oadev", x, r.m, r.dev)
+    return F.fit_terms(r.tau_s, r.dev, c["edf"], sensor), F.piecewise_readoffs(r.tau_s, r.dev,
+                                                                               sensor)
+
+
+def test_fit_recovers_white_and_random_walk() -> None:
+    fs, hours = 50.0, 3.0
+    n_true, k_true = 0.2 * D2R / 60.0, 20.0 * D2R / 3600.0 / 60.0  # 0.2 deg/rt-h, 20 deg/h/rt-h
+    y = synth_rate(int(hours * 3600 * fs), fs, n_true, 0.0, k_true, seed=11)
+    fit, pw = _analyse(y, fs)
+    t = fit["terms"]
+    assert t["N"]["supported"] and t["K"]["supported"]
+    assert abs(t["N"]["value_deg/sqrt(h)"] / 0.2 - 1) < 0.05
+    assert abs(t["K"]["value_deg/h/sqrt(h)"] / 20.0 - 1) < 0.25
+    lo, hi = t["N"]["ci95_deg/sqrt(h)"]
+    assert lo < t["N"]["value_deg/sqrt(h)"] < hi and hi - lo < 0.02  # coverage: benchmark
+    assert not t["R"]["supported"] and t["R"]["upper95_deg/h/h"] > 0
+    assert pw["terms"]["N"]["value_deg/sqrt(h)"] is not None
+
+
+def test_fit_recovers_bias_instability() -> None:
+    fs, hours = 50.0, 4.0
+    n_true, b_true, k_true = 0.1 * D2R / 60.0, 5.0 * D2R / 3600.0, 10.0 * D2R / 3600.0 / 60.0
+    y = synth_rate(int(hours * 3600 * fs), fs, n_true, b_true, k_true, seed=12)
+    fit, _ = _analyse(y, fs)
+    t = fit["terms"]
+    assert abs(t["N"]["value_deg/sqrt(h)"] / 0.1 - 1) < 0.05
+    assert t["B"]["supported"] and abs(t["B"]["value_deg/h"] / 5.0 - 1) < 0.20
+
+
+def test_accelerometer_units_and_upper_bound() -> None:
+    fs = 100.0
+    vrw = 0.05 / 60.0  # 0.05 m/s/sqrt(h) in m/s/sqrt(s)
+    y = 9.80665 + synth_rate(int(3600 * fs), fs, vrw, 0.0, 0.0, seed=13)
+    fit, _ = _analyse(y, fs, "accel")
+    t = fit["terms"]
+    assert abs(t["N"]["value_m/s/sqrt(h)"] / 0.05 - 1) < 0.05
+    assert t["N"]["value_m/s/sqrt(h)"] == t["N"]["value_m/s/sqrt(s)"] * 60.0
+    assert not t["B"]["supported"]
+    assert t["B"]["upper95_mg"] == t["B"]["upper95_m/s^2"] * 1000.0 / 9.80665
+
+
+def test_model_roundtrip_exact_curve() -> None:
+    """Noise-free model curve: the fit returns the generating coefficients."""
+    tau = np.logspace(-2, 4, 50)
+    true = {"Q": 1e-6, "N": 2e-5, "B": 3e-6, "K": 4e-8, "R": 0.0}
+    dev = np.sqrt(F.model_avar(tau, true))
+    fit = F.fit_terms(tau, dev, np.full(tau.size, 1e4))
+    for t in ("Q", "N", "B", "K"):
+        assert F.term_value_si(fit, t) == __import__("pytest").approx(true[t], rel=1e-6)
