@@ -33,7 +33,7 @@ the overlapping Allan variance of what :class:`NoiseGenerator` produces (``rate_
 discrete-time random-walk term K^2 tau/3 (1 + 1/(2 M^2)) and the flicker cascade's own curve, obtained
 from its autocovariance (a sum of exponentials, from partial fractions).
 
-Chunking and seeding: each (term, axis) has its own ``numpy.random.Generator`` spawned from one
+Chunking and seeding: each (term, axis) has its own ``numpy.random.Generator`` (SFC64) spawned from one
 ``SeedSequence``; every recursion (filter state, cumulative sums, quantizer residual) is carried.
 The same seed therefore gives bit-identical output whether generated in one piece or in chunks.
 """
@@ -74,8 +74,8 @@ def normalise_params(params: Mapping[str, object]) -> dict:
 class FlickerDesign:
     """Pole/zero cascade for 1/f noise: p_k = exp(-a_pole[k]), z_k = exp(-a_zero[k]).
 
-    ``input_std_per_B`` is the std of the white driving sequence per unit B (1/(rad/s) -> 1) so
-    that the plateau equals PLATEAU * B^2.
+    ``input_std_per_B``: std of the white driving sequence divided by B (dimensionless), chosen so
+    that the mean Allan variance over the configured tau range equals PLATEAU * B^2.
     """
 
     a_pole: np.ndarray
@@ -103,8 +103,8 @@ class FlickerDesign:
         """Covariance of the flattened sosfilt state (2 per section) in steady state, unit white input.
 
         The state update z' = A z + B x is probed from scipy's own sosfilt (so the state convention
-        is scipy's), then Sigma = sum_j A^j B B^T A^jT by Smith's doubling (30 squarings reach
-        2^30 samples, beyond the slowest time constant).
+        is scipy's), then Sigma = sum_j A^j B B^T A^jT by Smith's doubling (k squarings sum 2^k
+        samples; it stops when A^(2^k) has decayed, well beyond the slowest time constant).
         """
         sos = self.sos()
         ns = 2 * sos.shape[0]
@@ -148,12 +148,12 @@ def _exp_avar(M: np.ndarray, a: float) -> np.ndarray:
     return out
 
 
-def _cascade_avar(a_pole: np.ndarray, a_zero: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Exact Allan variance for unit white input through prod (1 - z_k/z)/(1 - p_k/z), gain 1.
+def _cascade_autocov(a_pole: np.ndarray, a_zero: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Autocovariance of unit white noise through prod (1 - z_k/z)/(1 - p_k/z) (gain 1).
 
-    Partial fractions H = D + sum r_k/(1 - p_k z^-1); h_0 = 1, h_n = sum r_k p_k^n; the
-    autocovariance is R(j) = sum_l c_l p_l^j (j >= 1) with c_l = r_l (1 + sum_k r_k p_k p_l/(1-p_k p_l))
-    and R(0) = sum_l c_l + d, d being a white excess.
+    Partial fractions H = D + sum r_k/(1 - p_k z^-1); h_0 = 1, h_n = sum r_k p_k^n; then
+    R(j) = sum_l c_l p_l^j (j >= 1) with c_l = r_l (1 + sum_k r_k p_k p_l/(1-p_k p_l)) and
+    R(0) = 1 + sum_kl r_k r_l p_k p_l/(1 - p_k p_l) = sum_l c_l + d. Returns (c, d, R(0)).
     """
     p = np.exp(-a_pole)
     # differences computed from expm1 values to keep precision for poles near 1
@@ -169,12 +169,24 @@ def _cascade_avar(a_pole: np.ndarray, a_zero: np.ndarray, M: np.ndarray) -> np.n
     one_m_pp = -np.expm1(-(a_pole[:, None] + a_pole[None, :]))
     cross = (r[:, None] * p[:, None] * p[None, :] / one_m_pp)  # [k, l]
     c = r * (1.0 + cross.sum(axis=0))
-    R0 = 1.0 + np.sum(cross * r[None, :])
-    d = R0 - c.sum()
+    R0 = 1.0 + float(np.sum(cross * r[None, :]))
+    return c, R0 - float(c.sum()), R0
+
+
+def _cascade_avar(a_pole: np.ndarray, a_zero: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """Exact Allan variance for unit white input through the cascade: sum_l c_l AVAR_exp + d/M."""
+    c, d, _ = _cascade_autocov(a_pole, a_zero)
     total = d / np.asarray(M, dtype=np.float64)
     for cl, al in zip(c, a_pole):
         total = total + cl * _exp_avar(M, al)
     return total
+
+
+def flicker_variance(params: Mapping[str, object], rate_hz: float) -> np.ndarray:
+    """Stationary variance (3,) of the flicker term's samples, (rate unit)^2."""
+    P = normalise_params(params)
+    d = design_flicker(P["flicker_tau_min_s"], P["flicker_tau_max_s"], rate_hz, P["flicker_pairs_per_decade"])
+    return _cascade_autocov(d.a_pole, d.a_zero)[2] * d.input_std_per_B**2 * P["B"] ** 2
 
 
 def design_flicker(tau_min_s: float, tau_max_s: float, rate_hz: float, pairs_per_decade: float = 2) -> FlickerDesign:
@@ -235,7 +247,7 @@ class NoiseGenerator:
         self.tau0 = 1.0 / self.rate_hz
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         children = ss.spawn(3 * 3)  # (N, B, K) x 3 axes
-        self._rng = [np.random.default_rng(c) for c in children]
+        self._rng = [np.random.Generator(np.random.SFC64(c)) for c in children]  # SFC64: fastest normals
         P = self.params
         self._n_scale = P["N"] * np.sqrt(self.rate_hz)
         self._k_scale = P["K"] * np.sqrt(self.tau0)

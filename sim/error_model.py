@@ -1,0 +1,268 @@
+"""The emulated IMU's error model: true specific force and rate at the IMU -> measured outputs.
+
+API for the in-process IMU (sim/imu.py)::
+
+    model = ImuErrorModel.from_profile(profile_dict, rate_hz=None, seed=0)   # rate_hz overrides profile
+    grid = model.sample_grid(n_out)          # the IMU's own clock (drift_ppm, wander, drops), n_out samples
+    #   grid.t_internal (n_out*L,) true times of the internal-rate samples, run timescale, s
+    #   grid.t_eval     (n_out*L,) = t_internal - time_delay_s: evaluate the table's kinematics HERE
+    #   grid.t_out (n_out,), grid.counter (n_out,) uint64, grid.keep (n_out,) bool (False = dropped)
+    f_meas, w_meas, temp = model.apply(grid.t_internal, f_true, w_true, temperature=None, w_dot=None)
+    #   f_true (n_out*L, 3) m/s^2 specific force at the table's rotation centre in body axes,
+    #   w_true (n_out*L, 3) rad/s body rate (table + Earth), both at grid.t_eval;
+    #   w_dot optional (n_out*L, 3) rad/s^2 (else backward differences of w_true, carried);
+    #   temperature optional (n_out*L,) degC to replace the warm-up model (e.g. a chamber);
+    #   returns (n_out, 3) m/s^2, (n_out, 3) rad/s, (n_out,) degC at the output rate
+    # Blocks may have any n_out; results are bit-identical however a run is split into blocks.
+    # With no frontend.internal_rate_hz (L = 1) and the clock effect off, apply(t, f, w) is a
+    # drop-in for DeclaredImuModel.apply on the nominal grid t = k / rate_hz.
+    model.truth()   # JSON-serialisable dict of every true parameter, SI, units in key names
+
+Per internal sample (L = internal_rate / output_rate)::
+
+    f = f_true + w x (w x r) + dw/dt x r + f_vib(t)          (lever arm, vibration)
+    w = w_true + w_vib(t)
+    F = b_a + b_on_a + c_ba dT + (M_a + diag(c_sa dT)) f + k2_a f^2 + 0.5 u |f|
+    W = b_g + b_on_g + c_bg dT + (M_g + diag(c_sg dT)) w + k2 w^2 + k3 w^3 + G f + A_ae f^2
+    dT = T(t) - T_ref,  T(t) = T0 + dT_w (1 - exp(-(t - t_on)/tau)),  T_ref = T0 + dT_w
+
+then each sensor: Butterworth low-pass at the internal rate, decimation, noise at the output rate
+(:class:`rigctl.sim.noise.NoiseGenerator`, Q on the integrated output), ADC LSB and saturation.
+The noise coefficients are those of the output (as Allan analyses of output data give them), so
+noise is added after the low-pass: the output's Allan deviation is exactly
+``theoretical_avar(noise, tau, rate_hz, extra_white_var=LSB^2/12)``.
+Table non-orthogonality and levelling / north errors belong to the table's kinematics: use
+:func:`rigctl.sim.effects.table_body_references` (same convention as rigctl.frames.body_references)
+with ``**model.table_geometry()``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import effects as fx
+from .frontend import FrontEnd
+from .noise import NoiseGenerator
+
+# profile noise keys (unit-bearing) -> NoiseGenerator keys
+NOISE_KEYS = {
+    "gyro": {"Q_rad": "Q", "N_rad_per_s_per_sqrt_hz": "N", "B_rad_per_s": "B",
+             "K_rad_per_s2_per_sqrt_hz": "K", "R_rad_per_s2": "R"},
+    "accel": {"Q_m_per_s": "Q", "N_m_per_s2_per_sqrt_hz": "N", "B_m_per_s2": "B",
+              "K_m_per_s3_per_sqrt_hz": "K", "R_m_per_s3": "R"},
+}
+FLICKER_KEYS = ("flicker_tau_min_s", "flicker_tau_max_s", "flicker_pairs_per_decade")
+
+
+def noise_params(sensor_section: Mapping[str, Any], sensor: str) -> dict:
+    """NoiseGenerator params (Q, N, B, K, R, flicker_*) from a profile's gyro/accel section."""
+    noise = sensor_section.get("noise", {}) or {}
+    out = {short: noise[k] for k, short in NOISE_KEYS[sensor].items() if k in noise}
+    out.update({k: noise[k] for k in FLICKER_KEYS if k in noise})
+    return out
+
+
+def _vec(x: Any, default: float = 0.0) -> np.ndarray:
+    return np.broadcast_to(np.asarray(default if x is None else x, dtype=float), (3,)).copy()
+
+
+def _mat(x: Any) -> np.ndarray:
+    return np.zeros((3, 3)) if x is None else np.asarray(x, dtype=float).reshape(3, 3)
+
+
+def _on(effects: Mapping[str, Any], name: str) -> dict | None:
+    e = effects.get(name) or {}
+    return dict(e) if e.get("enabled", False) else None
+
+
+@dataclass
+class SampleGrid:
+    """Times of the next block of IMU samples (see module docstring)."""
+
+    t_internal: np.ndarray
+    t_eval: np.ndarray
+    t_out: np.ndarray
+    counter: np.ndarray
+    keep: np.ndarray
+
+
+class ImuErrorModel:
+    """Measured IMU outputs from true kinematics; see the module docstring for the equations."""
+
+    def __init__(self, profile: Mapping[str, Any], rate_hz: float | None = None, seed: int = 0):
+        self.profile = profile
+        self.seed = int(seed)
+        self.output_rate_hz = float(rate_hz or profile.get("rate_hz", 100.0))
+        fe = profile.get("frontend", {}) or {}
+        internal = float(fe.get("internal_rate_hz") or self.output_rate_hz)
+        if internal < self.output_rate_hz:
+            internal = self.output_rate_hz
+        internal = self.output_rate_hz * max(1, round(internal / self.output_rate_hz))
+        ss = np.random.SeedSequence(self.seed)
+        s_gn, s_an, s_clk, s_on, s_vib, s_temp = ss.spawn(6)
+        order = int(fe.get("filter_order", 2))
+        self.gyro_fe = FrontEnd(self.output_rate_hz, internal, fe.get("gyro_bandwidth_hz"), order,
+                                fe.get("gyro_lsb_rad_per_s"), fe.get("gyro_full_scale_rad_per_s"))
+        self.accel_fe = FrontEnd(self.output_rate_hz, internal, fe.get("accel_bandwidth_hz"), order,
+                                 fe.get("accel_lsb_m_per_s2"), fe.get("accel_full_scale_m_per_s2"))
+        self.internal_rate_hz = internal
+        self.decimation = self.gyro_fe.decimation
+        g, a = profile.get("gyro", {}) or {}, profile.get("accel", {}) or {}
+        self.gyro_noise_params = noise_params(g, "gyro")
+        self.accel_noise_params = noise_params(a, "accel")
+        self.gyro_noise = NoiseGenerator(self.gyro_noise_params, self.output_rate_hz, s_gn)
+        self.accel_noise = NoiseGenerator(self.accel_noise_params, self.output_rate_hz, s_an)
+        # declared errors
+        self.gyro_bias = _vec(g.get("bias_rad_per_s"))
+        self.gyro_M = np.diag(1.0 + _vec(g.get("scale_error"))) + _mat(g.get("misalignment_rad")) * (1 - np.eye(3))
+        self.accel_bias = _vec(a.get("bias_m_per_s2"))
+        self.accel_M = np.diag(1.0 + _vec(a.get("scale_error"))) + _mat(a.get("misalignment_rad")) * (1 - np.eye(3))
+        self.accel_k2 = _vec(a.get("quadratic_per_m_per_s2"))
+        # switchable effects
+        eff = profile.get("effects", {}) or {}
+        self.warmup = _on(eff, "warmup")
+        self.turn_on = _on(eff, "turn_on_bias")
+        self.gsens = _on(eff, "g_sensitivity")
+        self.asym = _on(eff, "accel_scale_asymmetry")
+        self.nonlin = _on(eff, "gyro_nonlinearity")
+        self.lever = _on(eff, "lever_arm")
+        self.delay = _on(eff, "time_delay")
+        self.vib = _on(eff, "vibration")
+        self.clock_cfg = _on(eff, "clock")
+        self.geometry = _on(eff, "table_geometry")
+        self.power_on_time_s = float(profile.get("power_on_time_s", 0.0))
+        self.time_delay_s = float(self.delay["delay_s"]) if self.delay else 0.0
+        self.turn_on_gyro = np.zeros(3)
+        self.turn_on_accel = np.zeros(3)
+        if self.turn_on:
+            rng = np.random.default_rng(s_on)
+            self.turn_on_gyro = rng.standard_normal(3) * float(self.turn_on.get("gyro_sigma_rad_per_s", 0.0))
+            self.turn_on_accel = rng.standard_normal(3) * float(self.turn_on.get("accel_sigma_m_per_s2", 0.0))
+        if self.vib:
+            k = len(self.vib.get("freqs_hz", []))
+            self.vib_phase = np.random.default_rng(s_vib).uniform(0, 2 * np.pi, (k, 3))
+        c = self.clock_cfg or {}
+        self.clock = fx.ClockModel(
+            self.output_rate_hz, c.get("drift_ppm", 0.0), c.get("wander_ppm", 0.0), c.get("wander_tau_s", 600.0),
+            c.get("drop_probability", 0.0), c.get("drop_max_burst", 1), self.power_on_time_s, s_clk)
+        self._temp_rng = np.random.default_rng(s_temp)
+        self._dw = fx.AngularAcceleration()
+        self._t_last_out = self.power_on_time_s - 1.0 / self.output_rate_hz
+
+    @classmethod
+    def from_profile(cls, profile: Mapping[str, Any], rate_hz: float | None = None, seed: int = 0) -> "ImuErrorModel":
+        return cls(profile, rate_hz, seed)
+
+    # ------------------------------------------------------------------------------------------
+    def sample_grid(self, n_out: int) -> SampleGrid:
+        """True times of the next n_out output samples (IMU clock) and their internal-rate grid."""
+        t_out, keep, _ = self.clock.next(n_out)
+        L = self.decimation
+        counter = np.arange(self.clock.counter - n_out, self.clock.counter, dtype=np.uint64)
+        prev = np.concatenate([[self._t_last_out], t_out[:-1]])
+        self._t_last_out = float(t_out[-1])
+        frac = (np.arange(1, L + 1) / L)[None, :]
+        t_int = (prev[:, None] + (t_out - prev)[:, None] * frac).ravel()
+        return SampleGrid(t_int, t_int - self.time_delay_s, t_out, counter, keep)
+
+    def temperature(self, t: np.ndarray) -> np.ndarray:
+        """True sensor temperature (degC) at times t (run timescale, s)."""
+        w = self.warmup
+        if not w:
+            return np.full(len(t), 25.0)
+        return fx.warmup_temperature(np.asarray(t) - self.power_on_time_s, w["T0_degC"], w["dT_degC"], w["tau_s"])
+
+    def apply(self, t: np.ndarray, f_true: np.ndarray, w_true: np.ndarray, temperature: np.ndarray | None = None,
+              w_dot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Measured (f (n,3) m/s^2, w (n,3) rad/s, T (n,) degC) at the output rate from internal-rate truth."""
+        t = np.asarray(t, dtype=float)
+        f = np.array(f_true, dtype=float)
+        w = np.array(w_true, dtype=float)
+        if self.lever:
+            dw = self._dw(t, w) if w_dot is None else np.asarray(w_dot, dtype=float)
+            f += fx.lever_arm_specific_force(w, dw, _vec(self.lever["r_m"]))
+        if self.vib:
+            fr = self.vib["freqs_hz"]
+            zero = np.zeros((len(fr), 3))
+            fv, wv = fx.vibration_many(t, fr, [self.vib.get("accel_amp_m_per_s2", zero),
+                                               self.vib.get("gyro_amp_rad_per_s", zero)], self.vib_phase)
+            f += fv
+            w += wv
+        T = self.temperature(t) if temperature is None else np.broadcast_to(np.asarray(temperature, float), t.shape)
+        F = fx.accel_declared(f, self.accel_bias + self.turn_on_accel, self.accel_M, self.accel_k2)
+        W = fx.gyro_declared(w, self.gyro_bias + self.turn_on_gyro, self.gyro_M)
+        if self.warmup:
+            wu = self.warmup
+            dT = T - float(wu.get("T_ref_degC", wu["T0_degC"] + wu["dT_degC"]))
+            F += fx.thermal_error(f, dT, _vec(wu.get("accel_bias_tc_m_per_s2_per_K")), _vec(wu.get("accel_scale_tc_per_K")))
+            W += fx.thermal_error(w, dT, _vec(wu.get("gyro_bias_tc_rad_per_s_per_K")), _vec(wu.get("gyro_scale_tc_per_K")))
+        if self.asym:
+            F += fx.scale_asymmetry_error(f, _vec(self.asym["asymmetry"]))
+        if self.nonlin:
+            W += fx.gyro_nonlinearity_error(w, _vec(self.nonlin.get("k2_per_rad_per_s")), _vec(self.nonlin.get("k3_per_rad2_per_s2")))
+        if self.gsens:
+            ae = self.gsens.get("anisoelastic_rad_per_s_per_m2_per_s4")
+            W += fx.g_sensitivity_error(f, _mat(self.gsens.get("G_rad_per_s_per_m_per_s2")), None if ae is None else _mat(ae))
+        F_out = self.accel_fe.filter_decimate(F)
+        W_out = self.gyro_fe.filter_decimate(W)
+        n = F_out.shape[0]
+        F_out = self.accel_fe.digitize(self.accel_noise.next(n, F_out))
+        W_out = self.gyro_fe.digitize(self.gyro_noise.next(n, W_out))
+        T_out = T[self.decimation - 1 :: self.decimation].copy()
+        if self.warmup:
+            T_out += self._temp_rng.standard_normal(n) * float(self.warmup.get("temp_noise_degC", 0.0))
+            lsb = float(self.warmup.get("temp_lsb_degC", 0.0))
+            if lsb > 0:
+                T_out = np.round(T_out / lsb) * lsb
+        return F_out, W_out, T_out
+
+    # ------------------------------------------------------------------------------------------
+    def table_geometry(self) -> dict:
+        """Keyword arguments for effects.table_attitude_and_rate (zeros when the effect is off)."""
+        g = self.geometry or {}
+        return {"nonorth_rad": list(_vec(g.get("nonorth_rad"))), "level_x_rad": float(g.get("level_x_rad", 0.0)),
+                "level_y_rad": float(g.get("level_y_rad", 0.0)), "north_rad": float(g.get("north_rad", 0.0))}
+
+    def truth(self) -> dict:
+        """Every true parameter, JSON-serialisable, SI, units in the key names."""
+        def js(x: Any) -> Any:
+            if isinstance(x, np.ndarray):
+                return x.tolist()
+            if isinstance(x, dict):
+                return {k: js(v) for k, v in x.items()}
+            if isinstance(x, (list, tuple)):
+                return [js(v) for v in x]
+            if isinstance(x, (np.floating, np.integer)):
+                return x.item()
+            return x
+        out = {
+            "profile_name": self.profile.get("name"), "seed": self.seed,
+            "output_rate_hz": self.output_rate_hz, "power_on_time_s": self.power_on_time_s,
+            "gyro_noise": {k: js(v) for k, v in (self.profile.get("gyro", {}) or {}).get("noise", {}).items()},
+            "accel_noise": {k: js(v) for k, v in (self.profile.get("accel", {}) or {}).get("noise", {}).items()},
+            "gyro_bias_rad_per_s": self.gyro_bias, "gyro_turn_on_bias_rad_per_s": self.turn_on_gyro,
+            "gyro_scale_misalignment_matrix": self.gyro_M,
+            "accel_bias_m_per_s2": self.accel_bias, "accel_turn_on_bias_m_per_s2": self.turn_on_accel,
+            "accel_scale_misalignment_matrix": self.accel_M, "accel_quadratic_per_m_per_s2": self.accel_k2,
+            "time_delay_s": self.time_delay_s,
+            "noise_model": ("IEEE 952 terms per axis (rigctl.sim.noise): Q on the integrated output, "
+                            "B as a 1/f pole-zero cascade (flicker_pairs_per_decade, default 2), added at "
+                            "the output rate after the front-end low-pass; exact curve: "
+                            "rigctl.sim.noise.theoretical_avar(params, tau, rate_hz, LSB^2/12)"),
+            "gyro_noise_generator_params": {k: js(np.asarray(v)) for k, v in self.gyro_noise_params.items()},
+            "accel_noise_generator_params": {k: js(np.asarray(v)) for k, v in self.accel_noise_params.items()},
+            "effects": {name: (dict(cfg) if cfg else {"enabled": False}) for name, cfg in [
+                ("warmup", self.warmup), ("turn_on_bias", self.turn_on), ("g_sensitivity", self.gsens),
+                ("accel_scale_asymmetry", self.asym), ("gyro_nonlinearity", self.nonlin), ("lever_arm", self.lever),
+                ("time_delay", self.delay), ("vibration", self.vib), ("clock", self.clock_cfg),
+                ("table_geometry", self.geometry)]},
+        }
+        if self.vib:
+            out["effects"]["vibration"]["phase_rad"] = self.vib_phase
+        if self.warmup:
+            out["effects"]["warmup"]["T_ref_degC"] = self.warmup["T0_degC"] + self.warmup["dT_degC"]
+        out.update(self.gyro_fe.truth("gyro", "rad_per_s"))
+        out.update(self.accel_fe.truth("accel", "m_per_s2"))
+        return js(out)
