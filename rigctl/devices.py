@@ -37,6 +37,9 @@ class AxisStatus(IntFlag):
     SETPOINT_ACK = 1 << 12
     FOLLOWING_ERROR = 1 << 13
     MOVING = 1 << 15
+    # aliases used by the register map (rigctl.drivers.modbus_map.StatusBit is this class)
+    INTERNAL_LIMIT = LIMIT_ACTIVE
+    FOLLOWING_ERROR_TRIP = FOLLOWING_ERROR
 
 
 @dataclass(frozen=True)
@@ -151,3 +154,21 @@ class Imu(Protocol):
 class PulseSource(Protocol):
     def read(self) -> Pulses:
         """Edges time-stamped since the previous call (possibly none)."""
+
+
+class LinkLost(ConnectionError):
+    """A device link is down (cable pulled, USB reset, socket closed, reply timeout).
+
+    Drivers raise it from ``read`` (or a command) and keep trying to reconnect themselves (with
+    backoff) on later calls; the engine treats it as a suspending condition: it pauses the
+    procedure, keeps calling ``read`` until data flow again, and re-runs the interrupted step.
+    """
+
+    def __init__(self, device: str, message: str = "link lost") -> None:
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class DeviceFault(RuntimeError):
+    """A device reports a fault that needs an operator (e.g. the table refuses a command while
+    its drive is faulted). The engine pauses on it like on the fault status bits."""

@@ -109,3 +109,22 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
         temperature_c=S.get_number(o, "temperature_c", 25.0),
         seed=int(S.get_number(o, "seed", seed, minimum=0, integer=True)),
     )
+
+
+def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
+    """The IMU model of an ``imu.sim`` config mapping.
+
+    ``profile: NAME`` (a device profile of configs/imu-profiles.yaml: consumer_mems, mti_class,
+    tactical, declared_only, random) selects the full error model of
+    :mod:`rigctl.sim.error_model` (noise with exact Allan signatures, front end, physical
+    effects, clock error); otherwise the declared errors above with white noise.
+    """
+    if "profile" not in o:
+        return build_declared_imu(o, rate_hz, seed)
+    from .error_model import ImuErrorModel
+    from .profiles import get_profile, profile_names
+
+    S.check_keys(o, ("profile", "seed"), "'imu.sim' with a profile")
+    name = S.get_str(o, "profile", choices=profile_names())
+    seed = int(S.get_number(o, "seed", seed, minimum=0, integer=True))
+    return ImuErrorModel.from_profile(get_profile(name, seed=seed), rate_hz=rate_hz, seed=seed)

@@ -14,11 +14,13 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.config import RigConfig
-from rigctl.devices import Clock, ImuBlock, Pulses, TableState
-from rigctl.frames import body_references
+from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, Pulses, TableState
+from rigctl.frames import body_references, gimbal_rate_body
 from rigctl.yamlio import LocDict
 
-from .imu import build_declared_imu
+from .faults import FaultInjector
+from .effects import table_body_references
+from .imu import DeclaredImuModel, build_imu_model
 from .table import OFF, POSITION, RATE, ServoParams, SimTurntable
 
 #: Largest block generated in one call, samples (bounds memory on long sleeps).
@@ -45,34 +47,54 @@ class SimWorld:
         self.rate_hz = cfg.imu_rate_hz
         self.dt = 1.0 / self.rate_hz
         rng = np.random.default_rng(cfg.seed)
+        i_opts = cfg.imu.options.get("sim") or LocDict()
+        i_opts = S.require_mapping(i_opts, "'imu.sim'", cfg.imu.options, "sim")
+        self.imu_model = build_imu_model(i_opts, self.rate_hz, cfg.seed)
+        # the physics grid is the IMU's internal (pre-decimation) grid
+        self.decimation = int(getattr(self.imu_model, "decimation", 1))
         t_opts = cfg.table.options.get("sim") or LocDict()
         t_opts = S.require_mapping(t_opts, "'table.sim'", cfg.table.options, "sim")
         continuous = [bool(np.isinf(cfg.limits.angle_min[i])) for i in range(3)]
         self.table = SimTurntable(_servos(t_opts), cfg.limits.rate, cfg.limits.accel, continuous,
-                                  self.dt, rng)
-        i_opts = cfg.imu.options.get("sim") or LocDict()
-        i_opts = S.require_mapping(i_opts, "'imu.sim'", cfg.imu.options, "sim")
-        self.imu_model = build_declared_imu(i_opts, self.rate_hz, cfg.seed)
+                                  self.dt / self.decimation, rng)
         self.k = 0  # next sample index
         self._blocks: list[ImuBlock] = []
         self._last_w = np.zeros(3)
+        self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
 
     def advance(self) -> None:
         """Generate every sample with time <= clock.now()."""
         k_end = int(math.floor(self.clock.now() * self.rate_hz + 1e-9)) + 1
         while self.k < k_end:
             n = min(k_end - self.k, MAX_BLOCK)
-            idx = np.arange(self.k, self.k + n)
-            t = idx * self.dt
-            ang, rates, _acc = self.table.advance(t)
-            f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
-                                       self.cfg.gravity)
-            f, w, temp = self.imu_model.apply(t, f_b, w_b)
-            self._blocks.append(ImuBlock(t, idx.astype(np.uint64), f, w, temp))
+            if isinstance(self.imu_model, DeclaredImuModel):
+                idx = np.arange(self.k, self.k + n)
+                t = idx * self.dt
+                ang, rates, _acc = self.table.advance(t)
+                f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
+                                           self.cfg.gravity)
+                f, w, temp = self.imu_model.apply(t, f_b, w_b)
+                counter = idx.astype(np.uint64)
+            else:  # full error model: its own clock, internal rate, delay, dropped samples
+                grid = self.imu_model.sample_grid(n)
+                ang, rates, acc = self.table.advance(grid.t_eval)
+                f_b, w_b = table_body_references(ang, rates, self.cfg.latitude, self.cfg.gravity,
+                                                 **self.imu_model.table_geometry())
+                w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
+                f, w, temp = self.imu_model.apply(grid.t_internal, f_b, w_b, w_dot=w_dot)
+                keep = grid.keep
+                counter = grid.counter[keep]
+                t = counter.astype(np.float64) / self.rate_hz
+                f, w, temp = f[keep], w[keep], temp[keep]
+            if self.faults.windows:
+                temp = temp + self.faults.temperature_offset(t)
+            self._blocks.append(ImuBlock(t, counter, f, w, temp))
             self.k += n
 
-    def take_imu(self) -> ImuBlock:
-        self.advance()
+    def take_imu(self, advance: bool = True) -> ImuBlock:
+        """Samples generated since the last call (after catching up to the clock if ``advance``)."""
+        if advance:
+            self.advance()
         blocks, self._blocks = self._blocks, []
         if not blocks:
             return ImuBlock.empty()
@@ -95,16 +117,37 @@ class SimTableDevice:
 
     def _now(self) -> float:
         self.world.advance()
-        return self.world.k * self.world.dt - self.world.dt if self.world.k else 0.0
+        t = self.world.k * self.world.dt - self.world.dt if self.world.k else 0.0
+        self._apply_faults(t)
+        return t
+
+    def _apply_faults(self, t: float) -> None:
+        """Injected table fault / open interlock: fault bits, and the drive stops (mode off)."""
+        faults = self.world.faults
+        faults.tick(t)
+        fault, interlock = faults.active("table_fault", t), faults.active("interlock", t)
+        for ax in self.world.table.axes:
+            ax.fault = fault
+        tripped = fault or interlock
+        if tripped and not getattr(self, "_tripped", False):
+            self.world.table.command(t, [OFF] * 3, np.zeros(3))
+        self._tripped = tripped
+
+    def _refuse_if_tripped(self) -> None:
+        if getattr(self, "_tripped", False):
+            raise DeviceFault("table: motion refused, drive faulted or interlock open")
 
     def move(self, angles: NDArray[np.float64]) -> None:
         self.check_value(angles, None)
+        self._now()
+        self._refuse_if_tripped()
         self.world.table.command(self._now(), [POSITION] * 3, np.asarray(angles, float))
 
     def set_rate(self, rates: NDArray[np.float64]) -> None:
         rates = np.asarray(rates, float)
         self.check_value(None, rates)
         t = self._now()
+        self._refuse_if_tripped()
         for ax, r in zip(self.world.table.axes, rates):
             if not math.isnan(r):
                 ax.command(t, RATE, float(r))
@@ -115,6 +158,8 @@ class SimTableDevice:
     def read(self) -> TableState:
         t = self._now()
         ang, rate, status = self.world.table.measured(t)
+        if self.world.faults.active("interlock", t):
+            status = tuple(int(s) | AxisStatus.INTERLOCK_OPEN for s in status)
         return TableState(time=t, angle=ang, rate=rate, status=status)
 
     def check_value(self, angles: NDArray | None, rates: NDArray | None) -> None:
@@ -126,7 +171,12 @@ class SimImuDevice:
         self.world = world
 
     def read(self) -> ImuBlock:
-        return self.world.take_imu()
+        block = self.world.take_imu()
+        t = self.world.k * self.world.dt - self.world.dt if self.world.k else 0.0
+        self.world.faults.tick(t)
+        if self.world.faults.active("imu_link", t):
+            raise LinkLost("imu", "no data (link down, injected)")  # samples meanwhile are lost
+        return block
 
 
 class NoPulses:
