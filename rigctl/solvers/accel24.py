@@ -136,6 +136,9 @@ def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
             idx.append(12 + i)
         values[idx] = r.values
         cov[np.ix_(idx, idx)] = r.covariance
+    pdof = np.zeros(p)
+    for i, r in enumerate(axis_results):
+        pdof[[k for k, nm in enumerate(names) if _axis_of(nm) == i]] = r.dof
     chi2 = float(sum(r.chi2 for r in axis_results))
     dof = int(sum(r.dof for r in axis_results))
     res = CalibrationResult(
@@ -143,6 +146,7 @@ def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
         residuals=np.concatenate([r.residuals for r in axis_results]),
         normalized_residuals=np.concatenate([r.normalized_residuals for r in axis_results]),
         interval="t" if any(r.interval == "t" for r in axis_results) else "normal",
+        param_dof=pdof,
     )
     for r in axis_results:
         if r.status != "ok":
@@ -155,6 +159,12 @@ def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
         "per_axis": [r.to_dict() for r in axis_results],
     }
     return res
+
+
+def _axis_of(name: str) -> int:
+    """Output axis of a full-form accelerometer parameter name."""
+    tag = name.split("_")[2]  # bias_<a>, M_<ab>, quad_<a>
+    return AXES.index(tag[0])
 
 
 def calibrate_gyro_bias_static(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,

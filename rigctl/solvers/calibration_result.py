@@ -52,6 +52,8 @@ class CalibrationResult:
         status: "ok", "poor_fit", "insufficient_poses" or "underdetermined".
         warnings: human-readable caveats; never empty when status is not "ok".
         extra: solver-specific JSON-able details (matrices, per-rate residuals, ...).
+        param_dof: optional (p,) degrees of freedom behind each parameter's t interval (when
+            independent sub-fits were combined, e.g. the three accelerometer axes).
     """
 
     method: str
@@ -66,6 +68,7 @@ class CalibrationResult:
     status: str = STATUS_OK
     warnings: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    param_dof: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         self.values = np.asarray(self.values, dtype=np.float64)
@@ -89,9 +92,17 @@ class CalibrationResult:
         return float(scipy.stats.norm.ppf(0.975))
 
     @property
+    def coverage_factors(self) -> NDArray[np.float64]:
+        """(p,) factors of the 95 % intervals (per-parameter dof when given)."""
+        if self.interval == "t" and self.param_dof is not None:
+            d = np.asarray(self.param_dof, dtype=np.float64)
+            return np.where(d > 0, scipy.stats.t.ppf(0.975, np.maximum(d, 1)), np.inf)
+        return np.full(len(self.names), self.coverage_factor)
+
+    @property
     def ci95(self) -> NDArray[np.float64]:
         """(p, 2) 95 % intervals [low, high]."""
-        k = self.coverage_factor
+        k = self.coverage_factors
         return np.stack([self.values - k * self.sigma, self.values + k * self.sigma], axis=1)
 
     @property
@@ -139,7 +150,7 @@ class CalibrationResult:
             "chi2_per_dof": _num(self.chi2_per_dof),
             "chi2_p_value": _num(self.chi2_p_value),
             "interval": self.interval,
-            "coverage_factor": self.coverage_factor,
+            "coverage_factors": _jsonable(self.coverage_factors),
             "residuals": _jsonable(self.residuals),
             "normalized_residuals": _jsonable(self.normalized_residuals),
             "extra": _jsonable(self.extra),

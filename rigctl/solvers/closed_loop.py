@@ -85,25 +85,42 @@ def _fit(prob: _Problem, X: NDArray[np.float64], names: list[str], method: str) 
 
 
 def _identifiable(prob: _Problem, q: NDArray[np.float64], Xc: NDArray[np.float64],
-                  rtol: float = 1e-6) -> NDArray[np.bool_]:
-    """Columns of Xc that add something the whitened span (orthonormal basis q) lacks."""
+                  rtol: float = 1e-6) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Columns of Xc that add something the whitened span (orthonormal basis q) lacks.
+
+    Returns the mask and the whitened columns projected off that span (B - q q^T B).
+    """
     B = Xc / prob.s[:, None]
     Bp = B - q @ (q.T @ B)
     norms = np.linalg.norm(B, axis=0)
     keep = np.zeros(B.shape[1], dtype=bool)
     if not np.any(norms > 0):
-        return keep
+        return keep, Bp
     _, r, piv = scipy.linalg.qr(Bp / np.where(norms > 0, norms, 1.0), mode="economic", pivoting=True)
     d = np.abs(np.diag(r))
     keep[piv[d > rtol]] = True
-    return keep & (norms > 0)
+    return keep & (norms > 0), Bp
 
 
-def loso_cv(prob: _Problem, X: NDArray[np.float64], segments: NDArray[np.int64] | None = None) -> float:
-    """Leave-one-segment-out prediction error sum_g |(I - H_gg)^-1 e_g|^2 (whitened)."""
-    A = X / prob.s[:, None]
-    q, r = np.linalg.qr(A)
-    e = prob.y / prob.s - q @ (q.T @ (prob.y / prob.s))
+def _chi2_drop(Bp: NDArray[np.float64], e: NDArray[np.float64]) -> float:
+    """Drop of chi2 when columns with projected part Bp join a fit with whitened residual e:
+
+        d chi2 = e^T Bp (Bp^T Bp)^-1 Bp^T e
+    """
+    z = Bp.T @ e
+    return float(z @ np.linalg.lstsq(Bp.T @ Bp, z, rcond=None)[0])
+
+
+def loso_cv(prob: _Problem, X: NDArray[np.float64], segments: NDArray[np.int64] | None = None,
+            q: NDArray[np.float64] | None = None) -> float:
+    """Leave-one-segment-out prediction error sum_g |(I - H_gg)^-1 e_g|^2 (whitened).
+
+    H = q q^T is the hat matrix of the whitened design (q: orthonormal basis of its columns).
+    """
+    if q is None:
+        q, _ = np.linalg.qr(X / prob.s[:, None])
+    yw = prob.y / prob.s
+    e = yw - q @ (q.T @ yw)
     total = 0.0
     groups = np.unique(prob.group) if segments is None else segments
     for g in groups:
@@ -118,15 +135,12 @@ def loso_cv(prob: _Problem, X: NDArray[np.float64], segments: NDArray[np.int64] 
     return total
 
 
-def _cv_groups(prob: _Problem, X_full: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Segments whose omission keeps the larger model estimable (leverage below 1)."""
-    A = X_full / prob.s[:, None]
-    q, _ = np.linalg.qr(A)
+def _cv_groups(prob: _Problem, q: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Segments whose omission keeps the (larger) model estimable: leverage below 1."""
     ok = []
     for g in np.unique(prob.group):
-        idx = np.flatnonzero(prob.group == g)
-        ev = np.linalg.eigvalsh(q[idx] @ q[idx].T)
-        if ev.max() < 1.0 - 1e-8:
+        qg = q[prob.group == g]
+        if np.linalg.norm(qg, 2) ** 2 < 1.0 - 1e-8:
             ok.append(g)
     return np.array(ok, dtype=np.int64)
 
@@ -169,8 +183,18 @@ def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> 
                 continue
             rr = float(np.clip((x @ rc) / den, -1.0, 1.0))
             tstat = rr * np.sqrt((nr - 2) / max(1e-300, 1.0 - rr**2))
-            p = float(2.0 * scipy.stats.t.sf(abs(tstat), nr - 2))
-            rows.append({"channel": CHANNELS[c], "variable": vn, "r": rr, "p": p})
+            rows.append({"channel": CHANNELS[c], "variable": vn, "r": rr, "t": abs(tstat), "df": nr - 2})
+        if seg.time is not None and nr >= 8:
+            order = np.argsort(seg.time[g], kind="stable")
+            ro = rc[order]
+            r1 = float(ro[:-1] @ ro[1:] / (ro @ ro)) if ro @ ro > 0 else 0.0
+            p = float(scipy.stats.norm.sf(r1 * np.sqrt(nr)))  # one-sided: neighbours alike
+            rows.append({"channel": CHANNELS[c], "variable": "time (serial correlation)", "r": r1, "p": p})
+    tr = [row for row in rows if "t" in row]
+    if tr:
+        pv = 2.0 * scipy.stats.t.sf(np.array([row.pop("t") for row in tr]), np.array([row.pop("df") for row in tr]))
+        for row, p in zip(tr, pv):
+            row["p"] = float(p)
     n_tests = max(1, len(rows))
     for row in rows:
         row["p_adj"] = min(1.0, row["p"] * n_tests)
@@ -276,22 +300,21 @@ def closed_loop(
             if eff.name not in built or eff.name in in_model:
                 continue
             Xc, cn = built[eff.name]
-            keep = _identifiable(prob, q_cur, Xc)
+            keep, Bp = _identifiable(prob, q_cur, Xc)
             if not np.any(keep):
                 explain.append({"step": step, "residual_pattern": pattern, "candidate": eff.name,
                                 "statistic": "-", "decision": "not identifiable with these segments"})
                 in_model.add(eff.name)
                 continue
-            Xn = np.hstack([current, Xc[:, keep]])
-            fc = _fit(prob, Xn, cur_names + [c for c, k in zip(cn, keep) if k], "candidate")
             k = int(keep.sum())
-            p_c = Xn.shape[1]
-            dchi = fit.chi2 - fc.chi2
-            F = (dchi / k) / (fc.chi2 / (n - p_c)) if n > p_c else 0.0
+            p_c = current.shape[1] + k
+            chi2_c = max(fit.chi2 - _chi2_drop(Bp[:, keep], fit.normalized_residuals), 1e-300)
+            F = ((fit.chi2 - chi2_c) / k) / (chi2_c / (n - p_c)) if n > p_c else 0.0
             pv = float(scipy.stats.f.sf(F, k, n - p_c)) if n > p_c else 1.0
-            dbic = n * np.log(fc.chi2 / fit.chi2) + k * np.log(n)
-            cands.append({"effect": eff, "X": Xn, "names": fc.names, "fit": fc, "F": float(F),
-                          "p": pv, "k": k, "dBIC": float(dbic)})
+            dbic = n * np.log(chi2_c / fit.chi2) + k * np.log(n)
+            cands.append({"effect": eff, "X": np.hstack([current, Xc[:, keep]]),
+                          "names": cur_names + [c for c, kk in zip(cn, keep) if kk],
+                          "F": float(F), "p": pv, "k": k, "dBIC": float(dbic)})
         m = max(1, len(cands))
         for c in cands:
             c["p_adj"] = min(1.0, c["p"] * m)
@@ -302,28 +325,42 @@ def closed_loop(
                                 "statistic": _stat(c), "decision": "not significant"})
         added = None
         for c in sig:
-            groups = _cv_groups(prob, c["X"])
-            cv0 = loso_cv(prob, current, groups)
-            cv1 = loso_cv(prob, c["X"], groups)
+            if added is not None:
+                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
+                                "statistic": _stat(c), "decision": f"deferred: {added['effect'].name} ranked first"})
+                continue
+            q_new, _ = np.linalg.qr(c["X"] / prob.s[:, None])
+            groups = _cv_groups(prob, q_new)
+            cv0 = loso_cv(prob, current, groups, q_cur)
+            cv1 = loso_cv(prob, c["X"], groups, q_new)
             stat = _stat(c) + f", LOSO-CV {cv0:.4g} -> {cv1:.4g}"
-            if added is None and cv1 < cv0:
+            if cv1 < cv0:
                 added = c
+                c["fit"] = _fit(prob, c["X"], c["names"], "candidate")
                 explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
                                 "statistic": stat, "decision": "added (significant, best BIC, CV improves)"})
                 c["cv"] = (cv0, cv1)
-            elif added is None:
-                explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
-                                "statistic": stat, "decision": "rejected: fails cross-validation"})
             else:
                 explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
-                                "statistic": stat, "decision": f"deferred: {added['effect'].name} ranked first"})
+                                "statistic": stat, "decision": "rejected: fails cross-validation"})
         if added is None:
             break
+        excess = fit.chi2 - fit.dof
+        frac = (fit.chi2 - added["fit"].chi2) / excess if excess > 0 else float("nan")
+        # rivals nearly as good (dBIC within 2: "not worth more than a bare mention")
+        rivals = [c["effect"].name for c in sig if c is not added and c["dBIC"] - added["dBIC"] < 2.0]
         current, cur_names, fit = added["X"], list(added["names"]), added["fit"]
         in_model.add(added["effect"].name)
         effects.append({"name": added["effect"].name, "description": added["effect"].description,
                         "F": added["F"], "p": added["p"], "p_adj": added["p_adj"], "dBIC": added["dBIC"],
-                        "cv_before": added["cv"][0], "cv_after": added["cv"][1], "step": step})
+                        "cv_before": added["cv"][0], "cv_after": added["cv"][1], "step": step,
+                        "excess_chi2_explained": float(frac),
+                        "attribution": "ambiguous" if rivals else "confirmed", "alternatives": rivals})
+        if rivals:
+            explain.append({"step": step, "residual_pattern": pattern, "candidate": added["effect"].name,
+                            "statistic": f"dBIC within 2 of {', '.join(rivals)}",
+                            "decision": "added, but ambiguous: the data cannot tell these apart "
+                                        "(e.g. time and temperature collinear during warm-up)"})
     final = fit_linear(current, prob.y, prob.s, cur_names, method="closed_loop_final")
     for e in effects:
         idx = [i for i, nm in enumerate(final.names) if nm not in names and
@@ -331,6 +368,15 @@ def closed_loop(
         e["parameters"] = [{"name": final.names[i], "value": float(final.values[i]),
                             "sigma": float(final.sigma[i]), "ci95": final.ci95[i].tolist()} for i in idx]
     unexplained = _unexplained(seg, prob, final, alpha)
+    if unexplained:
+        for e in effects:
+            if not e["excess_chi2_explained"] >= 0.5:
+                e["attribution"] = "uncertain"
+                explain.append({"step": step, "residual_pattern": "structure remains after the loop",
+                                "candidate": e["name"],
+                                "statistic": f"explained {100 * e['excess_chi2_explained']:.0f} % of the excess chi2",
+                                "decision": "kept, but attribution uncertain: it may stand in for an "
+                                            "effect outside the library"})
     for u in unexplained:
         explain.append({"step": step, "residual_pattern": u["pattern"], "candidate": "(none)",
                         "statistic": u["statistic"], "decision": "unexplained"})
@@ -374,7 +420,8 @@ def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
     """Human text: effects found, before/after RMS table, truth errors, and the explain chain."""
     lines = ["Closed loop: effects found" if res.effects else "Closed loop: no undeclared effect found"]
     for e in res.effects:
-        lines.append(f"  {e['name']}: {e['description']} (p_adj = {e['p_adj']:.2g}, dBIC = {e['dBIC']:.3g})")
+        lines.append(f"  {e['name']}: {e['description']} (p_adj = {e['p_adj']:.2g}, dBIC = {e['dBIC']:.3g}, "
+                     f"{100 * e['excess_chi2_explained']:.0f} % of excess chi2, {e['attribution']})")
         for p in e["parameters"]:
             lines.append(f"      {p['name']:<40} {p['value']:+.4g} +- {p['sigma']:.2g}  "
                          f"95% [{p['ci95'][0]:+.4g}, {p['ci95'][1]:+.4g}]")
@@ -400,3 +447,37 @@ def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
     for k, v in res.not_available.items():
         lines.append(f"  not available: {k}: {v}")
     return "\n".join(lines)
+
+
+def calibrate_session(seg: SegmentTable, quadratic: bool = True, truth: dict[str, float] | None = None,
+                      alpha: float = 0.01) -> dict[str, Any]:
+    """Everything `rigctl calibrate` needs from one SegmentTable.
+
+    Runs the separate published solvers on their segments -- accel24 and the static gyro biases
+    on kind "orientation", the forward/reverse rate test on kind "rate" -- and the joint closed
+    loop on all segments. Returns {"accel24", "gyro_bias_static", "gyro_rate": CalibrationResult
+    or None when the session has no such segments, "closed_loop": ClosedLoopResult}; use
+    :func:`session_to_dict` for JSON and :func:`format_report` for the text.
+    """
+    from .accel24 import calibrate_accel, calibrate_gyro_bias_static
+    from .gyro_rate import calibrate_gyro_rate
+
+    static = seg.kind == "orientation"
+    rate = seg.kind == "rate"
+    out: dict[str, Any] = {"accel24": None, "gyro_bias_static": None, "gyro_rate": None}
+    if static.sum() >= 6:
+        out["accel24"] = calibrate_accel(seg.f[static], seg.f_sigma[static], seg.f_ref[static],
+                                         seg.f_outer()[static], quadratic)
+        out["gyro_bias_static"] = calibrate_gyro_bias_static(seg.w[static], seg.w_sigma[static],
+                                                             seg.w_ref[static])
+    if rate.sum() >= 2:
+        # pairing on the full reference rate is safe: the Earth rate is < 1e-4 of any table rate
+        out["gyro_rate"] = calibrate_gyro_rate(seg.w[rate], seg.w_sigma[rate], seg.w_ref[rate],
+                                               seg.w_ref[rate])
+    out["closed_loop"] = closed_loop(seg, quadratic=quadratic, alpha=alpha, truth=truth)
+    return out
+
+
+def session_to_dict(results: dict[str, Any]) -> dict[str, Any]:
+    """JSON-serialisable form of :func:`calibrate_session`'s output."""
+    return {k: (None if v is None else v.to_dict()) for k, v in results.items()}

@@ -10,10 +10,12 @@ string saying why the candidate is not available.
 
 Effects and their regressors (a: true specific force, w: true rate, both body frame, SI):
 
-* accel_warmup_temperature   A_i += c_i (T - T_mean)                         [m/s^2/K]
-* gyro_warmup_temperature    W_i += c_i (T - T_mean)                         [rad/s/K]
-* accel_time_drift           A_i += d_i (t - t_mean)                         [m/s^3]
-* gyro_time_drift            W_i += d_i (t - t_mean)                         [rad/s^2]
+* accel_warmup_temperature   A_i += c_i (T - T_ref)                          [m/s^2/K]
+* gyro_warmup_temperature    W_i += c_i (T - T_ref)                          [rad/s/K]
+* accel_thermal_scale        A_i += k_i (T - T_ref) a_i                      [1/K]
+* gyro_thermal_scale         W_i += k_i (T - T_ref) w_i                      [1/K]
+* accel_time_drift           A_i += d_i (t - t_ref)                          [m/s^3]
+* gyro_time_drift            W_i += d_i (t - t_ref)                          [rad/s^2]
 * gyro_g_sensitivity         W_i += sum_j G_ij a_j                           [rad/s per m/s^2]
 * gyro_anisoelastic          W_i += sum_{j<=k} G_ijk mean(a_j a_k)           [rad/s per (m/s^2)^2]
 * accel_quadratic            A_i += q_i mean(a_i^2)        (if not declared) [s^2/m]
@@ -24,9 +26,13 @@ Effects and their regressors (a: true specific force, w: true rate, both body fr
 * lever_arm                  A   += mean(w x (w x r)) + wdot x r             [m]
 * time_delay                 W   -= tau wdot                                 [s]
 * table_levelling            (A, W) += C_b^n^T (v^n x delta), v = g up, Omega  [rad], delta=(dE, dN, 0)
+* table_gimbal_nonorthogonality  d(f, w)/d(delta) at the segment's gimbal angles and rates, for
+                             middle axis (0, cos d0, sin d0), inner axis (1, d1, d2)/norm  [rad]
 * table_north_alignment      W   += C_b^n^T (Omega^n x (0, 0, dU))            [rad]
 
-(mean(.) is the segment mean of the reference moment; see SegmentTable.)
+(mean(.) is the segment mean of the reference moment; C_b^n is the segment mean of the
+attitude matrix; T_ref defaults to the settled temperature of the last segment, t_ref to the
+mean time; see SegmentTable.)
 """
 from __future__ import annotations
 
@@ -65,14 +71,38 @@ def _per_axis(seg: SegmentTable, values: NDArray[np.float64], offset: int, prefi
     return X, [f"{prefix}_{a}_{unit}" for a in AXES]
 
 
+def _dtemp(seg: SegmentTable) -> "NDArray[np.float64] | str":
+    """T - T_ref per segment (T_ref: given, else the settled temperature of the last segment)."""
+    if seg.temperature is None:
+        return "no temperature in the segment table"
+    if seg.temperature_ref is not None:
+        ref = seg.temperature_ref
+    elif seg.time is not None:
+        ref = float(seg.temperature[int(np.argmax(seg.time))])
+    else:
+        ref = float(seg.temperature[-1])
+    t = seg.temperature - ref
+    if np.ptp(t) == 0:
+        return "temperature constant: warm-up drift not observable"
+    return t
+
+
 def _temperature(offset: int, prefix: str, unit: str) -> Builder:
     def build(seg: SegmentTable):
-        if seg.temperature is None:
-            return "no temperature in the segment table"
-        t = seg.temperature - np.mean(seg.temperature)
-        if np.ptp(t) == 0:
-            return "temperature constant: warm-up drift not observable"
+        t = _dtemp(seg)
+        if isinstance(t, str):
+            return t
         return _per_axis(seg, np.repeat(t[:, None], 3, axis=1), offset, prefix, unit)
+    return build
+
+
+def _thermal_scale(offset: int, prefix: str, unit: str) -> Builder:
+    def build(seg: SegmentTable):
+        t = _dtemp(seg)
+        if isinstance(t, str):
+            return t
+        ref = seg.f_ref if offset == 0 else seg.w_ref
+        return _per_axis(seg, t[:, None] * ref, offset, prefix, unit)
     return build
 
 
@@ -80,7 +110,7 @@ def _time(offset: int, prefix: str, unit: str) -> Builder:
     def build(seg: SegmentTable):
         if seg.time is None:
             return "no segment times in the segment table"
-        t = seg.time - np.mean(seg.time)
+        t = seg.time - (np.mean(seg.time) if seg.time_ref is None else seg.time_ref)
         return _per_axis(seg, np.repeat(t[:, None], 3, axis=1), offset, prefix, unit)
     return build
 
@@ -183,6 +213,45 @@ def _levelling(seg: SegmentTable):
     return X, ["table_tilt_east_rad", "table_tilt_north_rad"]
 
 
+def _axis_rot(axis: NDArray[np.float64], angle: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(K, 3, 3) rotations by angle (K,) about the unit vector axis (3,) (Rodrigues' formula)."""
+    k = axis / np.linalg.norm(axis)
+    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    a = angle[:, None, None]
+    return np.eye(3) + np.sin(a) * Kx + (1.0 - np.cos(a)) * (Kx @ Kx)
+
+
+def _gimbal_refs(seg: SegmentTable, d: NDArray[np.float64], g: float, om: NDArray[np.float64]
+                 ) -> NDArray[np.float64]:
+    """(K, 6) body [f, w] for gimbal axes middle = (0, cos d0, sin d0), inner = (1, d1, d2)/norm."""
+    ang = seg.angles
+    rates = seg.table_rate if seg.table_rate is not None else np.zeros_like(ang)
+    ax_o = np.array([0.0, 0.0, 1.0])
+    ax_m = np.array([0.0, np.cos(d[0]), np.sin(d[0])])
+    ax_i = np.array([1.0, d[1], d[2]]) / np.linalg.norm([1.0, d[1], d[2]])
+    Ro, Rm, Ri = _axis_rot(ax_o, ang[:, 0]), _axis_rot(ax_m, ang[:, 1]), _axis_rot(ax_i, ang[:, 2])
+    CT = np.swapaxes(Ro @ Rm @ Ri, 1, 2)
+    RiT, RmT = np.swapaxes(Ri, 1, 2), np.swapaxes(Rm, 1, 2)
+    w_tab = (RiT @ (RmT @ (rates[:, :1] * ax_o)[..., None]))[..., 0] \
+        + (RiT @ (rates[:, 1:2] * ax_m)[..., None])[..., 0] + rates[:, 2:3] * ax_i
+    return np.concatenate([CT @ np.array([0.0, 0.0, g]), CT @ om + w_tab], axis=1)
+
+
+def _nonorth(seg: SegmentTable):
+    if seg.angles is None:
+        return "no gimbal angles in the segment table"
+    g = seg.gravity_m_s2 if seg.gravity_m_s2 is not None else float(np.median(np.linalg.norm(seg.f_ref, axis=1)))
+    om = seg.earth_rate_n if seg.earth_rate_n is not None else np.zeros(3)
+    X = _blank(seg, 3)
+    h = 1e-6
+    for m in range(3):
+        d = np.zeros(3)
+        d[m] = h
+        X[:, :, m] = (_gimbal_refs(seg, d, g, om) - _gimbal_refs(seg, -d, g, om)) / (2 * h)
+    return X, ["gimbal_nonorth_outer_middle_rad", "gimbal_nonorth_middle_inner_y_rad",
+               "gimbal_nonorth_middle_inner_z_rad"]
+
+
 def _north(seg: SegmentTable):
     if seg.attitude is None or seg.earth_rate_n is None:
         return "no table attitude or Earth rate in the segment table"
@@ -197,6 +266,10 @@ LIBRARY: tuple[Effect, ...] = (
            "temperature", _temperature(0, "accel_temp_coef", "m_s2_per_K")),
     Effect("gyro_warmup_temperature", "gyro drift follows temperature (warm-up drift)",
            "temperature", _temperature(3, "gyro_temp_coef", "rad_s_per_K")),
+    Effect("accel_thermal_scale", "accelerometer scale factor follows temperature", "temperature x input",
+           _thermal_scale(0, "accel_scale_temp_coef", "per_K")),
+    Effect("gyro_thermal_scale", "gyro scale factor follows temperature", "temperature x rate",
+           _thermal_scale(3, "gyro_scale_temp_coef", "per_K")),
     Effect("accel_time_drift", "accelerometer bias drifts linearly in time", "time",
            _time(0, "accel_drift_rate", "m_s3")),
     Effect("gyro_time_drift", "gyro drift changes linearly in time", "time",
@@ -221,6 +294,8 @@ LIBRARY: tuple[Effect, ...] = (
            "angular acceleration", _time_delay),
     Effect("table_levelling", "table base not level: gravity and Earth rate tilted by (dE, dN)",
            "attitude", _levelling),
+    Effect("table_gimbal_nonorthogonality", "table gimbal axes not orthogonal (middle tilted towards "
+           "the outer axis, inner towards y and z)", "gimbal angles", _nonorth),
     Effect("table_north_alignment", "table not north-found: Earth rate rotated about up",
            "attitude", _north),
 )

@@ -92,7 +92,7 @@ def calibrate_gyro_rate(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
     pairs = pair_forward_reverse(w_table)
     names = gyro_full_names()
     warnings = []
-    if len(pairs) < len(W) // 2:
+    if 2 * len(pairs) < len(W):
         warnings.append(f"{len(W) - 2 * len(pairs)} rate segments without an opposite partner were ignored")
     if not pairs:
         return CalibrationResult(method="gyro_rate", names=names, values=np.full(12, np.nan),

@@ -28,7 +28,10 @@ time               (K,)        segment mid time since run start, s
 temperature        (K,)        mean IMU temperature, degC
 table_rate         (K, 3)      gimbal rates [outer, middle, inner], rad/s
 ang_accel          (K, 3)      mean body angular acceleration, rad/s^2 (0 for constant rate)
-attitude           (K, 3, 3)   C_b^n, body-to-ENU of the (nominally level) table
+angles             (K, 3)      mean gimbal angles [outer, middle, inner], rad (for the gimbal
+                               non-orthogonality candidate; with table_rate as gimbal rates)
+attitude           (K, 3, 3)   segment mean of C_b^n (body-to-ENU of the nominally level
+                               table); equals C_b^n for a static segment
 earth_rate_n       (3,)        Earth rate in ENU, rad/s (for the levelling candidate)
 gravity_m_s2       float       local gravity used in f_ref
 f_ref_outer        (K, 3, 3)   mean of f f^T over the segment, m^2/s^4
@@ -36,6 +39,11 @@ w_ref_outer        (K, 3, 3)   mean of w w^T over the segment, rad^2/s^2
 w_ref_cube         (K, 3)      mean of w_i^3, rad^3/s^3
 w_ref_abs          (K, 3)      mean of |w_i|, rad/s
 f_ref_abs          (K, 3)      mean of |f_i|, m/s^2
+temperature_ref    float       temperature at which biases are reported when a warm-up
+                               effect is added, degC (default: the settled temperature, i.e.
+                               that of the last segment in time)
+time_ref           float       time at which biases are reported when a linear drift is
+                               added, s (default: mean of time)
 =================  ==========  ===================================================
 
 The moment fields matter only for segments whose reference changes within the window
@@ -45,10 +53,12 @@ mean. For constant segments they equal the functions of the mean, which are the 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+
+from .segment_stats import AllanCurve, NoiseModel, segment_mean
 
 #: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros.
 CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
@@ -70,6 +80,7 @@ class SegmentTable:
     temperature: NDArray[np.float64] | None = None
     table_rate: NDArray[np.float64] | None = None
     ang_accel: NDArray[np.float64] | None = None
+    angles: NDArray[np.float64] | None = None
     attitude: NDArray[np.float64] | None = None
     earth_rate_n: NDArray[np.float64] | None = None
     gravity_m_s2: float | None = None
@@ -78,6 +89,8 @@ class SegmentTable:
     w_ref_cube: NDArray[np.float64] | None = None
     w_ref_abs: NDArray[np.float64] | None = None
     f_ref_abs: NDArray[np.float64] | None = None
+    temperature_ref: float | None = None
+    time_ref: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -93,7 +106,7 @@ class SegmentTable:
             if np.any(a[np.isfinite(a)] <= 0):
                 raise ValueError(f"SegmentTable.{name} must be positive")
         for name, shape in (("time", (k,)), ("temperature", (k,)), ("table_rate", (k, 3)),
-                            ("ang_accel", (k, 3)), ("attitude", (k, 3, 3)),
+                            ("ang_accel", (k, 3)), ("angles", (k, 3)), ("attitude", (k, 3, 3)),
                             ("f_ref_outer", (k, 3, 3)), ("w_ref_outer", (k, 3, 3)),
                             ("w_ref_cube", (k, 3)), ("w_ref_abs", (k, 3)), ("f_ref_abs", (k, 3))):
             v = getattr(self, name)
@@ -148,8 +161,83 @@ class SegmentTable:
         idx = np.arange(len(self))[mask]
         kw: dict[str, Any] = {}
         for name in ("kind", "f", "w", "f_sigma", "w_sigma", "f_ref", "w_ref", "label", "time",
-                     "temperature", "table_rate", "ang_accel", "attitude", "f_ref_outer",
+                     "temperature", "table_rate", "ang_accel", "angles", "attitude", "f_ref_outer",
                      "w_ref_outer", "w_ref_cube", "w_ref_abs", "f_ref_abs"):
             v = getattr(self, name)
             kw[name] = None if v is None else np.asarray(v)[idx]
         return replace(self, **kw)
+
+
+def segment_table_from_samples(
+    kind: Sequence[str],
+    acc: Sequence[NDArray[np.float64]],
+    gyro: Sequence[NDArray[np.float64]],
+    fs_hz: float,
+    f_ref: Sequence[NDArray[np.float64]],
+    w_ref: Sequence[NDArray[np.float64]],
+    acc_noise: NoiseModel | AllanCurve | None = None,
+    gyro_noise: NoiseModel | AllanCurve | None = None,
+    **optional: Any,
+) -> SegmentTable:
+    """Build a SegmentTable from the samples of each segment.
+
+    Args:
+        kind: (K,) segment kinds.
+        acc, gyro: K arrays (n_k, 3) of IMU samples in m/s^2 and rad/s (transients excluded).
+        fs_hz: IMU sample rate, Hz.
+        f_ref, w_ref: K arrays of the true body specific force / rate, either (3,) for a constant
+            segment or (n_k, 3) sampled at the IMU times (from rigctl.frames.body_references on
+            table angles interpolated to the IMU times); moments and the mean angular
+            acceleration (finite differences) are computed from the samples.
+        acc_noise, gyro_noise: noise models (None: estimated from each segment's own data).
+        **optional: any optional SegmentTable field (time, temperature, attitude, ...).
+    """
+    cols: dict[str, list[Any]] = {k: [] for k in ("f", "w", "fs", "ws", "fr", "wr", "fo", "wo", "wc",
+                                                   "wa", "fa", "wd")}
+    for a, g, fr, wr in zip(acc, gyro, f_ref, w_ref):
+        ma, mg = segment_mean(a, fs_hz, acc_noise), segment_mean(g, fs_hz, gyro_noise)
+        fr = np.atleast_2d(np.asarray(fr, dtype=np.float64))
+        wr = np.atleast_2d(np.asarray(wr, dtype=np.float64))
+        wd = (np.gradient(wr, 1.0 / fs_hz, axis=0).mean(axis=0) if len(wr) > 2 else np.zeros(3))
+        for key, val in (("f", ma.mean), ("w", mg.mean), ("fs", ma.sigma), ("ws", mg.sigma),
+                         ("fr", fr.mean(axis=0)), ("wr", wr.mean(axis=0)),
+                         ("fo", np.einsum("ni,nj->ij", fr, fr) / len(fr)),
+                         ("wo", np.einsum("ni,nj->ij", wr, wr) / len(wr)),
+                         ("wc", (wr**3).mean(axis=0)), ("wa", np.abs(wr).mean(axis=0)),
+                         ("fa", np.abs(fr).mean(axis=0)), ("wd", wd)):
+            cols[key].append(val)
+    optional.setdefault("ang_accel", np.array(cols["wd"]))
+    return SegmentTable(kind=np.asarray(kind), f=np.array(cols["f"]), w=np.array(cols["w"]),
+                        f_sigma=np.array(cols["fs"]), w_sigma=np.array(cols["ws"]),
+                        f_ref=np.array(cols["fr"]), w_ref=np.array(cols["wr"]),
+                        f_ref_outer=np.array(cols["fo"]), w_ref_outer=np.array(cols["wo"]),
+                        w_ref_cube=np.array(cols["wc"]), w_ref_abs=np.array(cols["wa"]),
+                        f_ref_abs=np.array(cols["fa"]), **optional)
+
+
+def truth_from_emulator(params: dict[str, Any]) -> dict[str, float]:
+    """The emulator's /truth params_json (rigctl.sim.error_model.ImuErrorModel.truth) under the
+    solvers' parameter names, for before/after errors against truth.
+
+    Biases are the run's actual ones (bias + turn-on bias). Keys missing in ``params`` are skipped.
+    """
+    out: dict[str, float] = {}
+    ax = "xyz"
+
+    def vec(key: str) -> NDArray[np.float64] | None:
+        return None if params.get(key) is None else np.asarray(params[key], dtype=np.float64).reshape(3)
+
+    for sensor, unit_in, unit_out in (("accel", "m_per_s2", "m_s2"), ("gyro", "rad_per_s", "rad_s")):
+        b = vec(f"{sensor}_bias_{unit_in}")
+        t = vec(f"{sensor}_turn_on_bias_{unit_in}")
+        if b is not None:
+            b = b + (t if t is not None else 0.0)
+            out.update({f"{sensor}_bias_{ax[i]}_{unit_out}": float(b[i]) for i in range(3)})
+        M = params.get(f"{sensor}_scale_misalignment_matrix")
+        if M is not None:
+            M = np.asarray(M, dtype=np.float64).reshape(3, 3)
+            out.update({f"{sensor}_M_{ax[i]}{ax[j]}_ratio": float(M[i, j]) for i in range(3) for j in range(3)})
+    q = vec("accel_quadratic_per_m_per_s2")
+    if q is not None:
+        out.update({f"accel_quad_{ax[i]}_s2_per_m": float(q[i]) for i in range(3)})
+    return out
