@@ -119,6 +119,7 @@ class _Compiler:
         self.errors: list[InputError] = []
         self.stack: list[Path] = []
         self.description = ""
+        self.steps_line = 1
 
     # -- files -------------------------------------------------------------------------------
     def load(self, path: Path, inc_parent: Any = None, inc_key: Any = None) -> LocDict:
@@ -134,7 +135,10 @@ class _Compiler:
                               "paths are relative to the including file") from None
             raise
         if raw is None:
-            raise InputError("the procedure file is empty", path)
+            raise InputError("the procedure file is empty", path, 1, "add 'steps:' with a list of steps")
+        if not isinstance(raw, dict):
+            raise InputError("a procedure must be a mapping with a 'steps:' list", path, 1,
+                             "see docs/procedures.md")
         m = S.require_mapping(raw, "a procedure")
         S.check_keys(m, ("procedure", "description", "parameters", "defaults", "steps"),
                      "the procedure", required=("steps",))
@@ -209,6 +213,8 @@ class _Compiler:
                 local_defaults.update(d)
                 local_defaults["__where__"] = d
             steps = S.get_list(m, "steps")
+            if not self.stack[:-1]:
+                self.steps_line = m.line_of("steps")
             for i, item in enumerate(steps):
                 try:
                     self.compile_item(path, steps, i, item, local_defaults)
@@ -397,6 +403,6 @@ def load_procedure(path: str | Path, overrides: dict[str, Any] | None = None,
     if c.errors:
         raise InputErrors(c.errors) if len(c.errors) > 1 else c.errors[0]
     if not c.steps:
-        raise InputError("the procedure has no steps", p)
+        raise InputError("the procedure has no steps", p, c.steps_line, "list at least one step")
     return Procedure(name=m_name, path=str(p), description=c.description,
                      parameters={k: c.value_of(k) for k in c.params}, steps=c.steps, sources=c.sources)
