@@ -19,7 +19,8 @@ from .units import format_bytes, format_duration
 from .yamlio import InputError
 
 #: Modules that add their own sub-commands through ``register(subparsers)``.
-COMMAND_MODULES: tuple[str, ...] = ("rigctl.sync_cmd", "rigctl.daemon")
+COMMAND_MODULES: tuple[str, ...] = ("rigctl.sync_cmd", "rigctl.allan_cmd", "rigctl.daemon", "rigctl.calibrate_cmd",
+                                    "rigctl.import_cmd", "rigctl.applycal_cmd", "rigctl.report_cmd", "rigctl.sim_cmd")
 
 
 def _load(args: argparse.Namespace):

@@ -6,6 +6,14 @@ has *settled* (the controller reports in position / at rate AND every axis staye
 step's position and rate windows for the hold time), discards the transient, samples for the
 step's window, and writes a segment record. It never samples before the hold criteria are met;
 a settle timeout stops the run with a message naming the step and what was out of window.
+
+Unattended operation: every poll is handed to the :mod:`rigctl.suspenders`. When one trips
+(IMU link lost or data gap, table fault or interlock open, temperature out of band, disk space
+low, operator pause) the engine goes ``running -> pausing -> paused`` (:mod:`rigctl.states`),
+stops the table, writes the step in flight as an ``incomplete`` segment (with its sample range),
+keeps polling until every suspender has been clear for the hold time, then goes back to
+``running`` and re-runs the interrupted step from its start: segments are all-or-nothing.
+Memory stays flat over any step length: a sample window keeps running sums, not per-poll lists.
 """
 from __future__ import annotations
 
@@ -15,9 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .devices import AxisStatus, Clock, Imu, PulseSource, TableState, Turntable
+from .devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
 from .procedure import Step
 from .recorder import Recorder, Segment
+from .states import StateMachine
+from .suspenders import Observation, SuspenderSet
 
 
 class RunError(Exception):
@@ -26,6 +36,14 @@ class RunError(Exception):
 
 class Interrupted(Exception):
     """The run was interrupted (SIGINT / SIGTERM / abort)."""
+
+
+class Suspend(Exception):
+    """One or more suspenders tripped: ``reasons`` maps suspender name -> readable reason."""
+
+    def __init__(self, reasons: dict[str, str]) -> None:
+        self.reasons = dict(reasons)
+        super().__init__("; ".join(reasons.values()))
 
 
 @dataclass
@@ -74,28 +92,73 @@ class Engine:
     """Runs steps on a rig into a recorder."""
 
     def __init__(self, rig: Rig, recorder: Recorder, *, settle_poll_s: float = 0.05,
-                 sample_poll_s: float = 0.5, log: Callable[[str, str], None] | None = None) -> None:
+                 sample_poll_s: float = 0.5, log: Callable[..., None] | None = None,
+                 suspenders: SuspenderSet | None = None, states: StateMachine | None = None,
+                 pause_poll_s: float = 0.25, max_pause_s: float | None = None,
+                 open_interlocks: bool = False) -> None:
         self.rig, self.rec = rig, recorder
         self.settle_poll_s, self.sample_poll_s = settle_poll_s, sample_poll_s
-        self.log = log or (lambda kind, msg: None)
+        self.pause_poll_s, self.max_pause_s = pause_poll_s, max_pause_s
+        self.open_interlocks = open_interlocks
+        self.log = log or (lambda kind, msg, **kw: None)
+        self.suspenders = suspenders if suspenders is not None else SuspenderSet()
+        self.states = states if states is not None else StateMachine()
         self.abort_requested: str | None = None
         self.last_state: TableState | None = None
         self.current_step: Step | None = None
+        self.sampling_from: int | None = None  # first IMU row of the window being sampled
+        self.n_suspensions = 0
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
         self.abort_requested = reason
 
+    def request_pause(self, reason: str = "paused by operator") -> None:
+        """Pause at the next poll (thread-safe); the step in flight re-runs after resume."""
+        self.suspenders.operator = reason
+
+    def request_resume(self) -> None:
+        """Lift an operator pause; the run resumes once every suspender has been clear for the
+        hold time."""
+        self.suspenders.operator = None
+
     # -- polling -------------------------------------------------------------------------------
-    def poll(self) -> TableState:
-        """Read every device once and record what came in."""
-        self.rec.append_imu(self.rig.imu.read())
-        self.rec.append_pulses(self.rig.pulses.read())
-        state = self.rig.table.read()
-        self.rec.append_table(state)
-        self.last_state = state
+    def poll(self, check: bool = True) -> TableState:
+        """Read every device once, record what came in and evaluate the suspenders; raise
+        Interrupted on an abort request and (if ``check``) Suspend when a suspender trips."""
+        clock = self.rig.clock
+        obs = Observation(t=clock.now())
+        try:
+            block = self.rig.imu.read()
+            obs.imu = block
+            self.rec.append_imu(block)
+        except LinkLost as exc:
+            obs.imu_error = str(exc)
+        try:
+            self.rec.append_pulses(self.rig.pulses.read())
+        except LinkLost as exc:
+            self.log("warning", f"pulse source: {exc}")
+        try:
+            state = self.rig.table.read()
+            obs.table = state
+            self.rec.append_table(state)
+            self.last_state = state
+        except LinkLost as exc:
+            obs.table_error = f"table link lost: {exc}"
+            state = self.last_state
         if self.abort_requested:
             raise Interrupted(self.abort_requested)
+        tripped = self.suspenders.check(obs)
+        if self.rec.holding:
+            tripped["disk"] = tripped.get("disk") or self.rec.holding
+            self.suspenders.active, self.suspenders.clear_since = tripped, None
+        if tripped and check:
+            raise Suspend(tripped)
+        if state is None:
+            if check:
+                raise Suspend({"table": "table link lost before its first reading"})
+            nan3 = np.full(3, np.nan)
+            return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
         return state
 
     def pump(self, duration: float, period: float) -> TableState:
@@ -111,9 +174,12 @@ class Engine:
     # -- steps ---------------------------------------------------------------------------------
     def command(self, step: Step) -> None:
         table = self.rig.table
-        table.move(step.angles)
-        if step.rate_mode:
-            table.set_rate(step.rates)
+        try:
+            table.move(step.angles)
+            if step.rate_mode:
+                table.set_rate(step.rates)
+        except (DeviceFault, LinkLost) as exc:
+            raise Suspend({"table": f"table refused the demand: {exc}"}) from None
 
     def settle(self, step: Step) -> float:
         """Wait for the settle criteria; returns the time from command to settled, s."""
@@ -142,6 +208,7 @@ class Engine:
     def execute(self, step: Step) -> Segment:
         """Command, settle, discard the transient, sample, and record the segment."""
         self.current_step = step
+        self.sampling_from = None
         clock = self.rig.clock
         if step.prompt:
             self.log("prompt", step.prompt)
@@ -151,34 +218,120 @@ class Engine:
             self.pump(step.discard_s, self.settle_poll_s)
         first = self.rec.n_imu
         t_start = clock.now()
-        states = []
+        self.sampling_from = first
+        n_polls, sum_angle, sum_rate = 0, np.zeros(3), np.zeros(3)  # running sums: flat memory
         end = t_start + step.sample_s
         while (remaining := end - clock.now()) > 1e-9:
             clock.sleep(min(self.sample_poll_s, remaining))
-            states.append(self.poll())
+            s = self.poll()
+            n_polls += 1
+            sum_angle += s.angle
+            sum_rate += s.rate
         last = self.rec.n_imu
-        ang = np.mean([s.angle for s in states], axis=0) if states else self.last_state.angle
-        rate = np.mean([s.rate for s in states], axis=0) if states else self.last_state.rate
+        ang = sum_angle / n_polls if n_polls else self.last_state.angle
+        rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
                       last_sample=last, t_start=t_start, t_end=clock.now(), settle_time=settle_time,
                       commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
                       measured_angle=ang, measured_rate=rate)
         self.rec.add_segment(seg)
         self.current_step = None
+        self.sampling_from = None
         return seg
 
     def run(self, steps: list[Step], start: int = 0,
             on_step: Callable[[Step, Segment], None] | None = None) -> list[Segment]:
-        """Execute ``steps[start:]`` (solve steps are skipped: they run after the recording)."""
+        """Execute ``steps[start:]`` (solve steps are skipped: they run after the recording).
+
+        A suspension pauses the run (see :meth:`suspend`) and the interrupted step then runs
+        again from its start."""
         segments = []
         motion = [s for s in steps[start:] if s.is_motion]
-        for n, step in enumerate(motion, 1):
-            self.log("step", f"[{n}/{len(motion)}] {step.describe()}")
-            seg = self.execute(step)
+        if self.states.state == "idle":
+            self.states.to("running", f"{len(motion)} steps to run")
+        n = 0
+        while n < len(motion):
+            step = motion[n]
+            self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}")
+            try:
+                seg = self.execute(step)
+            except Suspend as sus:
+                self.suspend(step, sus)
+                continue
             segments.append(seg)
             if on_step:
                 on_step(step, seg)
+            n += 1
         return segments
+
+    # -- suspension ------------------------------------------------------------------------------
+    def _stop_table(self, wait_s: float = 5.0) -> None:
+        """Stop the table (rate zero, mode off) and record it until still or ``wait_s``."""
+        clock = self.rig.clock
+        try:
+            self.rig.table.stop()
+        except Exception as exc:  # noqa: BLE001 - a faulted / unreachable table: keep pausing
+            self.log("warning", f"could not command the table to stop: {exc}")
+        t0 = clock.now()
+        while clock.now() - t0 < wait_s:
+            state = self.poll(check=False)
+            if not state.any_has(AxisStatus.MOVING):
+                return
+            clock.sleep(self.settle_poll_s)
+
+    def suspend(self, step: Step, sus: Suspend) -> None:
+        """Pause on a tripped suspender; return once all have been clear for the hold time.
+
+        The step in flight is written as an ``incomplete`` segment when it had started
+        sampling, and always named in an event with its IMU sample range."""
+        clock, rec = self.rig.clock, self.rec
+        self.n_suspensions += 1
+        names = ", ".join(sus.reasons)
+        message = str(sus)
+        self.states.to("pausing", message)
+        self.log("warning", f"suspended ({names}): {message}", suspenders=sus.reasons)
+        rec.add_event(clock.now(), "suspend", f"{names}: {message}")
+        if self.sampling_from is not None:
+            first, last = self.sampling_from, rec.n_imu
+            s = self.last_state
+            rec.add_segment(Segment(
+                kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                last_sample=last, t_start=clock.now(), t_end=clock.now(), settle_time=math.nan,
+                commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
+                measured_angle=s.angle if s is not None else np.full(3, np.nan),
+                measured_rate=s.rate if s is not None else np.full(3, np.nan), status="incomplete"))
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off: IMU rows [{first}, {last}) "
+                          "excluded; the step re-runs")
+        else:
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off before sampling; re-runs")
+        self.sampling_from = None
+        self._stop_table()
+        self.states.to("paused", message)
+        hold = self.suspenders.s.hold_s
+        t0 = clock.now()
+        seen = set(sus.reasons)
+        while True:
+            clock.sleep(self.pause_poll_s)
+            self.poll(check=False)
+            now = clock.now()
+            new = set(self.suspenders.active) - seen
+            if new:
+                seen |= new
+                text = "; ".join(self.suspenders.active[k] for k in new)
+                self.log("warning", f"also: {text}")
+                rec.add_event(now, "suspend", f"{', '.join(sorted(new))}: {text}")
+            if not self.suspenders.active and self.suspenders.clear_for(now) >= hold - 1e-9:
+                break
+            if self.max_pause_s is not None and now - t0 > self.max_pause_s:
+                raise RunError(f"paused for more than {self.max_pause_s:g} s: "
+                               f"{'; '.join(self.suspenders.active.values()) or message}")
+        text = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
+                f"re-running step {step.index + 1} ({step.label})")
+        rec.add_event(now, "resume", text)
+        self.log("info", f"resuming: {text}")
+        self.states.to("running", text)
 
     def safe_state(self, wait_s: float = 2.0) -> bool:
         """Command the table to stop (rate zero, mode off), then record its state until it is
@@ -190,11 +343,17 @@ class Engine:
         except Exception as exc:  # noqa: BLE001 - reported, the caller still closes the file
             self.log("error", f"could not stop the table: {exc}")
             return False
+        if self.open_interlocks and hasattr(self.rig.table, "open_interlock"):
+            try:
+                self.rig.table.open_interlock()
+                self.rec.add_event(self.rig.clock.now(), "safe-state", "interlocks opened")
+            except Exception as exc:  # noqa: BLE001
+                self.log("error", f"could not open the interlocks: {exc}")
         clock = self.rig.clock
         t0 = clock.now()
         try:
             while True:
-                state = self.poll()
+                state = self.poll(check=False)
                 if not state.any_has(AxisStatus.MOVING):
                     self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
                     return True

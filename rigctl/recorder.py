@@ -3,13 +3,27 @@
 The layout is documented in docs/data-format.md (schema version :data:`SCHEMA_VERSION`). Every
 dataset is created up front, chunked and extendable, and the file is switched to SWMR mode so
 another process can read a run in progress (``h5py.File(path, "r", libver="latest",
-swmr=True)``). Data are buffered in memory and appended at most ``flush_interval_s`` of wall
-time apart, then flushed, so a crash loses at most that much. ``/run/status`` says whether a run
-completed; a file left at ``running`` was cut off.
+swmr=True)``). The file is built under a temporary name and renamed into place once it is in
+SWMR mode, so a ``recording.h5`` that exists is always openable. Data are buffered in memory
+(at most ``flush_interval_s`` of wall time, or ``max_buffer_rows``) and appended, then flushed,
+so a crash loses at most that much. ``/run/status`` says whether a run completed; a file left at
+``running`` was cut off.
+
+Crash safety: after ``kill -9`` a reader opens the file with ``swmr=True``; :meth:`Recorder.reopen`
+clears HDF5's status flags (:func:`rigctl.checkpoint.clear_status_flags`) and appends to the same
+file, shifting the new session's times and IMU counters past what is already recorded.
+
+Disk space: before every write the recorder checks the free space of its filesystem; below
+``min_free_bytes`` it holds: it keeps what is buffered, drops (and counts) newly arriving IMU,
+table and pulse rows rather than risk a partial write, and reports it as an event once it can
+write again.
 """
 from __future__ import annotations
 
 import json
+import math
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -118,17 +132,10 @@ class Recorder:
 
     def __init__(self, path: str | Path, meta: dict[str, Any], truth: dict[str, Any] | None = None,
                  imu_rate_hz: float = 0.0, flush_interval_s: float = 0.5,
-                 max_buffer_rows: int = 1 << 20) -> None:
-        self.path = Path(path)
-        self.flush_interval_s = flush_interval_s
-        self.max_buffer_rows = max_buffer_rows
-        self._buf: dict[str, dict[str, list[np.ndarray]]] = {g: {d: [] for d in ds} for g, ds in LAYOUT.items()}
-        self._buffered_rows = 0
-        self._last_flush = time.monotonic()
-        self.n_imu = 0  # samples appended (buffered or written)
-        self.n_segments = 0
-        self.closed = False
-        f = h5py.File(self.path, "w", libver="latest")
+                 max_buffer_rows: int = 1 << 18, min_free_bytes: int = 0) -> None:
+        self._init_state(path, flush_interval_s, max_buffer_rows, min_free_bytes)
+        part = self.path.with_name(self.path.name + ".part")
+        f = h5py.File(part, "w", libver="latest")
         f.attrs["format"] = FORMAT_NAME
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["rigctl_version"] = __version__
@@ -151,7 +158,84 @@ class Recorder:
             tg.attrs["params_json"] = json.dumps(truth)
         f.create_group("results")
         f.swmr_mode = True
+        f.flush()
+        os.replace(part, self.path)  # appears only once complete and in SWMR mode
         self._f = f
+
+    def _init_state(self, path: str | Path, flush_interval_s: float, max_buffer_rows: int,
+                    min_free_bytes: int) -> None:
+        self.path = Path(path)
+        self.flush_interval_s = flush_interval_s
+        self.max_buffer_rows = max_buffer_rows
+        self.min_free_bytes = int(min_free_bytes)
+        self._buf: dict[str, dict[str, list[np.ndarray]]] = {g: {d: [] for d in ds} for g, ds in LAYOUT.items()}
+        self._buffered_rows = 0
+        self._last_flush = time.monotonic()
+        self.n_imu = 0  # samples appended (buffered or written)
+        self.n_segments = 0
+        self.closed = False
+        #: added to every time written (s) and to every IMU counter, for a resumed session
+        self.time_offset = 0.0
+        self.counter_offset = 0
+        self.holding: str | None = None  # why writes are held (disk space low), else None
+        self.dropped: dict[str, int] = {}
+        self._dropped_t: list[float] = []
+
+    @classmethod
+    def reopen(cls, path: str | Path, *, imu_rate_hz: float, flush_interval_s: float = 0.5,
+               max_buffer_rows: int = 1 << 18, min_free_bytes: int = 0,
+               resume_gap_s: float = 1.0) -> "Recorder":
+        """Reopen a cut-off (or interrupted) recording to append a new session to it.
+
+        Clears HDF5's status flags left by a crash, trims every group to the rows all its
+        datasets have (a crash mid-flush can leave them uneven), sets ``/run/status`` back to
+        ``running`` and sets the offsets so the new session's time t (from 0) is written as
+        ``time_offset + t`` and IMU counter c as ``counter_offset + c``, where
+        ``counter_offset = max(last counter + 1, ceil(last time * rate) + 1) + round(gap * rate)``
+        and ``time_offset = counter_offset / rate``: the gap shows as missing samples.
+        """
+        from .checkpoint import clear_status_flags
+
+        self = cls.__new__(cls)
+        self._init_state(path, flush_interval_s, max_buffer_rows, min_free_bytes)
+        clear_status_flags(self.path)
+        f = h5py.File(self.path, "r+", libver="latest")
+        try:
+            if f.attrs.get("format") != FORMAT_NAME:
+                raise ValueError(f"{self.path} is not a rigctl recording")
+            last_t = 0.0
+            for gname in LAYOUT:
+                g = f[gname]
+                n = min(g[d].shape[0] for d in LAYOUT[gname])
+                for d in LAYOUT[gname]:
+                    if g[d].shape[0] != n:
+                        g[d].resize(n, axis=0)
+                tcol = {"segments": "t_end"}.get(gname, "time")
+                if n:
+                    last_t = max(last_t, float(np.nanmax(g[tcol][max(0, n - 64):n])))
+            self.n_imu = int(f["imu/time"].shape[0])
+            self.n_segments = int(f["segments/kind"].shape[0])
+            last_c = int(f["imu/counter"][-1]) if self.n_imu else -1
+            rate = float(imu_rate_hz) or float(f["imu"].attrs.get("sample_rate_hz", 0.0)) or 1.0
+            c0 = max(last_c + 1, math.ceil(last_t * rate) + 1) + round(resume_gap_s * rate)
+            self.counter_offset, self.time_offset = int(c0), c0 / rate
+            f["run/status"][0] = b"running"
+            f["meta"].attrs["ended_utc"] = ""
+            f.swmr_mode = True
+            f.flush()
+        except Exception:
+            f.close()
+            raise
+        self._f = f
+        return self
+
+    def last_times(self) -> dict[str, float]:
+        """Last written time of each group on the file's time base, s (NaN when empty)."""
+        out = {}
+        for g, col in (("imu", "time"), ("table", "time"), ("events", "time")):
+            ds = self._f[g][col]
+            out[g] = float(ds[-1]) if ds.shape[0] else math.nan
+        return out
 
     # -- appending ---------------------------------------------------------------------------
     def _put(self, group: str, columns: dict[str, Any], rows: int) -> None:
@@ -159,38 +243,65 @@ class Recorder:
             self._buf[group][name].append(np.asarray(value))
         self._buffered_rows += rows
 
+    def _drop(self, group: str, n: int, t: Any) -> bool:
+        """While writes are held, count and drop incoming rows; True if dropped."""
+        if self.holding is None:
+            return False
+        self.dropped[group] = self.dropped.get(group, 0) + n
+        t = np.atleast_1d(np.asarray(t, float))
+        if t.size:
+            lo, hi = float(t.min()), float(t.max())
+            if self._dropped_t:
+                lo, hi = min(lo, self._dropped_t[0]), max(hi, self._dropped_t[1])
+            self._dropped_t = [lo, hi]
+        self.maybe_flush()
+        return True
+
     def append_imu(self, block: ImuBlock) -> None:
         n = len(block)
         if n == 0:
             return
-        self._put("imu", {"time": block.time, "counter": block.counter,
+        if self._drop("imu", n, block.time + self.time_offset):
+            return
+        counter = block.counter + np.uint64(self.counter_offset) if self.counter_offset else block.counter
+        self._put("imu", {"time": block.time + self.time_offset, "counter": counter,
                           "specific_force": block.specific_force, "angular_rate": block.angular_rate,
                           "temperature": block.temperature}, n)
         self.n_imu += n
         self.maybe_flush()
 
     def append_table(self, s: TableState) -> None:
-        self._put("table", {"time": [s.time], "angle": [s.angle], "rate": [s.rate],
+        if self._drop("table", 1, s.time + self.time_offset):
+            return
+        self._put("table", {"time": [s.time + self.time_offset], "angle": [s.angle], "rate": [s.rate],
                             "status": [s.status_word]}, 1)
 
     def append_pulses(self, p: Pulses) -> None:
         n = len(p)
         if n == 0:
             return
+        if self._drop("pulses", n, p.time + self.time_offset):
+            return
         week = p.gps_week if len(p.gps_week) == n else np.full(n, -1, np.int32)
         sec = p.gps_seconds if len(p.gps_seconds) == n else np.full(n, np.nan)
-        self._put("pulses", {"time": p.time, "gps_week": week, "gps_seconds": sec,
+        self._put("pulses", {"time": p.time + self.time_offset, "gps_week": week, "gps_seconds": sec,
                              "source": np.full(n, p.source.encode(), dtype="S16")}, n)
 
-    def add_segment(self, seg: Segment) -> None:
+    def add_segment(self, seg: Segment, file_time: bool = False) -> None:
+        """Append a segment row; its times are session times unless ``file_time``."""
         cols = {k: [getattr(seg, k)] for k in LAYOUT["segments"]}
         for k in ("kind", "label", "status"):
             cols[k] = [str(getattr(seg, k)).encode()[:48]]
+        if not file_time:
+            cols["t_start"] = [seg.t_start + self.time_offset]
+            cols["t_end"] = [seg.t_end + self.time_offset]
         self._put("segments", cols, 1)
         self.n_segments += 1
         self.flush()
 
-    def add_event(self, t: float, kind: str, message: str) -> None:
+    def add_event(self, t: float, kind: str, message: str, file_time: bool = False) -> None:
+        """Append an event at session time ``t`` (file time if ``file_time``), s."""
+        t = t if file_time else t + self.time_offset
         self._put("events", {"time": [t], "kind": [kind.encode()[:16]],
                              "message": [message.encode("utf-8", "replace")[:200]]}, 1)
         self.flush()
@@ -201,9 +312,35 @@ class Recorder:
                 or time.monotonic() - self._last_flush >= self.flush_interval_s):
             self.flush()
 
+    def _disk_ok(self) -> bool:
+        """Free space check before a write; sets or clears :attr:`holding`."""
+        if self.min_free_bytes <= 0:
+            return True
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            free = 0
+        if free < self.min_free_bytes:
+            if self.holding is None:
+                self.holding = (f"disk space low: {free / 2**20:.2f} MiB free on {self.path.parent}, "
+                                f"below the recorder's reserve of {self.min_free_bytes / 2**20:.2f} "
+                                "MiB; writes held until space is freed")
+            self._last_flush = time.monotonic()
+            return False
+        if self.holding is not None:
+            self.holding = None
+            if self.dropped:
+                t = self._dropped_t or [math.nan, math.nan]
+                what = ", ".join(f"{n} {g} rows" for g, n in self.dropped.items())
+                self._put("events", {"time": [t[0]], "kind": [b"data-lost"], "message": [
+                    f"not recorded while the disk was full: {what}, t {t[0]:.3f}..{t[1]:.3f} s"
+                    .encode()[:200]]}, 1)
+            self.dropped, self._dropped_t = {}, []
+        return True
+
     def flush(self) -> None:
         """Append every buffered row to the file and flush it to disk."""
-        if self.closed:
+        if self.closed or not self._disk_ok():
             return
         f = self._f
         for gname, cols in self._buf.items():
@@ -226,13 +363,19 @@ class Recorder:
             return
         if status not in STATUSES:
             raise ValueError(f"status must be one of {STATUSES}")
-        self.flush()
-        self._f["run/status"][0] = status.encode()
-        self._f.flush()
-        self._f.close()
-        self.closed = True
-        with h5py.File(self.path, "r+", libver="latest") as f:
-            f["meta"].attrs["ended_utc"] = utc_now()
+        try:
+            if self._disk_ok():
+                self.flush()
+                self._f["meta"].attrs["ended_utc"] = utc_now()
+            else:  # disk still full: keep what is on disk consistent, drop the buffer
+                for cols in self._buf.values():
+                    for parts in cols.values():
+                        parts.clear()
+            self._f["run/status"][0] = status.encode()  # in place: needs no new space
+            self._f.flush()
+        finally:
+            self._f.close()
+            self.closed = True
 
 
 def write_results(path: str | Path, name: str, payload: dict[str, Any],

@@ -1,4 +1,9 @@
-"""Running a procedure: the run directory, the recording, signals, safe state, exit codes."""
+"""Running a procedure: the run directory, the recording, signals, safe state, checkpoints,
+resuming a cut-off run, exit codes.
+
+A run directory holds ``recording.h5``, ``run.log.jsonl`` (JSON lines), ``config.yaml`` (a
+snapshot of the rig config) and ``checkpoint.json`` (rewritten atomically after every step).
+"""
 from __future__ import annotations
 
 import json
@@ -7,23 +12,31 @@ import re
 import signal
 import time
 import traceback
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from .config import RigConfig
-from .engine import Engine, Interrupted, RunError
+import h5py
+import numpy as np
+
+from . import checkpoint as ckpt_mod
+from .config import RigConfig, load_config
+from .engine import Engine, Interrupted, Rig, RunError
 from .estimate import estimate
-from .procedure import Procedure
-from .recorder import Recorder, library_versions
+from .procedure import Procedure, Step, load_procedure
+from .recorder import Recorder, Segment, library_versions
 from .rig import open_rig
 from .runlog import RunLog
 from .solve import run_solvers
+from .states import StateMachine
+from .suspenders import SuspenderSet, SuspenderSettings
 from .units import format_duration
+from .yamlio import InputError
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
-
+RECORDING, RUN_LOG, CONFIG_SNAPSHOT = "recording.h5", "run.log.jsonl", "config.yaml"
 
 
 @dataclass
@@ -33,6 +46,18 @@ class RunResult:
     recording: Path
     status: str
     message: str = ""
+
+
+@dataclass
+class RunOptions:
+    """How a run is driven (the daemon and tests set these; ``rigctl run`` uses the defaults)."""
+
+    suspenders: SuspenderSettings = field(default_factory=SuspenderSettings)
+    states: StateMachine | None = None
+    rig_opener: Callable[[RigConfig], Any] = open_rig
+    on_engine: Callable[[Engine | None], None] | None = None  # called with the engine, then None
+    max_pause_s: float | None = None
+    sample_poll_s: float = 0.5
 
 
 def make_run_dir(parent: Path, procedure_name: str) -> Path:
@@ -50,58 +75,133 @@ def make_run_dir(parent: Path, procedure_name: str) -> Path:
     raise RunError(f"could not create a run directory in {parent}")
 
 
-def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
-                  console: Any = None, install_signals: bool = True) -> RunResult:
-    """Execute ``proc`` on the rig of ``cfg``; the recording and log go to a new run directory."""
-    run_dir = make_run_dir(out_parent, proc.name)
-    recording = run_dir / "recording.h5"
-    log = RunLog(run_dir / "run.log.jsonl", console)
-    plan = estimate(proc.steps, cfg)
-    total = sum(e.total_s for e in plan)
-    log("info", f"procedure {proc.name}: {sum(s.is_motion for s in proc.steps)} steps, "
-                f"about {format_duration(total)} of rig time", procedure=proc.path)
+def check_run_dir(run_dir: str | Path, runs_root: str | Path) -> Path:
+    """The resolved run directory, which must be a direct child of ``runs_root``."""
+    root = Path(runs_root).resolve()
+    d = Path(run_dir).resolve()
+    if d.parent != root:
+        raise InputError(f"{run_dir} is not a run directory inside {root}",
+                         hint="pass --runs DIR, the directory the run was created in")
+    if not d.is_dir():
+        raise InputError(f"{d}: no such run directory")
+    return d
+
+
+class _DiskSafeLog:
+    """A RunLog whose file writes may fail (disk full) without stopping the run: the message
+    still reaches the console."""
+
+    def __init__(self, log: RunLog) -> None:
+        self._log = log
+
+    def __call__(self, kind: str, message: str, **fields: Any) -> None:
+        try:
+            self._log(kind, message, **fields)
+        except OSError as exc:
+            print(f"{kind}: {message} [run log not written: {exc.strerror}]",
+                  file=self._log.console, flush=True)
+
+    def close(self) -> None:
+        try:
+            self._log.close()
+        except OSError:
+            pass
+
+    @property
+    def console(self) -> Any:
+        return self._log.console
+
+
+def _clock_zero_unix(rig: Rig, cfg: RigConfig) -> float:
+    """Unix time at which the rig clock read zero (NaN for a virtual clock), s."""
+    if cfg.clock == "virtual":
+        return math.nan
+    speed = cfg.speed if cfg.clock == "scaled" else 1.0
+    return time.time() - rig.clock.now() / speed
+
+
+def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Checkpoint:
+    return ckpt_mod.Checkpoint(procedure_path=str(Path(proc.path).resolve()), overrides=overrides,
+                               source_sha256={str(Path(p).resolve()): ckpt_mod.sha256_text(t)
+                                              for p, t in proc.sources.items()})
+
+
+def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
+           make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
+           install_signals: bool) -> RunResult:
+    """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe."""
+    recording = run_dir / RECORDING
+    log = _DiskSafeLog(log)  # type: ignore[assignment]
+    states = opts.states or StateMachine()
     status, code, message = "failed", EXIT_FAILED, ""
-    engine: Engine | None = None
     old_handlers: dict[int, Any] = {}
+    rec: Recorder | None = None
     wall0 = time.monotonic()
-    with open_rig(cfg) as (rig, truth):
-        meta = {"procedure_name": proc.name, "procedure_path": proc.path, "procedure_text": proc.text,
-                "parameters_json": json.dumps(proc.parameters, default=str),
-                "config_path": cfg.path, "config_yaml": cfg.text,
-                "versions_json": json.dumps(library_versions()), "rig": rig.description,
-                "latitude_deg": math.degrees(cfg.latitude),
-                "height_m": cfg.height_m, "gravity_m_s2": cfg.gravity}
-        rec = Recorder(recording, meta, truth, imu_rate_hz=cfg.imu_rate_hz,
-                       flush_interval_s=cfg.flush_interval_s)
-        engine = Engine(rig, rec, log=log)
+    with opts.rig_opener(cfg) as (rig, truth):
+        rec, start = make_recorder(rig, truth)
+        suspenders = SuspenderSet(opts.suspenders, run_dir)
+        engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
+                        sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
+                        open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)))
+
+        def on_transition(old: str, new: str, reason: str) -> None:
+            log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
+            if rec is not None and not rec.closed:
+                rec.add_event(rig.clock.now(), "state", f"{old} -> {new}: {reason}")
+
+        states.listeners.append(on_transition)
 
         def on_signal(signum: int, _frame: Any) -> None:
             engine.request_abort(signal.Signals(signum).name)
 
+        def on_step(step: Step, seg: Segment) -> None:
+            ckpt.last_step, ckpt.n_imu, ckpt.n_segments = step.index, rec.n_imu, rec.n_segments
+            ckpt.t_file = seg.t_end + rec.time_offset
+            try:
+                ckpt_mod.save(run_dir, ckpt)
+            except OSError as exc:  # resume falls back on the recording's complete segments
+                log("warning", f"checkpoint not written: {exc}")
+
         if install_signals:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 old_handlers[sig] = signal.signal(sig, on_signal)
+        if opts.on_engine:
+            opts.on_engine(engine)
         try:
-            engine.run(proc.steps)
+            engine.run(proc.steps, start, on_step=on_step)
             status, code = "complete", EXIT_OK
         except Interrupted as exc:
             status, code, message = "interrupted", EXIT_INTERRUPTED, f"interrupted by {exc}"
+            states.to("aborting", message)
             log("error", f"{message}: table stopped, recording closed as interrupted")
         except RunError as exc:
             status, code, message = "failed", EXIT_FAILED, str(exc)
+            states.to("aborting", message)
             log("error", message)
         except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
             status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
-            log("error", f"unexpected error: {message} (traceback in {run_dir / 'run.log.jsonl'})",
+            if states.state != "idle":
+                states.to("faulted", message)
+            log("error", f"unexpected error: {message} (traceback in {run_dir / RUN_LOG})",
                 traceback=traceback.format_exc())
         finally:
             engine.safe_state()
             for sig, h in old_handlers.items():
                 signal.signal(sig, h)
+            if states.state in ("running", "aborting"):
+                states.to("idle", f"run {status}")
+            states.listeners.remove(on_transition)
+            if opts.on_engine:
+                opts.on_engine(None)
             if not rec.closed:
                 if message:
                     rec.add_event(rig.clock.now(), status, message)
                 rec.close(status)
+            ckpt.status = status
+            try:
+                ckpt_mod.save(run_dir, ckpt)
+            except OSError as exc:
+                log("error", f"checkpoint not written: {exc}")
         sim_time = rig.clock.now()
     wall = time.monotonic() - wall0
     log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
@@ -111,3 +211,112 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
     log("info", f"recording: {recording}")
     log.close()
     return RunResult(code, run_dir, recording, status, message)
+
+
+def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
+                  console: Any = None, install_signals: bool = True,
+                  options: RunOptions | None = None,
+                  overrides: dict[str, Any] | None = None) -> RunResult:
+    """Execute ``proc`` on the rig of ``cfg``; the recording and log go to a new run directory.
+    ``overrides`` (the ``-p`` values) are kept in the checkpoint for ``rigctl resume``."""
+    opts = options or RunOptions()
+    run_dir = make_run_dir(out_parent, proc.name)
+    (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
+    log = RunLog(run_dir / RUN_LOG, console)
+    plan = estimate(proc.steps, cfg)
+    total = sum(e.total_s for e in plan)
+    log("info", f"procedure {proc.name}: {sum(s.is_motion for s in proc.steps)} steps, "
+                f"about {format_duration(total)} of rig time", procedure=proc.path)
+    ckpt = _checkpoint_for(proc, dict(overrides if overrides is not None else proc.parameters))
+    versions = json.dumps(library_versions())  # before the rig (and its clock) starts: it is slow
+
+    def make_recorder(rig: Rig, truth: Any) -> tuple[Recorder, int]:
+        meta = {"procedure_name": proc.name, "procedure_path": proc.path, "procedure_text": proc.text,
+                "parameters_json": json.dumps(proc.parameters, default=str),
+                "config_path": cfg.path, "config_yaml": cfg.text,
+                "versions_json": versions, "rig": rig.description,
+                "latitude_deg": math.degrees(cfg.latitude),
+                "height_m": cfg.height_m, "gravity_m_s2": cfg.gravity,
+                "clock_zero_unix_s": _clock_zero_unix(rig, cfg)}
+        ckpt_mod.save(run_dir, ckpt)
+        rec = Recorder(run_dir / RECORDING, meta, truth, imu_rate_hz=cfg.imu_rate_hz,
+                       flush_interval_s=cfg.flush_interval_s,
+                       min_free_bytes=opts.suspenders.min_free_bytes // 4)
+        return rec, 0
+
+    return _drive(proc, cfg, run_dir, log, ckpt, make_recorder, opts, install_signals)
+
+
+def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
+               install_signals: bool = True, options: RunOptions | None = None) -> RunResult:
+    """Continue a cut-off (crashed, interrupted or failed) run from the step after its last
+    complete one, into the same run directory and recording.
+
+    The procedure is loaded again from its original path and must be unchanged (its files'
+    SHA-256 are in the checkpoint); the rig config comes from the run's snapshot. Rows recorded
+    while the step in flight ran are written as an ``incomplete`` segment plus a ``resume`` event
+    naming their range, so solvers never use them."""
+    opts = options or RunOptions()
+    d = check_run_dir(run_dir, runs_root)
+    try:
+        ck = ckpt_mod.load(d)
+    except ckpt_mod.CheckpointError as exc:
+        raise InputError(str(exc)) from None
+    if ck.status == "complete":
+        raise InputError(f"{d}: the run is already complete; nothing to resume")
+    cfg = load_config(d / ck.config_file)
+    proc = load_procedure(ck.procedure_path, ck.overrides, cfg.limits)
+    for path, text in proc.sources.items():
+        if ck.source_sha256.get(str(Path(path).resolve())) != ckpt_mod.sha256_text(text):
+            raise InputError(f"{path} changed since the run started (or is not the same file)",
+                             hint="restore the procedure as it was, or start a new run")
+    recording = d / ck.recording
+    if not recording.exists():
+        raise InputError(f"{d}: the run was cut off before its recording was created",
+                         hint="start the procedure again")
+    with h5py.File(recording, "r", libver="latest", swmr=True) as f:
+        seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample")}
+        file_status = f["run/status"][0].decode()
+    if file_status == "complete":
+        raise InputError(f"{recording}: the recording is already complete; nothing to resume")
+    done = seg["status"] == b"complete"
+    last_done = max([ck.last_step, *(int(x) for x in seg["step"][done])])
+    # IMU rows of the step in flight start where the last complete step's samples ended
+    in_flight_from = max([int(ck.n_imu), *(int(x) for x in seg["last_sample"][done])])
+    todo = [s for s in proc.steps if s.is_motion and s.index > last_done]
+    log = RunLog(d / RUN_LOG, console)
+    ck.sessions += 1
+    log("info", f"resuming {d.name} (session {ck.sessions}): {len(todo)} steps left after step "
+                f"{last_done + 1}; recording {recording}")
+    by_index = {s.index: s for s in proc.steps}
+
+    def make_recorder(rig: Rig, truth: Any) -> tuple[Recorder, int]:
+        rec = Recorder.reopen(recording, imu_rate_hz=cfg.imu_rate_hz,
+                              flush_interval_s=cfg.flush_interval_s,
+                              min_free_bytes=opts.suspenders.min_free_bytes // 4)
+        lt = rec.last_times()
+        first = min(in_flight_from, rec.n_imu)
+        t_end = np.nanmax([*lt.values(), ck.t_file])
+        nxt = todo[0] if todo else None
+        if nxt is not None and rec.n_imu > first:
+            nan3 = np.full(3, np.nan)
+            rec.add_segment(Segment(kind=nxt.kind, label=nxt.label, step=nxt.index,
+                                    first_sample=first, last_sample=rec.n_imu, t_start=ck.t_file,
+                                    t_end=float(t_end), settle_time=math.nan,
+                                    commanded_angle=nxt.angles,
+                                    commanded_rate=np.nan_to_num(nxt.rates, nan=0.0),
+                                    measured_angle=nan3, measured_rate=nan3, status="incomplete"),
+                            file_time=True)
+        what = (f"step {nxt.index + 1} ({nxt.label}) was in flight: IMU rows [{first}, {rec.n_imu}) "
+                "marked incomplete" if nxt is not None else "no step was in flight")
+        rec.add_event(float(t_end), "resume",
+                      f"session {ck.sessions} after a cut-off at t={float(t_end):.3f} s; {what}; "
+                      f"new session starts at t={rec.time_offset:.3f} s", file_time=True)
+        log("info", f"{what}; new data start at t={rec.time_offset:.3f} s, IMU counter "
+                    f"{rec.counter_offset}")
+        ck.status = "running"
+        ckpt_mod.save(d, ck)
+        start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
+        return rec, start
+
+    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals)

@@ -1,0 +1,387 @@
+"""``rigctl serve``: the daemon that owns the rig and runs queued jobs one at a time, and the
+client verbs ``submit``, ``status [--watch]``, ``queue``, ``pause``, ``resume [RUN]``,
+``abort``, ``logs`` (see docs/daemon.md).
+
+The daemon keeps its job list in ``<runs>/.rigctl-daemon/jobs.json`` (rewritten atomically). On
+start, a job it was running when it died (crash, power loss) is resumed first from its run's
+checkpoint (:func:`rigctl.runner.resume_run`), then the queue continues.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from . import control
+from .checkpoint import write_atomic
+from .config import load_config, resolve_config_path
+from .engine import Engine
+from .procedure import load_procedure, parse_overrides
+from .recorder import utc_now
+from .runlog import RunLog
+from .runner import EXIT_FAILED, EXIT_INVALID, RunOptions, check_run_dir, resume_run, run_procedure
+from .states import StateMachine
+from .yamlio import InputError
+
+
+@dataclass
+class Job:
+    id: int
+    kind: str                   # run | resume
+    procedure: str = ""         # absolute path (run)
+    params: dict[str, Any] | None = None
+    run_dir: str = ""           # set when it starts (run) or given (resume)
+    state: str = "queued"       # queued | running | complete | interrupted | failed | crashed
+    message: str = ""
+    submitted_utc: str = ""
+    started_utc: str = ""
+    ended_utc: str = ""
+
+
+class Daemon:
+    """Owns the rig config, the job queue, the state machine and the control socket."""
+
+    def __init__(self, runs_dir: Path, config_path: Path, socket_path: Path,
+                 console: Any = None, options: RunOptions | None = None) -> None:
+        self.runs_dir = Path(runs_dir).resolve()
+        self.runs_dir.mkdir(parents=True, exist_ok=True)
+        self.config_path = Path(config_path).resolve()
+        self.cfg = load_config(self.config_path)
+        self.socket_path = Path(socket_path)
+        self.base_options = options or RunOptions()
+        self.states = StateMachine()
+        self.log = RunLog(self.runs_dir / ".rigctl-daemon" / "daemon.log.jsonl"
+                          if self._state_dir() else None, console)
+        self.jobs: list[Job] = []
+        self.queue: deque[int] = deque()
+        self.cv = threading.Condition()
+        self.engine: Engine | None = None
+        self.current: Job | None = None
+        self.stopping: str | None = None
+        self._load_jobs()
+        self.server = control.ControlServer(self.socket_path, self.handle, self.log)
+        self.worker = threading.Thread(target=self._work, name="rigctl-worker", daemon=True)
+        self.states.listeners.append(
+            lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
+
+    # -- persistence -------------------------------------------------------------------------
+    def _state_dir(self) -> Path:
+        d = self.runs_dir / ".rigctl-daemon"
+        d.mkdir(mode=0o700, exist_ok=True)
+        return d
+
+    def _save_jobs(self) -> None:
+        write_atomic(self._state_dir() / "jobs.json",
+                     json.dumps([asdict(j) for j in self.jobs], indent=1).encode())
+
+    def _load_jobs(self) -> None:
+        path = self._state_dir() / "jobs.json"
+        if not path.exists():
+            return
+        try:
+            raw = json.loads(path.read_text())
+            self.jobs = [Job(**j) for j in raw]
+        except (ValueError, TypeError) as exc:
+            self.log("warning", f"ignoring unreadable {path}: {exc}")
+            return
+        resume_first = []
+        for j in self.jobs:
+            if j.state == "running":
+                j.state, j.message = "crashed", "the daemon stopped while the job ran"
+                if j.run_dir and (Path(j.run_dir) / "checkpoint.json").exists():
+                    r = self._new_job("resume", run_dir=j.run_dir)
+                    resume_first.append(r.id)
+                    self.log("info", f"job {j.id} was cut off; job {r.id} resumes {j.run_dir}")
+            elif j.state == "queued":
+                self.queue.append(j.id)
+        for jid in reversed(resume_first):
+            self.queue.remove(jid) if jid in self.queue else None
+            self.queue.appendleft(jid)
+        self._save_jobs()
+
+    def _new_job(self, kind: str, **kw: Any) -> Job:
+        job = Job(id=max((j.id for j in self.jobs), default=0) + 1, kind=kind,
+                  submitted_utc=utc_now(), **kw)
+        self.jobs.append(job)
+        self.queue.append(job.id)
+        return job
+
+    def job(self, jid: int) -> Job:
+        return next(j for j in self.jobs if j.id == jid)
+
+    # -- requests ------------------------------------------------------------------------------
+    def handle(self, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
+        with self.cv:
+            return getattr(self, f"_cmd_{cmd}")(args)
+
+    def _cmd_ping(self, _args: dict) -> dict:
+        return {"ok": True, "state": self.states.state}
+
+    def _cmd_status(self, _args: dict) -> dict:
+        eng = self.engine
+        out: dict[str, Any] = {"ok": True, "state": self.states.state, "reason": self.states.reason,
+                               "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
+                               "queued": len(self.queue), "job": asdict(self.current) if self.current else None}
+        if eng is not None:
+            out["suspenders"] = dict(eng.suspenders.active)
+            out["step"] = eng.current_step.describe() if eng.current_step else None
+            out["imu_samples"] = eng.rec.n_imu
+            out["segments"] = eng.rec.n_segments
+        return out
+
+    def _cmd_queue(self, _args: dict) -> dict:
+        return {"ok": True, "jobs": [asdict(j) for j in self.jobs[-200:]], "queued": list(self.queue)}
+
+    def _cmd_submit(self, args: dict) -> dict:
+        path = Path(args["procedure"])
+        if not path.is_absolute():
+            return {"ok": False, "error": "procedure path must be absolute (the client resolves it)"}
+        params = dict(args.get("params") or {})
+        try:
+            load_procedure(path, params, self.cfg.limits)  # validate now: errors go to the client
+        except InputError as exc:
+            return {"ok": False, "error": str(exc)}
+        job = self._new_job("run", procedure=str(path), params=params)
+        self._save_jobs()
+        self.cv.notify_all()
+        return {"ok": True, "job": job.id, "position": len(self.queue)}
+
+    def _cmd_pause(self, _args: dict) -> dict:
+        if self.engine is None or self.states.state not in ("running", "pausing", "paused"):
+            return {"ok": False, "error": f"nothing to pause (daemon is {self.states.state})"}
+        self.engine.request_pause("paused by operator (rigctl pause)")
+        return {"ok": True, "state": self.states.state}
+
+    def _cmd_resume(self, args: dict) -> dict:
+        if "run" in args:
+            try:
+                d = check_run_dir(args["run"], self.runs_dir)
+            except InputError as exc:
+                return {"ok": False, "error": str(exc)}
+            job = self._new_job("resume", run_dir=str(d))
+            self._save_jobs()
+            self.cv.notify_all()
+            return {"ok": True, "job": job.id}
+        if self.states.state == "faulted":
+            self.states.to("idle", "reset by operator (rigctl resume)")
+            self.cv.notify_all()
+            return {"ok": True, "state": "idle"}
+        if self.engine is None or self.engine.suspenders.operator is None:
+            return {"ok": False, "error": f"not paused by an operator (daemon is {self.states.state})"}
+        self.engine.request_resume()
+        return {"ok": True, "state": self.states.state,
+                "note": f"resumes once every suspender is clear for {self.engine.suspenders.s.hold_s:g} s"}
+
+    def _cmd_abort(self, _args: dict) -> dict:
+        if self.engine is None:
+            return {"ok": False, "error": "no job is running"}
+        self.engine.request_abort("abort requested (rigctl abort)")
+        return {"ok": True}
+
+    def _cmd_logs(self, args: dict) -> dict:
+        job = self.current or next((j for j in reversed(self.jobs) if j.run_dir), None)
+        if job is None or not job.run_dir:
+            return {"ok": True, "lines": []}
+        path = Path(job.run_dir) / "run.log.jsonl"
+        n = int(args.get("lines", 50))
+        lines: deque[str] = deque(maxlen=n)
+        if path.exists():
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                lines.extend(line.rstrip("\n") for line in fh)
+        return {"ok": True, "job": job.id, "lines": list(lines)}
+
+    # -- jobs ----------------------------------------------------------------------------------
+    def _set_engine(self, engine: Engine | None) -> None:
+        with self.cv:
+            self.engine = engine
+            if engine is not None and self.current is not None and not self.current.run_dir:
+                self.current.run_dir = str(Path(engine.rec.path).parent)
+                self._save_jobs()
+
+    def _work(self) -> None:
+        while True:
+            with self.cv:
+                self.cv.wait_for(lambda: self.stopping or (self.queue and self.states.state == "idle"))
+                if self.stopping:
+                    return
+                job = self.job(self.queue.popleft())
+                job.state, job.started_utc, self.current = "running", utc_now(), job
+                self._save_jobs()
+            self.log("info", f"job {job.id}: {job.kind} {job.procedure or job.run_dir}")
+            opts = RunOptions(suspenders=self.base_options.suspenders, states=self.states,
+                              rig_opener=self.base_options.rig_opener, on_engine=self._set_engine,
+                              max_pause_s=self.base_options.max_pause_s,
+                              sample_poll_s=self.base_options.sample_poll_s)
+            try:
+                if job.kind == "run":
+                    proc = load_procedure(job.procedure, job.params or {}, self.cfg.limits)
+                    res = run_procedure(proc, self.cfg, self.runs_dir, console=self.log.console,
+                                        install_signals=False, options=opts, overrides=job.params or {})
+                else:
+                    res = resume_run(job.run_dir, self.runs_dir, console=self.log.console,
+                                     install_signals=False, options=opts)
+                state, message, run_dir = res.status, res.message, str(res.run_dir)
+            except InputError as exc:
+                state, message, run_dir = "failed", str(exc), job.run_dir
+            except Exception as exc:  # noqa: BLE001 - the daemon survives a broken job
+                state, message, run_dir = "failed", f"{type(exc).__name__}: {exc}", job.run_dir
+                if self.states.state not in ("idle", "faulted"):
+                    self.states.to("faulted", message)
+            with self.cv:
+                job.state, job.message, job.run_dir, job.ended_utc = state, message, run_dir, utc_now()
+                self.current, self.engine = None, None
+                self._save_jobs()
+                self.cv.notify_all()
+            self.log("info", f"job {job.id} {state}" + (f": {message}" if message else ""))
+
+    def start(self) -> None:
+        self.server.start()
+        self.worker.start()
+        self.log("info", f"rigctl daemon: socket {self.socket_path}, runs in {self.runs_dir}, "
+                         f"config {self.config_path}")
+
+    def stop(self, reason: str = "shutdown") -> None:
+        """Abort the running job (the table goes to its safe state), stop serving."""
+        with self.cv:
+            self.stopping = reason
+            if self.engine is not None:
+                self.engine.request_abort(reason)
+            self.cv.notify_all()
+        self.worker.join(timeout=30)
+        self.server.close()
+        self.log("info", f"rigctl daemon stopped ({reason})")
+
+
+# -- CLI -------------------------------------------------------------------------------------------
+def cmd_serve(args: argparse.Namespace) -> int:
+    cfg_path = resolve_config_path(args.config)
+    d = Daemon(Path(args.runs), cfg_path, Path(args.socket) if args.socket else control.default_socket_path())
+    stop = threading.Event()
+    reason: list[str] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        reason.append(signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    d.start()
+    while not stop.wait(0.2):
+        pass
+    d.stop(f"daemon stopped by {reason[0]}")
+    return 0
+
+
+def _client(args: argparse.Namespace, cmd: str, payload: dict[str, Any] | None = None) -> dict[str, Any]:
+    path = Path(args.socket) if args.socket else control.default_socket_path()
+    return control.request(path, cmd, payload)
+
+
+def _print_reply(reply: dict[str, Any]) -> int:
+    if not reply.get("ok"):
+        print(f"error: {reply.get('error', 'unknown error')}", file=sys.stderr)
+        return EXIT_FAILED
+    for k, v in reply.items():
+        if k != "ok":
+            print(f"{k}: {json.dumps(v) if isinstance(v, (dict, list)) else v}")
+    return 0
+
+
+def _run_client(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    def wrapped(args: argparse.Namespace) -> int:
+        try:
+            return fn(args)
+        except ConnectionError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_FAILED
+    return wrapped
+
+
+@_run_client
+def cmd_submit(args: argparse.Namespace) -> int:
+    params = parse_overrides(args.param)
+    return _print_reply(_client(args, "submit", {"procedure": str(Path(args.procedure).resolve()),
+                                                 "params": params}))
+
+
+@_run_client
+def cmd_status(args: argparse.Namespace) -> int:
+    while True:
+        code = _print_reply(_client(args, "status"))
+        if not args.watch or code:
+            return code
+        print("--", flush=True)
+        time.sleep(args.interval)
+
+
+@_run_client
+def cmd_simple(args: argparse.Namespace) -> int:
+    payload = {"lines": args.lines} if args.command == "logs" else None
+    reply = _client(args, args.command, payload)
+    if args.command == "logs" and reply.get("ok"):
+        for line in reply.get("lines", []):
+            try:
+                rec = json.loads(line)
+                print(f"{rec.get('utc', '')} {rec.get('kind', ''):8s} {rec.get('message', '')}")
+            except ValueError:
+                print(line)
+        return 0
+    return _print_reply(reply)
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    if args.run is None:
+        return _run_client(lambda a: _print_reply(_client(a, "resume")))(args)
+    path = Path(args.socket) if args.socket else control.default_socket_path()
+    if control.ping(path):  # the daemon owns the rig: let it run the resume
+        return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}))
+    try:
+        res = resume_run(args.run, args.runs)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    return res.exit_code
+
+
+def register(sub: Any) -> None:
+    """Add serve, submit, status, queue, pause, resume, abort and logs to the rigctl CLI."""
+    def sock(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--socket", help="control socket (default: $RIGCTL_SOCKET, "
+                       "$XDG_RUNTIME_DIR/rigctl/rigctl.sock or /tmp/rigctl-UID/rigctl.sock)")
+
+    p = sub.add_parser("serve", help="run the daemon in the foreground (owns the rig, runs queued jobs)")
+    sock(p)
+    p.add_argument("--config", help="rig config YAML (default: configs/sim.yaml)")
+    p.add_argument("--runs", default="runs", help="directory for run folders (default: runs)")
+    p.set_defaults(func=cmd_serve)
+    p = sub.add_parser("submit", help="queue a procedure on the daemon")
+    sock(p)
+    p.add_argument("procedure")
+    p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE")
+    p.set_defaults(func=cmd_submit)
+    p = sub.add_parser("status", help="the daemon's state, job, step and active suspenders")
+    sock(p)
+    p.add_argument("--watch", action="store_true", help="repeat until interrupted")
+    p.add_argument("--interval", type=float, default=1.0, help="seconds between updates with --watch")
+    p.set_defaults(func=cmd_status)
+    for name, text in (("queue", "list the daemon's jobs"), ("pause", "pause the running job"),
+                       ("abort", "abort the running job (table to safe state)"),
+                       ("logs", "the running (or last) job's log")):
+        p = sub.add_parser(name, help=text)
+        sock(p)
+        if name == "logs":
+            p.add_argument("-n", "--lines", type=int, default=50)
+        p.set_defaults(func=cmd_simple)
+    p = sub.add_parser("resume", help="resume the paused job, or with RUN continue a cut-off run")
+    sock(p)
+    p.add_argument("run", nargs="?", help="a run directory cut off by a crash or power loss")
+    p.add_argument("--runs", default="runs", help="the directory RUN must be in (default: runs)")
+    p.set_defaults(func=cmd_resume)

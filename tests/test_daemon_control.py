@@ -1,0 +1,197 @@
+"""The daemon over its Unix socket: owner-only access, malformed and oversized messages,
+and a job submitted, paused, resumed and completed; then abort."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import socket
+import stat
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+import pytest
+
+from rigctl import control
+from rigctl.daemon import Daemon
+from rigctl.runner import RunOptions
+from rigctl.suspenders import SuspenderSettings
+
+from helpers import derived_config
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    cfg = derived_config(tmp_path, clock="scaled", speed=40.0)
+    base = Path(tempfile.mkdtemp(prefix="rigctl-test-", dir="/tmp"))
+    os.chmod(base, 0o755)  # traversable, so only the socket's own 0700 directory keeps others out
+    sock = base / "ctl" / "rigctl.sock"
+    d = Daemon(tmp_path / "runs", cfg, sock, console=io.StringIO(),
+               options=RunOptions(suspenders=SuspenderSettings(hold_s=0.5, min_free_bytes=0)))
+    d.start()
+    assert control.wait_for_socket(sock, 10)
+    try:
+        yield d, sock
+    finally:
+        d.stop("test over")
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def raw(sock, data: bytes) -> dict:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(10)
+        s.connect(str(sock))
+        try:
+            s.sendall(data)
+            s.shutdown(socket.SHUT_WR)
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+    return json.loads(out)
+
+
+def test_socket_is_owner_only_and_rejects_bad_messages_without_harm(daemon):
+    d, sock = daemon
+    assert stat.S_IMODE(sock.stat().st_mode) == 0o600
+    assert stat.S_IMODE(sock.parent.stat().st_mode) == 0o700
+    big = b'{"v": 1, "cmd": "status", "args": {"x": "' + b"a" * (control.MAX_MESSAGE + 10) + b'"}}\n'
+    bad = {
+        big: "larger than",
+        b"not json at all\n": "not JSON",
+        b"[1, 2, 3]\n": "must be a JSON object",
+        b'{"v": 1, "cmd": "format-disk"}\n': "unknown command",
+        b'{"v": 2, "cmd": "status"}\n': "protocol version",
+        b'{"v": 1, "cmd": "submit", "args": {}}\n': "missing argument 'procedure'",
+        b'{"v": 1, "cmd": "submit", "args": {"procedure": 5}}\n': "must be str",
+        b'{"v": 1, "cmd": "logs", "args": {"lines": -1}}\n': "lines must be",
+        b'{"v": 1, "cmd": "status", "shell": "rm -rf /"}\n': "unknown request fields",
+        b'{"v": 1, "cmd": "submit", "args": {"procedure": "relative.yaml"}}\n': "must be absolute",
+        b"\xff\xfe\n": "not JSON",
+    }
+    for msg, why in bad.items():
+        reply = raw(sock, msg)
+        assert reply["ok"] is False and why in reply["error"], (msg[:60], reply)
+    reply = control.request(sock, "status")  # still serving, unharmed
+    assert reply["ok"] and reply["state"] == "idle" and reply["job"] is None
+
+
+def _as_nobody(fn) -> tuple[int, str]:
+    """Run fn() in a forked child with uid/gid 65534; its exit code and message."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child
+        os.close(r)
+        try:
+            os.setgid(65534)
+            os.setuid(65534)
+            msg = fn()
+            code = 0
+        except BaseException as exc:  # noqa: BLE001
+            msg, code = f"{type(exc).__name__}: {exc}", 1
+        os.write(w, msg.encode()[:4000])
+        os._exit(code)
+    os.close(w)
+    out = b""
+    while chunk := os.read(r, 4096):
+        out += chunk
+    os.close(r)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status), out.decode()
+
+
+def test_socket_refuses_a_client_that_is_not_its_owner(daemon):
+    if os.geteuid() != 0:
+        pytest.skip("needs root to run a client as another uid (nobody)")
+    d, sock = daemon
+    # 1) the filesystem keeps other users out: 0700 directory, 0600 socket
+    code, msg = _as_nobody(lambda: json.dumps(control.request(sock, "status")))
+    assert code == 1 and "PermissionError" in msg
+    # 2) even if the permissions were loosened by mistake, SO_PEERCRED refuses the other uid
+    os.chmod(sock.parent, 0o755)
+    os.chmod(sock, 0o666)
+    try:
+        code, msg = _as_nobody(lambda: json.dumps(control.request(sock, "abort")))
+    finally:
+        os.chmod(sock.parent, 0o700)
+        os.chmod(sock, 0o600)
+    assert code == 0, msg
+    reply = json.loads(msg)
+    assert reply["ok"] is False and "not the daemon's owner" in reply["error"]
+    assert control.request(sock, "status")["ok"]
+
+
+PROC = """procedure: daemon-job
+steps:
+  - warmup:
+      duration: 40 s
+  - orientations:
+      angles_deg: [[0, 0, 0], [90, 0, 0]]
+      sample: 20 s
+      settle: {hold: 1 s, timeout: 60 s}
+"""
+
+
+def wait_state(sock, states, timeout=30.0) -> dict:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        st = control.request(sock, "status")
+        if st["state"] in states:
+            return st
+        time.sleep(0.02)
+    raise AssertionError(f"daemon never reached {states}: {st}")
+
+
+def last_job_done(sock, timeout=60.0) -> dict:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        job = control.request(sock, "queue")["jobs"][-1]
+        if job["state"] not in ("queued", "running"):
+            return job
+        time.sleep(0.02)
+    raise AssertionError(f"job never finished: {job}")
+
+
+def test_submit_pause_resume_complete_then_abort(daemon, tmp_path):
+    d, sock = daemon
+    proc = tmp_path / "job.yaml"
+    proc.write_text(PROC)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("steps:\n  - rates:\n      axes: [z]\n      rates_dps: [9000]\n")
+    reply = control.request(sock, "submit", {"procedure": str(bad)})
+    assert not reply["ok"] and f"{bad}:4:" in reply["error"] and "limit" in reply["error"]
+    assert control.request(sock, "submit", {"procedure": str(proc)})["ok"]
+    wait_state(sock, ("running",))
+    assert control.request(sock, "pause")["ok"]
+    st = wait_state(sock, ("paused",))
+    assert st["suspenders"] == {"operator": "paused by operator (rigctl pause)"}
+    time.sleep(0.3)
+    assert control.request(sock, "status")["state"] == "paused"
+    assert control.request(sock, "resume")["ok"]
+    wait_state(sock, ("running",))
+    job = last_job_done(sock)
+    assert job["state"] == "complete", job
+    rec = os.path.join(job["run_dir"], "recording.h5")
+    with h5py.File(rec, "r") as f:
+        assert f["run/status"][0] == b"complete"
+        msgs = [m.decode() for m in f["events/message"][()]]
+        assert any(m.startswith("running -> pausing: paused by operator") for m in msgs)
+        assert any(m.startswith("paused -> running:") for m in msgs)
+        assert [s for s in f["segments/status"][()] if s == b"complete"].__len__() == 3
+    logs = control.request(sock, "logs", {"lines": 5})
+    assert logs["ok"] and logs["lines"] and all(json.loads(line)["utc"] for line in logs["lines"])
+    # abort: the table is stopped and the recording closed as interrupted
+    assert control.request(sock, "submit", {"procedure": str(proc)})["ok"]
+    wait_state(sock, ("running",))
+    time.sleep(0.2)
+    assert control.request(sock, "abort")["ok"]
+    job = last_job_done(sock)
+    assert job["state"] == "interrupted" and "abort requested" in job["message"]
+    with h5py.File(os.path.join(job["run_dir"], "recording.h5"), "r") as f:
+        assert f["run/status"][0] == b"interrupted"
+        last = int(f["table/status"][-1])
+        assert all(not (last >> (16 * a)) & 0x2 for a in range(3))  # servo off
