@@ -33,7 +33,7 @@ def _load(args: argparse.Namespace):
 def cmd_run(args: argparse.Namespace) -> int:
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
-    result = run_procedure(proc, cfg, Path(args.out))
+    result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
     return result.exit_code
 
 
