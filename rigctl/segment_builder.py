@@ -1,10 +1,11 @@
 """Build the calibration solvers' per-segment table from a recording (the I/O edge).
 
 For every complete static or constant-rate segment of /segments it takes the IMU samples of
-the sampling window, their means and uncertainties (:func:`rigctl.solvers.segment_stats.
-segment_mean`), and the true references evaluated at every sample time from the table's
-attitude (:func:`rigctl.frames.body_references`) and averaged over the window -- the moments
-(mean of f f^T, of w^3, ...) as well, because nonlinear terms act on them, not on the means.
+the sampling window and the true references evaluated at every sample time from the table's
+attitude (:func:`rigctl.frames.body_references`), and hands both to
+:func:`rigctl.solvers.segments.segment_table_from_samples`, which forms the means, their
+uncertainties (:mod:`rigctl.solvers.segment_stats`) and the moments of the references (mean of
+f f^T, of w^3, ...; nonlinear terms act on them, not on the means).
 
 On a rate segment the turning axis' angle is reconstructed at every IMU sample by a straight
 line fitted to the table polls inside the window (angle unwrapped), so gravity and Earth rate
@@ -19,8 +20,8 @@ import h5py
 import numpy as np
 
 from .frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
-from .solvers.segment_stats import AllanCurve, NoiseModel, segment_mean
-from .solvers.segments import SegmentTable
+from .solvers.segment_stats import AllanCurve, NoiseModel, self_noise_sigma
+from .solvers.segments import SegmentTable, segment_table_from_samples
 from .yamlio import InputError
 
 #: Segment kinds a calibration uses.
@@ -77,16 +78,37 @@ def _angles_at(t: np.ndarray, seg: dict, i: int, tab_t: np.ndarray, tab_ang: np.
     return ang, rates
 
 
+def _residual_sigma(x: np.ndarray, ref: np.ndarray, fs: float) -> np.ndarray:
+    """Noise of a segment mean estimated from the segment itself (rigctl.solvers.segment_stats.
+    self_noise_sigma) after removing what the reference explains.
+
+    On a static segment this is the samples about their mean. On a rate segment gravity turns
+    through the sensor axes, so the samples swing by ~g: they are first regressed on
+    [1, ref_x, ref_y, ref_z] (least squares per channel) and the batch-means estimate is taken
+    of the residual, which is the sensor noise.
+    """
+    ref = np.atleast_2d(ref)
+    if ref.shape[0] == x.shape[0] and np.ptp(ref, axis=0).max() > 0:
+        A = np.column_stack([np.ones(len(ref)), ref - ref.mean(axis=0)])
+        coef, *_ = np.linalg.lstsq(A, x, rcond=1e-9)
+        x = x - A @ coef
+    return self_noise_sigma(x, fs)
+
+
 def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
                         noise_f: NoiseModel | AllanCurve | None = None,
                         noise_w: NoiseModel | AllanCurve | None = None) -> SegmentTable:
     """Per-segment means, uncertainties and references of a recording's complete segments.
 
+    Reads the windows and the references of each segment, then builds the table with
+    :func:`rigctl.solvers.segments.segment_table_from_samples` (the one place where means,
+    moments and the mean angular acceleration are formed).
+
     Args:
         path: a recording following docs/data-format.md.
         kinds: segment kinds to include.
         noise_f, noise_w: accelerometer / gyro noise models for the uncertainty of a mean; None
-            estimates it from each segment itself.
+            estimates it from each segment itself (:func:`_residual_sigma`).
     """
     with open_recording(path) as f:
         lat, h, g = _site(f)
@@ -105,36 +127,36 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
         if not rows:
             raise InputError("the recording has no complete orientation or rate segments", path,
                              hint="run procedures/24pos.yaml or rates.yaml first")
-        out: dict[str, list] = {k: [] for k in ("kind", "label", "f", "w", "f_sigma", "w_sigma",
-                                                "f_ref", "w_ref", "time", "temperature", "table_rate",
-                                                "attitude", "f_ref_outer", "w_ref_outer",
-                                                "w_ref_cube", "w_ref_abs", "f_ref_abs")}
+        cols: dict[str, list] = {k: [] for k in ("kind", "label", "acc", "gyro", "f_ref", "w_ref", "time",
+                                                 "temperature", "table_rate", "angles", "attitude")}
         for i in rows:
             a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
-            fm = segment_mean(f["imu/specific_force"][a:z], fs, noise_f)
-            wm = segment_mean(f["imu/angular_rate"][a:z], fs, noise_w)
             t = t_imu[a:z]
             ang, rates = _angles_at(t, seg, i, tab_t, tab_ang)
             fr, wr = body_references(ang, rates, lat, h, g)
-            out["kind"].append(seg["kind"][i].decode())
-            out["label"].append(seg["label"][i].decode())
-            out["f"].append(fm.mean)
-            out["w"].append(wm.mean)
-            out["f_sigma"].append(fm.sigma)
-            out["w_sigma"].append(wm.sigma)
-            out["f_ref"].append(fr.mean(axis=0))
-            out["w_ref"].append(wr.mean(axis=0))
-            out["time"].append(float(t.mean()))
-            out["temperature"].append(float(temp_ds[a:z].mean()) if temp_ds is not None else np.nan)
-            out["table_rate"].append(rates.mean(axis=0))
-            out["attitude"].append(gimbal_dcm(ang).mean(axis=0))
-            out["f_ref_outer"].append(np.einsum("ni,nj->ij", fr, fr) / len(fr))
-            out["w_ref_outer"].append(np.einsum("ni,nj->ij", wr, wr) / len(wr))
-            out["w_ref_cube"].append((wr**3).mean(axis=0))
-            out["w_ref_abs"].append(np.abs(wr).mean(axis=0))
-            out["f_ref_abs"].append(np.abs(fr).mean(axis=0))
-    temps = np.asarray(out.pop("temperature"))
-    return SegmentTable(**{k: np.asarray(v) for k, v in out.items()},
-                        temperature=temps if np.all(np.isfinite(temps)) else None,
-                        ang_accel=np.zeros((len(rows), 3)), earth_rate_n=earth_rate_enu(lat),
-                        gravity_m_s2=g)
+            cols["kind"].append(seg["kind"][i].decode())
+            cols["label"].append(seg["label"][i].decode())
+            cols["acc"].append(np.asarray(f["imu/specific_force"][a:z], dtype=np.float64))
+            cols["gyro"].append(np.asarray(f["imu/angular_rate"][a:z], dtype=np.float64))
+            cols["f_ref"].append(fr)
+            cols["w_ref"].append(wr)
+            cols["time"].append(float(t.mean()))
+            cols["temperature"].append(float(temp_ds[a:z].mean()) if temp_ds is not None else np.nan)
+            cols["table_rate"].append(rates.mean(axis=0))
+            cols["angles"].append(ang.mean(axis=0))
+            cols["attitude"].append(gimbal_dcm(ang).mean(axis=0))
+    temps = np.asarray(cols["temperature"])
+    table = segment_table_from_samples(
+        cols["kind"], cols["acc"], cols["gyro"], fs, cols["f_ref"], cols["w_ref"], noise_f, noise_w,
+        label=np.asarray(cols["label"]), time=np.asarray(cols["time"]),
+        temperature=temps if np.all(np.isfinite(temps)) else None,
+        table_rate=np.asarray(cols["table_rate"]), angles=np.asarray(cols["angles"]),
+        attitude=np.asarray(cols["attitude"]), earth_rate_n=earth_rate_enu(lat), gravity_m_s2=g)
+    if noise_f is None:
+        table.f_sigma = np.array([_residual_sigma(x, r, fs) for x, r in zip(cols["acc"], cols["f_ref"])])
+    if noise_w is None:
+        table.w_sigma = np.array([_residual_sigma(x, r, fs) for x, r in zip(cols["gyro"], cols["w_ref"])])
+    table.extra["sample_rate_hz"] = fs
+    table.extra["latitude_rad"] = lat
+    table.extra["height_m"] = h
+    return table

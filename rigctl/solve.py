@@ -8,7 +8,26 @@ from pathlib import Path
 from .procedure import Procedure
 
 #: solver name -> "module:function", called as fn(recording_path, log) -> None.
-SOLVER_HOOKS: dict[str, str] = {}
+#: The three calibration solvers share one hook: the first computes the whole calibration
+#: (published fits and the closed loop) and prints it, the others see it done and return.
+SOLVER_HOOKS: dict[str, str] = {
+    "accel24": "rigctl.calibrate_cmd:solve_hook",
+    "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
+    "closed-loop": "rigctl.calibrate_cmd:solve_hook",
+}
+
+
+def _register_allan() -> None:
+    """``allan`` once rigctl.allan_cmd provides its hook (owned by the Allan module)."""
+    try:
+        mod = importlib.import_module("rigctl.allan_cmd")
+    except ImportError:
+        return
+    if hasattr(mod, "solve_recording"):
+        SOLVER_HOOKS.setdefault("allan", "rigctl.allan_cmd:solve_recording")
+
+
+_register_allan()
 
 
 def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import allan as _allan
+
 _TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
 
 
@@ -109,21 +111,24 @@ def overlapping_avar(x: NDArray[np.float64], m_list: NDArray[np.int64]) -> NDArr
 
         sigma^2(m t0) = 1/(2 (n - 2m + 1)) sum_k (xbar_{k+m} - xbar_k)^2
 
-    with xbar_k the mean of x[k:k+m]; computed from cumulative sums. Returns (len(m), c).
+    with xbar_k the mean of x[k:k+m]. Computed per column by :func:`rigctl.solvers.allan.oadev`
+    (exact, fully overlapping sums; the variance does not depend on t0, so t0 = 1). Cluster
+    sizes with no term (m < 1 or 2m > n) give NaN. Returns (len(m), c).
     """
     x = np.asarray(x, dtype=np.float64)
     if x.ndim == 1:
         x = x[:, None]
     n = x.shape[0]
-    c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x - x.mean(axis=0), axis=0)])
-    out = np.full((len(m_list), x.shape[1]), np.nan)
-    for i, m in enumerate(m_list):
-        m = int(m)
-        if m < 1 or 2 * m > n:
-            continue
-        means = (c[m:] - c[:-m]) / m  # means of windows starting at 0..n-m
-        d = means[m:] - means[:-m]
-        out[i] = 0.5 * np.mean(d**2, axis=0)
+    m_arr = np.asarray(m_list, dtype=np.int64).ravel()
+    out = np.full((m_arr.size, x.shape[1]), np.nan)
+    ok = (m_arr >= 1) & (2 * m_arr <= n)
+    if not np.any(ok) or n < 2:
+        return out
+    ms = np.unique(m_arr[ok])
+    for j in range(x.shape[1]):
+        res = _allan.oadev(x[:, j], tau0=1.0, taus=ms, data_type="rate", mode="exact")
+        dev = dict(zip(res.m.tolist(), res.dev.tolist()))
+        out[:, j] = [dev.get(int(m), np.nan) ** 2 if okk else np.nan for m, okk in zip(m_arr, ok)]
     return out
 
 

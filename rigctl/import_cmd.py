@@ -1,0 +1,335 @@
+"""``rigctl import FILE.csv -o OUT.h5``: a foreign IMU log as a rigctl recording.
+
+Data from other tools (hand-held multi-position sessions, loggers, other calibration tools)
+enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`` and
+``rigctl apply-cal`` read the file this writes (docs/data-format.md, status ``complete``).
+
+* ``--columns``: column map ``acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz`` (CSV
+  header names, or 0-based column numbers for files without a header), optional ``time=``,
+  ``temp=`` (degC) and ``section=`` (a column naming each row's section, e.g. imucal's
+  ``part``); or the path of a YAML/JSON file holding that mapping.
+* ``--units``: ``acc=g|mg|m/s^2|counts:SCALE UNIT`` and ``gyr=deg/s|rad/s|deg/h|counts:SCALE
+  UNIT`` (e.g. ``acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s``), ``time=s|ms|us``. Samples
+  are converted to SI (m/s^2, rad/s) with these nominal scales; a calibration then reports
+  the residual scale errors as ratios to them.
+* ``--rate HZ``: nominal sample rate. Without a time column, t = k / rate.
+* segments (kind ``orientation`` with NaN table angles: no table, orientation unknown):
+  from ``--segments JSON`` (``{"label": {"start": i, "end": j}, ...}`` as imucal's session
+  lists, or ``[{"label", "start", "end", "kind"}, ...]``; sample indices, end exclusive),
+  from the ``section=`` column (a run of equal values is a section), or detected
+  automatically as static intervals (:func:`rigctl.solvers.multipos.detect_static_intervals`,
+  threshold from the first ``--t-init`` seconds, which must be at rest). Sections whose label
+  contains ``rot`` or that are not at rest are kind ``capture`` (motion between poses).
+
+Exit codes: 0 written, 2 invalid input (the message names the file, the line and what to do),
+1 failure while writing.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from . import __version__
+from .devices import ImuBlock
+from .frames import normal_gravity
+from .yamlio import InputError
+
+G0 = 9.80665
+DEG = math.pi / 180.0
+REQUIRED = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
+OPTIONAL = ("time", "temp", "section")
+UNIT_FACTORS = {
+    "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
+    "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6},
+}
+NAN3 = np.full(3, np.nan)
+
+
+def parse_columns(text: str) -> dict[str, str]:
+    """Column map from ``k=v,...`` or from a YAML/JSON mapping file."""
+    p = Path(text)
+    if "=" not in text and p.suffix.lower() in (".yaml", ".yml", ".json"):
+        if not p.is_file():
+            raise InputError("column map file not found", p, hint="give key=value pairs or a YAML/JSON file")
+        try:
+            data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except yaml.YAMLError as exc:
+            line = getattr(getattr(exc, "problem_mark", None), "line", None)
+            raise InputError(f"not valid YAML/JSON ({exc})", p, None if line is None else line + 1) from None
+        if not isinstance(data, dict):
+            raise InputError("the column map must be a mapping like acc_x: ax", p, 1)
+        mapping = {str(k): str(v) for k, v in data.items()}
+        src: Any = p
+    else:
+        mapping = {}
+        for part in filter(None, (s.strip() for s in text.split(","))):
+            if "=" not in part:
+                raise InputError(f"--columns: {part!r} is not KEY=COLUMN",
+                                 hint="e.g. acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz")
+            k, v = part.split("=", 1)
+            mapping[k.strip()] = v.strip()
+        src = None
+    bad = [k for k in mapping if k not in REQUIRED + OPTIONAL]
+    missing = [k for k in REQUIRED if k not in mapping]
+    if bad or missing:
+        raise InputError(f"--columns: unknown keys {bad}" if bad else f"--columns: missing {missing}", src,
+                         hint=f"keys: {', '.join(REQUIRED + OPTIONAL)} (the six sensor columns are required)")
+    return mapping
+
+
+def parse_units(text: str) -> dict[str, float]:
+    """SI factor per sensor from ``acc=...,gyr=...,time=...`` (see the module docstring)."""
+    out = {"acc": 1.0, "gyr": 1.0, "time": 1.0}
+    given = set()
+    for part in filter(None, (s.strip() for s in text.split(","))):
+        if "=" not in part:
+            raise InputError(f"--units: {part!r} is not SENSOR=UNIT", hint="e.g. acc=g,gyr=deg/s")
+        k, v = (s.strip() for s in part.split("=", 1))
+        if k not in out:
+            raise InputError(f"--units: unknown sensor {k!r}", hint="use acc, gyr or time")
+        m = re.fullmatch(r"counts?:\s*([0-9.eE+-]+)(?:\s*/\s*([0-9.eE+-]+))?\s*(.+)", v)
+        try:
+            if m:
+                scale = float(m.group(1)) / (float(m.group(2)) if m.group(2) else 1.0)
+                unit = m.group(3).strip()
+            else:
+                scale, unit = 1.0, v
+            out[k] = scale * UNIT_FACTORS[k][unit]
+        except (KeyError, ValueError, ZeroDivisionError):
+            raise InputError(f"--units: {part!r} not understood",
+                             hint=f"{k} units: {', '.join(UNIT_FACTORS[k])}, or counts:SCALE UNIT "
+                                  "(e.g. counts:1/2048 g)") from None
+        given.add(k)
+    for k in ("acc", "gyr"):
+        if k not in given:
+            raise InputError(f"--units: give the {k} unit", hint="e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g")
+    return out
+
+
+def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dict[str, np.ndarray], int]:
+    """Columns of a CSV file as arrays (sensor/time/temp float, section str); header line number."""
+    if not path.is_file():
+        raise InputError("input file not found", path)
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        rows = list(csv.reader(fh))
+    if len(rows) <= skip_rows:
+        raise InputError(f"only {len(rows)} lines, --skip-rows {skip_rows}", path)
+    header_line = skip_rows + 1
+    header = [h.strip() for h in rows[skip_rows]]
+    numeric_header = all(_is_number(h) for h in header if h)
+    body = rows[skip_rows:] if numeric_header else rows[skip_rows + 1:]
+    first_data_line = header_line if numeric_header else header_line + 1
+    index: dict[str, int] = {}
+    for key, col in mapping.items():
+        if col.isdigit() and (numeric_header or col not in header):
+            index[key] = int(col)
+        elif col in header:
+            index[key] = header.index(col)
+        else:
+            raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
+                             hint="fix --columns, or --skip-rows so the header line is read")
+    out: dict[str, np.ndarray] = {}
+    body = [r for r in body if any(c.strip() for c in r)]
+    if not body:
+        raise InputError("no data rows", path, first_data_line)
+    for key, j in index.items():
+        if key == "section":
+            out[key] = np.array([r[j].strip() if j < len(r) else "" for r in body])
+            continue
+        vals = np.empty(len(body))
+        for n, r in enumerate(body):
+            try:
+                vals[n] = float(r[j])
+            except (ValueError, IndexError):
+                got = r[j] if j < len(r) else "(missing)"
+                raise InputError(f"column {mapping[key]!r}: {got!r} is not a number", path,
+                                 first_data_line + n, hint="fix or remove the row, or adjust --skip-rows") from None
+        out[key] = vals
+    return out, first_data_line
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def sections_from_json(path: Path, n: int) -> list[dict[str, Any]]:
+    """Sections from an imucal-style {"label": {"start", "end"}} or a list of dicts."""
+    if not path.is_file():
+        raise InputError("segments file not found", path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON ({exc.msg})", path, exc.lineno) from None
+    items = ([{"label": k, **v} for k, v in data.items()] if isinstance(data, dict) else data)
+    out = []
+    for it in items:
+        try:
+            s, e = int(it["start"]), int(it["end"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"section {it!r} needs integer start and end", path,
+                             hint="sample indices, end exclusive") from None
+        if not 0 <= s < e <= n:
+            raise InputError(f"section {it.get('label')!r}: [{s}, {e}) outside the {n} samples", path)
+        out.append({"label": str(it.get("label", f"section {len(out)}")), "start": s, "end": e,
+                    "kind": it.get("kind")})
+    return sorted(out, key=lambda d: d["start"])
+
+
+def sections_from_column(labels: np.ndarray) -> list[dict[str, Any]]:
+    """Runs of equal non-empty labels."""
+    out = []
+    edges = np.flatnonzero(labels[1:] != labels[:-1]) + 1
+    for s, e in zip(np.r_[0, edges], np.r_[edges, len(labels)]):
+        if labels[s]:
+            out.append({"label": str(labels[s]), "start": int(s), "end": int(e), "kind": None})
+    return out
+
+
+def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
+    """At rest: the gyro magnitude's spread is of the order of the quietest section's."""
+    return bool(np.linalg.norm(gyr.std(axis=0)) < 10.0 * ref_noise)
+
+
+def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
+                    rate: float, sections: list[dict[str, Any]], meta: dict[str, Any]) -> None:
+    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder."""
+    from .recorder import Recorder, Segment
+
+    rec = Recorder(out, meta, None, imu_rate_hz=rate)
+    try:
+        n = len(t)
+        step = 1 << 16
+        for a in range(0, n, step):
+            z = min(n, a + step)
+            rec.append_imu(ImuBlock(time=t[a:z], counter=np.arange(a, z, dtype=np.uint64),
+                                    specific_force=acc[a:z], angular_rate=gyr[a:z], temperature=temp[a:z]))
+        for k, s in enumerate(sections):
+            rec.add_segment(Segment(kind=s["kind"], label=s["label"][:48], step=k, first_sample=s["start"],
+                                    last_sample=s["end"], t_start=float(t[s["start"]]),
+                                    t_end=float(t[s["end"] - 1]), settle_time=0.0, commanded_angle=NAN3,
+                                    commanded_rate=NAN3, measured_angle=NAN3, measured_rate=NAN3),
+                            file_time=True)
+        rec.add_event(0.0, "import", f"imported from {meta['import_source']}", file_time=True)
+    except BaseException:
+        rec.close("failed")
+        raise
+    rec.close("complete")
+
+
+def import_csv(args: argparse.Namespace) -> tuple[Path, int, list[dict[str, Any]]]:
+    """Read, convert and write; returns (output path, samples, sections)."""
+    src = Path(args.file)
+    out = Path(args.output)
+    if out.exists() and not args.force:
+        raise InputError("output exists", out, hint="choose another -o or pass --force to replace it")
+    if out.resolve() == src.resolve():
+        raise InputError("the output would replace the input", out, hint="choose another -o")
+    if not out.parent.is_dir():
+        raise InputError("output directory does not exist", out.parent)
+    mapping = parse_columns(args.columns)
+    factors = parse_units(args.units)
+    if args.rate is None or not args.rate > 0:
+        raise InputError("--rate HZ (> 0) is required: the nominal sample rate", src)
+    cols, _ = read_table(src, mapping, args.skip_rows)
+    n = len(cols["acc_x"])
+    acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
+    gyr = np.column_stack([cols[k] for k in REQUIRED[3:]]) * factors["gyr"]
+    if "time" in cols:
+        t = (cols["time"] - cols["time"][0]) * factors["time"]
+        if np.any(np.diff(t) <= 0):
+            k = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise InputError(f"time column not increasing at data row {k + 2}", src,
+                             hint="fix the time column or drop time= from --columns")
+    else:
+        t = np.arange(n) / float(args.rate)
+    temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
+    if args.segments:
+        sections = sections_from_json(Path(args.segments), n)
+        origin = f"sections file {args.segments}"
+    elif "section" in cols:
+        sections = sections_from_column(cols["section"])
+        origin = f"section column {mapping['section']!r}"
+    else:
+        from .solvers.multipos import detect_static_intervals
+
+        try:
+            iv = detect_static_intervals(acc, float(args.rate), args.t_init)
+        except ValueError as exc:
+            raise InputError(f"automatic static-interval detection: {exc}", src,
+                             hint="give --t-init SECONDS of initial rest, or --segments JSON") from None
+        sections = [{"label": "initial rest" if k == 0 else f"pose {k}", "start": s, "end": e,
+                     "kind": "orientation"} for k, (s, e) in enumerate(iv)]
+        origin = f"automatic static-interval detection (t_init {args.t_init:g} s, Tedaldi et al. 2014)"
+    if not sections:
+        raise InputError("no sections found", src, hint="give --segments JSON or check --t-init")
+    quiet = min(np.linalg.norm(gyr[s["start"]:s["end"]].std(axis=0)) for s in sections)
+    for s in sections:
+        if s["kind"] is None:
+            moving = "rot" in s["label"].lower() or not _is_static(acc[s["start"]:s["end"]],
+                                                                   gyr[s["start"]:s["end"]], quiet)
+            s["kind"] = "capture" if moving else "orientation"
+    lat = args.latitude_deg
+    g = args.gravity if args.gravity is not None else (normal_gravity(math.radians(lat), 0.0)
+                                                       if lat is not None else G0)
+    meta = {"procedure_name": "import", "procedure_text": "", "config_yaml": "",
+            "versions_json": json.dumps({"rigctl": __version__}),
+            "latitude_deg": float("nan") if lat is None else float(lat), "height_m": 0.0,
+            "gravity_m_s2": float(g), "import_source": str(src), "import_columns_json": json.dumps(mapping),
+            "import_units_json": json.dumps(args.units), "import_rate_hz": float(args.rate),
+            "import_sections": origin, "orientation_free": 1,
+            "rig": "none: imported log (no table; segment orientations unknown)"}
+    write_recording(out, t, acc, gyr, temp, float(args.rate), sections, meta)
+    return out, n, sections
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of ``rigctl import``: 0 ok, 2 invalid input, 1 failure."""
+    try:
+        out, n, sections = import_csv(args)
+    except InputError:
+        raise
+    except OSError as exc:
+        print(f"rigctl import: failed: {exc}", file=sys.stderr)
+        return 1
+    kinds: dict[str, int] = {}
+    for s in sections:
+        kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1
+    print(f"imported {n} samples at {args.rate:g} Hz from {args.file}")
+    print("segments: " + ", ".join(f"{v} {k}" for k, v in kinds.items()))
+    print(f"recording: {out}")
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``import`` sub-command."""
+    p = subparsers.add_parser("import", help="convert a foreign IMU log (CSV) into a rigctl recording",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("file", help="CSV file")
+    p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
+    p.add_argument("--columns", required=True,
+                   help="acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
+    p.add_argument("--units", required=True, help="e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s")
+    p.add_argument("--rate", type=float, help="nominal sample rate, Hz")
+    p.add_argument("--skip-rows", type=int, default=0, help="lines before the header (metadata)")
+    p.add_argument("--segments", help="sections JSON (imucal session list or list of {label,start,end})")
+    p.add_argument("--t-init", type=float, default=5.0,
+                   help="seconds of initial rest for automatic static detection (default 5)")
+    p.add_argument("--gravity", type=float, help="local gravity, m/s^2 (default: normal gravity at "
+                   "--latitude-deg, else 9.80665)")
+    p.add_argument("--latitude-deg", type=float, help="site latitude, deg")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=run)
