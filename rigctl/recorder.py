@@ -379,8 +379,13 @@ class Recorder:
 
 
 def write_results(path: str | Path, name: str, payload: dict[str, Any],
-                  arrays: dict[str, np.ndarray] | None = None, schema_version: int = 1) -> None:
-    """Store a solver's results in /results/<name> of a closed recording (replacing old ones)."""
+                  arrays: dict[str, tuple[Any, str]] | None = None, schema_version: int = 1) -> None:
+    """Store a solver's results in /results/<name> of a closed recording (replacing old ones).
+
+    Args:
+        payload: JSON-serialisable summary (units in the key names), stored as attribute ``json``.
+        arrays: datasets as ``{name: (data, units)}``; every dataset gets its ``units`` attribute.
+    """
     with h5py.File(path, "r+", libver="latest") as f:
         res = f.require_group("results")
         if name in res:
@@ -389,5 +394,5 @@ def write_results(path: str | Path, name: str, payload: dict[str, Any],
         g.attrs["schema_version"] = schema_version
         g.attrs["created_utc"] = utc_now()
         g.attrs["json"] = json.dumps(payload)
-        for key, arr in (arrays or {}).items():
-            g.create_dataset(key, data=np.asarray(arr))
+        for key, (arr, units) in (arrays or {}).items():
+            g.create_dataset(key, data=np.asarray(arr)).attrs["units"] = units

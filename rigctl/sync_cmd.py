@@ -8,15 +8,14 @@ reference time for every IMU sample, and the matched pairs). See docs/sync.md.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from rigctl.recorder import write_results as store_results
 from rigctl.solvers import clock_model, tap_detect, tap_match
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -215,31 +214,17 @@ def _read(path: Path, axis: int, timescale: str) -> tuple[Any, ...] | str:
 def write_results(path: Path, res: SyncResult, counter: np.ndarray, pulses: np.ndarray,
                   args_dict: dict[str, Any]) -> None:
     """Write /results/sync (replacing an earlier one)."""
-    import h5py
-
     ref = res.clock.time_of_counter(np.asarray(counter).astype(np.float64))
     m = res.match
-    with h5py.File(path, "r+") as f:
-        grp = f.require_group("results")
-        if "sync" in grp:
-            del grp["sync"]
-        g = grp.create_group("sync")
-        items = {
-            "reference_time": (ref, "s"),
-            "tap_time_imu": (res.tap_time_s[m.tap_index], "s"),
-            "tap_row": (res.detections.index[m.tap_index].astype(np.int64), "1"),
-            "pulse_index": (m.pulse_index.astype(np.int64), "1"),
-            "pulse_time": (pulses[m.pulse_index], "s"),
-            "local_residual": (m.local_residual_s, "s"),
-            "inlier": (m.inlier.astype(np.uint8), "1"),
-        }
-        for name, (data, units) in items.items():
-            d = g.create_dataset(name, data=data)
-            d.attrs["units"] = units
-        g.attrs["schema_version"] = 1
-        g.attrs["created_utc"] = datetime.now(timezone.utc).isoformat()
-        g.attrs["json"] = json.dumps({**res.summary, "options": args_dict})
-        f.flush()
+    store_results(path, "sync", {**res.summary, "options": args_dict}, {
+        "reference_time": (ref, "s"),
+        "tap_time_imu": (res.tap_time_s[m.tap_index], "s"),
+        "tap_row": (res.detections.index[m.tap_index].astype(np.int64), "1"),
+        "pulse_index": (m.pulse_index.astype(np.int64), "1"),
+        "pulse_time": (pulses[m.pulse_index], "s"),
+        "local_residual": (m.local_residual_s, "s"),
+        "inlier": (m.inlier.astype(np.uint8), "1"),
+    })
 
 
 def plot(res: SyncResult, pulses: np.ndarray, plot_dir: Path) -> list[Path]:
