@@ -111,20 +111,50 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
     )
 
 
+def _deep_merge(base: dict, over: Any, where: LocDict, key: str) -> dict:
+    if not isinstance(over, dict):
+        raise S.error(where, key, f"{key!r} must be a mapping of profile keys")
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(base.get(k), dict):
+            out[k] = _deep_merge(base[k], v, over, k)
+        else:
+            out[k] = v
+    return out
+
+
 def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     """The IMU model of an ``imu.sim`` config mapping.
 
-    ``profile: NAME`` (a device profile of configs/imu-profiles.yaml: consumer_mems, mti_class,
-    tactical, declared_only, random) selects the full error model of
+    ``profile: NAME`` (a device profile of configs/imu-profiles.yaml, or of ``profiles_file``:
+    consumer_mems, mti_class, tactical, declared_only, random) selects the full error model of
     :mod:`rigctl.sim.error_model` (noise with exact Allan signatures, front end, physical
-    effects, clock error); otherwise the declared errors above with white noise.
+    effects, clock error); ``overrides`` is deep-merged into the profile, e.g.
+    ``{effects: {lever_arm: {enabled: true, r_m: [0.01, 0, 0]}}}``. Without ``profile``: the
+    declared errors above with white noise.
     """
     if "profile" not in o:
         return build_declared_imu(o, rate_hz, seed)
-    from .error_model import ImuErrorModel
-    from .profiles import get_profile, profile_names
+    from pathlib import Path
 
-    S.check_keys(o, ("profile", "seed"), "'imu.sim' with a profile")
-    name = S.get_str(o, "profile", choices=profile_names())
+    from .error_model import ImuErrorModel
+    from .profiles import _coerce, get_profile, profile_names
+
+    S.check_keys(o, ("profile", "seed", "profiles_file", "overrides"), "'imu.sim' with a profile")
+    path = None
+    if "profiles_file" in o:
+        path = Path(o.file).parent / S.get_str(o, "profiles_file")
+        if not path.is_file():
+            raise S.error(o, "profiles_file", f"profiles file {str(path)!r} not found",
+                          "the path is relative to the config file")
+    name = S.get_str(o, "profile", choices=profile_names(path))
     seed = int(S.get_number(o, "seed", seed, minimum=0, integer=True))
-    return ImuErrorModel.from_profile(get_profile(name, seed=seed), rate_hz=rate_hz, seed=seed)
+    profile = get_profile(name, seed=seed, path=path)
+    if "overrides" in o:
+        profile = _deep_merge(profile, o["overrides"], o, "overrides")
+    try:
+        profile = _coerce(profile)
+        return ImuErrorModel.from_profile(profile, rate_hz=rate_hz, seed=seed)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise S.error(o, "overrides" if "overrides" in o else "profile",
+                      f"invalid IMU profile: {exc}") from None
