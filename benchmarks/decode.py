@@ -6,7 +6,14 @@ Frames: PacketCounter, SampleTimeFine, Acceleration, RateOfTurn, Temperature, St
 8N1 line carries 921600 / 10 / 61 = 1,511 such frames per second (about 2,300 for a 40-byte frame).
 Target: >= 1e6 frames/s. Last line: one JSON object.
 
-Usage: python benchmarks/decode.py [n_frames]
+Recording CPU share (``--record-seconds``, default 60): the emulated Xsens (``rigctl sim up`` in a
+separate process, 1x real time, 2 kHz, 4 Mbaud nominal) streams over a pty; this process runs the
+Xsens driver (reader thread + decoder) and the HDF5 recorder, polled every 50 ms as the engine
+does. CPU share = (user + system CPU time of this process, resource.getrusage) / wall time, in
+% of one core; zero drops = no bad/truncated frames, no PacketCounter gaps, no counter gaps in
+the recording, no bytes dropped by the emulator's pty. Target: < 10 % of one core.
+
+Usage: python benchmarks/decode.py [n_frames] [--record-seconds S]   (S = 0 skips the recording)
 """
 from __future__ import annotations
 
@@ -15,8 +22,15 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import json  # noqa: E402
+import resource  # noqa: E402
+import signal  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import yaml  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -54,8 +68,57 @@ def stream_decode(data: bytes, chunk: int) -> MTData2Stream:
     return st
 
 
+def record_cpu_share(seconds: float, rate_hz: int = 2000) -> dict:
+    """Record a 2 kHz stream from an emulator process for ``seconds``; CPU share of this process."""
+    import h5py
+
+    from rigctl.clock import RealClock
+    from rigctl.drivers.xsens_imu import XsensImu
+    from rigctl.recorder import Recorder
+
+    root = Path(__file__).resolve().parent.parent
+    tmp = Path(tempfile.mkdtemp(prefix="rigctl-bench-"))
+    cfg = yaml.safe_load((root / "configs" / "sim.yaml").read_text())
+    cfg["imu"]["rate_hz"] = rate_hz
+    (tmp / "physics.yaml").write_text(yaml.safe_dump(cfg))
+    emu = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "sim", "up", "--config", str(tmp / "physics.yaml"),
+                            "--speed", "1", "--imu-baudrate", "4000000", "--link-dir", str(tmp / "ports")],
+                           cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        while (line := emu.stdout.readline()) and line.strip() != "ready":
+            pass
+        imu = XsensImu(str(tmp / "ports" / "imu"), rate_hz, RealClock(), baudrate=4_000_000)
+        imu.connect()
+        rec = Recorder(tmp / "rec.h5", {"procedure_name": "benchmark"}, None, imu_rate_hz=rate_hz)
+        ru0, w0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
+        while time.monotonic() - w0 < seconds:
+            time.sleep(0.05)
+            rec.append_imu(imu.read())
+        wall = time.monotonic() - w0
+        ru1 = resource.getrusage(resource.RUSAGE_SELF)
+        rec.close("complete")
+        c = imu.counters
+        imu.close()
+    finally:
+        emu.send_signal(signal.SIGINT)
+        emu.communicate(timeout=30)
+    with h5py.File(tmp / "rec.h5", "r") as f:
+        counter = f["imu/counter"][()].astype(np.int64)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+    gaps = int(np.count_nonzero(np.diff(counter) != 1))
+    lost = c["bad_frames"] + c["truncated_frames"] + c["dropped_samples"] + gaps
+    return {"record_seconds": round(wall, 1), "samples": int(counter.size), "cpu_s": round(cpu, 2),
+            "cpu_share_pct": round(100 * cpu / wall, 2), "lost": lost}
+
+
 def main() -> None:
-    n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    record_s = 60.0
+    if "--record-seconds" in sys.argv:
+        record_s = float(sys.argv[sys.argv.index("--record-seconds") + 1])
+        args = [a for a in args if a != sys.argv[sys.argv.index("--record-seconds") + 1]]
+    n = int(args[0]) if args else 1_000_000
     data, frame_len = make_stream(n)
     rng = np.random.default_rng(1)
     noisy = np.frombuffer(data, np.uint8).copy()
@@ -79,11 +142,19 @@ def main() -> None:
     print(f"feeds, 1e-4 errs : {n / t_noisy:,.0f} frames/s  (frames hit {hit}, bad counted "
           f"{st.counters.bad_frames + st.counters.truncated_frames})")
     print(f"921.6 kbaud line : {line:,.0f} frames/s -> decoder headroom x{n / t_stream / line:,.0f}")
-    print(json.dumps({"mtdata2_frames_decoded_per_s": round(n / t_stream),
-                      "mtdata2_frames_decoded_per_s_one_buffer": round(n / t_one),
-                      "mtdata2_frames_decoded_per_s_errors_1e-4": round(n / t_noisy),
-                      "frame_bytes": frame_len, "line_921k6_frames_per_s": round(line),
-                      "headroom_vs_921k6_line_x": round(n / t_stream / line)}))
+    figures = {"mtdata2_frames_decoded_per_s": round(n / t_stream),
+               "mtdata2_frames_decoded_per_s_one_buffer": round(n / t_one),
+               "mtdata2_frames_decoded_per_s_errors_1e-4": round(n / t_noisy),
+               "frame_bytes": frame_len, "line_921k6_frames_per_s": round(line),
+               "headroom_vs_921k6_line_x": round(n / t_stream / line)}
+    if record_s > 0:
+        r = record_cpu_share(record_s)
+        print(f"recording 2 kHz over a pty: {r['samples']:,} samples in {r['record_seconds']} s, "
+              f"CPU {r['cpu_s']} s = {r['cpu_share_pct']} % of one core, lost samples/frames {r['lost']}")
+        figures.update({"record_2khz_pty_cpu_pct_of_core": r["cpu_share_pct"],
+                        "record_2khz_pty_seconds": r["record_seconds"], "record_2khz_pty_samples": r["samples"],
+                        "record_2khz_pty_lost_samples": r["lost"]})
+    print(json.dumps(figures))
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@ import struct
 from dataclasses import dataclass, fields
 from enum import IntEnum, IntFlag
 
+from rigctl.devices import AxisStatus
+
 PROTOCOL_VERSION = 1
 N_AXES = 3
 AXIS_BLOCK = 14          # registers per axis block (both tables)
@@ -30,23 +32,10 @@ SCALE_RATE = 1e-4 * DEG
 SCALE_ACCEL = 1e-3 * DEG
 
 
-class StatusBit(IntFlag):
-    """Per-axis status word (IR B+0); also the ACL ``:STATus:AXIS?`` word."""
-
-    READY = 1 << 0
-    SERVO_ON = 1 << 1
-    OPERATION_ENABLED = 1 << 2
-    FAULT = 1 << 3
-    INTERLOCK_OPEN = 1 << 4
-    QUICK_STOP = 1 << 5
-    WARNING = 1 << 7
-    PROFILE_COMPLETE = 1 << 8
-    AT_RATE = 1 << 9
-    TARGET_REACHED = 1 << 10
-    INTERNAL_LIMIT = 1 << 11
-    SETPOINT_ACK = 1 << 12
-    FOLLOWING_ERROR_TRIP = 1 << 13
-    MOVING = 1 << 15
+#: Per-axis status word (IR B+0; also the ACL ``:STATus:AXIS?`` word). One definition serves the
+#: engine, the drivers and the emulators: :class:`rigctl.devices.AxisStatus` (INTERNAL_LIMIT and
+#: FOLLOWING_ERROR_TRIP are its aliases of LIMIT_ACTIVE and FOLLOWING_ERROR).
+StatusBit = AxisStatus
 
 
 class ControlBit(IntFlag):

@@ -10,6 +10,7 @@ import numpy as np
 
 from . import schema as S
 from .frames import normal_gravity
+from .linkconfig import imu_settings, pulse_settings, table_settings
 from .yamlio import InputError, LocDict, load_file
 
 #: Where the project's shipped files live (beside the package in a checkout / editable install).
@@ -51,8 +52,12 @@ class TableLimits:
 
 @dataclass(frozen=True)
 class DeviceConfig:
+    """A device section: its driver, the raw options, and the validated link settings of a
+    wired driver (rigctl.linkconfig; empty for the in-process emulator)."""
+
     driver: str
     options: LocDict
+    settings: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -132,7 +137,7 @@ def load_config(path: str | Path) -> RigConfig:
     S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder"),
                  "the rig config")
     name = S.get_str(m, "rig", p.stem)
-    clock = S.get_str(m, "clock", "virtual", choices=CLOCKS)
+    clock = S.get_str(m, "clock", None, choices=CLOCKS)
     speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)
     seed = S.get_number(m, "seed", 0, minimum=0, integer=True)
 
@@ -145,9 +150,9 @@ def load_config(path: str | Path) -> RigConfig:
         g = S.get_number(site, "gravity_m_s2", None, minimum=9.7, maximum=9.9, allow_none=True)
 
     table, t = _device(m, "table", TABLE_DRIVERS, None)
-    S.check_keys(t, ("driver", "limits", "sim", "port", "host", "tcp_port", "baudrate", "unit_id",
-                     "timeout_s", "word_order", "interlock", "open_interlocks_on_stop",
-                     "poll_interval_s"), "'table'")
+    if table.driver == "sim":
+        S.check_keys(t, ("driver", "limits", "sim"), "'table'")
+    table = DeviceConfig(table.driver, t, table_settings(table.driver, t))
     lim = S.require_mapping(t.get("limits", LocDict()), "'table.limits'", t, "limits") \
         if "limits" in t else None
     if lim is None:
@@ -160,7 +165,19 @@ def load_config(path: str | Path) -> RigConfig:
 
     imu, i = _device(m, "imu", IMU_DRIVERS, None)
     imu_rate = S.get_number(i, "rate_hz", 100.0, minimum=1.0, maximum=10000.0)
-    pulses, _ = _device(m, "pulses", PULSE_DRIVERS, "none")
+    imu = DeviceConfig(imu.driver, i, imu_settings(imu.driver, i))
+    pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
+    pulses = DeviceConfig(pulses.driver, p_opts, pulse_settings(pulses.driver, p_opts))
+    if (table.driver == "sim") != (imu.driver == "sim"):
+        raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
+                      "together; mixing it with a wired device is not supported",
+                      "use driver: sim for both, or wired drivers for both (configs/sim-wire.yaml)")
+    if clock is None:
+        clock = "virtual" if table.driver == "sim" else "real"
+    elif clock == "virtual" and table.driver != "sim":
+        raise S.error(m, "clock", "virtual time cannot drive wired devices",
+                      "use clock: real (hardware) or clock: scaled with the emulator's speed "
+                      "(rigctl sim up --speed X)")
 
     flush, table_rate = 0.5, 10.0
     if "recorder" in m:

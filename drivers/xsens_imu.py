@@ -1,0 +1,296 @@
+"""Xsens MTi driver (MT low-level protocol, MTData2) behind the engine's :class:`rigctl.devices.Imu`.
+
+A reader thread owns the port (any pyserial URL). It configures the device -- GoToConfig,
+SetOutputConfiguration (PacketCounter and SampleTimeFine in every packet; Acceleration,
+RateOfTurn, Temperature, StatusWord at ``rate_hz``, float32), GoToMeasurement, each checked
+against its acknowledgement -- then feeds every byte that arrives to the vectorised
+:class:`~rigctl.drivers.xsens_decode.MTData2Stream`. :meth:`XsensImu.read` returns an
+:class:`~rigctl.devices.ImuBlock` of everything decoded since the last call.
+
+Bad input is counted, logged and dropped, never accepted and never fatal: corrupted,
+mis-checksummed or truncated frames (``counters.bad_frames`` / ``truncated_frames``), unknown data
+IDs (``unknown_xdi``), PacketCounter gaps (``dropped_samples``), counters that do not advance
+(``out_of_order``: the frame is rejected), frames lacking a configured field
+(``incomplete_frames``).
+
+Time base (units s):
+
+* device time ``t_dev = SampleTimeFine / 10 kHz`` (unwrapped; wrap ``sample_time_fine_wrap``);
+* ``ImuBlock.counter = round((STF - STF_first) / (10 kHz / rate_hz))``: the sample's index on the
+  device's nominal grid since the first sample, so a gap means samples that never arrived
+  (dropped on the line or lost during a disconnect);
+* ``ImuBlock.time = t_dev + offset``, the offset learnt while the stream starts (``learn_s`` of
+  wall time) as the minimum over arriving chunks of (rig clock at arrival - t_dev of the newest
+  sample in the chunk), i.e. the minimum-latency estimate, then frozen; IMU times are therefore
+  on the run's time base with an error of about the smallest transport latency.
+
+``read`` first waits (at most ``align_wait_s`` of wall time) until the newest sample is within 1.5
+sample periods of the rig clock or, failing that, until the next chunk of data has arrived, so
+what it returns reaches up to the rig clock within one transport batch and the engine's sample
+windows line up with its clock even when the rig runs many times faster than real time.
+
+Link loss: the thread reconnects with backoff and reconfigures the device; samples of the outage
+show up as a counter gap. ``read`` raises :class:`rigctl.devices.LinkLost` once the link has been
+down for ``link_timeout_s`` (wall) -- the engine's cue to pause -- and returns data again after
+the reconnect. A configuration the device refuses (e.g. rate too high for the baud rate) raises
+:class:`XsensConfigError` from :meth:`connect`.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict
+
+import numpy as np
+
+from rigctl.devices import Clock, ImuBlock, LinkLost
+
+from .serial_link import SerialLink
+from .xsens import (FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, SAMPLE_TIME_FINE_WRAP, XDI, ErrorCode, OutputItem,
+                    check_rate_fits, decode_output_configuration, go_to_config, go_to_measurement,
+                    set_output_configuration)
+from .xsens_decode import MTData2Batch, MTData2Stream
+
+log = logging.getLogger(__name__)
+#: Bytes are decoded in batches: after the first byte, the reader keeps reading for 20 ms of rig
+#: time (``batch_wait_s``; 20 ms of wall time at 1x, 0.2 ms at 100x) -- or, when a read of at least
+#: BURST_BYTES shows a burst (a pty carries about 4 KiB per read), for BURST_WAIT_S of wall time --
+#: up to BURST_MAX bytes, since the vectorised decoder costs ~0.4 ms per call plus ~1 us per frame.
+BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
+
+
+class XsensConfigError(RuntimeError):
+    """The device refused (or never acknowledged) the configuration."""
+
+
+def output_items(rate_hz: int) -> list[OutputItem]:
+    return [OutputItem(XDI.PACKET_COUNTER, FREQ_MAX), OutputItem(XDI.SAMPLE_TIME_FINE, FREQ_MAX),
+            OutputItem(XDI.ACCELERATION, rate_hz), OutputItem(XDI.RATE_OF_TURN, rate_hz),
+            OutputItem(XDI.TEMPERATURE, rate_hz), OutputItem(XDI.STATUS_WORD, rate_hz)]
+
+
+class XsensImu:
+    """Xsens MTi over ``url``; see the module docstring. ``connect()`` then ``read()``; ``close()``."""
+
+    def __init__(self, url: str, rate_hz: float, clock: Clock, *, baudrate: int = 921_600,
+                 timeout_s: float = 0.5, sample_time_fine_wrap: int = SAMPLE_TIME_FINE_WRAP,
+                 align_wait_s: float = 0.02, link_timeout_s: float = 2.0, learn_s: float = 0.2,
+                 name: str = "imu") -> None:
+        if rate_hz != int(rate_hz):
+            raise ValueError("the Xsens output rate must be a whole number of Hz")
+        self.rate_hz, self.clock, self.name = int(rate_hz), clock, name
+        self.items = output_items(self.rate_hz)
+        check_rate_fits([it.xdi for it in self.items], self.rate_hz, baudrate)
+        self.link = SerialLink(url, name, baudrate=baudrate, timeout_s=timeout_s)
+        self.timeout_s, self.align_wait_s, self.link_timeout_s, self.learn_s = \
+            timeout_s, align_wait_s, link_timeout_s, learn_s
+        self.stream = MTData2Stream(wrap_ticks=sample_time_fine_wrap)
+        #: decode at most every ~20 ms of rig time (the decoder costs ~0.4 ms per call)
+        self.batch_wait_s = 0.02 / float(getattr(clock, "speed", 1.0))
+        self.ticks_per_sample = SAMPLE_TIME_FINE_HZ / self.rate_hz
+        self.offset: float | None = None
+        self.incomplete_frames = 0
+        self.configurations = 0
+        self._stf0: int | None = None
+        self._pending: list[MTData2Batch] = []
+        self._latest_stf: int | None = None
+        self._msgs: list = []
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._configured = threading.Event()
+        self._fatal: BaseException | None = None
+        self._down_since: float | None = None
+        self._thread: threading.Thread | None = None
+        self._last_warn = 0.0
+        self._warned_bad = 0
+
+    # ----------------------------------------------------------------------- reader thread
+    def connect(self) -> None:
+        """Start the reader thread; return once the device streams (raise if it cannot)."""
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-reader", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + 10 * self.timeout_s + self.learn_s + 2.0
+        while not self._configured.wait(0.01):
+            if self._fatal is not None or time.monotonic() > deadline:
+                err = self._fatal or LinkLost(self.name, f"no stream from {self.link.url}")
+                self.close()
+                raise err
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if not self._configured.is_set():
+                    self._configure()
+                data = self.link.read_some(0.05)
+                wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
+                if data and wait > 0:               # gather more before decoding
+                    buf, end = bytearray(data), time.monotonic() + wait
+                    while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
+                        more = self.link.read_some(left)
+                        if not more:
+                            break
+                        buf += more
+                    data = bytes(buf)
+                if data:
+                    self._feed(data)
+            except LinkLost:
+                self._configured.clear()
+                if self._down_since is None:
+                    self._down_since = time.monotonic()
+                self._flush_stream()
+                self._stop.wait(max(0.01, self.link.backoff.wait_s()))
+            except XsensConfigError as exc:
+                self._fatal = exc
+                return
+            except Exception as exc:  # noqa: BLE001 - reported through read()
+                log.exception("%s: reader thread failed", self.name)
+                self._fatal = exc
+                return
+
+    def _flush_stream(self) -> None:
+        batch = self.stream.flush()
+        if len(batch):
+            self._store(batch)
+
+    def _feed(self, data: bytes) -> None:
+        arrival = self.clock.now()
+        batch = self.stream.feed(data)
+        if batch.messages:
+            self._msgs.extend(batch.messages)
+        if len(batch):
+            self._store(batch, arrival)
+        c = self.stream.counters
+        bad = c.bad_frames + c.truncated_frames + c.out_of_order
+        if bad != self._warned_bad and time.monotonic() - self._last_warn > 1.0:
+            self._last_warn, self._warned_bad = time.monotonic(), bad
+            log.warning("%s: %d bad, %d truncated, %d out-of-order frames, %d dropped samples so far", self.name,
+                        c.bad_frames, c.truncated_frames, c.out_of_order, c.dropped_samples)
+
+    def _store(self, batch: MTData2Batch, arrival: float | None = None) -> None:
+        stf = batch.sample_time_fine
+        if self._stf0 is None and (stf >= 0).any():
+            self._stf0 = int(stf[stf >= 0][0])
+        if arrival is not None and self._learning and stf.size and stf[-1] >= 0:
+            est = arrival - stf[-1] / SAMPLE_TIME_FINE_HZ
+            self.offset = est if self.offset is None else min(self.offset, est)
+        with self._cond:
+            self._pending.append(batch)
+            if stf.size and stf[-1] >= 0:
+                self._latest_stf = int(stf[-1])
+            self._chunks += 1
+            self._cond.notify_all()
+
+    def _await(self, mids: tuple[int, ...]):
+        """Read until a message with one of ``mids`` (or an Error) arrives."""
+        deadline = time.monotonic() + self.timeout_s
+        while time.monotonic() < deadline and not self._stop.is_set():
+            for i, m in enumerate(self._msgs):
+                if m.mid in mids or m.mid == MID.ERROR:
+                    del self._msgs[:i + 1]
+                    return m
+            self._msgs.clear()
+            data = self.link.read_some(max(1e-3, min(0.05, deadline - time.monotonic())))
+            if data:
+                self._feed(data)
+        return None
+
+    def _request(self, msg: bytes, ack: int, what: str, tries: int = 3):
+        for _ in range(tries):
+            self._msgs.clear()
+            self.link.write(msg)
+            m = self._await((ack,))
+            if m is None:
+                continue
+            if m.mid == MID.ERROR:
+                code = m.data[0] if m.data else -1
+                name = ErrorCode(code).name if code in ErrorCode._value2member_map_ else f"0x{code:02X}"
+                raise XsensConfigError(f"{self.name}: device refused {what}: error {name}")
+            return m
+        raise LinkLost(self.name, f"no acknowledgement of {what} from {self.link.url}")
+
+    def _configure(self) -> None:
+        self.link.ensure()
+        self._request(go_to_config(), MID.GO_TO_CONFIG_ACK, "GoToConfig")
+        ack = self._request(set_output_configuration(self.items), MID.SET_OUTPUT_CONFIGURATION_ACK,
+                            f"the output configuration ({self.rate_hz} Hz)")
+        if ack.data and decode_output_configuration(ack.data) != self.items:
+            raise XsensConfigError(f"{self.name}: device applied a different output configuration: "
+                                   f"{decode_output_configuration(ack.data)}")
+        self._request(go_to_measurement(), MID.GO_TO_MEASUREMENT_ACK, "GoToMeasurement")
+        self.configurations += 1
+        if self.offset is None:
+            self._learning = True
+            end = time.monotonic() + self.learn_s
+            while time.monotonic() < end and not self._stop.is_set():
+                data = self.link.read_some(0.02)
+                if data:
+                    self._feed(data)
+            self._learning = False
+            if self.offset is None:
+                raise LinkLost(self.name, f"no MTData2 frames from {self.link.url} after GoToMeasurement")
+        if self._down_since is not None:
+            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
+        self._down_since = None
+        self._configured.set()
+
+    _learning = False
+    _chunks = 0
+
+    # ------------------------------------------------------------------------------- Imu
+    def read(self) -> ImuBlock:
+        if self._fatal is not None:
+            raise self._fatal
+        with self._cond:
+            if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
+                want = self.clock.now() - 1.5 / self.rate_hz
+                deadline = time.monotonic() + self.align_wait_s
+                chunks = self._chunks
+                while (self._latest_stf is None or self._latest_stf / SAMPLE_TIME_FINE_HZ + self.offset < want) \
+                        and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
+                    self._cond.wait(left)
+            batches, self._pending = self._pending, []
+        if not batches:
+            if self._down_since is not None and time.monotonic() - self._down_since > self.link_timeout_s:
+                raise LinkLost(self.name, f"no data from {self.link.url} for "
+                                          f"{time.monotonic() - self._down_since:.1f} s (reconnecting)")
+            return ImuBlock.empty()
+        return self._to_block(batches)
+
+    def _to_block(self, batches: list[MTData2Batch]) -> ImuBlock:
+        stf = np.concatenate([b.sample_time_fine for b in batches])
+        acc = np.concatenate([b.acceleration for b in batches])
+        gyr = np.concatenate([b.rate_of_turn for b in batches])
+        temp = np.concatenate([b.temperature for b in batches])
+        ok = (stf >= 0) & np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1) & np.isfinite(temp)
+        if not ok.all():
+            self.incomplete_frames += int((~ok).sum())
+            stf, acc, gyr, temp = stf[ok], acc[ok], gyr[ok], temp[ok]
+        counter = np.rint((stf - (self._stf0 or 0)) / self.ticks_per_sample).astype(np.int64)
+        counter = np.maximum(counter, 0).astype(np.uint64)
+        time_s = stf / SAMPLE_TIME_FINE_HZ + (self.offset or 0.0)
+        return ImuBlock(time=time_s, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
+
+    # --------------------------------------------------------------------------- status
+    @property
+    def counters(self) -> dict:
+        """Decoder and link diagnostics (totals since connect)."""
+        d = asdict(self.stream.counters)
+        d.update(incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
+                 reconnects=self.link.reconnects, configurations=self.configurations)
+        return d
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5)
+        self.link.close()
+
+    def __enter__(self) -> XsensImu:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["XsensImu", "XsensConfigError", "output_items"]

@@ -1,0 +1,489 @@
+"""Emulated rig hardware on real wires: every server driven by ONE physics world.
+
+``start_hardware(cfg, speed)`` builds the in-process physics of :mod:`rigctl.sim.world` (table
+profiles and servo dynamics, IMU error model) on a :class:`~rigctl.clock.ScaledClock` running
+``speed`` times real time, and serves it as real hardware would:
+
+* turntable, ACL-style ASCII (:mod:`rigctl.sim.acl_server`) on a pty and on TCP;
+* turntable, Modbus register map (:mod:`rigctl.sim.modbus_server`, pymodbus 3.16) on Modbus TCP
+  and Modbus RTU over a pty null-modem pair;
+* Xsens MTi (:mod:`rigctl.sim.xsens_server`) on a pty, streaming the world's IMU samples;
+* NovAtel receiver (:mod:`rigctl.sim.gnss_server`) on a pty, MARK1TIMEA logs of the pulses given
+  to :meth:`Hardware.pulse` (or every ``pulse_period_s``).
+
+Time base: one clock for all devices. Table controller time (ACL ``t_ms``, Modbus IR 3-4 and
+B+12), Xsens SampleTimeFine (10 kHz ticks since start) and GNSS time (GPS week ``gps_week0`` +
+``gps_seconds0`` at clock 0) are all that clock. A hardware loop thread advances the world every
+``tick_s`` of wall time and streams the IMU samples that became due; table reads see the state as
+of the last tick (at most ``tick_s * speed`` of rig time old).
+
+Ports: each pty gets a symlink in ``link_dir`` (a fresh temporary directory unless given):
+``table-acl``, ``table-rtu``, ``imu``, ``gnss``. Clients should open the symlink. A simulated
+disconnect (:meth:`Hardware.disconnect`) closes the pty, waits, opens a NEW pty and re-points the
+SAME symlink to it (the raw ``/dev/pts/N`` path changes; it is returned and logged).
+
+Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall`,
+:meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`, :meth:`trip_interlock`,
+:meth:`trip_following_error`, :meth:`inject`.
+"""
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import math
+import os
+import select
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigctl.clock import ScaledClock
+from rigctl.config import RigConfig
+from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
+from rigctl.drivers.xsens import FREQ_MAX, SAMPLE_TIME_FINE_HZ, encode_mtdata2
+
+from .acl_server import AclServer, AclServerCore, _LineHandler
+from .gnss_server import GnssServer
+from .links import PtyEndpoint
+from .modbus_server import ModbusTableServer
+from .physics_table import ImuTap, PhysicsTable
+from .world import SimWorld
+from .xsens_server import MAX_BATCH, XsensServer
+
+log = logging.getLogger(__name__)
+
+
+class FlowPtyEndpoint(PtyEndpoint):
+    """A pty endpoint whose writes wait up to ``write_timeout_s`` for the client to drain the
+    port (flow control) instead of dropping at once; after one timed-out write it drops
+    (counting ``overflow_bytes``) until a write goes through whole again, so a client that went
+    away cannot stall the emulator. Needed when the emulator runs many times faster than the
+    nominal baud rate would allow."""
+
+    write_timeout_s = 0.5
+
+    def write(self, data: bytes) -> int:
+        with self._wlock:
+            if self._closed:
+                return 0
+            view, sent = memoryview(data), 0
+            deadline = time.monotonic() + (self.write_timeout_s if getattr(self, "_flowing", True) else 0.0)
+            while sent < len(view):
+                try:
+                    sent += os.write(self.master, view[sent:])
+                except BlockingIOError:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    select.select([], [self.master], [], min(left, 0.01))
+                except OSError as exc:
+                    if exc.errno in (errno.EIO, errno.EBADF):
+                        break
+                    raise
+            self._flowing = sent == len(view)
+            self.overflow_bytes += len(view) - sent
+            return sent
+
+
+class HwAclCore(AclServerCore):
+    """ACL protocol core with a counted stall: the next ``stall_replies`` replies come
+    ``stall_s`` late (the port's reader thread sleeps, as a busy controller would)."""
+
+    stall_replies = 0
+    stall_s = 0.0
+
+    def handle_line(self, line: str | bytes) -> str | None:
+        if self.stall_replies > 0:
+            self.stall_replies -= 1
+            time.sleep(self.stall_s)
+        return super().handle_line(line)
+
+
+class HwModbusServer(ModbusTableServer):
+    """Modbus table server whose next ``stall_replies`` requests are answered ``stall_s`` late."""
+
+    stall_replies = 0
+    stall_s = 0.0
+
+    async def _action(self, fc, start, address, count, registers, set_values):
+        if self.stall_replies > 0:
+            self.stall_replies -= 1
+            await asyncio.sleep(self.stall_s)
+        return await super()._action(fc, start, address, count, registers, set_values)
+
+
+class HwXsensServer(XsensServer):
+    """Xsens emulator stepped by the hardware loop (no thread of its own); a measurement period
+    starts on the world's sample grid so its frames carry exact world samples."""
+
+    grid_rate_hz = 100.0
+
+    def _stream(self) -> None:          # the hardware loop calls step() instead
+        return
+
+    def _enter_measurement(self) -> None:
+        g = self.grid_rate_hz
+        self._t0, self._k = math.ceil(self.clock() * g - 1e-9) / g, 0
+        self.state = "measurement"
+
+    #: byte errors injected so far, and hit frames whose 8-bit checksum still adds up after the
+    #: corruption (no receiver can detect those; with 2+ errors in one frame about 1 in 256)
+    errors_injected = 0
+    frames_hit_undetectable = 0
+    _err_pending: np.ndarray | None = None
+    _err_values: np.ndarray | None = None
+    _stream_bytes = 0
+    _stream_frames = 0
+
+    def _encode(self, k: np.ndarray) -> bytes:
+        """As the base class, but byte errors are a renewal process over the byte stream
+        (geometric gaps with mean 1/rate, XOR values 1..255, drawn in fixed-size chunks), so the
+        error positions depend only on the seed, not on how the stream is cut into batches."""
+        rate, self.byte_error_rate = self.byte_error_rate, 0.0
+        try:
+            data = self._encode_single_layout(k) if all(
+                it.freq_hz in (0, FREQ_MAX, self.rate_hz) for it in self.config) else super()._encode(k)
+        finally:
+            self.byte_error_rate = rate
+        size, n = len(data), len(k)
+        start, self._stream_bytes = self._stream_bytes, self._stream_bytes + size
+        f0, self._stream_frames = self._stream_frames, self._stream_frames + n
+        if rate <= 0:
+            self._err_pending = None
+            return data
+        pos, vals = self._error_positions(start, start + size, rate)
+        if not pos.size:
+            return data
+        out = np.frombuffer(data, np.uint8).copy()
+        out[pos - start] ^= vals
+        lengths = out[3::out[3] + 5] if size == n * (int(out[3]) + 5) else None
+        if lengths is not None and (lengths == out[3]).all():
+            bounds = np.arange(1, n + 1) * (int(out[3]) + 5)
+        else:                                       # mixed layouts: walk the (clean) frames
+            clean = np.frombuffer(data, np.uint8)
+            ends, i = [], 0
+            while i < size:
+                i += int(clean[i + 3]) + 5
+                ends.append(i)
+            bounds = np.asarray(ends)
+        hit = np.unique(np.searchsorted(bounds, pos - start, side="right"))
+        self.frames_hit += int(hit.size)
+        self.errors_injected += int(pos.size)
+        lo = np.concatenate(([0], bounds[:-1]))
+        clean = np.frombuffer(data, np.uint8)
+        for fi in hit.tolist():
+            a, b = int(lo[fi]), int(bounds[fi])
+            if (out[a] == 0xFA and out[a + 1] == 0xFF and out[a + 3] == clean[a + 3]
+                    and int(out[a + 1:b].sum()) % 256 == 0):
+                self.frames_hit_undetectable += 1
+        return out.tobytes()
+
+    def _encode_single_layout(self, k: np.ndarray) -> bytes:
+        """Fast path of the base class's encoder when every item is in every packet."""
+        t = self._t0 + k / self.rate_hz
+        n = len(k)
+        f = dict(self.source(t))
+        f["packet_counter"] = self.counter + np.arange(n)
+        f["sample_time_fine"] = self.stf_offset + np.round((t - self.t_origin) * SAMPLE_TIME_FINE_HZ).astype(np.int64)
+        f.setdefault("status_word", np.zeros(n, dtype=np.int64))
+        self.counter += n
+        self.frames_sent += n
+        return encode_mtdata2([it.xdi for it in self.config], f).tobytes()
+
+    def _error_positions(self, start: int, end: int, rate: float) -> tuple[np.ndarray, np.ndarray]:
+        if self._err_pending is None:
+            self._err_pending, self._err_values = np.empty(0, np.int64), np.empty(0, np.uint8)
+            self._err_next = start
+        while not self._err_pending.size or self._err_pending[-1] < end:
+            gaps = self._rng.geometric(rate, 4096)
+            pos = self._err_next - 1 + np.cumsum(gaps)
+            self._err_next = int(pos[-1]) + 1
+            self._err_pending = np.concatenate((self._err_pending, pos))
+            self._err_values = np.concatenate((self._err_values, self._rng.integers(1, 256, 4096).astype(np.uint8)))
+        m = int(np.searchsorted(self._err_pending, end))
+        keep = self._err_pending[:m] >= start
+        pos, vals = self._err_pending[:m][keep], self._err_values[:m][keep]
+        self._err_pending, self._err_values = self._err_pending[m:], self._err_values[m:]
+        return pos, vals
+
+    def next_time(self) -> float | None:
+        """Time of the next frame to send, s (None when not measuring)."""
+        return self._t0 + self._k / self.rate_hz if self.state == "measurement" else None
+
+    def step(self, until: float) -> int:
+        """Encode and send every frame due up to time ``until`` (at most MAX_BATCH); returns the count."""
+        with self._lock:
+            if self.state != "measurement":
+                return 0
+            n = min(max(int(math.floor((until - self._t0) * self.rate_hz + 1e-9)) + 1 - self._k, 0), MAX_BATCH)
+            if n == 0:
+                return 0
+            k = self._k + np.arange(n)
+            self._k += n
+            frames = self._encode(k)
+        self.port.write(frames)
+        return n
+
+
+class _Slot:
+    """A pty endpoint of a server, published through a symlink that survives reconnects."""
+
+    def __init__(self, name: str, link: Path, make, attach) -> None:
+        self.name, self.link, self.make, self.attach = name, link, make, attach
+        self.endpoint: PtyEndpoint = make()
+        attach(self.endpoint)
+        self.reconnects = 0
+        self._point()
+
+    def _point(self) -> None:
+        tmp = self.link.with_name(self.link.name + ".new")
+        if tmp.is_symlink():
+            tmp.unlink()
+        os.symlink(self.endpoint.path, tmp)
+        os.replace(tmp, self.link)
+
+    def disconnect(self, down_s: float) -> str:
+        old = self.endpoint
+        old.close()
+        time.sleep(down_s)
+        self.endpoint = self.make()
+        self.attach(self.endpoint)
+        self._point()
+        self.reconnects += 1
+        log.info("%s: pty reconnected: %s -> %s (symlink %s)", self.name, old.path, self.endpoint.path, self.link)
+        return self.endpoint.path
+
+    def close(self) -> None:
+        self.endpoint.close()
+        if self.link.is_symlink():
+            self.link.unlink()
+
+
+class _CappedClock:
+    """The world's view of the shared clock: never more than ``cap`` (set by the hardware loop),
+    so an emulator asked to run faster than it can compute falls behind gracefully (bounded work
+    per tick, reported as :attr:`Hardware.lag_s`) instead of melting down."""
+
+    def __init__(self, clock: ScaledClock) -> None:
+        self.clock, self.cap = clock, math.inf
+
+    def now(self) -> float:
+        return min(self.clock.now(), self.cap)
+
+    def sleep(self, seconds: float) -> None:
+        self.clock.sleep(seconds)
+
+
+class Hardware:
+    """The running emulated hardware; see the module docstring. Use :func:`start_hardware`."""
+
+    def __init__(self, cfg: RigConfig, speed: float = 1.0, *, link_dir: str | Path | None = None,
+                 imu_baudrate: int = 921_600, imu_max_rate_hz: int = 2000, rtu_baudrate: int = 115_200,
+                 acl_tcp_port: int = 0, modbus_tcp_port: int = 0, modbus_word_order: str = "big",
+                 modbus_unit_id: int = 1, tick_s: float = 0.002, pulse_period_s: float | None = None,
+                 seed: int = 0) -> None:
+        self.cfg, self.speed, self.tick_s = cfg, float(speed), float(tick_s)
+        self.imu_baudrate, self.rtu_baudrate = imu_baudrate, rtu_baudrate
+        self.modbus_word_order, self.modbus_unit_id = modbus_word_order, modbus_unit_id
+        self._own_dir = link_dir is None
+        self.link_dir = Path(tempfile.mkdtemp(prefix="rigctl-sim-") if link_dir is None else link_dir)
+        self.link_dir.mkdir(parents=True, exist_ok=True)
+        self._closers: list = []
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.pulse_period_s = pulse_period_s
+        self._next_pulse = 0.0
+        try:
+            self._build(acl_tcp_port, modbus_tcp_port, imu_max_rate_hz, seed)
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self, acl_tcp_port: int, modbus_tcp_port: int, imu_max_rate_hz: int, seed: int) -> None:
+        self.clock = ScaledClock(self.speed)
+        self.world_clock = _CappedClock(self.clock)
+        self.lock = threading.RLock()
+        self.world = SimWorld(self.cfg, self.world_clock)
+        self.table = PhysicsTable(self.world, self.lock, self.cfg.limits)
+        self.tap = ImuTap(self.world, self.lock)
+        # turntable, ASCII
+        self.acl = AclServer(self.table)
+        self.acl.core = HwAclCore(self.table)
+        self._closers.append(self.acl.close)
+        self.slots: dict[str, _Slot] = {}
+        self._slot("table-acl", lambda: PtyEndpoint(_LineHandler(self.acl.core), name="acl-pty"), lambda ep: None)
+        self.acl_tcp = self.acl.open_tcp(port=acl_tcp_port)
+        # turntable, Modbus
+        servo = self.world.table.axes[0].servo
+        self.modbus = HwModbusServer(self.table, device_id=self.modbus_unit_id, word_order=self.modbus_word_order,
+                                     window_udeg=int(round(servo.in_position_window / SCALE_POSITION)),
+                                     dwell_ms=int(round(servo.dwell_s * 1e3)))
+        self._closers.append(self.modbus.close)
+        self.modbus_tcp = self.modbus.start_tcp(port=modbus_tcp_port)
+        rtu = self.modbus.start_rtu(baudrate=self.rtu_baudrate)
+        self._link("table-rtu", rtu)
+        # IMU
+        HwXsensServer.grid_rate_hz = self.world.rate_hz
+        self.xsens = HwXsensServer(source=self.tap, clock=self.world_clock.now, baudrate=self.imu_baudrate,
+                                   max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed)
+        self._closers.append(self.xsens.close)
+        self._replace_port(self.xsens, "imu", FlowPtyEndpoint)
+        # GNSS receiver
+        self.gnss = GnssServer(clock=self.world_clock.now, source=self._periodic_pulses)
+        self._closers.append(self.gnss.close)
+        self._replace_port(self.gnss, "gnss", PtyEndpoint)
+        t = threading.Thread(target=self._loop, name="hardware-loop", daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    # ------------------------------------------------------------------------- plumbing
+    def _link(self, name: str, target: str) -> None:
+        link = self.link_dir / name
+        if link.is_symlink():
+            link.unlink()
+        os.symlink(target, link)
+        self._closers.append(lambda: link.unlink() if link.is_symlink() else None)
+
+    def _slot(self, name: str, make, attach) -> _Slot:
+        slot = _Slot(name, self.link_dir / name, make, attach)
+        self.slots[name] = slot
+        self._closers.append(slot.close)
+        return slot
+
+    def _replace_port(self, server: Any, name: str, cls: type[PtyEndpoint]) -> None:
+        """Move a server's pty into a slot (reconnectable, symlinked)."""
+        server.port.close()
+
+        def attach(ep: PtyEndpoint) -> None:
+            server.port, server.path = ep, ep.path
+        self._slot(name, lambda: cls(server._on_data, name=f"{name}-pty"), attach)
+
+    def _periodic_pulses(self) -> list[float]:
+        if not self.pulse_period_s:
+            return []
+        now, out = self.world_clock.now(), []
+        while self._next_pulse <= now:
+            out.append(self._next_pulse)
+            self._next_pulse += self.pulse_period_s
+        return out
+
+    def _loop(self) -> None:
+        horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
+        chunk_s = MAX_BATCH / self.world.rate_hz
+        while not self._stop.wait(self.tick_s):
+            try:
+                with self.lock:
+                    self.world_clock.cap = self.table._t() + chunk_s
+                    self.world.advance()
+                    self.tap.pull()
+                    t = self.table._t()
+                self.xsens.step(t)
+                nt = self.xsens.next_time()
+                keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
+                self.tap.trim(min(keep, self.world.k - 1))
+            except Exception:       # the loop must survive a bug in one device
+                log.exception("hardware loop")
+
+    # ------------------------------------------------------------------------ endpoints
+    @property
+    def endpoints(self) -> dict[str, str]:
+        """Where clients connect: pty symlinks, ``socket://`` URLs and Modbus host:port."""
+        return {"table_acl_pty": str(self.slots["table-acl"].link),
+                "table_acl_tcp": f"socket://{self.acl_tcp[0]}:{self.acl_tcp[1]}",
+                "table_modbus_tcp": f"{self.modbus_tcp[0]}:{self.modbus_tcp[1]}",
+                "table_modbus_rtu": str(self.link_dir / "table-rtu"),
+                "imu_xsens_pty": str(self.slots["imu"].link),
+                "gnss_novatel_pty": str(self.slots["gnss"].link)}
+
+    @property
+    def lag_s(self) -> float:
+        """How far the physics is behind the clock, s of rig time (grows when ``speed`` x IMU
+        rate exceeds what the emulator can compute; about tick_s x speed when it keeps up)."""
+        return self.clock.now() - self.table.time()
+
+    def truth(self) -> dict[str, Any]:
+        """The emulator's true parameters (JSON-able), as in an in-process run."""
+        return self.world.truth()
+
+    # --------------------------------------------------------------------- fault injection
+    def set_imu_byte_errors(self, rate: float, seed: int | None = None) -> None:
+        """XOR random non-zero values into the IMU stream's bytes, each byte hit with probability
+        ``rate`` (from the next frame on); ``self.xsens.frames_hit`` counts the MTData2 frames
+        that received at least one error, ``frames_hit_undetectable`` those among them whose
+        checksum still adds up."""
+        with self.xsens._lock:
+            self.xsens.byte_error_rate = float(rate)
+            self.xsens._err_pending = None
+            if seed is not None:
+                self.xsens._rng = np.random.default_rng(seed)
+
+    def stall(self, device: str, seconds: float, replies: int = 1) -> None:
+        """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late."""
+        target = {"acl": self.acl.core, "modbus": self.modbus}[device]
+        target.stall_s, target.stall_replies = float(seconds), int(replies)
+
+    def drop_replies(self, n: int = 1) -> None:
+        """The ACL table swallows its next ``n`` replies (Modbus: use :meth:`stall` beyond the
+        client's timeout -- pymodbus offers no way to drop a reply from the server side)."""
+        self.acl.core.drop_replies += int(n)
+
+    def garble_replies(self, n: int = 1) -> None:
+        """The ACL table corrupts its next ``n`` replies."""
+        self.acl.core.garble_replies += int(n)
+
+    def disconnect(self, name: str, down_s: float = 0.2, block: bool = True) -> str | None:
+        """Pull the cable of pty ``name`` (``table-acl`` | ``imu`` | ``gnss``) for ``down_s`` wall
+        seconds, then plug a new pty in at the same symlink. Returns the new pty path (None if
+        ``block`` is False: it happens in a background thread)."""
+        slot = self.slots[name]
+        if block:
+            return slot.disconnect(down_s)
+        t = threading.Thread(target=slot.disconnect, args=(down_s,), name=f"disconnect-{name}", daemon=True)
+        t.start()
+        self._threads.append(t)
+        return None
+
+    def trip_interlock(self, axis: int) -> None:
+        self.table.trip(axis, FaultCode.INTERLOCK_TRIP)
+
+    def trip_following_error(self, axis: int) -> None:
+        self.table.trip(axis, FaultCode.FOLLOWING_ERROR)
+
+    def inject(self, name: str, data: bytes) -> None:
+        """Write raw bytes to the client side of pty ``name`` (e.g. a mark log with a bad CRC)."""
+        self.slots[name].endpoint.write(data)
+
+    def pulse(self, t: float | None = None) -> bool:
+        """A mark pulse at rig time ``t`` (default now) on the GNSS receiver's MARK1 input."""
+        return self.gnss.pulse(self.world_clock.now() if t is None else float(t))
+
+    # -------------------------------------------------------------------------- teardown
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self._threads.clear()
+        while self._closers:
+            try:
+                self._closers.pop()()
+            except Exception:  # noqa: BLE001 - keep tearing down
+                log.exception("closing emulated hardware")
+        if self._own_dir:
+            shutil.rmtree(self.link_dir, ignore_errors=True)
+
+    def __enter__(self) -> Hardware:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def start_hardware(cfg: RigConfig, speed: float = 1.0, **kw: Any) -> Hardware:
+    """Start the emulated hardware for the physics of ``cfg`` at ``speed`` x real time."""
+    return Hardware(cfg, speed, **kw)

@@ -1,0 +1,216 @@
+"""Fault injection through the emulator's side channel, seen through the real drivers."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from rigctl.clock import ScaledClock
+from rigctl.config import load_config
+from rigctl.devices import AxisStatus, DeviceFault
+from rigctl.drivers.acl_table import AclTable
+from rigctl.drivers.modbus_table import ModbusTable
+from rigctl.drivers.novatel import MarkTime, format_mark
+from rigctl.drivers.novatel_marks import NovatelMarks
+from rigctl.drivers.serial_link import ReplyTimeout
+from rigctl.drivers.xsens import RateDoesNotFitError
+from rigctl.drivers.xsens_imu import XsensConfigError, XsensImu
+from rigctl.sim.hardware import start_hardware
+
+from hil_support import hardware, segments, sim_config, wired_run
+
+
+def test_imu_byte_errors_1e6_frames_through_the_driver(tmp_path):
+    """1e6 MTData2 frames at 2 kHz over a pty, 100x real time (500 s of rig time in ~6 s), byte
+    errors at 1e-4: no crash, no bytes dropped on the pty, and the driver counts the frames hit
+    (all of them, bar hit frames whose 8-bit checksum still adds up -- undetectable by design)."""
+    cfg, _ = sim_config(tmp_path, rate_hz=2000)
+    n_frames = 1_000_000
+    with start_hardware(cfg, 100.0, link_dir=tmp_path / "ports", imu_baudrate=4_000_000, tick_s=0.02) as hw:
+        imu = XsensImu(hw.endpoints["imu_xsens_pty"], 2000, ScaledClock(100.0), baudrate=4_000_000,
+                       align_wait_s=0.0)
+        imu.connect()
+        try:
+            hw.set_imu_byte_errors(1e-4, seed=11)
+            f0 = hw.xsens.frames_sent
+            rows = 0
+            deadline = time.monotonic() + 60
+            while hw.xsens.frames_sent - f0 < n_frames and time.monotonic() < deadline:
+                time.sleep(0.01)
+                rows += len(imu.read())
+            hw.set_imu_byte_errors(0.0)
+            sent = hw.xsens.frames_sent
+            c = imu.counters
+            while c["frames"] + c["bad_frames"] + c["truncated_frames"] < sent + 100 and time.monotonic() < deadline:
+                time.sleep(0.01)
+                rows += len(imu.read())
+                c = imu.counters
+            with hw.xsens._lock:
+                hw.xsens.state = "config"                       # stop the stream (side channel)
+            time.sleep(0.3)
+            rows += len(imu.read())
+            c = imu.counters
+            assert sent - f0 >= n_frames
+            hit, invisible = hw.xsens.frames_hit, hw.xsens.frames_hit_undetectable
+            assert hit > 4000                                   # ~61 bytes x 1e6 x 1e-4 = 6100 errors
+            assert hw.slots["imu"].endpoint.overflow_bytes == 0
+            # every hit frame is counted, except (possibly) hit frames whose checksum still adds
+            # up and whose structure survived: those no receiver can detect (the error positions
+            # depend only on the seed, so this is deterministic)
+            bad = c["bad_frames"] + c["truncated_frames"]
+            assert hit - invisible <= bad <= hit
+            assert c["dropped_samples"] == bad                  # each lost frame is a counter gap
+            assert c["out_of_order"] == 0 and c["link_losses"] == 0
+            assert rows == c["frames"] - c["incomplete_frames"]
+        finally:
+            imu.close()
+
+
+def test_acl_stalled_reply_times_out_then_recovers(tmp_path):
+    with hardware(tmp_path, 10.0) as (hw, _):
+        cfg = load_config(tmp_path / "physics.yaml")
+        table = AclTable(hw.endpoints["table_acl_pty"], cfg.limits, ScaledClock(10.0), timeout_s=0.3)
+        table.connect()
+        try:
+            hw.stall("acl", 1.0)
+            t0 = time.monotonic()
+            with pytest.raises(ReplyTimeout, match=r"no reply to ':READ:ALL\? 1;ALL\? 2;ALL\? 3'.*within 0.3 s"):
+                table.read()
+            assert time.monotonic() - t0 < 1.5
+            time.sleep(1.0)
+            state = table.read()                   # resynchronised: the late reply is not misread
+            assert len(state.status) == 3 and table.counters.resyncs >= 1
+            hw.drop_replies(1)
+            table.read()                           # retried once after a timeout
+            hw.garble_replies(1)
+            table.read()
+            assert table.counters.timeouts >= 2 and table.counters.bad_replies == 1
+        finally:
+            table.close()
+
+
+def test_modbus_stalled_reply_times_out_then_recovers(tmp_path):
+    with hardware(tmp_path, 10.0) as (hw, _):
+        cfg = load_config(tmp_path / "physics.yaml")
+        host, port = hw.modbus_tcp
+        table = ModbusTable(cfg.limits, ScaledClock(10.0), host=host, tcp_port=port, timeout_s=0.3, retries=0)
+        table.connect()
+        try:
+            hw.stall("modbus", 1.0)
+            with pytest.raises(ReplyTimeout, match=r"no reply to read input registers 100\.\.113 .* within 0.3 s"):
+                table.read()
+            time.sleep(1.2)
+            assert len(table.read().status) == 3 and table.counters.timeouts == 1
+        finally:
+            table.close()
+
+
+@pytest.mark.parametrize("protocol", ["acl", "modbus"])
+def test_interlock_and_following_error_trips(tmp_path, protocol):
+    with hardware(tmp_path, 10.0) as (hw, _):
+        cfg = load_config(tmp_path / "physics.yaml")
+        clock = ScaledClock(10.0)
+        if protocol == "acl":
+            table = AclTable(hw.endpoints["table_acl_tcp"], cfg.limits, clock)
+        else:
+            table = ModbusTable(cfg.limits, clock, host=hw.modbus_tcp[0], tcp_port=hw.modbus_tcp[1])
+        table.connect()
+        try:
+            table.move(np.radians([10.0, 0.0, 0.0]))
+            hw.trip_following_error(2)
+            hw.trip_interlock(3)
+            time.sleep(0.05)
+            s = table.read().status
+            assert s[1] & AxisStatus.FAULT and s[1] & AxisStatus.FOLLOWING_ERROR
+            assert s[2] & AxisStatus.FAULT and s[2] & AxisStatus.INTERLOCK_OPEN
+            assert not s[2] & AxisStatus.FOLLOWING_ERROR and not s[0] & AxisStatus.FAULT
+            with pytest.raises(DeviceFault):
+                table.move(np.radians([0.0, 5.0, 0.0]))
+        finally:
+            table.close()
+
+
+def test_pty_disconnect_mid_run_is_reconnected(tmp_path):
+    """Pull the IMU's and the table's pty in the middle of a run: the drivers reconnect (same
+    symlink, new pty), the engine pauses on the gap and re-runs the step, the run completes."""
+    params = {"warmup": "2 min", "sample": "3 s"}
+    rec, cfg, info = wired_run(tmp_path, "24pos.yaml", params, "acl", "pty", 100.0,
+                               during=[(0.6, lambda: hw_disconnect(info_box, "imu")),
+                                       (1.2, lambda: hw_disconnect(info_box, "table-acl"))])
+    assert info["reconnects"]["imu"] == 1 and info["reconnects"]["table-acl"] == 1
+    seg = segments(rec)
+    done = seg["status"] == b"complete"
+    assert done.sum() == 25 and list(seg["kind"][done]).count(b"orientation") == 24
+    assert (~done).sum() >= 1                  # the step cut off by the outage, then re-run
+    import h5py
+    with h5py.File(rec, "r") as f:
+        c = f["imu/counter"][()].astype(np.int64)
+        kinds = set(f["events/kind"][()])
+    assert np.any(np.diff(c) > 1)             # the samples of the outage are a counter gap
+    assert kinds & {b"suspend", b"resume"}
+
+
+info_box: dict = {}
+
+
+def hw_disconnect(box: dict, name: str) -> None:
+    box["hw"].disconnect(name, down_s=0.05)
+
+
+@pytest.fixture(autouse=True)
+def _capture_hardware(monkeypatch):
+    """Let hw_disconnect reach the hardware started inside wired_run."""
+    import hil_support
+
+    real = hil_support.start_hardware
+
+    def capture(*a, **kw):
+        hw = real(*a, **kw)
+        info_box["hw"] = hw
+        return hw
+    monkeypatch.setattr(hil_support, "start_hardware", capture)
+    yield
+    info_box.clear()
+
+
+def test_gnss_marks_with_crc_check_and_timeguard(tmp_path):
+    with hardware(tmp_path, 10.0) as (hw, _):
+        clock = ScaledClock(10.0)
+        marks = NovatelMarks(hw.endpoints["gnss_novatel_pty"], clock, timeguard_ms=50)
+        marks.connect()
+        try:
+            assert hw.gnss.control.timeguard_ms == 50
+            t = hw.world_clock.now()
+            assert hw.pulse(t) and not hw.pulse(t + 0.01)  # inside the 50 ms timeguard: suppressed
+            assert hw.pulse(t + 1.0)
+            bad = bytearray(format_mark(MarkTime(week=2300, seconds=1.0)))
+            bad[-5] = ord("0") if bad[-5] != ord("0") else ord("1")   # corrupt the CRC
+            hw.inject("gnss", bytes(bad))
+            deadline, got = time.monotonic() + 5, []
+            while sum(len(p) for p in got) < 2 and time.monotonic() < deadline:
+                time.sleep(0.02)
+                got.append(marks.read())
+            p = [x for x in got if len(x)]
+            week = np.concatenate([x.gps_week for x in p])
+            sec = np.concatenate([x.gps_seconds for x in p])
+            want = [hw.gnss.mark_time(t), hw.gnss.mark_time(t + 1.0)]
+            assert list(week) == [w for w, _ in want]
+            np.testing.assert_allclose(sec, [s for _, s in want], atol=1e-8)
+            times = np.concatenate([x.time for x in p])
+            assert times[1] - times[0] == pytest.approx(1.0, abs=1e-6)
+            time.sleep(0.2)
+            marks.read()
+            assert marks.counters["bad_crc"] == 1 and marks.counters["marks"] == 2
+        finally:
+            marks.close()
+
+
+def test_imu_configuration_that_does_not_fit_is_refused(tmp_path):
+    with hardware(tmp_path, 10.0, imu_baudrate=921_600) as (hw, _):
+        with pytest.raises(RateDoesNotFitError, match="baud"):
+            XsensImu(hw.endpoints["imu_xsens_pty"], 2000, ScaledClock(10.0), baudrate=921_600)
+        imu = XsensImu(hw.endpoints["imu_xsens_pty"], 2000, ScaledClock(10.0), baudrate=4_000_000)
+        with pytest.raises(XsensConfigError, match="refused the output configuration"):
+            imu.connect()
+        assert "921,600 baud" in hw.xsens.last_error
