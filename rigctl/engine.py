@@ -18,6 +18,7 @@ Memory stays flat over any step length: a sample window keeps running sums, not 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +29,10 @@ from .procedure import Step
 from .recorder import Recorder, Segment
 from .states import StateMachine
 from .suspenders import Observation, SuspenderSet
+
+
+#: Times closer than this are equal (sums of poll intervals carry rounding), s.
+TIME_EPS = 1e-6
 
 
 class RunError(Exception):
@@ -104,6 +109,9 @@ class Engine:
         self.suspenders = suspenders if suspenders is not None else SuspenderSet()
         self.states = states if states is not None else StateMachine()
         self.abort_requested: str | None = None
+        self._track: deque | None = None
+        self._win_start: float | None = None
+        self._first_row: int | None = None
         self.last_state: TableState | None = None
         self.current_step: Step | None = None
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
@@ -131,6 +139,8 @@ class Engine:
         try:
             block = self.rig.imu.read()
             obs.imu = block
+            if self._track is not None and len(block):
+                self._track_block(self.rec.n_imu, block.time)
             self.rec.append_imu(block)
         except LinkLost as exc:
             obs.imu_error = str(exc)
@@ -209,6 +219,8 @@ class Engine:
         """Command, settle, discard the transient, sample, and record the segment."""
         self.current_step = step
         self.sampling_from = None
+        # recent blocks as (row of the block's first sample, its IMU times): flat memory
+        self._track, self._win_start, self._first_row = deque(maxlen=256), None, None
         clock = self.rig.clock
         if step.prompt:
             self.log("prompt", step.prompt)
@@ -216,9 +228,14 @@ class Engine:
         settle_time = self.settle(step)
         if step.discard_s > 0:
             self.pump(step.discard_s, self.settle_poll_s)
-        first = self.rec.n_imu
         t_start = clock.now()
-        self.sampling_from = first
+        self._win_start = t_start
+        for row0, times in self._track:
+            i = int(np.searchsorted(times, t_start - TIME_EPS))
+            if i < len(times):
+                self._first_row = row0 + i
+                break
+        self.sampling_from = self.rec.n_imu
         n_polls, sum_angle, sum_rate = 0, np.zeros(3), np.zeros(3)  # running sums: flat memory
         end = t_start + step.sample_s
         while (remaining := end - clock.now()) > 1e-9:
@@ -227,17 +244,48 @@ class Engine:
             n_polls += 1
             sum_angle += s.angle
             sum_rate += s.rate
-        last = self.rec.n_imu
+        t_end = clock.now()
+        first, last = self._window_rows(t_start, t_end)
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
-                      last_sample=last, t_start=t_start, t_end=clock.now(), settle_time=settle_time,
+                      last_sample=last, t_start=t_start, t_end=t_end, settle_time=settle_time,
                       commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
                       measured_angle=ang, measured_rate=rate)
         self.rec.add_segment(seg)
         self.current_step = None
         self.sampling_from = None
         return seg
+
+    def _track_block(self, row0: int, times: np.ndarray) -> None:
+        self._track.append((row0, times))
+        if self._win_start is not None and self._first_row is None:
+            i = int(np.searchsorted(times, self._win_start - TIME_EPS))
+            if i < len(times):
+                self._first_row = row0 + i
+
+    def _window_rows(self, t_start: float, t_end: float) -> tuple[int, int]:
+        """Rows [first, last) of the recorded IMU samples whose IMU time lies in [t_start, t_end).
+
+        Samples reach the engine with some latency (a serial link, a decoder batch), so the
+        window is cut by the samples' own times, not by which poll delivered them; the engine
+        keeps polling until a sample at or after ``t_end`` has arrived (bounded wait)."""
+        clock = self.rig.clock
+        wait_until = clock.now() + max(2.0, 4 * self.sample_poll_s)
+        while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
+            clock.sleep(self.settle_poll_s)
+            self.poll()
+        track, first = self._track, self._first_row
+        self._track, self._win_start, self._first_row = None, None, None
+        if first is None:  # no sample inside the window arrived
+            return self.rec.n_imu, self.rec.n_imu
+        last = self.rec.n_imu
+        for row0, times in track:
+            i = int(np.searchsorted(times, t_end - TIME_EPS))
+            if i < len(times):
+                last = row0 + i
+                break
+        return first, max(first, last)
 
     def run(self, steps: list[Step], start: int = 0,
             on_step: Callable[[Step, Segment], None] | None = None) -> list[Segment]:
