@@ -10,10 +10,11 @@ sentences are counted (``counters.bad_crc`` / ``malformed``), logged and dropped
 Times (s): each mark carries GPS week and seconds of week at the pulse's leading edge (receiver
 clock; ``gps_seconds`` below is corrected by the log's clock offset: GPS time = seconds -
 offset). ``Pulses.time`` puts it on the run's time base: run time = GPS time - anchor, with the
-anchor learnt from the log headers (receiver time of output) as the maximum of (header GPS time
-- rig clock at arrival) over the logs seen so far, i.e. the minimum-latency estimate (ms
-resolution: the header carries seconds to 3 decimals). Keep the
-exact ``gps_week`` / ``gps_seconds`` for anything finer than the transport latency. Marks are
+anchor (header GPS time - rig clock at arrival) taken from the first log received and then
+frozen, so intervals between pulses on the run time base are exactly the GPS intervals (an
+anchor refined later would shift later pulses by milliseconds). The anchor carries the first
+log's transport latency (tens of ms): keep the exact ``gps_week`` / ``gps_seconds`` for anything
+finer than that. Marks are
 matched to events by time, never by arrival order (logs arrive tens of ms after the pulse).
 
 Link loss: the thread reopens the port with backoff and re-sends the configuration; ``read``
@@ -123,8 +124,8 @@ class NovatelMarks:
         arrival = self.clock.now()
         for m in marks:
             if m.header_week:
-                est = gps_total_seconds(m.header_week, m.header_seconds) - arrival
-                self.anchor = est if self.anchor is None else max(self.anchor, est)
+                if self.anchor is None:  # frozen after the first log (see module docstring)
+                    self.anchor = gps_total_seconds(m.header_week, m.header_seconds) - arrival
         with self._lock:
             self._marks.extend(marks)
 
