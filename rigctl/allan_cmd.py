@@ -15,7 +15,8 @@ import json
 import math
 import os
 import sys
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -29,7 +30,7 @@ AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "
 #: display unit of the deviation per sensor: (label, factor from SI)
 DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
 MIN_SAMPLES = 64
-CHUNK_ROWS = 1 << 18
+CHUNK_ROWS = 1 << 20
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
 SCHEMA_VERSION = 1
@@ -40,7 +41,8 @@ class UsageError(Exception):
 
 
 class _AxisStream:
-    """Accumulates one axis: Allan sums, a full-resolution head and a decimated phase."""
+    """Accumulates one axis: Allan sums (streamed), plus for the noise identification a
+    full-resolution phase head and the whole phase decimated by ``dec`` (bounded memory)."""
 
     def __init__(self, tau0: float, ms: np.ndarray, mode: str, n_rate: int):
         self.acc = A.OadevAccumulator(tau0, ms, mode)
@@ -49,34 +51,44 @@ class _AxisStream:
             self.dec *= 2
         self.head: list[np.ndarray] = []
         self.n_head = 0
-        self.decs: list[np.ndarray] = []
+        self.decs: list[np.ndarray] = [np.zeros(1)]  # x[0] = 0
+        self.part = np.empty(0)  # rate samples of the unfinished decimation block
         self.tau0 = tau0
-        self.x_last = 0.0
-        self.n_phase = 0
+        self.x_dec = 0.0  # phase at the last decimated point
+        self.x_head = 0.0
+        self.n_rate = 0
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
         acc.add_rate(y)
-        # rebuild this chunk's phase (same float64 arithmetic as the accumulator)
-        x = np.asarray(y, dtype=np.float64) - acc.offset
-        np.cumsum(x, out=x)
-        x *= self.tau0
-        x += self.x_last
-        if self.n_phase == 0:
-            x = np.concatenate(([0.0], x))
-        if self.n_head < HEAD_POINTS:
-            part = x[: HEAD_POINTS - self.n_head]
-            self.head.append(part.copy())
-            self.n_head += part.size
-        start = (-self.n_phase) % self.dec
-        self.decs.append(x[start:: self.dec].copy())
-        self.n_phase += x.size
-        self.x_last = float(x[-1])
+        c = acc.offset
+        if self.n_head < HEAD_POINTS:  # full-resolution phase of the first samples
+            part = y[: HEAD_POINTS - self.n_head] - c
+            x = np.cumsum(part) * self.tau0 + self.x_head
+            if self.n_head == 0:
+                x = np.concatenate(([0.0], x))
+            self.head.append(x)
+            self.n_head += x.size
+            self.x_head = float(x[-1])
+        if self.dec == 1:
+            self.decs.append(np.cumsum(y - c) * self.tau0 + self.x_dec)
+            self.x_dec = float(self.decs[-1][-1])
+        else:  # block sums of dec samples, then a short running sum
+            z = np.concatenate((self.part, y)) if self.part.size else y
+            nb = z.size // self.dec
+            if nb:
+                sums = z[: nb * self.dec].reshape(nb, self.dec).sum(axis=1) - self.dec * c
+                xs = np.cumsum(sums) * self.tau0 + self.x_dec
+                self.decs.append(xs)
+                self.x_dec = float(xs[-1])
+            self.part = z[nb * self.dec:].copy()
+        self.n_rate += y.size
 
     def noise_id(self, m: int) -> int:
         if not hasattr(self, "_head"):
             self._head = np.concatenate(self.head)
             self._dec = np.concatenate(self.decs)
+            self.head, self.decs = [], []
         if m % self.dec == 0:
             return E.noise_id(self._dec, m // self.dec, "oadev")
         return E.noise_id(self._head, m, "oadev")
@@ -89,7 +101,7 @@ def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
     edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
-    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor)
+    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
     pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     unit, fac = DEV_UNITS[sensor]
     si = "rad/s" if sensor == "gyro" else "m/s^2"
@@ -138,16 +150,21 @@ def _sample_rate(f, path: str) -> float:
     return float(rate)
 
 
-def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False
-            ) -> dict[str, Any]:
-    """Stream the recording and analyse ``axes``; raises UsageError on invalid input."""
+def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
+            sample_range: tuple[int, int] | None = None) -> dict[str, Any]:
+    """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
+    last) if given, else all); raises UsageError on invalid input."""
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
-        n = min(d.shape[0] for d in dsets.values())
+        n_all = min(d.shape[0] for d in dsets.values())
+        s0, s1 = (0, n_all) if sample_range is None else (
+            max(0, int(sample_range[0])), min(n_all, int(sample_range[1])))
+        n = max(0, s1 - s0)
         if n < MIN_SAMPLES:
             raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
                              "for an Allan analysis (record longer)")
+        gaps = _counter_gaps(f, s0, s1)
         tau0 = 1.0 / fs
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
@@ -155,18 +172,95 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             ms = A.snap_fast(ms)
             ms = ms[ms <= A.max_factor(n + 1, "oadev")]
         streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
-        for a0 in range(0, n, CHUNK_ROWS):
-            a1 = min(n, a0 + CHUNK_ROWS)
+        for a0 in range(s0, s1, CHUNK_ROWS):
+            a1 = min(s1, a0 + CHUNK_ROWS)
             blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
             for a in axes:
                 name, col, _ = AXES[a]
                 streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
+            del blocks
     out = {"file": os.path.basename(path), "sample_rate_hz": fs, "n_samples": int(n),
-           "axes": {}}
+           "first_sample": int(s0), "dropped_samples": int(gaps), "axes": {}}
     for a in axes:
         out["axes"][a] = analyse_axis(streams[a], AXES[a][2])
         streams[a] = None  # free the per-axis buffers
     return out
+
+
+def _counter_gaps(f: Any, s0: int, s1: int) -> int:
+    """Samples missing according to /imu/counter in [s0, s1) (0 without a counter)."""
+    if "/imu/counter" not in f:
+        return 0
+    c = f["/imu/counter"]
+    if c.shape[0] < s1 or s1 - s0 < 2:
+        return 0
+    first, last = int(c[s0]), int(c[s1 - 1])
+    return max(0, (last - first + 1) - (s1 - s0))
+
+
+def _capture_range(f: Any) -> tuple[int, int, str] | None:
+    """Sample range of the longest ``capture`` segment (complete preferred), or None."""
+    seg = f.get("/segments")
+    if seg is None or "kind" not in seg or "first_sample" not in seg:
+        return None
+    kinds = [bytes(k).rstrip(b"\0") for k in seg["kind"][:]]
+    first, last = seg["first_sample"][:], seg["last_sample"][:]
+    status = ([bytes(s).rstrip(b"\0") for s in seg["status"][:]] if "status" in seg
+              else [b"complete"] * len(kinds))
+    labels = ([bytes(s).rstrip(b"\0").decode(errors="replace") for s in seg["label"][:]]
+              if "label" in seg else [""] * len(kinds))
+    cand = [(st == b"complete", int(b) - int(a), int(a), int(b), lab)
+            for k, a, b, st, lab in zip(kinds, first, last, status, labels) if k == b"capture"]
+    if not cand:
+        return None
+    best = max(cand)
+    return best[2], best[3], best[4]
+
+
+def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
+    """Solver hook for a procedure's ``solve: [allan]`` step: default analysis (fast mode,
+    95 log-spaced taus, all six axes present) of the longest capture segment (whole record
+    if it has none), stored in /results/allan; a short summary goes to ``log("info", ...)``.
+    """
+    import h5py
+
+    path = str(path)
+    with h5py.File(path, "r") as f:
+        rng = _capture_range(f)
+        axes = [a for a in AXES if AXES[a][0] in f]
+    if not axes:
+        log("warning", f"allan: {path} has no /imu/angular_rate or /imu/specific_force")
+        return
+    where = "whole recording" if rng is None else f"capture segment '{rng[2]}'"
+    try:
+        result = compute(path, axes, 95, False, None if rng is None else rng[:2])
+    except UsageError as exc:
+        log("warning", f"allan: not run: {exc}")
+        return
+    result["segment"] = where
+    store(path, result)
+    n, fs = result["n_samples"], result["sample_rate_hz"]
+    log("info", f"allan: {where}, {n} samples at {fs:g} Hz ({n / fs / 3600:.2f} h); "
+                f"results in {path}:/results/allan")
+    if result["dropped_samples"]:
+        log("warning", f"allan: {result['dropped_samples']} samples missing (counter gaps) "
+                       "in the analysed range; the deviations assume uniform sampling")
+    for a, r in result["axes"].items():
+        log("info", f"allan {a}: " + summary_line(r))
+
+
+def summary_line(r: dict[str, Any]) -> str:
+    """One line per axis: fitted N, B, K with 95 % intervals or upper bounds."""
+    parts = []
+    for t in ("N", "B", "K"):
+        e = r["fit"]["terms"][t]
+        unit = F.FIELD_UNITS[r["sensor"]][t][0]
+        if e["supported"]:
+            lo, hi = e[f"ci95_{unit}"]
+            parts.append(f"{t} {e[f'value_{unit}']:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
+        else:
+            parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
+    return "; ".join(parts)
 
 
 def _jsonable(obj: Any) -> Any:
@@ -194,6 +288,9 @@ def store(path: str, result: dict[str, Any]) -> None:
         g = grp.create_group("allan")
         summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
                    "n_samples": result["n_samples"],
+                   "first_sample": result.get("first_sample", 0),
+                   "dropped_samples": result.get("dropped_samples", 0),
+                   "segment": result.get("segment", "whole recording"),
                    "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                                 "fit": _jsonable(r["fit"]),
                                 "piecewise": _jsonable(r["piecewise"])}

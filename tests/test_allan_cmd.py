@@ -113,3 +113,32 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
     assert err.startswith("rigctl allan: error:") and "Traceback" not in err
     if case in ("missing", "not_hdf5", "not_rigctl", "no_accel", "short"):
         assert str(rec) in err
+
+
+def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
+    """The procedure hook analyses the longest capture segment, stores /results/allan and
+    logs one info line per axis (plus a warning for counter gaps)."""
+    rec = tmp_path / "rec.h5"
+    write_recording(rec, 120_000, seed=4)
+    with h5py.File(rec, "r+") as f:
+        seg = f.create_group("segments")
+        seg.create_dataset("kind", data=np.array([b"warmup", b"capture", b"capture"], "S16"))
+        seg.create_dataset("label", data=np.array([b"warm", b"overnight", b"short"], "S48"))
+        seg.create_dataset("first_sample", data=np.array([0, 20_000, 110_000], np.int64))
+        seg.create_dataset("last_sample", data=np.array([20_000, 100_000, 115_000], np.int64))
+        seg.create_dataset("status", data=np.array([b"complete"] * 3, "S16"))
+        counter = f["imu/counter"][:]
+        counter[50_000:] += 3  # three dropped samples inside the capture
+        f["imu/counter"][:] = counter
+    messages: list[tuple[str, str]] = []
+    allan_cmd.solve_recording(rec, lambda kind, msg, **_: messages.append((kind, msg)))
+    with h5py.File(rec, "r") as f:
+        summary = json.loads(f["results/allan"].attrs["json"])
+    assert summary["n_samples"] == 80_000 and summary["first_sample"] == 20_000
+    assert summary["dropped_samples"] == 3 and "overnight" in summary["segment"]
+    info = [m for k, m in messages if k == "info"]
+    assert any("capture segment 'overnight'" in m for m in info)
+    assert sum(m.startswith("allan gx:") for m in info) == 1 and len(info) == 7
+    assert any(k == "warning" and "3 samples missing" in m for k, m in messages)
+    n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    assert abs(n_gx / 0.3 - 1) < 0.05

@@ -152,3 +152,67 @@ def test_invalid_inputs() -> None:
         A.oadev(np.zeros(100), 1.0, mode="approximate")
     with pytest.raises(ValueError):
         A.OadevAccumulator(1.0, [], "fast")
+
+
+def test_gram_pyramid_equals_direct_sums() -> None:
+    """The polyphase-Gram pyramid (fast mode) gives the fully overlapping sums for m <= 15
+    and the stride-2^j sums for m = k 2^j, on random-walk FM with a large offset, for any
+    chunking (the chunk boundaries cut rows, blocks and pairs)."""
+    from rigctl.solvers import allan_stream as S
+
+    rng = np.random.default_rng(21)
+    n = 150_001
+    y = 9.80665 + 1e-3 * rng.standard_normal(n) + 1e-6 * np.cumsum(rng.standard_normal(n))
+    ms = np.array([1, 2, 3, 5, 7, 8, 11, 15, 16, 18, 26, 30, 48, 60, 104, 240, 1792, 3840])
+    assert all(S.conforming(int(m)) is not None for m in ms)
+    assert S.conforming(17) is None and S.conforming(40) == (2, 10)
+    x = A.phase_from_rate(y, 1.0)
+    ref_sum, ref_cnt = [], []
+    for m in ms:
+        s = m // S.conforming(int(m))[1]  # stride 2^j
+        xs, k = x[::s], m // s
+        d = xs[2 * k:] - 2 * xs[k: xs.size - k] + xs[: xs.size - 2 * k]
+        ref_sum.append(np.sum(d * d))
+        ref_cnt.append(d.size)
+    for chunks in ([n], [5, 16_000, 1, 33, 70_000, n - 86_039], [4096] * 36 + [n - 4096 * 36]):
+        pyr = S.GramPyramid(ms)
+        a = 0
+        for c in chunks:
+            pyr.feed(y[a: a + c], offset=9.80665)
+            a += c
+        assert a == n
+        tot, cnt, stride = pyr.sums()
+        np.testing.assert_allclose(tot, ref_sum, rtol=1e-11)
+        assert cnt.tolist() == ref_cnt
+        assert stride.tolist() == [1] * 8 + [int(m) // S.conforming(int(m))[1] for m in ms[8:]]
+
+
+def test_exact_mode_gram_path_equals_direct() -> None:
+    """Exact mode on a long series (> 2^20 points) uses the Gram for m <= 16 and blocked
+    direct sums with 2x precomputed above: same sums as the textbook ones."""
+    n = 1_100_000
+    y = _white(n, 22) + 0.5 + np.cumsum(_white(n, 23, 1e-3))
+    ms = np.array([1, 2, 3, 9, 16, 17, 100, 140_001, 270_000])
+    got = A.oadev(y, 0.5, ms, "rate", mode="exact")
+    x = A.phase_from_rate(y, 0.5)
+    for m, d, nt in zip(ms, got.dev, got.n_terms):
+        dd = x[2 * m:] - 2 * x[m: x.size - m] + x[: x.size - 2 * m]
+        assert d == pytest.approx(np.sqrt(np.mean(dd * dd) / 2) / (m * 0.5), rel=1e-12)
+        assert nt == dd.size
+
+
+def test_blas_single_thread_restores() -> None:
+    from rigctl.solvers import allan_stream as S
+
+    fns = S._openblas_local()
+    if not fns:
+        pytest.skip("numpy/scipy do not bundle OpenBLAS here")
+    before = [fn(1) for fn in fns]
+    for fn, b in zip(fns, before):
+        fn(b)
+    with S.blas_single_thread():
+        inside = [fn(1) for fn in fns]
+    after = [fn(1) for fn in fns]
+    for fn, b in zip(fns, before):
+        fn(b)
+    assert inside == [1] * len(fns) and after == before

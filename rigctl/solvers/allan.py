@@ -32,11 +32,14 @@ Estimators, for phase points x[0..N-1] and averaging factor m (tau = m tau0):
       TOTVAR(tau) = sum_{i=2}^{N-1} (x*[i-m] - 2x*[i] + x*[i+m])^2 / (2 tau^2 (N - 2))
 
 Two ways to compute the overlapping Allan deviation: ``mode="exact"`` evaluates every term of
-the fully overlapping sum in float64; ``mode="fast"`` (default) evaluates, for long taus, only
-every s-th term (s a power of two, s <= m/8, i.e. the overlapping estimator on the phase
-decimated by s: a decimated-phase pyramid). Consecutive terms at lags below m/8 are almost
-perfectly correlated, so the equivalent degrees of freedom are kept (tested). The streaming
-:class:`OadevAccumulator` computes the same sums from chunks with bounded memory.
+the fully overlapping sum in float64 (m <= 16 through the polyphase Gram of
+:mod:`rigctl.solvers.allan_stream`, the same sum in another order; longer taus by direct
+differences); ``mode="fast"`` (default) computes m < 16 with all terms too (one Gram pass for
+all of them) and, for longer taus m = k 2^j (8 <= k < 16), every 2^j-th term, i.e. stride
+m/16..m/8: the overlapping estimator on the phase decimated by 2^j (a pyramid of pair sums).
+Consecutive terms at lags below m/8 are almost perfectly correlated, so the equivalent
+degrees of freedom are kept (tested). :class:`OadevAccumulator` computes the same sums from
+chunks with bounded memory; BLAS runs single-threaded in the hot loops.
 """
 from __future__ import annotations
 
@@ -45,12 +48,14 @@ from typing import Iterable, Sequence, Union
 
 import numpy as np
 
+from . import allan_stream as S
+
 TauSpec = Union[str, int, Sequence[int]]
 
 #: maximum averaging factor as a fraction of (N - 1) phase intervals (Stable32's limits)
 _MAX_FRACTION = {"adev": 5, "hdev": 5, "oadev": 4, "mdev": 4, "tdev": 4, "ohdev": 4,
                  "totdev": 2}
-_BLOCK = 1 << 16  # samples per in-cache block in the hot loops
+_BLOCK = 1 << 16  # samples per block of the direct sums (512 kB, stays in L2)
 #: below this many phase points mode="fast" computes the exact sums (they are cheap there)
 FAST_MIN_POINTS = 1 << 20
 
@@ -175,66 +180,55 @@ def snap_fast(m: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- kernels
-def _sum_d2(x: np.ndarray, k: int, lo: int, hi: int, scratch: np.ndarray) -> float:
-    """sum_{i=lo}^{hi-1} (x[i+2k] - 2 x[i+k] + x[i])^2, blocked to stay in cache."""
-    total = 0.0
-    for a in range(lo, hi, _BLOCK):
-        b = min(hi, a + _BLOCK)
-        d = scratch[: b - a]
-        np.add(x[a + 2 * k: b + 2 * k], x[a:b], out=d)
-        d -= x[a + k: b + k]
-        d -= x[a + k: b + k]
-        total += float(np.dot(d, d))
-    return total
-
-
 def _oadev_exact_sums(x: np.ndarray, ms: np.ndarray) -> np.ndarray:
-    scratch = np.empty(_BLOCK)
-    return np.array([_sum_d2(x, int(m), 0, x.size - 2 * int(m), scratch) for m in ms])
+    """sum_{i=0}^{N-2m-1} (x[i+2m] - 2x[i+m] + x[i])^2 for every m (all terms, stride 1).
+
+    m <= 16: the polyphase Gram of the increments (one pass for all of them, same sum in a
+    different order); larger m: direct differences, on long series with 2x precomputed (one
+    add, one subtract and one dot per block) and the loop over taus inside the loop over
+    blocks (the block x[a:b] is read from memory once for all taus)."""
+    out = np.empty(ms.size)
+    small = ms <= S.KMAX
+    with S.blas_single_thread():
+        if np.any(small) and x.size > 4 * S.ROW * S.BLOCK_ROWS:
+            lev = S.GramLevel([int(m) for m in ms[small]])
+            step = 1 << 20
+            for a in range(0, x.size - 1, step):
+                lev.feed(np.diff(x[a: a + step + 1]))
+            out[small] = lev.sums()[0]
+        else:
+            small[:] = False
+        big = np.flatnonzero(~small)
+        if big.size == 0:
+            return out
+        if x.size > FAST_MIN_POINTS:  # long series: 2x precomputed, blocks outside
+            out[big] = S.sums_d2_x2(x, x + x, ms[big].astype(np.int64))
+        else:
+            scratch = np.empty(_BLOCK)
+            for i in big:
+                m = int(ms[i])
+                out[i] = S.sum_d2(x, m, 0, x.size - 2 * m, scratch)
+    return out
 
 
 # --------------------------------------------------------------------------- streaming
-class _Level:
-    """Overlapping-Allan sums at lags ``ks`` on the phase decimated by ``s`` (streamed)."""
-
-    def __init__(self, s: int, ks: list[int]):
-        self.s = s
-        self.ks = sorted(ks)
-        self.keep = 2 * self.ks[-1]
-        self.tail = np.empty(0)
-        self.b0 = 0  # decimated index of tail[0]
-        self.next_start = {k: 0 for k in self.ks}
-        self.sums = {k: 0.0 for k in self.ks}
-        self.counts = {k: 0 for k in self.ks}
-
-    def feed(self, x_chunk: np.ndarray, g0: int, scratch: np.ndarray) -> None:
-        start = (-g0) % self.s
-        new = x_chunk[start:: self.s]
-        if new.size == 0:
-            return
-        buf = np.concatenate((self.tail, new)) if self.tail.size else np.ascontiguousarray(new)
-        end = self.b0 + buf.size
-        for k in self.ks:
-            lo = self.next_start[k] - self.b0
-            hi = buf.size - 2 * k
-            if hi > lo:
-                self.sums[k] += _sum_d2(buf, k, lo, hi, scratch)
-                self.counts[k] += hi - lo
-                self.next_start[k] = end - 2 * k
-        cut = max(0, buf.size - self.keep)
-        self.tail = buf[cut:].copy()
-        self.b0 += cut
-
-
 class OadevAccumulator:
     """Streaming overlapping Allan deviation with bounded memory.
 
     Feed rate chunks (``add_rate``) or phase chunks (``add_phase``) of an arbitrarily long
-    series; :meth:`result` gives the same sums as the one-shot estimator. Phase is built with
-    float64 cumulative sums after removing a constant offset (the first chunk's mean, or
-    ``offset``), so gravity on an accelerometer axis costs no precision. Memory: a tail of at
-    most 2 * max(m / stride) phase points per decimation level, i.e. kilobytes in fast mode
-    and 2 * m_max points in exact mode.
+    series; :meth:`result` gives the same sums as the one-shot estimator.
+
+    * ``mode="fast"``: factors m < 16 and m = k 2^j (8 <= k < 16) go through the polyphase
+      Gram pyramid of :mod:`rigctl.solvers.allan_stream` (m < 16 fully overlapping, longer
+      ones at stride 2^j, m/16 < stride <= m/8; one pass over memory for all of them, no
+      running sum needed). Other factors use direct differences of the phase decimated by
+      :func:`fast_stride`.
+    * ``mode="exact"``: direct differences of the full phase for every factor.
+
+    The phase (when needed) is built with float64 cumulative sums after removing a constant
+    offset (the first chunk's mean, or ``offset``), so gravity on an accelerometer axis costs
+    no precision. Memory: kilobytes per pyramid level; 2 max(m / stride) phase points for
+    the direct path (2 m_max in exact mode).
     """
 
     def __init__(self, tau0: float, ms: Iterable[int], mode: str = "fast",
@@ -246,13 +240,17 @@ class OadevAccumulator:
         if self.ms.size == 0 or self.ms[0] < 1:
             raise ValueError("need at least one averaging factor >= 1")
         self.mode = mode
-        self.strides = np.array([fast_stride(int(m)) if mode == "fast" else 1 for m in self.ms])
+        fast = mode == "fast"
+        self._gram = np.array([fast and S.conforming(int(m)) is not None for m in self.ms])
+        self.pyramid = S.GramPyramid(self.ms[self._gram]) if self._gram.any() else None
         levels: dict[int, list[int]] = {}
-        for m, s in zip(self.ms, self.strides):
-            levels.setdefault(int(s), []).append(int(m) // int(s))
-        self.levels = [_Level(s, ks) for s, ks in sorted(levels.items())]
+        for m in self.ms[~self._gram]:
+            s = fast_stride(int(m)) if fast else 1
+            levels.setdefault(s, []).append(int(m) // s)
+        self.levels = [S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
         self.offset = offset
         self.n_phase = 0
+        self.phase_input: bool | None = None
         self._x_last = 0.0
         self._scratch = np.empty(_BLOCK)
 
@@ -261,46 +259,72 @@ class OadevAccumulator:
         y = np.asarray(y, dtype=np.float64).ravel()
         if y.size == 0:
             return
+        self._kind(False)
         if self.offset is None:
             self.offset = float(np.mean(y))
         if self.n_phase == 0:
-            self._feed(np.zeros(1))
-        x = y - self.offset
-        np.cumsum(x, out=x)
-        x *= self.tau0
-        x += self._x_last
-        self._feed(x)
+            self.n_phase = 1  # x[0] = 0
+            if self.levels:
+                self._feed_levels(np.zeros(1), 0)
+        if self.pyramid is not None:
+            self.pyramid.feed(y, self.offset)
+        if self.levels:
+            x = y - self.offset
+            np.cumsum(x, out=x)
+            x *= self.tau0
+            x += self._x_last
+            self._feed_levels(x, self.n_phase)
+            self._x_last = float(x[-1])
+        self.n_phase += y.size
 
     def add_phase(self, x: np.ndarray) -> None:
         """Append phase points (rate units x s). A constant offset is removed (float64)."""
         x = np.array(x, dtype=np.float64).ravel()
         if x.size == 0:
             return
+        self._kind(True)
         if self.offset is None:
             self.offset = float(x[0])
         x -= self.offset
-        self._feed(x)
-
-    def _feed(self, x: np.ndarray) -> None:
-        for lev in self.levels:
-            lev.feed(x, self.n_phase, self._scratch)
-        self.n_phase += x.size
+        if self.pyramid is not None:
+            inc = np.diff(x, prepend=self._x_last) if self.n_phase else np.diff(x)
+            self.pyramid.feed(inc)
+        if self.levels:
+            self._feed_levels(x, self.n_phase)
         self._x_last = float(x[-1])
+        self.n_phase += x.size
+
+    def _kind(self, phase: bool) -> None:
+        if self.phase_input is None:
+            self.phase_input = phase
+        elif self.phase_input != phase:
+            raise ValueError("do not mix add_rate and add_phase on one accumulator")
+
+    def _feed_levels(self, x: np.ndarray, g0: int) -> None:
+        with S.blas_single_thread():
+            for lev in self.levels:
+                lev.feed(x, g0, self._scratch)
 
     def result(self) -> DevResult:
         """Deviations for every factor with at least one complete term."""
-        devs, ns = [], []
-        for m, s in zip(self.ms, self.strides):
+        sums = np.full(self.ms.size, np.nan)
+        counts = np.zeros(self.ms.size, dtype=np.int64)
+        strides = np.ones(self.ms.size, dtype=np.int64)
+        if self.pyramid is not None:
+            tot, cnt, st = self.pyramid.sums()
+            scale = self.tau0 ** 2 if not self.phase_input else 1.0
+            sums[self._gram], counts[self._gram], strides[self._gram] = tot * scale, cnt, st
+        for i in np.flatnonzero(~self._gram):
+            m = int(self.ms[i])
+            s = fast_stride(m) if self.mode == "fast" else 1
             lev = next(lv for lv in self.levels if lv.s == s)
-            k = int(m) // int(s)
-            n = lev.counts[k]
-            ns.append(n)
-            tau = m * self.tau0
-            devs.append(np.sqrt(lev.sums[k] / (2.0 * tau * tau * n)) if n > 0 else np.nan)
-        ok = np.array(ns) > 0
-        n_terms = np.where(self.strides == 1, np.array(ns), self.n_phase - 2 * self.ms)
-        return DevResult("oadev", self.tau0, self.ms[ok], self.ms[ok] * self.tau0,
-                         np.array(devs)[ok], n_terms[ok], self.n_phase, self.strides[ok])
+            sums[i], counts[i], strides[i] = lev.sums[m // s], lev.counts[m // s], s
+        ok = counts > 0
+        tau = self.ms * self.tau0
+        dev = np.sqrt(sums[ok] / (2.0 * tau[ok] ** 2 * counts[ok]))
+        n_terms = np.where(strides == 1, counts, self.n_phase - 2 * self.ms)
+        return DevResult("oadev", self.tau0, self.ms[ok], tau[ok], dev, n_terms[ok],
+                         self.n_phase, strides[ok])
 
 
 # --------------------------------------------------------------------------- deviations
@@ -331,16 +355,20 @@ def oadev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
     if isinstance(taus, (str, int, np.integer)):
         ms = snap_fast(ms)
         ms = ms[ms <= max_factor(n_phase, "oadev")]
+    if data_type not in ("rate", "freq", "phase"):
+        raise ValueError(f"data_type must be 'rate' or 'phase', not {data_type!r}")
     acc = OadevAccumulator(tau0, ms, "fast")
     add = acc.add_phase if data_type == "phase" else acc.add_rate
-    if data_type == "phase":
-        acc.offset = float(arr[0])
-    else:
-        acc.offset = float(np.mean(arr))
+    acc.offset = float(arr[0]) if data_type == "phase" else float(np.mean(arr))
     step = 1 << 20
     for a in range(0, arr.size, step):
         add(arr[a: a + step])
     return acc.result()
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """sum a*b without BLAS (no thread pool for long vectors on a shared machine)."""
+    return float(np.einsum("i,i->", a, b))
 
 
 def _check_length(n_phase: int) -> None:
@@ -366,7 +394,7 @@ def adev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
         xs = x[:: m]
         d = xs[2:] - 2 * xs[1:-1] + xs[:-2]
         ns.append(d.size)
-        devs.append(np.sqrt(np.dot(d, d) / (2.0 * (m * tau0) ** 2 * d.size)))
+        devs.append(np.sqrt(_dot(d, d) / (2.0 * (m * tau0) ** 2 * d.size)))
     return DevResult("adev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
                      ms.copy())
 
@@ -386,7 +414,7 @@ def mdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
         s = c[m:] - c[:-m]
         ns.append(s.size)
         tau = m * tau0
-        devs.append(np.sqrt(np.dot(s, s) / (2.0 * m * m * tau * tau * s.size)))
+        devs.append(np.sqrt(_dot(s, s) / (2.0 * m * m * tau * tau * s.size)))
     return DevResult("mdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
                      np.ones_like(ms))
 
@@ -415,7 +443,7 @@ def ohdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
     for m in ms:
         d = _third_diff(x, int(m))
         ns.append(d.size)
-        devs.append(np.sqrt(np.dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
+        devs.append(np.sqrt(_dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
     return DevResult("ohdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
                      np.ones_like(ms))
 
@@ -430,7 +458,7 @@ def hdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
     for m in ms:
         d = _third_diff(x[:: int(m)], 1)
         ns.append(d.size)
-        devs.append(np.sqrt(np.dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
+        devs.append(np.sqrt(_dot(d, d) / (6.0 * (m * tau0) ** 2 * d.size)))
     return DevResult("hdev", tau0, ms, ms * tau0, np.array(devs), np.array(ns), x.size,
                      ms.copy())
 
@@ -453,7 +481,7 @@ def totdev(data: np.ndarray, tau0: float = 1.0, taus: TauSpec = "octave",
         c = xe[off + 1: off + n - 1]
         d = xe[off + 1 - m: off + n - 1 - m] + xe[off + 1 + m: off + n - 1 + m] - 2.0 * c
         tau = m * tau0
-        devs.append(np.sqrt(np.dot(d, d) / (2.0 * tau * tau * (n - 2))))
+        devs.append(np.sqrt(_dot(d, d) / (2.0 * tau * tau * (n - 2))))
     return DevResult("totdev", tau0, ms, ms * tau0, np.array(devs),
                      np.full(ms.size, n - 2), n, np.ones_like(ms))
 

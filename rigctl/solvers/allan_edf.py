@@ -182,11 +182,16 @@ def chi2_interval(dev: np.ndarray | float, edf_: np.ndarray | float,
 
 
 # --------------------------------------------------------------------------- noise ID
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """sum a*b without BLAS (no thread pool: long vectors on a shared machine)."""
+    return float(np.einsum("i,i->", a, b))
+
+
 def lag1_autocorrelation(z: np.ndarray) -> float:
     """r1 = sum (z_t - zbar)(z_{t+1} - zbar) / sum (z_t - zbar)^2 (Riley 2004 eq. 2)."""
     z = np.asarray(z, dtype=np.float64) - np.mean(z)
-    den = float(np.dot(z, z))
-    return float(np.dot(z[:-1], z[1:])) / den if den > 0 else 0.0
+    den = _dot(z, z)
+    return _dot(z[:-1], z[1:]) / den if den > 0 else 0.0
 
 
 def noise_id_lag1(x: np.ndarray, m: int, dmax: int = 2) -> int:
@@ -245,8 +250,8 @@ def noise_id_b1(x: np.ndarray, m: int, dmax: int = 2) -> int:
         return 2
     c = np.concatenate(([0.0], np.cumsum(d2)))
     s = c[m:] - c[:-m]
-    mvar = float(np.dot(s, s)) / (m * m * s.size)
-    ovar = float(np.dot(d2, d2)) / d2.size
+    mvar = _dot(s, s) / (m * m * s.size)
+    ovar = _dot(d2, d2) / d2.size
     rn = mvar / ovar if ovar > 0 else 1.0
     boundary = math.sqrt((1.0 / m) * _rn_flicker_pm(m))
     return 2 if rn < boundary else 1

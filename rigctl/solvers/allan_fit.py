@@ -7,14 +7,26 @@ Model (IEEE Std 952-1997 annex C; rate units u, e.g. rad/s or m/s^2)::
 Q quantization (u s), N angle/velocity random walk (u sqrt(s)), B bias instability (u),
 K rate/acceleration random walk (u / sqrt(s)), R rate ramp (u / s).
 
-The model is linear in p = (Q^2, N^2, B^2, K^2, R^2). All taus are fitted at once with
-non-negative least squares (scipy.optimize.nnls), weighted by the inverse variance of each
-AVAR estimate, var(sigma^2) ~= 2 sigma^4 / edf (chi-square with edf degrees of freedom), with
-sigma^2 taken from the model (iteratively reweighted, so low estimates get no extra weight).
-The covariance (A^T W A)^-1 is inflated by the reduced chi-square when > 1 and by the number
-of taus per octave (overlapping AVAR estimates within an octave are strongly correlated, so
-only about one per octave is independent). A term whose 95 % lower bound reaches zero is
-reported as a one-sided 95 % upper bound instead of a value.
+The model is linear in p = (Q^2, N^2, B^2, K^2, R^2) and all taus are fitted at once by
+generalized non-negative least squares: the residuals are weighted with the inverse of the
+full covariance of the sigma^2(tau) estimates (:mod:`rigctl.solvers.allan_cov`), computed for
+the fitted noise mixture (iterated: fit -> covariance -> fit). Its diagonal is 2 sigma^4 / edf
+with Greenhall's EDF for that mixture; its off-diagonal terms are the strong correlation of
+overlapping estimates at neighbouring taus (0.8-0.97 between taus 1.26x apart), which a
+diagonal fit ignores and so reports intervals several times too narrow. Up to ``max_taus``
+(40) log-spaced taus of the curve are used (the rest add almost no information). Without
+``tau0``/``n_phase`` the covariance falls back to the diagonal from the given EDF.
+
+Model selection (backward elimination): a term is kept only if its estimate is significant
+(p_j > 1.96 sd_j, i.e. its 95 % lower bound is above zero) and it reaches at least 10 % of the
+fitted sigma^2 at some tau (``MIN_SHARE``; a smaller share is within the model's own
+idealisation error, e.g. filters and the edges of the flicker band, and is what produced
+spurious quantization terms). The weakest failing term is dropped and the rest refitted until
+all pass. A dropped term is reported as a one-sided 95 % upper bound, sqrt(max(p_j, 0) +
+1.645 sd_j) from the fit with it restored (unconstrained). Parameter covariance:
+(A^T Sigma^-1 A)^-1, inflated by the reduced chi-square when > 1. Intervals of a kept term:
+chi-square with nu = 2 p_j^2 / sd_j^2 degrees of freedom (Satterthwaite), the same form as the
+intervals of the deviations: p_j nu / chi2_{1-q}(nu) .. p_j nu / chi2_q(nu), square-rooted.
 
 For comparison the classic piecewise read-offs (slope -1 below 0.5 s -> Q at tau = sqrt(3),
 slope -1/2 between 0.5 s and 2 s -> N at tau = 1 s, flat minimum above 20 s -> B = min/0.664,
@@ -25,12 +37,19 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import cholesky, solve_triangular
 from scipy.optimize import nnls
-from scipy.stats import norm
+from scipy.stats import chi2, norm
+
+from . import allan_cov as C
+from .allan_stream import blas_single_thread
 
 TERMS = ("Q", "N", "B", "K", "R")
 _B_FACTOR = 2.0 * math.log(2.0) / math.pi
 G0 = 9.80665  # m/s^2, standard gravity (for mg)
+#: a term must reach this share of the fitted sigma^2 at some tau to count as identified
+MIN_SHARE = 0.10
+_Z95, _Z95_ONE = float(norm.ppf(0.975)), float(norm.ppf(0.95))
 _DEG = 180.0 / math.pi
 
 #: (field unit label, factor from SI) per sensor and term; SI: gyro rad/s, accel m/s^2
@@ -66,20 +85,128 @@ def model_avar(tau: np.ndarray, coeffs: dict[str, float]) -> np.ndarray:
     return design_matrix(tau) @ p
 
 
-def _nnls_weighted(a: np.ndarray, s2: np.ndarray, w: np.ndarray) -> np.ndarray:
-    sw = np.sqrt(w)
-    scale = np.linalg.norm(a * sw[:, None], axis=0)
+def _nnls_cols(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Non-negative least squares with column scaling."""
+    scale = np.linalg.norm(a, axis=0)
     scale[scale == 0] = 1.0
-    p, _ = nnls(a * sw[:, None] / scale, s2 * sw)
+    p, _ = nnls(a / scale, b)
     return p / scale
 
 
-def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
-              terms: tuple[str, ...] = TERMS, iterations: int = 6) -> dict:
-    """Joint EDF-weighted NNLS fit of the IEEE 952 terms. See the module docstring.
+def _whiten(cov: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of a covariance (a tiny diagonal jitter keeps it definite)."""
+    d = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(d, d) + 1e-9 * np.eye(d.size)
+    return d[:, None] * cholesky(corr, lower=True)
 
-    tau in s, adev in SI rate units, edf per tau. Returns per-term dicts with SI and field
-    values (unit in the key), 68 % / 95 % intervals or a 95 % upper bound.
+
+def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.ndarray,
+               edf: np.ndarray) -> np.ndarray:
+    """Covariance of the sigma^2 estimates under the model p (see allan_cov); without factor
+    information: diagonal 2 sigma^4 / edf."""
+    full = np.zeros(len(TERMS))
+    full[cols] = p
+    mod = np.maximum(a @ p, 1e-300)
+    if cov_terms is None:
+        return np.diag(2.0 * mod ** 2 / edf)
+    cov = C.combine(cov_terms, dict(zip(C.TERMS4, full[:4])))
+    noisy = np.maximum(a[:, [i for i, c in enumerate(cols) if c < 4]] @ p[
+        [i for i, c in enumerate(cols) if c < 4]], 1e-300) if any(c < 4 for c in cols) else mod
+    g = mod / noisy  # the deterministic ramp R: same correlations, scaled to the total
+    cov = cov * np.outer(g, g)
+    bad = ~(np.diag(cov) > 0)
+    if np.any(bad):  # e.g. a model with Q only beyond its exact-lag range
+        cov[bad, :] = 0.0
+        cov[:, bad] = 0.0
+        cov[bad, bad] = 2.0 * mod[bad] ** 2 / edf[bad]
+    return cov
+
+
+def _gls(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
+         cov_terms: dict | None, p0: np.ndarray, iterations: int) -> tuple:
+    """Iterated generalized NNLS; returns (p, whitened design, whitened residual)."""
+    p = p0
+    for _ in range(iterations):
+        lw = _whiten(_model_cov(cov_terms, p, cols, a, edf))
+        aw = solve_triangular(lw, a, lower=True)
+        bw = solve_triangular(lw, s2, lower=True)
+        p = _nnls_cols(aw, bw)
+    lw = _whiten(_model_cov(cov_terms, p, cols, a, edf))
+    aw = solve_triangular(lw, a, lower=True)
+    bw = solve_triangular(lw, s2, lower=True)
+    return p, aw, bw - aw @ p
+
+
+def _param_cov(aw: np.ndarray) -> np.ndarray:
+    """(A^T A)^-1 of a whitened design, with column scaling (the columns differ by 20+
+    orders of magnitude: tau^-2 .. tau^2)."""
+    d = np.linalg.norm(aw, axis=0)
+    d[d == 0] = 1.0
+    return np.linalg.pinv((aw / d).T @ (aw / d)) / np.outer(d, d)
+
+
+def _chi2_over_nu(q: float, nu: float) -> float:
+    """chi2.ppf(q, nu) / nu (Wilson-Hilferty above 1e7 degrees of freedom)."""
+    if nu <= 1e7:
+        return float(chi2.ppf(q, nu)) / nu
+    h = 2.0 / (9.0 * nu)
+    return (1.0 - h + float(norm.ppf(q)) * math.sqrt(h)) ** 3
+
+
+def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
+               cov_terms: dict | None, p: np.ndarray, iterations: int, chi2_red: float
+               ) -> tuple[float, float]:
+    """Unconstrained GLS estimate of the last column's coefficient and the sd that puts
+    the one-sided 95 % bound at p_u = max(p_hat, 0) + 1.645 sd(p_u): the sd is evaluated
+    with the term *at the bound* in the covariance (its own variance grows with it), the
+    Neyman construction for an estimate whose spread depends on the parameter."""
+
+    def solve(model: np.ndarray) -> tuple[np.ndarray, float]:
+        lw = _whiten(_model_cov(cov_terms, np.maximum(model, 0.0), cols, a, edf))
+        aw = solve_triangular(lw, a, lower=True)
+        bw = solve_triangular(lw, s2, lower=True)
+        cj = _param_cov(aw)
+        return cj @ aw.T @ bw, float(np.sqrt(max(cj[-1, -1], 0.0) * max(1.0, chi2_red)))
+
+    for _ in range(iterations):
+        p, sd = solve(p)
+    pj = float(p[-1])
+    pu = max(pj, 0.0) + _Z95_ONE * sd
+    for _ in range(2 * iterations):
+        model = np.array(p, dtype=float)
+        model[-1] = pu
+        pu = max(pj, 0.0) + _Z95_ONE * solve(model)[1]
+    return pj, (pu - max(pj, 0.0)) / _Z95_ONE
+
+
+def _thin(n: int, max_taus: int) -> np.ndarray:
+    if n <= max_taus:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, max_taus)).astype(int))
+
+
+def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
+              terms: tuple[str, ...] = TERMS, tau0: float | None = None,
+              n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
+              select: bool = True) -> dict:
+    """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded)."""
+    with blas_single_thread():
+        return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus, iterations,
+                          select)
+
+
+def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
+               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
+               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
+               select: bool = True) -> dict:
+    """Joint generalized least-squares fit of the IEEE 952 terms. See the module docstring.
+
+    tau in s, adev in SI rate units, edf per tau (Greenhall, used for the first pass and
+    when ``tau0``/``n_phase`` are not given). With ``tau0`` (s) and ``n_phase`` (phase
+    points) the full covariance of the sigma^2 estimates under the fitted model is used
+    (:mod:`rigctl.solvers.allan_cov`). Returns per-term dicts with SI and field values (unit
+    in the key), 68 % / 95 % intervals, or a one-sided 95 % upper bound for a term the data
+    do not support.
     """
     tau = np.asarray(tau, dtype=float)
     s2 = np.asarray(adev, dtype=float) ** 2
@@ -88,48 +215,77 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
     tau, s2, e = tau[ok], s2[ok], e[ok]
     if tau.size < 2:
         raise ValueError("need at least two finite Allan variance points to fit")
-    cols = [TERMS.index(t) for t in terms]
-    a = design_matrix(tau)[:, cols]
-    w = e / (2.0 * s2 ** 2)
-    p = _nnls_weighted(a, s2, w)
-    for _ in range(iterations):
-        mod = np.maximum(a @ p, 1e-300)
-        w = e / (2.0 * mod ** 2)
-        p = _nnls_weighted(a, s2, w)
-    mod = a @ p
-    resid = (s2 - mod) * np.sqrt(w)
-    dof = max(1, tau.size - int(np.count_nonzero(p)))
-    chi2_red = float(resid @ resid) / dof
-    octaves = max(1.0, math.log2(tau.max() / tau.min()))
-    per_octave = max(1.0, tau.size / octaves)
-    fisher = (a * w[:, None]).T @ a
-    cov = np.linalg.pinv(fisher) * max(1.0, chi2_red) * per_octave
-    z68, z95, z95_one = norm.ppf(0.8415), norm.ppf(0.975), norm.ppf(0.95)
+    keep = _thin(tau.size, max_taus)
+    tau, s2, e = tau[keep], s2[keep], e[keep]
+    cov_terms = None
+    if tau0 is not None and n_phase is not None:
+        ms = np.maximum(1, np.round(tau / tau0)).astype(np.int64)
+        cov_terms = C.term_covariances(tau0, ms, int(n_phase))
+    full_a = design_matrix(tau)
+    active = [TERMS.index(t) for t in terms]
+    dropped: list[int] = []
+    while True:
+        a = full_a[:, active]
+        w = e / (2.0 * s2 ** 2)
+        p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w))
+        p, aw, rw = _gls(a, s2, e, active, cov_terms, p0, iterations)
+        pos = p > 0
+        dof = max(1, tau.size - int(np.count_nonzero(pos)))
+        chi2_red = float(rw @ rw) / dof
+        cov_p = np.zeros((len(active), len(active)))
+        if np.any(pos):
+            sub = _param_cov(aw[:, pos]) * max(1.0, chi2_red)
+            cov_p[np.ix_(pos, pos)] = sub
+        sd = np.sqrt(np.maximum(np.diag(cov_p), 0.0))
+        z = np.where(sd > 0, p / np.where(sd > 0, sd, 1.0), 0.0)
+        share = np.max(a * p / np.maximum(a @ p, 1e-300)[:, None], axis=0)
+        score = np.minimum(z / _Z95, share / MIN_SHARE)
+        weak = [i for i in range(len(active)) if score[i] < 1.0]
+        if not select or not weak or len(active) == 1:
+            break
+        worst = min(weak, key=lambda i: score[i])
+        dropped.append(active.pop(worst))
+    values = dict(zip(active, p))
+    sds = dict(zip(active, sd))
+    for j in dropped:  # one-sided bound: the term refitted (unconstrained) with the others
+        values[j], sds[j] = _bound_fit(full_a[:, active + [j]], s2, e, active + [j],
+                                       cov_terms, np.append(p, 0.0), iterations, chi2_red)
     out_terms: dict[str, dict] = {}
-    for j, t in enumerate(terms):
-        sd = math.sqrt(max(cov[j, j], 0.0))
+    coeff_sq: dict[str, float] = {}
+    for t in terms:
+        j = TERMS.index(t)
+        pj, sdj = float(values[j]), float(sds[j])
         unit_f, fac = FIELD_UNITS[sensor][t]
         unit_si = SI_UNITS[sensor][t]
         entry: dict = {"name": TERM_NAMES[sensor][t]}
-        if p[j] - z95 * sd > 0:
-            val = math.sqrt(p[j])
-            lo68, hi68 = math.sqrt(max(p[j] - z68 * sd, 0.0)), math.sqrt(p[j] + z68 * sd)
-            lo95, hi95 = math.sqrt(max(p[j] - z95 * sd, 0.0)), math.sqrt(p[j] + z95 * sd)
-            entry.update({"supported": True,
-                          f"value_{unit_si}": val, f"value_{unit_f}": val * fac,
-                          f"ci68_{unit_si}": [lo68, hi68],
-                          f"ci68_{unit_f}": [lo68 * fac, hi68 * fac],
-                          f"ci95_{unit_si}": [lo95, hi95],
-                          f"ci95_{unit_f}": [lo95 * fac, hi95 * fac]})
+        if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0):
+            coeff_sq[t] = pj
+            val = math.sqrt(pj)
+            ci = {}
+            nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
+            entry["edf"] = nu
+            for lab, conf in (("68", 0.683), ("95", 0.95)):
+                q = (1.0 - conf) / 2.0
+                r_hi, r_lo = _chi2_over_nu(1.0 - q, nu), _chi2_over_nu(q, nu)
+                # r_lo, r_hi are 0 only for nu << 1 (a term kept by select=False)
+                lo = math.sqrt(pj / r_hi) if r_lo > 0 else 0.0
+                hi = math.sqrt(pj / r_lo) if r_lo > 0 else math.inf
+                ci[f"ci{lab}_{unit_si}"] = [lo, hi]
+                ci[f"ci{lab}_{unit_f}"] = [lo * fac, hi * fac]
+            entry.update({"supported": True, f"value_{unit_si}": val,
+                          f"value_{unit_f}": val * fac, **ci})
         else:
-            ub = math.sqrt(max(p[j], 0.0) + z95_one * sd)
+            coeff_sq[t] = 0.0
+            ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
             entry.update({"supported": False, f"upper95_{unit_si}": ub,
                           f"upper95_{unit_f}": ub * fac,
-                          f"estimate_{unit_si}": math.sqrt(max(p[j], 0.0))})
+                          f"estimate_{unit_si}": math.sqrt(max(pj, 0.0))})
         out_terms[t] = entry
-    return {"method": "joint EDF-weighted NNLS (IEEE 952 model)", "sensor": sensor,
-            "terms": out_terms, "coeff_sq_si": dict(zip(terms, p.tolist())),
-            "reduced_chi2": chi2_red, "taus_per_octave": per_octave, "n_taus": int(tau.size)}
+    return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
+                      "sigma^2 estimates across taus)" if cov_terms is not None else
+                      "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
+            "sensor": sensor, "terms": out_terms, "coeff_sq_si": coeff_sq,
+            "reduced_chi2": chi2_red, "n_taus": int(tau.size)}
 
 
 def term_value_si(fit: dict, term: str) -> float:
