@@ -199,6 +199,10 @@ def design_flicker(tau_min_s: float, tau_max_s: float, rate_hz: float, pairs_per
     f_pole = f_lo * step ** np.arange(n_pairs)
     f_zero = f_pole * np.sqrt(step)
     a_pole, a_zero = 2 * np.pi * f_pole * tau0, 2 * np.pi * f_zero * tau0
+    # one more pole half a step above the last zero, with its zero at z = 0: without it the
+    # cascade's response goes flat above the band and adds white noise (biasing N by ~1 %)
+    a_pole = np.append(a_pole, a_zero[-1] * np.sqrt(step))
+    a_zero = np.append(a_zero, np.inf)
     taus = np.geomspace(tau_min_s, tau_max_s, 9)
     M = np.maximum(1, np.round(taus * rate_hz))
     mean_avar = float(np.mean(_cascade_avar(a_pole, a_zero, M)))
