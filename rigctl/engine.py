@@ -21,6 +21,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -60,6 +61,9 @@ class Rig:
     pulses: PulseSource
     clock: Clock
     description: str = ""
+    #: optional operator stand-in (emulator): ``prompt(step, t_start, duration)`` is called when
+    #: a step with a prompt starts sampling (e.g. the emulated operator taps the IMU)
+    operator: Any = None
 
 
 def angle_error(measured: np.ndarray, commanded: np.ndarray) -> np.ndarray:
@@ -236,6 +240,8 @@ class Engine:
                 self._first_row = row0 + i
                 break
         self.sampling_from = self.rec.n_imu
+        if step.prompt and self.rig.operator is not None:
+            self.rig.operator.prompt(step, t_start, step.sample_s)
         n_polls, sum_angle, sum_rate = 0, np.zeros(3), np.zeros(3)  # running sums: flat memory
         end = t_start + step.sample_s
         while (remaining := end - clock.now()) > 1e-9:

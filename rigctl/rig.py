@@ -119,11 +119,11 @@ def open_rig(cfg: RigConfig) -> Iterator[tuple[Rig, dict[str, Any] | None]]:
     """Yield (rig, truth); truth is the emulator's true parameters (None for a wired rig)."""
     if cfg.is_simulated:
         clock = make_clock(cfg.clock, cfg.speed)
-        from .sim.world import NoPulses, SimImuDevice, SimTableDevice, SimWorld
+        from .sim.world import SimImuDevice, SimTableDevice, SimWorld
 
         world = SimWorld(cfg, clock)
-        rig = Rig(table=SimTableDevice(world), imu=SimImuDevice(world), pulses=NoPulses(),
-                  clock=clock, description=describe(cfg))
+        rig = Rig(table=SimTableDevice(world), imu=SimImuDevice(world), pulses=world.pulses(),
+                  clock=clock, description=describe(cfg), operator=world.operator)
         try:
             yield rig, world.truth()
         finally:

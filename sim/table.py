@@ -11,6 +11,19 @@ acceleration, overshoot and ringing after each acceleration change). The actual 
 scipy.signal and run with ``lfilter`` over whole blocks, carrying its state between blocks, so
 a virtual-time run costs a few vectorised calls per block rather than a Python loop per tick.
 
+Optional imperfections (all off by default, SI in :class:`ServoParams`):
+
+* encoder noise: the reported angle is ``round((x + N(0, sigma^2)) / lsb) * lsb``;
+* rate ripple, as a fraction of the profile rate ``v``, once per revolution and/or at a fixed
+  frequency: ``w_r = v (r_rev sin(p + phi_rev) + r_f sin(2 pi f_r t + phi_f))``; the actual
+  rate is ``w + w_r`` and the angle gains ``x_r = integral w_r dt`` while the profile moves;
+  at rest (``v = 0``) the position loop removes the residual, ``x_r' = -zeta w_n x_r``;
+* wobble: the axis tilts by ``A`` (rad) about the two axes perpendicular to it, in the frame
+  it rotates in, with the pattern ``A (cos(n theta + phi), sin(n theta + phi))`` fixed to the
+  axis angle ``theta`` (``n`` = harmonic; ``n = 1`` is indistinguishable from a constant
+  mounting tilt of the rotating part). :meth:`SimTurntable.wobble` gives the resulting small
+  body-frame attitude error ``d`` (C_b^n -> C_b^n (I + [d x])) and its rate.
+
 Status bits follow :class:`rigctl.devices.AxisStatus`: *profile complete* comes as soon as the
 profile ends, before the servo has physically settled; *target reached* needs the axis inside
 the in-position window continuously for the dwell time, as real controllers do.
@@ -40,6 +53,16 @@ class ServoParams:
     at_rate_window: float = math.radians(0.01)
     dwell_s: float = 0.2
     encoder_lsb: float = math.radians(1e-5)
+    encoder_noise: float = 0.0  # rad, 1-sigma, before quantisation
+    ripple_per_rev: float = 0.0  # fraction of rate, once per revolution of the axis angle
+    ripple_per_rev_phase: float = 0.0  # rad
+    ripple_fraction: float = 0.0  # fraction of rate at ripple_hz
+    ripple_hz: float = 0.0
+    ripple_phase: float = 0.0  # rad
+    wobble: float = 0.0  # rad, tilt amplitude of the axis
+    wobble_harmonic: int = 2  # cycles per revolution
+    wobble_phase: float = 0.0  # rad
+    jerk_max: float = math.inf  # rad/s^3 (inf: acceleration steps, the plain trapezoid)
 
 
 def wrap_angle(a: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
@@ -56,6 +79,7 @@ class Profile:
         self.v = [v0]
         self.a = [0.0]
         self.end = t0
+        self.prev: Profile | None = None  # the profile this one replaced (for times < t0)
 
     def _append(self, dt: float, a: float) -> None:
         t0, p0, v0, a0 = self.t[-1], self.p[-1], self.v[-1], self.a[-1]
@@ -80,12 +104,16 @@ class Profile:
 
     @classmethod
     def to_position(cls, t0: float, p0: float, v0: float, target: float, vmax: float,
-                    amax: float) -> "Profile":
-        """Stop if moving, then a trapezoid (or triangle) to ``target``."""
+                    amax: float, t_jerk: float = 0.0) -> "Profile":
+        """Stop if moving, then a trapezoid (or triangle) to ``target``. With ``t_jerk`` > 0
+        (jerk-limited: the acceleration is later averaged over t_jerk) a triangle gets a coast
+        of t_jerk at its peak, so acceleration never reverses within one averaging window."""
         prof = cls(t0, p0, v0)
         if v0 != 0.0:
             prof._append(abs(v0) / amax, -math.copysign(amax, v0))
             prof.v[-1] = 0.0
+            if t_jerk > 0.0:
+                prof._append(t_jerk, 0.0)
         d = target - prof.p[-1]
         dist = abs(d)
         if dist > 0.0:
@@ -93,6 +121,9 @@ class Profile:
             if dist > vmax * vmax / amax:
                 t_acc = vmax / amax
                 t_cruise = (dist - vmax * vmax / amax) / vmax
+            elif t_jerk > 0.0:  # a t^2 + a t t_jerk = dist
+                t_acc = 0.5 * (-t_jerk + math.sqrt(t_jerk * t_jerk + 4.0 * dist / amax))
+                t_cruise = t_jerk
             else:
                 t_acc = math.sqrt(dist / amax)
                 t_cruise = 0.0
@@ -101,6 +132,56 @@ class Profile:
             prof._append(t_acc, -sgn * amax)
         prof.p[-1], prof.v[-1] = target, 0.0
         return prof
+
+    def evaluate_full(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Position, rate, acceleration and the position's integral P(t) = int_{t0}^t p (rad s)
+        at ``t``; times before t0 come from the replaced profile (at rest at p0 if none)."""
+        tt, aa = np.asarray(self.t), np.asarray(self.a)
+        pp, vv = np.asarray(self.p), np.asarray(self.v)
+        d = np.diff(tt)
+        seg = pp[:-1] * d + vv[:-1] * d**2 / 2 + aa[:-1] * d**3 / 6
+        big = np.concatenate([[0.0], np.cumsum(seg)])
+        idx = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 1)
+        dt = t - tt[idx]
+        p, v, a = pp[idx], vv[idx], aa[idx]
+        pos = p + v * dt + 0.5 * a * dt * dt
+        vel = v + a * dt
+        acc = a.copy()
+        integ = big[idx] + p * dt + v * dt**2 / 2 + a * dt**3 / 6
+        early = t < tt[0]
+        if np.any(early):
+            te = t[early]
+            if self.prev is not None:
+                p2, v2, a2, i2 = self.prev.evaluate_full(te)
+                i0 = self.prev.evaluate_full(np.array([tt[0]]))[3][0]
+                pos[early], vel[early], acc[early], integ[early] = p2, v2, a2, i2 - i0
+            else:  # moving uniformly at (p0, v0) before the first command
+                de = te - tt[0]
+                pos[early], vel[early], acc[early] = pp[0] + vv[0] * de, vv[0], 0.0
+                integ[early] = pp[0] * de + vv[0] * de**2 / 2
+        return pos, vel, acc, integ
+
+    def smoothed(self, t: NDArray[np.float64], t_jerk: float) -> tuple[NDArray, NDArray, NDArray]:
+        """The profile averaged over the window [t - t_jerk, t]: acceleration steps of amax
+        become ramps of jerk amax / t_jerk, and position, rate and acceleration stay
+        consistent (each is the window mean of its own kind; the motion lags t_jerk / 2)."""
+        p1, v1, a1, i1 = self.evaluate_full(t)
+        p0, v0, _, i0 = self.evaluate_full(t - t_jerk)
+        pos = (i1 - i0) / t_jerk
+        # window inside one piece: the exact mean p - v T / 2 + a T^2 / 6 (no cancellation)
+        tt = np.asarray(self.t)
+        same = ((np.searchsorted(tt, t, side="right") == np.searchsorted(tt, t - t_jerk, side="right"))
+                & (t - t_jerk >= tt[0]))
+        pos[same] = (p1 - v1 * t_jerk / 2 + a1 * t_jerk**2 / 6)[same]
+        return pos, (p1 - p0) / t_jerk, (v1 - v0) / t_jerk
+
+    def prune(self, t_from: float) -> None:
+        """Forget replaced profiles not needed for times >= t_from."""
+        node = self.prev
+        while node is not None and node.t[0] > t_from:
+            node = node.prev
+        if node is not None:
+            node.prev = None
 
     def evaluate(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
         """Profile position, rate and acceleration at times ``t``."""
@@ -118,6 +199,8 @@ class TableAxis:
     def __init__(self, servo: ServoParams, vmax: float, amax: float, continuous: bool, dt: float,
                  t0: float = 0.0) -> None:
         self.servo, self.vmax, self.amax, self.continuous, self.dt = servo, vmax, amax, continuous, dt
+        #: jerk limit as an averaging window of the acceleration, s (0: no jerk limit)
+        self.t_jerk = amax / servo.jerk_max if math.isfinite(servo.jerk_max) and servo.jerk_max > 0 else 0.0
         self.mode = OFF
         self.target = 0.0
         self.profile = Profile(t0, 0.0, 0.0)
@@ -133,37 +216,75 @@ class TableAxis:
         self.last = (0.0, 0.0, 0.0)  # actual angle, rate, accel at the last grid point
         self.last_t = t0
         self.in_window_since: float | None = None
+        self._ripple_angle = 0.0  # x_r at the last grid point, rad
 
     def command(self, t: float, mode: int, value: float) -> None:
         """New demand at time ``t``: POSITION (angle rad), RATE (rad/s) or OFF (controlled stop)."""
         p0, v0, _ = (float(x[0]) for x in self.profile.evaluate(np.array([t])))
+        old = self.profile
         self.in_window_since = None
         if mode == POSITION:
             target = value
             if self.continuous:  # shortest way round to the equivalent angle
                 target = p0 + float(wrap_angle(value - p0))
             self.target = target
-            self.profile = Profile.to_position(t, p0, v0, target, self.vmax, self.amax)
+            self.profile = Profile.to_position(t, p0, v0, target, self.vmax, self.amax, self.t_jerk)
         elif mode == RATE:
             self.target = value
             self.profile = Profile.to_rate(t, p0, v0, value, self.amax)
         else:
             self.target = 0.0
             self.profile = Profile.to_rate(t, p0, v0, 0.0, self.amax)
+        if self.t_jerk > 0:  # the averaging window reaches back into the replaced profile
+            self.profile.prev = old
+            self.profile.prune(t - self.t_jerk)
         self.mode = mode
+
+    @property
+    def end(self) -> float:
+        """Time the (jerk-limited) profile reaches its end, s."""
+        return self.profile.end + self.t_jerk
 
     def advance(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
         """Actual angle, rate, acceleration on the grid ``t`` (uniform, step dt, after last_t)."""
-        p, v, a = self.profile.evaluate(t)
+        if self.t_jerk > 0:
+            p, v, a = self.profile.smoothed(t, self.t_jerk)
+        else:
+            p, v, a = self.profile.evaluate(t)
         e, self._zi_e = signal.lfilter(self._b_e, self._a_e, a, zi=self._zi_e)
         de, self._zi_de = signal.lfilter(self._b_de, self._a_de, a, zi=self._zi_de)
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e
+        sv = self.servo
+        if t.size and (sv.ripple_per_rev or sv.ripple_fraction or self._ripple_angle):
+            xr, wr = self._ripple(t, p, v)
+            x, w = x + xr, w + wr
         if t.size:
             self.last = (float(x[-1]), float(w[-1]), float(acc[-1]))
             self._update_window(t, x, w)
             self.last_t = float(t[-1])
         return x, w, acc
+
+    def _ripple(self, t: NDArray, p: NDArray, v: NDArray) -> tuple[NDArray, NDArray]:
+        """Ripple angle x_r and rate w_r on the grid (see the module docstring)."""
+        sv = self.servo
+        rr = v * (sv.ripple_per_rev * np.sin(p + sv.ripple_per_rev_phase)
+                  + sv.ripple_fraction * np.sin(2 * np.pi * sv.ripple_hz * t + sv.ripple_phase))
+        moving = v != 0.0
+        xr, wr = np.empty_like(t), np.empty_like(t)
+        decay = 0.5 * self._2zwn  # zeta w_n, 1/s
+        edges = np.concatenate([[0], np.flatnonzero(np.diff(moving)) + 1, [t.size]])
+        x0 = self._ripple_angle
+        for i0, i1 in zip(edges[:-1], edges[1:]):
+            if moving[i0]:
+                xr[i0:i1] = x0 + np.cumsum(rr[i0:i1]) * self.dt
+                wr[i0:i1] = rr[i0:i1]
+            else:
+                xr[i0:i1] = x0 * np.exp(-decay * self.dt * np.arange(1, i1 - i0 + 1))
+                wr[i0:i1] = -decay * xr[i0:i1]
+            x0 = float(xr[i1 - 1])
+        self._ripple_angle = x0 if abs(x0) > 1e-15 else 0.0
+        return xr, wr
 
     def _update_window(self, t: NDArray, x: NDArray, w: NDArray) -> None:
         if self.mode == POSITION:
@@ -187,12 +308,12 @@ class TableAxis:
             return int(s | AxisStatus.FAULT)
         if self.mode != OFF:
             s |= AxisStatus.SERVO_ON | AxisStatus.OPERATION_ENABLED
-        if t >= self.profile.end:
+        if t >= self.end:
             s |= AxisStatus.PROFILE_COMPLETE
         if abs(self.last[1]) > self.servo.at_rate_window:
             s |= AxisStatus.MOVING
         held = self.in_window_since is not None and t - self.in_window_since >= self.servo.dwell_s
-        if held and t >= self.profile.end:
+        if held and t >= self.end:
             s |= AxisStatus.AT_RATE if self.mode == RATE else AxisStatus.TARGET_REACHED
         return int(s)
 
@@ -206,6 +327,7 @@ class SimTurntable:
                      for i, s in enumerate(servos)]
         self.rng = rng
         self.dt = dt
+        self.vmax, self.amax = np.asarray(vmax, float), np.asarray(amax, float)
 
     def command(self, t: float, modes: list[int], values: NDArray) -> None:
         for ax, m, v in zip(self.axes, modes, values):
@@ -221,9 +343,67 @@ class SimTurntable:
         """Encoder reading (quantised, wrapped for continuous axes), rate and status at ``t``."""
         ang, rate = np.empty(3), np.empty(3)
         for i, ax in enumerate(self.axes):
-            q = ax.servo.encoder_lsb
-            a = round(ax.last[0] / q) * q if q > 0 else ax.last[0]
+            q, a = ax.servo.encoder_lsb, ax.last[0]
+            if ax.servo.encoder_noise > 0:
+                a += ax.servo.encoder_noise * float(self.rng.standard_normal())
+            a = round(a / q) * q if q > 0 else a
             ang[i] = float(wrap_angle(a)) if ax.continuous else a
             rate[i] = ax.last[1]
         status = tuple(ax.status(t) for ax in self.axes)
         return ang, rate, status  # type: ignore[return-value]
+
+    def wobble(self, ang: NDArray, rates: NDArray) -> tuple[NDArray, NDArray] | None:
+        """Body-frame attitude error d (n, 3) rad and its rate d' (n, 3) rad/s from the axes'
+        wobble, for actual angles / gimbal rates (n, 3); None when no axis wobbles.
+
+        Axis k's tilt ``w_k`` acts in the frame it rotates in (the next-outer gimbal's), so in
+        the body frame ``d_k = M_k^T w_k`` with ``M_k`` the rotation of axis k and all inner
+        ones, and ``d_k' = M_k^T w_k' - r_k x d_k`` with ``r_k`` the body rate relative to that
+        frame; ``d = sum d_k`` (first order in the tilt)."""
+        if not any(ax.servo.wobble for ax in self.axes):
+            return None
+        from rigctl.frames import _rot, gimbal_rate_body
+
+        n = ang.shape[0]
+        d, dd = np.zeros((n, 3)), np.zeros((n, 3))
+        perp = {0: (0, 1), 1: (2, 0), 2: (1, 2)}  # outer z: (x, y); middle y: (z, x); inner x: (y, z)
+        names = ("z", "y", "x")
+        for k, ax in enumerate(self.axes):
+            sv = ax.servo
+            if not sv.wobble:
+                continue
+            ph = sv.wobble_harmonic * ang[:, k] + sv.wobble_phase
+            w, wd = np.zeros((n, 3)), np.zeros((n, 3))
+            i, j = perp[k]
+            w[:, i], w[:, j] = sv.wobble * np.cos(ph), sv.wobble * np.sin(ph)
+            rate_ph = sv.wobble_harmonic * rates[:, k]
+            wd[:, i], wd[:, j] = -w[:, j] * rate_ph, w[:, i] * rate_ph
+            m = _rot(names[k], ang[:, k])
+            for kk in range(k + 1, 3):
+                m = m @ _rot(names[kk], ang[:, kk])
+            dk = np.einsum("nji,nj->ni", m, w)
+            sub_a, sub_r = np.zeros((n, 3)), np.zeros((n, 3))
+            sub_a[:, k:], sub_r[:, k:] = ang[:, k:], rates[:, k:]
+            rel = gimbal_rate_body(sub_a, sub_r)
+            d += dk
+            dd += np.einsum("nji,nj->ni", m, wd) - np.cross(rel, dk)
+        return d, dd
+
+    def truth(self) -> dict:
+        """The table's true physical parameters, SI, units in the key names (JSON-serialisable).
+        The controller's settings (in-position / at-rate windows, dwell) are not truth: a wired
+        driver may set them over the link."""
+        axes = []
+        for ax in self.axes:
+            sv = ax.servo
+            axes.append({"natural_hz": sv.natural_hz, "damping": sv.damping,
+                         "encoder_lsb_rad": sv.encoder_lsb, "encoder_noise_rad": sv.encoder_noise,
+                         "rate_ripple_per_rev_fraction": sv.ripple_per_rev,
+                         "rate_ripple_per_rev_phase_rad": sv.ripple_per_rev_phase,
+                         "rate_ripple_fraction": sv.ripple_fraction, "rate_ripple_hz": sv.ripple_hz,
+                         "rate_ripple_phase_rad": sv.ripple_phase, "wobble_rad": sv.wobble,
+                         "wobble_harmonic": sv.wobble_harmonic, "wobble_phase_rad": sv.wobble_phase,
+                         "jerk_limit_rad_s3": sv.jerk_max if math.isfinite(sv.jerk_max) else None,
+                         "rate_limit_rad_s": ax.vmax, "accel_limit_rad_s2": ax.amax,
+                         "continuous": ax.continuous})
+        return {"axes": axes, "order": ["outer", "middle", "inner"]}

@@ -21,21 +21,56 @@ from rigctl.yamlio import LocDict
 from .faults import FaultInjector
 from .effects import table_body_references
 from .imu import DeclaredImuModel, build_imu_model
+from .tap_rig import SimPulses, SimTapOperator, tap_params
 from .table import OFF, POSITION, RATE, ServoParams, SimTurntable
 
 #: Largest block generated in one call, samples (bounds memory on long sleeps).
 MAX_BLOCK = 1 << 18
 
 
+#: Per-axis servo keys of ``table.sim`` (a number for all axes, or [outer, middle, inner]).
+SERVO_KEYS = ("natural_hz", "damping", "in_position_window_deg", "at_rate_window_dps", "dwell_s",
+              "encoder_lsb_deg", "encoder_noise_deg", "rate_ripple_per_rev", "rate_ripple_per_rev_phase_deg",
+              "rate_ripple_fraction", "rate_ripple_hz", "rate_ripple_phase_deg", "wobble_rad",
+              "wobble_harmonic", "wobble_phase_deg", "jerk_dps3")
+
+
+def _per_axis(o: LocDict, key: str, default: float, **kw: Any) -> list[float]:
+    """Three values from a number or a 3-list (outer, middle, inner)."""
+    if isinstance(o.get(key), list):
+        vals = S.number_list(o, key, length=3)
+        for v in vals:
+            lo, hi = kw.get("minimum"), kw.get("maximum")
+            if (lo is not None and v < lo) or (hi is not None and v > hi):
+                raise S.error(o, key, f"{key!r} entries must be in [{lo}, {hi}]")
+        return [float(v) for v in vals]
+    return [float(S.get_number(o, key, default, **kw))] * 3
+
+
 def _servos(o: LocDict) -> list[ServoParams]:
-    S.check_keys(o, ("natural_hz", "damping", "in_position_window_deg", "at_rate_window_dps",
-                     "dwell_s", "encoder_lsb_deg"), "'table.sim'")
-    wn = S.number_list(o, "natural_hz", [4.0, 5.0, 6.0], length=3)
-    return [ServoParams(natural_hz=wn[i], damping=S.get_number(o, "damping", 0.6, minimum=0.05, maximum=2),
-                        in_position_window=math.radians(S.get_number(o, "in_position_window_deg", 0.002, minimum=0)),
-                        at_rate_window=math.radians(S.get_number(o, "at_rate_window_dps", 0.01, minimum=0)),
-                        dwell_s=S.get_number(o, "dwell_s", 0.2, minimum=0),
-                        encoder_lsb=math.radians(S.get_number(o, "encoder_lsb_deg", 1e-5, minimum=0)))
+    S.check_keys(o, SERVO_KEYS, "'table.sim'")
+    v = {k: _per_axis(o, k, d, **kw) for k, d, kw in [
+        ("damping", 0.6, {"minimum": 0.05, "maximum": 2}),
+        ("in_position_window_deg", 0.002, {"minimum": 0}), ("at_rate_window_dps", 0.01, {"minimum": 0}),
+        ("dwell_s", 0.2, {"minimum": 0}), ("encoder_lsb_deg", 1e-5, {"minimum": 0}),
+        ("encoder_noise_deg", 0.0, {"minimum": 0}), ("rate_ripple_per_rev", 0.0, {"minimum": 0, "maximum": 0.1}),
+        ("rate_ripple_per_rev_phase_deg", 0.0, {}), ("rate_ripple_fraction", 0.0, {"minimum": 0, "maximum": 0.1}),
+        ("rate_ripple_hz", 0.0, {"minimum": 0}), ("rate_ripple_phase_deg", 0.0, {}),
+        ("wobble_rad", 0.0, {"minimum": 0, "maximum": 0.01}),
+        ("wobble_harmonic", 2, {"minimum": 1, "maximum": 100, "integer": True}),
+        ("wobble_phase_deg", 0.0, {}), ("jerk_dps3", math.inf, {"minimum": 1e-3})]}
+    v["natural_hz"] = _per_axis(o, "natural_hz", 0.0, minimum=0.1) if "natural_hz" in o else [4.0, 5.0, 6.0]
+    r = math.radians
+    return [ServoParams(natural_hz=v["natural_hz"][i], damping=v["damping"][i],
+                        in_position_window=r(v["in_position_window_deg"][i]),
+                        at_rate_window=r(v["at_rate_window_dps"][i]), dwell_s=v["dwell_s"][i],
+                        encoder_lsb=r(v["encoder_lsb_deg"][i]), encoder_noise=r(v["encoder_noise_deg"][i]),
+                        ripple_per_rev=v["rate_ripple_per_rev"][i],
+                        ripple_per_rev_phase=r(v["rate_ripple_per_rev_phase_deg"][i]),
+                        ripple_fraction=v["rate_ripple_fraction"][i], ripple_hz=v["rate_ripple_hz"][i],
+                        ripple_phase=r(v["rate_ripple_phase_deg"][i]), wobble=v["wobble_rad"][i],
+                        wobble_harmonic=int(v["wobble_harmonic"][i]), wobble_phase=r(v["wobble_phase_deg"][i]),
+                        jerk_max=r(v["jerk_dps3"][i]))
             for i in range(3)]
 
 
@@ -61,6 +96,30 @@ class SimWorld:
         self._blocks: list[ImuBlock] = []
         self._last_w = np.zeros(3)
         self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
+        self.operator: SimTapOperator | None = None  # emulated tap-hammer operator (pulses: sim)
+        if cfg.pulses.driver == "sim":
+            p_opts = cfg.pulses.options.get("sim") or LocDict()
+            p_opts = S.require_mapping(p_opts, "'pulses.sim'", cfg.pulses.options, "sim")
+            params, extra = tap_params(p_opts)
+            self.operator = SimTapOperator(params, extra["margin_s"], extra["slot_jitter"],
+                                           extra["seed"] or cfg.seed)
+
+    def _wobble(self, ang: NDArray, rates: NDArray, f_b: NDArray,
+                w_b: NDArray) -> tuple[NDArray, NDArray]:
+        """References in the wobbling body frame: C' = C (I + [d x]) gives, to first order,
+        f' = f - d x f and w' = w - d x w + d' (d, d' from SimTurntable.wobble)."""
+        wob = self.table.wobble(ang, rates)
+        if wob is None:
+            return f_b, w_b
+        d, dd = wob
+        return f_b - np.cross(d, f_b), w_b - np.cross(d, w_b) + dd
+
+    def _taps(self, t: NDArray[np.float64], f: NDArray[np.float64]) -> NDArray[np.float64]:
+        """True specific force ``f`` plus the scheduled taps at the true times ``t``."""
+        if self.operator is not None:
+            f = np.array(f, dtype=float, copy=True)
+            self.operator.field.apply(t, f)
+        return f
 
     def advance(self) -> None:
         """Generate every sample with time <= clock.now()."""
@@ -73,14 +132,17 @@ class SimWorld:
                 ang, rates, _acc = self.table.advance(t)
                 f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
                                            self.cfg.gravity)
-                f, w, temp = self.imu_model.apply(t, f_b, w_b)
+                f_b, w_b = self._wobble(ang, rates, f_b, w_b)
+                f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b)
                 counter = idx.astype(np.uint64)
             else:  # full error model: its own clock, internal rate, delay, dropped samples
                 grid = self.imu_model.sample_grid(n)
                 ang, rates, acc = self.table.advance(grid.t_eval)
                 f_b, w_b = table_body_references(ang, rates, self.cfg.latitude, self.cfg.gravity,
                                                  **self.imu_model.table_geometry())
+                f_b, w_b = self._wobble(ang, rates, f_b, w_b)
                 w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
+                f_b = self._taps(grid.t_eval, f_b)  # taps happen at the IMU, before its front end
                 f, w, temp = self.imu_model.apply(grid.t_internal, f_b, w_b, w_dot=w_dot)
                 keep = grid.keep
                 counter = grid.counter[keep]
@@ -104,9 +166,16 @@ class SimWorld:
                           for f in ("time", "counter", "specific_force", "angular_rate", "temperature")))
 
     def truth(self) -> dict[str, Any]:
-        return {"imu": self.imu_model.truth(), "seed": self.cfg.seed,
+        out = {"imu": self.imu_model.truth(), "table": self.table.truth(), "seed": self.cfg.seed,
                 "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
                          "gravity_m_s2": self.cfg.gravity}}
+        if self.operator is not None:
+            out["pulses"] = self.operator.truth()
+        return out
+
+    def pulses(self) -> Any:
+        """The rig's pulse source: the emulated receiver's input, or one that never fires."""
+        return NoPulses() if self.operator is None else SimPulses(self.operator, self.clock)
 
 
 class SimTableDevice:
