@@ -14,20 +14,9 @@ SOLVER_HOOKS: dict[str, str] = {
     "accel24": "rigctl.calibrate_cmd:solve_hook",
     "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
     "closed-loop": "rigctl.calibrate_cmd:solve_hook",
+    "allan": "rigctl.allan_cmd:solve_recording",
+    "report": "rigctl.report:solve_report",
 }
-
-
-def _register_allan() -> None:
-    """``allan`` once rigctl.allan_cmd provides its hook (owned by the Allan module)."""
-    try:
-        mod = importlib.import_module("rigctl.allan_cmd")
-    except ImportError:
-        return
-    if hasattr(mod, "solve_recording"):
-        SOLVER_HOOKS.setdefault("allan", "rigctl.allan_cmd:solve_recording")
-
-
-_register_allan()
 
 
 def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:

@@ -1,0 +1,337 @@
+"""The report's plots (matplotlib, Agg backend; imported lazily). Field units on every axis.
+
+Each ``plot_*`` function draws one PNG into the output directory and returns its path, or None
+when the recording holds nothing to draw. :func:`make_plots` draws all of them and returns
+{plot id: path} (ids: table_timeline, cal_residuals_orientation, cal_residuals_rate,
+cal_rms, allan, sync_hist, sync_residual).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .report import RunData, find_session
+from .report_allan import allan_curves
+
+MG_PER_M_S2 = 1000.0 / 9.80665
+DEG_H_PER_RAD_S = 180.0 / math.pi * 3600.0
+DPI = 90
+KIND_COLOURS = {"warmup": "#fde2b3", "orientation": "#cfe3f7", "rate": "#d9f2d0",
+                "capture": "#eadcf5", "taps": "#f7d4d4", "wait": "#eeeeee"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, path: Path) -> Path:
+    plt = _plt()
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def _shade_segments(ax: Any, segments: dict[str, np.ndarray] | None) -> None:
+    if not segments or "t_start" not in segments:
+        return
+    seen: set[str] = set()
+    for k, a, b in zip(segments["kind"], segments["t_start"], segments["t_end"]):
+        c = KIND_COLOURS.get(str(k), "#eeeeee")
+        ax.axvspan(a, b, color=c, lw=0, label=None if k in seen else f"{k} window")
+        seen.add(str(k))
+
+
+def plot_table_timeline(data: RunData, out: Path) -> Path | None:
+    """Gimbal angles (deg) and rates (deg/s) against run time (s); sampling windows shaded."""
+    t = data.table
+    if t is None or "angle" not in t or t["time"].size == 0:
+        return None
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 5.5), sharex=True)
+    names = ("outer", "middle", "inner")
+    for ax, key, unit in ((a1, "angle", "deg"), (a2, "rate", "deg/s")):
+        _shade_segments(ax, data.segments)
+        v = np.degrees(t[key])
+        if key == "angle":
+            v = (v + 180.0) % 360.0 - 180.0  # wrap to (-180, 180]
+        for i in range(3):
+            ax.plot(t["time"], v[:, i], lw=0.9, label=names[i],
+                    ls="" if key == "angle" else "-", marker="." if key == "angle" else None, ms=1.5)
+        ax.set_ylabel(f"table {key} [{unit}]")
+        ax.grid(True, lw=0.3)
+    a1.legend(fontsize=7, ncol=6, loc="upper right")
+    a2.set_xlabel("run time [s]")
+    a1.set_title("Table orientation and rate (shaded: sampling windows by kind)")
+    return _save(fig, out / "table_timeline.png")
+
+
+def _residual_grid(cal: dict[str, Any], data: RunData) -> tuple[np.ndarray, np.ndarray, list[int]] | None:
+    """(K, 6) residuals before and after (SI) and the /segments rows they belong to."""
+    cl = cal.get("closed_loop") or {}
+    dec, fin = cl.get("declared") or {}, cl.get("final") or {}
+    rb, ra = dec.get("residuals"), fin.get("residuals")
+    rows = data.cal_rows
+    if rb is None or ra is None or not rows:
+        return None
+    rb = np.array([np.nan if v is None else v for v in rb], dtype=float)
+    ra = np.array([np.nan if v is None else v for v in ra], dtype=float)
+    if rb.size != 6 * len(rows) or ra.size != rb.size:
+        return None
+    return rb.reshape(-1, 6), ra.reshape(-1, 6), rows
+
+
+def _mark_before_after(ax: Any, x: np.ndarray, before: np.ndarray, after: np.ndarray,
+                       colour: str, label: str, dx: float = 0.0) -> None:
+    """Before (open markers, shifted left by dx) and after (filled, shifted right)."""
+    ax.plot(x - dx, before, "o", mfc="none", color=colour, ms=4, label=f"{label} before")
+    ax.plot(x + dx, after, "o", color=colour, ms=3, label=f"{label} after")
+
+
+def plot_cal_residuals_orientation(data: RunData, out: Path) -> Path | None:
+    """Per-orientation residuals of the declared (before) and closed-loop (after) fits."""
+    cal = find_session(data.results.get("calibration", {}).get("json"))
+    grid = _residual_grid(cal, data) if cal else None
+    if grid is None:
+        return None
+    rb, ra, rows = grid
+    kinds = data.segments["kind"][rows]
+    sel = np.flatnonzero(kinds == "orientation")
+    if sel.size == 0:
+        return None
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
+    x = np.arange(sel.size)
+    cols = ("tab:blue", "tab:orange", "tab:green")
+    for i, ax_name in enumerate("xyz"):
+        _mark_before_after(a1, x, rb[sel, i] * MG_PER_M_S2, ra[sel, i] * MG_PER_M_S2, cols[i],
+                           f"accel {ax_name}", 0.15)
+        _mark_before_after(a2, x, rb[sel, 3 + i] * DEG_H_PER_RAD_S,
+                           ra[sel, 3 + i] * DEG_H_PER_RAD_S, cols[i], f"gyro {ax_name}", 0.15)
+    a1.set_ylabel("accel residual [mg]")
+    a2.set_ylabel("gyro residual [deg/h]")
+    labels = [str(data.segments["label"][rows[j]]) for j in sel]
+    a2.set_xticks(x)
+    a2.set_xticklabels(labels, rotation=75, fontsize=6)
+    a2.set_xlabel("orientation (segment)")
+    for ax in (a1, a2):
+        ax.axhline(0, color="k", lw=0.5)
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=6, ncol=6)
+    a1.set_title("Residuals per orientation: before (open, declared model) and after "
+                 "(filled, closed loop)")
+    return _save(fig, out / "cal_residuals_orientation.png")
+
+
+def plot_cal_residuals_rate(data: RunData, out: Path) -> Path | None:
+    """Per-rate residuals (gyro deg/h, accel mg) against the commanded rate (deg/s)."""
+    cal = find_session(data.results.get("calibration", {}).get("json"))
+    grid = _residual_grid(cal, data) if cal else None
+    if grid is None:
+        return None
+    rb, ra, rows = grid
+    seg = data.segments
+    kinds = seg["kind"][rows]
+    sel = np.flatnonzero(kinds == "rate")
+    if sel.size == 0:
+        return None
+    rate = np.degrees(seg["commanded_rate"][[rows[j] for j in sel]])
+    signed = rate[np.arange(sel.size), np.argmax(np.abs(rate), axis=1)]
+    turning = np.argmax(np.abs(rate), axis=1)
+    plt = _plt()
+    fig, axes = plt.subplots(2, 3, figsize=(11, 6), sharex=True)
+    cols = ("tab:blue", "tab:orange", "tab:green")
+    for i, ax_name in enumerate("xyz"):
+        for r, (sensor, off, fac, unit) in enumerate((("gyro", 3, DEG_H_PER_RAD_S, "deg/h"),
+                                                       ("accel", 0, MG_PER_M_S2, "mg"))):
+            ax = axes[r, i]
+            for g in range(3):
+                m = turning == g
+                if not np.any(m):
+                    continue
+                _mark_before_after(ax, signed[m], rb[sel[m], off + i] * fac,
+                                   ra[sel[m], off + i] * fac, cols[g], f"turning {'xyz'[g]}", 3.0)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.grid(True, lw=0.3)
+            ax.set_title(f"{sensor} {ax_name}", fontsize=9)
+            ax.set_ylabel(f"{sensor} {ax_name} residual [{unit}]", fontsize=8)
+            if r == 1:
+                ax.set_xlabel("commanded rate [deg/s]")
+    axes[0, 0].legend(fontsize=6)
+    fig.suptitle("Residuals per rate: before (open) and after (filled) the closed loop", fontsize=10)
+    return _save(fig, out / "cal_residuals_rate.png")
+
+
+def plot_cal_rms(data: RunData, out: Path) -> Path | None:
+    """Residual RMS per channel before and after, against the noise floor (mg, deg/h)."""
+    cal = find_session(data.results.get("calibration", {}).get("json"))
+    table = ((cal or {}).get("closed_loop") or {}).get("rms_table") or []
+    rows = [r for r in table if r.get("channel") != "all"]
+    if not rows:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
+    for ax, unit, title in ((axes[0], "mg", "accelerometer"), (axes[1], "deg_h", "gyro")):
+        sub = [r for r in rows if r.get("unit") == unit]
+        if not sub:
+            ax.set_visible(False)
+            continue
+        x = np.arange(len(sub))
+        w = 0.27
+        for j, (key, lab, col) in enumerate((("noise_floor", "noise floor", "0.6"),
+                                            ("rms_before", "RMS before", "tab:red"),
+                                            ("rms_after", "RMS after", "tab:green"))):
+            vals = [r.get(f"{key}_{unit}") or 0.0 for r in sub]
+            ax.bar(x + (j - 1) * w, vals, w, label=lab, color=col)
+        ax.set_xticks(x)
+        ax.set_xticklabels([r["channel"] for r in sub])
+        ax.set_yscale("log")
+        ax.set_ylabel(f"residual RMS [{unit.replace('deg_h', 'deg/h')}]")
+        ax.set_title(title)
+        ax.grid(True, axis="y", which="both", lw=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, out / "cal_rms.png")
+
+
+def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None) -> Path | None:
+    """Allan deviation per axis: 68 % bars, 95 % band, fitted total and each term's line."""
+    curves = allan_curves(data, log)
+    if not curves:
+        return None
+    from .solvers import allan_fit as F
+
+    plt = _plt()
+    names = list(curves)
+    ncol = 2 if len(names) > 1 else 1
+    nrow = math.ceil(len(names) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(11, 3.3 * nrow), squeeze=False)
+    order = sorted(names, key=lambda a: ("g" not in a[0], a))
+    gyro = [a for a in order if curves[a]["sensor"] == "gyro"]
+    accel = [a for a in order if curves[a]["sensor"] != "gyro"]
+    slots = []
+    for r in range(nrow):
+        for c, lst in enumerate((gyro, accel) if ncol == 2 else (order,)):
+            slots.append((axes[r, c], lst[r] if r < len(lst) else None))
+    for ax, name in slots:
+        if name is None:
+            ax.set_visible(False)
+            continue
+        cv = curves[name]
+        tau, dev, unit, fac = cv["tau_s"], cv["adev"], cv["unit"], cv["factor"]
+        if cv.get("lo95") is not None:
+            ax.fill_between(tau, cv["lo95"], cv["hi95"], color="tab:blue", alpha=0.15, lw=0,
+                            label="95 % interval")
+        if cv.get("lo68") is not None:
+            ax.errorbar(tau, dev, yerr=[dev - cv["lo68"], cv["hi68"] - dev], fmt=".", ms=3,
+                        lw=0.7, color="tab:blue", label="ADEV, 68 % interval")
+        else:
+            ax.loglog(tau, dev, ".", color="tab:blue", label="ADEV")
+        fit = cv.get("fit") or {}
+        coeff = fit.get("coeff_sq_si") or {}
+        if coeff:
+            tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
+            cols = F.design_matrix(tt)
+            total = np.zeros_like(tt)
+            for j, term in enumerate(F.TERMS):
+                part = cols[:, j] * float(coeff.get(term) or 0.0)
+                total += part
+                if coeff.get(term):
+                    ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9, label=f"{term} term")
+            ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        lo = np.nanmin(cv.get("lo95") if cv.get("lo95") is not None else dev)
+        hi = np.nanmax(cv.get("hi95") if cv.get("hi95") is not None else dev)
+        if np.isfinite(lo) and np.isfinite(hi) and lo > 0:
+            ax.set_ylim(lo / 2.0, hi * 2.0)
+        ax.set_title(f"{name} ({cv['sensor']}){' - quick curve' if cv.get('quick') else ''}",
+                     fontsize=9)
+        ax.set_xlabel("tau [s]")
+        ax.set_ylabel(f"Allan deviation [{unit}]")
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend(fontsize=6)
+    return _save(fig, out / "allan.png")
+
+
+def _sync_errors_ms(data: RunData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
+    arr = data.results.get("sync", {}).get("arrays") or {}
+    if "pulse_time" not in arr or arr["pulse_time"].size == 0:
+        return None
+    inl = arr.get("inlier", np.ones(arr["pulse_time"].size)).astype(bool)
+    if "tap_reference_time" in arr:
+        err = (arr["pulse_time"] - arr["tap_reference_time"]) * 1e3
+        what = "pulse - clock(tap)"
+    elif "local_residual" in arr:
+        err = arr["local_residual"] * 1e3
+        what = "local matching residual"
+    else:
+        return None
+    return arr["pulse_time"], err, inl, what
+
+
+def plot_sync_hist(data: RunData, out: Path) -> Path | None:
+    """Histogram of the tap matching error (ms), as the paper's figure 7."""
+    got = _sync_errors_ms(data)
+    if got is None:
+        return None
+    _, err, inl, what = got
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.8))
+    bins = np.histogram_bin_edges(err[inl], bins=min(40, max(5, int(inl.sum() // 3))))
+    ax.hist(err[inl], bins=bins, color="tab:blue", label=f"inliers ({int(inl.sum())})")
+    if (~inl).any():
+        ax.hist(np.clip(err[~inl], bins[0], bins[-1]), bins=bins, color="tab:red",
+                label=f"outliers ({int((~inl).sum())}, clipped to range)")
+    s = data.results["sync"]["json"]
+    std = s.get("residual_std_ms")
+    ax.set_title(f"Tap matching error ({s.get('timing', '?')} timing"
+                 + (f", std {std:.3f} ms)" if isinstance(std, (int, float)) else ")"), fontsize=10)
+    ax.set_xlabel(f"matching error: {what} [ms]")
+    ax.set_ylabel("taps [count]")
+    ax.grid(True, lw=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, out / "sync_hist.png")
+
+
+def plot_sync_residual(data: RunData, out: Path) -> Path | None:
+    """Clock residual (ms) against reference time (s)."""
+    got = _sync_errors_ms(data)
+    if got is None:
+        return None
+    t, err, inl, what = got
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(11, 3.6))
+    ax.plot(t[inl], err[inl], "o", ms=3, label="inliers")
+    if (~inl).any():
+        ax.plot(t[~inl], err[~inl], "x", color="tab:red", label="outliers")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("reference time [s]")
+    ax.set_ylabel(f"clock residual ({what}) [ms]")
+    ax.set_title("IMU clock residual against time")
+    ax.grid(True, lw=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, out / "sync_residual.png")
+
+
+def make_plots(data: RunData, out: Path, log: Callable[..., None] | None = None
+               ) -> dict[str, Path]:
+    """Draw every plot the recording supports; {plot id: PNG path}."""
+    got = {
+        "table_timeline": plot_table_timeline(data, out),
+        "cal_residuals_orientation": plot_cal_residuals_orientation(data, out),
+        "cal_residuals_rate": plot_cal_residuals_rate(data, out),
+        "cal_rms": plot_cal_rms(data, out),
+        "allan": plot_allan(data, out, log),
+        "sync_hist": plot_sync_hist(data, out),
+        "sync_residual": plot_sync_residual(data, out),
+    }
+    return {k: v for k, v in got.items() if v is not None}
