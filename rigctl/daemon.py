@@ -25,6 +25,7 @@ from .checkpoint import write_atomic
 from .config import load_config, resolve_config_path
 from .engine import Engine
 from .procedure import load_procedure, parse_overrides
+from .progress import NullProgress, Progress
 from .recorder import utc_now
 from .runlog import RunLog
 from .runner import EXIT_FAILED, EXIT_INVALID, RunOptions, check_run_dir, resume_run, run_procedure
@@ -65,6 +66,7 @@ class Daemon:
         self.cv = threading.Condition()
         self.engine: Engine | None = None
         self.current: Job | None = None
+        self.progress: Progress = NullProgress()
         self.stopping: str | None = None
         self._load_jobs()
         self.server = control.ControlServer(self.socket_path, self.handle, self.log)
@@ -135,6 +137,7 @@ class Daemon:
             out["step"] = eng.current_step.describe() if eng.current_step else None
             out["imu_samples"] = eng.rec.n_imu
             out["segments"] = eng.rec.n_segments
+            out["progress"] = self.progress.status_text()
         return out
 
     def _cmd_queue(self, _args: dict) -> dict:
@@ -216,10 +219,12 @@ class Daemon:
                 job.state, job.started_utc, self.current = "running", utc_now(), job
                 self._save_jobs()
             self.log("info", f"job {job.id}: {job.kind} {job.procedure or job.run_dir}")
+            # plain progress lines once a minute on the daemon's console; `status` reads it too
+            self.progress = Progress(self.log.console, tty=False, interval_s=60.0)
             opts = RunOptions(suspenders=self.base_options.suspenders, states=self.states,
                               rig_opener=self.base_options.rig_opener, on_engine=self._set_engine,
                               max_pause_s=self.base_options.max_pause_s,
-                              sample_poll_s=self.base_options.sample_poll_s)
+                              sample_poll_s=self.base_options.sample_poll_s, progress=self.progress)
             try:
                 if job.kind == "run":
                     proc = load_procedure(job.procedure, job.params or {}, self.cfg.limits)
@@ -312,14 +317,35 @@ def cmd_submit(args: argparse.Namespace) -> int:
                                                  "params": params}))
 
 
+def watch_line(reply: dict[str, Any]) -> str:
+    """One plain line of a status reply for ``status --watch``: UTC, state, progress, suspenders."""
+    parts = [time.strftime("%H:%M:%SZ", time.gmtime()), str(reply.get("state"))]
+    job = reply.get("job")
+    if job:
+        parts.append(f"job {job.get('id')} {Path(str(job.get('procedure') or job.get('run_dir') or '')).name}")
+    if reply.get("progress"):
+        parts.append(str(reply["progress"]))
+    if reply.get("suspenders"):
+        parts.append("suspended: " + "; ".join(f"{k}: {v}" for k, v in reply["suspenders"].items()))
+    if reply.get("queued"):
+        parts.append(f"{reply['queued']} queued")
+    return " | ".join(parts)
+
+
 @_run_client
 def cmd_status(args: argparse.Namespace) -> int:
-    while True:
-        code = _print_reply(_client(args, "status"))
-        if not args.watch or code:
-            return code
-        print("--", flush=True)
-        time.sleep(args.interval)
+    """Print the daemon's status; with ``--watch`` one plain line per interval until Ctrl-C."""
+    if not args.watch:
+        return _print_reply(_client(args, "status"))
+    try:
+        while True:
+            reply = _client(args, "status")
+            if not reply.get("ok"):
+                return _print_reply(reply)
+            print(watch_line(reply), flush=True)
+            time.sleep(args.interval)
+    except KeyboardInterrupt:
+        return 0
 
 
 @_run_client

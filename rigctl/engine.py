@@ -27,6 +27,7 @@ import numpy as np
 
 from .devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
 from .procedure import Step
+from .progress import CounterGaps, NullProgress, Progress
 from .recorder import Recorder, Segment
 from .states import StateMachine
 from .suspenders import Observation, SuspenderSet
@@ -104,8 +105,10 @@ class Engine:
                  sample_poll_s: float = 0.5, log: Callable[..., None] | None = None,
                  suspenders: SuspenderSet | None = None, states: StateMachine | None = None,
                  pause_poll_s: float = 0.25, max_pause_s: float | None = None,
-                 open_interlocks: bool = False) -> None:
+                 open_interlocks: bool = False, progress: Progress | None = None) -> None:
         self.rig, self.rec = rig, recorder
+        self.progress = progress if progress is not None else NullProgress()
+        self.gaps = CounterGaps()  # dropped IMU samples (counter gaps) for the progress display
         self.settle_poll_s, self.sample_poll_s = settle_poll_s, sample_poll_s
         self.pause_poll_s, self.max_pause_s = pause_poll_s, max_pause_s
         self.open_interlocks = open_interlocks
@@ -146,6 +149,7 @@ class Engine:
             if self._track is not None and len(block):
                 self._track_block(self.rec.n_imu, block.time)
             self.rec.append_imu(block)
+            self.gaps.add(block.counter)
         except LinkLost as exc:
             obs.imu_error = str(exc)
         try:
@@ -160,6 +164,7 @@ class Engine:
         except LinkLost as exc:
             obs.table_error = f"table link lost: {exc}"
             state = self.last_state
+        self.progress.update(obs.t, state, self.rec.n_imu, self.gaps.dropped)
         if self.abort_requested:
             raise Interrupted(self.abort_requested)
         tripped = self.suspenders.check(obs)
@@ -306,12 +311,14 @@ class Engine:
         n = 0
         while n < len(motion):
             step = motion[n]
-            self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}")
+            self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
+            self.progress.step_started(step)
             try:
                 seg = self.execute(step)
             except Suspend as sus:
                 self.suspend(step, sus)
                 continue
+            self.progress.step_finished(step, seg)
             segments.append(seg)
             if on_step:
                 on_step(step, seg)

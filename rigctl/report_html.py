@@ -101,26 +101,40 @@ _UNIT_RULES = ((re.compile(r"_m_s2(?=_|$)"), "_mg", 1000.0 / G0),
                (re.compile(r"_s2_per_m$"), "_ug_per_g2", G0 * 1e6))
 
 
-def field_units(name: str) -> tuple[str, float]:
-    """(display name, factor) converting a parameter from SI to field units."""
+def field_units(name: str) -> tuple[str, float, float]:
+    """(display name, factor, offset): display = (value - offset) * factor.
+
+    The same conversion as ``rigctl calibrate`` prints (:func:`rigctl.calibrate_cmd.field_unit`:
+    mg, deg/h, ug/g^2, scale errors in ppm, misalignments in urad, ...); a minimal fallback
+    when that module is unavailable.
+    """
+    try:
+        from .calibrate_cmd import field_unit
+    except ImportError:  # pragma: no cover - the calibration command is part of rigctl
+        field_unit = None
+    if field_unit is not None:
+        disp, fac, off = field_unit(name)
+        return disp, float(fac), float(off)
     for rx, rep, fac in _UNIT_RULES:
         if rx.search(name):
-            return rx.sub(rep, name, count=1), fac
-    return name, 1.0
+            return rx.sub(rep, name, count=1), fac, 0.0
+    return name, 1.0, 0.0
+
+
+def _conv(v: Any, f: float, off: float) -> float | None:
+    return None if v is None else (v - off) * f
 
 
 def param_rows(result: dict[str, Any]) -> list[list[Any]]:
     rows = []
     for p in result.get("parameters") or []:
-        name, f = field_units(p["name"])
-        v = p.get("value")
+        name, f, off = field_units(p["name"])
+        v, sd = p.get("value"), p.get("sigma")
         k = None
-        if v is not None and p.get("sigma") and p.get("ci95_high") is not None:
-            k = (p["ci95_high"] - v) / p["sigma"] if p["sigma"] else None
-        rows.append([name, None if v is None else v * f,
-                     None if p.get("sigma") is None else p["sigma"] * abs(f),
-                     None if p.get("ci95_low") is None else p["ci95_low"] * f,
-                     None if p.get("ci95_high") is None else p["ci95_high"] * f, k])
+        if v is not None and sd and p.get("ci95_high") is not None:
+            k = (p["ci95_high"] - v) / sd
+        rows.append([name, _conv(v, f, off), None if sd is None else sd * abs(f),
+                     _conv(p.get("ci95_low"), f, off), _conv(p.get("ci95_high"), f, off), k])
     return rows
 
 
@@ -217,14 +231,49 @@ def s_table(d: RunData, plots: dict[str, Path]) -> str:
     return "\n".join(out)
 
 
+def _fit_results(payload: Any) -> list[tuple[str, dict[str, Any]]]:
+    """(name, CalibrationResult dict) pairs of a calibration payload (any nesting)."""
+    out: list[tuple[str, dict[str, Any]]] = []
+    if isinstance(payload, dict):
+        for k, v in payload.items():
+            if isinstance(v, dict) and isinstance(v.get("parameters"), list) and "method" in v:
+                out.append((str(k), v))
+            elif isinstance(v, dict) and k != "closed_loop":
+                out += _fit_results(v)
+    return out
+
+
+def _cal_status(payload: dict[str, Any]) -> str:
+    bits = []
+    if "trustworthy" in payload:
+        ok = bool(payload["trustworthy"])
+        bits.append(f"<p>Calibration status: <span class=\"{'ok' if ok else 'warn'}\">"
+                    f"{esc(payload.get('status', 'ok' if ok else 'NOT TRUSTWORTHY'))}</span>"
+                    f"{'' if ok else ' (NOT TRUSTWORTHY)'}</p>")
+    for key in ("mode", "noise_model"):
+        if payload.get(key):
+            bits.append(f"<p class=\"muted\">{esc(key.replace('_', ' '))}: {esc(payload[key])}</p>")
+    bits += [f"<p class=\"warn\">{esc(r)}</p>" for r in payload.get("reasons") or []]
+    return "\n".join(bits)
+
+
 def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
     r = d.results.get("calibration")
-    sess = find_session(r.get("json")) if r else None
-    if sess is None:
+    if not r:
         return not_run("no /results/calibration in the recording",
                        "Run `rigctl calibrate RECORDING` (or a procedure with a calibration solve step).")
+    payload = r.get("json") or {}
+    sess = find_session(payload)
+    out = [_cal_status(payload)]
+    if sess is None:  # e.g. an orientation-free (multi-position) calibration: no closed loop
+        fits = _fit_results(payload)
+        if not fits:
+            return out[0] + not_run("/results/calibration holds no parameter table",
+                                    "Re-run `rigctl calibrate RECORDING`.")
+        for name, res in fits:
+            out += [f"<h3>{esc(name)}</h3>", fit_line(res), table(PARAM_HEAD, param_rows(res))]
+        return "\n".join(out)
     cl = sess.get("closed_loop") or {}
-    out = []
     fin = cl.get("final")
     if fin:
         out += ["<h3>Parameters (closed-loop model, 1-sigma and 95 % intervals)</h3>", fit_line(fin),
@@ -237,9 +286,9 @@ def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
                 "Residuals per rate before/after (gyro deg/h, accel mg) against rate (deg/s)")]
     for key, title in (("accel24", "24-position accelerometer fit (A3)"),
                        ("gyro_bias_static", "Gyro biases from the static positions"),
-                       ("gyro_rate", "Rate test (A4)"), ("declared", "")):
+                       ("gyro_rate", "Rate test (A4)")):
         res = sess.get(key)
-        if key == "declared" or not res:
+        if not res:
             continue
         out.append(f"<details><summary>{esc(title)}</summary>{fit_line(res)}"
                    f"{table(PARAM_HEAD, param_rows(res))}</details>")
@@ -251,6 +300,10 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     sess = find_session(r.get("json")) if r else None
     cl = (sess or {}).get("closed_loop")
     if not cl:
+        if r:
+            return not_run("the calibration in /results/calibration has no closed loop (an "
+                           "orientation-free calibration has none)",
+                           "Record on a turntable (procedures/full-calibration.yaml) for the closed loop.")
         return not_run("the closed loop needs /results/calibration", "Run `rigctl calibrate RECORDING`.")
     out = ["<h3>Effects found</h3>"]
     effects = cl.get("effects") or []
@@ -258,12 +311,12 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
         rows = []
         for e in effects:
             for p in e.get("parameters") or [{}]:
-                name, f = field_units(p.get("name", ""))
+                name, f, off = field_units(p.get("name", ""))
                 ci = p.get("ci95") or [None, None]
                 rows.append([e["name"], e.get("attribution"), e.get("p_adj"), e.get("dBIC"), name,
-                             None if p.get("value") is None else p["value"] * f,
+                             _conv(p.get("value"), f, off),
                              None if p.get("sigma") is None else p["sigma"] * abs(f),
-                             None if ci[0] is None else ci[0] * f, None if ci[1] is None else ci[1] * f])
+                             _conv(ci[0], f, off), _conv(ci[1], f, off)])
         out.append(table(["effect", "attribution", "p (adjusted)", "dBIC", "parameter", "value",
                           "1-sigma", "95 % low", "95 % high"], rows, num_from=2))
     else:

@@ -16,11 +16,15 @@ class RunLog:
         self.console = console if console is not None else sys.stdout
         self.t0 = time.monotonic()
 
-    def __call__(self, kind: str, message: str, **fields: Any) -> None:
+    def __call__(self, kind: str, message: str, echo: bool = True, **fields: Any) -> None:
+        """Append one JSON line; also print it on the console unless ``echo`` is False (lines
+        the progress display already shows)."""
         if self._file:
             rec = {"utc": utc_now(), "kind": kind, "message": message, **fields}
             self._file.write(json.dumps(rec) + "\n")
             self._file.flush()
+        if not echo:
+            return
         prefix = {"error": "error: ", "warning": "warning: ", "prompt": ">>> "}.get(kind, "")
         print(f"{prefix}{message}", file=self.console, flush=True)
 

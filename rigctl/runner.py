@@ -10,6 +10,7 @@ import json
 import math
 import re
 import signal
+import sys
 import time
 import traceback
 from collections.abc import Callable
@@ -26,6 +27,7 @@ from .config import RigConfig, load_config
 from .engine import Engine, Interrupted, Rig, RunError
 from .estimate import estimate
 from .procedure import Procedure, Step, load_procedure
+from .progress import Progress, make_progress
 from .recorder import Recorder, Segment, library_versions
 from .rig import open_rig
 from .runlog import RunLog
@@ -58,6 +60,7 @@ class RunOptions:
     on_engine: Callable[[Engine | None], None] | None = None  # called with the engine, then None
     max_pause_s: float | None = None
     sample_poll_s: float = 0.5
+    progress: Progress | None = None  # default: a bar on a terminal, plain lines otherwise
 
 
 def make_run_dir(parent: Path, procedure_name: str) -> Path:
@@ -128,7 +131,7 @@ def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Chec
 
 def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
            make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-           install_signals: bool) -> RunResult:
+           install_signals: bool, progress: Progress) -> RunResult:
     """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe."""
     recording = run_dir / RECORDING
     log = _DiskSafeLog(log)  # type: ignore[assignment]
@@ -142,7 +145,9 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
         suspenders = SuspenderSet(opts.suspenders, run_dir)
         engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
                         sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
-                        open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)))
+                        open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
+                        progress=progress)
+        progress.start([e for e in estimate(proc.steps, cfg) if e.step.index >= start], proc.name)
 
         def on_transition(old: str, new: str, reason: str) -> None:
             log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
@@ -186,6 +191,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                 traceback=traceback.format_exc())
         finally:
             engine.safe_state()
+            progress.finish(status)
             for sig, h in old_handlers.items():
                 signal.signal(sig, h)
             if states.state in ("running", "aborting"):
@@ -222,11 +228,12 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
     opts = options or RunOptions()
     run_dir = make_run_dir(out_parent, proc.name)
     (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
-    log = RunLog(run_dir / RUN_LOG, console)
+    progress = opts.progress or make_progress(console if console is not None else sys.stdout)
+    log = RunLog(run_dir / RUN_LOG, progress.console)
     plan = estimate(proc.steps, cfg)
     total = sum(e.total_s for e in plan)
     log("info", f"procedure {proc.name}: {sum(s.is_motion for s in proc.steps)} steps, "
-                f"about {format_duration(total)} of rig time", procedure=proc.path)
+                f"about {format_duration(total)} of rig time", procedure=proc.path, echo=False)
     ckpt = _checkpoint_for(proc, dict(overrides if overrides is not None else proc.parameters))
     versions = json.dumps(library_versions())  # before the rig (and its clock) starts: it is slow
 
@@ -244,7 +251,7 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
                        min_free_bytes=opts.suspenders.min_free_bytes // 4)
         return rec, 0
 
-    return _drive(proc, cfg, run_dir, log, ckpt, make_recorder, opts, install_signals)
+    return _drive(proc, cfg, run_dir, log, ckpt, make_recorder, opts, install_signals, progress)
 
 
 def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
@@ -284,7 +291,8 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     # IMU rows of the step in flight start where the last complete step's samples ended
     in_flight_from = max([int(ck.n_imu), *(int(x) for x in seg["last_sample"][done])])
     todo = [s for s in proc.steps if s.is_motion and s.index > last_done]
-    log = RunLog(d / RUN_LOG, console)
+    progress = opts.progress or make_progress(console if console is not None else sys.stdout)
+    log = RunLog(d / RUN_LOG, progress.console)
     ck.sessions += 1
     log("info", f"resuming {d.name} (session {ck.sessions}): {len(todo)} steps left after step "
                 f"{last_done + 1}; recording {recording}")
@@ -319,4 +327,4 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
         return rec, start
 
-    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals)
+    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress)

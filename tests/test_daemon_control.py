@@ -5,9 +5,12 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import shutil
+import signal
 import socket
 import stat
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -20,7 +23,7 @@ from rigctl.daemon import Daemon
 from rigctl.runner import RunOptions
 from rigctl.suspenders import SuspenderSettings
 
-from helpers import derived_config
+from helpers import derived_config, rigctl_cmd
 
 
 @pytest.fixture
@@ -166,6 +169,19 @@ def test_submit_pause_resume_complete_then_abort(daemon, tmp_path):
     assert not reply["ok"] and f"{bad}:4:" in reply["error"] and "limit" in reply["error"]
     assert control.request(sock, "submit", {"procedure": str(proc)})["ok"]
     wait_state(sock, ("running",))
+    # `status --watch` as a user runs it: one plain progress line per interval until Ctrl-C
+    watch = subprocess.Popen([*rigctl_cmd(), "status", "--watch", "--interval", "0.2", "--socket", str(sock)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = [watch.stdout.readline() for _ in range(3)]  # blocks until the client is up and polling
+    watch.send_signal(signal.SIGINT)
+    out, err = watch.communicate(timeout=20)
+    assert watch.returncode == 0, err
+    out = "".join(first) + out
+    lines = out.splitlines()
+    assert len(lines) >= 3, out
+    steps = re.compile(r"^\d\d:\d\d:\d\dZ \| running \| job 1 job\.yaml \| \[[1-3]/3\] .* \| left ~")
+    assert all(steps.match(ln) for ln in lines), out
+    assert "\r" not in out and "\x1b" not in out  # plain lines, no bar
     assert control.request(sock, "pause")["ok"]
     st = wait_state(sock, ("paused",))
     assert st["suspenders"] == {"operator": "paused by operator (rigctl pause)"}

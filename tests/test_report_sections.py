@@ -1,0 +1,290 @@
+"""Report sections: what each shows, "Not run" when its results are absent, the numbers and
+units it prints, the quick Allan curve, the sync clock residual, the hook and missing
+matplotlib (issue 9). The Chromium rendering is in tests/test_report_html.py."""
+from __future__ import annotations
+
+import html.parser
+import json
+import math
+import shutil
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from helpers import run_rigctl
+
+pytest.importorskip("matplotlib")
+
+from rigctl import report, report_html  # noqa: E402
+from rigctl.recorder import write_results  # noqa: E402
+
+G0 = 9.80665
+
+
+class Page(html.parser.HTMLParser):
+    """Per section: img ids -> src, "Not run" texts, table rows (cell texts)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.sec: str | None = None
+        self.imgs: dict[str, dict[str, str]] = {}
+        self.not_run: dict[str, str] = {}
+        self.rows: dict[str, list[list[str]]] = {}
+        self.external: list[str] = []
+        self._cell: list[str] | None = None
+        self._row: list[str] | None = None
+        self._p_not_run = False
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        for key in ("src", "href"):
+            v = a.get(key) or ""
+            if v and not v.startswith(("data:", "#")):
+                self.external.append(v)
+        if tag in ("link", "script", "iframe", "object"):
+            self.external.append(tag)
+        if tag == "section":
+            self.sec = a.get("id")
+            self.imgs[self.sec] = {}
+            self.rows[self.sec] = []
+        elif tag == "img" and self.sec:
+            self.imgs[self.sec][a.get("id", "")] = a.get("src", "")
+        elif tag == "tr":
+            self._row = []
+        elif tag in ("td", "th"):
+            self._cell = []
+        elif tag == "p" and "not-run" in (a.get("class") or ""):
+            self._p_not_run = True
+            self.not_run[self.sec] = ""
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._row is not None and self._cell is not None:
+            self._row.append("".join(self._cell).strip())
+            self._cell = None
+        elif tag == "tr" and self._row is not None and self.sec:
+            self.rows[self.sec].append(self._row)
+            self._row = None
+        elif tag == "p":
+            self._p_not_run = False
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+        if self._p_not_run:
+            self.not_run[self.sec] += data
+
+
+def _check_page(page: Page) -> None:
+    assert not page.external, f"external resources: {page.external[:3]}"
+    assert [s for s, _ in report_html.SECTIONS] == list(page.imgs)
+    for sec, imgs in page.imgs.items():
+        for pid, src in imgs.items():
+            assert pid.startswith("plot-") and src.startswith("data:image/png;base64,"), (sec, pid)
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory) -> Path:
+    """A short emulated full calibration; its solve steps calibrate and write the report."""
+    out = tmp_path_factory.mktemp("runs")
+    r = run_rigctl("run", "procedures/full-calibration.yaml", "-p", "warmup=10 s", "-p", "sample=2 s",
+                   "-p", "revolutions=1", "--out", str(out), timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    return next(out.glob("*-full-calibration"))
+
+
+def test_calibration_sections_show_the_fit_in_field_units(calibrated: Path) -> None:
+    # written by the procedure's last solve step (report), after the calibration's
+    page = Page((calibrated / "report.html").read_text())
+    _check_page(page)
+    with h5py.File(calibrated / "recording.h5", "r") as f:
+        payload = json.loads(f["results/calibration"].attrs["json"])
+        truth = json.loads(f["truth"].attrs["params_json"])
+        n_seg = int(sum(k in (b"orientation", b"rate") for k in f["segments/kind"][()]))
+    cl = report.find_session(payload)["closed_loop"]
+    if "calibration" not in page.not_run:
+        assert {"plot-cal_residuals_orientation", "plot-cal_residuals_rate"} <= set(page.imgs["calibration"])
+        assert "plot-cal_rms" in page.imgs["closed-loop"]
+        # residuals map one row per orientation / rate segment, six channels
+        assert len(cl["declared"]["residuals"]) == 6 * n_seg
+        # parameters: SI names turned into field units, value and interval scaled exactly
+        rows: dict[str, list[str]] = {}
+        for row in page.rows["calibration"]:  # the first table: the closed-loop model
+            if row:
+                rows.setdefault(row[0], row)
+        fin = {p["name"]: p for p in cl["final"]["parameters"]}
+        for i, ax in enumerate("xyz"):
+            shown = rows[f"accel_bias_{ax}_mg"]
+            p = fin[f"accel_bias_{ax}_m_s2"]
+            assert float(shown[1]) == pytest.approx(p["value"] * 1000 / G0, rel=1e-4)
+            lo, hi = float(shown[3]), float(shown[4])
+            assert lo == pytest.approx(p["ci95_low"] * 1000 / G0, rel=1e-4)
+            # the emulator's true bias (mg) lies in the printed 95 % interval (seed 1)
+            assert lo <= truth["imu"]["accel_bias_m_s2"][i] * 1000 / G0 <= hi
+            g = rows[f"gyro_bias_{ax}_deg_h"]
+            assert float(g[1]) == pytest.approx(
+                fin[f"gyro_bias_{ax}_rad_s"]["value"] * 180 / math.pi * 3600, rel=1e-4)
+            # scale errors in ppm as `rigctl calibrate` prints them: (M_ii - 1) * 1e6
+            sc = rows[f"accel_scale_error_{ax}_ppm"]
+            m_ii = fin[f"accel_M_{ax}{ax}_ratio"]
+            assert float(sc[1]) == pytest.approx((m_ii["value"] - 1.0) * 1e6, rel=1e-4)
+            true_ppm = (truth["imu"]["accel_matrix"][i][i] - 1.0) * 1e6
+            assert float(sc[3]) <= true_ppm <= float(sc[4])
+        # the chain: one table row per explain entry (+ header)
+        cl_rows = page.rows["closed-loop"]
+        head = cl_rows.index(["round", "residual pattern", "candidate", "statistic", "decision"])
+        chain = [row for row in cl_rows[head + 1:] if len(row) == 5]
+        assert [row[2] for row in chain] == [x["candidate"] for x in cl["explain"]]
+        assert [row[4] for row in chain] == [x["decision"] for x in cl["explain"]]
+        ba = {row[0]: row for row in page.rows["closed-loop"] if row}
+        for t in cl["rms_table"]:
+            if t["channel"] != "all":
+                u = t["unit"]
+                assert float(ba[t["channel"]][3]) == pytest.approx(t[f"rms_before_{u}"], rel=1e-4)
+    else:
+        assert "/results/calibration" in page.not_run["calibration"]
+    # no Allan or sync in a full calibration: those sections say so, with what to run
+    assert "rigctl allan" in page.not_run["allan"] and not page.imgs["allan"]
+    assert "rigctl sync" in page.not_run["sync"] and not page.imgs["sync"]
+    assert "plot-table_timeline" in page.imgs["table"]
+    prov = {row[0]: row[1] for row in page.rows["provenance"] if len(row) == 2}
+    assert prov["procedure_name"] == "full-calibration" and prov["run status"] == "complete"
+    assert json.loads(prov["parameters_json"])["warmup"] == "10 s"
+    assert "numpy" in prov and "h5py" in prov  # versions table
+
+
+RATE = 100.0
+
+
+@pytest.fixture(scope="module")
+def tap_recording(tmp_path_factory) -> Path:
+    """A tap session (emulated), written as a minimal recording, synchronised by rigctl sync."""
+    from rigctl.sim import taps
+
+    sched = taps.ScheduleParams((20.0, 200.0), 10, (1.0, 3.0))
+    params = taps.TapParams(response="second_order", jitter_s=2e-4, missed_count=1, spurious_spikes=1)
+    s = taps.simulate_taps(RATE, 240.0, sched, params, taps.ClockParams(offset_s=0.2, drift_ppm=60.0),
+                           random_dropouts=1, dropout_length=32, seed=5)
+    path = tmp_path_factory.mktemp("taps") / "taps.h5"
+    n = s.counter.size
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"format": "rigctl-recording", "schema_version": 1, "rigctl_version": "0.1.0"})
+        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
+        imu = f.create_group("imu")
+        imu.attrs["sample_rate_hz"] = RATE
+        imu.create_dataset("time", data=s.counter.astype(float) / RATE).attrs["units"] = "s"
+        imu.create_dataset("counter", data=s.counter).attrs["units"] = "1"
+        imu.create_dataset("specific_force", data=s.specific_force).attrs["units"] = "m/s^2"
+        gyro = np.random.default_rng(5).normal(0.0, 1e-3, (n, 3))  # white gyro noise
+        imu.create_dataset("angular_rate", data=gyro).attrs["units"] = "rad/s"
+        f.create_dataset("pulses/time", data=s.pulse_time).attrs["units"] = "s"
+    r = run_rigctl("sync", str(path))
+    assert r.returncode == 0, r.stderr
+    return path
+
+
+def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp_path: Path) -> None:
+    rec = tmp_path / "recording.h5"
+    shutil.copy(tap_recording, rec)
+    write_results(rec, "allan", {"axes": {"gz": {"sensor": "gyro"}}})  # summary only, no curves
+    out = report.build_report(rec, tmp_path / "rep")
+    page = Page(out.read_text())
+    _check_page(page)
+    assert "plot-allan" in page.imgs["allan"] and "allan" not in page.not_run
+    assert "quick" in out.read_text()
+    data = report.load_run(rec)
+    from rigctl.report_allan import allan_curves
+    from rigctl.solvers import allan as A
+
+    cv = allan_curves(data)["gz"]
+    assert cv["quick"] and cv["unit"] == "deg/h"
+    with h5py.File(rec, "r") as f:
+        w = f["imu/angular_rate"][:, 2]
+        fs = float(f["imu"].attrs["sample_rate_hz"])
+    # the smallest tau against the exact overlapping ADEV of the raw gyro z, in deg/h
+    ref = A.oadev(w, 1.0 / fs, [int(round(cv["tau_s"][0] * fs))])
+    assert cv["adev"][0] == pytest.approx(float(ref.dev[0]) * 180 / math.pi * 3600, rel=1e-9)
+    assert np.all(cv["lo95"] <= cv["adev"]) and np.all(cv["adev"] <= cv["hi95"])
+
+
+def test_sync_plots_and_the_clock_residual(tap_recording: Path, tmp_path: Path) -> None:
+    from rigctl import sync_cmd
+
+    rec = tmp_path / "taps.h5"
+    shutil.copy(tap_recording, rec)
+    out = report.build_report(rec, tmp_path)
+    page = Page(out.read_text())
+    _check_page(page)
+    assert {"plot-sync_hist", "plot-sync_residual"} <= set(page.imgs["sync"])
+    for sec in ("table", "calibration", "closed-loop", "allan"):
+        assert sec in page.not_run, sec
+    # the report's clock at each tap equals the sync pipeline's own clock model
+    data = report.load_run(rec)
+    arr = data.results["sync"]["arrays"]
+    with h5py.File(rec, "r") as f:
+        counter, sf = f["imu/counter"][()], f["imu/specific_force"][:, 2]
+        pulses = f["pulses/time"][()]
+    res = sync_cmd.synchronise(counter, sf, RATE, pulses)
+    m = res.match
+    want = res.clock.time_of_counter(res.tap_time_s[m.tap_index] * RATE)
+    assert np.max(np.abs(arr["tap_reference_time"] - want)) < 1e-9
+    err_ms = (arr["pulse_time"] - arr["tap_reference_time"]) * 1e3
+    inl = arr["inlier"].astype(bool)
+    assert np.std(err_ms[inl], ddof=1) == pytest.approx(
+        data.results["sync"]["json"]["residual_std_ms"], rel=0.05)
+    assert data.imu["dropped"] == 32 and data.imu["gaps"] == 1
+    summary = {row[0]: row[1] for row in page.rows["summary"] if len(row) == 2}
+    assert summary["dropped samples (counter gaps)"] == "32 in 1 gaps"
+
+
+def test_orientation_free_calibration_has_tables_but_no_closed_loop(tap_recording: Path,
+                                                                   tmp_path: Path) -> None:
+    from rigctl.solvers.calibration_result import fit_linear
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(12, 2))
+    fit = fit_linear(x, x @ [0.01, -0.02] + 1e-3 * rng.normal(size=12), np.full(12, 1e-3),
+                     ["accel_bias_x_m_s2", "gyro_bias_z_rad_s"], method="multipos_accel")
+    rec = tmp_path / "taps.h5"
+    shutil.copy(tap_recording, rec)
+    write_results(rec, "calibration", {"mode": "orientation_free", "trustworthy": False,
+                                       "status": "NOT TRUSTWORTHY", "reasons": ["6 poses: too few"],
+                                       "results": {"multipos_accel": fit.to_dict()}})
+    page = Page(report.build_report(rec, tmp_path).read_text())
+    assert "calibration" not in page.not_run and "closed-loop" in page.not_run
+    rows = {row[0]: row for row in page.rows["calibration"] if row}
+    assert float(rows["accel_bias_x_mg"][1]) == pytest.approx(fit.values[0] * 1000 / G0, rel=1e-4)
+    assert float(rows["gyro_bias_z_deg_h"][1]) == pytest.approx(
+        fit.values[1] * 180 / math.pi * 3600, rel=1e-4)
+    assert "NOT TRUSTWORTHY" in (tmp_path / "report.html").read_text()
+
+
+def test_solve_hook_writes_beside_the_recording(tap_recording: Path, tmp_path: Path) -> None:
+    rec = tmp_path / "recording.h5"
+    shutil.copy(tap_recording, rec)
+    got: list[tuple[str, str]] = []
+    report.solve_report(rec, lambda kind, msg, **kw: got.append((kind, msg)))
+    assert got == [("info", f"report: {tmp_path / 'report.html'}")]
+    assert {p.name for p in tmp_path.glob("*.png")} == {"sync_hist.png", "sync_residual.png"}
+
+
+def test_without_matplotlib_the_command_says_what_to_install(tap_recording: Path, tmp_path: Path,
+                                                            monkeypatch, capsys) -> None:
+    from rigctl.cli import main
+
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+        assert main(["report", str(tap_recording), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'rigctl[report]'" in err and "Traceback" not in err
+    assert not (tmp_path / "report.html").exists()
+    assert main(["report", str(tmp_path / "missing")]) == 2
+    assert "no such run directory or recording" in capsys.readouterr().err
+    bad = tmp_path / "bad.h5"
+    with h5py.File(bad, "w") as f:
+        f.attrs["format"] = "something-else"
+    assert main(["report", str(bad)]) == 2
+    assert "not a rigctl recording" in capsys.readouterr().err
