@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.progress import WorkProgress
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
@@ -151,9 +152,11 @@ def _sample_rate(f, path: str) -> float:
 
 
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
-            sample_range: tuple[int, int] | None = None) -> dict[str, Any]:
+            sample_range: tuple[int, int] | None = None,
+            progress_stream: Any = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
-    last) if given, else all); raises UsageError on invalid input."""
+    last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
+    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise)."""
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
@@ -172,6 +175,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             ms = A.snap_fast(ms)
             ms = ms[ms <= A.max_factor(n + 1, "oadev")]
         streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
+        shown = WorkProgress(f"allan {os.path.basename(path)}, {len(axes)} axes", n,
+                             stream=progress_stream, enabled=progress_stream is not None)
         for a0 in range(s0, s1, CHUNK_ROWS):
             a1 = min(s1, a0 + CHUNK_ROWS)
             blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
@@ -179,6 +184,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                 name, col, _ = AXES[a]
                 streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
             del blocks
+            shown.update(a1 - s0)
+        shown.finish()
     out = {"file": os.path.basename(path), "sample_rate_hz": fs, "n_samples": int(n),
            "first_sample": int(s0), "dropped_samples": int(gaps), "axes": {}}
     for a in axes:
@@ -408,7 +415,7 @@ def run(args: argparse.Namespace) -> int:
                 import matplotlib  # noqa: F401
             except ImportError:
                 raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
-        result = compute(args.recording, axes, taus, args.exact)
+        result = compute(args.recording, axes, taus, args.exact, progress_stream=sys.stderr)
     except UsageError as exc:
         return _fail(str(exc))
     try:

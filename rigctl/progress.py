@@ -108,17 +108,9 @@ class _Console:
         return False
 
 
-class Progress:
-    """Progress display for a plan of steps (see the module docstring).
-
-    Args:
-        stream: where to write (default ``sys.stdout``).
-        tty: force bar (True) or plain lines (False); default ``stream.isatty()``.
-        interval_s: wall seconds between plain periodic lines (non-terminal).
-        redraw_hz: maximum bar redraws per wall second (terminal).
-        wall: wall clock, s (monotonic; injectable for tests).
-        width: line width on a terminal (default: the terminal's width, else 100).
-    """
+class _Display:
+    """A status line on ``stream``: redrawn in place with ``\\r`` on a terminal (at most
+    ``redraw_hz`` times per wall second), else written as plain lines (see subclasses)."""
 
     def __init__(self, stream: IO[str] | None = None, *, tty: bool | None = None,
                  interval_s: float = 10.0, redraw_hz: float = 5.0,
@@ -132,6 +124,72 @@ class Progress:
         self.min_redraw_s = 1.0 / redraw_hz if redraw_hz > 0 else 0.0
         self.wall = wall
         self._width = width
+        self._last_draw = -math.inf
+        self._last_line = -math.inf
+        self._bar_visible = False
+
+    def bar_text(self) -> str:  # pragma: no cover - overridden
+        return ""
+
+    def message(self, text: str) -> None:
+        """Write a log line without tearing the bar (the bar is redrawn beneath it)."""
+        had_bar = self._bar_visible
+        self._clear()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+        if had_bar:
+            self._draw(force=True)
+
+    def _term_width(self) -> int:
+        if self._width:
+            return self._width
+        try:
+            return os.get_terminal_size(self.stream.fileno()).columns
+        except (OSError, AttributeError, ValueError):
+            return 100
+
+    def _draw(self, force: bool = False) -> None:
+        w = self.wall()
+        if not force and w - self._last_draw < self.min_redraw_s:
+            return
+        width = max(20, self._term_width() - 1)
+        text = self.bar_text()[:width]
+        self.stream.write("\r" + text + "\x1b[K")
+        self.stream.flush()
+        self._bar_visible = True
+        self._last_draw = w
+
+    def _clear(self) -> None:
+        if self._bar_visible:
+            self.stream.write("\r\x1b[K")
+            self._bar_visible = False
+
+    def _line(self, text: str) -> None:
+        self._clear()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+        self._last_line = self.wall()
+
+
+def _bar(fraction: float) -> str:
+    filled = int(round(min(1.0, max(0.0, fraction)) * BAR_WIDTH))
+    return "[" + "#" * filled + "-" * (BAR_WIDTH - filled) + "]"
+
+
+class Progress(_Display):
+    """Progress display for a plan of steps (see the module docstring).
+
+    Args:
+        stream: where to write (default ``sys.stdout``).
+        tty: force bar (True) or plain lines (False); default ``stream.isatty()``.
+        interval_s: wall seconds between plain periodic lines (non-terminal).
+        redraw_hz: maximum bar redraws per wall second (terminal).
+        wall: wall clock, s (monotonic; injectable for tests).
+        width: line width on a terminal (default: the terminal's width, else 100).
+    """
+
+    def __init__(self, stream: IO[str] | None = None, **kw: Any) -> None:
+        super().__init__(stream, **kw)
         self.estimates: dict[int, float] = {}
         self.order: list[int] = []
         self.finished: set[int] = set()
@@ -146,9 +204,6 @@ class Progress:
         self.dropped: int = 0
         self.rate_hz: float | None = None
         self._rate_ref: tuple[float, int] | None = None
-        self._last_draw = -math.inf
-        self._last_line = -math.inf
-        self._bar_visible = False
         self.console = _Console(self)
 
     # -- engine API ----------------------------------------------------------------------------
@@ -231,11 +286,8 @@ class Progress:
 
     def message(self, text: str) -> None:
         """Write a log line without tearing the bar (the bar is redrawn beneath it)."""
-        had_bar = self._bar_visible
-        self._clear()
-        self.stream.write(text + "\n")
-        self.stream.flush()
-        if had_bar or (self.tty and self.step is not None):
+        super().message(text)
+        if self.tty and self.step is not None and not self._bar_visible:
             self._draw(force=True)
 
     # -- text --------------------------------------------------------------------------------
@@ -269,8 +321,7 @@ class Progress:
 
     def bar_text(self) -> str:
         f = self.fraction()
-        filled = int(round(f * BAR_WIDTH))
-        bar = "#" * filled + "-" * (BAR_WIDTH - filled)
+        bar = _bar(f)[1:-1]
         head = f"{self._position()} {_describe(self.step) if self.step is not None else ''}".rstrip()
         parts = [head, f"[{bar}] {100 * f:3.0f} %", self._remaining_text(),
                  format_table_state(self.state),
@@ -313,35 +364,55 @@ class Progress:
             self.rate_hz = r if self.rate_hz is None else 0.5 * (self.rate_hz + r)
             self._rate_ref = (self.now_s, self.n_imu)
 
-    def _term_width(self) -> int:
-        if self._width:
-            return self._width
-        try:
-            return os.get_terminal_size(self.stream.fileno()).columns
-        except (OSError, AttributeError, ValueError):
-            return 100
 
-    def _draw(self, force: bool = False) -> None:
-        w = self.wall()
-        if not force and w - self._last_draw < self.min_redraw_s:
+class WorkProgress(_Display):
+    """Progress of one long analysis (``rigctl allan`` on a night's recording): ``done`` of
+    ``total`` units of work, the rate and the time left (wall), as a bar on a terminal or a plain
+    line every ``interval_s`` otherwise. ``enabled=False`` shows nothing.
+
+    Time left, s = (total - done) / rate, rate = done / wall time since :meth:`start`."""
+
+    def __init__(self, label: str, total: float, unit: str = "samples",
+                 stream: IO[str] | None = None, enabled: bool = True, **kw: Any) -> None:
+        super().__init__(stream if enabled else _Sink(), **kw)
+        self.label, self.total, self.unit, self.enabled = label, float(total), unit, enabled
+        self.done = 0.0
+        self.t0 = self.wall()
+
+    def _rate(self) -> float:
+        dt = self.wall() - self.t0
+        return self.done / dt if dt > 0 else math.nan
+
+    def status_text(self) -> str:
+        rate = self._rate()
+        left = (self.total - self.done) / rate if rate > 0 else math.nan
+        pct = 100.0 * self.done / self.total if self.total else 100.0
+        text = f"{self.label}: {self.done:,.0f}/{self.total:,.0f} {self.unit} ({pct:.0f} %)"
+        if math.isfinite(rate):
+            text += f", {rate:,.3g} {self.unit}/s"
+        if math.isfinite(left):
+            text += f", left ~{format_duration(left)}"
+        return text
+
+    def bar_text(self) -> str:
+        return f"{_bar(self.done / self.total if self.total else 1.0)} {self.status_text()}"
+
+    def update(self, done: float) -> None:
+        """``done`` units of work finished so far."""
+        if not self.enabled:
             return
-        width = max(20, self._term_width() - 1)
-        text = self.bar_text()[:width]
-        self.stream.write("\r" + text + "\x1b[K")
-        self.stream.flush()
-        self._bar_visible = True
-        self._last_draw = w
+        self.done = float(done)
+        if self.tty:
+            self._draw()
+        elif self.wall() - self._last_line >= self.interval_s:
+            self._line(self.status_text())
 
-    def _clear(self) -> None:
-        if self._bar_visible:
-            self.stream.write("\r\x1b[K")
-            self._bar_visible = False
-
-    def _line(self, text: str) -> None:
-        self._clear()
-        self.stream.write(text + "\n")
-        self.stream.flush()
-        self._last_line = self.wall()
+    def finish(self, text: str = "") -> None:
+        """Remove the bar; write ``text`` (or the final status) as a plain line."""
+        if not self.enabled:
+            return
+        elapsed = self.wall() - self.t0
+        self._line(text or f"{self.label}: {self.done:,.0f} {self.unit} in {format_duration(elapsed)}")
 
 
 class NullProgress(Progress):

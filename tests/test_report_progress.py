@@ -11,7 +11,7 @@ from rigctl.config import load_config, resolve_config_path
 from rigctl.devices import TableState
 from rigctl.estimate import estimate
 from rigctl.procedure import load_procedure
-from rigctl.progress import CounterGaps, NullProgress, Progress, make_progress
+from rigctl.progress import CounterGaps, NullProgress, Progress, WorkProgress, make_progress
 from helpers import ROOT
 
 
@@ -175,3 +175,29 @@ def test_counter_gaps_and_null_progress(plan) -> None:
     drive(q, plan, Wall())
     print("a log line", file=q.console)
     assert passthrough.getvalue() == "a log line\n"  # log lines still pass, no progress output
+
+
+def test_work_progress_bar_on_a_terminal_lines_otherwise() -> None:
+    wall = Wall()
+    tty = FakeTTY()
+    p = WorkProgress("allan x.h5, 6 axes", 1000, stream=tty, wall=wall)
+    for done in (100, 400, 700):
+        wall.t += 1.0
+        p.update(done)
+    shown = screen(tty.getvalue())
+    assert len(shown) == 1 and shown[0].startswith("[##############------] allan x.h5, 6 axes: 700/1,000")
+    assert "70 %" in shown[0] and "233 samples/s" in shown[0] and "left ~1.29 s" in shown[0]  # 700 in 3 s
+    p.finish()
+    assert screen(tty.getvalue())[-1] == "allan x.h5, 6 axes: 700 samples in 3 s"
+    plain = io.StringIO()
+    wall2 = Wall()
+    q = WorkProgress("fit", 100, unit="taus", stream=plain, wall=wall2, interval_s=10.0)
+    for done in range(0, 101, 10):
+        wall2.t += 3.0
+        q.update(done)
+    lines = plain.getvalue().splitlines()
+    assert "\r" not in plain.getvalue() and len(lines) == 3  # 11 calls over 30 s: at most one line per 10 s
+    assert lines[0].startswith("fit: 0/100 taus (0 %)")
+    silent = io.StringIO()
+    WorkProgress("off", 10, stream=silent, enabled=False).update(5)
+    assert silent.getvalue() == ""
