@@ -18,9 +18,17 @@ from .runner import EXIT_INVALID, run_procedure
 from .units import format_bytes, format_duration
 from .yamlio import InputError
 
-#: Modules that add their own sub-commands through ``register(subparsers)``.
-COMMAND_MODULES: tuple[str, ...] = ("rigctl.sync_cmd", "rigctl.allan_cmd", "rigctl.daemon", "rigctl.calibrate_cmd",
-                                    "rigctl.import_cmd", "rigctl.applycal_cmd", "rigctl.report_cmd", "rigctl.sim_cmd")
+#: Sub-command -> the module that adds it through ``register(subparsers)``. Only the module of
+#: the command being run is imported (the solvers pull in scipy, about 1 s, which a client verb
+#: such as ``rigctl status --watch`` need not pay); ``--help`` imports them all.
+COMMANDS: dict[str, str] = {
+    "sync": "rigctl.sync_cmd", "allan": "rigctl.allan_cmd", "calibrate": "rigctl.calibrate_cmd",
+    "import": "rigctl.import_cmd", "apply-cal": "rigctl.applycal_cmd", "report": "rigctl.report_cmd",
+    "sim": "rigctl.sim_cmd",
+    **{verb: "rigctl.daemon" for verb in ("serve", "submit", "status", "queue", "pause", "resume",
+                                          "abort", "logs")},
+}
+COMMAND_MODULES: tuple[str, ...] = tuple(dict.fromkeys(COMMANDS.values()))
 
 
 def _load(args: argparse.Namespace):
@@ -61,7 +69,17 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _modules_for(argv: list[str] | None) -> tuple[str, ...]:
+    """The command modules ``argv`` needs: the chosen command's only, else (help, typo) all."""
+    words = [a for a in (sys.argv[1:] if argv is None else argv)]
+    first = next((a for a in words if not a.startswith("-")), None)
+    if first in COMMANDS and not any(a in ("-h", "--help") for a in words[:words.index(first)]):
+        return (COMMANDS[first],)
+    return () if first in ("run", "validate") else COMMAND_MODULES
+
+
+def build_parser(argv: list[str] | None = None, everything: bool = True) -> argparse.ArgumentParser:
+    """The parser; with ``everything=False`` only the modules ``argv`` needs are imported."""
     p = argparse.ArgumentParser(prog="rigctl", description="Test automation for inertial sensor labs: "
                                 "turntable procedures, HDF5 recording, calibration and noise analysis.")
     p.add_argument("--version", action="version", version=f"rigctl {__version__}")
@@ -81,13 +99,13 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("validate", help="check a procedure and print its steps, duration and data volume")
     common(v)
     v.set_defaults(func=cmd_validate)
-    for mod in COMMAND_MODULES:
+    for mod in (COMMAND_MODULES if everything else _modules_for(argv)):
         importlib.import_module(mod).register(sub)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv, everything=False)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

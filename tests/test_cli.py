@@ -2,6 +2,7 @@
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import h5py
@@ -120,3 +121,23 @@ def test_readme_commands_are_the_ci_commands():
     test_cmd = [line for line in ci.splitlines() if "pytest" in line and not line.startswith("#")]
     assert len(test_cmd) == 1 and test_cmd[0] in readme
     assert "rigctl run procedures/24pos.yaml" in readme.split("```")[1]
+
+
+def test_command_map_matches_what_the_modules_register() -> None:
+    import argparse
+
+    from rigctl.cli import COMMANDS, build_parser
+    full = build_parser()
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == set(COMMANDS) | {"run", "validate"}
+    for verb, module in COMMANDS.items():  # each module alone adds its own verbs
+        only = build_parser([verb], everything=False)
+        s = next(a for a in only._actions if isinstance(a, argparse._SubParsersAction))
+        assert verb in s.choices, (verb, module)
+
+
+def test_client_verbs_start_without_the_solvers() -> None:
+    code = ("import sys; from rigctl.cli import build_parser; build_parser(['status', '--watch'], everything=False); "
+            "print(sorted(m for m in ('scipy', 'matplotlib', 'rigctl.solvers.allan') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
