@@ -38,14 +38,9 @@ def _png_pixels(path: Path) -> np.ndarray:
     return mpimg.imread(path)
 
 
-@pytest.fixture(scope="module")
-def calibrated_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("runs")
-    r = run_rigctl("run", "procedures/full-calibration.yaml", "-p", "warmup=1 min", "-p", "sample=5 s",
-                   "--out", str(out), timeout=600)
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    run_dir = next(out.glob("*-full-calibration"))
-    return run_dir, r.stdout
+@pytest.fixture
+def calibrated_run(full_calibration_run):
+    return full_calibration_run
 
 
 def test_full_calibration_writes_a_self_contained_report(calibrated_run):

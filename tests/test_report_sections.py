@@ -86,14 +86,10 @@ def _check_page(page: Page) -> None:
             assert pid.startswith("plot-") and src.startswith("data:image/png;base64,"), (sec, pid)
 
 
-@pytest.fixture(scope="module")
-def calibrated(tmp_path_factory) -> Path:
-    """A short emulated full calibration; its solve steps calibrate and write the report."""
-    out = tmp_path_factory.mktemp("runs")
-    r = run_rigctl("run", "procedures/full-calibration.yaml", "-p", "warmup=10 s", "-p", "sample=2 s",
-                   "-p", "revolutions=1", "--out", str(out), timeout=300)
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return next(out.glob("*-full-calibration"))
+@pytest.fixture
+def calibrated(full_calibration_run) -> Path:
+    """The session's short emulated full calibration (tests/conftest.py)."""
+    return full_calibration_run[0]
 
 
 def test_calibration_sections_show_the_fit_in_field_units(calibrated: Path) -> None:
@@ -152,7 +148,7 @@ def test_calibration_sections_show_the_fit_in_field_units(calibrated: Path) -> N
     assert "plot-table_timeline" in page.imgs["table"]
     prov = {row[0]: row[1] for row in page.rows["provenance"] if len(row) == 2}
     assert prov["procedure_name"] == "full-calibration" and prov["run status"] == "complete"
-    assert json.loads(prov["parameters_json"])["warmup"] == "10 s"
+    assert json.loads(prov["parameters_json"])["warmup"] == "1 min"  # the -p value of the run (conftest)
     assert "numpy" in prov and "h5py" in prov  # versions table
 
 
