@@ -24,6 +24,7 @@ from rigctl.progress import WorkProgress
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
+from rigctl.solvers import allan_noise_id as NID
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
         "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
@@ -85,20 +86,23 @@ class _AxisStream:
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
 
-    def noise_id(self, m: int) -> int:
+    def noise_id(self, m: int, n: int) -> int:
+        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
         if not hasattr(self, "_head"):
             self._head = np.concatenate(self.head)
             self._dec = np.concatenate(self.decs)
             self.head, self.decs = [], []
         if m % self.dec == 0:
-            return E.noise_id(self._dec, m // self.dec, "oadev")
-        return E.noise_id(self._head, m, "oadev")
+            return NID.noise_id(self._dec, m // self.dec, "oadev", n)
+        return NID.noise_id(self._head, m, "oadev", n)
 
 
 def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
     res = stream.acc.result()
-    alphas = np.array([E.clamp_alpha(stream.noise_id(int(m)), "oadev") for m in res.m])
+    raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
+    held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
+    alphas = np.array([NID.clamp_alpha(int(a), "oadev") for a in held])
     edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
@@ -224,6 +228,44 @@ def _capture_range(f: Any) -> tuple[int, int, str] | None:
     return best[2], best[3], best[4]
 
 
+def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
+    """Largest |table rate| (deg/s) and largest angle excursion (deg) over the IMU samples
+    [s0, s1), from /table; (0, 0) when the recording has no table data."""
+    if "/table/rate" not in f or "/imu/time" not in f or s1 <= s0:
+        return 0.0, 0.0
+    t = f["/imu/time"]
+    t0, t1 = float(t[s0]), float(t[s1 - 1])
+    tt = f["/table/time"][:]
+    sel = (tt >= t0) & (tt <= t1)
+    if not sel.any():
+        return 0.0, 0.0
+    rate = np.degrees(np.abs(f["/table/rate"][:][sel]))
+    ang = np.degrees(f["/table/angle"][:][sel])
+    return float(np.nanmax(rate)), float(np.nanmax(np.nanmax(ang, axis=0) - np.nanmin(ang, axis=0)))
+
+
+#: above these the analysed range is not a static capture (deg/s, deg)
+STATIC_RATE_DPS, STATIC_ANGLE_DEG = 0.01, 0.01
+
+
+def choose_range(path: str, axes: list[str], whole: bool = False
+                 ) -> tuple[tuple[int, int] | None, str, str]:
+    """The IMU sample range to analyse -- the longest capture segment unless ``whole`` -- its
+    description, and a warning ('' if none) when the table moved in it. Raises UsageError for
+    a file that is not a recording with ``axes``."""
+    with _open_checked(path, axes) as f:
+        rng = None if whole else _capture_range(f)
+        s0, s1 = (0, int(f["/imu/time"].shape[0]) if "/imu/time" in f else 0) if rng is None else rng[:2]
+        rate, span = table_motion(f, s0, s1)
+    where = "whole recording" if rng is None else f"capture segment '{rng[2]}'"
+    warn = ""
+    if rate > STATIC_RATE_DPS or span > STATIC_ANGLE_DEG:
+        warn = (f"the table moved during the analysed range ({where}: up to {rate:.3g} deg/s, "
+                f"{span:.3g} deg): an Allan analysis needs a static capture, so these terms are "
+                "not the sensor's noise; record one with procedures/allan-overnight.yaml")
+    return (None if rng is None else rng[:2]), where, warn
+
+
 def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
     """Solver hook for a procedure's ``solve: [allan]`` step: default analysis (fast mode,
     95 log-spaced taus, all six axes present) of the longest capture segment (whole record
@@ -233,14 +275,15 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
 
     path = str(path)
     with h5py.File(path, "r") as f:
-        rng = _capture_range(f)
         axes = [a for a in AXES if AXES[a][0] in f]
     if not axes:
         log("warning", f"allan: {path} has no /imu/angular_rate or /imu/specific_force")
         return
-    where = "whole recording" if rng is None else f"capture segment '{rng[2]}'"
+    rng, where, warn = choose_range(path, axes)
+    if warn:
+        log("warning", f"allan: {warn}")
     try:
-        result = compute(path, axes, 95, False, None if rng is None else rng[:2])
+        result = compute(path, axes, 95, False, rng)
     except UsageError as exc:
         log("warning", f"allan: not run: {exc}")
         return
@@ -415,7 +458,12 @@ def run(args: argparse.Namespace) -> int:
                 import matplotlib  # noqa: F401
             except ImportError:
                 raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
-        result = compute(args.recording, axes, taus, args.exact, progress_stream=sys.stderr)
+        rng, where, warn = choose_range(args.recording, axes, args.whole)
+        print(f"analysing the {where} of {args.recording}", flush=True)
+        if warn:
+            print(f"warning: {warn}", file=sys.stderr, flush=True)
+        result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
+        result["segment"] = where
     except UsageError as exc:
         return _fail(str(exc))
     try:
@@ -442,6 +490,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
     p.add_argument("--taus", default="95",
                    help="octave, decade, all, or N log-spaced taus (default 95)")
+    p.add_argument("--whole", action="store_true",
+                   help="analyse the whole recording (default: its longest capture segment, if any)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.set_defaults(func=run)

@@ -142,3 +142,27 @@ def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     assert any(k == "warning" and "3 samples missing" in m for k, m in messages)
     n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
     assert abs(n_gx / 0.3 - 1) < 0.05
+
+
+def test_warns_when_the_table_moved_in_the_analysed_range(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture) -> None:
+    rec = tmp_path / "moving.h5"
+    write_recording(rec, 20_000)
+    with h5py.File(rec, "r") as f:
+        t_end = float(f["/imu/time"][-1])
+    for rate_dps, warned in ((0.0, False), (10.0, True)):
+        with h5py.File(rec, "a") as f:
+            if "table" in f:
+                del f["table"]
+            t = np.linspace(0.0, t_end, 500)
+            g = f.create_group("table")
+            g["time"] = t
+            g["rate"] = np.tile(np.radians([0.0, 0.0, rate_dps]), (t.size, 1))
+            g["angle"] = np.outer(t, np.radians([0.0, 0.0, rate_dps]))
+        args = _args([str(rec), "--axes", "gz", "--taus", "octave"])
+        assert args.func(args) == 0
+        cap = capsys.readouterr()
+        assert "analysing the whole recording" in cap.out
+        assert ("warning: the table moved during the analysed range" in cap.err) is warned, cap.err
+        if warned:
+            assert "up to 10 deg/s" in cap.err

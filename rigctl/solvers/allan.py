@@ -52,9 +52,12 @@ from . import allan_stream as S
 
 TauSpec = Union[str, int, Sequence[int]]
 
-#: maximum averaging factor as a fraction of (N - 1) phase intervals (Stable32's limits)
-_MAX_FRACTION = {"adev": 5, "hdev": 5, "oadev": 4, "mdev": 4, "tdev": 4, "ohdev": 4,
-                 "totdev": 2}
+#: Stable32's "stop ratio" per estimator: its octave/decade runs end at the factor
+#: (N - 1) // ratio, and its noise identification holds the previous tau's result once
+#: fewer than 2 x ratio averages remain (see :mod:`rigctl.solvers.allan_noise_id`)
+STOP_RATIO = {"adev": 5, "hdev": 5, "oadev": 4, "mdev": 4, "tdev": 4, "ohdev": 4,
+              "totdev": 2}
+_MAX_FRACTION = STOP_RATIO
 _BLOCK = 1 << 16  # samples per block of the direct sums (512 kB, stays in L2)
 #: below this many phase points mode="fast" computes the exact sums (they are cheap there)
 FAST_MIN_POINTS = 1 << 20

@@ -1,15 +1,8 @@
 """Confidence of Allan-family deviations: noise identification, EDF, chi-square intervals.
 
-* Noise type per tau, as Stable32 does it (Riley & Greenhall, "Power law noise identification
-  using the lag 1 autocorrelation", EFTF 2004; NIST SP 1065 sec. 5.6): the phase decimated by
-  m (every m-th point) is differenced d = 0, 1, ... times until delta = r1 / (1 + r1) < 0.25
-  (r1 the lag-1 autocorrelation) or d = dmax (2 for the Allan family, 3 for Hadamard); then
-  alpha = 2 - round(2 delta) - 2 d (the power-law exponent of S_y(f) ~ f^alpha:
-  2 white PM, 1 flicker PM, 0 white FM, -1 flicker FM, -2 random-walk FM).
-  With fewer than 30 decimated points the B1 ratio (standard variance of the m-averaged
-  frequencies over the non-overlapped Allan variance, compared with its expected value
-  B1(N, mu) = N (1 - N^mu) / (2 (N - 1) (1 - 2^mu)), Barnes/Howe) is used instead, and R(n)
-  = MVAR / AVAR separates white from flicker PM (both mu = -2).
+* Noise type per tau: :mod:`rigctl.solvers.allan_noise_id` (Stable32's rules: lag-1
+  autocorrelation with >= 30 averages, B1 ratio / R(n) below, the previous tau's type once
+  fewer than 2 x the stop ratio remain), re-exported here.
 * Equivalent degrees of freedom: Greenhall's algorithm (C. A. Greenhall, W. J. Riley,
   "Uncertainty of stability variances based on finite differences", PTTI 2003), which covers
   overlapped / non-overlapped, modified / unmodified Allan (d = 2) and Hadamard (d = 3)
@@ -20,11 +13,17 @@
 from __future__ import annotations
 
 import math
-from typing import Callable
 
 import numpy as np
 from scipy.special import comb
 from scipy.stats import chi2
+
+from .allan_noise_id import (clamp_alpha, lag1_autocorrelation, noise_id, noise_id_b1,
+                             noise_id_curve, noise_id_lag1)
+
+__all__ = ["ONE_SIGMA", "chi2_interval", "clamp_alpha", "confidence", "edf", "edf_greenhall",
+           "edf_totdev", "lag1_autocorrelation", "noise_id", "noise_id_b1", "noise_id_curve",
+           "noise_id_lag1"]
 
 ONE_SIGMA = 0.683  # Stable32's "Confidence Factor"
 _J_MAX = 100
@@ -181,110 +180,18 @@ def chi2_interval(dev: np.ndarray | float, edf_: np.ndarray | float,
     return lo, hi
 
 
-# --------------------------------------------------------------------------- noise ID
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """sum a*b without BLAS (no thread pool: long vectors on a shared machine)."""
-    return float(np.einsum("i,i->", a, b))
-
-
-def lag1_autocorrelation(z: np.ndarray) -> float:
-    """r1 = sum (z_t - zbar)(z_{t+1} - zbar) / sum (z_t - zbar)^2 (Riley 2004 eq. 2)."""
-    z = np.asarray(z, dtype=np.float64) - np.mean(z)
-    den = _dot(z, z)
-    return _dot(z[:-1], z[1:]) / den if den > 0 else 0.0
-
-
-def noise_id_lag1(x: np.ndarray, m: int, dmax: int = 2) -> int:
-    """Lag-1 autocorrelation noise ID on phase ``x`` at factor ``m`` (alpha, integer)."""
-    z = np.asarray(x[:: int(m)], dtype=np.float64)
-    d = 0
-    while True:
-        r1 = lag1_autocorrelation(z)
-        delta = r1 / (1.0 + r1)
-        if delta < 0.25 or d >= dmax:
-            return 2 - int(round(2.0 * delta)) - 2 * d
-        z = np.diff(z)
-        d += 1
-
-
-def _b1_expected(n: int, mu: int) -> float:
-    """Expected B1 ratio for n frequency averages and Allan tau-exponent mu (Howe 2000)."""
-    if mu == -1:
-        return 1.0
-    if mu == 0:
-        return n * math.log(n) / (2.0 * (n - 1.0) * math.log(2.0))
-    return n * (1.0 - n ** mu) / (2.0 * (n - 1.0) * (1.0 - 2.0 ** mu))
-
-
-def _rn_flicker_pm(m: int) -> float:
-    """Expected MVAR/AVAR for flicker PM with f_h = 1/(2 tau0) (IEEE 1139 forms)."""
-    avar = (1.038 + 3.0 * math.log(2.0 * math.pi * 0.5 * m)) / (4.0 * math.pi ** 2)
-    mvar = 3.0 * math.log(256.0 / 27.0) / (8.0 * math.pi ** 2)
-    return mvar / avar
-
-
-def noise_id_b1(x: np.ndarray, m: int, dmax: int = 2) -> int:
-    """B1 / R(n) noise ID on phase ``x`` at factor ``m`` (for few points)."""
-    m = int(m)
-    n = (x.size - 1) // m
-    if n < 3:
-        return 0
-    xs = x[: n * m + 1: m]
-    y = np.diff(xs) / m
-    avar = float(np.sum(np.diff(y) ** 2)) / (2.0 * (n - 1))
-    if avar <= 0:
-        return 2
-    b1 = float(np.var(y, ddof=1)) / avar
-    mus = [-2, -1, 0, 1] + ([2] if dmax >= 3 else [])
-    exp = [_b1_expected(n, mu) if mu != -2 else (n * n - 1.0) / (1.5 * n * (n - 1.0))
-           for mu in mus]
-    mu_sel = mus[0]
-    for i in range(len(mus) - 1):
-        if b1 > math.sqrt(exp[i] * exp[i + 1]):
-            mu_sel = mus[i + 1]
-    if mu_sel > -2:
-        return -mu_sel - 1
-    # white vs flicker PM: R(n) = MVAR / AVAR
-    d2 = x[2 * m:] - 2.0 * x[m:-m] + x[: x.size - 2 * m]
-    if d2.size < m:
-        return 2
-    c = np.concatenate(([0.0], np.cumsum(d2)))
-    s = c[m:] - c[:-m]
-    mvar = _dot(s, s) / (m * m * s.size)
-    ovar = _dot(d2, d2) / d2.size
-    rn = mvar / ovar if ovar > 0 else 1.0
-    boundary = math.sqrt((1.0 / m) * _rn_flicker_pm(m))
-    return 2 if rn < boundary else 1
-
-
-def noise_id(x: np.ndarray, m: int, kind: str = "oadev") -> int:
-    """Stable32's per-tau noise ID: lag-1 ACF with >= 30 decimated points (>= 30
-    non-overlapped intervals for adev/hdev), else B1/R(n)."""
-    dmax = 3 if kind in ("hdev", "ohdev") else 2
-    n_dec = (np.asarray(x).size - 1) // int(m)  # non-overlapped intervals
-    if kind not in ("adev", "hdev"):
-        n_dec += 1  # decimated phase points
-    if n_dec >= 30:
-        return noise_id_lag1(x, m, dmax)
-    return noise_id_b1(x, m, dmax)
-
-
-def clamp_alpha(alpha: int, kind: str) -> int:
-    """Keep alpha inside the range the EDF supports (alpha + 2d > 1; >= -2 for totdev)."""
-    lo = -3 if kind in ("hdev", "ohdev") else -2
-    return int(min(2, max(lo, alpha)))
-
-
 def confidence(kind: str, x: np.ndarray, ms: np.ndarray, devs: np.ndarray,
-               alphas: np.ndarray | None = None,
-               id_fn: Callable[[np.ndarray, int, str], int] = noise_id) -> dict:
-    """Noise ID, EDF and 68.3 % / 95 % intervals for a deviation curve from phase ``x``."""
+               alphas: np.ndarray | None = None) -> dict:
+    """Noise ID (Stable32's, :func:`noise_id_curve`, unless ``alphas`` are given), EDF and
+    68.3 % / 95 % intervals for a deviation curve from phase ``x``. ``alpha`` is the
+    identified (or given) exponent, ``alpha_edf`` the one the EDF used (clamped)."""
     ms = np.asarray(ms, dtype=np.int64)
     if alphas is None:
-        alphas = np.array([id_fn(x, int(m), kind) for m in ms], dtype=np.int64)
-    alphas = np.array([clamp_alpha(a, kind) for a in alphas], dtype=np.int64)
-    edfs = np.array([edf(kind, int(a), int(m), x.size) for a, m in zip(alphas, ms)])
+        alphas = noise_id_curve(x, ms, kind)
+    alphas = np.asarray(alphas, dtype=np.int64)
+    used = np.array([clamp_alpha(a, kind) for a in alphas], dtype=np.int64)
+    edfs = np.array([edf(kind, int(a), int(m), x.size) for a, m in zip(used, ms)])
     lo68, hi68 = chi2_interval(devs, edfs, ONE_SIGMA)
     lo95, hi95 = chi2_interval(devs, edfs, 0.95)
-    return {"alpha": alphas, "edf": edfs, "lo68": lo68, "hi68": hi68,
+    return {"alpha": alphas, "alpha_edf": used, "edf": edfs, "lo68": lo68, "hi68": hi68,
             "lo95": lo95, "hi95": hi95}

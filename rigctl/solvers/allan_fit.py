@@ -28,6 +28,10 @@ all pass. A dropped term is reported as a one-sided 95 % upper bound, sqrt(max(p
 chi-square with nu = 2 p_j^2 / sd_j^2 degrees of freedom (Satterthwaite), the same form as the
 intervals of the deviations: p_j nu / chi2_{1-q}(nu) .. p_j nu / chi2_q(nu), square-rooted.
 
+Each Q/N/B/K entry also carries ``crb_rel_sd``: the Cramer-Rao bound of sd(c)/c for the
+capture (:mod:`rigctl.solvers.allan_crb`), i.e. how well any estimator could determine that
+term from these T seconds; this fit reaches it, so a wide bound means "capture longer".
+
 For comparison the classic piecewise read-offs (slope -1 below 0.5 s -> Q at tau = sqrt(3),
 slope -1/2 between 0.5 s and 2 s -> N at tau = 1 s, flat minimum above 20 s -> B = min/0.664,
 slope +1/2 above the minimum -> K at tau = 3 s) are reported beside it.
@@ -42,6 +46,7 @@ from scipy.optimize import nnls
 from scipy.stats import chi2, norm
 
 from . import allan_cov as C
+from . import allan_crb as R
 from .allan_stream import blas_single_thread
 
 TERMS = ("Q", "N", "B", "K", "R")
@@ -94,10 +99,17 @@ def _nnls_cols(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _whiten(cov: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor of a covariance (a tiny diagonal jitter keeps it definite)."""
+    """Lower Cholesky factor of a covariance. A diagonal jitter on the correlation matrix keeps
+    it definite: 1e-9, raised tenfold while rounding still leaves it indefinite (the
+    correlations of neighbouring long taus are within 1e-9 of 1 on non-stationary data)."""
     d = np.sqrt(np.diag(cov))
-    corr = cov / np.outer(d, d) + 1e-9 * np.eye(d.size)
-    return d[:, None] * cholesky(corr, lower=True)
+    corr = cov / np.outer(d, d)
+    for jitter in 10.0 ** np.arange(-9, -1):
+        try:
+            return d[:, None] * cholesky(corr + jitter * np.eye(d.size), lower=True)
+        except np.linalg.LinAlgError:
+            continue
+    raise np.linalg.LinAlgError("the Allan covariance is not positive definite even with 1 % jitter")
 
 
 def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.ndarray,
@@ -281,11 +293,42 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                           f"upper95_{unit_f}": ub * fac,
                           f"estimate_{unit_si}": math.sqrt(max(pj, 0.0))})
         out_terms[t] = entry
+    if tau0 is not None and n_phase is not None:
+        _add_crb(out_terms, sensor, float(tau0), int(n_phase))
     return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
                       "sigma^2 estimates across taus)" if cov_terms is not None else
                       "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
             "sensor": sensor, "terms": out_terms, "coeff_sq_si": coeff_sq,
             "reduced_chi2": chi2_red, "n_taus": int(tau.size)}
+
+
+def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
+    """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
+    estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
+    :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms); for a
+    bounded term, with that term added at its 95 % upper bound. A bounded term with
+    crb_rel_sd >~ 0.5 is not identifiable from a capture of this length even if it were as
+    large as its bound: only a longer capture can resolve it."""
+    if n_phase < 3:
+        return
+    base, bounded = {}, {}
+    for t in R.TERMS4:
+        e = out_terms.get(t)
+        if e is None:
+            continue
+        si = SI_UNITS[sensor][t]
+        if e["supported"]:
+            base[t] = e[f"value_{si}"]
+        elif e[f"upper95_{si}"] > 0 and math.isfinite(e[f"upper95_{si}"]):
+            bounded[t] = e[f"upper95_{si}"]
+    models = [(base, tuple(base))] + [({**base, t: v}, (t,)) for t, v in bounded.items()]
+    for coeffs, report in models:
+        try:
+            best = R.crb_rel_sd(coeffs, (n_phase - 1) * tau0, 1.0 / tau0)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        for t in report:
+            out_terms[t]["crb_rel_sd"] = best[t]
 
 
 def term_value_si(fit: dict, term: str) -> float:
