@@ -13,6 +13,10 @@ Crash safety: after ``kill -9`` a reader opens the file with ``swmr=True``; :met
 clears HDF5's status flags (:func:`rigctl.checkpoint.clear_status_flags`) and appends to the same
 file, shifting the new session's times and IMU counters past what is already recorded.
 
+Truth drawn during a run: an emulator's truth object (a dict) may also carry ``truth_tables``
+({table: {column: (per-row shape, dtype, units)}}, created as /truth/<table>/<column> at open)
+and ``drain_truth_rows()`` (new rows, {table: {column: array}}), appended at every flush.
+
 Disk space: before every write the recorder checks the free space of its filesystem; below
 ``min_free_bytes`` it holds: it keeps what is buffered, drops (and counts) newly arriving IMU,
 table and pulse rows rather than risk a partial write, and reports it as an event once it can
@@ -156,6 +160,14 @@ class Recorder:
         tg = f.create_group("truth")
         if truth is not None:
             tg.attrs["params_json"] = json.dumps(truth)
+        # truth drawn during the run (emulator): its tables must exist before SWMR mode
+        self._truth_rows = getattr(truth, "drain_truth_rows", None)
+        for tname, cols in (getattr(truth, "truth_tables", None) or {}).items():
+            g = tg.create_group(tname)
+            for dname, (shape, dtype, units) in cols.items():
+                d = g.create_dataset(dname, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                                     chunks=(256, *shape))
+                d.attrs["units"] = units
         f.create_group("results")
         f.swmr_mode = True
         f.flush()
@@ -178,6 +190,7 @@ class Recorder:
         self.time_offset = 0.0
         self.counter_offset = 0
         self.holding: str | None = None  # why writes are held (disk space low), else None
+        self._truth_rows: Any = None  # callable giving new /truth/<table> rows (emulator), or None
         self.dropped: dict[str, int] = {}
         self._dropped_t: list[float] = []
 
@@ -343,6 +356,9 @@ class Recorder:
         if self.closed or not self._disk_ok():
             return
         f = self._f
+        if self._truth_rows is not None:  # truth the emulator drew since the last flush
+            for tname, cols in self._truth_rows().items():
+                self._append_rows(f["truth"][tname], cols)
         for gname, cols in self._buf.items():
             if not any(cols.values()):
                 continue
@@ -356,6 +372,14 @@ class Recorder:
         self._buffered_rows = 0
         f.flush()
         self._last_flush = time.monotonic()
+
+    @staticmethod
+    def _append_rows(group: h5py.Group, cols: dict[str, Any]) -> None:
+        for dname, data in cols.items():
+            ds = group[dname]
+            n0 = ds.shape[0]
+            ds.resize(n0 + len(data), axis=0)
+            ds[n0:] = data
 
     def close(self, status: str = "complete") -> None:
         """Write what is buffered, set /run/status and the end time, close the file."""

@@ -5,6 +5,7 @@ API for the in-process IMU (sim/imu.py)::
     model = ImuErrorModel.from_profile(profile_dict, rate_hz=None, seed=0)   # rate_hz overrides profile
     grid = model.sample_grid(n_out)          # the IMU's own clock (drift_ppm, wander, drops), n_out samples
     #   grid.t_internal (n_out*L,) true times of the internal-rate samples, run timescale, s
+    #                   (output sample k near k / rate_hz x (1 + 1e-6 ppm); sample 0 at t = 0)
     #   grid.t_eval     (n_out*L,) = t_internal - time_delay_s: evaluate the table's kinematics HERE
     #   grid.t_out (n_out,), grid.counter (n_out,) uint64, grid.keep (n_out,) bool (False = dropped)
     f_meas, w_meas, temp = model.apply(grid.t_internal, f_true, w_true, temperature=None, w_dot=None)
@@ -24,7 +25,8 @@ Per internal sample (L = internal_rate / output_rate)::
     w = w_true + w_vib(t)
     F = b_a + b_on_a + c_ba dT + (M_a + diag(c_sa dT)) f + k2_a f^2 + 0.5 u |f|
     W = b_g + b_on_g + c_bg dT + (M_g + diag(c_sg dT)) w + k2 w^2 + k3 w^3 + G f + A_ae f^2
-    dT = T(t) - T_ref,  T(t) = T0 + dT_w (1 - exp(-(t - t_on)/tau)),  T_ref = T0 + dT_w
+    dT = T(t) - T_ref,  T(t) = T0 + dT_w (1 - exp(-(t + t_on)/tau)),  T_ref = T0 + dT_w unless set
+    (t: run time; t_on = power_on_time_s, the time since power-on when the run starts)
 
 then each sensor: Butterworth low-pass at the internal rate, decimation, noise at the output rate
 (:class:`rigctl.sim.noise.NoiseGenerator`, Q on the integrated output), ADC LSB and saturation.
@@ -101,7 +103,7 @@ class ImuErrorModel:
             internal = self.output_rate_hz
         internal = self.output_rate_hz * max(1, round(internal / self.output_rate_hz))
         ss = np.random.SeedSequence(self.seed)
-        s_gn, s_an, s_clk, s_on, s_vib, s_temp = ss.spawn(6)
+        s_gn, s_an, s_clk, s_on, s_vib, s_temp, s_pre = ss.spawn(7)
         order = int(fe.get("filter_order", 2))
         self.gyro_fe = FrontEnd(self.output_rate_hz, internal, fe.get("gyro_bandwidth_hz"), order,
                                 fe.get("gyro_lsb_rad_per_s"), fe.get("gyro_full_scale_rad_per_s"))
@@ -132,7 +134,20 @@ class ImuErrorModel:
         self.vib = _on(eff, "vibration")
         self.clock_cfg = _on(eff, "clock")
         self.geometry = _on(eff, "table_geometry")
+        #: time since power-on when the run starts, s: the warm-up (and the noise's K walk and
+        #: R ramp, which start at power-on) are that far along at run time 0; the sample grid
+        #: itself starts at run time 0 (counter 0 at t = 0)
         self.power_on_time_s = float(profile.get("power_on_time_s", 0.0))
+        if self.power_on_time_s < 0:
+            raise ValueError("power_on_time_s must be >= 0 (time since power-on at run start)")
+        self.T_ref = None
+        if self.warmup:
+            self.T_ref = float(self.warmup.get("T_ref_degC", self.warmup["T0_degC"] + self.warmup["dT_degC"]))
+        # K random walk and R ramp accumulated between power-on and the run start (a constant
+        # from the run's point of view): N(0, K^2 t_on) + R t_on per axis
+        rng_pre = np.random.default_rng(s_pre)
+        self.gyro_power_on_offset = self._noise_offset(self.gyro_noise_params, rng_pre)
+        self.accel_power_on_offset = self._noise_offset(self.accel_noise_params, rng_pre)
         self.time_delay_s = float(self.delay["delay_s"]) if self.delay else 0.0
         self.turn_on_gyro = np.zeros(3)
         self.turn_on_accel = np.zeros(3)
@@ -146,10 +161,18 @@ class ImuErrorModel:
         c = self.clock_cfg or {}
         self.clock = fx.ClockModel(
             self.output_rate_hz, c.get("drift_ppm", 0.0), c.get("wander_ppm", 0.0), c.get("wander_tau_s", 600.0),
-            c.get("drop_probability", 0.0), c.get("drop_max_burst", 1), self.power_on_time_s, s_clk)
+            c.get("drop_probability", 0.0), c.get("drop_max_burst", 1), 0.0, s_clk)
         self._temp_rng = np.random.default_rng(s_temp)
         self._dw = fx.AngularAcceleration()
-        self._t_last_out = self.power_on_time_s - 1.0 / self.output_rate_hz
+        self._t_last_out = -1.0 / self.output_rate_hz
+
+    def _noise_offset(self, params: Mapping[str, Any], rng: np.random.Generator) -> np.ndarray:
+        """Value of the K random walk plus the R ramp at run start, power_on_time_s after power-on."""
+        t_on = self.power_on_time_s
+        n = rng.standard_normal(3)  # drawn whatever t_on is, so the draw never shifts
+        K = _vec(params.get("K", 0.0))
+        R = _vec(params.get("R", 0.0))
+        return K * np.sqrt(t_on) * n + R * t_on
 
     @classmethod
     def from_profile(cls, profile: Mapping[str, Any], rate_hz: float | None = None, seed: int = 0) -> "ImuErrorModel":
@@ -172,7 +195,7 @@ class ImuErrorModel:
         w = self.warmup
         if not w:
             return np.full(len(t), 25.0)
-        return fx.warmup_temperature(np.asarray(t) - self.power_on_time_s, w["T0_degC"], w["dT_degC"], w["tau_s"])
+        return fx.warmup_temperature(np.asarray(t) + self.power_on_time_s, w["T0_degC"], w["dT_degC"], w["tau_s"])
 
     def apply(self, t: np.ndarray, f_true: np.ndarray, w_true: np.ndarray, temperature: np.ndarray | None = None,
               w_dot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -191,11 +214,12 @@ class ImuErrorModel:
             f += fv
             w += wv
         T = self.temperature(t) if temperature is None else np.broadcast_to(np.asarray(temperature, float), t.shape)
-        F = fx.accel_declared(f, self.accel_bias + self.turn_on_accel, self.accel_M, self.accel_k2)
-        W = fx.gyro_declared(w, self.gyro_bias + self.turn_on_gyro, self.gyro_M)
+        F = fx.accel_declared(f, self.accel_bias + self.turn_on_accel + self.accel_power_on_offset,
+                              self.accel_M, self.accel_k2)
+        W = fx.gyro_declared(w, self.gyro_bias + self.turn_on_gyro + self.gyro_power_on_offset, self.gyro_M)
         if self.warmup:
             wu = self.warmup
-            dT = T - float(wu.get("T_ref_degC", wu["T0_degC"] + wu["dT_degC"]))
+            dT = T - self.T_ref
             F += fx.thermal_error(f, dT, _vec(wu.get("accel_bias_tc_m_per_s2_per_K")), _vec(wu.get("accel_scale_tc_per_K")))
             W += fx.thermal_error(w, dT, _vec(wu.get("gyro_bias_tc_rad_per_s_per_K")), _vec(wu.get("gyro_scale_tc_per_K")))
         if self.asym:
@@ -246,6 +270,8 @@ class ImuErrorModel:
             "gyro_scale_misalignment_matrix": self.gyro_M,
             "accel_bias_m_per_s2": self.accel_bias, "accel_turn_on_bias_m_per_s2": self.turn_on_accel,
             "accel_scale_misalignment_matrix": self.accel_M, "accel_quadratic_per_m_per_s2": self.accel_k2,
+            "gyro_noise_offset_at_run_start_rad_per_s": self.gyro_power_on_offset,
+            "accel_noise_offset_at_run_start_m_per_s2": self.accel_power_on_offset,
             "time_delay_s": self.time_delay_s,
             "noise_model": ("IEEE 952 terms per axis (rigctl.sim.noise): Q on the integrated output, "
                             "B as a 1/f pole-zero cascade (flicker_pairs_per_decade, default 2), added at "
@@ -262,7 +288,7 @@ class ImuErrorModel:
         if self.vib:
             out["effects"]["vibration"]["phase_rad"] = self.vib_phase
         if self.warmup:
-            out["effects"]["warmup"]["T_ref_degC"] = self.warmup["T0_degC"] + self.warmup["dT_degC"]
+            out["effects"]["warmup"]["T_ref_degC"] = self.T_ref  # what apply() uses
         out.update(self.gyro_fe.truth("gyro", "rad_per_s"))
         out.update(self.accel_fe.truth("accel", "m_per_s2"))
         return js(out)

@@ -130,15 +130,18 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     consumer_mems, mti_class, tactical, declared_only, random) selects the full error model of
     :mod:`rigctl.sim.error_model` (noise with exact Allan signatures, front end, physical
     effects, clock error); ``overrides`` is deep-merged into the profile, e.g.
-    ``{effects: {lever_arm: {enabled: true, r_m: [0.01, 0, 0]}}}``. Without ``profile``: the
-    declared errors above with white noise.
+    ``{effects: {lever_arm: {enabled: true, r_m: [0.01, 0, 0]}}}``. The profile and the
+    overrides are checked against the profile schema (:data:`rigctl.sim.profiles.PROFILE_SCHEMA`):
+    an unknown key, a value of the wrong kind or an enabled effect without a required key is an
+    InputError naming the file and line. Without ``profile``: the declared errors above with
+    white noise.
     """
     if "profile" not in o:
         return build_declared_imu(o, rate_hz, seed)
     from pathlib import Path
 
     from .error_model import ImuErrorModel
-    from .profiles import _coerce, get_profile, profile_names
+    from .profiles import _coerce, check_merged, check_profile, get_profile, profile_names
 
     S.check_keys(o, ("profile", "seed", "profiles_file", "overrides"), "'imu.sim' with a profile")
     path = None
@@ -149,9 +152,15 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
                           "the path is relative to the config file")
     name = S.get_str(o, "profile", choices=profile_names(path))
     seed = int(S.get_number(o, "seed", seed, minimum=0, integer=True))
-    profile = get_profile(name, seed=seed, path=path)
+    profile = get_profile(name, seed=seed, path=path)  # checked against the profile schema
+    base, over = profile, o.get("overrides")
     if "overrides" in o:
-        profile = _deep_merge(profile, o["overrides"], o, "overrides")
+        if not isinstance(over, dict):
+            raise S.error(o, "overrides", "'overrides' must be a mapping of profile keys",
+                          "same layout as a profile of configs/imu-profiles.yaml")
+        check_profile(over, "imu.sim.overrides")  # misspelt keys, wrong kinds: file and line
+        profile = _deep_merge(profile, over, o, "overrides")
+    check_merged(profile, over, base, f"profile {name!r}" + (" with imu.sim.overrides" if over else ""))
     try:
         profile = _coerce(profile)
         return ImuErrorModel.from_profile(profile, rate_hz=rate_hz, seed=seed)

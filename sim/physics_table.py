@@ -7,12 +7,14 @@
   power-up; closing one is required before a mode other than off), trips (interlock or following
   error: FAULT bit, fault code, controlled stop, refusal until an interlock reset) and per-mode
   rate/acceleration limits.
-* :class:`ImuTap` keeps the world's IMU samples by sample index so the Xsens emulator can stream
-  them: a frame for time ``t`` carries world sample ``round(t * world_rate)`` (exact when the
-  Xsens output rate divides the world rate; otherwise sample-and-hold).
+* :class:`ImuTap` keeps the world's IMU samples with their true times so the Xsens emulator can
+  stream them: a frame for time ``t`` carries the world sample whose true time is nearest ``t``
+  (sample ``round(t * world_rate)`` when the IMU's clock is perfect; exact when the Xsens output
+  rate divides the world rate; otherwise sample-and-hold). With a drifting IMU clock the stream
+  stays on the run clock: a sample now and then repeats (slow clock) or is skipped (fast).
 
 Reads never advance the world (the hardware loop does, every tick), so they are cheap and see
-the state at the last tick; commands advance it first and act at the newest sample time.
+the state at the last tick; commands advance it first and act at the world's current time.
 All values SI (rad, rad/s, rad/s^2, s); axes 1..3 = outer, middle, inner.
 """
 from __future__ import annotations
@@ -60,11 +62,11 @@ class PhysicsTable:
         return self.world.table.axes[axis - 1]
 
     def _t(self) -> float:
-        w = self.world
-        return (w.k - 1) * w.dt if w.k else 0.0
+        """The run time the world has been advanced to, s."""
+        return self.world.t
 
     def _now(self) -> float:
-        """Advance the world to the clock and return the newest sample time (for commands)."""
+        """Advance the world to the clock and return its time (for commands)."""
         self.world.advance()
         return self._t()
 
@@ -228,6 +230,7 @@ class ImuTap:
     def __init__(self, world: SimWorld, lock: threading.RLock) -> None:
         self.world, self.lock = world, lock
         self.base = 0                                  # index of the first buffered sample
+        self._tt = np.empty(0)                         # true times of the buffered samples, s
         self._f = np.empty((0, 3))
         self._w = np.empty((0, 3))
         self._temp = np.empty(0)
@@ -235,35 +238,39 @@ class ImuTap:
 
     def pull(self) -> None:
         """Move newly generated samples from the world into the buffer (hold the lock)."""
-        b = self.world.take_imu(advance=False)
+        b, tt = self.world.take_imu(advance=False, true_time=True)
         if len(b):
             if not self._temp.size:
                 self.base = int(b.counter[0])
+            self._tt = np.concatenate((self._tt, tt))
             self._f = np.concatenate((self._f, b.specific_force))
             self._w = np.concatenate((self._w, b.angular_rate))
             self._temp = np.concatenate((self._temp, b.temperature))
 
     def trim(self, keep_from: int) -> None:
-        """Forget samples before index ``keep_from``."""
+        """Forget samples no longer needed for frames at times >= ``keep_from / rate_hz``."""
         with self.lock:
-            cut = min(max(0, keep_from - self.base), self._temp.size)
+            t_keep = (keep_from - 0.5) / self.world.rate_hz
+            cut = int(np.searchsorted(self._tt, t_keep, side="left"))
             if cut:
                 self._f, self._w, self._temp = self._f[cut:], self._w[cut:], self._temp[cut:]
+                self._tt = self._tt[cut:]
                 self.base += cut
 
     def __call__(self, t: np.ndarray) -> dict[str, np.ndarray]:
-        idx = np.rint(np.asarray(t) * self.world.rate_hz).astype(np.int64)
+        t = np.asarray(t, dtype=float)
         with self.lock:
-            if idx.size and idx[-1] >= self.world.k:
+            if t.size and (not self._tt.size or t[-1] > self._tt[-1]):
                 self.world.advance()
             self.pull()
-            hi = self.base + self._temp.size - 1
-            low = idx < self.base
-            self.clamped += int(low.sum())
-            j = np.clip(idx, self.base, max(hi, self.base)) - self.base
+            # the sample whose true time is nearest t (ties: the earlier)
+            half = 0.5 / self.world.rate_hz
+            j = np.searchsorted(self._tt, t + half, side="left") - 1
             if not self._temp.size:       # nothing generated yet: a still sensor
-                n = idx.size
+                n = t.size
                 return {"acceleration": np.zeros((n, 3)), "rate_of_turn": np.zeros((n, 3)),
                         "temperature": np.full(n, 25.0), "status_word": np.zeros(n, np.int64)}
+            self.clamped += int((j < 0).sum())  # nearest sample no longer buffered
+            j = np.clip(j, 0, self._temp.size - 1)
             return {"acceleration": self._f[j], "rate_of_turn": self._w[j], "temperature": self._temp[j],
-                    "status_word": np.zeros(idx.size, np.int64)}
+                    "status_word": np.zeros(t.size, np.int64)}

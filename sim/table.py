@@ -184,13 +184,26 @@ class Profile:
             node.prev = None
 
     def evaluate(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
-        """Profile position, rate and acceleration at times ``t``."""
+        """Profile position, rate and acceleration at times ``t``. A time before this
+        profile's start t0 is the replaced profile's (``prev``); without one the axis was at
+        (p0, v0) moving uniformly. A piece is never run backwards from its start."""
+        t = np.asarray(t, dtype=float)
         idx = np.searchsorted(np.asarray(self.t), t, side="right") - 1
         idx = np.clip(idx, 0, len(self.t) - 1)
         tp = np.asarray(self.t)[idx]
         pp, vp, ap = (np.asarray(x)[idx] for x in (self.p, self.v, self.a))
         dt = t - tp
-        return pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, ap
+        pos, vel, acc = pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, ap
+        early = t < self.t[0]
+        if np.any(early):
+            if self.prev is not None:
+                p2, v2, a2 = self.prev.evaluate(t[early])
+            else:
+                de = t[early] - self.t[0]
+                p2, v2, a2 = self.p[0] + self.v[0] * de, np.full(de.shape, self.v[0]), np.zeros(de.shape)
+            pos, vel, acc = pos.copy(), vel.copy(), acc.copy()
+            pos[early], vel[early], acc[early] = p2, v2, a2
+        return pos, vel, acc
 
 
 class TableAxis:
@@ -217,6 +230,10 @@ class TableAxis:
         self.last_t = t0
         self.in_window_since: float | None = None
         self._ripple_angle = 0.0  # x_r at the last grid point, rad
+        #: servo state at the recent grid points (time, e, e', the acceleration held over the
+        #: following step, ripple angle), for :meth:`at`; trimmed by :meth:`forget_before`
+        self._hist = np.empty((5, 0))
+        self._t_first: float | None = None  # first grid time ever (at rest before it)
 
     def command(self, t: float, mode: int, value: float) -> None:
         """New demand at time ``t``: POSITION (angle rad), RATE (rad/s) or OFF (controlled stop)."""
@@ -235,10 +252,23 @@ class TableAxis:
         else:
             self.target = 0.0
             self.profile = Profile.to_rate(t, p0, v0, 0.0, self.amax)
-        if self.t_jerk > 0:  # the averaging window reaches back into the replaced profile
-            self.profile.prev = old
-            self.profile.prune(t - self.t_jerk)
+        # times before t (the jerk window, or an IMU sample not produced yet whose instant
+        # precedes the command) come from the replaced profile; forget_before() prunes the chain
+        self.profile.prev = old
+        self.profile.prune(min(t - self.t_jerk, self._keep_from))
         self.mode = mode
+
+    _keep_from = -math.inf  # earliest time still needed by at() (set by forget_before)
+
+    def forget_before(self, t: float) -> None:
+        """Drop the grid history and replaced profiles not needed for times >= ``t``."""
+        self._keep_from = float(t)
+        self.profile.prune(t - self.t_jerk)
+        h = self._hist
+        if h.shape[1] > 1:
+            j = int(np.searchsorted(h[0], t, side="right")) - 1
+            if j > 0:
+                self._hist = h[:, j:].copy()
 
     @property
     def end(self) -> float:
@@ -256,6 +286,7 @@ class TableAxis:
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e
         sv = self.servo
+        xr = None
         if t.size and (sv.ripple_per_rev or sv.ripple_fraction or self._ripple_angle):
             xr, wr = self._ripple(t, p, v)
             x, w = x + xr, w + wr
@@ -263,7 +294,86 @@ class TableAxis:
             self.last = (float(x[-1]), float(w[-1]), float(acc[-1]))
             self._update_window(t, x, w)
             self.last_t = float(t[-1])
+            if self._t_first is None:
+                self._t_first = float(t[0])
+            new = np.vstack([t, e, de, np.broadcast_to(a, t.shape),
+                             np.zeros(t.size) if xr is None else xr])
+            self._hist = np.hstack([self._hist, new])
         return x, w, acc
+
+    def at(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+        """Actual angle, rate and acceleration at any times ``t`` (increasing or not) from the
+        last :meth:`forget_before` time to one grid step past the last grid point, s.
+
+        The same physics as :meth:`advance`, evaluated off the grid: the profile exactly, the
+        servo error propagated exactly from the grid point t_j <= t over d = t - t_j with the
+        acceleration the discretised servo holds over that step (zero-order hold),
+
+            s(d) = s* + exp(A d) (s_j - s*),  s = (e, e'),  s* = (-a_j / w_n^2, 0),
+            exp(A d) = exp(-zeta w_n d) [C(d) I + S(d) (A + zeta w_n I)]
+
+        (C, S = cos, sin(w d)/w with w = w_n sqrt(1 - zeta^2); cosh, sinh when zeta > 1), so
+        ``at(t_j)`` and ``at(t_j + dt)`` are the grid values. Before the first grid point the
+        axis is at rest."""
+        t = np.asarray(t, dtype=float)
+        if self.t_jerk > 0:
+            p, v, _ = self.profile.smoothed(t, self.t_jerk)
+        else:
+            p, v, _ = self.profile.evaluate(t)
+        h = self._hist
+        if not h.shape[1]:
+            zero = np.zeros(t.shape)
+            return p, v, zero
+        if t.size and h[0, 0] > self._t_first and t.min() < h[0, 0] - 1e-9 * self.dt:
+            raise RuntimeError(f"table state asked for t = {t.min():.6f} s, before the kept "
+                               f"history ({h[0, 0]:.6f} s): forget_before() was called too late")
+        j = np.clip(np.searchsorted(h[0], t + 1e-9 * self.dt, side="right") - 1, 0, h.shape[1] - 1)
+        tj, e0, de0, u, xr0 = h[:, j]
+        d = t - tj
+        e, de = e0, de0
+        live = (d != 0.0) & ((e0 != 0.0) | (de0 != 0.0) | (u != 0.0))  # at rest the error stays 0
+        if live.all():
+            e, de = self._propagate(e0, de0, u, d)
+        elif live.any():
+            e, de = e0.copy(), de0.copy()
+            e[live], de[live] = self._propagate(e0[live], de0[live], u[live], d[live])
+        before = t < self._t_first - 1e-9 * self.dt
+        if np.any(before):
+            e, de = np.where(before, 0.0, e), np.where(before, 0.0, de)
+        x, w = p + e, v + de
+        acc = -self._2zwn * de - self._wn2 * e
+        sv = self.servo
+        if sv.ripple_per_rev or sv.ripple_fraction or np.any(xr0 != 0.0):
+            rr = v * (sv.ripple_per_rev * np.sin(p + sv.ripple_per_rev_phase)
+                      + sv.ripple_fraction * np.sin(2 * np.pi * sv.ripple_hz * t + sv.ripple_phase))
+            decay = 0.5 * self._2zwn
+            rest = xr0 * np.exp(-decay * d)
+            moving = v != 0.0
+            xr = np.where(moving, xr0 + rr * d, rest)
+            wr = np.where(moving, rr, -decay * rest)
+            if np.any(before):
+                xr, wr = np.where(before, 0.0, xr), np.where(before, 0.0, wr)
+            x, w = x + xr, w + wr
+        return x, w, acc
+
+    def _propagate(self, e0: NDArray, de0: NDArray, u: NDArray, d: NDArray) -> tuple[NDArray, NDArray]:
+        """Servo error state (e, e') after d seconds from (e0, de0) under constant input u
+        (see :meth:`at`): exact for e'' + 2 zeta w_n e' + w_n^2 e = -u."""
+        wn2 = self._wn2
+        sig = 0.5 * self._2zwn
+        z = self.servo.damping
+        estar = -u / wn2
+        E, D = e0 - estar, de0
+        if z < 1.0:
+            om = math.sqrt(wn2) * math.sqrt(1.0 - z * z)
+            C, S = np.cos(om * d), np.sin(om * d) / om
+        elif z > 1.0:
+            om = math.sqrt(wn2) * math.sqrt(z * z - 1.0)
+            C, S = np.cosh(om * d), np.sinh(om * d) / om
+        else:
+            C, S = np.ones_like(d), d
+        ex = np.exp(-sig * d)
+        return estar + ex * (C * E + S * (sig * E + D)), ex * (C * D - S * (wn2 * E + sig * D))
 
     def _ripple(self, t: NDArray, p: NDArray, v: NDArray) -> tuple[NDArray, NDArray]:
         """Ripple angle x_r and rate w_r on the grid (see the module docstring)."""
@@ -339,16 +449,33 @@ class SimTurntable:
         return (np.stack([c[0] for c in cols], axis=1), np.stack([c[1] for c in cols], axis=1),
                 np.stack([c[2] for c in cols], axis=1))
 
+    def at(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+        """(n, 3) actual angles, gimbal rates and accelerations at any times ``t`` within the
+        kept history (:meth:`TableAxis.at`): the table's state at the IMU's sample instants."""
+        cols = [ax.at(t) for ax in self.axes]
+        return (np.stack([c[0] for c in cols], axis=1), np.stack([c[1] for c in cols], axis=1),
+                np.stack([c[2] for c in cols], axis=1))
+
+    def forget_before(self, t: float) -> None:
+        """No :meth:`at` call will ask for times before ``t``: drop what only those needed."""
+        for ax in self.axes:
+            ax.forget_before(t)
+
     def measured(self, t: float) -> tuple[NDArray, NDArray, tuple[int, int, int]]:
-        """Encoder reading (quantised, wrapped for continuous axes), rate and status at ``t``."""
+        """Encoder reading (quantised, wrapped for continuous axes), rate and status at ``t``
+        (the actual state at ``t`` when it lies after the last grid point, within one step)."""
         ang, rate = np.empty(3), np.empty(3)
         for i, ax in enumerate(self.axes):
             q, a = ax.servo.encoder_lsb, ax.last[0]
+            r = ax.last[1]
+            if t > ax.last_t and ax._hist.shape[1]:
+                xa, wa, _ = ax.at(np.array([t]))
+                a, r = float(xa[0]), float(wa[0])
             if ax.servo.encoder_noise > 0:
                 a += ax.servo.encoder_noise * float(self.rng.standard_normal())
             a = round(a / q) * q if q > 0 else a
             ang[i] = float(wrap_angle(a)) if ax.continuous else a
-            rate[i] = ax.last[1]
+            rate[i] = r
         status = tuple(ax.status(t) for ax in self.axes)
         return ang, rate, status  # type: ignore[return-value]
 

@@ -15,6 +15,9 @@ When the engine runs a ``taps`` step it calls ``rig.operator.prompt(step, t_star
   receiver's timeguard) come from :func:`rigctl.sim.taps._receiver`, on the run (reference)
   timescale; :class:`SimPulses` delivers each edge once the clock has passed it.
 
+Every blow and edge drawn is also kept as truth rows (:data:`TRUTH_TABLES`, drained by the
+recorder into /truth/taps and /truth/edges through :meth:`SimTapOperator.drain_truth_rows`).
+
 Times in s (run timescale), accelerations in m/s^2.
 """
 from __future__ import annotations
@@ -36,6 +39,28 @@ AXES = {"x": 0, "y": 1, "z": 2}
 #: Options of ``pulses.sim`` besides the TapParams fields.
 EXTRA_KEYS = ("margin_s", "slot_jitter", "seed")
 
+#: Truth drawn during the run, written by the recorder as /truth/<table>/<column>
+#: (column: (per-row shape, dtype, units)); docs/data-format.md.
+TRUTH_TABLES: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
+    "taps": {  # one row per blow: hammer taps and spurious IMU spikes, in the order drawn
+        "time_s": ((), np.float64, "s"),            # true time of the blow, run timescale
+        "amplitude_m_s2": ((), np.float64, "m/s^2"),  # signed peak a_i
+        "direction": ((3,), np.float64, "1"),       # u_i, body axes (1 on the tap axis)
+        "hammer": ((), np.uint8, "1"),              # 1 = hammer tap, 0 = spurious spike (no edge)
+        "missed": ((), np.uint8, "1"),              # 1 = the hammer made no edge for this tap
+        "edge_time_s": ((), np.float64, "s"),       # its main edge (NaN if none), run timescale
+        "edge_logged": ((), np.uint8, "1"),         # 1 = the receiver logged that edge
+        "bounces": ((), np.int32, "1"),             # bounce edges after the main edge
+        "step": ((), np.int32, "1"),                # procedure step index that prompted it
+    },
+    "edges": {  # every electrical edge, logged or not
+        "time_s": ((), np.float64, "s"),
+        "kind": ((), "S16", ""),                    # tap | bounce | spurious
+        "tap_row": ((), np.int64, "1"),             # row of /truth/taps, -1 for a spurious edge
+        "logged": ((), np.uint8, "1"),              # 1 = in /pulses (outside the timeguard)
+    },
+}
+
 
 def tap_params(o: LocDict) -> tuple[T.TapParams, dict[str, float]]:
     """TapParams and scheduling options from the ``pulses.sim`` mapping (SI units in key names)."""
@@ -54,7 +79,11 @@ def tap_params(o: LocDict) -> tuple[T.TapParams, dict[str, float]]:
         elif name in ("missed_probability", "bounce_probability"):
             setattr(p, name, float(S.get_number(o, name, minimum=0, maximum=1)))
         elif name == "sign":
-            p.sign = float(S.get_number(o, name, minimum=-1, maximum=1))
+            p.sign = float(S.get_number(o, name))
+            if p.sign not in (-1.0, 1.0):
+                raise S.error(o, name, f"'sign' must be -1 or +1, got {o[name]!r}",
+                              "it is the direction of the blow along 'axis'; the size of the "
+                              "blow is 'amplitude_median_m_s2'")
         elif name in ("latency_s",):
             setattr(p, name, float(S.get_number(o, name)))
         else:
@@ -124,6 +153,8 @@ class SimTapOperator:
         self.pulse_time = np.empty(0)  # every edge the receiver logged, run time s
         self.pulse_kind = np.empty(0, dtype="U8")
         self.sessions: list[dict[str, Any]] = []
+        self.n_truth_rows = 0  # rows of the taps truth table so far
+        self._truth: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in TRUTH_TABLES}
 
     def prompt(self, step: Any, t_start: float, duration: float) -> None:
         """Tap ``step.expected_taps`` times in ``[t_start, t_start + duration]``: the usable
@@ -154,20 +185,55 @@ class SimTapOperator:
         direction[:, p.axis] = 1.0
         self.field.add(all_t, amp, direction, hammer)
         # hammer edges on the window's own timescale (spurious edges fall inside the window)
-        pt, pk, _, tap_pulse = T._receiver(rng, p, all_t - t_start, hammer, duration)
-        pt = pt + t_start
+        et, ek, ei, logged = T.hammer_edges(rng, p, all_t - t_start, hammer, duration)
+        et = et + t_start
         if self.pulse_time.size:  # the receiver's dead time carries over from earlier sessions
-            ok = pt - self.pulse_time[-1] >= p.timeguard_s
-            pt, pk = pt[ok], pk[ok]
+            logged = logged & (et - self.pulse_time[-1] >= p.timeguard_s)
+        pt, pk = et[logged], ek[logged].astype(str)
         self.pulse_time = np.concatenate([self.pulse_time, pt])
         self.pulse_kind = np.concatenate([self.pulse_kind, pk.astype("U8")])
-        self.sessions.append({"step": int(getattr(step, "index", -1)), "t_start_s": t_start,
+        step_index = int(getattr(step, "index", -1))
+        self._record_truth(step_index, all_t, amp, direction, hammer, et, ek, ei, logged)
+        main = ek == "tap"
+        self.sessions.append({"step": step_index, "t_start_s": t_start,
                               "duration_s": duration, "n_taps": n, "n_spurious_spikes": len(spikes),
                               "n_pulses": int(pt.size),
-                              "n_pulses_missed": int((tap_pulse[hammer] < 0).sum())})
+                              "n_pulses_missed": n - int((main & logged).sum())})
+
+    def _record_truth(self, step: int, tap_t: NDArray, amp: NDArray, direction: NDArray,
+                      hammer: NDArray, et: NDArray, ek: NDArray, ei: NDArray, logged: NDArray) -> None:
+        """Rows of the truth tables (TRUTH_TABLES) for one prompt's taps and edges."""
+        n = tap_t.size
+        main = ek == "tap"
+        edge_t = np.full(n, np.nan)
+        edge_logged = np.zeros(n, np.uint8)
+        edge_t[ei[main]] = et[main]
+        edge_logged[ei[main]] = logged[main]
+        bounces = np.bincount(ei[ek == "bounce"], minlength=n).astype(np.int32)
+        row0 = self.n_truth_rows
+        self._truth["taps"].append({
+            "time_s": tap_t.astype(float), "amplitude_m_s2": amp.astype(float),
+            "direction": direction.astype(float), "hammer": hammer.astype(np.uint8),
+            "missed": (hammer & np.isnan(edge_t)).astype(np.uint8), "edge_time_s": edge_t,
+            "edge_logged": edge_logged, "bounces": bounces, "step": np.full(n, step, np.int32)})
+        self._truth["edges"].append({
+            "time_s": et.astype(float), "kind": np.asarray([str(k) for k in ek], dtype="S16"),
+            "tap_row": np.where(ei >= 0, ei + row0, -1).astype(np.int64),
+            "logged": logged.astype(np.uint8)})
+        self.n_truth_rows += n
+
+    def drain_truth_rows(self) -> dict[str, dict[str, NDArray]]:
+        """Truth rows drawn since the last call, {table: {column: array}} (TRUTH_TABLES)."""
+        out = {}
+        for name, parts in self._truth.items():
+            if parts:
+                out[name] = {c: np.concatenate([p[c] for p in parts]) for c in TRUTH_TABLES[name]}
+                parts.clear()
+        return out
 
     def truth(self) -> dict[str, Any]:
-        """Tap and receiver parameters (SI), JSON-serialisable."""
+        """Tap and receiver parameters (SI), JSON-serialisable. The taps themselves are drawn
+        during the run: :meth:`drain_truth_rows` (the recorder's /truth/taps and /truth/edges)."""
         return {"taps": asdict(self.p), "margin_s": self.margin_s, "slot_jitter": self.slot_jitter}
 
 

@@ -179,6 +179,18 @@ def _schedule(rng: np.random.Generator, sched: ScheduleParams) -> np.ndarray:
 def _receiver(rng: np.random.Generator, p: TapParams, tap_t: np.ndarray, hammer: np.ndarray,
               t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Electrical edges and the receiver's timeguard; returns pulse times/kind/tap and map."""
+    et, ek, ei, keep = hammer_edges(rng, p, tap_t, hammer, t_end)
+    pt, pk, pi = et[keep], ek[keep].astype(str), ei[keep]
+    tap_pulse = np.full(tap_t.size, -1, dtype=int)
+    for j in np.flatnonzero(pk == "tap"):
+        tap_pulse[pi[j]] = j
+    return pt, pk, pi, tap_pulse
+
+
+def hammer_edges(rng: np.random.Generator, p: TapParams, tap_t: np.ndarray, hammer: np.ndarray,
+                 t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every electrical edge the hammer makes, sorted by time: (time s, kind "tap" | "bounce" |
+    "spurious", index of its tap or -1, whether the receiver logs it under its timeguard)."""
     n = tap_t.size
     hammer_idx = np.flatnonzero(hammer)
     fires = np.zeros(n, dtype=bool)
@@ -205,11 +217,7 @@ def _receiver(rng: np.random.Generator, p: TapParams, tap_t: np.ndarray, hammer:
     for j, t in enumerate(et):  # receiver dead time
         if t - last >= p.timeguard_s:
             keep[j], last = True, t
-    pt, pk, pi = et[keep], ek[keep].astype(str), ei[keep]
-    tap_pulse = np.full(n, -1, dtype=int)
-    for j in np.flatnonzero(pk == "tap"):
-        tap_pulse[pi[j]] = j
-    return pt, pk, pi, tap_pulse
+    return et, ek, ei, keep
 
 
 def simulate_taps(rate_hz: float, duration_s: float, schedule: ScheduleParams,

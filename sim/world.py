@@ -1,8 +1,9 @@
 """The in-process emulated rig: one physics time base for the table, the IMU and the pulses.
 
 The world advances lazily: whenever a device is read or commanded it first catches up to the
-clock's current time, generating every IMU sample (and the table motion on the same grid)
-in vectorised blocks. With a virtual clock a 30-minute procedure runs in seconds.
+clock's current time (the true, run time), advancing the table on its own grid and generating
+every IMU sample whose true time has passed, in vectorised blocks. With a virtual clock a
+30-minute procedure runs in seconds.
 """
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ from rigctl.yamlio import LocDict
 from .faults import FaultInjector
 from .effects import table_body_references
 from .imu import DeclaredImuModel, build_imu_model
-from .tap_rig import SimPulses, SimTapOperator, tap_params
+from .error_model import SampleGrid
+from .tap_rig import TRUTH_TABLES, SimPulses, SimTapOperator, tap_params
 from .table import OFF, POSITION, RATE, ServoParams, SimTurntable
 
 #: Largest block generated in one call, samples (bounds memory on long sleeps).
@@ -75,7 +77,16 @@ def _servos(o: LocDict) -> list[ServoParams]:
 
 
 class SimWorld:
-    """Table + IMU physics on the IMU's sample grid (sample k at time k / rate_hz)."""
+    """Table + IMU physics on one true (run) timescale.
+
+    The table evolves on its own uniform grid of run time, t_j = j h (h = the IMU's internal
+    sample period, 1 / (rate_hz x decimation)), so its motion, status and reported state do not
+    depend on the IMU. The IMU samples that physical world at ITS sample instants: the true
+    times of its clock (drift, wander, drops; :class:`rigctl.sim.error_model.SampleGrid`), the
+    table being evaluated exactly at those instants (:meth:`SimTurntable.at`). A sample is
+    produced once the run clock has passed its true time; its time stamp is the IMU's own,
+    counter / rate_hz. Commands act at the current run time :attr:`t`.
+    """
 
     def __init__(self, cfg: RigConfig, clock: Clock) -> None:
         self.cfg, self.clock = cfg, clock
@@ -85,16 +96,19 @@ class SimWorld:
         i_opts = cfg.imu.options.get("sim") or LocDict()
         i_opts = S.require_mapping(i_opts, "'imu.sim'", cfg.imu.options, "sim")
         self.imu_model = build_imu_model(i_opts, self.rate_hz, cfg.seed)
-        # the physics grid is the IMU's internal (pre-decimation) grid
+        # the table's grid step is the IMU's internal (pre-decimation) sample period
         self.decimation = int(getattr(self.imu_model, "decimation", 1))
+        self.h = self.dt / self.decimation
         t_opts = cfg.table.options.get("sim") or LocDict()
         t_opts = S.require_mapping(t_opts, "'table.sim'", cfg.table.options, "sim")
         continuous = [bool(np.isinf(cfg.limits.angle_min[i])) for i in range(3)]
         self.table = SimTurntable(_servos(t_opts), cfg.limits.rate, cfg.limits.accel, continuous,
-                                  self.dt / self.decimation, rng)
-        self.k = 0  # next sample index
-        self._blocks: list[ImuBlock] = []
-        self._last_w = np.zeros(3)
+                                  self.h, rng)
+        self.t = 0.0  # run time the world has been advanced to (a grid time when within rounding), s
+        self.k = 0  # counter of the next IMU output sample
+        self._j = 0  # index of the next table grid point (time j h)
+        self._pending: SampleGrid | None = None  # IMU samples drawn from its clock, not yet due
+        self._blocks: list[tuple[ImuBlock, NDArray]] = []  # (block, true times of its samples)
         self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
         self.operator: SimTapOperator | None = None  # emulated tap-hammer operator (pulses: sim)
         if cfg.pulses.driver == "sim":
@@ -122,60 +136,147 @@ class SimWorld:
         return f
 
     def advance(self) -> None:
-        """Generate every sample with time <= clock.now()."""
-        k_end = int(math.floor(self.clock.now() * self.rate_hz + 1e-9)) + 1
+        """Bring the world to the clock's time: the table's grid up to it, and every IMU sample
+        whose true time has passed (in blocks of at most MAX_BLOCK table points)."""
+        now = max(self.clock.now(), self.t)
+        j_end = int(math.floor(now / self.h + 1e-9)) + 1  # grid points with t_j <= now
+        t_grid = (j_end - 1) * self.h
+        if abs(now - t_grid) <= 1e-6 * self.h:  # a clock time on the grid but for rounding
+            now = max(t_grid, self.t)
+        while True:
+            j_stop = min(j_end, self._j + MAX_BLOCK)
+            if j_stop > self._j:
+                self.table.advance(np.arange(self._j, j_stop) * self.h)
+                self._j = j_stop
+            until = now if j_stop == j_end else (j_stop - 1) * self.h
+            if isinstance(self.imu_model, DeclaredImuModel):
+                self._declared_until(until)
+            else:
+                self._model_until(until)
+            self.table.forget_before(self._next_eval_time())
+            if j_stop == j_end:
+                break
+        self.t = now
+
+    def _next_eval_time(self) -> float:
+        """Earliest time at which a future IMU sample will look at the table, s."""
+        if self._pending is not None:
+            return float(self._pending.t_eval[0])
+        return self.k * self.dt if isinstance(self.imu_model, DeclaredImuModel) else -math.inf
+
+    def _declared_until(self, until: float) -> None:
+        """Declared model: samples on the nominal grid k / rate_hz (its clock is perfect)."""
+        k_end = int(math.floor(until * self.rate_hz + 1e-9)) + 1
         while self.k < k_end:
             n = min(k_end - self.k, MAX_BLOCK)
-            if isinstance(self.imu_model, DeclaredImuModel):
-                idx = np.arange(self.k, self.k + n)
-                t = idx * self.dt
-                ang, rates, _acc = self.table.advance(t)
-                f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
-                                           self.cfg.gravity)
-                f_b, w_b = self._wobble(ang, rates, f_b, w_b)
-                f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b)
-                counter = idx.astype(np.uint64)
-            else:  # full error model: its own clock, internal rate, delay, dropped samples
-                grid = self.imu_model.sample_grid(n)
-                ang, rates, acc = self.table.advance(grid.t_eval)
-                f_b, w_b = table_body_references(ang, rates, self.cfg.latitude, self.cfg.gravity,
-                                                 **self.imu_model.table_geometry())
-                f_b, w_b = self._wobble(ang, rates, f_b, w_b)
-                w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
-                f_b = self._taps(grid.t_eval, f_b)  # taps happen at the IMU, before its front end
-                f, w, temp = self.imu_model.apply(grid.t_internal, f_b, w_b, w_dot=w_dot)
-                keep = grid.keep
-                counter = grid.counter[keep]
-                t = counter.astype(np.float64) / self.rate_hz
-                f, w, temp = f[keep], w[keep], temp[keep]
-            if self.faults.windows:
-                temp = temp + self.faults.temperature_offset(t)
-            self._blocks.append(ImuBlock(t, counter, f, w, temp))
+            idx = np.arange(self.k, self.k + n)
+            t = idx * self.dt
+            ang, rates, _acc = self.table.at(t)
+            f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
+                                       self.cfg.gravity)
+            f_b, w_b = self._wobble(ang, rates, f_b, w_b)
+            f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b)
+            self._emit(t, idx.astype(np.uint64), f, w, temp, t)
             self.k += n
 
-    def take_imu(self, advance: bool = True) -> ImuBlock:
-        """Samples generated since the last call (after catching up to the clock if ``advance``)."""
+    def _model_until(self, until: float) -> None:
+        """Full error model: every sample whose true time (its own clock) is <= ``until``."""
+        lim = until + 1e-6 * self.h
+        max_out = max(1, MAX_BLOCK // self.decimation)
+        while True:
+            g = self._pending
+            if g is None or g.t_out[-1] <= lim:
+                if g is not None and g.t_out.size >= max_out:
+                    self._model_block(self._take(max_out))
+                    continue
+                last = float(g.t_out[-1]) if g is not None else 0.0
+                n = int(min(max_out, max(16.0, (lim - last) * self.rate_hz * 1.01 + 16)))
+                self._extend(self.imu_model.sample_grid(n))
+                continue
+            m = int(np.searchsorted(g.t_out, lim, side="right"))
+            if m == 0:
+                return
+            self._model_block(self._take(min(m, max_out)))
+
+    def _extend(self, g: SampleGrid) -> None:
+        p = self._pending
+        self._pending = g if p is None else SampleGrid(
+            *(np.concatenate([getattr(p, f), getattr(g, f)])
+              for f in ("t_internal", "t_eval", "t_out", "counter", "keep")))
+
+    def _take(self, m: int) -> SampleGrid:
+        """The first m pending output samples (and their internal samples)."""
+        p, L = self._pending, self.decimation
+        assert p is not None
+        head = SampleGrid(p.t_internal[: m * L], p.t_eval[: m * L], p.t_out[:m], p.counter[:m], p.keep[:m])
+        rest = SampleGrid(p.t_internal[m * L:], p.t_eval[m * L:], p.t_out[m:], p.counter[m:], p.keep[m:])
+        self._pending = rest if rest.t_out.size else None
+        return head
+
+    def _model_block(self, g: SampleGrid) -> None:
+        ang, rates, acc = self.table.at(g.t_eval)  # the table at the IMU's (delayed) instants
+        f_b, w_b = table_body_references(ang, rates, self.cfg.latitude, self.cfg.gravity,
+                                         **self.imu_model.table_geometry())
+        f_b, w_b = self._wobble(ang, rates, f_b, w_b)
+        w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
+        f_b = self._taps(g.t_eval, f_b)  # taps happen at the IMU, before its front end
+        f, w, temp = self.imu_model.apply(g.t_internal, f_b, w_b, w_dot=w_dot)
+        keep = g.keep
+        counter = g.counter[keep]
+        self._emit(counter.astype(np.float64) / self.rate_hz, counter, f[keep], w[keep], temp[keep],
+                   g.t_out[keep])
+        self.k = int(g.counter[-1]) + 1
+
+    def _emit(self, t: NDArray, counter: NDArray, f: NDArray, w: NDArray, temp: NDArray,
+              t_true: NDArray) -> None:
+        if self.faults.windows:
+            temp = temp + self.faults.temperature_offset(t_true)
+        self._blocks.append((ImuBlock(t, counter, f, w, temp), t_true))
+
+    def take_imu(self, advance: bool = True, true_time: bool = False) -> Any:
+        """Samples generated since the last call (after catching up to the clock if ``advance``);
+        with ``true_time`` the pair (block, true run time of each sample, s)."""
         if advance:
             self.advance()
         blocks, self._blocks = self._blocks, []
         if not blocks:
-            return ImuBlock.empty()
-        if len(blocks) == 1:
-            return blocks[0]
-        return ImuBlock(*(np.concatenate([getattr(b, f) for b in blocks])
-                          for f in ("time", "counter", "specific_force", "angular_rate", "temperature")))
+            out, tt = ImuBlock.empty(), np.empty(0)
+        elif len(blocks) == 1:
+            out, tt = blocks[0]
+        else:
+            out = ImuBlock(*(np.concatenate([getattr(b, f) for b, _ in blocks])
+                             for f in ("time", "counter", "specific_force", "angular_rate", "temperature")))
+            tt = np.concatenate([x for _, x in blocks])
+        return (out, tt) if true_time else out
 
     def truth(self) -> dict[str, Any]:
+        """Every true parameter (a dict, JSON-serialisable). With the tap operator it also
+        carries the taps drawn during the run (:class:`RunTruth`: the recorder writes them to
+        /truth/taps and /truth/edges)."""
         out = {"imu": self.imu_model.truth(), "table": self.table.truth(), "seed": self.cfg.seed,
-                "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
-                         "gravity_m_s2": self.cfg.gravity}}
+               "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
+                        "gravity_m_s2": self.cfg.gravity}}
         if self.operator is not None:
             out["pulses"] = self.operator.truth()
+            return RunTruth(out, self.operator)
         return out
 
     def pulses(self) -> Any:
         """The rig's pulse source: the emulated receiver's input, or one that never fires."""
         return NoPulses() if self.operator is None else SimPulses(self.operator, self.clock)
+
+
+class RunTruth(dict):
+    """The truth dict plus the tables of truth drawn during the run, for the recorder
+    (rigctl.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
+
+    def __init__(self, params: dict[str, Any], operator: SimTapOperator) -> None:
+        super().__init__(params)
+        self.operator = operator
+        self.truth_tables = TRUTH_TABLES
+
+    def drain_truth_rows(self) -> dict[str, dict[str, NDArray]]:
+        return self.operator.drain_truth_rows()
 
 
 class SimTableDevice:
@@ -186,7 +287,7 @@ class SimTableDevice:
 
     def _now(self) -> float:
         self.world.advance()
-        t = self.world.k * self.world.dt - self.world.dt if self.world.k else 0.0
+        t = self.world.t
         self._apply_faults(t)
         return t
 
@@ -241,7 +342,7 @@ class SimImuDevice:
 
     def read(self) -> ImuBlock:
         block = self.world.take_imu()
-        t = self.world.k * self.world.dt - self.world.dt if self.world.k else 0.0
+        t = self.world.t
         self.world.faults.tick(t)
         if self.world.faults.active("imu_link", t):
             raise LinkLost("imu", "no data (link down, injected)")  # samples meanwhile are lost

@@ -204,6 +204,10 @@ def test_config_example_runs(index: int, block: str, tmp_path: Path):
             jump = np.max(np.abs(np.diff(tapped.specific_force[:, axis])))
             calm = np.max(np.abs(np.diff(quiet.specific_force[:, axis])))
             assert jump > 10 * calm, "taps not visible in the IMU output"
+            rows = truth.drain_truth_rows()  # what the recorder appends to /truth/taps, /edges
+            assert int(rows["taps"]["hammer"].sum()) == 4
+            logged = rows["edges"]["logged"] == 1
+            assert np.array_equal(np.sort(rows["edges"]["time_s"][logged]), pulses)
 
 
 @pytest.mark.parametrize("index", [i for i, b in enumerate(PY_BLOCKS) if b.startswith("# runnable")])
@@ -233,6 +237,32 @@ def test_every_profile_key_is_documented():
     names = {p[-1] for p in paths} | set(doc["random"]) | {"profiles", "random"}
     missing = sorted(n for n in names if n not in _doc_keys() and f"random.{n}" not in _doc_keys())
     assert not missing, f"profile keys not in docs/emulator.md: {missing}"
+
+
+def _schema_keys(schema: dict) -> set[str]:
+    out = set()
+    for k, v in schema.items():
+        out.add(k)
+        if isinstance(v, dict):
+            out |= _schema_keys(v)
+    return out
+
+
+def test_every_schema_key_is_documented():
+    """Every key the profile checker accepts (a misspelling of any other is an error) has a
+    row in docs/emulator.md, and so does every column of the truth tables (also in
+    docs/data-format.md)."""
+    from rigctl.sim.profiles import PROFILE_SCHEMA, RANDOM_SCHEMA
+
+    keys = _doc_keys()
+    names = _schema_keys(PROFILE_SCHEMA) - {"name"}  # 'name' is set by the loader
+    missing = sorted(n for n in names | set(RANDOM_SCHEMA)
+                     if n not in keys and f"random.{n}" not in keys)
+    assert not missing, f"schema keys not in docs/emulator.md: {missing}"
+    fmt = (DOC.parent / "data-format.md").read_text(encoding="utf-8")
+    for table, cols in tap_rig.TRUTH_TABLES.items():
+        for col in cols:
+            assert f"`/truth/{table}/{col}`" in TEXT and f"`/truth/{table}/{col}`" in fmt, (table, col)
 
 
 def test_table_tap_and_fault_keys_are_documented():

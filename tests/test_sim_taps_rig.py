@@ -86,16 +86,71 @@ def test_sync_finds_taps_and_the_true_clock(tap_run):
     assert s["n_taps_detected"] == N_TAPS
     assert s["n_matched"] == N_TAPS - missed and s["n_outliers"] == 0
     # pulse = tap + trigger latency; the IMU reports what happened time_delay_s earlier and its
-    # counter 0 is at power_on_time_s. The blow is the mount's second-order response, short
+    # counter 0 is at run time 0. The blow is the mount's second-order response, short
     # against the IMU's low-pass: the output sees it as an impulse at its centroid, 2 zeta / w_n
     # after the onset (-H'(0)/H(0)), which is the time the sync's impulse model finds.
     tp = t["pulses"]["taps"]
     centroid = 2 * tp["damping"] / (2 * np.pi * tp["natural_freq_hz"])
-    offset = t["imu"]["power_on_time_s"] + tp["latency_s"] - t["imu"]["time_delay_s"] - centroid
+    offset = tp["latency_s"] - t["imu"]["time_delay_s"] - centroid
     assert s["timing"] == "subsample"
     assert abs(s["offset_s"] - offset) <= s["offset_ci95_s"]
     drift = t["imu"]["effects"]["clock"]["drift_ppm"]
     assert abs(s["drift_ppm"] - drift) <= s["drift_ci95_ppm"]
+
+
+def test_individual_taps_are_recorded_in_the_truth(tap_run):
+    """/truth/taps and /truth/edges hold every blow and edge drawn during the run: the logged
+    edges are exactly /pulses/time, the missed pulse is flagged, bounces are counted."""
+    with h5py.File(tap_run, "r") as f:
+        taps = {k: f["truth/taps"][k][()] for k in f["truth/taps"]}
+        edges = {k: f["truth/edges"][k][()] for k in f["truth/edges"]}
+        units = {k: f["truth/taps"][k].attrs["units"] for k in f["truth/taps"]}
+        pt = f["pulses/time"][()]
+        seg = {k: f["segments"][k][()] for k in ("kind", "t_start", "t_end")}
+        params = json.loads(f["truth"].attrs["params_json"])["pulses"]["taps"]
+    assert units["time_s"] == "s" and units["amplitude_m_s2"] == "m/s^2"
+    assert taps["time_s"].size == N_TAPS and np.all(taps["hammer"] == 1)
+    w = np.flatnonzero(seg["kind"] == b"taps")[0]
+    assert np.all((taps["time_s"] > seg["t_start"][w]) & (taps["time_s"] < seg["t_end"][w]))
+    assert np.all(np.abs(np.log(np.abs(taps["amplitude_m_s2"]) / params["amplitude_median_m_s2"]))
+                  < 5 * params["amplitude_log_sigma"])
+    assert int(taps["missed"].sum()) == params["missed_count"]
+    assert np.all(np.isnan(taps["edge_time_s"][taps["missed"] == 1]))
+    fired = taps["missed"] == 0
+    lag = taps["edge_time_s"][fired] - taps["time_s"][fired] - params["latency_s"]
+    assert np.all(np.abs(lag) < 6 * params["jitter_s"])
+    logged = edges["logged"] == 1
+    assert np.array_equal(np.sort(edges["time_s"][logged]), pt)
+    assert int((edges["kind"] == b"bounce").sum()) == int(taps["bounces"].sum()) > 0
+    assert np.all(edges["kind"][logged] == b"tap")  # bounces fall in the receiver's dead time
+    main = edges["kind"] == b"tap"
+    assert np.array_equal(taps["edge_time_s"][edges["tap_row"][main]], edges["time_s"][main])
+
+
+def test_sync_matches_agree_with_the_recorded_taps(tap_run):
+    """Every tap `rigctl sync` matched is a recorded hammer tap: its pulse is that tap's logged
+    edge, and its IMU time, mapped to run time through the true clock, is the tap's true time
+    (plus the IMU's delay and the response centroid, as the clock fit says)."""
+    r = run_rigctl("sync", str(tap_run))
+    assert r.returncode == 0, r.stderr
+    with h5py.File(tap_run, "r") as f:
+        taps = {k: f["truth/taps"][k][()] for k in f["truth/taps"]}
+        res = f["results/sync"]
+        s = json.loads(res.attrs["json"])
+        tap_imu, pulse = res["tap_time_imu"][()], res["pulse_time"][()]
+        inlier = res["inlier"][()].astype(bool)
+        t = json.loads(f["truth"].attrs["params_json"])
+    rows = np.array([int(np.flatnonzero(taps["edge_time_s"] == p)[0]) for p in pulse])
+    assert np.unique(rows).size == rows.size and np.all(taps["edge_logged"][rows] == 1)
+    assert inlier.all() and rows.size == int(taps["edge_logged"].sum())
+    assert s["n_taps_without_pulse"] == int((taps["edge_logged"] == 0).sum())
+    ppm = t["imu"]["effects"]["clock"]["drift_ppm"]
+    tau0 = 1.0 / t["imu"]["output_rate_hz"]
+    true_imu = (tap_imu / tau0 + 1.0) * tau0 * (1 + 1e-6 * ppm) - tau0  # clock of docs/emulator.md
+    tp = t["pulses"]["taps"]
+    centroid = 2 * tp["damping"] / (2 * np.pi * tp["natural_freq_hz"])
+    err = true_imu - (taps["time_s"][rows] + t["imu"]["time_delay_s"] + centroid)
+    assert np.all(np.abs(err) < 4 * s["residual_std_ms"] * 1e-3 + 1e-4)
 
 
 def test_default_config_has_no_pulses():
