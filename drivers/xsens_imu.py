@@ -210,8 +210,13 @@ class XsensImu:
         raise LinkLost(self.name, f"no acknowledgement of {what} from {self.link.url}")
 
     def _configure(self) -> None:
+        first = self.offset is None
         self.link.ensure()
+        if first:       # bytes a previous user left in the port's buffer (e.g. a killed process)
+            self.link.drain_input()
         self._request(go_to_config(), MID.GO_TO_CONFIG_ACK, "GoToConfig")
+        if first:
+            self._discard_preconfig()
         ack = self._request(set_output_configuration(self.items), MID.SET_OUTPUT_CONFIGURATION_ACK,
                             f"the output configuration ({self.rate_hz} Hz)")
         if ack.data and decode_output_configuration(ack.data) != self.items:
@@ -233,6 +238,16 @@ class XsensImu:
             log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
         self._down_since = None
         self._configured.set()
+
+    def _discard_preconfig(self) -> None:
+        """Forget frames decoded before our first configuration (the device was already
+        streaming: stale buffered data or another configuration); they are not part of this run
+        and their sample times lie before it."""
+        with self._cond:
+            self._pending.clear()
+            self._latest_stf = None
+        self._stf0 = None
+        self.stream = MTData2Stream(wrap_ticks=self.stream.wrap_ticks)
 
     _learning = False
     _chunks = 0

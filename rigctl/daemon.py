@@ -95,7 +95,7 @@ class Daemon:
             self.log("warning", f"ignoring unreadable {path}: {exc}")
             return
         resume_first = []
-        for j in self.jobs:
+        for j in list(self.jobs):  # a copy: the resume jobs created here must not be queued twice
             if j.state == "running":
                 j.state, j.message = "crashed", "the daemon stopped while the job ran"
                 if j.run_dir and (Path(j.run_dir) / "checkpoint.json").exists():

@@ -172,3 +172,10 @@ class LinkLost(ConnectionError):
 class DeviceFault(RuntimeError):
     """A device reports a fault that needs an operator (e.g. the table refuses a command while
     its drive is faulted). The engine pauses on it like on the fault status bits."""
+
+
+class NoPulses:
+    """A pulse source that never fires (rig without a pulse input)."""
+
+    def read(self) -> Pulses:
+        return Pulses(np.empty(0), source="none")

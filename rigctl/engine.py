@@ -123,6 +123,7 @@ class Engine:
         self.current_step: Step | None = None
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
         self.n_suspensions = 0
+        self._flushed_once = False
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
@@ -164,6 +165,9 @@ class Engine:
         except LinkLost as exc:
             obs.table_error = f"table link lost: {exc}"
             state = self.last_state
+        if not self._flushed_once:  # what the devices sent while connecting: on disk at once
+            self._flushed_once = True
+            self.rec.flush()
         self.progress.update(obs.t, state, self.rec.n_imu, self.gaps.dropped)
         if self.abort_requested:
             raise Interrupted(self.abort_requested)
@@ -299,15 +303,19 @@ class Engine:
         return first, max(first, last)
 
     def run(self, steps: list[Step], start: int = 0,
-            on_step: Callable[[Step, Segment], None] | None = None) -> list[Segment]:
+            on_step: Callable[[Step, Segment], None] | None = None,
+            stop_first: str | None = None) -> list[Segment]:
         """Execute ``steps[start:]`` (solve steps are skipped: they run after the recording).
 
         A suspension pauses the run (see :meth:`suspend`) and the interrupted step then runs
-        again from its start."""
+        again from its start. ``stop_first`` (a resumed run): stop the table before any motion,
+        see :meth:`stop_first`."""
         segments = []
         motion = [s for s in steps[start:] if s.is_motion]
         if self.states.state == "idle":
             self.states.to("running", f"{len(motion)} steps to run")
+        if stop_first is not None:
+            self.stop_first(stop_first)
         n = 0
         while n < len(motion):
             step = motion[n]
@@ -393,6 +401,29 @@ class Engine:
         rec.add_event(now, "resume", text)
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)
+
+    def stop_first(self, why: str, wait_s: float = 30.0) -> None:
+        """Before the first motion of a resumed run: record how the cut-off left the table (a
+        crash cannot stop it: it may still hold a position or spin at a rate), command it to stop
+        (rate zero, mode off) and wait until it stands still, so the next step starts from rest
+        (its move then re-homes the table to the step's angles)."""
+        clock = self.rig.clock
+        names = ("outer", "middle", "inner")
+        try:
+            state = self.rig.table.read()
+        except Exception as exc:  # noqa: BLE001 - a fault here pauses at the first step instead
+            found = f"table state unreadable ({exc})"
+        else:
+            servo = [n for n, w in zip(names, state.status) if int(w) & AxisStatus.SERVO_ON]
+            rates = ", ".join(f"{n} {math.degrees(r):+.3f} deg/s" for n, r in zip(names, state.rate))
+            found = (f"table found {'moving' if state.any_has(AxisStatus.MOVING) else 'still'} "
+                     f"({rates}; servo {'on: ' + ', '.join(servo) if servo else 'off'})")
+        self.log("info", f"{why}: {found}; commanding a stop (rate zero, mode off) before any motion")
+        self.rec.add_event(clock.now(), "safe-state", f"{why}: {found}; stop commanded before any motion")
+        self._stop_table(wait_s)
+        state = self.last_state
+        if state is not None and not state.any_has(AxisStatus.MOVING):
+            self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off; resuming")
 
     def safe_state(self, wait_s: float = 2.0) -> bool:
         """Command the table to stop (rate zero, mode off), then record its state until it is

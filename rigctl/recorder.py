@@ -212,7 +212,12 @@ class Recorder:
         self = cls.__new__(cls)
         self._init_state(path, flush_interval_s, max_buffer_rows, min_free_bytes)
         clear_status_flags(self.path)
-        f = h5py.File(self.path, "r+", libver="latest")
+        # straight into SWMR-write mode (status flags 0 -> 5 in one step): a kill during the
+        # reopen leaves flags that readers and the next resume accept
+        fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+        fapl.set_libver_bounds(h5py.h5f.LIBVER_LATEST, h5py.h5f.LIBVER_LATEST)
+        f = h5py.File(h5py.h5f.open(os.fsencode(str(self.path)),
+                                    h5py.h5f.ACC_RDWR | h5py.h5f.ACC_SWMR_WRITE, fapl=fapl))
         try:
             if f.attrs.get("format") != FORMAT_NAME:
                 raise ValueError(f"{self.path} is not a rigctl recording")
@@ -234,7 +239,6 @@ class Recorder:
             self.counter_offset, self.time_offset = int(c0), c0 / rate
             f["run/status"][0] = b"running"
             f["meta"].attrs["ended_utc"] = ""
-            f.swmr_mode = True
             f.flush()
         except Exception:
             f.close()

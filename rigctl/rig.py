@@ -28,7 +28,7 @@ from typing import Any
 
 from .clock import make_clock
 from .config import RigConfig
-from .devices import Clock, LinkLost
+from .devices import Clock, LinkLost, NoPulses
 from .engine import Rig
 from .yamlio import InputError
 
@@ -87,7 +87,6 @@ def build_pulses(cfg: RigConfig, clock: Clock):
         from .drivers.modem_pulses import ModemPulses
         return ModemPulses(s["port"], clock, baudrate=s["baudrate"], line=s["line"], edge=s["edge"],
                            mode=s["mode"], poll_interval_s=s["poll_interval_s"])
-    from .sim.world import NoPulses
     return NoPulses()
 
 
@@ -118,8 +117,10 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
 def open_rig(cfg: RigConfig) -> Iterator[tuple[Rig, dict[str, Any] | None]]:
     """Yield (rig, truth); truth is the emulator's true parameters (None for a wired rig)."""
     if cfg.is_simulated:
-        clock = make_clock(cfg.clock, cfg.speed)
+        # import the emulator (scipy.signal, ~1 s) BEFORE the run clock starts, so that second
+        # is not spent with data accruing and nothing on disk
         from .sim.world import SimImuDevice, SimTableDevice, SimWorld
+        clock = make_clock(cfg.clock, cfg.speed)
 
         world = SimWorld(cfg, clock)
         rig = Rig(table=SimTableDevice(world), imu=SimImuDevice(world), pulses=world.pulses(),

@@ -14,7 +14,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -54,7 +54,8 @@ class RunResult:
 class RunOptions:
     """How a run is driven (the daemon and tests set these; ``rigctl run`` uses the defaults)."""
 
-    suspenders: SuspenderSettings = field(default_factory=SuspenderSettings)
+    #: None: the rig config's ``suspenders:`` section (``RigConfig.suspenders``)
+    suspenders: SuspenderSettings | None = None
     states: StateMachine | None = None
     rig_opener: Callable[[RigConfig], Any] = open_rig
     on_engine: Callable[[Engine | None], None] | None = None  # called with the engine, then None
@@ -123,6 +124,26 @@ def _clock_zero_unix(rig: Rig, cfg: RigConfig) -> float:
     return time.time() - rig.clock.now() / speed
 
 
+def _open_cut_off(recording: Path) -> h5py.File:
+    """A cut-off recording, for reading. A crash leaves HDF5's write flags set, which SWMR
+    readers accept when the SWMR flag is set too; a crash of a resume between its plain 'r+'
+    open and the switch to SWMR leaves the write flag alone, which every reader refuses: then
+    the flags are cleared first (the resume clears them anyway before reopening)."""
+    try:
+        return h5py.File(recording, "r", libver="latest", swmr=True)
+    except OSError:
+        if ckpt_mod.status_flags(recording) != 1:
+            raise
+    ckpt_mod.clear_status_flags(recording)
+    return h5py.File(recording, "r", libver="latest")
+
+
+def _with_settings(options: RunOptions | None, cfg: RigConfig) -> RunOptions:
+    """``options`` with the suspender settings resolved: given ones win, else the config's."""
+    opts = options or RunOptions()
+    return opts if opts.suspenders is not None else replace(opts, suspenders=cfg.suspenders)
+
+
 def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Checkpoint:
     return ckpt_mod.Checkpoint(procedure_path=str(Path(proc.path).resolve()), overrides=overrides,
                                source_sha256={str(Path(p).resolve()): ckpt_mod.sha256_text(t)
@@ -131,7 +152,7 @@ def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Chec
 
 def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
            make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-           install_signals: bool, progress: Progress) -> RunResult:
+           install_signals: bool, progress: Progress, resuming: bool = False) -> RunResult:
     """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe."""
     recording = run_dir / RECORDING
     log = _DiskSafeLog(log)  # type: ignore[assignment]
@@ -173,7 +194,9 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
         if opts.on_engine:
             opts.on_engine(engine)
         try:
-            engine.run(proc.steps, start, on_step=on_step)
+            # resuming: the cut-off left the table as it was; stop it before any motion
+            engine.run(proc.steps, start, on_step=on_step,
+                       stop_first=f"session {ckpt.sessions}" if resuming else None)
             status, code = "complete", EXIT_OK
         except Interrupted as exc:
             status, code, message = "interrupted", EXIT_INTERRUPTED, f"interrupted by {exc}"
@@ -225,7 +248,7 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
                   overrides: dict[str, Any] | None = None) -> RunResult:
     """Execute ``proc`` on the rig of ``cfg``; the recording and log go to a new run directory.
     ``overrides`` (the ``-p`` values) are kept in the checkpoint for ``rigctl resume``."""
-    opts = options or RunOptions()
+    opts = _with_settings(options, cfg)
     run_dir = make_run_dir(out_parent, proc.name)
     (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
     progress = opts.progress or make_progress(console if console is not None else sys.stdout)
@@ -272,6 +295,7 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     if ck.status == "complete":
         raise InputError(f"{d}: the run is already complete; nothing to resume")
     cfg = load_config(d / ck.config_file)
+    opts = _with_settings(opts, cfg)
     proc = load_procedure(ck.procedure_path, ck.overrides, cfg.limits)
     for path, text in proc.sources.items():
         if ck.source_sha256.get(str(Path(path).resolve())) != ckpt_mod.sha256_text(text):
@@ -281,7 +305,7 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     if not recording.exists():
         raise InputError(f"{d}: the run was cut off before its recording was created",
                          hint="start the procedure again")
-    with h5py.File(recording, "r", libver="latest", swmr=True) as f:
+    with _open_cut_off(recording) as f:
         seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample")}
         file_status = f["run/status"][0].decode()
     if file_status == "complete":
@@ -327,4 +351,4 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
         return rec, start
 
-    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress)
+    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True)

@@ -24,7 +24,10 @@ SAME symlink to it (the raw ``/dev/pts/N`` path changes; it is returned and logg
 
 Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall`,
 :meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`, :meth:`trip_interlock`,
-:meth:`trip_following_error`, :meth:`inject`.
+:meth:`trip_following_error`, :meth:`clear_fault` (the operator at the table), :meth:`inject`.
+Observation (side channel, for tests): ``acl.core.received`` (request lines with wall times),
+``xsens.measurement_starts`` and, with ``imu_keep_sent=N``, ``xsens.sent`` (the last N batches of
+IMU frames put on the wire, with wall times and their float32 values).
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -93,12 +97,20 @@ class FlowPtyEndpoint(PtyEndpoint):
 
 class HwAclCore(AclServerCore):
     """ACL protocol core with a counted stall: the next ``stall_replies`` replies come
-    ``stall_s`` late (the port's reader thread sleeps, as a busy controller would)."""
+    ``stall_s`` late (the port's reader thread sleeps, as a busy controller would). Every
+    request line is kept in :attr:`received` as (wall time ``time.monotonic()``, line), the
+    last 20,000, so a test can see which commands reached the controller and when."""
 
     stall_replies = 0
     stall_s = 0.0
 
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.received: deque[tuple[float, str]] = deque(maxlen=20_000)
+
     def handle_line(self, line: str | bytes) -> str | None:
+        self.received.append((time.monotonic(), line.decode("ascii", "replace").strip()
+                              if isinstance(line, bytes) else line.strip()))
         if self.stall_replies > 0:
             self.stall_replies -= 1
             time.sleep(self.stall_s)
@@ -124,13 +136,31 @@ class HwXsensServer(XsensServer):
 
     grid_rate_hz = 100.0
 
+    def __init__(self, *args: Any, keep_sent: int = 0, **kw: Any) -> None:
+        #: wall times (``time.monotonic()``) at which a measurement period began (GoToMeasurement)
+        self.measurement_starts: list[float] = []
+        #: with ``keep_sent`` > 0, the last ``keep_sent`` batches written to the port as (wall
+        #: time after the write, sample times (n,) s, acceleration (n, 3) as the float32 values
+        #: on the wire, whether the port took every byte): what a client could have received
+        self.sent: deque[tuple[float, np.ndarray, np.ndarray, bool]] = deque(maxlen=max(1, keep_sent))
+        self.keep_sent = int(keep_sent)
+        self._last_acc: np.ndarray | None = None
+        super().__init__(*args, **kw)
+
     def _stream(self) -> None:          # the hardware loop calls step() instead
         return
 
+    #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
+    #: the physics lags behind (e.g. the loop waited for a client that went away), so no frame
+    #: of it carries a device time from before the GoToMeasurement request
+    true_clock: Any = None
+
     def _enter_measurement(self) -> None:
         g = self.grid_rate_hz
-        self._t0, self._k = math.ceil(self.clock() * g - 1e-9) / g, 0
+        now = self.true_clock() if self.true_clock is not None else self.clock()
+        self._t0, self._k = math.ceil(now * g - 1e-9) / g, 0
         self.state = "measurement"
+        self.measurement_starts.append(time.monotonic())
 
     #: byte errors injected so far, and hit frames whose 8-bit checksum still adds up after the
     #: corruption (no receiver can detect those; with 2+ errors in one frame about 1 in 256)
@@ -192,6 +222,8 @@ class HwXsensServer(XsensServer):
         f["packet_counter"] = self.counter + np.arange(n)
         f["sample_time_fine"] = self.stf_offset + np.round((t - self.t_origin) * SAMPLE_TIME_FINE_HZ).astype(np.int64)
         f.setdefault("status_word", np.zeros(n, dtype=np.int64))
+        if self.keep_sent:
+            self._last_acc = np.asarray(f["acceleration"], dtype=np.float32)
         self.counter += n
         self.frames_sent += n
         return encode_mtdata2([it.xdi for it in self.config], f).tobytes()
@@ -226,8 +258,12 @@ class HwXsensServer(XsensServer):
                 return 0
             k = self._k + np.arange(n)
             self._k += n
+            self._last_acc = None
             frames = self._encode(k)
-        self.port.write(frames)
+            acc = self._last_acc
+        sent = self.port.write(frames)
+        if self.keep_sent and acc is not None:
+            self.sent.append((time.monotonic(), self._t0 + k / self.rate_hz, acc, sent == len(frames)))
         return n
 
 
@@ -287,7 +323,7 @@ class Hardware:
                  imu_baudrate: int = 921_600, imu_max_rate_hz: int = 2000, rtu_baudrate: int = 115_200,
                  acl_tcp_port: int = 0, modbus_tcp_port: int = 0, modbus_word_order: str = "big",
                  modbus_unit_id: int = 1, tick_s: float = 0.002, pulse_period_s: float | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, imu_keep_sent: int = 0) -> None:
         self.cfg, self.speed, self.tick_s = cfg, float(speed), float(tick_s)
         self.imu_baudrate, self.rtu_baudrate = imu_baudrate, rtu_baudrate
         self.modbus_word_order, self.modbus_unit_id = modbus_word_order, modbus_unit_id
@@ -299,6 +335,7 @@ class Hardware:
         self._threads: list[threading.Thread] = []
         self.pulse_period_s = pulse_period_s
         self._next_pulse = 0.0
+        self.imu_keep_sent = int(imu_keep_sent)
         try:
             self._build(acl_tcp_port, modbus_tcp_port, imu_max_rate_hz, seed)
         except BaseException:
@@ -331,7 +368,9 @@ class Hardware:
         # IMU
         HwXsensServer.grid_rate_hz = self.world.rate_hz
         self.xsens = HwXsensServer(source=self.tap, clock=self.world_clock.now, baudrate=self.imu_baudrate,
-                                   max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed)
+                                   max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed,
+                                   keep_sent=self.imu_keep_sent)
+        self.xsens.true_clock = self.clock.now
         self._closers.append(self.xsens.close)
         self._replace_port(self.xsens, "imu", FlowPtyEndpoint)
         # GNSS receiver
@@ -448,6 +487,14 @@ class Hardware:
         t.start()
         self._threads.append(t)
         return None
+
+    def clear_fault(self, close_interlocks: bool = True) -> None:
+        """The operator at the table: reset every tripped axis (fault bits cleared, interlock
+        open) and, by default, close the interlocks again so the controller accepts motion."""
+        self.table.interlock_reset()
+        if close_interlocks:
+            for axis in (1, 2, 3):
+                self.table.interlock_close(axis)
 
     def trip_interlock(self, axis: int) -> None:
         self.table.trip(axis, FaultCode.INTERLOCK_TRIP)

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.config import RigConfig
-from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, Pulses, TableState
+from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, Pulses, TableState
 from rigctl.frames import body_references, gimbal_rate_body
 from rigctl.yamlio import LocDict
 
@@ -349,8 +349,3 @@ class SimImuDevice:
         return block
 
 
-class NoPulses:
-    """A pulse source that never fires (rig without a pulse input)."""
-
-    def read(self) -> Pulses:
-        return Pulses(np.empty(0), source="none")

@@ -80,3 +80,62 @@ def window_means(path: Path, seg: dict[str, np.ndarray], kind: bytes, field: str
         data = f[f"imu/{field}"]
         return [data[int(a):int(z)].mean(axis=0) for k, a, z in
                 zip(seg["kind"], seg["first_sample"], seg["last_sample"]) if k == kind]
+
+
+# -- unattended operation over the wire (tests/test_daemon_wire*.py) -------------------------------
+def write_wired(tmp: Path, raw: dict, hw, *, table: str = "acl", link: str = "pty", pulses: str = "novatel",
+                suspenders: dict | None = None, imu: dict | None = None, name: str = "wired.yaml") -> Path:
+    """A wired rig config for ``hw`` (NovAtel pulses by default), with an optional
+    ``suspenders:`` section and extra ``imu`` keys (e.g. link_timeout_s)."""
+    path = write_wire_config(tmp / name, raw, hw, table=table, link=link, pulses=pulses)
+    d = yaml.safe_load(path.read_text())
+    if suspenders is not None:
+        d["suspenders"] = suspenders
+    d["imu"].update(imu or {})
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return path
+
+
+@contextmanager
+def wired(tmp: Path, speed: float, *, hw_kw: dict | None = None, **cfg_kw: Any):
+    """Emulated hardware in this process (its own threads) and a wired config for it:
+    yields (hw, config path)."""
+    with hardware(tmp, speed, **(hw_kw or {})) as (hw, raw):
+        yield hw, write_wired(tmp, raw, hw, **cfg_kw)
+
+
+def table_snapshot(hw) -> dict[str, Any]:
+    """The emulated controller's own view: per axis mode, rate (deg/s) and status word."""
+    reads = [hw.table.read(a) for a in (1, 2, 3)]
+    return {"mode": [hw.table.get_mode(a) for a in (1, 2, 3)],
+            "rate_dps": [float(np.degrees(r["rate"])) for r in reads],
+            "status": [int(r["status"]) for r in reads]}
+
+
+def wait_until(pred, timeout: float, what: str, poll: float = 0.005):
+    """Poll ``pred()`` until it returns something truthy; AssertionError naming ``what`` after
+    ``timeout`` wall seconds."""
+    end = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(poll)
+
+
+def commands_since(hw, t0: float) -> list[tuple[float, str]]:
+    """ACL request lines the emulated controller received since wall time ``t0``."""
+    return [(t, line) for t, line in list(hw.acl.core.received) if t >= t0]
+
+
+def sent_time_of(hw, row: np.ndarray) -> float | None:
+    """Wall time at which the emulator wrote the IMU frame whose accelerometer values are
+    ``row`` (3 floats as recorded; compared as the float32 values on the wire), or None when it
+    is not among the batches it still keeps (``imu_keep_sent``)."""
+    want = np.asarray(row, dtype=np.float32)
+    for wall, _t, acc, _whole in reversed(list(hw.xsens.sent)):
+        if (acc == want).all(axis=1).any():
+            return wall
+    return None

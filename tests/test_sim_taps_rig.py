@@ -11,7 +11,8 @@ from rigctl.config import load_config
 from rigctl.procedure import load_procedure
 from rigctl.rig import open_rig
 from rigctl.runner import run_procedure
-from rigctl.sim.world import NoPulses, SimWorld
+from rigctl.devices import NoPulses
+from rigctl.sim.world import SimWorld
 
 from helpers import ROOT, run_rigctl
 

@@ -1,0 +1,324 @@
+"""Unattended operation over the wire: `rigctl run` / `rigctl resume` as real processes against
+the emulated hardware (sim/hardware.py: the ACL table and the Xsens IMU on ptys, the NovAtel
+receiver on a pty, one physics world on a scaled clock) running in this test's process, and the
+engine's suspenders seen through the real drivers.
+
+Data at risk after ``kill -9`` is measured against what the emulator put on the wire: it keeps
+the IMU batches it wrote (wall time, float32 accelerometer values as sent), so the newest row
+in the file is found among them and ``lost = t_kill - (wall time it was sent)``, counted from
+the moment the killed session's stream began (frames sent while no rigctl process was running
+are the downtime's gap, not data the kill lost).
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rigctl.checkpoint import clear_status_flags, status_flags
+from rigctl.config import load_config
+from rigctl.procedure import load_procedure
+from rigctl.runner import RunOptions, resume_run, run_procedure
+
+from helpers import ROOT, rigctl_cmd
+
+from hil_support import commands_since, sent_time_of, table_snapshot, wait_until, wired
+
+SPEED = 500.0          # rig seconds per wall second
+KILLS = 20
+CAPTURE = """procedure: overnight-capture
+description: accelerated overnight capture (warm-up, then a long static capture)
+defaults:
+  settle: {timeout: 30 min}      # 3.6 s of wall time at 500x: a loaded machine never times out
+steps:
+  - warmup:
+      duration: 30 s
+  - capture:
+      duration: 20 min
+      label: overnight static
+"""
+
+
+def _swmr(path: Path) -> h5py.File:
+    return h5py.File(path, "r", libver="latest", swmr=True)
+
+
+def _open_cut_off(path: Path, tmp: Path, kill: int, window_hits: list[int]) -> h5py.File:
+    """The recording after a kill, opened with h5py as a reader would (SWMR read: the dead
+    writer's flags are still set). Known gap: a kill inside Recorder.reopen, between its plain
+    'r+' open and 'swmr_mode = True', leaves the write flag without the SWMR flag, which every
+    h5py open refuses; then (and only then: flags == 1) the kill is noted and a copy with the
+    flags cleared (what `rigctl resume` does) is checked instead."""
+    try:
+        return _swmr(path)
+    except OSError as exc:
+        if not ("not already open for SWMR writing" in str(exc) and status_flags(path) == 1):
+            raise
+    window_hits.append(kill)
+    copy = tmp / f"cut-off-{kill}.h5"
+    shutil.copyfile(path, copy)
+    clear_status_flags(copy)
+    return h5py.File(copy, "r")
+
+
+def _launch(args: list[str], log: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([*rigctl_cmd(), *args], cwd=ROOT, env=env, stdout=log.open("w"),
+                            stderr=subprocess.STDOUT)
+
+
+def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path):
+    """`rigctl run` of an accelerated overnight capture over ptys is killed with SIGKILL at 20
+    random (seeded) moments -- run, kill, resume, kill, ... -- and finally completes. After
+    every kill h5py opens the file, at most 1 s (wall) of the IMU data the emulator sent is
+    missing from it, everything flushed is intact; the emulator's table is left as the kill
+    found it (servo on, holding) and each resume commands it to stop before any motion."""
+    rng = random.Random(8_2024)
+    proc = tmp_path / "overnight.yaml"
+    proc.write_text(CAPTURE)
+    runs = tmp_path / "runs"
+    with wired(tmp_path, SPEED, hw_kw={"imu_keep_sent": 4000}, suspenders={"min_free_mib": 0}) as (hw, cfg):
+        args = ["run", str(proc), "--config", str(cfg), "--out", str(runs)]
+        rec: Path | None = None
+        n_rows, kills, window_hits = 0, [], []
+        for i in range(KILLS + 1):
+            starts = len(hw.xsens.measurement_starts)
+            t_launch = time.monotonic()
+            p = _launch(args, tmp_path / f"session{i + 1}.log")
+            try:
+                if i == KILLS:
+                    assert p.wait(timeout=120) == 0, (tmp_path / f"session{i + 1}.log").read_text()[-3000:]
+                    break
+                # the session's IMU stream began (the driver configured the device) ...
+                wait_until(lambda: len(hw.xsens.measurement_starts) > starts, 30, f"session {i + 1}'s IMU stream")
+                t_stream = hw.xsens.measurement_starts[starts]
+                # ... then a random moment of the run: connect, reopen, warm-up or capture
+                time.sleep(rng.uniform(0.0, 2.0))
+                assert p.poll() is None, f"session {i + 1} ended before its kill"
+                t_kill = time.monotonic()
+                os.kill(p.pid, signal.SIGKILL)
+                p.wait(timeout=10)
+            finally:
+                if p.poll() is None:
+                    p.kill()
+            time.sleep(0.05)           # the controller finishes the line it was executing
+            left = table_snapshot(hw)  # nothing stops the table: the emulator keeps the last demand
+            if rec is None:
+                rec = wait_until(lambda: next(runs.glob("*/recording.h5"), None), 5, "the recording")
+                args = ["resume", str(rec.parent), "--runs", str(runs)]
+            with _open_cut_off(rec, tmp_path, i + 1, window_hits) as f:
+                assert f["run/status"][0] == b"running"
+                for g in ("imu", "table", "segments", "events"):
+                    lengths = {f[g][k].shape[0] for k in f[g]}
+                    assert len(lengths) == 1, f"kill {i + 1}: {g} columns of unequal length {lengths}"
+                n = f["imu/time"].shape[0]
+                c = f["imu/counter"][()].astype(np.int64)
+                t = f["imu/time"][()]
+                assert np.all(np.diff(c) > 0) and np.all(np.diff(t) > 0), f"kill {i + 1}: IMU rows out of order"
+                last = f["imu/specific_force"][n - 1] if n else None
+                n_resumes = int(np.sum(f["events/kind"][()] == b"resume"))
+                n_stops = sum(b"stop commanded before any motion" in m for m in f["events/message"][()])
+            if n > n_rows:             # rows of this session reached the file: when were they sent?
+                w_last = sent_time_of(hw, last)
+                assert w_last is not None, f"kill {i + 1}: the newest recorded row was never sent recently"
+            else:
+                w_last = -np.inf
+            lost = t_kill - max(w_last, t_stream)
+            unsent = sum(len(b[1]) for b in list(hw.xsens.sent) if max(w_last, t_stream) < b[0] <= t_kill)
+            kills.append({"after_s": t_kill - t_launch, "lost_s": lost, "rows_lost": unsent, "rows": n,
+                          "table": left, "t_launch": t_launch, "t_kill": t_kill,
+                          "reopened": n_resumes > (kills[-1]["resumes"] if kills else 0), "resumes": n_resumes,
+                          "stopped": n_stops > (kills[-1]["stops"] if kills else 0), "stops": n_stops})
+            assert lost <= 1.0, f"kill {i + 1}: {lost:.3f} s of sent IMU data not in the file"
+            n_rows = n
+        # every session after a kill commanded a stop before its first motion command
+        cmds = commands_since(hw, kills[0]["t_kill"])
+        for k, nxt in zip(kills, kills[1:] + [{"t_launch": np.inf}]):
+            session = [c for t, c in cmds if k["t_kill"] < t < nxt["t_launch"]]
+            motion = [j for j, c in enumerate(session) if ":MODE:POSITION" in c or ":DEMAND" in c]
+            stop = [j for j, c in enumerate(session) if c.startswith(":MODE:OFF")]
+            if motion:
+                assert stop and stop[0] < motion[0], session[:20]
+            # ... and until then the table stayed as the kill left it (mode of the last demand)
+            before = [c for t, c in commands_since(hw, k["t_launch"]) if t < k["t_kill"] and ":MODE:" in c]
+            if before:
+                want = "off" if before[-1].startswith(":MODE:OFF") else "position"
+                assert k["table"]["mode"] == [want] * 3, (before[-1], k["table"])
+        held = [k for k in kills if k["table"]["mode"] == ["position"] * 3]
+        assert held and all(k["table"]["status"][a] & 0x2 for k in held for a in range(3))  # servo on
+    # the chain completed into the same recording; its complete segments are all-or-nothing
+    with h5py.File(rec, "r") as f:     # plain open: the flags are cleared, the file closed properly
+        assert f["run/status"][0] == b"complete"
+        seg = {k: f["segments"][k][()] for k in f["segments"]}
+        c = f["imu/counter"][()].astype(np.int64)
+        ev = list(zip(f["events/kind"][()], f["events/message"][()]))
+    done = seg["status"] == b"complete"
+    assert sorted(seg["kind"][done].tolist()) == [b"capture", b"warmup"]
+    for a, z in zip(seg["first_sample"][done], seg["last_sample"][done]):
+        assert z > a and np.all(np.diff(c[a:z]) == 1)
+    cap = int(np.flatnonzero(done & (seg["kind"] == b"capture"))[0])
+    assert seg["t_end"][cap] - seg["t_start"][cap] >= 1200.0
+    assert seg["last_sample"][cap] - seg["first_sample"][cap] >= 0.99 * 1200 * 100
+    for i in np.flatnonzero(~done):   # rows of cut-off steps are in no complete segment
+        for j in np.flatnonzero(done):
+            assert seg["last_sample"][i] <= seg["first_sample"][j] or seg["first_sample"][i] >= seg["last_sample"][j]
+    # a kill before a session reopened the recording leaves no trace in it; the others wrote
+    # their resume event, and (unless killed before) stopped the table before moving it
+    reopened = 1 + sum(k["reopened"] for k in kills[1:])
+    stopped = 1 + sum(k["stopped"] for k in kills[1:])
+    resumes = [m for k, m in ev if k == b"resume" and b"after a cut-off" in m]
+    stops = [m for k, m in ev if k == b"safe-state" and b"stop commanded before any motion" in m]
+    assert len(resumes) == reopened and len(stops) == stopped and stopped >= KILLS // 2
+    ck = json.loads((rec.parent / "checkpoint.json").read_text())
+    # (a session killed before its first flush counted itself in the checkpoint, not in the file)
+    assert ck["status"] == "complete" and reopened + 1 <= ck["sessions"] <= KILLS + 1
+    assert resumes[-1].startswith(f"session {ck['sessions']} after a cut-off".encode())
+    lost = [k["lost_s"] for k in kills]
+    print(f"\nkill -9 x{KILLS}: data lost max {max(lost):.3f} s, mean {np.mean(lost):.3f} s (wall); "
+          f"rows lost max {max(k['rows_lost'] for k in kills)}; kill moments "
+          f"{min(k['after_s'] for k in kills):.2f}..{max(k['after_s'] for k in kills):.2f} s after launch; "
+          f"{reopened - 1} of {KILLS - 1} resumed sessions reopened the file before their kill; "
+          f"table left {sorted({k['table']['mode'][0] for k in kills})}; lost per kill "
+          f"{[round(x, 2) for x in lost]}")
+    if window_hits:
+        pytest.xfail(f"kill(s) {window_hits} landed inside Recorder.reopen between h5py's plain 'r+' open and "
+                     "'swmr_mode = True' (~8 ms): h5py refuses that file until its flags are cleared; "
+                     "rigctl/recorder.py must open it straight into SWMR-write mode (h5f.ACC_SWMR_WRITE)")
+
+
+ORIENT = """procedure: link-drops
+steps:
+  - orientations:
+      angles_deg: [[0, 0, 0], [90, 0, 0], [0, 90, 0], [0, 0, 90], [180, 0, 0], [0, 180, 0],
+                   [45, 45, 0], [0, 45, 45], [90, 90, 90], [0, 0, 0]]
+      sample: 10 s
+      discard: 0.5 s
+      settle: {hold: 1 s, timeout: 60 s}
+"""
+
+
+def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp_path):
+    """The emulator pulls the IMU's pty (closes it, opens a new one at the same symlink 0.2 s
+    later) in the middle of each of 10 sampling windows: the Xsens driver reconnects and
+    reconfigures every time, each drop is an `imu-link` suspender event, the interrupted step
+    re-runs and the procedure completes with one complete, gap-free segment per step."""
+    proc_path = tmp_path / "drops.yaml"
+    proc_path.write_text(ORIENT)
+    box: dict = {}
+    done = threading.Event()
+    dropped: list[int] = []
+
+    def watch(hw) -> None:
+        while not done.is_set() and len(dropped) < 10:
+            e = box.get("engine")
+            step = e.current_step if e is not None else None
+            if step is not None and e.sampling_from is not None and step.index not in dropped \
+                    and e.states.state == "running":
+                time.sleep(0.02)                      # ~2 s of rig time into the 10 s window
+                dropped.append(step.index)
+                hw.disconnect("imu", down_s=0.2)     # closes the pty now; new pty after 0.2 s
+            time.sleep(0.001)
+
+    def on_engine(e) -> None:
+        box["engine"] = e
+        if e is not None:
+            box["imu"] = e.rig.imu
+
+    with wired(tmp_path, 100.0, imu={"link_timeout_s": 0.05},
+               suspenders={"hold_s": "2 s", "imu_timeout_s": 20}) as (hw, cfg_path):
+        cfg = load_config(cfg_path)
+        assert cfg.suspenders.hold_s == 2.0 and cfg.suspenders.imu_timeout_s == 20.0
+        proc = load_procedure(proc_path, limits=cfg.limits)
+        t = threading.Thread(target=watch, args=(hw,), daemon=True)
+        t.start()
+        console = io.StringIO()
+        try:
+            res = run_procedure(proc, cfg, tmp_path / "runs", console=console, install_signals=False,
+                                options=RunOptions(on_engine=on_engine))
+        finally:
+            done.set()
+            t.join()
+        reconnects_emulator = hw.slots["imu"].reconnects
+    assert res.exit_code == 0 and res.status == "complete", res.message
+    assert sorted(dropped) == list(range(10))
+    assert reconnects_emulator == 10
+    c = box["imu"].counters
+    assert c["reconnects"] == 10 and c["link_losses"] == 10 and c["configurations"] == 11
+    with h5py.File(res.recording, "r") as f:
+        kinds, msgs = f["events/kind"][()], f["events/message"][()]
+        seg = {k: f["segments"][k][()] for k in f["segments"]}
+        counter = f["imu/counter"][()].astype(np.int64)
+        imu_t, ev_t = f["imu/time"][()], f["events/time"][()]
+    link = [m for k, m in zip(kinds, msgs) if k == b"suspend" and m.startswith(b"imu-link: IMU link lost")]
+    assert len(link) == 10, [m for k, m in zip(kinds, msgs) if k == b"suspend"]
+    resumed = [m for k, m in zip(kinds, msgs) if k == b"resume" and b"re-running step" in m]
+    assert len(resumed) == 10 and all(b" clear for 2 s after " in m for m in resumed)  # config's hold_s
+    done_ = seg["status"] == b"complete"
+    assert sorted(seg["step"][done_].tolist()) == list(range(10))        # one complete per step
+    assert set(seg["step"][~done_].tolist()) <= set(dropped)             # the cut-off windows
+    cut = [m for k, m in zip(kinds, msgs) if k == b"incomplete"]
+    assert sorted(int(m.split()[1]) - 1 for m in cut) == sorted(dropped)  # each drop cut its step off
+    for a, z in zip(seg["first_sample"][done_], seg["last_sample"][done_]):
+        assert z - a >= 0.9 * 10 * 100 and np.all(np.diff(counter[a:z]) == 1)
+    # the samples missing (the outage, then the device reconfiguration after the reconnect:
+    # no frames between GoToConfig and GoToMeasurement) all fall while the run was paused
+    gaps = np.diff(counter) - 1
+    pauses = list(zip(ev_t[(kinds == b"suspend") & np.char.startswith(msgs, b"imu-link")],
+                      ev_t[(kinds == b"resume")]))
+    for i in np.flatnonzero(gaps > 0):
+        assert any(a <= imu_t[i + 1] <= b for a, b in pauses), (i, gaps[i], imu_t[i + 1], pauses)
+    assert "IMU link lost" in console.getvalue()
+    print(f"\n10 IMU link drops: {int(gaps[gaps > 0].sum())} samples missing over the outages "
+          f"({c['bad_frames'] + c['truncated_frames']} frames cut by the pulls), all 10 steps complete")
+
+
+KILL_IN_REOPEN = """
+import os, signal, sys, h5py
+f = h5py.File(sys.argv[1], "r+", libver="latest")   # what Recorder.reopen does first ...
+f["run/status"][0] = b"running"
+f.flush()
+os.kill(os.getpid(), signal.SIGKILL)                 # ... killed before 'f.swmr_mode = True'
+"""
+
+
+def test_resume_after_a_kill_inside_the_reopen_window(tmp_path):
+    """A kill between a resume's plain 'r+' open and its switch to SWMR leaves the HDF5 write
+    flag without the SWMR flag: no h5py reader accepts the file (the gap the kill chain above
+    can hit; the fix belongs in rigctl/recorder.py). `rigctl resume` still recovers the run."""
+    cfg = load_config(ROOT / "configs" / "sim.yaml")
+    proc_path = tmp_path / "p.yaml"
+    proc_path.write_text("procedure: window\nsteps:\n  - warmup:\n      duration: 5 s\n"
+                         "  - capture:\n      duration: 20 s\n")
+    proc = load_procedure(proc_path, limits=cfg.limits)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False)
+    assert res.status == "complete"
+    # make it a run cut off during its capture: checkpoint after step 1, no capture segment
+    ck = json.loads((res.run_dir / "checkpoint.json").read_text())
+    ck.update(status="running", last_step=0)
+    (res.run_dir / "checkpoint.json").write_text(json.dumps(ck))
+    with h5py.File(res.recording, "r+") as f:
+        f["run/status"][0] = b"running"
+        for k in f["segments"]:
+            f["segments"][k].resize(1, axis=0)
+    r = subprocess.run([sys.executable, "-c", KILL_IN_REOPEN, str(res.recording)], capture_output=True)
+    assert r.returncode == -signal.SIGKILL and status_flags(res.recording) == 1
+    with pytest.raises(OSError, match="not already open for SWMR writing"):
+        _swmr(res.recording)
+    again = resume_run(res.run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False)
+    assert again.status == "complete", again.message
+    with h5py.File(res.recording, "r") as f:
+        assert f["run/status"][0] == b"complete"
+        done = f["segments/status"][()] == b"complete"
+        assert sorted(f["segments/kind"][()][done].tolist()) == [b"capture", b"warmup"]
