@@ -12,38 +12,56 @@ K    rate random walk                        rad/s^2/sqrt(Hz)   K^2 tau / 3
 R    rate ramp                               rad/s^2 | m/s^3    R^2 tau^2 / 2
 ==== ======================================= ================== ==========================
 
-Realisation at output rate fs (tau0 = 1/fs), for output sample k:
+Realisation at output rate fs (tau0 = 1/fs), for output sample k, in per-sample terms
+sn^2 = N^2 fs (white), sb^2 = (B c_B)^2 (flicker input):
 
-* N: white, y_k = N sqrt(fs) w_k (exact: sigma^2 = N^2/tau for every M).
-* B: one white sequence through a cascade of matched-z pole/zero pairs (``flicker_pairs_per_decade``
+* B alone is white noise through a cascade of matched-z pole/zero pairs H (``flicker_pairs_per_decade``
   pairs per decade, zero a half-step above each pole) whose |H|^2 follows 1/f between
-  f_lo = 1/(2 pi tau_max) / 10 and f_hi = min(10/tau_min, fs/4); the gain is set so the Allan
-  plateau equals (0.664 B)^2 on average over [flicker_tau_min_s, flicker_tau_max_s].  This is a
-  single IIR filter (one random number per sample), not a single Gauss-Markov process: a single
-  GM gives a bump, the cascade gives a plateau flat to about +-1 % in deviation.
-* K: random walk, y_k = y_{k-1} + K sqrt(tau0) w_k (starts at 0 at power-on).
-* R: y_k = R k tau0 (deterministic ramp from power-on).
+  f_lo = 1/(2 pi tau_max) / 10 and f_hi = min(10/tau_min, fs/4); c_B is set so the Allan plateau equals
+  (0.664 B)^2 on average over [flicker_tau_min_s, flicker_tau_max_s]. Not a single Gauss-Markov process
+  (which gives a bump): the cascade gives a plateau flat to about +-1 % in deviation.
+* N and B together are ONE white Gaussian sequence through ONE minimum-phase filter
+  g G(z) = g prod_j (1 - zeta_j z^-1) / prod_k (1 - p_k z^-1) with g^2 |G|^2 = sn^2 + sb^2 |H|^2
+  (spectral factorisation, :mod:`rigctl.sim.spectral_factor`): a stationary Gaussian process is fixed by its
+  spectrum, so this has exactly the law of independent N + B, with one normal draw per sample instead of two.
+  The stable states are drawn from their stationary distribution: sample 0 already has the full variance.
+* K: random walk from 0 at power-on, y_k = y_{k-1} + K sqrt(tau0) w_k, with w_k uniform (on 2^16 levels in
+  [-sqrt 3, sqrt 3], unit variance; its own stream). Any white increments give exactly K^2 tau/3 (1 + 1/(2 M^2));
+  a 16-bit uniform draw costs a twelfth of a normal one, and the walk is Gaussian to a relative fourth cumulant
+  of 1.2/n after n samples (K only shows at long tau, where n > 1e4). Not folded into G: a filter with a pole at
+  z = 1 has exact increments but cannot give the power-on level of "stationary N + B plus a walk from 0".
+* R: deterministic ramp R (k + 1) tau0 from power-on.
 * Q: the running integral theta of (signal + all other terms) is quantized with step
   q = sqrt(12) Q and differenced: y_k = (q round(theta_k/q) - q round(theta_{k-1}/q)) / tau0.
   The error is white and uniform (hence exactly 3 Q^2/tau^2) as long as the integral moves by
-  about one step or more per sample; the residual is carried between chunks.
+  about one step or more per sample. The N + B integral comes from the same filter with one more pole at
+  z = 1 (gain tau0/q), the walk's and the ramp's in closed form per block, the signal's as a running sum.
+
+Speed: the filter runs on a fixed grid of chunks (``FIRST_CHUNK``, doubling, then ``CHUNK`` samples) with
+BLAS block recursion (:mod:`rigctl.sim.block_iir`); about 25 ns per axis-sample on one core, a third of it
+the normal draw (benchmarks/emulator.py).
 
 :func:`theoretical_avar` gives both the IEEE curve (``rate_hz=None``) and the *exact* expectation of
 the overlapping Allan variance of what :class:`NoiseGenerator` produces (``rate_hz`` given): the
 discrete-time random-walk term K^2 tau/3 (1 + 1/(2 M^2)) and the flicker cascade's own curve, obtained
 from its autocovariance (a sum of exponentials, from partial fractions).
 
-Chunking and seeding: each (term, axis) has its own ``numpy.random.Generator`` (SFC64) spawned from one
-``SeedSequence``; every recursion (filter state, cumulative sums, quantizer residual) is carried.
-The same seed therefore gives bit-identical output whether generated in one piece or in chunks.
+Chunking and seeding: each axis has two ``numpy.random.Generator`` (SFC64) streams (N + B, K) spawned from
+one ``SeedSequence``; everything is computed on chunks aligned to a fixed grid of samples and every recursion
+(filter state, walk, quantizer residual, signal integral) is carried, so the same seed gives bit-identical
+output whether generated in one piece or in chunks. (Since the combined N + B filter, the same seed gives
+other numbers than releases with separate N, B, K normal streams; the statistics are unchanged.)
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy import signal
+
+from .block_iir import BlockCascade
+from .spectral_factor import factor, residues
 
 TERMS = ("Q", "N", "B", "K", "R")
 PLATEAU = 2.0 * np.log(2.0) / np.pi  # sigma^2 / B^2 on the flicker plateau (0.664^2)
@@ -99,30 +117,6 @@ class FlickerDesign:
             rows.append(np.concatenate([b, a]))
         return np.array(rows)
 
-    def stationary_state_cov(self) -> np.ndarray:
-        """Covariance of the flattened sosfilt state (2 per section) in steady state, unit white input.
-
-        The state update z' = A z + B x is probed from scipy's own sosfilt (so the state convention
-        is scipy's), then Sigma = sum_j A^j B B^T A^jT by Smith's doubling (k squarings sum 2^k
-        samples; it stops when A^(2^k) has decayed, well beyond the slowest time constant).
-        """
-        sos = self.sos()
-        ns = 2 * sos.shape[0]
-        A = np.empty((ns, ns))
-        for i in range(ns):
-            zi = np.zeros(ns)
-            zi[i] = 1.0
-            A[:, i] = signal.sosfilt(sos, [0.0], zi=zi.reshape(-1, 2))[1].ravel()
-        B = signal.sosfilt(sos, [1.0], zi=np.zeros((ns // 2, 2)))[1].ravel()
-        S = np.outer(B, B)
-        Ak = A
-        for _ in range(40):
-            S = S + Ak @ S @ Ak.T
-            Ak = Ak @ Ak
-            if np.max(np.abs(Ak)) < 1e-18:
-                break
-        return 0.5 * (S + S.T)
-
 
 def _exp_avar(M: np.ndarray, a: float) -> np.ndarray:
     """Allan variance (expected, overlapping) of a stationary sequence with autocovariance exp(-a|j|).
@@ -156,16 +150,7 @@ def _cascade_autocov(a_pole: np.ndarray, a_zero: np.ndarray) -> tuple[np.ndarray
     R(0) = 1 + sum_kl r_k r_l p_k p_l/(1 - p_k p_l) = sum_l c_l + d. Returns (c, d, R(0)).
     """
     p = np.exp(-a_pole)
-    # differences computed from expm1 values to keep precision for poles near 1
-    om_p = -np.expm1(-a_pole)  # 1 - p
-    om_z = -np.expm1(-a_zero)  # 1 - z
-    n = len(p)
-    r = np.empty(n)
-    for k in range(n):
-        num = np.prod((om_z - om_p[k]) / p[k])  # 1 - z_j/p_k = (p_k - z_j)/p_k
-        others = np.delete(np.arange(n), k)
-        den = np.prod((om_p[others] - om_p[k]) / p[k])
-        r[k] = num / den
+    r = residues(a_pole, a_zero)
     one_m_pp = -np.expm1(-(a_pole[:, None] + a_pole[None, :]))
     cross = (r[:, None] * p[:, None] * p[None, :] / one_m_pp)  # [k, l]
     c = r * (1.0 + cross.sum(axis=0))
@@ -189,8 +174,9 @@ def flicker_variance(params: Mapping[str, object], rate_hz: float) -> np.ndarray
     return _cascade_autocov(d.a_pole, d.a_zero)[2] * d.input_std_per_B**2 * P["B"] ** 2
 
 
+@lru_cache(maxsize=64)
 def design_flicker(tau_min_s: float, tau_max_s: float, rate_hz: float, pairs_per_decade: float = 2) -> FlickerDesign:
-    """Design the 1/f cascade for a plateau over [tau_min_s, tau_max_s] at output rate rate_hz."""
+    """Design the 1/f cascade for a plateau over [tau_min_s, tau_max_s] at output rate rate_hz (cached)."""
     tau0 = 1.0 / rate_hz
     f_lo = 1.0 / (2 * np.pi * tau_max_s) / 10.0
     f_hi = min(10.0 / tau_min_s, rate_hz / 4.0)
@@ -206,6 +192,7 @@ def design_flicker(tau_min_s: float, tau_max_s: float, rate_hz: float, pairs_per
     taus = np.geomspace(tau_min_s, tau_max_s, 9)
     M = np.maximum(1, np.round(taus * rate_hz))
     mean_avar = float(np.mean(_cascade_avar(a_pole, a_zero, M)))
+    a_pole.flags.writeable = a_zero.flags.writeable = False  # shared through the cache
     return FlickerDesign(a_pole, a_zero, float(np.sqrt(PLATEAU / mean_avar)))
 
 
@@ -238,6 +225,13 @@ def theoretical_avar(params: Mapping[str, object], tau: np.ndarray, rate_hz: flo
 
 
 # ----------------------------------------------------------------------------------------------
+_KB = 16  # sub-block of the K random walk's running sums
+_J1 = np.arange(1.0, _KB + 1.0)
+_U16_MEAN, _U16_STD = 32767.5, np.sqrt((65536.0**2 - 1.0) / 12.0)  # uniform on the 16-bit integers
+_RW_T1 = np.triu(np.ones((_KB, _KB)))  # [m, j] = 1 for m <= j: running sum within a sub-block
+_RW_T2 = np.triu(_J1[None, :] - np.arange(_KB)[:, None])  # [m, j] = j - m + 1 for m <= j: double running sum
+
+
 class NoiseGenerator:
     """Chunked, seeded 3-axis noise: ``gen.next(n) -> (n, 3)`` float64 in the rate unit.
 
@@ -245,86 +239,174 @@ class NoiseGenerator:
     integrated total output, as in a delta-angle / delta-velocity sensor).
     """
 
+    # the filter's chunks follow a fixed grid (FIRST_CHUNK, 2 FIRST_CHUNK, ... then CHUNK samples each), so the
+    # output is bit-identical however next() is sliced, and a short first call stays cheap
+    CHUNK = 1 << 16
+    FIRST_CHUNK = 1 << 12
+    BLOCK = 64  # block length L of the BLAS block recursion
+
     def __init__(self, params: Mapping[str, object], rate_hz: float, seed: int | np.random.SeedSequence | None = 0):
-        self.params = normalise_params(params)
+        self.params = P = normalise_params(params)
         self.rate_hz = float(rate_hz)
         self.tau0 = 1.0 / self.rate_hz
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
-        children = ss.spawn(3 * 3)  # (N, B, K) x 3 axes
-        self._rng = [np.random.Generator(np.random.SFC64(c)) for c in children]  # SFC64: fastest normals
-        P = self.params
-        self._n_scale = P["N"] * np.sqrt(self.rate_hz)
-        self._k_scale = P["K"] * np.sqrt(self.tau0)
+        streams = [np.random.Generator(np.random.SFC64(c)) for c in ss.spawn(6)]
+        self._rng, self._rng_k = streams[:3], streams[3:]  # per axis: N + B, K
         self._q_step = np.sqrt(12.0) * P["Q"]
-        self._flicker = None
+        self._quantized = self._q_step > 0
+        q_safe = np.where(self._quantized, self._q_step, 1.0)
+        # K: increments uniform with variance K^2 tau0 (see _add_random_walk); on quantized axes the running
+        # sum is integrated once more, in steps q
+        self._k_step = np.sqrt(self.tau0) * P["K"]
+        self._k_scale = np.where(self._quantized, self.tau0 / q_safe, 1.0)
+        self._k_level = np.zeros(3)  # random walk at the previous sample (rate unit)
+        self._k_theta = np.zeros(3)  # its integral, in steps q (quantized axes)
+        sn2 = P["N"] ** 2 * self.rate_hz
+        a_pole, a_zero, sb2 = np.zeros(0), np.zeros(0), np.zeros(3)
         if np.any(P["B"] > 0):
             d = design_flicker(P["flicker_tau_min_s"], P["flicker_tau_max_s"], self.rate_hz, P["flicker_pairs_per_decade"])
-            self._flicker = d
-            self._sos = d.sos()
-            self._b_scale = P["B"] * d.input_std_per_B
-            # stationary start (no build-up of the slow components after power-on): draw the filter
-            # state from its steady-state distribution, from the B streams, per axis
-            cov = d.stationary_state_cov()
-            lam, U = np.linalg.eigh(cov)
-            root = U * np.sqrt(np.clip(lam, 0.0, None))
-            zi = np.stack([root @ self._rng[3 + ax].standard_normal(len(lam)) * self._b_scale[ax]
-                           for ax in range(3)])  # (3, 2*n_sec)
-            self._zi = np.ascontiguousarray(zi.reshape(3, -1, 2).transpose(1, 0, 2))  # (n_sec, 3, 2)
-        self._rrw = np.zeros(3)
-        self._theta = np.zeros(3)  # running integral (rate unit * s)
-        self._theta_q = np.zeros(3)  # quantized integral at the previous sample
-        self._k = 0  # samples produced so far
+            a_pole, a_zero, sb2 = d.a_pole, d.a_zero, (P["B"] * d.input_std_per_B) ** 2
+        self.filters = [factor(sn2[ax], sb2[ax], 0.0, a_pole, a_zero) for ax in range(3)]
+        res = np.array([residues(a_pole, f.b_stable) if sb2[ax] > 0 else np.zeros(len(a_pole))
+                        for ax, f in enumerate(self.filters)]).reshape(3, len(a_pole))
+        # quantized axes: the filter gives the noise's integral in steps q (one more pole at z = 1, gain tau0/q)
+        c_int = self._quantized.astype(float)[:, None] if np.any(self._quantized) else np.zeros((3, 0))
+        gain = np.array([f.gain for f in self.filters]) * self._k_scale
+        self._active = gain > 0
+        self._filter = None
+        if np.any(self._active):
+            self._filter = BlockCascade(a_pole, res, c_int, gain, self.BLOCK)
+            if len(a_pole):  # stationary start: s_i = eps / (1 - p_i z^-1), Cov(s_i, s_j) = 1 / (1 - p_i p_j)
+                lam, U = np.linalg.eigh(1.0 / -np.expm1(-(a_pole[:, None] + a_pole[None, :])))
+                root = U * np.sqrt(np.clip(lam, 0.0, None))
+                for ax in np.flatnonzero(self._active & (sb2 > 0)):
+                    self._filter.state[ax, : len(a_pole)] = root @ self._rng[ax].standard_normal(len(a_pole))
+        self._eps: dict[int, np.ndarray] = {}
+        self._kbuf: dict[int, np.ndarray] = {}
+        self._kwork: dict[int, tuple] = {}  # K: (W_b, Theta_b, 1) per sub-block, two products
+        self._ramp: dict[int, np.ndarray] = {}
+        self._chunk = np.zeros((3, 0))
+        self._n_chunks = 0
+        self._k_chunk = 0  # index of the first sample of the next chunk
+        self._pos = 0  # next unread sample of the current chunk
+        self._sig_theta = np.zeros(3)  # running integral of the signal, in steps q
+        self._theta_q = np.zeros(3)  # quantized integral at the previous sample, in steps q
+        self._work = np.empty(0)
 
-    def _fill_normals(self, term: int, out: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        """Fill out (3, n) with scaled standard normals of term 0=N, 1=B, 2=K from per-axis streams."""
-        for ax in range(3):
-            self._rng[3 * term + ax].standard_normal(out=out[ax])
-        out *= scale[:, None]
-        return out
+    def _next_chunk(self) -> None:
+        m = min(self.CHUNK, self.FIRST_CHUNK << min(self._n_chunks, 30))
+        self._n_chunks += 1
+        if m not in self._eps:
+            self._eps[m] = np.zeros((3, m))
+            self._kbuf[m] = np.empty(m)
+        if self._filter is None:
+            self._chunk = np.zeros((3, m))
+        else:
+            eps = self._eps[m]
+            for ax in np.flatnonzero(self._active):
+                self._rng[ax].standard_normal(out=eps[ax])
+            self._chunk = self._filter.run(eps)
+        for ax in np.flatnonzero(self._k_step > 0):
+            self._add_random_walk(ax, self._chunk[ax], self._kbuf[m])
+        R = self.params["R"]
+        if np.any(R > 0):  # ramp R (k+1) tau0; on quantized axes its integral R tau0^2 (k+1)(k+2)/2, steps q
+            if m not in self._ramp:
+                self._ramp[m] = np.empty((2, m))
+            kk, (kk2, tmp) = self._kbuf[m], self._ramp[m]
+            np.add(np.arange(m, dtype=np.float64), float(self._k_chunk + 1), out=kk)
+            if np.any(self._quantized):
+                np.add(kk, 1.0, out=kk2)
+                kk2 *= kk
+            for ax in np.flatnonzero(R > 0):
+                if self._quantized[ax]:
+                    self._chunk[ax] += np.multiply(kk2, 0.5 * R[ax] * self.tau0**2 / self._q_step[ax], out=tmp)
+                else:
+                    self._chunk[ax] += np.multiply(kk, R[ax] * self.tau0, out=tmp)
+        self._k_chunk += m
+        self._pos = 0
+
+    def _add_random_walk(self, ax: int, row: np.ndarray, buf: np.ndarray) -> None:
+        """row += the K random walk W over one chunk (on quantized axes its integral, in steps q), carried.
+
+        Increments delta = K sqrt(tau0) (v - mean) / std, v uniform on the 16-bit integers (4 per 64-bit draw of
+        the axis's K stream: a quarter of the cost of a float draw), so Var delta = K^2 tau0. In sub-blocks b of _KB samples
+        (j = 0.._KB-1), with W_b and Theta_b the values before the sub-block (short cumulative sums):
+        W = W_b + sum_{m<=j} delta_m;  Theta = Theta_b + kappa ((j+1) W_b + sum_{m<=j} (j-m+1) delta_m),
+        kappa = tau0/q. The in-block sums are one matrix product C = V T (its last column, and for the double
+        sum the difference of the last two, give the sub-block totals); the W_b, Theta_b, -mean terms another.
+        """
+        kb, s, quantized = _KB, self._k_step[ax] / _U16_STD, self._quantized[ax]
+        raw = self._rng_k[ax].bit_generator.random_raw(len(buf) // 4)  # 4 x 16 bits per 64-bit draw
+        np.copyto(buf, raw.view(np.uint16), casting="unsafe")
+        U = buf.reshape(-1, kb)
+        nbk = len(U)
+        if nbk not in self._kwork:
+            self._kwork[nbk] = (np.ones((nbk, 3)), np.empty((nbk, kb)), np.empty((nbk, kb)))
+        Bm, C, C2 = self._kwork[nbk]
+        kappa = self._k_scale[ax] if quantized else 1.0
+        T = _RW_T2 if quantized else _RW_T1
+        np.matmul(U, T, out=C)  # unscaled, u not yet centred
+        if quantized:  # per sub-block: sum of delta, and sum of (kb - m) delta_m
+            d_sum = (C[:, -1] - C[:, -2] - _U16_MEAN * kb) * s
+            d_dbl = (C[:, -1] - _U16_MEAN * kb * (kb + 1) / 2) * s
+        else:
+            d_sum = (C[:, -1] - _U16_MEAN * kb) * s
+        Bm[0, 0] = 0.0
+        np.cumsum(d_sum[:-1], out=Bm[1:, 0])
+        Bm[:, 0] += self._k_level[ax]  # W_b
+        self._k_level[ax] = Bm[-1, 0] + d_sum[-1]
+        if quantized:
+            G = Bm[:, 0] * float(kb) + d_dbl  # sum of W over the sub-block
+            Bm[0, 1] = 0.0
+            np.cumsum(G[:-1], out=Bm[1:, 1])
+            Bm[:, 1] *= kappa
+            Bm[:, 1] += self._k_theta[ax]  # Theta_b
+            self._k_theta[ax] = Bm[-1, 1] + kappa * G[-1]
+            Mb = np.stack([kappa * _J1, np.ones(kb), -_U16_MEAN * (kappa * s) * T.sum(axis=0)])
+        else:
+            Mb = np.stack([np.ones(kb), np.zeros(kb), -_U16_MEAN * s * T.sum(axis=0)])
+        np.matmul(Bm, Mb, out=C2)
+        C *= kappa * s
+        C += C2
+        row += C.reshape(-1)
 
     def next(self, n: int, signal_in: np.ndarray | None = None) -> np.ndarray:
         """Next n samples (n, 3); optional signal (n, 3) is added before quantization of the integral.
 
         The returned array is a transposed view of a (3, n) C-contiguous buffer.
         """
-        P = self.params
-        y = np.zeros((3, n)) if signal_in is None else np.array(np.asarray(signal_in, dtype=np.float64).T, order="C")
-        buf = np.empty((3, n))
-        if np.any(self._n_scale > 0):
-            y += self._fill_normals(0, buf, self._n_scale)
-        if self._flicker is not None:
-            self._fill_normals(1, buf, self._b_scale)
-            fl, self._zi = signal.sosfilt(self._sos, buf, axis=-1, zi=self._zi)
-            y += fl
-        if np.any(self._k_scale > 0):
-            self._fill_normals(2, buf, self._k_scale)
-            buf[:, 0] += self._rrw
-            np.cumsum(buf, axis=-1, out=buf)
-            self._rrw = buf[:, -1].copy()
-            y += buf
-        if np.any(P["R"] > 0):
-            t = (self._k + 1 + np.arange(n)) * self.tau0
-            y += P["R"][:, None] * t[None, :]
-        if np.any(self._q_step > 0):
-            self._quantize_integral(y, buf)
-        self._k += n
-        return y.T
-
-    def _quantize_integral(self, y: np.ndarray, buf: np.ndarray) -> None:
-        """In place: quantize the running integral with step q per axis and difference it."""
-        np.multiply(y, self.tau0, out=buf)
-        buf[:, 0] += self._theta
-        np.cumsum(buf, axis=-1, out=buf)
-        self._theta = buf[:, -1].copy()
+        n = int(n)
+        y = np.empty((3, n))
+        i = 0
+        while i < n:
+            if self._pos == self._chunk.shape[1]:
+                self._next_chunk()
+            m = min(n - i, self._chunk.shape[1] - self._pos)
+            y[:, i:i + m] = self._chunk[:, self._pos:self._pos + m]
+            i += m
+            self._pos += m
+        sig = None if signal_in is None else np.asarray(signal_in, dtype=np.float64)
+        if n == 0:
+            return y.T
+        if len(self._work) < n:
+            self._work = np.empty(n)
+        work = self._work[:n]
         for ax in range(3):
-            q = self._q_step[ax]
-            if q <= 0:
+            row = y[ax]
+            if not self._quantized[ax]:
+                if sig is not None:
+                    row += sig[:, ax]
                 continue
-            tq = buf[ax]
-            tq /= q
-            np.round(tq, out=tq)
-            tq *= q
-            y[ax, 1:] = tq[1:] - tq[:-1]
-            y[ax, 0] = tq[0] - self._theta_q[ax]
-            y[ax] *= self.rate_hz
-            self._theta_q[ax] = tq[-1]
+            q = self._q_step[ax]  # row holds the noise integral in steps q
+            if sig is not None:
+                np.multiply(sig[:, ax], self.tau0 / q, out=work)
+                work[0] += self._sig_theta[ax]
+                np.cumsum(work, out=work)
+                self._sig_theta[ax] = work[-1]
+                row += work
+            np.rint(row, out=row)
+            work[0] = row[0] - self._theta_q[ax]
+            np.subtract(row[1:], row[:-1], out=work[1:])
+            self._theta_q[ax] = row[-1]
+            np.multiply(work, q * self.rate_hz, out=row)
+        return y.T

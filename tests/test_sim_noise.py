@@ -15,6 +15,8 @@ from scipy import signal
 from scipy.stats import chi2
 
 from rigctl.sim import noise as nz
+from rigctl.sim import spectral_factor as sf
+from rigctl.sim.block_iir import BlockCascade
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.profiles import get_profile, profile_names
 
@@ -83,9 +85,24 @@ def log_factors(n: int, lo: int, hi_div: int = 10, per_decade: int = 4) -> np.nd
 
 # ------------------------------------------------------------------------------------------
 def test_chunked_output_is_bit_identical_to_one_piece() -> None:
-    one = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=11).next(50_000)
+    """Slices that cross the generator's internal chunk boundaries give the same bits as one piece."""
+    n = 2 * nz.NoiseGenerator.CHUNK + 18_000
+    one = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=11).next(n)
     g = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=11)
-    parts = np.concatenate([g.next(k) for k in (1, 2, 997, 12_000, 37_000)])
+    sizes = (1, 2, 997, 12_000, nz.NoiseGenerator.CHUNK, n - 13_000 - nz.NoiseGenerator.CHUNK)
+    parts = np.concatenate([g.next(k) for k in sizes])
+    assert np.array_equal(one, parts)
+
+
+def test_chunked_with_signal_is_bit_identical_to_one_piece() -> None:
+    """With a signal (integrated before quantization) and the ramp, slicing does not change a bit either."""
+    n = nz.NoiseGenerator.CHUNK + 5_000
+    t = np.arange(n)[:, None] / 100.0
+    sig = np.sin(0.7 * t + np.array([0.0, 1.0, 2.0])) * 1e-4 + np.array([0.0, 5e-5, 9.8])
+    one = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=12).next(n, sig)
+    g = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=12)
+    cuts = [0, 3, 40_000, 40_001, n]
+    parts = np.concatenate([g.next(b - a, sig[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
     assert np.array_equal(one, parts)
 
 
@@ -131,6 +148,111 @@ def test_flicker_plateau_is_flat_over_configured_decades(tau_min: float, tau_max
     assert gm_ratio.min() < 0.5
 
 
+# spectral factorisation (one white sequence for N + B + K) and its block evaluation ------------------
+FACTOR_CASES = [  # (rate_hz, tau_min, tau_max, pairs/decade, N, B, K): profile-like, extreme ratios, terms off
+    (100.0, 1.0, 1e4, 2, 4.36e-5, 2.42e-6, 8.1e-9),
+    (100.0, 1.0, 1e4, 2, 1e-3, 4.9e-4, 1e-6),
+    (100.0, 0.1, 1e3, 2, 1e-8, 1e-3, 1e-12),
+    (1000.0, 0.01, 100.0, 2, 1e-3, 1e-6, 0.0),
+    (100.0, 1.0, 1e5, 2, 0.0, 1e-6, 1e-6),
+    (100.0, 1.0, 1e4, 2, 1e-3, 0.0, 1e-6),
+    (100.0, 0.01, 10.0, 1, 2e-4, 3e-5, 1e-7),
+]
+
+
+def _sums(rate: float, tmin: float, tmax: float, ppd: int, N: float, B: float, K: float):
+    d = nz.design_flicker(tmin, tmax, rate, ppd)
+    return d, N**2 * rate, (B * d.input_std_per_B) ** 2, K**2 / rate
+
+
+def _u_form(u: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """|1 - e^{-a} e^{-jw}|^2 = e^{-a} (4 sinh^2(a/2) + u), u = 4 sin^2(w/2), per row of a (finite a only)."""
+    a = np.asarray(a, float)[np.isfinite(a)][:, None]
+    return np.prod(np.exp(-a) * (4 * np.sinh(a / 2) ** 2 + u), axis=0)
+
+
+@pytest.mark.parametrize("case", FACTOR_CASES)
+def test_combined_filter_spectrum_is_the_sum_of_the_terms(case: tuple) -> None:
+    """g^2 |G|^2 = N^2 fs + (B c_B)^2 |H|^2 + K^2 tau0/|1 - e^-jw|^2: by complex arithmetic for w >= 1e-3,
+    and in the cancellation-free u-form down to 1e-9 rad/sample (below the slowest pole)."""
+    d, sn2, sb2, sk2 = _sums(*case)
+    f = sf.factor(sn2, sb2, sk2, d.a_pole, d.a_zero)
+    zeros = np.exp(-np.concatenate([f.b_stable, [f.b_integrator] if f.integrator else []]))
+    poles = np.exp(-f.a_stable)
+    w = np.geomspace(1e-3, np.pi, 300)
+    z1 = np.exp(-1j * w)
+    G = f.gain * np.prod(1 - zeros[:, None] * z1, axis=0) / np.prod(1 - poles[:, None] * z1, axis=0)
+    if f.integrator:
+        G = G / (1 - z1)
+    H = np.prod(1 - np.exp(-d.a_zero)[:, None] * z1, axis=0) / np.prod(1 - np.exp(-d.a_pole)[:, None] * z1, axis=0)
+    target = sn2 + sb2 * np.abs(H) ** 2 + sk2 / np.abs(1 - z1) ** 2
+    assert np.allclose(np.abs(G) ** 2, target, rtol=1e-9, atol=0)
+    w = np.geomspace(1e-9, np.pi, 400)
+    u = 4 * np.sin(w / 2) ** 2
+    target = sn2 + sk2 / u + (sb2 * _u_form(u, d.a_zero) / _u_form(u, d.a_pole) if sb2 > 0 else 0.0)
+    fac = f.gain**2 * _u_form(u, np.concatenate([f.b_stable, [f.b_integrator]])) / _u_form(u, f.a_stable)
+    fac = fac / u if f.integrator else fac
+    assert np.allclose(fac, target, rtol=1e-11, atol=0)
+
+
+def test_combined_filter_allan_variance_is_the_sum_of_the_terms() -> None:
+    """With K = 0 the combined filter is a stable cascade: its exact Allan variance (partial fractions)
+    equals N^2/tau + the flicker cascade's, i.e. theoretical_avar, to rounding."""
+    rate = 100.0
+    params = {"N": 2e-4, "B": 3e-5, "flicker_tau_min_s": 0.1, "flicker_tau_max_s": 1e3}
+    d, sn2, sb2, _ = _sums(rate, 0.1, 1e3, 2, 2e-4, 3e-5, 0.0)
+    f = sf.factor(sn2, sb2, 0.0, d.a_pole, d.a_zero)
+    M = np.array([1.0, 3.0, 10.0, 100.0, 1e3, 1e4, 1e5])
+    combined = f.gain**2 * nz._cascade_avar(f.a_stable, f.b_stable, M)
+    assert np.allclose(combined, nz.theoretical_avar(params, M / rate, rate)[:, 0], rtol=1e-9, atol=0)
+
+
+def test_block_filter_equals_the_direct_recursion() -> None:
+    """BlockCascade (BLAS blocks, closed-form block recursion: slow batch, grouped fast poles, a pole so fast
+    its carry is dropped, identity / random-walk / running-sum integrators, per-axis residues and gains) over
+    three chunks equals the first-order cascade run sample by sample (sosfilt)."""
+    a = np.array([1e-7, 3e-5, 2e-3, 0.05, 0.9, 4.0, 5.0])
+    b_axes = [a * 1.7, np.r_[a[:-1] * 2.5, np.inf], np.full(6, np.inf)]
+    c_int = np.array([[0.0, 1.0], [1 - np.exp(-2e-6), 1.0], [0.3, 0.0]])
+    gain = np.array([1.3, 0.02, 7.0])
+    res = np.array([sf.residues(a, b) for b in b_axes])
+    L, chunk = 64, 1024
+    blk = BlockCascade(a, res, c_int, gain, L)
+    rng = np.random.default_rng(3)
+    s0 = rng.standard_normal((3, len(a))) * 50.0  # a non-zero stable start
+    blk.state[:, : len(a)] = s0
+    eps = rng.standard_normal((3, 3 * chunk))
+    out = np.concatenate([blk.run(eps[:, i * chunk:(i + 1) * chunk]).copy() for i in range(3)], axis=1)
+    for ax in range(3):
+        # direct: parallel stable part with the same start, then the integrator sections one by one
+        p = np.exp(-a)
+        s = s0[ax].copy()
+        x = np.empty(eps.shape[1])
+        for t, e in enumerate(eps[ax]):
+            x[t] = e + np.dot(res[ax] * p, s)
+            s = p * s + e
+        for c in c_int[ax]:
+            x = signal.lfilter([1.0, c - 1.0], [1.0, -1.0], x)
+        ref = gain[ax] * x
+        assert np.max(np.abs(out[ax] - ref)) <= 1e-10 * np.max(np.abs(ref))
+    # the same stable part from the pole/zero cascade form agrees with the partial fractions
+    sos = np.array([[1.0, -np.exp(-bb), 0.0, 1.0, -np.exp(-aa), 0.0] for aa, bb in zip(a, b_axes[0])])
+    imp = np.zeros(400)
+    imp[0] = 1.0
+    blk0 = BlockCascade(a, res[:1], np.zeros((1, 0)), np.ones(1), 16)
+    assert np.allclose(blk0.run(imp[None, :])[0], signal.sosfilt(sos, imp), rtol=0, atol=1e-13)
+
+
+def test_axes_with_different_terms_keep_their_own_signatures() -> None:
+    """Per-axis terms (white only; flicker + random walk; quantization + random walk + ramp): axes without a
+    term get identity sections, and each axis still follows its own theoretical curve."""
+    params = {"N": [1e-3, 1e-4, 1e-3], "B": [0.0, 5e-5, 0.0], "K": [0.0, 1e-5, 1e-5], "Q": [0.0, 0.0, 1e-5],
+              "R": [0.0, 0.0, 1e-7], "flicker_tau_min_s": 0.1, "flicker_tau_max_s": 1e3}
+    rate, n = 100.0, 400_000
+    y = nz.NoiseGenerator(params, rate, seed=31).next(n)
+    check_within_ci(y, params, rate, log_factors(n, 10))
+
+
 def test_exact_discrete_theory_agrees_with_ieee_formulas() -> None:
     tau = np.geomspace(0.1, 4e3, 20)
     M = np.round(tau * 100.0)
@@ -154,6 +276,21 @@ def test_stationary_start_has_full_flicker_variance() -> None:
     assert lo < np.mean(first**2) < hi
     zero_start = nz.design_flicker(1.0, 1e4, 100.0, 2).input_std_per_B ** 2
     assert zero_start < lo
+
+
+def test_rate_random_walk_starts_at_zero_with_variance_k2_t() -> None:
+    """K alone: a walk from 0 at power-on with increments of variance K^2 tau0 (uniform, |dW| <= sqrt(3) K
+    sqrt(tau0)); across seeds Var W_t = K^2 tau0 (t + 1), i.e. no stationary offset at power-on."""
+    K, rate, n, seeds = 2e-4, 100.0, 3000, 200
+    W = np.stack([nz.NoiseGenerator({"K": K}, rate, seed=s).next(n)[:, 0] for s in range(seeds)])
+    step = K * math.sqrt(1 / rate)
+    dW = np.diff(np.concatenate([np.zeros((seeds, 1)), W], axis=1), axis=1)
+    assert np.max(np.abs(dW)) <= math.sqrt(3) * step
+    dof = dW.size
+    assert chi2.ppf(0.0005, dof) / dof < np.mean(dW**2) / step**2 < chi2.ppf(0.9995, dof) / dof
+    for t in (0, 99, n - 1):
+        ratio = np.mean(W[:, t] ** 2) / (step**2 * (t + 1))
+        assert chi2.ppf(0.0005, seeds) / seeds < ratio < chi2.ppf(0.9995, seeds) / seeds
 
 
 @pytest.mark.parametrize("terms", [{"N": 1e-3}, {"Q": 1e-5, "N": 1e-3}, {"K": 1e-4, "N": 1e-3},
