@@ -30,36 +30,18 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from scipy.signal import lfilter  # noqa: E402
 
 from rigctl.solvers import allan as A  # noqa: E402
 from rigctl.solvers import allan_crb as R  # noqa: E402
 from rigctl.solvers import allan_edf as E  # noqa: E402
 from rigctl.solvers import allan_fit as F  # noqa: E402
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+from allan_synth import synth_rate  # noqa: E402 - shared with the tests
+
 D2R = math.pi / 180.0
 FS = 2000.0
 N12H = int(12 * 3600 * FS)
-
-
-def synth_rate(n: int, fs: float, n_arw: float, b: float, k: float, seed: int) -> np.ndarray:
-    """White + flicker (octave Gauss-Markov bank, PSD B^2/(2 pi f)) + random walk (SI)."""
-    rng = np.random.default_rng(seed)
-    dt = 1.0 / fs
-    y = rng.standard_normal(n) * (n_arw / math.sqrt(dt))
-    if b > 0:
-        q = b * b * math.log(2.0) / math.pi
-        tc = 0.5
-        while tc <= 4 * n * dt:
-            rep = max(1, int(round(tc / 16.0 / dt)))
-            phi = math.exp(-rep * dt / tc)
-            w = rng.standard_normal(-(-n // rep)) * math.sqrt(q * (1 - phi * phi))
-            g = lfilter([1.0], [1.0, -phi], w, zi=[rng.standard_normal() * math.sqrt(q) * phi])[0]
-            y += np.repeat(g, rep)[:n]
-            tc *= 2.0
-    if k > 0:
-        y += np.cumsum(rng.standard_normal(n)) * (k * math.sqrt(dt))
-    return y
 
 
 def _load() -> str:

@@ -12,7 +12,7 @@ from rigctl.solvers import allan_crb as R
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
 
-from test_allan_fit import synth_rate
+from allan_synth import synth_rate
 
 
 def test_white_noise_bound_is_the_sample_variance_bound() -> None:
