@@ -32,6 +32,7 @@ import numpy as np
 from rigctl.devices import Clock, LinkLost, Pulses
 
 from .novatel import MarkControl, MarkLogReader, MarkTime, format_markcontrol, gps_total_seconds
+from .reader_thread import ReconnectingReader
 from .serial_link import LineReader, SerialLink
 
 log = logging.getLogger(__name__)
@@ -41,8 +42,10 @@ class NovatelConfigError(RuntimeError):
     """The receiver refused a command."""
 
 
-class NovatelMarks:
+class NovatelMarks(ReconnectingReader):
     """Mark pulses from a NovAtel receiver on ``url``; ``connect()``, ``read()``, ``close()``."""
+
+    config_error = NovatelConfigError
 
     def __init__(self, url: str, clock: Clock, *, baudrate: int = 115200, timeout_s: float = 1.0,
                  signal: str = "MARK1", polarity: str = "NEGATIVE", timebias_ns: int = 0, timeguard_ms: int = 4,
@@ -57,22 +60,11 @@ class NovatelMarks:
         self.anchor: float | None = None          # GPS seconds since epoch at run time 0
         self._marks: list[MarkTime] = []
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._configured = threading.Event()
-        self._fatal: BaseException | None = None
-        self._down_since: float | None = None
-        self._thread: threading.Thread | None = None
+        self._init_reader()
 
     def connect(self) -> None:
         """Configure the receiver and start the reader thread (raises if it refuses)."""
-        self._thread = threading.Thread(target=self._run, name=f"{self.name}-reader", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + 4 * self.timeout_s + 1.0
-        while not self._configured.wait(0.01):
-            if self._fatal is not None or time.monotonic() > deadline:
-                err = self._fatal or LinkLost(self.name, f"no answer from the receiver on {self.link.url}")
-                self.close()
-                raise err
+        self._start_reader(4 * self.timeout_s + 1.0, f"no answer from the receiver on {self.link.url}")
 
     def _command(self, line: bytes) -> None:
         self.link.write(line)
@@ -94,29 +86,12 @@ class NovatelMarks:
         self._command(format_markcontrol(self.control))
         self._command(f"LOG THISPORT {self.log_name} ONNEW\r\n".encode("ascii"))
         self._handle(self.reader.feed(self.lines.take()))   # bytes read past the last reply
-        self._down_since = None
         self._configured.set()
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                if not self._configured.is_set():
-                    self._configure()
-                data = self.link.read_some(0.05)
-                if data:
-                    self._handle(self.reader.feed(data))
-            except LinkLost:
-                self._configured.clear()
-                if self._down_since is None:
-                    self._down_since = time.monotonic()
-                self._stop.wait(max(0.01, self.link.backoff.wait_s()))
-            except NovatelConfigError as exc:
-                self._fatal = exc
-                return
-            except Exception as exc:  # noqa: BLE001 - reported through read()
-                log.exception("%s: reader thread failed", self.name)
-                self._fatal = exc
-                return
+    def _pump(self) -> None:
+        data = self.link.read_some(0.05)
+        if data:
+            self._handle(self.reader.feed(data))
 
     def _handle(self, marks: list[MarkTime]) -> None:
         if not marks:
@@ -135,9 +110,10 @@ class NovatelMarks:
         with self._lock:
             marks, self._marks = self._marks, []
         if not marks:
-            if self._down_since is not None and time.monotonic() - self._down_since > self.link_timeout_s:
+            down = self.link_down_s()
+            if down is not None and down > self.link_timeout_s:
                 raise LinkLost(self.name, f"no link to the receiver on {self.link.url} for "
-                                          f"{time.monotonic() - self._down_since:.1f} s (reconnecting)")
+                                          f"{down:.1f} s (reconnecting)")
             return Pulses(np.empty(0), np.empty(0, np.int32), np.empty(0), source="gnss")
         week = np.array([m.week for m in marks], dtype=np.int32)
         sec = np.array([m.gps_seconds for m in marks])
@@ -150,9 +126,3 @@ class NovatelMarks:
         d = asdict(self.reader.counters)
         d.update(link_losses=self.link.losses, reconnects=self.link.reconnects)
         return d
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-        self.link.close()

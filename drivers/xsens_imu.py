@@ -46,6 +46,7 @@ import numpy as np
 
 from rigctl.devices import Clock, ImuBlock, LinkLost
 
+from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
 from .xsens import (FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, SAMPLE_TIME_FINE_WRAP, XDI, ErrorCode, OutputItem,
                     check_rate_fits, decode_output_configuration, go_to_config, go_to_measurement,
@@ -70,8 +71,10 @@ def output_items(rate_hz: int) -> list[OutputItem]:
             OutputItem(XDI.TEMPERATURE, rate_hz), OutputItem(XDI.STATUS_WORD, rate_hz)]
 
 
-class XsensImu:
+class XsensImu(ReconnectingReader):
     """Xsens MTi over ``url``; see the module docstring. ``connect()`` then ``read()``; ``close()``."""
+
+    config_error = XsensConfigError
 
     def __init__(self, url: str, rate_hz: float, clock: Clock, *, baudrate: int = 921_600,
                  timeout_s: float = 0.5, sample_time_fine_wrap: int = SAMPLE_TIME_FINE_WRAP,
@@ -97,56 +100,31 @@ class XsensImu:
         self._latest_stf: int | None = None
         self._msgs: list = []
         self._cond = threading.Condition()
-        self._stop = threading.Event()
-        self._configured = threading.Event()
-        self._fatal: BaseException | None = None
-        self._down_since: float | None = None
-        self._thread: threading.Thread | None = None
+        self._init_reader()
         self._last_warn = 0.0
         self._warned_bad = 0
 
     # ----------------------------------------------------------------------- reader thread
     def connect(self) -> None:
         """Start the reader thread; return once the device streams (raise if it cannot)."""
-        self._thread = threading.Thread(target=self._run, name=f"{self.name}-reader", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + 10 * self.timeout_s + self.learn_s + 2.0
-        while not self._configured.wait(0.01):
-            if self._fatal is not None or time.monotonic() > deadline:
-                err = self._fatal or LinkLost(self.name, f"no stream from {self.link.url}")
-                self.close()
-                raise err
+        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                if not self._configured.is_set():
-                    self._configure()
-                data = self.link.read_some(0.05)
-                wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
-                if data and wait > 0:               # gather more before decoding
-                    buf, end = bytearray(data), time.monotonic() + wait
-                    while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
-                        more = self.link.read_some(left)
-                        if not more:
-                            break
-                        buf += more
-                    data = bytes(buf)
-                if data:
-                    self._feed(data)
-            except LinkLost:
-                self._configured.clear()
-                if self._down_since is None:
-                    self._down_since = time.monotonic()
-                self._flush_stream()
-                self._stop.wait(max(0.01, self.link.backoff.wait_s()))
-            except XsensConfigError as exc:
-                self._fatal = exc
-                return
-            except Exception as exc:  # noqa: BLE001 - reported through read()
-                log.exception("%s: reader thread failed", self.name)
-                self._fatal = exc
-                return
+    def _pump(self) -> None:
+        data = self.link.read_some(0.05)
+        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
+        if data and wait > 0:               # gather more before decoding
+            buf, end = bytearray(data), time.monotonic() + wait
+            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
+                more = self.link.read_some(left)
+                if not more:
+                    break
+                buf += more
+            data = bytes(buf)
+        if data:
+            self._feed(data)
+
+    def _on_link_lost(self) -> None:
+        self._flush_stream()
 
     def _flush_stream(self) -> None:
         batch = self.stream.flush()
@@ -236,7 +214,6 @@ class XsensImu:
                 raise LinkLost(self.name, f"no MTData2 frames from {self.link.url} after GoToMeasurement")
         if self._down_since is not None:
             log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
-        self._down_since = None
         self._configured.set()
 
     def _discard_preconfig(self) -> None:
@@ -266,7 +243,7 @@ class XsensImu:
                     self._cond.wait(left)
             batches, self._pending = self._pending, []
         if not batches:
-            if self._down_since is not None and time.monotonic() - self._down_since > self.link_timeout_s:
+            if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
                 raise LinkLost(self.name, f"no data from {self.link.url} for "
                                           f"{time.monotonic() - self._down_since:.1f} s (reconnecting)")
             return ImuBlock.empty()
@@ -294,12 +271,6 @@ class XsensImu:
         d.update(incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-        self.link.close()
 
     def __enter__(self) -> XsensImu:
         return self
