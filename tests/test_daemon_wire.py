@@ -15,7 +15,6 @@ import io
 import json
 import os
 import random
-import shutil
 import signal
 import subprocess
 import sys
@@ -27,7 +26,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.checkpoint import clear_status_flags, status_flags
+from rigctl.checkpoint import status_flags
 from rigctl.config import load_config
 from rigctl.procedure import load_procedure
 from rigctl.runner import RunOptions, resume_run, run_procedure
@@ -57,20 +56,9 @@ def _swmr(path: Path) -> h5py.File:
 
 def _open_cut_off(path: Path, tmp: Path, kill: int, window_hits: list[int]) -> h5py.File:
     """The recording after a kill, opened with h5py as a reader would (SWMR read: the dead
-    writer's flags are still set). Known gap: a kill inside Recorder.reopen, between its plain
-    'r+' open and 'swmr_mode = True', leaves the write flag without the SWMR flag, which every
-    h5py open refuses; then (and only then: flags == 1) the kill is noted and a copy with the
-    flags cleared (what `rigctl resume` does) is checked instead."""
-    try:
-        return _swmr(path)
-    except OSError as exc:
-        if not ("not already open for SWMR writing" in str(exc) and status_flags(path) == 1):
-            raise
-    window_hits.append(kill)
-    copy = tmp / f"cut-off-{kill}.h5"
-    shutil.copyfile(path, copy)
-    clear_status_flags(copy)
-    return h5py.File(copy, "r")
+    writer's flags are still set). A kill at any moment, a resume's reopen included (the
+    recorder reopens straight into SWMR-write mode), leaves a file that this open accepts."""
+    return _swmr(path)
 
 
 def _launch(args: list[str], log: Path) -> subprocess.Popen:
@@ -192,10 +180,7 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
           f"{reopened - 1} of {KILLS - 1} resumed sessions reopened the file before their kill; "
           f"table left {sorted({k['table']['mode'][0] for k in kills})}; lost per kill "
           f"{[round(x, 2) for x in lost]}")
-    if window_hits:
-        pytest.xfail(f"kill(s) {window_hits} landed inside Recorder.reopen between h5py's plain 'r+' open and "
-                     "'swmr_mode = True' (~8 ms): h5py refuses that file until its flags are cleared; "
-                     "rigctl/recorder.py must open it straight into SWMR-write mode (h5f.ACC_SWMR_WRITE)")
+    assert not window_hits
 
 
 ORIENT = """procedure: link-drops
