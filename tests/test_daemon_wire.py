@@ -87,6 +87,7 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
             p = _launch(args, tmp_path / f"session{i + 1}.log")
             try:
                 if i == KILLS:
+                    t_final = t_launch
                     assert p.wait(timeout=120) == 0, (tmp_path / f"session{i + 1}.log").read_text()[-3000:]
                     break
                 # the session's IMU stream began (the driver configured the device) ...
@@ -131,10 +132,13 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
                           "stopped": n_stops > (kills[-1]["stops"] if kills else 0), "stops": n_stops})
             assert lost <= 1.0, f"kill {i + 1}: {lost:.3f} s of sent IMU data not in the file"
             n_rows = n
-        # every session after a kill commanded a stop before its first motion command
+        # every session after a kill commanded a stop before its first motion command. A session
+        # is what the controller executed between its process's launch and its own kill: lines
+        # the killed process had already written can still execute just after t_kill, and they
+        # are not the next session's (that one is launched after the checks above)
         cmds = commands_since(hw, kills[0]["t_kill"])
-        for k, nxt in zip(kills, kills[1:] + [{"t_launch": np.inf}]):
-            session = [c for t, c in cmds if k["t_kill"] < t < nxt["t_launch"]]
+        for k, nxt in zip(kills, kills[1:] + [{"t_launch": t_final, "t_kill": np.inf}]):
+            session = [c for t, c in cmds if nxt["t_launch"] < t < nxt["t_kill"]]
             motion = [j for j, c in enumerate(session) if ":MODE:POSITION" in c or ":DEMAND" in c]
             stop = [j for j, c in enumerate(session) if c.startswith(":MODE:OFF")]
             if motion:
