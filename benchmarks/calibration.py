@@ -1,12 +1,25 @@
-"""Closed-loop statistics on the emulator: false flags on clean seeds, detection per effect.
+"""Calibration statistics on the emulator: false flags, coverage, chi2, detection per effect.
 
-Runs `rigctl run procedures/full-calibration.yaml` (shortened: warm-up and sample window
-via -p) for N seeds of configs/sim.yaml (declared errors + white noise) and for N seeds of the
-effects profile of tests/test_calibrate_emulated.py, then reads /results/calibration.
-Prints per-seed lines and, last, one JSON object:
-  false_flag_rate_clean, coverage95_clean (pooled over parameters), chi2_per_dof_clean_median,
-  detection_rate_<effect>, run_wall_s_mean.
-Usage: python benchmarks/calibration.py [--seeds 20] [--warmup "1 min"] [--sample "10 s"]
+Two studies (both run the emulator through `rigctl run`, then read the calibration):
+
+1. **White noise** (the closed loop's guard): `procedures/full-calibration.yaml` shortened (-p
+   warmup, sample) for N seeds of configs/sim.yaml (declared errors + white noise) and of the
+   effects profile of tests/test_calibrate_emulated.py (g-sensitivity, accel scale asymmetry,
+   lever arm, gyro nonlinearity): false-flag rate, pooled coverage, detection rate per effect.
+2. **Time-correlated noise** (bias instability + rate random walk, the real-MEMS case): the full
+   procedure (15-min warm-up, 30-s windows) for N seeds of each profile -- declared_only, and
+   mti_class / tactical with every extra effect disabled by overrides. Each recording is
+   calibrated three ways: "independent" (segment means treated as independent, each with its
+   own batch-means sigma: the behaviour before segment covariances), "session" (covariance from
+   the noise model REML-estimated from the session: what `rigctl calibrate` does without
+   /results/allan) and "coeffs" (covariance from the profile's true IEEE 952 coefficients: what
+   /results/allan gives). Per run: closed-loop chi2/dof and whether it lies in its 99 %
+   chi-square band, accel24 / gyro-rate chi2/dof, any effect or unexplained structure flagged,
+   and how many of the 27 declared parameters' 95 % intervals cover /truth.
+
+Prints per-run JSON lines, a table, and last one JSON object of headline figures.
+Usage: python benchmarks/calibration.py [--seeds 6] [--corr-seeds 10] [--profiles declared_only,...]
+       [--recordings DIR]   (keep the study-2 recordings there and reuse them on the next run)
 """
 from __future__ import annotations
 
@@ -23,6 +36,8 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import h5py  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
 import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -31,8 +46,13 @@ from test_calibrate_emulated import PROFILES  # noqa: E402
 
 CODE = ("import sys, rigctl.sim.profiles as P; P.DEFAULT_PATH = sys.argv[1]; "
         "from rigctl.cli import main; sys.exit(main(sys.argv[2:]))")
+EFFECTS_OFF = {k: {"enabled": False} for k in ("warmup", "turn_on_bias", "g_sensitivity", "accel_scale_asymmetry",
+                                               "gyro_nonlinearity", "lever_arm", "time_delay", "vibration",
+                                               "clock", "table_geometry")}
+CORR_PROFILES = ("declared_only", "mti_class", "tactical")
 
 
+# ------------------------------------------------------------------------------ study 1
 def one(tmp: Path, seed: int, profile: str | None, warmup: str, sample: str) -> dict:
     cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     cfg["seed"] = seed
@@ -58,29 +78,158 @@ def one(tmp: Path, seed: int, profile: str | None, warmup: str, sample: str) -> 
             "covered": sum(cover), "n_params": len(cover), "wall_s": wall}
 
 
+# ------------------------------------------------------------------------------ study 2
+def record(tmp: Path, seed: int, profile: str) -> tuple[Path, dict]:
+    """Emulated 24-position + rate-test recording (no solve step) of one profile and seed
+    (reused when ``tmp`` already holds it: see --recordings)."""
+    out = tmp / f"corr-{profile}-{seed}"
+    found = sorted(out.glob("*/recording.h5"))
+    if found:
+        with h5py.File(found[0], "r") as f:
+            if f["run/status"][0] == b"complete":
+                return found[0], json.loads(f["truth"].attrs["params_json"])["imu"]
+    proc = tmp / "record.yaml"
+    proc.write_text(yaml.safe_dump({"procedure": "bench-record", "steps": [
+        {"include": str(ROOT / "procedures" / "24pos.yaml")}, {"include": str(ROOT / "procedures" / "rates.yaml")}]}))
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = seed
+    cfg["imu"]["sim"] = {"profile": profile, "seed": seed}
+    if profile != "declared_only":
+        cfg["imu"]["sim"]["overrides"] = {"effects": EFFECTS_OFF}
+    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    subprocess.run([sys.executable, "-m", "rigctl.cli", "run", str(proc), "--config", str(tmp / "cfg.yaml"),
+                    "--out", str(out)], check=True, capture_output=True, cwd=ROOT)
+    rec = next(out.glob("*/recording.h5"))
+    with h5py.File(rec, "r") as f:
+        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
+    return rec, truth
+
+
+def _summary(sess: dict, truth: dict) -> dict:
+    cl = sess["closed_loop"]
+    fin = cl.final
+    ci = dict(zip(fin.names, fin.ci95))
+    cover = [bool(ci[e["name"]][0] <= e["truth"] <= ci[e["name"]][1]) for e in cl.truth_errors]
+    lo, hi = scipy.stats.chi2.ppf([0.005, 0.995], fin.dof) / fin.dof
+    out = {"chi2_per_dof": fin.chi2_per_dof, "in_band99": bool(lo <= fin.chi2_per_dof <= hi),
+           "p": fin.chi2_p_value, "flagged": bool(cl.effects or cl.unexplained),
+           "effects": cl.effect_names, "unexplained": len(cl.unexplained),
+           "covered": int(sum(cover)), "n_params": len(cover),
+           "bias_covered": int(sum(c for c, e in zip(cover, cl.truth_errors) if "bias" in e["name"]))}
+    for k in ("accel24", "gyro_rate"):
+        r = sess.get(k)
+        if r is not None:
+            out[f"{k}_chi2_per_dof"] = r.chi2_per_dof
+            a, b = scipy.stats.chi2.ppf([0.005, 0.995], r.dof) / r.dof
+            out[f"{k}_in_band99"] = bool(a <= r.chi2_per_dof <= b)
+    return out
+
+
+def calibrate_three_ways(rec: Path, truth_params: dict) -> dict:
+    from rigctl.calibrate_cmd import _truth
+    from rigctl.segment_builder import build_segment_table, open_recording
+    from rigctl.solvers.closed_loop import calibrate_session
+    from rigctl.solvers.segment_noise import apply_session_noise
+    from rigctl.solvers.segment_stats import NoiseModel
+
+    with open_recording(rec) as f:
+        truth = _truth(f)
+    out = {}
+    seg = build_segment_table(rec)
+    out["independent"] = _summary(calibrate_session(seg, truth=truth), truth)
+    seg = build_segment_table(rec)
+    t0 = time.monotonic()
+    models = apply_session_noise(seg)
+    out["session"] = _summary(calibrate_session(seg, truth=truth), truth)
+    out["session"]["calibrate_s"] = time.monotonic() - t0
+    out["session"]["B_over_true"] = [m.B / b if b else None for m, b in zip(models, _true_b(truth_params))]
+    nm = [NoiseModel(**{t: np.full(3, truth_params[f"{s}_noise_generator_params"].get(t, 0.0)) for t in "QNBK"},
+                     flicker_tau_min_s=truth_params[f"{s}_noise_generator_params"].get("flicker_tau_min_s", 1.0),
+                     flicker_tau_max_s=truth_params[f"{s}_noise_generator_params"].get("flicker_tau_max_s", 1e4))
+          for s in ("accel", "gyro")]
+    seg = build_segment_table(rec, noise_f=nm[0], noise_w=nm[1])
+    apply_session_noise(seg, nm[0], nm[1])
+    out["coeffs"] = _summary(calibrate_session(seg, truth=truth), truth)
+    return out
+
+
+def _true_b(tp: dict) -> list[float]:
+    return [tp["accel_noise_generator_params"].get("B", 0.0)] * 3 + [tp["gyro_noise_generator_params"].get("B", 0.0)] * 3
+
+
+def corr_study(seeds: int, profiles: list[str], keep: str | None = None) -> dict:
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        where = Path(keep) if keep else Path(d)
+        where.mkdir(parents=True, exist_ok=True)
+        for prof in profiles:
+            for s in range(1, seeds + 1):
+                t0 = time.monotonic()
+                rec, truth = record(where, s, prof)
+                res = calibrate_three_ways(rec, truth)
+                row = {"profile": prof, "seed": s, "wall_s": time.monotonic() - t0, **res}
+                rows.append(row)
+                print(json.dumps(row, default=float), flush=True)
+                if not keep:
+                    rec.unlink()
+    print()
+    print(f"{'profile':<14} {'noise model':<12} {'runs':>4} {'chi2/dof median':>16} {'in 99% band':>12} "
+          f"{'no flag':>8} {'coverage':>9} {'bias cov.':>9} {'accel24 in band':>16} {'gyro-rate in band':>18}")
+    summary: dict = {}
+    for prof in profiles:
+        sub = [r for r in rows if r["profile"] == prof]
+        for mode in ("independent", "session", "coeffs"):
+            x = [r[mode] for r in sub]
+            n = len(x)
+            med = float(np.median([v["chi2_per_dof"] for v in x]))
+            band = sum(v["in_band99"] for v in x) / n
+            noflag = sum(not v["flagged"] for v in x) / n
+            cov = sum(v["covered"] for v in x) / sum(v["n_params"] for v in x)
+            bcov = sum(v["bias_covered"] for v in x) / (6 * n)
+            a24 = sum(v.get("accel24_in_band99", False) for v in x) / n
+            gr = sum(v.get("gyro_rate_in_band99", False) for v in x) / n
+            print(f"{prof:<14} {mode:<12} {n:>4} {med:>16.3f} {band:>12.2f} {noflag:>8.2f} {cov:>9.3f} "
+                  f"{bcov:>9.3f} {a24:>16.2f} {gr:>18.2f}")
+            summary[f"{prof}_{mode}"] = {"chi2_per_dof_median": med, "frac_in_99_band": band,
+                                         "frac_no_flag": noflag, "coverage95_pooled": cov}
+    return summary
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--seeds", type=int, default=6, help="white-noise study seeds (0: skip)")
+    ap.add_argument("--corr-seeds", type=int, default=10, help="time-correlated study seeds (0: skip)")
+    ap.add_argument("--profiles", default=",".join(CORR_PROFILES))
     ap.add_argument("--warmup", default="1 min")
     ap.add_argument("--sample", default="10 s")
+    ap.add_argument("--recordings", help="keep (and reuse) the study-2 recordings in this directory")
     a = ap.parse_args()
-    clean, eff = [], []
-    with tempfile.TemporaryDirectory() as d:
-        for s in range(1, a.seeds + 1):
-            clean.append(one(Path(d), s, None, a.warmup, a.sample))
-            print(json.dumps(clean[-1]), flush=True)
-            eff.append(one(Path(d), s, "effects_test", a.warmup, a.sample))
-            print(json.dumps(eff[-1]), flush=True)
-    names = ("lever_arm", "gyro_g_sensitivity", "gyro_scale_nonlinearity", "accel_scale_asymmetry")
-    chi = sorted(r["chi2_per_dof"] for r in clean)
-    summary = {
-        "seeds": a.seeds,
-        "false_flag_rate_clean": sum(bool(r["effects"]) or r["unexplained"] > 0 for r in clean) / len(clean),
-        "coverage95_clean": sum(r["covered"] for r in clean) / sum(r["n_params"] for r in clean),
-        "chi2_per_dof_clean_median": chi[len(chi) // 2],
-        **{f"detection_rate_{n}": sum(n in r["effects"] for r in eff) / len(eff) for n in names},
-        "run_wall_s_mean": sum(r["wall_s"] for r in clean + eff) / len(clean + eff),
-    }
+    summary: dict = {}
+    if a.corr_seeds > 0:
+        corr = corr_study(a.corr_seeds, [p for p in a.profiles.split(",") if p], a.recordings)
+        for k, v in corr.items():
+            if k.endswith("_session") or k.endswith("_independent"):
+                summary[f"{k}_frac_in_99_band"] = v["frac_in_99_band"]
+                summary[f"{k}_frac_no_flag"] = v["frac_no_flag"]
+                summary[f"{k}_coverage95"] = v["coverage95_pooled"]
+    if a.seeds > 0:
+        clean, eff = [], []
+        with tempfile.TemporaryDirectory() as d:
+            for s in range(1, a.seeds + 1):
+                clean.append(one(Path(d), s, None, a.warmup, a.sample))
+                print(json.dumps(clean[-1]), flush=True)
+                eff.append(one(Path(d), s, "effects_test", a.warmup, a.sample))
+                print(json.dumps(eff[-1]), flush=True)
+        names = ("lever_arm", "gyro_g_sensitivity", "gyro_scale_nonlinearity", "accel_scale_asymmetry")
+        chi = sorted(r["chi2_per_dof"] for r in clean)
+        summary.update({
+            "seeds_white": a.seeds,
+            "false_flag_rate_clean": sum(bool(r["effects"]) or r["unexplained"] > 0 for r in clean) / len(clean),
+            "coverage95_clean": sum(r["covered"] for r in clean) / sum(r["n_params"] for r in clean),
+            "chi2_per_dof_clean_median": chi[len(chi) // 2],
+            **{f"detection_rate_{n}": sum(n in r["effects"] for r in eff) / len(eff) for n in names},
+            "run_wall_s_mean": sum(r["wall_s"] for r in clean + eff) / len(clean + eff),
+        })
     print(json.dumps(summary))
 
 

@@ -12,8 +12,12 @@ down) the six-face linear fit f = b + M a with nominal references +-g (Ferraris'
 A fit with too few poses is computed but printed as NOT TRUSTWORTHY (exit code 0; the JSON
 has ``"trustworthy": false`` and the reasons).
 
-Noise model for the segment means: /results/allan of the recording (``rigctl allan``) when
-present, else each segment's own scatter (``--noise self``); the output says which.
+Noise model for the segment means, including the covariance between segments that bias
+instability and rate random walk create (the bias wanders during the 30-60 minute procedure;
+:mod:`rigctl.solvers.segment_cov`): the IEEE 952 coefficients of /results/allan (``rigctl
+allan``) when present, else estimated from the session itself (``--noise self``: white level
+from each window's batch means, bias instability and random walk by REML of the segment means,
+:mod:`rigctl.solvers.segment_noise`). The output says which, with the coefficients per channel.
 
 Results: /results/calibration (attrs schema_version, created_utc, json) and a JSON file beside
 the recording (RECORDING.calibration.json, or ``--json``). ``payload["model"]`` holds the sensor
@@ -122,9 +126,38 @@ def _noise(f: h5py.File, choice: str, path: Path) -> tuple[Any, Any, str]:
         raise InputError("--noise allan: the recording has no complete /results/allan (all six axes)", path,
                          hint="run `rigctl allan` on a static recording first, or use --noise self")
     if nm is not None:
-        return nm[0], nm[1], "from /results/allan (IEEE 952 terms fitted by rigctl allan)"
-    return None, None, ("from the data: each segment's own scatter (batch means, about what the "
-                        "reference explains; no /results/allan in the recording)")
+        return nm[0], nm[1], ("from /results/allan (IEEE 952 terms fitted by rigctl allan; segment "
+                              "covariance from N, Q, B (flicker band 1 s - 1e4 s) and K)")
+    return None, None, ("from the data (no /results/allan in the recording): white level per channel "
+                        "and segment kind from each window's batch means (about what the reference "
+                        "explains), bias instability B and rate random walk K by REML of the segment "
+                        "means (declared model + time, temperature and per-kind offsets protected)")
+
+
+#: field units of the noise coefficients: (name, factor from SI) for accel and gyro
+_NOISE_UNITS = {"accel": (("N", "ug_per_rtHz", 1e6 / G0), ("B", "ug", 1e6 / G0), ("K", "ug_per_rts", 1e6 / G0)),
+                "gyro": (("N", "deg_per_rth", 180.0 / math.pi * 60.0), ("B", "deg_h", DEG_H),
+                         ("K", "deg_h_per_rth", DEG_H * 60.0))}
+
+
+def noise_summary(models: list[Any]) -> tuple[list[str], list[dict[str, Any]]]:
+    """Text lines and JSON rows of the six channels' noise models (field units in the keys)."""
+    from .solvers.segments import CHANNELS
+
+    lines, rows = [], []
+    for ch, m in zip(CHANNELS, models):
+        sensor = ch.split("_")[0]
+        (nn, nu, nf), (bn, bu, bf), (kn, ku, kf) = _NOISE_UNITS[sensor]
+        nper = {g: float(np.sqrt(v)) * nf for g, v in m.white_var.items()}
+        row = {"channel": ch, "source": m.source, f"N_{nu}": nper, f"B_{bu}": m.B * bf, f"K_{ku}": m.K * kf,
+               "flicker_tau_min_s": m.tau_min_s, "flicker_tau_max_s": m.tau_max_s, "rw_origin_s": m.t0,
+               **{k: v for k, v in m.info.items() if k in ("residual_dof", "converged", "note")}}
+        rows.append(row)
+        ntxt = ", ".join(f"{v:.4g}" + ("" if g == "*" else f" ({g})") for g, v in nper.items())
+        extra = f"; REML on {m.info['residual_dof']} residual dof" if "residual_dof" in m.info else ""
+        lines.append(f"  {ch:<8} N {ntxt} {nu.replace('_per_', '/')}, B {m.B * bf:.4g} {bu}, "
+                     f"K {m.K * kf:.4g} {ku.replace('_per_', '/')}{extra}")
+    return lines, rows
 
 
 # ------------------------------------------------------------------------------ turntable data
@@ -162,15 +195,21 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
     """Returns (payload, report text, explain text) for a turntable recording."""
     from .solvers.closed_loop import calibrate_session, format_report, session_to_dict
 
+    from .solvers.segment_noise import apply_session_noise
+
     with open_recording(path) as f:
         nf, nw, noise_txt = _noise(f, noise, path)
         truth = _truth(f)
     seg = build_segment_table(path, noise_f=nf, noise_w=nw)
+    models = apply_session_noise(seg, nf, nw)
+    noise_lines, noise_rows = noise_summary(models) if models else ([], [])
+    if not models:
+        noise_txt += " (segment windows unknown: means treated as independent)"
     out = calibrate_session(seg, truth=truth)
     cl = out["closed_loop"]
     kinds = {k: int(np.sum(seg.kind == k)) for k in np.unique(seg.kind)}
     head = [f"rigctl calibrate: {path} ({', '.join(f'{v} {k}' for k, v in kinds.items())} segments)",
-            f"noise model: {noise_txt}"]
+            f"noise model: {noise_txt}", *noise_lines]
     for key, title in (("accel24", "accel24 (A3, static positions)"), ("gyro_rate", "gyro rate test (A4)")):
         r = out.get(key)
         if r is not None:
@@ -181,7 +220,8 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
                         + [f"  [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | "
                            f"{x['decision']}" for x in cl.explain])
     trust = cl.final.status in ("ok", "poor_fit")
-    payload = {"mode": "turntable", "noise_model": noise_txt, "results": session_to_dict(out),
+    payload = {"mode": "turntable", "noise_model": noise_txt, "noise_model_channels": noise_rows,
+               "results": session_to_dict(out),
                "model": _model_from_final(cl.final), "truth_available": truth is not None,
                "trustworthy": trust, "status": cl.final.status,
                "reasons": list(cl.final.warnings)}
@@ -229,7 +269,13 @@ def calibrate_free(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
              "rotations between poses for the gyro)",
              f"noise model: {noise_txt}"]
     fa, sa = mp.pose_means(acc, iv, fs, nf)
-    acc_res = mp.calibrate_accel_multipos(fa, sa, g, unit="m_s2")
+    # IEEE 952 coefficients (rigctl allan): pose means correlated by the slow terms. Without them
+    # the poses are treated as independent (a few hand-held poses cannot estimate slow noise).
+    pc_a = mp.pose_cov(iv, fs, nf) if isinstance(nf, NoiseModel) else None
+    pc_g = mp.pose_cov(iv, fs, nw) if isinstance(nw, NoiseModel) else None
+    if pc_a is not None:
+        sa = np.sqrt(np.diagonal(pc_a, axis1=1, axis2=2)).T
+    acc_res = mp.calibrate_accel_multipos(fa, sa, g, unit="m_s2", pose_cov=pc_a)
     acc_cal = mp.calibrate_accel_apply(acc_res.values, acc)
     results: dict[str, Any] = {"multipos_accel": acc_res}
     if 2 * (len(iv) - 1) - 9 >= 2:
@@ -259,8 +305,9 @@ def calibrate_free(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
                      "heading unknown)")
         ws = [mp.pose_means(gyr, iv, fs, nw)[k] for k in (0, 1)]
         fr = g * ups
-        face = calibrate_accel(fa, sa, fr, quadratic=False)
-        gb = calibrate_gyro_bias_static(ws[0], ws[1], np.zeros_like(fr))
+        face = calibrate_accel(fa, sa, fr, quadratic=False, f_cov=pc_a)
+        gb = calibrate_gyro_bias_static(ws[0], ws[1] if pc_g is None else np.sqrt(
+            np.diagonal(pc_g, axis1=1, axis2=2)).T, np.zeros_like(fr), None, pc_g)
         results.update({"faces_accel": face, "faces_gyro_bias": gb})
         model["accel"] = {"bias_m_s2": face.extra["bias_m_s2"].tolist(), "M": face.extra["M"].tolist(),
                           "k2_s2_per_m": [0.0, 0.0, 0.0]}

@@ -21,11 +21,13 @@ import numpy as np
 
 from .frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
 from .solvers.segment_stats import AllanCurve, NoiseModel, self_noise_sigma
-from .solvers.segments import SegmentTable, segment_table_from_samples
+from .solvers.segments import SegmentTable, about_reference, rest_batches, segment_table_from_samples
 from .yamlio import InputError
 
 #: Segment kinds a calibration uses.
 CAL_KINDS = (b"orientation", b"rate")
+#: Static segment kinds whose samples inform the noise model only (SegmentTable.rest)
+REST_KINDS = (b"warmup",)
 
 
 def open_recording(path: str | Path) -> h5py.File:
@@ -80,19 +82,11 @@ def _angles_at(t: np.ndarray, seg: dict, i: int, tab_t: np.ndarray, tab_ang: np.
 
 def _residual_sigma(x: np.ndarray, ref: np.ndarray, fs: float) -> np.ndarray:
     """Noise of a segment mean estimated from the segment itself (rigctl.solvers.segment_stats.
-    self_noise_sigma) after removing what the reference explains.
-
-    On a static segment this is the samples about their mean. On a rate segment gravity turns
-    through the sensor axes, so the samples swing by ~g: they are first regressed on
-    [1, ref_x, ref_y, ref_z] (least squares per channel) and the batch-means estimate is taken
-    of the residual, which is the sensor noise.
+    self_noise_sigma) after removing what the reference explains
+    (:func:`rigctl.solvers.segments.about_reference`: on a rate segment gravity turns through the
+    sensor axes and the samples swing by ~g, which is not noise).
     """
-    ref = np.atleast_2d(ref)
-    if ref.shape[0] == x.shape[0] and np.ptp(ref, axis=0).max() > 0:
-        A = np.column_stack([np.ones(len(ref)), ref - ref.mean(axis=0)])
-        coef, *_ = np.linalg.lstsq(A, x, rcond=1e-9)
-        x = x - A @ coef
-    return self_noise_sigma(x, fs)
+    return self_noise_sigma(about_reference(x, ref), fs)
 
 
 def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
@@ -109,6 +103,12 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
         kinds: segment kinds to include.
         noise_f, noise_w: accelerometer / gyro noise models for the uncertainty of a mean; None
             estimates it from each segment itself (:func:`_residual_sigma`).
+
+    The table carries each window's [t_start, t_end) (run time of its first sample, plus n/fs),
+    its batch means, and the batch means of the warm-up (``rest``: static data before the
+    calibration, the noise model's best view of slow noise), from which
+    :func:`rigctl.solvers.segment_noise.apply_session_noise` builds the covariance of the means
+    under time-correlated noise.
     """
     with open_recording(path) as f:
         lat, h, g = _site(f)
@@ -128,7 +128,8 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
             raise InputError("the recording has no complete orientation or rate segments", path,
                              hint="run procedures/24pos.yaml or rates.yaml first")
         cols: dict[str, list] = {k: [] for k in ("kind", "label", "acc", "gyro", "f_ref", "w_ref", "time",
-                                                 "temperature", "table_rate", "angles", "attitude")}
+                                                 "temperature", "table_rate", "angles", "attitude",
+                                                 "t_start", "t_end")}
         for i in rows:
             a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
             t = t_imu[a:z]
@@ -141,17 +142,28 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
             cols["f_ref"].append(fr)
             cols["w_ref"].append(wr)
             cols["time"].append(float(t.mean()))
+            cols["t_start"].append(float(t[0]))  # the window the n samples cover: n / fs
+            cols["t_end"].append(float(t[0]) + (z - a) / fs)
             cols["temperature"].append(float(temp_ds[a:z].mean()) if temp_ds is not None else np.nan)
             cols["table_rate"].append(rates.mean(axis=0))
             cols["angles"].append(ang.mean(axis=0))
             cols["attitude"].append(gimbal_dcm(ang).mean(axis=0))
+        rest = None
+        warm = [i for i, k in enumerate(seg["kind"]) if k in REST_KINDS and status[i] == b"complete"]
+        if warm:  # the longest complete warm-up, if it holds at least 8 batches of 10 s
+            i = max(warm, key=lambda j: int(seg["last_sample"][j] - seg["first_sample"][j]))
+            a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
+            if (z - a) / fs >= 80.0:
+                rest = rest_batches(t_imu[a:z], f["imu/specific_force"][a:z], f["imu/angular_rate"][a:z], fs,
+                                    temp_ds[a:z] if temp_ds is not None else None)
     temps = np.asarray(cols["temperature"])
     table = segment_table_from_samples(
         cols["kind"], cols["acc"], cols["gyro"], fs, cols["f_ref"], cols["w_ref"], noise_f, noise_w,
         label=np.asarray(cols["label"]), time=np.asarray(cols["time"]),
         temperature=temps if np.all(np.isfinite(temps)) else None,
         table_rate=np.asarray(cols["table_rate"]), angles=np.asarray(cols["angles"]),
-        attitude=np.asarray(cols["attitude"]), earth_rate_n=earth_rate_enu(lat), gravity_m_s2=g)
+        attitude=np.asarray(cols["attitude"]), earth_rate_n=earth_rate_enu(lat), gravity_m_s2=g,
+        t_start=np.asarray(cols["t_start"]), t_end=np.asarray(cols["t_end"]), rest=rest)
     if noise_f is None:
         table.f_sigma = np.array([_residual_sigma(x, r, fs) for x, r in zip(cols["acc"], cols["f_ref"])])
     if noise_w is None:

@@ -8,11 +8,15 @@ Per axis the paper's five unknowns X_i = [S_i, K_ji, K_ki, a_i0, K_ii] (units: 1
 s^2/m). Stacking the K position means gives Z_i = A X_i + V, solved by weighted least squares
 with the segments' uncertainties (see :func:`rigctl.solvers.calibration_result.fit_linear`):
 
-    X_hat = (A^T W A)^-1 A^T W Z,   Cov = (A^T W A)^-1,   W = diag(1 / s_k^2).
+    X_hat = (A^T W A)^-1 A^T W Z,   Cov = (A^T W A)^-1,   W = Sigma_i^-1
+
+with Sigma_i the covariance of axis i's K position means: diag(s_k^2) when they are independent,
+full under time-correlated noise (bias instability, rate random walk: the bias wanders between
+positions; :mod:`rigctl.solvers.segment_cov`), then solved by Cholesky whitening.
 
 The same numbers in matrix form ("full form"): f_meas = b + M a + diag(q) (a o a), with
 M_ii = S_i, M_ij = K_ji (row i = output axis, column j = input axis), b_i = a_i0, q_i = K_ii.
-With diagonal noise the three axes are independent, so the full covariance is block diagonal.
+The noise of different axes is independent, so the full covariance is block diagonal.
 
 For segments whose specific force varies within the window, the quadratic regressor is the mean
 of a_i^2 (SegmentTable.f_ref_outer), not the square of the mean.
@@ -63,8 +67,8 @@ def accel_axis_design(i: int, f_ref: ArrayLike, f_sq_i: ArrayLike | None = None,
 
 
 def calibrate_accel_axis(i: int, f_meas_i: ArrayLike, sigma_i: ArrayLike, f_ref: ArrayLike,
-                         f_sq_i: ArrayLike | None = None, quadratic: bool = True
-                         ) -> CalibrationResult:
+                         f_sq_i: ArrayLike | None = None, quadratic: bool = True,
+                         cov_i: ArrayLike | None = None) -> CalibrationResult:
     """Per-axis five-term fit (A3) for output axis i (0, 1, 2).
 
     Args:
@@ -73,10 +77,12 @@ def calibrate_accel_axis(i: int, f_meas_i: ArrayLike, sigma_i: ArrayLike, f_ref:
         f_ref: (K, 3) true specific force in the body frame, m/s^2.
         f_sq_i: (K,) mean of a_i^2 over each segment (default f_ref[:, i]^2).
         quadratic: include K_ii (the paper's model) or not.
+        cov_i: (K, K) covariance of the K means (default diag(sigma_i^2)).
     """
     X = accel_axis_design(i, f_ref, f_sq_i, quadratic)
     return fit_linear(X, np.asarray(f_meas_i, float), np.asarray(sigma_i, float),
-                      accel_axis_names(i, quadratic), method=f"accel24_axis_{AXES[i]}")
+                      accel_axis_names(i, quadratic), method=f"accel24_axis_{AXES[i]}",
+                      cov=None if cov_i is None else np.asarray(cov_i, float))
 
 
 def accel_columns(seg: SegmentTable, quadratic: bool = True) -> tuple[NDArray[np.float64], list[str]]:
@@ -100,8 +106,8 @@ def accel_columns(seg: SegmentTable, quadratic: bool = True) -> tuple[NDArray[np
 
 
 def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
-                    f_ref_outer: ArrayLike | None = None, quadratic: bool = True
-                    ) -> CalibrationResult:
+                    f_ref_outer: ArrayLike | None = None, quadratic: bool = True,
+                    f_cov: ArrayLike | None = None) -> CalibrationResult:
     """Full form f = b + M a + q o a^2 by weighted least squares over K static positions.
 
     Args:
@@ -110,6 +116,7 @@ def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
         f_ref: (K, 3) true body specific force (gravity along up rotated into the body), m/s^2.
         f_ref_outer: (K, 3, 3) mean of a a^T per segment (default from f_ref).
         quadratic: include the quadratic terms q_i = K_ii.
+        f_cov: (3, K, K) covariance of each axis' K means (default diag(f_sigma^2)).
 
     Returns:
         CalibrationResult with names :func:`accel_full_names`, block-diagonal covariance,
@@ -127,7 +134,8 @@ def calibrate_accel(f_meas: ArrayLike, f_sigma: ArrayLike, f_ref: ArrayLike,
     axis_results = []
     for i in range(3):
         r = calibrate_accel_axis(i, f_meas[:, i], f_sigma[:, i], f_ref,
-                                 None if fo is None else fo[:, i, i], quadratic)
+                                 None if fo is None else fo[:, i, i], quadratic,
+                                 None if f_cov is None else np.asarray(f_cov)[i])
         axis_results.append(r)
         # paper order [S_i, K_ji, K_ki, a0, K_ii] -> full-form indices
         others = [j for j in range(3) if j != i]
@@ -168,16 +176,20 @@ def _axis_of(name: str) -> int:
 
 
 def calibrate_gyro_bias_static(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
-                               M_g: ArrayLike | None = None) -> CalibrationResult:
+                               M_g: ArrayLike | None = None, w_cov: ArrayLike | None = None
+                               ) -> CalibrationResult:
     """Gyro biases from static positions with the Earth rate in the reference.
 
-        W_k = w0 + M_g w_ref_k + v_k   =>   w0_hat = sum_k (W_k - M_g w_ref_k)/s_k^2 / sum_k 1/s_k^2
+        W_k = w0 + M_g w_ref_k + v_k   =>   w0_hat = 1^T S^-1 z / 1^T S^-1 1,  z = W - M_g w_ref
+
+    (S = diag(s^2) for independent means: the weighted mean; full S under time-correlated noise.)
 
     Args:
         w_meas: (K, 3) measured mean rates, rad/s.
         w_sigma: (K, 3) their standard uncertainties, rad/s.
         w_ref: (K, 3) true body rate (Earth rate rotated into the body), rad/s.
         M_g: (3, 3) gyro scale/misalignment matrix if known (default identity).
+        w_cov: (3, K, K) covariance of each axis' K means (default diag(w_sigma^2)).
 
     The chi2 of the K - 1 residual dof per axis tests the constant-bias assumption (a large
     value points to g-sensitivity or drift, which the closed loop then looks for).
@@ -192,7 +204,8 @@ def calibrate_gyro_bias_static(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: Arr
     results = []
     for i in range(3):
         r = fit_linear(np.ones((len(z), 1)), z[:, i], w_sigma[:, i], [names[i]],
-                       method=f"gyro_bias_{AXES[i]}")
+                       method=f"gyro_bias_{AXES[i]}",
+                       cov=None if w_cov is None else np.asarray(w_cov, float)[i])
         results.append(r)
         vals.append(r.values[0])
         cov[i, i] = r.covariance[0, 0]

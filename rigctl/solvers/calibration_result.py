@@ -5,12 +5,18 @@ Every solver in :mod:`rigctl.solvers` returns a :class:`CalibrationResult`: para
 95 % intervals, the correlation matrix, degrees of freedom, chi-square against the noise model
 and the residuals.
 
-Weighted least squares (:func:`fit_linear`), observations y with standard uncertainties s:
+Generalised least squares (:func:`fit_linear`), observations y with covariance Sigma (diagonal
+diag(s^2) when the errors are independent; full when segment means share time-correlated noise,
+:mod:`rigctl.solvers.segment_cov`). With the Cholesky factor Sigma = L L^T the problem is
+whitened, X_w = L^-1 X, y_w = L^-1 y, and solved as ordinary least squares:
 
-    minimise  chi2(beta) = sum_i ((y_i - X_i beta) / s_i)^2
-    beta_hat = (X^T W X)^-1 X^T W y,   W = diag(1/s^2)
-    Cov(beta_hat) = (X^T W X)^-1                      (noise model trusted)
+    minimise  chi2(beta) = (y - X beta)^T Sigma^-1 (y - X beta) = |y_w - X_w beta|^2
+    beta_hat = (X^T Sigma^-1 X)^-1 X^T Sigma^-1 y
+    Cov(beta_hat) = (X^T Sigma^-1 X)^-1                 (noise model trusted)
     dof = n - rank(X),   E[chi2] = dof when the model and the noise model are right.
+
+(Diagonal Sigma: W = diag(1/s^2), the weighted least squares of A3.) The normalised residuals
+are the whitened ones, L^-1 (y - X beta_hat): independent unit-variance when all is right.
 
 Intervals: with the noise model trusted the estimates are normal, so the 95 % interval is
 beta +- 1.959964 sigma. When the covariance is rescaled by the observed chi2/dof (Birge ratio,
@@ -27,6 +33,8 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 from numpy.typing import NDArray
+
+from .segment_cov import Whitener
 
 #: Result status values.
 STATUS_OK = "ok"
@@ -215,13 +223,17 @@ def fit_linear(
     method: str = "linear",
     rescale_if_poor: bool = True,
     poor_fit_p: float = 1e-3,
+    cov: NDArray[np.float64] | Whitener | None = None,
 ) -> CalibrationResult:
-    """Weighted linear least squares with the full covariance.
+    """Generalised (weighted) linear least squares with the full covariance of the estimates.
 
     Args:
         X: (n, p) design matrix.
         y: (n,) observations.
-        s: (n,) standard uncertainties of the observations (same units as y).
+        s: (n,) standard uncertainties of the observations (same units as y); used when ``cov``
+            is None (independent errors).
+        cov: (n, n) covariance of the observations, or a :class:`~rigctl.solvers.segment_cov.
+            Whitener` already factored (the closed loop factors once for all its fits).
         names: p parameter names with units.
         method: label stored in the result.
         rescale_if_poor: when chi2 is improbable (p < ``poor_fit_p``), inflate the covariance by
@@ -234,15 +246,19 @@ def fit_linear(
     """
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
-    s = np.asarray(s, dtype=np.float64)
     n, p = X.shape
-    Xw = X / s[:, None]
-    yw = y / s
-    beta, cov, rank = _wls_core(Xw, yw)
+    if cov is None:
+        wh = Whitener(sigma=np.asarray(s, dtype=np.float64))
+    else:
+        wh = cov if isinstance(cov, Whitener) else Whitener(cov=cov)
+    if wh.n != n:
+        raise ValueError(f"noise covariance is for {wh.n} observations, the design has {n}")
+    beta, cb, rank = _wls_core(wh.apply(X), wh.apply(y))
     resid = y - X @ np.nan_to_num(beta)
-    nres = resid / s
+    nres = wh.apply(resid)
     chi2 = float(nres @ nres)
     dof = n - rank
+    cov = cb
     res = CalibrationResult(method=method, names=list(names), values=beta, covariance=cov,
                             dof=int(dof), chi2=chi2, residuals=resid, normalized_residuals=nres)
     if rank < p:

@@ -1,9 +1,12 @@
 """The closed loop: fit the declared model, trace residual structure to a named effect, add it.
 
-All segments and all six channels (accel x, y, z, gyro x, y, z) form one weighted linear
-least-squares problem y = X beta + v, Var(v_i) = s_i^2 (segment means and their uncertainties
-from the noise model). The declared model is A2 for both sensors (accel bias + 3x3 [+ quadratic],
-gyro drift + 3x3), with local gravity and Earth rate in the references.
+All segments and all six channels (accel x, y, z, gyro x, y, z) form one generalised linear
+least-squares problem y = X beta + v, Cov(v) = Sigma: block diagonal over the channels, each
+block the covariance of that channel's segment means (diag(s^2) for independent means, full
+under bias instability / rate random walk, SegmentTable.cov). Everything below works on the
+whitened problem L^-1 y = L^-1 X beta + L^-1 v (Sigma = L L^T): chi2, F, BIC, the
+cross-validation and the residual scan. The declared model is A2 for both sensors (accel bias +
+3x3 [+ quadratic], gyro drift + 3x3), with local gravity and Earth rate in the references.
 
 Loop (every decision is recorded in ``explain``):
 
@@ -17,13 +20,22 @@ Loop (every decision is recorded in ``explain``):
    (both are invariant to a common scale error of the noise model).
 3. candidates with p * m < alpha (Bonferroni over the m candidates tested in the round; family-
    wise alpha = 0.01) and dBIC < 0 are ranked by dBIC; the best one is confirmed by
-   leave-one-segment-out cross-validation, CV = sum_g |e_g,loo|^2 with
-   e_g,loo = (I - H_gg)^-1 e_g (H the hat matrix of the whitened design, g the rows of segment
-   g). It is added only if CV drops; otherwise the next is tried. Repeat until none qualifies.
-4. the residuals of the final model are scanned for correlation with the physical variables
-   (time, temperature, specific force, rate, |rate|, angular acceleration); a significant
-   correlation (Bonferroni-corrected p < alpha) or a chi2 with p < alpha that no candidate
-   explained is reported as *unexplained*, naming the variable.
+   leave-one-segment-out cross-validation. Under correlated errors the left-out segment's
+   prediction uses the others' residuals too (best linear unbiased prediction); its error is
+   (Dubrule 1983, universal kriging)
+
+       e_g,loo = (P_gg)^-1 (P y)_g,   P = Sigma^-1 - Sigma^-1 X (X^T Sigma^-1 X)^-1 X^T Sigma^-1,
+
+   and CV = sum_g e_g,loo^T (Sigma^-1)_gg e_g,loo (g: the rows of segment g). For a diagonal
+   Sigma this is sum_g |(I - H_gg)^-1 e_g|^2 in whitened units (H the whitened hat matrix).
+   The candidate is added only if CV drops; otherwise the next is tried. Repeat until none
+   qualifies.
+4. the whitened residuals of the final model are scanned for correlation with the physical
+   variables (time, temperature, specific force, rate, |rate|, angular acceleration), each
+   whitened and projected off the model's span (a partial correlation: the score test of adding
+   the variable as a regressor), and for serial correlation in time; a significant correlation
+   (Bonferroni-corrected p < alpha) or a chi2 with p < alpha that no candidate explained is
+   reported as *unexplained*, naming the variable.
 """
 from __future__ import annotations
 
@@ -31,7 +43,6 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-import scipy.linalg
 import scipy.stats
 from numpy.typing import NDArray
 
@@ -39,6 +50,8 @@ from .accel24 import accel_columns
 from .calibration_result import CalibrationResult, _jsonable, fit_linear
 from .effect_library import LIBRARY, Effect
 from .gyro_rate import gyro_columns
+from .gls_problem import (_chi2_drop, _cv_groups, _fit, _identifiable, _Problem, loso_cv, noise_floor,
+                          satterthwaite_dof)
 from .segments import CHANNELS, SegmentTable
 
 MG_PER_M_S2 = 1.0 / 9.80665e-3
@@ -54,95 +67,6 @@ def declared_design(seg: SegmentTable, quadratic: bool = True) -> tuple[NDArray[
     X[:, 0:3, : len(na)] = Xa
     X[:, 3:6, len(na):] = Xg
     return X, na + ng
-
-
-@dataclass
-class _Problem:
-    """Flattened, whitened observation rows (finite ones only)."""
-
-    y: NDArray[np.float64]
-    s: NDArray[np.float64]
-    group: NDArray[np.int64]
-    channel: NDArray[np.int64]
-    keep: NDArray[np.bool_]
-
-    @classmethod
-    def from_table(cls, seg: SegmentTable) -> "_Problem":
-        y = seg.y().ravel()
-        s = seg.sigma().ravel()
-        keep = np.isfinite(y) & np.isfinite(s)
-        K = len(seg)
-        group = np.repeat(np.arange(K), 6)[keep]
-        channel = np.tile(np.arange(6), K)[keep]
-        return cls(y[keep], s[keep], group, channel, keep)
-
-    def rows(self, X3: NDArray[np.float64]) -> NDArray[np.float64]:
-        return X3.reshape(-1, X3.shape[-1])[self.keep]
-
-
-def _fit(prob: _Problem, X: NDArray[np.float64], names: list[str], method: str) -> CalibrationResult:
-    return fit_linear(X, prob.y, prob.s, names, method=method, rescale_if_poor=False)
-
-
-def _identifiable(prob: _Problem, q: NDArray[np.float64], Xc: NDArray[np.float64],
-                  rtol: float = 1e-6) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-    """Columns of Xc that add something the whitened span (orthonormal basis q) lacks.
-
-    Returns the mask and the whitened columns projected off that span (B - q q^T B).
-    """
-    B = Xc / prob.s[:, None]
-    Bp = B - q @ (q.T @ B)
-    norms = np.linalg.norm(B, axis=0)
-    keep = np.zeros(B.shape[1], dtype=bool)
-    if not np.any(norms > 0):
-        return keep, Bp
-    _, r, piv = scipy.linalg.qr(Bp / np.where(norms > 0, norms, 1.0), mode="economic", pivoting=True)
-    d = np.abs(np.diag(r))
-    keep[piv[d > rtol]] = True
-    return keep & (norms > 0), Bp
-
-
-def _chi2_drop(Bp: NDArray[np.float64], e: NDArray[np.float64]) -> float:
-    """Drop of chi2 when columns with projected part Bp join a fit with whitened residual e:
-
-        d chi2 = e^T Bp (Bp^T Bp)^-1 Bp^T e
-    """
-    z = Bp.T @ e
-    return float(z @ np.linalg.lstsq(Bp.T @ Bp, z, rcond=None)[0])
-
-
-def loso_cv(prob: _Problem, X: NDArray[np.float64], segments: NDArray[np.int64] | None = None,
-            q: NDArray[np.float64] | None = None) -> float:
-    """Leave-one-segment-out prediction error sum_g |(I - H_gg)^-1 e_g|^2 (whitened).
-
-    H = q q^T is the hat matrix of the whitened design (q: orthonormal basis of its columns).
-    """
-    if q is None:
-        q, _ = np.linalg.qr(X / prob.s[:, None])
-    yw = prob.y / prob.s
-    e = yw - q @ (q.T @ yw)
-    total = 0.0
-    groups = np.unique(prob.group) if segments is None else segments
-    for g in groups:
-        idx = np.flatnonzero(prob.group == g)
-        qg = q[idx]
-        m = np.eye(len(idx)) - qg @ qg.T
-        try:
-            eg = np.linalg.solve(m, e[idx])
-        except np.linalg.LinAlgError:
-            continue
-        total += float(eg @ eg)
-    return total
-
-
-def _cv_groups(prob: _Problem, q: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Segments whose omission keeps the (larger) model estimable: leverage below 1."""
-    ok = []
-    for g in np.unique(prob.group):
-        qg = q[prob.group == g]
-        if np.linalg.norm(qg, 2) ** 2 < 1.0 - 1e-8:
-            ok.append(g)
-    return np.array(ok, dtype=np.int64)
 
 
 VARIABLES = ("time", "temperature", "f_x", "f_y", "f_z", "w_x", "w_y", "w_z", "|w|", "|wdot|")
@@ -164,29 +88,43 @@ def _variables(seg: SegmentTable) -> dict[str, NDArray[np.float64]]:
     return out
 
 
-def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> list[dict[str, Any]]:
-    """Correlation of each channel's normalised residuals with each physical variable."""
+def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult,
+                  q: NDArray[np.float64] | None = None) -> list[dict[str, Any]]:
+    """Partial correlation of each channel's whitened residuals with each physical variable.
+
+    The variable v (per segment) enters channel c as a candidate column x; its whitened form
+    L^-1 x projected off the model's whitened span (orthonormal basis q) is correlated with the
+    whitened residuals of channel c: r, t = r sqrt(df/(1 - r^2)), df = n_c - 2. Plus the lag-1
+    serial correlation of channel c's whitened residuals in time order (one-sided).
+    """
     var = _variables(seg)
+    e_all = fit.normalized_residuals
     rows = []
     for c in range(6):
         m = prob.channel == c
-        r = fit.normalized_residuals[m]
+        r = e_all[m]
         g = prob.group[m]
         nr = len(r)
         if nr < 4:
             continue
-        rc = r - r.mean()
         for vn, v in var.items():
-            x = v[g] - v[g].mean()
-            den = np.sqrt((x @ x) * (rc @ rc))
-            if den == 0:
+            x = np.zeros(prob.y.size)
+            x[m] = v[g]
+            xw = prob.white(x)
+            if q is not None:
+                xw = xw - q @ (q.T @ xw)
+            else:
+                xw[m] -= xw[m].mean()
+            xc = xw[m]
+            den = np.sqrt((xc @ xc) * (r @ r))
+            if den == 0 or (xc @ xc) < 1e-20 * (xw @ xw + 1e-300):
                 continue
-            rr = float(np.clip((x @ rc) / den, -1.0, 1.0))
+            rr = float(np.clip((xc @ r) / den, -1.0, 1.0))
             tstat = rr * np.sqrt((nr - 2) / max(1e-300, 1.0 - rr**2))
             rows.append({"channel": CHANNELS[c], "variable": vn, "r": rr, "t": abs(tstat), "df": nr - 2})
         if seg.time is not None and nr >= 8:
             order = np.argsort(seg.time[g], kind="stable")
-            ro = rc[order]
+            ro = r[order] - r.mean()
             r1 = float(ro[:-1] @ ro[1:] / (ro @ ro)) if ro @ ro > 0 else 0.0
             p = float(scipy.stats.norm.sf(r1 * np.sqrt(nr)))  # one-sided: neighbours alike
             rows.append({"channel": CHANNELS[c], "variable": "time (serial correlation)", "r": r1, "p": p})
@@ -201,11 +139,11 @@ def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> 
     return sorted(rows, key=lambda d: d["p"])
 
 
-def _pattern(seg: SegmentTable, prob: _Problem, fit: CalibrationResult) -> str:
+def _pattern(seg: SegmentTable, prob: _Problem, fit: CalibrationResult, q: NDArray[np.float64]) -> str:
     rms = [float(np.sqrt(np.mean(fit.normalized_residuals[prob.channel == c] ** 2)))
            if np.any(prob.channel == c) else float("nan") for c in range(6)]
     c = int(np.nanargmax(rms))
-    scan = [r for r in residual_scan(seg, prob, fit) if r["channel"] == CHANNELS[c]]
+    scan = [r for r in residual_scan(seg, prob, fit, q) if r["channel"] == CHANNELS[c]]
     top = f", follows {scan[0]['variable']} (r = {scan[0]['r']:+.2f})" if scan else ""
     return (f"chi2/dof = {fit.chi2_per_dof:.3g}; largest residual in {CHANNELS[c]} "
             f"({rms[c]:.2f} x its noise){top}")
@@ -236,15 +174,17 @@ class ClosedLoopResult:
             "truth_errors": self.truth_errors})
 
 
-def _rms_table(prob: _Problem, before: CalibrationResult, after: CalibrationResult) -> list[dict[str, Any]]:
+def _rms_table(prob: _Problem, before: CalibrationResult, after: CalibrationResult,
+               q: NDArray[np.float64]) -> list[dict[str, Any]]:
     rows = []
+    floor = noise_floor(prob, q)
     for c, ch in enumerate(CHANNELS):
         m = prob.channel == c
         if not np.any(m):
             continue
         f, unit = (MG_PER_M_S2, "mg") if c < 3 else (DEG_H_PER_RAD_S, "deg_h")
         rows.append({"channel": ch, "unit": unit,
-                     f"noise_floor_{unit}": float(np.sqrt(np.mean(prob.s[m] ** 2)) * f),
+                     f"noise_floor_{unit}": float(floor[c] * f),
                      f"rms_before_{unit}": float(np.sqrt(np.mean(before.residuals[m] ** 2)) * f),
                      f"rms_after_{unit}": float(np.sqrt(np.mean(after.residuals[m] ** 2)) * f)})
     rows.append({"channel": "all", "unit": "1", "chi2_per_dof_before": before.chi2_per_dof,
@@ -293,8 +233,8 @@ def closed_loop(
     step = 0
     while len(effects) < max_effects:
         step += 1
-        pattern = _pattern(seg, prob, fit)
-        q_cur, _ = np.linalg.qr(current / prob.s[:, None])
+        q_cur = prob.qr(current)
+        pattern = _pattern(seg, prob, fit, q_cur)
         cands = []
         for eff in library:
             if eff.name not in built or eff.name in in_model:
@@ -329,7 +269,7 @@ def closed_loop(
                 explain.append({"step": step, "residual_pattern": pattern, "candidate": c["effect"].name,
                                 "statistic": _stat(c), "decision": f"deferred: {added['effect'].name} ranked first"})
                 continue
-            q_new, _ = np.linalg.qr(c["X"] / prob.s[:, None])
+            q_new = prob.qr(c["X"])
             groups = _cv_groups(prob, q_new)
             cv0 = loso_cv(prob, current, groups, q_cur)
             cv1 = loso_cv(prob, c["X"], groups, q_new)
@@ -361,13 +301,25 @@ def closed_loop(
                             "statistic": f"dBIC within 2 of {', '.join(rivals)}",
                             "decision": "added, but ambiguous: the data cannot tell these apart "
                                         "(e.g. time and temperature collinear during warm-up)"})
-    final = fit_linear(current, prob.y, prob.s, cur_names, method="closed_loop_final")
+    final = fit_linear(current, prob.y, prob.s, cur_names, method="closed_loop_final", cov=prob.W)
+    q_fin = prob.qr(current)
+    noise = seg.extra.get("noise_components")
+    if final.status == "ok" and noise is not None and np.shape(noise["comps"])[1] == len(seg):
+        nu = satterthwaite_dof(prob, current, final.covariance, noise)
+        if nu is not None:  # the noise model was estimated from these data: t intervals
+            # except the biases: their variance is dominated by the extrapolation of the slow
+            # terms to power-on (a model statement the contrasts do not constrain; at K^2 ~ 0
+            # the delta method breaks down), so they keep the normal interval of the model
+            bias = np.array(["_bias_" in nm for nm in cur_names])
+            final.interval, final.param_dof = "t", np.where(bias, np.inf, nu)
+            final.extra["interval_dof"] = ("Student t with Satterthwaite dof for the estimated noise "
+                                           "model (biases: normal)")
     for e in effects:
         idx = [i for i, nm in enumerate(final.names) if nm not in names and
                nm in built[e["name"]][1]]
         e["parameters"] = [{"name": final.names[i], "value": float(final.values[i]),
                             "sigma": float(final.sigma[i]), "ci95": final.ci95[i].tolist()} for i in idx]
-    unexplained = _unexplained(seg, prob, final, alpha)
+    unexplained = _unexplained(seg, prob, final, alpha, q_fin)
     if unexplained:
         for e in effects:
             if not e["excess_chi2_explained"] >= 0.5:
@@ -381,7 +333,7 @@ def closed_loop(
         explain.append({"step": step, "residual_pattern": u["pattern"], "candidate": "(none)",
                         "statistic": u["statistic"], "decision": "unexplained"})
     res = ClosedLoopResult(declared=declared, final=final, effects=effects, explain=explain,
-                           rms_table=_rms_table(prob, declared, final), unexplained=unexplained,
+                           rms_table=_rms_table(prob, declared, final, q_fin), unexplained=unexplained,
                            not_available=not_available)
     if truth:
         for nm in names:
@@ -398,9 +350,10 @@ def _stat(c: dict[str, Any]) -> str:
     return f"F({c['k']},.) = {c['F']:.3g}, p = {c['p']:.2g}, p_adj = {c['p_adj']:.2g}, dBIC = {c['dBIC']:.3g}"
 
 
-def _unexplained(seg: SegmentTable, prob: _Problem, fit: CalibrationResult, alpha: float) -> list[dict[str, Any]]:
+def _unexplained(seg: SegmentTable, prob: _Problem, fit: CalibrationResult, alpha: float,
+                 q: NDArray[np.float64]) -> list[dict[str, Any]]:
     out = []
-    scan = residual_scan(seg, prob, fit)
+    scan = residual_scan(seg, prob, fit, q)
     for row in scan:
         if row["p_adj"] < alpha:
             out.append({"channel": row["channel"], "variable": row["variable"],
@@ -464,16 +417,20 @@ def calibrate_session(seg: SegmentTable, quadratic: bool = True, truth: dict[str
 
     static = seg.kind == "orientation"
     rate = seg.kind == "rate"
+
+    def covs(mask: NDArray[np.bool_], sensor: slice) -> NDArray[np.float64] | None:
+        return None if seg.cov is None else seg.cov[sensor][:, mask][:, :, mask]
+
     out: dict[str, Any] = {"accel24": None, "gyro_bias_static": None, "gyro_rate": None}
     if static.sum() >= 6:
         out["accel24"] = calibrate_accel(seg.f[static], seg.f_sigma[static], seg.f_ref[static],
-                                         seg.f_outer()[static], quadratic)
+                                         seg.f_outer()[static], quadratic, covs(static, slice(0, 3)))
         out["gyro_bias_static"] = calibrate_gyro_bias_static(seg.w[static], seg.w_sigma[static],
-                                                             seg.w_ref[static])
+                                                             seg.w_ref[static], None, covs(static, slice(3, 6)))
     if rate.sum() >= 2:
         # pairing on the full reference rate is safe: the Earth rate is < 1e-4 of any table rate
         out["gyro_rate"] = calibrate_gyro_rate(seg.w[rate], seg.w_sigma[rate], seg.w_ref[rate],
-                                               seg.w_ref[rate])
+                                               seg.w_ref[rate], covs(rate, slice(3, 6)))
     out["closed_loop"] = closed_loop(seg, quadratic=quadratic, alpha=alpha, truth=truth)
     return out
 

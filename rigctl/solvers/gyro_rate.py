@@ -9,11 +9,16 @@ in the body, r: table rate in the body, both segment means):
     half-difference  d = (W_+ - W_-)/2 = M_g (w_+ - w_-)/2            -> scale, misalignment
     half-sum         s = (W_+ + W_-)/2 = w0 + M_g (w_+ + w_-)/2       -> drift w0 (Earth removed)
 
-Each output row i of M_g is fitted by weighted least squares over all pairs P,
-d_{p,i} = sum_j M_ij r_{p,j}, with s_d = sqrt(s_+^2 + s_-^2)/2; then
+Per output axis i the 2P numbers [d_i; s_i] of the P pairs are one generalised least-squares
+problem in (w0_i, M_i.):
 
-    w0_i = sum_p (s_{p,i} - M_i. e_p)/s_s^2 / sum_p 1/s_s^2,
-    Var(w0_i) = 1/sum_p s_s^-2 + e_bar^T Cov(M_i.) e_bar,  Cov(w0_i, M_i.) = -Cov(M_i.) e_bar.
+    d_{p,i} = sum_j M_ij r_{p,j},    s_{p,i} = w0_i + sum_j M_ij e_{p,j},
+
+with the covariance of [d; s] = T Sigma_i T^T, T the (2P, K) half-difference / half-sum matrix
+and Sigma_i the covariance of axis i's K segment means (diag(s^2) for independent means:
+Var(d_p) = Var(s_p) = (s_+^2 + s_-^2)/4, Cov(d_p, s_p) = (s_+^2 - s_-^2)/4; full under
+time-correlated noise). dof = 2P - 4 per axis; the covariance of w0 and M_i. comes out of the
+same fit.
 
 Rate-dependent residuals of d and s (per pair and rate) are kept in ``extra["rate_residuals"]``:
 even errors in the rate (scale asymmetry, rate^2) appear in s, odd ones (rate^3) in d.
@@ -72,7 +77,7 @@ def pair_forward_reverse(w_table: ArrayLike, rel_tol: float = 0.02) -> list[tupl
 
 
 def calibrate_gyro_rate(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
-                        w_table: ArrayLike) -> CalibrationResult:
+                        w_table: ArrayLike, w_cov: ArrayLike | None = None) -> CalibrationResult:
     """Forward/reverse rate test: scale, misalignment and drift with the full covariance.
 
     Args:
@@ -80,6 +85,7 @@ def calibrate_gyro_rate(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
         w_sigma: (K, 3) their standard uncertainties, rad/s.
         w_ref: (K, 3) true mean body rates (Earth + table), rad/s.
         w_table: (K, 3) the table-induced part of w_ref, rad/s (used to pair segments).
+        w_cov: (3, K, K) covariance of each axis' K means (default diag(w_sigma^2)).
 
     Returns:
         CalibrationResult with names :func:`gyro_full_names`; ``extra`` holds "M" (3x3),
@@ -100,44 +106,41 @@ def calibrate_gyro_rate(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
                                  status="underdetermined", warnings=warnings + ["no forward/reverse pairs"])
     kp = np.array([p[0] for p in pairs])
     km = np.array([p[1] for p in pairs])
-    d = (W[kp] - W[km]) / 2.0
-    s = (W[kp] + W[km]) / 2.0
-    sd = np.sqrt(S[kp] ** 2 + S[km] ** 2) / 2.0
+    P, K = len(pairs), len(W)
+    Tm = np.zeros((2 * P, K))
+    Tm[np.arange(P), kp], Tm[np.arange(P), km] = 0.5, -0.5
+    Tm[P + np.arange(P), kp], Tm[P + np.arange(P), km] = 0.5, 0.5
     r = (wr[kp] - wr[km]) / 2.0
     e = (wr[kp] + wr[km]) / 2.0
+    X = np.zeros((2 * P, 4))
+    X[:P, 1:] = r
+    X[P:, 0] = 1.0
+    X[P:, 1:] = e
     values = np.full(12, np.nan)
     cov = np.zeros((12, 12))
     chi2, dof, status = 0.0, 0, "ok"
-    d_res = np.zeros_like(d)
-    s_res = np.zeros_like(s)
+    d_res, s_res, sd = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros((P, 3))
+    nres = np.zeros((2 * P, 3))
     for i in range(3):
-        rows = fit_linear(r, d[:, i], sd[:, i], names[3 + 3 * i: 6 + 3 * i], method="gyro_rate_row",
-                          rescale_if_poor=False)
-        mi = 3 + 3 * i
-        values[mi: mi + 3] = rows.values
-        cm = rows.covariance
-        cov[mi: mi + 3, mi: mi + 3] = cm
-        d_res[:, i] = rows.residuals
-        chi2 += rows.chi2
-        dof += rows.dof
-        if rows.status != "ok":
-            status = rows.status
-            warnings.append(f"gyro {AXES[i]} row: " + "; ".join(rows.warnings))
-        Mi = np.nan_to_num(rows.values)
-        wgt = 1.0 / sd[:, i] ** 2
-        z = s[:, i] - e @ Mi
-        b = float(np.sum(wgt * z) / np.sum(wgt))
-        ebar = np.sum(wgt[:, None] * e, axis=0) / np.sum(wgt)
-        cmf = np.nan_to_num(cm)
-        values[i] = b
-        cov[i, i] = 1.0 / np.sum(wgt) + ebar @ cmf @ ebar
-        cov[i, mi: mi + 3] = cov[mi: mi + 3, i] = -(cmf @ ebar)
-        s_res[:, i] = z - b
-        chi2 += float(np.sum(wgt * (z - b) ** 2))
-        dof += len(z) - 1
+        Si = np.diag(S[:, i] ** 2) if w_cov is None else np.asarray(w_cov, dtype=np.float64)[i]
+        C = Tm @ Si @ Tm.T
+        sig = np.sqrt(np.diag(C))
+        fit = fit_linear(X, Tm @ W[:, i], sig, [names[i]] + names[3 + 3 * i: 6 + 3 * i],
+                         method="gyro_rate_axis", rescale_if_poor=False, cov=C)
+        idx = [i, 3 + 3 * i, 4 + 3 * i, 5 + 3 * i]
+        values[idx] = fit.values
+        cov[np.ix_(idx, idx)] = fit.covariance
+        d_res[:, i], s_res[:, i] = fit.residuals[:P], fit.residuals[P:]
+        sd[:, i] = sig[:P]
+        nres[:, i] = fit.normalized_residuals
+        chi2 += fit.chi2
+        dof += fit.dof
+        if fit.status != "ok":
+            status = fit.status
+            warnings.append(f"gyro {AXES[i]}: " + "; ".join(fit.warnings))
     res = CalibrationResult(method="gyro_rate", names=names, values=values, covariance=cov, dof=dof,
                             chi2=chi2, residuals=np.concatenate([d_res.ravel(), s_res.ravel()]),
-                            normalized_residuals=np.concatenate([(d_res / sd).ravel(), (s_res / sd).ravel()]),
+                            normalized_residuals=np.concatenate([nres[:P].ravel(), nres[P:].ravel()]),
                             status=status, warnings=warnings)
     rate_res = []
     for p, (a, b) in enumerate(pairs):

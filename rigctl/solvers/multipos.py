@@ -11,8 +11,12 @@ For data taken without a table (hand-held poses, imported logs). Three steps:
    T = [[1, -a_yz, a_zy], [0, 1, -a_zx], [0, 0, 1]] (misalignment, rad), K = diag(s)
    (scale, SI per raw unit), b the bias (raw units). At rest |a| = g, so the residual of pose p
    is r_p = (|a_p| - g) / s_p, s_p = || (a_p/|a_p|)^T T K diag(sigma_u,p) || the propagated
-   uncertainty of |a_p| (sigma_u from the noise model at the pose's length). Solved with
-   scipy.optimize.least_squares; Cov = (J^T J)^-1 (J of the normalised residuals); dof = P - 9.
+   uncertainty of |a_p| (sigma_u from the noise model at the pose's length). When the pose
+   means share time-correlated noise (bias instability, random walk: ``pose_cov`` per axis,
+   :func:`pose_cov` from IEEE 952 coefficients), the errors of |a_p| are correlated,
+   Cov(|a_p|, |a_q|) = sum_c n_pc n_qc C_c[p, q] with n_p = d|a_p|/du, and the residual vector
+   is whitened by its Cholesky factor instead. Solved with scipy.optimize.least_squares;
+   Cov = (J^T J)^-1 (J of the normalised residuals); dof = P - 9.
 3. Gyro (:func:`calibrate_gyro_multipos`): w = T_g K_g (u_g - b_g) (6 misalignments, 3 scales; b_g
    from the initial static period). The calibrated rate is integrated between consecutive poses
    into a rotation R (body k -> body k+1); the gravity direction of pose k propagated, R^T g_k,
@@ -29,6 +33,7 @@ anything.
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import uniform_filter1d
@@ -118,8 +123,20 @@ def pose_means(data: ArrayLike, intervals: list[tuple[int, int]], fs_hz: float,
     return means, sig
 
 
+def pose_cov(intervals: list[tuple[int, int]], fs_hz: float, model: NoiseModel, t0_s: float = 0.0
+             ) -> NDArray[np.float64]:
+    """(3, P, P) covariance of the pose means per axis from IEEE 952 coefficients (time-correlated
+    terms included, :mod:`rigctl.solvers.segment_cov`); intervals in samples, time from sample 0."""
+    from .segment_noise import noise_from_coefficients
+
+    a = np.array([s for s, _ in intervals], dtype=np.float64) / fs_hz
+    b = np.array([e for _, e in intervals], dtype=np.float64) / fs_hz
+    return np.stack([m.cov(a, b, ["*"] * len(a)) for m in noise_from_coefficients(model, t0_s)])
+
+
 def calibrate_accel_multipos(means: ArrayLike, sigma: ArrayLike, g: float, unit: str = "count",
-                             min_dof: int | None = None) -> CalibrationResult:
+                             min_dof: int | None = None, pose_cov: ArrayLike | None = None
+                             ) -> CalibrationResult:
     """Accelerometer from P static poses with the gravity-magnitude constraint (module doc).
 
     Args:
@@ -128,8 +145,11 @@ def calibrate_accel_multipos(means: ArrayLike, sigma: ArrayLike, g: float, unit:
         g: local gravity, m/s^2.
         unit: name of the raw unit, used in the parameter names.
         min_dof: minimum degrees of freedom for a trustworthy fit (default: 9, the parameter count).
+        pose_cov: (3, P, P) covariance of the pose means per axis (raw units^2), when they share
+            time-correlated noise; default: independent with the given sigma.
     """
     u = np.asarray(means, dtype=np.float64)
+    pc = None if pose_cov is None else np.asarray(pose_cov, dtype=np.float64)
     su = np.asarray(sigma, dtype=np.float64)
     P = len(u)
     names = [n.format(u=unit) for n in ACC_NAMES_TEMPLATE]
@@ -141,6 +161,9 @@ def calibrate_accel_multipos(means: ArrayLike, sigma: ArrayLike, g: float, unit:
         a = (u - p[6:9]) @ M.T
         na = np.linalg.norm(a, axis=1)
         dn = (a / na[:, None]) @ M  # d|a|/du
+        if pc is not None:  # correlated pose means: whiten the residual vector
+            C = sum(np.outer(dn[:, c], dn[:, c]) * pc[c] for c in range(3))
+            return scipy.linalg.solve_triangular(np.linalg.cholesky(C), na - g, lower=True)
         s = np.sqrt(np.sum((dn * su) ** 2, axis=1))
         return (na - g) / s
 

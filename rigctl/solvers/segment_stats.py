@@ -35,13 +35,17 @@ from numpy.typing import ArrayLike, NDArray
 from . import allan as _allan
 
 _TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
+#: batches of the within-window statistic :func:`batch_var`
+N_BATCHES = 8
 
 
 @dataclass(frozen=True)
 class NoiseModel:
     """IEEE Std 952 noise coefficients per axis, SI units (see module docstring).
 
-    Each field is a float or a (3,) array; missing terms are zero.
+    Each field is a float or a (3,) array; missing terms are zero. ``flicker_tau_min_s`` and
+    ``flicker_tau_max_s`` bound the bias-instability plateau (used only for the covariance of
+    segment means, :mod:`rigctl.solvers.segment_cov`; the Allan variance here is the plateau).
     """
 
     Q: ArrayLike = 0.0
@@ -49,6 +53,8 @@ class NoiseModel:
     B: ArrayLike = 0.0
     K: ArrayLike = 0.0
     R: ArrayLike = 0.0
+    flicker_tau_min_s: float = 1.0
+    flicker_tau_max_s: float = 1.0e4
 
     def avar(self, tau_s: ArrayLike) -> NDArray[np.float64]:
         """Allan variance (unit^2) at cluster times tau (s): shape (..., 3) for (...,) tau."""
@@ -132,9 +138,26 @@ def overlapping_avar(x: NDArray[np.float64], m_list: NDArray[np.int64]) -> NDArr
     return out
 
 
-def _batch_means_var(x: NDArray[np.float64], n_batches: int) -> NDArray[np.float64]:
-    """var(batch means, ddof=1) / B for B non-overlapping batches (leftover samples dropped)."""
+def batch_means(x: ArrayLike, n_batches: int = N_BATCHES) -> NDArray[np.float64]:
+    """(n_batches, c) means of n_batches equal consecutive batches of x (n, c) (leftover dropped;
+    NaN when n < n_batches)."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
     L = x.shape[0] // n_batches
+    if L < 1:
+        return np.full((n_batches, x.shape[1]), np.nan)
+    return x[: L * n_batches].reshape(n_batches, L, -1).mean(axis=1)
+
+
+def batch_var(x: ArrayLike, n_batches: int = N_BATCHES) -> NDArray[np.float64]:
+    """Within-window statistic v = var(batch means, ddof=1)/B per column (leftover dropped)."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    L = x.shape[0] // n_batches
+    if L < 1:
+        return np.full(x.shape[1], np.nan)
     bm = x[: L * n_batches].reshape(n_batches, L, -1).mean(axis=1)
     return bm.var(axis=0, ddof=1) / n_batches
 
@@ -159,8 +182,8 @@ def self_noise_sigma(x: ArrayLike, fs_hz: float, n_batches: int = 8) -> NDArray[
     white = x.var(axis=0, ddof=1) / n
     if n < 4 * n_batches:
         return np.sqrt(white) * 2.0  # too short to say more: be generous
-    v1 = _batch_means_var(x, n_batches)
-    v2 = _batch_means_var(x, 2 * n_batches)
+    v1 = batch_var(x, n_batches)
+    v2 = batch_var(x, 2 * n_batches)
     return np.sqrt(np.maximum.reduce([2.0 * v1 - v2, v1, white]))
 
 

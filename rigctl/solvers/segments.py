@@ -44,6 +44,17 @@ temperature_ref    float       temperature at which biases are reported when a w
                                that of the last segment in time)
 time_ref           float       time at which biases are reported when a linear drift is
                                added, s (default: mean of time)
+t_start, t_end     (K,)        sampled window [t_start, t_end) of each segment, s (run time;
+                               needed for the covariance of time-correlated noise)
+batch_means        (K, 6, 8)   means of 8 equal consecutive batches of each window, per
+                               channel, less what the reference explains inside the window
+                               (the within-window data of rigctl.solvers.segment_noise)
+rest               dict        a long static record taken for the noise model only (the
+                               warm-up): "t_start", "t_end" (M,) batch windows, s; "mean" (M, 6)
+                               batch means; "temperature" (M,) or None (rest_batches())
+cov                (6, K, K)   covariance of the segment means per channel (time-correlated
+                               noise, rigctl.solvers.segment_cov); None: independent means,
+                               diag(sigma^2). When given, f_sigma/w_sigma = sqrt(diag(cov)).
 =================  ==========  ===================================================
 
 The moment fields matter only for segments whose reference changes within the window
@@ -58,7 +69,7 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from .segment_stats import AllanCurve, NoiseModel, segment_mean
+from .segment_stats import AllanCurve, NoiseModel, batch_means, segment_mean
 
 #: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros.
 CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
@@ -91,6 +102,11 @@ class SegmentTable:
     f_ref_abs: NDArray[np.float64] | None = None
     temperature_ref: float | None = None
     time_ref: float | None = None
+    t_start: NDArray[np.float64] | None = None
+    t_end: NDArray[np.float64] | None = None
+    batch_means: NDArray[np.float64] | None = None
+    rest: dict[str, Any] | None = None
+    cov: NDArray[np.float64] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -108,13 +124,19 @@ class SegmentTable:
         for name, shape in (("time", (k,)), ("temperature", (k,)), ("table_rate", (k, 3)),
                             ("ang_accel", (k, 3)), ("angles", (k, 3)), ("attitude", (k, 3, 3)),
                             ("f_ref_outer", (k, 3, 3)), ("w_ref_outer", (k, 3, 3)),
-                            ("w_ref_cube", (k, 3)), ("w_ref_abs", (k, 3)), ("f_ref_abs", (k, 3))):
+                            ("w_ref_cube", (k, 3)), ("w_ref_abs", (k, 3)), ("f_ref_abs", (k, 3)),
+                            ("t_start", (k,)), ("t_end", (k,)), ("cov", (6, k, k))):
             v = getattr(self, name)
             if v is not None:
                 a = np.asarray(v, dtype=np.float64)
                 if a.shape != shape:
                     raise ValueError(f"SegmentTable.{name} must have shape {shape}, got {a.shape}")
                 setattr(self, name, a)
+        if self.batch_means is not None:
+            bm = np.asarray(self.batch_means, dtype=np.float64)
+            if bm.ndim != 3 or bm.shape[:2] != (k, 6):
+                raise ValueError(f"SegmentTable.batch_means must have shape ({k}, 6, B), got {bm.shape}")
+            self.batch_means = bm
         if self.label is None:
             self.label = np.array([f"{kd}{i}" for i, kd in enumerate(self.kind)])
         else:
@@ -156,16 +178,69 @@ class SegmentTable:
         """(K, 6) standard uncertainties of :meth:`y`."""
         return np.concatenate([self.f_sigma, self.w_sigma], axis=1)
 
+    def channel_cov(self, c: int) -> NDArray[np.float64]:
+        """(K, K) covariance of channel c's means (diagonal when no cov is set)."""
+        if self.cov is not None:
+            return self.cov[c]
+        return np.diag(self.sigma()[:, c] ** 2)
+
+    def set_cov(self, cov: NDArray[np.float64]) -> None:
+        """Set the (6, K, K) covariance of the means and the sigmas from its diagonal."""
+        cov = np.asarray(cov, dtype=np.float64)
+        if cov.shape != (6, len(self), len(self)):
+            raise ValueError(f"cov must have shape (6, {len(self)}, {len(self)})")
+        self.cov = cov
+        d = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)).T  # (K, 6)
+        self.f_sigma, self.w_sigma = d[:, :3].copy(), d[:, 3:].copy()
+
     def subset(self, mask: NDArray[np.bool_]) -> "SegmentTable":
         """Rows selected by a boolean mask or an index array."""
         idx = np.arange(len(self))[mask]
         kw: dict[str, Any] = {}
         for name in ("kind", "f", "w", "f_sigma", "w_sigma", "f_ref", "w_ref", "label", "time",
                      "temperature", "table_rate", "ang_accel", "angles", "attitude", "f_ref_outer",
-                     "w_ref_outer", "w_ref_cube", "w_ref_abs", "f_ref_abs"):
+                     "w_ref_outer", "w_ref_cube", "w_ref_abs", "f_ref_abs", "t_start", "t_end",
+                     "batch_means"):
             v = getattr(self, name)
             kw[name] = None if v is None else np.asarray(v)[idx]
+        kw["cov"] = None if self.cov is None else self.cov[:, idx][:, :, idx]
+        kw["extra"] = {k: v for k, v in self.extra.items() if k != "noise_components"}
         return replace(self, **kw)
+
+
+def rest_batches(t: NDArray[np.float64], acc: NDArray[np.float64], gyro: NDArray[np.float64], fs_hz: float,
+                 temperature: NDArray[np.float64] | None = None, batch_s: float = 30.0) -> dict[str, Any]:
+    """Batch means of a long static record (the warm-up) for the noise model (SegmentTable.rest).
+
+    t (n,) sample times, s; acc, gyro (n, 3); batches of about ``batch_s`` seconds (at least 8,
+    at most 128), leftover samples dropped. Returns {"t_start", "t_end", "mean" (M, 6),
+    "temperature" (M,) or None}.
+    """
+    n = len(t)
+    M = int(np.clip(round(n / fs_hz / batch_s), 8, 128))
+    L = n // M
+    x = np.concatenate([np.asarray(acc, dtype=np.float64), np.asarray(gyro, dtype=np.float64)], axis=1)
+    starts = float(t[0]) + np.arange(M) * L / fs_hz
+    temp = None
+    if temperature is not None and np.all(np.isfinite(temperature)):
+        temp = np.asarray(temperature, dtype=np.float64)[: M * L].reshape(M, L).mean(axis=1)
+    return {"t_start": starts, "t_end": starts + L / fs_hz, "mean": batch_means(x[: M * L], M),
+            "temperature": temp}
+
+
+def about_reference(x: NDArray[np.float64], ref: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Samples x (n, c) less what the reference explains: on a rate segment gravity turns through
+    the axes and the samples swing by ~g, which is not noise. When the reference varies, x is
+    regressed on [1, ref - mean(ref)] (least squares per column) and the residual returned;
+    otherwise x itself.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    ref = np.atleast_2d(np.asarray(ref, dtype=np.float64))
+    if ref.shape[0] == x.shape[0] and np.ptp(ref, axis=0).max() > 0:
+        A = np.column_stack([np.ones(len(ref)), ref - ref.mean(axis=0)])
+        coef, *_ = np.linalg.lstsq(A, x, rcond=1e-9)
+        return x - A @ coef
+    return x
 
 
 def segment_table_from_samples(
@@ -190,14 +265,24 @@ def segment_table_from_samples(
             table angles interpolated to the IMU times); moments and the mean angular
             acceleration (finite differences) are computed from the samples.
         acc_noise, gyro_noise: noise models (None: estimated from each segment's own data).
-        **optional: any optional SegmentTable field (time, temperature, attitude, ...).
+        **optional: any optional SegmentTable field (time, temperature, attitude, t_start,
+            t_end, ...).
+
+    ``batch_means`` (the within-window data of :mod:`rigctl.solvers.segment_noise`) are
+    computed here, about what the reference explains (:func:`about_reference`).
     """
     cols: dict[str, list[Any]] = {k: [] for k in ("f", "w", "fs", "ws", "fr", "wr", "fo", "wo", "wc",
                                                    "wa", "fa", "wd")}
+    bv = []
     for a, g, fr, wr in zip(acc, gyro, f_ref, w_ref):
         ma, mg = segment_mean(a, fs_hz, acc_noise), segment_mean(g, fs_hz, gyro_noise)
         fr = np.atleast_2d(np.asarray(fr, dtype=np.float64))
         wr = np.atleast_2d(np.asarray(wr, dtype=np.float64))
+        # the window's samples less what the reference explains inside it (gravity turning
+        # through the axes swings them by ~g; a fraction of a batch of misalignment between
+        # batches and revolutions would leak it into every contrast), mean kept
+        bv.append(np.concatenate([batch_means(about_reference(a, fr)) + ma.mean,
+                                  batch_means(about_reference(g, wr)) + mg.mean], axis=1).T)
         wd = (np.gradient(wr, 1.0 / fs_hz, axis=0).mean(axis=0) if len(wr) > 2 else np.zeros(3))
         for key, val in (("f", ma.mean), ("w", mg.mean), ("fs", ma.sigma), ("ws", mg.sigma),
                          ("fr", fr.mean(axis=0)), ("wr", wr.mean(axis=0)),
@@ -207,6 +292,7 @@ def segment_table_from_samples(
                          ("fa", np.abs(fr).mean(axis=0)), ("wd", wd)):
             cols[key].append(val)
     optional.setdefault("ang_accel", np.array(cols["wd"]))
+    optional.setdefault("batch_means", np.array(bv))
     return SegmentTable(kind=np.asarray(kind), f=np.array(cols["f"]), w=np.array(cols["w"]),
                         f_sigma=np.array(cols["fs"]), w_sigma=np.array(cols["ws"]),
                         f_ref=np.array(cols["fr"]), w_ref=np.array(cols["wr"]),
