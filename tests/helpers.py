@@ -35,3 +35,15 @@ def run_rigctl(*args: str, timeout: float = 120, **kw: Any) -> subprocess.Comple
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.run([*rigctl_cmd(), *args], capture_output=True, text=True, timeout=timeout,
                           cwd=kw.pop("cwd", ROOT), env=env, **kw)
+
+
+#: a short procedure for the full-disk tests (in-process and over the wire)
+DISK_PROCEDURE = """procedure: disk
+steps:
+  - warmup:
+      duration: 10 s
+  - orientations:
+      angles_deg: [[0, 0, 0], [90, 0, 0], [0, 90, 0]]
+      sample: 5 s
+      settle: {hold: 1 s, timeout: 60 s}
+"""

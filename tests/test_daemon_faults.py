@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
-import subprocess
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from rigctl.runner import RunOptions, run_procedure
 from rigctl.states import IllegalTransition, StateMachine
 from rigctl.suspenders import SuspenderSettings
 
-from helpers import ROOT
+from helpers import DISK_PROCEDURE as DISK, ROOT
 
 CFG = ROOT / "configs" / "sim.yaml"
 
@@ -186,31 +184,6 @@ def test_state_machine_only_legal_transitions():
 
 
 # -- a full disk ---------------------------------------------------------------------------------
-@pytest.fixture
-def small_fs(tmp_path):
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs needs root")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"mount -t tmpfs is not permitted here: {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
-
-
-DISK = """procedure: disk
-steps:
-  - warmup:
-      duration: 10 s
-  - orientations:
-      angles_deg: [[0, 0, 0], [90, 0, 0], [0, 90, 0]]
-      sample: 5 s
-      settle: {hold: 1 s, timeout: 60 s}
-"""
 
 
 def test_full_disk_pauses_with_clear_message_and_damages_nothing(tmp_path, small_fs):

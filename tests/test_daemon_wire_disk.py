@@ -10,37 +10,13 @@ import subprocess
 
 import h5py
 import numpy as np
-import pytest
 
-from helpers import ROOT, rigctl_cmd
+from helpers import DISK_PROCEDURE, ROOT, rigctl_cmd
 
 from hil_support import wait_until, wired
 
 SPEED = 50.0
-PROC = """procedure: disk
-steps:
-  - warmup:
-      duration: 10 s
-  - orientations:
-      angles_deg: [[0, 0, 0], [90, 0, 0], [0, 90, 0]]
-      sample: 5 s
-      settle: {hold: 1 s, timeout: 60 s}
-"""
-
-
-@pytest.fixture
-def small_fs(tmp_path):
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs needs root")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"mount -t tmpfs is not permitted here: {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+PROC = DISK_PROCEDURE
 
 
 def fill(path) -> None:

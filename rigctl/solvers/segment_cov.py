@@ -66,6 +66,19 @@ _PLATEAU = 2.0 * np.log(2.0) / np.pi
 
 
 # ------------------------------------------------------------------------------ kernels
+def _window_pair(a: ArrayLike, b: ArrayLike, a2: ArrayLike | None, b2: ArrayLike | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Window starts/ends as float64 arrays (the second set defaults to the first); each window
+    must have t_end > t_start."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a2 = a if a2 is None else np.asarray(a2, dtype=np.float64)
+    b2 = b if b2 is None else np.asarray(b2, dtype=np.float64)
+    if np.any(b - a <= 0) or np.any(b2 - a2 <= 0):
+        raise ValueError("every window needs t_end > t_start")
+    return a, b, a2, b2
+
+
 def _second_diff(fun, a: NDArray[np.float64], b: NDArray[np.float64],
                  a2: NDArray[np.float64], b2: NDArray[np.float64]) -> NDArray[np.float64]:
     """F(b_i - a_j) - F(a_i - a_j) - F(b_i - b_j) + F(a_i - b_j) for all (i, j).
@@ -106,12 +119,7 @@ def cov_random_walk(a: ArrayLike, b: ArrayLike, t0: float = 0.0,
     Windows [a, b] (..., K) against [a2, b2] (..., K2) (default: the same); see the module
     docstring. Returns (..., K, K2).
     """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    a2 = a if a2 is None else np.asarray(a2, dtype=np.float64)
-    b2 = b if b2 is None else np.asarray(b2, dtype=np.float64)
-    if np.any(b - a <= 0) or np.any(b2 - a2 <= 0):
-        raise ValueError("every window needs t_end > t_start")
+    a, b, a2, b2 = _window_pair(a, b, a2, b2)
     D = _second_diff(lambda x: np.abs(x) ** 3 / 6.0, a, b, a2, b2)
     m, m2 = (a + b) / 2.0, (a2 + b2) / 2.0
     TT = (b - a)[..., :, None] * (b2 - a2)[..., None, :]
@@ -205,12 +213,7 @@ def cov_flicker(a: ArrayLike, b: ArrayLike, bank: FlickerBank | None = None,
     a2, b2 likewise (default: the same windows). Returns (..., K, K2).
     """
     bank = flicker_bank() if bank is None else bank
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    a2 = a if a2 is None else np.asarray(a2, dtype=np.float64)
-    b2 = b if b2 is None else np.asarray(b2, dtype=np.float64)
-    if np.any(b - a <= 0) or np.any(b2 - a2 <= 0):
-        raise ValueError("every window needs t_end > t_start")
+    a, b, a2, b2 = _window_pair(a, b, a2, b2)
     tau = bank.tau_c
     d2 = _second_diff(lambda x: _ou_r(x[..., None], tau), a, b, a2, b2)  # (..., K, K2, m)
     TT = (b - a)[..., :, None] * (b2 - a2)[..., None, :]
