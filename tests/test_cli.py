@@ -46,6 +46,11 @@ def test_run_24pos_end_to_end_readable_with_bare_h5py(tmp_path):
     lines = r.stdout.splitlines()
     assert "configs/sim.yaml" in lines[0] and "emulated" in lines[0]
     assert lines[-1].startswith("recording: ")
+    # piped (not a terminal): progress as plain lines, one when each step starts and ends
+    assert "\r" not in r.stdout and "\x1b" not in r.stdout
+    assert sum(ln.startswith("[") and " started: " in ln for ln in lines) == 25
+    assert any(ln.startswith("[25/25] done: orientation z north, phi 315 deg") for ln in lines), lines[-8:]
+    assert any(ln.startswith("complete: 25/25 steps") and "dropped 0 samples" in ln for ln in lines)
     path = lines[-1].split("recording: ", 1)[1]
     run_dir = os.path.dirname(path)
     assert os.path.dirname(run_dir) == str(tmp_path) and run_dir.endswith("-24pos")
