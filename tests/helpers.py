@@ -47,3 +47,14 @@ steps:
       sample: 5 s
       settle: {hold: 1 s, timeout: 60 s}
 """
+
+
+def fill_disk(path: Path | str) -> None:
+    """Write zeros to ``path`` until its filesystem is full."""
+    with open(path, "wb") as fh:
+        try:
+            while True:
+                fh.write(b"\0" * 65536)
+                fh.flush()
+        except OSError:
+            pass

@@ -20,7 +20,7 @@ from rigctl.runner import RunOptions, run_procedure
 from rigctl.states import IllegalTransition, StateMachine
 from rigctl.suspenders import SuspenderSettings
 
-from helpers import DISK_PROCEDURE as DISK, ROOT
+from helpers import DISK_PROCEDURE as DISK, ROOT, fill_disk
 
 CFG = ROOT / "configs" / "sim.yaml"
 
@@ -193,13 +193,7 @@ def test_full_disk_pauses_with_clear_message_and_damages_nothing(tmp_path, small
     ballast = small_fs / "ballast"
 
     def fill() -> None:
-        with open(ballast, "wb") as fh:  # fill the filesystem completely
-            try:
-                while True:
-                    fh.write(b"\0" * 65536)
-                    fh.flush()
-            except OSError:
-                pass
+        fill_disk(ballast)
 
     def setup(faults, rig, box):
         faults.call_at(16.0, fill)

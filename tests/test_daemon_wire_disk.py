@@ -11,23 +11,12 @@ import subprocess
 import h5py
 import numpy as np
 
-from helpers import DISK_PROCEDURE, ROOT, rigctl_cmd
+from helpers import DISK_PROCEDURE, ROOT, fill_disk as fill, rigctl_cmd
 
 from hil_support import wait_until, wired
 
 SPEED = 50.0
 PROC = DISK_PROCEDURE
-
-
-def fill(path) -> None:
-    """Write zeros to ``path`` until the filesystem is full."""
-    with open(path, "wb") as fh:
-        try:
-            while True:
-                fh.write(b"\0" * 65536)
-                fh.flush()
-        except OSError:
-            pass
 
 
 def test_full_disk_over_the_wire_pauses_and_damages_nothing(tmp_path, small_fs):
