@@ -71,7 +71,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def _modules_for(argv: list[str] | None) -> tuple[str, ...]:
     """The command modules ``argv`` needs: the chosen command's only, else (help, typo) all."""
-    words = [a for a in (sys.argv[1:] if argv is None else argv)]
+    words = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in words if not a.startswith("-")), None)
     if first in COMMANDS and not any(a in ("-h", "--help") for a in words[:words.index(first)]):
         return (COMMANDS[first],)
