@@ -9,13 +9,15 @@ Two studies (both run the emulator through `rigctl run`, then read the calibrati
 2. **Time-correlated noise** (bias instability + rate random walk, the real-MEMS case): the full
    procedure (15-min warm-up, 30-s windows) for N seeds of each profile -- declared_only, and
    mti_class / tactical with every extra effect disabled by overrides. Each recording is
-   calibrated three ways: "independent" (segment means treated as independent, each with its
+   calibrated several ways: "independent" (segment means treated as independent, each with its
    own batch-means sigma: the behaviour before segment covariances), "session" (covariance from
    the noise model REML-estimated from the session: what `rigctl calibrate` does without
    /results/allan) and "coeffs" (covariance from the profile's true IEEE 952 coefficients: what
-   /results/allan gives). Per run: closed-loop chi2/dof and whether it lies in its 99 %
-   chi-square band, accel24 / gyro-rate chi2/dof, any effect or unexplained structure flagged,
-   and how many of the 27 declared parameters' 95 % intervals cover /truth.
+   /results/allan gives); with --overnight-hours (default 12) also "overnight": the
+   /results/allan of a 12 h static capture of the same emulated unit (another seed), analysed by
+   `rigctl allan` -- what `rigctl calibrate --noise OVERNIGHT.h5` does. Per run: closed-loop
+   chi2/dof and whether it lies in its 99 % chi-square band, accel24 / gyro-rate chi2/dof, any
+   effect or unexplained structure flagged, and how many of the 27 declared parameters' 95 % intervals cover /truth.
 
 Prints per-run JSON lines, a table, and last one JSON object of headline figures.
 Usage: python benchmarks/calibration.py [--seeds 6] [--corr-seeds 10] [--profiles declared_only,...]
@@ -105,6 +107,27 @@ def record(tmp: Path, seed: int, profile: str) -> tuple[Path, dict]:
     return rec, truth
 
 
+def overnight(tmp: Path, profile: str, hours: float, seed: int = 1000) -> Path:
+    """A ``hours`` static capture of the same emulated unit (profile, effects as in record())
+    analysed by ``rigctl allan``: what `rigctl calibrate --noise FILE.h5` reads (reused when
+    ``tmp`` already holds it)."""
+    out = tmp / f"overnight-{profile}-{hours:g}h"
+    for rec in sorted(out.glob("*/recording.h5")):
+        with h5py.File(rec, "r") as f:
+            if "results/allan" in f:
+                return rec
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = seed
+    cfg["imu"]["sim"] = {"profile": profile, "seed": seed}
+    if profile != "declared_only":
+        cfg["imu"]["sim"]["overrides"] = {"effects": EFFECTS_OFF}
+    (tmp / f"cfg-overnight-{profile}.yaml").write_text(yaml.safe_dump(cfg))
+    subprocess.run([sys.executable, "-m", "rigctl.cli", "run", str(ROOT / "procedures" / "allan-overnight.yaml"),
+                    "--config", str(tmp / f"cfg-overnight-{profile}.yaml"), "-p", "warmup=1 min",
+                    "-p", f"capture={hours:g} h", "--out", str(out)], check=True, capture_output=True, cwd=ROOT)
+    return next(out.glob("*/recording.h5"))
+
+
 def _summary(sess: dict, truth: dict) -> dict:
     cl = sess["closed_loop"]
     fin = cl.final
@@ -125,8 +148,10 @@ def _summary(sess: dict, truth: dict) -> dict:
     return out
 
 
-def calibrate_three_ways(rec: Path, truth_params: dict) -> dict:
-    from rigctl.calibrate_cmd import _truth
+def calibrate_ways(rec: Path, truth_params: dict, night: Path | None = None) -> dict:
+    """The recording calibrated with each noise model: independent, session, coeffs and (with
+    ``night``) overnight, the /results/allan of another recording of the same unit."""
+    from rigctl.calibrate_cmd import _truth, noise_from_allan
     from rigctl.segment_builder import build_segment_table, open_recording
     from rigctl.solvers.closed_loop import calibrate_session
     from rigctl.solvers.segment_noise import apply_session_noise
@@ -150,6 +175,12 @@ def calibrate_three_ways(rec: Path, truth_params: dict) -> dict:
     seg = build_segment_table(rec, noise_f=nm[0], noise_w=nm[1])
     apply_session_noise(seg, nm[0], nm[1])
     out["coeffs"] = _summary(calibrate_session(seg, truth=truth), truth)
+    if night is not None:
+        with open_recording(night) as f:
+            nm = noise_from_allan(f)
+        seg = build_segment_table(rec, noise_f=nm[0], noise_w=nm[1])
+        apply_session_noise(seg, nm[0], nm[1])
+        out["overnight"] = _summary(calibrate_session(seg, truth=truth), truth)
     return out
 
 
@@ -157,16 +188,22 @@ def _true_b(tp: dict) -> list[float]:
     return [tp["accel_noise_generator_params"].get("B", 0.0)] * 3 + [tp["gyro_noise_generator_params"].get("B", 0.0)] * 3
 
 
-def corr_study(seeds: int, profiles: list[str], keep: str | None = None) -> dict:
+def corr_study(seeds: int, profiles: list[str], keep: str | None = None, night_h: float = 12.0) -> dict:
     rows = []
+    modes = ("independent", "session", "coeffs") + (("overnight",) if night_h > 0 else ())
     with tempfile.TemporaryDirectory() as d:
         where = Path(keep) if keep else Path(d)
         where.mkdir(parents=True, exist_ok=True)
         for prof in profiles:
+            t0 = time.monotonic()
+            night = overnight(where, prof, night_h) if night_h > 0 else None
+            if night is not None:
+                print(f"{prof}: {night_h:g} h overnight capture analysed by rigctl allan in "
+                      f"{time.monotonic() - t0:.0f} s: {night}", flush=True)
             for s in range(1, seeds + 1):
                 t0 = time.monotonic()
                 rec, truth = record(where, s, prof)
-                res = calibrate_three_ways(rec, truth)
+                res = calibrate_ways(rec, truth, night)
                 row = {"profile": prof, "seed": s, "wall_s": time.monotonic() - t0, **res}
                 rows.append(row)
                 print(json.dumps(row, default=float), flush=True)
@@ -178,7 +215,7 @@ def corr_study(seeds: int, profiles: list[str], keep: str | None = None) -> dict
     summary: dict = {}
     for prof in profiles:
         sub = [r for r in rows if r["profile"] == prof]
-        for mode in ("independent", "session", "coeffs"):
+        for mode in modes:
             x = [r[mode] for r in sub]
             n = len(x)
             med = float(np.median([v["chi2_per_dof"] for v in x]))
@@ -191,7 +228,8 @@ def corr_study(seeds: int, profiles: list[str], keep: str | None = None) -> dict
             print(f"{prof:<14} {mode:<12} {n:>4} {med:>16.3f} {band:>12.2f} {noflag:>8.2f} {cov:>9.3f} "
                   f"{bcov:>9.3f} {a24:>16.2f} {gr:>18.2f}")
             summary[f"{prof}_{mode}"] = {"chi2_per_dof_median": med, "frac_in_99_band": band,
-                                         "frac_no_flag": noflag, "coverage95_pooled": cov}
+                                         "frac_no_flag": noflag, "coverage95_pooled": cov,
+                                         "bias_coverage95": bcov}
     return summary
 
 
@@ -203,12 +241,17 @@ def main() -> None:
     ap.add_argument("--warmup", default="1 min")
     ap.add_argument("--sample", default="10 s")
     ap.add_argument("--recordings", help="keep (and reuse) the study-2 recordings in this directory")
+    ap.add_argument("--overnight-hours", type=float, default=12.0,
+                    help="static capture per profile for the 'overnight' noise model (0: skip)")
     a = ap.parse_args()
     summary: dict = {}
     if a.corr_seeds > 0:
-        corr = corr_study(a.corr_seeds, [p for p in a.profiles.split(",") if p], a.recordings)
+        corr = corr_study(a.corr_seeds, [p for p in a.profiles.split(",") if p], a.recordings,
+                          a.overnight_hours)
         for k, v in corr.items():
-            if k.endswith("_session") or k.endswith("_independent"):
+            if not k.endswith("_independent"):
+                summary[f"{k}_bias_coverage95"] = v["bias_coverage95"]
+            if k.endswith("_session") or k.endswith("_independent") or k.endswith("_overnight"):
                 summary[f"{k}_frac_in_99_band"] = v["frac_in_99_band"]
                 summary[f"{k}_frac_no_flag"] = v["frac_no_flag"]
                 summary[f"{k}_coverage95"] = v["coverage95_pooled"]

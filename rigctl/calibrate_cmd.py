@@ -15,8 +15,10 @@ has ``"trustworthy": false`` and the reasons).
 Noise model for the segment means, including the covariance between segments that bias
 instability and rate random walk create (the bias wanders during the 30-60 minute procedure;
 :mod:`rigctl.solvers.segment_cov`): the IEEE 952 coefficients of /results/allan (``rigctl
-allan``) when present, else estimated from the session itself (``--noise self``: white level
-from each window's batch means, bias instability and random walk by REML of the segment means,
+allan``) when present, or of another recording of the same IMU (``--noise FILE.h5``: an
+overnight capture that ``rigctl allan`` analysed; its /meta unit identity must match), else
+estimated from the session itself (``--noise self``: white level from each window's batch means,
+bias instability and random walk by REML of the segment means,
 :mod:`rigctl.solvers.segment_noise`). The output says which, with the coefficients per channel.
 
 Results: /results/calibration (attrs schema_version, created_utc, json) and a JSON file beside
@@ -120,11 +122,57 @@ def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
     return out[0], out[1]
 
 
+NOISE_CHOICES = ("auto", "allan", "self")
+
+
+def _unit_ids(f: h5py.File) -> dict[str, str]:
+    """The unit under test's identity recorded in /meta (non-empty entries only)."""
+    m = f["meta"].attrs if "meta" in f else {}
+    out = {}
+    for key in ("imu_device_id", "imu_serial"):
+        v = m.get(key, "")
+        v = v.decode() if isinstance(v, bytes) else str(v)
+        if v.strip():
+            out[key] = v.strip()
+    return out
+
+
+def _noise_from_file(f: h5py.File, path: Path, src: Path) -> tuple[Any, Any, str]:
+    """The noise model of another recording of the same unit (an overnight static capture that
+    ``rigctl allan`` analysed): its /results/allan, after checking the unit's identity."""
+    if not src.is_file():
+        raise InputError(f"--noise {src}: no such file", hint="give a recording that `rigctl allan` "
+                         "analysed (e.g. an overnight capture of procedures/allan-overnight.yaml), or auto/self")
+    with open_recording(src) as g:
+        nm = noise_from_allan(g)
+        ids_src, fs_src = _unit_ids(g), float(g["imu"].attrs.get("sample_rate_hz", 0.0))
+    if nm is None:
+        raise InputError("no complete /results/allan (all six axes) in the noise recording", src,
+                         hint=f"run `rigctl allan {src}` first")
+    ids = _unit_ids(f)
+    for key in sorted(set(ids) & set(ids_src)):
+        if ids[key] != ids_src[key]:
+            raise InputError(f"--noise {src}: that recording is of another unit ({key} "
+                             f"{ids_src[key]!r}, this one {ids[key]!r})", path,
+                             hint="use the Allan capture of the same IMU, or --noise self")
+    fs = float(f["imu"].attrs.get("sample_rate_hz", 0.0))
+    common = sorted(set(ids) & set(ids_src))
+    note = (" (same unit: " + ", ".join(f"{k} {ids[k]}" for k in common) + ")" if common else
+            " (the unit's identity is not recorded in both files: not checked)")
+    rate = "" if fs_src == fs else f"; captured at {fs_src:g} Hz, this recording {fs:g} Hz"
+    return nm[0], nm[1], (f"from {src}:/results/allan (IEEE 952 terms fitted by rigctl allan on another "
+                          f"recording{note}{rate}; segment covariance from N, Q, B (flicker band 1 s - 1e4 s) "
+                          "and K)")
+
+
 def _noise(f: h5py.File, choice: str, path: Path) -> tuple[Any, Any, str]:
+    if choice not in NOISE_CHOICES:
+        return _noise_from_file(f, path, Path(choice))
     nm = noise_from_allan(f) if choice in ("auto", "allan") else None
     if choice == "allan" and nm is None:
         raise InputError("--noise allan: the recording has no complete /results/allan (all six axes)", path,
-                         hint="run `rigctl allan` on a static recording first, or use --noise self")
+                         hint="run `rigctl allan` on it (if it holds a long static capture), give the "
+                              "analysed overnight capture of the same IMU (--noise FILE.h5), or use --noise self")
     if nm is not None:
         return nm[0], nm[1], ("from /results/allan (IEEE 952 terms fitted by rigctl allan; segment "
                               "covariance from N, Q, B (flicker band 1 s - 1e4 s) and K)")
@@ -409,7 +457,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("recording", help="rigctl HDF5 recording (results are stored in it)")
     p.add_argument("--explain", action="store_true", help="print the closed loop's chain of decisions")
     p.add_argument("--json", help="JSON output path (default: RECORDING.calibration.json beside it)")
-    p.add_argument("--noise", choices=("auto", "allan", "self"), default="auto",
-                   help="segment noise model: /results/allan (allan), the data (self), or allan if "
-                        "present else self (auto, default)")
+    p.add_argument("--noise", default="auto", metavar="{auto,allan,self,FILE.h5}",
+                   help="segment noise model: this recording's /results/allan (allan), the data (self), "
+                        "allan if present else self (auto, default), or FILE.h5: the /results/allan of an "
+                        "overnight capture of the same IMU (best: a 40-minute session cannot pin down the "
+                        "slow terms)")
     p.set_defaults(func=run)

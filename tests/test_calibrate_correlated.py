@@ -108,3 +108,75 @@ def test_report_states_the_noise_model_and_its_coefficients(runs):
         assert 1 / 1.5 < b / b_true < 1.5, (sensor, b)
     for line in ("accel_x  N", "gyro_z   N", "ug/rts", "deg_h/rth"):
         assert line in out, line
+
+
+# ----------------------------------------------------------------- --noise OVERNIGHT.h5
+@pytest.fixture(scope="module")
+def night(tmp_path_factory) -> Path:
+    """A 1-hour static capture of the same emulated unit (profile declared_only, another seed),
+    analysed by the procedure's `rigctl allan` solve step: /results/allan for all six axes."""
+    tmp = tmp_path_factory.mktemp("night")
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = 101
+    cfg["imu"]["sim"] = {"profile": "declared_only"}
+    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    r = run_rigctl("run", "procedures/allan-overnight.yaml", "--config", str(tmp / "cfg.yaml"), "-p", "warmup=1 min",
+                   "-p", "capture=1 h", "--out", str(tmp / "runs"), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
+    return rec
+
+
+def _with_ids(src: Path, dst: Path, **ids: str) -> Path:
+    import shutil
+
+    import h5py
+
+    shutil.copyfile(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for k, v in ids.items():
+            f["meta"].attrs[k] = v
+    return dst
+
+
+def test_noise_from_an_overnight_capture_of_the_same_unit(runs, night, tmp_path):
+    import numpy as np
+
+    import h5py
+    from rigctl.calibrate_cmd import noise_from_allan
+
+    rec = _with_ids(runs[0][0], tmp_path / "session.h5", imu_serial="SN-0042")
+    nt = _with_ids(night, tmp_path / "night.h5", imu_serial="SN-0042")
+    r = run_rigctl("calibrate", str(rec), "--noise", str(nt), "--json", str(tmp_path / "cal.json"), timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"noise model: from {nt}:/results/allan" in r.stdout and "same unit: imu_serial SN-0042" in r.stdout
+    payload = json.loads((tmp_path / "cal.json").read_text())
+    assert payload["noise_model"].startswith(f"from {nt}:/results/allan")
+    # the segment covariance uses the night's fitted coefficients, not the session's REML
+    with h5py.File(nt, "r") as f:
+        acc, gyr = noise_from_allan(f)
+    rows = payload["noise_model_channels"]
+    n_ug = [r["N_ug_per_rtHz"]["*"] for r in rows[:3]]  # one white level for every kind
+    np.testing.assert_allclose(n_ug, acc.N * 1e6 / 9.80665, rtol=1e-3)
+    b_degh = [r["B_deg_h"] for r in rows[3:]]
+    np.testing.assert_allclose(b_degh, gyr.B * 180 / np.pi * 3600, rtol=1e-3)
+    fin = payload["results"]["closed_loop"]["final"]
+    lo, hi = scipy.stats.chi2.ppf([0.005, 0.995], fin["dof"])
+    assert lo <= fin["chi2"] <= hi, fin["chi2_per_dof"]
+
+
+def test_noise_from_another_unit_is_refused(runs, night, tmp_path):
+    rec = _with_ids(runs[0][0], tmp_path / "session.h5", imu_device_id="03780001")
+    nt = _with_ids(night, tmp_path / "night.h5", imu_device_id="0378A2B4")
+    r = run_rigctl("calibrate", str(rec), "--noise", str(nt), timeout=300)
+    assert r.returncode == 2
+    assert "another unit" in r.stderr and "'0378A2B4'" in r.stderr and "'03780001'" in r.stderr, r.stderr
+    assert "same IMU" in r.stderr
+
+
+def test_noise_from_a_recording_without_allan_results(runs, tmp_path):
+    r = run_rigctl("calibrate", str(runs[0][0]), "--noise", str(runs[1][0]), timeout=300)
+    assert r.returncode == 2
+    assert "no complete /results/allan" in r.stderr and f"rigctl allan {runs[1][0]}" in r.stderr, r.stderr
+    r = run_rigctl("calibrate", str(runs[0][0]), "--noise", str(tmp_path / "missing.h5"), timeout=300)
+    assert r.returncode == 2 and "no such file" in r.stderr, r.stderr
