@@ -219,6 +219,30 @@ def go_to_measurement() -> bytes:
     return build_message(MID.GO_TO_MEASUREMENT)
 
 
+def req_did() -> bytes:
+    """ReqDID request (``FA FF 00 00 01``); the device answers DeviceID (0x01)."""
+    return build_message(MID.REQ_DID)
+
+
+#: DeviceID payload sizes: 4 bytes (MTi-1/10/100, MTi-G), 8 bytes on newer devices.
+DEVICE_ID_SIZES = (4, 8)
+
+
+def encode_device_id(device_id: int) -> bytes:
+    """DeviceID payload of ``device_id``: u32 big-endian, or u64 when it does not fit 32 bits."""
+    if not 0 <= device_id < 1 << 64:
+        raise XsensError(f"device ID {device_id} does not fit 64 bits")
+    return struct.pack(">I" if device_id < 1 << 32 else ">Q", device_id)
+
+
+def decode_device_id(data: bytes) -> str:
+    """The DeviceID payload as Xsens prints it: upper-case hex, two digits per byte
+    (``03780001``; 16 digits for an 8-byte ID). Raises XsensError on another size."""
+    if len(data) not in DEVICE_ID_SIZES:
+        raise XsensError(f"DeviceID payload of {len(data)} bytes (expected 4 or 8)")
+    return data.hex().upper()
+
+
 def ack_for(mid: int, data: bytes = b"") -> bytes:
     """Acknowledgement of request ``mid`` (MID + 1)."""
     return build_message(mid + 1, data)

@@ -34,6 +34,16 @@ show up as a counter gap. ``read`` raises :class:`rigctl.devices.LinkLost` once 
 down for ``link_timeout_s`` (wall) -- the engine's cue to pause -- and returns data again after
 the reconnect. A configuration the device refuses (e.g. rate too high for the baud rate) raises
 :class:`XsensConfigError` from :meth:`connect`.
+
+Identity: in config mode (after GoToConfig, before the output configuration) the driver sends
+ReqDID and keeps the DeviceID as :attr:`XsensImu.identity` = ``{"device_id": "03780001",
+"protocol": "Xsens MT"}`` (upper-case hex, as Xsens prints it; 16 digits for an 8-byte ID). A
+device that answers Error, or nothing after the usual three tries, gets ``device_id`` ``""`` and
+a logged warning; the run goes on. Every reconnect reads the ID again before the device is put
+back into measurement: a different ID means another unit is now on the port, and the reader
+stops with :class:`XsensUnitChanged` (the fatal path of a refused configuration: ``read`` raises
+it, the run ends failed with both IDs in its message, and not one sample of the other unit is
+recorded). An ID unreadable on reconnect is a warning, as on the first connect.
 """
 from __future__ import annotations
 
@@ -44,13 +54,13 @@ from dataclasses import asdict
 
 import numpy as np
 
-from rigctl.devices import Clock, ImuBlock, LinkLost
+from rigctl.devices import Clock, DeviceFault, ImuBlock, LinkLost
 
 from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
 from .xsens import (FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, SAMPLE_TIME_FINE_WRAP, XDI, ErrorCode, OutputItem,
-                    check_rate_fits, decode_output_configuration, go_to_config, go_to_measurement,
-                    set_output_configuration)
+                    XsensError, check_rate_fits, decode_device_id, decode_output_configuration, go_to_config,
+                    go_to_measurement, req_did, set_output_configuration)
 from .xsens_decode import MTData2Batch, MTData2Stream
 
 log = logging.getLogger(__name__)
@@ -63,6 +73,14 @@ BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
 
 class XsensConfigError(RuntimeError):
     """The device refused (or never acknowledged) the configuration."""
+
+
+class XsensUnitChanged(XsensConfigError, DeviceFault):
+    """After a reconnect the device on the port reports another DeviceID than the unit the run
+    started with: a different IMU. Fatal for the reader (no sample of it is accepted)."""
+
+
+PROTOCOL = "Xsens MT"
 
 
 def output_items(rate_hz: int) -> list[OutputItem]:
@@ -95,6 +113,8 @@ class XsensImu(ReconnectingReader):
         self.offset: float | None = None
         self.incomplete_frames = 0
         self.configurations = 0
+        #: the unit under test: {"device_id": upper-case hex or "", "protocol": "Xsens MT"}
+        self.identity: dict[str, str] = {"device_id": "", "protocol": PROTOCOL}
         self._stf0: int | None = None
         self._pending: list[MTData2Batch] = []
         self._latest_stf: int | None = None
@@ -173,7 +193,10 @@ class XsensImu(ReconnectingReader):
                 self._feed(data)
         return None
 
-    def _request(self, msg: bytes, ack: int, what: str, tries: int = 3):
+    def _request(self, msg: bytes, ack: int, what: str, tries: int = 3, required: bool = True):
+        """Send ``msg`` until ``ack`` arrives (``tries`` times). An Error reply raises
+        XsensConfigError, no reply LinkLost; unless not ``required``: then both return None
+        (with a warning)."""
         for _ in range(tries):
             self._msgs.clear()
             self.link.write(msg)
@@ -183,9 +206,40 @@ class XsensImu(ReconnectingReader):
             if m.mid == MID.ERROR:
                 code = m.data[0] if m.data else -1
                 name = ErrorCode(code).name if code in ErrorCode._value2member_map_ else f"0x{code:02X}"
+                if not required:
+                    log.warning("%s: device answered %s with error %s", self.name, what, name)
+                    return None
                 raise XsensConfigError(f"{self.name}: device refused {what}: error {name}")
             return m
+        if not required:
+            log.warning("%s: no answer to %s from %s after %d tries", self.name, what, self.link.url, tries)
+            return None
         raise LinkLost(self.name, f"no acknowledgement of {what} from {self.link.url}")
+
+    def _check_identity(self) -> None:
+        """ReqDID (config mode): keep the DeviceID on the first configuration; on a reconnect,
+        raise XsensUnitChanged if the device now reports another one."""
+        m = self._request(req_did(), MID.DEVICE_ID, "ReqDID", required=False)
+        device_id = ""
+        if m is not None:
+            try:
+                device_id = decode_device_id(m.data)
+            except XsensError as exc:
+                log.warning("%s: unreadable DeviceID: %s", self.name, exc)
+        known = self.identity["device_id"]
+        if self.configurations == 0:
+            self.identity = {"device_id": device_id, "protocol": PROTOCOL}
+            if not device_id:
+                log.warning("%s: the device does not report its ID: the recording cannot name the unit "
+                            "under test (set imu: serial: in the rig config)", self.name)
+        elif known and device_id and device_id != known:
+            raise XsensUnitChanged(
+                f"{self.name}: a different unit is now on {self.link.url}: device ID {device_id}, but the "
+                f"run started with {known}; its data are not recorded -- reconnect unit {known} and "
+                "resume the run (rigctl resume), or start a new run for the other unit")
+        elif known and not device_id:
+            log.warning("%s: could not confirm the device ID after the reconnect (the run started with %s)",
+                        self.name, known)
 
     def _configure(self) -> None:
         first = self.offset is None
@@ -195,6 +249,7 @@ class XsensImu(ReconnectingReader):
         self._request(go_to_config(), MID.GO_TO_CONFIG_ACK, "GoToConfig")
         if first:
             self._discard_preconfig()
+        self._check_identity()
         ack = self._request(set_output_configuration(self.items), MID.SET_OUTPUT_CONFIGURATION_ACK,
                             f"the output configuration ({self.rate_hz} Hz)")
         if ack.data and decode_output_configuration(ack.data) != self.items:
@@ -279,4 +334,4 @@ class XsensImu(ReconnectingReader):
         self.close()
 
 
-__all__ = ["XsensImu", "XsensConfigError", "output_items"]
+__all__ = ["XsensImu", "XsensConfigError", "XsensUnitChanged", "output_items"]

@@ -10,7 +10,7 @@ import numpy as np
 
 from . import schema as S
 from .frames import normal_gravity
-from .linkconfig import imu_settings, pulse_settings, table_settings
+from .linkconfig import COMMON_KEYS, imu_settings, pulse_settings, table_settings
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -81,6 +81,8 @@ class RigConfig:
     flush_interval_s: float = 0.5
     table_rate_hz: float = 10.0
     seed: int = 0
+    #: the unit under test as declared by ``imu.serial`` ("" when not given)
+    imu_serial: str = ""
     suspenders: SuspenderSettings = field(default_factory=SuspenderSettings)
     raw: LocDict = field(default_factory=LocDict, repr=False)
 
@@ -127,6 +129,28 @@ def _device(m: LocDict, key: str, drivers: tuple[str, ...], default_driver: str 
     d = S.require_mapping(m[key], f"the {key!r} section", m, key)
     driver = S.get_str(d, "driver", choices=drivers)
     return DeviceConfig(driver, d), d
+
+
+#: longest ``imu.serial`` accepted, characters
+SERIAL_MAX_CHARS = 64
+
+
+def imu_serial(d: LocDict) -> str:
+    """``imu.serial``: the unit under test as the lab names it (its label, for an IMU that
+    cannot report its own ID), kept as /meta ``imu_serial``. Text of at most SERIAL_MAX_CHARS
+    printable characters; absent, null or "" = not declared (""). A YAML number is refused,
+    not converted: ``serial: 0123`` would read as 83 (octal) and lose the label."""
+    if d.get("serial") is None:
+        return ""
+    v = d["serial"]
+    if not isinstance(v, str):
+        raise S.error(d, "serial", f"'serial' must be text, got {v!r}",
+                      f'quote it so it is kept exactly as written: serial: "{v}"')
+    v = v.strip()
+    if len(v) > SERIAL_MAX_CHARS or not v.isprintable():
+        raise S.error(d, "serial", f"'serial' must be at most {SERIAL_MAX_CHARS} printable characters "
+                      "on one line", "give the unit's serial number or label")
+    return v
 
 
 #: keys of the ``suspenders:`` section (docs/daemon.md), units in the names
@@ -203,7 +227,10 @@ def load_config(path: str | Path) -> RigConfig:
                          angle_min=lo, angle_max=hi)
 
     imu, i = _device(m, "imu", IMU_DRIVERS, None)
+    if imu.driver == "sim":
+        S.check_keys(i, (*COMMON_KEYS, "serial"), "'imu' (sim)")
     imu_rate = S.get_number(i, "rate_hz", 100.0, minimum=1.0, maximum=10000.0)
+    serial = imu_serial(i)
     imu = DeviceConfig(imu.driver, i, imu_settings(imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
     pulses = DeviceConfig(pulses.driver, p_opts, pulse_settings(pulses.driver, p_opts))
@@ -229,8 +256,8 @@ def load_config(path: str | Path) -> RigConfig:
     return RigConfig(path=str(p), text=p.read_text(encoding="utf-8"), name=name, clock=clock,
                      speed=speed, latitude=lat, height_m=h, gravity_measured=g, limits=limits,
                      table=table, imu=imu, imu_rate_hz=imu_rate, pulses=pulses,
-                     flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, suspenders=suspenders,
-                     raw=m)
+                     flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, imu_serial=serial,
+                     suspenders=suspenders, raw=m)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

@@ -146,8 +146,30 @@ class Turntable(Protocol):
 
 @runtime_checkable
 class Imu(Protocol):
+    """An IMU. Besides ``read`` it may carry an ``identity`` attribute (optional, duck-typed:
+    read it with :func:`imu_identity`), a dict naming the unit under test, valid once the
+    device is connected::
+
+        {"device_id": "03780001",      # what the unit reports (Xsens: DeviceID, upper-case hex);
+                                       # "" when it cannot tell
+         "protocol": "Xsens MT"}       # how it was read ("in-process emulator", ...)
+
+    The recording keeps it (/meta ``imu_device_id``, ``imu_identity_json``) and ``rigctl resume``
+    refuses to continue a run on a unit whose non-empty ``device_id`` differs from the
+    recording's."""
+
     def read(self) -> ImuBlock:
         """Samples that arrived since the previous call (possibly none)."""
+
+
+def imu_identity(imu: object) -> dict[str, str]:
+    """``imu.identity`` with a str ``device_id`` (``""`` when unknown) and ``protocol``; a device
+    without the attribute (e.g. a third-party Imu) gives ``{"device_id": "", "protocol": ""}``."""
+    ident = getattr(imu, "identity", None)
+    out = {str(k): v for k, v in ident.items()} if isinstance(ident, dict) else {}
+    out["device_id"] = str(out.get("device_id") or "")
+    out["protocol"] = str(out.get("protocol") or "")
+    return out
 
 
 @runtime_checkable

@@ -139,9 +139,10 @@ class Engine:
         self.suspenders.operator = None
 
     # -- polling -------------------------------------------------------------------------------
-    def poll(self, check: bool = True) -> TableState:
+    def poll(self, check: bool = True, safe_state: bool = False) -> TableState:
         """Read every device once, record what came in and evaluate the suspenders; raise
-        Interrupted on an abort request and (if ``check``) Suspend when a suspender trips."""
+        Interrupted on an abort request and (if ``check``) Suspend when a suspender trips.
+        ``safe_state``: an IMU fault is noted, not raised (the table must still be read)."""
         clock = self.rig.clock
         obs = Observation(t=clock.now())
         try:
@@ -152,6 +153,10 @@ class Engine:
             self.rec.append_imu(block)
             self.gaps.add(block.counter)
         except LinkLost as exc:
+            obs.imu_error = str(exc)
+        except DeviceFault as exc:  # e.g. another unit on the IMU port: fatal, except while
+            if not safe_state:      # going to the safe state, which must still read the table
+                raise
             obs.imu_error = str(exc)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
@@ -445,7 +450,7 @@ class Engine:
         t0 = clock.now()
         try:
             while True:
-                state = self.poll(check=False)
+                state = self.poll(check=False, safe_state=True)
                 if not state.any_has(AxisStatus.MOVING):
                     self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
                     return True

@@ -291,6 +291,9 @@ def import_csv(args: argparse.Namespace) -> tuple[Path, int, list[dict[str, Any]
             "gravity_m_s2": float(g), "import_source": str(src), "import_columns_json": json.dumps(mapping),
             "import_units_json": json.dumps(args.units), "import_rate_hz": float(args.rate),
             "import_sections": origin, "orientation_free": 1,
+            # the unit under test is unknown to an imported log (docs/data-format.md, /meta)
+            "imu_device_id": "", "imu_serial": "",
+            "imu_identity_json": json.dumps({"device_id": "", "protocol": ""}, sort_keys=True),
             "rig": "none: imported log (no table; segment orientations unknown)"}
     write_recording(out, t, acc, gyr, temp, float(args.rate), sections, meta)
     return out, n, sections

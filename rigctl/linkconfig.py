@@ -16,7 +16,7 @@ Per driver (units in the key names; defaults in brackets):
   unset = keep the controller's)
 * imu ``xsens``: port, baudrate [921600], rate_hz (top level of the section), timeout_s [0.5],
   sample_time_fine_wrap [4294967296; 864000000 for MTi-10/100], align_wait_s [0.02],
-  link_timeout_s [2.0]
+  link_timeout_s [2.0]; serial (any IMU driver: the unit's label, rigctl.config.imu_serial)
 * pulses ``novatel``: port, baudrate [115200], signal MARK1..MARK4 [MARK1], polarity
   NEGATIVE|POSITIVE [NEGATIVE], timebias_ns [0], timeguard_ms [4], log MARK1TIMEA|MARKTIMEA
 * pulses ``gpio``: chip [/dev/gpiochip0], line, edge rising|falling|both [rising],
@@ -93,7 +93,7 @@ def table_settings(driver: str, d: LocDict) -> dict[str, Any]:
 def imu_settings(driver: str, d: LocDict) -> dict[str, Any]:
     if driver == "sim":
         return {}
-    S.check_keys(d, (*COMMON_KEYS, "port", "baudrate", "timeout_s", "sample_time_fine_wrap",
+    S.check_keys(d, (*COMMON_KEYS, "serial", "port", "baudrate", "timeout_s", "sample_time_fine_wrap",
                      "align_wait_s", "link_timeout_s"), "'imu' (xsens)")
     return {"port": _port(d, driver), "baudrate": _baud(d, 921600), "timeout_s": _timeout(d),
             "sample_time_fine_wrap": int(S.get_number(d, "sample_time_fine_wrap", 1 << 32, minimum=1000,

@@ -24,6 +24,7 @@ import numpy as np
 
 from . import checkpoint as ckpt_mod
 from .config import RigConfig, load_config
+from .devices import DeviceFault, imu_identity
 from .engine import Engine, Interrupted, Rig, RunError
 from .estimate import estimate
 from .procedure import Procedure, Step, load_procedure
@@ -138,6 +139,25 @@ def _open_cut_off(recording: Path) -> h5py.File:
     return h5py.File(recording, "r", libver="latest")
 
 
+def imu_meta(rig: Rig, cfg: RigConfig) -> dict[str, str]:
+    """/meta attrs naming the unit under test: ``imu_device_id`` (what the connected IMU reports,
+    "" when it cannot), ``imu_identity_json`` (its whole ``identity``), ``imu_serial`` (the rig
+    config's ``imu.serial``, "" when not given)."""
+    ident = imu_identity(rig.imu)
+    return {"imu_device_id": ident["device_id"], "imu_identity_json": json.dumps(ident, sort_keys=True, default=str),
+            "imu_serial": cfg.imu_serial}
+
+
+def check_same_imu(rig: Rig, recording: Path, recorded_id: str) -> None:
+    """Refuse (InputError) to continue ``recording`` on an IMU whose device ID differs from the
+    one it was started with (both known)."""
+    now_id = imu_identity(rig.imu)["device_id"]
+    if recorded_id and now_id and now_id != recorded_id:
+        raise InputError(f"{recording}: the run was recorded with IMU {recorded_id} but the connected IMU "
+                         f"is {now_id}: resuming would mix two units in one recording",
+                         hint=f"reconnect IMU {recorded_id} and resume again, or start a new run for IMU {now_id}")
+
+
 def _with_settings(options: RunOptions | None, cfg: RigConfig) -> RunOptions:
     """``options`` with the suspender settings resolved: given ones win, else the config's."""
     opts = options or RunOptions()
@@ -206,6 +226,11 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
             status, code, message = "failed", EXIT_FAILED, str(exc)
             states.to("aborting", message)
             log("error", message)
+        except DeviceFault as exc:  # a device that needs an operator, e.g. another IMU on the port
+            status, code, message = "failed", EXIT_FAILED, str(exc)
+            if states.state != "idle":
+                states.to("faulted", message)
+            log("error", message)
         except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
             status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
             if states.state != "idle":
@@ -267,7 +292,7 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
                 "versions_json": versions, "rig": rig.description,
                 "latitude_deg": math.degrees(cfg.latitude),
                 "height_m": cfg.height_m, "gravity_m_s2": cfg.gravity,
-                "clock_zero_unix_s": _clock_zero_unix(rig, cfg)}
+                "clock_zero_unix_s": _clock_zero_unix(rig, cfg), **imu_meta(rig, cfg)}
         ckpt_mod.save(run_dir, ckpt)
         rec = Recorder(run_dir / RECORDING, meta, truth, imu_rate_hz=cfg.imu_rate_hz,
                        flush_interval_s=cfg.flush_interval_s,
@@ -308,6 +333,8 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     with _open_cut_off(recording) as f:
         seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample")}
         file_status = f["run/status"][0].decode()
+        recorded_id = f["meta"].attrs.get("imu_device_id", "")  # absent: recorded before rigctl knew
+    recorded_id = recorded_id.decode() if isinstance(recorded_id, bytes) else str(recorded_id)
     if file_status == "complete":
         raise InputError(f"{recording}: the recording is already complete; nothing to resume")
     done = seg["status"] == b"complete"
@@ -323,6 +350,7 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     by_index = {s.index: s for s in proc.steps}
 
     def make_recorder(rig: Rig, truth: Any) -> tuple[Recorder, int]:
+        check_same_imu(rig, recording, recorded_id)  # before the recording or the table is touched
         rec = Recorder.reopen(recording, imu_rate_hz=cfg.imu_rate_hz,
                               flush_interval_s=cfg.flush_interval_s,
                               min_free_bytes=opts.suspenders.min_free_bytes // 4)
@@ -351,4 +379,9 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
         return rec, start
 
-    return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True)
+    try:
+        return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True)
+    except InputError as exc:  # e.g. another IMU: nothing was changed, say so in the run's log too
+        log("error", f"resume refused: {exc}", echo=False)  # the caller reports it
+        log.close()
+        raise

@@ -22,6 +22,10 @@ Ports: each pty gets a symlink in ``link_dir`` (a fresh temporary directory unle
 disconnect (:meth:`Hardware.disconnect`) closes the pty, waits, opens a NEW pty and re-points the
 SAME symlink to it (the raw ``/dev/pts/N`` path changes; it is returned and logged).
 
+The Xsens MTi answers ReqDID with ``imu_device_id`` (default 0x03780001, printed ``03780001``;
+None: the device answers Error, as one without ReqDID would); a test swaps the unit under test by
+setting ``hw.xsens.device_id`` and pulling the cable (:meth:`Hardware.disconnect`).
+
 Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall`,
 :meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`, :meth:`trip_interlock`,
 :meth:`trip_following_error`, :meth:`clear_fault` (the operator at the table), :meth:`inject`.
@@ -183,7 +187,7 @@ class HwXsensServer(XsensServer):
             self.byte_error_rate = rate
         size, n = len(data), len(k)
         start, self._stream_bytes = self._stream_bytes, self._stream_bytes + size
-        f0, self._stream_frames = self._stream_frames, self._stream_frames + n
+        self._stream_frames += n
         if rate <= 0:
             self._err_pending = None
             return data
@@ -323,8 +327,9 @@ class Hardware:
                  imu_baudrate: int = 921_600, imu_max_rate_hz: int = 2000, rtu_baudrate: int = 115_200,
                  acl_tcp_port: int = 0, modbus_tcp_port: int = 0, modbus_word_order: str = "big",
                  modbus_unit_id: int = 1, tick_s: float = 0.002, pulse_period_s: float | None = None,
-                 seed: int = 0, imu_keep_sent: int = 0) -> None:
+                 seed: int = 0, imu_keep_sent: int = 0, imu_device_id: int | None = 0x03780001) -> None:
         self.cfg, self.speed, self.tick_s = cfg, float(speed), float(tick_s)
+        self.imu_device_id = imu_device_id
         self.imu_baudrate, self.rtu_baudrate = imu_baudrate, rtu_baudrate
         self.modbus_word_order, self.modbus_unit_id = modbus_word_order, modbus_unit_id
         self._own_dir = link_dir is None
@@ -369,7 +374,7 @@ class Hardware:
         HwXsensServer.grid_rate_hz = self.world.rate_hz
         self.xsens = HwXsensServer(source=self.tap, clock=self.world_clock.now, baudrate=self.imu_baudrate,
                                    max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed,
-                                   keep_sent=self.imu_keep_sent)
+                                   keep_sent=self.imu_keep_sent, device_id=self.imu_device_id)
         self.xsens.true_clock = self.clock.now
         self._closers.append(self.xsens.close)
         self._replace_port(self.xsens, "imu", FlowPtyEndpoint)

@@ -7,6 +7,8 @@ every IMU sample whose true time has passed, in vectorised blocks. With a virtua
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from typing import Any
 
@@ -15,7 +17,7 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.config import RigConfig
-from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, Pulses, TableState
+from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, TableState
 from rigctl.frames import body_references, gimbal_rate_body
 from rigctl.yamlio import LocDict
 
@@ -76,6 +78,33 @@ def _servos(o: LocDict) -> list[ServoParams]:
             for i in range(3)]
 
 
+def _canonical(v: Any) -> Any:
+    """Settings with every number as a float (``20`` and ``20.0`` are the same setting)."""
+    if isinstance(v, dict):
+        return {str(k): _canonical(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_canonical(x) for x in v]
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return float(v)
+    return v
+
+
+def emulated_imu_identity(imu_sim: LocDict, seed: int) -> dict[str, str]:
+    """The emulated IMU's identity: ``EMU-<profile>-<digest>`` (``declared`` without a profile).
+
+    A unit is what stays fixed from one power-on to the next: the ``imu.sim`` settings (profile,
+    overrides, declared errors), hashed (SHA-256, 8 hex digits) without the seed, which only draws
+    the noise and the per-power-on parts -- two runs with other seeds are the same unit on two
+    days. With ``profile: random`` the seed (``imu.sim.seed``, else the config's ``seed``) draws
+    the unit itself, so it is part of the digest."""
+    opts = {k: v for k, v in dict(imu_sim).items() if k != "seed"}
+    profile = str(opts.get("profile") or "declared")
+    if profile == "random":
+        opts["seed"] = int(imu_sim.get("seed", seed))
+    digest = hashlib.sha256(json.dumps(_canonical(opts), sort_keys=True, default=str).encode()).hexdigest()[:8]
+    return {"device_id": f"EMU-{profile}-{digest.upper()}", "protocol": "in-process emulator"}
+
+
 class SimWorld:
     """Table + IMU physics on one true (run) timescale.
 
@@ -96,6 +125,7 @@ class SimWorld:
         i_opts = cfg.imu.options.get("sim") or LocDict()
         i_opts = S.require_mapping(i_opts, "'imu.sim'", cfg.imu.options, "sim")
         self.imu_model = build_imu_model(i_opts, self.rate_hz, cfg.seed)
+        self.imu_identity = emulated_imu_identity(i_opts, cfg.seed)
         # the table's grid step is the IMU's internal (pre-decimation) sample period
         self.decimation = int(getattr(self.imu_model, "decimation", 1))
         self.h = self.dt / self.decimation
@@ -337,8 +367,11 @@ class SimTableDevice:
 
 
 class SimImuDevice:
+    """Imu protocol over the in-process world; ``identity`` names the emulated unit."""
+
     def __init__(self, world: SimWorld) -> None:
         self.world = world
+        self.identity = dict(world.imu_identity)
 
     def read(self) -> ImuBlock:
         block = self.world.take_imu()

@@ -2,7 +2,9 @@
 
 The client opens ``server.path`` with ``serial.serial_for_url``. Supported requests: GoToConfig,
 GoToMeasurement, SetOutputConfiguration (config state only; the ack echoes the applied
-configuration), ReqDID, Reset; anything else gets Error 0x04 (invalid message). A configuration
+configuration), ReqDID (DeviceID: ``device_id`` as 4 bytes, or 8 when it does not fit 32 bits;
+``device_id=None`` emulates a device without ReqDID: Error 0x04), Reset; anything else gets Error
+0x04 (invalid message). A configuration
 with an unknown data ID, a rate that does not divide the packet rate, or frames that do not fit
 the nominal ``baudrate`` (8N1) is refused with Error 0x21 (invalid parameter) and the reason in
 ``last_error``.
@@ -18,7 +20,6 @@ bytes (seeded); ``frames_hit`` counts the MTData2 frames that received at least 
 """
 from __future__ import annotations
 
-import struct
 import threading
 import time
 from collections.abc import Callable
@@ -27,7 +28,8 @@ import numpy as np
 
 from rigctl.drivers.xsens import (FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, XDI, XDI_FIELD, ErrorCode, OutputItem,
                                   RateDoesNotFitError, XsensError, ack_for, build_message,
-                                  decode_output_configuration, encode_mtdata2, resolve_output_rate, encode_output_configuration,
+                                  decode_output_configuration, encode_device_id, encode_mtdata2, resolve_output_rate,
+                                  encode_output_configuration,
                                   error_message, item_size, mtdata2_frame_bytes, split_messages, split_xdi)
 
 from .links import PtyEndpoint
@@ -78,7 +80,7 @@ class XsensServer:
 
     def __init__(self, source: Callable[[np.ndarray], dict] = still_source,
                  clock: Callable[[], float] | None = None, baudrate: int = 921_600, max_rate_hz: int = 2000,
-                 device_id: int = 0x03780001, stf_offset: int = 0, byte_error_rate: float = 0.0,
+                 device_id: int | None = 0x03780001, stf_offset: int = 0, byte_error_rate: float = 0.0,
                  seed: int = 0, start_in_measurement: bool = False) -> None:
         self.source, self.baudrate, self.max_rate_hz = source, baudrate, max_rate_hz
         t_wall0 = time.monotonic()
@@ -125,8 +127,8 @@ class XsensServer:
             if mid == MID.GO_TO_MEASUREMENT:
                 self._enter_measurement()
                 return ack_for(mid)
-            if mid == MID.REQ_DID:
-                return build_message(MID.DEVICE_ID, struct.pack(">I", self.device_id))
+            if mid == MID.REQ_DID and self.device_id is not None:
+                return build_message(MID.DEVICE_ID, encode_device_id(self.device_id))
             if mid == MID.RESET:
                 self.state = "config"
                 return ack_for(mid)
