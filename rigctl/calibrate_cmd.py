@@ -107,6 +107,18 @@ def param_table(res: CalibrationResult, title: str) -> str:
 
 
 # ------------------------------------------------------------------------------ noise model
+def _allan_term_si(fit: dict[str, Any], term: str) -> float:
+    """A term of one axis' Allan fit for the segment covariance (SI): the fitted value, or for a
+    term the fit reports only as an upper bound its unconstrained estimate -- not zero: a
+    12-hour capture rarely makes the rate random walk significant, and K = 0 would make the
+    biases' intervals too narrow (docs/calibration.md, section 10)."""
+    e = fit.get("terms", {}).get(term)
+    if e is not None and not e.get("supported", True):
+        est = [v for k, v in e.items() if k.startswith("estimate_")]
+        return float(est[0]) if est else 0.0
+    return math.sqrt(max(float(fit["coeff_sq_si"].get(term, 0.0)), 0.0))
+
+
 def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
     """IEEE 952 NoiseModels (accel, gyro) from /results/allan's joint fits, if complete."""
     g = f.get("results/allan")
@@ -117,8 +129,8 @@ def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
     for names in (("ax", "ay", "az"), ("gx", "gy", "gz")):
         if not all(a in axes for a in names):
             return None
-        c = [axes[a]["fit"]["coeff_sq_si"] for a in names]
-        out.append(NoiseModel(**{t: np.sqrt([max(ci.get(t, 0.0), 0.0) for ci in c]) for t in "QNBKR"}))
+        out.append(NoiseModel(**{t: np.array([_allan_term_si(axes[a]["fit"], t) for a in names])
+                                 for t in "QNBKR"}))
     return out[0], out[1]
 
 
