@@ -361,6 +361,13 @@ def store(path: str, result: dict[str, Any]) -> None:
                 ds.attrs["units"] = units
 
 
+def _hours(h: float) -> str:
+    """A capture length for people: '47 h', '12 days', 'more than 1000 days'."""
+    if not math.isfinite(h) or h > 24_000:
+        return "more than 1000 days"
+    return f"{h:.0f} h" if h < 72 else f"{h / 24:.0f} days"
+
+
 def format_table(axis: str, r: dict[str, Any]) -> str:
     """Human-readable table of one axis plus its fitted terms."""
     unit = r["_unit"]
@@ -374,13 +381,17 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
     lines.append("fitted terms (joint EDF-weighted fit; 95 % intervals):")
     for t, e in r["fit"]["terms"].items():
         unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        need = e.get("capture_h_for_25pct")
         if e["supported"]:
             lo, hi = e[f"ci95_{unit_f}"]
+            more = ("" if need is None else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
+                    f"(Cramer-Rao); +-25 % needs about {_hours(need)})")
             lines.append(f"  {e['name']:>26}: {e[f'value_{unit_f}']:.5g} {unit_f} "
-                         f"[{lo:.5g}, {hi:.5g}]")
+                         f"[{lo:.5g}, {hi:.5g}]{more}")
         else:
+            more = "" if need is None else f"; +-25 % would need at least {_hours(need)} of capture"
             lines.append(f"  {e['name']:>26}: < {e[f'upper95_{unit_f}']:.5g} {unit_f} "
-                         "(95 % upper bound; not supported by the data)")
+                         f"(95 % upper bound; not supported by the data{more})")
     pw = r["piecewise"]["terms"]
     parts = []
     for t in ("N", "B", "K"):

@@ -93,3 +93,14 @@ def test_fit_bounds_an_unidentifiable_term() -> None:
     assert not k["supported"] and k["upper95_rad/s/sqrt(s)"] > truth["K"]
     assert 0 < k["crb_rel_sd"] < math.inf
     assert fit["terms"]["N"]["supported"] and fit["terms"]["N"]["crb_rel_sd"] < 0.01
+    # how long a capture would resolve K to +-25 % (95 %), if K were as large as its bound: the
+    # bound at that length is the target, and at the truth's K it would take longer still
+    need_h = k["capture_h_for_25pct"]
+    at_bound = {**{t: fit["terms"][t]["value_rad/s" if t == "B" else "value_rad/sqrt(s)"]
+                   for t in ("N", "B") if fit["terms"][t]["supported"]},
+                "K": k["upper95_rad/s/sqrt(s)"]}
+    assert 1.0 < need_h < 1e5
+    assert R.crb_rel_sd(at_bound, need_h * 3600 * 1.01, fs)["K"] <= F.TARGET_REL_SD
+    assert R.crb_rel_sd(at_bound, need_h * 3600 * 0.9, fs)["K"] > F.TARGET_REL_SD
+    assert R.duration_for(truth, "K", F.TARGET_REL_SD, fs) / 3600 > need_h
+    assert "capture_h_for_25pct" not in fit["terms"]["N"]  # N is already resolved

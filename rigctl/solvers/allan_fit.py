@@ -54,6 +54,8 @@ _B_FACTOR = 2.0 * math.log(2.0) / math.pi
 G0 = 9.80665  # m/s^2, standard gravity (for mg)
 #: a term must reach this share of the fitted sigma^2 at some tau to count as identified
 MIN_SHARE = 0.10
+#: relative sd at which 95 % of an efficient estimator's results lie within +-25 %
+TARGET_REL_SD = 0.25 / 1.96
 _Z95, _Z95_ONE = float(norm.ppf(0.975)), float(norm.ppf(0.95))
 _DEG = 180.0 / math.pi
 
@@ -308,7 +310,10 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
     :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms); for a
     bounded term, with that term added at its 95 % upper bound. A bounded term with
     crb_rel_sd >~ 0.5 is not identifiable from a capture of this length even if it were as
-    large as its bound: only a longer capture can resolve it."""
+    large as its bound: only a longer capture can resolve it. Where the bound is wider than
+    ``TARGET_REL_SD`` (95 % of estimates within +-25 %), ``capture_h_for_25pct`` is the capture
+    length (h) at which it would not be (:func:`rigctl.solvers.allan_crb.duration_for`; for a
+    bounded term at its upper bound, so a lower limit: a smaller term needs longer)."""
     if n_phase < 3:
         return
     base, bounded = {}, {}
@@ -329,6 +334,12 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
             continue
         for t in report:
             out_terms[t]["crb_rel_sd"] = best[t]
+            if t != "Q" and best[t] > TARGET_REL_SD:  # how long a capture would resolve it
+                try:
+                    need = R.duration_for(coeffs, t, TARGET_REL_SD, 1.0 / tau0)
+                except (ValueError, np.linalg.LinAlgError):
+                    continue
+                out_terms[t]["capture_h_for_25pct"] = need / 3600.0
 
 
 def term_value_si(fit: dict, term: str) -> float:
