@@ -360,6 +360,15 @@ def _term_cell(e: dict[str, Any], unit: str) -> str:
     return f"< {fmt(ub)} (95 % upper bound)" if ub is not None else "n/a"
 
 
+def _need_cell(e: dict[str, Any]) -> str:
+    """Capture length (h) that would resolve the term to +-25 %, or "" when this one does."""
+    need = e.get("capture_h_for_25pct")
+    if need is None:
+        return ""
+    text = fmt(need, 3) if math.isfinite(need) and need < 3.6e7 / 3600 else "> 10000"
+    return (">= " if not e.get("supported") else "") + text
+
+
 def s_allan(d: RunData, plots: dict[str, Path]) -> str:
     if "allan" not in d.results:
         return not_run("no /results/allan in the recording",
@@ -376,10 +385,14 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
         for t, e in fit.items():
             unit = FIELD_UNITS[cv["sensor"]][t][0]
             p = (pw.get(t) or {}).get(f"value_{unit}")
-            rows.append([axis, e.get("name", t), unit, _term_cell(e, unit), p])
+            rows.append([axis, e.get("name", t), unit, _term_cell(e, unit), p, _need_cell(e)])
     if rows:
         out += ["<h3>Fitted noise terms (joint EDF-weighted fit; value [95 % interval])</h3>",
-                table(["axis", "term", "unit", "joint fit", "piecewise read-off"], rows, num_from=4)]
+                table(["axis", "term", "unit", "joint fit", "piecewise read-off",
+                       "capture for +-25 % [h]"], rows, num_from=4),
+                "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "
+                "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
+                "bound, computed at the bound: at least that long).</p>"]
     if any(cv.get("quick") for cv in curves.values()):
         out.append("<p class=\"muted\">Curves marked 'quick' were computed for this report "
                    "(30 taus, fast mode): the results group lacked the curve arrays.</p>")

@@ -68,6 +68,12 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
     n_az = summary["axes"]["az"]["fit"]["terms"]["N"]["value_m/s/sqrt(h)"]
     assert abs(n_gx / truth["arw_deg_rt_h"] - 1) < 0.05
     assert abs(n_az / truth["vrw_m_s_rt_h"] - 1) < 0.05  # float32 with 1 g on the axis
+    # white noise only: K is an upper bound, with the capture length that could resolve it
+    k = summary["axes"]["gx"]["fit"]["terms"]["K"]
+    assert not k["supported"] and k["capture_h_for_25pct"] > 200_000 / 100.0 / 3600
+    assert "rate_random_walk: <" in out and "+-25 % would need at least" in out
+    from rigctl.report_html import _need_cell
+    assert _need_cell(k).startswith(">= ") and _need_cell(summary["axes"]["gx"]["fit"]["terms"]["N"]) == ""
     # running again replaces the results group
     args = _args([str(rec), "--axes", "gz", "--taus", "octave"])
     assert args.func(args) == 0
