@@ -58,3 +58,19 @@ def fill_disk(path: Path | str) -> None:
                 fh.flush()
         except OSError:
             pass
+
+
+def make_cut_off(run_dir: Path, recording: Path) -> None:
+    """Make a complete two-step run look cut off during its second step, as a kill leaves it:
+    checkpoint after step 1 (status running), file status running, one complete segment."""
+    import json
+
+    import h5py
+
+    ck = json.loads((run_dir / "checkpoint.json").read_text())
+    ck.update(status="running", last_step=0)
+    (run_dir / "checkpoint.json").write_text(json.dumps(ck))
+    with h5py.File(recording, "r+") as f:
+        f["run/status"][0] = b"running"
+        for k in f["segments"]:
+            f["segments"][k].resize(1, axis=0)

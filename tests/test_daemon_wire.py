@@ -31,7 +31,7 @@ from rigctl.config import load_config
 from rigctl.procedure import load_procedure
 from rigctl.runner import RunOptions, resume_run, run_procedure
 
-from helpers import ROOT, rigctl_cmd
+from helpers import ROOT, make_cut_off, rigctl_cmd
 
 from hil_support import commands_since, sent_time_of, table_snapshot, wait_until, wired
 
@@ -294,13 +294,7 @@ def test_resume_after_a_kill_inside_the_reopen_window(tmp_path):
     res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False)
     assert res.status == "complete"
     # make it a run cut off during its capture: checkpoint after step 1, no capture segment
-    ck = json.loads((res.run_dir / "checkpoint.json").read_text())
-    ck.update(status="running", last_step=0)
-    (res.run_dir / "checkpoint.json").write_text(json.dumps(ck))
-    with h5py.File(res.recording, "r+") as f:
-        f["run/status"][0] = b"running"
-        for k in f["segments"]:
-            f["segments"][k].resize(1, axis=0)
+    make_cut_off(res.run_dir, res.recording)
     r = subprocess.run([sys.executable, "-c", KILL_IN_REOPEN, str(res.recording)], capture_output=True)
     assert r.returncode == -signal.SIGKILL and status_flags(res.recording) == 1
     with pytest.raises(OSError, match="not already open for SWMR writing"):

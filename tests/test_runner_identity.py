@@ -27,7 +27,7 @@ from rigctl.sim.world import emulated_imu_identity
 from rigctl.suspenders import SuspenderSettings
 from rigctl.yamlio import InputError, LocDict
 
-from helpers import ROOT
+from helpers import ROOT, make_cut_off
 
 SIM = (ROOT / "configs" / "sim.yaml").read_text()
 PROC = "procedure: id\nsteps:\n  - warmup:\n      duration: 5 s\n  - capture:\n      duration: 20 s\n"
@@ -169,13 +169,7 @@ def cut_off_run(tmp_path: Path) -> tuple[Path, Path]:
     proc = load_procedure(proc_path, limits=cfg.limits)
     res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False)
     assert res.status == "complete", res.message
-    ck = json.loads((res.run_dir / "checkpoint.json").read_text())
-    ck.update(status="running", last_step=0)
-    (res.run_dir / "checkpoint.json").write_text(json.dumps(ck))
-    with h5py.File(res.recording, "r+") as f:
-        f["run/status"][0] = b"running"
-        for k in f["segments"]:
-            f["segments"][k].resize(1, axis=0)
+    make_cut_off(res.run_dir, res.recording)
     return res.run_dir, res.recording
 
 
