@@ -25,6 +25,7 @@ from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
 from rigctl.solvers import allan_noise_id as NID
+from rigctl.solvers.allan_crb import MAX_CAPTURE_S
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
         "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
@@ -361,10 +362,11 @@ def store(path: str, result: dict[str, Any]) -> None:
                 ds.attrs["units"] = units
 
 
-def _hours(h: float) -> str:
-    """A capture length for people: '47 h', '12 days', 'more than 1000 days'."""
-    if not math.isfinite(h) or h > 24_000:
-        return "more than 1000 days"
+def capture_text(h: float) -> str:
+    """A capture length in hours for people: '47 h', '12 days'; inf (beyond what
+    allan_crb.duration_for considers) 'more than 417 days'."""
+    if not math.isfinite(h):
+        return f"more than {MAX_CAPTURE_S / 86400:.0f} days"
     return f"{h:.0f} h" if h < 72 else f"{h / 24:.0f} days"
 
 
@@ -385,11 +387,11 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         if e["supported"]:
             lo, hi = e[f"ci95_{unit_f}"]
             more = ("" if need is None else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
-                    f"(Cramer-Rao); +-25 % needs about {_hours(need)})")
+                    f"(Cramer-Rao); +-25 % needs about {capture_text(need)})")
             lines.append(f"  {e['name']:>26}: {e[f'value_{unit_f}']:.5g} {unit_f} "
                          f"[{lo:.5g}, {hi:.5g}]{more}")
         else:
-            more = "" if need is None else f"; +-25 % would need at least {_hours(need)} of capture"
+            more = "" if need is None else f"; +-25 % would need at least {capture_text(need)} of capture"
             lines.append(f"  {e['name']:>26}: < {e[f'upper95_{unit_f}']:.5g} {unit_f} "
                          f"(95 % upper bound; not supported by the data{more})")
     pw = r["piecewise"]["terms"]

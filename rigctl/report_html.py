@@ -365,8 +365,9 @@ def _need_cell(e: dict[str, Any]) -> str:
     need = e.get("capture_h_for_25pct")
     if need is None:
         return ""
-    text = fmt(need, 3) if math.isfinite(need) and need < 3.6e7 / 3600 else "> 10000"
-    return (">= " if not e.get("supported") else "") + text
+    from .allan_cmd import capture_text
+
+    return (">= " if not e.get("supported") else "") + capture_text(need)
 
 
 def s_allan(d: RunData, plots: dict[str, Path]) -> str:
@@ -389,7 +390,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
     if rows:
         out += ["<h3>Fitted noise terms (joint EDF-weighted fit; value [95 % interval])</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",
-                       "capture for +-25 % [h]"], rows, num_from=4),
+                       "capture for +-25 %"], rows, num_from=4),
                 "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]

@@ -96,8 +96,12 @@ def prob_within(rel_sd: float, tolerance: float) -> float:
     return float(2.0 * norm.cdf(tolerance / rel_sd) - 1.0)
 
 
+#: longest capture :func:`duration_for` considers, s (10000 h; beyond it: inf)
+MAX_CAPTURE_S = 3.6e7
+
+
 def duration_for(coeffs: Mapping[str, float], term: str, rel_sd: float, rate_hz: float,
-                 t_min_s: float = 600.0, t_max_s: float = 3.6e7) -> float:
+                 t_min_s: float = 600.0, t_max_s: float = MAX_CAPTURE_S) -> float:
     """Shortest capture (s) whose bound for ``term`` is at most ``rel_sd`` (inf if even
     ``t_max_s`` does not reach it). Bisection on log T (the bound falls monotonically)."""
     def sd(t: float) -> float:
