@@ -91,15 +91,15 @@ class ModemPulses:
                                    "ptys and sockets cannot carry DCD/CTS edges -- use a real UART, or "
                                    "mode: poll on an rfc2217:// port") from exc
         else:
-            self._level = self._poll_level()
+            self._level = self._poll_level(self.ser)
         self._host0, self._run0 = time.monotonic_ns(), self.clock.now()
         self.speed = float(getattr(self.clock, "speed", 1.0))
         self._thread = threading.Thread(target=self._run_wait if self.mode == "wait" else self._run_poll,
                                         name=f"{self.name}-modem", daemon=True)
         self._thread.start()
 
-    def _poll_level(self) -> bool:
-        return bool(getattr(self.ser, self.line))
+    def _poll_level(self, ser: serial.SerialBase) -> bool:
+        return bool(getattr(ser, self.line))
 
     def to_run_time(self, host_ns: int) -> float:
         return self._run0 + (host_ns - self._host0) * 1e-9 * self.speed
@@ -135,9 +135,10 @@ class ModemPulses:
                 self._fatal = exc
 
     def _run_poll(self) -> None:
+        ser = self.ser  # close() sets self.ser to None, then closes it: this read then raises
         try:
             while not self._stop.wait(self.poll_interval_s):
-                level = self._poll_level()
+                level = self._poll_level(ser)
                 if level != self._level:
                     self.on_change(time.monotonic_ns(), level, 1)
         except (OSError, serial.SerialException) as exc:
