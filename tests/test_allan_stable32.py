@@ -99,8 +99,8 @@ def _compute_uncached(root: Path, dataset: str, name: str):
 
 
 @pytest.mark.parametrize("dataset,name", TABLES, ids=[t for _, t in TABLES])
-def test_deviation_and_term_count(shared_data: Path, dataset: str, name: str) -> None:
-    x, t, kind, ms, res = _compute(shared_data, dataset, name)
+def test_deviation_and_term_count(ref_data: Path, dataset: str, name: str) -> None:
+    x, t, kind, ms, res = _compute(ref_data, dataset, name)
     assert np.array_equal(res.m, ms)
     np.testing.assert_allclose(res.tau_s, t[:, 1], rtol=1e-4)
     np.testing.assert_allclose(res.dev, t[:, 5], rtol=1e-4, atol=0)
@@ -108,9 +108,9 @@ def test_deviation_and_term_count(shared_data: Path, dataset: str, name: str) ->
 
 
 @pytest.mark.parametrize("dataset,name", TABLES, ids=[t for _, t in TABLES])
-def test_interval_bounds(shared_data: Path, dataset: str, name: str) -> None:
+def test_interval_bounds(ref_data: Path, dataset: str, name: str) -> None:
     """Min/Max Sigma from Greenhall's EDF for the table's noise type, within 1e-3."""
-    x, t, kind, ms, res = _compute(shared_data, dataset, name)
+    x, t, kind, ms, res = _compute(ref_data, dataset, name)
     if not np.any(t[:, 4] > 0):
         pytest.skip("table has no interval columns (Stable32 wrote zeros)")
     c = E.confidence(kind, x, ms, res.dev, alphas=t[:, 3].astype(np.int64))
@@ -131,11 +131,11 @@ def _ids(root: Path, dataset: str, name: str) -> np.ndarray:
 
 
 @pytest.mark.parametrize("dataset,name", TABLES, ids=[t for _, t in TABLES])
-def test_noise_id_every_row(shared_data: Path, dataset: str, name: str) -> None:
+def test_noise_id_every_row(ref_data: Path, dataset: str, name: str) -> None:
     """Alpha equals Stable32's on every row (lag-1, B1/R(n) and held rows alike), except
     the rows of KNOWN_ID_DIFFERENCES, each of which is its own xfail case below."""
-    x, t, kind, ms, _ = _compute(shared_data, dataset, name)
-    ids = _ids(shared_data, dataset, name)
+    x, t, kind, ms, _ = _compute(ref_data, dataset, name)
+    ids = _ids(ref_data, dataset, name)
     known = np.isin(ms, KNOWN_ID_DIFFERENCES.get(name, ((), ""))[0])
     ref = t[:, 3].astype(np.int64)
     bad = [(int(m), int(r), int(a)) for m, r, a in zip(ms[~known], ref[~known], ids[~known])
@@ -151,48 +151,48 @@ _KNOWN_CASES = [pytest.param(ds, name, m, id=f"{name}:m={m}",
 
 
 @pytest.mark.parametrize("dataset,name,m", _KNOWN_CASES)
-def test_noise_id_known_differences(shared_data: Path, dataset: str, name: str, m: int) -> None:
-    x, t, kind, ms, _ = _compute(shared_data, dataset, name)
+def test_noise_id_known_differences(ref_data: Path, dataset: str, name: str, m: int) -> None:
+    x, t, kind, ms, _ = _compute(ref_data, dataset, name)
     i = int(np.flatnonzero(ms == m)[0])
-    assert int(_ids(shared_data, dataset, name)[i]) == int(t[i, 3])
+    assert int(_ids(ref_data, dataset, name)[i]) == int(t[i, 3])
 
 
-def test_totdev_decade_has_fixed_noise_type(shared_data: Path) -> None:
+def test_totdev_decade_has_fixed_noise_type(ref_data: Path) -> None:
     """The evidence for the Cs5071A totdev decade table's exclusion: one alpha on every row,
     unlike the automatic all-tau run on the same data, which our ID reproduces there."""
-    dec = _table(shared_data, "Cs5071A/totdev_decade.txt")
+    dec = _table(ref_data, "Cs5071A/totdev_decade.txt")
     assert np.all(dec[:, 3] == 0)
-    every = _table(shared_data, "Cs5071A/totdev_all.txt")
+    every = _table(ref_data, "Cs5071A/totdev_all.txt")
     common = np.isin(every[:, 0], dec[:, 0])
     assert set(every[common, 3].astype(int)) == {2, 1}  # m = 1..100: white, flicker PM
-    ours = _ids(shared_data, "Cs5071A", "Cs5071A/totdev_all.txt")
+    ours = _ids(ref_data, "Cs5071A", "Cs5071A/totdev_all.txt")
     assert np.array_equal(ours[common], every[common, 3].astype(np.int64))
 
 
-def test_noise_id_regimes_are_all_exercised(shared_data: Path) -> None:
+def test_noise_id_regimes_are_all_exercised(ref_data: Path) -> None:
     """The tables contain rows of every rule: lag-1, B1 (incl. the R(n) PM split and the
     Hadamard B1 of frequency giving alpha -4) and held rows, so the row test covers each."""
     seen = {"lag1": 0, "b1": 0, "held": 0}
     for ds, name in TABLES:
-        x, t, kind, ms, _ = _compute(shared_data, ds, name)
+        x, t, kind, ms, _ = _compute(ref_data, ds, name)
         navg = (x.size - 1) // ms
         seen["lag1"] += int(np.sum(navg >= 30))
         hold = np.array([NI.held(kind, x.size, int(m)) for m in ms])
         seen["held"] += int(np.sum(hold & (navg < 30)))
         seen["b1"] += int(np.sum(~hold & (navg < 30)))
     assert min(seen.values()) > 100, seen
-    t = _table(shared_data, "Cs5071A/hdev_all.txt")
-    assert -4 in t[:, 3] and -4 in _ids(shared_data, "Cs5071A", "Cs5071A/hdev_all.txt")
+    t = _table(ref_data, "Cs5071A/hdev_all.txt")
+    assert -4 in t[:, 3] and -4 in _ids(ref_data, "Cs5071A", "Cs5071A/hdev_all.txt")
 
 
 @pytest.mark.parametrize("name", [n for _, n in TABLES if n.endswith(("octave.txt",
                                                                         "decade.txt"))
                                   or n.startswith("Keysight")])
-def test_intervals_with_our_noise_id(shared_data: Path, name: str) -> None:
+def test_intervals_with_our_noise_id(ref_data: Path, name: str) -> None:
     """The whole Stable32 pipeline: our own noise ID -> EDF -> Min/Max Sigma within 1e-3,
     on every row whose ID is not a known difference."""
     ds = next(d for d, n in TABLES if n == name)
-    x, t, kind, ms, res = _compute(shared_data, ds, name)
+    x, t, kind, ms, res = _compute(ref_data, ds, name)
     if not np.any(t[:, 4] > 0):
         pytest.skip("table has no interval columns (Stable32 wrote zeros)")
     c = E.confidence(kind, x, ms, res.dev)
@@ -217,18 +217,18 @@ def test_rn_ratio_blockwise_equals_deviations() -> None:
                 NI._BLOCK = 1 << 20
 
 
-def test_apply_hold_matches_curve(shared_data: Path) -> None:
+def test_apply_hold_matches_curve(ref_data: Path) -> None:
     """apply_hold (for IDs computed elsewhere, e.g. on a decimated phase) reproduces the
     run's IDs from unheld per-tau IDs."""
-    x, t, kind, ms, _ = _compute(shared_data, "phasedat", "phasedat/phase_dat_oadev.txt")
+    x, t, kind, ms, _ = _compute(ref_data, "phasedat", "phasedat/phase_dat_oadev.txt")
     raw = [NI.noise_id(x, int(m), kind) for m in ms]
     held = NI.apply_hold(ms[::-1], raw[::-1], x.size, kind)[::-1]  # order-independent
-    assert np.array_equal(held, _ids(shared_data, "phasedat", "phasedat/phase_dat_oadev.txt"))
+    assert np.array_equal(held, _ids(ref_data, "phasedat", "phasedat/phase_dat_oadev.txt"))
     assert not np.array_equal(np.array(raw), held)
 
 
-def test_nbs14(shared_data: Path) -> None:
-    ref = json.loads((shared_data / REF / "nbs14_reference.json").read_text())
+def test_nbs14(ref_data: Path) -> None:
+    ref = json.loads((ref_data / REF / "nbs14_reference.json").read_text())
     ten = ref["nbs14_10point"]
     y = np.array(ten["frequency"], dtype=float)
     m = np.array(ten["taus"])

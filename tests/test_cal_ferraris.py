@@ -40,8 +40,8 @@ FACES = ["x_p", "x_a", "y_p", "y_a", "z_p", "z_a"]
 REF = G_IMUCAL * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
 
 
-def _load(shared_data):
-    d = shared_data / "imucal-ferraris"
+def _load(ref_data):
+    d = ref_data / "imucal-ferraris"
     with open(d / "example_data_annotated_session.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     part = np.array([r["part"] for r in rows])
@@ -51,8 +51,8 @@ def _load(shared_data):
     return part, data, snap
 
 
-def test_ferraris_accelerometer_agrees_with_imucal(shared_data):
-    part, data, snap = _load(shared_data)
+def test_ferraris_accelerometer_agrees_with_imucal(ref_data):
+    part, data, snap = _load(ref_data)
     acc_si = data[:, :3] * ACC_LSB  # nominal SI, so the parameter names' units hold
     means = [segment_mean(acc_si[part == f], FS) for f in FACES]  # no noise model: from the data
     f = np.array([m.mean for m in means])
@@ -75,8 +75,8 @@ def test_ferraris_accelerometer_agrees_with_imucal(shared_data):
     np.testing.assert_allclose(uw.extra["bias_m_s2"] / ACC_LSB, pair_sums.mean(axis=0), rtol=1e-9)
 
 
-def test_ferraris_gyro_bias_agrees_with_imucal(shared_data):
-    part, data, snap = _load(shared_data)
+def test_ferraris_gyro_bias_agrees_with_imucal(ref_data):
+    part, data, snap = _load(ref_data)
     gyr_si = data[:, 3:] * GYR_LSB
     means = [segment_mean(gyr_si[part == f], FS) for f in FACES]
     gb = calibrate_gyro_bias_static(np.array([m.mean for m in means]), np.array([m.sigma for m in means]),

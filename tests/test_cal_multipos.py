@@ -79,8 +79,8 @@ def test_synthetic_10_poses_is_flagged_not_confident():
     assert acc.to_dict()["status"] == "insufficient_poses"
 
 
-def _mpu(shared_data):
-    d = shared_data / "mpu6050-multipos"
+def _mpu(ref_data):
+    d = ref_data / "mpu6050-multipos"
     path = d / "calibration_data_example_data_calibration.csv"
     meta = dict(line.strip().split(",")[:2] for line in path.read_text().splitlines()[:4])
     raw = np.loadtxt(path, delimiter=",", skiprows=5)
@@ -89,8 +89,8 @@ def _mpu(shared_data):
     return float(meta["Fs"]), float(meta["Initialization time"]), raw, ref_iv, ref_acc
 
 
-def test_mpu6050_session_flagged_as_too_few_poses(shared_data):
-    fs, t_init, raw, ref_iv, ref_acc = _mpu(shared_data)
+def test_mpu6050_session_flagged_as_too_few_poses(ref_data):
+    fs, t_init, raw, ref_iv, ref_acc = _mpu(ref_data)
     iv = detect_static_intervals(raw[:, :3], fs, t_init)
     assert len(iv) == 10  # initial rest + 9 hand-held poses, as the original tool found
     for s, e in ref_iv.T[1:]:  # each of the tool's intervals overlaps one of ours

@@ -1,6 +1,6 @@
 """`rigctl import` of foreign logs, then `rigctl calibrate` on them (orientation-free path).
 
-imucal's annotated Ferraris session (../shared/data/imucal-ferraris): imported with its `part`
+imucal's annotated Ferraris session (tests/data/imucal-ferraris): imported with its `part`
 column as sections and raw counts scaled to nominal SI (2048 counts/g, 16.4 counts/(deg/s)),
 gravity 9.81 m/s^2 as imucal assumes. The six faces are labelled, so rigctl fits f = b + M a with
 nominal +-g references (Ferraris); compared with imucal's tests_snapshots_example_cal.json:
@@ -51,8 +51,8 @@ def _params(res: dict) -> dict[str, dict]:
     return {q["name"]: q for q in res["parameters"]}
 
 
-def test_imucal_session_agrees_with_imucal(shared_data, tmp_path):
-    d = shared_data / "imucal-ferraris"
+def test_imucal_session_agrees_with_imucal(ref_data, tmp_path):
+    d = ref_data / "imucal-ferraris"
     rec = tmp_path / "imucal.h5"
     _import(str(d / "example_data_annotated_session.csv"), "-o", str(rec), "--columns",
             IMUCAL_COLS + ",section=part", "--units", "acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s",
@@ -86,8 +86,8 @@ def test_imucal_session_agrees_with_imucal(shared_data, tmp_path):
                                                                for b in "xyz"] for a in "xyz"]))
 
 
-def test_ferraris_session_with_sections_file(shared_data, tmp_path):
-    d = shared_data / "imucal-ferraris"
+def test_ferraris_session_with_sections_file(ref_data, tmp_path):
+    d = ref_data / "imucal-ferraris"
     rec = tmp_path / "ferraris.h5"
     _import(str(d / "example_data_example_ferraris_session.csv"), "-o", str(rec), "--columns", IMUCAL_COLS,
             "--units", "acc=m/s^2,gyr=deg/s", "--rate", "102.4",
@@ -113,8 +113,8 @@ def test_ferraris_session_with_sections_file(shared_data, tmp_path):
     assert np.max(np.abs(a - ref)) < raw_err / 3  # the calibration removes most of the raw error
 
 
-def test_mpu6050_session_flagged_not_trustworthy(shared_data, tmp_path):
-    d = shared_data / "mpu6050-multipos"
+def test_mpu6050_session_flagged_not_trustworthy(ref_data, tmp_path):
+    d = ref_data / "mpu6050-multipos"
     rec = tmp_path / "mpu.h5"
     _import(str(d / "calibration_data_example_data_calibration.csv"), "-o", str(rec), "--columns",
             "acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz", "--skip-rows", "4",
