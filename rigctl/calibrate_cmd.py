@@ -41,10 +41,10 @@ import numpy as np
 
 from .analysis import production
 from .analysis.verdicts import format_verdicts
+from .cli_options import add_production_options
 from .recorder import utc_now, write_results
 from .segment_builder import build_segment_table, open_recording
 from .solvers.calibration_result import CalibrationResult, _jsonable
-from .solvers.conformity import RULES
 from .solvers.segment_stats import NoiseModel
 from .spec import Spec, load_spec
 from .yamlio import InputError
@@ -488,14 +488,3 @@ def register(subparsers: Any) -> None:
     add_production_options(p)
     p.set_defaults(func=run)
 
-
-def add_production_options(p: argparse.ArgumentParser) -> None:
-    """--spec, --decision-rule and --db (calibrate, allan, batch)."""
-    p.add_argument("--spec", metavar="SPEC.yaml", help="acceptance limits: a verdict per parameter and "
-                   "overall, stored with the results (configs/spec-example.yaml)")
-    p.add_argument("--decision-rule", choices=RULES, default=None,
-                   help="guarded (JCGM 106 guard band = U: PASS / FAIL / INDETERMINATE) or simple "
-                        "(shared risk, the risk stated per parameter); default: the spec's")
-    p.add_argument("--db", metavar="URL|FILE", default=None,
-                   help="results database: a SQLite file or a URL (postgresql+psycopg://...); default "
-                        "results.sqlite beside the run directories; 'none' to skip")

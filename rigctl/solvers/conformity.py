@@ -48,7 +48,8 @@ class Estimate:
     Satterthwaite dof ``dof``: value^2 dof / p follows chi-square(dof) (the interval of
     rigctl.solvers.allan_fit). ``"bound"``: a noise term the data do not resolve: p = c^2
     follows N(value^2, s^2) truncated at 0, with s from the one-sided 95 % upper bound
-    ``upper`` = sqrt(value^2 + 1.645 s).
+    ``upper`` = sqrt(value^2 + 1.645 s); its interval is [0, upper] (nothing excludes zero),
+    so against an upper limit it can PASS (upper <= TU) or be INDETERMINATE, never FAIL.
     """
 
     value: float
@@ -79,7 +80,7 @@ class Estimate:
         raise ValueError(f"unknown estimate kind {self.kind!r}")
 
     def interval(self, coverage: float = COVERAGE) -> tuple[float, float]:
-        """The probabilistically symmetric coverage interval [lo, hi]."""
+        """The probabilistically symmetric coverage interval [lo, hi] ("bound": [0, upper])."""
         q = (1.0 - coverage) / 2.0
         if self.kind == "t":
             k = stats.norm.ppf(1 - q) if math.isinf(self.dof) else stats.t.ppf(1 - q, self.dof)
@@ -87,12 +88,7 @@ class Estimate:
         if self.kind == "chi2":
             return (self.value * math.sqrt(self.dof / stats.chi2.ppf(1 - q, self.dof)),
                     self.value * math.sqrt(self.dof / stats.chi2.ppf(q, self.dof)))
-        m, s = self.value**2, (self.upper**2 - self.value**2) / _Z_ONE
-        f0 = stats.norm.cdf(-m / s) if s > 0 else 0.0
-
-        def ppf(pr: float) -> float:
-            return math.sqrt(max(0.0, m + s * stats.norm.ppf(f0 + pr * (1 - f0)))) if s > 0 else self.value
-        return ppf(q), ppf(1 - q)
+        return 0.0, self.upper  # a term the data do not resolve: [0, one-sided 95 % bound]
 
     @property
     def coverage_factor(self) -> float:
