@@ -7,6 +7,7 @@ test is identified by /meta ``imu_serial`` (the lab's label, rig config ``imu.se
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -102,3 +103,44 @@ def to_database(recording: str | Path, kind: str, results: dict[str, Any], targe
         if engine is None:
             eng.dispose()
     return f"results database: {eng.url.render_as_string(hide_password=True)}"
+
+
+def _allan_summary(path: Path) -> dict[str, Any] | None:
+    try:
+        with h5py.File(path, "r") as f:
+            g = f.get("results/allan")
+            return None if g is None or "json" not in g.attrs else json.loads(g.attrs["json"])
+    except OSError:
+        return None
+
+
+def latest_allan(recording: str | Path, search: int = 2) -> tuple[Path, dict[str, Any]] | None:
+    """The Allan results of the unit recorded in ``recording``: its own /results/allan, else
+    those of the same unit's latest recording (by /meta started_utc) among the recordings of
+    the runs directory (``runs/*/recording.h5``; with ``search`` = 2 also one folder deeper,
+    ``runs/LOT/*/recording.h5``). Same unit: equal /meta imu_serial or imu_device_id."""
+    rec = Path(recording).resolve()
+    own = _allan_summary(rec)
+    if own is not None:
+        return rec, own
+    meta = read_meta(rec)
+    ids = {k: _text(meta.get(k, "")) for k in ("imu_serial", "imu_device_id")}
+    ids = {k: v for k, v in ids.items() if v}
+    if not ids:
+        return None
+    runs = rec.parent.parent if rec.name == "recording.h5" else rec.parent
+    cands = list(runs.glob("*/recording.h5")) + (list(runs.glob("*/*/recording.h5")) if search > 1 else [])
+    best: tuple[str, Path, dict[str, Any]] | None = None
+    for c in cands:
+        if c.resolve() == rec:
+            continue
+        try:
+            m = read_meta(c)
+        except OSError:
+            continue
+        if not all(_text(m.get(k, "")) == v for k, v in ids.items()):
+            continue
+        s = _allan_summary(c)
+        if s is not None and (best is None or str(m.get("started_utc", "")) > best[0]):
+            best = (str(m.get("started_utc", "")), c, s)
+    return None if best is None else (best[1], best[2])
