@@ -305,6 +305,7 @@ def test_postgresql_holds_the_same_rows(lot_runs, serial, postgres):
     mine = {k: v[:2] for k, v in lite.items() if k[0] in units}
     assert mine.keys() == pg.keys()
     for k in pg:  # the serial rows were calibrated with the same spec-free pipeline: numbers equal
-        assert pg[k] == pytest.approx(mine[k], rel=1e-12, abs=0.0), k
+        # the same pipeline recalibrated: equal up to BLAS summation order (seen: 2e-12 relative)
+        assert pg[k] == pytest.approx(mine[k], rel=1e-9, abs=0.0), k
     r = run_rigctl("history", sorted(units)[0], "--db", postgres)
     assert r.returncode == 0 and "accel_bias_x [mg]" in r.stdout, r.stderr
