@@ -22,12 +22,15 @@ compare the speeds).
 
 Time: ``header.stamp`` (default) or the bag's receive time (``time_source="receive"``). The
 messages are sorted by it; exact repeats (same time, same values) are dropped and counted, a time
-shared by different values is refused. The sample interval is the median of the time
-differences, T; the sample counter advances by max(1, round(dt / T)) between consecutive samples,
-so a gap of k missing samples shows as a counter jump of k + 1 -- the way rigctl recordings
-record dropped samples (docs/data-format.md, ``/imu/counter``). The receive time is kept for the
+shared by different values is refused. Missing samples are found on a sample grid that follows
+the clock (:func:`grid_counter`: period T from the median interval, refined to the mean interval
+with the gaps counted (least-squares slope of time on sample number); phase from the circular mean of the stamps per 64 samples, so stamp
+jitter up to half an interval and a slow drift between the stamping clock and the sensor's do
+not create false gaps). The sample counter is the grid slot, so a gap of k missing samples shows
+as a counter jump of k + 1 -- the way rigctl recordings record dropped samples
+(docs/data-format.md, ``/imu/counter``); the rate is 1/T. The receive time is kept for the
 receive-minus-stamp latency (median, min, max), which shows whether the stamps come from the
-same clock as the recorder.
+recorder's clock.
 
 Errors are :class:`rigctl.yamlio.InputError` (one line: file, what is wrong, what to do).
 """
@@ -89,6 +92,7 @@ class BagImu:
     angular_rate: np.ndarray
     rate_hz: float
     interval_ns: float
+    median_interval_ns: float
     stamp_zero_ns: int
     n_messages: int
     gaps: int
@@ -360,6 +364,11 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
     summary = None
     with open(path, "rb") as fh:
         try:
+            fmt = f"mcap ({make_reader(fh).get_header().profile or 'no'} profile)"
+        except (McapError, ValueError, AssertionError) as exc:
+            raise InputError(f"not a readable MCAP file ({type(exc).__name__}: {exc})", path,
+                             hint="give an MCAP file written by ros2 bag or an MCAP writer") from None
+        try:
             summary = make_reader(fh).get_summary()
         except (McapError, OSError, ValueError, AssertionError):
             summary = None  # no summary or footer: cut off; stream it below
@@ -388,7 +397,7 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
         if col is None:
             raise InputError(f"topic {chosen.topic} has no messages; topics present: {topics_text(topics)}",
                              path, hint="choose a topic with messages")
-        return _Raw("mcap", topics, chosen, col.arrays(), col.frame_id or "", "")
+        return _Raw(fmt, topics, chosen, col.arrays(), col.frame_id or "", "")
     # no summary: one streaming pass, every Imu channel decoded, the others only counted
     cols: dict[str, _Collector] = {}
     seen: dict[str, TopicInfo] = {}
@@ -415,7 +424,7 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
     topics = sorted(seen.values(), key=lambda t: t.topic)
     chosen = choose_topic(path, topics, topic)
     col = cols[chosen.topic]
-    return _Raw("mcap", topics, chosen, col.arrays(), col.frame_id or "", truncated)
+    return _Raw(fmt, topics, chosen, col.arrays(), col.frame_id or "", truncated)
 
 
 def _mcap_collector(path: Path, schema: Any, channel: Any) -> _Collector:
@@ -439,7 +448,9 @@ class TimeBase:
     order: np.ndarray  # indices into the input, in time order, repeats removed
     time_ns: np.ndarray  # chosen time of those samples, ns
     counter: np.ndarray  # uint64, starts at 0; a jump of k + 1 means k samples missing
-    interval_ns: float  # median interval, ns
+    interval_ns: float  # least-squares slope of time on counter (the median when counted_by "intervals"), ns
+    median_interval_ns: float
+    counted_by: str  # "grid" (grid_counter) or "intervals" (max(1, round(dt / median)))
     gaps: int
     missing: int
     largest_gap_ns: int
@@ -469,14 +480,45 @@ def time_base(time_ns: np.ndarray, acc: np.ndarray, gyr: np.ndarray) -> TimeBase
     if ts.size < 2:
         raise ValueError(f"only {ts.size} distinct sample time(s)")
     dt = np.diff(ts)
-    interval = float(np.median(dt))
-    steps = np.maximum(1, np.rint(dt / interval)).astype(np.int64)
-    counter = np.concatenate(([0], np.cumsum(steps))).astype(np.uint64)
+    median = float(np.median(dt))
+    rel = (ts - ts[0]).astype(np.float64)
+    counter, interval, how = None, median, "grid"
+    for _ in range(2):  # the second pass with the mean interval the first pass's counter gives
+        counter = grid_counter(rel, interval)
+        if counter is None or counter[-1] == 0:
+            counter = None
+            break
+        cc = counter - counter.mean()
+        interval = float(cc @ (rel - rel.mean()) / (cc @ cc))  # least-squares slope of t on c
+    if counter is None:  # stamps too irregular for a grid: count from consecutive intervals
+        interval, how = median, "intervals"
+        counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt / median))))).astype(np.int64)
+    steps = np.diff(counter)
     gap = steps > 1
-    return TimeBase(order=order, time_ns=ts, counter=counter, interval_ns=interval,
+    return TimeBase(order=order, time_ns=ts, counter=counter.astype(np.uint64), interval_ns=interval,
+                    median_interval_ns=median, counted_by=how,
                     gaps=int(np.count_nonzero(gap)), missing=int(np.sum(steps[gap] - 1)),
                     largest_gap_ns=int(dt[gap].max()) if np.any(gap) else 0,
                     duplicates=int(same.size), reordered=reordered)
+
+
+def grid_counter(t: np.ndarray, interval: float, window: int = 64) -> np.ndarray | None:
+    """Sample numbers of the times ``t`` (s or ns, from 0) on a grid of period ``interval``
+    that follows the clock slowly: per window of ``window`` samples the grid's phase is the
+    circular mean phi_w = T/(2 pi) arg sum_j exp(2 pi i t_j / T) (missing samples do not move
+    it, jitter averages out), unwrapped across windows (drift between the stamps' clock and the
+    sensor's), interpolated to each sample; c_i = round((t_i - phi_i) / T) - c_0. None when two
+    samples fall in one slot (jitter beyond half an interval)."""
+    n = t.size
+    nw = -(-n // window)
+    z = np.zeros(nw * window, complex)
+    z[:n] = np.exp(2j * np.pi * (t / interval))
+    phase = np.unwrap(np.angle(z.reshape(nw, window).sum(axis=1))) * interval / (2 * np.pi)
+    starts = np.arange(nw) * window
+    centres = starts + (np.minimum(window, n - starts) - 1) / 2.0
+    c = np.rint((t - np.interp(np.arange(n), centres, phase)) / interval).astype(np.int64)
+    c -= c[0]
+    return None if np.any(np.diff(c) <= 0) else c
 
 
 def read_imu(path: str | Path, topic: str | None = None, time_source: str = "header",
@@ -518,17 +560,21 @@ def read_imu(path: str | Path, topic: str | None = None, time_source: str = "hea
         raise InputError(f"topic {chosen.topic}: {what} is not a usable sample time: {exc}", path,
                          hint=f"try --time-source {other}") from None
     o = tb.order
-    lat = (recv[o] - stamp[o]) * 1e-9
+    lat = (recv[o] - stamp[o]) / 1e9
     notes = []
+    if tb.counted_by == "intervals":
+        notes.append(f"{what} jitters by more than half a sample interval: the gaps are counted from "
+                     "consecutive intervals (max(1, round(dt / median))) and may be miscounted")
     if raw.truncated:
         notes.append(raw.truncated)
     return BagImu(source_format=raw.source_format, topic=chosen.topic, msgtype=chosen.msgtype,
                   frame_id=raw.frame_id, time_source=what,
-                  time_s=(tb.time_ns - tb.time_ns[0]).astype(np.float64) * 1e-9,
+                  time_s=(tb.time_ns - tb.time_ns[0]).astype(np.float64) / 1e9,
                   counter=tb.counter, specific_force=acc[o], angular_rate=gyr[o],
                   rate_hz=1e9 / tb.interval_ns, interval_ns=tb.interval_ns,
+                  median_interval_ns=tb.median_interval_ns,
                   stamp_zero_ns=int(tb.time_ns[0]), n_messages=int(stamp.size), gaps=tb.gaps,
-                  missing_samples=tb.missing, largest_gap_s=tb.largest_gap_ns * 1e-9,
+                  missing_samples=tb.missing, largest_gap_s=tb.largest_gap_ns / 1e9,
                   duplicates_dropped=tb.duplicates, reordered=tb.reordered,
                   receive_minus_stamp_s={"median": float(np.median(lat)), "min": float(lat.min()),
                                          "max": float(lat.max())},
@@ -540,7 +586,8 @@ def describe(b: BagImu) -> list[str]:
     dur = float(b.time_s[-1]) if b.time_s.size else 0.0
     lines = [f"{b.source_format}: topic {b.topic} ({b.msgtype}, frame_id '{b.frame_id}'), "
              f"{b.n_messages} messages over {dur:.3f} s, time = {b.time_source}",
-             f"sample rate {b.rate_hz:.6g} Hz (median interval {b.interval_ns * 1e-6:.6g} ms)"]
+             f"sample rate {b.rate_hz:.8g} Hz (mean interval, gaps counted: "
+             f"{b.interval_ns / 1e6:.8g} ms; median interval {b.median_interval_ns / 1e6:.8g} ms)"]
     if b.gaps:
         lines.append(f"gaps: {b.gaps} ({b.missing_samples} samples missing, largest "
                      f"{b.largest_gap_s:.6g} s); recorded as /imu/counter jumps")
