@@ -20,7 +20,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.errors import InputError
 from rigctl.progress import WorkProgress
+from rigctl.recording_reader import check_finite, open_recording, sample_rate
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
@@ -39,8 +41,8 @@ DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many p
 SCHEMA_VERSION = 1
 
 
-class UsageError(Exception):
-    """Invalid input: exit code 2 with this message."""
+#: invalid input (exit code 2): the one error type of rigctl.errors
+UsageError = InputError
 
 
 class _AxisStream:
@@ -120,40 +122,13 @@ def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
             "_si": si, "_unit": unit}
 
 
-def _fail(msg: str) -> int:
-    print(f"rigctl allan: error: {msg}", file=sys.stderr)
-    return 2
-
-
 def _open_checked(path: str, axes: list[str]):
-    import h5py
-
-    if not os.path.isfile(path):
-        raise UsageError(f"{path}: no such file; give the path of a rigctl HDF5 recording")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise UsageError(f"{path}: not an HDF5 file ({exc}); give a rigctl recording") from exc
-    if f.attrs.get("format") not in ("rigctl-recording", b"rigctl-recording"):
-        f.close()
-        raise UsageError(f"{path}: not a rigctl recording (root attribute format != "
-                         "'rigctl-recording'); record with rigctl first")
-    for name in sorted({AXES[a][0] for a in axes}):
-        if name not in f or f[name].ndim != 2 or f[name].shape[1] != 3:
-            f.close()
-            raise UsageError(f"{path}: dataset {name} (N, 3) is missing; choose --axes "
-                             "that the recording contains")
-    return f
+    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
 
 
 def _sample_rate(f, path: str) -> float:
-    rate = f["/imu"].attrs.get("sample_rate_hz") if "/imu" in f else None
-    if rate is None and "/imu/time" in f and f["/imu/time"].shape[0] > 1:
-        t = f["/imu/time"][:2]
-        rate = 1.0 / float(t[1] - t[0])
-    if rate is None or not np.isfinite(rate) or float(rate) <= 0:
-        raise UsageError(f"{path}: /imu has no valid sample_rate_hz attribute")
-    return float(rate)
+    return sample_rate(f)
 
 
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
@@ -185,6 +160,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         for a0 in range(s0, s1, CHUNK_ROWS):
             a1 = min(s1, a0 + CHUNK_ROWS)
             blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+            for name, b in blocks.items():
+                check_finite(path, name, b, a0)
             for a in axes:
                 name, col, _ = AXES[a]
                 streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
@@ -462,34 +439,28 @@ def _parse_axes(text: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Entry point of ``rigctl allan``: 0 ok, 2 invalid input, 1 failure."""
-    try:
-        axes = _parse_axes(args.axes)
-        taus = _parse_taus(str(args.taus))
-        if args.plot:
-            try:
-                import matplotlib  # noqa: F401
-            except ImportError:
-                raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
-        rng, where, warn = choose_range(args.recording, axes, args.whole)
-        print(f"analysing the {where} of {args.recording}", flush=True)
-        if warn:
-            print(f"warning: {warn}", file=sys.stderr, flush=True)
-        result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
-        result["segment"] = where
-    except UsageError as exc:
-        return _fail(str(exc))
-    try:
-        for a, r in result["axes"].items():
-            print(format_table(a, r))
-        store(args.recording, result)
-        print(f"results written to {args.recording}:/results/allan")
-        if args.plot:
-            plot(result, args.plot)
-            print(f"plot written to {args.plot}")
-    except (OSError, ValueError) as exc:
-        print(f"rigctl allan: failed: {exc}", file=sys.stderr)
-        return 1
+    """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
+    codes by rigctl.cli.main)."""
+    axes = _parse_axes(args.axes)
+    taus = _parse_taus(str(args.taus))
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+    rng, where, warn = choose_range(args.recording, axes, args.whole)
+    print(f"analysing the {where} of {args.recording}", flush=True)
+    if warn:
+        print(f"warning: {warn}", file=sys.stderr, flush=True)
+    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
+    result["segment"] = where
+    for a, r in result["axes"].items():
+        print(format_table(a, r))
+    store(args.recording, result)
+    print(f"results written to {args.recording}:/results/allan")
+    if args.plot:
+        plot(result, args.plot)
+        print(f"plot written to {args.plot}")
     return 0
 
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +36,7 @@ from numpy.typing import NDArray
 
 from .recorder import utc_now
 from .segment_builder import open_recording
-from .yamlio import InputError
+from .errors import InputError, RunFailure
 
 CHUNK = 1 << 18
 
@@ -152,8 +151,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         n = apply_calibration(src, out, info, origin)
     except (OSError, ValueError, np.linalg.LinAlgError) as exc:
-        print(f"rigctl apply-cal: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{src}: {exc}") from exc
     note = "" if info.get("trustworthy", True) is not False else " (WARNING: that calibration is NOT TRUSTWORTHY)"
     print(f"applied calibration from {origin} to {n} samples{note}")
     print(f"recording: {out}")

@@ -31,7 +31,6 @@ import csv
 import json
 import math
 import re
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,7 @@ import yaml
 from . import __version__
 from .devices import ImuBlock
 from .frames import normal_gravity
-from .yamlio import InputError
+from .errors import InputError, RunFailure
 
 G0 = 9.80665
 DEG = math.pi / 180.0
@@ -306,8 +305,7 @@ def run(args: argparse.Namespace) -> int:
     except InputError:
         raise
     except OSError as exc:
-        print(f"rigctl import: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{args.output}: {exc}") from exc
     kinds: dict[str, int] = {}
     for s in sections:
         kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1

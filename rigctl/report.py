@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .recording_reader import open_recording
 from .yamlio import InputError
 
 REPORT_HTML = "report.html"
@@ -33,8 +34,8 @@ COUNTER_CHUNK = 1 << 20
 MAX_TABLE_POINTS = 20000
 
 
-class ReportDependencyError(RuntimeError):
-    """matplotlib is missing: ``pip install 'rigctl[report]'``."""
+class ReportDependencyError(InputError):
+    """matplotlib is missing: ``pip install 'rigctl[report]'`` (exit code 2)."""
 
 
 @dataclass
@@ -96,18 +97,6 @@ def _strings(a: np.ndarray) -> np.ndarray:
                      for x in a], dtype=object)
 
 
-def _open(path: Path):
-    import h5py
-
-    try:
-        return h5py.File(path, "r", libver="latest", swmr=True)
-    except OSError:
-        try:
-            return h5py.File(path, "r")
-        except OSError as exc:
-            raise InputError(f"not an HDF5 file ({exc})", path) from None
-
-
 def _group_arrays(g: Any) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
 
@@ -155,13 +144,8 @@ def _read_run_log(run_dir: Path) -> list[dict[str, Any]]:
 def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunData:
     """Read a recording for the report; raises InputError if it is not a rigctl recording."""
     path = Path(recording)
-    if not path.is_file():
-        raise InputError("recording not found", path, hint="give a run directory or recording.h5")
-    with _open(path) as f:
+    with open_recording(path, need=(), check_present=True) as f:
         root = {k: _text(v) for k, v in f.attrs.items()}
-        if root.get("format") != "rigctl-recording":
-            raise InputError("not a rigctl recording (root attribute format != "
-                             "'rigctl-recording')", path, hint="see docs/data-format.md")
         meta = {k: _text(v) for k, v in f["meta"].attrs.items()} if "meta" in f else {}
         status = _text(f["run/status"][0]).rstrip("\x00") if "run/status" in f else "unknown"
         events: list[tuple[float, str, str]] = []

@@ -31,7 +31,7 @@ from .config import RigConfig, load_config
 from .device_check import check_devices
 from .devices import DeviceFault, imu_identity
 from .engine import Engine, Interrupted, Rig, RunError
-from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from .estimate import estimate
 from .procedure import Procedure, Step, load_procedure
 from .progress import Progress, make_progress
@@ -340,6 +340,8 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                             if status == "complete":
                                 status, code, message = "failed", EXIT_FAILED, "the recording could not be closed"
                 sim_time = rig.clock.now()
+        except InputError:  # refused before anything was changed (resume on another IMU)
+            raise
         except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - opening the rig, creating
             # the recording, or closing the rig after the run, failed
             interrupted = isinstance(exc, KeyboardInterrupt)
