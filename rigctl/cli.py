@@ -18,8 +18,7 @@ from .estimate import data_volume_bytes, estimate
 from .procedure import load_procedure, parse_overrides
 from .rig import describe
 from .console import guarded_std_streams
-from .errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, InputError, Interrupted,
-                     RigctlError, RunFailure)
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
 from .runner import RUN_LOG, run_procedure
 from .units import format_bytes, format_duration
 
@@ -143,12 +142,10 @@ def report_error(prog: str, exc: BaseException) -> int:
     if isinstance(exc, KeyboardInterrupt):
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if isinstance(exc, InputError):
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
     if isinstance(exc, RigctlError):
-        word = "interrupted" if exc.exit_code == EXIT_INTERRUPTED else "failed"
-        print(f"{prog}: {word}: {exc}", file=sys.stderr)
+        word = {EXIT_INVALID: "error", EXIT_INTERRUPTED: "interrupted"}.get(exc.exit_code, "failed")
+        for line in str(exc).splitlines() or [""]:  # several problems: one line each
+            print(f"{prog}: {word}: {line}", file=sys.stderr)
         return exc.exit_code
     if isinstance(exc, OSError):
         where = f"{exc.filename}: " if exc.filename else ""

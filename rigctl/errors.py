@@ -59,8 +59,8 @@ class InputErrors(InputError):
     """Several input errors found in one pass (one line each)."""
 
     def __init__(self, errors: list[InputError]) -> None:
-        self.errors = errors
-        first = errors[0]
+        self.errors = list({str(e): e for e in errors}.values())  # one line per distinct error
+        first = self.errors[0]
         super().__init__(first.message, first.file, first.line, first.hint)
 
     def __str__(self) -> str:
