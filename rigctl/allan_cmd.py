@@ -190,7 +190,7 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
 def _capture_range(f: Any) -> tuple[int, int, str] | None:
     """Sample range of the longest ``capture`` segment (complete preferred), or None."""
     seg = f.get("/segments")
-    if seg is None or "kind" not in seg or "first_sample" not in seg:
+    if seg is None or any(k not in seg for k in ("kind", "first_sample", "last_sample")):
         return None
     kinds = [bytes(k).rstrip(b"\0") for k in seg["kind"][:]]
     first, last = seg["first_sample"][:], seg["last_sample"][:]
@@ -209,7 +209,7 @@ def _capture_range(f: Any) -> tuple[int, int, str] | None:
 def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
     """Largest |table rate| (deg/s) and largest angle excursion (deg) over the IMU samples
     [s0, s1), from /table; (0, 0) when the recording has no table data."""
-    if "/table/rate" not in f or "/imu/time" not in f or s1 <= s0:
+    if any(n not in f for n in ("/table/rate", "/table/time", "/table/angle", "/imu/time")) or s1 <= s0:
         return 0.0, 0.0
     t = f["/imu/time"]
     t0, t1 = float(t[s0]), float(t[s1 - 1])
@@ -219,7 +219,9 @@ def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
         return 0.0, 0.0
     rate = np.degrees(np.abs(f["/table/rate"][:][sel]))
     ang = np.degrees(f["/table/angle"][:][sel])
-    return float(np.nanmax(rate)), float(np.nanmax(np.nanmax(ang, axis=0) - np.nanmin(ang, axis=0)))
+    rate, ang = rate[np.isfinite(rate)], ang[np.isfinite(ang).all(axis=1)]  # unreadable polls: no motion known
+    return (float(rate.max()) if rate.size else 0.0,
+            float((ang.max(axis=0) - ang.min(axis=0)).max()) if len(ang) else 0.0)
 
 
 #: above these the analysed range is not a static capture (deg/s, deg)
@@ -431,7 +433,7 @@ def _parse_taus(text: str) -> A.TauSpec:
 
 
 def _parse_axes(text: str) -> list[str]:
-    axes = [a.strip() for a in text.split(",") if a.strip()]
+    axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
         raise UsageError(f"--axes {text!r}: choose from {','.join(AXES)}")

@@ -34,6 +34,9 @@ from .recorder import FORMAT_NAME, LAYOUT
 
 #: highest sample rate a recording may declare, Hz
 MAX_RATE_HZ = 1e6
+#: largest magnitude a recorded value may have (SI): beyond it the data are not an IMU's
+#: output (a unit or an import error: mg read as m/s^2 is 1e4, not 1e300)
+PLAUSIBLE = {"imu/specific_force": 1e6, "imu/angular_rate": 1e5, "imu/time": 1e10}
 #: what every message about the layout points to
 LAYOUT_DOC = "see docs/data-format.md"
 
@@ -116,6 +119,8 @@ def _sample_rate(f: h5py.File, p: Path) -> float:
 
 def _check_segments(f: h5py.File, p: Path, n_imu: int) -> None:
     seg = f["segments"]
+    if "first_sample" not in seg or "last_sample" not in seg:
+        return  # a reader that needs them asked for them (need=...) and was refused already
     first = np.asarray(seg["first_sample"][()], dtype=np.int64)
     last = np.asarray(seg["last_sample"][()], dtype=np.int64)
     labels = seg["label"][()] if "label" in seg else None
@@ -130,7 +135,7 @@ def _check_segments(f: h5py.File, p: Path, n_imu: int) -> None:
 
 
 def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
-                   check_present: bool = False) -> h5py.File:
+                   check_present: bool = True) -> h5py.File:
     """Open the rigctl recording ``path`` read-only and check it (see the module docstring).
 
     Args:
@@ -138,8 +143,9 @@ def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
         need: datasets the caller reads, as "group/name" (e.g. "imu/angular_rate",
             "segments/first_sample"); a group name alone ("segments") means every dataset of it
             in the layout that the file must have for the caller.
-        check_present: also check every dataset of the layout the file has (a reader of
-            whatever is there, e.g. the report); /imu may then be empty.
+        check_present: also check every dataset of the layout the file has (default: a file
+            whose layout is broken anywhere is refused by every command). With ``need`` empty
+            (a reader of whatever is there, e.g. the report) /imu may be empty.
 
     Returns the open file (a context manager); raises InputError naming the file."""
     p = Path(path)
@@ -190,17 +196,21 @@ def sample_rate(f: h5py.File) -> float:
 
 def check_finite(path: str | Path, name: str, block: np.ndarray, first_row: int = 0) -> None:
     """InputError naming ``path``, the dataset ``name`` and the first row when ``block`` (rows
-    ``first_row``...) holds NaN or infinity."""
-    a = np.asarray(block)
-    ok = np.isfinite(a)
+    ``first_row``...) holds NaN, infinity, or a magnitude beyond :data:`PLAUSIBLE`."""
+    a = np.asarray(block, dtype=np.float64)
+    key = name.lstrip("/")
+    limit = PLAUSIBLE.get(key, np.inf)
+    ok = np.isfinite(a) & (np.abs(a) <= limit)
     if ok.all():
         return
     rows = ~ok.reshape(a.shape[0], -1).all(axis=1) if a.ndim > 1 else ~ok
     k = int(np.flatnonzero(rows)[0])
-    raise InputError(f"/{name.lstrip('/')} holds NaN or infinite values (first at row {first_row + k}, "
-                     f"{int(rows.sum())} rows in rows {first_row}..{first_row + a.shape[0] - 1})",
-                     path, hint="the sensor or the import produced invalid samples; cut them out "
-                                "(rigctl import --segments) or re-record")
+    what = "NaN or infinite values" if not np.isfinite(a[k]).all() else \
+        f"values beyond +-{limit:g} (SI units: not an IMU's output)"
+    raise InputError(f"/{key} holds {what} (first at row {first_row + k}, {int(rows.sum())} rows in rows "
+                     f"{first_row}..{first_row + a.shape[0] - 1})", path,
+                     hint="the sensor or the import produced invalid samples; cut them out "
+                          "(rigctl import --segments) or re-record")
 
 
 __all__ = ["open_recording", "check_finite", "sample_rate", "MAX_RATE_HZ"]

@@ -144,7 +144,7 @@ def _read_run_log(run_dir: Path) -> list[dict[str, Any]]:
 def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunData:
     """Read a recording for the report; raises InputError if it is not a rigctl recording."""
     path = Path(recording)
-    with open_recording(path, need=(), check_present=True) as f:
+    with open_recording(path, need=("imu/time", "imu/specific_force", "imu/angular_rate")) as f:
         root = {k: _text(v) for k, v in f.attrs.items()}
         meta = {k: _text(v) for k, v in f["meta"].attrs.items()} if "meta" in f else {}
         status = _text(f["run/status"][0]).rstrip("\x00") if "run/status" in f else "unknown"

@@ -32,8 +32,7 @@ REST_KINDS = (b"warmup",)
 
 
 #: what a calibration reads (rigctl.recording_reader checks it)
-CAL_NEED = ("imu/time", "imu/specific_force", "imu/angular_rate", "segments/kind", "segments/label",
-            "segments/first_sample", "segments/last_sample")
+CAL_NEED = ("imu/time", "imu/specific_force", "imu/angular_rate", "segments")
 
 
 def open_recording(path: str | Path) -> h5py.File:
