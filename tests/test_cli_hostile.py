@@ -21,7 +21,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -29,7 +28,6 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-import pytest
 
 from helpers import ROOT, rigctl_cmd
 
