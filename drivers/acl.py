@@ -1,4 +1,4 @@
-"""ACL-flavoured ASCII turntable command set (protocols.md 1.5): parser and formatter.
+"""ACL-flavoured ASCII turntable command set (docs/protocols.md section 2): parser and formatter.
 
 Used by the emulated server (``parse_message`` -> :class:`AclRequest`; ``format_*`` replies) and
 by the driver (``command`` / ``query`` builders; ``parse_reply`` and friends). Pure functions, no I/O.

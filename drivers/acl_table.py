@@ -1,4 +1,4 @@
-"""Turntable driver for the ACL-style ASCII command set (protocols.md 1.5) over any pyserial URL.
+"""Turntable driver for the ACL-style ASCII command set (docs/protocols.md section 2) over any pyserial URL.
 
 Implements the engine's :class:`rigctl.devices.Turntable` protocol: one request line, one reply
 line, a single outstanding request, a per-request timeout. The commands of one engine call go in

@@ -1,4 +1,4 @@
-"""Modbus register map of the turntable (protocols.md, Proposal B), as data plus codecs.
+"""Modbus register map of the turntable (docs/modbus-map.md), as data plus codecs.
 
 Servo-drive style: 0-based PDU addresses (``mbpoll -0``), 32-bit values in two consecutive
 registers (default big-endian word order = ``mbpoll -B``; "little" swaps the two words), written

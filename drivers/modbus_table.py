@@ -2,7 +2,7 @@
 over Modbus TCP or Modbus RTU (the RTU port is a pyserial URL: ``/dev/ttyUSB0``, a pty,
 ``socket://host:port`` for RTU over TCP).
 
-Implements :class:`rigctl.devices.Turntable`. pymodbus 3.16 usage (protocols.md section 2):
+Implements :class:`rigctl.devices.Turntable`. pymodbus 3.16 usage (docs/protocols.md section 3):
 keyword-only ``device_id=`` (not ``slave=``), 0-based PDU addresses, 32-bit values as register
 pairs in the configured word order, each demand written in ONE FC16 together with the control
 word (so it cannot tear), then the NEW_SETPOINT bit cleared again (the server applies a demand on

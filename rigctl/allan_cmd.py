@@ -20,6 +20,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from rigctl.analysis import production
+from rigctl.analysis.verdicts import format_verdicts
+from rigctl.cli_options import add_production_options
 from rigctl.errors import InputError
 from rigctl.progress import WorkProgress
 from rigctl.recording_reader import check_finite, open_recording, sample_rate
@@ -28,6 +31,7 @@ from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
 from rigctl.solvers import allan_noise_id as NID
 from rigctl.solvers.allan_crb import MAX_CAPTURE_S
+from rigctl.spec import load_spec
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
         "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
@@ -269,6 +273,7 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
         return
     result["segment"] = where
     store(path, result)
+    log("info", "allan: " + production.to_database(path, "allan", result, None))
     n, fs = result["n_samples"], result["sample_rate_hz"]
     log("info", f"allan: {where}, {n} samples at {fs:g} Hz ({n / fs / 3600:.2f} h); "
                 f"results in {path}:/results/allan")
@@ -321,6 +326,7 @@ def store(path: str, result: dict[str, Any]) -> None:
                    "first_sample": result.get("first_sample", 0),
                    "dropped_samples": result.get("dropped_samples", 0),
                    "segment": result.get("segment", "whole recording"),
+                   **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                    "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                                 "fit": _jsonable(r["fit"]),
                                 "piecewise": _jsonable(r["piecewise"])}
@@ -454,12 +460,17 @@ def run(args: argparse.Namespace) -> int:
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))
+    result["verdicts"] = production.verdicts_for(spec, "allan", result)
+    if result["verdicts"]:
+        print(format_verdicts(result["verdicts"]))
     store(args.recording, result)
     print(f"results written to {args.recording}:/results/allan")
+    print(production.to_database(args.recording, "allan", result, args.db))
     if args.plot:
         plot(result, args.plot)
         print(f"plot written to {args.plot}")
@@ -480,4 +491,5 @@ def register(subparsers: Any) -> None:
                    help="analyse the whole recording (default: its longest capture segment, if any)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
+    add_production_options(p)
     p.set_defaults(func=run)

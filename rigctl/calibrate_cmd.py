@@ -38,11 +38,15 @@ from typing import Any, Callable
 import h5py
 import numpy as np
 
+from .analysis import production
+from .analysis.verdicts import format_verdicts
+from .cli_options import add_production_options
 from .recorder import utc_now, write_results
 from .segment_builder import build_segment_table, open_recording
 from .solvers.calibration_result import CalibrationResult, _jsonable
 from .solvers.segment_stats import NoiseModel
 from .errors import InputError, RunFailure
+from .spec import Spec, load_spec
 
 SCHEMA_VERSION = 1
 G0 = 9.80665
@@ -401,14 +405,18 @@ def is_orientation_free(path: Path) -> bool:
         return bool(sel.any() and np.all(np.isnan(ang[sel])))
 
 
-def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None
-              ) -> tuple[dict[str, Any], str, str]:
-    """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain)."""
+def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None,
+              spec: Spec | None = None) -> tuple[dict[str, Any], str, str]:
+    """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
+    With ``spec`` the verdicts are computed, printed and stored with the results."""
     p = Path(path)
     free = is_orientation_free(p)
     payload, text, explain = (calibrate_free if free else calibrate_table)(p, noise)
     payload = _jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
                          "recording": str(p.resolve()), **payload})
+    if spec is not None:
+        payload["verdicts"] = production.verdicts_for(spec, "calibration", payload)
+        text += "\n" + format_verdicts(payload["verdicts"])
     if store:
         with open_recording(p) as f:
             status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
@@ -424,13 +432,15 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
 
 def run(args: argparse.Namespace) -> int:
     """``rigctl calibrate``: 0 done, 2 invalid input, 1 failure."""
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     try:
-        payload, text, explain = calibrate(args.recording, args.noise, True, args.json)
+        payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec)
+        text += "\n" + production.to_database(args.recording, "calibration", payload, args.db)
     except InputError:
         raise
     except (OSError, ValueError, np.linalg.LinAlgError) as exc:
         raise RunFailure(f"{args.recording}: {exc}") from exc
-    print(text)
+    print(text.rstrip())
     if args.explain and explain:
         print(explain)
     return 0
@@ -450,7 +460,8 @@ def solve_hook(recording: str | Path, log: Callable[..., None]) -> None:
         return
     _DONE.add(key)
     try:
-        _, text, _ = calibrate(recording)
+        payload, text, _ = calibrate(recording)
+        text += "\n" + production.to_database(recording, "calibration", payload, None)
     except InputError as exc:
         log("warning", f"calibration: {exc}")
         return
@@ -472,4 +483,6 @@ def register(subparsers: Any) -> None:
                         "allan if present else self (auto, default), or FILE.h5: the /results/allan of an "
                         "overnight capture of the same IMU (best: a 40-minute session cannot pin down the "
                         "slow terms)")
+    add_production_options(p)
     p.set_defaults(func=run)
+

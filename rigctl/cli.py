@@ -28,7 +28,8 @@ from .units import format_bytes, format_duration
 COMMANDS: dict[str, str] = {
     "sync": "rigctl.sync_cmd", "allan": "rigctl.allan_cmd", "calibrate": "rigctl.calibrate_cmd",
     "import": "rigctl.import_cmd", "apply-cal": "rigctl.applycal_cmd", "report": "rigctl.report_cmd",
-    "sim": "rigctl.sim_cmd",
+    "sim": "rigctl.sim_cmd", "history": "rigctl.history_cmd", "batch": "rigctl.batch_cmd",
+    "certificate": "rigctl.certificate_cmd",
     **{verb: "rigctl.daemon" for verb in ("serve", "submit", "status", "queue", "pause", "resume",
                                           "abort", "logs")},
 }

@@ -190,6 +190,30 @@ def suspender_settings(m: LocDict) -> SuspenderSettings:
                              min_free_bytes=int(round(mib * 2**20)))
 
 
+#: keys of the ``traceability:`` section (shown on certificates; all text)
+TRACEABILITY_KEYS = ("laboratory", "address", "accreditation", "table_id", "table_calibration",
+                     "table_calibration_due", "reference_standards", "procedure_document")
+
+
+def traceability(m: LocDict) -> dict[str, str]:
+    """The ``traceability:`` section of a rig config: what a certificate states about the
+    laboratory and the traceability of the rig (docs/production.md). Each value is text; a
+    list (``reference_standards``) is joined with '; '. Absent: {}."""
+    if m.get("traceability") is None:
+        return {}
+    t = S.require_mapping(m["traceability"], "'traceability'", m, "traceability")
+    S.check_keys(t, TRACEABILITY_KEYS, "'traceability'")
+    out = {}
+    for k, v in t.items():
+        if isinstance(v, list) and all(isinstance(x, str) for x in v):
+            v = "; ".join(v)
+        if not isinstance(v, str) or not v.strip() or len(v) > 500:
+            raise S.error(t, k, f"'{k}' must be text (at most 500 characters)",
+                          f'quote it: {k}: "..."')
+        out[k] = v.strip()
+    return out
+
+
 def load_config(path: str | Path) -> RigConfig:
     """Load and validate a rig config file; InputError names the file and line of any problem."""
     p = Path(path)
@@ -198,7 +222,8 @@ def load_config(path: str | Path) -> RigConfig:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
     S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders"), "the rig config")
+                     "suspenders", "traceability"), "the rig config")
+    traceability(m)
     name = S.get_str(m, "rig", p.stem)
     clock = S.get_str(m, "clock", None, choices=CLOCKS)
     speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)

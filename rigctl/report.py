@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .analysis.production import latest_allan
 from .recording_reader import open_recording
 from .yamlio import InputError
 
@@ -180,6 +181,17 @@ def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunDat
                 results[name] = {"json": payload, "created_utc": attrs.get("created_utc", ""),
                                  "schema_version": attrs.get("schema_version"),
                                  "arrays": _group_arrays(g) if name != "sync" else _sync_arrays(f, g)}
+    if "allan" not in results:  # the Allan results of the same unit's latest analysed capture
+        found = latest_allan(path)
+        if found is not None:
+            try:
+                with open_recording(found[0], need=()) as g:
+                    grp = g["results/allan"]
+                    results["allan"] = {"json": found[1], "created_utc": _text(grp.attrs.get("created_utc", "")),
+                                        "schema_version": _text(grp.attrs.get("schema_version")),
+                                        "arrays": _group_arrays(grp), "source": str(found[0])}
+            except InputError:  # a damaged capture beside the run: the report goes on without it
+                pass
     rd = Path(run_dir) if run_dir is not None else path.parent
     return RunData(path, root, meta, status, events, table, segments, imu, results,
                    _read_run_log(rd))

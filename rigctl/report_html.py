@@ -1,6 +1,6 @@
 """The report page: one self-contained HTML file (inline CSS, PNGs as base64 data URIs).
 
-Sections (element ids): ``summary``, ``table``, ``calibration``, ``closed-loop``, ``allan``,
+Sections (element ids): ``verdicts`` (first: the verdicts stored with the results), ``summary``, ``table``, ``calibration``, ``closed-loop``, ``allan``,
 ``sync``, ``events`` (faults and suspender events), ``provenance``. A section whose results group is absent says "Not run".
 Every plot is an ``<img id="plot-<plot id>">`` with a ``data:image/png;base64,`` source.
 Numbers are shown in field units (mg, deg/h, ppm, ms) with the unit in the column header.
@@ -16,10 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from .report import FAULT_KINDS, RunData, find_session
+from .display_units import display, format_value
 from .report_allan import allan_curves
 
 G0 = 9.80665
-SECTIONS = (("summary", "Summary"), ("table", "Table orientation and rate"),
+SECTIONS = (("verdicts", "Verdicts"), ("summary", "Summary"), ("table", "Table orientation and rate"),
             ("calibration", "Calibration"), ("closed-loop", "Closed loop"),
             ("allan", "Allan deviation"), ("sync", "Time synchronisation"),
             ("events", "Faults and suspender events"), ("provenance", "Provenance"))
@@ -44,6 +45,11 @@ figure{margin:8px 0}figcaption{font-size:12px;color:#5b6b7b}
 .not-run{background:#fff7e0;border-left:4px solid #e0a800;padding:8px 12px;color:#6b5300}
 .status-complete{color:#137333;font-weight:bold}.status-bad{color:#b3261e;font-weight:bold}
 .warn{color:#b3261e}.ok{color:#137333}.muted{color:#6b7785;font-size:12px}
+.PASS{color:#137333;font-weight:bold}.FAIL{color:#b3261e;font-weight:bold}
+.INDETERMINATE{color:#8a5a00;font-weight:bold}
+@media print{nav{display:none}body{background:#fff}main{max-width:none;padding:0}
+section{border:none;page-break-inside:auto;margin:6mm 0}details{display:block}pre{max-height:none;overflow:visible;
+white-space:pre-wrap}details>summary{list-style:none}figure,tr{page-break-inside:avoid}}
 """
 
 
@@ -95,51 +101,31 @@ def section(sid: str, body: str) -> str:
     return f"<section id=\"{sid}\"><h2>{esc(title)}</h2>\n{body}\n</section>"
 
 
-# -- field units for parameter names ---------------------------------------------------------
-_UNIT_RULES = ((re.compile(r"_m_s2(?=_|$)"), "_mg", 1000.0 / G0),
-               (re.compile(r"_rad_s(?=_|$)"), "_deg_h", 180.0 / math.pi * 3600.0),
-               (re.compile(r"_s2_per_m$"), "_ug_per_g2", G0 * 1e6))
-
-
-def field_units(name: str) -> tuple[str, float, float]:
-    """(display name, factor, offset): display = (value - offset) * factor.
-
-    The same conversion as ``rigctl calibrate`` prints (:func:`rigctl.calibrate_cmd.field_unit`:
-    mg, deg/h, ug/g^2, scale errors in ppm, misalignments in urad, ...); a minimal fallback
-    when that module is unavailable.
-    """
-    try:
-        from .calibrate_cmd import field_unit
-    except ImportError:  # pragma: no cover - the calibration command is part of rigctl
-        field_unit = None
-    if field_unit is not None:
-        disp, fac, off = field_unit(name)
-        return disp, float(fac), float(off)
-    for rx, rep, fac in _UNIT_RULES:
-        if rx.search(name):
-            return rx.sub(rep, name, count=1), fac, 0.0
-    return name, 1.0, 0.0
-
-
-def _conv(v: Any, f: float, off: float) -> float | None:
-    return None if v is None else (v - off) * f
-
-
+# -- parameters in display units (rigctl.display_units: one table for every command) ----------
 def param_rows(result: dict[str, Any]) -> list[list[Any]]:
+    """parameter, unit, value, 1-sigma, 95 % interval (digits from the uncertainty), k, dof."""
     rows = []
     for p in result.get("parameters") or []:
-        name, f, off = field_units(p["name"])
+        d = display(p["name"])
         v, sd = p.get("value"), p.get("sigma")
-        k = None
-        if v is not None and sd and p.get("ci95_high") is not None:
-            k = (p["ci95_high"] - v) / sd
-        rows.append([name, _conv(v, f, off), None if sd is None else sd * abs(f),
-                     _conv(p.get("ci95_low"), f, off), _conv(p.get("ci95_high"), f, off), k])
+        u = d.sigma(sd)
+        val, us = format_value(d.value(v), u)
+        lo, hi = (format_value(d.value(p.get(k)), u)[0] if p.get(k) is not None else "n/a"
+                  for k in ("ci95_low", "ci95_high"))
+        k = (p["ci95_high"] - v) / sd if v is not None and sd and p.get("ci95_high") is not None else None
+        dof = p.get("dof")
+        rows.append([d.base, d.unit, val, us, f"[{lo}, {hi}]", None if k is None else round(k, 2),
+                     "inf" if dof is None and k is not None and abs(k - 1.96) < 0.01 else dof])
     return rows
 
 
-PARAM_HEAD = ["parameter (unit in the name)", "value", "1-sigma", "95 % low", "95 % high",
-              "coverage k"]
+PARAM_HEAD = ["parameter", "unit", "value", "1-sigma", "95 % interval", "coverage k", "dof"]
+K_NOTE = ("<p class=\"muted\">Coverage factor k: 1.96 for a normal interval; above it, the Student-t "
+          "factor for the parameter's effective degrees of freedom (Satterthwaite). Small dof (k up to "
+          "12.7 at 1 dof) arise when the noise model was estimated from this session's own segments (REML "
+          "on a few residual dof): the uncertainty is then itself uncertain. Calibrate with the noise "
+          "model of the unit's overnight capture (<code>rigctl calibrate --noise OVERNIGHT.h5</code>) for "
+          "normal intervals.</p>")
 
 
 def fit_line(r: dict[str, Any]) -> str:
@@ -169,6 +155,31 @@ def s_summary(d: RunData) -> str:
             ["results groups", res]]
     return (f"<p>Run status: <span class=\"{cls}\">{esc(d.status)}</span></p>"
             + table(["item", "value"], rows))
+
+
+def s_verdicts(d: RunData) -> str:
+    """The verdicts stored with the results (``--spec``), first thing on the page."""
+    got = [(k, (r.get("json") or {}).get("verdicts")) for k, r in sorted(d.results.items())]
+    got = [(k, v) for k, v in got if v]
+    if not got:
+        return not_run("no verdicts: the results were computed without a spec",
+                       "Run `rigctl calibrate RECORDING --spec SPEC.yaml` (and `rigctl allan ... --spec`).")
+    out = []
+    for kind, v in got:
+        out.append(f"<p>{esc(kind)}: overall <span class=\"{esc(v['overall'])}\">{esc(v['overall'])}</span> "
+                   f"against {esc(v['spec'])}</p>")
+        rows = []
+        for r in v["parameters"]:
+            val, u = format_value(r["value"], r["u"])
+            lo, hi = r["ci95"]
+            ci = "n/a" if lo is None else f"[{format_value(lo, r['u'])[0]}, {format_value(hi, r['u'])[0]}]"
+            rows.append([r["parameter"], r["unit"], val, u, ci, r["tolerance"], r["verdict"]])
+        out.append(table(["parameter", "unit", "value", "u", "95 % interval", "tolerance", "verdict"], rows,
+                         num_from=2).replace("<td>PASS</td>", "<td class=\"PASS\">PASS</td>")
+                   .replace("<td>FAIL</td>", "<td class=\"FAIL\">FAIL</td>")
+                   .replace("<td>INDETERMINATE</td>", "<td class=\"INDETERMINATE\">INDETERMINATE</td>"))
+        out.append(f"<p class=\"muted\">Decision rule: {esc(v['rule_text'])}</p>")
+    return "\n".join(out)
 
 
 def s_provenance(d: RunData) -> str:
@@ -271,13 +282,13 @@ def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
             return out[0] + not_run("/results/calibration holds no parameter table",
                                     "Re-run `rigctl calibrate RECORDING`.")
         for name, res in fits:
-            out += [f"<h3>{esc(name)}</h3>", fit_line(res), table(PARAM_HEAD, param_rows(res))]
+            out += [f"<h3>{esc(name)}</h3>", fit_line(res), table(PARAM_HEAD, param_rows(res), num_from=2)]
         return "\n".join(out)
     cl = sess.get("closed_loop") or {}
     fin = cl.get("final")
     if fin:
         out += ["<h3>Parameters (closed-loop model, 1-sigma and 95 % intervals)</h3>", fit_line(fin),
-                table(PARAM_HEAD, param_rows(fin))]
+                table(PARAM_HEAD, param_rows(fin), num_from=2), K_NOTE]
     out += ["<h3>Residuals per orientation</h3>",
             img(plots, "cal_residuals_orientation",
                 "Residuals per orientation before/after (accel mg, gyro deg/h)"),
@@ -290,8 +301,8 @@ def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
         res = sess.get(key)
         if not res:
             continue
-        out.append(f"<details><summary>{esc(title)}</summary>{fit_line(res)}"
-                   f"{table(PARAM_HEAD, param_rows(res))}</details>")
+        out.append(f"<details open><summary>{esc(title)}</summary>{fit_line(res)}"
+                   f"{table(PARAM_HEAD, param_rows(res), num_from=2)}</details>")
     return "\n".join(out)
 
 
@@ -311,13 +322,13 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
         rows = []
         for e in effects:
             for p in e.get("parameters") or [{}]:
-                name, f, off = field_units(p.get("name", ""))
+                d = display(p.get("name", ""))
                 ci = p.get("ci95") or [None, None]
-                rows.append([e["name"], e.get("attribution"), e.get("p_adj"), e.get("dBIC"), name,
-                             _conv(p.get("value"), f, off),
-                             None if p.get("sigma") is None else p["sigma"] * abs(f),
-                             _conv(ci[0], f, off), _conv(ci[1], f, off)])
-        out.append(table(["effect", "attribution", "p (adjusted)", "dBIC", "parameter", "value",
+                u = d.sigma(p.get("sigma"))
+                rows.append([e["name"], e.get("attribution"), e.get("p_adj"), e.get("dBIC"), d.base, d.unit,
+                             *format_value(d.value(p.get("value")), u),
+                             format_value(d.value(ci[0]), u)[0], format_value(d.value(ci[1]), u)[0]])
+        out.append(table(["effect", "attribution", "p (adjusted)", "dBIC", "parameter", "unit", "value",
                           "1-sigma", "95 % low", "95 % high"], rows, num_from=2))
     else:
         out.append("<p>No undeclared effect found: the declared model explains the residuals.</p>")
@@ -329,7 +340,7 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
                          t.get("chi2_per_dof_after")])
             continue
         u = t.get("unit", "")
-        rows.append([t["channel"], u.replace("deg_h", "deg/h"), t.get(f"noise_floor_{u}"),
+        rows.append([t["channel"], {"deg_h": "deg/h"}.get(u, u), t.get(f"noise_floor_{u}"),
                      t.get(f"rms_before_{u}"), t.get(f"rms_after_{u}")])
     out.append(table(["channel", "unit", "noise floor", "RMS before", "RMS after"], rows, num_from=2))
     out.append(img(plots, "cal_rms", "Residual RMS before/after against the noise floor (mg, deg/h)"))
@@ -378,6 +389,10 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
 
     out = [img(plots, "allan", "Allan deviation (deg/h, mg) against tau (s) with 68 % and 95 % "
                                "intervals, fitted total and each term")]
+    src = d.results["allan"].get("source")
+    if src:
+        out.insert(0, f"<p>From the same unit's latest analysed capture: {esc(src)} (this recording has "
+                      "no /results/allan).</p>")
     curves = allan_curves(d)
     rows = []
     for axis, cv in curves.items():
@@ -426,7 +441,7 @@ def render(d: RunData, plots: dict[str, Path]) -> str:
     """The whole page as one string."""
     name = d.meta.get("procedure_name", d.recording.stem)
     nav = "".join(f"<a href=\"#{sid}\">{esc(t)}</a>" for sid, t in SECTIONS)
-    body = [section("summary", s_summary(d)), section("table", s_table(d, plots)),
+    body = [section("verdicts", s_verdicts(d)), section("summary", s_summary(d)), section("table", s_table(d, plots)),
             section("calibration", s_calibration(d, plots)),
             section("closed-loop", s_closed_loop(d, plots)),
             section("allan", s_allan(d, plots)), section("sync", s_sync(d, plots)),

@@ -61,12 +61,9 @@ def plot_table_timeline(data: RunData, out: Path) -> Path | None:
     names = ("outer", "middle", "inner")
     for ax, key, unit in ((a1, "angle", "deg"), (a2, "rate", "deg/s")):
         _shade_segments(ax, data.segments)
-        v = np.degrees(t[key])
-        if key == "angle":
-            v = (v + 180.0) % 360.0 - 180.0  # wrap to (-180, 180]
-        for i in range(3):
-            ax.plot(t["time"], v[:, i], lw=0.9, label=names[i],
-                    ls="" if key == "angle" else "-", marker="." if key == "angle" else None, ms=1.5)
+        v = np.degrees(np.unwrap(t[key], axis=0)) if key == "angle" else np.degrees(t[key])
+        for i in range(3):  # angles unwrapped: a rate test is a straight ramp, not dots at +-180
+            ax.plot(t["time"], v[:, i], lw=0.9, label=names[i])
         ax.set_ylabel(f"table {key} [{unit}]")
         ax.grid(True, lw=0.3)
     a1.legend(fontsize=7, ncol=6, loc="upper right")
@@ -194,7 +191,7 @@ def plot_cal_rms(data: RunData, out: Path) -> Path | None:
             ax.bar(x + (j - 1) * w, vals, w, label=lab, color=col)
         ax.set_xticks(x)
         ax.set_xticklabels([r["channel"] for r in sub])
-        ax.set_yscale("log")
+        ax.set_ylim(bottom=0)  # linear axis from zero: bar lengths compare
         ax.set_ylabel(f"residual RMS [{unit.replace('deg_h', 'deg/h')}]")
         ax.set_title(title)
         ax.grid(True, axis="y", which="both", lw=0.3)

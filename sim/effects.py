@@ -2,7 +2,7 @@
 stateful helpers (carried state only where an effect has memory). SI units throughout
 (m/s^2, rad/s, s, K or degC); arrays of samples are (n, 3) with axes x, y, z.
 
-Declared deterministic errors (methods.md A2)::
+Declared deterministic errors (docs/methods.md A2)::
 
     accelerometer  A = b_a + M_a a + k2_a * a**2          (M_a: diag = scale S_i, off-diag = K_ji)
     gyroscope      W = b_g + M_g w                         (diag = scale Sk_i, off-diag = K_ij)
@@ -220,7 +220,7 @@ def rotation_matrices(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 def gimbal_axes(nonorth_rad: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Actual rotation axes (3,3): rows outer, middle, inner, each in its parent frame at zero.
 
-    Nominal outer = z (base up), middle = y, inner = x (methods.md A3: x, y, z accelerometer axes
+    Nominal outer = z (base up), middle = y, inner = x (docs/methods.md A3: x, y, z accelerometer axes
     parallel to inner, middle, outer). nonorth_rad = (d_om, d_mi_y, d_mi_z): middle axis tilted by d_om
     towards z (outer/middle angle 90 deg - d_om), inner axis tilted by d_mi_y towards y (middle/inner
     non-orthogonality) and by d_mi_z towards z.

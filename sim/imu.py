@@ -1,4 +1,4 @@
-"""Emulated IMU: the declared error models of methods.md A2 plus white noise.
+"""Emulated IMU: the declared error models of docs/methods.md A2 plus white noise.
 
 Accelerometer, for true specific force a (m/s^2):
 

@@ -5,7 +5,7 @@ One :class:`ModbusTableServer` owns an asyncio loop in a thread and can serve Mo
 the same register model, because the SimDevice ``action`` callback is the source of truth:
 reads fill the requested registers from the model/table, writes are applied to the model.
 
-pymodbus 3.16 notes (protocols.md section 2): the new ``SimData``/``SimDevice`` datastore is used
+pymodbus 3.16 notes (docs/protocols.md section 3): the new ``SimData``/``SimDevice`` datastore is used
 (no deprecated ``ModbusSequentialDataBlock``, whose address 0 raises), addresses are the 0-based
 PDU addresses, clients pass ``device_id=`` (not ``slave=``), the 4-tuple form keeps holding and
 input registers apart, and the action runs *before* a write is stored, with the new values in

@@ -344,6 +344,8 @@ def build_cases(tmp: Path) -> tuple[list[Case], dict[str, Path]]:
     for name, p in bad.items():
         for argv in rec_cmds(p):
             cases.append(Case(argv, expected(argv, tags[name]), [str(p)]))
+        if tags[name] == "file":  # (a certificate of a readable file runs Chromium: not here)
+            cases.append(Case(["certificate", str(p), "--out", str(out / "cert")], {2}, [str(p)]))
     # partial recordings: each command runs or refuses, naming the file; never a traceback
     for name, p in partial.items():
         for argv in (["allan", str(p), "--taus", "octave"], ["calibrate", str(p), "--noise", "self"],

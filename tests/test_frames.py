@@ -1,4 +1,4 @@
-"""Reference model against hand-worked cases (methods.md A3)."""
+"""Reference model against hand-worked cases (docs/methods.md A3)."""
 import math
 
 import numpy as np
@@ -12,7 +12,7 @@ LAT = math.radians(40.0)
 
 @pytest.mark.parametrize("phi_deg", [0, 45, 90, 135, 180, 225, 270, 315])
 def test_x_north_rotation_about_x_matches_methods_a3(phi_deg):
-    # methods.md A3: X north, rotation phi about X: f = g (0, sin phi, cos phi),
+    # docs/methods.md A3: X north, rotation phi about X: f = g (0, sin phi, cos phi),
     # Earth rate (W cos L, W sin L sin phi, W sin L cos phi).
     phi = math.radians(phi_deg)
     g = 9.8

@@ -1,4 +1,4 @@
-"""Accelerometer calibration from static positions (24-position test, methods.md A3).
+"""Accelerometer calibration from static positions (24-position test, docs/methods.md A3).
 
 Model (A2), axis i with true specific force a = (a_x, a_y, a_z) in the body frame:
 

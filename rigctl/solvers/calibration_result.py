@@ -108,6 +108,16 @@ class CalibrationResult:
         return np.full(len(self.names), self.coverage_factor)
 
     @property
+    def interval_dof(self) -> NDArray[np.float64]:
+        """(p,) degrees of freedom behind each parameter's interval (inf: normal interval)."""
+        if self.interval != "t":
+            return np.full(len(self.names), np.inf)
+        if self.param_dof is not None:
+            return np.where(np.asarray(self.param_dof, dtype=np.float64) > 0,
+                            np.maximum(np.asarray(self.param_dof, dtype=np.float64), 1.0), np.nan)
+        return np.full(len(self.names), float(self.dof) if self.dof > 0 else np.nan)
+
+    @property
     def ci95(self) -> NDArray[np.float64]:
         """(p, 2) 95 % intervals [low, high]."""
         k = self.coverage_factors
@@ -143,8 +153,9 @@ class CalibrationResult:
         """JSON-serialisable form (NaN and inf become None)."""
         ci = self.ci95
         params = [
-            {"name": n, "value": _num(v), "sigma": _num(s), "ci95_low": _num(lo), "ci95_high": _num(hi)}
-            for n, v, s, (lo, hi) in zip(self.names, self.values, self.sigma, ci)
+            {"name": n, "value": _num(v), "sigma": _num(s), "ci95_low": _num(lo), "ci95_high": _num(hi),
+             "dof": _num(d)}
+            for n, v, s, (lo, hi), d in zip(self.names, self.values, self.sigma, ci, self.interval_dof)
         ]
         return {
             "method": self.method,

@@ -1,4 +1,4 @@
-"""Gyro rate test (methods.md A4): forward/reverse pairs -> scale, misalignment and drift.
+"""Gyro rate test (docs/methods.md A4): forward/reverse pairs -> scale, misalignment and drift.
 
 Model (A2): W = w0 + M_g w, with w the true body rate (Earth rate + table rate), M_g the
 scale (diagonal) and misalignment (off-diagonal; row i = output axis, column j = input axis).

@@ -1,0 +1,128 @@
+"""Batch analysis of many recordings on Dask, and the lot summary.
+
+Each recording is one task, :func:`analyse_one` (the same calibration / Allan pipelines as
+``rigctl calibrate`` and ``rigctl allan``, storing into the recording and its JSON as they
+do); the tasks run on Dask's local multiprocessing scheduler (``workers`` processes) or on a
+``dask.distributed`` cluster (a scheduler address). A task never raises: a recording that
+fails returns its error, and the others go on. The caller writes the results database from
+the collected results (one writer: SQLite has one), so the database holds exactly what
+serial runs would have written.
+
+:func:`summarise` gives per lot the yield (PASS / FAIL / INDETERMINATE counts of the overall
+verdicts) and each parameter's distribution across units (n, mean, standard deviation, min,
+max in the display unit).
+"""
+from __future__ import annotations
+
+import math
+import traceback
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import allan_cmd, calibrate_cmd  # the pipelines (until they move to rigctl.analysis)
+from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
+from ..spec import load_spec
+from . import production
+
+ANALYSES = ("calibrate", "allan")
+
+
+def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec_path: str | None = None,
+                rule: str | None = None, noise: str = "auto") -> dict[str, Any]:
+    """Analyse one recording (runs in a worker). Returns {"recording", "ok", "results":
+    {kind: payload}, "error"}; never raises."""
+    out: dict[str, Any] = {"recording": recording, "ok": False, "results": {}, "error": None}
+    try:
+        spec = load_spec(spec_path, rule) if spec_path else None
+        if "calibrate" in analyses:
+            payload, _, _ = calibrate_cmd.calibrate(recording, noise, True, None, spec)
+            out["results"]["calibration"] = payload
+        if "allan" in analyses:
+            axes = list(allan_cmd.AXES)
+            rng, where, _ = allan_cmd.choose_range(recording, axes)
+            res = allan_cmd.compute(recording, axes, 95, False, rng)
+            res["segment"] = where
+            res["verdicts"] = production.verdicts_for(spec, "allan", res)
+            allan_cmd.store(recording, res)
+            out["results"]["allan"] = allan_cmd._jsonable({k: v for k, v in res.items()})
+        out["ok"] = True
+    except Exception as exc:  # noqa: BLE001 - reported per recording; the batch goes on
+        out["error"] = f"{type(exc).__name__}: {exc}"
+        out["traceback"] = traceback.format_exc()
+    return out
+
+
+def run_batch(recordings: Iterable[str], analyses: tuple[str, ...], spec_path: str | None, rule: str | None,
+              workers: int | None = None, scheduler: str | None = None, noise: str = "auto",
+              on_done: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+    """Run :func:`analyse_one` over ``recordings`` on Dask; results in the input order.
+
+    ``scheduler``: a dask.distributed scheduler address (tcp://127.0.0.1:8786); else the local
+    multiprocessing scheduler with ``workers`` processes (default: the CPU count).
+    """
+    import dask  # optional dependency: rigctl[batch]
+
+    recs = [str(r) for r in recordings]
+    tasks = [dask.delayed(analyse_one, pure=False)(r, analyses, spec_path, rule, noise) for r in recs]
+    if scheduler:
+        from distributed import Client, as_completed
+
+        with Client(scheduler, timeout="30s") as client:
+            futures = client.compute(tasks)
+            index = {f.key: i for i, f in enumerate(futures)}
+            out: list[dict[str, Any] | None] = [None] * len(futures)
+            for fut in as_completed(futures):
+                res = fut.result()
+                out[index[fut.key]] = res
+                if on_done:
+                    on_done(res)
+        return [r for r in out if r is not None]
+    results = list(dask.compute(*tasks, scheduler="processes", num_workers=workers or None))
+    if on_done:
+        for r in results:
+            on_done(r)
+    return results
+
+
+def lot_of(recording: str | Path) -> str:
+    """A recording's lot: the folder that holds its run directory (runs/LOT/<run>/recording.h5 ->
+    LOT) -- the last path part above the run."""
+    p = Path(recording).resolve()
+    return (p.parent.parent if p.name == "recording.h5" else p.parent).name
+
+
+def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, Any]:
+    """Yield and parameter distributions per lot (display units)."""
+    per_lot: dict[str, dict[str, Any]] = {}
+    for r in results:
+        lot = lots[r["recording"]]
+        L = per_lot.setdefault(lot, {"recordings": 0, "failed": [], "verdicts": {PASS: 0, FAIL: 0, INDETERMINATE: 0},
+                                     "params": {}})
+        L["recordings"] += 1
+        if not r["ok"]:
+            L["failed"].append({"recording": r["recording"], "error": r["error"]})
+            continue
+        vs = [p["verdicts"]["overall"] for p in r["results"].values() if p.get("verdicts")]
+        if vs:
+            L["verdicts"][overall(vs)] += 1
+        for kind, payload in r["results"].items():
+            for m in production.measured(kind, payload):
+                d = m.display
+                L["params"].setdefault((d.base, d.unit), []).append((d.value(m.value), d.sigma(m.u)))
+    out = {}
+    for lot, L in sorted(per_lot.items()):
+        decided = sum(L["verdicts"].values())
+        params = {}
+        for (base, unit), vals in L["params"].items():
+            v = np.array([x for x, _ in vals], dtype=float)
+            params[base] = {"unit": unit, "n": int(v.size), "mean": float(v.mean()),
+                            "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan,
+                            "min": float(v.min()), "max": float(v.max()),
+                            "median_u": float(np.median([u for _, u in vals]))}
+        out[lot] = {"recordings": L["recordings"], "analysed": L["recordings"] - len(L["failed"]),
+                    "failed": L["failed"], "verdicts": L["verdicts"],
+                    "yield": L["verdicts"][PASS] / decided if decided else None, "parameters": params}
+    return out
