@@ -31,7 +31,6 @@ import csv
 import json
 import math
 import re
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,8 @@ import yaml
 from . import __version__
 from .devices import ImuBlock
 from .frames import normal_gravity
-from .yamlio import InputError
+from .errors import InputError, RunFailure
+from .recording_reader import MAX_RATE_HZ
 
 G0 = 9.80665
 DEG = math.pi / 180.0
@@ -120,8 +120,13 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
     """Columns of a CSV file as arrays (sensor/time/temp float, section str); header line number."""
     if not path.is_file():
         raise InputError("input file not found", path)
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 text (CSV) file", path, hint="give the CSV log") from None
+    except (csv.Error, OSError) as exc:
+        raise InputError(f"cannot be read as CSV ({exc})", path) from None
     if len(rows) <= skip_rows:
         raise InputError(f"only {len(rows)} lines, --skip-rows {skip_rows}", path)
     header_line = skip_rows + 1
@@ -150,6 +155,8 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
         for n, r in enumerate(body):
             try:
                 vals[n] = float(r[j])
+                if not math.isfinite(vals[n]):
+                    raise ValueError
             except (ValueError, IndexError):
                 got = r[j] if j < len(r) else "(missing)"
                 raise InputError(f"column {mapping[key]!r}: {got!r} is not a number", path,
@@ -242,8 +249,12 @@ def import_csv(args: argparse.Namespace) -> tuple[Path, int, list[dict[str, Any]
         raise InputError("output directory does not exist", out.parent)
     mapping = parse_columns(args.columns)
     factors = parse_units(args.units)
-    if args.rate is None or not args.rate > 0:
-        raise InputError("--rate HZ (> 0) is required: the nominal sample rate", src)
+    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
+        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+    for opt, v, lo, hi in (("--gravity", args.gravity, 9.7, 9.9), ("--latitude-deg", args.latitude_deg, -90, 90),
+                           ("--t-init", args.t_init, 0.0, 1e6), ("--skip-rows", args.skip_rows, 0, 1e9)):
+        if v is not None and not lo <= v <= hi:  # NaN fails too
+            raise InputError(f"{opt} {v:g} is outside [{lo:g}, {hi:g}]")
     cols, _ = read_table(src, mapping, args.skip_rows)
     n = len(cols["acc_x"])
     acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
@@ -306,8 +317,7 @@ def run(args: argparse.Namespace) -> int:
     except InputError:
         raise
     except OSError as exc:
-        print(f"rigctl import: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{args.output}: {exc}") from exc
     kinds: dict[str, int] = {}
     for s in sections:
         kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl import allan_cmd
+from rigctl import allan_cmd, cli
 
 
 def write_recording(path: Path, n: int, fs: float = 100.0, seed: int = 0,
@@ -113,8 +113,7 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
     elif case == "bad_taus":
         write_recording(rec, 1000)
         argv += ["--taus", "weekly"]
-    args = _args(argv)
-    assert args.func(args) == 2
+    assert cli.main(["allan", *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith("rigctl allan: error:") and "Traceback" not in err
     if case in ("missing", "not_hdf5", "not_rigctl", "no_accel", "short"):
