@@ -133,12 +133,18 @@ class AclTable:
         self._check(self.request(line), line)
 
     # -------------------------------------------------------------------------- set-up
-    def connect(self) -> None:
-        """Open the link, identify the controller, close the interlocks, set the limits and
-        estimate the controller-time offset."""
+    def identify(self) -> str:
+        """Open the link and ask the controller who it is (``*IDN?``, nothing else is sent);
+        its reply. Raises LinkLost (the port, or no reply)."""
         self.link.open()
         self.link.drain_input()
         self.idn = self.request("*IDN?", retry=True)
+        return self.idn
+
+    def connect(self) -> None:
+        """Open the link, identify the controller, close the interlocks, set the limits and
+        estimate the controller-time offset."""
+        self.identify()
         self.command("*CLS")
         parts = []
         for ax in (1, 2, 3):

@@ -85,6 +85,19 @@ class GpioPulses:
     def _host_ns(self) -> int:
         return time.time_ns() if self.event_clock == "realtime" else time.monotonic_ns()
 
+    def identify(self) -> str:
+        """Open the chip and read its label and the line's name (nothing is requested).
+        Raises OSError (no chip, no permission) or RuntimeError (gpiod missing)."""
+        with open(self.chip, "rb"):  # the chip's own errno (ENOENT, EACCES) before gpiod's
+            pass
+        if self._request_lines is not None:
+            return f"{self.chip} line {self.line}"
+        gpiod = _gpiod()
+        with gpiod.Chip(self.chip) as chip:
+            info = chip.get_info()
+            line = chip.get_line_info(self.line)
+        return f"{info.label or info.name}, line {self.line} ({line.name or 'unnamed'})"
+
     def connect(self) -> None:
         request_lines = self._request_lines or _gpiod().request_lines
         settings = line_settings(self.edge, self.event_clock, self.debounce_us, self.bias)

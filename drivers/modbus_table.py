@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,7 @@ class ModbusTable:
         self.transport, self.unit_id, self.word_order = transport, unit_id, word_order
         self.timeout_s, self.retries, self.watchdog_ms = timeout_s, retries, watchdog_ms
         self.window_deg, self.dwell_s = window_deg, dwell_s
+        self.host, self.tcp_port = host, tcp_port
         if transport == "tcp":
             self.where = f"modbus tcp {host}:{tcp_port}"
             self._make = lambda: ModbusTcpClient(host, port=tcp_port, timeout=timeout_s, retries=retries)
@@ -153,6 +155,14 @@ class ModbusTable:
         return encode_32(to_counts(value_si, scale), True, self.word_order)
 
     # -------------------------------------------------------------------------- set-up
+    def identify(self) -> str:
+        """Connect and read axis 1's input block (nothing is written): who answers. Modbus TCP
+        first opens a plain socket, so a refused or unreachable port raises its OSError."""
+        if self.transport == "tcp":
+            socket.create_connection((self.host, self.tcp_port), timeout=self.timeout_s).close()
+        ai = self._inputs(1)
+        return f"Modbus unit {self.unit_id} answers (axis 1 status 0x{int(ai.status):04x})"
+
     def connect(self) -> None:
         """Connect, take remote control, set limits/window, servo on, estimate the time offset."""
         self._ensure()

@@ -77,6 +77,15 @@ class ModemPulses:
         self._thread: threading.Thread | None = None
         self._fatal: BaseException | None = None
 
+    def identify(self) -> str:
+        """Open the port and read the configured modem-status line's level; close it."""
+        ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.1)
+        try:
+            level = self._poll_level(ser)
+        finally:
+            ser.close()
+        return f"port open, {self.line.upper()} {'high' if level else 'low'}"
+
     def connect(self) -> None:
         self.ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.1)
         if self.mode == "wait":

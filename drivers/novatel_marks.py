@@ -66,6 +66,17 @@ class NovatelMarks(ReconnectingReader):
         """Configure the receiver and start the reader thread (raises if it refuses)."""
         self._start_reader(4 * self.timeout_s + 1.0, f"no answer from the receiver on {self.link.url}")
 
+    def identify(self) -> str:
+        """Open the link and send the configured MARKCONTROL (what the run sends first): the
+        receiver must answer ``<OK``. Raises LinkLost (the port, or no answer)."""
+        self.link.open()
+        self.link.drain_input()
+        try:
+            self._command(format_markcontrol(self.control))
+        finally:
+            self.link.close()
+        return f"NovAtel receiver answers ({self.control.signal})"
+
     def _command(self, line: bytes) -> None:
         self.link.write(line)
         deadline = time.monotonic() + self.timeout_s

@@ -14,7 +14,9 @@ pauses on them like on a pulled cable).
 """
 from __future__ import annotations
 
+import errno
 import logging
+import socket
 import time
 from dataclasses import dataclass, field
 
@@ -23,6 +25,55 @@ import serial
 from rigctl.devices import LinkLost
 
 log = logging.getLogger(__name__)
+
+#: what to look at when a device path does not exist, per kind of port
+_LOOK = {"serial": "is the adapter plugged in? ls /dev/serial/by-id",
+         "gpio": "does the board have that chip? ls /dev/gpiochip*"}
+
+
+def _errnos(exc: BaseException) -> list[int]:
+    """errno values found along ``exc``'s chain (cause and context), outermost first."""
+    out, seen, e = [], set(), exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, socket.gaierror):
+            out.append(-1000)  # name resolution: its own (negative, platform) codes
+        elif isinstance(e, OSError) and isinstance(e.errno, int):
+            out.append(e.errno)
+        elif isinstance(e, OSError) and e.args and isinstance(e.args[0], int):  # termios.error
+            out.append(e.args[0])
+        e = e.__cause__ or e.__context__
+    return out
+
+
+def explain_link_error(where: str, exc: BaseException, kind: str = "serial") -> str:
+    """One line saying what is wrong with the port ``where`` (a pyserial URL, a TCP address, a
+    GPIO chip) and what to do, from the errno ``exc`` (or an exception it chains) carries;
+    ``kind`` is "serial", "tcp" or "gpio"."""
+    codes = _errnos(exc)
+    code = codes[0] if codes else None
+    if code == errno.ENOENT:
+        return f"{where}: no such device; {_LOOK.get(kind, _LOOK['serial'])}"
+    if code in (errno.EACCES, errno.EPERM):
+        group = "gpio" if kind == "gpio" else "dialout"
+        return (f"{where}: permission denied; add the user to the {group} group (sudo adduser $USER {group}, "
+                "then log in again)")
+    if code == errno.EBUSY:
+        return f"{where}: busy; another program holds the port (another rigctl? fuser {where})"
+    if code == errno.ECONNREFUSED:
+        return f"{where}: connection refused; is rigctl sim up / the device server running?"
+    if code == -1000:
+        return f"{where}: unknown host; check the host name in the config"
+    if code in (errno.ETIMEDOUT, errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN):
+        return f"{where}: host unreachable ({errno.errorcode.get(code, code)}); check the address and the network"
+    if code == errno.ENOTTY:
+        return f"{where}: not a serial port; give the adapter's device (ls /dev/serial/by-id) or socket://HOST:PORT"
+    if code == errno.EISDIR:
+        return f"{where}: is a directory; give the device (ls /dev/serial/by-id)"
+    if isinstance(exc, ReplyTimeout) or "no answer" in str(exc) or "no acknowledgement" in str(exc):
+        return (f"{where}: opened, but the device does not answer; is it powered and is the right device "
+                f"on this port, at the configured baud rate? ({exc})")
+    return f"{where}: {exc}"
 
 
 class ReplyTimeout(LinkLost):

@@ -124,6 +124,25 @@ class XsensImu(ReconnectingReader):
         self._last_warn = 0.0
         self._warned_bad = 0
 
+    def identify(self) -> str:
+        """Open the link, ask the device for its DeviceID (GoToConfig, ReqDID) and put it back
+        in measurement mode; no reader thread. Raises LinkLost (the port, or no answer)."""
+        self.link.open()
+        self.link.drain_input()
+        try:
+            self._request(go_to_config(), MID.GO_TO_CONFIG_ACK, "GoToConfig")
+            m = self._request(req_did(), MID.DEVICE_ID, "ReqDID", required=False)
+            device_id = ""
+            if m is not None:
+                try:
+                    device_id = decode_device_id(m.data)
+                except XsensError:
+                    device_id = ""
+            self._request(go_to_measurement(), MID.GO_TO_MEASUREMENT_ACK, "GoToMeasurement", required=False)
+        finally:
+            self.link.close()
+        return f"Xsens MT, device ID {device_id}" if device_id else "Xsens MT (no device ID reported)"
+
     # ----------------------------------------------------------------------- reader thread
     def connect(self) -> None:
         """Start the reader thread; return once the device streams (raise if it cannot)."""

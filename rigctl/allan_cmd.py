@@ -23,7 +23,9 @@ import numpy as np
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
+from rigctl.errors import InputError
 from rigctl.progress import WorkProgress
+from rigctl.recording_reader import check_finite, open_recording, sample_rate
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
@@ -43,8 +45,8 @@ DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many p
 SCHEMA_VERSION = 1
 
 
-class UsageError(Exception):
-    """Invalid input: exit code 2 with this message."""
+#: invalid input (exit code 2): the one error type of rigctl.errors
+UsageError = InputError
 
 
 class _AxisStream:
@@ -124,40 +126,13 @@ def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
             "_si": si, "_unit": unit}
 
 
-def _fail(msg: str) -> int:
-    print(f"rigctl allan: error: {msg}", file=sys.stderr)
-    return 2
-
-
 def _open_checked(path: str, axes: list[str]):
-    import h5py
-
-    if not os.path.isfile(path):
-        raise UsageError(f"{path}: no such file; give the path of a rigctl HDF5 recording")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise UsageError(f"{path}: not an HDF5 file ({exc}); give a rigctl recording") from exc
-    if f.attrs.get("format") not in ("rigctl-recording", b"rigctl-recording"):
-        f.close()
-        raise UsageError(f"{path}: not a rigctl recording (root attribute format != "
-                         "'rigctl-recording'); record with rigctl first")
-    for name in sorted({AXES[a][0] for a in axes}):
-        if name not in f or f[name].ndim != 2 or f[name].shape[1] != 3:
-            f.close()
-            raise UsageError(f"{path}: dataset {name} (N, 3) is missing; choose --axes "
-                             "that the recording contains")
-    return f
+    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
 
 
 def _sample_rate(f, path: str) -> float:
-    rate = f["/imu"].attrs.get("sample_rate_hz") if "/imu" in f else None
-    if rate is None and "/imu/time" in f and f["/imu/time"].shape[0] > 1:
-        t = f["/imu/time"][:2]
-        rate = 1.0 / float(t[1] - t[0])
-    if rate is None or not np.isfinite(rate) or float(rate) <= 0:
-        raise UsageError(f"{path}: /imu has no valid sample_rate_hz attribute")
-    return float(rate)
+    return sample_rate(f)
 
 
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
@@ -189,6 +164,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         for a0 in range(s0, s1, CHUNK_ROWS):
             a1 = min(s1, a0 + CHUNK_ROWS)
             blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+            for name, b in blocks.items():
+                check_finite(path, name, b, a0)
             for a in axes:
                 name, col, _ = AXES[a]
                 streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
@@ -217,7 +194,7 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
 def _capture_range(f: Any) -> tuple[int, int, str] | None:
     """Sample range of the longest ``capture`` segment (complete preferred), or None."""
     seg = f.get("/segments")
-    if seg is None or "kind" not in seg or "first_sample" not in seg:
+    if seg is None or any(k not in seg for k in ("kind", "first_sample", "last_sample")):
         return None
     kinds = [bytes(k).rstrip(b"\0") for k in seg["kind"][:]]
     first, last = seg["first_sample"][:], seg["last_sample"][:]
@@ -236,7 +213,7 @@ def _capture_range(f: Any) -> tuple[int, int, str] | None:
 def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
     """Largest |table rate| (deg/s) and largest angle excursion (deg) over the IMU samples
     [s0, s1), from /table; (0, 0) when the recording has no table data."""
-    if "/table/rate" not in f or "/imu/time" not in f or s1 <= s0:
+    if any(n not in f for n in ("/table/rate", "/table/time", "/table/angle", "/imu/time")) or s1 <= s0:
         return 0.0, 0.0
     t = f["/imu/time"]
     t0, t1 = float(t[s0]), float(t[s1 - 1])
@@ -246,7 +223,9 @@ def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
         return 0.0, 0.0
     rate = np.degrees(np.abs(f["/table/rate"][:][sel]))
     ang = np.degrees(f["/table/angle"][:][sel])
-    return float(np.nanmax(rate)), float(np.nanmax(np.nanmax(ang, axis=0) - np.nanmin(ang, axis=0)))
+    rate, ang = rate[np.isfinite(rate)], ang[np.isfinite(ang).all(axis=1)]  # unreadable polls: no motion known
+    return (float(rate.max()) if rate.size else 0.0,
+            float((ang.max(axis=0) - ang.min(axis=0)).max()) if len(ang) else 0.0)
 
 
 #: above these the analysed range is not a static capture (deg/s, deg)
@@ -460,7 +439,7 @@ def _parse_taus(text: str) -> A.TauSpec:
 
 
 def _parse_axes(text: str) -> list[str]:
-    axes = [a.strip() for a in text.split(",") if a.strip()]
+    axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
         raise UsageError(f"--axes {text!r}: choose from {','.join(AXES)}")
@@ -468,44 +447,38 @@ def _parse_axes(text: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Entry point of ``rigctl allan``: 0 ok, 2 invalid input, 1 failure."""
-    try:
-        axes = _parse_axes(args.axes)
-        taus = _parse_taus(str(args.taus))
-        if args.plot:
-            try:
-                import matplotlib  # noqa: F401
-            except ImportError:
-                raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
-        if args.kalibr and set(axes) != set(AXES):
-            raise UsageError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
-        if not args.kalibr_inflate > 0:
-            raise UsageError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
-        rng, where, warn = choose_range(args.recording, axes, args.whole)
-        print(f"analysing the {where} of {args.recording}", flush=True)
-        if warn:
-            print(f"warning: {warn}", file=sys.stderr, flush=True)
-        spec = load_spec(args.spec, args.decision_rule) if args.spec else None
-        result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
-        result["segment"] = where
-    except UsageError as exc:
-        return _fail(str(exc))
-    try:
-        for a, r in result["axes"].items():
-            print(format_table(a, r))
-        result["verdicts"] = production.verdicts_for(spec, "allan", result)
-        if result["verdicts"]:
-            print(format_verdicts(result["verdicts"]))
-        store(args.recording, result)
-        print(f"results written to {args.recording}:/results/allan")
-        print(production.to_database(args.recording, "allan", result, args.db))
-        if args.plot:
-            plot(result, args.plot)
-            print(f"plot written to {args.plot}")
-        export(args, result)
-    except (OSError, ValueError) as exc:
-        print(f"rigctl allan: failed: {exc}", file=sys.stderr)
-        return 1
+    """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
+    codes by rigctl.cli.main)."""
+    axes = _parse_axes(args.axes)
+    taus = _parse_taus(str(args.taus))
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+    if args.kalibr and set(axes) != set(AXES):
+        raise UsageError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
+    if not args.kalibr_inflate > 0:
+        raise UsageError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
+    rng, where, warn = choose_range(args.recording, axes, args.whole)
+    print(f"analysing the {where} of {args.recording}", flush=True)
+    if warn:
+        print(f"warning: {warn}", file=sys.stderr, flush=True)
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
+    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
+    result["segment"] = where
+    for a, r in result["axes"].items():
+        print(format_table(a, r))
+    result["verdicts"] = production.verdicts_for(spec, "allan", result)
+    if result["verdicts"]:
+        print(format_verdicts(result["verdicts"]))
+    store(args.recording, result)
+    print(f"results written to {args.recording}:/results/allan")
+    print(production.to_database(args.recording, "allan", result, args.db))
+    if args.plot:
+        plot(result, args.plot)
+        print(f"plot written to {args.plot}")
+    export(args, result)
     return 0
 
 

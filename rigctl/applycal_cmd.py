@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +35,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .recorder import utc_now
+from .recording_reader import check_finite
 from .segment_builder import open_recording
-from .yamlio import InputError
+from .errors import InputError, RunFailure
 
 CHUNK = 1 << 18
 
@@ -76,6 +76,8 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
             data = json.loads(cp.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
             raise InputError(f"not valid JSON ({exc.msg})", cp, exc.lineno) from None
+        except UnicodeDecodeError:
+            raise InputError("not a UTF-8 text file", cp, hint="give the JSON written by rigctl calibrate") from None
         src = f"{cp.resolve()}"
     else:
         with open_recording(path) as f:
@@ -89,7 +91,11 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
     try:
         for sensor, keys in (("accel", ("bias_m_s2", "M", "k2_s2_per_m")), ("gyro", ("bias_rad_s", "M"))):
             for k in keys:
-                np.asarray(model[sensor][k], dtype=np.float64)
+                v = np.asarray(model[sensor][k], dtype=np.float64)
+                if v.shape != ((3, 3) if k == "M" else (3,)) or not np.all(np.isfinite(v)):
+                    raise ValueError(f"{sensor} {k}")
+                if k == "M" and abs(np.linalg.det(v)) < 1e-6:
+                    raise ValueError(f"{sensor} {k} is singular")
     except (TypeError, KeyError, ValueError):
         raise InputError("the calibration has no complete 'model' (accel bias_m_s2, M, k2_s2_per_m; "
                          "gyro bias_rad_s, M)", calibration or path,
@@ -119,10 +125,13 @@ def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -
             n = fa.shape[0]
             for a0 in range(0, n, CHUNK):
                 a1 = min(n, a0 + CHUNK)
-                acc = invert_accel(fin["imu/specific_force"][a0:a1], ba, Ma, k2)
-                fw[a0:a1] = invert_gyro(fin["imu/angular_rate"][a0:a1], acc, bg, Mg, G)
+                f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
+                check_finite(src, "imu/specific_force", f_in, a0)
+                check_finite(src, "imu/angular_rate", w_in, a0)
+                acc = invert_accel(f_in, ba, Ma, k2)
+                fw[a0:a1] = invert_gyro(w_in, acc, bg, Mg, G)
                 fa[a0:a1] = acc
-            fo["meta"].attrs["calibration_applied_json"] = json.dumps({
+            fo.require_group("meta").attrs["calibration_applied_json"] = json.dumps({
                 "source": origin, "input": str(src.resolve()), "applied_utc": utc_now(),
                 "schema_version": info["schema_version"], "status": info["status"],
                 "trustworthy": info["trustworthy"], "model": m})
@@ -137,8 +146,6 @@ def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl apply-cal``: 0 ok, 2 invalid input, 1 failure."""
     src, out = Path(args.recording), Path(args.output)
-    if not src.is_file():
-        raise InputError("recording not found", src)
     if out.exists() and out.resolve() == src.resolve():
         raise InputError("-o names the input recording; apply-cal never modifies its input", out,
                          hint="choose another output file")
@@ -152,8 +159,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         n = apply_calibration(src, out, info, origin)
     except (OSError, ValueError, np.linalg.LinAlgError) as exc:
-        print(f"rigctl apply-cal: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{src}: {exc}") from exc
     note = "" if info.get("trustworthy", True) is not False else " (WARNING: that calibration is NOT TRUSTWORTHY)"
     print(f"applied calibration from {origin} to {n} samples{note}")
     print(f"recording: {out}")

@@ -32,7 +32,6 @@ import argparse
 import json
 import math
 import re
-import sys
 from pathlib import Path
 from typing import Any, Callable
 
@@ -46,8 +45,8 @@ from .recorder import utc_now, write_results
 from .segment_builder import build_segment_table, open_recording
 from .solvers.calibration_result import CalibrationResult, _jsonable
 from .solvers.segment_stats import NoiseModel
+from .errors import InputError, RunFailure
 from .spec import Spec, load_spec
-from .yamlio import InputError
 
 SCHEMA_VERSION = 1
 G0 = 9.80665
@@ -440,8 +439,7 @@ def run(args: argparse.Namespace) -> int:
     except InputError:
         raise
     except (OSError, ValueError, np.linalg.LinAlgError) as exc:
-        print(f"rigctl calibrate: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{args.recording}: {exc}") from exc
     print(text.rstrip())
     if args.explain and explain:
         print(explain)

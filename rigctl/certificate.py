@@ -23,10 +23,10 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 
 from . import __version__
+from .recording_reader import open_recording
 from .analysis import production
 from .analysis import results as R
 from .analysis.verdicts import evaluate
@@ -59,7 +59,7 @@ def _kv(rows: list[tuple[str, Any]]) -> str:
 def environment(recording: Path) -> dict[str, Any]:
     """IMU temperature range (degC) and recorded span (s) of a recording."""
     out: dict[str, Any] = {}
-    with h5py.File(recording, "r") as f:
+    with open_recording(recording, need=()) as f:
         if "imu/temperature" in f and f["imu/temperature"].shape[0]:
             t = f["imu/temperature"]
             lo, hi, n = math.inf, -math.inf, t.shape[0]
@@ -77,7 +77,7 @@ def environment(recording: Path) -> dict[str, Any]:
 
 def certificate_data(recording: Path, spec: Spec | None) -> dict[str, Any]:
     """Everything the certificate shows, read from the recording (and the unit's Allan capture)."""
-    with h5py.File(recording, "r") as f:
+    with open_recording(recording, need=()) as f:
         g = f.get("results/calibration")
         cal = json.loads(g.attrs["json"]) if g is not None and "json" in g.attrs else None
     if cal is None:

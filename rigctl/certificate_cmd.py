@@ -7,10 +7,10 @@ Exit codes: 0 written, 1 failure (Chromium could not print), 2 invalid input.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
+from .errors import RunFailure
 from .certificate import write_certificate
 from .report import resolve_run
 from .solvers.conformity import RULES
@@ -24,8 +24,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         pdf, d = write_certificate(rec, Path(args.out) if args.out else run_dir, spec)
     except (RuntimeError, OSError, TimeoutError) as exc:
-        print(f"rigctl certificate: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{rec}: {exc}") from exc
     v = d["verdicts"]
     print(f"certificate of unit {d['unit_id']} ({len(d['measured'])} results"
           + (f", overall {v['overall']} against {v['spec']}" if v else ", no spec: no verdicts") + f"): {pdf}")

@@ -147,6 +147,24 @@ def status_flags(path: Path) -> int:
     return head[11] if head[8] in (2, 3) else -1
 
 
+def superblock_eof(path: Path) -> int | None:
+    """The end-of-file address (bytes, base address included) a version 2/3 superblock at
+    offset 0 records; None for other superblocks (older files: HDF5 itself checks their size)
+    or an unreadable one. A file shorter than this was cut off."""
+    with open(path, "rb") as fh:
+        sb = fh.read(48 + 16)
+    if sb[:8] != HDF5_SIGNATURE or len(sb) < 12 or sb[8] not in (2, 3):
+        return None
+    so = sb[9]
+    if so not in (2, 4, 8) or len(sb) < 12 + 4 * so + 4:
+        return None
+    end = 12 + 4 * so
+    if int.from_bytes(sb[end:end + 4], "little") != lookup3(bytes(sb[:end])):
+        return None
+    base = int.from_bytes(sb[12:12 + so], "little")
+    return base + int.from_bytes(sb[12 + 2 * so:12 + 3 * so], "little")
+
+
 def clear_status_flags(path: Path) -> bool:
     """Clear the write/SWMR flags a crashed writer left; True if anything changed.
 

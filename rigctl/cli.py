@@ -6,17 +6,21 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import traceback
 from pathlib import Path
 
 from . import __version__
-from .config import load_config, resolve_config_path
+from .config import RigConfig, load_config, resolve_config_path
+from .device_check import check_devices
 from .estimate import data_volume_bytes, estimate
 from .procedure import load_procedure, parse_overrides
 from .rig import describe
-from .runner import EXIT_INVALID, run_procedure
+from .console import guarded_std_streams
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
+from .runner import RUN_LOG, run_procedure
 from .units import format_bytes, format_duration
-from .yamlio import InputError
 
 #: Sub-command -> the module that adds it through ``register(subparsers)``. Only the module of
 #: the command being run is imported (the solvers pull in scipy, about 1 s, which a client verb
@@ -43,11 +47,29 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
-    return result.exit_code
+    if result.exit_code == EXIT_OK:
+        return EXIT_OK
+    where = f"{result.run_dir / RUN_LOG}"
+    if result.exit_code == EXIT_INTERRUPTED:
+        raise Interrupted(f"{result.message}; recording {result.recording} closed as {result.status} "
+                          f"(rigctl resume {result.run_dir} continues it)")
+    raise RunFailure(f"{result.message} (recording {result.status}; details in {where})")
+
+
+def print_device_report(cfg_path: Path, cfg: RigConfig) -> None:
+    """``validate --devices``: one line per device; DeviceError when one did not answer."""
+    report = check_devices(cfg)
+    for c in report.checks:
+        if c.ok:
+            print(c.line())
+    report.raise_for_problems()
+    print(f"devices of {cfg_path}: all answered")
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
     cfg_path, cfg, proc = _load(args)
+    if args.devices:
+        print_device_report(cfg_path, cfg)
     print(f"procedure {proc.name} ({proc.path}) against config {cfg_path}: {describe(cfg)}")
     if proc.parameters:
         print("parameters: " + ", ".join(f"{k}={v}" for k, v in proc.parameters.items()))
@@ -99,23 +121,57 @@ def build_parser(argv: list[str] | None = None, everything: bool = True) -> argp
     r.set_defaults(func=cmd_run)
     v = sub.add_parser("validate", help="check a procedure and print its steps, duration and data volume")
     common(v)
+    v.add_argument("--devices", action="store_true",
+                   help="also open each configured port and ask each device who it is (ok, or what to do)")
     v.set_defaults(func=cmd_validate)
     for mod in (COMMAND_MODULES if everything else _modules_for(argv)):
         importlib.import_module(mod).register(sub)
     return p
 
 
+def _command_name(argv: list[str] | None) -> str:
+    words = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in words if not a.startswith("-")), "")
+    return f"rigctl {first}" if first in (*COMMANDS, "run", "validate") else "rigctl"
+
+
+def report_error(prog: str, exc: BaseException) -> int:
+    """The one place that turns an exception into one line on stderr and an exit code
+    (rigctl.errors): RigctlError -> its ``exit_code``; OSError (disk, permissions) -> 1;
+    KeyboardInterrupt -> 130; anything else is a bug -> 1, with its traceback only when
+    RIGCTL_DEBUG=1 (a run's own failures go to its run log, rigctl.runner)."""
+    if isinstance(exc, KeyboardInterrupt):
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if isinstance(exc, RigctlError):
+        word = {EXIT_INVALID: "error", EXIT_INTERRUPTED: "interrupted"}.get(exc.exit_code, "failed")
+        for line in str(exc).splitlines() or [""]:  # several problems: one line each
+            print(f"{prog}: {word}: {line}", file=sys.stderr)
+        return exc.exit_code
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"{prog}: failed: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILED
+    if os.environ.get("RIGCTL_DEBUG") == "1":
+        traceback.print_exception(exc, file=sys.stderr)
+    print(f"{prog}: internal error: {type(exc).__name__}: {exc} (a bug in rigctl: please report it "
+          "with the output of the same command run with RIGCTL_DEBUG=1)", file=sys.stderr)
+    return EXIT_FAILED
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser(argv, everything=False)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_INVALID
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    """The entry point of every command: parse, run, map errors to exit codes (rigctl.errors).
+    Standard output and error are console streams that survive their reader (rigctl.console)."""
+    prog = _command_name(argv)
+    with guarded_std_streams():
+        try:
+            parser = build_parser(argv, everything=False)
+            args = parser.parse_args(argv)
+            return int(args.func(args))
+        except SystemExit as exc:  # argparse: --help, --version (0) and usage errors (2)
+            return exc.code if isinstance(exc.code, int) else EXIT_INVALID
+        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - the one place errors become exit codes
+            return report_error(prog, exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

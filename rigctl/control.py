@@ -22,6 +22,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .errors import EXIT_FAILED, EXIT_INVALID
+
 PROTOCOL_VERSION = 1
 MAX_MESSAGE = 64 * 1024
 CONN_TIMEOUT_S = 5.0
@@ -200,7 +202,7 @@ class ControlServer:
                 cmd, args = validate_request(obj)
             except ProtocolError as exc:
                 self.log("warning", f"control: rejected a request: {exc}")
-                _send(conn, {"ok": False, "error": str(exc)})
+                _send(conn, {"ok": False, "error": str(exc), "exit_code": EXIT_INVALID})
                 return
             except OSError:
                 return
@@ -208,7 +210,7 @@ class ControlServer:
                 reply = self.handler(cmd, args)
             except Exception as exc:  # noqa: BLE001 - the daemon keeps serving
                 self.log("error", f"control: {cmd} failed: {type(exc).__name__}: {exc}")
-                reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}", "exit_code": EXIT_FAILED}
             _send(conn, reply)
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import sys
 import threading
 import time
 from collections import deque
@@ -23,12 +22,14 @@ from typing import Any
 from . import control
 from .checkpoint import write_atomic
 from .config import load_config, resolve_config_path
+from .console import detach_all
 from .engine import Engine
 from .procedure import load_procedure, parse_overrides
 from .progress import NullProgress, Progress
 from .recorder import utc_now
 from .runlog import RunLog
-from .runner import EXIT_FAILED, EXIT_INVALID, RunOptions, check_run_dir, resume_run, run_procedure
+from .errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
+from .runner import RunOptions, check_run_dir, resume_run, run_procedure
 from .states import StateMachine
 from .yamlio import InputError
 
@@ -146,12 +147,13 @@ class Daemon:
     def _cmd_submit(self, args: dict) -> dict:
         path = Path(args["procedure"])
         if not path.is_absolute():
-            return {"ok": False, "error": "procedure path must be absolute (the client resolves it)"}
+            return {"ok": False, "error": "procedure path must be absolute (the client resolves it)",
+                    "exit_code": EXIT_INVALID}
         params = dict(args.get("params") or {})
         try:
             load_procedure(path, params, self.cfg.limits)  # validate now: errors go to the client
         except InputError as exc:
-            return {"ok": False, "error": str(exc)}
+            return {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
         job = self._new_job("run", procedure=str(path), params=params)
         self._save_jobs()
         self.cv.notify_all()
@@ -168,7 +170,7 @@ class Daemon:
             try:
                 d = check_run_dir(args["run"], self.runs_dir)
             except InputError as exc:
-                return {"ok": False, "error": str(exc)}
+                return {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
             job = self._new_job("resume", run_dir=str(d))
             self._save_jobs()
             self.cv.notify_all()
@@ -278,6 +280,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    # a hang-up (the terminal or SSH session closed) detaches the console; the daemon goes on
+    signal.signal(signal.SIGHUP, lambda *_: detach_all("hang-up (SIGHUP)", notify=False))
     d.start()
     while not stop.wait(0.2):
         pass
@@ -291,9 +295,11 @@ def _client(args: argparse.Namespace, cmd: str, payload: dict[str, Any] | None =
 
 
 def _print_reply(reply: dict[str, Any]) -> int:
+    """Print a daemon's answer; a refusal raises the error its ``exit_code`` names (2: the
+    request or the procedure is invalid, else 1), so the CLI exits as ``rigctl run`` would."""
     if not reply.get("ok"):
-        print(f"error: {reply.get('error', 'unknown error')}", file=sys.stderr)
-        return EXIT_FAILED
+        text = str(reply.get("error", "unknown error"))
+        raise InputError(text) if reply.get("exit_code") == EXIT_INVALID else RunFailure(text)
     for k, v in reply.items():
         if k != "ok":
             print(f"{k}: {json.dumps(v) if isinstance(v, (dict, list)) else v}")
@@ -304,9 +310,8 @@ def _run_client(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.N
     def wrapped(args: argparse.Namespace) -> int:
         try:
             return fn(args)
-        except ConnectionError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return EXIT_FAILED
+        except ConnectionError as exc:  # no daemon: a failure at run time (1)
+            raise RunFailure(str(exc)) from None
     return wrapped
 
 
@@ -369,12 +374,11 @@ def cmd_resume(args: argparse.Namespace) -> int:
     path = Path(args.socket) if args.socket else control.default_socket_path()
     if control.ping(path):  # the daemon owns the rig: let it run the resume
         return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}))
-    try:
-        res = resume_run(args.run, args.runs)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_INVALID
-    return res.exit_code
+    res = resume_run(args.run, args.runs)
+    if res.exit_code != EXIT_OK:
+        raise (Interrupted if res.exit_code == EXIT_INTERRUPTED else RunFailure)(
+            f"{res.message} (recording {res.status}; details in {res.run_dir / 'run.log.jsonl'})")
+    return EXIT_OK
 
 
 def register(sub: Any) -> None:

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from . import errors
 from .devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
 from .procedure import Step
 from .progress import CounterGaps, NullProgress, Progress
@@ -37,11 +38,11 @@ from .suspenders import Observation, SuspenderSet
 TIME_EPS = 1e-6
 
 
-class RunError(Exception):
+class RunError(errors.RunFailure):
     """A failure at run time (settle timeout, device fault)."""
 
 
-class Interrupted(Exception):
+class Interrupted(errors.Interrupted):
     """The run was interrupted (SIGINT / SIGTERM / abort)."""
 
 

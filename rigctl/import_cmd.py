@@ -49,8 +49,9 @@ from . import __version__
 from .analysis import bag_import as B
 from .devices import ImuBlock
 from .frames import normal_gravity
+from .errors import InputError, RunFailure
 from .progress import WorkProgress
-from .yamlio import InputError
+from .recording_reader import MAX_RATE_HZ
 
 G0 = 9.80665
 DEG = math.pi / 180.0
@@ -129,8 +130,13 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
     """Columns of a CSV file as arrays (sensor/time/temp float, section str); header line number."""
     if not path.is_file():
         raise InputError("input file not found", path)
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 text (CSV) file", path, hint="give the CSV log") from None
+    except (csv.Error, OSError) as exc:
+        raise InputError(f"cannot be read as CSV ({exc})", path) from None
     if len(rows) <= skip_rows:
         raise InputError(f"only {len(rows)} lines, --skip-rows {skip_rows}", path)
     header_line = skip_rows + 1
@@ -159,6 +165,8 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
         for n, r in enumerate(body):
             try:
                 vals[n] = float(r[j])
+                if not math.isfinite(vals[n]):
+                    raise ValueError
             except (ValueError, IndexError):
                 got = r[j] if j < len(r) else "(missing)"
                 raise InputError(f"column {mapping[key]!r}: {got!r} is not a number", path,
@@ -255,6 +263,14 @@ def check_output(src: Path, out: Path, force: bool) -> None:
         raise InputError("output directory does not exist", out.parent)
 
 
+def check_ranges(args: argparse.Namespace) -> None:
+    """The numeric options shared by every input, each inside its range (NaN fails)."""
+    for opt, v, lo, hi in (("--gravity", args.gravity, 9.7, 9.9), ("--latitude-deg", args.latitude_deg, -90, 90),
+                           ("--t-init", args.t_init, 0.0, 1e6), ("--skip-rows", args.skip_rows, 0, 1e9)):
+        if v is not None and not lo <= v <= hi:  # NaN fails too
+            raise InputError(f"{opt} {v:g} is outside [{lo:g}, {hi:g}]")
+
+
 def find_sections(args: argparse.Namespace, src: Path, acc: np.ndarray, gyr: np.ndarray, rate: float,
                   labels: np.ndarray | None = None, label_column: str = "") -> tuple[list[dict[str, Any]], str]:
     """Sections (``--segments`` JSON, else a section column's ``labels``, else automatic static
@@ -337,8 +353,9 @@ def import_csv(args: argparse.Namespace) -> Imported:
     check_output(src, out, args.force)
     mapping = parse_columns(args.columns)
     factors = parse_units(args.units)
-    if args.rate is None or not args.rate > 0:
-        raise InputError("--rate HZ (> 0) is required: the nominal sample rate", src)
+    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
+        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+    check_ranges(args)
     cols, _ = read_table(src, mapping, args.skip_rows)
     n = len(cols["acc_x"])
     acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
@@ -372,11 +389,15 @@ def import_bag(args: argparse.Namespace) -> Imported:
             raise InputError(f"--{opt} applies to CSV files only: a bag's Imu messages are in SI "
                              "units and carry their time stamps", src)
     check_output(src, out, args.force)
+    check_ranges(args)
     shown = WorkProgress(f"import {src.name}", 1, unit="messages", stream=sys.stderr)
     b = B.read_imu(src, args.topic, args.time_source, progress=lambda done, total: _show(shown, done, total))
     shown.done = float(b.n_messages)
     shown.finish()
     n = len(b.time_s)
+    if not 0 < b.rate_hz <= MAX_RATE_HZ:
+        raise InputError(f"topic {b.topic}: {b.time_source} gives {b.rate_hz:g} Hz, outside (0, {MAX_RATE_HZ:g}]: "
+                         "not sample times", src, hint="try --time-source receive")
     sections, origin = find_sections(args, src, b.specific_force, b.angular_rate, b.rate_hz)
     gaps = (f"{b.gaps} gaps, {b.missing_samples} samples missing (/imu/counter jumps)" if b.gaps
             else "no gaps")
@@ -422,8 +443,7 @@ def run(args: argparse.Namespace) -> int:
     except InputError:
         raise
     except OSError as exc:
-        print(f"rigctl import: failed: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{args.output}: {exc}") from exc
     kinds: dict[str, int] = {}
     for s in done.sections:
         kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1

@@ -166,9 +166,8 @@ class _Compiler:
     def check_overrides(self) -> None:
         for name in self.overrides:
             if name not in self.params:
-                known = ", ".join(sorted(self.params)) or "none"
                 raise InputError(f"-p {name}: the procedure has no parameter {name!r}",
-                                 hint=f"its parameters: {known}")
+                                 hint=S.did_you_mean(name, sorted(self.params), "its parameters"))
 
     def value_of(self, name: str) -> Any:
         return self.overrides[name] if name in self.overrides else self.params[name]

@@ -386,24 +386,42 @@ class Recorder:
             ds[n0:] = data
 
     def close(self, status: str = "complete") -> None:
-        """Write what is buffered, set /run/status and the end time, close the file."""
+        """Write what is buffered, set /run/status and the end time, close the file.
+
+        The status is written even when the last flush fails (a disk error): then it is
+        ``failed`` (a ``complete`` run whose last rows could not be written is not complete),
+        the buffered rows are dropped, the file is closed, and the flush's error is raised."""
         if self.closed:
             return
         if status not in STATUSES:
             raise ValueError(f"status must be one of {STATUSES}")
+        error: OSError | None = None
         try:
-            if self._disk_ok():
-                self.flush()
-                self._f["meta"].attrs["ended_utc"] = utc_now()
-            else:  # disk still full: keep what is on disk consistent, drop the buffer
-                for cols in self._buf.values():
-                    for parts in cols.values():
-                        parts.clear()
+            try:
+                if self._disk_ok():
+                    self.flush()
+                    self._f["meta"].attrs["ended_utc"] = utc_now()
+                else:  # disk still full: keep what is on disk consistent, drop the buffer
+                    self._clear_buffer()
+            except OSError as exc:
+                error = exc
+                self._clear_buffer()
+                status = "failed" if status == "complete" else status
             self._f["run/status"][0] = status.encode()  # in place: needs no new space
             self._f.flush()
         finally:
-            self._f.close()
-            self.closed = True
+            try:
+                self._f.close()
+            finally:
+                self.closed = True
+        if error is not None:
+            raise error
+
+    def _clear_buffer(self) -> None:
+        for cols in self._buf.values():
+            for parts in cols.values():
+                parts.clear()
+        self._buffered_rows = 0
 
 
 def write_results(path: str | Path, name: str, payload: dict[str, Any],

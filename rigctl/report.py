@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .analysis.production import latest_allan
+from .recording_reader import open_recording
 from .yamlio import InputError
 
 REPORT_HTML = "report.html"
@@ -34,8 +35,8 @@ COUNTER_CHUNK = 1 << 20
 MAX_TABLE_POINTS = 20000
 
 
-class ReportDependencyError(RuntimeError):
-    """matplotlib is missing: ``pip install 'rigctl[report]'``."""
+class ReportDependencyError(InputError):
+    """matplotlib is missing: ``pip install 'rigctl[report]'`` (exit code 2)."""
 
 
 @dataclass
@@ -97,18 +98,6 @@ def _strings(a: np.ndarray) -> np.ndarray:
                      for x in a], dtype=object)
 
 
-def _open(path: Path):
-    import h5py
-
-    try:
-        return h5py.File(path, "r", libver="latest", swmr=True)
-    except OSError:
-        try:
-            return h5py.File(path, "r")
-        except OSError as exc:
-            raise InputError(f"not an HDF5 file ({exc})", path) from None
-
-
 def _group_arrays(g: Any) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
 
@@ -156,13 +145,8 @@ def _read_run_log(run_dir: Path) -> list[dict[str, Any]]:
 def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunData:
     """Read a recording for the report; raises InputError if it is not a rigctl recording."""
     path = Path(recording)
-    if not path.is_file():
-        raise InputError("recording not found", path, hint="give a run directory or recording.h5")
-    with _open(path) as f:
+    with open_recording(path, need=("imu/time", "imu/specific_force", "imu/angular_rate")) as f:
         root = {k: _text(v) for k, v in f.attrs.items()}
-        if root.get("format") != "rigctl-recording":
-            raise InputError("not a rigctl recording (root attribute format != "
-                             "'rigctl-recording')", path, hint="see docs/data-format.md")
         meta = {k: _text(v) for k, v in f["meta"].attrs.items()} if "meta" in f else {}
         status = _text(f["run/status"][0]).rstrip("\x00") if "run/status" in f else "unknown"
         events: list[tuple[float, str, str]] = []
@@ -200,11 +184,14 @@ def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunDat
     if "allan" not in results:  # the Allan results of the same unit's latest analysed capture
         found = latest_allan(path)
         if found is not None:
-            with _open(found[0]) as g:
-                grp = g["results/allan"]
-                results["allan"] = {"json": found[1], "created_utc": _text(grp.attrs.get("created_utc", "")),
-                                    "schema_version": _text(grp.attrs.get("schema_version")),
-                                    "arrays": _group_arrays(grp), "source": str(found[0])}
+            try:
+                with open_recording(found[0], need=()) as g:
+                    grp = g["results/allan"]
+                    results["allan"] = {"json": found[1], "created_utc": _text(grp.attrs.get("created_utc", "")),
+                                        "schema_version": _text(grp.attrs.get("schema_version")),
+                                        "arrays": _group_arrays(grp), "source": str(found[0])}
+            except InputError:  # a damaged capture beside the run: the report goes on without it
+                pass
     rd = Path(run_dir) if run_dir is not None else path.parent
     return RunData(path, root, meta, status, events, table, segments, imu, results,
                    _read_run_log(rd))

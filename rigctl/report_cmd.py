@@ -10,26 +10,15 @@ import argparse
 import sys
 from typing import Any
 
-from .report import ReportDependencyError, build_report
-from .yamlio import InputError
+from .report import build_report
 
 
 def run(args: argparse.Namespace) -> int:
-    """Entry point of ``rigctl report``."""
+    """Entry point of ``rigctl report``; errors are raised (rigctl.errors)."""
     def log(kind: str, message: str, **_: Any) -> None:
         print(f"{kind}: {message}", file=sys.stderr)
 
-    try:
-        path = build_report(args.run, args.out, log=log)
-    except ReportDependencyError as exc:
-        print(f"rigctl report: error: {exc}", file=sys.stderr)
-        return 2
-    except InputError as exc:
-        print(f"rigctl report: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"rigctl report: failed: {exc}", file=sys.stderr)
-        return 1
+    path = build_report(args.run, args.out, log=log)
     print(f"report written: {path}")
     return 0
 

@@ -235,7 +235,7 @@ def s_table(d: RunData, plots: dict[str, Path]) -> str:
             m = s["kind"] == k
             st = s.get("settle_time", np.full(m.size, np.nan))[m]
             dur = (s["t_end"] - s["t_start"])[m]
-            rows.append([k, int(m.sum()), float(np.nanmean(dur)) if dur.size else None,
+            rows.append([k, int(m.sum()), float(np.nanmean(dur)) if np.isfinite(dur).any() else None,
                          float(np.nanmax(st)) if np.isfinite(st).any() else None])
         out.append(table(["segment kind", "count", "mean window [s]", "max settle time [s]"], rows,
                          num_from=1))

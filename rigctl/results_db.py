@@ -17,15 +17,17 @@ Tables (docs/production.md):
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import fcntl
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import (Engine, Float, ForeignKey, Integer, String, Text, create_engine, delete,
-                        event, select)
+                        event, select, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from .analysis.production import RunInfo
@@ -108,14 +110,39 @@ def open_db(target: str | Path) -> Engine:
     url = url_for(target)
     if url.startswith("sqlite:///"):
         Path(url[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
-    engine = create_engine(url)
+    sqlite = url.startswith("sqlite:///")
+    # several processes (two resumes, batch workers) may open the same database at once: wait
+    # for one another's writes instead of failing with "database is locked"
+    engine = create_engine(url, connect_args={"timeout": 60.0} if sqlite else {})
     if engine.dialect.name == "sqlite":
         event.listen(engine, "connect", lambda c, _: c.execute("PRAGMA foreign_keys=ON"))
-    with engine.begin() as conn:
+    with _schema_lock(url), engine.begin() as conn:
+        if engine.dialect.name == "postgresql":  # held until this transaction ends
+            conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": _SCHEMA_LOCK_KEY})
         cfg = _alembic_config(engine)
         cfg.attributes["connection"] = conn
         command.upgrade(cfg, "head")
     return engine
+
+
+#: pg_advisory_xact_lock key serialising schema upgrades (any constant shared by all rigctl)
+_SCHEMA_LOCK_KEY = 0x72696763
+
+
+@contextlib.contextmanager
+def _schema_lock(url: str) -> Iterator[None]:
+    """For a SQLite file, an exclusive flock on ``FILE.lock`` while the schema is created or
+    upgraded: two processes creating the same new database would otherwise both try to create
+    the alembic_version table and one would fail."""
+    if not url.startswith("sqlite:///"):
+        yield
+        return
+    with open(url[len("sqlite:///"):] + ".lock", "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
 def _f(x: float | None) -> float | None:

@@ -7,13 +7,15 @@ snapshot of the rig config) and ``checkpoint.json`` (rewritten atomically after 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 import signal
 import sys
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -23,13 +25,17 @@ import h5py
 import numpy as np
 
 from . import checkpoint as ckpt_mod
+from . import console as console_mod
+from .console import ConsoleStream
 from .config import RigConfig, load_config
+from .device_check import check_devices
 from .devices import DeviceFault, imu_identity
 from .engine import Engine, Interrupted, Rig, RunError
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from .estimate import estimate
 from .procedure import Procedure, Step, load_procedure
 from .progress import Progress, make_progress
-from .recorder import Recorder, Segment, library_versions
+from .recorder import Recorder, Segment, library_versions, utc_now
 from .rig import open_rig
 from .runlog import RunLog
 from .solve import run_solvers
@@ -38,7 +44,6 @@ from .suspenders import SuspenderSet, SuspenderSettings
 from .units import format_duration
 from .yamlio import InputError
 
-EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
 RECORDING, RUN_LOG, CONFIG_SNAPSHOT = "recording.h5", "run.log.jsonl", "config.yaml"
 
 
@@ -63,6 +68,9 @@ class RunOptions:
     max_pause_s: float | None = None
     sample_poll_s: float = 0.5
     progress: Progress | None = None  # default: a bar on a terminal, plain lines otherwise
+    #: open each configured port and ask each device who it is before creating anything
+    #: (rigctl.device_check); a failure is a DeviceError and no run directory is made
+    check_devices: bool = True
 
 
 def make_run_dir(parent: Path, procedure_name: str) -> Path:
@@ -170,100 +178,208 @@ def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Chec
                                               for p, t in proc.sources.items()})
 
 
+class _LogHandler(logging.Handler):
+    """Records of the ``rigctl`` loggers (drivers, rig set-up) during a run: into the run log,
+    with their traceback if any; on the console only the message line, never a traceback."""
+
+    def __init__(self, log: Callable[..., None]) -> None:
+        super().__init__(logging.WARNING)
+        self._log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        fields: dict[str, Any] = {"logger": record.name}
+        if record.exc_info:
+            fields["traceback"] = "".join(traceback.format_exception(*record.exc_info))
+        try:
+            self._log("error" if record.levelno >= logging.ERROR else "warning",
+                      f"{record.name}: {record.getMessage()}", **fields)
+        except Exception:  # noqa: BLE001 - logging must never break the run
+            self.handleError(record)
+
+
+@contextmanager
+def _run_context(log: Callable[..., None], install_signals: bool, console_streams: list[ConsoleStream],
+                 hangups: list[str]) -> Iterator[None]:
+    """For the length of a run: console loss noted in the run log (the run goes on), the
+    ``rigctl`` loggers routed to the run log, and (``install_signals``) SIGHUP detaching the
+    console instead of ending the process."""
+    def lost(name: str, reason: str) -> None:
+        log("warning", f"console ({name}) lost: {reason}; the run goes on, its messages go to the "
+                       "run log only", echo=False)
+
+    def on_hangup(_signum: int, _frame: Any) -> None:  # minimal: a signal handler
+        hangups.append(f"hang-up (SIGHUP) at {utc_now()}")
+        for st in console_streams:
+            st.detach("hang-up (SIGHUP)", notify=False)
+        console_mod.detach_all("hang-up (SIGHUP)", notify=False)
+
+    handler = _LogHandler(log)
+    logger = logging.getLogger("rigctl")
+    logger.addHandler(handler)
+    old_hup = None
+    if install_signals and hasattr(signal, "SIGHUP"):
+        old_hup = signal.signal(signal.SIGHUP, on_hangup)
+    try:
+        with console_mod.on_lost(lost):
+            yield
+    finally:
+        if old_hup is not None:
+            signal.signal(signal.SIGHUP, old_hup)
+        logger.removeHandler(handler)
+
+
 def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
            make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
            install_signals: bool, progress: Progress, resuming: bool = False) -> RunResult:
-    """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe."""
+    """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe: the
+    table stopped, the recording closed with a final status, the checkpoint saying the same.
+    Whatever fails (a device, the disk, a bug) is one line on the console and its traceback in
+    the run log; opening the rig or creating the recording may fail too (status ``failed``)."""
     recording = run_dir / RECORDING
     log = _DiskSafeLog(log)  # type: ignore[assignment]
     states = opts.states or StateMachine()
     status, code, message = "failed", EXIT_FAILED, ""
     old_handlers: dict[int, Any] = {}
     rec: Recorder | None = None
+    sim_time = math.nan
     wall0 = time.monotonic()
-    with opts.rig_opener(cfg) as (rig, truth):
-        rec, start = make_recorder(rig, truth)
-        suspenders = SuspenderSet(opts.suspenders, run_dir)
-        engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
-                        sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
-                        open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
-                        progress=progress)
-        progress.start([e for e in estimate(proc.steps, cfg) if e.step.index >= start], proc.name)
+    hangups: list[str] = []
+    streams = [progress.stream] if isinstance(progress.stream, ConsoleStream) else []
 
-        def on_transition(old: str, new: str, reason: str) -> None:
-            log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
-            if rec is not None and not rec.closed:
-                rec.add_event(rig.clock.now(), "state", f"{old} -> {new}: {reason}")
+    def note_hangups() -> None:
+        while hangups:
+            log("warning", f"{hangups.pop(0)}: console detached; the run goes on (see "
+                           "docs/troubleshooting.md: nohup, systemd-run, tmux)", echo=False)
 
-        states.listeners.append(on_transition)
-
-        def on_signal(signum: int, _frame: Any) -> None:
-            engine.request_abort(signal.Signals(signum).name)
-
-        def on_step(step: Step, seg: Segment) -> None:
-            ckpt.last_step, ckpt.n_imu, ckpt.n_segments = step.index, rec.n_imu, rec.n_segments
-            ckpt.t_file = seg.t_end + rec.time_offset
-            try:
-                ckpt_mod.save(run_dir, ckpt)
-            except OSError as exc:  # resume falls back on the recording's complete segments
-                log("warning", f"checkpoint not written: {exc}")
-
-        if install_signals:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old_handlers[sig] = signal.signal(sig, on_signal)
-        if opts.on_engine:
-            opts.on_engine(engine)
+    def guarded(what: str, fn: Callable[[], Any]) -> bool:
+        """Run one clean-up step; a failure is logged (traceback in the run log), never raised."""
         try:
-            # resuming: the cut-off left the table as it was; stop it before any motion
-            engine.run(proc.steps, start, on_step=on_step,
-                       stop_first=f"session {ckpt.sessions}" if resuming else None)
-            status, code = "complete", EXIT_OK
-        except Interrupted as exc:
-            status, code, message = "interrupted", EXIT_INTERRUPTED, f"interrupted by {exc}"
-            states.to("aborting", message)
-            log("error", f"{message}: table stopped, recording closed as interrupted")
-        except RunError as exc:
-            status, code, message = "failed", EXIT_FAILED, str(exc)
-            states.to("aborting", message)
-            log("error", message)
-        except DeviceFault as exc:  # a device that needs an operator, e.g. another IMU on the port
-            status, code, message = "failed", EXIT_FAILED, str(exc)
-            if states.state != "idle":
-                states.to("faulted", message)
-            log("error", message)
-        except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
-            status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
-            if states.state != "idle":
-                states.to("faulted", message)
-            log("error", f"unexpected error: {message} (traceback in {run_dir / RUN_LOG})",
-                traceback=traceback.format_exc())
-        finally:
-            engine.safe_state()
-            progress.finish(status)
-            for sig, h in old_handlers.items():
-                signal.signal(sig, h)
-            if states.state in ("running", "aborting"):
-                states.to("idle", f"run {status}")
-            states.listeners.remove(on_transition)
-            if opts.on_engine:
-                opts.on_engine(None)
-            if not rec.closed:
-                if message:
-                    rec.add_event(rig.clock.now(), status, message)
-                rec.close(status)
+            fn()
+            return True
+        except Exception as exc:  # noqa: BLE001 - every clean-up step must get its turn
+            log("error", f"{what}: {type(exc).__name__}: {exc}", traceback=traceback.format_exc())
+            return False
+
+    with _run_context(log, install_signals, streams, hangups):
+        try:
+            with opts.rig_opener(cfg) as (rig, truth):
+                rec, start = make_recorder(rig, truth)
+                suspenders = SuspenderSet(opts.suspenders, run_dir)
+                engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
+                                sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
+                                open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
+                                progress=progress)
+
+                def on_transition(old: str, new: str, reason: str) -> None:
+                    log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
+                    if rec is not None and not rec.closed:
+                        rec.add_event(rig.clock.now(), "state", f"{old} -> {new}: {reason}")
+
+                states.listeners.append(on_transition)
+
+                def on_signal(signum: int, _frame: Any) -> None:
+                    engine.request_abort(signal.Signals(signum).name)
+
+                def on_step(step: Step, seg: Segment) -> None:
+                    note_hangups()
+                    ckpt.last_step, ckpt.n_imu, ckpt.n_segments = step.index, rec.n_imu, rec.n_segments
+                    ckpt.t_file = seg.t_end + rec.time_offset
+                    try:
+                        ckpt_mod.save(run_dir, ckpt)
+                    except OSError as exc:  # resume falls back on the recording's complete segments
+                        log("warning", f"checkpoint not written: {exc}")
+
+                if install_signals:
+                    for sig in (signal.SIGINT, signal.SIGTERM):
+                        old_handlers[sig] = signal.signal(sig, on_signal)
+                if opts.on_engine:
+                    opts.on_engine(engine)
+                try:
+                    progress.start([e for e in estimate(proc.steps, cfg) if e.step.index >= start], proc.name)
+                    # resuming: the cut-off left the table as it was; stop it before any motion
+                    engine.run(proc.steps, start, on_step=on_step,
+                               stop_first=f"session {ckpt.sessions}" if resuming else None)
+                    status, code = "complete", EXIT_OK
+                except Interrupted as exc:
+                    status, code, message = "interrupted", EXIT_INTERRUPTED, f"interrupted by {exc}"
+                    states.to("aborting", message)
+                    log("error", f"{message}: table stopped, recording closed as interrupted")
+                except RunError as exc:
+                    status, code, message = "failed", EXIT_FAILED, str(exc)
+                    states.to("aborting", message)
+                    log("error", message)
+                except DeviceFault as exc:  # a device that needs an operator, e.g. another IMU on the port
+                    status, code, message = "failed", EXIT_FAILED, str(exc)
+                    if states.state != "idle":
+                        states.to("faulted", message)
+                    log("error", message)
+                except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
+                    status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
+                    tb = traceback.format_exc()
+                    if states.state != "idle":
+                        guarded("state change", lambda: states.to("faulted", message))
+                    log("error", f"unexpected error: {message} (traceback in {run_dir / RUN_LOG})",
+                        traceback=tb)
+                finally:
+                    if not guarded("putting the table in its safe state", engine.safe_state):
+                        if status == "complete":
+                            status, code, message = "failed", EXIT_FAILED, "the table could not be stopped"
+                    guarded("progress display", lambda: progress.finish(status))
+                    for sig, h in old_handlers.items():
+                        signal.signal(sig, h)
+                    if states.state in ("running", "aborting"):
+                        guarded("state change", lambda: states.to("idle", f"run {status}"))
+                    if on_transition in states.listeners:
+                        states.listeners.remove(on_transition)
+                    if opts.on_engine:
+                        guarded("daemon hook", lambda: opts.on_engine(None))
+                    if not rec.closed:
+                        if message:
+                            guarded("event", lambda: rec.add_event(rig.clock.now(), status, message))
+                        if not guarded("closing the recording", lambda: rec.close(status)):
+                            if status == "complete":
+                                status, code, message = "failed", EXIT_FAILED, "the recording could not be closed"
+                sim_time = rig.clock.now()
+        except InputError:  # refused before anything was changed (resume on another IMU)
+            raise
+        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - opening the rig, creating
+            # the recording, or closing the rig after the run, failed
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            what = "interrupted (SIGINT)" if interrupted else f"{type(exc).__name__}: {exc}"
+            tb = None if interrupted else traceback.format_exc()
+            if rec is None:  # nothing ran: no recording
+                status = "interrupted" if interrupted else "failed"
+                code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED
+                message = f"the run did not start: {what}"
+                log("error", message, traceback=tb)
+            else:  # the run's own outcome is recorded; the devices' teardown failed after it
+                code = EXIT_FAILED if code == EXIT_OK else code
+                message = f"{message}; then closing the devices failed: {what}" if message else \
+                    f"closing the devices failed: {what}"
+                log("error", message, traceback=tb)
+                if not rec.closed:
+                    guarded("closing the recording", lambda: rec.close(status))
+        if rec is not None or not resuming:  # a resume that never started keeps its checkpoint
             ckpt.status = status
             try:
                 ckpt_mod.save(run_dir, ckpt)
             except OSError as exc:
                 log("error", f"checkpoint not written: {exc}")
-        sim_time = rig.clock.now()
-    wall = time.monotonic() - wall0
-    log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
-                f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
-    if status == "complete":
-        run_solvers(proc, recording, log)
-    log("info", f"recording: {recording}")
-    log.close()
+        note_hangups()
+        wall = time.monotonic() - wall0
+        if rec is not None:
+            log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
+                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
+        if status == "complete":
+            try:
+                run_solvers(proc, recording, log)
+            except Exception as exc:  # noqa: BLE001 - the recording is complete; the solver failed
+                code, message = EXIT_FAILED, f"solver failed: {type(exc).__name__}: {exc}"
+                log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
+                             f"run the analysis again on {recording}", traceback=traceback.format_exc())
+        if rec is not None:
+            log("info", f"recording: {recording}")
+        log.close()
     return RunResult(code, run_dir, recording, status, message)
 
 
@@ -274,9 +390,11 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
     """Execute ``proc`` on the rig of ``cfg``; the recording and log go to a new run directory.
     ``overrides`` (the ``-p`` values) are kept in the checkpoint for ``rigctl resume``."""
     opts = _with_settings(options, cfg)
+    if opts.check_devices:  # before anything is created: a run that cannot start leaves nothing
+        check_devices(cfg).raise_for_problems()
     run_dir = make_run_dir(out_parent, proc.name)
     (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
-    progress = opts.progress or make_progress(console if console is not None else sys.stdout)
+    progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
     log = RunLog(run_dir / RUN_LOG, progress.console)
     plan = estimate(proc.steps, cfg)
     total = sum(e.total_s for e in plan)
@@ -342,7 +460,7 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     # IMU rows of the step in flight start where the last complete step's samples ended
     in_flight_from = max([int(ck.n_imu), *(int(x) for x in seg["last_sample"][done])])
     todo = [s for s in proc.steps if s.is_motion and s.index > last_done]
-    progress = opts.progress or make_progress(console if console is not None else sys.stdout)
+    progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
     log = RunLog(d / RUN_LOG, progress.console)
     ck.sessions += 1
     log("info", f"resuming {d.name} (session {ck.sessions}): {len(todo)} steps left after step "

@@ -41,15 +41,21 @@ def _kind(obj: Any) -> str:
     return f"{type(obj).__name__} {obj!r}"
 
 
+def did_you_mean(word: str, choices: Iterable[str], listing: str = "allowed") -> str:
+    """A hint for a misspelt ``word``: "did you mean 'x'?" for the closest of ``choices``, else
+    "<listing>: a, b, c" (or "<listing>: none")."""
+    choices = [str(c) for c in choices]
+    close = difflib.get_close_matches(str(word), choices, n=1)
+    return f"did you mean {close[0]!r}?" if close else f"{listing}: {', '.join(choices) or 'none'}"
+
+
 def check_keys(m: LocDict, allowed: Iterable[str], what: str,
                required: Iterable[str] = ()) -> None:
     """Unknown keys and missing required keys are errors (with a did-you-mean hint)."""
     allowed = list(allowed)
     for key in m:
         if key not in allowed:
-            close = difflib.get_close_matches(str(key), allowed, n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(allowed)}"
-            raise error(m, key, f"unknown key {key!r} in {what}", hint)
+            raise error(m, key, f"unknown key {key!r} in {what}", did_you_mean(key, allowed))
     for key in required:
         if key not in m:
             raise error(m, None, f"{what} is missing {key!r}", f"add a line '{key}: ...'")
@@ -102,9 +108,7 @@ def get_str(m: LocDict, key: str, default: Any = ..., *, choices: Iterable[str] 
     if choices is not None:
         choices = list(choices)
         if v not in choices:
-            close = difflib.get_close_matches(v, choices, n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"choose one of: {', '.join(choices)}"
-            raise error(m, key, f"{key!r} = {v!r} is not allowed", hint)
+            raise error(m, key, f"{key!r} = {v!r} is not allowed", did_you_mean(v, choices, "choose one of"))
     return v
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from . import recording_reader
 from .frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
 from .solvers.segment_stats import AllanCurve, NoiseModel, self_noise_sigma
 from .solvers.segments import SegmentTable, about_reference, rest_batches, segment_table_from_samples
@@ -30,27 +31,14 @@ CAL_KINDS = (b"orientation", b"rate")
 REST_KINDS = (b"warmup",)
 
 
+#: what a calibration reads (rigctl.recording_reader checks it)
+CAL_NEED = ("imu/time", "imu/specific_force", "imu/angular_rate", "segments")
+
+
 def open_recording(path: str | Path) -> h5py.File:
-    """Open a rigctl recording read-only (SWMR-capable); InputError if it is not one."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError("recording not found", p, hint="give the path of a recording.h5")
-    try:
-        f = h5py.File(p, "r", libver="latest", swmr=True)
-    except OSError:
-        try:
-            f = h5py.File(p, "r")
-        except OSError as exc:
-            raise InputError(f"not an HDF5 file ({exc})", p) from None
-    if f.attrs.get("format") != "rigctl-recording":
-        f.close()
-        raise InputError("not a rigctl recording (root attribute format != 'rigctl-recording')", p,
-                         hint="see docs/data-format.md, or convert it with rigctl import")
-    for name in ("imu/specific_force", "imu/angular_rate", "imu/time", "segments/kind"):
-        if name not in f:
-            f.close()
-            raise InputError(f"the recording has no /{name}", p, hint="see docs/data-format.md")
-    return f
+    """Open a rigctl recording read-only for a calibration (SWMR-capable), checked by
+    :func:`rigctl.recording_reader.open_recording`; InputError if it cannot be used."""
+    return recording_reader.open_recording(path, CAL_NEED)
 
 
 def _site(f: h5py.File) -> tuple[float, float, float]:
@@ -112,11 +100,8 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
     """
     with open_recording(path) as f:
         lat, h, g = _site(f)
-        fs = float(f["imu"].attrs.get("sample_rate_hz", 0.0))
+        fs = recording_reader.sample_rate(f)
         t_imu = f["imu/time"]
-        if fs <= 0:
-            tt = t_imu[: min(1000, t_imu.shape[0])]
-            fs = 1.0 / float(np.median(np.diff(tt)))
         seg = {k: f["segments"][k][()] for k in f["segments"]}
         tab_t = f["table/time"][()] if "table/time" in f else np.empty(0)
         tab_ang = f["table/angle"][()] if "table/angle" in f else np.empty((0, 3))
@@ -133,12 +118,16 @@ def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
         for i in rows:
             a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
             t = t_imu[a:z]
+            acc = np.asarray(f["imu/specific_force"][a:z], dtype=np.float64)
+            gyro = np.asarray(f["imu/angular_rate"][a:z], dtype=np.float64)
+            for name, block in (("imu/time", t), ("imu/specific_force", acc), ("imu/angular_rate", gyro)):
+                recording_reader.check_finite(path, name, block, a)
             ang, rates = _angles_at(t, seg, i, tab_t, tab_ang)
             fr, wr = body_references(ang, rates, lat, h, g)
             cols["kind"].append(seg["kind"][i].decode())
             cols["label"].append(seg["label"][i].decode())
-            cols["acc"].append(np.asarray(f["imu/specific_force"][a:z], dtype=np.float64))
-            cols["gyro"].append(np.asarray(f["imu/angular_rate"][a:z], dtype=np.float64))
+            cols["acc"].append(acc)
+            cols["gyro"].append(gyro)
             cols["f_ref"].append(fr)
             cols["w_ref"].append(wr)
             cols["time"].append(float(t.mean()))

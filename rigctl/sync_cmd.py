@@ -15,7 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.errors import InputError, RunFailure
 from rigctl.recorder import write_results as store_results
+from rigctl.recording_reader import check_finite, open_recording, sample_rate
 from rigctl.solvers import clock_model, tap_detect, tap_match
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -170,45 +172,38 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _invalid(msg: str) -> int:
-    print(f"rigctl sync: error: {msg}", file=sys.stderr)
-    return 2
-
-
-def _read(path: Path, axis: int, timescale: str) -> tuple[Any, ...] | str:
-    import h5py
-
-    try:
-        f = h5py.File(path, "r")
-    except (OSError, ValueError) as exc:
-        return f"cannot open {path} as HDF5 ({exc}); pass a rigctl recording .h5 file"
-    with f:
-        need = ["imu/counter", "imu/specific_force", "pulses/time"]
-        missing = [n for n in need if n not in f]
-        if missing:
-            return (f"{path} has no {', '.join('/' + n for n in missing)}; record the tap "
-                    "session with IMU data and a pulse source (GNSS marks or GPIO)")
-        rate = f["imu"].attrs.get("sample_rate_hz")
-        if rate is None or not np.isfinite(rate) or rate <= 0:
-            return f"{path}: /imu has no valid sample_rate_hz attribute"
+def _read(path: Path, axis: int, timescale: str) -> tuple[Any, ...]:
+    """(counter, specific force of ``axis``, sample rate Hz, pulse times s); InputError naming
+    the file for anything a synchronisation cannot use (rigctl.recording_reader checks the rest)."""
+    with open_recording(path, ["imu/counter", "imu/specific_force", "pulses/time"]) as f:
+        rate = sample_rate(f)
         counter = f["imu/counter"][()]
         sf = f["imu/specific_force"][()]
         if timescale == "gps":
             if "pulses/gps_week" not in f or "pulses/gps_seconds" not in f:
-                return f"{path} has no /pulses/gps_week or gps_seconds; use --timescale run"
+                raise InputError("no /pulses/gps_week or gps_seconds", path, hint="use --timescale run")
             week = f["pulses/gps_week"][()].astype(float)
             if np.any(week < 0):
-                return f"{path}: some pulses have no GPS week (-1); use --timescale run"
+                raise InputError("some pulses have no GPS week (-1)", path, hint="use --timescale run")
             pulses = week * GPS_WEEK_S + f["pulses/gps_seconds"][()]
         else:
             pulses = f["pulses/time"][()]
-    if sf.ndim != 2 or sf.shape[1] != 3 or sf.shape[0] != counter.shape[0]:
-        return f"{path}: /imu/specific_force must be (N, 3) with N = len(/imu/counter)"
+    check_finite(path, "imu/specific_force", sf)
+    check_finite(path, "pulses/time" if timescale == "run" else "pulses/gps_seconds", pulses)
+    if sf.shape[0] != counter.shape[0]:
+        raise InputError("/imu/specific_force and /imu/counter differ in length", path)
     if counter.size < 10 or np.any(np.diff(counter.astype(np.int64)) <= 0):
-        return f"{path}: /imu/counter must be strictly increasing with at least 10 samples"
+        raise InputError("/imu/counter must be strictly increasing with at least 10 samples", path)
     if pulses.size < 3:
-        return f"{path} holds {pulses.size} pulses; tap at least 3 times with the pulse input on"
+        raise InputError(f"{pulses.size} pulses recorded", path,
+                         hint="tap at least 3 times with the pulse input on")
     return counter, sf[:, axis], float(rate), np.asarray(pulses, dtype=float)
+
+
+def _positive(name: str, value: float | None, maximum: float = 1e9) -> None:
+    """InputError unless ``value`` (an option) is None or finite in (0, ``maximum``]."""
+    if value is not None and not (np.isfinite(value) and 0.0 < value <= maximum):
+        raise InputError(f"{name} {value:g}: must be a finite number in (0, {maximum:g}]")
 
 
 def write_results(path: Path, res: SyncResult, counter: np.ndarray, pulses: np.ndarray,
@@ -264,14 +259,13 @@ def plot(res: SyncResult, pulses: np.ndarray, plot_dir: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """CLI entry: 0 ok, 2 invalid input, 1 failure."""
+    """CLI entry: 0 ok; errors are raised (rigctl.errors: 2 invalid input, 1 failure)."""
     path: Path = args.recording
-    if not path.is_file():
-        return _invalid(f"{path} does not exist; pass the recording .h5 written by rigctl run")
-    got = _read(path, AXES[args.axis], args.timescale)
-    if isinstance(got, str):
-        return _invalid(got)
-    counter, accel, rate, pulses = got
+    _positive("--natural-freq-hz", args.natural_freq_hz, 1e5)
+    _positive("--damping", args.damping, 100.0)
+    _positive("--tolerance-s", args.tolerance_s, 3600.0)
+    _positive("--range-m-s2", args.range_m_s2, 1e6)
+    counter, accel, rate, pulses = _read(path, AXES[args.axis], args.timescale)
     opts = SyncOptions(response=args.response, natural_freq_hz=args.natural_freq_hz,
                        damping=args.damping,
                        wander=None if args.wander == "none" else args.wander,
@@ -279,8 +273,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         res = synchronise(counter, accel, rate, pulses, opts)
     except ValueError as exc:
-        print(f"rigctl sync: failed on {path}: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{path}: {exc}") from None
     s = res.summary
     print(f"sync {path}: timing {s['timing']}, axis {args.axis}")
     print(f"  offset      {s['offset_s']:.6f} s  (1-sigma {s['offset_sigma_s'] * 1e3:.3f} ms, "
@@ -302,8 +295,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         write_results(path, res, counter, pulses, opts_json)
     except OSError as exc:
-        print(f"rigctl sync: cannot write /results/sync to {path}: {exc}", file=sys.stderr)
-        return 1
+        raise RunFailure(f"{path}: cannot write /results/sync: {exc}") from None
     print(f"  wrote /results/sync to {path}")
     if args.plot_dir is not None:
         try:
@@ -313,11 +305,3 @@ def run(args: argparse.Namespace) -> int:
             print("  plots skipped: matplotlib is not installed (pip install rigctl[report])",
                   file=sys.stderr)
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry (the lead wires ``register`` into rigctl.cli)."""
-    parser = argparse.ArgumentParser(prog="rigctl")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return int(args.func(args))

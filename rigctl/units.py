@@ -12,6 +12,10 @@ _TIME_UNITS = {
 _QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z]*)\s*$")
 
 
+#: longest duration a procedure may ask for (31 days), s: beyond it a value is a typo
+MAX_DURATION_S = 31 * 86400.0
+
+
 def parse_duration(value: object) -> float:
     """A duration in seconds from a number (seconds) or a string like "15 min", "12 h", "0.5 s".
 
@@ -33,6 +37,8 @@ def parse_duration(value: object) -> float:
         raise ValueError(f"expected a duration such as '30 s' or '15 min', got {type(value).__name__}")
     if not math.isfinite(seconds) or seconds < 0:
         raise ValueError(f"a duration must be finite and not negative, got {value!r}")
+    if seconds > MAX_DURATION_S:
+        raise ValueError(f"{value!r} is longer than the longest step rigctl runs, 31 days")
     return seconds
 
 

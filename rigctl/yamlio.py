@@ -11,38 +11,9 @@ from typing import Any
 
 import yaml
 
+from .errors import InputError, InputErrors
 
-class InputError(Exception):
-    """Invalid user input (procedure or config): carries file, line and a hint on what to do."""
-
-    def __init__(self, message: str, file: str | Path | None = None, line: int | None = None,
-                 hint: str | None = None) -> None:
-        self.message = message
-        self.file = str(file) if file is not None else None
-        self.line = line
-        self.hint = hint
-        super().__init__(str(self))
-
-    def __str__(self) -> str:
-        where = ""
-        if self.file:
-            where = f"{self.file}:{self.line}: " if self.line else f"{self.file}: "
-        text = f"{where}{self.message}"
-        if self.hint:
-            text += f" ({self.hint})"
-        return text
-
-
-class InputErrors(InputError):
-    """Several input errors found in one pass."""
-
-    def __init__(self, errors: list[InputError]) -> None:
-        self.errors = errors
-        first = errors[0]
-        super().__init__(first.message, first.file, first.line, first.hint)
-
-    def __str__(self) -> str:
-        return "\n".join(InputError.__str__(e) for e in self.errors)
+__all__ = ["InputError", "InputErrors", "LocDict", "LocList", "load_file", "load_text"]
 
 
 class LocDict(dict):

@@ -45,3 +45,9 @@ def small_fs(tmp_path):
         yield mnt
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Lines a test left in ``config._rigctl_summary`` (e.g. the hostile-input case count)."""
+    for line in getattr(config, "_rigctl_summary", []):
+        terminalreporter.write_line(line)

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl import allan_cmd
+from rigctl import allan_cmd, cli
 
 
 def write_recording(path: Path, n: int, fs: float = 100.0, seed: int = 0,
@@ -113,8 +113,7 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
     elif case == "bad_taus":
         write_recording(rec, 1000)
         argv += ["--taus", "weekly"]
-    args = _args(argv)
-    assert args.func(args) == 2
+    assert cli.main(["allan", *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith("rigctl allan: error:") and "Traceback" not in err
     if case in ("missing", "not_hdf5", "not_rigctl", "no_accel", "short"):
@@ -122,8 +121,8 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
 
 
 def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
-    """The procedure hook analyses the longest capture segment, stores /results/allan and
-    logs one info line per axis (plus a warning for counter gaps)."""
+    """The procedure hook analyses the longest capture segment, stores /results/allan and the
+    results database and logs one info line per axis (plus a warning for counter gaps)."""
     rec = tmp_path / "rec.h5"
     write_recording(rec, 120_000, seed=4)
     with h5py.File(rec, "r+") as f:
@@ -144,7 +143,8 @@ def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     assert summary["dropped_samples"] == 3 and "overnight" in summary["segment"]
     info = [m for k, m in messages if k == "info"]
     assert any("capture segment 'overnight'" in m for m in info)
-    assert sum(m.startswith("allan gx:") for m in info) == 1 and len(info) == 7
+    assert sum(m.startswith("allan gx:") for m in info) == 1
+    assert sum(m.startswith("allan: results database: ") for m in info) == 1 and len(info) == 8
     assert any(k == "warning" and "3 samples missing" in m for k, m in messages)
     n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
     assert abs(n_gx / 0.3 - 1) < 0.05

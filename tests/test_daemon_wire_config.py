@@ -71,7 +71,7 @@ def test_run_and_serve_refuse_a_bad_section_naming_file_and_line(tmp_path, capsy
                   "--socket", str(tmp_path / "s.sock")]):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err
-        assert err.startswith(f"error: {where}'temperature_max_c' must be a number"), err
+        assert err.startswith(f"rigctl {argv[0]}: error: {where}'temperature_max_c' must be a number"), err
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
 
 

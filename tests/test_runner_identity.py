@@ -146,7 +146,7 @@ def test_misspelt_imu_key_and_wired_serial(tmp_path, capsys):
     p.write_text(SIM.replace("  rate_hz: 100\n", "  rate_hz: 100\n  serail: SN-1\n"))
     assert cli.main(["run", "procedures/warmup.yaml", "--config", str(p), "--out", str(tmp_path / "runs")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"error: {p}:{line_of(p, 'serail')}: unknown key 'serail' in 'imu' (sim)"), err
+    assert err.startswith(f"rigctl run: error: {p}:{line_of(p, 'serail')}: unknown key 'serail' in 'imu' (sim)"), err
     assert not (tmp_path / "runs").exists()
     # a wired Xsens section takes the key too (nothing is opened by loading the config)
     d = yaml.safe_load(SIM)

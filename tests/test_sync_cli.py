@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl import sync_cmd
+from rigctl import cli, sync_cmd
 from rigctl.sim import taps
 
 RATE = 100.0
@@ -88,7 +88,7 @@ def test_sync_plots(tmp_path: Path, session) -> None:
     pytest.importorskip("matplotlib")  # optional extra rigctl[report]
     rec = tmp_path / "run.h5"
     write_recording(rec, session)
-    assert sync_cmd.main(["sync", str(rec), "--plot-dir", str(tmp_path / "plots")]) == 0
+    assert cli.main(["sync", str(rec), "--plot-dir", str(tmp_path / "plots")]) == 0
     for name in ("sync_matching_error_hist.png", "sync_residual_vs_time.png"):
         assert (tmp_path / "plots" / name).stat().st_size > 1000
 
@@ -96,8 +96,8 @@ def test_sync_plots(tmp_path: Path, session) -> None:
 def test_sync_rerun_replaces_results_and_gps_timescale(tmp_path: Path, session) -> None:
     rec = tmp_path / "run.h5"
     write_recording(rec, session)
-    assert sync_cmd.main(["sync", str(rec)]) == 0
-    assert sync_cmd.main(["sync", str(rec), "--timescale", "gps", "--response", "none"]) == 0
+    assert cli.main(["sync", str(rec)]) == 0
+    assert cli.main(["sync", str(rec), "--timescale", "gps", "--response", "none"]) == 0
     with h5py.File(rec, "r") as f:
         summary = json.loads(f["results/sync"].attrs["json"])
         assert list(f["results"].keys()) == ["sync"]
@@ -109,15 +109,15 @@ def test_sync_rerun_replaces_results_and_gps_timescale(tmp_path: Path, session) 
 
 def test_sync_invalid_inputs_exit_2(tmp_path: Path, session, capsys) -> None:
     missing = tmp_path / "nope.h5"
-    assert sync_cmd.main(["sync", str(missing)]) == 2
-    assert "nope.h5 does not exist" in capsys.readouterr().err
+    assert cli.main(["sync", str(missing)]) == 2
+    assert "nope.h5: no such file" in capsys.readouterr().err
     junk = tmp_path / "junk.h5"
     junk.write_text("not hdf5")
-    assert sync_cmd.main(["sync", str(junk)]) == 2
-    assert "cannot open" in capsys.readouterr().err
+    assert cli.main(["sync", str(junk)]) == 2
+    assert "junk.h5: not an HDF5 file" in capsys.readouterr().err
     nopulse = tmp_path / "nopulse.h5"
     write_recording(nopulse, session, pulses=False)
-    assert sync_cmd.main(["sync", str(nopulse)]) == 2
+    assert cli.main(["sync", str(nopulse)]) == 2
     err = capsys.readouterr().err
     assert "nopulse.h5" in err and "/pulses/time" in err
     with h5py.File(nopulse, "r") as f:
@@ -129,5 +129,5 @@ def test_sync_fails_cleanly_without_taps(tmp_path: Path, capsys) -> None:
                            taps.TapParams(amplitude_median_m_s2=1e-3), seed=2)  # taps in noise
     rec = tmp_path / "quiet.h5"
     write_recording(rec, s)
-    assert sync_cmd.main(["sync", str(rec)]) == 1
+    assert cli.main(["sync", str(rec)]) == 1
     assert "taps detected" in capsys.readouterr().err

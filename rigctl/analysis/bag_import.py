@@ -32,7 +32,7 @@ as a counter jump of k + 1 -- the way rigctl recordings record dropped samples
 receive-minus-stamp latency (median, min, max), which shows whether the stamps come from the
 recorder's clock.
 
-Errors are :class:`rigctl.yamlio.InputError` (one line: file, what is wrong, what to do).
+Errors are :class:`rigctl.errors.InputError` (one line: file, what is wrong, what to do).
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..yamlio import InputError
+from ..errors import InputError
 
 ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -364,10 +364,11 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
     summary = None
     with open(path, "rb") as fh:
         try:
-            fmt = f"mcap ({make_reader(fh).get_header().profile or 'no'} profile)"
+            fmt = f"mcap ({NonSeekingReader(fh).get_header().profile or 'no'} profile)"
         except (McapError, ValueError, AssertionError) as exc:
             raise InputError(f"not a readable MCAP file ({type(exc).__name__}: {exc})", path,
                              hint="give an MCAP file written by ros2 bag or an MCAP writer") from None
+        fh.seek(0)
         try:
             summary = make_reader(fh).get_summary()
         except (McapError, OSError, ValueError, AssertionError):
@@ -416,8 +417,9 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
                 if progress is not None and n % BLOCK == 0:
                     progress(n, 0)
         except McapError as exc:
-            if n == 0 and not seen:
-                raise InputError(f"not a readable MCAP file ({type(exc).__name__}: {exc})", path,
+            if n == 0:
+                raise InputError(f"MCAP file without a summary and without a complete message "
+                                 f"({type(exc).__name__}: {exc}): cut off before its first chunk ended?", path,
                                  hint="give an MCAP file written by ros2 bag or an MCAP writer") from None
             truncated = (f"the file ends early ({type(exc).__name__}): no summary, read as far as it "
                          f"goes ({n} messages)")

@@ -15,6 +15,7 @@ from typing import Any
 import h5py
 
 from .. import __version__
+from ..recording_reader import open_recording
 from ..spec import Spec
 from . import results as R
 from .verdicts import evaluate
@@ -57,7 +58,7 @@ def run_name(recording: str | Path) -> str:
 
 def read_meta(recording: str | Path) -> dict[str, Any]:
     """/meta attributes of a recording (text decoded); {} when absent."""
-    with h5py.File(recording, "r") as f:
+    with open_recording(recording, need=()) as f:
         return {k: (_text(v) if isinstance(v, (bytes, str)) else v)
                 for k, v in (f["meta"].attrs.items() if "meta" in f else [])}
 

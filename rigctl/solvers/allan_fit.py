@@ -127,8 +127,12 @@ def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.nda
     noisy = np.maximum(a[:, [i for i, c in enumerate(cols) if c < 4]] @ p[
         [i for i, c in enumerate(cols) if c < 4]], 1e-300) if any(c < 4 for c in cols) else mod
     g = mod / noisy  # the deterministic ramp R: same correlations, scaled to the total
-    cov = cov * np.outer(g, g)
-    bad = ~(np.diag(cov) > 0)
+    # where the noise terms are ~0 beside a ramp (noisy floored at 1e-300) g**2 overflows: those
+    # taus have no usable noise covariance and take the diagonal fallback below
+    with np.errstate(over="ignore", invalid="ignore"):
+        cov = cov * np.outer(g, g)
+    bad = ~(np.isfinite(np.diag(cov)) & (np.diag(cov) > 0))
+    cov[~np.isfinite(cov)] = 0.0
     if np.any(bad):  # e.g. a model with Q only beyond its exact-lag range
         cov[bad, :] = 0.0
         cov[:, bad] = 0.0
