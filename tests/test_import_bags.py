@@ -73,27 +73,27 @@ def _string(store, text: str):
     return store.types["std_msgs/msg/String"](data=text)
 
 
-def write_rosbag1(path: Path, s, imu_topic: str = "/imu", n: int | None = None) -> Path:
+def _fill(w, store, serialize, s) -> None:
+    """The Imu samples on /imu and a String every 500 samples on /status, with rosbags' writer."""
+    ci = w.add_connection("/imu", IMU, typestore=store)
+    cs = w.add_connection("/status", "std_msgs/msg/String", typestore=store)
+    for i in range(len(s["stamp"])):
+        w.write(ci, int(s["recv"][i]), serialize(_imu(store, s, i), IMU))
+        if i % 500 == 0:
+            w.write(cs, int(s["recv"][i]), serialize(_string(store, "ok"), "std_msgs/msg/String"))
+
+
+def write_rosbag1(path: Path, s) -> Path:
     store = get_typestore(Stores.ROS1_NOETIC)
     with Writer1(path) as w:
-        ci = w.add_connection(imu_topic, IMU, typestore=store)
-        cs = w.add_connection("/status", "std_msgs/msg/String", typestore=store)
-        for i in range(len(s["stamp"]) if n is None else n):
-            w.write(ci, int(s["recv"][i]), store.serialize_ros1(_imu(store, s, i), IMU))
-            if i % 500 == 0:
-                w.write(cs, int(s["recv"][i]), store.serialize_ros1(_string(store, "ok"), "std_msgs/msg/String"))
+        _fill(w, store, store.serialize_ros1, s)
     return path
 
 
-def write_rosbag2(path: Path, s, storage, imu_topic: str = "/imu", n: int | None = None) -> Path:
+def write_rosbag2(path: Path, s, storage) -> Path:
     store = get_typestore(Stores.ROS2_HUMBLE)
     with Writer2(path, version=9, storage_plugin=storage) as w:
-        ci = w.add_connection(imu_topic, IMU, typestore=store)
-        cs = w.add_connection("/status", "std_msgs/msg/String", typestore=store)
-        for i in range(len(s["stamp"]) if n is None else n):
-            w.write(ci, int(s["recv"][i]), store.serialize_cdr(_imu(store, s, i), IMU))
-            if i % 500 == 0:
-                w.write(cs, int(s["recv"][i]), store.serialize_cdr(_string(store, "ok"), "std_msgs/msg/String"))
+        _fill(w, store, store.serialize_cdr, s)
     return path
 
 
