@@ -349,7 +349,7 @@ def import_csv(args: argparse.Namespace) -> Imported:
     for opt in ("columns", "units"):
         if not getattr(args, opt):
             raise InputError(f"--{opt} is required for a CSV file", src,
-                             hint="see rigctl import --help (a .bag, rosbag2 directory or .mcap needs neither)")
+                             hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
     check_output(src, out, args.force)
     mapping = parse_columns(args.columns)
     factors = parse_units(args.units)
@@ -412,7 +412,7 @@ def import_bag(args: argparse.Namespace) -> Imported:
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
         "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s)})
-    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.6g} Hz (median interval), {gaps}"
+    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
     write_recording(out, b.time_s, b.specific_force, b.angular_rate, np.full(n, np.nan), b.rate_hz,
