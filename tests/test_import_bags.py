@@ -221,6 +221,11 @@ def test_topic_choice_and_one_line_errors(bags, tmp_path, capsys):
         w.write(c, 1, store.serialize_cdr(_string(store, "x"), "std_msgs/msg/String"))
     with Writer2(d / "empty_imu", version=9, storage_plugin=StoragePlugin.MCAP) as w:
         w.add_connection("/imu", IMU, typestore=store)
+    s_nan = _samples()
+    s_nan["gyr"][7, 1] = np.nan
+    write_mcap_ros2(d / "nan.mcap", s_nan)
+    cases.append(((str(d / "nan.mcap"),), "1 messages with a non-finite linear_acceleration or angular_velocity "
+                                          "(first at 0.035000 s, sample 7)"))
     cases += [((str(d / "status_only"),), "no sensor_msgs/msg/Imu topic; topics present: "
                                           "/status (std_msgs/msg/String, 1 messages)"),
               ((str(d / "empty_imu"),), "topic /imu has no messages")]

@@ -265,6 +265,18 @@ class _Collector:
 
 # ---------------------------------------------------------------------------- readers
 
+@contextmanager
+def _reading(path: Path, what: str, hint: str) -> Iterator[None]:
+    """Any failure inside the bag libraries' parsers (a damaged file can fail anywhere in them:
+    struct, zstd, lz4, sqlite errors) becomes one InputError line naming the file."""
+    try:
+        yield
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - see the docstring; the type is named in the message
+        raise InputError(f"{what} ({type(exc).__name__}: {exc})", path, hint=hint) from None
+
+
 class _Raw(NamedTuple):
     """What a reader found: format, topics, the chosen topic, its arrays (stamp ns, receive ns,
     acc, gyr, in file order), its frame_id, and why the file was cut short ('' if it was not)."""
@@ -279,14 +291,11 @@ class _Raw(NamedTuple):
 
 @contextmanager
 def _rosbags_reader(path: Path) -> Iterator[Any]:
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.highlevel import AnyReader
 
-    try:
+    with _reading(path, "not a readable ROS bag", "give a rosbag1 file, a rosbag2 directory or an MCAP file"):
         reader = AnyReader([path])
         reader.open()
-    except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-        raise InputError(f"not a readable ROS bag ({exc})", path,
-                         hint="give a rosbag1 file, a rosbag2 directory or an MCAP file") from None
     try:
         yield reader
     finally:
@@ -295,8 +304,6 @@ def _rosbags_reader(path: Path) -> Iterator[Any]:
 
 def _read_rosbags(path: Path, kind: str, topic: str | None, progress: Progress | None
                   ) -> "_Raw":
-    from rosbags.highlevel import AnyReaderError
-
     with _rosbags_reader(path) as reader:
         conns = reader.connections
         topics: dict[str, TopicInfo] = {}
@@ -314,15 +321,12 @@ def _read_rosbags(path: Path, kind: str, topic: str | None, progress: Progress |
         encoding = "ros1" if kind == "rosbag1" else "cdr"
         col = _Collector(encoding, lambda raw: reader.deserialize(raw, chosen.msgtype))
         total = int(chosen.count or 0)
-        try:
+        with _reading(path, f"cannot read topic {chosen.topic}", "the bag may be damaged; re-record it"):
             for i, (_, t_ns, raw) in enumerate(reader.messages(connections=sel)):
                 col.add(t_ns, raw)
                 if progress is not None and i and i % BLOCK == 0:
                     progress(i, total)
             arrays = col.arrays()
-        except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-            raise InputError(f"cannot read topic {chosen.topic} ({exc})", path,
-                             hint="the bag may be damaged; try `rosbags-convert` or re-record") from None
     return _Raw(fmt, listed, chosen, arrays, col.frame_id or "", "")
 
 
@@ -384,26 +388,24 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
         topics = sorted(listed.values(), key=lambda t: t.topic)
         chosen = choose_topic(path, topics, topic)
         col: _Collector | None = None
-        with open(path, "rb") as fh:
-            try:
-                for i, (schema, ch, msg) in enumerate(make_reader(fh).iter_messages(topics=[chosen.topic])):
-                    if col is None:
-                        col = _mcap_collector(path, schema, ch)
-                    col.add(msg.log_time, msg.data)
-                    if progress is not None and i and i % BLOCK == 0:
-                        progress(i, int(chosen.count or 0))
-            except (McapError, ValueError) as exc:
-                raise InputError(f"cannot read topic {chosen.topic} ({exc})", path,
-                                 hint="the file may be damaged") from None
-        if col is None:
+        with open(path, "rb") as fh, _reading(path, f"cannot read topic {chosen.topic}",
+                                              "the file may be damaged"):
+            for i, (schema, ch, msg) in enumerate(make_reader(fh).iter_messages(topics=[chosen.topic])):
+                if col is None:
+                    col = _mcap_collector(path, schema, ch)
+                col.add(msg.log_time, msg.data)
+                if progress is not None and i and i % BLOCK == 0:
+                    progress(i, int(chosen.count or 0))
+            arrays = col.arrays() if col is not None else None
+        if col is None or arrays is None:
             raise InputError(f"topic {chosen.topic} has no messages; topics present: {topics_text(topics)}",
                              path, hint="choose a topic with messages")
-        return _Raw(fmt, topics, chosen, col.arrays(), col.frame_id or "", "")
+        return _Raw(fmt, topics, chosen, arrays, col.frame_id or "", "")
     # no summary: one streaming pass, every Imu channel decoded, the others only counted
     cols: dict[str, _Collector] = {}
     seen: dict[str, TopicInfo] = {}
     truncated = ""
-    with open(path, "rb") as fh:
+    with open(path, "rb") as fh, _reading(path, "cannot read the MCAP file", "the file may be damaged"):
         n = 0
         try:
             for schema, ch, msg in NonSeekingReader(fh).iter_messages(log_time_order=False):
@@ -423,10 +425,11 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
                                  hint="give an MCAP file written by ros2 bag or an MCAP writer") from None
             truncated = (f"the file ends early ({type(exc).__name__}): no summary, read as far as it "
                          f"goes ({n} messages)")
-    topics = sorted(seen.values(), key=lambda t: t.topic)
-    chosen = choose_topic(path, topics, topic)
-    col = cols[chosen.topic]
-    return _Raw(fmt, topics, chosen, col.arrays(), col.frame_id or "", truncated)
+        topics = sorted(seen.values(), key=lambda t: t.topic)
+        chosen = choose_topic(path, topics, topic)
+        col = cols[chosen.topic]
+        arrays = col.arrays()
+    return _Raw(fmt, topics, chosen, arrays, col.frame_id or "", truncated)
 
 
 def _mcap_collector(path: Path, schema: Any, channel: Any) -> _Collector:
@@ -562,6 +565,12 @@ def read_imu(path: str | Path, topic: str | None = None, time_source: str = "hea
         raise InputError(f"topic {chosen.topic}: {what} is not a usable sample time: {exc}", path,
                          hint=f"try --time-source {other}") from None
     o = tb.order
+    bad = ~(np.isfinite(acc[o]).all(axis=1) & np.isfinite(gyr[o]).all(axis=1))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(f"topic {chosen.topic}: {int(bad.sum())} messages with a non-finite "
+                         f"linear_acceleration or angular_velocity (first at {(tb.time_ns[k] - tb.time_ns[0]) / 1e9:.6f} s, "
+                         f"sample {k})", path, hint="remove them from the bag (e.g. filter the topic) and import again")
     lat = (recv[o] - stamp[o]) / 1e9
     notes = []
     if tb.counted_by == "intervals":
