@@ -103,6 +103,7 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
                 if p.poll() is None:
                     p.kill()
             time.sleep(0.05)           # the controller finishes the line it was executing
+            t_snap = time.monotonic()
             left = table_snapshot(hw)  # nothing stops the table: the emulator keeps the last demand
             if rec is None:
                 rec = wait_until(lambda: next(runs.glob("*/recording.h5"), None), 5, "the recording")
@@ -127,7 +128,7 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
             lost = t_kill - max(w_last, t_stream)
             unsent = sum(len(b[1]) for b in list(hw.xsens.sent) if max(w_last, t_stream) < b[0] <= t_kill)
             kills.append({"after_s": t_kill - t_launch, "lost_s": lost, "rows_lost": unsent, "rows": n,
-                          "table": left, "t_launch": t_launch, "t_kill": t_kill,
+                          "table": left, "t_launch": t_launch, "t_kill": t_kill, "t_snap": t_snap,
                           "reopened": n_resumes > (kills[-1]["resumes"] if kills else 0), "resumes": n_resumes,
                           "stopped": n_stops > (kills[-1]["stops"] if kills else 0), "stops": n_stops})
             assert lost <= 1.0, f"kill {i + 1}: {lost:.3f} s of sent IMU data not in the file"
@@ -143,8 +144,10 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
             stop = [j for j, c in enumerate(session) if c.startswith(":MODE:OFF")]
             if motion:
                 assert stop and stop[0] < motion[0], session[:20]
-            # ... and until then the table stayed as the kill left it (mode of the last demand)
-            before = [c for t, c in commands_since(hw, k["t_launch"]) if t < k["t_kill"] and ":MODE:" in c]
+            # ... and until then the table stayed as the kill left it: the mode of the last mode
+            # command the controller executed before the snapshot (which can be one the killed
+            # process wrote just before its kill)
+            before = [c for t, c in commands_since(hw, k["t_launch"]) if t < k["t_snap"] and ":MODE:" in c]
             if before:
                 want = "off" if before[-1].startswith(":MODE:OFF") else "position"
                 assert k["table"]["mode"] == [want] * 3, (before[-1], k["table"])
