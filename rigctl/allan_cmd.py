@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from rigctl.analysis import production
+from rigctl.analysis import noise_export, production
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
 from rigctl.errors import InputError
@@ -456,6 +456,10 @@ def run(args: argparse.Namespace) -> int:
             import matplotlib  # noqa: F401
         except ImportError:
             raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+    if args.kalibr and set(axes) != set(AXES):
+        raise UsageError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
+    if not args.kalibr_inflate > 0:
+        raise UsageError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
@@ -474,7 +478,27 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         plot(result, args.plot)
         print(f"plot written to {args.plot}")
+    export(args, result)
     return 0
+
+
+def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
+    """--kalibr, --json, --csv (rigctl.analysis.noise_export)."""
+    kalibr = noise_export.kalibr_values(result, args.kalibr_inflate) if args.kalibr else None
+    if args.kalibr:
+        import h5py
+
+        with h5py.File(args.recording, "r") as f:
+            topic = args.kalibr_topic or noise_export.imu_topic(f["meta"].attrs if "meta" in f else {})
+        Path(args.kalibr).write_text(noise_export.kalibr_yaml(result, topic, args.kalibr_inflate))
+        print(f"Kalibr imu.yaml written to {args.kalibr}"
+              + ("" if args.kalibr_inflate == 1 else f" (values x{args.kalibr_inflate:g})"))
+    if args.json:
+        Path(args.json).write_text(noise_export.allan_json(result, kalibr))
+        print(f"JSON written to {args.json}")
+    if args.csv:
+        Path(args.csv).write_text(noise_export.deviation_csv(result))
+        print(f"deviation table written to {args.csv}")
 
 
 def register(subparsers: Any) -> None:
@@ -491,5 +515,13 @@ def register(subparsers: Any) -> None:
                    help="analyse the whole recording (default: its longest capture segment, if any)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
+    p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "
+                   "walks, SI; the largest axis per sensor; docs/allan.md)")
+    p.add_argument("--kalibr-inflate", type=float, default=1.0, metavar="X",
+                   help="multiply the Kalibr values by X (default 1: as fitted); stated in the file")
+    p.add_argument("--kalibr-topic", metavar="TOPIC",
+                   help="rostopic in imu.yaml (default: the bag topic of an imported recording, else /imu0)")
+    p.add_argument("--json", metavar="FILE", help="write the whole Allan result as JSON")
+    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, sigma, bands, terms; SI) as CSV")
     add_production_options(p)
     p.set_defaults(func=run)

@@ -1,4 +1,5 @@
-"""``rigctl import FILE.csv -o OUT.h5``: a foreign IMU log as a rigctl recording.
+"""``rigctl import FILE.csv|FILE.bag|ROSBAG2_DIR|FILE.mcap -o OUT.h5``: a foreign IMU log as a
+rigctl recording.
 
 Data from other tools (hand-held multi-position sessions, loggers, other calibration tools)
 enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`` and
@@ -13,6 +14,11 @@ enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`
   are converted to SI (m/s^2, rad/s) with these nominal scales; a calibration then reports
   the residual scale errors as ratios to them.
 * ``--rate HZ``: nominal sample rate. Without a time column, t = k / rate.
+* ROS bags (rosbag1 ``.bag``, a rosbag2 directory with sqlite3 or mcap storage, a bare ``.mcap``
+  file; recognised by their first bytes): ``--topic`` names a ``sensor_msgs/Imu`` topic (optional
+  when there is exactly one); ``--time-source header|receive`` (default ``header``: the time
+  column is header.stamp). Units are SI already, the rate is estimated from the stamps (median
+  interval), gaps become /imu/counter jumps. Reading: :mod:`rigctl.analysis.bag_import`.
 * segments (kind ``orientation`` with NaN table angles: no table, orientation unknown):
   from ``--segments JSON`` (``{"label": {"start": i, "end": j}, ...}`` as imucal's session
   lists, or ``[{"label", "start", "end", "kind"}, ...]``; sample indices, end exclusive),
@@ -31,6 +37,8 @@ import csv
 import json
 import math
 import re
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +46,11 @@ import numpy as np
 import yaml
 
 from . import __version__
+from .analysis import bag_import as B
 from .devices import ImuBlock
 from .frames import normal_gravity
 from .errors import InputError, RunFailure
+from .progress import WorkProgress
 from .recording_reader import MAX_RATE_HZ
 
 G0 = 9.80665
@@ -212,73 +222,71 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
 
 
 def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
-                    rate: float, sections: list[dict[str, Any]], meta: dict[str, Any]) -> None:
-    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder."""
+                    rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
+                    counter: np.ndarray | None = None, note: str = "") -> None:
+    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder: the one
+    writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
+    jumps; ``note`` is added to the import event's message."""
     from .recorder import Recorder, Segment
 
+    n = len(t)
+    counter = np.arange(n, dtype=np.uint64) if counter is None else np.asarray(counter, np.uint64)
     rec = Recorder(out, meta, None, imu_rate_hz=rate)
     try:
-        n = len(t)
         step = 1 << 16
         for a in range(0, n, step):
             z = min(n, a + step)
-            rec.append_imu(ImuBlock(time=t[a:z], counter=np.arange(a, z, dtype=np.uint64),
-                                    specific_force=acc[a:z], angular_rate=gyr[a:z], temperature=temp[a:z]))
+            rec.append_imu(ImuBlock(time=t[a:z], counter=counter[a:z], specific_force=acc[a:z],
+                                    angular_rate=gyr[a:z], temperature=temp[a:z]))
         for k, s in enumerate(sections):
             rec.add_segment(Segment(kind=s["kind"], label=s["label"][:48], step=k, first_sample=s["start"],
                                     last_sample=s["end"], t_start=float(t[s["start"]]),
                                     t_end=float(t[s["end"] - 1]), settle_time=0.0, commanded_angle=NAN3,
                                     commanded_rate=NAN3, measured_angle=NAN3, measured_rate=NAN3),
                             file_time=True)
-        rec.add_event(0.0, "import", f"imported from {meta['import_source']}", file_time=True)
+        rec.add_event(0.0, "import", f"imported from {meta['import_source']}" + (f"; {note}" if note else ""),
+                      file_time=True)
     except BaseException:
         rec.close("failed")
         raise
     rec.close("complete")
 
 
-def import_csv(args: argparse.Namespace) -> tuple[Path, int, list[dict[str, Any]]]:
-    """Read, convert and write; returns (output path, samples, sections)."""
-    src = Path(args.file)
-    out = Path(args.output)
-    if out.exists() and not args.force:
+def check_output(src: Path, out: Path, force: bool) -> None:
+    """Refuse to overwrite (without ``force``), to replace the input, or to write into a
+    directory that does not exist."""
+    if out.exists() and not force:
         raise InputError("output exists", out, hint="choose another -o or pass --force to replace it")
     if out.resolve() == src.resolve():
         raise InputError("the output would replace the input", out, hint="choose another -o")
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", out.parent)
-    mapping = parse_columns(args.columns)
-    factors = parse_units(args.units)
-    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
-        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+
+
+def check_ranges(args: argparse.Namespace) -> None:
+    """The numeric options shared by every input, each inside its range (NaN fails)."""
     for opt, v, lo, hi in (("--gravity", args.gravity, 9.7, 9.9), ("--latitude-deg", args.latitude_deg, -90, 90),
                            ("--t-init", args.t_init, 0.0, 1e6), ("--skip-rows", args.skip_rows, 0, 1e9)):
         if v is not None and not lo <= v <= hi:  # NaN fails too
             raise InputError(f"{opt} {v:g} is outside [{lo:g}, {hi:g}]")
-    cols, _ = read_table(src, mapping, args.skip_rows)
-    n = len(cols["acc_x"])
-    acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
-    gyr = np.column_stack([cols[k] for k in REQUIRED[3:]]) * factors["gyr"]
-    if "time" in cols:
-        t = (cols["time"] - cols["time"][0]) * factors["time"]
-        if np.any(np.diff(t) <= 0):
-            k = int(np.flatnonzero(np.diff(t) <= 0)[0])
-            raise InputError(f"time column not increasing at data row {k + 2}", src,
-                             hint="fix the time column or drop time= from --columns")
-    else:
-        t = np.arange(n) / float(args.rate)
-    temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
+
+
+def find_sections(args: argparse.Namespace, src: Path, acc: np.ndarray, gyr: np.ndarray, rate: float,
+                  labels: np.ndarray | None = None, label_column: str = "") -> tuple[list[dict[str, Any]], str]:
+    """Sections (``--segments`` JSON, else a section column's ``labels``, else automatic static
+    detection) with their kinds, and a description of where they came from."""
+    n = len(acc)
     if args.segments:
         sections = sections_from_json(Path(args.segments), n)
         origin = f"sections file {args.segments}"
-    elif "section" in cols:
-        sections = sections_from_column(cols["section"])
-        origin = f"section column {mapping['section']!r}"
+    elif labels is not None:
+        sections = sections_from_column(labels)
+        origin = f"section column {label_column!r}"
     else:
         from .solvers.multipos import detect_static_intervals
 
         try:
-            iv = detect_static_intervals(acc, float(args.rate), args.t_init)
+            iv = detect_static_intervals(acc, float(rate), args.t_init)
         except ValueError as exc:
             raise InputError(f"automatic static-interval detection: {exc}", src,
                              hint="give --t-init SECONDS of initial rest, or --segments JSON") from None
@@ -293,51 +301,173 @@ def import_csv(args: argparse.Namespace) -> tuple[Path, int, list[dict[str, Any]
             moving = "rot" in s["label"].lower() or not _is_static(acc[s["start"]:s["end"]],
                                                                    gyr[s["start"]:s["end"]], quiet)
             s["kind"] = "capture" if moving else "orientation"
+    return sections, origin
+
+
+def import_meta(args: argparse.Namespace, src: Path, rate: float, origin: str,
+                extra: dict[str, Any]) -> dict[str, Any]:
+    """/meta of an imported recording: site gravity, provenance, no unit identity
+    (docs/data-format.md); ``extra`` holds the input-specific ``import_*`` keys."""
     lat = args.latitude_deg
     g = args.gravity if args.gravity is not None else (normal_gravity(math.radians(lat), 0.0)
                                                        if lat is not None else G0)
-    meta = {"procedure_name": "import", "procedure_text": "", "config_yaml": "",
+    return {"procedure_name": "import", "procedure_text": "", "config_yaml": "",
             "versions_json": json.dumps({"rigctl": __version__}),
             "latitude_deg": float("nan") if lat is None else float(lat), "height_m": 0.0,
-            "gravity_m_s2": float(g), "import_source": str(src), "import_columns_json": json.dumps(mapping),
-            "import_units_json": json.dumps(args.units), "import_rate_hz": float(args.rate),
-            "import_sections": origin, "orientation_free": 1,
+            "gravity_m_s2": float(g), "import_source": str(src), **extra,
+            "import_rate_hz": float(rate), "import_sections": origin, "orientation_free": 1,
             # the unit under test is unknown to an imported log (docs/data-format.md, /meta)
             "imu_device_id": "", "imu_serial": "",
             "imu_identity_json": json.dumps({"device_id": "", "protocol": ""}, sort_keys=True),
             "rig": "none: imported log (no table; segment orientations unknown)"}
+
+
+@dataclass
+class Imported:
+    """What an import wrote: output, samples, sample rate (Hz), sections, lines to print."""
+
+    out: Path
+    n: int
+    rate_hz: float
+    sections: list[dict[str, Any]]
+    lines: list[str]
+
+
+CSV_ONLY = ("columns", "units", "rate")
+BAG_ONLY = ("topic",)
+
+
+def import_csv(args: argparse.Namespace) -> Imported:
+    """Read, convert and write a CSV log."""
+    src = Path(args.file)
+    out = Path(args.output)
+    if not src.is_file():
+        raise InputError("input file not found", src)
+    for opt in BAG_ONLY:
+        if getattr(args, opt) is not None:
+            raise InputError(f"--{opt} applies to ROS bags and MCAP files only", src)
+    for opt in ("columns", "units"):
+        if not getattr(args, opt):
+            raise InputError(f"--{opt} is required for a CSV file", src,
+                             hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
+    check_output(src, out, args.force)
+    mapping = parse_columns(args.columns)
+    factors = parse_units(args.units)
+    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
+        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+    check_ranges(args)
+    cols, _ = read_table(src, mapping, args.skip_rows)
+    n = len(cols["acc_x"])
+    acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
+    gyr = np.column_stack([cols[k] for k in REQUIRED[3:]]) * factors["gyr"]
+    if "time" in cols:
+        t = (cols["time"] - cols["time"][0]) * factors["time"]
+        if np.any(np.diff(t) <= 0):
+            k = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise InputError(f"time column not increasing at data row {k + 2}", src,
+                             hint="fix the time column or drop time= from --columns")
+    else:
+        t = np.arange(n) / float(args.rate)
+    temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
+    sections, origin = find_sections(args, src, acc, gyr, float(args.rate), cols.get("section"),
+                                     mapping.get("section", ""))
+    meta = import_meta(args, src, float(args.rate), origin,
+                       {"import_format": "csv", "import_columns_json": json.dumps(mapping),
+                        "import_units_json": json.dumps(args.units)})
     write_recording(out, t, acc, gyr, temp, float(args.rate), sections, meta)
-    return out, n, sections
+    return Imported(out, n, float(args.rate), sections,
+                    [f"imported {n} samples at {args.rate:g} Hz from {args.file}"])
+
+
+def import_bag(args: argparse.Namespace) -> Imported:
+    """Read one sensor_msgs/Imu topic of a ROS bag, rosbag2 directory or MCAP file
+    (rigctl.analysis.bag_import) and write it."""
+    src = Path(args.file)
+    out = Path(args.output)
+    for opt in CSV_ONLY:
+        if getattr(args, opt):
+            raise InputError(f"--{opt} applies to CSV files only: a bag's Imu messages are in SI "
+                             "units and carry their time stamps", src)
+    check_output(src, out, args.force)
+    check_ranges(args)
+    shown = WorkProgress(f"import {src.name}", 1, unit="messages", stream=sys.stderr)
+    b = B.read_imu(src, args.topic, args.time_source, progress=lambda done, total: _show(shown, done, total))
+    shown.done = float(b.n_messages)
+    shown.finish()
+    n = len(b.time_s)
+    if not 0 < b.rate_hz <= MAX_RATE_HZ:
+        raise InputError(f"topic {b.topic}: {b.time_source} gives {b.rate_hz:g} Hz, outside (0, {MAX_RATE_HZ:g}]: "
+                         "not sample times", src, hint="try --time-source receive")
+    sections, origin = find_sections(args, src, b.specific_force, b.angular_rate, b.rate_hz)
+    gaps = (f"{b.gaps} gaps, {b.missing_samples} samples missing (/imu/counter jumps)" if b.gaps
+            else "no gaps")
+    meta = import_meta(args, src, b.rate_hz, origin, {
+        "import_format": b.source_format, "import_topic": b.topic, "import_msgtype": b.msgtype,
+        "import_frame_id": b.frame_id, "import_time_source": b.time_source,
+        "import_columns_json": json.dumps({"acc": "linear_acceleration", "gyr": "angular_velocity",
+                                           "time": b.time_source}),
+        "import_units_json": json.dumps("m/s^2, rad/s (sensor_msgs/Imu, REP 103)"),
+        "import_stamp_zero_ns": np.int64(b.stamp_zero_ns),
+        "clock_zero_unix_s": b.stamp_zero_ns * 1e-9,
+        "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
+        "import_duplicates_dropped": b.duplicates_dropped,
+        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s)})
+    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
+    if b.truncated:
+        note += f"; {b.truncated}"
+    write_recording(out, b.time_s, b.specific_force, b.angular_rate, np.full(n, np.nan), b.rate_hz,
+                    sections, meta, counter=b.counter, note=note)
+    return Imported(out, n, b.rate_hz, sections, [f"imported {n} samples from {args.file}", *B.describe(b)])
+
+
+def _show(shown: WorkProgress, done: int, total: int) -> None:
+    shown.total = float(max(total, done, 1))
+    shown.update(done)
+
+
+def import_file(args: argparse.Namespace) -> Imported:
+    """Dispatch on the input: ROS bag, rosbag2 directory or MCAP file (by their first bytes),
+    else CSV; a .bag/.mcap/.db3 name whose content is none of them is refused."""
+    src = Path(args.file)
+    if not src.exists():
+        raise InputError("input file not found", src)
+    if src.is_dir() or B.bag_kind(src) is not None or src.suffix.lower() in (".bag", ".mcap", ".db3"):
+        return import_bag(args)
+    return import_csv(args)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl import``: 0 ok, 2 invalid input, 1 failure."""
     try:
-        out, n, sections = import_csv(args)
+        done = import_file(args)
     except InputError:
         raise
     except OSError as exc:
         raise RunFailure(f"{args.output}: {exc}") from exc
     kinds: dict[str, int] = {}
-    for s in sections:
+    for s in done.sections:
         kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1
-    print(f"imported {n} samples at {args.rate:g} Hz from {args.file}")
+    for line in done.lines:
+        print(line)
     print("segments: " + ", ".join(f"{v} {k}" for k, v in kinds.items()))
-    print(f"recording: {out}")
+    print(f"recording: {done.out}")
     return 0
 
 
 def register(subparsers: Any) -> None:
     """Add the ``import`` sub-command."""
-    p = subparsers.add_parser("import", help="convert a foreign IMU log (CSV) into a rigctl recording",
-                              description=__doc__.split("\n\n")[0])
-    p.add_argument("file", help="CSV file")
+    p = subparsers.add_parser("import", help="convert a foreign IMU log (CSV, ROS bag, MCAP) into a rigctl "
+                              "recording", description=__doc__.split("\n\n")[0])
+    p.add_argument("file", help="CSV file, ROS 1 bag, rosbag2 directory (sqlite3 or mcap storage) or MCAP file")
     p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
-    p.add_argument("--columns", required=True,
-                   help="acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
-    p.add_argument("--units", required=True, help="e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s")
-    p.add_argument("--rate", type=float, help="nominal sample rate, Hz")
-    p.add_argument("--skip-rows", type=int, default=0, help="lines before the header (metadata)")
+    p.add_argument("--columns",
+                   help="CSV: acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
+    p.add_argument("--units", help="CSV: e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s")
+    p.add_argument("--rate", type=float, help="CSV: nominal sample rate, Hz (bags: estimated from the stamps)")
+    p.add_argument("--skip-rows", type=int, default=0, help="CSV: lines before the header (metadata)")
+    p.add_argument("--topic", help="bag/MCAP: the sensor_msgs/Imu topic (optional when there is only one)")
+    p.add_argument("--time-source", choices=("header", "receive"), default="header",
+                   help="bag/MCAP: sample time from header.stamp (default) or the bag's receive time")
     p.add_argument("--segments", help="sections JSON (imucal session list or list of {label,start,end})")
     p.add_argument("--t-init", type=float, default=5.0,
                    help="seconds of initial rest for automatic static detection (default 5)")

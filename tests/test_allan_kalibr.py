@@ -1,0 +1,164 @@
+"""`rigctl allan --kalibr/--json/--csv` on an emulated capture, and the robotics round trip
+(recording -> rosbag2 -> `rigctl import` -> `rigctl allan --kalibr`).
+
+The capture: 1 h at 100 Hz of the emulator's declared_only profile (white noise N, flicker B,
+random walk K) with K raised ten-fold so that a 1-hour capture resolves it (K dominates beyond
+~30 s). Truth from the recording's /truth. Checks, independent of rigctl's conversion code:
+
+* noise densities within 5 % of the truth (the fit's 95 % interval is about +-0.3 % here, so
+  5 % would catch any unit slip -- a factor 60, sqrt(2), 2 pi, g);
+* each random walk's written value has a 95 % interval that contains the truth, and every
+  axis' K interval in the JSON contains it;
+* Kalibr units: N (rad/sqrt(s)) equals the density in rad/s/sqrt(Hz), checked here against the
+  white-noise level read off the curve in the CSV with plain numpy: sigma(tau0) * sqrt(tau0)
+  at the shortest tau, where N dominates;
+* the CSV's bands are the stored ones in SI; the JSON holds the whole result.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from helpers import ROOT, run_rigctl
+
+PROCEDURE = "procedure: static-capture\nsteps:\n  - capture:\n      duration: 1 h\n      label: static\n"
+K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the profile's
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> tuple[Path, dict]:
+    tmp = tmp_path_factory.mktemp("kalibr")
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = 11
+    cfg["imu"]["sim"] = {"profile": "declared_only", "overrides": {
+        "gyro": {"noise": {"K_rad_per_s2_per_sqrt_hz": K_GYRO}},
+        "accel": {"noise": {"K_m_per_s3_per_sqrt_hz": K_ACC}}}}
+    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    (tmp / "capture.yaml").write_text(PROCEDURE)
+    r = run_rigctl("run", str(tmp / "capture.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
+                   str(tmp / "runs"), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
+    with h5py.File(rec, "r") as f:
+        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
+    return rec, truth
+
+
+@pytest.fixture(scope="module")
+def default_run(capture, tmp_path_factory) -> tuple[dict, dict, str, Path]:
+    """`rigctl allan REC --kalibr --json --csv` with the defaults: (imu.yaml, JSON, yaml text, dir)."""
+    out = tmp_path_factory.mktemp("allan")
+    return (*_allan(capture[0], out), out)
+
+
+def _allan(rec: Path, out: Path, *extra: str) -> tuple[dict, dict, str]:
+    r = run_rigctl("allan", str(rec), "--kalibr", str(out / "imu.yaml"), "--json", str(out / "allan.json"),
+                   "--csv", str(out / "allan.csv"), "--db", "none", *extra, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    text = (out / "imu.yaml").read_text()
+    return yaml.safe_load(text), json.loads((out / "allan.json").read_text()), text
+
+
+def test_kalibr_values_match_the_emulator_truth(capture, default_run):
+    rec, truth = capture
+    assert truth["gyro_noise"]["K_rad_per_s2_per_sqrt_hz"] == K_GYRO
+    kal, doc, text, out = default_run
+    g, a = truth["gyro_noise"], truth["accel_noise"]
+    assert set(kal) == {"accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density",
+                        "gyroscope_random_walk", "rostopic", "update_rate"}
+    assert kal["rostopic"] == "/imu0" and kal["update_rate"] == 100.0
+    for key, true in (("gyroscope_noise_density", g["N_rad_per_s_per_sqrt_hz"]),
+                      ("accelerometer_noise_density", a["N_m_per_s2_per_sqrt_hz"])):
+        assert abs(kal[key] / true - 1) < 0.05, (key, kal[key], true)
+    for key, true in (("gyroscope_random_walk", g["K_rad_per_s2_per_sqrt_hz"]),
+                      ("accelerometer_random_walk", a["K_m_per_s3_per_sqrt_hz"])):
+        k = doc["kalibr"][key]
+        assert k["supported"] and k["written"] == pytest.approx(kal[key], rel=1e-6), (key, k)
+        assert k["ci95"][0] <= true <= k["ci95"][1], (key, k, true)
+    # every axis' K interval holds the truth; the written value is the largest axis
+    for axis, r in doc["axes"].items():
+        unit = "rad/s/sqrt(s)" if r["sensor"] == "gyro" else "m/s^2/sqrt(s)"
+        true = K_GYRO if r["sensor"] == "gyro" else K_ACC
+        lo, hi = r["fit"]["terms"]["K"][f"ci95_{unit}"]
+        assert lo <= true <= hi, (axis, lo, hi)
+    kg = [r["fit"]["terms"]["K"]["value_rad/s/sqrt(s)"] for r in doc["axes"].values() if r["sensor"] == "gyro"]
+    assert kal["gyroscope_random_walk"] == pytest.approx(max(kg), rel=1e-6)
+    assert "# inflation: none" in text and "95 % interval" in text
+    # the density read off the curve (CSV, plain numpy): sigma(tau0) sqrt(tau0), white-noise dominated
+    rows = np.genfromtxt(out / "allan.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    gx = rows[rows["axis"] == "gx"]
+    assert gx["unit"][0] == "rad/s" and gx["tau_s"][0] == pytest.approx(0.01)
+    n_read = gx["sigma"][0] * math.sqrt(gx["tau_s"][0])
+    n_fit = doc["axes"]["gx"]["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
+    assert n_read == pytest.approx(n_fit, rel=0.01)
+    # CSV bands = the stored bands (deg/h) in SI; JSON = the stored curve
+    with h5py.File(rec, "r") as f:
+        hi95 = f["results/allan/gx/hi95_deg_per_h"][()]
+        dev = f["results/allan/gx/adev_rad_per_s"][()]
+    assert np.allclose(gx["hi95"], hi95 * math.pi / 180 / 3600, rtol=1e-12)
+    assert np.array_equal(gx["sigma"], dev) and doc["axes"]["gx"]["adev_rad/s"] == dev.tolist()
+    assert np.all((gx["lo68"] < gx["sigma"]) & (gx["sigma"] < gx["hi68"]) & (gx["hi68"] < gx["hi95"]))
+
+
+def test_inflation_is_stated_and_applied(capture, default_run, tmp_path):
+    rec, _ = capture
+    kal1, doc1, _, _ = default_run
+    kal5, doc5, text = _allan(rec, tmp_path, "--kalibr-inflate", "5", "--kalibr-topic", "/imu/data")
+    assert "# inflation: x5 chosen by the user" in text and kal5["rostopic"] == "/imu/data"
+    for key in ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+                "accelerometer_random_walk"):
+        assert kal5[key] == pytest.approx(5 * kal1[key], rel=1e-6)
+        assert doc5["kalibr"][key]["fitted"] == doc1["kalibr"][key]["fitted"]
+    for args, text in ((("--kalibr-inflate", "0"), "--kalibr-inflate 0: give a factor > 0"),
+                       (("--axes", "gx,gy,gz"), "--kalibr needs all six axes")):
+        r = run_rigctl("allan", str(rec), "--kalibr", str(tmp_path / "x.yaml"), "--db", "none", *args)
+        assert r.returncode == 2 and text in r.stderr and r.stderr.count("\n") == 1, r.stderr
+        assert not (tmp_path / "x.yaml").exists()
+
+
+def test_recording_to_rosbag2_to_kalibr(capture, default_run, tmp_path):
+    """What a robotics user does: the capture as a rosbag2 (written with rosbags), imported with
+    `rigctl import`, analysed with `--kalibr`: the same samples, the bag's topic in imu.yaml and
+    the same values as from the recording itself."""
+    pytest.importorskip("rosbags")
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    rec, _ = capture
+    with h5py.File(rec, "r") as f:
+        s0, s1 = int(f["segments/first_sample"][0]), int(f["segments/last_sample"][0])
+        t = f["imu/time"][s0:s1]
+        acc, gyr = f["imu/specific_force"][s0:s1], f["imu/angular_rate"][s0:s1]
+    stamp = 1_700_000_000_000_000_000 + np.rint(t * 1e9).astype(np.int64)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    V, H, Tm, Imu = (T["geometry_msgs/msg/Vector3"], T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"],
+                     T["sensor_msgs/msg/Imu"])
+    q, z9 = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0), np.zeros(9)
+    bag = tmp_path / "capture_bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/vio/imu", "sensor_msgs/msg/Imu", typestore=store)
+        for i in range(len(t)):
+            msg = Imu(header=H(stamp=Tm(sec=int(stamp[i] // 10**9), nanosec=int(stamp[i] % 10**9)), frame_id="imu"),
+                      orientation=q, orientation_covariance=z9, angular_velocity=V(*gyr[i]),
+                      angular_velocity_covariance=z9, linear_acceleration=V(*acc[i]),
+                      linear_acceleration_covariance=z9)
+            w.write(c, int(stamp[i]) + 2_000_000, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+    imported = tmp_path / "imported.h5"
+    r = run_rigctl("import", str(bag), "-o", str(imported))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "gaps: none" in r.stdout and "sample rate 100 Hz" in r.stdout
+    with h5py.File(imported, "r") as f:
+        assert np.array_equal(f["imu/specific_force"][()], acc) and np.array_equal(f["imu/angular_rate"][()], gyr)
+    direct = default_run[0]
+    via_bag, _, text = _allan(imported, tmp_path)
+    assert via_bag["rostopic"] == "/vio/imu" and "from imported.h5, whole recording" in text
+    for key, v in direct.items():
+        if key != "rostopic":
+            assert via_bag[key] == pytest.approx(v, rel=1e-6), key
