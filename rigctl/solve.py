@@ -14,7 +14,7 @@ SOLVER_HOOKS: dict[str, str] = {
     "accel24": "rigctl.calibrate_cmd:solve_hook",
     "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
     "closed-loop": "rigctl.calibrate_cmd:solve_hook",
-    "allan": "rigctl.allan_cmd:solve_recording",
+    "allan": "rigctl.analysis.allan:solve_recording",
     "report": "rigctl.report:solve_report",
 }
 
