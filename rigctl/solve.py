@@ -11,9 +11,9 @@ from .procedure import Procedure
 #: The three calibration solvers share one hook: the first computes the whole calibration
 #: (published fits and the closed loop) and prints it, the others see it done and return.
 SOLVER_HOOKS: dict[str, str] = {
-    "accel24": "rigctl.calibrate_cmd:solve_hook",
-    "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
-    "closed-loop": "rigctl.calibrate_cmd:solve_hook",
+    "accel24": "rigctl.analysis.calibration:solve_hook",
+    "gyro-rate": "rigctl.analysis.calibration:solve_hook",
+    "closed-loop": "rigctl.analysis.calibration:solve_hook",
     "allan": "rigctl.allan_cmd:solve_recording",
     "report": "rigctl.report:solve_report",
 }

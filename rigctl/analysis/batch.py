@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import allan_cmd, calibrate_cmd  # the pipelines (until they move to rigctl.analysis)
+from .. import allan_cmd  # the Allan pipeline (until it moves to rigctl.analysis)
+from . import calibration as calibrate_cmd
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..spec import load_spec
 from . import production
