@@ -144,7 +144,7 @@ def _noise(f: h5py.File, choice: str, path: Path) -> tuple[Any, Any, str]:
 
 # ------------------------------------------------------------------------------ turntable data
 def _truth(f: h5py.File) -> dict[str, float] | None:
-    from .solvers.segments import truth_from_emulator
+    from ..solvers.segments import truth_from_emulator
 
     t = f.get("truth")
     if t is None or "params_json" not in t.attrs:
