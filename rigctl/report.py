@@ -3,9 +3,8 @@
 :func:`load_run` reads what a report needs from a recording (docs/data-format.md): /meta,
 /run/status, /events, /table, /segments, the IMU counter gaps (dropped samples, read in
 chunks) and the results groups /results/calibration, /results/allan, /results/sync -- each
-may be absent (its section then says "not run"). :func:`build_report` draws the plots
+may be absent (its section then says "not run"). :mod:`rigctl.report_build` draws the plots
 (:mod:`rigctl.report_plots`, matplotlib Agg) and writes the page (:mod:`rigctl.report_html`).
-:func:`solve_report` is the hook a procedure's ``solve: [report]`` step calls.
 """
 from __future__ import annotations
 
@@ -246,35 +245,3 @@ def require_matplotlib() -> None:
         import matplotlib  # noqa: F401
     except ImportError:
         raise ReportDependencyError("the report needs matplotlib: pip install 'rigctl[report]'") from None
-
-
-def build_report(run: str | Path, out_dir: str | Path | None = None,
-                 log: Callable[..., None] | None = None) -> Path:
-    """Write report.html and its PNGs for a run directory or recording; returns the HTML path.
-
-    ``out_dir`` defaults to the run directory (the folder of the recording).
-    """
-    from . import report_html, report_plots
-
-    require_matplotlib()
-    rec, run_dir = resolve_run(run)
-    data = load_run(rec, run_dir)
-    out = Path(out_dir) if out_dir is not None else run_dir
-    out.mkdir(parents=True, exist_ok=True)
-    plots = report_plots.make_plots(data, out, log)
-    html = report_html.render(data, plots)
-    target = out / REPORT_HTML
-    tmp = target.with_suffix(".html.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(target)
-    return target
-
-
-def solve_report(recording_path: str | Path, log: Callable[..., None]) -> None:
-    """SOLVER_HOOKS entry ``report``: write report.html beside the recording."""
-    try:
-        path = build_report(recording_path, log=log)
-    except ReportDependencyError as exc:
-        log("warning", f"report skipped: {exc}")
-        return
-    log("info", f"report: {path}")

@@ -15,7 +15,7 @@ SOLVER_HOOKS: dict[str, str] = {
     "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
     "closed-loop": "rigctl.calibrate_cmd:solve_hook",
     "allan": "rigctl.allan_cmd:solve_recording",
-    "report": "rigctl.report:solve_report",
+    "report": "rigctl.report_build:solve_report",
 }
 
 
