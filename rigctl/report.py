@@ -199,13 +199,16 @@ def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunDat
 def _sync_arrays(f: Any, g: Any) -> dict[str, np.ndarray]:
     """/results/sync's per-tap datasets, and the clock's reference time at each tap.
 
-    The clock is affine between samples, so the reference time of a tap at fractional counter
+    Recordings synchronised by this version store it (``tap_reference_time``). For older ones:
+    the clock is affine between samples, so the reference time of a tap at fractional counter
     c = t_tap * rate is interpolated linearly between the reference times (per IMU row,
     /results/sync/reference_time) of the tap's detection row and the next row; only those
     rows are read.
     """
     out = {k: g[k][()] for k in ("tap_time_imu", "tap_row", "pulse_time", "local_residual",
-                                 "inlier") if k in g}
+                                 "inlier", "tap_reference_time") if k in g}
+    if "tap_reference_time" in out:
+        return out
     rate = f["imu"].attrs.get("sample_rate_hz") if "imu" in f else None
     if not ("reference_time" in g and "imu/counter" in f and "tap_row" in out
             and "tap_time_imu" in out and rate is not None and out["tap_row"].size):

@@ -213,7 +213,7 @@ def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp
 
 
 def test_sync_plots_and_the_clock_residual(tap_recording: Path, tmp_path: Path) -> None:
-    from rigctl import sync_cmd
+    from rigctl.analysis import sync
 
     rec = tmp_path / "taps.h5"
     shutil.copy(tap_recording, rec)
@@ -229,7 +229,7 @@ def test_sync_plots_and_the_clock_residual(tap_recording: Path, tmp_path: Path) 
     with h5py.File(rec, "r") as f:
         counter, sf = f["imu/counter"][()], f["imu/specific_force"][:, 2]
         pulses = f["pulses/time"][()]
-    res = sync_cmd.synchronise(counter, sf, RATE, pulses)
+    res = sync.synchronise(counter, sf, RATE, pulses)
     m = res.match
     want = res.clock.time_of_counter(res.tap_time_s[m.tap_index] * RATE)
     assert np.max(np.abs(arr["tap_reference_time"] - want)) < 1e-9
