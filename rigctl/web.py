@@ -341,7 +341,8 @@ class WebApi:
         return _json({"ok": True, "runs": await run_in_threadpool(self._list_runs)})
 
     def _build_report(self, run_dir: Path) -> Path:
-        from .report import REPORT_HTML, build_report
+        from .report import REPORT_HTML
+        from .report_build import build_report
         target = run_dir / REPORT_HTML
         with self._report_lock:  # one report at a time: matplotlib is not thread-safe
             if not target.exists():
