@@ -125,6 +125,7 @@ class Engine:
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
         self.n_suspensions = 0
         self._flushed_once = False
+        self.live: Any = None  # a rigctl.livefeed.LiveFeed (the daemon's live views), or None
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
@@ -153,6 +154,8 @@ class Engine:
                 self._track_block(self.rec.n_imu, block.time)
             self.rec.append_imu(block)
             self.gaps.add(block.counter)
+            if self.live is not None:
+                self.live.add_imu(block)
         except LinkLost as exc:
             obs.imu_error = str(exc)
         except DeviceFault as exc:  # e.g. another unit on the IMU port: fatal, except while
@@ -168,6 +171,8 @@ class Engine:
             obs.table = state
             self.rec.append_table(state)
             self.last_state = state
+            if self.live is not None:
+                self.live.add_table(state)
         except LinkLost as exc:
             obs.table_error = f"table link lost: {exc}"
             state = self.last_state

@@ -17,9 +17,9 @@ Hook = Callable[[Path, Callable[..., None]], None]
 #: a pipeline still in its CLI module (allan, calibration: moving to rigctl.analysis); it is
 #: imported when the step runs.
 SOLVER_HOOKS: dict[str, Hook | str] = {
-    "accel24": "rigctl.calibrate_cmd:solve_hook",
-    "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
-    "closed-loop": "rigctl.calibrate_cmd:solve_hook",
+    "accel24": "rigctl.analysis.calibration:solve_hook",
+    "gyro-rate": "rigctl.analysis.calibration:solve_hook",
+    "closed-loop": "rigctl.analysis.calibration:solve_hook",
     "allan": "rigctl.allan_cmd:solve_recording",
     "sync": sync.solve_recording,
     "report": solve_report,
