@@ -136,6 +136,7 @@ class Engine:
         self._chamber_reason: str | None = None
         #: (time, min, max) of the IMU temperature per poll, while a chamber-wait step runs
         self._temps: deque | None = None
+        self.live: Any = None  # a rigctl.livefeed.LiveFeed (the daemon's live views), or None
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
@@ -164,6 +165,8 @@ class Engine:
                 self._track_block(self.rec.n_imu, block.time)
             self.rec.append_imu(block)
             self.gaps.add(block.counter)
+            if self.live is not None:
+                self.live.add_imu(block)
         except LinkLost as exc:
             obs.imu_error = str(exc)
         except DeviceFault as exc:  # e.g. another unit on the IMU port: fatal, except while
@@ -185,6 +188,8 @@ class Engine:
             obs.table = state
             self.rec.append_table(state)
             self.last_state = state
+            if self.live is not None:
+                self.live.add_table(state)
         except LinkLost as exc:
             obs.table_error = f"table link lost: {exc}"
             state = self.last_state

@@ -30,7 +30,6 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +37,8 @@ import h5py
 import numpy as np
 
 from . import __version__
+from .checkpoint import clear_status_flags
+from .clock import utc_now  # noqa: F401  (re-exported: the recorder's time stamps)
 from .devices import ImuBlock, Pulses, TableState
 
 SCHEMA_VERSION = 1
@@ -115,10 +116,6 @@ class Segment:
     measured_angle: np.ndarray
     measured_rate: np.ndarray
     status: str = "complete"
-
-
-def utc_now() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 def library_versions() -> dict[str, str]:
@@ -214,8 +211,6 @@ class Recorder:
         ``counter_offset = max(last counter + 1, ceil(last time * rate) + 1) + round(gap * rate)``
         and ``time_offset = counter_offset / rate``: the gap shows as missing samples.
         """
-        from .checkpoint import clear_status_flags
-
         self = cls.__new__(cls)
         self._init_state(path, flush_interval_s, max_buffer_rows, min_free_bytes)
         clear_status_flags(self.path)
