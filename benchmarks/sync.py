@@ -19,7 +19,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rigctl.sim import taps  # noqa: E402
-from rigctl.sync_cmd import SyncOptions, synchronise  # noqa: E402
+from rigctl.analysis.sync import SyncOptions, synchronise  # noqa: E402
 
 RATE = 100.0
 SEEDS = range(1, 6)

@@ -22,6 +22,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .clock import utc_now
+
 CHECKPOINT_NAME = "checkpoint.json"
 CHECKPOINT_SCHEMA = 1
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -69,8 +71,6 @@ def write_atomic(path: Path, data: bytes) -> None:
 
 
 def save(run_dir: Path, ckpt: Checkpoint) -> None:
-    from .recorder import utc_now
-
     ckpt.updated_utc = utc_now()
     write_atomic(run_dir / CHECKPOINT_NAME, json.dumps(asdict(ckpt), indent=1).encode())
 

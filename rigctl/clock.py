@@ -2,6 +2,12 @@
 from __future__ import annotations
 
 import time
+from datetime import datetime, timezone
+
+
+def utc_now() -> str:
+    """Wall-clock UTC as the recordings, logs and checkpoints write it (ISO 8601, microseconds, Z)."""
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 class VirtualClock:

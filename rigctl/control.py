@@ -33,7 +33,13 @@ SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "ping": {},
     "status": {},
     "queue": {},
-    "submit": {"procedure": ((str,), True), "params": ((dict,), False)},
+    "submit": {"procedure": ((str,), True), "params": ((dict,), False), "position": ((int,), False)},
+    "queue_remove": {"job": ((int,), True)},
+    "queue_move": {"job": ((int,), True), "position": ((int,), True)},
+    "queue_clear": {},
+    "queue_start": {},
+    "queue_stop": {},
+    "history": {"limit": ((int,), False)},
     "pause": {},
     "resume": {"run": ((str,), False)},
     "abort": {},
@@ -87,6 +93,10 @@ def validate_request(obj: Any) -> tuple[str, dict[str, Any]]:
             raise ProtocolError("submit: params must map names to scalars")
     if cmd == "logs" and not 0 < args.get("lines", 50) <= 10000:
         raise ProtocolError("logs: lines must be in 1..10000")
+    if cmd == "history" and not 0 < args.get("limit", 50) <= 10000:
+        raise ProtocolError("history: limit must be in 1..10000")
+    if not 0 <= args.get("position", 0) <= 100000:
+        raise ProtocolError(f"{cmd}: position must be in 0..100000")
     return cmd, args
 
 
@@ -158,7 +168,7 @@ class ControlServer:
         finally:
             os.umask(old)
         os.chmod(self.path, 0o600)
-        self.sock.listen(16)
+        self.sock.listen(128)
         self.sock.settimeout(0.5)
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._serve, name="rigctl-control", daemon=True)

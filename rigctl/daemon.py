@@ -28,6 +28,7 @@ from .procedure import load_procedure, parse_overrides
 from .progress import NullProgress, Progress
 from .recorder import utc_now
 from .runlog import RunLog
+from .livefeed import LiveFeed
 from .errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
 from .runner import RunOptions, check_run_dir, resume_run, run_procedure
 from .states import StateMachine
@@ -41,7 +42,7 @@ class Job:
     procedure: str = ""         # absolute path (run)
     params: dict[str, Any] | None = None
     run_dir: str = ""           # set when it starts (run) or given (resume)
-    state: str = "queued"       # queued | running | complete | interrupted | failed | crashed
+    state: str = "queued"       # queued | running | complete | interrupted | failed | crashed | removed
     message: str = ""
     submitted_utc: str = ""
     started_utc: str = ""
@@ -69,9 +70,12 @@ class Daemon:
         self.current: Job | None = None
         self.progress: Progress = NullProgress()
         self.stopping: str | None = None
+        self.queue_running = True   # False after queue_stop: the running job ends, no new one starts
+        self.live = LiveFeed()
         self._load_jobs()
         self.server = control.ControlServer(self.socket_path, self.handle, self.log)
         self.worker = threading.Thread(target=self._work, name="rigctl-worker", daemon=True)
+        self.web: Any = None  # a rigctl.web.WebServer when serving HTTP (start_http)
         self.states.listeners.append(
             lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
 
@@ -110,12 +114,28 @@ class Daemon:
             self.queue.appendleft(jid)
         self._save_jobs()
 
-    def _new_job(self, kind: str, **kw: Any) -> Job:
+    def _new_job(self, kind: str, position: int | None = None, **kw: Any) -> Job:
         job = Job(id=max((j.id for j in self.jobs), default=0) + 1, kind=kind,
                   submitted_utc=utc_now(), **kw)
         self.jobs.append(job)
-        self.queue.append(job.id)
+        if position is None or position >= len(self.queue):
+            self.queue.append(job.id)
+        else:
+            self.queue.insert(position, job.id)
         return job
+
+    def _duplicate_of(self, kind: str, procedure: str = "", params: dict | None = None,
+                      run_dir: str = "") -> Job | None:
+        """A queued or running job that would do the same work: the same procedure with the same
+        parameters, or a resume of (or the job running in) the same run directory."""
+        for j in self.jobs:
+            if j.state not in ("queued", "running"):
+                continue
+            if kind == "run" and j.kind == "run" and j.procedure == procedure and (j.params or {}) == (params or {}):
+                return j
+            if kind == "resume" and run_dir and j.run_dir == run_dir:
+                return j
+        return None
 
     def job(self, jid: int) -> Job:
         return next(j for j in self.jobs if j.id == jid)
@@ -132,17 +152,67 @@ class Daemon:
         eng = self.engine
         out: dict[str, Any] = {"ok": True, "state": self.states.state, "reason": self.states.reason,
                                "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
-                               "queued": len(self.queue), "job": asdict(self.current) if self.current else None}
+                               "queued": len(self.queue), "queue_running": self.queue_running,
+                               "job": asdict(self.current) if self.current else None}
         if eng is not None:
             out["suspenders"] = dict(eng.suspenders.active)
             out["step"] = eng.current_step.describe() if eng.current_step else None
             out["imu_samples"] = eng.rec.n_imu
             out["segments"] = eng.rec.n_segments
             out["progress"] = self.progress.status_text()
+            out["remaining_s"] = round(self.progress.remaining_s(), 1)
+            out["step_fraction"] = round(self.progress.fraction(), 3)
         return out
 
     def _cmd_queue(self, _args: dict) -> dict:
-        return {"ok": True, "jobs": [asdict(j) for j in self.jobs[-200:]], "queued": list(self.queue)}
+        return {"ok": True, "jobs": [asdict(j) for j in self.jobs[-200:]], "queued": list(self.queue),
+                "queue_running": self.queue_running}
+
+    def _queued_job(self, jid: int) -> Job | None:
+        return self.job(jid) if jid in self.queue else None
+
+    def _cmd_queue_remove(self, args: dict) -> dict:
+        job = self._queued_job(args["job"])
+        if job is None:
+            return {"ok": False, "error": f"job {args['job']} is not queued", "exit_code": EXIT_INVALID}
+        self.queue.remove(job.id)
+        job.state, job.message, job.ended_utc = "removed", "removed from the queue", utc_now()
+        self._save_jobs()
+        return {"ok": True, "queued": list(self.queue)}
+
+    def _cmd_queue_move(self, args: dict) -> dict:
+        job = self._queued_job(args["job"])
+        if job is None:
+            return {"ok": False, "error": f"job {args['job']} is not queued", "exit_code": EXIT_INVALID}
+        self.queue.remove(job.id)
+        self.queue.insert(min(args["position"], len(self.queue)), job.id)
+        self._save_jobs()
+        return {"ok": True, "queued": list(self.queue)}
+
+    def _cmd_queue_clear(self, _args: dict) -> dict:
+        removed = list(self.queue)
+        for jid in removed:
+            j = self.job(jid)
+            j.state, j.message, j.ended_utc = "removed", "queue cleared", utc_now()
+        self.queue.clear()
+        self._save_jobs()
+        return {"ok": True, "removed": removed}
+
+    def _cmd_queue_stop(self, _args: dict) -> dict:
+        """Start no new job: the running one (if any) goes on to its end."""
+        self.queue_running = False
+        self.log("info", "queue stopped: no new job starts until 'queue start'")
+        return {"ok": True, "queue_running": False, "running_job": self.current.id if self.current else None}
+
+    def _cmd_queue_start(self, _args: dict) -> dict:
+        self.queue_running = True
+        self.log("info", "queue started")
+        self.cv.notify_all()
+        return {"ok": True, "queue_running": True}
+
+    def _cmd_history(self, args: dict) -> dict:
+        done = [asdict(j) for j in reversed(self.jobs) if j.state not in ("queued", "running")]
+        return {"ok": True, "jobs": done[:int(args.get("limit", 50))]}
 
     def _cmd_submit(self, args: dict) -> dict:
         path = Path(args["procedure"])
@@ -154,10 +224,14 @@ class Daemon:
             load_procedure(path, params, self.cfg.limits)  # validate now: errors go to the client
         except InputError as exc:
             return {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
-        job = self._new_job("run", procedure=str(path), params=params)
+        dup = self._duplicate_of("run", procedure=str(path), params=params)
+        if dup is not None:
+            return {"ok": False, "error": f"job {dup.id} ({dup.state}) already runs {path} with the same "
+                    "parameters; remove it first or change a parameter", "exit_code": EXIT_INVALID}
+        job = self._new_job("run", position=args.get("position"), procedure=str(path), params=params)
         self._save_jobs()
         self.cv.notify_all()
-        return {"ok": True, "job": job.id, "position": len(self.queue)}
+        return {"ok": True, "job": job.id, "position": list(self.queue).index(job.id) + 1}
 
     def _cmd_pause(self, _args: dict) -> dict:
         if self.engine is None or self.states.state not in ("running", "pausing", "paused"):
@@ -171,6 +245,10 @@ class Daemon:
                 d = check_run_dir(args["run"], self.runs_dir)
             except InputError as exc:
                 return {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
+            dup = self._duplicate_of("resume", run_dir=str(d))
+            if dup is not None:
+                return {"ok": False, "error": f"job {dup.id} ({dup.state}) already works on {d}",
+                        "exit_code": EXIT_INVALID}
             job = self._new_job("resume", run_dir=str(d))
             self._save_jobs()
             self.cv.notify_all()
@@ -207,6 +285,9 @@ class Daemon:
     def _set_engine(self, engine: Engine | None) -> None:
         with self.cv:
             self.engine = engine
+            if engine is not None:
+                self.live.reset()
+                engine.live = self.live
             if engine is not None and self.current is not None and not self.current.run_dir:
                 self.current.run_dir = str(Path(engine.rec.path).parent)
                 self._save_jobs()
@@ -214,7 +295,8 @@ class Daemon:
     def _work(self) -> None:
         while True:
             with self.cv:
-                self.cv.wait_for(lambda: self.stopping or (self.queue and self.states.state == "idle"))
+                self.cv.wait_for(lambda: self.stopping or (self.queue and self.queue_running
+                                                            and self.states.state == "idle"))
                 if self.stopping:
                     return
                 job = self.job(self.queue.popleft())
@@ -255,6 +337,23 @@ class Daemon:
         self.log("info", f"rigctl daemon: socket {self.socket_path}, runs in {self.runs_dir}, "
                          f"config {self.config_path}")
 
+    def start_http(self, host: str = "127.0.0.1", port: int = 0, token_file: Path | None = None,
+                   open_read: bool = False, procedures_dir: Path | None = None) -> Any:
+        """Serve the HTTP API and web page (rigctl.web); returns the running WebServer."""
+        from .web import WebApi, WebServer, load_or_create_token
+
+        token_path = Path(token_file) if token_file else self._state_dir() / "http-token"
+        token = load_or_create_token(token_path)
+        api = WebApi(self, token, open_read=open_read, procedures_dir=procedures_dir)
+        self.web = WebServer(api, host, port, log=self.log)
+        self.web.start()
+        self.log("info", f"rigctl daemon: web page and API at {self.web.url} (token in {token_path}"
+                         + ("; read-only views open without it" if open_read else "") + ")")
+        if host not in ("127.0.0.1", "::1", "localhost"):
+            self.log("warning", f"HTTP is bound to {host}: reachable from other machines, unencrypted; "
+                                "put it behind a TLS proxy or an SSH tunnel")
+        return self.web
+
     def stop(self, reason: str = "shutdown") -> None:
         """Abort the running job (the table goes to its safe state), stop serving."""
         with self.cv:
@@ -263,6 +362,8 @@ class Daemon:
                 self.engine.request_abort(reason)
             self.cv.notify_all()
         self.worker.join(timeout=30)
+        if self.web is not None:
+            self.web.close()
         self.server.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
 
@@ -271,6 +372,18 @@ class Daemon:
 def cmd_serve(args: argparse.Namespace) -> int:
     cfg_path = resolve_config_path(args.config)
     d = Daemon(Path(args.runs), cfg_path, Path(args.socket) if args.socket else control.default_socket_path())
+    if args.http:
+        from .web import parse_hostport
+        try:
+            host, port = parse_hostport(args.http)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        procs = Path(args.procedures) if args.procedures else _default_procedures()
+        try:
+            d.start_http(host, port, args.http_token_file, args.http_open_read, procs)
+        except OSError as exc:
+            d.server.close()
+            raise RunFailure(f"--http {args.http}: {exc.strerror or exc}") from None
     stop = threading.Event()
     reason: list[str] = []
 
@@ -287,6 +400,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
         pass
     d.stop(f"daemon stopped by {reason[0]}")
     return 0
+
+
+def _default_procedures() -> Path:
+    """./procedures when it exists, else the project's procedures directory."""
+    from .config import PROJECT_ROOT
+    here = Path.cwd() / "procedures"
+    return here if here.is_dir() else PROJECT_ROOT / "procedures"
 
 
 def _client(args: argparse.Namespace, cmd: str, payload: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -391,6 +511,14 @@ def register(sub: Any) -> None:
     sock(p)
     p.add_argument("--config", help="rig config YAML (default: configs/sim.yaml)")
     p.add_argument("--runs", default="runs", help="directory for run folders (default: runs)")
+    p.add_argument("--http", metavar="HOST:PORT", help="also serve the HTTP API and web page "
+                   "(default: off; e.g. 127.0.0.1:8470; another address exposes it to the network)")
+    p.add_argument("--http-token-file", help="token file for HTTP control (default: "
+                   "RUNS/.rigctl-daemon/http-token, created with mode 0600)")
+    p.add_argument("--http-open-read", action="store_true",
+                   help="let read-only views (status, queue, runs, live plots) be opened without the token")
+    p.add_argument("--procedures", help="directory of procedures the web page may queue "
+                   "(default: ./procedures, else the project's)")
     p.set_defaults(func=cmd_serve)
     p = sub.add_parser("submit", help="queue a procedure on the daemon")
     sock(p)

@@ -30,7 +30,6 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +37,8 @@ import h5py
 import numpy as np
 
 from . import __version__
+from .checkpoint import clear_status_flags
+from .clock import utc_now  # noqa: F401  (re-exported: the recorder's time stamps)
 from .devices import ImuBlock, Pulses, TableState
 
 SCHEMA_VERSION = 1
@@ -87,8 +88,15 @@ LAYOUT: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
         "kind": ((), _STR["kind"], ""),
         "message": ((), _STR["message"], ""),
     },
+    "chamber": {  # the climatic chamber, one row per engine poll (empty without a chamber)
+        "time": ((), np.float64, "s"),
+        "air_c": ((), np.float64, "degC"),
+        "product_c": ((), np.float64, "degC"),
+        "setpoint_c": ((), np.float64, "degC"),
+        "status": ((), _STR["status"], ""),
+    },
 }
-_CHUNK_ROWS = {"imu": 8192, "table": 1024, "pulses": 256, "segments": 64, "events": 64}
+_CHUNK_ROWS = {"imu": 8192, "table": 1024, "pulses": 256, "segments": 64, "events": 64, "chamber": 1024}
 
 
 @dataclass
@@ -108,10 +116,6 @@ class Segment:
     measured_angle: np.ndarray
     measured_rate: np.ndarray
     status: str = "complete"
-
-
-def utc_now() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 def library_versions() -> dict[str, str]:
@@ -207,8 +211,6 @@ class Recorder:
         ``counter_offset = max(last counter + 1, ceil(last time * rate) + 1) + round(gap * rate)``
         and ``time_offset = counter_offset / rate``: the gap shows as missing samples.
         """
-        from .checkpoint import clear_status_flags
-
         self = cls.__new__(cls)
         self._init_state(path, flush_interval_s, max_buffer_rows, min_free_bytes)
         clear_status_flags(self.path)
@@ -223,6 +225,8 @@ class Recorder:
                 raise ValueError(f"{self.path} is not a rigctl recording")
             last_t = 0.0
             for gname in LAYOUT:
+                if gname not in f:  # a recording from before the group existed (chamber)
+                    continue
                 g = f[gname]
                 n = min(g[d].shape[0] for d in LAYOUT[gname])
                 for d in LAYOUT[gname]:
@@ -292,6 +296,14 @@ class Recorder:
             return
         self._put("table", {"time": [s.time + self.time_offset], "angle": [s.angle], "rate": [s.rate],
                             "status": [s.status_word]}, 1)
+
+    def append_chamber(self, s: Any) -> None:
+        """One chamber reading (rigctl.chamber.ChamberState)."""
+        if self._drop("chamber", 1, s.time + self.time_offset):
+            return
+        self._put("chamber", {"time": [s.time + self.time_offset], "air_c": [s.air_c],
+                              "product_c": [s.product_c], "setpoint_c": [s.setpoint_c],
+                              "status": [s.status.encode()[:16]]}, 1)
 
     def append_pulses(self, p: Pulses) -> None:
         n = len(p)
@@ -365,6 +377,10 @@ class Recorder:
                 self._append_rows(f["truth"][tname], cols)
         for gname, cols in self._buf.items():
             if not any(cols.values()):
+                continue
+            if gname not in f:
+                for parts in cols.values():
+                    parts.clear()
                 continue
             for dname, parts in cols.items():
                 data = np.concatenate(parts) if len(parts) > 1 else parts[0]  # rows first

@@ -3,15 +3,13 @@
 :func:`load_run` reads what a report needs from a recording (docs/data-format.md): /meta,
 /run/status, /events, /table, /segments, the IMU counter gaps (dropped samples, read in
 chunks) and the results groups /results/calibration, /results/allan, /results/sync -- each
-may be absent (its section then says "not run"). :func:`build_report` draws the plots
+may be absent (its section then says "not run"). :mod:`rigctl.report_build` draws the plots
 (:mod:`rigctl.report_plots`, matplotlib Agg) and writes the page (:mod:`rigctl.report_html`).
-:func:`solve_report` is the hook a procedure's ``solve: [report]`` step calls.
 """
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -200,13 +198,16 @@ def load_run(recording: str | Path, run_dir: str | Path | None = None) -> RunDat
 def _sync_arrays(f: Any, g: Any) -> dict[str, np.ndarray]:
     """/results/sync's per-tap datasets, and the clock's reference time at each tap.
 
-    The clock is affine between samples, so the reference time of a tap at fractional counter
+    Recordings synchronised by this version store it (``tap_reference_time``). For older ones:
+    the clock is affine between samples, so the reference time of a tap at fractional counter
     c = t_tap * rate is interpolated linearly between the reference times (per IMU row,
     /results/sync/reference_time) of the tap's detection row and the next row; only those
     rows are read.
     """
     out = {k: g[k][()] for k in ("tap_time_imu", "tap_row", "pulse_time", "local_residual",
-                                 "inlier") if k in g}
+                                 "inlier", "tap_reference_time") if k in g}
+    if "tap_reference_time" in out:
+        return out
     rate = f["imu"].attrs.get("sample_rate_hz") if "imu" in f else None
     if not ("reference_time" in g and "imu/counter" in f and "tap_row" in out
             and "tap_time_imu" in out and rate is not None and out["tap_row"].size):
@@ -246,35 +247,3 @@ def require_matplotlib() -> None:
         import matplotlib  # noqa: F401
     except ImportError:
         raise ReportDependencyError("the report needs matplotlib: pip install 'rigctl[report]'") from None
-
-
-def build_report(run: str | Path, out_dir: str | Path | None = None,
-                 log: Callable[..., None] | None = None) -> Path:
-    """Write report.html and its PNGs for a run directory or recording; returns the HTML path.
-
-    ``out_dir`` defaults to the run directory (the folder of the recording).
-    """
-    from . import report_html, report_plots
-
-    require_matplotlib()
-    rec, run_dir = resolve_run(run)
-    data = load_run(rec, run_dir)
-    out = Path(out_dir) if out_dir is not None else run_dir
-    out.mkdir(parents=True, exist_ok=True)
-    plots = report_plots.make_plots(data, out, log)
-    html = report_html.render(data, plots)
-    target = out / REPORT_HTML
-    tmp = target.with_suffix(".html.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(target)
-    return target
-
-
-def solve_report(recording_path: str | Path, log: Callable[..., None]) -> None:
-    """SOLVER_HOOKS entry ``report``: write report.html beside the recording."""
-    try:
-        path = build_report(recording_path, log=log)
-    except ReportDependencyError as exc:
-        log("warning", f"report skipped: {exc}")
-        return
-    log("info", f"report: {path}")

@@ -10,7 +10,7 @@ import argparse
 import sys
 from typing import Any
 
-from .report import build_report
+from .report_build import build_report
 
 
 def run(args: argparse.Namespace) -> int:

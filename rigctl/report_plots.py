@@ -259,8 +259,7 @@ def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None)
     return _save(fig, out / "allan.png")
 
 
-def _sync_errors_ms(data: RunData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
-    arr = data.results.get("sync", {}).get("arrays") or {}
+def _sync_errors_ms(arr: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
     if "pulse_time" not in arr or arr["pulse_time"].size == 0:
         return None
     inl = arr.get("inlier", np.ones(arr["pulse_time"].size)).astype(bool)
@@ -275,9 +274,10 @@ def _sync_errors_ms(data: RunData) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return arr["pulse_time"], err, inl, what
 
 
-def plot_sync_hist(data: RunData, out: Path) -> Path | None:
-    """Histogram of the tap matching error (ms), as the paper's figure 7."""
-    got = _sync_errors_ms(data)
+def draw_sync_hist(arrays: dict[str, np.ndarray], summary: dict[str, Any], out: Path) -> Path | None:
+    """Histogram of the tap matching error (ms), as the paper's figure 7, from the datasets and
+    summary of /results/sync (:func:`rigctl.analysis.sync.result_arrays`)."""
+    got = _sync_errors_ms(arrays)
     if got is None:
         return None
     _, err, inl, what = got
@@ -288,9 +288,8 @@ def plot_sync_hist(data: RunData, out: Path) -> Path | None:
     if (~inl).any():
         ax.hist(np.clip(err[~inl], bins[0], bins[-1]), bins=bins, color="tab:red",
                 label=f"outliers ({int((~inl).sum())}, clipped to range)")
-    s = data.results["sync"]["json"]
-    std = s.get("residual_std_ms")
-    ax.set_title(f"Tap matching error ({s.get('timing', '?')} timing"
+    std = summary.get("residual_std_ms")
+    ax.set_title(f"Tap matching error ({summary.get('timing', '?')} timing"
                  + (f", std {std:.3f} ms)" if isinstance(std, (int, float)) else ")"), fontsize=10)
     ax.set_xlabel(f"matching error: {what} [ms]")
     ax.set_ylabel("taps [count]")
@@ -299,9 +298,9 @@ def plot_sync_hist(data: RunData, out: Path) -> Path | None:
     return _save(fig, out / "sync_hist.png")
 
 
-def plot_sync_residual(data: RunData, out: Path) -> Path | None:
-    """Clock residual (ms) against reference time (s)."""
-    got = _sync_errors_ms(data)
+def draw_sync_residual(arrays: dict[str, np.ndarray], out: Path) -> Path | None:
+    """Clock residual (ms) against reference time (s), from the datasets of /results/sync."""
+    got = _sync_errors_ms(arrays)
     if got is None:
         return None
     t, err, inl, what = got
@@ -317,6 +316,17 @@ def plot_sync_residual(data: RunData, out: Path) -> Path | None:
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=7)
     return _save(fig, out / "sync_residual.png")
+
+
+def plot_sync_hist(data: RunData, out: Path) -> Path | None:
+    """The recording's tap matching error histogram (:func:`draw_sync_hist`)."""
+    sync = data.results.get("sync", {})
+    return draw_sync_hist(sync.get("arrays") or {}, sync.get("json") or {}, out)
+
+
+def plot_sync_residual(data: RunData, out: Path) -> Path | None:
+    """The recording's clock residual against time (:func:`draw_sync_residual`)."""
+    return draw_sync_residual(data.results.get("sync", {}).get("arrays") or {}, out)
 
 
 def make_plots(data: RunData, out: Path, log: Callable[..., None] | None = None

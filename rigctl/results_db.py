@@ -22,7 +22,7 @@ import datetime as _dt
 import fcntl
 import math
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from alembic import command
 from alembic.config import Config
@@ -30,8 +30,10 @@ from sqlalchemy import (Engine, Float, ForeignKey, Integer, String, Text, create
                         event, select, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
-from .analysis.production import RunInfo
-from .analysis.results import Measured
+if TYPE_CHECKING:  # annotations only: the application layer imports this module, not the reverse
+    from .analysis.production import RunInfo
+    from .analysis.results import Measured
+
 
 DEFAULT_NAME = "results.sqlite"
 #: the newest schema revision (rigctl/db_migrations/versions)

@@ -5,18 +5,31 @@ import importlib
 from collections.abc import Callable
 from pathlib import Path
 
+from .analysis import sync
 from .procedure import Procedure
+from .report_build import solve_report
 
-#: solver name -> "module:function", called as fn(recording_path, log) -> None.
-#: The three calibration solvers share one hook: the first computes the whole calibration
-#: (published fits and the closed loop) and prints it, the others see it done and return.
-SOLVER_HOOKS: dict[str, str] = {
-    "accel24": "rigctl.calibrate_cmd:solve_hook",
-    "gyro-rate": "rigctl.calibrate_cmd:solve_hook",
-    "closed-loop": "rigctl.calibrate_cmd:solve_hook",
+Hook = Callable[[Path, Callable[..., None]], None]
+
+#: solver name -> hook, called as hook(recording_path, log) -> None. The three calibration
+#: solvers share one hook: the first computes the whole calibration (published fits and the
+#: closed loop) and prints it, the others see it done and return. A "module:function" string is
+#: imported when the step runs.
+SOLVER_HOOKS: dict[str, Hook | str] = {
+    "accel24": "rigctl.analysis.calibration:solve_hook",
+    "gyro-rate": "rigctl.analysis.calibration:solve_hook",
+    "closed-loop": "rigctl.analysis.calibration:solve_hook",
     "allan": "rigctl.analysis.allan:solve_recording",
-    "report": "rigctl.report:solve_report",
+    "sync": sync.solve_recording,
+    "report": solve_report,
 }
+
+
+def _resolve(hook: Hook | str) -> Hook:
+    if callable(hook):
+        return hook
+    mod, fn = hook.split(":")
+    return getattr(importlib.import_module(mod), fn)
 
 
 def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:
@@ -27,5 +40,4 @@ def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> N
                 log("warning", f"solver {name!r}: not available in this version of rigctl; "
                                f"run it later on {recording}")
                 continue
-            mod, fn = hook.split(":")
-            getattr(importlib.import_module(mod), fn)(recording, log)
+            _resolve(hook)(recording, log)

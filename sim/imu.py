@@ -53,9 +53,12 @@ class DeclaredImuModel:
     accel_random_walk: float = 0.0
     temperature_c: float = 25.0
     seed: int = 0
+    #: temperature-dependent errors (sim/thermal_imu.py), None = none
+    thermal: Any = None
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A0]))
+        self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
         from .noise import NoiseGenerator
 
         self._slow = {}
@@ -66,11 +69,21 @@ class DeclaredImuModel:
                                                   np.random.SeedSequence([self.seed, tag]))
 
     def apply(self, t: NDArray, f_true: NDArray, w_true: NDArray,
-              w_dot: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
-        """Measured specific force, rate and temperature for true inputs ((n,3) arrays)."""
+              w_dot: NDArray | None = None, temperature: NDArray | None = None,
+              hysteresis: NDArray | None = None,
+              temperature_rate: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+        """Measured specific force, rate and temperature for true inputs ((n,3) arrays).
+        ``temperature`` (n,) degC: the IMU's temperature (a chamber), else ``temperature_c``;
+        with ``thermal`` errors, ``hysteresis`` (n,) and ``temperature_rate`` (n,) K/s too."""
         n = f_true.shape[0]
         f = self.accel_bias + f_true @ self.accel_matrix.T + self.accel_quadratic * f_true**2
         w = self.gyro_bias + w_true @ self.gyro_matrix.T
+        T = np.full(n, self.temperature_c) if temperature is None else np.asarray(temperature, float)
+        if self.thermal is not None and self.thermal.active:
+            H = np.zeros(n) if hysteresis is None else hysteresis
+            R = np.zeros(n) if temperature_rate is None else temperature_rate
+            f = f + self.thermal.error("accel", f_true, T, H, R)
+            w = w + self.thermal.error("gyro", w_true, T, H, R)
         if self.accel_noise_density > 0:
             f = f + self.rng.standard_normal((n, 3)) * (self.accel_noise_density * math.sqrt(self.rate_hz))
         if self.gyro_noise_density > 0:
@@ -79,10 +92,13 @@ class DeclaredImuModel:
             f = f + self._slow["accel"].next(n)
         if "gyro" in self._slow:
             w = w + self._slow["gyro"].next(n)
-        return f, w, np.full(n, self.temperature_c)
+        if self.thermal is not None and self.thermal.temperature_noise_c > 0:
+            T = T + self._temp_rng.standard_normal(n) * self.thermal.temperature_noise_c
+        return f, w, T
 
     def truth(self) -> dict[str, Any]:
-        return {
+        extra = {"thermal": self.thermal.truth()} if self.thermal is not None else {}
+        return {**extra,
             "model": "declared",
             "rate_hz": self.rate_hz,
             "accel_bias_m_s2": self.accel_bias.tolist(),
@@ -121,7 +137,11 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
                      "gyro_misalignment_urad", "accel_vrw_m_s_rth", "gyro_arw_deg_rth",
                      "accel_bias_instability_mg", "accel_rrw_m_s_h_rth",
                      "gyro_bias_instability_deg_h", "gyro_rrw_deg_h_rth",
-                     "temperature_c", "seed"), "'imu.sim'")
+                     "temperature_c", "seed", "thermal"), "'imu.sim'")
+    thermal = None
+    if "thermal" in o:
+        from .thermal_imu import ThermalErrors
+        thermal = ThermalErrors(S.require_mapping(o["thermal"], "'imu.sim.thermal'", o, "thermal"))
     return DeclaredImuModel(
         rate_hz=rate_hz,
         accel_bias=np.asarray(S.number_list(o, "accel_bias_mg", [0.0] * 3, length=3)) * 1e-3 * G0,
@@ -141,6 +161,7 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
         gyro_random_walk=S.get_number(o, "gyro_rrw_deg_h_rth", 0.0, minimum=0) * DEG / 3600.0 / 60.0,
         temperature_c=S.get_number(o, "temperature_c", 25.0),
         seed=int(S.get_number(o, "seed", seed, minimum=0, integer=True)),
+        thermal=thermal,
     )
 
 

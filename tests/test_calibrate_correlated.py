@@ -143,7 +143,7 @@ def test_noise_from_an_overnight_capture_of_the_same_unit(runs, night, tmp_path)
     import numpy as np
 
     import h5py
-    from rigctl.calibrate_cmd import noise_from_allan
+    from rigctl.analysis.calibration import noise_from_allan
 
     rec = _with_ids(runs[0][0], tmp_path / "session.h5", imu_serial="SN-0042")
     nt = _with_ids(night, tmp_path / "night.h5", imu_serial="SN-0042")

@@ -63,9 +63,11 @@ def test_imucal_session_agrees_with_imucal(ref_data, tmp_path):
         assert kinds.count("orientation") == 6 and kinds.count("capture") == 3
         assert np.all(np.isnan(f["segments/commanded_angle"][()]))
     out, cal = _calibrate(rec)
-    assert "orientation-free data: multi-position solver" in out and "Ferraris" in out
-    assert "multipos_accel: status insufficient_poses  (NOT TRUSTWORTHY)" in out
-    assert "gyro scale/misalignment NOT FITTED" in out
+    assert "Ferraris" in out and "gyro scale/misalignment NOT FITTED" in out
+    # hand-held faces are not exactly +-g along one axis: the face fit's chi2 is far above its band,
+    # and the loop says so instead of printing OK
+    assert "STATUS: UNEXPLAINED RESIDUAL" in out and "mrad RMS of tilt" in out
+    assert cal["closed_loop"]["faces_accel"]["status"] == "UNEXPLAINED RESIDUAL"
     snap = json.loads((d / "tests_snapshots_example_cal.json").read_text())
     face = cal["results"]["faces_accel"]
     assert face["status"] == "poor_fit" and face["interval"] == "t"
@@ -77,7 +79,7 @@ def test_imucal_session_agrees_with_imucal(ref_data, tmp_path):
         for j, b in enumerate("xyz"):
             q = p[f"accel_M_{a}{b}_ratio"]
             assert q["ci95_low"] / ACC_LSB <= M_im[i, j] <= q["ci95_high"] / ACC_LSB, (a, b, q, M_im[i, j])
-    g = _params(cal["results"]["faces_gyro_bias"])
+    g = _params(cal["results"]["gyro_static"])
     for i, a in enumerate("xyz"):
         q = g[f"gyro_bias_{a}_rad_s"]
         assert q["ci95_low"] / GYR_LSB <= snap["b_g"][i] <= q["ci95_high"] / GYR_LSB, (a, q, snap["b_g"][i])

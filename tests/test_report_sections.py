@@ -18,7 +18,7 @@ from helpers import run_rigctl
 
 pytest.importorskip("matplotlib")
 
-from rigctl import report, report_html  # noqa: E402
+from rigctl import report, report_build, report_html  # noqa: E402
 from rigctl.recorder import write_results  # noqa: E402
 
 G0 = 9.80665
@@ -192,7 +192,7 @@ def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp
     rec = tmp_path / "recording.h5"
     shutil.copy(tap_recording, rec)
     write_results(rec, "allan", {"axes": {"gz": {"sensor": "gyro"}}})  # summary only, no curves
-    out = report.build_report(rec, tmp_path / "rep")
+    out = report_build.build_report(rec, tmp_path / "rep")
     page = Page(out.read_text())
     _check_page(page)
     assert "plot-allan" in page.imgs["allan"] and "allan" not in page.not_run
@@ -213,11 +213,11 @@ def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp
 
 
 def test_sync_plots_and_the_clock_residual(tap_recording: Path, tmp_path: Path) -> None:
-    from rigctl import sync_cmd
+    from rigctl.analysis import sync
 
     rec = tmp_path / "taps.h5"
     shutil.copy(tap_recording, rec)
-    out = report.build_report(rec, tmp_path)
+    out = report_build.build_report(rec, tmp_path)
     page = Page(out.read_text())
     _check_page(page)
     assert {"plot-sync_hist", "plot-sync_residual"} <= set(page.imgs["sync"])
@@ -229,7 +229,7 @@ def test_sync_plots_and_the_clock_residual(tap_recording: Path, tmp_path: Path) 
     with h5py.File(rec, "r") as f:
         counter, sf = f["imu/counter"][()], f["imu/specific_force"][:, 2]
         pulses = f["pulses/time"][()]
-    res = sync_cmd.synchronise(counter, sf, RATE, pulses)
+    res = sync.synchronise(counter, sf, RATE, pulses)
     m = res.match
     want = res.clock.time_of_counter(res.tap_time_s[m.tap_index] * RATE)
     assert np.max(np.abs(arr["tap_reference_time"] - want)) < 1e-9
@@ -255,7 +255,7 @@ def test_orientation_free_calibration_has_tables_but_no_closed_loop(tap_recordin
     write_results(rec, "calibration", {"mode": "orientation_free", "trustworthy": False,
                                        "status": "NOT TRUSTWORTHY", "reasons": ["6 poses: too few"],
                                        "results": {"multipos_accel": fit.to_dict()}})
-    page = Page(report.build_report(rec, tmp_path).read_text())
+    page = Page(report_build.build_report(rec, tmp_path).read_text())
     assert "calibration" not in page.not_run and "closed-loop" in page.not_run
     rows = {row[0]: row for row in page.rows["calibration"] if row}
     for name, unit, exact in (("accel_bias_x", "mg", fit.values[0] * 1000 / G0),
@@ -268,7 +268,7 @@ def test_solve_hook_writes_beside_the_recording(tap_recording: Path, tmp_path: P
     rec = tmp_path / "recording.h5"
     shutil.copy(tap_recording, rec)
     got: list[tuple[str, str]] = []
-    report.solve_report(rec, lambda kind, msg, **kw: got.append((kind, msg)))
+    report_build.solve_report(rec, lambda kind, msg, **kw: got.append((kind, msg)))
     assert got == [("info", f"report: {tmp_path / 'report.html'}")]
     assert {p.name for p in tmp_path.glob("*.png")} == {"sync_hist.png", "sync_residual.png"}
 

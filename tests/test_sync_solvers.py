@@ -6,7 +6,7 @@ import pytest
 
 from rigctl.sim import taps
 from rigctl.solvers import clock_model, tap_detect, tap_match
-from rigctl.sync_cmd import SyncOptions, synchronise
+from rigctl.analysis.sync import SyncOptions, synchronise
 
 RATE = 100.0
 T = 1.0 / RATE

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import calibrate_cmd  # the calibration pipeline (until it moves to rigctl.analysis)
 from . import allan as allan_pipeline
+from . import calibration
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..spec import load_spec
 from . import production
@@ -39,7 +39,7 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
     try:
         spec = load_spec(spec_path, rule) if spec_path else None
         if "calibrate" in analyses:
-            payload, _, _ = calibrate_cmd.calibrate(recording, noise, True, None, spec)
+            payload, _, _ = calibration.calibrate(recording, noise, True, None, spec)
             out["results"]["calibration"] = payload
         if "allan" in analyses:
             axes = list(allan_pipeline.AXES)

@@ -1,0 +1,728 @@
+"""The closed loop for static-pose sessions without a table (hand-held, imported, six-face).
+
+A session is a sequence of P static poses with motion between them. What such data can reveal,
+and how each sub-model is tested:
+
+* **Accelerometer, magnitude model** (Tedaldi et al. 2014). Calibrated specific force of pose p
+
+      a_p = T K (u_p - b - sum_e B_e(u_p, t_p, T_p) theta_e),     |a_p| = g at rest,
+
+  u_p the pose mean (SI with nominal scale), T K misalignment and scale, b the bias; the
+  candidates B_e theta_e (each 3 parameters, one per axis):
+  ``accel_quadratic`` u_i^2 (s^2/m), ``accel_cross_quadratic`` u_j u_k (s^2/m),
+  ``accel_scale_asymmetry`` |u_i| (ratio), ``accel_bias_time_drift`` (t - t_mid)
+  (m/s^2 per h), ``accel_bias_temperature`` (T - T_mid) (m/s^2 per K). Residual of pose p:
+  (|a_p| - g) / s_p, s_p^2 = sum_c (d|a_p|/du_c)^2 var(u_pc).
+* **Gyro, static poses** (linear). w_p = b_g + Omega_E,p + sum_e X_e theta_e + v_p, with the
+  Earth rate's vertical part Omega sin(lat) along the pose's up direction (latitude given:
+  subtracted; unknown: one parameter with the prior 0 +- Omega/sqrt(3), since it is exactly
+  collinear with the diagonal of G) and its horizontal part, whose direction depends on the
+  unknown heading, as variance Omega^2 cos^2(lat) (1 - up_i^2) / 2 per axis (cos^2 = 2/3 when
+  the latitude is unknown). Candidates: ``gyro_g_sensitivity`` G f (9, rad/s per m/s^2),
+  ``gyro_anisoelastic`` f_j f_k (3), ``gyro_bias_time_drift`` (3), ``gyro_bias_temperature`` (3).
+* **Gyro, rotations between poses**: the calibrated rate w = T_g K_g (u - b_g) integrated
+  over each motion must turn the gravity direction of pose k into that of pose k+1. Candidates
+  (applied to the calibrated rate): ``gyro_scale_asymmetry`` d_i |w_i| (ratio) and
+  ``gyro_scale_nonlinearity`` n_i w_i |w_i| (s/rad).
+
+Every sub-model runs the same loop (:func:`select_effects`): forward selection, each round
+adding the candidate with the smallest F-test p-value below alpha / m (Bonferroni over the m
+candidates left), if leave-one-pose-out cross-validation (PRESS, whitened, linearised at the
+solution) drops too. Then :func:`judge`: the final chi2/dof against its 99 % band (F band: the
+variances behind the residuals are estimated with ``noise_dof`` degrees of freedom). Above the
+band the residual is UNEXPLAINED: the whitened residuals are correlated with the variables a
+lab would check (time, temperature, gravity direction, the previous pose's gravity direction,
+pose order), each as a partial correlation off the fitted model, and an added effect that
+removed less than half of the excess over the band is not claimed (it is the nearest
+candidate to an effect outside the library, not that effect).
+
+Pure functions of arrays; SI throughout.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+OMEGA_EARTH = 7.292115e-5  # rad/s
+AX = "xyz"
+Arr = NDArray[np.float64]
+
+
+# ------------------------------------------------------------------------------ pose statistics
+@dataclass
+class PoseData:
+    """Per-pose statistics of a static-pose session (SI).
+
+    Attributes:
+        acc, gyr: (P, 3) pose means, m/s^2 (nominal scale) and rad/s.
+        var_acc, var_gyr: (P, 3) variances of those means (white part from batch means, plus the
+            slow part measured on the longest rest, see :func:`pose_statistics`).
+        t_s: (P,) mid times, s.  temp_c: (P,) mean temperature, degC, or None.
+        intervals: the poses' [start, end) sample ranges.  fs_hz: sample rate.
+        noise_dof: degrees of freedom behind the variances.
+        slow: per channel (6) the slow variance added to each pose mean (0 when not resolved).
+    """
+
+    acc: Arr
+    gyr: Arr
+    var_acc: Arr
+    var_gyr: Arr
+    t_s: Arr
+    temp_c: Arr | None
+    intervals: list[tuple[int, int]]
+    fs_hz: float
+    noise_dof: float
+    slow: Arr = field(default_factory=lambda: np.zeros(6))
+    notes: list[str] = field(default_factory=list)
+    white: Arr = field(default_factory=lambda: np.zeros(6))
+
+    @property
+    def t_ref(self) -> float:
+        """Reference time of the drift terms: the mean pose time, s."""
+        return float(np.mean(self.t_s))
+
+    @property
+    def temp_ref(self) -> float:
+        """Reference temperature of the thermal terms: the mean pose temperature, degC."""
+        return float(np.mean(self.temp_c)) if self.temp_c is not None else float("nan")
+
+
+def _batch_white(x: Arr, intervals: list[tuple[int, int]], nb: int) -> tuple[Arr, float]:
+    """Per-sample white variance (per channel) pooled over poses from batch means of ``nb``
+    samples: v = sum_p sum_b nb (m_pb - m_p)^2 / sum_p (B_p - 1). Returns (v, dof)."""
+    num, dof = np.zeros(x.shape[1]), 0.0
+    for s, e in intervals:
+        B = (e - s) // nb
+        if B < 2:
+            continue
+        m = x[s:s + B * nb].reshape(B, nb, -1).mean(axis=1)
+        num += nb * ((m - m.mean(axis=0)) ** 2).sum(axis=0)
+        dof += B - 1
+    return num / max(dof, 1.0), dof
+
+
+def pose_statistics(acc: Arr, gyr: Arr, intervals: list[tuple[int, int]], fs_hz: float,
+                    temp_c: Arr | None = None, rest: tuple[int, int] | None = None,
+                    batch_s: float = 0.25) -> PoseData:
+    """Pose means and their variances.
+
+    White part: per-sample variance from batch means of ``batch_s`` seconds pooled over the poses
+    (short-term correlation up to the batch length included), var(mean_p) = v / n_p.
+    Slow part (bias instability, random walk): on the longest rest (``rest``, default the
+    longest interval) the differences of block means of the median pose length L separated by
+    the median pose spacing D; the excess of their variance over the white prediction 2 v / n_L,
+    when larger than twice its own standard error, is split evenly between two poses and added.
+    """
+    acc, gyr = np.asarray(acc, float), np.asarray(gyr, float)
+    x = np.hstack([acc, gyr])
+    nb = max(2, int(round(batch_s * fs_hz)))
+    lens = np.array([e - s for s, e in intervals])
+    nb = max(2, min(nb, int(lens.min() // 4)))
+    v, dof = _batch_white(x, intervals, nb)
+    means = np.array([x[s:e].mean(axis=0) for s, e in intervals])
+    var = v[None, :] / lens[:, None]
+    notes = [f"white noise from batch means of {nb / fs_hz:.3g} s pooled over {len(intervals)} poses "
+             f"({dof:.0f} dof)"]
+    rs, re_ = rest if rest is not None else max(intervals, key=lambda iv: iv[1] - iv[0])
+    L = int(np.median(lens))
+    starts = np.array([s for s, _ in intervals])
+    D = int(np.median(np.diff(starts))) if len(starts) > 1 else L
+    D = min(D, (re_ - rs) - L)
+    slow = np.zeros(6)
+    if D >= L // 2 and L >= nb:
+        k0 = np.arange(rs, re_ - L - D + 1, max(1, L // 2))
+        if len(k0) >= 4:
+            cs = np.vstack([np.zeros((1, 6)), np.cumsum(x[rs:re_] - x[rs:re_].mean(axis=0), axis=0)])
+            blk = lambda a: (cs[a - rs + L] - cs[a - rs]) / L  # noqa: E731
+            d = blk(k0 + D) - blk(k0)
+            n_ind = max(2.0, (re_ - rs - L - D) / max(L, D) + 1)
+            vd = (d ** 2).mean(axis=0)
+            excess = vd - 2 * v / L
+            se = vd * np.sqrt(2.0 / n_ind)
+            slow = np.where(excess > 2 * se, excess / 2, 0.0)
+            notes.append(f"slow noise from the {(re_ - rs) / fs_hz:.3g} s rest: block means of "
+                         f"{L / fs_hz:.3g} s, {D / fs_hz:.3g} s apart; resolved on "
+                         f"{int(np.sum(slow > 0))} of 6 channels")
+    else:
+        notes.append("slow noise not measured: the longest rest is shorter than a pose plus the pose spacing")
+    var = var + slow[None, :]
+    t = np.array([(s + e) / 2 / fs_hz for s, e in intervals])
+    tc = None if temp_c is None else np.array([np.nanmean(temp_c[s:e]) for s, e in intervals])
+    return PoseData(acc=means[:, :3], gyr=means[:, 3:], var_acc=var[:, :3], var_gyr=var[:, 3:], t_s=t,
+                    temp_c=tc, intervals=list(intervals), fs_hz=fs_hz, noise_dof=float(dof), slow=slow,
+                    notes=notes, white=v)
+
+
+# ------------------------------------------------------------------------------ fits and selection
+@dataclass
+class Fit:
+    """One least-squares fit: whitened residuals r, whitened Jacobian J (for PRESS), groups."""
+
+    names: list[str]
+    values: Arr
+    cov: Arr
+    chi2: float
+    dof: int
+    r: Arr
+    J: Arr
+    groups: Arr
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.chi2 / self.dof if self.dof > 0 else float("nan")
+
+
+def press(fit: Fit) -> float:
+    """Leave-one-group-out prediction error sum_g |(I - H_gg)^-1 r_g|^2 (whitened, linearised)."""
+    J, r = fit.J, fit.r
+    q, _ = np.linalg.qr(J)
+    H = q @ q.T
+    tot = 0.0
+    for g in np.unique(fit.groups):
+        if g < 0:
+            continue
+        i = np.flatnonzero(fit.groups == g)
+        A = np.eye(len(i)) - H[np.ix_(i, i)]
+        try:
+            e = np.linalg.solve(A, r[i])
+        except np.linalg.LinAlgError:
+            return float("inf")
+        tot += float(e @ e)
+    return tot
+
+
+@dataclass
+class Candidate:
+    """A library effect for a sub-model: ``testable`` and ``why`` say whether and why (not)."""
+
+    name: str
+    k: int
+    testable: bool = True
+    why: str = ""
+
+
+def chi2_band(dof: int, noise_dof: float, level: float = 0.99) -> tuple[float, float]:
+    """(low, high) band of chi2/dof when the model and the noise model are right: the F(dof,
+    noise_dof) quantiles (the variances are estimates), chi2 quantiles for noise_dof = inf."""
+    a = (1 - level) / 2
+    if dof <= 0:
+        return float("nan"), float("nan")
+    if not np.isfinite(noise_dof) or noise_dof > 1e6:
+        return (float(scipy.stats.chi2.ppf(a, dof) / dof), float(scipy.stats.chi2.ppf(1 - a, dof) / dof))
+    return float(scipy.stats.f.ppf(a, dof, noise_dof)), float(scipy.stats.f.ppf(1 - a, dof, noise_dof))
+
+
+def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01
+                   ) -> tuple[list[str], list[Fit], list[dict[str, Any]]]:
+    """Forward selection (module doc). Returns (accepted names, fits after each step with the
+    declared fit first, explain rows)."""
+    cur: list[str] = []
+    fits = [fit_fn(cur)]
+    rows: list[dict[str, Any]] = []
+    for c in cands:
+        if not c.testable:
+            rows.append({"step": 0, "candidate": c.name, "statistic": "-", "decision": f"not testable: {c.why}"})
+    pool = [c for c in cands if c.testable]
+    step = 0
+    while pool:
+        step += 1
+        base = fits[-1]
+        tried = []
+        for c in pool:
+            try:
+                f = fit_fn(cur + [c.name])
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                rows.append({"step": step, "candidate": c.name, "statistic": "-", "decision": f"fit failed: {exc}"})
+                continue
+            if f.dof < 1 or base.chi2 <= f.chi2:
+                tried.append((1.0, c, f, 0.0))
+                continue
+            F = ((base.chi2 - f.chi2) / c.k) / (f.chi2 / f.dof)
+            tried.append((float(scipy.stats.f.sf(F, c.k, f.dof)), c, f, F))
+        if not tried:
+            break
+        tried.sort(key=lambda x: x[0])
+        thr = alpha / len(pool)
+        done = False
+        for p, c, f, F in tried:
+            stat = f"F({c.k},{f.dof}) = {F:.3g}, p = {p:.2g} (threshold {thr:.2g})"
+            if p >= thr:
+                rows.append({"step": step, "candidate": c.name, "statistic": stat, "decision": "rejected: not significant"})
+                continue
+            cv0, cv1 = press(base), press(f)
+            stat += f"; PRESS {cv0:.4g} -> {cv1:.4g}"
+            if cv1 >= cv0:
+                rows.append({"step": step, "candidate": c.name, "statistic": stat,
+                             "decision": "rejected: cross-validation does not improve"})
+                continue
+            rows.append({"step": step, "candidate": c.name, "statistic": stat, "decision": "added"})
+            cur.append(c.name)
+            fits.append(f)
+            pool = [q for q in pool if q.name != c.name]
+            done = True
+            break
+        if not done:
+            break
+    return cur, fits, rows
+
+
+def partial_correlations(fit: Fit, variables: dict[str, Arr], per_group: bool = True) -> list[dict[str, Any]]:
+    """Correlation of the whitened residuals with each variable projected off the model's span
+    (the score test of adding it): r, t statistic, p (two-sided, df = n - rank - 1)."""
+    q, _ = np.linalg.qr(fit.J)
+    out = []
+    n = len(fit.r)
+    for name, v in variables.items():
+        x = np.asarray(v, float)
+        if x.shape != fit.r.shape or not np.all(np.isfinite(x)):
+            continue
+        x = x - q @ (q.T @ x)
+        nx = np.linalg.norm(x)
+        df = n - q.shape[1] - 1
+        if nx < 1e-8 * max(1.0, np.linalg.norm(v)) or df < 3:
+            continue
+        rr = float(x @ fit.r / (nx * max(np.linalg.norm(fit.r), 1e-300)))
+        t = rr * np.sqrt(df / max(1 - rr * rr, 1e-12))
+        out.append({"variable": name, "r": rr, "t": float(t), "p": float(2 * scipy.stats.t.sf(abs(t), df))})
+    return sorted(out, key=lambda d: d["p"])
+
+
+@dataclass
+class SubLoop:
+    """The loop's result for one sub-model (accel, gyro_static, gyro_rotation, faces)."""
+
+    name: str
+    declared: Fit
+    final: Fit
+    accepted: list[str]
+    claimed: list[str]
+    not_claimed: list[str]
+    explain: list[dict[str, Any]]
+    band: tuple[float, float]
+    status: str
+    correlations: list[dict[str, Any]]
+    findings: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        f = self.final
+        return {"name": self.name, "status": self.status, "band_chi2_per_dof": list(self.band),
+                "declared": {"chi2": self.declared.chi2, "dof": self.declared.dof,
+                             "chi2_per_dof": self.declared.chi2_per_dof},
+                "final": {"chi2": f.chi2, "dof": f.dof, "chi2_per_dof": f.chi2_per_dof,
+                          "parameters": [{"name": n, "value": float(v), "sigma": float(np.sqrt(max(c, 0.0)))}
+                                         for n, v, c in zip(f.names, f.values, np.diag(f.cov))]},
+                "effects_claimed": self.claimed, "effects_not_claimed": self.not_claimed,
+                "explain": self.explain, "correlations": self.correlations[:6], "findings": self.findings}
+
+
+STATUS_OK = "OK"
+STATUS_UNEXPLAINED = "UNEXPLAINED RESIDUAL"
+STATUS_PESSIMISTIC = "NOISE MODEL TOO PESSIMISTIC"
+
+
+def judge(name: str, fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], noise_dof: float,
+          variables: dict[str, Arr], alpha: float = 0.01) -> SubLoop:
+    """Run the selection, then the band and the claims (module doc)."""
+    accepted, fits, rows = select_effects(fit_fn, cands, alpha)
+    final, declared = fits[-1], fits[0]
+    band = chi2_band(final.dof, noise_dof)
+    claimed, not_claimed, findings = list(accepted), [], []
+    corr: list[dict[str, Any]] = []
+    if final.dof > 0 and final.chi2_per_dof > band[1]:
+        status = STATUS_UNEXPLAINED
+        excess0 = declared.chi2 - band[1] * declared.dof
+        for i, eff in enumerate(accepted):
+            gain = fits[i].chi2 - fits[i + 1].chi2
+            if excess0 <= 0 or gain < 0.5 * excess0:
+                not_claimed.append(eff)
+        if not_claimed:
+            claimed = [e for e in accepted if e not in not_claimed]
+            final = fit_fn(claimed)
+            band = chi2_band(final.dof, noise_dof)
+            findings.append("not claimed (each removed less than half of the excess, the residual stays "
+                            f"above its band): {', '.join(not_claimed)}")
+        corr = partial_correlations(final, variables)
+        sig = [c for c in corr if c["p"] < alpha / max(len(corr), 1)]
+        findings.append(f"chi2/dof {final.chi2_per_dof:.3g} above its 99 % band [{band[0]:.3g}, {band[1]:.3g}] "
+                        "after the final model: an effect outside the library (or motion during the poses)")
+        if sig:
+            findings.append("the residual correlates with " + "; ".join(
+                f"{c['variable']} (r = {c['r']:.2f}, p = {c['p']:.2g})" for c in sig[:4]))
+        else:
+            findings.append("no tested variable explains it (largest: " + (
+                f"{corr[0]['variable']} r = {corr[0]['r']:.2f}, p = {corr[0]['p']:.2g})" if corr else "none)"))
+    elif final.dof > 0 and final.chi2_per_dof < band[0]:
+        status = STATUS_PESSIMISTIC
+        findings.append(f"chi2/dof {final.chi2_per_dof:.3g} below its 99 % band [{band[0]:.3g}, {band[1]:.3g}]: "
+                        "the noise model overstates the scatter of the pose means")
+    elif final.dof <= 0:
+        status = STATUS_UNEXPLAINED
+        findings.append("no degrees of freedom left: the fit cannot be tested")
+    else:
+        status = STATUS_OK
+    return SubLoop(name, declared, final, accepted, claimed, not_claimed, rows, band, status, corr, findings)
+
+
+# ------------------------------------------------------------------------------ accelerometer
+def _tk(m: Arr, s: Arr) -> Arr:
+    T = np.array([[1.0, -m[0], m[1]], [0.0, 1.0, -m[2]], [0.0, 0.0, 1.0]])
+    return T @ np.diag(s)
+
+
+ACCEL_CANDIDATES = {
+    "accel_quadratic": ("s2_per_m", lambda u, d: u ** 2),
+    "accel_cross_quadratic": ("s2_per_m", lambda u, d: np.stack([u[:, 1] * u[:, 2], u[:, 0] * u[:, 2],
+                                                                 u[:, 0] * u[:, 1]], axis=1)),
+    "accel_scale_asymmetry": ("ratio", lambda u, d: np.abs(u)),
+    "accel_bias_time_drift": ("m_s2_per_h", lambda u, d: np.repeat(((d.t_s - d.t_ref) / 3600)[:, None], 3, 1)),
+    "accel_bias_temperature": ("m_s2_per_K", lambda u, d: np.repeat((d.temp_c - d.temp_ref)[:, None], 3, 1)),
+}
+
+
+def accel_correction(effects: dict[str, Arr], u: Arr, data: Any) -> Arr:
+    """sum_e B_e(u) o theta_e: the candidates' correction to the raw means (P, 3)."""
+    out = np.zeros_like(u)
+    for e, th in effects.items():
+        out += ACCEL_CANDIDATES[e][1](u, data) * th
+    return out
+
+
+def accel_candidates(d: PoseData) -> list[Candidate]:
+    """The accelerometer candidates and whether this session can test each."""
+    P = len(d.acc)
+    out = []
+    for name in ACCEL_CANDIDATES:
+        c = Candidate(name, 3)
+        if name == "accel_bias_temperature":
+            if d.temp_c is None or not np.all(np.isfinite(d.temp_c)):
+                c.testable, c.why = False, "no temperature recorded"
+            elif np.ptp(d.temp_c) < 1.0:
+                c.testable, c.why = False, f"temperature spans {np.ptp(d.temp_c):.2g} K (< 1 K)"
+        elif name == "accel_bias_time_drift" and np.ptp(d.t_s) < 60:
+            c.testable, c.why = False, f"poses span {np.ptp(d.t_s):.3g} s"
+        if c.testable and P - 9 - 3 < 3:
+            c.testable, c.why = False, f"{P} poses leave {P - 12} dof with 12 parameters (need >= 3)"
+        if c.testable:
+            B = ACCEL_CANDIDATES[name][1](d.acc, d)
+            X = np.hstack([np.abs(d.acc) / 9.8, d.acc / 9.8, np.ones((P, 1))])  # crude span of the base model
+            if np.linalg.matrix_rank(np.hstack([X, B / (np.abs(B).max(axis=0) + 1e-30)]), tol=1e-6) <= \
+                    np.linalg.matrix_rank(X, tol=1e-6):
+                c.testable, c.why = False, "the poses do not separate it from scale and bias"
+        out.append(c)
+    return out
+
+
+def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
+    """Magnitude-model fit with the named effects (module doc)."""
+    u = d.acc
+    P = len(u)
+    k = 3 * len(effects)
+
+    def unpack(p: Arr) -> tuple[Arr, dict[str, Arr]]:
+        M = _tk(p[0:3], p[3:6])
+        return M, {e: p[9 + 3 * i: 12 + 3 * i] for i, e in enumerate(effects)}
+
+    def resid(p: Arr) -> Arr:
+        M, eff = unpack(p)
+        v = u - p[6:9] - accel_correction(eff, u, d)
+        a = v @ M.T
+        na = np.linalg.norm(a, axis=1)
+        dn = (a / na[:, None]) @ M
+        return (na - g) / np.sqrt(np.sum(dn ** 2 * d.var_acc, axis=1))
+
+    p0 = np.concatenate([[0, 0, 0, 1, 1, 1, 0, 0, 0], np.zeros(k)])
+    sc = np.concatenate([[1e-3] * 3, [1e-3] * 3, [1e-2] * 3, np.full(k, 1e-3)])
+    sol = scipy.optimize.least_squares(resid, p0, x_scale=sc, method="lm" if P > 9 + k else "trf",
+                                       xtol=1e-12, ftol=1e-12)
+    J = sol.jac
+    cov = np.linalg.pinv(J.T @ J)
+    names = ["accel_misalign_yz_rad", "accel_misalign_zy_rad", "accel_misalign_zx_rad"] + \
+            [f"accel_scale_{a}_ratio" for a in AX] + [f"accel_bias_{a}_m_s2" for a in AX] + \
+            [f"{e}_{a}_{ACCEL_CANDIDATES[e][0]}" for e in effects for a in AX]
+    r = sol.fun
+    return Fit(names, sol.x, cov, float(r @ r), P - 9 - k, r, J, np.arange(P))
+
+
+def accel_apply(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
+    """Calibrated specific force for raw (nominal-scale) vectors u (n, 3)."""
+    p = fit.values
+    eff = {e: p[9 + 3 * i: 12 + 3 * i] for i, e in enumerate(effects)}
+    return (u - p[6:9] - accel_correction(eff, u, data)) @ _tk(p[0:3], p[3:6]).T
+
+
+def pose_variables(d: PoseData, up: Arr, rep: int = 1) -> dict[str, Arr]:
+    """Variables the residual is checked against (one value per pose, repeated per row)."""
+    P = len(up)
+    prev = np.vstack([up[:1], up[:-1]])
+    v = {"time": d.t_s, "pose order parity": (np.arange(P) % 2).astype(float)}
+    if d.temp_c is not None and np.all(np.isfinite(d.temp_c)):
+        v["temperature"] = d.temp_c
+    for i, a in enumerate(AX):
+        v[f"gravity direction {a}"] = up[:, i]
+        v[f"previous pose's gravity direction {a}"] = prev[:, i]
+    return {k: np.repeat(x, rep) if rep == 1 else np.tile(x, rep) for k, x in v.items()}
+
+
+# ------------------------------------------------------------------------------ gyro, static
+GYRO_STATIC_CANDIDATES = ("gyro_g_sensitivity", "gyro_anisoelastic", "gyro_bias_time_drift",
+                          "gyro_bias_temperature")
+
+
+def _gyro_columns(name: str, f: Arr, d: PoseData) -> tuple[Arr, list[str]]:
+    """(3P, k) regressors (rows: axis-major, x of every pose, then y, then z) and names."""
+    P = len(f)
+    cols, names = [], []
+    if name == "gyro_g_sensitivity":
+        for i in range(3):
+            for j in range(3):
+                c = np.zeros(3 * P)
+                c[i * P:(i + 1) * P] = f[:, j]
+                cols.append(c)
+                names.append(f"gyro_g_sens_{AX[i]}{AX[j]}_rad_s_per_m_s2")
+    elif name == "gyro_anisoelastic":
+        prod = np.stack([f[:, 1] * f[:, 2], f[:, 0] * f[:, 2], f[:, 0] * f[:, 1]], axis=1)
+        for i in range(3):
+            c = np.zeros(3 * P)
+            c[i * P:(i + 1) * P] = prod[:, i]
+            cols.append(c)
+            names.append(f"gyro_anisoelastic_{AX[i]}_rad_s_per_m2_s4")
+    else:
+        x, unit = ((d.t_s - d.t_ref) / 3600, "rad_s_per_h") if name == "gyro_bias_time_drift" else \
+            (d.temp_c - d.temp_ref, "rad_s_per_K")
+        for i in range(3):
+            c = np.zeros(3 * P)
+            c[i * P:(i + 1) * P] = x
+            cols.append(c)
+            names.append(f"{name}_{AX[i]}_{unit}")
+    return np.stack(cols, axis=1), names
+
+
+def gyro_static_candidates(d: PoseData) -> list[Candidate]:
+    """The static-gyro candidates and whether this session can test each."""
+    P = len(d.gyr)
+    out = []
+    for name, k in zip(GYRO_STATIC_CANDIDATES, (9, 3, 3, 3)):
+        c = Candidate(name, k)
+        if name == "gyro_bias_temperature":
+            if d.temp_c is None or not np.all(np.isfinite(d.temp_c)):
+                c.testable, c.why = False, "no temperature recorded"
+            elif np.ptp(d.temp_c) < 1.0:
+                c.testable, c.why = False, f"temperature spans {np.ptp(d.temp_c):.2g} K (< 1 K)"
+        elif name == "gyro_bias_time_drift" and np.ptp(d.t_s) < 60:
+            c.testable, c.why = False, f"poses span {np.ptp(d.t_s):.3g} s"
+        elif 3 * P - 4 - k < 3:
+            c.testable, c.why = False, f"{P} poses give {3 * P} pose means for {4 + k} parameters"
+        out.append(c)
+    return out
+
+
+def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float | None) -> Fit:
+    """Linear WLS of the static gyro means (module doc); f: (P, 3) calibrated specific force."""
+    P = len(f)
+    up = f / np.linalg.norm(f, axis=1)[:, None]
+    y = d.gyr.T.reshape(-1).copy()
+    if latitude_rad is None:
+        cos2 = 2.0 / 3.0
+    else:
+        y -= OMEGA_EARTH * np.sin(latitude_rad) * up.T.reshape(-1)
+        cos2 = np.cos(latitude_rad) ** 2
+    var = d.var_gyr.T.reshape(-1) + OMEGA_EARTH ** 2 * cos2 * (1 - up.T.reshape(-1) ** 2) / 2
+    cols = [np.kron(np.eye(3), np.ones((P, 1)))]
+    names = [f"gyro_bias_{a}_rad_s" for a in AX]
+    if latitude_rad is None:
+        cols.append(up.T.reshape(-1, 1))
+        names.append("earth_rate_vertical_rad_s")
+    for e in effects:
+        c, n = _gyro_columns(e, f, d)
+        cols.append(c)
+        names += n
+    X = np.hstack(cols)
+    s = np.sqrt(var)
+    Xw, yw = X / s[:, None], y / s
+    groups = np.tile(np.arange(P), 3)
+    if latitude_rad is None:  # prior row: sin(lat) uniform on [-1, 1]
+        pr = np.zeros((1, X.shape[1]))
+        pr[0, 3] = 1.0 / (OMEGA_EARTH / np.sqrt(3))
+        Xw, yw = np.vstack([Xw, pr]), np.append(yw, 0.0)
+        groups = np.append(groups, -1)
+    beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
+    r = yw - Xw @ beta
+    cov = np.linalg.pinv(Xw.T @ Xw)
+    dof = 3 * P - (X.shape[1] - (1 if latitude_rad is None else 0))
+    return Fit(names, beta, cov, float(r @ r), int(dof), r, Xw, groups, extra={"resid": y - X @ beta, "y": y})
+
+
+# ------------------------------------------------------------------------------ gyro, rotations
+def _tg(p: Arr) -> Arr:
+    T = np.array([[1.0, p[0], p[1]], [p[2], 1.0, p[3]], [p[4], p[5], 1.0]])
+    return T @ np.diag(p[6:9])
+
+
+ROTATION_CANDIDATES = {"gyro_scale_asymmetry": "ratio", "gyro_scale_nonlinearity": "s_per_rad"}
+
+
+def _rot_matrices(w: Arr, bounds: Arr, dt: float) -> Arr:
+    """Rotation (body_start -> body_end) of each motion: products of exp([w dt]x) computed
+    for all motions at once by a segmented tree reduction. bounds: (K, 2) sample ranges."""
+    qs = []
+    for s, e in bounds:
+        r = Rotation.from_rotvec(w[s:e] * dt)
+        while len(r) > 1:
+            if len(r) % 2:
+                r = Rotation.concatenate([r, Rotation.identity(1)])
+            r = r[0::2] * r[1::2]
+        qs.append(r.as_matrix()[0])
+    return np.array(qs)
+
+
+def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
+                      keep: Arr | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
+    """(normalised residual function of the parameters, sigma per motion) for the motions.
+
+    ``bias``: (3,) constant, or (n, 3) per sample (bias + g-sensitivity G f(t) during the motion).
+
+    Residual of motion k: up_{k+1} - R_k^T up_k (3 components, 2 independent), scaled by the
+    direction uncertainty of both poses plus the angle random walk over the motion."""
+    dt = 1.0 / d.fs_hz
+    iv = d.intervals
+    ks = np.arange(len(iv) - 1) if keep is None else np.flatnonzero(keep)
+    bounds = np.array([(iv[k][1] - 1, iv[k + 1][0] + 1) for k in ks])
+    lo, hi = bounds[:, 0].min(), bounds[:, 1].max()
+    b = np.asarray(bias, float)
+    w0 = np.asarray(gyr_raw, float)[lo:hi] - (b[lo:hi] if b.ndim == 2 else b)
+    bnd = bounds - lo
+    g = np.linalg.norm(d.acc, axis=1)
+    dsig = np.sqrt(d.var_acc.mean(axis=1)) / g
+    arw2 = np.mean(d.var_gyr * np.array([e - s for s, e in iv])[:, None]) / d.fs_hz  # rad^2/s
+    sig = np.sqrt(dsig[ks] ** 2 + dsig[ks + 1] ** 2 + arw2 * (bnd[:, 1] - bnd[:, 0]) * dt)
+    u0, u1 = up[ks], up[ks + 1]
+
+    def resid(p: Arr) -> Arr:
+        w = w0 @ _tg(p).T
+        for i, e in enumerate(effects):
+            th = p[9 + 3 * i: 12 + 3 * i]
+            w = w - (th * np.abs(w) if e == "gyro_scale_asymmetry" else th * w * np.abs(w))
+        R = _rot_matrices(w, bnd, dt)
+        pred = np.einsum("kji,kj->ki", R, u0)
+        return ((u1 - pred) / sig[:, None]).reshape(-1)
+
+    return resid, sig
+
+
+def rotation_residuals_at(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, p: Arr, keep: Arr | None = None) -> Arr:
+    """Unnormalised motion residuals (K, 3) at fixed parameters (e.g. nominal: no calibration)."""
+    f, sig = _rotation_problem(gyr_raw, d, up, bias, [], keep)
+    return f(np.asarray(p, float)).reshape(-1, 3) * sig[:, None]
+
+
+def fit_rotations(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
+                  keep: Arr | None = None) -> Fit:
+    """Gyro scale/misalignment (+ candidates) from the motions between poses (module doc);
+    ``keep``: (P-1,) bool, the motions to use (clipped ones excluded)."""
+    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep)
+    K, ne = len(sig), len(effects)
+    p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(3 * ne)])
+    sol = scipy.optimize.least_squares(resid, p0, x_scale=np.concatenate([np.full(6, 1e-2), np.full(3, 1e-2),
+                                                                          np.full(3 * ne, 1e-3)]), method="trf")
+    J = sol.jac
+    cov = np.linalg.pinv(J.T @ J)
+    names = ["gyro_misalign_yz_rad", "gyro_misalign_zy_rad", "gyro_misalign_xz_rad", "gyro_misalign_zx_rad",
+             "gyro_misalign_xy_rad", "gyro_misalign_yx_rad"] + [f"gyro_scale_{a}_ratio" for a in AX] + \
+        [f"{e}_{a}_{ROTATION_CANDIDATES[e]}" for e in effects for a in AX]
+    r = sol.fun
+    return Fit(names, sol.x, cov, float(r @ r), 2 * K - 9 - 3 * ne, r, J, np.repeat(np.arange(K), 3),
+               extra={"sigma_rad": sig, "n_motions": K, "resid": r.reshape(-1, 3) * sig[:, None]})
+
+
+def rotation_candidates(n_motions: int, peak_rate: float) -> list[Candidate]:
+    """Rotation candidates: testable with >= 3 spare dof and motions faster than 0.5 rad/s."""
+    out = []
+    for name in ROTATION_CANDIDATES:
+        c = Candidate(name, 3)
+        if 2 * n_motions - 12 < 3:
+            c.testable, c.why = False, f"{n_motions} motions leave {2 * n_motions - 12} dof"
+        elif peak_rate < 0.5:
+            c.testable, c.why = False, f"peak rate {peak_rate:.2g} rad/s: too slow to show a rate-dependent scale"
+        out.append(c)
+    return out
+
+
+# ------------------------------------------------------------------------------ six faces
+FACE_CANDIDATES = {"accel_quadratic": "s2_per_m", "accel_bias_time_drift": "m_s2_per_h"}
+
+
+def face_candidates(d: PoseData) -> list[Candidate]:
+    """Six-face candidates (quadratic, time drift); temperature and asymmetry need more poses."""
+    out = [Candidate("accel_quadratic", 3), Candidate("accel_bias_time_drift", 3)]
+    if np.ptp(d.t_s) < 60:
+        out[1].testable, out[1].why = False, f"poses span {np.ptp(d.t_s):.3g} s"
+    if 3 * len(d.acc) - 12 - 3 < 3:
+        for c in out:
+            c.testable, c.why = False, f"{len(d.acc)} faces leave {3 * len(d.acc) - 15} dof"
+    return out
+
+
+def fit_faces(d: PoseData, ref: Arr, effects: list[str]) -> Fit:
+    """Six-face linear fit f_p = b + M a_p (+ candidates), a_p = +-g along the labelled axis
+    (Ferraris): rows axis-major, 12 parameters, 3P observations."""
+    P = len(ref)
+    cols, names = [], []
+    for i in range(3):
+        blk = np.zeros((P, 4))
+        blk[:, 0] = 1.0
+        blk[:, 1:] = ref
+        c = np.zeros((3 * P, 4))
+        c[i * P:(i + 1) * P] = blk
+        cols.append(c)
+        names += [f"accel_bias_{AX[i]}_m_s2"] + [f"accel_M_{AX[i]}{AX[j]}_ratio" for j in range(3)]
+    for e in effects:
+        x = ref ** 2 if e == "accel_quadratic" else np.repeat(((d.t_s - d.t_ref) / 3600)[:, None], 3, 1)
+        for i in range(3):
+            c = np.zeros(3 * P)
+            c[i * P:(i + 1) * P] = x[:, i]
+            cols.append(c[:, None])
+            names.append(f"{e}_{AX[i]}_{FACE_CANDIDATES[e]}")
+    X = np.hstack(cols)
+    y = d.acc.T.reshape(-1)
+    s = np.sqrt(d.var_acc.T.reshape(-1))
+    Xw, yw = X / s[:, None], y / s
+    beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
+    r = yw - Xw @ beta
+    return Fit(names, beta, np.linalg.pinv(Xw.T @ Xw), float(r @ r), 3 * P - X.shape[1], r, Xw,
+               np.tile(np.arange(P), 3), extra={"resid": y - X @ beta})
+
+
+def clipped_motions(gyr: Arr, intervals: list[tuple[int, int]], rel: float = 0.005, min_hits: int = 2
+                    ) -> tuple[Arr, int]:
+    """Motions during which the gyro hit its range: samples equal to a channel's extreme value,
+    that value hit at least ``min_hits`` times and within ``rel`` of the largest |rate| of any
+    channel (the rail is the same on every axis). Returns ((P-1,) bool clipped, samples)."""
+    g = np.asarray(gyr, float)
+    top = np.max(np.abs(g))
+    mask = np.zeros(len(g), bool)
+    for c in range(g.shape[1]):
+        for v in (g[:, c].max(), g[:, c].min()):
+            hit = g[:, c] == v
+            if hit.sum() >= min_hits and abs(v) >= (1 - rel) * top:
+                mask |= hit
+    out = np.array([mask[intervals[k][1]:intervals[k + 1][0]].any() for k in range(len(intervals) - 1)])
+    return out, int(mask.sum())
+
+
+def stationarity(x: Arr, intervals: list[tuple[int, int]], white_var: Arr) -> tuple[Arr, Arr]:
+    """Half-split test of each pose: z = (mean of first half - mean of second half) / its white
+    standard error; per channel chi2 = sum_p z^2 ~ chi2(P) for static poses. Returns (chi2/P, p)."""
+    z = []
+    for s, e in intervals:
+        m = (s + e) // 2
+        z.append((x[s:m].mean(axis=0) - x[m:e].mean(axis=0)) / np.sqrt(white_var * (1 / (m - s) + 1 / (e - m))))
+    c = np.sum(np.array(z) ** 2, axis=0)
+    P = len(intervals)
+    return c / P, scipy.stats.chi2.sf(c, P)
