@@ -2,8 +2,9 @@
 (procedures/thermal-soak.yaml, thermal-ramp.yaml) into :mod:`rigctl.solvers.thermal`, the
 results into /results/thermal and a JSON file beside the recording.
 
-A recording is *thermal* when its static and rate windows span at least
-:data:`MIN_SPAN_K` of IMU temperature (a chamber run). Per window: the mean outputs, their
+A recording is *thermal* when it holds chamber readings (/chamber) and its static and rate
+windows span at least :data:`MIN_SPAN_K` of IMU temperature (a chamber run; an imported log
+whose temperature drifts is not). Per window: the mean outputs, their
 uncertainty from the window itself (:func:`rigctl.solvers.segment_stats.self_noise_sigma` after
 removing what the reference explains), the reference input from the table's angles
 (:func:`rigctl.frames.body_references`), the means of powers of the temperature offset, and the
@@ -50,9 +51,9 @@ def _cal_rows(f: Any) -> list[int]:
 
 
 def is_thermal(path: str | Path) -> bool:
-    """True when the calibration windows span at least MIN_SPAN_K of IMU temperature."""
+    """True for a chamber run whose calibration windows span at least MIN_SPAN_K of IMU temperature."""
     with open_recording(path) as f:
-        if "imu/temperature" not in f:
+        if "imu/temperature" not in f or "chamber/time" not in f or f["chamber/time"].shape[0] == 0:
             return False
         rows = _cal_rows(f)
         if len(rows) < 2:
