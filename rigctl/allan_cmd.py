@@ -95,37 +95,22 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
 
 
 def plot(result: dict[str, Any], out_path: str) -> None:
-    """Log-log plot: deviation with 68 % bars, fitted total and each term's line."""
+    """Log-log plot per axis (rigctl.report_plots.draw_allan_axis: 68 % bars, 95 % band, slope
+    guides, fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from rigctl.report_plots import draw_allan_axis
+
     axes = list(result["axes"].items())
-    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.2 * len(axes)), squeeze=False)
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
     for ax, (name, r) in zip(subs[:, 0], axes):
         unit, fac = DEV_UNITS[r["sensor"]]
-        tau = np.asarray(r["tau_s"])
-        dev = np.asarray(r[f"adev_{unit}"])
-        err = [dev - r[f"lo68_{unit}"], r[f"hi68_{unit}"] - dev]
-        ax.errorbar(tau, dev, yerr=err, fmt=".", ms=3, lw=0.8, label="overlapping ADEV (68 %)")
-        tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
-        cols = F.design_matrix(tt)
-        p = r["fit"]["coeff_sq_si"]
-        total = np.zeros_like(tt)
-        for j, t in enumerate(F.TERMS):
-            part = cols[:, j] * p.get(t, 0.0)
-            total += part
-            if p.get(t, 0.0) > 0:
-                ax.loglog(tt, np.sqrt(part) * fac, "--", lw=0.8, label=f"{t} term")
-        ax.loglog(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_title(name)
-        ax.set_xlabel("tau [s]")
-        ax.set_ylabel(f"Allan deviation [{unit}]")
-        ax.grid(True, which="both", lw=0.3)
-        ax.legend(fontsize=7)
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], r["fit"], r["sensor"], unit, fac,
+                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"])
     fig.tight_layout()
     fig.savefig(out_path, dpi=120)
     plt.close(fig)
