@@ -17,8 +17,8 @@ import numpy as np
 
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, UsageError, _jsonable, check_warnings, choose_range, compute,
-    solve_recording, store, summary_line)
+    AXES, DEV_UNITS, OUTLIER_MODES, UsageError, _jsonable, check_warnings, choose_range,
+    compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
 from rigctl.solvers import allan as A
@@ -89,7 +89,9 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         v = pw[t][f"value_{unit_f}"]
         parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
     lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
-    for w in check_warnings(r):
+    warns, notes = screening_notes(r)
+    lines += [f"note: {t}" for t in notes]
+    for w in warns + check_warnings(r):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
 
@@ -155,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
-    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
+    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
+                     outliers=args.outliers)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))
@@ -203,6 +206,9 @@ def register(subparsers: Any) -> None:
                    help="octave, decade, all, or N log-spaced taus (default 95)")
     p.add_argument("--whole", action="store_true",
                    help="analyse the whole recording (default: its longest capture segment, if any)")
+    p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
+                   help="spikes (samples > 10 robust sd from their neighbours): report them "
+                        "(default) or also exclude them (replaced by the running median)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "

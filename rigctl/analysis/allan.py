@@ -25,6 +25,7 @@ from ..recording_reader import check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
+from ..solvers import allan_checks as CHK
 from ..solvers import allan_noise_id as NID
 from . import production
 
@@ -61,6 +62,27 @@ class _AxisStream:
         self.x_dec = 0.0  # phase at the last decimated point
         self.x_head = 0.0
         self.n_rate = 0
+        self.quant_step: float | None = None  # output step, from the first block
+        self.spike_sigma: float | None = None  # robust sd of the residual, from the first block
+        self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
+        self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
+
+    def screen(self, y: np.ndarray, first: int, exclude: bool) -> np.ndarray:
+        """Quantization step (first block) and spikes (every block) of these samples, ``first``
+        their index in the analysed range; with ``exclude`` the spikes are replaced by the
+        running median of their neighbours (the returned samples)."""
+        if self.n_rate == 0 and not self.spikes:
+            self.quant_step = CHK.quantization_step(y)
+        idx, med, sd = CHK.find_spikes(y, self.spike_sigma)
+        if self.spike_sigma is None:
+            self.spike_sigma = sd
+        if idx.size:
+            self.spikes.append(idx + first)
+            self.spike_size.append(np.abs(y[idx] - med[idx]) / max(sd, 1e-300))
+            if exclude:
+                y = y.copy()
+                y[idx] = med[idx]
+        return y
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
@@ -99,7 +121,29 @@ class _AxisStream:
         return NID.noise_id(self._head, m, "oadev", n)
 
 
-def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
+               excluded: bool) -> dict[str, Any]:
+    """Spikes and quantization of one axis (SI, and the field unit of the deviation)."""
+    unit, fac = DEV_UNITS[sensor]
+    idx = np.concatenate(stream.spikes) if stream.spikes else np.zeros(0, dtype=np.int64)
+    size = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
+    spikes = {"count": int(idx.size), "fraction": idx.size / max(stream.n_rate, 1),
+              "threshold_sd": CHK.SPIKE_SIGMA, "window_samples": CHK.SPIKE_WINDOW,
+              "sd_si": stream.spike_sigma, "excluded": bool(excluded and idx.size),
+              "largest_sd": float(size.max()) if size.size else 0.0,
+              "first_times_s": [float(i * tau0) for i in idx[:10]]}
+    quant = None
+    if stream.quant_step is not None:
+        n_e = fit["terms"].get("N", {})
+        n_si = n_e.get(f"value_{F.SI_UNITS[sensor]['N']}") if n_e.get("supported") else None
+        quant = CHK.quantization_noise(stream.quant_step, tau0, n_si, dev0)
+        quant[f"step_{unit}"] = stream.quant_step * fac
+        quant["step_si"] = quant.pop("step")
+        quant["white_N_si"] = quant.pop("white_N")
+    return {"spikes": spikes, "quantization": quant}
+
+
+def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
     res = stream.acc.result()
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
@@ -112,7 +156,10 @@ def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
     pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     unit, fac = DEV_UNITS[sensor]
     si = "rad/s" if sensor == "gyro" else "m/s^2"
+    dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
+    screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
+            **screening,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -130,12 +177,22 @@ def _sample_rate(f, path: str) -> float:
     return sample_rate(f)
 
 
+#: what to do with spikes (samples > 10 robust sd from their neighbours): report them only,
+#: or also replace each by the running median of its neighbours before the deviations
+OUTLIER_MODES = ("report", "exclude")
+
+
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
-            progress_stream: Any = None) -> dict[str, Any]:
+            progress_stream: Any = None, outliers: str = "report") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
-    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise)."""
+    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
+    Every axis is screened on the way (:mod:`rigctl.solvers.allan_checks`): its output step if
+    it is quantized, and its spikes, which are reported and, with ``outliers="exclude"``,
+    replaced by the running median of their neighbours before they reach the deviations."""
+    if outliers not in OUTLIER_MODES:
+        raise UsageError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
@@ -163,14 +220,17 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                 check_finite(path, name, b, a0)
             for a in axes:
                 name, col, _ = AXES[a]
-                streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
+                y = streams[a].screen(np.ascontiguousarray(blocks[name][:, col]), a0 - s0,
+                                      outliers == "exclude")
+                streams[a].add(y)
             del blocks
             shown.update(a1 - s0)
         shown.finish()
     out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-           "first_sample": int(s0), "dropped_samples": int(gaps), "axes": {}}
+           "first_sample": int(s0), "dropped_samples": int(gaps), "outliers": outliers,
+           "axes": {}}
     for a in axes:
-        out["axes"][a] = analyse_axis(streams[a], AXES[a][2])
+        out["axes"][a] = analyse_axis(streams[a], AXES[a][2], outliers == "exclude")
         streams[a] = None  # free the per-axis buffers
     return out
 
@@ -277,8 +337,11 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
                        "in the analysed range; the deviations assume uniform sampling")
     for a, r in result["axes"].items():
         log("info", f"allan {a}: " + summary_line(r))
-        for w in check_warnings(r):
+        warns, notes = screening_notes(r)
+        for w in warns + check_warnings(r):
             log("warning", f"allan {a}: {w}")
+        for t in notes:
+            log("info", f"allan {a}: {t}")
 
 
 def check_warnings(r: dict[str, Any]) -> list[str]:
@@ -299,6 +362,43 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
         out.append(f"{span}: {o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
                    f"likely {o['likely']}")
     return out
+
+
+def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(warnings, notes) about an axis' samples: spikes (a warning: they are in the noise
+    unless excluded) and the output quantization (a note; a warning when the noise per sample
+    is below half a step, so the rounding is not random)."""
+    warns, notes = [], []
+    unit, fac = DEV_UNITS[r["sensor"]]
+    sp = r.get("spikes") or {}
+    if sp.get("count"):
+        first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])
+        what = (f"{sp['count']} samples ({100 * sp['fraction']:.2g} %) more than "
+                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}) from the "
+                f"running median of {sp['window_samples']} neighbours, the largest "
+                f"{sp['largest_sd']:.0f} sd (first at t = {first} s into the range)")
+        if sp.get("excluded"):
+            warns.append(f"{what}: replaced by that median before the deviations (--outliers exclude)")
+        else:
+            warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
+                         "to leave them out: --outliers exclude")
+    q = r.get("quantization")
+    if q:
+        n_unit, n_fac = F.FIELD_UNITS[r["sensor"]]["N"]
+        step = f"{q[f'step_{unit}']:.4g} {unit}"
+        if r["sensor"] == "gyro":
+            step += f" = {math.degrees(q['step_si']):.4g} deg/s"
+        text = (f"output quantized in steps of {step} (read from the samples): the rounding "
+                f"adds white noise N_q = {q['white_N_si'] * n_fac:.3g} {n_unit}")
+        if "share_of_N2" in q:
+            text += (f", {100 * q['share_of_N2']:.2g} % of the fitted N^2 "
+                     f"(N without it: {q['N_without_rounding'] * n_fac:.4g} {n_unit})")
+        notes.append(text)
+        if not q["random_rounding"]:
+            warns.append(f"the noise per sample is {q['noise_per_sample_steps']:.2f} of a step: "
+                         "below half a step the rounding is not random and the shortest taus "
+                         "describe the quantizer, not the sensor")
+    return warns, notes
 
 
 def summary_line(r: dict[str, Any]) -> str:
@@ -343,10 +443,13 @@ def store(path: str, result: dict[str, Any]) -> None:
                    "first_sample": result.get("first_sample", 0),
                    "dropped_samples": result.get("dropped_samples", 0),
                    "segment": result.get("segment", "whole recording"),
+                   "outliers": result.get("outliers", "report"),
                    **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                    "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                                 "fit": _jsonable(r["fit"]),
-                                "piecewise": _jsonable(r["piecewise"])}
+                                "piecewise": _jsonable(r["piecewise"]),
+                                "spikes": _jsonable(r.get("spikes")),
+                                "quantization": _jsonable(r.get("quantization"))}
                             for a, r in result["axes"].items()}}
         g.attrs["schema_version"] = SCHEMA_VERSION
         g.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
