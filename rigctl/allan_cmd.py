@@ -17,7 +17,8 @@ import numpy as np
 
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, OUTLIER_MODES, UsageError, _jsonable, check_warnings, choose_range,
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, UsageError, _jsonable, check_notes,
+    check_warnings, choose_range,
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
@@ -90,7 +91,7 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
     lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
     warns, notes = screening_notes(r)
-    lines += [f"note: {t}" for t in notes]
+    lines += [f"note: {t}" for t in notes + check_notes(r)]
     for w in warns + check_warnings(r):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
@@ -158,7 +159,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
-                     outliers=args.outliers)
+                     outliers=args.outliers, gaps=args.gaps)
+    g = result.get("gaps") or {}
+    if g.get("count") and g.get("mode") == "longest":
+        a, b = g["range_used"]
+        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s): analysing "
+              f"the longest gap-free stretch, rows {a}..{b - 1} ({b - a} samples)",
+              file=sys.stderr, flush=True)
+    elif g.get("count"):
+        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s), bridged "
+              "on request (--gaps bridge): taus spanning a gap are biased", file=sys.stderr,
+              flush=True)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))
@@ -209,6 +220,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
+    p.add_argument("--gaps", choices=GAP_MODES, default="refuse",
+                   help="dropped samples in the range: refuse (default: say where and what to "
+                        "do), analyse the longest gap-free stretch, or bridge them")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "

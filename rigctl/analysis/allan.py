@@ -184,15 +184,22 @@ OUTLIER_MODES = ("report", "exclude")
 
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
-            progress_stream: Any = None, outliers: str = "report") -> dict[str, Any]:
+            progress_stream: Any = None, outliers: str = "report",
+            gaps: str = "refuse") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
     Every axis is screened on the way (:mod:`rigctl.solvers.allan_checks`): its output step if
     it is quantized, and its spikes, which are reported and, with ``outliers="exclude"``,
-    replaced by the running median of their neighbours before they reach the deviations."""
+    replaced by the running median of their neighbours before they reach the deviations.
+    Gaps (dropped samples, :func:`find_gaps`) are never bridged silently: ``gaps="refuse"``
+    raises UsageError saying where they are and what to do, ``"longest"`` analyses the longest
+    gap-free stretch, ``"bridge"`` treats the samples as contiguous; the result's ``gaps``
+    records which."""
     if outliers not in OUTLIER_MODES:
         raise UsageError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
+    if gaps not in GAP_MODES:
+        raise UsageError(f"gaps={gaps!r}: choose from {', '.join(GAP_MODES)}")
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
@@ -203,8 +210,32 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         if n < MIN_SAMPLES:
             raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
                              "for an Allan analysis (record longer)")
-        gaps = _counter_gaps(f, s0, s1)
         tau0 = 1.0 / fs
+        found = find_gaps(f, s0, s1, fs)
+        missing = sum(m for _, m in found)
+        gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
+                    "largest_samples": int(max((m for _, m in found), default=0)),
+                    "rows": [int(g) for g, _ in found[:20]]}
+        if found and gaps == "refuse":
+            big = max(found, key=lambda g: g[1])
+            a, b = longest_stretch(found, s0, s1)
+            raise UsageError(
+                f"{path}: {missing} samples missing in {len(found)} gap(s) in the analysed range "
+                f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
+                f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
+                "spaced samples and rigctl does not bridge gaps on its own",
+                hint=f"--gaps longest analyses the longest gap-free stretch ({b - a} samples, "
+                     f"{(b - a) * tau0 / 3600:.2f} h); --gaps bridge treats the samples as "
+                     "contiguous (every tau spanning a gap is then biased)")
+        if found and gaps == "longest":
+            s0, s1 = longest_stretch(found, s0, s1)
+            n = s1 - s0
+            gap_info["range_used"] = [int(s0), int(s1)]
+            if n < MIN_SAMPLES:
+                raise UsageError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
+                                 f"need at least {MIN_SAMPLES}")
+            missing = 0
+        gaps_bridged = int(missing)
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
         if mode == "fast" and not isinstance(taus, (list, tuple)):
@@ -227,7 +258,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             shown.update(a1 - s0)
         shown.finish()
     out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-           "first_sample": int(s0), "dropped_samples": int(gaps), "outliers": outliers,
+           "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
+           "outliers": outliers,
            "axes": {}}
     for a in axes:
         out["axes"][a] = analyse_axis(streams[a], AXES[a][2], outliers == "exclude")
@@ -244,6 +276,34 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
         return 0
     first, last = int(c[s0]), int(c[s1 - 1])
     return max(0, (last - first + 1) - (s1 - s0))
+
+
+def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
+    """Gaps in the IMU samples [s0, s1): (row after the gap, samples missing) from the jumps of
+    /imu/counter, or without a counter from /imu/time steps longer than 1.5 sample intervals."""
+    if s1 - s0 < 2:
+        return []
+    if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
+        d = np.diff(np.asarray(f["/imu/counter"][s0:s1], dtype=np.int64))
+        idx = np.flatnonzero(d > 1)
+        return [(int(s0 + i + 1), int(d[i] - 1)) for i in idx]
+    if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
+        dt = np.diff(np.asarray(f["/imu/time"][s0:s1], dtype=np.float64)) * fs
+        idx = np.flatnonzero(dt > 1.5)
+        return [(int(s0 + i + 1), int(round(dt[i])) - 1) for i in idx]
+    return []
+
+
+def longest_stretch(gaps: list[tuple[int, int]], s0: int, s1: int) -> tuple[int, int]:
+    """The longest run of rows [a, b) within [s0, s1) with no gap inside."""
+    edges = [s0] + [g for g, _ in gaps] + [s1]
+    k = int(np.argmax(np.diff(edges)))
+    return edges[k], edges[k + 1]
+
+
+#: what to do with gaps (dropped samples) in the analysed range: refuse (say what to do),
+#: analyse the longest gap-free stretch, or treat the samples as contiguous
+GAP_MODES = ("refuse", "longest", "bridge")
 
 
 def _capture_range(f: Any) -> tuple[int, int, str] | None:
@@ -322,7 +382,7 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
     if warn:
         log("warning", f"allan: {warn}")
     try:
-        result = compute(path, axes, 95, False, rng)
+        result = compute(path, axes, 95, False, rng, gaps="bridge")  # warned below
     except UsageError as exc:
         log("warning", f"allan: not run: {exc}")
         return
@@ -340,28 +400,53 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
         warns, notes = screening_notes(r)
         for w in warns + check_warnings(r):
             log("warning", f"allan {a}: {w}")
-        for t in notes:
+        for t in notes:  # (taus outside the band by chance: in the results and the CLI only)
             log("info", f"allan {a}: {t}")
 
 
 def check_warnings(r: dict[str, Any]) -> list[str]:
-    """The fit's self-check as sentences: one per run of taus where the fitted total leaves
-    the curve's 95 % band (with the statistic), [] when it follows the curve."""
+    """The fit's self-check as sentences when it fails (the model does not describe the curve:
+    chi-square beyond its 99 % point): one per run of taus where the fitted total leaves the
+    curve's 95 % band, with the statistic; [] otherwise (see :func:`check_notes`)."""
     check = r["fit"].get("check") or {}
     runs = check.get("outside") or []
-    if not runs:
+    if not runs or check.get("ok"):
         return []
+    return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band")
+
+
+def check_notes(r: dict[str, Any]) -> list[str]:
+    """The taus outside the band when the fit as a whole is consistent with the curve (a few of
+    ~70 taus outside a 95 % band are expected by chance): named, as a note."""
+    check = r["fit"].get("check") or {}
+    runs = check.get("outside") or []
+    if not runs or not check.get("ok"):
+        return []
+    return _check_sentences(check, "the fitted total is outside the 95 % band, as chance "
+                                   "allows for a fit consistent with the curve,", reasons=False)
+
+
+def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
+    runs = check["outside"]
     stat = (f"chi2 {check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}; "
             f"model error {100 * check['model_error_rel']:.0f} % of sigma^2 added"
             if "chi2" in check else "")
-    out = [f"the fitted IEEE 952 total leaves the curve's 95 % band at {check['n_outside']} of "
-           f"{check['n_informative']} informative taus ({stat})"]
+    if not reasons:
+        spans = ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
+                          else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
+        return [f"{head} at {check['n_outside']} of {check['n_informative']} informative taus "
+                f"(tau {spans} s; {stat})"]
+    out = [f"{head} at {check['n_outside']} of {check['n_informative']} informative taus ({stat})"]
     for o in runs:
         span = (f"tau {o['tau_from_s']:.3g} s" if o["tau_from_s"] == o["tau_to_s"]
                 else f"tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s")
         out.append(f"{span}: {o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
                    f"likely {o['likely']}")
     return out
+
+
+#: the output step is mentioned when its rounding noise is at least this share of N^2
+QUANT_NOTE_SHARE = 1e-4
 
 
 def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
@@ -383,7 +468,8 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
     q = r.get("quantization")
-    if q:
+    # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
+    if q and (q.get("share_of_N2", 1.0) >= QUANT_NOTE_SHARE or not q["random_rounding"]):
         n_unit, n_fac = F.FIELD_UNITS[r["sensor"]]["N"]
         step = f"{q[f'step_{unit}']:.4g} {unit}"
         if r["sensor"] == "gyro":
