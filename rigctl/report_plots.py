@@ -234,7 +234,7 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
             ys = d_a * (span / t_a) ** slope
             ax.plot(span, ys, ":", color="0.55", lw=0.7, zorder=0)
             ax.annotate(f"slope {label}", (span[-1], ys[-1]), fontsize=5.5, color="0.4",
-                        ha="right", va="bottom", xytext=(-2, 1 + 6 * (k % 2)),
+                        ha="right", va="bottom", xytext=(-2, 1 + 7 * k),
                         textcoords="offset points", annotation_clip=True)
     fit = fit or {}
     coeff = fit.get("coeff_sq_si") or {}

@@ -131,8 +131,9 @@ def test_pipeline_curve_matches_plain_numpy(adis: dict, mtig: dict) -> None:
 def test_adis16405_gyro_floor_gives_an_estimate_of_b(adis: dict, axis: str) -> None:
     """The curve flattens between 30 and 300 s (independent slope |s| < 0.25 where white noise
     alone would give -0.5): B must be an estimate, not a bound, and the fitted total must
-    follow the curve there. Measured: N 2.36 / 2.47 / 2.35 deg/sqrt(h) (read-off 2.46 / 2.58
-    / 2.33), B 31.9 / 42.0 / 23.9 deg/h (min sigma / 0.664: 27.7 / 45.6 / 43.8)."""
+    follow the curve there. Measured: N 2.38 / 2.50 / 2.31 deg/sqrt(h) (read-off 2.46 / 2.58
+    / 2.33), B 29.9 / 38.9 / 26.0 deg/h (min sigma / 0.664: 27.7 / 45.6 / 43.8; before this
+    work the fit gave the bounds < 226 / < 1918 / < 1798 deg/h)."""
     i = "xyz".index(axis[1])
     r = adis["res"]["axes"][axis]
     tau, ind = _independent(adis["gyro"][:, i], r)
