@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import ROOT, derived_config, run_rigctl
+from helpers import ROOT, WHITE_NOISE_ONLY, derived_config, run_rigctl
 
 SHORT = ["-p", "warmup=1 min", "-p", "sample=10 s"]
 BASE = {
@@ -73,15 +73,10 @@ def _payload(rec: Path) -> dict:
         return json.loads(g.attrs["json"])
 
 
-#: the slow noise terms of configs/sim.yaml, zeroed for the white-noise runs
-WHITE_ONLY = {f"imu__sim__{k}": 0.0 for k in ("gyro_bias_instability_deg_h", "gyro_rrw_deg_h_rth",
-                                             "accel_bias_instability_mg", "accel_rrw_m_s_h_rth")}
-
-
 @pytest.fixture(scope="module")
 def clean_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("clean")
-    cfg = derived_config(tmp_path_factory.mktemp("cfg"), **WHITE_ONLY)
+    cfg = derived_config(tmp_path_factory.mktemp("cfg"), **WHITE_NOISE_ONLY)
     proc = run_rigctl("run", "procedures/full-calibration.yaml", "--config", str(cfg), *SHORT,
                       "--out", str(out), timeout=300)
     assert proc.returncode == 0, proc.stderr
