@@ -247,3 +247,21 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
     cov = payload["truth_coverage"]
     assert cov["total"] == 63 + 6 and cov["fraction"] >= 0.85, cov
     assert "thermal hysteresis" in r.stdout
+    # apply-cal with the thermal model, at the recording's own temperatures: the static windows'
+    # means then match gravity (from the table angles, numpy) to within their own noise
+    out = tmp_path / "corrected.h5"
+    r = run_rigctl("apply-cal", str(rec), "-o", str(out), timeout=120)
+    assert r.returncode == 0 and "/results/thermal" in r.stdout, r.stderr[-2000:]
+    z2 = {}
+    for path in (rec, out):
+        with h5py.File(path, "r") as f:
+            s = {k: f["segments"][k][()] for k in f["segments"]}
+            A = f["imu/specific_force"][()]
+            lat, g = math.radians(f["meta"].attrs["latitude_deg"]), f["meta"].attrs["gravity_m_s2"]
+            zs = []
+            for i in np.flatnonzero(s["kind"] == b"orientation"):
+                a, b = s["first_sample"][i], s["last_sample"][i]
+                fr, _ = body_references(s["commanded_angle"][i], None, lat, f["meta"].attrs["height_m"], g)
+                zs.append((A[a:b].mean(0) - fr) / (A[a:b].std(0, ddof=1) / math.sqrt(b - a)))
+            z2[path] = float(np.mean(np.square(zs)))
+    assert z2[out] < 2.0 and z2[rec] > 100 * z2[out], z2
