@@ -177,7 +177,7 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
             f_all = np.linalg.solve(np.array(accel_model["M"]), (s["acc"] - np.array(accel_model["bias_m_s2"])).T).T
         else:
             f_all = pl.accel_apply(loop.final, loop.claimed, s["acc"], _SampleTimes(d, len(s["acc"]), s["temp"]))
-        bias_t = bg + f_all @ G.T
+        bias_t = pl.gyro_static_model(gloop.final, f_all, np.arange(len(f_all)) / fs, s["temp"], d)
         clipped, n_clip = pl.clipped_motions(s["gyr"], iv)
         keep = ~clipped
         dvar = pl.direction_variance(loop.final, loop.claimed, d.acc, d) if ups is None else None

@@ -226,6 +226,7 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
     cur: list[str] = []
     fits = [fit_fn(cur)]
     rows: list[dict[str, Any]] = []
+    ambiguous: list[str] = []
     for c in cands:
         if not c.testable:
             rows.append({"step": 0, "candidate": c.name, "statistic": "-", "decision": f"not testable: {c.why}"})
@@ -262,6 +263,17 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
                 rows.append({"step": step, "candidate": c.name, "statistic": stat,
                              "decision": "rejected: cross-validation does not improve"})
                 continue
+            # a runner-up that fits as well (chi2 within the 95 % likelihood-ratio margin, scaled
+            # by the residual variance) is indistinguishable on this recording: say so
+            scale = f.chi2 / max(f.dof, 1)
+            rivals = [q for q2, q, f2, _ in tried if q is not c and q2 < thr and f2.chi2 - f.chi2 < 3.84 * scale]
+            if rivals:
+                alt = " or ".join([c.name] + [q.name for q in rivals])
+                rows.append({"step": step, "candidate": alt, "statistic": stat,
+                             "decision": "ambiguous: these candidates fit equally well; none is claimed"})
+                ambiguous.append(alt)
+                done = False
+                break
             rows.append({"step": step, "candidate": c.name, "statistic": stat, "decision": "added"})
             cur.append(c.name)
             fits.append(f)
@@ -270,6 +282,8 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
             break
         if not done:
             break
+    if ambiguous:
+        rows.append({"step": step, "candidate": ambiguous[0], "statistic": "-", "decision": "ambiguous"})
     return cur, fits, rows
 
 
@@ -334,6 +348,10 @@ def judge(name: str, fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candida
     final, declared = fits[-1], fits[0]
     band = chi2_band(final.dof, noise_dof)
     claimed, not_claimed, findings = list(accepted), [], []
+    amb = [r["candidate"] for r in rows if r["decision"] == "ambiguous"]
+    if amb:
+        findings.append(f"ambiguous: {amb[0]} -- each explains the residual as well as the other on these poses; "
+                        "none is claimed (more poses, or poses at intermediate tilts, would separate them)")
     corr: list[dict[str, Any]] = []
     if final.dof > 0 and final.chi2_per_dof > band[1]:
         status = STATUS_UNEXPLAINED
@@ -426,12 +444,19 @@ def accel_candidates(d: PoseData) -> list[Candidate]:
         if c.testable and P - 9 - 3 < 3:
             c.testable, c.why = False, f"{P} poses leave {P - 12} dof with 12 parameters (need >= 3)"
         if c.testable:
-            B = ACCEL_CANDIDATES[name][1](d.acc, d)
+            # linearised magnitude: d|u| = sum_i (u_i/|u|) du_i; the base model spans bias (u_i),
+            # scale (u_i^2) and the three misalignments (u_x u_y, u_x u_z, u_y u_z), over |u|
+            u = d.acc
+            n = np.linalg.norm(u, axis=1)[:, None]
+            base = np.hstack([u, u ** 2, u[:, [0]] * u[:, [1]], u[:, [0]] * u[:, [2]], u[:, [1]] * u[:, [2]]]) / n
+            B = ACCEL_CANDIDATES[name][1](u, d)
             B = B[:, :, 0] if B.ndim == 3 else B
-            X = np.hstack([np.abs(d.acc) / 9.8, d.acc / 9.8, np.ones((P, 1))])  # crude span of the base model
-            if np.linalg.matrix_rank(np.hstack([X, B / (np.abs(B).max(axis=0) + 1e-30)]), tol=1e-6) <= \
-                    np.linalg.matrix_rank(X, tol=1e-6):
-                c.testable, c.why = False, "the poses do not separate it from scale and bias"
+            cand = (u * B / n) if accel_k(name) == 3 else np.sum(u * B, axis=1, keepdims=True) / n
+            X = np.hstack([base, cand])
+            X = X / np.maximum(np.linalg.norm(X, axis=0), 1e-300)
+            sv = np.linalg.svd(X, compute_uv=False)
+            if sv[-1] < 1e-6 * sv[0]:
+                c.testable, c.why = False, "the poses do not separate it from scale, bias and misalignment"
         out.append(c)
     return out
 
@@ -595,6 +620,23 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
     cov = np.linalg.pinv(Xw.T @ Xw)
     dof = 3 * P - (X.shape[1] - (1 if latitude_rad is None else 0))
     return Fit(names, beta, cov, float(r @ r), int(dof), r, Xw, groups, extra={"resid": y - X @ beta, "y": y})
+
+
+def gyro_static_model(fit: Fit, f: Arr, t_s: Arr, temp_c: Arr | None, d: PoseData) -> Arr:
+    """(n, 3) what the static gyro model predicts at specific force f (n, 3) and times t_s
+    (bias, g-sensitivity, anisoelastic, drift, temperature; no Earth rate): the part of the
+    rate that the motions between poses must have removed."""
+    v = dict(zip(fit.names, fit.values))
+    out = np.tile([v.get(f"gyro_bias_{a}_rad_s", 0.0) for a in AX], (len(f), 1))
+    G = np.array([[v.get(f"gyro_g_sens_{a}{b}_rad_s_per_m_s2", 0.0) for b in AX] for a in AX])
+    out += f @ G.T
+    prod = np.stack([f[:, 1] * f[:, 2], f[:, 0] * f[:, 2], f[:, 0] * f[:, 1]], axis=1)
+    out += prod * np.array([v.get(f"gyro_anisoelastic_{a}_rad_s_per_m2_s4", 0.0) for a in AX])
+    out += np.outer((t_s - d.t_ref) / 3600, [v.get(f"gyro_bias_time_drift_{a}_rad_s_per_h", 0.0) for a in AX])
+    if temp_c is not None and d.temp_c is not None:
+        out += np.outer(np.nan_to_num(temp_c - d.temp_ref),
+                        [v.get(f"gyro_bias_temperature_{a}_rad_s_per_K", 0.0) for a in AX])
+    return out
 
 
 # ------------------------------------------------------------------------------ gyro, rotations
