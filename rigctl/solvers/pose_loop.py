@@ -472,7 +472,8 @@ def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
 
     def resid(p: Arr) -> Arr:
         M, eff = unpack(p)
-        v = u - p[6:9] - accel_correction(eff, u, d)
+        v0 = u - p[6:9]  # the effects act on the input (specific force), not on the biased output
+        v = v0 - accel_correction(eff, v0, d)
         a = v @ M.T
         na = np.linalg.norm(a, axis=1)
         dn = (a / na[:, None]) @ M
@@ -495,7 +496,8 @@ def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
 def accel_apply(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
     """Calibrated specific force for raw (nominal-scale) vectors u (n, 3)."""
     p = fit.values
-    return (u - p[6:9] - accel_correction(_accel_split(p, effects), u, data)) @ _tk(p[0:3], p[3:6]).T
+    v0 = u - p[6:9]
+    return (v0 - accel_correction(_accel_split(p, effects), v0, data)) @ _tk(p[0:3], p[3:6]).T
 
 
 def direction_variance(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
