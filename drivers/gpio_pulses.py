@@ -24,15 +24,14 @@ debounce, HTE clocks, and event-buffer overflow on a real chip.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
 
-import numpy as np
+from rigctl.devices import Clock
 
-from rigctl.devices import Clock, Pulses
+from .reader_thread import HostTimedPulses
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +59,10 @@ def line_settings(edge: str = "rising", event_clock: str = "monotonic", debounce
                                            "hte": GClock.HTE}[event_clock])
 
 
-class GpioPulses:
+class GpioPulses(HostTimedPulses):
     """Edges of GPIO ``line`` on ``chip``; ``connect()``, ``read()``, ``close()``."""
+
+    source, reader_what = "gpio", "GPIO reader"
 
     def __init__(self, chip: str, line: int, clock: Clock, *, edge: str = "rising", event_clock: str = "monotonic",
                  debounce_us: int = 0, bias: str = "as-is", consumer: str = "rigctl",
@@ -76,11 +77,7 @@ class GpioPulses:
         self.foreign = 0
         self.out_of_order = 0
         self._last_seqno: int | None = None
-        self._times: list[float] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._fatal: BaseException | None = None
+        self._init_pulses()
 
     def _host_ns(self) -> int:
         return time.time_ns() if self.event_clock == "realtime" else time.monotonic_ns()
@@ -106,14 +103,7 @@ class GpioPulses:
         except OSError as exc:
             raise RuntimeError(f"{self.name}: cannot request line {self.line} of {self.chip}: {exc} "
                                "(does the chip exist, and is the user in the 'gpio' group?)") from exc
-        self._host0, self._run0 = self._host_ns(), self.clock.now()
-        self.speed = float(getattr(self.clock, "speed", 1.0))
-        self._thread = threading.Thread(target=self._run, name=f"{self.name}-gpio", daemon=True)
-        self._thread.start()
-
-    def to_run_time(self, timestamp_ns: int) -> float:
-        """Run time, s, of a kernel timestamp (see the module docstring)."""
-        return self._run0 + (timestamp_ns - self._host0) * 1e-9 * self.speed
+        self._start_pulses(self._run, self._host_ns(), "gpio")
 
     def handle(self, events: list) -> None:
         """Account for a list of ``gpiod.EdgeEvent`` (sequence gaps, foreign lines)."""
@@ -134,9 +124,8 @@ class GpioPulses:
                     log.warning("%s: %d edge events lost (kernel buffer overflow?)", self.name, gap - 1)
             self._last_seqno = ev.line_seqno
             self.events += 1
-            times.append(self.to_run_time(ev.timestamp_ns))
-        with self._lock:
-            self._times.extend(times)
+            times.append(self.to_run_time(ev.timestamp_ns))  # kernel timestamp (module docstring)
+        self._add(times)
 
     def _run(self) -> None:
         try:
@@ -147,19 +136,8 @@ class GpioPulses:
             log.exception("%s: GPIO reader failed", self.name)
             self._fatal = exc
 
-    def read(self) -> Pulses:
-        if self._fatal is not None:
-            raise RuntimeError(f"{self.name}: GPIO reader failed: {self._fatal}")
-        with self._lock:
-            t, self._times = self._times, []
-        n = len(t)
-        return Pulses(time=np.asarray(t, float), gps_week=np.full(n, -1, np.int32), gps_seconds=np.full(n, np.nan),
-                      source="gpio")
-
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
+        self._stop_thread(5.0)
         if self.request is not None:
             self.request.release()
             self.request = None

@@ -27,13 +27,13 @@ import array
 import fcntl
 import logging
 import termios
-import threading
 import time
 
-import numpy as np
 import serial
 
-from rigctl.devices import Clock, Pulses
+from rigctl.devices import Clock
+
+from .reader_thread import HostTimedPulses
 
 log = logging.getLogger(__name__)
 LINES = {"cd": termios.TIOCM_CD, "cts": termios.TIOCM_CTS, "dsr": termios.TIOCM_DSR, "ri": termios.TIOCM_RI}
@@ -59,8 +59,10 @@ def _level(fd: int, mask: int) -> bool:
     return bool(int.from_bytes(fcntl.ioctl(fd, termios.TIOCMGET, b"\0\0\0\0"), "little") & mask)
 
 
-class ModemPulses:
+class ModemPulses(HostTimedPulses):
     """Edges on a modem-status line of ``url``; ``connect()``, ``read()``, ``close()``."""
+
+    source, reader_what = "modem", "modem-line reader"
 
     def __init__(self, url: str, clock: Clock, *, baudrate: int = 9600, line: str = "cd", edge: str = "rising",
                  mode: str = "wait", poll_interval_s: float = 0.001, name: str = "pulses") -> None:
@@ -71,11 +73,7 @@ class ModemPulses:
         self.ser: serial.SerialBase | None = None
         self.edges = 0
         self.missed = 0
-        self._times: list[float] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._fatal: BaseException | None = None
+        self._init_pulses()
 
     def identify(self) -> str:
         """Open the port and read the configured modem-status line's level; close it."""
@@ -101,17 +99,10 @@ class ModemPulses:
                                    "mode: poll on an rfc2217:// port") from exc
         else:
             self._level = self._poll_level(self.ser)
-        self._host0, self._run0 = time.monotonic_ns(), self.clock.now()
-        self.speed = float(getattr(self.clock, "speed", 1.0))
-        self._thread = threading.Thread(target=self._run_wait if self.mode == "wait" else self._run_poll,
-                                        name=f"{self.name}-modem", daemon=True)
-        self._thread.start()
+        self._start_pulses(self._run_wait if self.mode == "wait" else self._run_poll, time.monotonic_ns(), "modem")
 
     def _poll_level(self, ser: serial.SerialBase) -> bool:
         return bool(getattr(ser, self.line))
-
-    def to_run_time(self, host_ns: int) -> float:
-        return self._run0 + (host_ns - self._host0) * 1e-9 * self.speed
 
     def _wanted(self, rising: bool) -> bool:
         return self.edge == "both" or (self.edge == "rising") == rising
@@ -124,8 +115,7 @@ class ModemPulses:
             log.warning("%s: %d %s transitions missed", self.name, transitions - expected, self.line)
         if level != self._level and self._wanted(level):
             self.edges += 1
-            with self._lock:
-                self._times.append(self.to_run_time(t_ns))
+            self._add([self.to_run_time(t_ns)])
         self._level = level
 
     def _run_wait(self) -> None:
@@ -153,15 +143,6 @@ class ModemPulses:
         except (OSError, serial.SerialException) as exc:
             if not self._stop.is_set():
                 self._fatal = exc
-
-    def read(self) -> Pulses:
-        if self._fatal is not None:
-            raise RuntimeError(f"{self.name}: modem-line reader failed: {self._fatal}")
-        with self._lock:
-            t, self._times = self._times, []
-        n = len(t)
-        return Pulses(time=np.asarray(t, float), gps_week=np.full(n, -1, np.int32), gps_seconds=np.full(n, np.nan),
-                      source="modem")
 
     def close(self) -> None:
         self._stop.set()

@@ -1,5 +1,8 @@
-"""A device on a link read by a background thread that configures it, pumps its bytes and, when
-the link drops, reconnects with the link's backoff and configures it again.
+"""Devices read by a background thread.
+
+:class:`ReconnectingReader`: a device on a link read by a background thread that configures it,
+pumps its bytes and, when the link drops, reconnects with the link's backoff and configures it
+again.
 
 Subclasses set :attr:`ReconnectingReader.config_error` (the exception their ``_configure`` raises
 when the device refuses a command: fatal, reported by ``read``) and implement ``_configure``
@@ -7,14 +10,20 @@ when the device refuses a command: fatal, reported by ``read``) and implement ``
 decode, store). ``_on_link_lost`` runs in the thread when the link is lost (e.g. flush a decoder).
 Any other exception in the thread is fatal too: it is logged and re-raised by the subclass's
 ``read`` through :attr:`_fatal`.
+
+:class:`HostTimedPulses`: edges a background thread time-stamps on a host clock (GPIO lines,
+modem-status lines), mapped onto the run clock and handed out by ``read``.
 """
 from __future__ import annotations
 
 import logging
 import threading
 import time
+from collections.abc import Callable
 
-from rigctl.devices import LinkLost
+import numpy as np
+
+from rigctl.devices import Clock, LinkLost, Pulses
 
 from .serial_link import SerialLink
 
@@ -86,3 +95,54 @@ class ReconnectingReader:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5)
         self.link.close()
+
+
+class HostTimedPulses:
+    """Pulse edges time-stamped by a thread on a host clock (GPIO and modem-status lines).
+
+    The thread stores run times with :meth:`_add`; :meth:`read` hands them out as
+    :class:`rigctl.devices.Pulses` (no GPS time) and raises the thread's error, if it failed.
+    Host time maps onto the run clock by the offset taken when the thread starts, scaled by the
+    run clock's speed. Subclasses set ``source`` and ``reader_what`` (for messages).
+    """
+
+    source: str
+    reader_what: str
+    name: str
+    clock: Clock
+
+    def _init_pulses(self) -> None:
+        self._times: list[float] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._fatal: BaseException | None = None
+
+    def _start_pulses(self, target: Callable[[], None], host_ns: int, suffix: str) -> None:
+        """Take the host-to-run offset (``host_ns``: the host clock now) and start ``target``."""
+        self._host0, self._run0 = host_ns, self.clock.now()
+        self.speed = float(getattr(self.clock, "speed", 1.0))
+        self._thread = threading.Thread(target=target, name=f"{self.name}-{suffix}", daemon=True)
+        self._thread.start()
+
+    def to_run_time(self, host_ns: int) -> float:
+        """Run time, s, of a host timestamp, ns (see the class docstring)."""
+        return self._run0 + (host_ns - self._host0) * 1e-9 * self.speed
+
+    def _add(self, times: list[float]) -> None:
+        with self._lock:
+            self._times.extend(times)
+
+    def read(self) -> Pulses:
+        if self._fatal is not None:
+            raise RuntimeError(f"{self.name}: {self.reader_what} failed: {self._fatal}")
+        with self._lock:
+            t, self._times = self._times, []
+        n = len(t)
+        return Pulses(time=np.asarray(t, float), gps_week=np.full(n, -1, np.int32), gps_seconds=np.full(n, np.nan),
+                      source=self.source)
+
+    def _stop_thread(self, timeout_s: float) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)

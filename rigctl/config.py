@@ -21,6 +21,7 @@ DEFAULT_CONFIG = "configs/sim.yaml"
 TABLE_DRIVERS = ("sim", "acl", "modbus")
 IMU_DRIVERS = ("sim", "xsens")
 PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
+CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")
 
 
@@ -85,6 +86,9 @@ class RigConfig:
     imu_serial: str = ""
     suspenders: SuspenderSettings = field(default_factory=SuspenderSettings)
     raw: LocDict = field(default_factory=LocDict, repr=False)
+    #: the climatic chamber (docs/thermal.md): ``none``, ``sim`` (in the emulated world),
+    #: ``watlow`` (Modbus RTU / TCP) or ``scpi`` (PyVISA); settings from rigctl.chamber
+    chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict()))
 
     @property
     def gravity(self) -> float:
@@ -222,7 +226,7 @@ def load_config(path: str | Path) -> RigConfig:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
     S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders", "traceability"), "the rig config")
+                     "suspenders", "traceability", "chamber"), "the rig config")
     traceability(m)
     name = S.get_str(m, "rig", p.stem)
     clock = S.get_str(m, "clock", None, choices=CLOCKS)
@@ -277,12 +281,17 @@ def load_config(path: str | Path) -> RigConfig:
         flush = S.get_number(r, "flush_interval_s", 0.5, minimum=0.01, maximum=1.0)
         table_rate = S.get_number(r, "table_rate_hz", 10.0, minimum=0.1, maximum=1000.0)
     suspenders = suspender_settings(m)
+    from .chamber import chamber_settings  # the chamber section (docs/thermal.md)
+    chamber, c_opts = _device(m, "chamber", CHAMBER_DRIVERS, "none")
+    chamber = DeviceConfig(chamber.driver, c_opts, chamber_settings(chamber.driver, c_opts))
+    # driver: sim is the in-process world's chamber; a wired rig has no in-process world, so
+    # there it means no chamber (the wired emulator's chambers: driver watlow / scpi)
 
     return RigConfig(path=str(p), text=p.read_text(encoding="utf-8"), name=name, clock=clock,
                      speed=speed, latitude=lat, height_m=h, gravity_measured=g, limits=limits,
                      table=table, imu=imu, imu_rate_hz=imu_rate, pulses=pulses,
                      flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, imu_serial=serial,
-                     suspenders=suspenders, raw=m)
+                     suspenders=suspenders, raw=m, chamber=chamber)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

@@ -18,6 +18,7 @@ Memory stays flat over any step length: a sample window keeps running sums, not 
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ import numpy as np
 
 from . import errors
 from .devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
-from .procedure import Step
+from .procedure import CHAMBER_KINDS, Step
 from .progress import CounterGaps, NullProgress, Progress
 from .recorder import Recorder, Segment
 from .states import StateMachine
@@ -66,6 +67,10 @@ class Rig:
     #: optional operator stand-in (emulator): ``prompt(step, t_start, duration)`` is called when
     #: a step with a prompt starts sampling (e.g. the emulated operator taps the IMU)
     operator: Any = None
+    #: the climatic chamber (rigctl.chamber.Chamber), None on a rig without one
+    chamber: Any = None
+    #: the chamber's band for the 'chamber' suspender (min, max) degC
+    chamber_band: tuple[float, float] = (-70.0, 180.0)
 
 
 def angle_error(measured: np.ndarray, commanded: np.ndarray) -> np.ndarray:
@@ -125,6 +130,16 @@ class Engine:
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
         self.n_suspensions = 0
         self._flushed_once = False
+        #: the chamber is read at most this often (rig time), s; its last reading and trip reason
+        self.chamber_poll_s = 1.0
+        self.last_chamber: Any = None
+        self._chamber_t = -math.inf
+        #: ... and at most this often in wall time (a chamber on a slow link, a fast clock), s
+        self.chamber_poll_wall_s = 0.1
+        self._chamber_wall = -math.inf
+        self._chamber_reason: str | None = None
+        #: (time, min, max) of the IMU temperature per poll, while a chamber-wait step runs
+        self._temps: deque | None = None
         self.live: Any = None  # a rigctl.livefeed.LiveFeed (the daemon's live views), or None
 
     def request_abort(self, reason: str = "interrupted") -> None:
@@ -166,6 +181,12 @@ class Engine:
             self.rec.append_pulses(self.rig.pulses.read())
         except LinkLost as exc:
             self.log("warning", f"pulse source: {exc}")
+        if self.rig.chamber is not None:
+            self._poll_chamber(obs.t)
+            obs.chamber_reason = self._chamber_reason
+        if self._temps is not None and obs.imu is not None and len(obs.imu):
+            temp = obs.imu.temperature
+            self._temps.append((obs.t, float(np.min(temp)), float(np.max(temp))))
         try:
             state = self.rig.table.read()
             obs.table = state
@@ -194,6 +215,22 @@ class Engine:
             nan3 = np.full(3, np.nan)
             return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
         return state
+
+    def _poll_chamber(self, t: float) -> None:
+        """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
+        wall = time.monotonic()
+        if t - self._chamber_t < self.chamber_poll_s - 1e-9 or wall - self._chamber_wall < self.chamber_poll_wall_s:
+            return
+        self._chamber_t, self._chamber_wall = t, wall
+        from .chamber import describe_trip
+        try:
+            state = self.rig.chamber.read()
+        except (LinkLost, DeviceFault, OSError) as exc:
+            self._chamber_reason = f"chamber link lost: {exc}"
+            return
+        self.last_chamber = state
+        self.rec.append_chamber(state)
+        self._chamber_reason = describe_trip(state, self.rig.chamber_band)
 
     def pump(self, duration: float, period: float) -> TableState:
         """Let ``duration`` seconds pass, polling every ``period``."""
@@ -239,8 +276,87 @@ class Engine:
                     f"[{step.file}:{step.line}] -- check the table, or widen 'settle' windows / timeout")
             clock.sleep(self.settle_poll_s)
 
+    # -- the climatic chamber ------------------------------------------------------------------
+    def _chamber(self, step: Step) -> Any:
+        if self.rig.chamber is None:
+            raise RunError(f"step {step.index + 1} ({step.label}) needs a climatic chamber, and the "
+                           f"rig has none [{step.file}:{step.line}] -- add a 'chamber:' section to the config")
+        return self.rig.chamber
+
+    def command_chamber(self, step: Step) -> None:
+        """Send a chamber step's set point (and ramp rate) to the chamber."""
+        c = step.chamber or {}
+        if c.get("setpoint_c") is None:
+            return
+        try:
+            self._chamber(step).set_setpoint(c["setpoint_c"], c.get("rate_c_per_min"))
+        except (DeviceFault, LinkLost, OSError) as exc:
+            raise Suspend({"chamber": f"chamber refused the set point: {exc}"}) from None
+        rate = c.get("rate_c_per_min")
+        self.rec.add_event(self.rig.clock.now(), "chamber",
+                           f"set point {c['setpoint_c']:g} degC" + (f" at {rate:g} degC/min" if rate else ""))
+
+    def chamber_step(self, step: Step) -> Segment:
+        """chamber-set / chamber-ramp: command and go on; chamber-wait: hold the table at the
+        step's angles until the chamber's air is within ``air_band_c`` of its set point and the
+        IMU's temperature has stayed within ``stable_band_c`` (max - min) for ``stable_for_s``."""
+        clock = self.rig.clock
+        self._chamber(step)
+        t0 = clock.now()
+        first = self.rec.n_imu
+        if step.kind != "chamber-wait":
+            self.command_chamber(step)
+            self.poll()
+        else:
+            c = step.chamber
+            self.command_chamber(step)
+            self.command(step)
+            self.settle(step)
+            self._temps = deque()
+            first = self.rec.n_imu
+            self.sampling_from = first
+            t_wait = clock.now()
+            try:
+                while True:
+                    clock.sleep(self.sample_poll_s)
+                    self.poll()
+                    now = clock.now()
+                    while self._temps and self._temps[0][0] < now - c["stable_for_s"]:
+                        self._temps.popleft()
+                    ch = self.last_chamber
+                    air_ok = ch is not None and abs(ch.air_c - ch.setpoint_c) <= c["air_band_c"] and \
+                        (c["setpoint_c"] is None or abs(ch.setpoint_c - c["setpoint_c"]) < 1e-6)
+                    if self._temps and air_ok and now - t_wait >= c["stable_for_s"] - 1e-9:
+                        spread = max(x[2] for x in self._temps) - min(x[1] for x in self._temps)
+                        if spread <= c["stable_band_c"]:
+                            break
+                    if now - t_wait > c["timeout_s"]:
+                        what = (f"air {ch.air_c:.2f} degC, set point {ch.setpoint_c:.2f} degC"
+                                if ch is not None else "no chamber reading")
+                        raise RunError(f"step {step.index + 1} ({step.label}): temperature not stable "
+                                       f"within {c['timeout_s']:g} s ({what}) [{step.file}:{step.line}]")
+            finally:
+                self._temps = None
+        t1 = clock.now()
+        s = self.last_state
+        nan3 = np.full(3, np.nan)
+        seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                      last_sample=self.rec.n_imu, t_start=t0, t_end=t1, settle_time=math.nan,
+                      commanded_angle=step.angles, commanded_rate=np.zeros(3),
+                      measured_angle=s.angle if s is not None else nan3,
+                      measured_rate=s.rate if s is not None else nan3)
+        self.rec.add_segment(seg)
+        self.sampling_from = None
+        return seg
+
     def execute(self, step: Step) -> Segment:
         """Command, settle, discard the transient, sample, and record the segment."""
+        if step.kind in CHAMBER_KINDS:
+            self.current_step = step
+            try:
+                return self.chamber_step(step)
+            finally:
+                self.current_step = None
         self.current_step = step
         self.sampling_from = None
         # recent blocks as (row of the block's first sample, its IMU times): flat memory
@@ -327,6 +443,12 @@ class Engine:
             self.states.to("running", f"{len(motion)} steps to run")
         if stop_first is not None:
             self.stop_first(stop_first)
+        before = [s for s in steps[:start] if s.kind in ("chamber-set", "chamber-ramp")]
+        if start > 0 and before and self.rig.chamber is not None:
+            # a resumed run: the clean-up of the cut-off session put the chamber at its safe
+            # set point; the last set point commanded before the resume point holds again
+            self.log("info", f"resuming: chamber set point of step {before[-1].index + 1} again")
+            self.command_chamber(before[-1])
         n = 0
         while n < len(motion):
             step = motion[n]
@@ -439,8 +561,15 @@ class Engine:
     def safe_state(self, wait_s: float = 2.0) -> bool:
         """Command the table to stop (rate zero, mode off), then record its state until it is
         still or ``wait_s`` has passed. Returns True when the table reported standing still.
-        Never raises: the caller still has to close the file."""
+        Never raises: the caller still has to close the file. The chamber (if any) goes to its
+        safe set point first."""
         self.abort_requested = None
+        if self.rig.chamber is not None:
+            try:
+                self.rig.chamber.stop()
+                self.rec.add_event(self.rig.clock.now(), "safe-state", "chamber at its safe set point")
+            except Exception as exc:  # noqa: BLE001 - reported; the table must still be stopped
+                self.log("error", f"could not put the chamber at its safe set point: {exc}")
         try:
             self.rig.table.stop()
         except Exception as exc:  # noqa: BLE001 - reported, the caller still closes the file

@@ -36,7 +36,7 @@ def estimate(steps: list[Step], cfg: RigConfig) -> list[StepEstimate]:
     rates = np.zeros(3)
     vmax, amax = cfg.limits.rate, cfg.limits.accel
     for s in steps:
-        if not s.is_motion:
+        if not s.is_motion or s.kind in ("chamber-set", "chamber-ramp"):
             out.append(StepEstimate(s, 0.0, 0.0))
             continue
         d = np.pi - np.mod(np.pi - (s.angles - angles), 2 * np.pi)

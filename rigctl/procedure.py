@@ -20,7 +20,10 @@ from .config import TableLimits
 from .frames import north_pointing_angles
 from .yamlio import InputError, InputErrors, LocDict, LocList, load_file
 
-STEP_KINDS = ("warmup", "orientations", "rates", "capture", "taps", "wait", "solve")
+STEP_KINDS = ("warmup", "orientations", "rates", "capture", "taps", "wait", "solve",
+              "chamber-set", "chamber-ramp", "chamber-wait", "repeat")
+#: step kinds that command the climatic chamber (docs/thermal.md)
+CHAMBER_KINDS = ("chamber-set", "chamber-ramp", "chamber-wait")
 SOLVERS = ("accel24", "gyro-rate", "closed-loop", "allan", "sync", "report")
 #: Body axis -> gimbal index [outer, middle, inner] that turns about it at zero angles.
 RATE_AXIS_GIMBAL = {"x": 2, "y": 1, "z": 0}
@@ -57,6 +60,9 @@ class Step:
     solvers: tuple[str, ...] = ()
     file: str = ""
     line: int = 0
+    #: chamber steps: setpoint_c (None = keep), rate_c_per_min, stable_band_c, stable_for_s,
+    #: air_band_c, timeout_s (docs/thermal.md)
+    chamber: dict[str, Any] | None = None
 
     @property
     def is_motion(self) -> bool:
@@ -69,6 +75,15 @@ class Step:
     def describe(self) -> str:
         if self.kind == "solve":
             return f"solve: {', '.join(self.solvers)}"
+        if self.chamber is not None:
+            c = self.chamber
+            sp = "current set point" if c.get("setpoint_c") is None else f"{c['setpoint_c']:g} degC"
+            if self.kind == "chamber-ramp":
+                return f"{self.kind:<12} {self.label:<28} to {sp} at {c['rate_c_per_min']:g} degC/min"
+            if self.kind == "chamber-wait":
+                return (f"{self.kind:<12} {self.label:<28} {sp}: IMU within {c['stable_band_c']:g} degC "
+                        f"for {c['stable_for_s']:g} s")
+            return f"{self.kind:<12} {self.label:<28} {sp}"
         ang = ", ".join(f"{math.degrees(a):g}" for a in self.angles)
         text = f"{self.kind:<12} {self.label:<28} angles [{ang}] deg"
         if self.rate_mode:
@@ -230,6 +245,16 @@ class _Compiler:
                           f"kinds: {', '.join(STEP_KINDS)}, or 'include: FILE'")
         item = S.require_mapping(item, "a step")
         (kind, body), = item.items()
+        if kind == "repeat":
+            r = S.require_mapping(self.subst(body, item, kind), "'repeat'", item, kind)
+            r.line, r.file = item.line_of(kind), item.file
+            S.check_keys(r, ("count", "steps"), "'repeat'", required=("count", "steps"))
+            count = S.get_number(r, "count", minimum=1, maximum=10000, integer=True)
+            inner = S.get_list(r, "steps", min_length=1)
+            for _ in range(int(count)):
+                for j, sub in enumerate(inner):
+                    self.compile_item(path, inner, j, sub, defaults)
+            return
         if kind == "include":
             target = self.subst(body, item, kind)
             if not isinstance(target, str):
@@ -241,7 +266,7 @@ class _Compiler:
         body = self.subst(body if body is not None else LocDict(), item, kind)
         opts = S.require_mapping(body, f"the {kind!r} step", item, kind)
         opts.line, opts.file = item.line_of(kind), item.file  # "missing ..." points at the step
-        getattr(self, f"_{kind}")(opts, defaults)
+        getattr(self, f"_{kind.replace('-', '_')}")(opts, defaults)
 
     def _policy(self, o: LocDict, defaults: dict[str, Any]) -> tuple[SettlePolicy, float, float]:
         where = defaults.get("__where__")
@@ -308,6 +333,41 @@ class _Compiler:
                  angles=self._angles(o), sample_s=S.get_duration(o, "duration", 60.0, positive=True),
                  prompt=S.get_str(o, "prompt", f"Tap the IMU {count} times"), expected_taps=count,
                  settle=policy)
+
+    # -- the climatic chamber (docs/thermal.md) ----------------------------------------------
+    def _setpoint(self, o: LocDict, required: bool) -> float | None:
+        if not required and "setpoint_c" not in o:
+            return None
+        return float(S.get_number(o, "setpoint_c", minimum=-100.0, maximum=200.0))
+
+    def _chamber_set(self, o: LocDict, d: dict[str, Any]) -> None:
+        S.check_keys(o, ("setpoint_c", "label"), "'chamber-set'", required=("setpoint_c",))
+        sp = self._setpoint(o, True)
+        self.add(o, "setpoint_c", kind="chamber-set", label=S.get_str(o, "label", f"chamber {sp:g} degC"),
+                 angles=np.zeros(3), sample_s=0.0, chamber={"setpoint_c": sp, "rate_c_per_min": None})
+
+    def _chamber_ramp(self, o: LocDict, d: dict[str, Any]) -> None:
+        S.check_keys(o, ("setpoint_c", "rate_c_per_min", "label"), "'chamber-ramp'",
+                     required=("setpoint_c", "rate_c_per_min"))
+        sp = self._setpoint(o, True)
+        rate = float(S.get_number(o, "rate_c_per_min", minimum=0.01, maximum=100.0))
+        self.add(o, "setpoint_c", kind="chamber-ramp", label=S.get_str(o, "label", f"ramp to {sp:g} degC"),
+                 angles=np.zeros(3), sample_s=0.0, chamber={"setpoint_c": sp, "rate_c_per_min": rate})
+
+    def _chamber_wait(self, o: LocDict, d: dict[str, Any]) -> None:
+        S.check_keys(o, ("setpoint_c", "stable_band_c", "stable_for", "air_band_c", "timeout", "expect",
+                         "angles_deg", "label"), "'chamber-wait'")
+        sp = self._setpoint(o, False)
+        c = {"setpoint_c": sp, "rate_c_per_min": None,
+             "stable_band_c": float(S.get_number(o, "stable_band_c", 0.1, minimum=0.001, maximum=20.0)),
+             "stable_for_s": float(S.get_duration(o, "stable_for", 300.0, positive=True)),
+             "air_band_c": float(S.get_number(o, "air_band_c", 1.0, minimum=0.01, maximum=50.0)),
+             "timeout_s": float(S.get_duration(o, "timeout", 4 * 3600.0, positive=True))}
+        expect = S.get_duration(o, "expect", None)
+        label = S.get_str(o, "label", "soak" + (f" at {sp:g} degC" if sp is not None else ""))
+        self.add(o, "setpoint_c" if sp is not None else None, kind="chamber-wait", label=label,
+                 angles=self._angles(o), settle=self._policy(LocDict(), d)[0],
+                 sample_s=float(expect) if expect is not None else c["stable_for_s"], chamber=c)
 
     def _solve(self, o: LocDict, d: dict[str, Any]) -> None:
         S.check_keys(o, ("solvers",), "'solve'", required=("solvers",))

@@ -88,8 +88,15 @@ LAYOUT: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
         "kind": ((), _STR["kind"], ""),
         "message": ((), _STR["message"], ""),
     },
+    "chamber": {  # the climatic chamber, one row per engine poll (empty without a chamber)
+        "time": ((), np.float64, "s"),
+        "air_c": ((), np.float64, "degC"),
+        "product_c": ((), np.float64, "degC"),
+        "setpoint_c": ((), np.float64, "degC"),
+        "status": ((), _STR["status"], ""),
+    },
 }
-_CHUNK_ROWS = {"imu": 8192, "table": 1024, "pulses": 256, "segments": 64, "events": 64}
+_CHUNK_ROWS = {"imu": 8192, "table": 1024, "pulses": 256, "segments": 64, "events": 64, "chamber": 1024}
 
 
 @dataclass
@@ -218,6 +225,8 @@ class Recorder:
                 raise ValueError(f"{self.path} is not a rigctl recording")
             last_t = 0.0
             for gname in LAYOUT:
+                if gname not in f:  # a recording from before the group existed (chamber)
+                    continue
                 g = f[gname]
                 n = min(g[d].shape[0] for d in LAYOUT[gname])
                 for d in LAYOUT[gname]:
@@ -287,6 +296,14 @@ class Recorder:
             return
         self._put("table", {"time": [s.time + self.time_offset], "angle": [s.angle], "rate": [s.rate],
                             "status": [s.status_word]}, 1)
+
+    def append_chamber(self, s: Any) -> None:
+        """One chamber reading (rigctl.chamber.ChamberState)."""
+        if self._drop("chamber", 1, s.time + self.time_offset):
+            return
+        self._put("chamber", {"time": [s.time + self.time_offset], "air_c": [s.air_c],
+                              "product_c": [s.product_c], "setpoint_c": [s.setpoint_c],
+                              "status": [s.status.encode()[:16]]}, 1)
 
     def append_pulses(self, p: Pulses) -> None:
         n = len(p)
@@ -360,6 +377,10 @@ class Recorder:
                 self._append_rows(f["truth"][tname], cols)
         for gname, cols in self._buf.items():
             if not any(cols.values()):
+                continue
+            if gname not in f:
+                for parts in cols.values():
+                    parts.clear()
                 continue
             for dname, parts in cols.items():
                 data = np.concatenate(parts) if len(parts) > 1 else parts[0]  # rows first

@@ -405,6 +405,9 @@ def _need_cell(e: dict[str, Any]) -> str:
         return ""
     from .allan_cmd import capture_text
 
+    have = e.get("capture_h")
+    if not e.get("supported") and have is not None and need <= 1.05 * have:
+        return f"> {capture_text(have)} (this capture)"
     return (">= " if not e.get("supported") else "") + capture_text(need)
 
 

@@ -103,7 +103,13 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
                 dev.connect()
             devices.append(dev)
         table, imu, pulses = devices
-        rig = Rig(table=table, imu=imu, pulses=pulses, clock=clock, description=describe(cfg))
+        from .chamber import build_chamber
+        chamber = build_chamber(cfg, clock)
+        if chamber is not None:
+            stack.callback(chamber.close)
+            chamber.connect()
+        rig = Rig(table=table, imu=imu, pulses=pulses, clock=clock, description=describe(cfg),
+                  chamber=chamber, chamber_band=cfg.chamber.settings.get("band_c", (-70.0, 180.0)))
         try:
             yield rig
         finally:
@@ -111,6 +117,11 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
                 table.stop()
             except (LinkLost, OSError, RuntimeError, ValueError) as exc:
                 log.error("could not stop the table on the way out: %s", exc)
+            if chamber is not None:
+                try:
+                    chamber.stop()
+                except (LinkLost, OSError, RuntimeError, ValueError) as exc:
+                    log.error("could not put the chamber at its safe set point on the way out: %s", exc)
 
 
 @contextmanager
@@ -119,16 +130,21 @@ def open_rig(cfg: RigConfig) -> Iterator[tuple[Rig, dict[str, Any] | None]]:
     if cfg.is_simulated:
         # import the emulator (scipy.signal, ~1 s) BEFORE the run clock starts, so that second
         # is not spent with data accruing and nothing on disk
-        from .sim.world import SimImuDevice, SimTableDevice, SimWorld
+        from .sim.world import SimChamberDevice, SimImuDevice, SimTableDevice, SimWorld
         clock = make_clock(cfg.clock, cfg.speed)
 
         world = SimWorld(cfg, clock)
+        chamber = SimChamberDevice(world, cfg.chamber.settings["safe_c"]) \
+            if cfg.chamber.driver == "sim" else None
         rig = Rig(table=SimTableDevice(world), imu=SimImuDevice(world), pulses=world.pulses(),
-                  clock=clock, description=describe(cfg), operator=world.operator)
+                  clock=clock, description=describe(cfg), operator=world.operator, chamber=chamber,
+                  chamber_band=cfg.chamber.settings.get("band_c", (-70.0, 180.0)))
         try:
             yield rig, world.truth()
         finally:
             rig.table.stop()
+            if chamber is not None:
+                chamber.stop()
         return
     with _wired_rig(cfg) as rig:
         yield rig, None

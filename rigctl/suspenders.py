@@ -14,6 +14,8 @@ Suspenders (names as written to the recording's ``/events``):
 * ``table``       -- a table axis reports FAULT, INTERLOCK_OPEN or FOLLOWING_ERROR, or the
   table link is lost, or the drive refused a command (:class:`rigctl.devices.DeviceFault`).
 * ``temperature`` -- an IMU temperature sample outside ``[temperature_min_c, temperature_max_c]``.
+* ``chamber``     -- the climatic chamber reports a fault, its link is lost, or its air or
+  product temperature is outside the config's ``chamber.band_c`` (docs/thermal.md).
 * ``disk``        -- free space on the run directory's filesystem below ``min_free_bytes``
   (``shutil.disk_usage``), checked at most every ``disk_check_interval_s`` of wall time.
 * ``operator``    -- ``rigctl pause`` (cleared by ``rigctl resume``).
@@ -66,6 +68,8 @@ class Observation:
     imu_error: str | None = None
     table: TableState | None = None
     table_error: str | None = None
+    #: why the chamber trips (fault, link lost, out of band), None when fine or absent
+    chamber_reason: str | None = None
 
 
 def describe_table_trip(state: TableState) -> str | None:
@@ -163,6 +167,8 @@ class SuspenderSet:
         tripped.update(self._imu(obs))
         tripped.update(self._table(obs))
         tripped.update(self._disk())
+        if obs.chamber_reason:
+            tripped["chamber"] = obs.chamber_reason
         if self.operator:
             tripped["operator"] = self.operator
         self.active = tripped

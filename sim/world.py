@@ -140,6 +140,23 @@ class SimWorld:
         self._pending: SampleGrid | None = None  # IMU samples drawn from its clock, not yet due
         self._blocks: list[tuple[ImuBlock, NDArray]] = []  # (block, true times of its samples)
         self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
+        # the climatic chamber (sim/chamber.py) and the IMU's thermal state along it: the
+        # declared IMU's temperature is the chamber's product temperature (idle at the IMU's
+        # temperature_c unless chamber.sim says otherwise); a profile IMU keeps its own
+        # (warm-up) temperature model
+        from .chamber import ChamberPhysics, chamber_params
+        from .thermal_imu import ThermalTrack
+        c_opts = cfg.chamber.options.get("sim")
+        cp = chamber_params(S.require_mapping(c_opts, "'chamber.sim'", cfg.chamber.options, "sim")
+                            if c_opts is not None else None)
+        if c_opts is None or "initial_c" not in c_opts:
+            t0 = float(getattr(self.imu_model, "temperature_c", cp.initial_c))
+            cp = type(cp)(**{**cp.__dict__, "initial_c": t0})
+        self.chamber = ChamberPhysics(cp)
+        self.chamber_drives_imu = isinstance(self.imu_model, DeclaredImuModel)
+        th = getattr(self.imu_model, "thermal", None)
+        self.thermal_track = ThermalTrack(th.hyst_width if th is not None else 2.0)
+        self._track_t = -1.0
         self.operator: SimTapOperator | None = None  # emulated tap-hammer operator (pulses: sim)
         if cfg.pulses.driver == "sim":
             p_opts = cfg.pulses.options.get("sim") or LocDict()
@@ -188,6 +205,20 @@ class SimWorld:
                 break
         self.t = now
 
+    def _thermal_at(self, t: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """The IMU's temperature (the chamber's product temperature), hysteresis state and
+        temperature rate at true times ``t``."""
+        T = self.chamber.history(t)
+        th = getattr(self.imu_model, "thermal", None)
+        if th is None or not th.active:
+            return T, None, None
+        ht, hp = self.chamber.grid_since(self._track_t)
+        if ht.size:
+            self.thermal_track.extend(ht, hp)
+            self._track_t = float(ht[-1])
+        H, R = self.thermal_track.at(t)
+        return T, H, R
+
     def _next_eval_time(self) -> float:
         """Earliest time at which a future IMU sample will look at the table, s."""
         if self._pending is not None:
@@ -205,7 +236,9 @@ class SimWorld:
             f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
                                        self.cfg.gravity)
             f_b, w_b = self._wobble(ang, rates, f_b, w_b)
-            f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b)
+            T, H, R = self._thermal_at(t)
+            f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b, temperature=T,
+                                              hysteresis=H, temperature_rate=R)
             self._emit(t, idx.astype(np.uint64), f, w, temp, t)
             self.k += n
 
@@ -250,7 +283,8 @@ class SimWorld:
         f_b, w_b = self._wobble(ang, rates, f_b, w_b)
         w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
         f_b = self._taps(g.t_eval, f_b)  # taps happen at the IMU, before its front end
-        f, w, temp = self.imu_model.apply(g.t_internal, f_b, w_b, w_dot=w_dot)
+        T = self._thermal_at(g.t_internal)[0] if self.chamber_drives_imu else None
+        f, w, temp = self.imu_model.apply(g.t_internal, f_b, w_b, temperature=T, w_dot=w_dot)
         keep = g.keep
         counter = g.counter[keep]
         self._emit(counter.astype(np.float64) / self.rate_hz, counter, f[keep], w[keep], temp[keep],
@@ -284,6 +318,7 @@ class SimWorld:
         carries the taps drawn during the run (:class:`RunTruth`: the recorder writes them to
         /truth/taps and /truth/edges)."""
         out = {"imu": self.imu_model.truth(), "table": self.table.truth(), "seed": self.cfg.seed,
+               "chamber": self.chamber.truth(),
                "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
                         "gravity_m_s2": self.cfg.gravity}}
         if self.operator is not None:
@@ -382,3 +417,33 @@ class SimImuDevice:
         return block
 
 
+
+
+class SimChamberDevice:
+    """Chamber protocol (rigctl.chamber) over the in-process world's chamber."""
+
+    def __init__(self, world: SimWorld, safe_c: float = 25.0) -> None:
+        self.world = world
+        self.safe_c = safe_c
+        self.identity = {"device_id": "EMU-chamber", "protocol": "in-process emulator"}
+
+    def _now(self) -> float:
+        self.world.advance()
+        return self.world.t
+
+    def set_setpoint(self, value_c: float, ramp_c_per_min: float | None = None) -> None:
+        from rigctl.devices import DeviceFault
+        try:
+            self.world.chamber.set_setpoint(self._now(), value_c, ramp_c_per_min)
+        except ValueError as exc:
+            raise DeviceFault(f"chamber: {exc}") from None
+
+    def read(self) -> Any:
+        from rigctl.chamber import ChamberState
+        t = self._now()
+        s = self.world.chamber.state(t)
+        return ChamberState(time=t, air_c=s["air_c"], product_c=s["product_c"], setpoint_c=s["setpoint_c"],
+                            status=s["status"], fault=s["fault"])
+
+    def stop(self) -> None:
+        self.world.chamber.stop(self._now(), self.safe_c)

@@ -261,6 +261,13 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
     With ``spec`` the verdicts are computed, printed and stored with the results."""
     p = Path(path)
+    # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
+    # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
+    from . import thermal
+    if thermal.is_thermal(p):
+        payload, text = thermal.calibrate_and_store(p, store, json_path)
+        return payload, text, ""
+    # -- end of the thermal hook
     free = is_orientation_free(p)
     payload, text, explain = (calibrate_free if free else calibrate_table)(p, noise)
     payload = _jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),

@@ -1,0 +1,437 @@
+"""Foreign IMU logs (CSV, ROS 1 / ROS 2 bags, MCAP) as rigctl recordings: the application
+layer of ``rigctl import`` (docs/calibration.md, docs/ros.md).
+
+Data from other tools (hand-held multi-position sessions, loggers, other calibration tools)
+enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`` and
+``rigctl apply-cal`` read the file :func:`import_file` writes (docs/data-format.md, status
+``complete``). The options (:class:`ImportOptions`) are those of the command; bags are read by
+:mod:`rigctl.analysis.bag_import`. InputError (exit 2) for anything in the input or options that
+cannot be used, naming the file, the line and what to do.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .. import __version__
+from ..devices import ImuBlock
+from ..errors import InputError
+from ..frames import normal_gravity
+from ..recording_reader import MAX_RATE_HZ
+from . import bag_import as B
+
+#: progress(done, total) while a bag is read (messages)
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class ImportOptions:
+    """The options of ``rigctl import`` (the CLI's names with - as _; docs/calibration.md)."""
+
+    file: str | Path
+    output: str | Path
+    columns: str | None = None      # CSV: acc_x=COL,... or a YAML/JSON mapping file
+    units: str | None = None        # CSV: acc=g,gyr=deg/s, counts:SCALE UNIT, time=s|ms|us
+    rate: float | None = None       # CSV: nominal sample rate, Hz
+    skip_rows: int = 0              # CSV: lines before the header
+    topic: str | None = None        # bag/MCAP: the sensor_msgs/Imu topic
+    time_source: str = "header"     # bag/MCAP: header | receive
+    segments: str | None = None     # sections JSON
+    t_init: float = 5.0             # s of initial rest for automatic static detection
+    gravity: float | None = None    # m/s^2
+    latitude_deg: float | None = None
+    force: bool = False             # replace an existing output
+
+
+G0 = 9.80665
+DEG = math.pi / 180.0
+REQUIRED = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
+OPTIONAL = ("time", "temp", "section")
+UNIT_FACTORS = {
+    "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
+    "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6},
+}
+NAN3 = np.full(3, np.nan)
+
+
+def parse_columns(text: str) -> dict[str, str]:
+    """Column map from ``k=v,...`` or from a YAML/JSON mapping file."""
+    p = Path(text)
+    if "=" not in text and p.suffix.lower() in (".yaml", ".yml", ".json"):
+        if not p.is_file():
+            raise InputError("column map file not found", p, hint="give key=value pairs or a YAML/JSON file")
+        try:
+            data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        except yaml.YAMLError as exc:
+            line = getattr(getattr(exc, "problem_mark", None), "line", None)
+            raise InputError(f"not valid YAML/JSON ({exc})", p, None if line is None else line + 1) from None
+        if not isinstance(data, dict):
+            raise InputError("the column map must be a mapping like acc_x: ax", p, 1)
+        mapping = {str(k): str(v) for k, v in data.items()}
+        src: Any = p
+    else:
+        mapping = {}
+        for part in filter(None, (s.strip() for s in text.split(","))):
+            if "=" not in part:
+                raise InputError(f"--columns: {part!r} is not KEY=COLUMN",
+                                 hint="e.g. acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz")
+            k, v = part.split("=", 1)
+            mapping[k.strip()] = v.strip()
+        src = None
+    bad = [k for k in mapping if k not in REQUIRED + OPTIONAL]
+    missing = [k for k in REQUIRED if k not in mapping]
+    if bad or missing:
+        raise InputError(f"--columns: unknown keys {bad}" if bad else f"--columns: missing {missing}", src,
+                         hint=f"keys: {', '.join(REQUIRED + OPTIONAL)} (the six sensor columns are required)")
+    return mapping
+
+
+def parse_units(text: str) -> dict[str, float]:
+    """SI factor per sensor from ``acc=...,gyr=...,time=...`` (see the module docstring)."""
+    out = {"acc": 1.0, "gyr": 1.0, "time": 1.0}
+    given = set()
+    for part in filter(None, (s.strip() for s in text.split(","))):
+        if "=" not in part:
+            raise InputError(f"--units: {part!r} is not SENSOR=UNIT", hint="e.g. acc=g,gyr=deg/s")
+        k, v = (s.strip() for s in part.split("=", 1))
+        if k not in out:
+            raise InputError(f"--units: unknown sensor {k!r}", hint="use acc, gyr or time")
+        m = re.fullmatch(r"counts?:\s*([0-9.eE+-]+)(?:\s*/\s*([0-9.eE+-]+))?\s*(.+)", v)
+        try:
+            if m:
+                scale = float(m.group(1)) / (float(m.group(2)) if m.group(2) else 1.0)
+                unit = m.group(3).strip()
+            else:
+                scale, unit = 1.0, v
+            out[k] = scale * UNIT_FACTORS[k][unit]
+        except (KeyError, ValueError, ZeroDivisionError):
+            raise InputError(f"--units: {part!r} not understood",
+                             hint=f"{k} units: {', '.join(UNIT_FACTORS[k])}, or counts:SCALE UNIT "
+                                  "(e.g. counts:1/2048 g)") from None
+        given.add(k)
+    for k in ("acc", "gyr"):
+        if k not in given:
+            raise InputError(f"--units: give the {k} unit", hint="e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g")
+    return out
+
+
+def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dict[str, np.ndarray], int]:
+    """Columns of a CSV file as arrays (sensor/time/temp float, section str); header line number."""
+    if not path.is_file():
+        raise InputError("input file not found", path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError:
+        raise InputError("not a UTF-8 text (CSV) file", path, hint="give the CSV log") from None
+    except (csv.Error, OSError) as exc:
+        raise InputError(f"cannot be read as CSV ({exc})", path) from None
+    if len(rows) <= skip_rows:
+        raise InputError(f"only {len(rows)} lines, --skip-rows {skip_rows}", path)
+    header_line = skip_rows + 1
+    header = [h.strip() for h in rows[skip_rows]]
+    numeric_header = all(_is_number(h) for h in header if h)
+    body = rows[skip_rows:] if numeric_header else rows[skip_rows + 1:]
+    first_data_line = header_line if numeric_header else header_line + 1
+    index: dict[str, int] = {}
+    for key, col in mapping.items():
+        if col.isdigit() and (numeric_header or col not in header):
+            index[key] = int(col)
+        elif col in header:
+            index[key] = header.index(col)
+        else:
+            raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
+                             hint="fix --columns, or --skip-rows so the header line is read")
+    out: dict[str, np.ndarray] = {}
+    body = [r for r in body if any(c.strip() for c in r)]
+    if not body:
+        raise InputError("no data rows", path, first_data_line)
+    for key, j in index.items():
+        if key == "section":
+            out[key] = np.array([r[j].strip() if j < len(r) else "" for r in body])
+            continue
+        vals = np.empty(len(body))
+        for n, r in enumerate(body):
+            try:
+                vals[n] = float(r[j])
+                if not math.isfinite(vals[n]):
+                    raise ValueError
+            except (ValueError, IndexError):
+                got = r[j] if j < len(r) else "(missing)"
+                raise InputError(f"column {mapping[key]!r}: {got!r} is not a number", path,
+                                 first_data_line + n, hint="fix or remove the row, or adjust --skip-rows") from None
+        out[key] = vals
+    return out, first_data_line
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def sections_from_json(path: Path, n: int) -> list[dict[str, Any]]:
+    """Sections from an imucal-style {"label": {"start", "end"}} or a list of dicts."""
+    if not path.is_file():
+        raise InputError("segments file not found", path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON ({exc.msg})", path, exc.lineno) from None
+    items = ([{"label": k, **v} for k, v in data.items()] if isinstance(data, dict) else data)
+    out = []
+    for it in items:
+        try:
+            s, e = int(it["start"]), int(it["end"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"section {it!r} needs integer start and end", path,
+                             hint="sample indices, end exclusive") from None
+        if not 0 <= s < e <= n:
+            raise InputError(f"section {it.get('label')!r}: [{s}, {e}) outside the {n} samples", path)
+        out.append({"label": str(it.get("label", f"section {len(out)}")), "start": s, "end": e,
+                    "kind": it.get("kind")})
+    return sorted(out, key=lambda d: d["start"])
+
+
+def sections_from_column(labels: np.ndarray) -> list[dict[str, Any]]:
+    """Runs of equal non-empty labels."""
+    out = []
+    edges = np.flatnonzero(labels[1:] != labels[:-1]) + 1
+    for s, e in zip(np.r_[0, edges], np.r_[edges, len(labels)]):
+        if labels[s]:
+            out.append({"label": str(labels[s]), "start": int(s), "end": int(e), "kind": None})
+    return out
+
+
+def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
+    """At rest: the gyro magnitude's spread is of the order of the quietest section's."""
+    return bool(np.linalg.norm(gyr.std(axis=0)) < 10.0 * ref_noise)
+
+
+def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
+                    rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
+                    counter: np.ndarray | None = None, note: str = "") -> None:
+    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder: the one
+    writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
+    jumps; ``note`` is added to the import event's message."""
+    from ..recorder import Recorder, Segment
+
+    n = len(t)
+    counter = np.arange(n, dtype=np.uint64) if counter is None else np.asarray(counter, np.uint64)
+    rec = Recorder(out, meta, None, imu_rate_hz=rate)
+    try:
+        step = 1 << 16
+        for a in range(0, n, step):
+            z = min(n, a + step)
+            rec.append_imu(ImuBlock(time=t[a:z], counter=counter[a:z], specific_force=acc[a:z],
+                                    angular_rate=gyr[a:z], temperature=temp[a:z]))
+        for k, s in enumerate(sections):
+            rec.add_segment(Segment(kind=s["kind"], label=s["label"][:48], step=k, first_sample=s["start"],
+                                    last_sample=s["end"], t_start=float(t[s["start"]]),
+                                    t_end=float(t[s["end"] - 1]), settle_time=0.0, commanded_angle=NAN3,
+                                    commanded_rate=NAN3, measured_angle=NAN3, measured_rate=NAN3),
+                            file_time=True)
+        rec.add_event(0.0, "import", f"imported from {meta['import_source']}" + (f"; {note}" if note else ""),
+                      file_time=True)
+    except BaseException:
+        rec.close("failed")
+        raise
+    rec.close("complete")
+
+
+def check_output(src: Path, out: Path, force: bool) -> None:
+    """Refuse to overwrite (without ``force``), to replace the input, or to write into a
+    directory that does not exist."""
+    if out.exists() and not force:
+        raise InputError("output exists", out, hint="choose another -o or pass --force to replace it")
+    if out.resolve() == src.resolve():
+        raise InputError("the output would replace the input", out, hint="choose another -o")
+    if not out.parent.is_dir():
+        raise InputError("output directory does not exist", out.parent)
+
+
+def check_ranges(args: ImportOptions) -> None:
+    """The numeric options shared by every input, each inside its range (NaN fails)."""
+    for opt, v, lo, hi in (("--gravity", args.gravity, 9.7, 9.9), ("--latitude-deg", args.latitude_deg, -90, 90),
+                           ("--t-init", args.t_init, 0.0, 1e6), ("--skip-rows", args.skip_rows, 0, 1e9)):
+        if v is not None and not lo <= v <= hi:  # NaN fails too
+            raise InputError(f"{opt} {v:g} is outside [{lo:g}, {hi:g}]")
+
+
+def find_sections(args: ImportOptions, src: Path, acc: np.ndarray, gyr: np.ndarray, rate: float,
+                  labels: np.ndarray | None = None, label_column: str = "") -> tuple[list[dict[str, Any]], str]:
+    """Sections (``--segments`` JSON, else a section column's ``labels``, else automatic static
+    detection) with their kinds, and a description of where they came from."""
+    n = len(acc)
+    if args.segments:
+        sections = sections_from_json(Path(args.segments), n)
+        origin = f"sections file {args.segments}"
+    elif labels is not None:
+        sections = sections_from_column(labels)
+        origin = f"section column {label_column!r}"
+    else:
+        from ..solvers.multipos import detect_static_intervals
+
+        try:
+            iv = detect_static_intervals(acc, float(rate), args.t_init)
+        except ValueError as exc:
+            raise InputError(f"automatic static-interval detection: {exc}", src,
+                             hint="give --t-init SECONDS of initial rest, or --segments JSON") from None
+        sections = [{"label": "initial rest" if k == 0 else f"pose {k}", "start": s, "end": e,
+                     "kind": "orientation"} for k, (s, e) in enumerate(iv)]
+        origin = f"automatic static-interval detection (t_init {args.t_init:g} s, Tedaldi et al. 2014)"
+    if not sections:
+        raise InputError("no sections found", src, hint="give --segments JSON or check --t-init")
+    quiet = min(np.linalg.norm(gyr[s["start"]:s["end"]].std(axis=0)) for s in sections)
+    for s in sections:
+        if s["kind"] is None:
+            moving = "rot" in s["label"].lower() or not _is_static(acc[s["start"]:s["end"]],
+                                                                   gyr[s["start"]:s["end"]], quiet)
+            s["kind"] = "capture" if moving else "orientation"
+    return sections, origin
+
+
+def import_meta(args: ImportOptions, src: Path, rate: float, origin: str,
+                extra: dict[str, Any]) -> dict[str, Any]:
+    """/meta of an imported recording: site gravity, provenance, no unit identity
+    (docs/data-format.md); ``extra`` holds the input-specific ``import_*`` keys."""
+    lat = args.latitude_deg
+    g = args.gravity if args.gravity is not None else (normal_gravity(math.radians(lat), 0.0)
+                                                       if lat is not None else G0)
+    return {"procedure_name": "import", "procedure_text": "", "config_yaml": "",
+            "versions_json": json.dumps({"rigctl": __version__}),
+            "latitude_deg": float("nan") if lat is None else float(lat), "height_m": 0.0,
+            "gravity_m_s2": float(g), "import_source": str(src), **extra,
+            "import_rate_hz": float(rate), "import_sections": origin, "orientation_free": 1,
+            # the unit under test is unknown to an imported log (docs/data-format.md, /meta)
+            "imu_device_id": "", "imu_serial": "",
+            "imu_identity_json": json.dumps({"device_id": "", "protocol": ""}, sort_keys=True),
+            "rig": "none: imported log (no table; segment orientations unknown)"}
+
+
+@dataclass
+class Imported:
+    """What an import wrote: output, samples, sample rate (Hz), sections, lines to print."""
+
+    out: Path
+    n: int
+    rate_hz: float
+    sections: list[dict[str, Any]]
+    lines: list[str]
+    messages: int = 0  # messages read (bags)
+
+
+CSV_ONLY = ("columns", "units", "rate")
+BAG_ONLY = ("topic",)
+
+
+def import_csv(args: ImportOptions) -> Imported:
+    """Read, convert and write a CSV log."""
+    src = Path(args.file)
+    out = Path(args.output)
+    if not src.is_file():
+        raise InputError("input file not found", src)
+    for opt in BAG_ONLY:
+        if getattr(args, opt) is not None:
+            raise InputError(f"--{opt} applies to ROS bags and MCAP files only", src)
+    for opt in ("columns", "units"):
+        if not getattr(args, opt):
+            raise InputError(f"--{opt} is required for a CSV file", src,
+                             hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
+    check_output(src, out, args.force)
+    mapping = parse_columns(args.columns)
+    factors = parse_units(args.units)
+    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
+        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+    check_ranges(args)
+    cols, _ = read_table(src, mapping, args.skip_rows)
+    n = len(cols["acc_x"])
+    acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
+    gyr = np.column_stack([cols[k] for k in REQUIRED[3:]]) * factors["gyr"]
+    if "time" in cols:
+        t = (cols["time"] - cols["time"][0]) * factors["time"]
+        if np.any(np.diff(t) <= 0):
+            k = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise InputError(f"time column not increasing at data row {k + 2}", src,
+                             hint="fix the time column or drop time= from --columns")
+    else:
+        t = np.arange(n) / float(args.rate)
+    temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
+    sections, origin = find_sections(args, src, acc, gyr, float(args.rate), cols.get("section"),
+                                     mapping.get("section", ""))
+    meta = import_meta(args, src, float(args.rate), origin,
+                       {"import_format": "csv", "import_columns_json": json.dumps(mapping),
+                        "import_units_json": json.dumps(args.units)})
+    write_recording(out, t, acc, gyr, temp, float(args.rate), sections, meta)
+    return Imported(out, n, float(args.rate), sections,
+                    [f"imported {n} samples at {args.rate:g} Hz from {args.file}"])
+
+
+def import_bag(args: ImportOptions, progress: Progress | None = None) -> Imported:
+    """Read one sensor_msgs/Imu topic of a ROS bag, rosbag2 directory or MCAP file
+    (rigctl.analysis.bag_import) and write it."""
+    src = Path(args.file)
+    out = Path(args.output)
+    for opt in CSV_ONLY:
+        if getattr(args, opt):
+            raise InputError(f"--{opt} applies to CSV files only: a bag's Imu messages are in SI "
+                             "units and carry their time stamps", src)
+    check_output(src, out, args.force)
+    check_ranges(args)
+    b = B.read_imu(src, args.topic, args.time_source, progress=progress)
+    n = len(b.time_s)
+    if not 0 < b.rate_hz <= MAX_RATE_HZ:
+        raise InputError(f"topic {b.topic}: {b.time_source} gives {b.rate_hz:g} Hz, outside (0, {MAX_RATE_HZ:g}]: "
+                         "not sample times", src, hint="try --time-source receive")
+    sections, origin = find_sections(args, src, b.specific_force, b.angular_rate, b.rate_hz)
+    gaps = (f"{b.gaps} gaps, {b.missing_samples} samples missing (/imu/counter jumps)" if b.gaps
+            else "no gaps")
+    meta = import_meta(args, src, b.rate_hz, origin, {
+        "import_format": b.source_format, "import_topic": b.topic, "import_msgtype": b.msgtype,
+        "import_frame_id": b.frame_id, "import_time_source": b.time_source,
+        "import_columns_json": json.dumps({"acc": "linear_acceleration", "gyr": "angular_velocity",
+                                           "time": b.time_source}),
+        "import_units_json": json.dumps("m/s^2, rad/s (sensor_msgs/Imu, REP 103)"),
+        "import_stamp_zero_ns": np.int64(b.stamp_zero_ns),
+        "clock_zero_unix_s": b.stamp_zero_ns * 1e-9,
+        "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
+        "import_duplicates_dropped": b.duplicates_dropped,
+        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s)})
+    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
+    if b.truncated:
+        note += f"; {b.truncated}"
+    write_recording(out, b.time_s, b.specific_force, b.angular_rate, np.full(n, np.nan), b.rate_hz,
+                    sections, meta, counter=b.counter, note=note)
+    return Imported(out, n, b.rate_hz, sections, [f"imported {n} samples from {args.file}", *B.describe(b)],
+                    b.n_messages)
+
+
+def is_bag(src: Path) -> bool:
+    """A ROS bag, rosbag2 directory or MCAP file (by their first bytes), or a name that says so
+    (a .bag/.mcap/.db3 whose content is none of them is then refused by the bag reader)."""
+    return src.is_dir() or B.bag_kind(src) is not None or src.suffix.lower() in (".bag", ".mcap", ".db3")
+
+
+def import_file(args: ImportOptions, progress: Progress | None = None) -> Imported:
+    """Dispatch on the input: a bag (:func:`is_bag`), else CSV. ``progress(done, total)``:
+    messages read from a bag."""
+    src = Path(args.file)
+    if not src.exists():
+        raise InputError("input file not found", src)
+    if is_bag(src):
+        return import_bag(args, progress)
+    return import_csv(args)
+
+
