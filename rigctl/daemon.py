@@ -438,8 +438,36 @@ def _run_client(fn: Callable[[argparse.Namespace], int]) -> Callable[[argparse.N
 @_run_client
 def cmd_submit(args: argparse.Namespace) -> int:
     params = parse_overrides(args.param)
-    return _print_reply(_client(args, "submit", {"procedure": str(Path(args.procedure).resolve()),
-                                                 "params": params}))
+    payload: dict[str, Any] = {"procedure": str(Path(args.procedure).resolve()), "params": params}
+    if args.position is not None:
+        if args.position < 1:
+            raise InputError(f"--position {args.position}: positions start at 1")
+        payload["position"] = args.position - 1
+    return _print_reply(_client(args, "submit", payload))
+
+
+QUEUE_ACTIONS = ("remove", "move", "clear", "stop", "start", "history")
+_QUEUE_ARITY = {"remove": (1, 1), "move": (2, 2), "clear": (0, 0), "stop": (0, 0), "start": (0, 0),
+                "history": (0, 1), None: (0, 0)}
+
+
+@_run_client
+def cmd_queue(args: argparse.Namespace) -> int:
+    """``rigctl queue [ACTION ...]``: list, or one queue operation (positions count from 1)."""
+    lo, hi = _QUEUE_ARITY[args.action]
+    if not lo <= len(args.values) <= hi:
+        raise InputError(f"queue {args.action or ''}: expected "
+                         + {"remove": "JOB", "move": "JOB POSITION", "history": "[N]"}.get(args.action or "", "nothing")
+                         + f", got {' '.join(map(str, args.values)) or 'nothing'}")
+    if args.action in (None, "clear", "stop", "start"):
+        return _print_reply(_client(args, "queue" if args.action is None else f"queue_{args.action}"))
+    if args.action == "remove":
+        return _print_reply(_client(args, "queue_remove", {"job": args.values[0]}))
+    if args.action == "move":
+        if args.values[1] < 1:
+            raise InputError(f"queue move: position {args.values[1]}: positions start at 1")
+        return _print_reply(_client(args, "queue_move", {"job": args.values[0], "position": args.values[1] - 1}))
+    return _print_reply(_client(args, "history", {"limit": args.values[0]} if args.values else {}))
 
 
 def watch_line(reply: dict[str, Any]) -> str:
@@ -524,13 +552,21 @@ def register(sub: Any) -> None:
     sock(p)
     p.add_argument("procedure")
     p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE")
+    p.add_argument("--position", type=int, help="place in the queue (1 = next to run; default: last)")
     p.set_defaults(func=cmd_submit)
     p = sub.add_parser("status", help="the daemon's state, job, step and active suspenders")
     sock(p)
     p.add_argument("--watch", action="store_true", help="repeat until interrupted")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between updates with --watch")
     p.set_defaults(func=cmd_status)
-    for name, text in (("queue", "list the daemon's jobs"), ("pause", "pause the running job"),
+    p = sub.add_parser("queue", help="list the daemon's jobs, or edit the queue (remove, move, clear, "
+                       "stop, start, history)")
+    sock(p)
+    p.add_argument("action", nargs="?", choices=QUEUE_ACTIONS, help="remove JOB | move JOB POSITION | clear | "
+                   "stop (after the current job) | start | history [N]; none: list")
+    p.add_argument("values", nargs="*", type=int, help="JOB, POSITION (1 = next to run) or N")
+    p.set_defaults(func=cmd_queue)
+    for name, text in (("pause", "pause the running job"),
                        ("abort", "abort the running job (table to safe state)"),
                        ("logs", "the running (or last) job's log")):
         p = sub.add_parser(name, help=text)

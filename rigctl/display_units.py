@@ -66,6 +66,13 @@ class Display:
 SUFFIXES: tuple[tuple[str, str, float, str], ...] = (
     ("_rad_s_per_m2_s4", "deg/h/g^2", DEG_H * G0**2, "rad/s/(m/s^2)^2"),
     ("_rad_s_per_m_s2", "deg/h/g", DEG_H * G0, "rad/s/(m/s^2)"),
+    ("_m_s2_per_K_per_s", "mg/(K/min)", 1e3 / G0 / 60.0, "m/s^2/(K/s)"),
+    ("_rad_s_per_K_per_s", "deg/h/(K/min)", DEG_H / 60.0, "rad/s/(K/s)"),
+    ("_m_s2_per_K2", "mg/K^2", 1e3 / G0, "m/s^2/K^2"),
+    ("_rad_s_per_K2", "deg/h/K^2", DEG_H, "rad/s/K^2"),
+    ("_rad_per_K2", "urad/K^2", 1e6, "rad/K^2"),
+    ("_rad_per_K", "urad/K", 1e6, "rad/K"),
+    ("_per_K2", "ppm/K^2", 1e6, "1/K^2"),
     ("_m_s2_per_K", "mg/K", 1e3 / G0, "m/s^2/K"),
     ("_rad_s_per_K", "deg/h/K", DEG_H, "rad/s/K"),
     ("_s2_per_rad2", "ppm/(deg/s)^2", DEG**2 * 1e6, "s^2/rad^2"),

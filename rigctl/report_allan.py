@@ -4,7 +4,7 @@ Per axis the stored datasets are tau_s (s) and adev / lo68 / hi68 / lo95 / hi95 
 field unit (deg/h for gyros, mg for accelerometers; dataset names with "/" spelled "_per_"),
 the JSON summary holds the joint IEEE 952 fit. When the results lack an axis' curve arrays, a
 quick curve (30 log-spaced taus, fast mode) is computed from the recording with the same
-pipeline as ``rigctl allan`` (:func:`rigctl.allan_cmd.compute`: overlapping ADEV from
+pipeline as ``rigctl allan`` (:func:`rigctl.analysis.allan.compute`: overlapping ADEV from
 :mod:`rigctl.solvers.allan`, Greenhall EDF intervals, joint fit) and marked ``quick``.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from .report import RunData
 
-#: sensor -> (display unit, factor from SI); the same as rigctl.allan_cmd.DEV_UNITS
+#: sensor -> (display unit, factor from SI); the same as rigctl.analysis.allan.DEV_UNITS
 DEV_UNITS = {"gyro": ("deg/h", 180.0 / np.pi * 3600.0), "accel": ("mg", 1000.0 / 9.80665)}
 QUICK_TAUS = 30
 
@@ -65,12 +65,12 @@ def _curves(data: "RunData", log: Callable[..., None] | None) -> dict[str, dict[
 
 def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
            log: Callable[..., None] | None) -> dict[str, dict[str, Any]]:
-    from . import allan_cmd
+    from .analysis import allan as allan_pipeline
 
     try:
-        res = allan_cmd.compute(str(data.recording), [a for a in axes if a in allan_cmd.AXES],
+        res = allan_pipeline.compute(str(data.recording), [a for a in axes if a in allan_pipeline.AXES],
                                 taus=QUICK_TAUS)
-    except (allan_cmd.UsageError, OSError, ValueError) as exc:
+    except (allan_pipeline.UsageError, OSError, ValueError) as exc:
         if log:
             log("warning", f"report: no Allan curve for {', '.join(axes)}: {exc}")
         return {}
@@ -82,7 +82,7 @@ def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
                      "tau_s": np.asarray(r["tau_s"], float), "adev": np.asarray(r[f"adev_{unit}"]),
                      "lo68": np.asarray(r[f"lo68_{unit}"]), "hi68": np.asarray(r[f"hi68_{unit}"]),
                      "lo95": np.asarray(r[f"lo95_{unit}"]), "hi95": np.asarray(r[f"hi95_{unit}"]),
-                     "fit": stored.get("fit") or allan_cmd._jsonable(r["fit"]),
-                     "piecewise": stored.get("piecewise") or allan_cmd._jsonable(r["piecewise"]),
+                     "fit": stored.get("fit") or allan_pipeline._jsonable(r["fit"]),
+                     "piecewise": stored.get("piecewise") or allan_pipeline._jsonable(r["piecewise"]),
                      "quick": True}
     return out

@@ -78,6 +78,20 @@ def build_pulses(cfg: RigConfig, clock: Clock):
     return NoPulses()
 
 
+def build_chamber(cfg: RigConfig, clock: Clock):
+    """The wired chamber driver of a config (None for ``driver: none`` or ``sim``)."""
+    c = cfg.chamber
+    s = c.settings
+    if c.driver == "watlow":
+        from .drivers.watlow_chamber import WatlowF4T
+        return WatlowF4T(clock, safe_c=s["safe_c"], **{k: v for k, v in s.items() if k not in ("safe_c", "band_c")})
+    if c.driver == "scpi":
+        from .drivers.scpi_chamber import ScpiChamber
+        return ScpiChamber(s["resource"], clock, model=s["model"], commands=s["commands"],
+                           timeout_s=s["timeout_s"], safe_c=s["safe_c"])
+    return None
+
+
 @contextmanager
 def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
     clock = make_clock(cfg.clock, cfg.speed)
@@ -91,7 +105,6 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
                 dev.connect()
             devices.append(dev)
         table, imu, pulses = devices
-        from .chamber import build_chamber
         chamber = build_chamber(cfg, clock)
         if chamber is not None:
             stack.callback(chamber.close)

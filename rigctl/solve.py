@@ -14,13 +14,12 @@ Hook = Callable[[Path, Callable[..., None]], None]
 #: solver name -> hook, called as hook(recording_path, log) -> None. The three calibration
 #: solvers share one hook: the first computes the whole calibration (published fits and the
 #: closed loop) and prints it, the others see it done and return. A "module:function" string is
-#: a pipeline still in its CLI module (allan, calibration: moving to rigctl.analysis); it is
 #: imported when the step runs.
 SOLVER_HOOKS: dict[str, Hook | str] = {
     "accel24": "rigctl.analysis.calibration:solve_hook",
     "gyro-rate": "rigctl.analysis.calibration:solve_hook",
     "closed-loop": "rigctl.analysis.calibration:solve_hook",
-    "allan": "rigctl.allan_cmd:solve_recording",
+    "allan": "rigctl.analysis.allan:solve_recording",
     "sync": sync.solve_recording,
     "report": solve_report,
 }

@@ -389,7 +389,7 @@ class WebApi:
             since = int(request.query_params.get("since", "0"))
         except ValueError:
             return _error(400, "since must be an integer")
-        return _json(self.d.live.since(since))
+        return _json({"ok": True, **self.d.live.since(since)})
 
     async def events(self, request: Request) -> Response:
         """Server-sent events: ``status`` and ``live`` (new decimated points) every 0.5 s."""

@@ -9,7 +9,11 @@ Gyroscope, for true rate w (rad/s):
     W = d_g + M_g w + noise,                              M_g[i,i] = Sk_i, M_g[i,j] = K_ij
 
 White noise densities: velocity random walk (m/s^2/sqrt(Hz)) and angle random walk
-(rad/s/sqrt(Hz)); the per-sample standard deviation is density * sqrt(rate).
+(rad/s/sqrt(Hz)); the per-sample standard deviation is density * sqrt(rate). Optionally the
+slow IEEE 952 terms: bias instability B (flicker, Allan plateau 0.664 B between 1 s and
+1e4 s) and rate / acceleration random walk K, from :class:`rigctl.sim.noise.NoiseGenerator`
+(exact Allan signatures; its own seeded streams, so the white noise is the same with or
+without them).
 
 The model is built from a config mapping (see configs/sim.yaml) whose values are in the units
 named by their keys, and reports its truth in SI as a JSON-serialisable dict.
@@ -42,6 +46,11 @@ class DeclaredImuModel:
     gyro_matrix: NDArray = field(default_factory=lambda: np.eye(3))
     accel_noise_density: float = 0.0
     gyro_noise_density: float = 0.0
+    #: bias instability B (rad/s, m/s^2) and random walk K (rad/s/sqrt(s), m/s^2/sqrt(s))
+    gyro_bias_instability: float = 0.0
+    gyro_random_walk: float = 0.0
+    accel_bias_instability: float = 0.0
+    accel_random_walk: float = 0.0
     temperature_c: float = 25.0
     seed: int = 0
     #: temperature-dependent errors (sim/thermal_imu.py), None = none
@@ -50,6 +59,14 @@ class DeclaredImuModel:
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A0]))
         self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
+        from .noise import NoiseGenerator
+
+        self._slow = {}
+        for name, b, k, tag in (("gyro", self.gyro_bias_instability, self.gyro_random_walk, 0x1A1),
+                                ("accel", self.accel_bias_instability, self.accel_random_walk, 0x1A2)):
+            if b > 0 or k > 0:
+                self._slow[name] = NoiseGenerator({"B": b, "K": k}, self.rate_hz,
+                                                  np.random.SeedSequence([self.seed, tag]))
 
     def apply(self, t: NDArray, f_true: NDArray, w_true: NDArray,
               w_dot: NDArray | None = None, temperature: NDArray | None = None,
@@ -71,6 +88,10 @@ class DeclaredImuModel:
             f = f + self.rng.standard_normal((n, 3)) * (self.accel_noise_density * math.sqrt(self.rate_hz))
         if self.gyro_noise_density > 0:
             w = w + self.rng.standard_normal((n, 3)) * (self.gyro_noise_density * math.sqrt(self.rate_hz))
+        if "accel" in self._slow:
+            f = f + self._slow["accel"].next(n)
+        if "gyro" in self._slow:
+            w = w + self._slow["gyro"].next(n)
         if self.thermal is not None and self.thermal.temperature_noise_c > 0:
             T = T + self._temp_rng.standard_normal(n) * self.thermal.temperature_noise_c
         return f, w, T
@@ -87,6 +108,10 @@ class DeclaredImuModel:
             "gyro_matrix": self.gyro_matrix.tolist(),
             "accel_noise_density_m_s2_per_rthz": self.accel_noise_density,
             "gyro_noise_density_rad_s_per_rthz": self.gyro_noise_density,
+            "accel_bias_instability_m_s2": self.accel_bias_instability,
+            "accel_random_walk_m_s2_per_rts": self.accel_random_walk,
+            "gyro_bias_instability_rad_s": self.gyro_bias_instability,
+            "gyro_random_walk_rad_s_per_rts": self.gyro_random_walk,
         }
 
 
@@ -110,6 +135,8 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
     S.check_keys(o, ("accel_bias_mg", "accel_scale_ppm", "accel_misalignment_urad",
                      "accel_quadratic_ug_per_g2", "gyro_bias_deg_h", "gyro_scale_ppm",
                      "gyro_misalignment_urad", "accel_vrw_m_s_rth", "gyro_arw_deg_rth",
+                     "accel_bias_instability_mg", "accel_rrw_m_s_h_rth",
+                     "gyro_bias_instability_deg_h", "gyro_rrw_deg_h_rth",
                      "temperature_c", "seed", "thermal"), "'imu.sim'")
     thermal = None
     if "thermal" in o:
@@ -126,6 +153,12 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
         # VRW (m/s/sqrt(h)) -> m/s^2/sqrt(Hz): divide by 60; ARW (deg/sqrt(h)) -> rad/s/sqrt(Hz)
         accel_noise_density=S.get_number(o, "accel_vrw_m_s_rth", 0.0, minimum=0) / 60.0,
         gyro_noise_density=S.get_number(o, "gyro_arw_deg_rth", 0.0, minimum=0) * DEG / 60.0,
+        # B: mg -> m/s^2, deg/h -> rad/s; K: m/s/h/sqrt(h) -> m/s^2/sqrt(s) (/ 3600 / 60),
+        # deg/h/sqrt(h) -> rad/s/sqrt(s)
+        accel_bias_instability=S.get_number(o, "accel_bias_instability_mg", 0.0, minimum=0) * 1e-3 * G0,
+        accel_random_walk=S.get_number(o, "accel_rrw_m_s_h_rth", 0.0, minimum=0) / 3600.0 / 60.0,
+        gyro_bias_instability=S.get_number(o, "gyro_bias_instability_deg_h", 0.0, minimum=0) * DEG / 3600.0,
+        gyro_random_walk=S.get_number(o, "gyro_rrw_deg_h_rth", 0.0, minimum=0) * DEG / 3600.0 / 60.0,
         temperature_c=S.get_number(o, "temperature_c", 25.0),
         seed=int(S.get_number(o, "seed", seed, minimum=0, integer=True)),
         thermal=thermal,

@@ -276,3 +276,34 @@ class _Block:
 
     def __len__(self):
         return len(self.time)
+
+
+def test_queue_operations_from_the_cli(daemon, capsys):
+    from rigctl.cli import main
+
+    d, _web, _token = daemon
+    sock = ["--socket", str(d.socket_path)]
+    warm = str(ROOT / "procedures" / "warmup.yaml")
+
+    def cli(*argv):
+        code = main([*argv, *sock])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    assert cli("queue", "stop")[0] == 0
+    assert cli("submit", warm, "-p", "warmup=5 s")[0] == 0
+    code, out, _ = cli("submit", warm, "-p", "warmup=6 s", "--position", "1")
+    assert code == 0 and "position: 1" in out
+    code, _, err = cli("submit", warm, "-p", "warmup=6 s")
+    assert code == 2 and "already runs" in err  # a duplicate
+    assert control.request(d.socket_path, "queue")["queued"] == [2, 1]
+    assert cli("queue", "move", "2", "2")[0] == 0
+    assert control.request(d.socket_path, "queue")["queued"] == [1, 2]
+    assert cli("queue", "remove", "1")[0] == 0
+    assert control.request(d.socket_path, "queue")["queued"] == [2]
+    for bad in (["queue", "move", "2", "0"], ["queue", "remove"], ["queue", "remove", "7"],
+                ["queue", "history", "1", "2"], ["submit", warm, "--position", "0"]):
+        code, _, err = cli(*bad)
+        assert code == 2 and err.count("\n") == 1, (bad, err)
+    code, out, _ = cli("queue", "history", "1")
+    assert code == 0 and '"state": "removed"' in out

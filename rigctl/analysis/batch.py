@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import allan_cmd  # the Allan pipeline (until it moves to rigctl.analysis)
+from . import allan as allan_pipeline
 from . import calibration
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..spec import load_spec
@@ -42,13 +42,13 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
             payload, _, _ = calibration.calibrate(recording, noise, True, None, spec)
             out["results"]["calibration"] = payload
         if "allan" in analyses:
-            axes = list(allan_cmd.AXES)
-            rng, where, _ = allan_cmd.choose_range(recording, axes)
-            res = allan_cmd.compute(recording, axes, 95, False, rng)
+            axes = list(allan_pipeline.AXES)
+            rng, where, _ = allan_pipeline.choose_range(recording, axes)
+            res = allan_pipeline.compute(recording, axes, 95, False, rng)
             res["segment"] = where
             res["verdicts"] = production.verdicts_for(spec, "allan", res)
-            allan_cmd.store(recording, res)
-            out["results"]["allan"] = allan_cmd._jsonable({k: v for k, v in res.items()})
+            allan_pipeline.store(recording, res)
+            out["results"]["allan"] = allan_pipeline._jsonable({k: v for k, v in res.items()})
         out["ok"] = True
     except Exception as exc:  # noqa: BLE001 - reported per recording; the batch goes on
         out["error"] = f"{type(exc).__name__}: {exc}"

@@ -1,0 +1,366 @@
+"""The Allan pipeline: a recording's IMU channels in, deviations, intervals and the IEEE 952 fit
+out (the application layer; ``rigctl allan``, the ``solve: [allan]`` hook, the report and the
+batch runner call it, and only present its results).
+
+Streams /imu/angular_rate (rad/s) and /imu/specific_force (m/s^2) in chunks (bounded memory,
+all selected axes in one pass), computes the overlapping Allan deviation (fast mode by default,
+``exact`` for the fully overlapping sums), Stable32-style noise identification, EDF and 68 % /
+95 % intervals, the joint IEEE 952 fit with its self-check (:mod:`rigctl.solvers.allan_fit`),
+and stores everything under /results/allan of the recording (attrs schema_version,
+created_utc, json; curves as datasets with ``units``).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..errors import InputError
+from ..progress import WorkProgress
+from ..recording_reader import check_finite, open_recording, sample_rate
+from ..solvers import allan as A
+from ..solvers import allan_edf as E
+from ..solvers import allan_fit as F
+from ..solvers import allan_noise_id as NID
+from . import production
+
+AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
+        "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
+        "ay": ("/imu/specific_force", 1, "accel"), "az": ("/imu/specific_force", 2, "accel")}
+#: display unit of the deviation per sensor: (label, factor from SI)
+DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
+MIN_SAMPLES = 64
+CHUNK_ROWS = 1 << 20
+HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
+DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
+SCHEMA_VERSION = 1
+
+
+#: invalid input (exit code 2): the one error type of rigctl.errors
+UsageError = InputError
+
+
+class _AxisStream:
+    """Accumulates one axis: Allan sums (streamed), plus for the noise identification a
+    full-resolution phase head and the whole phase decimated by ``dec`` (bounded memory)."""
+
+    def __init__(self, tau0: float, ms: np.ndarray, mode: str, n_rate: int):
+        self.acc = A.OadevAccumulator(tau0, ms, mode)
+        self.dec = 1
+        while (n_rate + 1) // self.dec > DEC_POINTS:
+            self.dec *= 2
+        self.head: list[np.ndarray] = []
+        self.n_head = 0
+        self.decs: list[np.ndarray] = [np.zeros(1)]  # x[0] = 0
+        self.part = np.empty(0)  # rate samples of the unfinished decimation block
+        self.tau0 = tau0
+        self.x_dec = 0.0  # phase at the last decimated point
+        self.x_head = 0.0
+        self.n_rate = 0
+
+    def add(self, y: np.ndarray) -> None:
+        acc = self.acc
+        acc.add_rate(y)
+        c = acc.offset
+        if self.n_head < HEAD_POINTS:  # full-resolution phase of the first samples
+            part = y[: HEAD_POINTS - self.n_head] - c
+            x = np.cumsum(part) * self.tau0 + self.x_head
+            if self.n_head == 0:
+                x = np.concatenate(([0.0], x))
+            self.head.append(x)
+            self.n_head += x.size
+            self.x_head = float(x[-1])
+        if self.dec == 1:
+            self.decs.append(np.cumsum(y - c) * self.tau0 + self.x_dec)
+            self.x_dec = float(self.decs[-1][-1])
+        else:  # block sums of dec samples, then a short running sum
+            z = np.concatenate((self.part, y)) if self.part.size else y
+            nb = z.size // self.dec
+            if nb:
+                sums = z[: nb * self.dec].reshape(nb, self.dec).sum(axis=1) - self.dec * c
+                xs = np.cumsum(sums) * self.tau0 + self.x_dec
+                self.decs.append(xs)
+                self.x_dec = float(xs[-1])
+            self.part = z[nb * self.dec:].copy()
+        self.n_rate += y.size
+
+    def noise_id(self, m: int, n: int) -> int:
+        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
+        if not hasattr(self, "_head"):
+            self._head = np.concatenate(self.head)
+            self._dec = np.concatenate(self.decs)
+            self.head, self.decs = [], []
+        if m % self.dec == 0:
+            return NID.noise_id(self._dec, m // self.dec, "oadev", n)
+        return NID.noise_id(self._head, m, "oadev", n)
+
+
+def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+    """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
+    res = stream.acc.result()
+    raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
+    held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
+    alphas = np.array([NID.clamp_alpha(int(a), "oadev") for a in held])
+    edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
+    lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
+    lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
+    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
+    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
+    unit, fac = DEV_UNITS[sensor]
+    si = "rad/s" if sensor == "gyro" else "m/s^2"
+    return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
+            "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
+            f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
+            f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
+            f"lo95_{unit}": lo95 * fac, f"hi95_{unit}": hi95 * fac,
+            "alpha": alphas, "edf": edfs, "fit": fit, "piecewise": pw,
+            "_si": si, "_unit": unit}
+
+
+def _open_checked(path: str, axes: list[str]):
+    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
+
+
+def _sample_rate(f, path: str) -> float:
+    return sample_rate(f)
+
+
+def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
+            sample_range: tuple[int, int] | None = None,
+            progress_stream: Any = None) -> dict[str, Any]:
+    """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
+    last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
+    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise)."""
+    with _open_checked(path, axes) as f:
+        fs = _sample_rate(f, path)
+        dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
+        n_all = min(d.shape[0] for d in dsets.values())
+        s0, s1 = (0, n_all) if sample_range is None else (
+            max(0, int(sample_range[0])), min(n_all, int(sample_range[1])))
+        n = max(0, s1 - s0)
+        if n < MIN_SAMPLES:
+            raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
+                             "for an Allan analysis (record longer)")
+        gaps = _counter_gaps(f, s0, s1)
+        tau0 = 1.0 / fs
+        ms = A.tau_factors(n + 1, taus, "oadev")
+        mode = "exact" if exact else "fast"
+        if mode == "fast" and not isinstance(taus, (list, tuple)):
+            ms = A.snap_fast(ms)
+            ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+        streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
+        shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
+                             stream=progress_stream, enabled=progress_stream is not None)
+        for a0 in range(s0, s1, CHUNK_ROWS):
+            a1 = min(s1, a0 + CHUNK_ROWS)
+            blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+            for name, b in blocks.items():
+                check_finite(path, name, b, a0)
+            for a in axes:
+                name, col, _ = AXES[a]
+                streams[a].add(np.ascontiguousarray(blocks[name][:, col]))
+            del blocks
+            shown.update(a1 - s0)
+        shown.finish()
+    out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
+           "first_sample": int(s0), "dropped_samples": int(gaps), "axes": {}}
+    for a in axes:
+        out["axes"][a] = analyse_axis(streams[a], AXES[a][2])
+        streams[a] = None  # free the per-axis buffers
+    return out
+
+
+def _counter_gaps(f: Any, s0: int, s1: int) -> int:
+    """Samples missing according to /imu/counter in [s0, s1) (0 without a counter)."""
+    if "/imu/counter" not in f:
+        return 0
+    c = f["/imu/counter"]
+    if c.shape[0] < s1 or s1 - s0 < 2:
+        return 0
+    first, last = int(c[s0]), int(c[s1 - 1])
+    return max(0, (last - first + 1) - (s1 - s0))
+
+
+def _capture_range(f: Any) -> tuple[int, int, str] | None:
+    """Sample range of the longest ``capture`` segment (complete preferred), or None."""
+    seg = f.get("/segments")
+    if seg is None or any(k not in seg for k in ("kind", "first_sample", "last_sample")):
+        return None
+    kinds = [bytes(k).rstrip(b"\0") for k in seg["kind"][:]]
+    first, last = seg["first_sample"][:], seg["last_sample"][:]
+    status = ([bytes(s).rstrip(b"\0") for s in seg["status"][:]] if "status" in seg
+              else [b"complete"] * len(kinds))
+    labels = ([bytes(s).rstrip(b"\0").decode(errors="replace") for s in seg["label"][:]]
+              if "label" in seg else [""] * len(kinds))
+    cand = [(st == b"complete", int(b) - int(a), int(a), int(b), lab)
+            for k, a, b, st, lab in zip(kinds, first, last, status, labels) if k == b"capture"]
+    if not cand:
+        return None
+    best = max(cand)
+    return best[2], best[3], best[4]
+
+
+def table_motion(f: Any, s0: int, s1: int) -> tuple[float, float]:
+    """Largest |table rate| (deg/s) and largest angle excursion (deg) over the IMU samples
+    [s0, s1), from /table; (0, 0) when the recording has no table data."""
+    if any(n not in f for n in ("/table/rate", "/table/time", "/table/angle", "/imu/time")) or s1 <= s0:
+        return 0.0, 0.0
+    t = f["/imu/time"]
+    t0, t1 = float(t[s0]), float(t[s1 - 1])
+    tt = f["/table/time"][:]
+    sel = (tt >= t0) & (tt <= t1)
+    if not sel.any():
+        return 0.0, 0.0
+    rate = np.degrees(np.abs(f["/table/rate"][:][sel]))
+    ang = np.degrees(f["/table/angle"][:][sel])
+    rate, ang = rate[np.isfinite(rate)], ang[np.isfinite(ang).all(axis=1)]  # unreadable polls: no motion known
+    return (float(rate.max()) if rate.size else 0.0,
+            float((ang.max(axis=0) - ang.min(axis=0)).max()) if len(ang) else 0.0)
+
+
+#: above these the analysed range is not a static capture (deg/s, deg)
+STATIC_RATE_DPS, STATIC_ANGLE_DEG = 0.01, 0.01
+
+
+def choose_range(path: str, axes: list[str], whole: bool = False
+                 ) -> tuple[tuple[int, int] | None, str, str]:
+    """The IMU sample range to analyse -- the longest capture segment unless ``whole`` -- its
+    description, and a warning ('' if none) when the table moved in it. Raises UsageError for
+    a file that is not a recording with ``axes``."""
+    with _open_checked(path, axes) as f:
+        rng = None if whole else _capture_range(f)
+        s0, s1 = (0, int(f["/imu/time"].shape[0]) if "/imu/time" in f else 0) if rng is None else rng[:2]
+        rate, span = table_motion(f, s0, s1)
+    where = "whole recording" if rng is None else f"capture segment '{rng[2]}'"
+    warn = ""
+    if rate > STATIC_RATE_DPS or span > STATIC_ANGLE_DEG:
+        warn = (f"the table moved during the analysed range ({where}: up to {rate:.3g} deg/s, "
+                f"{span:.3g} deg): an Allan analysis needs a static capture, so these terms are "
+                "not the sensor's noise; record one with procedures/allan-overnight.yaml")
+    return (None if rng is None else rng[:2]), where, warn
+
+
+def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
+    """Solver hook for a procedure's ``solve: [allan]`` step: default analysis (fast mode,
+    95 log-spaced taus, all six axes present) of the longest capture segment (whole record
+    if it has none), stored in /results/allan; a short summary goes to ``log("info", ...)``.
+    """
+    import h5py
+
+    path = str(path)
+    with h5py.File(path, "r") as f:
+        axes = [a for a in AXES if AXES[a][0] in f]
+    if not axes:
+        log("warning", f"allan: {path} has no /imu/angular_rate or /imu/specific_force")
+        return
+    rng, where, warn = choose_range(path, axes)
+    if warn:
+        log("warning", f"allan: {warn}")
+    try:
+        result = compute(path, axes, 95, False, rng)
+    except UsageError as exc:
+        log("warning", f"allan: not run: {exc}")
+        return
+    result["segment"] = where
+    store(path, result)
+    log("info", "allan: " + production.to_database(path, "allan", result, None))
+    n, fs = result["n_samples"], result["sample_rate_hz"]
+    log("info", f"allan: {where}, {n} samples at {fs:g} Hz ({n / fs / 3600:.2f} h); "
+                f"results in {path}:/results/allan")
+    if result["dropped_samples"]:
+        log("warning", f"allan: {result['dropped_samples']} samples missing (counter gaps) "
+                       "in the analysed range; the deviations assume uniform sampling")
+    for a, r in result["axes"].items():
+        log("info", f"allan {a}: " + summary_line(r))
+        for w in check_warnings(r):
+            log("warning", f"allan {a}: {w}")
+
+
+def check_warnings(r: dict[str, Any]) -> list[str]:
+    """The fit's self-check as sentences: one per run of taus where the fitted total leaves
+    the curve's 95 % band (with the statistic), [] when it follows the curve."""
+    check = r["fit"].get("check") or {}
+    runs = check.get("outside") or []
+    if not runs:
+        return []
+    stat = (f"chi2 {check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}; "
+            f"model error {100 * check['model_error_rel']:.0f} % of sigma^2 added"
+            if "chi2" in check else "")
+    out = [f"the fitted IEEE 952 total leaves the curve's 95 % band at {check['n_outside']} of "
+           f"{check['n_informative']} informative taus ({stat})"]
+    for o in runs:
+        span = (f"tau {o['tau_from_s']:.3g} s" if o["tau_from_s"] == o["tau_to_s"]
+                else f"tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s")
+        out.append(f"{span}: {o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
+                   f"likely {o['likely']}")
+    return out
+
+
+def summary_line(r: dict[str, Any]) -> str:
+    """One line per axis: fitted N, B, K with 95 % intervals or upper bounds."""
+    parts = []
+    for t in ("N", "B", "K"):
+        e = r["fit"]["terms"][t]
+        unit = F.FIELD_UNITS[r["sensor"]][t][0]
+        if e["supported"]:
+            lo, hi = e[f"ci95_{unit}"]
+            parts.append(f"{t} {e[f'value_{unit}']:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
+        else:
+            parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
+    return "; ".join(parts)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items() if not k.startswith("_")}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    return obj
+
+
+def store(path: str, result: dict[str, Any]) -> None:
+    """Write /results/allan (replacing an earlier one): JSON summary + curve datasets."""
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        grp = f.require_group("results")
+        if "allan" in grp:
+            del grp["allan"]
+        g = grp.create_group("allan")
+        summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
+                   "n_samples": result["n_samples"],
+                   "first_sample": result.get("first_sample", 0),
+                   "dropped_samples": result.get("dropped_samples", 0),
+                   "segment": result.get("segment", "whole recording"),
+                   **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
+                   "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
+                                "fit": _jsonable(r["fit"]),
+                                "piecewise": _jsonable(r["piecewise"])}
+                            for a, r in result["axes"].items()}}
+        g.attrs["schema_version"] = SCHEMA_VERSION
+        g.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
+        g.attrs["json"] = json.dumps(summary)
+        for a, r in result["axes"].items():
+            ga = g.create_group(a)
+            unit = r["_unit"]
+            for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
+                               (f"adev_{r['_si']}", r["_si"]), (f"adev_{unit}", unit),
+                               (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
+                               (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
+                               ("alpha", "1"), ("edf", "1")):
+                name = key.replace("/", "_per_")
+                ds = ga.create_dataset(name, data=np.asarray(r[key]))
+                ds.attrs["units"] = units
+
+

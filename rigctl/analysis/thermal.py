@@ -1,0 +1,295 @@
+"""Thermal calibration of a recording (application layer): the windows of a soak or ramp run
+(procedures/thermal-soak.yaml, thermal-ramp.yaml) into :mod:`rigctl.solvers.thermal`, the
+results into /results/thermal and a JSON file beside the recording.
+
+A recording is *thermal* when it holds chamber readings (/chamber) and its static and rate
+windows span at least :data:`MIN_SPAN_K` of IMU temperature (a chamber run; an imported log
+whose temperature drifts is not). Per window: the mean outputs, their
+uncertainty from the window itself (:func:`rigctl.solvers.segment_stats.self_noise_sigma` after
+removing what the reference explains), the reference input from the table's angles
+(:func:`rigctl.frames.body_references`), the means of powers of the temperature offset, and the
+candidates' regressors (hysteresis state from a play operator on the IMU temperature, the
+temperature rate, the chamber air minus the IMU temperature from /chamber). Accelerometer: the
+static windows; gyro: static and rate windows.
+
+With /truth (the emulator) every coefficient is compared with the truth: how many 95 %
+intervals cover it.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import recording_reader
+from ..display_units import display, format_value
+from ..errors import InputError
+from ..frames import body_references
+from ..recorder import utc_now, write_results
+from ..segment_builder import _angles_at, _site, open_recording
+from ..solvers import thermal as th
+from ..solvers.segment_stats import self_noise_sigma
+from ..solvers.segments import about_reference
+
+SCHEMA_VERSION = 1
+#: IMU temperature span (max - min over the calibration windows) that makes a recording thermal, K
+MIN_SPAN_K = 5.0
+#: width of the play operator behind the hysteresis candidate, K
+HYSTERESIS_WIDTH_K = 2.0
+DEFAULT_DEGREES = {"bias": 2, "scale": 2, "misalignment": 1}
+
+
+def _cal_rows(f: Any) -> list[int]:
+    seg = f["segments"]
+    kinds, status = seg["kind"][()], seg["status"][()]
+    first, last = seg["first_sample"][()], seg["last_sample"][()]
+    return [i for i, k in enumerate(kinds) if k in (b"orientation", b"rate") and status[i] == b"complete"
+            and last[i] - first[i] >= 10]
+
+
+def is_thermal(path: str | Path) -> bool:
+    """True for a chamber run whose calibration windows span at least MIN_SPAN_K of IMU temperature."""
+    with open_recording(path) as f:
+        if "imu/temperature" not in f or "chamber/time" not in f or f["chamber/time"].shape[0] == 0:
+            return False
+        rows = _cal_rows(f)
+        if len(rows) < 2:
+            return False
+        seg, T = f["segments"], f["imu/temperature"]
+        means = [float(np.mean(T[int(seg["first_sample"][i]):int(seg["last_sample"][i])])) for i in rows]
+    return bool(np.all(np.isfinite(means)) and max(means) - min(means) >= MIN_SPAN_K)
+
+
+def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 3,
+                 hysteresis_width_K: float = HYSTERESIS_WIDTH_K) -> dict[str, th.ThermalWindows]:
+    """The accelerometer and gyro windows of a recording (module docstring)."""
+    with open_recording(path) as f:
+        lat, h, g = _site(f)
+        fs = recording_reader.sample_rate(f)
+        seg = {k: f["segments"][k][()] for k in f["segments"]}
+        rows = _cal_rows(f)
+        if len(rows) < 12:
+            raise InputError(f"{len(rows)} complete static or rate windows: a thermal calibration needs "
+                             "many more", path, hint="run procedures/thermal-ramp.yaml or thermal-soak.yaml")
+        t_imu = f["imu/time"][()]
+        T_all = f["imu/temperature"][()]
+        acc_all, gyr_all = f["imu/specific_force"], f["imu/angular_rate"]
+        tab_t = f["table/time"][()] if "table/time" in f else np.empty(0)
+        tab_ang = f["table/angle"][()] if "table/angle" in f else np.empty((0, 3))
+        ch_t = f["chamber/time"][()] if "chamber/time" in f else np.empty(0)
+        ch_air = f["chamber/air_c"][()] if "chamber/air_c" in f else np.empty(0)
+        recording_reader.check_finite(path, "imu/temperature", T_all, 0)
+        # hysteresis state along the run: play operator on the temperature at ~1 Hz
+        step = max(1, int(round(fs)))
+        Hs = th.play_operator(T_all[::step], hysteresis_width_K)
+        H_all = np.interp(np.arange(T_all.size), np.arange(0, T_all.size, step)[: Hs.size], Hs)
+        cols: dict[str, list] = {k: [] for k in ("kind", "acc", "gyro", "sa", "sg", "fr", "wr", "fq", "T",
+                                                 "bounds", "H", "R", "G")}
+        for i in rows:
+            a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
+            t = t_imu[a:z]
+            acc = np.asarray(acc_all[a:z], float)
+            gyr = np.asarray(gyr_all[a:z], float)
+            recording_reader.check_finite(path, "imu/specific_force", acc, a)
+            recording_reader.check_finite(path, "imu/angular_rate", gyr, a)
+            ang, rates = _angles_at(t, seg, i, tab_t, tab_ang)
+            fr, wr = body_references(ang, rates, lat, h, g)
+            T = T_all[a:z]
+            cols["kind"].append(seg["kind"][i].decode())
+            cols["acc"].append(acc.mean(axis=0))
+            cols["gyro"].append(gyr.mean(axis=0))
+            cols["sa"].append(self_noise_sigma(about_reference(acc, fr), fs))
+            cols["sg"].append(self_noise_sigma(about_reference(gyr, wr), fs))
+            cols["fr"].append(fr.mean(axis=0))
+            cols["wr"].append(wr.mean(axis=0))
+            cols["fq"].append((fr * fr).mean(axis=0))
+            cols["T"].append(float(T.mean()))
+            cols["bounds"].append((a, z))
+            cols["H"].append(float(H_all[a:z].mean()))
+            cols["R"].append(float(np.polyfit(t - t[0], T, 1)[0]) if t.size > 2 and np.ptp(T) > 0 else 0.0)
+            cols["G"].append(float(np.interp(t.mean(), ch_t, ch_air)) - float(T.mean())
+                             if ch_t.size >= 2 else 0.0)
+        powers = th.power_means(T_all, np.asarray(cols["bounds"]), reference_c, max_degree)
+    kind = np.asarray(cols["kind"])
+    T = np.asarray(cols["T"])
+    H = np.asarray(cols["H"])
+    R = np.asarray(cols["R"])
+    heating = np.where(np.abs(R) > 1e-4, R > 0, H > 0)
+    regs = {"hysteresis": H, "temperature_rate": R}
+    if np.ptp(np.asarray(cols["G"])) > 0:
+        regs["thermal_gradient"] = np.asarray(cols["G"])
+    static = kind == "orientation"
+
+    def sub(mask: np.ndarray, sensor: str) -> th.ThermalWindows:
+        y, s, ref = (("acc", "sa", "fr") if sensor == "accel" else ("gyro", "sg", "wr"))
+        return th.ThermalWindows(
+            sensor=sensor, y=np.asarray(cols[y])[mask], sigma=np.asarray(cols[s])[mask],
+            ref=np.asarray(cols[ref])[mask], powers=powers[mask], temperature=T[mask], heating=heating[mask],
+            reference_c=reference_c, quad=np.asarray(cols["fq"])[mask] if sensor == "accel" else None,
+            regressors={k: v[mask] for k, v in regs.items()})
+
+    return {"accel": sub(static, "accel"), "gyro": sub(np.ones(len(kind), bool), "gyro")}
+
+
+def truth_coefficients(f: Any) -> dict[str, float] | None:
+    """The emulator's true coefficients under the solver's names (declared IMU + thermal)."""
+    t = f.get("truth")
+    if t is None or "params_json" not in t.attrs:
+        return None
+    imu = json.loads(t.attrs["params_json"]).get("imu", {})
+    therm = imu.get("thermal")
+    if imu.get("model") != "declared" or therm is None:
+        return None
+    out: dict[str, float] = {}
+    for s, u in th.UNIT.items():
+        bias = imu[f"{s}_bias_{u}"]
+        M = imu[f"{s}_matrix"]
+        for i, a in enumerate(th.AXES):
+            out[f"{s}_bias_{a}_{u}"] = bias[i]
+            out[f"{s}_bias_{a}_{u}_per_K"] = therm[f"{s}_bias_{u}_per_K"][i]
+            out[f"{s}_bias_{a}_{u}_per_K2"] = therm[f"{s}_bias_{u}_per_K2"][i]
+            out[f"{s}_hysteresis_{a}_{u}"] = therm[f"{s}_hysteresis_{u}"][i]
+            out[f"{s}_temp_rate_{a}_{u}_per_K_per_s"] = therm[f"{s}_rate_{u}_per_K_per_s"][i]
+            for k, b in enumerate(th.AXES):
+                out[f"{s}_M_{a}{b}_ratio"] = M[i][k]
+                if i == k:
+                    out[f"{s}_scale_{a}_per_K"] = therm[f"{s}_M_per_K"][i][k]
+                    out[f"{s}_scale_{a}_per_K2"] = therm[f"{s}_M_per_K2"][i][k]
+                    out[f"{s}_scale_{a}_per_K3"] = 0.0
+                else:
+                    out[f"{s}_misalignment_{a}{b}_rad_per_K"] = therm[f"{s}_M_per_K"][i][k]
+                    out[f"{s}_misalignment_{a}{b}_rad_per_K2"] = therm[f"{s}_M_per_K2"][i][k]
+            out[f"{s}_bias_{a}_{u}_per_K3"] = 0.0
+        if s == "accel":
+            for i, a in enumerate(th.AXES):
+                out[f"accel_quad_{a}_s2_per_m"] = imu["accel_quadratic_per_m_s2"][i]
+    out["reference_c"] = therm["reference_c"]
+    return out
+
+
+def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> dict[str, Any]:
+    """RMS of the window residuals with the reference-temperature model only (before: one
+    calibration at T_ref) and with the thermal model (after), per axis and per 10-K bin."""
+    after = np.column_stack([a.residuals for a in fit.axes])
+    before = np.empty_like(after)
+    for i, a in enumerate(fit.axes):
+        p = dict(zip(a.names, a.values))
+        A = th.design(w, i, fit.degrees, fit.accepted)
+        keep = np.array([("_per_K" not in n) and n not in (
+            f"{w.sensor}_hysteresis_{th.AXES[i]}_{th.UNIT[w.sensor]}",) and "gradient" not in n and
+            "temp_rate" not in n for n in a.names])
+        before[:, i] = w.y[:, i] - A[:, keep] @ np.array([p[n] for n, k in zip(a.names, keep) if k])
+    edges = np.arange(math.floor(w.temperature.min() / 10) * 10, w.temperature.max() + 10, 10.0)
+    bins = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (w.temperature >= lo) & (w.temperature < hi)
+        if m.any():
+            bins.append({"from_c": float(lo), "to_c": float(hi), "windows": int(m.sum()),
+                         "rms_before": np.sqrt(np.mean(before[m] ** 2, axis=0)).tolist(),
+                         "rms_after": np.sqrt(np.mean(after[m] ** 2, axis=0)).tolist()})
+    return {"rms_before": np.sqrt(np.mean(before**2, axis=0)).tolist(),
+            "rms_after": np.sqrt(np.mean(after**2, axis=0)).tolist(), "by_temperature": bins,
+            "unit": th.UNIT[w.sensor]}
+
+
+def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = None,
+                      reference_c: float = 25.0) -> tuple[dict[str, Any], str]:
+    """(payload, text) of the thermal calibration of a recording. ``degrees``: per group
+    ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default) or 'auto' (chosen per sensor by
+    :func:`rigctl.solvers.thermal.select_degrees`)."""
+    p = Path(path)
+    wins = read_windows(p, reference_c)
+    with open_recording(p) as f:
+        truth = truth_coefficients(f)
+    sensors: dict[str, Any] = {}
+    lines = [f"rigctl calibrate: {p} -- thermal calibration ({len(wins['gyro'])} windows, IMU temperature "
+             f"{wins['gyro'].temperature.min():.1f} .. {wins['gyro'].temperature.max():.1f} degC, "
+             f"reference {reference_c:g} degC)"]
+    n_in = n_all = 0
+    misses: list[str] = []
+    for sensor, w in wins.items():
+        deg = th.select_degrees(w) if degrees == "auto" else dict(degrees or DEFAULT_DEGREES)
+        fit = th.fit_thermal(w, deg)
+        params = fit.parameters()
+        lo, hi = fit.band()
+        c2 = fit.chi2 / fit.dof
+        status = "ok" if lo <= c2 <= hi else "chi2_outside_band"
+        heat = w.heating
+        ba = _before_after(w, fit)
+        sensors[sensor] = {
+            "degrees": deg, "accepted": fit.accepted,
+            "effects_found": [th.CANDIDATE_TEXT[c] for c in fit.accepted],
+            "chi2": fit.chi2, "dof": fit.dof, "chi2_per_dof": c2, "chi2_band_99": [lo, hi], "status": status,
+            "windows": {"total": len(w), "heating": int(heat.sum()), "cooling": int((~heat).sum()),
+                        "heating_span_c": [float(w.temperature[heat].min()), float(w.temperature[heat].max())]
+                        if heat.any() else None,
+                        "cooling_span_c": [float(w.temperature[~heat].min()), float(w.temperature[~heat].max())]
+                        if (~heat).any() else None},
+            "parameters": params, "explain": fit.explain, "before_after": ba}
+        lines.append(f"\n{sensor}: degrees bias {deg['bias']}, scale {deg['scale']}, misalignment "
+                     f"{deg['misalignment']}; {len(w)} windows ({int(heat.sum())} heating, "
+                     f"{int((~heat).sum())} cooling); chi2/dof {c2:.3g} (99 % band {lo:.3g} .. {hi:.3g})"
+                     + ("" if status == "ok" else "  <- OUTSIDE THE BAND: the model or the noise is wrong"))
+        found = ", ".join(th.CANDIDATE_TEXT[c] for c in fit.accepted) or "none"
+        lines.append(f"  closed loop: thermal effects found: {found}")
+        for e in fit.explain:
+            lines.append(f"    [{e['step']}] {e['candidate']}: {e['statistic']}, p_adj {e['p_adj']:.2g} -> "
+                         f"{e['decision']}")
+        dsp = display(f"{sensor}_bias_x_{th.UNIT[sensor]}")
+        lines.append("  residual RMS per axis, before (one calibration at the reference temperature) -> after: "
+                     + ", ".join(f"{a} {dsp.sigma(b):.4g} -> {dsp.sigma(x):.4g} {dsp.unit}"
+                                 for a, b, x in zip(th.AXES, ba["rms_before"], ba["rms_after"])))
+        lines.append(f"  {'parameter':<34} {'value':>14} {'+-':>10} {'95 % interval':>26}  unit"
+                     + ("   truth" if truth else ""))
+        for q in params:
+            d = display(q["name"])
+            v, u = format_value(d.value(q["value"]), d.sigma(q["sigma"]))
+            ci = f"[{format_value(d.value(q['ci95'][0]), d.sigma(q['sigma']))[0]}, " \
+                 f"{format_value(d.value(q['ci95'][1]), d.sigma(q['sigma']))[0]}]"
+            tv = ""
+            if truth is not None and q["name"] in truth:
+                n_all += 1
+                inside = q["ci95"][0] <= truth[q["name"]] <= q["ci95"][1]
+                n_in += inside
+                q["truth"], q["truth_inside_ci95"] = truth[q["name"]], bool(inside)
+                if not inside:
+                    misses.append(q["name"])
+                tv = f"   {d.value(truth[q['name']]):.5g}" + ("" if inside else " (outside)")
+            lines.append(f"  {d.base:<34} {v:>14} {u:>10} {ci:>26}  {d.unit}{tv}")
+    payload: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
+        "mode": "thermal", "reference_c": reference_c, "hysteresis_width_K": HYSTERESIS_WIDTH_K,
+        "model": "y_i = sum_j dT^j b_ij + sum_k sum_j dT^j u_k M_ikj [+ k2_i u_i^2] + effects; dT = T - reference_c",
+        "sensors": sensors, "truth_available": truth is not None}
+    if truth is not None:
+        payload["truth_coverage"] = {"inside": n_in, "total": n_all, "fraction": n_in / n_all if n_all else None,
+                                     "outside": misses}
+        lines.append(f"\nagainst the emulator's truth: {n_in} of {n_all} 95 % intervals cover it"
+                     + (f" (outside: {', '.join(misses)})" if misses else ""))
+    return payload, "\n".join(lines)
+
+
+def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | Path | None = None,
+                        degrees: dict[str, int] | str | None = None) -> tuple[dict[str, Any], str]:
+    """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``)."""
+    p = Path(path)
+    payload, text = calibrate_thermal(p, degrees)
+    if store:
+        with open_recording(p) as f:
+            status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
+        if status == "running":
+            text += "\nnot stored in the recording: it is still being written (status running)"
+        else:
+            arrays = {}
+            for s, d in payload["sensors"].items():
+                arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
+                arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
+                arrays[f"{s}_sigma"] = (np.array([q["sigma"] for q in d["parameters"]]), "SI (see names)")
+            write_results(p, "thermal", payload, arrays, schema_version=SCHEMA_VERSION)
+        jp = Path(json_path) if json_path else p.with_name(p.stem + ".thermal.json")
+        jp.write_text(json.dumps(payload, indent=1, default=float))
+        text += f"\nresults: {p}:/results/thermal and {jp}"
+    return payload, text

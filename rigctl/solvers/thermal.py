@@ -1,0 +1,287 @@
+"""Thermal calibration: each error parameter as a polynomial in temperature, with covariance,
+and the closed loop over thermal candidates. Pure functions of arrays (no I/O).
+
+Model of one sensor (accelerometer or gyro), sensor axis i, for a window n whose reference input
+(specific force or rate, body axes) is u_n and whose IMU temperature runs through T(t)::
+
+    y_i = sum_j <dT^j> b_ij + sum_k sum_j <dT^j> u_k M_ikj + k2_i <u_i^2> + sum_c gamma_ic <X_c>
+
+dT = T - T_ref, <.> the mean over the window's samples (so a temperature changing inside the
+window enters exactly, not through its mean), j = 0..degree of the group (bias, scale = the
+diagonal k = i, misalignment = k != i), k2 the accelerometer's quadratic term (constant), X_c
+the regressors of the thermal candidates the loop accepted:
+
+* ``hysteresis``: H(t) in [-1, 1], a play operator of width ``hysteresis_width_K`` on the IMU
+  temperature normalised to its half-width (+1 after heating, -1 after cooling) -- a bias that
+  differs between the heating and cooling halves at the same temperature;
+* ``temperature_rate``: dT/dt, K/s (a bias proportional to how fast the unit heats or cools);
+* ``thermal_gradient``: chamber air minus IMU temperature, K (a gradient across the unit).
+
+Each axis is a weighted least-squares fit (weights 1/sigma^2 of the window means); parameter
+covariance (A^T W A)^-1, 95 % intervals from Student's t with the fit's degrees of freedom. The
+ramp method's balance: every window counts once whichever half of the cycle it was taken in, and
+the fit reports how many windows each half gave and the temperature span each covered.
+
+The loop (forward selection): each candidate not yet in the model is added to all three axes of
+the sensor; F = (dChi2 / 3) / (Chi2_ext / dof_ext); p from F(3, dof_ext), Bonferroni-adjusted over
+the candidates still open; the smallest p_adj below ``alpha`` is accepted and the search repeats.
+The chi-square of the final fit is reported with its two-sided 99 % band; outside it is a finding
+(the status says so), never hidden by inflating the covariance.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+AXES = "xyz"
+CANDIDATES = ("hysteresis", "temperature_rate", "thermal_gradient")
+CANDIDATE_TEXT = {"hysteresis": "thermal hysteresis (heating and cooling differ)",
+                  "temperature_rate": "dependence on the temperature rate",
+                  "thermal_gradient": "thermal gradient (chamber air minus IMU temperature)"}
+UNIT = {"accel": "m_s2", "gyro": "rad_s"}
+
+
+@dataclass
+class ThermalWindows:
+    """The windows of one sensor (n windows).
+
+    y, sigma: (n, 3) mean outputs and the standard uncertainty of each mean (SI);
+    ref: (n, 3) mean reference input (m/s^2 or rad/s, body axes);
+    powers: (n, D + 1) <dT^j>, j = 0..D (dT in K from ``reference_c``);
+    temperature: (n,) mean IMU temperature, degC; heating: (n,) bool (heating half of the cycle);
+    quad: (n, 3) <u_i^2> (accelerometer quadratic term) or None;
+    regressors: {candidate: (n,)} window means of the candidates' regressors.
+    """
+
+    sensor: str
+    y: np.ndarray
+    sigma: np.ndarray
+    ref: np.ndarray
+    powers: np.ndarray
+    temperature: np.ndarray
+    heating: np.ndarray
+    reference_c: float
+    quad: np.ndarray | None = None
+    regressors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.y.shape[0])
+
+
+@dataclass
+class AxisFit:
+    names: list[str]
+    values: np.ndarray
+    cov: np.ndarray
+    chi2: float
+    dof: int
+    residuals: np.ndarray  # (n,) y - model, SI
+
+
+@dataclass
+class ThermalFit:
+    """One sensor's thermal model."""
+
+    sensor: str
+    degrees: dict[str, int]
+    accepted: list[str]
+    axes: list[AxisFit]
+    explain: list[dict[str, Any]]
+    reference_c: float
+
+    @property
+    def chi2(self) -> float:
+        return float(sum(a.chi2 for a in self.axes))
+
+    @property
+    def dof(self) -> int:
+        return int(sum(a.dof for a in self.axes))
+
+    def band(self, level: float = 0.99) -> tuple[float, float]:
+        """Two-sided band of chi2/dof at ``level`` for this fit's dof."""
+        lo, hi = stats.chi2.ppf([(1 - level) / 2, (1 + level) / 2], self.dof)
+        return float(lo / self.dof), float(hi / self.dof)
+
+    def parameters(self) -> list[dict[str, Any]]:
+        """Every coefficient with its standard uncertainty and 95 % interval (SI)."""
+        out = []
+        for a in self.axes:
+            t = float(stats.t.ppf(0.975, max(a.dof, 1)))
+            for i, name in enumerate(a.names):
+                v, u = float(a.values[i]), float(np.sqrt(max(a.cov[i, i], 0.0)))
+                out.append({"name": name, "value": v, "sigma": u, "ci95": [v - t * u, v + t * u]})
+        return out
+
+
+def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
+                accepted: list[str]) -> list[str]:
+    """Names of one axis' coefficients, in the column order of :func:`design`."""
+    a, u = AXES[axis], UNIT[sensor]
+    names = []
+    for j in range(degrees["bias"] + 1):
+        names.append(f"{sensor}_bias_{a}_{u}" + ("" if j == 0 else "_per_K" if j == 1 else f"_per_K{j}"))
+    for k in range(3):
+        b = AXES[k]
+        deg = degrees["scale"] if k == axis else degrees["misalignment"]
+        for j in range(deg + 1):
+            if j == 0:
+                names.append(f"{sensor}_M_{a}{b}_ratio")
+            elif k == axis:
+                names.append(f"{sensor}_scale_{a}_per_K" + ("" if j == 1 else str(j)))
+            else:
+                names.append(f"{sensor}_misalignment_{a}{b}_rad_per_K" + ("" if j == 1 else str(j)))
+    if quad:
+        names.append(f"{sensor}_quad_{a}_s2_per_m")
+    for c in accepted:
+        names.append({"hysteresis": f"{sensor}_hysteresis_{a}_{u}",
+                      "temperature_rate": f"{sensor}_temp_rate_{a}_{u}_per_K_per_s",
+                      "thermal_gradient": f"{sensor}_gradient_{a}_{u}_per_K"}[c])
+    return names
+
+
+def design(w: ThermalWindows, axis: int, degrees: dict[str, int], accepted: list[str]) -> np.ndarray:
+    """Design matrix (n, p) of one axis (columns as :func:`param_names`)."""
+    cols = [w.powers[:, j] for j in range(degrees["bias"] + 1)]
+    for k in range(3):
+        deg = degrees["scale"] if k == axis else degrees["misalignment"]
+        cols += [w.powers[:, j] * w.ref[:, k] for j in range(deg + 1)]
+    if w.quad is not None:
+        cols.append(w.quad[:, axis])
+    cols += [w.regressors[c] for c in accepted]
+    return np.column_stack(cols)
+
+
+def _wls(A: np.ndarray, y: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Weighted least squares via QR of the whitened system: (x, cov, chi2, residuals)."""
+    Aw, yw = A / s[:, None], y / s
+    scale = np.sqrt(np.sum(Aw * Aw, axis=0))
+    scale[scale == 0] = 1.0
+    Q, R = np.linalg.qr(Aw / scale)
+    if np.min(np.abs(np.diag(R))) < 1e-10 * np.max(np.abs(np.diag(R))):
+        raise np.linalg.LinAlgError("thermal fit is rank-deficient: too few windows or temperatures "
+                                    "for the polynomial degrees")
+    x = np.linalg.solve(R, Q.T @ yw) / scale
+    Rinv = np.linalg.inv(R)
+    cov = (Rinv @ Rinv.T) / np.outer(scale, scale)
+    r = y - A @ x
+    return x, cov, float(np.sum((r / s) ** 2)), r
+
+
+def fit_axes(w: ThermalWindows, degrees: dict[str, int], accepted: list[str]) -> list[AxisFit]:
+    out = []
+    for i in range(3):
+        A = design(w, i, degrees, accepted)
+        x, cov, chi2, r = _wls(A, w.y[:, i], w.sigma[:, i])
+        out.append(AxisFit(param_names(w.sensor, i, degrees, w.quad is not None, accepted), x, cov, chi2,
+                           len(w) - A.shape[1], r))
+    return out
+
+
+def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: bool = True,
+                alpha: float = 1e-3) -> ThermalFit:
+    """The sensor's thermal model; with ``loop`` the candidates of :data:`CANDIDATES` whose
+    regressors are in ``w.regressors`` are tested by forward selection (module docstring)."""
+    degrees = dict(degrees or {"bias": 2, "scale": 2, "misalignment": 1})
+    accepted: list[str] = []
+    explain: list[dict[str, Any]] = []
+    base = fit_axes(w, degrees, accepted)
+    open_ = [c for c in CANDIDATES if c in w.regressors and np.ptp(w.regressors[c]) > 0] if loop else []
+    step = 0
+    while open_:
+        step += 1
+        chi_base = sum(a.chi2 for a in base)
+        trials = []
+        for c in open_:
+            ext = fit_axes(w, degrees, accepted + [c])
+            chi_ext, dof_ext = sum(a.chi2 for a in ext), sum(a.dof for a in ext)
+            F = ((chi_base - chi_ext) / 3.0) / (chi_ext / dof_ext)
+            p = float(stats.f.sf(F, 3, dof_ext))
+            trials.append((min(1.0, p * len(open_)), c, F, ext))
+        trials.sort(key=lambda x: x[0])
+        for p_adj, c, F, _ in trials:
+            explain.append({"step": step, "sensor": w.sensor, "candidate": c, "statistic": f"F(3) = {F:.3g}",
+                            "p_adj": p_adj, "decision": "accepted" if (p_adj < alpha and c == trials[0][1])
+                            else "rejected"})
+        p_adj, c, _, ext = trials[0]
+        if p_adj >= alpha:
+            break
+        accepted.append(c)
+        open_.remove(c)
+        base = ext
+    return ThermalFit(w.sensor, degrees, accepted, base, explain, w.reference_c)
+
+
+def select_degrees(w: ThermalWindows, max_degree: int = 3, alpha: float = 0.01) -> dict[str, int]:
+    """Polynomial degrees chosen from the data: starting from (bias 1, scale 1, misalignment 1),
+    raise the degree of a group while the F test of its new coefficients (3 axes) is significant
+    at ``alpha`` (Bonferroni over the groups), up to ``max_degree``."""
+    deg = {"bias": 1, "scale": 1, "misalignment": 1}
+    n_pow = w.powers.shape[1] - 1
+    while True:
+        base = fit_axes(w, deg, [])
+        chi_b = sum(a.chi2 for a in base)
+        best = None
+        for g in deg:
+            if deg[g] >= min(max_degree, n_pow):
+                continue
+            trial = dict(deg, **{g: deg[g] + 1})
+            try:
+                ext = fit_axes(w, trial, [])
+            except np.linalg.LinAlgError:
+                continue
+            q = sum(len(e.names) for e in ext) - sum(len(b.names) for b in base)
+            chi_e, dof_e = sum(a.chi2 for a in ext), sum(a.dof for a in ext)
+            p = float(stats.f.sf(((chi_b - chi_e) / q) / (chi_e / dof_e), q, dof_e)) * len(deg)
+            if p < alpha and (best is None or p < best[0]):
+                best = (p, trial)
+        if best is None:
+            return deg
+        deg = best[1]
+
+
+def evaluate(params: dict[str, float], sensor: str, T: np.ndarray, reference_c: float) -> dict[str, np.ndarray]:
+    """Bias (n, 3) and matrix M (n, 3, 3) of a fitted model at temperatures T (degC)."""
+    dT = np.asarray(T, float) - reference_c
+    n, u = dT.size, UNIT[sensor]
+    bias = np.zeros((n, 3))
+    M = np.zeros((n, 3, 3))
+    for i, a in enumerate(AXES):
+        for j in range(6):
+            key = f"{sensor}_bias_{a}_{u}" + ("" if j == 0 else "_per_K" if j == 1 else f"_per_K{j}")
+            if key in params:
+                bias[:, i] += params[key] * dT**j
+        for k, b in enumerate(AXES):
+            M[:, i, k] += params.get(f"{sensor}_M_{a}{b}_ratio", float(i == k))
+            for j in range(1, 6):
+                key = (f"{sensor}_scale_{a}_per_K" if i == k else f"{sensor}_misalignment_{a}{b}_rad_per_K") \
+                    + ("" if j == 1 else str(j))
+                if key in params:
+                    M[:, i, k] += params[key] * dT**j
+    return {"bias": bias, "M": M}
+
+
+def play_operator(T: np.ndarray, width_K: float, start: float | None = None) -> np.ndarray:
+    """H in [-1, 1]: the play (backlash) operator of width ``width_K`` on the sequence T,
+    normalised to its half-width (+1 while heating, -1 while cooling, memory in between)."""
+    half = width_K / 2.0
+    T = np.asarray(T, float)
+    out = np.empty(T.size)
+    p = float(T[0]) if start is None else start
+    for i, x in enumerate(T):
+        p = min(max(p, x - half), x + half)
+        out[i] = (x - p) / half
+    return out
+
+
+def power_means(T: np.ndarray, bounds: np.ndarray, reference_c: float, degree: int) -> np.ndarray:
+    """<dT^j> per window for j = 0..degree; windows are [a, z) row ranges of T."""
+    dT = np.asarray(T, float) - reference_c
+    out = np.empty((len(bounds), degree + 1))
+    for n, (a, z) in enumerate(bounds):
+        seg = dT[a:z]
+        for j in range(degree + 1):
+            out[n, j] = np.mean(seg**j)
+    return out

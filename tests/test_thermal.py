@@ -1,0 +1,249 @@
+"""Thermal calibration: the emulated chamber, the chamber steps, the solver against the
+emulator's truth over 20 seeds, the loop naming thermal hysteresis, and a ramp run end to end.
+
+Expected values come from plain numpy written here: the chamber's limits from its parameters,
+the IMU's thermal errors from the config's coefficients, window means and their uncertainties
+from the samples, coverage from the emulator's truth."""
+from __future__ import annotations
+
+import json
+import math
+
+import h5py
+import numpy as np
+import pytest
+
+from helpers import derived_config, run_rigctl
+from rigctl.frames import body_references
+from rigctl.procedure import load_procedure
+from rigctl.solvers import thermal as th
+from rigctl.yamlio import InputError, LocDict
+from rigctl.sim.chamber import ChamberParams, ChamberPhysics
+from rigctl.sim.imu import build_declared_imu
+from rigctl.sim.thermal_imu import ThermalTrack
+
+G0 = 9.80665
+SIM_THERMAL = {  # configs/sim.yaml's thermal section (SI conversions below)
+    "reference_c": 25,
+    "accel_bias_mg_per_K": [0.05, -0.03, 0.04], "accel_bias_mg_per_K2": [0.001, 0.0005, -0.0008],
+    "accel_scale_ppm_per_K": [30, -20, 25], "accel_scale_ppm_per_K2": [0.5, 0.3, -0.4],
+    "accel_misalignment_urad_per_K": [[0, 2, -1.5], [1, 0, 2.5], [-2, 1.5, 0]],
+    "gyro_bias_deg_h_per_K": [2.0, -1.5, 1.0], "gyro_bias_deg_h_per_K2": [0.02, 0.01, -0.015],
+    "gyro_scale_ppm_per_K": [50, -40, 30], "gyro_scale_ppm_per_K2": [0.5, 0.4, -0.3],
+    "gyro_misalignment_urad_per_K": [[0, 3, -2], [2, 0, 3], [-3, 2, 0]],
+}
+HYST = {"width_K": 2.0, "accel_bias_mg": [0.3, -0.2, 0.25], "gyro_bias_deg_h": [4.0, -3.0, 3.5]}
+
+
+def test_chamber_air_is_rate_limited_overshoots_and_the_product_lags():
+    p = ChamberParams(initial_c=25.0, heat_max_c_per_min=5.0, cool_max_c_per_min=3.0, product_tau_s=240.0,
+                      self_heating_c=1.5)
+    ch = ChamberPhysics(p)
+    ch.set_setpoint(0.0, 50.0)
+    t = np.arange(0.0, 3600.0, 0.5)
+    air = np.array([ch.state(x)["air_c"] for x in t])
+    rate = np.diff(air) / 0.5
+    assert rate.max() <= 5.0 / 60 + 1e-9 and rate.max() > 0.99 * 5.0 / 60  # the heater's limit reached
+    assert air.max() > 50.2  # underdamped loop: overshoot
+    assert abs(air[-1] - 50.0) < 0.01
+    # product: first-order lag of the air plus self-heating, integrated here independently
+    T = np.empty_like(air)
+    T[0] = 25.0 + 1.5
+    for k in range(1, air.size):
+        T[k] = (air[k] + 1.5) + (T[k - 1] - air[k] - 1.5) * math.exp(-0.5 / 240.0)
+    prod = ch.history(t)
+    assert np.max(np.abs(prod - T)) < 1e-6
+    ch.set_setpoint(3600.0, 20.0, ramp_c_per_min=1.0)  # a ramp: the working set point moves at 1 K/min
+    s = ch.state(3600.0 + 600.0)
+    assert s["working_setpoint_c"] == pytest.approx(40.0, abs=0.02) and s["status"] == "running"
+
+
+def test_imu_thermal_errors_match_the_declared_coefficients():
+    o = LocDict({"accel_bias_mg": [1, 2, 3], "gyro_bias_deg_h": [10, 20, 30],
+                 "thermal": LocDict({**SIM_THERMAL, "hysteresis": LocDict(HYST)})})
+    m = build_declared_imu(o, 100.0, 0)
+    n = 7
+    f = np.tile([1.0, -2.0, 9.0], (n, 1))
+    w = np.tile([0.1, 0.2, -0.3], (n, 1))
+    T = np.linspace(-10, 50, n)
+    H = np.linspace(-1, 1, n)
+    F, W, Tout = m.apply(np.arange(n) / 100.0, f, w, temperature=T, hysteresis=H, temperature_rate=np.zeros(n))
+    dT = T - 25
+    c = SIM_THERMAL
+    mg = 1e-3 * G0
+    for i in range(3):
+        M1 = np.array(c["accel_misalignment_urad_per_K"][i], float) * 1e-6
+        M1[i] = c["accel_scale_ppm_per_K"][i] * 1e-6
+        expect = (np.array([1, 2, 3])[i] * mg + f[:, i] + dT * c["accel_bias_mg_per_K"][i] * mg
+                  + dT**2 * c["accel_bias_mg_per_K2"][i] * mg + dT * (f @ M1)
+                  + dT**2 * c["accel_scale_ppm_per_K2"][i] * 1e-6 * f[:, i] + H * HYST["accel_bias_mg"][i] * mg)
+        assert np.allclose(F[:, i], expect, rtol=0, atol=1e-12)
+    assert np.array_equal(Tout, T)
+
+
+# --------------------------------------------------------------------------- solver, 20 seeds
+POSES = [[0, 0, 0], [0, 0, 180], [0, -90, 0], [0, 90, 0], [0, 0, 90], [0, 0, -90]]
+
+
+def _synthetic_windows(seed: int, hysteresis: bool) -> tuple[dict, dict]:
+    """A ramp session generated with the emulator's chamber and IMU model (no engine): room ->
+    50 -> -10 -> room degC at 4 K/min, six 10-s static poses and six rate windows per cycle, 50 Hz.
+    Window means, their uncertainties (std / sqrt(n), white noise) and <dT^j> by plain numpy."""
+    th_cfg = dict(SIM_THERMAL, **({"hysteresis": LocDict(HYST)} if hysteresis else {}))
+    o = LocDict({"accel_bias_mg": [2, -1.5, 3], "accel_scale_ppm": [800, -500, 300],
+                 "accel_misalignment_urad": [[0, 500, -300], [200, 0, 400], [-600, 100, 0]],
+                 "accel_quadratic_ug_per_g2": [50, -30, 40], "gyro_bias_deg_h": [20, -15, 10],
+                 "gyro_scale_ppm": [1000, -700, 500],
+                 "gyro_misalignment_urad": [[0, 800, -400], [300, 0, 600], [-500, 200, 0]],
+                 "accel_vrw_m_s_rth": 0.03, "gyro_arw_deg_rth": 0.2, "thermal": LocDict(th_cfg)})
+    fs = 50.0
+    model = build_declared_imu(o, fs, seed)
+    ch = ChamberPhysics(ChamberParams(heat_max_c_per_min=8, cool_max_c_per_min=8, product_tau_s=120))
+    track = ThermalTrack(2.0)
+    lat = math.radians(45.0)
+    plan = [(50.0, 4), (-10.0, 8), (25.0, 5)]
+    t = 0.0
+    rows = {"accel": [], "gyro": []}
+    for target, n_cycles in plan:
+        ch.set_setpoint(t, target, 4.0)
+        for _ in range(n_cycles + 1):
+            wins = [("static", np.radians(p), None) for p in POSES]
+            wins += [("rate", np.zeros(3), (ax, sgn)) for ax in range(3) for sgn in (1, -1)]
+            for kind, ang, rate in wins:
+                n = int(10 * fs)
+                tt = t + np.arange(n) / fs
+                f_b, w_b = body_references(np.tile(ang, (n, 1)), np.zeros((n, 3)), lat, 100.0, 9.80619)
+                if rate is not None:
+                    w_b = w_b.copy()
+                    w_b[:, rate[0]] += rate[1] * math.radians(100.0)
+                T = ch.history(tt)
+                ht, hp = ch.grid_since(track._last[0] if track._last else -1.0)
+                track.extend(ht, hp)
+                H, R = track.at(tt)
+                F, W, Tm = model.apply(tt, f_b, w_b, temperature=T, hysteresis=H, temperature_rate=R)
+                dT = Tm - 25.0
+                row = {"T": Tm.mean(), "pow": [np.mean(dT**j) for j in range(4)], "H": H.mean(),
+                       "R": np.polyfit(tt - tt[0], Tm, 1)[0]}
+                if kind == "static":
+                    rows["accel"].append({**row, "y": F.mean(0), "s": F.std(0, ddof=1) / math.sqrt(n),
+                                          "ref": f_b.mean(0), "q": (f_b**2).mean(0)})
+                rows["gyro"].append({**row, "y": W.mean(0), "s": W.std(0, ddof=1) / math.sqrt(n),
+                                     "ref": w_b.mean(0)})
+                t = tt[-1] + 1.0 / fs + 3.0  # 3 s to move and settle
+    wins = {}
+    for sensor, rs in rows.items():
+        R = np.array([r["R"] for r in rs])
+        wins[sensor] = th.ThermalWindows(
+            sensor=sensor, y=np.array([r["y"] for r in rs]), sigma=np.array([r["s"] for r in rs]),
+            ref=np.array([r["ref"] for r in rs]), powers=np.array([r["pow"] for r in rs]),
+            temperature=np.array([r["T"] for r in rs]), heating=R > 0, reference_c=25.0,
+            quad=np.array([r["q"] for r in rs]) if sensor == "accel" else None,
+            regressors={"hysteresis": np.array([r["H"] for r in rs]), "temperature_rate": R})
+    return wins, {"truth": {"imu": model.truth()}}
+
+
+def _truth_names(truth: dict) -> dict[str, float]:
+    class F(dict):  # the analysis layer's truth mapping reads /truth params_json
+        pass
+
+    from rigctl.analysis.thermal import truth_coefficients
+
+    class Attrs:
+        attrs = {"params_json": json.dumps(truth)}
+
+    return truth_coefficients({"truth": Attrs()})
+
+
+@pytest.fixture(scope="module")
+def twenty_seeds():
+    out = []
+    for seed in range(20):
+        wins, truth = _synthetic_windows(seed, hysteresis=False)
+        fits = {s: th.fit_thermal(w) for s, w in wins.items()}
+        out.append((fits, _truth_names(truth["truth"])))
+    return out
+
+
+def test_intervals_cover_the_truth_over_20_seeds(twenty_seeds):
+    inside = total = 0
+    chi_out = []
+    for fits, truth in twenty_seeds:
+        for s, fit in fits.items():
+            lo, hi = fit.band()
+            if not lo <= fit.chi2 / fit.dof <= hi:
+                chi_out.append((s, fit.chi2 / fit.dof))
+            for q in fit.parameters():
+                total += 1
+                inside += q["ci95"][0] <= truth[q["name"]] <= q["ci95"][1]
+    frac = inside / total
+    assert total == 20 * 63
+    assert frac >= 0.90, frac
+    assert frac <= 0.99, frac  # intervals not absurdly wide either
+    assert len(chi_out) <= 2, chi_out  # 40 fits, 99 % bands
+
+
+def test_no_false_hysteresis_flag_in_20_seeds(twenty_seeds):
+    flagged = [(i, s, f.accepted) for i, (fits, _) in enumerate(twenty_seeds) for s, f in fits.items() if f.accepted]
+    assert flagged == []
+
+
+def test_the_loop_names_thermal_hysteresis():
+    for seed in (101, 102, 103):
+        wins, truth = _synthetic_windows(seed, hysteresis=True)
+        t = _truth_names(truth["truth"])
+        for s, w in wins.items():
+            fit = th.fit_thermal(w)
+            assert fit.accepted[:1] == ["hysteresis"], (seed, s, fit.explain)
+            h = {q["name"]: q for q in fit.parameters() if "hysteresis" in q["name"]}
+            assert len(h) == 3
+            # the amplitude the emulator put in, inside (or within 3 sigma of) the interval
+            for name, q in h.items():
+                assert abs(q["value"] - t[name]) < 3 * q["sigma"] + 0.05 * abs(t[name]), (name, q, t[name])
+
+
+# --------------------------------------------------------------------------- procedures
+def test_chamber_steps_are_validated(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("steps:\n  - chamber-ramp: {setpoint_c: 40}\n  - chamber-set: {setpoint_c: 900}\n"
+                 "  - chamber-wait: {stable_band_c: -1}\n")
+    with pytest.raises(InputError) as e:
+        load_procedure(p)
+    text = str(e.value)
+    for needle in ("bad.yaml:2", "rate_c_per_min", "bad.yaml:3", "bad.yaml:4"):
+        assert needle in text, text
+    proc = load_procedure("procedures/thermal-ramp.yaml")
+    kinds = [s.kind for s in proc.steps]
+    assert kinds.count("chamber-ramp") == 3 and kinds.count("orientation") == 6 * 20
+    assert load_procedure("procedures/thermal-soak.yaml").steps[0].chamber["setpoint_c"] == -10
+
+
+# --------------------------------------------------------------------------- end to end
+def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
+    cfg = derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST},
+                         chamber__sim={"heat_max_c_per_min": 10, "cool_max_c_per_min": 10,
+                                       "product_tau_s": 30})
+    r = run_rigctl("run", "procedures/thermal-ramp.yaml", "--config", str(cfg), "--out", str(tmp_path / "runs"),
+                   "-p", "rate=6", "-p", "low_c=0", "-p", "high_c=45", "-p", "up_cycles=2", "-p", "down_cycles=3",
+                   "-p", "back_cycles=2",
+                   "-p", "sample=6 s", "-p", "revolutions=1", timeout=240)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rec = next((tmp_path / "runs").glob("*/recording.h5"))
+    with h5py.File(rec, "r") as f:
+        ch = f["chamber"]
+        assert ch["time"].shape[0] > 100 and set(ch["status"][()]) <= {b"idle", b"running"}
+        T = f["imu/temperature"][()]
+        assert T.max() > 38 and T.min() < 10
+        assert b"chamber at its safe set point" in b"".join(f["events/message"][()])
+    r = run_rigctl("calibrate", str(rec), timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with h5py.File(rec, "r") as f:
+        payload = json.loads(f["results/thermal"].attrs["json"])
+    for s in ("accel", "gyro"):
+        d = payload["sensors"][s]
+        assert "hysteresis" in d["accepted"], d["explain"]
+        assert all(math.isfinite(q["sigma"]) and q["ci95"][0] < q["value"] < q["ci95"][1] for q in d["parameters"])
+        # residuals after the thermal model: far below one calibration at the reference temperature
+        assert max(d["before_after"]["rms_after"]) < 0.2 * min(d["before_after"]["rms_before"])
+    cov = payload["truth_coverage"]
+    assert cov["total"] == 63 + 6 and cov["fraction"] >= 0.85, cov
+    assert "thermal hysteresis" in r.stdout
