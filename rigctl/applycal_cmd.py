@@ -20,13 +20,9 @@ corrected data) and the provenance in /meta attrs ``calibration_applied_json`` (
 source and the input file). It is built as OUT.h5.part and renamed when complete; nothing else
 is written. The input is never modified and OUT may not be the input.
 
-A thermal calibration (``rigctl calibrate`` on a chamber run: /results/thermal, or its JSON with
-``"mode": "thermal"``) is applied sample by sample at the recording's own temperature column
-(/imu/temperature): bias and matrix are evaluated at each sample's temperature, plus the thermal
-effects the loop accepted (hysteresis state and temperature rate along the record, the gradient
-from /chamber), then inverted the same way (:func:`rigctl.solvers.thermal.correct`). Used when
-the recording has /results/thermal and no /results/calibration, or with ``--calibration``
-naming a thermal JSON.
+A thermal calibration (/results/thermal when there is no /results/calibration, or a JSON with
+``"mode": "thermal"``) is applied at each sample's temperature (/imu/temperature):
+:func:`rigctl.analysis.thermal.apply_thermal`, docs/thermal.md.
 
 Exit codes: 0 written, 2 invalid input, 1 failure.
 """
@@ -42,6 +38,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from .analysis.thermal import apply_thermal, thermal_info
 from .recorder import utc_now
 from .recording_reader import check_finite
 from .segment_builder import open_recording
@@ -92,14 +89,14 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
             g = f.get("results/calibration")
             if g is None and f.get("results/thermal") is not None and "json" in f["results/thermal"].attrs:
                 data = json.loads(f["results/thermal"].attrs["json"])
-                return _thermal_info(data, path), f"{path.resolve()}:/results/thermal"
+                return thermal_info(data, path), f"{path.resolve()}:/results/thermal"
             if g is None or "json" not in g.attrs:
                 raise InputError("no /results/calibration in the recording", path,
                                  hint="run `rigctl calibrate` first, or give --calibration JSON")
             data = json.loads(g.attrs["json"])
         src = f"{path.resolve()}:/results/calibration"
     if isinstance(data, dict) and data.get("mode") == "thermal":
-        return _thermal_info(data, calibration or path), src
+        return thermal_info(data, calibration or path), src
     model = data.get("model") if isinstance(data, dict) else None
     try:
         for sensor, keys in (("accel", ("bias_m_s2", "M", "k2_s2_per_m")), ("gyro", ("bias_rad_s", "M"))):
@@ -117,56 +114,11 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
             "trustworthy": data.get("trustworthy")}, src
 
 
-def _thermal_info(data: dict[str, Any], where: Any) -> dict[str, Any]:
-    """A thermal calibration payload, checked: {sensor: {name: value}}, accepted effects."""
-    try:
-        sensors = {s: {q["name"]: float(q["value"]) for q in data["sensors"][s]["parameters"]}
-                   for s in ("accel", "gyro")}
-        accepted = {s: list(data["sensors"][s].get("accepted", [])) for s in ("accel", "gyro")}
-        ref = float(data["reference_c"])
-        width = float(data.get("hysteresis_width_K", 2.0))
-    except (TypeError, KeyError, ValueError):
-        raise InputError("the thermal calibration is incomplete (sensors accel / gyro with parameters, "
-                         "reference_c)", where, hint="use the JSON written by rigctl calibrate") from None
-    if not all(np.isfinite(v) for p in sensors.values() for v in p.values()):
-        raise InputError("the thermal calibration holds non-finite values", where)
-    return {"thermal": sensors, "accepted": accepted, "reference_c": ref, "hysteresis_width_K": width,
-            "schema_version": data.get("schema_version"), "status": "thermal",
-            "trustworthy": all(d.get("status") == "ok" for d in data["sensors"].values()),
-            "model": {"thermal": True, "reference_c": ref, "accepted": accepted}}
-
-
-def _apply_thermal(fin: h5py.File, fo: h5py.File, src: Path, info: dict[str, Any]) -> int:
-    from .solvers import thermal as th
-
-    if "imu/temperature" not in fin:
-        raise InputError("a thermal calibration needs the recording's temperature column (/imu/temperature)", src)
-    T = fin["imu/temperature"][()]
-    t = fin["imu/time"][()]
-    check_finite(src, "imu/temperature", T, 0)
-    air = None
-    if "chamber/time" in fin and fin["chamber/time"].shape[0] >= 2:
-        air = np.interp(t, fin["chamber/time"][()], fin["chamber/air_c"][()])
-    regs = {s: th.regressors_along(T, t, info["accepted"][s], info["hysteresis_width_K"], air)
-            for s in ("accel", "gyro")}
-    fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
-    n = fa.shape[0]
-    for a0 in range(0, n, CHUNK):
-        a1 = min(n, a0 + CHUNK)
-        f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
-        check_finite(src, "imu/specific_force", f_in, a0)
-        check_finite(src, "imu/angular_rate", w_in, a0)
-        for ds, sensor, y in ((fa, "accel", f_in), (fw, "gyro", w_in)):
-            ds[a0:a1] = th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
-                                   {c: x[a0:a1] for c, x in regs[sensor].items()})
-    return n
-
-
 def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -> int:
     """Write the corrected copy; returns the number of samples."""
     m = info["model"]
-    if "thermal" in info:
-        return _apply_copy(src, out, info, origin, lambda fin, fo: _apply_thermal(fin, fo, src, info))
+    if "thermal" in info:  # rigctl/analysis/thermal.py
+        return _apply_copy(src, out, info, origin, lambda fin, fo: apply_thermal(fin, fo, src, info, CHUNK))
     ba, Ma, k2 = (np.asarray(m["accel"][k], dtype=np.float64) for k in ("bias_m_s2", "M", "k2_s2_per_m"))
     bg, Mg = (np.asarray(m["gyro"][k], dtype=np.float64) for k in ("bias_rad_s", "M"))
     G = np.asarray(m["gyro"].get("G_rad_s_per_m_s2", np.zeros((3, 3))), dtype=np.float64)
@@ -179,16 +131,14 @@ def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -
             f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
             check_finite(src, "imu/specific_force", f_in, a0)
             check_finite(src, "imu/angular_rate", w_in, a0)
-            acc = invert_accel(f_in, ba, Ma, k2)
+            fa[a0:a1] = acc = invert_accel(f_in, ba, Ma, k2)
             fw[a0:a1] = invert_gyro(w_in, acc, bg, Mg, G)
-            fa[a0:a1] = acc
         return n
     return _apply_copy(src, out, info, origin, fixed)
 
 
 def _apply_copy(src: Path, out: Path, info: dict[str, Any], origin: str, correct: Any) -> int:
-    """Copy the recording to OUT.h5.part, correct its IMU data with ``correct(fin, fo)``, record
-    the provenance, rename into place; returns the number of samples."""
+    """Copy to OUT.h5.part, ``correct(fin, fo)`` its /imu, record the provenance, rename."""
     m = info["model"]
     part = out.with_name(out.name + ".part")
     n = 0

@@ -265,3 +265,12 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
                 zs.append((A[a:b].mean(0) - fr) / (A[a:b].std(0, ddof=1) / math.sqrt(b - a)))
             z2[path] = float(np.mean(np.square(zs)))
     assert z2[out] < 2.0 and z2[rec] > 100 * z2[out], z2
+    # the report's thermal section: the coefficients, the loop's finding and both plots
+    r = run_rigctl("report", str(rec.parent), timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    html = (rec.parent / "report.html").read_text()
+    sec = html[html.index('<section id="thermal">'):]
+    sec = sec[:sec.index("</section>")]
+    assert "thermal hysteresis" in sec and "accel_hysteresis_x" in sec and "mg/K^2" in sec
+    for png in ("thermal_parameters.png", "thermal_residuals.png"):
+        assert png in sec and (rec.parent / png).stat().st_size > 10_000
