@@ -18,6 +18,7 @@ Memory stays flat over any step length: a sample window keeps running sums, not 
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -133,6 +134,9 @@ class Engine:
         self.chamber_poll_s = 1.0
         self.last_chamber: Any = None
         self._chamber_t = -math.inf
+        #: ... and at most this often in wall time (a chamber on a slow link, a fast clock), s
+        self.chamber_poll_wall_s = 0.1
+        self._chamber_wall = -math.inf
         self._chamber_reason: str | None = None
         #: (time, min, max) of the IMU temperature per poll, while a chamber-wait step runs
         self._temps: deque | None = None
@@ -214,9 +218,10 @@ class Engine:
 
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
-        if t - self._chamber_t < self.chamber_poll_s - 1e-9:
+        wall = time.monotonic()
+        if t - self._chamber_t < self.chamber_poll_s - 1e-9 or wall - self._chamber_wall < self.chamber_poll_wall_s:
             return
-        self._chamber_t = t
+        self._chamber_t, self._chamber_wall = t, wall
         from .chamber import describe_trip
         try:
             state = self.rig.chamber.read()

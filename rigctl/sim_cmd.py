@@ -45,7 +45,8 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
                     base.setdefault(sec, {}).update({k: v for k, v in (physics.get(sec) or {}).items()
                                                      if k in keys})
                 base["site"] = physics.get("site", base.get("site"))
-                out = write_wire_config(args.wire_config, base, hw, table=args.table, link=args.table_link)
+                out = write_wire_config(args.wire_config, base, hw, table=args.table, link=args.table_link,
+                                        chamber=args.chamber)
                 print(f"  wired rig config   {out}", flush=True)
             print("ready", flush=True)
             while not stop.wait(1.0):
@@ -67,6 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--config", help="rig config whose emulator sections set the physics (default configs/sim.yaml)")
     up.add_argument("--speed", type=float, default=1.0, help="rig time per wall time (1 = real time; up to 1000)")
     up.add_argument("--wire-config", metavar="OUT.yaml", help="write a wired rig config for these endpoints")
+    up.add_argument("--chamber", choices=("watlow-rtu", "watlow-tcp", "scpi"),
+                    help="put the emulated climatic chamber in the --wire-config, over this link")
     up.add_argument("--template", help="wired config template (default configs/sim-wire.yaml)")
     up.add_argument("--table", choices=("acl", "modbus"), help="table protocol in the written config")
     up.add_argument("--table-link", choices=("pty", "tcp", "rtu"), help="table link in the written config")

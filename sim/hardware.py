@@ -8,6 +8,8 @@ profiles and servo dynamics, IMU error model) on a :class:`~rigctl.clock.ScaledC
 * turntable, Modbus register map (:mod:`rigctl.sim.modbus_server`, pymodbus 3.16) on Modbus TCP
   and Modbus RTU over a pty null-modem pair;
 * Xsens MTi (:mod:`rigctl.sim.xsens_server`) on a pty, streaming the world's IMU samples;
+* climatic chamber (:mod:`rigctl.sim.chamber_servers`): a Watlow F4T on Modbus RTU (pty
+  ``chamber-rtu``) and Modbus TCP, and an SCPI chamber on TCP (a PyVISA socket resource);
 * NovAtel receiver (:mod:`rigctl.sim.gnss_server`) on a pty, MARK1TIMEA logs of the pulses given
   to :meth:`Hardware.pulse` (or every ``pulse_period_s``).
 
@@ -378,6 +380,15 @@ class Hardware:
         self.xsens.true_clock = self.clock.now
         self._closers.append(self.xsens.close)
         self._replace_port(self.xsens, "imu", FlowPtyEndpoint)
+        # climatic chamber: Watlow F4T on Modbus RTU (pty) and TCP, SCPI on TCP (sim/chamber_servers.py)
+        from .chamber_servers import ChamberAccess, ScpiChamberServer, WatlowF4TServer
+        self.chamber = ChamberAccess(self.world.chamber, lambda: self.world.t, self.lock)
+        self.watlow = WatlowF4TServer(self.chamber)
+        self._closers.append(self.watlow.close)
+        self.watlow_tcp = self.watlow.start_tcp()
+        self._link("chamber-rtu", self.watlow.start_rtu(baudrate=self.rtu_baudrate))
+        self.scpi = ScpiChamberServer(self.chamber)
+        self._closers.append(self.scpi.close)
         # GNSS receiver
         self.gnss = GnssServer(clock=self.world_clock.now, source=self._periodic_pulses)
         self._closers.append(self.gnss.close)
@@ -443,7 +454,10 @@ class Hardware:
                 "table_modbus_tcp": f"{self.modbus_tcp[0]}:{self.modbus_tcp[1]}",
                 "table_modbus_rtu": str(self.link_dir / "table-rtu"),
                 "imu_xsens_pty": str(self.slots["imu"].link),
-                "gnss_novatel_pty": str(self.slots["gnss"].link)}
+                "gnss_novatel_pty": str(self.slots["gnss"].link),
+                "chamber_watlow_rtu": str(self.link_dir / "chamber-rtu"),
+                "chamber_watlow_tcp": f"{self.watlow_tcp[0]}:{self.watlow_tcp[1]}",
+                "chamber_scpi_visa": f"TCPIP::{self.scpi.address[0]}::{self.scpi.address[1]}::SOCKET"}
 
     @property
     def lag_s(self) -> float:

@@ -23,12 +23,14 @@ def _keep(section: dict | None) -> dict:
 
 
 def wire_config(base: dict[str, Any], hw, *, table: str | None = None, link: str | None = None,
-                pulses: str | None = None, imu_options: dict | None = None) -> dict[str, Any]:
+                pulses: str | None = None, imu_options: dict | None = None,
+                chamber: str | None = None) -> dict[str, Any]:
     """A config dict for a wired rig on ``hw``.
 
     table: ``acl`` | ``modbus`` (default: the base's wired driver, else acl); link: ``pty`` | ``tcp``
     for acl, ``tcp`` | ``rtu`` for modbus (default pty / tcp); pulses: ``novatel`` | ``none``
-    (default: the base's, else novatel).
+    (default: the base's, else novatel); chamber: ``watlow-rtu`` | ``watlow-tcp`` | ``scpi`` (the
+    emulated chamber over Modbus RTU on a pty, Modbus TCP, or SCPI through PyVISA), default none.
     """
     d = copy.deepcopy(base)
     t_in, i_in, p_in = d.get("table") or {}, d.get("imu") or {}, d.get("pulses") or {}
@@ -56,6 +58,24 @@ def wire_config(base: dict[str, Any], hw, *, table: str | None = None, link: str
     i.update(driver="xsens", port=ep["imu_xsens_pty"], baudrate=hw.imu_baudrate, **(imu_options or {}))
     p = {"driver": "novatel", "port": ep["gnss_novatel_pty"]} if pulses == "novatel" else {"driver": "none"}
     d.update(clock="scaled", speed=float(hw.speed), table=t, imu=i, pulses=p)
+    c_in = d.get("chamber") or {}
+    c = {k: v for k, v in c_in.items() if k in ("safe_c", "band_c", "sim")}
+    if chamber == "watlow-rtu":
+        c.update(driver="watlow", transport="rtu", port=ep["chamber_watlow_rtu"], baudrate=hw.rtu_baudrate,
+                 timeout_s=0.5)
+    elif chamber == "watlow-tcp":
+        host, port = ep["chamber_watlow_tcp"].rsplit(":", 1)
+        c.update(driver="watlow", transport="tcp", host=host, tcp_port=int(port), timeout_s=0.5)
+    elif chamber == "scpi":
+        c.update(driver="scpi", resource=ep["chamber_scpi_visa"], model="generic", timeout_s=1.0)
+    elif chamber is None:
+        c = {"driver": "none"}
+    else:
+        raise ValueError(f"chamber link must be watlow-rtu, watlow-tcp or scpi, not {chamber!r}")
+    if chamber is None:
+        d.pop("chamber", None)
+    else:
+        d["chamber"] = c
     d["rig"] = f"wired rig on emulated hardware ({table} table over {link}, Xsens IMU, {pulses} pulses)"
     return d
 

@@ -146,7 +146,7 @@ class SimWorld:
         # (warm-up) temperature model
         from .chamber import ChamberPhysics, chamber_params
         from .thermal_imu import ThermalTrack
-        c_opts = cfg.chamber.options.get("sim") if cfg.chamber.driver == "sim" else None
+        c_opts = cfg.chamber.options.get("sim")
         cp = chamber_params(S.require_mapping(c_opts, "'chamber.sim'", cfg.chamber.options, "sim")
                             if c_opts is not None else None)
         if c_opts is None or "initial_c" not in c_opts:

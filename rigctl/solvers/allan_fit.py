@@ -269,8 +269,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # their limits come from the floor and the long taus). Q and N are left free: their
     # limits come from the shortest taus, where a sensor's anti-aliasing filter pulls the
     # curve below the white-noise line (0.7x at tau0 on an ADIS16405), not an IEEE 952 term
+    # Only taus whose band is informative set this limit: the last few taus of a capture (a
+    # handful of averages) scatter by 2-3x and would hold B below a floor that dozens of
+    # well-determined taus show (seen on a 3 h mti_class capture: 5.5 deg/h floor from 30 to
+    # 800 s, two points at 1.5 deg/h near 2000 s)
     hi95 = np.sqrt(s2_all) * np.sqrt(e_all / chi2.ppf(0.025, e_all))
-    lim95 = curve_limits(tau_all, hi95)
+    lo95 = np.sqrt(s2_all) * np.sqrt(e_all / chi2.ppf(0.975, e_all))
+    inf95 = hi95 <= INFORMATIVE_RATIO * lo95
+    lim95 = (curve_limits(tau_all[inf95], hi95[inf95]) if np.any(inf95)
+             else curve_limits(tau_all, hi95))
     upper_all = np.array([lim95[t] ** 2 if t in CONSTRAINED else np.inf for t in TERMS])
     model_err, chi2_stat = _model_error(full_a[:, active], s2, e, active, cov_terms, iterations,
                                         upper_all[active])
@@ -301,6 +308,23 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # curve allows, i.e. it fills a feature outside IEEE 952 (a bump): dropped first
         up = upper_all[active]
         at_limit = np.isfinite(up) & (p >= up * (1.0 - 1e-6)) & (p > 0)
+        # a B, K or R whose line the curve ends up clearly below -- the fitted total above
+        # the 95 % band, by more than 10 %, at the last well-determined tau where that term is
+        # the largest part of the total -- is not in the data either (the MTi-G: a "floor" of
+        # 11.7 deg/h fitted across a bump, while the curve goes on falling to 5-9 deg/h from
+        # 300 s on): treated the same way. A dip in the middle (a periodic component, as on
+        # the ADIS16405 accelerometers at 2-10 s) with the floor back after it is not.
+        a_all = design_matrix(tau_all)[:, active]
+        parts = a_all * p
+        tot2 = np.maximum(parts.sum(axis=1), 1e-300)
+        tot = np.sqrt(tot2)
+        over = (tot > hi95) & (np.sqrt(s2_all) < (1.0 - DEPARTURE_REL) * tot)
+        for i, j in enumerate(active):
+            if TERMS[j] not in CONSTRAINED or p[i] <= 0:
+                continue
+            ruled = np.flatnonzero(inf95 & (parts[:, i] >= 0.5 * tot2))
+            if ruled.size and over[ruled[-1]]:
+                at_limit[i] = True
         score = np.where(at_limit, -1.0, score)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
