@@ -10,7 +10,7 @@ import numpy as np
 
 from . import schema as S
 from .frames import normal_gravity
-from .linkconfig import COMMON_KEYS, imu_settings, pulse_settings, table_settings
+from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
@@ -55,12 +55,13 @@ class TableLimits:
 
 @dataclass(frozen=True)
 class DeviceConfig:
-    """A device section: its driver, the raw options, and the validated link settings of a
-    wired driver (rigctl.linkconfig; empty for the in-process emulator)."""
+    """A device section: its driver, the raw options, and the validated settings: for the
+    table, IMU and pulse input a :class:`rigctl.linkconfig.LinkSettings` of a wired driver (None
+    for the in-process emulator); for the chamber, rigctl.chamber's mapping."""
 
     driver: str
     options: LocDict
-    settings: dict[str, Any] = field(default_factory=dict)
+    settings: LinkSettings | dict[str, Any] | None = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -247,7 +248,7 @@ def load_config(path: str | Path) -> RigConfig:
     table, t = _device(m, "table", TABLE_DRIVERS, None)
     if table.driver == "sim":
         S.check_keys(t, ("driver", "limits", "sim"), "'table'")
-    table = DeviceConfig(table.driver, t, table_settings(table.driver, t))
+    table = DeviceConfig(table.driver, t, link_settings("table", table.driver, t))
     lim = S.require_mapping(t.get("limits", LocDict()), "'table.limits'", t, "limits") \
         if "limits" in t else None
     if lim is None:
@@ -263,9 +264,9 @@ def load_config(path: str | Path) -> RigConfig:
         S.check_keys(i, (*COMMON_KEYS, "serial"), "'imu' (sim)")
     imu_rate = S.get_number(i, "rate_hz", 100.0, minimum=1.0, maximum=10000.0)
     serial = imu_serial(i)
-    imu = DeviceConfig(imu.driver, i, imu_settings(imu.driver, i))
+    imu = DeviceConfig(imu.driver, i, link_settings("imu", imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
-    pulses = DeviceConfig(pulses.driver, p_opts, pulse_settings(pulses.driver, p_opts))
+    pulses = DeviceConfig(pulses.driver, p_opts, link_settings("pulses", pulses.driver, p_opts))
     if (table.driver == "sim") != (imu.driver == "sim"):
         raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
                       "together; mixing it with a wired device is not supported",

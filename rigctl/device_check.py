@@ -59,11 +59,9 @@ def _where(cfg: RigConfig, role: str) -> tuple[str, str]:
     """(where, kind of port) of a wired device section; kind: serial, tcp or gpio."""
     dev = {"table": cfg.table, "imu": cfg.imu, "pulses": cfg.pulses}[role]
     s = dev.settings
-    if dev.driver == "modbus" and s.get("transport") == "tcp":
-        return f"{s['host']}:{s['tcp_port']}", "tcp"
-    if dev.driver == "gpio":
-        return f"{s['chip']} line {s['line']}", "gpio"
-    return str(s.get("port")), "serial"
+    if dev.driver == "modbus" and s.transport == "tcp":
+        return s.where(), "tcp"
+    return s.where(), "gpio" if dev.driver == "gpio" else "serial"
 
 
 def _probe(role: str, where: str, kind: str, build: Callable[[], Any]) -> DeviceCheck:

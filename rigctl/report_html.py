@@ -11,7 +11,6 @@ import base64
 import html
 import json
 import math
-import re
 from pathlib import Path
 from typing import Any
 
@@ -306,9 +305,37 @@ def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
     return "\n".join(out)
 
 
+def s_pose_loop(payload: dict[str, Any]) -> str:
+    """The closed loop of an orientation-free calibration: each sub-model's chi2/dof against its
+    band, the effects claimed and the findings; before/after with raw, declared and final."""
+    rows = []
+    for name, lp in payload["closed_loop"].items():
+        band = lp.get("band_chi2_per_dof") or [None, None]
+        rows.append([name, lp.get("status"), lp["declared"].get("chi2_per_dof"), lp["final"].get("chi2_per_dof"),
+                     lp["final"].get("dof"), band[0], band[1], ", ".join(lp.get("effects_claimed") or []) or "none"])
+    out = [f"<p>STATUS: <b>{esc(payload.get('status'))}</b></p>", "<h3>Sub-models</h3>",
+           table(["sub-model", "status", "chi2/dof declared", "chi2/dof final", "dof", "band low", "band high",
+                  "effects claimed"], rows, num_from=2)]
+    for name, lp in payload["closed_loop"].items():
+        for f in lp.get("findings") or []:
+            out.append(f"<p class=\"warn\">{esc(name)}: {esc(f)}</p>")
+    out.append("<h3>Before / after (RMS over the poses; raw: nominal scale, no calibration)</h3>")
+    out.append(table(["channel", "unit", "raw", "declared model", "final model", "noise floor"],
+                     [[r["channel"], r["unit"], r["raw"], r["declared"], r["final"], r["noise_floor"]]
+                      for r in payload.get("before_after") or []], num_from=2))
+    out.append("<h3>The chain: sub-model, round, candidate, statistic, decision</h3>")
+    out.append(table(["sub-model", "round", "candidate", "statistic", "decision"],
+                     [[name, x.get("step"), x.get("candidate"), x.get("statistic"), x.get("decision")]
+                      for name, lp in payload["closed_loop"].items() for x in lp.get("explain") or []], num_from=0))
+    return "\n".join(out)
+
+
 def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     r = d.results.get("calibration")
-    sess = find_session(r.get("json")) if r else None
+    payload = r.get("json") if r else None
+    if isinstance(payload, dict) and payload.get("mode") == "orientation_free" and payload.get("closed_loop"):
+        return s_pose_loop(payload)
+    sess = find_session(payload) if r else None
     cl = (sess or {}).get("closed_loop")
     if not cl:
         if r:
