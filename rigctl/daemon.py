@@ -29,6 +29,7 @@ from .progress import NullProgress, Progress
 from .recorder import utc_now
 from .runlog import RunLog
 from .livefeed import LiveFeed
+from .notify import Notifier
 from .errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
 from .runner import RunOptions, check_run_dir, resume_run, run_procedure
 from .states import StateMachine
@@ -76,6 +77,10 @@ class Daemon:
         self.server = control.ControlServer(self.socket_path, self.handle, self.log)
         self.worker = threading.Thread(target=self._work, name="rigctl-worker", daemon=True)
         self.web: Any = None  # a rigctl.web.WebServer when serving HTTP (start_http)
+        self.notifier = Notifier(self.cfg.notifications, self.cfg.name, self.log)
+        self._paused_since: float | None = None   # wall time (monotonic) the current pause began
+        self._pause_noticed = False
+        self.states.listeners.append(self._on_state)
         self.states.listeners.append(
             lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
 
@@ -281,6 +286,32 @@ class Daemon:
                 lines.extend(line.rstrip("\n") for line in fh)
         return {"ok": True, "job": job.id, "lines": list(lines)}
 
+    # -- notices -------------------------------------------------------------------------------
+    def _on_state(self, old: str, new: str, why: str) -> None:
+        if new in ("pausing", "paused"):
+            if self._paused_since is None:
+                self._paused_since, self._pause_noticed = time.monotonic(), False
+        else:
+            self._paused_since = None
+        if new == "faulted":
+            job = self.current
+            self.notifier.notify("faulted", why, asdict(job) if job else None)
+
+    def _watch(self) -> None:
+        """Send the 'suspended' notice once a pause has lasted ``suspended_after_s`` (wall time)."""
+        limit = self.cfg.notifications.suspended_after_s
+        while self.stopping is None:
+            since = self._paused_since
+            if since is not None and not self._pause_noticed and time.monotonic() - since >= limit:
+                self._pause_noticed = True
+                with self.cv:
+                    eng, job = self.engine, self.current
+                    reasons = dict(eng.suspenders.active) if eng is not None else {}
+                    info = asdict(job) if job else None
+                text = "; ".join(f"{k}: {v}" for k, v in reasons.items()) or self.states.reason
+                self.notifier.notify("suspended", f"suspended for more than {limit:g} s: {text}", info)
+            time.sleep(min(0.5, limit / 4))
+
     # -- jobs ----------------------------------------------------------------------------------
     def _set_engine(self, engine: Engine | None) -> None:
         with self.cv:
@@ -330,10 +361,14 @@ class Daemon:
                 self._save_jobs()
                 self.cv.notify_all()
             self.log("info", f"job {job.id} {state}" + (f": {message}" if message else ""))
+            self.notifier.notify(state, message, asdict(job))
 
     def start(self) -> None:
         self.server.start()
         self.worker.start()
+        if self.cfg.notifications.enabled:
+            self.notifier.start()
+            threading.Thread(target=self._watch, name="rigctl-watch", daemon=True).start()
         self.log("info", f"rigctl daemon: socket {self.socket_path}, runs in {self.runs_dir}, "
                          f"config {self.config_path}")
 
@@ -365,6 +400,7 @@ class Daemon:
         if self.web is not None:
             self.web.close()
         self.server.close()
+        self.notifier.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
 
 
