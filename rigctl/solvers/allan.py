@@ -254,6 +254,9 @@ class OadevAccumulator:
             raise ValueError("need at least one averaging factor >= 1")
         self.mode = mode
         fast = mode == "fast"
+        # (direct differences through the compiled kernels for every factor measured no
+        # faster than the pyramid: ~7 ns per sample for the phase, the decimation cascade and
+        # the sums, against ~11 ns, inside the noise of this machine)
         self._gram = np.array([fast and S.conforming(int(m)) is not None for m in self.ms])
         self.pyramid = S.GramPyramid(self.ms[self._gram]) if self._gram.any() else None
         levels: dict[int, list[int]] = {}
@@ -282,10 +285,13 @@ class OadevAccumulator:
         if self.pyramid is not None:
             self.pyramid.feed(y, self.offset)
         if self.levels:
-            x = y - self.offset
-            np.cumsum(x, out=x)
-            x *= self.tau0
-            x += self._x_last
+            if K.HAVE_NUMBA:  # the same operations in one pass
+                x = K.phase_chunk(y, self.offset, self.tau0, self._x_last)
+            else:
+                x = y - self.offset
+                np.cumsum(x, out=x)
+                x *= self.tau0
+                x += self._x_last
             self._feed_levels(x, self.n_phase)
             self._x_last = float(x[-1])
         self.n_phase += y.size
@@ -315,8 +321,14 @@ class OadevAccumulator:
 
     def _feed_levels(self, x: np.ndarray, g0: int) -> None:
         with S.blas_single_thread():
+            src, g, src_s = x, g0, 1  # levels by ascending stride: cascade when it divides
             for lev in self.levels:
-                lev.feed(x, g0, self._scratch)
+                if lev.s % src_s:
+                    src, g, src_s = x, g0, 1
+                new = lev.feed(src, g, self._scratch, src_s)
+                if new is not None:
+                    src, g = new
+                    src_s = lev.s
 
     def result(self) -> DevResult:
         """Deviations for every factor with at least one complete term."""

@@ -86,6 +86,44 @@ if HAVE_NUMBA:
                     comp[k] += (v - t) + tot[k]
                 tot[k] = t
 
+    @njit(cache=True, nogil=True)
+    def _range_sums(x, ks, los, his, block, out):  # pragma: no cover - compiled
+        """out[k] += sum_{i=los[k]}^{his[k]-1} (x[i+2ks[k]] - 2x[i+ks[k]] + x[i])^2, blocks of
+        i outside (x[a:a+block] read once for all lags), compensated; out is (K, 2)."""
+        a0 = los.min()
+        a1 = his.max()
+        for a in range(a0, a1, block):
+            for k in range(ks.size):
+                m = ks[k]
+                lo = max(a, los[k])
+                hi = min(a + block, his[k])
+                if hi <= lo:
+                    continue
+                v = _d2_block(x[lo + 2 * m: hi + 2 * m], x[lo + m: hi + m], x[lo:hi], hi - lo)
+                t = out[k, 0] + v
+                if abs(out[k, 0]) >= abs(v):
+                    out[k, 1] += (out[k, 0] - t) + v
+                else:
+                    out[k, 1] += (v - t) + out[k, 0]
+                out[k, 0] = t
+
+    @njit(cache=True, nogil=True)
+    def _phase_chunk(y, c, tau0, x0, x):  # pragma: no cover - compiled
+        acc = 0.0
+        for i in range(y.size):
+            acc += y[i] - c
+            x[i] = acc * tau0 + x0
+
+    @njit(cache=True, nogil=True)
+    def _gather(tail, x, start, s, out):  # pragma: no cover - compiled
+        nt = tail.size
+        for i in range(nt):
+            out[i] = tail[i]
+        j = nt
+        for i in range(start, x.size, s):
+            out[j] = x[i]
+            j += 1
+
     @njit(parallel=True, cache=True)
     def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
         for p in prange(bounds.size - 1):
@@ -146,4 +184,34 @@ def diff_sums(x: np.ndarray, ms: np.ndarray, order: int = 2, threads: int = 1,
             numba.set_num_threads(prev)
     s = (tot + comp).sum(axis=0)
     out[srt] = s
+    return out
+
+
+def range_sums(x: np.ndarray, ks: np.ndarray, los: np.ndarray, his: np.ndarray,
+               block: int = BLOCK) -> np.ndarray:
+    """Second-difference sums at lag ks[j] over i in [los[j], his[j]) (the caller keeps
+    his[j] + 2 ks[j] <= x.size); one pass over x for all lags (a streamed level's chunk)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    ks = np.asarray(ks, dtype=np.int64)
+    los = np.asarray(los, dtype=np.int64)
+    his = np.asarray(his, dtype=np.int64)
+    out = np.zeros((ks.size, 2))
+    if ks.size and int(np.max(his - los)) > 0:
+        _range_sums(x, ks, los, his, block, out)
+    return out.sum(axis=1)
+
+
+def phase_chunk(y: np.ndarray, offset: float, tau0: float, x0: float) -> np.ndarray:
+    """x0 + tau0 * cumsum(y - offset) in one pass (a streamed chunk of the phase)."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    x = np.empty(y.size)
+    _phase_chunk(y, float(offset), float(tau0), float(x0), x)
+    return x
+
+
+def gather(tail: np.ndarray, x: np.ndarray, start: int, s: int) -> np.ndarray:
+    """concatenate((tail, x[start::s])) in one pass."""
+    n_new = max(0, -(-(x.size - start) // s))
+    out = np.empty(tail.size + n_new)
+    _gather(np.ascontiguousarray(tail, dtype=np.float64), x, int(start), int(s), out)
     return out
