@@ -11,6 +11,7 @@ integer fields before scaling: ``counter`` int64; ``time`` float64 s)}, plus ``o
 """
 from __future__ import annotations
 
+import functools
 import zlib
 
 import numpy as np
@@ -87,6 +88,12 @@ class Checker:
         return self.computed(rows) == self.stored(rows)
 
 
+@functools.lru_cache(maxsize=32)
+def checker(spec: FrameSpec) -> Checker:
+    """The (cached) checker of a spec: its tables cost 8 x length scalar checksums to build."""
+    return Checker(spec)
+
+
 def binary_decoder(spec: FrameSpec) -> FixedFrameStream:
     """Streaming vectorised decoder of a binary spec (see the module docstring)."""
     dtype = _struct_dtype(spec)
@@ -96,7 +103,7 @@ def binary_decoder(spec: FrameSpec) -> FixedFrameStream:
         if f.value is not None:
             raw = np.array([f.value], dtype=e + f.code).view(np.uint8)
             fixed += [(f.offset + j, int(v)) for j, v in enumerate(raw)]
-    check = Checker(spec)
+    check = checker(spec)
     fields = [f for f in spec.fields if f.code != "x"]
 
     def decode(rows: np.ndarray) -> dict[str, np.ndarray]:
@@ -137,7 +144,7 @@ def encode_binary(spec: FrameSpec, values: dict[str, np.ndarray]) -> np.ndarray:
             rec[f.name] = v / f.factor
     rows = rec.view(np.uint8).reshape(n, spec.length).copy()
     rows[:, :len(spec.sync)] = np.frombuffer(spec.sync, np.uint8)
-    check = Checker(spec)
+    check = checker(spec)
     if check.nbytes:
         c = check.computed(rows).astype(check.stored_dtype)
         rows[:, check.b:check.b + check.nbytes] = c.view(np.uint8).reshape(n, check.nbytes)

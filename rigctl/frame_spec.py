@@ -86,7 +86,7 @@ class Field:
     @property
     def wrap(self) -> int | None:
         """Range of an integer field (its counter / time wraps there), None for floats."""
-        return 1 << (8 * self.size) if self.code in INT_CODES else None
+        return 1 << (8 * self.size) if self.code and self.code in INT_CODES else None
 
 
 @dataclass(frozen=True)
@@ -177,12 +177,13 @@ def _field(item, fields: LocList, i: int, binary: bool, endian: str, offset: int
         unit = S.get_str(f, "unit", choices=list(UNITS[r]))
     else:
         unit = S.get_str(f, "unit", "")
-    if r == "counter" and (code in FLOAT_CODES or scale != 1.0):
-        raise S.error(f, "type" if code in FLOAT_CODES else "scale",
+    is_float = bool(code) and code in FLOAT_CODES
+    if r == "counter" and (is_float or scale != 1.0):
+        raise S.error(f, "type" if is_float else "scale",
                       "the counter must be an unscaled integer field", "use type B, H, I or Q and no scale")
     value = None
     if "value" in f:
-        if not binary or code in FLOAT_CODES:
+        if not binary or is_float:
             raise S.error(f, "value", "'value' fixes an integer field of a binary frame",
                           "remove 'value', or give the field an integer type")
         value = S.get_number(f, "value", integer=True)

@@ -103,6 +103,23 @@ class FlowPtyEndpoint(PtyEndpoint):
             return sent
 
 
+class FreeRunPtyEndpoint(FlowPtyEndpoint):
+    """The port of a device that streams from power-up, whether or not a client listens (the
+    declarative-frame IMU): while dropping, a write first looks whether the client has drained
+    the port since (the master is writable again) and if so resumes flow control -- otherwise a
+    client that connects after the buffer filled would see the stream cut up for good."""
+
+    def write(self, data: bytes) -> int:
+        if not getattr(self, "_flowing", True):
+            try:
+                _, w, _ = select.select([], [self.master], [], 0)
+            except (OSError, ValueError):
+                w = []
+            if w:
+                self._flowing = True
+        return super().write(data)
+
+
 class HwAclCore(AclServerCore):
     """ACL protocol core with a counted stall: the next ``stall_replies`` replies come
     ``stall_s`` late (the port's reader thread sleeps, as a busy controller would). Every
@@ -403,7 +420,8 @@ class Hardware:
                                           seed=seed)
         self.imu_server.true_clock = self.clock.now
         self._closers.append(self.imu_server.close)
-        self._replace_port(self.imu_server, "imu", FlowPtyEndpoint)
+        self._replace_port(self.imu_server, "imu", FreeRunPtyEndpoint if self.imu_protocol == "frame"
+                           else FlowPtyEndpoint)
         # climatic chamber: Watlow F4T on Modbus RTU (pty) and TCP, SCPI on TCP (sim/chamber_servers.py)
         from .chamber_servers import ChamberAccess, ScpiChamberServer, WatlowF4TServer
         self.chamber = ChamberAccess(self.world.chamber, lambda: self.world.t, self.lock)
