@@ -38,6 +38,10 @@ def test_soak_over_the_wire(tmp_path, link):
                                      chamber=link)
         cfg = load_config(cfg_path)
         assert cfg.chamber.driver == ("watlow" if link == "watlow-rtu" else "scpi")
+        from rigctl.device_check import check_devices
+        checks = {c.role: c for c in check_devices(cfg).checks}
+        assert checks["chamber"].ok and ("air 25.00 degC" in checks["chamber"].text
+                                         or "EMULATED-CHAMBER" in checks["chamber"].text), checks["chamber"]
         proc = load_procedure(ROOT / "procedures" / "thermal-soak.yaml", SOAK, cfg.limits)
         res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False)
         assert res.exit_code == 0, res.message
@@ -67,3 +71,23 @@ def test_soak_over_the_wire(tmp_path, link):
             rows = orient[6 * p:6 * p + 6]
             temps = np.concatenate([T[seg["first_sample"][i]:seg["last_sample"][i]] for i in rows])
             assert abs(temps.mean() - target) < 0.6 and np.ptp(temps) < 0.6, (target, temps.mean(), np.ptp(temps))
+
+
+def test_device_check_names_an_unreachable_chamber(tmp_path):
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    raw = yaml.safe_load((ROOT / "configs" / "sim-wire.yaml").read_text())
+    raw["table"]["port"] = str(tmp_path / "no-table")
+    raw["imu"]["port"] = str(tmp_path / "no-imu")
+    raw["pulses"] = {"driver": "none"}
+    raw["chamber"] = {"driver": "watlow", "transport": "tcp", "host": "127.0.0.1", "tcp_port": port,
+                      "timeout_s": 0.3}
+    p = tmp_path / "wired.yaml"
+    p.write_text(yaml.safe_dump(raw))
+    from rigctl.device_check import check_devices
+    c = {c.role: c for c in check_devices(load_config(p)).checks}["chamber"]
+    assert not c.ok and f"127.0.0.1:{port}" in c.text, c
