@@ -286,7 +286,11 @@ class Daemon:
         if self.engine is None:
             return {"ok": False, "error": "no job is running"}
         self.engine.request_abort("abort requested (rigctl abort)")
-        return {"ok": True}
+        # as in bluesky-queueserver: an abort stops the queue, the next job does not start at once
+        self.queue_running = False
+        self.log("info", "queue stopped by the abort: 'rigctl queue start' runs the next job")
+        return {"ok": True, "queue_running": False,
+                "note": f"queue stopped ({len(self.queue)} queued); 'rigctl queue start' goes on"}
 
     def _cmd_logs(self, args: dict) -> dict:
         job = self.current or next((j for j in reversed(self.jobs) if j.run_dir), None)

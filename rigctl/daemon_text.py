@@ -114,6 +114,8 @@ def reply_text(cmd: str, r: dict[str, Any]) -> str:
         return "queue stopped: no new job starts" + (f" (job {run} runs to its end)" if run else "")
     if cmd == "queue_start":
         return "queue started"
+    if cmd == "abort":
+        return f"aborting the running job; {r.get('note', '')}".rstrip("; ")
     if cmd == "pause":
         return "pausing at the end of the step in flight" if r.get("deferred") else "pausing now (the step in flight re-runs)"
     if cmd == "resume" and "job" in r:
