@@ -143,6 +143,8 @@ def test_notices_by_webhook_and_email(receivers, tmp_path):
         assert len(notices("suspended")) == 1  # once per pause
         assert control.request(sock, "abort")["ok"]
         wait_for(lambda: control.request(sock, "queue")["jobs"][-1]["state"] == "interrupted", 20, "abort")
+        assert control.request(sock, "status")["queue_running"] is False  # an abort stops the queue
+        assert control.request(sock, "queue_start")["ok"]
 
         # 3) failed: a settle timeout
         bad = tmp_path / "unsettled.yaml"
