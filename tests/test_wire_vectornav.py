@@ -125,7 +125,7 @@ def test_encoded_frames_match_an_independent_struct_layout() -> None:
 
 def test_byte_errors_at_1e4_count_every_bad_frame() -> None:
     """The emulator's own injection (a renewal process over the byte stream, XOR 1..255) at
-    1e-4 per byte over 100,000 frames (4.6 MB): every frame it hit is counted bad or truncated,
+    1e-4 per byte over 100,000 frames (4.8 MB): every frame it hit is counted bad or truncated,
     every other frame decodes, in pieces of random sizes."""
     twin = VectorNavServer(still_source, clock=lambda: 0.0, seed=11)
     try:
@@ -141,7 +141,7 @@ def test_byte_errors_at_1e4_count_every_bad_frame() -> None:
     got = sum(len(st.feed(data[a:b])["offset"]) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(data)]))
     got += len(st.flush()["offset"])
     c = st.counters
-    assert 380 <= twin.frames_hit <= 560             # 100,000 x 46 bytes x 1e-4 = 460 expected
+    assert 380 <= twin.frames_hit <= 560             # 100,000 x 48 bytes x 1e-4 = 480 expected
     assert got == c.frames == 100_000 - twin.frames_hit
     assert c.bad_frames + c.truncated_frames == twin.frames_hit
     assert c.presync_bytes == 0
@@ -163,7 +163,7 @@ def test_emulated_sensor_answers_and_refuses_like_the_manual_says() -> None:
             assert _ask(port, b"$VNRRG,03*00\r\n") == V.command("VNERR,03")        # bad checksum
             assert _ask(port, V.read_register(99)) == V.command("VNERR,08")       # no such register
             lay = V.Layout.of({1: 0x2001, 3: 0x001C})
-            # 46-byte frames at 800 Hz need 368,000 bit/s: more than 115,200 baud carries
+            # 48-byte frames at 800 Hz need 384,000 bit/s: more than 115,200 baud carries
             assert _ask(port, V.write_register(75, *lay.register_values(1, 1))) == V.command("VNERR,12")
             assert twin.state == "config"
             ok = V.write_register(75, *lay.register_values(1, 8))
