@@ -171,3 +171,49 @@ def test_emulated_sensor_answers_and_refuses_like_the_manual_says() -> None:
             assert twin.state == "measurement" and twin.rate_hz == 100.0
     finally:
         twin.close()
+
+
+def _rows(imu, wall_s: float = 0.3) -> int:
+    end, rows = time.monotonic() + wall_s, 0
+    while time.monotonic() < end:
+        time.sleep(0.02)
+        rows += len(imu.read())
+    return rows
+
+
+def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None:
+    """Over the emulated rig's pty at 20x: the identity is read on connect; a pulled cable is a
+    counted gap of TimeStartup (dropped samples) and the same unit streams on; another serial
+    number after a reconnect stops the reader before the binary output is switched on again."""
+    from rigctl.clock import ScaledClock
+    from rigctl.drivers.vectornav_imu import VectorNavImu, VectorNavUnitChanged
+
+    from hil_support import wait_until, wired
+
+    with wired(tmp_path, 20.0, hw_kw={"imu_protocol": "vectornav"}) as (hw, _cfg):
+        imu = VectorNavImu(hw.endpoints["imu_vectornav_pty"], 100, ScaledClock(20.0), link_timeout_s=0.2)
+        imu.connect()
+        try:
+            assert imu.identity == {"device_id": "0100012345", "model": "VN-100T-CR", "firmware": "2.1.0.0",
+                                    "protocol": "VectorNav binary"}
+            assert _rows(imu) > 0
+            hw.disconnect("imu", 0.1)                           # same unit back: streams on
+            wait_until(lambda: imu.configurations == 2 and _rows(imu, 0.1) > 0, 10, "the stream back")
+            assert imu.counters["dropped_samples"] >= 100       # 0.1 s wall at 20x = 2 s = 200 samples
+            hw.imu_server.serial_number = "0100099999"          # another unit on the same port
+            hw.disconnect("imu", 0.1)
+
+            def fault():
+                try:
+                    imu.read()
+                except VectorNavUnitChanged as exc:
+                    return exc
+                except ConnectionError:                         # LinkLost while it is down
+                    pass
+                return None
+            exc = wait_until(fault, 10, "the unit change to be reported")
+            assert "serial number 0100099999" in str(exc) and "started with 0100012345" in str(exc)
+            time.sleep(0.3)
+            assert hw.imu_server.state == "config" and len(hw.imu_server.measurement_starts) == 2
+        finally:
+            imu.close()
