@@ -9,7 +9,10 @@ raised-cosine rate profile: angle(t) = theta (t/T - sin(2 pi t/T) / (2 pi)); eac
 the exact mean rate over its sample interval, so the product of the sample increments is the
 motion exactly.
 
-Sensor: u_a = b_a + M_a f + (effect) + n_a; u_g = b_g + M_g w + (effect) + n_g, white noise.
+Sensor: u_a = b_a + M_a f + (effect) + n_a; u_g = b_g + M_g w + (effect) + n_g, white noise
+(accelerometer 1 mg, gyro 0.05 deg/s per sample at 100 Hz). Each effect's amplitude is set so that
+it lifts its sub-model's chi2/dof clearly above the 99 % band (about 2 to 10): these sessions test
+that an effect is named right, not how small an effect can be seen.
 """
 from __future__ import annotations
 
@@ -109,7 +112,7 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 28, fs: fl
     elif effect == "gyro_anisoelastic":
         ug += sgn * 0.05 * DEG / G ** 2 * np.stack([f[:, 1] * f[:, 2], f[:, 0] * f[:, 2], f[:, 0] * f[:, 1]], axis=1)
     elif effect == "gyro_bias_time_drift":
-        ug += sgn * np.array([600, 500, 600]) * DEG / 3600 * th_[:, None]
+        ug += sgn * np.array([1500, 1200, 1500]) * DEG / 3600 * th_[:, None]
     elif effect == "gyro_scale_asymmetry":
         ug += sgn * np.array([3000, 2500, 3000]) * 1e-6 * np.abs(w)
     elif effect == "gyro_scale_nonlinearity":
