@@ -39,10 +39,11 @@ IN_LIBRARY = {
 OUTSIDE = ("accel_previous_pose_hysteresis", "gyro_bias_rotation_sense")
 
 
-def make_session(seed: int, effect: str | None = None, n_poses: int = 28, fs: float = 100.0,
-                 pose_s: float = 3.0, move_s: float = 1.5, rest_s: float = 20.0, noise: float = 1.0
-                 ) -> tuple[np.ndarray, list[dict]]:
-    """(samples (n, 7): t, f_x.. (m/s^2), w_x.. (rad/s); segments) of one session."""
+def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: float = 100.0,
+                 pose_s: float = 3.0, move_s: float = 1.5, rest_s: float = 20.0, noise: float = 1.0,
+                 amplitude: float = 1.0) -> tuple[np.ndarray, list[dict]]:
+    """(samples (n, 7): t, f_x.. (m/s^2), w_x.. (rad/s); segments) of one session; ``amplitude``
+    scales the effect."""
     rng = np.random.default_rng(seed)
     dt = 1.0 / fs
     # attitudes: a random start, then turns of 60-150 deg about random body axes
@@ -96,14 +97,14 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 28, fs: fl
     ua = b_a + f @ M_a.T
     ug = b_g + w_true @ M_g.T
     th_ = (t - t.mean()) / 3600.0
-    sgn = rng.choice([-1.0, 1.0], 3)
+    sgn = amplitude * rng.choice([-1.0, 1.0], 3)
     if effect == "accel_quadratic":
-        ua += sgn * np.array([600, 500, 700]) * UG / G ** 2 * f ** 2
+        ua += sgn * np.array([1800, 1500, 1800]) * UG / G ** 2 * f ** 2
     elif effect == "accel_cross_quadratic":
         ua += sgn * np.array([700, 600, 700]) * UG / G ** 2 * np.stack([f[:, 1] * f[:, 2], f[:, 0] * f[:, 2],
                                                                        f[:, 0] * f[:, 1]], axis=1)
     elif effect == "accel_scale_asymmetry":
-        ua += sgn * np.array([400, 300, 500]) * 1e-6 * np.abs(f)
+        ua += sgn * np.array([1500, 1200, 1500]) * 1e-6 * np.abs(f)
     elif effect == "accel_bias_time_drift":
         ua += sgn * np.array([20, 15, 20]) * 1e-3 * G * th_[:, None]
     elif effect == "gyro_g_sensitivity":
