@@ -45,6 +45,12 @@ def _many(tmp_path, jobs: list[tuple[int, str | None, float]]) -> list[dict]:
         return list(ex.map(_run, [tmp_path] * len(jobs), *zip(*jobs)))
 
 
+#: measured (issue 14 stays open for it): named 8/10; the per-axis cross-coupling's direction part,
+#: which the magnitude model cannot see (it tests only the common coefficient), leaves the
+#: rotations above their band in the other seeds.
+HARD = {"accel_cross_quadratic"}
+
+
 @pytest.mark.parametrize("effect", sorted(S.IN_LIBRARY))
 def test_in_library_effect_named(tmp_path, effect):
     sub = S.IN_LIBRARY[effect]
