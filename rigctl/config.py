@@ -11,6 +11,7 @@ import numpy as np
 from . import schema as S
 from .frames import normal_gravity
 from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
+from .notify import NotifySettings, notify_settings
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -90,6 +91,8 @@ class RigConfig:
     #: the climatic chamber (docs/thermal.md): ``none``, ``sim`` (in the emulated world),
     #: ``watlow`` (Modbus RTU / TCP) or ``scpi`` (PyVISA); settings from rigctl.chamber
     chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict()))
+    #: the daemon's notices (docs/daemon.md): webhook and/or e-mail on job end, suspension, fault
+    notifications: NotifySettings = field(default_factory=NotifySettings)
 
     @property
     def gravity(self) -> float:
@@ -227,7 +230,7 @@ def load_config(path: str | Path) -> RigConfig:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
     S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders", "traceability", "chamber"), "the rig config")
+                     "suspenders", "traceability", "chamber", "notifications"), "the rig config")
     traceability(m)
     name = S.get_str(m, "rig", p.stem)
     clock = S.get_str(m, "clock", None, choices=CLOCKS)
@@ -282,6 +285,7 @@ def load_config(path: str | Path) -> RigConfig:
         flush = S.get_number(r, "flush_interval_s", 0.5, minimum=0.01, maximum=1.0)
         table_rate = S.get_number(r, "table_rate_hz", 10.0, minimum=0.1, maximum=1000.0)
     suspenders = suspender_settings(m)
+    notifications = notify_settings(m)
     from .chamber import chamber_settings  # the chamber section (docs/thermal.md)
     chamber, c_opts = _device(m, "chamber", CHAMBER_DRIVERS, "none")
     chamber = DeviceConfig(chamber.driver, c_opts, chamber_settings(chamber.driver, c_opts))
@@ -292,7 +296,7 @@ def load_config(path: str | Path) -> RigConfig:
                      speed=speed, latitude=lat, height_m=h, gravity_measured=g, limits=limits,
                      table=table, imu=imu, imu_rate_hz=imu_rate, pulses=pulses,
                      flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, imu_serial=serial,
-                     suspenders=suspenders, raw=m, chamber=chamber)
+                     suspenders=suspenders, raw=m, chamber=chamber, notifications=notifications)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

@@ -24,7 +24,7 @@ from .clock import make_clock
 from .config import RigConfig
 from .drivers.serial_link import explain_link_error
 from .errors import DeviceError
-from .rig import build_imu, build_pulses, build_table
+from .rig import build_chamber, build_imu, build_pulses, build_table
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,11 @@ class DeviceReport:
 
 def _where(cfg: RigConfig, role: str) -> tuple[str, str]:
     """(where, kind of port) of a wired device section; kind: serial, tcp or gpio."""
+    if role == "chamber":
+        s = cfg.chamber.settings
+        if cfg.chamber.driver == "scpi":
+            return s["resource"], "tcp" if s["resource"].upper().startswith("TCPIP") else "serial"
+        return (s["port"], "serial") if s.get("transport") == "rtu" else (f"{s['host']}:{s['tcp_port']}", "tcp")
     dev = {"table": cfg.table, "imu": cfg.imu, "pulses": cfg.pulses}[role]
     s = dev.settings
     if dev.driver == "modbus" and s.transport == "tcp":
@@ -88,6 +93,8 @@ def check_devices(cfg: RigConfig) -> DeviceReport:
     jobs = [("table", lambda: build_table(cfg, clock)), ("imu", lambda: build_imu(cfg, clock))]
     if cfg.pulses.driver not in ("none", "sim"):
         jobs.append(("pulses", lambda: build_pulses(cfg, clock)))
+    if cfg.chamber.driver in ("watlow", "scpi"):
+        jobs.append(("chamber", lambda: build_chamber(cfg, clock)))
     with ThreadPoolExecutor(max_workers=len(jobs), thread_name_prefix="rigctl-devcheck") as pool:
         futures = [pool.submit(_probe, role, *_where(cfg, role), build) for role, build in jobs]
         return DeviceReport([f.result() for f in futures])

@@ -21,6 +21,7 @@ from .report_allan import allan_curves
 G0 = 9.80665
 SECTIONS = (("verdicts", "Verdicts"), ("summary", "Summary"), ("table", "Table orientation and rate"),
             ("calibration", "Calibration"), ("closed-loop", "Closed loop"),
+            ("thermal", "Thermal calibration"),
             ("allan", "Allan deviation"), ("sync", "Time synchronisation"),
             ("events", "Faults and suspender events"), ("provenance", "Provenance"))
 CSS = """
@@ -467,6 +468,45 @@ def s_sync(d: RunData, plots: dict[str, Path]) -> str:
                       img(plots, "sync_residual", "Clock residual (ms) against reference time (s)")])
 
 
+def s_thermal(d: RunData, plots: dict[str, Path]) -> str:
+    """The thermal calibration (/results/thermal, docs/thermal.md): per sensor the fit's status,
+    the loop's findings, the coefficients, before/after per temperature band, and the plots."""
+    from .display_units import display, format_value
+
+    p = (d.results.get("thermal") or {}).get("json") or {}
+    if p.get("mode") != "thermal":
+        return not_run("thermal calibration", "a chamber run (procedures/thermal-ramp.yaml or thermal-soak.yaml), "
+                       "then rigctl calibrate")
+    out = [f"<p>Reference temperature {fmt(p.get('reference_c'))} degC. "
+           + (f"Against the emulator's truth: {p['truth_coverage']['inside']} of {p['truth_coverage']['total']} "
+              "95 % intervals cover it." if p.get("truth_coverage") else "") + "</p>",
+           img(plots, "thermal_parameters", "thermal parameters against temperature"),
+           img(plots, "thermal_residuals", "residuals before and after against temperature")]
+    for sensor, s in (p.get("sensors") or {}).items():
+        w = s.get("windows") or {}
+        found = ", ".join(s.get("effects_found") or []) or "none"
+        lo, hi = s.get("chi2_band_99") or [None, None]
+        out.append(f"<h3>{esc(sensor)}</h3><p>{w.get('total')} windows ({w.get('heating')} heating, "
+                   f"{w.get('cooling')} cooling); chi2/dof {fmt(s.get('chi2_per_dof'), 3)} (99 % band "
+                   f"{fmt(lo, 3)} .. {fmt(hi, 3)}): <b>{esc(s.get('status'))}</b>; thermal effects found: "
+                   f"{esc(found)}</p>")
+        rows = []
+        for q in s.get("parameters") or []:
+            dd = display(q["name"])
+            v, u = format_value(dd.value(q["value"]), dd.sigma(q["sigma"]))
+            ci = [format_value(dd.value(x), dd.sigma(q["sigma"]))[0] for x in q["ci95"]]
+            rows.append([dd.base, v, u, f"[{ci[0]}, {ci[1]}]", dd.unit])
+        out.append(table(["parameter", "value", "u", "95 % interval", "unit"], rows))
+        ba = s.get("before_after") or {}
+        dd = display(f"{sensor}_bias_x_{ba.get('unit', 'm_s2')}")
+        brow = [[f"{b['from_c']:g} .. {b['to_c']:g} degC", b["windows"],
+                 *[f"{dd.sigma(x):.4g} -> {dd.sigma(y):.4g}" for x, y in zip(b["rms_before"], b["rms_after"])]]
+                for b in ba.get("by_temperature") or []]
+        out.append(table(["temperature", "windows", *[f"{a}: RMS before -> after [{dd.unit}]" for a in "xyz"]],
+                         brow))
+    return "\n".join(out)
+
+
 def render(d: RunData, plots: dict[str, Path]) -> str:
     """The whole page as one string."""
     name = d.meta.get("procedure_name", d.recording.stem)
@@ -474,6 +514,7 @@ def render(d: RunData, plots: dict[str, Path]) -> str:
     body = [section("verdicts", s_verdicts(d)), section("summary", s_summary(d)), section("table", s_table(d, plots)),
             section("calibration", s_calibration(d, plots)),
             section("closed-loop", s_closed_loop(d, plots)),
+            section("thermal", s_thermal(d, plots)),
             section("allan", s_allan(d, plots)), section("sync", s_sync(d, plots)),
             section("events", s_events(d)), section("provenance", s_provenance(d))]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

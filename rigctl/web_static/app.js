@@ -66,7 +66,8 @@ function showStatus(st) {
   $("st-eta").textContent = st.remaining_s !== undefined ? "about " + fmtDuration(st.remaining_s) + " left" : "-";
   $("st-samples").textContent = st.imu_samples !== undefined ? st.imu_samples : "-";
   const sus = st.suspenders || {};
-  $("st-susp").textContent = Object.keys(sus).length ? Object.entries(sus).map(([k, v]) => k + ": " + v).join("; ") : "no";
+  $("st-susp").textContent = (Object.keys(sus).length ? Object.entries(sus).map(([k, v]) => k + ": " + v).join("; ") : "no")
+    + (st.deferred_pause ? " (pause requested for the end of this step)" : "");
   $("st-queue").textContent = `${st.queued || 0} queued, queue ${st.queue_running ? "running" : "stopped"}`;
 }
 
@@ -282,7 +283,8 @@ function setup() {
     loadProcedures(); refreshQueue(); refreshHistory();
   });
   for (const b of document.querySelectorAll("button[data-cmd]")) {
-    b.addEventListener("click", () => control("POST", "/api/" + b.dataset.cmd));
+    b.addEventListener("click", () => control("POST", "/api/" + b.dataset.cmd,
+                                              b.dataset.body ? JSON.parse(b.dataset.body) : undefined));
   }
   $("add-form").addEventListener("submit", e => {
     e.preventDefault();
