@@ -25,7 +25,8 @@ and how each sub-model is tested:
   (applied to the calibrated rate): ``gyro_scale_asymmetry`` d_i |w_i| (ratio) and
   ``gyro_scale_nonlinearity`` n_i w_i |w_i| (s/rad).
 
-Every sub-model runs the same loop (:func:`select_effects`): forward selection, each round
+Every sub-model runs the same loop (:func:`select_effects`) while its chi2/dof is above the
+99 % band (a fit inside its band has nothing left to explain): forward selection, each round
 adding the candidate with the smallest F-test p-value below alpha / m (Bonferroni over the m
 candidates left), if leave-one-pose-out cross-validation (PRESS, whitened, linearised at the
 solution) drops too. Then :func:`judge`: the final chi2/dof against its 99 % band (F band: the
@@ -219,10 +220,12 @@ def chi2_band(dof: int, noise_dof: float, level: float = 0.99) -> tuple[float, f
     return float(scipy.stats.f.ppf(a, dof, noise_dof)), float(scipy.stats.f.ppf(1 - a, dof, noise_dof))
 
 
-def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01
+def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01,
+                   needed: Callable[[Fit], bool] | None = None
                    ) -> tuple[list[str], list[Fit], list[dict[str, Any]]]:
     """Forward selection (module doc). Returns (accepted names, fits after each step with the
-    declared fit first, explain rows)."""
+    declared fit first, explain rows). ``needed(fit)``: a round runs only while it is true (the
+    loop runs while the chi2 is above its band)."""
     cur: list[str] = []
     fits = [fit_fn(cur)]
     rows: list[dict[str, Any]] = []
@@ -233,8 +236,14 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
     pool = [c for c in cands if c.testable]
     step = 0
     while pool:
-        step += 1
         base = fits[-1]
+        if needed is not None and not needed(base):
+            why = (f"the {'declared' if step == 0 else 'current'} model's chi2/dof {base.chi2_per_dof:.3g} is inside "
+                   "its 99 % band: nothing left to explain")
+            rows += [{"step": step + 1, "candidate": c.name, "statistic": "-", "decision": f"not run: {why}"}
+                     for c in pool]
+            break
+        step += 1
         tried = []
         for c in pool:
             try:
@@ -344,7 +353,10 @@ STATUS_PESSIMISTIC = "NOISE MODEL TOO PESSIMISTIC"
 def judge(name: str, fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], noise_dof: float,
           variables: dict[str, Arr], alpha: float = 0.01) -> SubLoop:
     """Run the selection, then the band and the claims (module doc)."""
-    accepted, fits, rows = select_effects(fit_fn, cands, alpha)
+    def needed(f: Fit) -> bool:
+        return f.dof <= 0 or f.chi2_per_dof > chi2_band(f.dof, noise_dof)[1]
+
+    accepted, fits, rows = select_effects(fit_fn, cands, alpha, needed)
     final, declared = fits[-1], fits[0]
     band = chi2_band(final.dof, noise_dof)
     claimed, not_claimed, findings = list(accepted), [], []
@@ -598,7 +610,7 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
     else:
         y -= OMEGA_EARTH * np.sin(latitude_rad) * up.T.reshape(-1)
         cos2 = np.cos(latitude_rad) ** 2
-    var = d.var_gyr.T.reshape(-1) + OMEGA_EARTH ** 2 * cos2 * (1 - up.T.reshape(-1) ** 2) / 2
+    h2 = OMEGA_EARTH ** 2 * cos2 / 2  # horizontal Earth rate, random heading: (I - up up^T) h2 per pose
     cols = [np.kron(np.eye(3), np.ones((P, 1)))]
     names = [f"gyro_bias_{a}_rad_s" for a in AX]
     if latitude_rad is None:
@@ -609,8 +621,13 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
         cols.append(c)
         names += n
     X = np.hstack(cols)
-    s = np.sqrt(var)
-    Xw, yw = X / s[:, None], y / s
+    Xw, yw = np.empty_like(X), np.empty_like(y)
+    for p in range(P):  # whiten each pose's three rows by the Cholesky factor of their covariance
+        rows = np.array([p, P + p, 2 * P + p])
+        C = np.diag(d.var_gyr[p]) + h2 * (np.eye(3) - np.outer(up[p], up[p]))
+        L = np.linalg.cholesky(C)
+        Xw[rows] = np.linalg.solve(L, X[rows])
+        yw[rows] = np.linalg.solve(L, y[rows])
     groups = np.tile(np.arange(P), 3)
     if latitude_rad is None:  # prior row: sin(lat) uniform on [-1, 1]
         pr = np.zeros((1, X.shape[1]))
