@@ -254,9 +254,8 @@ class OadevAccumulator:
             raise ValueError("need at least one averaging factor >= 1")
         self.mode = mode
         fast = mode == "fast"
-        # (direct differences through the compiled kernels for every factor measured no
-        # faster than the pyramid: ~7 ns per sample for the phase, the decimation cascade and
-        # the sums, against ~11 ns, inside the noise of this machine)
+        # (direct differences through the compiled kernels for every factor measured slower
+        # than the pyramid: 0.28-0.34 s CPU against 0.22 s on 2e7 samples)
         self._gram = np.array([fast and S.conforming(int(m)) is not None for m in self.ms])
         self.pyramid = S.GramPyramid(self.ms[self._gram]) if self._gram.any() else None
         levels: dict[int, list[int]] = {}
