@@ -1,5 +1,5 @@
 """Byte errors through the VectorNav and declarative-frame drivers over a pty: the emulated IMU
-(800 Hz, 100x real time) streams 200,000 frames with byte errors at 1e-4, and the driver counts
+(800 Hz, 100x real time) streams 100,000 frames with byte errors at 1e-4, and the driver counts
 every frame hit (CRC-16 on both: a hit frame that still checks is a 2^-16 event), one dropped
 sample per lost frame, no bytes lost on the pty."""
 from __future__ import annotations
@@ -28,7 +28,7 @@ def _driver(hw, protocol: str, speed: float):
 @pytest.mark.parametrize("protocol", ["vectornav", "frame"])
 def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
     cfg, _ = sim_config(tmp_path, rate_hz=800)
-    n_frames, speed = 200_000, 100.0
+    n_frames, speed = 100_000, 100.0
     with start_hardware(cfg, speed, link_dir=tmp_path / "ports", tick_s=0.02, imu_protocol=protocol) as hw:
         imu = _driver(hw, protocol, speed)
         imu.connect()
