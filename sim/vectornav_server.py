@@ -87,6 +87,13 @@ class VectorNavServer(StreamTwin):
                 return self._err(8, f"register {reg} is not emulated")
             return V.command(f"VNRRG,{reg:02d},{values[reg]}")
 
+    def power_cycle(self) -> None:
+        """The sensor restarts (a USB cable pulled): TimeStartup starts again from 0, the binary
+        output is off until configured again."""
+        with self._lock:
+            self.startup_ns = -int(round((self.clock() - self.t_origin) * 1e9))
+            self.async_mode, self.state = 0, "config"
+
     # ------------------------------------------------------------------------ frames
     def _frames(self, k: np.ndarray, t: np.ndarray, src: dict) -> np.ndarray:
         ns = self.startup_ns + np.rint((t - self.t_origin) * 1e9).astype(np.int64)
