@@ -128,3 +128,8 @@ class ScpiChamber:
 
     def stop(self) -> None:
         self.set_setpoint(self.safe_c, None)
+
+    def identify(self) -> str:
+        """Connect and ask *IDN? (rigctl validate --devices)."""
+        self.connect()
+        return f"SCPI chamber: {self.identity['device_id']}"

@@ -151,3 +151,9 @@ class WatlowF4T:
 
     def stop(self) -> None:
         self.set_setpoint(self.safe_c, None)
+
+    def identify(self) -> str:
+        """Connect and read the chamber temperature (rigctl validate --devices)."""
+        self.connect()
+        s = self.read()
+        return f"Watlow F4T ({self.where}): air {s.air_c:.2f} degC, set point {s.setpoint_c:.2f} degC"

@@ -20,6 +20,10 @@ corrected data) and the provenance in /meta attrs ``calibration_applied_json`` (
 source and the input file). It is built as OUT.h5.part and renamed when complete; nothing else
 is written. The input is never modified and OUT may not be the input.
 
+A thermal calibration (/results/thermal when there is no /results/calibration, or a JSON with
+``"mode": "thermal"``) is applied at each sample's temperature (/imu/temperature):
+:func:`rigctl.analysis.thermal.apply_thermal`, docs/thermal.md.
+
 Exit codes: 0 written, 2 invalid input, 1 failure.
 """
 from __future__ import annotations
@@ -34,6 +38,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from .analysis.thermal import apply_thermal, thermal_info
 from .recorder import utc_now
 from .recording_reader import check_finite
 from .segment_builder import open_recording
@@ -82,11 +87,16 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
     else:
         with open_recording(path) as f:
             g = f.get("results/calibration")
+            if g is None and f.get("results/thermal") is not None and "json" in f["results/thermal"].attrs:
+                data = json.loads(f["results/thermal"].attrs["json"])
+                return thermal_info(data, path), f"{path.resolve()}:/results/thermal"
             if g is None or "json" not in g.attrs:
                 raise InputError("no /results/calibration in the recording", path,
                                  hint="run `rigctl calibrate` first, or give --calibration JSON")
             data = json.loads(g.attrs["json"])
         src = f"{path.resolve()}:/results/calibration"
+    if isinstance(data, dict) and data.get("mode") == "thermal":
+        return thermal_info(data, calibration or path), src
     model = data.get("model") if isinstance(data, dict) else None
     try:
         for sensor, keys in (("accel", ("bias_m_s2", "M", "k2_s2_per_m")), ("gyro", ("bias_rad_s", "M"))):
@@ -107,9 +117,29 @@ def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str
 def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -> int:
     """Write the corrected copy; returns the number of samples."""
     m = info["model"]
+    if "thermal" in info:  # rigctl/analysis/thermal.py
+        return _apply_copy(src, out, info, origin, lambda fin, fo: apply_thermal(fin, fo, src, info, CHUNK))
     ba, Ma, k2 = (np.asarray(m["accel"][k], dtype=np.float64) for k in ("bias_m_s2", "M", "k2_s2_per_m"))
     bg, Mg = (np.asarray(m["gyro"][k], dtype=np.float64) for k in ("bias_rad_s", "M"))
     G = np.asarray(m["gyro"].get("G_rad_s_per_m_s2", np.zeros((3, 3))), dtype=np.float64)
+
+    def fixed(fin: h5py.File, fo: h5py.File) -> int:
+        fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
+        n = fa.shape[0]
+        for a0 in range(0, n, CHUNK):
+            a1 = min(n, a0 + CHUNK)
+            f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
+            check_finite(src, "imu/specific_force", f_in, a0)
+            check_finite(src, "imu/angular_rate", w_in, a0)
+            fa[a0:a1] = acc = invert_accel(f_in, ba, Ma, k2)
+            fw[a0:a1] = invert_gyro(w_in, acc, bg, Mg, G)
+        return n
+    return _apply_copy(src, out, info, origin, fixed)
+
+
+def _apply_copy(src: Path, out: Path, info: dict[str, Any], origin: str, correct: Any) -> int:
+    """Copy to OUT.h5.part, ``correct(fin, fo)`` its /imu, record the provenance, rename."""
+    m = info["model"]
     part = out.with_name(out.name + ".part")
     n = 0
     try:
@@ -121,16 +151,7 @@ def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -
                     fo.create_group("results")
                     continue
                 fin.copy(fin[name], fo, name=name)
-            fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
-            n = fa.shape[0]
-            for a0 in range(0, n, CHUNK):
-                a1 = min(n, a0 + CHUNK)
-                f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
-                check_finite(src, "imu/specific_force", f_in, a0)
-                check_finite(src, "imu/angular_rate", w_in, a0)
-                acc = invert_accel(f_in, ba, Ma, k2)
-                fw[a0:a1] = invert_gyro(w_in, acc, bg, Mg, G)
-                fa[a0:a1] = acc
+            n = correct(fin, fo)
             fo.require_group("meta").attrs["calibration_applied_json"] = json.dumps({
                 "source": origin, "input": str(src.resolve()), "applied_utc": utc_now(),
                 "schema_version": info["schema_version"], "status": info["status"],

@@ -6,7 +6,7 @@ A chamber is a small duck-typed device like the table and the IMU (rigctl.device
     read() -> ChamberState                      # air, product (second input), set points, status
     stop()                                      # safe state: the configured safe set point
 
-Drivers: :mod:`rigctl.drivers.watlow_chamber` (Watlow F4T over Modbus RTU or TCP) and
+Drivers (built by :func:`rigctl.rig.build_chamber`): :mod:`rigctl.drivers.watlow_chamber` (Watlow F4T over Modbus RTU or TCP) and
 :mod:`rigctl.drivers.scpi_chamber` (an SCPI chamber through PyVISA, command set per model); the
 in-process emulator's is :class:`rigctl.sim.world.SimChamberDevice`. Config (docs/thermal.md)::
 
@@ -99,19 +99,4 @@ def describe_trip(state: ChamberState, band: tuple[float, float]) -> str | None:
     for name, v in (("air", state.air_c), ("product", state.product_c)):
         if math.isfinite(v) and not band[0] <= v <= band[1]:
             return (f"chamber {name} temperature {v:.1f} degC outside [{band[0]:g}, {band[1]:g}] degC")
-    return None
-
-
-def build_chamber(cfg: Any, clock: Any) -> Any:
-    """The wired chamber driver of a config (None for ``driver: none``)."""
-    c = cfg.chamber
-    s = c.settings
-    if c.driver == "watlow":
-        from .drivers.watlow_chamber import WatlowF4T
-        return WatlowF4T(clock, safe_c=s["safe_c"], **{k: v for k, v in s.items()
-                                                        if k not in ("safe_c", "band_c")})
-    if c.driver == "scpi":
-        from .drivers.scpi_chamber import ScpiChamber
-        return ScpiChamber(s["resource"], clock, model=s["model"], commands=s["commands"],
-                           timeout_s=s["timeout_s"], safe_c=s["safe_c"])
     return None

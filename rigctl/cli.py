@@ -19,7 +19,6 @@ from .procedure import load_procedure, parse_overrides
 from .rig import describe
 from .console import guarded_std_streams
 from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
-from .runner import RUN_LOG, run_procedure
 from .units import format_bytes, format_duration
 
 #: Sub-command -> the module that adds it through ``register(subparsers)``. Only the module of
@@ -44,6 +43,7 @@ def _load(args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from .runner import RUN_LOG, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))

@@ -10,7 +10,8 @@ import numpy as np
 
 from . import schema as S
 from .frames import normal_gravity
-from .linkconfig import COMMON_KEYS, imu_settings, pulse_settings, table_settings
+from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
+from .notify import NotifySettings, notify_settings
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -19,7 +20,7 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = "configs/sim.yaml"
 
 TABLE_DRIVERS = ("sim", "acl", "modbus")
-IMU_DRIVERS = ("sim", "xsens")
+IMU_DRIVERS = ("sim", "xsens", "vectornav", "frame")
 PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
 CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")
@@ -54,12 +55,13 @@ class TableLimits:
 
 @dataclass(frozen=True)
 class DeviceConfig:
-    """A device section: its driver, the raw options, and the validated link settings of a
-    wired driver (rigctl.linkconfig; empty for the in-process emulator)."""
+    """A device section: its driver, the raw options, and the validated settings: for the
+    table, IMU and pulse input a :class:`rigctl.linkconfig.LinkSettings` of a wired driver (None
+    for the in-process emulator); for the chamber, rigctl.chamber's mapping."""
 
     driver: str
     options: LocDict
-    settings: dict[str, Any] = field(default_factory=dict)
+    settings: LinkSettings | dict[str, Any] | None = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,8 @@ class RigConfig:
     #: the climatic chamber (docs/thermal.md): ``none``, ``sim`` (in the emulated world),
     #: ``watlow`` (Modbus RTU / TCP) or ``scpi`` (PyVISA); settings from rigctl.chamber
     chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict()))
+    #: the daemon's notices (docs/daemon.md): webhook and/or e-mail on job end, suspension, fault
+    notifications: NotifySettings = field(default_factory=NotifySettings)
 
     @property
     def gravity(self) -> float:
@@ -226,7 +230,7 @@ def load_config(path: str | Path) -> RigConfig:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
     S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders", "traceability", "chamber"), "the rig config")
+                     "suspenders", "traceability", "chamber", "notifications"), "the rig config")
     traceability(m)
     name = S.get_str(m, "rig", p.stem)
     clock = S.get_str(m, "clock", None, choices=CLOCKS)
@@ -244,7 +248,7 @@ def load_config(path: str | Path) -> RigConfig:
     table, t = _device(m, "table", TABLE_DRIVERS, None)
     if table.driver == "sim":
         S.check_keys(t, ("driver", "limits", "sim"), "'table'")
-    table = DeviceConfig(table.driver, t, table_settings(table.driver, t))
+    table = DeviceConfig(table.driver, t, link_settings("table", table.driver, t))
     lim = S.require_mapping(t.get("limits", LocDict()), "'table.limits'", t, "limits") \
         if "limits" in t else None
     if lim is None:
@@ -260,9 +264,9 @@ def load_config(path: str | Path) -> RigConfig:
         S.check_keys(i, (*COMMON_KEYS, "serial"), "'imu' (sim)")
     imu_rate = S.get_number(i, "rate_hz", 100.0, minimum=1.0, maximum=10000.0)
     serial = imu_serial(i)
-    imu = DeviceConfig(imu.driver, i, imu_settings(imu.driver, i))
+    imu = DeviceConfig(imu.driver, i, link_settings("imu", imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
-    pulses = DeviceConfig(pulses.driver, p_opts, pulse_settings(pulses.driver, p_opts))
+    pulses = DeviceConfig(pulses.driver, p_opts, link_settings("pulses", pulses.driver, p_opts))
     if (table.driver == "sim") != (imu.driver == "sim"):
         raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
                       "together; mixing it with a wired device is not supported",
@@ -281,6 +285,7 @@ def load_config(path: str | Path) -> RigConfig:
         flush = S.get_number(r, "flush_interval_s", 0.5, minimum=0.01, maximum=1.0)
         table_rate = S.get_number(r, "table_rate_hz", 10.0, minimum=0.1, maximum=1000.0)
     suspenders = suspender_settings(m)
+    notifications = notify_settings(m)
     from .chamber import chamber_settings  # the chamber section (docs/thermal.md)
     chamber, c_opts = _device(m, "chamber", CHAMBER_DRIVERS, "none")
     chamber = DeviceConfig(chamber.driver, c_opts, chamber_settings(chamber.driver, c_opts))
@@ -291,7 +296,7 @@ def load_config(path: str | Path) -> RigConfig:
                      speed=speed, latitude=lat, height_m=h, gravity_measured=g, limits=limits,
                      table=table, imu=imu, imu_rate_hz=imu_rate, pulses=pulses,
                      flush_interval_s=flush, table_rate_hz=table_rate, seed=seed, imu_serial=serial,
-                     suspenders=suspenders, raw=m, chamber=chamber)
+                     suspenders=suspenders, raw=m, chamber=chamber, notifications=notifications)
 
 
 def resolve_config_path(path: str | Path | None) -> Path:

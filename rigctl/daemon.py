@@ -23,14 +23,18 @@ from . import control
 from .checkpoint import write_atomic
 from .config import load_config, resolve_config_path
 from .console import detach_all
-from .engine import Engine
 from .procedure import load_procedure, parse_overrides
 from .progress import NullProgress, Progress
 from .recorder import utc_now
 from .runlog import RunLog
+from .daemon_text import reply_text
 from .livefeed import LiveFeed
+from .notify import Notifier
 from .errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
-from .runner import RunOptions, check_run_dir, resume_run, run_procedure
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the runner pulls in the solvers (scipy, ~1 s): client verbs must not pay it
+    from .runner import RunOptions
 from .states import StateMachine
 from .yamlio import InputError
 
@@ -59,6 +63,7 @@ class Daemon:
         self.config_path = Path(config_path).resolve()
         self.cfg = load_config(self.config_path)
         self.socket_path = Path(socket_path)
+        from .runner import RunOptions
         self.base_options = options or RunOptions()
         self.states = StateMachine()
         self.log = RunLog(self.runs_dir / ".rigctl-daemon" / "daemon.log.jsonl"
@@ -66,7 +71,7 @@ class Daemon:
         self.jobs: list[Job] = []
         self.queue: deque[int] = deque()
         self.cv = threading.Condition()
-        self.engine: Engine | None = None
+        self.engine: Any = None  # the running job's rigctl.engine.Engine
         self.current: Job | None = None
         self.progress: Progress = NullProgress()
         self.stopping: str | None = None
@@ -76,6 +81,10 @@ class Daemon:
         self.server = control.ControlServer(self.socket_path, self.handle, self.log)
         self.worker = threading.Thread(target=self._work, name="rigctl-worker", daemon=True)
         self.web: Any = None  # a rigctl.web.WebServer when serving HTTP (start_http)
+        self.notifier = Notifier(self.cfg.notifications, self.cfg.name, self.log)
+        self._paused_since: float | None = None   # wall time (monotonic) the current pause began
+        self._pause_noticed = False
+        self.states.listeners.append(self._on_state)
         self.states.listeners.append(
             lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
 
@@ -150,7 +159,10 @@ class Daemon:
 
     def _cmd_status(self, _args: dict) -> dict:
         eng = self.engine
-        out: dict[str, Any] = {"ok": True, "state": self.states.state, "reason": self.states.reason,
+        state, reason = self.states.state, self.states.reason
+        if self.current is not None and state == "idle":  # between taking the job and the first step
+            state, reason = "starting", f"job {self.current.id}: opening the rig and checking its devices"
+        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason,
                                "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
                                "queued": len(self.queue), "queue_running": self.queue_running,
                                "job": asdict(self.current) if self.current else None}
@@ -161,6 +173,7 @@ class Daemon:
             out["segments"] = eng.rec.n_segments
             out["progress"] = self.progress.status_text()
             out["remaining_s"] = round(self.progress.remaining_s(), 1)
+            out["deferred_pause"] = eng.deferred_pause is not None
             out["step_fraction"] = round(self.progress.fraction(), 3)
         return out
 
@@ -233,15 +246,21 @@ class Daemon:
         self.cv.notify_all()
         return {"ok": True, "job": job.id, "position": list(self.queue).index(job.id) + 1}
 
-    def _cmd_pause(self, _args: dict) -> dict:
+    def _cmd_pause(self, args: dict) -> dict:
         if self.engine is None or self.states.state not in ("running", "pausing", "paused"):
             return {"ok": False, "error": f"nothing to pause (daemon is {self.states.state})"}
+        if args.get("deferred"):
+            self.engine.request_pause("paused by operator at the end of a step (rigctl pause --deferred)",
+                                      deferred=True)
+            return {"ok": True, "state": self.states.state, "deferred": True,
+                    "note": "pauses at the end of the step in flight"}
         self.engine.request_pause("paused by operator (rigctl pause)")
         return {"ok": True, "state": self.states.state}
 
     def _cmd_resume(self, args: dict) -> dict:
         if "run" in args:
             try:
+                from .runner import check_run_dir
                 d = check_run_dir(args["run"], self.runs_dir)
             except InputError as exc:
                 return {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
@@ -267,7 +286,11 @@ class Daemon:
         if self.engine is None:
             return {"ok": False, "error": "no job is running"}
         self.engine.request_abort("abort requested (rigctl abort)")
-        return {"ok": True}
+        # as in bluesky-queueserver: an abort stops the queue, the next job does not start at once
+        self.queue_running = False
+        self.log("info", "queue stopped by the abort: 'rigctl queue start' runs the next job")
+        return {"ok": True, "queue_running": False,
+                "note": f"queue stopped ({len(self.queue)} queued); 'rigctl queue start' goes on"}
 
     def _cmd_logs(self, args: dict) -> dict:
         job = self.current or next((j for j in reversed(self.jobs) if j.run_dir), None)
@@ -281,8 +304,34 @@ class Daemon:
                 lines.extend(line.rstrip("\n") for line in fh)
         return {"ok": True, "job": job.id, "lines": list(lines)}
 
+    # -- notices -------------------------------------------------------------------------------
+    def _on_state(self, old: str, new: str, why: str) -> None:
+        if new in ("pausing", "paused"):
+            if self._paused_since is None:
+                self._paused_since, self._pause_noticed = time.monotonic(), False
+        else:
+            self._paused_since = None
+        if new == "faulted":
+            job = self.current
+            self.notifier.notify("faulted", why, asdict(job) if job else None)
+
+    def _watch(self) -> None:
+        """Send the 'suspended' notice once a pause has lasted ``suspended_after_s`` (wall time)."""
+        limit = self.cfg.notifications.suspended_after_s
+        while self.stopping is None:
+            since = self._paused_since
+            if since is not None and not self._pause_noticed and time.monotonic() - since >= limit:
+                self._pause_noticed = True
+                with self.cv:
+                    eng, job = self.engine, self.current
+                    reasons = dict(eng.suspenders.active) if eng is not None else {}
+                    info = asdict(job) if job else None
+                text = "; ".join(f"{k}: {v}" for k, v in reasons.items()) or self.states.reason
+                self.notifier.notify("suspended", f"suspended for more than {limit:g} s: {text}", info)
+            time.sleep(min(0.5, limit / 4))
+
     # -- jobs ----------------------------------------------------------------------------------
-    def _set_engine(self, engine: Engine | None) -> None:
+    def _set_engine(self, engine: Any) -> None:
         with self.cv:
             self.engine = engine
             if engine is not None:
@@ -305,6 +354,7 @@ class Daemon:
             self.log("info", f"job {job.id}: {job.kind} {job.procedure or job.run_dir}")
             # plain progress lines once a minute on the daemon's console; `status` reads it too
             self.progress = Progress(self.log.console, tty=False, interval_s=60.0)
+            from .runner import RunOptions, resume_run, run_procedure
             opts = RunOptions(suspenders=self.base_options.suspenders, states=self.states,
                               rig_opener=self.base_options.rig_opener, on_engine=self._set_engine,
                               max_pause_s=self.base_options.max_pause_s,
@@ -330,10 +380,14 @@ class Daemon:
                 self._save_jobs()
                 self.cv.notify_all()
             self.log("info", f"job {job.id} {state}" + (f": {message}" if message else ""))
+            self.notifier.notify(state, message, asdict(job))
 
     def start(self) -> None:
         self.server.start()
         self.worker.start()
+        if self.cfg.notifications.enabled:
+            self.notifier.start()
+            threading.Thread(target=self._watch, name="rigctl-watch", daemon=True).start()
         self.log("info", f"rigctl daemon: socket {self.socket_path}, runs in {self.runs_dir}, "
                          f"config {self.config_path}")
 
@@ -365,6 +419,7 @@ class Daemon:
         if self.web is not None:
             self.web.close()
         self.server.close()
+        self.notifier.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
 
 
@@ -414,15 +469,20 @@ def _client(args: argparse.Namespace, cmd: str, payload: dict[str, Any] | None =
     return control.request(path, cmd, payload)
 
 
-def _print_reply(reply: dict[str, Any]) -> int:
-    """Print a daemon's answer; a refusal raises the error its ``exit_code`` names (2: the
-    request or the procedure is invalid, else 1), so the CLI exits as ``rigctl run`` would."""
+def _print_reply(reply: dict[str, Any], cmd: str = "", args: argparse.Namespace | None = None) -> int:
+    """Print a daemon's answer: aligned text (rigctl.daemon_text), or with ``--json`` the reply
+    as one JSON document. A refusal raises the error its ``exit_code`` names (2: the request or
+    the procedure is invalid, else 1), so the CLI exits as ``rigctl run`` would."""
+    as_json = bool(getattr(args, "json", False))
+    if as_json:
+        print(json.dumps(reply, indent=1, default=str))
     if not reply.get("ok"):
         text = str(reply.get("error", "unknown error"))
         raise InputError(text) if reply.get("exit_code") == EXIT_INVALID else RunFailure(text)
-    for k, v in reply.items():
-        if k != "ok":
-            print(f"{k}: {json.dumps(v) if isinstance(v, (dict, list)) else v}")
+    if not as_json:
+        text = reply_text(cmd, reply)
+        if text:
+            print(text)
     return 0
 
 
@@ -443,7 +503,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
         if args.position < 1:
             raise InputError(f"--position {args.position}: positions start at 1")
         payload["position"] = args.position - 1
-    return _print_reply(_client(args, "submit", payload))
+    return _print_reply(_client(args, "submit", payload), "submit", args)
 
 
 QUEUE_ACTIONS = ("remove", "move", "clear", "stop", "start", "history")
@@ -460,14 +520,16 @@ def cmd_queue(args: argparse.Namespace) -> int:
                          + {"remove": "JOB", "move": "JOB POSITION", "history": "[N]"}.get(args.action or "", "nothing")
                          + f", got {' '.join(map(str, args.values)) or 'nothing'}")
     if args.action in (None, "clear", "stop", "start"):
-        return _print_reply(_client(args, "queue" if args.action is None else f"queue_{args.action}"))
+        cmd = "queue" if args.action is None else f"queue_{args.action}"
+        return _print_reply(_client(args, cmd), cmd, args)
     if args.action == "remove":
-        return _print_reply(_client(args, "queue_remove", {"job": args.values[0]}))
+        return _print_reply(_client(args, "queue_remove", {"job": args.values[0]}), "queue_remove", args)
     if args.action == "move":
         if args.values[1] < 1:
             raise InputError(f"queue move: position {args.values[1]}: positions start at 1")
-        return _print_reply(_client(args, "queue_move", {"job": args.values[0], "position": args.values[1] - 1}))
-    return _print_reply(_client(args, "history", {"limit": args.values[0]} if args.values else {}))
+        return _print_reply(_client(args, "queue_move", {"job": args.values[0], "position": args.values[1] - 1}),
+                            "queue_move", args)
+    return _print_reply(_client(args, "history", {"limit": args.values[0]} if args.values else {}), "history", args)
 
 
 def watch_line(reply: dict[str, Any]) -> str:
@@ -489,13 +551,13 @@ def watch_line(reply: dict[str, Any]) -> str:
 def cmd_status(args: argparse.Namespace) -> int:
     """Print the daemon's status; with ``--watch`` one plain line per interval until Ctrl-C."""
     if not args.watch:
-        return _print_reply(_client(args, "status"))
+        return _print_reply(_client(args, "status"), "status", args)
     try:
         while True:
             reply = _client(args, "status")
             if not reply.get("ok"):
-                return _print_reply(reply)
-            print(watch_line(reply), flush=True)
+                return _print_reply(reply, "status", args)
+            print(json.dumps(reply, default=str) if args.json else watch_line(reply), flush=True)
             time.sleep(args.interval)
     except KeyboardInterrupt:
         return 0
@@ -504,24 +566,18 @@ def cmd_status(args: argparse.Namespace) -> int:
 @_run_client
 def cmd_simple(args: argparse.Namespace) -> int:
     payload = {"lines": args.lines} if args.command == "logs" else None
-    reply = _client(args, args.command, payload)
-    if args.command == "logs" and reply.get("ok"):
-        for line in reply.get("lines", []):
-            try:
-                rec = json.loads(line)
-                print(f"{rec.get('utc', '')} {rec.get('kind', ''):8s} {rec.get('message', '')}")
-            except ValueError:
-                print(line)
-        return 0
-    return _print_reply(reply)
+    if args.command == "pause" and args.deferred:
+        payload = {"deferred": True}
+    return _print_reply(_client(args, args.command, payload), args.command, args)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
     if args.run is None:
-        return _run_client(lambda a: _print_reply(_client(a, "resume")))(args)
+        return _run_client(lambda a: _print_reply(_client(a, "resume"), "resume", a))(args)
     path = Path(args.socket) if args.socket else control.default_socket_path()
     if control.ping(path):  # the daemon owns the rig: let it run the resume
-        return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}))
+        return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}), "resume", args)
+    from .runner import resume_run
     res = resume_run(args.run, args.runs)
     if res.exit_code != EXIT_OK:
         raise (Interrupted if res.exit_code == EXIT_INTERRUPTED else RunFailure)(
@@ -531,12 +587,15 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     """Add serve, submit, status, queue, pause, resume, abort and logs to the rigctl CLI."""
-    def sock(p: argparse.ArgumentParser) -> None:
+    def sock(p: argparse.ArgumentParser, client: bool = True) -> None:
         p.add_argument("--socket", help="control socket (default: $RIGCTL_SOCKET, "
                        "$XDG_RUNTIME_DIR/rigctl/rigctl.sock or /tmp/rigctl-UID/rigctl.sock)")
+        if client:
+            p.add_argument("--json", action="store_true",
+                           help="print the daemon's answer as one JSON document (status --watch: one per line)")
 
     p = sub.add_parser("serve", help="run the daemon in the foreground (owns the rig, runs queued jobs)")
-    sock(p)
+    sock(p, client=False)
     p.add_argument("--config", help="rig config YAML (default: configs/sim.yaml)")
     p.add_argument("--runs", default="runs", help="directory for run folders (default: runs)")
     p.add_argument("--http", metavar="HOST:PORT", help="also serve the HTTP API and web page "
@@ -573,6 +632,9 @@ def register(sub: Any) -> None:
         sock(p)
         if name == "logs":
             p.add_argument("-n", "--lines", type=int, default=50)
+        if name == "pause":
+            p.add_argument("--deferred", action="store_true",
+                           help="pause at the end of the step in flight (nothing re-runs) instead of at once")
         p.set_defaults(func=cmd_simple)
     p = sub.add_parser("resume", help="resume the paused job, or with RUN continue a cut-off run")
     sock(p)

@@ -3,14 +3,16 @@
 ``rigctl validate --devices`` prints the report; ``rigctl run`` (and the daemon, for each job)
 checks before it creates anything, so a run that cannot start leaves no run directory. Per
 device the answer is ``ok`` with what the device said (the ACL controller's ``*IDN?``, the Xsens
-DeviceID, a Modbus unit's input block, the NovAtel receiver's ``<OK`` to MARKCONTROL, a GPIO
+DeviceID, a VectorNav's model / serial number / firmware, one valid frame of a declarative-frame
+IMU, a Modbus unit's input block, the NovAtel receiver's ``<OK`` to MARKCONTROL, a GPIO
 chip's label, a modem line's level), or one line saying what is wrong and what to do
 (:func:`rigctl.drivers.serial_link.explain_link_error`): ``/dev/ttyUSB0: no such device; is the
 adapter plugged in? ls /dev/serial/by-id``, permission denied -> the dialout group, a refused
 TCP port -> is ``rigctl sim up`` / the device server running?
 
 Nothing moves: the probe sends only identity requests (ACL ``*IDN?``; Xsens GoToConfig, ReqDID,
-GoToMeasurement; Modbus reads; NovAtel MARKCONTROL with the configured settings) and closes every
+GoToMeasurement; VectorNav binary output off and register reads 1, 3, 4 -- the binary output
+stays off until a run configures it; Modbus reads; NovAtel MARKCONTROL with the configured settings) and closes every
 port again. The devices are asked in parallel, so the check takes the longest single answer.
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ from .clock import make_clock
 from .config import RigConfig
 from .drivers.serial_link import explain_link_error
 from .errors import DeviceError
-from .rig import build_imu, build_pulses, build_table
+from .rig import build_chamber, build_imu, build_pulses, build_table
 
 
 @dataclass(frozen=True)
@@ -57,13 +59,16 @@ class DeviceReport:
 
 def _where(cfg: RigConfig, role: str) -> tuple[str, str]:
     """(where, kind of port) of a wired device section; kind: serial, tcp or gpio."""
+    if role == "chamber":
+        s = cfg.chamber.settings
+        if cfg.chamber.driver == "scpi":
+            return s["resource"], "tcp" if s["resource"].upper().startswith("TCPIP") else "serial"
+        return (s["port"], "serial") if s.get("transport") == "rtu" else (f"{s['host']}:{s['tcp_port']}", "tcp")
     dev = {"table": cfg.table, "imu": cfg.imu, "pulses": cfg.pulses}[role]
     s = dev.settings
-    if dev.driver == "modbus" and s.get("transport") == "tcp":
-        return f"{s['host']}:{s['tcp_port']}", "tcp"
-    if dev.driver == "gpio":
-        return f"{s['chip']} line {s['line']}", "gpio"
-    return str(s.get("port")), "serial"
+    if dev.driver == "modbus" and s.transport == "tcp":
+        return s.where(), "tcp"
+    return s.where(), "gpio" if dev.driver == "gpio" else "serial"
 
 
 def _probe(role: str, where: str, kind: str, build: Callable[[], Any]) -> DeviceCheck:
@@ -90,6 +95,8 @@ def check_devices(cfg: RigConfig) -> DeviceReport:
     jobs = [("table", lambda: build_table(cfg, clock)), ("imu", lambda: build_imu(cfg, clock))]
     if cfg.pulses.driver not in ("none", "sim"):
         jobs.append(("pulses", lambda: build_pulses(cfg, clock)))
+    if cfg.chamber.driver in ("watlow", "scpi"):
+        jobs.append(("chamber", lambda: build_chamber(cfg, clock)))
     with ThreadPoolExecutor(max_workers=len(jobs), thread_name_prefix="rigctl-devcheck") as pool:
         futures = [pool.submit(_probe, role, *_where(cfg, role), build) for role, build in jobs]
         return DeviceReport([f.result() for f in futures])

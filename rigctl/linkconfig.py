@@ -6,6 +6,13 @@ to one), ``socket://host:port`` (raw TCP, e.g. a serial-device server or ``rigct
 ``rfc2217://host:port`` or ``spy:///dev/ttyUSB0`` (traffic dump). ``port: auto`` is the placeholder
 of configs/sim-wire.yaml that ``rigctl sim up --wire-config OUT.yaml`` fills in.
 
+One frozen dataclass per driver (:class:`AclSettings`, :class:`ModbusSettings`,
+:class:`XsensSettings`, :class:`NovatelSettings`, :class:`GpioSettings`, :class:`ModemSettings`)
+names each setting once, with its default and its range; :func:`parse` is the one validator
+(unknown keys with "did you mean", types, ranges and choices, each error with file and line);
+rig.py passes :meth:`LinkSettings.keywords` to the driver, whose keyword arguments carry the same
+names (tests/test_link_settings.py checks that they agree).
+
 Per driver (units in the key names; defaults in brackets):
 
 * table ``acl``: port, baudrate [115200], timeout_s [0.5], close_interlocks [true],
@@ -17,6 +24,10 @@ Per driver (units in the key names; defaults in brackets):
 * imu ``xsens``: port, baudrate [921600], rate_hz (top level of the section), timeout_s [0.5],
   sample_time_fine_wrap [4294967296; 864000000 for MTi-10/100], align_wait_s [0.02],
   link_timeout_s [2.0]; serial (any IMU driver: the unit's label, rigctl.config.imu_serial)
+* imu ``vectornav``: port, baudrate [921600], rate_hz (800 Hz / N), timeout_s [0.5], align_wait_s
+  [0.02], link_timeout_s [2.0]; serial
+* imu ``frame``: port, baudrate [115200], rate_hz, timeout_s [0.5], align_wait_s [0.02],
+  link_timeout_s [2.0], frame (the frame description, rigctl.frame_spec); serial
 * pulses ``novatel``: port, baudrate [115200], signal MARK1..MARK4 [MARK1], polarity
   NEGATIVE|POSITIVE [NEGATIVE], timebias_ns [0], timeguard_ms [4], log MARK1TIMEA|MARKTIMEA
 * pulses ``gpio``: chip [/dev/gpiochip0], line, edge rising|falling|both [rising],
@@ -26,9 +37,11 @@ Per driver (units in the key names; defaults in brackets):
 """
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, ClassVar
 
 from . import schema as S
+from .frame_spec import parse_frame_spec
 from .yamlio import LocDict
 
 AUTO = "auto"
@@ -36,99 +49,250 @@ AUTO = "auto"
 COMMON_KEYS = ("driver", "sim", "limits", "rate_hz")
 
 
-def _port(d: LocDict, driver: str, required: bool = True) -> str | None:
-    if "port" not in d and not required:
-        return None
-    port = S.get_str(d, "port")
-    if not port.strip():
-        raise S.error(d, "port", "'port' is empty", "give a device path or a pyserial URL")
-    if port == AUTO:
-        raise S.error(d, "port", f"'port: auto' ({driver}) is a placeholder filled in by the emulator",
+def _setting(default: Any = MISSING, *, kind: str, key: str | None = None, **check: Any) -> Any:
+    """A settings field: ``kind`` port | number | text | flag; ``key``: its YAML key when it
+    differs from the field's name; ``check``: minimum, maximum, integer, allow_none, choices."""
+    return field(default=default, metadata={"kind": kind, "key": key, **check})
+
+
+def port(required: bool = True) -> Any:
+    return _setting(MISSING if required else None, kind="port")
+
+
+def number(default: Any = MISSING, **check: Any) -> Any:
+    return _setting(default, kind="number", **check)
+
+
+def text(default: Any = MISSING, **check: Any) -> Any:
+    return _setting(default, kind="text", **check)
+
+
+def flag(default: bool) -> Any:
+    return _setting(default, kind="flag")
+
+
+def baudrate(default: int) -> Any:
+    return number(default, minimum=50, maximum=20_000_000, integer=True)
+
+
+def timeout(default: float = 0.5) -> Any:
+    return number(default, minimum=0.001, maximum=60)
+
+
+EDGES = ("rising", "falling", "both")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LinkSettings:
+    """Base of the settings of one wired driver (a section of the rig config)."""
+
+    #: the driver's name in the config; the fields the driver takes as positional arguments
+    DRIVER: ClassVar[str] = ""
+    POSITIONAL: ClassVar[tuple[str, ...]] = ("port",)
+    #: other keys the section may hold (read elsewhere)
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ()
+
+    def keywords(self) -> dict[str, Any]:
+        """The driver's keyword arguments (every field but :attr:`POSITIONAL`)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.POSITIONAL}
+
+    def check(self, d: LocDict) -> None:
+        """Rules between fields (after each field is valid); raises InputError."""
+
+    def where(self) -> str:
+        """Where the device is, as one line names it."""
+        return str(getattr(self, "port", ""))
+
+
+def _port(d: LocDict, key: str, driver: str) -> str:
+    value = S.get_str(d, key)
+    if not value.strip():
+        raise S.error(d, key, f"'{key}' is empty", "give a device path or a pyserial URL")
+    if value == AUTO:
+        raise S.error(d, key, f"'{key}: auto' ({driver}) is a placeholder filled in by the emulator",
                       "start `rigctl sim up --wire-config OUT.yaml` and use OUT.yaml")
-    return port
+    return value
 
 
-def _baud(d: LocDict, default: int) -> int:
-    return int(S.get_number(d, "baudrate", default, minimum=50, maximum=20_000_000, integer=True))
-
-
-def _timeout(d: LocDict, default: float = 0.5) -> float:
-    return float(S.get_number(d, "timeout_s", default, minimum=0.001, maximum=60))
-
-
-def table_settings(driver: str, d: LocDict) -> dict[str, Any]:
-    if driver == "sim":
-        return {}
-    if driver == "acl":
-        S.check_keys(d, (*COMMON_KEYS, "port", "baudrate", "timeout_s", "close_interlocks",
-                         "open_interlocks_on_stop"), "'table' (acl)")
-        return {"port": _port(d, driver), "baudrate": _baud(d, 115200), "timeout_s": _timeout(d),
-                "close_interlocks": S.get_bool(d, "close_interlocks", True),
-                "open_interlocks_on_stop": S.get_bool(d, "open_interlocks_on_stop", False)}
-    S.check_keys(d, (*COMMON_KEYS, "transport", "host", "tcp_port", "port", "baudrate", "parity",
-                     "unit_id", "word_order", "timeout_s", "retries", "watchdog_ms", "window_deg",
-                     "dwell_s"), "'table' (modbus)")
-    transport = S.get_str(d, "transport", "tcp", choices=("tcp", "rtu"))
-    out: dict[str, Any] = {"transport": transport, "timeout_s": _timeout(d),
-                           "unit_id": int(S.get_number(d, "unit_id", 1, minimum=0, maximum=247, integer=True)),
-                           "word_order": S.get_str(d, "word_order", "big", choices=("big", "little")),
-                           "retries": int(S.get_number(d, "retries", 1, minimum=0, maximum=10, integer=True)),
-                           "watchdog_ms": int(S.get_number(d, "watchdog_ms", 0, minimum=0, maximum=65535,
-                                                           integer=True)),
-                           "window_deg": S.get_number(d, "window_deg", None, minimum=0, maximum=10,
-                                                      allow_none=True),
-                           "dwell_s": S.get_number(d, "dwell_s", None, minimum=0, maximum=65.535,
-                                                   allow_none=True)}
-    if transport == "tcp":
-        if "host" not in d:
-            raise S.error(d, None, "Modbus TCP needs 'host'", "e.g. host: 192.168.0.10 (tcp_port: 502)")
-        out.update(host=S.get_str(d, "host"),
-                   tcp_port=int(S.get_number(d, "tcp_port", 502, minimum=1, maximum=65535, integer=True)))
-    else:
-        out.update(port=_port(d, driver), baudrate=_baud(d, 19200),
-                   parity=S.get_str(d, "parity", "N", choices=("N", "E", "O")))
+def parse(cls: type[LinkSettings], d: LocDict, what: str) -> LinkSettings:
+    """The one validator: ``d`` (a config section) as ``cls``; InputError with file and line."""
+    spec = {f.metadata.get("key") or f.name: f for f in fields(cls)}
+    S.check_keys(d, (*COMMON_KEYS, *cls.EXTRA_KEYS, *spec), what)
+    values: dict[str, Any] = {}
+    for key, f in spec.items():
+        m = {k: v for k, v in f.metadata.items() if k not in ("kind", "key")}
+        kind = f.metadata["kind"]
+        default = ... if f.default is MISSING else f.default
+        if key not in d:
+            if default is ...:
+                raise S.error(d, None, f"{what} is missing {key!r}", f"add a line '{key}: ...'")
+            values[f.name] = default
+        elif kind == "port":
+            values[f.name] = _port(d, key, cls.DRIVER)
+        elif kind == "number":
+            values[f.name] = S.get_number(d, key, default, **m)
+        elif kind == "text":
+            values[f.name] = S.get_str(d, key, default, **m)
+        else:
+            values[f.name] = S.get_bool(d, key, default)
+    out = cls(**values)
+    out.check(d)
     return out
 
 
-def imu_settings(driver: str, d: LocDict) -> dict[str, Any]:
-    if driver == "sim":
-        return {}
-    S.check_keys(d, (*COMMON_KEYS, "serial", "port", "baudrate", "timeout_s", "sample_time_fine_wrap",
-                     "align_wait_s", "link_timeout_s"), "'imu' (xsens)")
-    return {"port": _port(d, driver), "baudrate": _baud(d, 921600), "timeout_s": _timeout(d),
-            "sample_time_fine_wrap": int(S.get_number(d, "sample_time_fine_wrap", 1 << 32, minimum=1000,
-                                                      maximum=1 << 32, integer=True)),
-            "align_wait_s": float(S.get_number(d, "align_wait_s", 0.02, minimum=0, maximum=1)),
-            "link_timeout_s": float(S.get_number(d, "link_timeout_s", 2.0, minimum=0.01, maximum=600))}
+@dataclass(frozen=True, kw_only=True)
+class AclSettings(LinkSettings):
+    """table ``acl`` (rigctl.drivers.acl_table.AclTable)."""
+
+    DRIVER: ClassVar[str] = "acl"
+    port: str = port()
+    baudrate: int = baudrate(115200)
+    timeout_s: float = timeout()
+    close_interlocks: bool = flag(True)
+    open_interlocks_on_stop: bool = flag(False)
 
 
-def pulse_settings(driver: str, d: LocDict) -> dict[str, Any]:
-    if driver in ("none", "sim"):
-        return {}
-    if driver == "novatel":
-        S.check_keys(d, (*COMMON_KEYS, "port", "baudrate", "timeout_s", "signal", "polarity",
-                         "timebias_ns", "timeguard_ms", "log"), "'pulses' (novatel)")
-        return {"port": _port(d, driver), "baudrate": _baud(d, 115200), "timeout_s": _timeout(d, 1.0),
-                "signal": S.get_str(d, "signal", "MARK1", choices=("MARK1", "MARK2", "MARK3", "MARK4")),
-                "polarity": S.get_str(d, "polarity", "NEGATIVE", choices=("NEGATIVE", "POSITIVE")),
-                "timebias_ns": int(S.get_number(d, "timebias_ns", 0, minimum=-10**9, maximum=10**9,
-                                                integer=True)),
-                "timeguard_ms": int(S.get_number(d, "timeguard_ms", 4, minimum=4, maximum=3_599_999,
-                                                 integer=True)),
-                "log": S.get_str(d, "log", "MARK1TIMEA", choices=("MARK1TIMEA", "MARKTIMEA"))}
-    if driver == "gpio":
-        S.check_keys(d, (*COMMON_KEYS, "chip", "line", "edge", "event_clock", "debounce_us", "bias"),
-                     "'pulses' (gpio)")
-        return {"chip": S.get_str(d, "chip", "/dev/gpiochip0"),
-                "line": int(S.get_number(d, "line", minimum=0, maximum=65535, integer=True)),
-                "edge": S.get_str(d, "edge", "rising", choices=("rising", "falling", "both")),
-                "event_clock": S.get_str(d, "event_clock", "monotonic", choices=("monotonic", "realtime", "hte")),
-                "debounce_us": int(S.get_number(d, "debounce_us", 0, minimum=0, maximum=10**6, integer=True)),
-                "bias": S.get_str(d, "bias", "as-is", choices=("as-is", "pull-up", "pull-down", "disabled"))}
-    S.check_keys(d, (*COMMON_KEYS, "port", "baudrate", "line", "edge", "mode", "poll_interval_s"),
-                 "'pulses' (modem)")
-    return {"port": _port(d, driver), "baudrate": _baud(d, 9600),
-            "line": S.get_str(d, "line", "cd", choices=("cd", "cts", "dsr", "ri")),
-            "edge": S.get_str(d, "edge", "rising", choices=("rising", "falling", "both")),
-            "mode": S.get_str(d, "mode", "wait", choices=("wait", "poll")),
-            "poll_interval_s": float(S.get_number(d, "poll_interval_s", 0.001, minimum=1e-4, maximum=1))}
+@dataclass(frozen=True, kw_only=True)
+class ModbusSettings(LinkSettings):
+    """table ``modbus`` (rigctl.drivers.modbus_table.ModbusTable): TCP (host, tcp_port) or RTU
+    (port, baudrate, parity)."""
+
+    DRIVER: ClassVar[str] = "modbus"
+    POSITIONAL: ClassVar[tuple[str, ...]] = ()
+    transport: str = text("tcp", choices=("tcp", "rtu"))
+    host: str | None = text(None)
+    tcp_port: int = number(502, minimum=1, maximum=65535, integer=True)
+    port: str | None = port(required=False)
+    baudrate: int = baudrate(19200)
+    parity: str = text("N", choices=("N", "E", "O"))
+    unit_id: int = number(1, minimum=0, maximum=247, integer=True)
+    word_order: str = text("big", choices=("big", "little"))
+    timeout_s: float = timeout()
+    retries: int = number(1, minimum=0, maximum=10, integer=True)
+    watchdog_ms: int = number(0, minimum=0, maximum=65535, integer=True)
+    window_deg: float | None = number(None, minimum=0, maximum=10, allow_none=True)
+    dwell_s: float | None = number(None, minimum=0, maximum=65.535, allow_none=True)
+
+    def check(self, d: LocDict) -> None:
+        if self.transport == "tcp" and self.host is None:
+            raise S.error(d, None, "Modbus TCP needs 'host'", "e.g. host: 192.168.0.10 (tcp_port: 502)")
+        if self.transport == "rtu" and self.port is None:
+            raise S.error(d, None, "'table' (modbus) is missing 'port'", "add a line 'port: ...'")
+
+    def where(self) -> str:
+        return f"{self.host}:{self.tcp_port}" if self.transport == "tcp" else str(self.port)
+
+
+@dataclass(frozen=True, kw_only=True)
+class XsensSettings(LinkSettings):
+    """imu ``xsens`` (rigctl.drivers.xsens_imu.XsensImu; rate_hz is the section's own)."""
+
+    DRIVER: ClassVar[str] = "xsens"
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("serial",)
+    port: str = port()
+    baudrate: int = baudrate(921600)
+    timeout_s: float = timeout()
+    sample_time_fine_wrap: int = number(1 << 32, minimum=1000, maximum=1 << 32, integer=True)
+    align_wait_s: float = number(0.02, minimum=0, maximum=1)
+    link_timeout_s: float = number(2.0, minimum=0.01, maximum=600)
+
+
+@dataclass(frozen=True, kw_only=True)
+class VectorNavSettings(LinkSettings):
+    """imu ``vectornav`` (rigctl.drivers.vectornav_imu.VectorNavImu; rate_hz is the section's
+    own and must be 800 Hz / N)."""
+
+    DRIVER: ClassVar[str] = "vectornav"
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("serial",)
+    port: str = port()
+    baudrate: int = baudrate(921600)
+    timeout_s: float = timeout()
+    align_wait_s: float = number(0.02, minimum=0, maximum=1)
+    link_timeout_s: float = number(2.0, minimum=0.01, maximum=600)
+
+    def check(self, d: LocDict) -> None:
+        rate = d.get("rate_hz", 100.0)
+        if isinstance(rate, (int, float)) and rate > 0 and (800.0 / rate) != int(800.0 / rate):
+            raise S.error(d, "rate_hz", f"a VectorNav outputs at 800 Hz / N; rate_hz {rate:g} is not one of those",
+                          "e.g. rate_hz: 100 (800 / 8), 200, 400 or 800")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrameSettings(LinkSettings):
+    """imu ``frame`` (rigctl.drivers.frame_imu.FrameImu): a declarative frame description under
+    ``frame:`` (rigctl.frame_spec), checked here with file and line."""
+
+    DRIVER: ClassVar[str] = "frame"
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("serial", "frame")
+    port: str = port()
+    baudrate: int = baudrate(115200)
+    timeout_s: float = timeout()
+    align_wait_s: float = number(0.02, minimum=0, maximum=1)
+    link_timeout_s: float = number(2.0, minimum=0.01, maximum=600)
+
+    def check(self, d: LocDict) -> None:
+        spec = parse_frame_spec(d)
+        rate = d.get("rate_hz", 100.0)
+        if spec.format == "binary" and isinstance(rate, (int, float)) and 10 * spec.length * rate > self.baudrate:
+            raise S.error(d, "baudrate", f"{spec.length}-byte frames at {rate:g} Hz need "
+                          f"{10 * spec.length * rate:,.0f} bit/s, more than baudrate {self.baudrate:,}",
+                          "raise the baud rate (as the IMU is set) or lower rate_hz")
+
+
+@dataclass(frozen=True, kw_only=True)
+class NovatelSettings(LinkSettings):
+    """pulses ``novatel`` (rigctl.drivers.novatel_marks.NovatelMarks)."""
+
+    DRIVER: ClassVar[str] = "novatel"
+    port: str = port()
+    baudrate: int = baudrate(115200)
+    timeout_s: float = timeout(1.0)
+    signal: str = text("MARK1", choices=("MARK1", "MARK2", "MARK3", "MARK4"))
+    polarity: str = text("NEGATIVE", choices=("NEGATIVE", "POSITIVE"))
+    timebias_ns: int = number(0, minimum=-10**9, maximum=10**9, integer=True)
+    timeguard_ms: int = number(4, minimum=4, maximum=3_599_999, integer=True)
+    log_name: str = text("MARK1TIMEA", key="log", choices=("MARK1TIMEA", "MARKTIMEA"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class GpioSettings(LinkSettings):
+    """pulses ``gpio`` (rigctl.drivers.gpio_pulses.GpioPulses)."""
+
+    DRIVER: ClassVar[str] = "gpio"
+    POSITIONAL: ClassVar[tuple[str, ...]] = ("chip", "line")
+    chip: str = text("/dev/gpiochip0")
+    line: int = number(minimum=0, maximum=65535, integer=True)
+    edge: str = text("rising", choices=EDGES)
+    event_clock: str = text("monotonic", choices=("monotonic", "realtime", "hte"))
+    debounce_us: int = number(0, minimum=0, maximum=10**6, integer=True)
+    bias: str = text("as-is", choices=("as-is", "pull-up", "pull-down", "disabled"))
+
+    def where(self) -> str:
+        return f"{self.chip} line {self.line}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModemSettings(LinkSettings):
+    """pulses ``modem`` (rigctl.drivers.modem_pulses.ModemPulses)."""
+
+    DRIVER: ClassVar[str] = "modem"
+    port: str = port()
+    baudrate: int = baudrate(9600)
+    line: str = text("cd", choices=("cd", "cts", "dsr", "ri"))
+    edge: str = text("rising", choices=EDGES)
+    mode: str = text("wait", choices=("wait", "poll"))
+    poll_interval_s: float = number(0.001, minimum=1e-4, maximum=1)
+
+
+#: (section, driver) -> its settings
+SETTINGS: dict[tuple[str, str], type[LinkSettings]] = {
+    ("table", "acl"): AclSettings, ("table", "modbus"): ModbusSettings, ("imu", "xsens"): XsensSettings,
+    ("imu", "vectornav"): VectorNavSettings, ("imu", "frame"): FrameSettings,
+    ("pulses", "novatel"): NovatelSettings, ("pulses", "gpio"): GpioSettings, ("pulses", "modem"): ModemSettings,
+}
+
+
+def link_settings(section: str, driver: str, d: LocDict) -> LinkSettings | None:
+    """The validated settings of a wired driver; None for the emulator (``sim``) or ``none``."""
+    cls = SETTINGS.get((section, driver))
+    return None if cls is None else parse(cls, d, f"'{section}' ({driver})")

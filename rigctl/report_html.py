@@ -11,7 +11,6 @@ import base64
 import html
 import json
 import math
-import re
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ from .report_allan import allan_curves
 G0 = 9.80665
 SECTIONS = (("verdicts", "Verdicts"), ("summary", "Summary"), ("table", "Table orientation and rate"),
             ("calibration", "Calibration"), ("closed-loop", "Closed loop"),
+            ("thermal", "Thermal calibration"),
             ("allan", "Allan deviation"), ("sync", "Time synchronisation"),
             ("events", "Faults and suspender events"), ("provenance", "Provenance"))
 CSS = """
@@ -306,9 +306,37 @@ def s_calibration(d: RunData, plots: dict[str, Path]) -> str:
     return "\n".join(out)
 
 
+def s_pose_loop(payload: dict[str, Any]) -> str:
+    """The closed loop of an orientation-free calibration: each sub-model's chi2/dof against its
+    band, the effects claimed and the findings; before/after with raw, declared and final."""
+    rows = []
+    for name, lp in payload["closed_loop"].items():
+        band = lp.get("band_chi2_per_dof") or [None, None]
+        rows.append([name, lp.get("status"), lp["declared"].get("chi2_per_dof"), lp["final"].get("chi2_per_dof"),
+                     lp["final"].get("dof"), band[0], band[1], ", ".join(lp.get("effects_claimed") or []) or "none"])
+    out = [f"<p>STATUS: <b>{esc(payload.get('status'))}</b></p>", "<h3>Sub-models</h3>",
+           table(["sub-model", "status", "chi2/dof declared", "chi2/dof final", "dof", "band low", "band high",
+                  "effects claimed"], rows, num_from=2)]
+    for name, lp in payload["closed_loop"].items():
+        for f in lp.get("findings") or []:
+            out.append(f"<p class=\"warn\">{esc(name)}: {esc(f)}</p>")
+    out.append("<h3>Before / after (RMS over the poses; raw: nominal scale, no calibration)</h3>")
+    out.append(table(["channel", "unit", "raw", "declared model", "final model", "noise floor"],
+                     [[r["channel"], r["unit"], r["raw"], r["declared"], r["final"], r["noise_floor"]]
+                      for r in payload.get("before_after") or []], num_from=2))
+    out.append("<h3>The chain: sub-model, round, candidate, statistic, decision</h3>")
+    out.append(table(["sub-model", "round", "candidate", "statistic", "decision"],
+                     [[name, x.get("step"), x.get("candidate"), x.get("statistic"), x.get("decision")]
+                      for name, lp in payload["closed_loop"].items() for x in lp.get("explain") or []], num_from=0))
+    return "\n".join(out)
+
+
 def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     r = d.results.get("calibration")
-    sess = find_session(r.get("json")) if r else None
+    payload = r.get("json") if r else None
+    if isinstance(payload, dict) and payload.get("mode") == "orientation_free" and payload.get("closed_loop"):
+        return s_pose_loop(payload)
+    sess = find_session(payload) if r else None
     cl = (sess or {}).get("closed_loop")
     if not cl:
         if r:
@@ -337,12 +365,12 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     for t in cl.get("rms_table") or []:
         if t.get("channel") == "all":
             rows.append(["chi2 per dof (all)", "1", None, t.get("chi2_per_dof_before"),
-                         t.get("chi2_per_dof_after")])
+                         t.get("chi2_per_dof_after"), None])
             continue
         u = t.get("unit", "")
-        rows.append([t["channel"], {"deg_h": "deg/h"}.get(u, u), t.get(f"noise_floor_{u}"),
-                     t.get(f"rms_before_{u}"), t.get(f"rms_after_{u}")])
-    out.append(table(["channel", "unit", "noise floor", "RMS before", "RMS after"], rows, num_from=2))
+        rows.append([t["channel"], {"deg_h": "deg/h"}.get(u, u), t.get(f"rms_raw_{u}"),
+                     t.get(f"rms_before_{u}"), t.get(f"rms_after_{u}"), t.get(f"noise_floor_{u}")])
+    out.append(table(["channel", "unit", "raw", "declared model", "final model", "noise floor"], rows, num_from=2))
     out.append(img(plots, "cal_rms", "Residual RMS before/after against the noise floor (mg, deg/h)"))
     for u in cl.get("unexplained") or []:
         out.append(f"<p class=\"warn\">UNEXPLAINED: {esc(u.get('pattern'))} ({esc(u.get('statistic'))})</p>")
@@ -441,6 +469,45 @@ def s_sync(d: RunData, plots: dict[str, Path]) -> str:
                       img(plots, "sync_residual", "Clock residual (ms) against reference time (s)")])
 
 
+def s_thermal(d: RunData, plots: dict[str, Path]) -> str:
+    """The thermal calibration (/results/thermal, docs/thermal.md): per sensor the fit's status,
+    the loop's findings, the coefficients, before/after per temperature band, and the plots."""
+    from .display_units import display, format_value
+
+    p = (d.results.get("thermal") or {}).get("json") or {}
+    if p.get("mode") != "thermal":
+        return not_run("thermal calibration", "a chamber run (procedures/thermal-ramp.yaml or thermal-soak.yaml), "
+                       "then rigctl calibrate")
+    out = [f"<p>Reference temperature {fmt(p.get('reference_c'))} degC. "
+           + (f"Against the emulator's truth: {p['truth_coverage']['inside']} of {p['truth_coverage']['total']} "
+              "95 % intervals cover it." if p.get("truth_coverage") else "") + "</p>",
+           img(plots, "thermal_parameters", "thermal parameters against temperature"),
+           img(plots, "thermal_residuals", "residuals before and after against temperature")]
+    for sensor, s in (p.get("sensors") or {}).items():
+        w = s.get("windows") or {}
+        found = ", ".join(s.get("effects_found") or []) or "none"
+        lo, hi = s.get("chi2_band_99") or [None, None]
+        out.append(f"<h3>{esc(sensor)}</h3><p>{w.get('total')} windows ({w.get('heating')} heating, "
+                   f"{w.get('cooling')} cooling); chi2/dof {fmt(s.get('chi2_per_dof'), 3)} (99 % band "
+                   f"{fmt(lo, 3)} .. {fmt(hi, 3)}): <b>{esc(s.get('status'))}</b>; thermal effects found: "
+                   f"{esc(found)}</p>")
+        rows = []
+        for q in s.get("parameters") or []:
+            dd = display(q["name"])
+            v, u = format_value(dd.value(q["value"]), dd.sigma(q["sigma"]))
+            ci = [format_value(dd.value(x), dd.sigma(q["sigma"]))[0] for x in q["ci95"]]
+            rows.append([dd.base, v, u, f"[{ci[0]}, {ci[1]}]", dd.unit])
+        out.append(table(["parameter", "value", "u", "95 % interval", "unit"], rows))
+        ba = s.get("before_after") or {}
+        dd = display(f"{sensor}_bias_x_{ba.get('unit', 'm_s2')}")
+        brow = [[f"{b['from_c']:g} .. {b['to_c']:g} degC", b["windows"],
+                 *[f"{dd.sigma(x):.4g} -> {dd.sigma(y):.4g}" for x, y in zip(b["rms_before"], b["rms_after"])]]
+                for b in ba.get("by_temperature") or []]
+        out.append(table(["temperature", "windows", *[f"{a}: RMS before -> after [{dd.unit}]" for a in "xyz"]],
+                         brow))
+    return "\n".join(out)
+
+
 def render(d: RunData, plots: dict[str, Path]) -> str:
     """The whole page as one string."""
     name = d.meta.get("procedure_name", d.recording.stem)
@@ -448,6 +515,7 @@ def render(d: RunData, plots: dict[str, Path]) -> str:
     body = [section("verdicts", s_verdicts(d)), section("summary", s_summary(d)), section("table", s_table(d, plots)),
             section("calibration", s_calibration(d, plots)),
             section("closed-loop", s_closed_loop(d, plots)),
+            section("thermal", s_thermal(d, plots)),
             section("allan", s_allan(d, plots)), section("sync", s_sync(d, plots)),
             section("events", s_events(d)), section("provenance", s_provenance(d))]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

@@ -377,6 +377,106 @@ def plot_sync_residual(data: RunData, out: Path) -> Path | None:
     return draw_sync_residual(data.results.get("sync", {}).get("arrays") or {}, out)
 
 
+# ------------------------------------------------------------------------------- thermal
+_HEAT, _COOL = "tab:red", "tab:blue"
+
+
+def _thermal(data: RunData) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
+    r = data.results.get("thermal") or {}
+    payload, arrays = r.get("json") or {}, r.get("arrays") or {}
+    if payload.get("mode") != "thermal" or "accel_window_temperature" not in arrays:
+        return None
+    return payload, arrays
+
+
+def plot_thermal_parameters(data: RunData, out: Path) -> Path | None:
+    """Bias and scale error against temperature per axis: the fitted polynomial with its 95 %
+    band (from the coefficients' covariance), and for the bias each window's partial residual
+    (residual + fitted bias), heating windows red, cooling blue."""
+    got = _thermal(data)
+    if got is None:
+        return None
+    payload, arr = got
+    from .display_units import display
+
+    ref = float(payload.get("reference_c", 25.0))
+    plt = _plt()
+    fig, axes = plt.subplots(4, 3, figsize=(12, 11))
+    for r0, sensor in ((0, "accel"), (2, "gyro")):
+        T = np.asarray(arr[f"{sensor}_window_temperature"], float)
+        heat = np.asarray(arr[f"{sensor}_window_heating"]).astype(bool)
+        res = np.asarray(arr[f"{sensor}_residual_after"], float)
+        grid = np.linspace(T.min(), T.max(), 120)
+        u = "m_s2" if sensor == "accel" else "rad_s"
+        for i, a in enumerate("xyz"):
+            names = [str(n) for n in arr[f"{sensor}_names_{a}"]]
+            cov = np.asarray(arr[f"{sensor}_cov_{a}"], float)
+            vals = {q["name"]: q["value"] for q in payload["sensors"][sensor]["parameters"]}
+            for row, prefix, off, what in ((r0, f"{sensor}_bias_{a}_{u}", 0.0, "bias"),
+                                           (r0 + 1, f"{sensor}_scale_{a}_per_K", 1.0, "scale error")):
+                base = prefix if what == "bias" else f"{sensor}_M_{a}{a}_ratio"
+                per = prefix + "_per_K" if what == "bias" else prefix
+                idx, powers = [], []
+                for j, n in enumerate(names):
+                    if n == base:
+                        idx.append(j), powers.append(0)
+                    elif n.startswith(per) and n[len(per):] in ("", "2", "3", "4", "5"):
+                        idx.append(j), powers.append(int(n[len(per):] or 1))
+                if not idx:
+                    continue
+                d = display(f"{sensor}_bias_x_{u}") if what == "bias" else display("accel_scale_x_per_K")
+                fac = d.factor
+                J = np.column_stack([(grid - ref) ** p for p in powers])
+                coef = np.array([vals[names[j]] for j in idx])
+                fit = J @ coef - off
+                band = 1.96 * np.sqrt(np.einsum("ij,jk,ik->i", J, cov[np.ix_(idx, idx)], J))
+                ax = axes[row, i]
+                ax.fill_between(grid, (fit - band) * fac, (fit + band) * fac, color="0.8", lw=0, label="95 % band")
+                ax.plot(grid, fit * fac, color="k", lw=1, label="fit")
+                if what == "bias":
+                    Jw = np.column_stack([(T - ref) ** p for p in powers])
+                    pts = (Jw @ coef + res[:, i]) * fac
+                    ax.plot(T[heat], pts[heat], ".", color=_HEAT, ms=3, label="heating")
+                    ax.plot(T[~heat], pts[~heat], ".", color=_COOL, ms=3, label="cooling")
+                unit = d.unit.replace("/K", "") if what == "bias" else "ppm"
+                ax.set_title(f"{sensor} {what} {a}", fontsize=9)
+                ax.set_ylabel(f"[{unit}]", fontsize=8)
+                ax.set_xlabel("IMU temperature [degC]", fontsize=8)
+                ax.grid(True, lw=0.3)
+                if i == 0:
+                    ax.legend(fontsize=6)
+    return _save(fig, out / "thermal_parameters.png")
+
+
+def plot_thermal_residuals(data: RunData, out: Path) -> Path | None:
+    """Window residuals against temperature with one calibration at the reference temperature
+    (before) and with the thermal model (after); heating red, cooling blue."""
+    got = _thermal(data)
+    if got is None:
+        return None
+    payload, arr = got
+    plt = _plt()
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6))
+    for r, sensor, fac, unit in ((0, "accel", MG_PER_M_S2, "mg"), (1, "gyro", DEG_H_PER_RAD_S, "deg/h")):
+        T = np.asarray(arr[f"{sensor}_window_temperature"], float)
+        heat = np.asarray(arr[f"{sensor}_window_heating"]).astype(bool)
+        before = np.asarray(arr[f"{sensor}_residual_before"], float) * fac
+        after = np.asarray(arr[f"{sensor}_residual_after"], float) * fac
+        for i, a in enumerate("xyz"):
+            ax = axes[r, i]
+            for m, col, lab in ((heat, _HEAT, "heating"), (~heat, _COOL, "cooling")):
+                ax.plot(T[m], before[m, i], "x", color=col, ms=3, alpha=0.35, label=f"before, {lab}")
+                ax.plot(T[m], after[m, i], ".", color=col, ms=3, label=f"after, {lab}")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_title(f"{sensor} {a}: residuals", fontsize=9)
+            ax.set_ylabel(f"[{unit}]", fontsize=8)
+            ax.set_xlabel("IMU temperature [degC]", fontsize=8)
+            ax.grid(True, lw=0.3)
+            if i == 0:
+                ax.legend(fontsize=6)
+    return _save(fig, out / "thermal_residuals.png")
+
+
 def make_plots(data: RunData, out: Path, log: Callable[..., None] | None = None
                ) -> dict[str, Path]:
     """Draw every plot the recording supports; {plot id: PNG path}."""
@@ -388,5 +488,7 @@ def make_plots(data: RunData, out: Path, log: Callable[..., None] | None = None
         "allan": plot_allan(data, out, log),
         "sync_hist": plot_sync_hist(data, out),
         "sync_residual": plot_sync_residual(data, out),
+        "thermal_parameters": plot_thermal_parameters(data, out),
+        "thermal_residuals": plot_thermal_residuals(data, out),
     }
     return {k: v for k, v in got.items() if v is not None}

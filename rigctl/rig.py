@@ -6,7 +6,7 @@ Two kinds of rig:
 
 * in-process emulator (``driver: sim`` for table and IMU): one :class:`rigctl.sim.world.SimWorld`
   on the config's clock (virtual, real or scaled);
-* wired (table ``acl`` | ``modbus``, IMU ``xsens``, pulses ``novatel`` | ``gpio`` | ``modem`` |
+* wired (table ``acl`` | ``modbus``, IMU ``xsens`` | ``vectornav`` | ``frame``, pulses ``novatel`` | ``gpio`` | ``modem`` |
   ``none``): real drivers on real links (hardware, or ``rigctl sim up``). The run clock is the
   host's (``clock: real``), or real time x ``speed`` (``clock: scaled``) to match an emulator
   started with the same ``--speed``. Recorded times come from the devices, mapped onto the run
@@ -40,54 +40,63 @@ def describe(cfg: RigConfig) -> str:
     if cfg.is_simulated:
         return (f"emulated three-axis table and IMU ({cfg.imu_rate_hz:g} Hz), in-process, "
                 f"{cfg.clock} time -- no hardware")
-    t = cfg.table.settings
-    where = t.get("port") or f"{t.get('host')}:{t.get('tcp_port')}"
     clock = f"{cfg.clock} clock" + (f" x{cfg.speed:g}" if cfg.clock == "scaled" else "")
-    return (f"table over {cfg.table.driver} ({where}), IMU over {cfg.imu.driver} "
-            f"({cfg.imu.settings.get('port')}, {cfg.imu_rate_hz:g} Hz), pulses from {cfg.pulses.driver}; "
+    return (f"table over {cfg.table.driver} ({cfg.table.settings.where()}), IMU over {cfg.imu.driver} "
+            f"({cfg.imu.settings.where()}, {cfg.imu_rate_hz:g} Hz), pulses from {cfg.pulses.driver}; "
             f"{clock}")
 
 
 def build_table(cfg: RigConfig, clock: Clock):
+    """The table's driver, its settings passed as named in rigctl.linkconfig."""
     s = cfg.table.settings
     if cfg.table.driver == "acl":
         from .drivers.acl_table import AclTable
-        return AclTable(s["port"], cfg.limits, clock, baudrate=s["baudrate"], timeout_s=s["timeout_s"],
-                        close_interlocks=s["close_interlocks"],
-                        open_interlocks_on_stop=s["open_interlocks_on_stop"])
+        return AclTable(s.port, cfg.limits, clock, **s.keywords())
     if cfg.table.driver == "modbus":
         from .drivers.modbus_table import ModbusTable
-        kw = {k: v for k, v in s.items() if k in ("transport", "host", "tcp_port", "port", "baudrate", "parity",
-                                                    "unit_id", "word_order", "timeout_s", "retries",
-                                                    "watchdog_ms", "window_deg", "dwell_s")}
-        return ModbusTable(cfg.limits, clock, **kw)
+        return ModbusTable(cfg.limits, clock, **s.keywords())
     raise InputError(f"table driver {cfg.table.driver!r} is not a wired driver", cfg.path)
 
 
 def build_imu(cfg: RigConfig, clock: Clock):
     s = cfg.imu.settings
+    if cfg.imu.driver == "vectornav":
+        from .drivers.vectornav_imu import VectorNavImu
+        return VectorNavImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
+    if cfg.imu.driver == "frame":
+        from .drivers.frame_imu import FrameImu
+        from .frame_spec import parse_frame_spec
+        return FrameImu(s.port, parse_frame_spec(cfg.imu.options), cfg.imu_rate_hz, clock, **s.keywords())
     from .drivers.xsens_imu import XsensImu
-    return XsensImu(s["port"], cfg.imu_rate_hz, clock, baudrate=s["baudrate"], timeout_s=s["timeout_s"],
-                    sample_time_fine_wrap=s["sample_time_fine_wrap"], align_wait_s=s["align_wait_s"],
-                    link_timeout_s=s["link_timeout_s"])
+    return XsensImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
 
 
 def build_pulses(cfg: RigConfig, clock: Clock):
     s, d = cfg.pulses.settings, cfg.pulses.driver
     if d == "novatel":
         from .drivers.novatel_marks import NovatelMarks
-        return NovatelMarks(s["port"], clock, baudrate=s["baudrate"], timeout_s=s["timeout_s"],
-                            signal=s["signal"], polarity=s["polarity"], timebias_ns=s["timebias_ns"],
-                            timeguard_ms=s["timeguard_ms"], log_name=s["log"])
+        return NovatelMarks(s.port, clock, **s.keywords())
     if d == "gpio":
         from .drivers.gpio_pulses import GpioPulses
-        return GpioPulses(s["chip"], s["line"], clock, edge=s["edge"], event_clock=s["event_clock"],
-                          debounce_us=s["debounce_us"], bias=s["bias"])
+        return GpioPulses(s.chip, s.line, clock, **s.keywords())
     if d == "modem":
         from .drivers.modem_pulses import ModemPulses
-        return ModemPulses(s["port"], clock, baudrate=s["baudrate"], line=s["line"], edge=s["edge"],
-                           mode=s["mode"], poll_interval_s=s["poll_interval_s"])
+        return ModemPulses(s.port, clock, **s.keywords())
     return NoPulses()
+
+
+def build_chamber(cfg: RigConfig, clock: Clock):
+    """The wired chamber driver of a config (None for ``driver: none`` or ``sim``)."""
+    c = cfg.chamber
+    s = c.settings
+    if c.driver == "watlow":
+        from .drivers.watlow_chamber import WatlowF4T
+        return WatlowF4T(clock, safe_c=s["safe_c"], **{k: v for k, v in s.items() if k not in ("safe_c", "band_c")})
+    if c.driver == "scpi":
+        from .drivers.scpi_chamber import ScpiChamber
+        return ScpiChamber(s["resource"], clock, model=s["model"], commands=s["commands"],
+                           timeout_s=s["timeout_s"], safe_c=s["safe_c"])
+    return None
 
 
 @contextmanager
@@ -103,7 +112,6 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
                 dev.connect()
             devices.append(dev)
         table, imu, pulses = devices
-        from .chamber import build_chamber
         chamber = build_chamber(cfg, clock)
         if chamber is not None:
             stack.callback(chamber.close)

@@ -9,6 +9,8 @@ and command, so the engine sees injected faults exactly as it would see real one
   motion commands are refused with :class:`rigctl.devices.DeviceFault` until the fault clears.
 * ``interlock`` -- the interlock is open: ``AxisStatus.INTERLOCK_OPEN`` and the table stops.
 * ``temperature`` -- the IMU temperature reads ``offset_c`` degC off (a thermal excursion).
+* ``chamber_fault`` -- the climatic chamber's controller reports a fault and stops regulating
+  (its air drifts towards ambient) until the window ends.
 
 Faults are windows of rig time ``[start, start + duration)`` (duration ``inf`` = until
 :meth:`FaultInjector.clear` is called), so a run in virtual time is deterministic. Arbitrary
@@ -24,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-KINDS = ("imu_link", "table_fault", "interlock", "temperature")
+KINDS = ("imu_link", "table_fault", "interlock", "temperature", "chamber_fault")
 
 
 @dataclass

@@ -429,7 +429,14 @@ class SimChamberDevice:
 
     def _now(self) -> float:
         self.world.advance()
-        return self.world.t
+        t = self.world.t
+        faults = self.world.faults
+        if faults.windows:
+            faults.tick(t)
+            on = faults.active("chamber_fault", t)
+            if on != (self.world.chamber.fault is not None):
+                self.world.chamber.inject_fault(t, "high-limit trip (injected)" if on else None)
+        return t
 
     def set_setpoint(self, value_c: float, ramp_c_per_min: float | None = None) -> None:
         from rigctl.devices import DeviceFault

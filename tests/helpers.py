@@ -59,14 +59,14 @@ steps:
 
 
 def fill_disk(path: Path | str) -> None:
-    """Write zeros to ``path`` until its filesystem is full."""
-    with open(path, "wb") as fh:
-        try:
+    """Write zeros to ``path`` until its filesystem is full (unbuffered: a buffered file's close
+    would try to write its last partial buffer again and raise ENOSPC out of the helper)."""
+    try:
+        with open(path, "wb", buffering=0) as fh:
             while True:
                 fh.write(b"\0" * 65536)
-                fh.flush()
-        except OSError:
-            pass
+    except OSError:
+        pass
 
 
 def make_cut_off(run_dir: Path, recording: Path) -> None:

@@ -170,3 +170,28 @@ def test_imucal_faces_no_g_sensitivity(ref_data, tmp_path):
     # 18 means, 12 parameters: F(9, 6); numpy's verdict at the loop's threshold agrees
     F = ((chi0 - chi1) / 9) / max(chi1 / 6, 1e-12)
     assert scipy.stats.f.sf(F, 9, 6) > 0.01 / 3 / 2
+
+
+def test_xsens_report_shows_the_loop_and_three_columns(xsens, tmp_path):
+    pytest.importorskip("matplotlib")
+    import sys
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_report_sections import Page
+    from rigctl import report_build
+
+    rec, out, cal = xsens
+    page = Page(report_build.build_report(rec, tmp_path).read_text())
+    assert "closed-loop" not in page.not_run
+    rows = page.rows["closed-loop"]
+    assert ["channel", "unit", "raw", "declared model", "final model", "noise floor"] in rows
+    ba = {r[0]: r for r in rows if r and r[0].startswith("gyro at rest")}
+    for ax in "xyz":
+        want = next(r for r in cal["before_after"] if r["channel"] == f"gyro at rest {ax}")
+        got = ba[f"gyro at rest {ax}"]
+        assert got[1] == "deg/h" and abs(float(got[4]) - want["final"]) <= 0.01 * want["final"]
+    subs: dict[str, list[str]] = {}
+    for r in rows:  # the sub-model table comes first (the chain's rows start with the same names)
+        if r and r[0] in ("accel", "gyro_static", "gyro_rotation"):
+            subs.setdefault(r[0], r)
+    assert subs["gyro_static"][1] == cal["closed_loop"]["gyro_static"]["status"]
+    assert "gyro_g_sensitivity" in subs["gyro_static"][-1]

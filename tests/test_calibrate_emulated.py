@@ -113,7 +113,14 @@ def test_run_prints_calibration_and_before_after_table(clean_run):
     tail = out[out.index("rigctl calibrate:"):]
     assert out.count("rigctl calibrate:") == 1  # three solver names, one calibration
     assert "95% low" in tail and "1-sigma" in tail and "accel_bias_x_mg" in tail and "gyro_bias_x_deg_h" in tail
-    assert "noise floor" in tail and "RMS before" in tail and "RMS after" in tail and "chi2/dof" in tail
+    assert "noise floor" in tail and "raw" in tail and "declared" in tail and "final" in tail and "chi2/dof" in tail
+    assert "STATUS: " in tail
+    # raw (nominal scale, no calibration) against the table's reference is far above the final model
+    cal = json.loads((rec.parent / "recording.calibration.json").read_text())
+    for row in cal["results"]["closed_loop"]["rms_table"]:
+        if row["channel"] != "all":
+            u = row["unit"]
+            assert row[f"rms_raw_{u}"] > 3 * row[f"rms_after_{u}"], row
     assert (rec.parent / "recording.calibration.json").is_file()
 
 
@@ -158,7 +165,7 @@ def test_apply_cal_corrects_and_refuses_to_overwrite(clean_run, tmp_path):
 
 def test_undeclared_effects_found_named_and_refitted(tmp_path):
     out, rec = _run_profile(tmp_path, "effects_test")
-    assert "Closed loop: effects found" in out and "RMS after" in out
+    assert "Closed loop: effects found" in out and "final" in out
     cl = _loop_checks(_payload(rec))
     found = {e["name"]: e for e in cl["effects"]}
     assert set(found) == {"lever_arm", "gyro_g_sensitivity", "gyro_scale_nonlinearity", "accel_scale_asymmetry"}

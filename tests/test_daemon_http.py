@@ -7,6 +7,7 @@ import http.client
 import io
 import json
 import os
+import re
 import shutil
 import socket
 import stat
@@ -293,7 +294,7 @@ def test_queue_operations_from_the_cli(daemon, capsys):
     assert cli("queue", "stop")[0] == 0
     assert cli("submit", warm, "-p", "warmup=5 s")[0] == 0
     code, out, _ = cli("submit", warm, "-p", "warmup=6 s", "--position", "1")
-    assert code == 0 and "position: 1" in out
+    assert code == 0 and out == "job 2 queued at place 1\n"
     code, _, err = cli("submit", warm, "-p", "warmup=6 s")
     assert code == 2 and "already runs" in err  # a duplicate
     assert control.request(d.socket_path, "queue")["queued"] == [2, 1]
@@ -305,5 +306,31 @@ def test_queue_operations_from_the_cli(daemon, capsys):
                 ["queue", "history", "1", "2"], ["submit", warm, "--position", "0"]):
         code, _, err = cli(*bad)
         assert code == 2 and err.count("\n") == 1, (bad, err)
-    code, out, _ = cli("queue", "history", "1")
-    assert code == 0 and '"state": "removed"' in out
+    code, out, _ = cli("queue", "history", "1", "--json")
+    assert code == 0 and json.loads(out)["jobs"][0]["state"] == "removed"
+
+    # readable text: aligned columns, one fact per line; --json: the daemon's whole reply
+    code, out, _ = cli("queue")
+    lines = out.splitlines()
+    assert code == 0 and lines[0].split() == ["PLACE", "JOB", "STATE", "WHAT", "PARAMETERS", "SUBMITTED", "(UTC)",
+                                              "ENDED", "(UTC)", "MESSAGE"]
+    col = lines[0].index("STATE")
+    assert [ln[col:].split()[0] for ln in lines[1:3]] == ["queued", "removed"] and lines[1].split()[:2] == ["1", "2"]
+    assert lines[-1] == "queue stopped, 1 queued"
+    code, out, _ = cli("status")
+    assert code == 0 and re.fullmatch(r"state: +idle since \d\d:\d\d:\d\dZ\njob: +none\nqueue: +1 queued, queue stopped\n", out), out
+    code, out, _ = cli("status", "--json")
+    assert code == 0 and json.loads(out) == {**control.request(d.socket_path, "status"), "since_utc": json.loads(out)["since_utc"]}
+    code, out, err = cli("pause", "--json")
+    assert code == 1 and json.loads(out)["ok"] is False and err.count("\n") == 1
+    # logs -n N prints N lines, a message of several lines on one
+    assert cli("queue", "start")[0] == 0
+    wait_job(Client(_web.url, _token), 2)
+    run_dir = Path(next(j for j in control.request(d.socket_path, "queue")["jobs"] if j["id"] == 2)["run_dir"])
+    with open(run_dir / "run.log.jsonl", "a") as fh:
+        fh.write(json.dumps({"utc": "2026-01-01T00:00:00Z", "kind": "error", "message": "a\nb\nc"}) + "\n")
+    total = len((run_dir / "run.log.jsonl").read_text().splitlines())
+    for n in (1, 3, total + 5):
+        code, out, _ = cli("logs", "-n", str(n))
+        assert code == 0 and len(out.splitlines()) == min(n, total), out
+    assert out.splitlines()[-1].endswith("error    a / b / c")

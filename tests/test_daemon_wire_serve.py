@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -116,7 +117,8 @@ def test_table_fault_mid_rate_step_through_the_daemon(tmp_path, sock_dir):
         assert st["reason"].startswith("table middle axis reports fault")  # why the daemon is paused
         cli = subprocess.run([*rigctl_cmd(), "status", "--socket", str(sock)], capture_output=True, text=True,
                              timeout=30, cwd=ROOT)
-        assert cli.returncode == 0 and "state: paused" in cli.stdout and "middle axis reports fault" in cli.stdout
+        assert cli.returncode == 0 and re.search(r"(?m)^state:\s+paused since", cli.stdout), cli.stdout
+        assert re.search(r"(?m)^suspended:\s+table: table middle axis reports fault", cli.stdout), cli.stdout
         run_dir = Path(st["job"]["run_dir"])
         logged = [json.loads(line) for line in (run_dir / "run.log.jsonl").read_text().splitlines()]
         assert any(r["kind"] == "warning" and "suspended (table)" in r["message"]

@@ -141,8 +141,8 @@ def test_wired_config_errors_name_the_line(tmp_path):
 
 def test_example_lab_config_loads():
     cfg = load_config(ROOT / "configs" / "example-lab.yaml")
-    assert cfg.table.driver == "acl" and cfg.table.settings["port"] == "/dev/ttyUSB0"
-    assert cfg.imu.settings["baudrate"] == 921_600 and cfg.pulses.driver == "novatel"
+    assert cfg.table.driver == "acl" and cfg.table.settings.port == "/dev/ttyUSB0"
+    assert cfg.imu.settings.baudrate == 921_600 and cfg.pulses.driver == "novatel"
     assert cfg.clock == "real"
 
 

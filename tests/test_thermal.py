@@ -218,7 +218,16 @@ def test_chamber_steps_are_validated(tmp_path):
 
 
 # --------------------------------------------------------------------------- end to end
-def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
+def _cli(capsys, *args: str) -> tuple[int, str]:
+    """A rigctl command in this process (the run itself goes through a subprocess)."""
+    from rigctl.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    return code, capsys.readouterr().out
+
+
+def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
     cfg = derived_config(tmp_path, **WHITE_NOISE_ONLY, imu__rate_hz=50,  # coverage of a white-noise fit
                          imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST},
                          chamber__sim={"heat_max_c_per_min": 10, "cool_max_c_per_min": 10,
@@ -235,8 +244,8 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
         T = f["imu/temperature"][()]
         assert T.max() > 38 and T.min() < 10
         assert b"chamber at its safe set point" in b"".join(f["events/message"][()])
-    r = run_rigctl("calibrate", str(rec), timeout=120)
-    assert r.returncode == 0, r.stderr[-2000:]
+    code, text = _cli(capsys, "calibrate", str(rec), "--db", "none")
+    assert code == 0, text[-2000:]
     with h5py.File(rec, "r") as f:
         payload = json.loads(f["results/thermal"].attrs["json"])
     for s in ("accel", "gyro"):
@@ -247,4 +256,94 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path):
         assert max(d["before_after"]["rms_after"]) < 0.2 * min(d["before_after"]["rms_before"])
     cov = payload["truth_coverage"]
     assert cov["total"] == 63 + 6 and cov["fraction"] >= 0.85, cov
-    assert "thermal hysteresis" in r.stdout
+    assert "thermal hysteresis" in text
+    # apply-cal with the thermal model, at the recording's own temperatures: the static windows'
+    # means then match gravity (from the table angles, numpy) to within their own noise
+    out = tmp_path / "corrected.h5"
+    code, text = _cli(capsys, "apply-cal", str(rec), "-o", str(out))
+    assert code == 0 and "/results/thermal" in text, text[-2000:]
+    z2 = {}
+    for path in (rec, out):
+        with h5py.File(path, "r") as f:
+            s = {k: f["segments"][k][()] for k in f["segments"]}
+            A = f["imu/specific_force"][()]
+            lat, g = math.radians(f["meta"].attrs["latitude_deg"]), f["meta"].attrs["gravity_m_s2"]
+            zs = []
+            for i in np.flatnonzero(s["kind"] == b"orientation"):
+                a, b = s["first_sample"][i], s["last_sample"][i]
+                fr, _ = body_references(s["commanded_angle"][i], None, lat, f["meta"].attrs["height_m"], g)
+                zs.append((A[a:b].mean(0) - fr) / (A[a:b].std(0, ddof=1) / math.sqrt(b - a)))
+            z2[path] = float(np.mean(np.square(zs)))
+    assert z2[out] < 2.0 and z2[rec] > 100 * z2[out], z2
+    # the report's thermal section: the coefficients, the loop's finding and both plots
+    code, text = _cli(capsys, "report", str(rec.parent))
+    assert code == 0, text[-2000:]
+    html = (rec.parent / "report.html").read_text()
+    sec = html[html.index('<section id="thermal">'):]
+    sec = sec[:sec.index("</section>")]
+    assert "thermal hysteresis" in sec and "accel_hysteresis_x" in sec and "mg/K^2" in sec
+    for png in ("thermal_parameters.png", "thermal_residuals.png"):
+        assert png in sec and (rec.parent / png).stat().st_size > 10_000
+
+
+# --------------------------------------------------------------------------- unattended
+CHAMBER_PROC = """
+procedure: chamber-faults
+steps:
+  - chamber-ramp: {setpoint_c: 35, rate_c_per_min: 5}
+  - orientations:
+      angles_deg: [[0, 0, 0], [0, 0, 180], [0, -90, 0], [0, 90, 0]]
+      sample: 4 s
+      settle: {hold: 0.5 s, timeout: 30 s}
+"""
+
+
+def _run_chamber(tmp_path, setup, abort_at=None):
+    import io
+    from contextlib import contextmanager
+
+    from rigctl.config import load_config
+    from rigctl.rig import open_rig
+    from rigctl.runner import RunOptions, run_procedure
+    from rigctl.suspenders import SuspenderSettings
+
+    cfg = load_config("configs/sim.yaml")
+    p = tmp_path / "proc.yaml"
+    p.write_text(CHAMBER_PROC)
+    proc = load_procedure(p, limits=cfg.limits)
+    box = {}
+
+    @contextmanager
+    def opener(c):
+        with open_rig(c) as (rig, truth):
+            box["world"] = rig.table.world
+            setup(rig.table.world.faults)
+            yield rig, truth
+
+    def on_engine(engine):
+        if engine is not None and abort_at is not None:
+            engine.rig.table.world.faults.call_at(abort_at, lambda: engine.request_abort("test abort"))
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), rig_opener=opener,
+                      max_pause_s=600, on_engine=on_engine)
+    res = run_procedure(proc, cfg, tmp_path, console=io.StringIO(), install_signals=False, options=opts)
+    with h5py.File(res.recording, "r") as f:
+        ev = list(zip(f["events/kind"][()], f["events/message"][()]))
+        sp = f["chamber/setpoint_c"][()]
+    return res, ev, sp, box["world"]
+
+
+def test_chamber_fault_suspends_then_resumes(tmp_path):
+    res, ev, sp, world = _run_chamber(tmp_path, lambda faults: faults.schedule("chamber_fault", 10.0, 5.0))
+    assert res.status == "complete", res.message
+    sus = [m for k, m in ev if k == b"suspend"]
+    assert len(sus) == 1 and sus[0].startswith(b"chamber: chamber fault: high-limit trip"), sus
+    assert any(k == b"resume" and b"chamber clear" in m for k, m in ev), ev
+    assert ev[-1][0] == b"safe-state" or any(m == b"chamber at its safe set point" for _, m in ev)
+    assert world.chamber.target == 25.0 and 35.0 in set(sp)
+
+
+def test_abort_puts_the_chamber_at_its_safe_set_point(tmp_path):
+    res, ev, sp, world = _run_chamber(tmp_path, lambda faults: None, abort_at=20.0)
+    assert res.status == "interrupted"
+    assert (b"safe-state", b"chamber at its safe set point") in ev
+    assert world.chamber.target == 25.0 and world.chamber.working == 25.0  # a step, not the ramp

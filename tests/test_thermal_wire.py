@@ -38,6 +38,10 @@ def test_soak_over_the_wire(tmp_path, link):
                                      chamber=link)
         cfg = load_config(cfg_path)
         assert cfg.chamber.driver == ("watlow" if link == "watlow-rtu" else "scpi")
+        from rigctl.device_check import check_devices
+        checks = {c.role: c for c in check_devices(cfg).checks}
+        assert checks["chamber"].ok and ("air 25.00 degC" in checks["chamber"].text
+                                         or "EMULATED-CHAMBER" in checks["chamber"].text), checks["chamber"]
         proc = load_procedure(ROOT / "procedures" / "thermal-soak.yaml", SOAK, cfg.limits)
         res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False)
         assert res.exit_code == 0, res.message
@@ -67,3 +71,56 @@ def test_soak_over_the_wire(tmp_path, link):
             rows = orient[6 * p:6 * p + 6]
             temps = np.concatenate([T[seg["first_sample"][i]:seg["last_sample"][i]] for i in rows])
             assert abs(temps.mean() - target) < 0.6 and np.ptp(temps) < 0.6, (target, temps.mean(), np.ptp(temps))
+
+
+def test_device_check_names_an_unreachable_chamber(tmp_path):
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    raw = yaml.safe_load((ROOT / "configs" / "sim-wire.yaml").read_text())
+    raw["table"]["port"] = str(tmp_path / "no-table")
+    raw["imu"]["port"] = str(tmp_path / "no-imu")
+    raw["pulses"] = {"driver": "none"}
+    raw["chamber"] = {"driver": "watlow", "transport": "tcp", "host": "127.0.0.1", "tcp_port": port,
+                      "timeout_s": 0.3}
+    p = tmp_path / "wired.yaml"
+    p.write_text(yaml.safe_dump(raw))
+    from rigctl.device_check import check_devices
+    c = {c.role: c for c in check_devices(load_config(p)).checks}["chamber"]
+    assert not c.ok and f"127.0.0.1:{port}" in c.text, c
+
+
+def test_watlow_driver_over_modbus_tcp_sets_ramps_reads_and_goes_safe():
+    """The F4T driver against the emulated F4T's registers on Modbus TCP (no rig): a ramp writes
+    scale, rate and action before the set point; reads follow the physics; stop is a step to
+    safe_c. Floats low word first, as the F4T sends them."""
+    import threading
+
+    from rigctl.clock import make_clock
+    from rigctl.drivers.watlow_chamber import WatlowF4T, float_to_regs, regs_to_float
+    from rigctl.sim.chamber import ChamberParams, ChamberPhysics
+    from rigctl.sim.chamber_servers import ChamberAccess, WatlowF4TServer
+
+    assert float_to_regs(25.0) == [0x0000, 0x41C8] and regs_to_float([0x0000, 0x41C8]) == 25.0
+    phys = ChamberPhysics(ChamberParams())
+    now = {"t": 0.0}
+    srv = WatlowF4TServer(ChamberAccess(phys, lambda: now["t"], threading.RLock()))
+    host, port = srv.start_tcp()
+    drv = WatlowF4T(make_clock("real", 1.0), transport="tcp", host=host, tcp_port=port, safe_c=20.0)
+    try:
+        drv.connect()
+        drv.set_setpoint(40.0, 2.0)
+        assert phys.target == 40.0 and phys.ramp_c_per_min == pytest.approx(2.0)
+        now["t"] = 300.0  # 5 min into a 2 degC/min ramp: the working set point is 35 degC
+        s = drv.read()
+        assert s.setpoint_c == 40.0 and s.status == "running"
+        assert s.air_c == pytest.approx(phys.air, abs=1e-4) and s.product_c == pytest.approx(phys.product, abs=1e-4)
+        assert phys.working == pytest.approx(35.0, abs=0.01)
+        drv.stop()
+        assert phys.target == phys.working == 20.0 and phys.ramp_c_per_min == 0.0
+    finally:
+        drv.close()
+        srv.close()

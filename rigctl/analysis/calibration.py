@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from pathlib import Path
 from typing import Any, Callable
 
@@ -202,12 +201,33 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
                         + [f"  [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | "
                            f"{x['decision']}" for x in cl.explain])
     trust = cl.final.status in ("ok", "poor_fit")
+    loop_status, why = table_status(cl, trust)
+    text += f"\nSTATUS: {loop_status}" + (f": {why}" if why else "")
     payload = {"mode": "turntable", "noise_model": noise_txt, "noise_model_channels": noise_rows,
                "results": session_to_dict(out),
                "model": _model_from_final(cl.final), "truth_available": truth is not None,
-               "trustworthy": trust, "status": cl.final.status,
-               "reasons": list(cl.final.warnings)}
+               "trustworthy": trust, "status": cl.final.status, "loop_status": loop_status,
+               "reasons": list(cl.final.warnings) + ([why] if why else [])}
     return payload, text, explain
+
+
+def table_status(cl: Any, trusted: bool) -> tuple[str, str]:
+    """The session's STATUS after the closed loop: OK only when the final model's chi2/dof is
+    inside its 99 % band (chi2 quantiles for its dof) and no residual structure is left."""
+    from ..solvers.pose_loop import STATUS_OK, STATUS_PESSIMISTIC, STATUS_UNEXPLAINED, chi2_band
+
+    f = cl.final
+    if not trusted:
+        return "NOT TRUSTWORTHY", "; ".join(f.warnings[:1])
+    lo, hi = chi2_band(f.dof, float("inf"))
+    band = f"chi2/dof {f.chi2_per_dof:.3g}, 99 % band [{lo:.3g}, {hi:.3g}]"
+    if f.chi2_per_dof > hi or cl.unexplained:
+        what = "; ".join(u["pattern"] for u in cl.unexplained[:3])
+        return STATUS_UNEXPLAINED, band + (f"; {what}" if what else "")
+    if f.chi2_per_dof < lo:
+        return STATUS_PESSIMISTIC, band
+    return STATUS_OK, ""
+
 
 
 # ------------------------------------------------------------------------------ orientation-free

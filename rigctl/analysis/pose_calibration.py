@@ -145,7 +145,7 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         results["multipos_accel"] = _result("multipos_accel", loop.final, loop, P, 9)
         p = loop.final.values
         TK = pl._tk(p[0:3], p[3:6])
-        eff = dict(zip(loop.claimed, [p[9 + 3 * i: 12 + 3 * i] for i in range(len(loop.claimed))]))
+        eff = pl._accel_split(p, loop.claimed)
         accel_model = {"bias_m_s2": p[6:9].tolist(), "M": np.linalg.inv(TK).tolist(),
                        "k2_s2_per_m": eff.get("accel_quadratic", np.zeros(3)).tolist()}
         acc_rows = _row("accelerometer", "mg", _rms(d.acc - ref), _rms(f_decl - ref), _rms(f_cal - ref),
@@ -177,10 +177,11 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
             f_all = np.linalg.solve(np.array(accel_model["M"]), (s["acc"] - np.array(accel_model["bias_m_s2"])).T).T
         else:
             f_all = pl.accel_apply(loop.final, loop.claimed, s["acc"], _SampleTimes(d, len(s["acc"]), s["temp"]))
-        bias_t = bg + f_all @ G.T
+        bias_t = pl.gyro_static_model(gloop.final, f_all, np.arange(len(f_all)) / fs, s["temp"], d)
         clipped, n_clip = pl.clipped_motions(s["gyr"], iv)
         keep = ~clipped
-        rloop = pl.judge("gyro_rotation", lambda e: pl.fit_rotations(s["gyr"], d, up, bias_t, e, keep),
+        dvar = pl.direction_variance(loop.final, loop.claimed, d.acc, d) if ups is None else None
+        rloop = pl.judge("gyro_rotation", lambda e: pl.fit_rotations(s["gyr"], d, up, bias_t, e, keep, dvar),
                          pl.rotation_candidates(int(keep.sum()), peak), np.inf, {}, ALPHA)
         if clipped.any():
             rloop.claimed.insert(0, "gyro_range_exceeded")
@@ -191,7 +192,7 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         results["multipos_gyro"] = _result("multipos_gyro", rloop.final, rloop, P, 9)
         gyro_M = np.linalg.inv(pl._tg(rloop.final.values))
         sig = rloop.final.extra["sigma_rad"]
-        raw = pl.rotation_residuals_at(s["gyr"], d, up, np.zeros(3), np.concatenate([np.zeros(6), np.ones(3)]), keep)
+        raw = pl.rotation_residuals_at(s["gyr"], d, up, np.zeros(3), np.concatenate([np.zeros(6), np.ones(3)]), keep, dvar)
         rot_rows = _row("motion (gravity direction)", "urad", _rms(raw), _rms(rloop.declared.extra["resid"]),
                         _rms(rloop.final.extra["resid"]), np.full(3, _rms(sig) / np.sqrt(2)), 1e6)
     else:

@@ -29,6 +29,7 @@ from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
 from ..recorder import utc_now, write_results
+from ..recording_reader import check_finite
 from ..segment_builder import _angles_at, _site, open_recording
 from ..solvers import thermal as th
 from ..solvers.segment_stats import self_noise_sigma
@@ -170,7 +171,7 @@ def truth_coefficients(f: Any) -> dict[str, float] | None:
     return out
 
 
-def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> dict[str, Any]:
+def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """RMS of the window residuals with the reference-temperature model only (before: one
     calibration at T_ref) and with the thermal model (after), per axis and per 10-K bin."""
     after = np.column_stack([a.residuals for a in fit.axes])
@@ -190,14 +191,16 @@ def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> dict[str, Any]:
             bins.append({"from_c": float(lo), "to_c": float(hi), "windows": int(m.sum()),
                          "rms_before": np.sqrt(np.mean(before[m] ** 2, axis=0)).tolist(),
                          "rms_after": np.sqrt(np.mean(after[m] ** 2, axis=0)).tolist()})
-    return {"rms_before": np.sqrt(np.mean(before**2, axis=0)).tolist(),
-            "rms_after": np.sqrt(np.mean(after**2, axis=0)).tolist(), "by_temperature": bins,
-            "unit": th.UNIT[w.sensor]}
+    return ({"rms_before": np.sqrt(np.mean(before**2, axis=0)).tolist(),
+             "rms_after": np.sqrt(np.mean(after**2, axis=0)).tolist(), "by_temperature": bins,
+             "unit": th.UNIT[w.sensor]}, before, after)
 
 
 def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = None,
-                      reference_c: float = 25.0) -> tuple[dict[str, Any], str]:
-    """(payload, text) of the thermal calibration of a recording. ``degrees``: per group
+                      reference_c: float = 25.0) -> tuple[dict[str, Any], str, dict[str, tuple[Any, str]]]:
+    """(payload, text, arrays) of the thermal calibration of a recording; ``arrays`` are the
+    datasets of /results/thermal (per sensor: the windows' temperatures, heating flags, residuals
+    before and after, and each axis' coefficient covariance). ``degrees``: per group
     ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default) or 'auto' (chosen per sensor by
     :func:`rigctl.solvers.thermal.select_degrees`)."""
     p = Path(path)
@@ -210,6 +213,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
              f"reference {reference_c:g} degC)"]
     n_in = n_all = 0
     misses: list[str] = []
+    arrays: dict[str, tuple[Any, str]] = {}
     for sensor, w in wins.items():
         deg = th.select_degrees(w) if degrees == "auto" else dict(degrees or DEFAULT_DEGREES)
         fit = th.fit_thermal(w, deg)
@@ -218,7 +222,14 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         c2 = fit.chi2 / fit.dof
         status = "ok" if lo <= c2 <= hi else "chi2_outside_band"
         heat = w.heating
-        ba = _before_after(w, fit)
+        ba, before, after = _before_after(w, fit)
+        unit = "m/s^2" if sensor == "accel" else "rad/s"
+        arrays.update({f"{sensor}_window_temperature": (w.temperature, "degC"),
+                       f"{sensor}_window_heating": (w.heating.astype(np.int8), "1"),
+                       f"{sensor}_residual_before": (before, unit), f"{sensor}_residual_after": (after, unit)})
+        for i, a in enumerate(fit.axes):
+            arrays[f"{sensor}_cov_{th.AXES[i]}"] = (a.cov, "SI (see names)")
+            arrays[f"{sensor}_names_{th.AXES[i]}"] = (np.array([n.encode() for n in a.names]), "")
         sensors[sensor] = {
             "degrees": deg, "accepted": fit.accepted,
             "effects_found": [th.CANDIDATE_TEXT[c] for c in fit.accepted],
@@ -269,21 +280,20 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                                      "outside": misses}
         lines.append(f"\nagainst the emulator's truth: {n_in} of {n_all} 95 % intervals cover it"
                      + (f" (outside: {', '.join(misses)})" if misses else ""))
-    return payload, "\n".join(lines)
+    return payload, "\n".join(lines), arrays
 
 
 def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | Path | None = None,
                         degrees: dict[str, int] | str | None = None) -> tuple[dict[str, Any], str]:
     """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``)."""
     p = Path(path)
-    payload, text = calibrate_thermal(p, degrees)
+    payload, text, arrays = calibrate_thermal(p, degrees)
     if store:
         with open_recording(p) as f:
             status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
         if status == "running":
             text += "\nnot stored in the recording: it is still being written (status running)"
         else:
-            arrays = {}
             for s, d in payload["sensors"].items():
                 arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
                 arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
@@ -293,3 +303,48 @@ def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | P
         jp.write_text(json.dumps(payload, indent=1, default=float))
         text += f"\nresults: {p}:/results/thermal and {jp}"
     return payload, text
+
+
+# ------------------------------------------------------------------------------ apply-cal
+def thermal_info(data: dict[str, Any], where: Any) -> dict[str, Any]:
+    """A thermal calibration payload (for rigctl apply-cal), checked: {sensor: {name: value}}, accepted effects."""
+    try:
+        sensors = {s: {q["name"]: float(q["value"]) for q in data["sensors"][s]["parameters"]}
+                   for s in ("accel", "gyro")}
+        accepted = {s: list(data["sensors"][s].get("accepted", [])) for s in ("accel", "gyro")}
+        ref = float(data["reference_c"])
+        width = float(data.get("hysteresis_width_K", 2.0))
+    except (TypeError, KeyError, ValueError):
+        raise InputError("the thermal calibration is incomplete (sensors accel / gyro with parameters, "
+                         "reference_c)", where, hint="use the JSON written by rigctl calibrate") from None
+    if not all(np.isfinite(v) for p in sensors.values() for v in p.values()):
+        raise InputError("the thermal calibration holds non-finite values", where)
+    return {"thermal": sensors, "accepted": accepted, "reference_c": ref, "hysteresis_width_K": width,
+            "schema_version": data.get("schema_version"), "status": "thermal",
+            "trustworthy": all(d.get("status") == "ok" for d in data["sensors"].values()),
+            "model": {"thermal": True, "reference_c": ref, "accepted": accepted}}
+
+
+def apply_thermal(fin: Any, fo: Any, src: Path, info: dict[str, Any], chunk: int = 1 << 18) -> int:
+    """Correct /imu of the copy ``fo`` from ``fin`` with a thermal calibration (rigctl apply-cal)."""
+    if "imu/temperature" not in fin:
+        raise InputError("a thermal calibration needs the recording's temperature column (/imu/temperature)", src)
+    T = fin["imu/temperature"][()]
+    t = fin["imu/time"][()]
+    check_finite(src, "imu/temperature", T, 0)
+    air = None
+    if "chamber/time" in fin and fin["chamber/time"].shape[0] >= 2:
+        air = np.interp(t, fin["chamber/time"][()], fin["chamber/air_c"][()])
+    regs = {s: th.regressors_along(T, t, info["accepted"][s], info["hysteresis_width_K"], air)
+            for s in ("accel", "gyro")}
+    fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
+    n = fa.shape[0]
+    for a0 in range(0, n, chunk):
+        a1 = min(n, a0 + chunk)
+        f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
+        check_finite(src, "imu/specific_force", f_in, a0)
+        check_finite(src, "imu/angular_rate", w_in, a0)
+        for ds, sensor, y in ((fa, "accel", f_in), (fw, "gyro", w_in)):
+            ds[a0:a1] = th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
+                                   {c: x[a0:a1] for c, x in regs[sensor].items()})
+    return n

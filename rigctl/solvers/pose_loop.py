@@ -25,7 +25,8 @@ and how each sub-model is tested:
   (applied to the calibrated rate): ``gyro_scale_asymmetry`` d_i |w_i| (ratio) and
   ``gyro_scale_nonlinearity`` n_i w_i |w_i| (s/rad).
 
-Every sub-model runs the same loop (:func:`select_effects`): forward selection, each round
+Every sub-model runs the same loop (:func:`select_effects`) while its chi2/dof is above the
+99 % band (a fit inside its band has nothing left to explain): forward selection, each round
 adding the candidate with the smallest F-test p-value below alpha / m (Bonferroni over the m
 candidates left), if leave-one-pose-out cross-validation (PRESS, whitened, linearised at the
 solution) drops too. Then :func:`judge`: the final chi2/dof against its 99 % band (F band: the
@@ -219,21 +220,30 @@ def chi2_band(dof: int, noise_dof: float, level: float = 0.99) -> tuple[float, f
     return float(scipy.stats.f.ppf(a, dof, noise_dof)), float(scipy.stats.f.ppf(1 - a, dof, noise_dof))
 
 
-def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01
+def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01,
+                   needed: Callable[[Fit], bool] | None = None
                    ) -> tuple[list[str], list[Fit], list[dict[str, Any]]]:
     """Forward selection (module doc). Returns (accepted names, fits after each step with the
-    declared fit first, explain rows)."""
+    declared fit first, explain rows). ``needed(fit)``: a round runs only while it is true (the
+    loop runs while the chi2 is above its band)."""
     cur: list[str] = []
     fits = [fit_fn(cur)]
     rows: list[dict[str, Any]] = []
+    ambiguous: list[str] = []
     for c in cands:
         if not c.testable:
             rows.append({"step": 0, "candidate": c.name, "statistic": "-", "decision": f"not testable: {c.why}"})
     pool = [c for c in cands if c.testable]
     step = 0
     while pool:
-        step += 1
         base = fits[-1]
+        if needed is not None and not needed(base):
+            why = (f"the {'declared' if step == 0 else 'current'} model's chi2/dof {base.chi2_per_dof:.3g} is inside "
+                   "its 99 % band: nothing left to explain")
+            rows += [{"step": step + 1, "candidate": c.name, "statistic": "-", "decision": f"not run: {why}"}
+                     for c in pool]
+            break
+        step += 1
         tried = []
         for c in pool:
             try:
@@ -262,6 +272,17 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
                 rows.append({"step": step, "candidate": c.name, "statistic": stat,
                              "decision": "rejected: cross-validation does not improve"})
                 continue
+            # a runner-up that fits as well (chi2 within the 95 % likelihood-ratio margin, scaled
+            # by the residual variance) is indistinguishable on this recording: say so
+            scale = f.chi2 / max(f.dof, 1)
+            rivals = [q for q2, q, f2, _ in tried if q is not c and q2 < thr and f2.chi2 - f.chi2 < 3.84 * scale]
+            if rivals:
+                alt = " or ".join([c.name] + [q.name for q in rivals])
+                rows.append({"step": step, "candidate": alt, "statistic": stat,
+                             "decision": "ambiguous: these candidates fit equally well; none is claimed"})
+                ambiguous.append(alt)
+                done = False
+                break
             rows.append({"step": step, "candidate": c.name, "statistic": stat, "decision": "added"})
             cur.append(c.name)
             fits.append(f)
@@ -270,6 +291,8 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
             break
         if not done:
             break
+    if ambiguous:
+        rows.append({"step": step, "candidate": ambiguous[0], "statistic": "-", "decision": "ambiguous"})
     return cur, fits, rows
 
 
@@ -330,10 +353,17 @@ STATUS_PESSIMISTIC = "NOISE MODEL TOO PESSIMISTIC"
 def judge(name: str, fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], noise_dof: float,
           variables: dict[str, Arr], alpha: float = 0.01) -> SubLoop:
     """Run the selection, then the band and the claims (module doc)."""
-    accepted, fits, rows = select_effects(fit_fn, cands, alpha)
+    def needed(f: Fit) -> bool:
+        return f.dof <= 0 or f.chi2_per_dof > chi2_band(f.dof, noise_dof)[1]
+
+    accepted, fits, rows = select_effects(fit_fn, cands, alpha, needed)
     final, declared = fits[-1], fits[0]
     band = chi2_band(final.dof, noise_dof)
     claimed, not_claimed, findings = list(accepted), [], []
+    amb = [r["candidate"] for r in rows if r["decision"] == "ambiguous"]
+    if amb:
+        findings.append(f"ambiguous: {amb[0]} -- each explains the residual as well as the other on these poses; "
+                        "none is claimed (more poses, or poses at intermediate tilts, would separate them)")
     corr: list[dict[str, Any]] = []
     if final.dof > 0 and final.chi2_per_dof > band[1]:
         status = STATUS_UNEXPLAINED
@@ -378,19 +408,35 @@ def _tk(m: Arr, s: Arr) -> Arr:
 
 ACCEL_CANDIDATES = {
     "accel_quadratic": ("s2_per_m", lambda u, d: u ** 2),
+    # at rest the magnitude sees only the sum of the three cross-coupling coefficients (each adds
+    # 2 c u_x u_y u_z to |u|^2): one common coefficient is what the data can test
     "accel_cross_quadratic": ("s2_per_m", lambda u, d: np.stack([u[:, 1] * u[:, 2], u[:, 0] * u[:, 2],
-                                                                 u[:, 0] * u[:, 1]], axis=1)),
+                                                                 u[:, 0] * u[:, 1]], axis=1)[:, :, None]),
     "accel_scale_asymmetry": ("ratio", lambda u, d: np.abs(u)),
     "accel_bias_time_drift": ("m_s2_per_h", lambda u, d: np.repeat(((d.t_s - d.t_ref) / 3600)[:, None], 3, 1)),
     "accel_bias_temperature": ("m_s2_per_K", lambda u, d: np.repeat((d.temp_c - d.temp_ref)[:, None], 3, 1)),
 }
 
 
+def accel_k(name: str) -> int:
+    """Number of parameters of an accelerometer candidate (3 per-axis, 1 for a common one)."""
+    return 1 if name == "accel_cross_quadratic" else 3
+
+
 def accel_correction(effects: dict[str, Arr], u: Arr, data: Any) -> Arr:
     """sum_e B_e(u) o theta_e: the candidates' correction to the raw means (P, 3)."""
     out = np.zeros_like(u)
     for e, th in effects.items():
-        out += ACCEL_CANDIDATES[e][1](u, data) * th
+        B = ACCEL_CANDIDATES[e][1](u, data)
+        out += (B[:, :, 0] * th[0]) if B.ndim == 3 else B * th
+    return out
+
+
+def _accel_split(p: Arr, effects: list[str]) -> dict[str, Arr]:
+    out, i = {}, 9
+    for e in effects:
+        out[e] = p[i:i + accel_k(e)]
+        i += accel_k(e)
     return out
 
 
@@ -399,7 +445,7 @@ def accel_candidates(d: PoseData) -> list[Candidate]:
     P = len(d.acc)
     out = []
     for name in ACCEL_CANDIDATES:
-        c = Candidate(name, 3)
+        c = Candidate(name, accel_k(name))
         if name == "accel_bias_temperature":
             if d.temp_c is None or not np.all(np.isfinite(d.temp_c)):
                 c.testable, c.why = False, "no temperature recorded"
@@ -410,11 +456,19 @@ def accel_candidates(d: PoseData) -> list[Candidate]:
         if c.testable and P - 9 - 3 < 3:
             c.testable, c.why = False, f"{P} poses leave {P - 12} dof with 12 parameters (need >= 3)"
         if c.testable:
-            B = ACCEL_CANDIDATES[name][1](d.acc, d)
-            X = np.hstack([np.abs(d.acc) / 9.8, d.acc / 9.8, np.ones((P, 1))])  # crude span of the base model
-            if np.linalg.matrix_rank(np.hstack([X, B / (np.abs(B).max(axis=0) + 1e-30)]), tol=1e-6) <= \
-                    np.linalg.matrix_rank(X, tol=1e-6):
-                c.testable, c.why = False, "the poses do not separate it from scale and bias"
+            # linearised magnitude: d|u| = sum_i (u_i/|u|) du_i; the base model spans bias (u_i),
+            # scale (u_i^2) and the three misalignments (u_x u_y, u_x u_z, u_y u_z), over |u|
+            u = d.acc
+            n = np.linalg.norm(u, axis=1)[:, None]
+            base = np.hstack([u, u ** 2, u[:, [0]] * u[:, [1]], u[:, [0]] * u[:, [2]], u[:, [1]] * u[:, [2]]]) / n
+            B = ACCEL_CANDIDATES[name][1](u, d)
+            B = B[:, :, 0] if B.ndim == 3 else B
+            cand = (u * B / n) if accel_k(name) == 3 else np.sum(u * B, axis=1, keepdims=True) / n
+            X = np.hstack([base, cand])
+            X = X / np.maximum(np.linalg.norm(X, axis=0), 1e-300)
+            sv = np.linalg.svd(X, compute_uv=False)
+            if sv[-1] < 1e-6 * sv[0]:
+                c.testable, c.why = False, "the poses do not separate it from scale, bias and misalignment"
         out.append(c)
     return out
 
@@ -423,15 +477,15 @@ def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
     """Magnitude-model fit with the named effects (module doc)."""
     u = d.acc
     P = len(u)
-    k = 3 * len(effects)
+    k = sum(accel_k(e) for e in effects)
 
     def unpack(p: Arr) -> tuple[Arr, dict[str, Arr]]:
-        M = _tk(p[0:3], p[3:6])
-        return M, {e: p[9 + 3 * i: 12 + 3 * i] for i, e in enumerate(effects)}
+        return _tk(p[0:3], p[3:6]), _accel_split(p, effects)
 
     def resid(p: Arr) -> Arr:
         M, eff = unpack(p)
-        v = u - p[6:9] - accel_correction(eff, u, d)
+        v0 = u - p[6:9]  # the effects act on the input (specific force), not on the biased output
+        v = v0 - accel_correction(eff, v0, d)
         a = v @ M.T
         na = np.linalg.norm(a, axis=1)
         dn = (a / na[:, None]) @ M
@@ -445,7 +499,8 @@ def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
     cov = np.linalg.pinv(J.T @ J)
     names = ["accel_misalign_yz_rad", "accel_misalign_zy_rad", "accel_misalign_zx_rad"] + \
             [f"accel_scale_{a}_ratio" for a in AX] + [f"accel_bias_{a}_m_s2" for a in AX] + \
-            [f"{e}_{a}_{ACCEL_CANDIDATES[e][0]}" for e in effects for a in AX]
+            [f"{e}_{a}_{ACCEL_CANDIDATES[e][0]}" if accel_k(e) == 3 else f"{e}_{ACCEL_CANDIDATES[e][0]}"
+             for e in effects for a in (AX if accel_k(e) == 3 else "x")]
     r = sol.fun
     return Fit(names, sol.x, cov, float(r @ r), P - 9 - k, r, J, np.arange(P))
 
@@ -453,8 +508,30 @@ def fit_accel(d: PoseData, g: float, effects: list[str]) -> Fit:
 def accel_apply(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
     """Calibrated specific force for raw (nominal-scale) vectors u (n, 3)."""
     p = fit.values
-    eff = {e: p[9 + 3 * i: 12 + 3 * i] for i, e in enumerate(effects)}
-    return (u - p[6:9] - accel_correction(eff, u, data)) @ _tk(p[0:3], p[3:6]).T
+    v0 = u - p[6:9]
+    return (v0 - accel_correction(_accel_split(p, effects), v0, data)) @ _tk(p[0:3], p[3:6]).T
+
+
+def direction_variance(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
+    """(P,) variance of each pose's gravity direction (rad^2, two axes summed / 2) that the
+    accelerometer model's parameter uncertainty causes: J Cov J^T of up = a / |a|, numerically."""
+    p0 = fit.values.copy()
+
+    def up_of(p: Arr) -> Arr:
+        a = accel_apply(Fit(fit.names, p, fit.cov, 0, 0, fit.r, fit.J, fit.groups), effects, u, data)
+        return a / np.linalg.norm(a, axis=1)[:, None]
+
+    base = up_of(p0)
+    sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
+    Jc = []
+    for i in range(len(p0)):
+        h = sd[i] * 1e-3 if sd[i] > 0 else 1e-9
+        q = p0.copy()
+        q[i] += h
+        Jc.append((up_of(q) - base) / h)
+    Jm = np.stack(Jc, axis=-1)  # (P, 3, n)
+    C = np.einsum("pin,nm,pjm->pij", Jm, fit.cov, Jm)
+    return np.trace(C, axis1=1, axis2=2) / 2
 
 
 def pose_variables(d: PoseData, up: Arr, rep: int = 1) -> dict[str, Arr]:
@@ -533,7 +610,7 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
     else:
         y -= OMEGA_EARTH * np.sin(latitude_rad) * up.T.reshape(-1)
         cos2 = np.cos(latitude_rad) ** 2
-    var = d.var_gyr.T.reshape(-1) + OMEGA_EARTH ** 2 * cos2 * (1 - up.T.reshape(-1) ** 2) / 2
+    h2 = OMEGA_EARTH ** 2 * cos2 / 2  # horizontal Earth rate, random heading: (I - up up^T) h2 per pose
     cols = [np.kron(np.eye(3), np.ones((P, 1)))]
     names = [f"gyro_bias_{a}_rad_s" for a in AX]
     if latitude_rad is None:
@@ -544,8 +621,13 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
         cols.append(c)
         names += n
     X = np.hstack(cols)
-    s = np.sqrt(var)
-    Xw, yw = X / s[:, None], y / s
+    Xw, yw = np.empty_like(X), np.empty_like(y)
+    for p in range(P):  # whiten each pose's three rows by the Cholesky factor of their covariance
+        rows = np.array([p, P + p, 2 * P + p])
+        C = np.diag(d.var_gyr[p]) + h2 * (np.eye(3) - np.outer(up[p], up[p]))
+        L = np.linalg.cholesky(C)
+        Xw[rows] = np.linalg.solve(L, X[rows])
+        yw[rows] = np.linalg.solve(L, y[rows])
     groups = np.tile(np.arange(P), 3)
     if latitude_rad is None:  # prior row: sin(lat) uniform on [-1, 1]
         pr = np.zeros((1, X.shape[1]))
@@ -559,6 +641,23 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
     return Fit(names, beta, cov, float(r @ r), int(dof), r, Xw, groups, extra={"resid": y - X @ beta, "y": y})
 
 
+def gyro_static_model(fit: Fit, f: Arr, t_s: Arr, temp_c: Arr | None, d: PoseData) -> Arr:
+    """(n, 3) what the static gyro model predicts at specific force f (n, 3) and times t_s
+    (bias, g-sensitivity, anisoelastic, drift, temperature; no Earth rate): the part of the
+    rate that the motions between poses must have removed."""
+    v = dict(zip(fit.names, fit.values))
+    out = np.tile([v.get(f"gyro_bias_{a}_rad_s", 0.0) for a in AX], (len(f), 1))
+    G = np.array([[v.get(f"gyro_g_sens_{a}{b}_rad_s_per_m_s2", 0.0) for b in AX] for a in AX])
+    out += f @ G.T
+    prod = np.stack([f[:, 1] * f[:, 2], f[:, 0] * f[:, 2], f[:, 0] * f[:, 1]], axis=1)
+    out += prod * np.array([v.get(f"gyro_anisoelastic_{a}_rad_s_per_m2_s4", 0.0) for a in AX])
+    out += np.outer((t_s - d.t_ref) / 3600, [v.get(f"gyro_bias_time_drift_{a}_rad_s_per_h", 0.0) for a in AX])
+    if temp_c is not None and d.temp_c is not None:
+        out += np.outer(np.nan_to_num(temp_c - d.temp_ref),
+                        [v.get(f"gyro_bias_temperature_{a}_rad_s_per_K", 0.0) for a in AX])
+    return out
+
+
 # ------------------------------------------------------------------------------ gyro, rotations
 def _tg(p: Arr) -> Arr:
     T = np.array([[1.0, p[0], p[1]], [p[2], 1.0, p[3]], [p[4], p[5], 1.0]])
@@ -568,22 +667,30 @@ def _tg(p: Arr) -> Arr:
 ROTATION_CANDIDATES = {"gyro_scale_asymmetry": "ratio", "gyro_scale_nonlinearity": "s_per_rad"}
 
 
+def _qmul(a: Arr, b: Arr) -> Arr:
+    """Hamilton product of quaternions (..., 4) stored as (x, y, z, w)."""
+    av, aw, bv, bw = a[..., :3], a[..., 3:], b[..., :3], b[..., 3:]
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv),
+                           aw * bw - np.sum(av * bv, axis=-1, keepdims=True)], axis=-1)
+
+
 def _rot_matrices(w: Arr, bounds: Arr, dt: float) -> Arr:
-    """Rotation (body_start -> body_end) of each motion: products of exp([w dt]x) computed
-    for all motions at once by a segmented tree reduction. bounds: (K, 2) sample ranges."""
-    qs = []
-    for s, e in bounds:
-        r = Rotation.from_rotvec(w[s:e] * dt)
-        while len(r) > 1:
-            if len(r) % 2:
-                r = Rotation.concatenate([r, Rotation.identity(1)])
-            r = r[0::2] * r[1::2]
-        qs.append(r.as_matrix()[0])
-    return np.array(qs)
+    """Rotation (body_start -> body_end) of each motion, R = prod_k exp([w_k dt]x) in sample
+    order, for all motions at once: each motion's increments padded with identities to a common
+    power-of-two length and multiplied pairwise (log2 L vectorised levels). bounds: (K, 2)."""
+    lens = bounds[:, 1] - bounds[:, 0]
+    L = 1 << int(np.ceil(np.log2(max(int(lens.max()), 1))))
+    rv = np.zeros((len(bounds), L, 3))
+    for k, (s, e) in enumerate(bounds):
+        rv[k, :e - s] = w[s:e] * dt
+    q = Rotation.from_rotvec(rv.reshape(-1, 3)).as_quat().reshape(len(bounds), L, 4)
+    while q.shape[1] > 1:
+        q = _qmul(q[:, 0::2], q[:, 1::2])
+    return Rotation.from_quat(q[:, 0]).as_matrix()
 
 
 def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                      keep: Arr | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
+                      keep: Arr | None = None, dir_var: Arr | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
     """(normalised residual function of the parameters, sigma per motion) for the motions.
 
     ``bias``: (3,) constant, or (n, 3) per sample (bias + g-sensitivity G f(t) during the motion).
@@ -599,7 +706,7 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
     w0 = np.asarray(gyr_raw, float)[lo:hi] - (b[lo:hi] if b.ndim == 2 else b)
     bnd = bounds - lo
     g = np.linalg.norm(d.acc, axis=1)
-    dsig = np.sqrt(d.var_acc.mean(axis=1)) / g
+    dsig = np.sqrt(d.var_acc.mean(axis=1) / g ** 2 + (0 if dir_var is None else dir_var))
     arw2 = np.mean(d.var_gyr * np.array([e - s for s, e in iv])[:, None]) / d.fs_hz  # rad^2/s
     sig = np.sqrt(dsig[ks] ** 2 + dsig[ks + 1] ** 2 + arw2 * (bnd[:, 1] - bnd[:, 0]) * dt)
     u0, u1 = up[ks], up[ks + 1]
@@ -616,17 +723,18 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
     return resid, sig
 
 
-def rotation_residuals_at(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, p: Arr, keep: Arr | None = None) -> Arr:
+def rotation_residuals_at(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, p: Arr, keep: Arr | None = None,
+                          dir_var: Arr | None = None) -> Arr:
     """Unnormalised motion residuals (K, 3) at fixed parameters (e.g. nominal: no calibration)."""
-    f, sig = _rotation_problem(gyr_raw, d, up, bias, [], keep)
+    f, sig = _rotation_problem(gyr_raw, d, up, bias, [], keep, dir_var)
     return f(np.asarray(p, float)).reshape(-1, 3) * sig[:, None]
 
 
 def fit_rotations(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                  keep: Arr | None = None) -> Fit:
+                  keep: Arr | None = None, dir_var: Arr | None = None) -> Fit:
     """Gyro scale/misalignment (+ candidates) from the motions between poses (module doc);
     ``keep``: (P-1,) bool, the motions to use (clipped ones excluded)."""
-    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep)
+    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep, dir_var)
     K, ne = len(sig), len(effects)
     p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(3 * ne)])
     sol = scipy.optimize.least_squares(resid, p0, x_scale=np.concatenate([np.full(6, 1e-2), np.full(3, 1e-2),

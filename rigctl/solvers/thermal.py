@@ -285,3 +285,53 @@ def power_means(T: np.ndarray, bounds: np.ndarray, reference_c: float, degree: i
         for j in range(degree + 1):
             out[n, j] = np.mean(seg**j)
     return out
+
+
+def regressors_along(T: np.ndarray, t: np.ndarray, accepted: list[str], hysteresis_width_K: float,
+                     air: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per-sample regressors of the accepted effects along a record (temperature T degC at times
+    t s): the hysteresis state (play operator on T at about 1 Hz), the temperature rate (slope
+    over a 10 s moving window, K/s) and the gradient (``air`` - T; zeros without ``air``)."""
+    out: dict[str, np.ndarray] = {}
+    if "hysteresis" in accepted:
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        step = max(1, int(round(1.0 / dt)))
+        Hs = play_operator(T[::step], hysteresis_width_K)
+        out["hysteresis"] = np.interp(np.arange(T.size), np.arange(0, T.size, step)[: Hs.size], Hs)
+    if "temperature_rate" in accepted:
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        k = max(1, int(round(5.0 / dt)))
+        lo, hi = np.clip(np.arange(T.size) - k, 0, T.size - 1), np.clip(np.arange(T.size) + k, 0, T.size - 1)
+        span = t[hi] - t[lo]
+        out["temperature_rate"] = np.where(span > 0, (T[hi] - T[lo]) / np.where(span > 0, span, 1.0), 0.0)
+    if "thermal_gradient" in accepted:
+        out["thermal_gradient"] = (air - T) if air is not None else np.zeros(T.size)
+    return out
+
+
+def correct(sensor: str, y: np.ndarray, T: np.ndarray, params: dict[str, float], reference_c: float,
+            regressors: dict[str, np.ndarray] | None = None, max_iter: int = 20) -> np.ndarray:
+    """Invert a fitted thermal model sample by sample: the true input u (n, 3) from the measured
+    y (n, 3) at temperatures T (n,): y = b(T) + M(T) u [+ k2 o u^2] + effects (Newton's method
+    with the per-sample M when k2 is present)."""
+    m = evaluate(params, sensor, T, reference_c)
+    b, M = m["bias"], m["M"]
+    u_name = UNIT[sensor]
+    for c, x in (regressors or {}).items():
+        key = {"hysteresis": "{s}_hysteresis_{a}_{u}", "temperature_rate": "{s}_temp_rate_{a}_{u}_per_K_per_s",
+               "thermal_gradient": "{s}_gradient_{a}_{u}_per_K"}[c]
+        coef = np.array([params.get(key.format(s=sensor, a=a, u=u_name), 0.0) for a in AXES])
+        b = b + np.asarray(x, float)[:, None] * coef
+    k2 = np.array([params.get(f"{sensor}_quad_{a}_s2_per_m", 0.0) for a in AXES])
+    u = np.linalg.solve(M, (y - b)[..., None])[..., 0]
+    if not np.any(k2):
+        return u
+    for _ in range(max_iter):
+        r = b + (M @ u[..., None])[..., 0] + k2 * u * u - y
+        J = M.copy()
+        J[:, [0, 1, 2], [0, 1, 2]] += 2.0 * k2 * u
+        step = np.linalg.solve(J, r[..., None])[..., 0]
+        u = u - step
+        if np.max(np.abs(step), initial=0.0) < 1e-12:
+            break
+    return u

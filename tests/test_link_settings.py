@@ -1,0 +1,85 @@
+"""The wired drivers' settings (rigctl.linkconfig): one dataclass per driver, one validator, and
+the driver's own keyword arguments agreeing with them (names and defaults)."""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from pathlib import Path
+
+import pytest
+
+from rigctl.config import load_config
+from rigctl.drivers.acl_table import AclTable
+from rigctl.drivers.gpio_pulses import GpioPulses
+from rigctl.drivers.modbus_table import ModbusTable
+from rigctl.drivers.modem_pulses import ModemPulses
+from rigctl.drivers.novatel_marks import NovatelMarks
+from rigctl.drivers.frame_imu import FrameImu
+from rigctl.drivers.vectornav_imu import VectorNavImu
+from rigctl.drivers.xsens_imu import XsensImu
+from rigctl.errors import InputError
+from rigctl.linkconfig import (SETTINGS, AclSettings, FrameSettings, GpioSettings, ModbusSettings, ModemSettings,
+                               NovatelSettings, VectorNavSettings, XsensSettings)
+
+DRIVERS = {AclSettings: AclTable, ModbusSettings: ModbusTable, XsensSettings: XsensImu,
+           VectorNavSettings: VectorNavImu, FrameSettings: FrameImu,
+           NovatelSettings: NovatelMarks, GpioSettings: GpioPulses, ModemSettings: ModemPulses}
+#: the first positional parameter name of each driver that takes the port (or chip) first
+FIRST = {AclTable: "url", XsensImu: "url", VectorNavImu: "url", FrameImu: "url", NovatelMarks: "url", ModemPulses: "url", GpioPulses: "chip"}
+
+
+def test_every_wired_driver_has_one_settings_class() -> None:
+    assert set(SETTINGS.values()) == set(DRIVERS)
+
+
+@pytest.mark.parametrize("cls", list(DRIVERS), ids=lambda c: c.__name__)
+def test_the_settings_are_the_drivers_keyword_arguments(cls) -> None:
+    """Each keyword the config passes is a keyword-only parameter of the driver, with the same
+    default: a setting renamed or re-defaulted on one side only fails here."""
+    params = inspect.signature(DRIVERS[cls].__init__).parameters
+    for f in dataclasses.fields(cls):
+        if f.name in cls.POSITIONAL:
+            continue
+        p = params.get(f.name)
+        assert p is not None and p.kind is inspect.Parameter.KEYWORD_ONLY, (cls.__name__, f.name)
+        if f.default is not dataclasses.MISSING:
+            assert p.default == f.default, (cls.__name__, f.name, p.default, f.default)
+    positional = [n for n, p in params.items() if p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD][1:]
+    if DRIVERS[cls] in FIRST:
+        assert positional[0] == FIRST[DRIVERS[cls]]
+    assert len(cls.POSITIONAL) <= len(positional)
+
+
+def _config(tmp_path: Path, pulses: str) -> Path:
+    p = tmp_path / "rig.yaml"
+    p.write_text("clock: real\ntable:\n  driver: acl\n  port: /dev/null\nimu:\n  driver: xsens\n"
+                 f"  port: /dev/null\npulses:\n{pulses}")
+    return p
+
+
+def test_values_defaults_and_the_yaml_key_of_a_renamed_field(tmp_path: Path) -> None:
+    cfg = load_config(_config(tmp_path, "  driver: novatel\n  port: /dev/ttyS1\n  log: MARKTIMEA\n"
+                                        "  timebias_ns: -250\n"))
+    s = cfg.pulses.settings
+    assert isinstance(s, NovatelSettings)
+    assert (s.port, s.log_name, s.timebias_ns, s.timeguard_ms, s.baudrate) == \
+        ("/dev/ttyS1", "MARKTIMEA", -250, 4, 115200)
+    assert s.keywords()["log_name"] == "MARKTIMEA" and "port" not in s.keywords()
+    assert cfg.table.settings == AclSettings(port="/dev/null")
+    g = load_config(_config(tmp_path, "  driver: gpio\n  line: 17\n  edge: both\n")).pulses.settings
+    assert g == GpioSettings(line=17, edge="both") and g.where() == "/dev/gpiochip0 line 17"
+
+
+@pytest.mark.parametrize("pulses, message, line", [
+    ("  driver: modem\n  port: /dev/ttyS1\n  lien: cts\n", r"unknown key 'lien' in 'pulses' \(modem\) \(did you mean 'line'\?\)", 11),
+    ("  driver: modem\n  port: /dev/ttyS1\n  edge: up\n", r"'edge' = 'up' is not allowed \(choose one of: rising, falling, both\)", 11),
+    ("  driver: novatel\n  port: /dev/ttyS1\n  timeguard_ms: 2\n", r"'timeguard_ms' = 2 is below its minimum 4", 11),
+    ("  driver: novatel\n  port: /dev/ttyS1\n  log: MARK9TIMEA\n", r"'log' = 'MARK9TIMEA' is not allowed", 11),
+    ("  driver: gpio\n  edge: rising\n", r"'pulses' \(gpio\) is missing 'line'", 9),
+    ("  driver: modem\n  port: ''\n", r"'port' is empty", 10),
+])
+def test_errors_name_file_line_and_what_to_do(tmp_path: Path, pulses: str, message: str, line: int) -> None:
+    path = _config(tmp_path, pulses)
+    with pytest.raises(InputError, match=message) as err:
+        load_config(path)
+    assert err.value.file == str(path) and err.value.line == line, str(err.value)
