@@ -8,6 +8,10 @@ A subclass provides ``_new_stream()`` (a decoder with ``feed``/``flush`` and ``c
 unknown), ``_inertial(out) -> (acc (n,3) m/s^2, gyro (n,3) rad/s, temperature (n,) degC)`` and
 ``_configure_device()`` (commands, identity; called with the link open, on every (re)connect).
 
+After a reconnect, a device whose time went back (it restarted: a USB sensor power-cycles with
+its cable) is rebased: its timeline continues from the arrival of its first frame, so the
+outage is a counted gap (``device_restarts``), not a stream of rejected frames.
+
 Time base (units s): ``ImuBlock.counter = round((t_dev - t_dev_first) * rate_hz)`` (a gap means
 samples that never arrived: ``dropped_samples``); a frame whose device time does not advance is
 rejected (``out_of_order``); ``ImuBlock.time = t_dev + offset`` with the offset learnt while the
@@ -65,6 +69,10 @@ class StreamImu(ReconnectingReader):
         self._cond = threading.Condition()
         self._learning = False
         self._chunks = 0
+        #: device-time shift (s) added after a device restart, so its timeline continues
+        self._shift = 0.0
+        self._rebase_pending = False
+        self.device_restarts = 0
         self._init_reader()
         self._last_warn = 0.0
         self._warned_bad = 0
@@ -118,9 +126,21 @@ class StreamImu(ReconnectingReader):
     def _store(self, out: dict, arrival: float | None) -> None:
         if not len(out.get("offset", ())):
             return
-        t = self._device_time(out)
+        t = self._device_time(out) + self._shift
         acc, gyr, temp = self._inertial(out)
         last = self._last_t
+        if self._rebase_pending and t.size and arrival is not None:
+            self._rebase_pending = False
+            if last is not None and self.offset is not None and t[0] <= last:
+                # the device restarted while the link was down (a USB sensor power-cycles with its
+                # cable): its time starts again near 0. Continue its timeline at the arrival time,
+                # so the outage is a counted gap and nothing is rejected as out of order.
+                extra = max((arrival - self.offset) - float(t[-1]), last - float(t[0]) + 1.0 / self.rate_hz)
+                t = t + extra
+                self._shift += extra
+                self.device_restarts += 1
+                log.warning("%s: the device time restarted during the outage; its timeline continues "
+                            "from the reconnect (shift %.3f s)", self.name, self._shift)
         fast = t.size > 0 and bool(np.isfinite(t).all()) and (t.size < 2 or bool(np.all(np.diff(t) > 0))) \
             and (last is None or t[0] > last)
         if fast:
@@ -154,6 +174,7 @@ class StreamImu(ReconnectingReader):
 
     def _configure(self) -> None:
         first = self.offset is None
+        self._rebase_pending = self.configurations > 0
         self.link.ensure()
         if first:
             self.link.drain_input()
@@ -214,6 +235,7 @@ class StreamImu(ReconnectingReader):
     def counters(self) -> dict:
         d = asdict(self.stream.counters)
         d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
+                 device_restarts=self.device_restarts,
                  incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d

@@ -138,6 +138,9 @@ class VectorNavImu(StreamImu):
         self._request(V.write_register(75, *self.layout.register_values(0, self.divisor)), "VNWRG",
                       "binary output off")
         self._request(V.write_register(6, 0), "VNWRG", "ASCII output off", required=False)
+        for reg in (76, 77):        # binary outputs 2 and 3: another tool may have left them on
+            self._request(V.write_register(reg, *self.layout.register_values(0, self.divisor)), "VNWRG",
+                          f"binary output {reg - 74} off", required=False)
         if first:
             self._discard_preconfig()
         model, serial, fw = self._register(1), self._register(3), self._register(4)

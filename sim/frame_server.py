@@ -76,8 +76,10 @@ class FrameServer(StreamTwin):
         v["temperature"] = np.asarray(src["temperature"])
         if self.spec.format == "binary":
             return frame_decl.encode_binary(self.spec, v)
-        # CSV lines differ in length: one row of bytes is not possible; send as one row
-        return np.frombuffer(frame_decl.encode_csv(self.spec, v), np.uint8).reshape(1, -1)
+        # CSV lines differ in length: one row, with the end of each line for the error count
+        data = np.frombuffer(frame_decl.encode_csv(self.spec, v), np.uint8)
+        self._line_ends = np.flatnonzero(data == 0x0A) + 1
+        return data.reshape(1, -1)
 
 
 __all__ = ["EXAMPLE", "EXAMPLE_CSV", "FrameServer"]

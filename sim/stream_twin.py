@@ -4,7 +4,8 @@ errors injected as a renewal process over the byte stream (as :class:`HwXsensSer
 ``frames_hit`` counting the frames that received at least one error.
 
 A subclass provides ``_frames(k, t, src) -> (n, L) uint8`` (one row per sample: the frames all
-have one length) and, for a commanded device, ``_on_data``.
+have one length; frames of different lengths come as one row, with ``_line_ends`` the end
+offset of each) and, for a commanded device, ``_on_data``.
 """
 from __future__ import annotations
 
@@ -76,7 +77,9 @@ class StreamTwin:
         pos, vals = self._error_positions(start, start + out.size, rate)
         if pos.size:
             out[pos - start] ^= vals
-            self.frames_hit += int(np.unique((pos - start) // rows.shape[1]).size)
+            ends = getattr(self, "_line_ends", None)          # variable-length frames (CSV lines)
+            idx = (pos - start) // rows.shape[1] if ends is None else np.searchsorted(ends, pos - start, "right")
+            self.frames_hit += int(np.unique(idx).size)
             self.errors_injected += int(pos.size)
         return out.tobytes()
 

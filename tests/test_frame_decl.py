@@ -206,3 +206,30 @@ def test_loader_keeps_lines_inside_the_field_list() -> None:
     with pytest.raises(InputError) as e:
         parse_frame_spec(d)
     assert (e.value.file, e.value.line) == ("x.yaml", 5)
+
+
+def test_csv_byte_errors_are_counted_per_line() -> None:
+    """CSV lines with byte errors at 1e-3 (NMEA checksum): no damaged line is accepted, every
+    intact line is. Expected here from the clean and the damaged bytes: a line is lost when a
+    byte of it changed, and also when the line before it lost its line end (the two merge)."""
+    spec = _spec(EXAMPLE_CSV)
+    streams = []
+    for rate in (0.0, 1e-3):
+        twin = FrameServer(spec, still_source, clock=lambda: 0.0, rate_hz=100.0, seed=4)
+        try:
+            twin.byte_error_rate = rate
+            streams.append(b"".join(twin.encode(np.arange(k, k + 1000)) for k in range(0, 20_000, 1000)))
+        finally:
+            twin.close()
+    clean, noisy = (np.frombuffer(x, np.uint8) for x in streams)
+    ends = np.flatnonzero(clean == 0x0A)                     # line i spans (ends[i-1], ends[i]]
+    pos = np.flatnonzero(clean != noisy)
+    lost = set(np.searchsorted(ends, pos).tolist())          # lines with a changed byte
+    lost |= {i + 1 for i in np.searchsorted(ends, pos[np.isin(pos, ends)]).tolist()}
+    new_ends = int(np.sum(noisy[pos] == 0x0A))
+    dec = frame_decl.CsvStream(spec)
+    out = dec.feed(noisy.tobytes(), final=True)
+    assert len(out["offset"]) == 20_000 - len(lost)
+    assert len(lost) > 400                                  # ~ 20,000 x 57 bytes x 1e-3
+    merged = len(lost) - len(set(np.searchsorted(ends, pos).tolist()))
+    assert len(lost) - 2 * merged <= dec.counters.bad_frames <= len(lost) + new_ends

@@ -183,8 +183,9 @@ def _rows(imu, wall_s: float = 0.3) -> int:
 
 def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None:
     """Over the emulated rig's pty at 20x: the identity is read on connect; a pulled cable is a
-    counted gap of TimeStartup (dropped samples) and the same unit streams on; another serial
-    number after a reconnect stops the reader before the binary output is switched on again."""
+    counted gap of TimeStartup (dropped samples) and the same unit streams on, also when it
+    restarted (TimeStartup from 0 again: rebased, nothing rejected); another serial number after
+    a reconnect stops the reader before the binary output is switched on again."""
     from rigctl.clock import ScaledClock
     from rigctl.drivers.vectornav_imu import VectorNavImu, VectorNavUnitChanged
 
@@ -200,6 +201,16 @@ def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None
             hw.disconnect("imu", 0.1)                           # same unit back: streams on
             wait_until(lambda: imu.configurations == 2 and _rows(imu, 0.1) > 0, 10, "the stream back")
             assert imu.counters["dropped_samples"] >= 100       # 0.1 s wall at 20x = 2 s = 200 samples
+            # the sensor power-cycles with its cable: TimeStartup starts again from 0
+            n_drop = imu.counters["dropped_samples"]
+            hw.imu_server.power_cycle()
+            hw.disconnect("imu", 0.1)
+            wait_until(lambda: imu.configurations == 3 and _rows(imu, 0.1) > 0, 10, "the stream after a restart")
+            c = imu.counters
+            assert c["device_restarts"] == 1 and c["out_of_order"] == 0
+            assert c["dropped_samples"] - n_drop >= 100         # the outage is a counted gap
+            b = imu.read()
+            assert len(b) == 0 or (np.all(np.diff(b.time) > 0) and b.time[-1] <= imu.clock.now())
             hw.imu_server.serial_number = "0100099999"          # another unit on the same port
             hw.disconnect("imu", 0.1)
 
@@ -214,6 +225,6 @@ def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None
             exc = wait_until(fault, 10, "the unit change to be reported")
             assert "serial number 0100099999" in str(exc) and "started with 0100012345" in str(exc)
             time.sleep(0.3)
-            assert hw.imu_server.state == "config" and len(hw.imu_server.measurement_starts) == 2
+            assert hw.imu_server.state == "config" and len(hw.imu_server.measurement_starts) == 3
         finally:
             imu.close()
