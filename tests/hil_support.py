@@ -50,9 +50,10 @@ def run(proc: str, cfg_path: Path, out: Path, params: dict[str, str]):
 
 
 def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: str, speed: float,
-              during=None):
-    """Run ``proc`` over the wire against fresh emulated hardware; returns (recording, truth, hw info)."""
-    with hardware(tmp, speed) as (hw, raw):
+              during=None, hw_kw: dict | None = None):
+    """Run ``proc`` over the wire against fresh emulated hardware (``hw_kw``: e.g.
+    imu_protocol="vectornav"); returns (recording, truth, hw info)."""
+    with hardware(tmp, speed, **(hw_kw or {})) as (hw, raw):
         cfg_path = write_wire_config(tmp / "wired.yaml", raw, hw, table=table, link=link)
         timers = [threading.Timer(delay, fn) for delay, fn in (during or [])]
         for t in timers:
@@ -65,7 +66,7 @@ def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: st
                 t.cancel()
                 t.join()
         info = {"wall_s": time.perf_counter() - t0, "truth": hw.truth(), "hw": hw,
-                "imu_overflow": hw.slots["imu"].endpoint.overflow_bytes,
+                "imu_overflow": hw.slots["imu"].endpoint.overflow_bytes, "imu_frames_sent": hw.imu_server.frames_sent,
                 "reconnects": {k: s.reconnects for k, s in hw.slots.items()}}
     return res.recording, cfg, info
 

@@ -116,7 +116,7 @@ function plot(canvas, pts, getter, scale, unit, title, labels) {
   for (let i = 0; i <= 4; i++) {
     const v = lo + (hi - lo) * i / 4;
     ctx.beginPath(); ctx.moveTo(L, y(v)); ctx.lineTo(W - R, y(v)); ctx.stroke();
-    ctx.fillText(v.toPrecision(4), 2, y(v) + 4);
+    ctx.fillText(Math.abs(v) < 1e-3 * (hi - lo) ? "0" : v.toPrecision(3), 2, y(v) + 4);
   }
   ctx.fillText(t0.toFixed(0) + " s", L, H - 4);
   ctx.fillText(t1.toFixed(0) + " s", W - R - 50, H - 4);
@@ -218,7 +218,7 @@ async function refreshHistory() {
       const tr = document.createElement("tr");
       cell(tr, j.id); cell(tr, j.state);
       cell(tr, (j.procedure || j.run_dir || "").split("/").pop());
-      cell(tr, j.ended_utc || ""); cell(tr, j.message || "");
+      cell(tr, (j.ended_utc || "").slice(0, 19).replace("T", " ")); cell(tr, j.message || "");
       body.appendChild(tr);
     }
   }
