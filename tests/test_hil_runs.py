@@ -53,7 +53,7 @@ def same_calibration(wired: dict, ref: dict, family_alpha: float = 0.05) -> None
     Two independent estimates of each parameter (1-sigma s_w, s_r; the wired run's noise is
     another realisation, its windows are cut by wall-clock polls) differ by d with sigma
     sqrt(s_w^2 + s_r^2). The m parameters are tested together at family-wise level 5 %
-    (Bonferroni: each |d| <= z_(1 - 0.05 / 2m) sigma, z = 3.14 for m = 30), since m separate
+    (Bonferroni: each |d| <= z_(1 - 0.05 / 2m) sigma, z = 3.11 for the m = 27), since m separate
     95 % tests would flag one parameter in every other run by chance. Parameters that 24 static
     positions hardly determine (gyro scale factors: Earth rate only) take part with their
     wide intervals."""
