@@ -135,12 +135,10 @@ def _hexbytes(m: LocDict, key: str) -> bytes:
 
 
 def _field(item, fields: LocList, i: int, binary: bool, endian: str, offset: int, seen: set[str]) -> Field:
-    where = fields
     if not isinstance(item, dict):
         raise InputError(f"'fields' entry {i + 1} must be a mapping such as {{name: gyro_x, type: i, "
                          "scale: 1.0e-7, unit: rad/s}", fields.file, fields.line_of(i))
     f = item if isinstance(item, LocDict) else LocDict(item)
-    where = f
     S.check_keys(f, ("name", "type", "scale", "unit", "value"), f"'fields' entry {i + 1}",
                  required=("name", "type") if binary else ("name",))
     name = S.get_str(f, "name")

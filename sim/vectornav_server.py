@@ -1,8 +1,8 @@
 """Emulated VectorNav VN-100 on a pty: the ASCII register protocol and the binary output stream.
 
 Requests (``$VN...*CK\\r\\n``, checksum checked unless ``XX``): ``VNRRG`` of register 1 (model),
-3 (serial number), 4 (firmware), 6 (async ASCII type), 75 (binary output 1); ``VNWRG`` of 6 and
-75. The reply echoes the register (``$VNRRG,03,0100012345*CK``, ``$VNWRG,75,1,8,05,2001,001C*CK``);
+3 (serial number), 4 (firmware), 6 (async ASCII type), 75 (binary output 1); ``VNWRG`` of 6,
+75 and 76 / 77 (binary outputs 2 and 3: stored, not streamed). The reply echoes the register (``$VNRRG,03,0100012345*CK``, ``$VNWRG,75,1,8,05,2001,001C*CK``);
 errors are ``$VNERR,<code>``: 3 bad checksum, 4 unknown command, 7 invalid parameter (a layout
 with an undefined field or a divisor of 0), 8 unknown register, 12 insufficient baud rate (the
 frames at the requested rate need more than the nominal ``baudrate``, 10 bits per byte).
@@ -31,6 +31,9 @@ class VectorNavServer(StreamTwin):
         self.async_mode, self.divisor = 0, 8
         self.layout = V.Layout.of({1: 0x0001})
         self.ascii_type = 14
+        #: binary outputs 2 and 3 (registers 76, 77): (AsyncMode, RateDivisor, layout); the
+        #: emulator keeps them but streams only output 1
+        self.other_outputs: dict[int, tuple[int, int, V.Layout]] = {}
         self.last_error = ""
         self._buf = b""
         super().__init__(source, clock, V.IMU_RATE_HZ / self.divisor, seed=seed, name="vectornav-pty")
@@ -62,6 +65,12 @@ class VectorNavServer(StreamTwin):
             if head == "VNWRG":
                 if reg == 6 and len(fields) == 2 and fields[1].isdigit():
                     self.ascii_type = int(fields[1])
+                elif reg in (76, 77):           # binary outputs 2 and 3: kept, never streamed here
+                    try:
+                        mode, div, layout = V.Layout.from_register(fields[1:])
+                    except V.VectorNavError as exc:
+                        return self._err(7, str(exc))
+                    self.other_outputs[reg] = (mode, div, layout)
                 elif reg == 75:
                     try:
                         mode, div, layout = V.Layout.from_register(fields[1:])
@@ -82,7 +91,8 @@ class VectorNavServer(StreamTwin):
                     return self._err(8, f"register {reg} is not writable here")
                 return V.command(",".join(["VNWRG", f"{reg:02d}", *fields[1:]]))
             values = {1: self.model, 3: self.serial_number, 4: self.firmware, 6: str(self.ascii_type),
-                      75: ",".join(self.layout.register_values(self.async_mode, self.divisor))}
+                      75: ",".join(self.layout.register_values(self.async_mode, self.divisor)),
+                      **{r: ",".join(lay.register_values(m, d)) for r, (m, d, lay) in self.other_outputs.items()}}
             if reg not in values:
                 return self._err(8, f"register {reg} is not emulated")
             return V.command(f"VNRRG,{reg:02d},{values[reg]}")

@@ -112,7 +112,9 @@ def test_run_prints_calibration_and_before_after_table(clean_run):
     out, rec = clean_run
     tail = out[out.index("rigctl calibrate:"):]
     assert out.count("rigctl calibrate:") == 1  # three solver names, one calibration
-    assert "95% low" in tail and "1-sigma" in tail and "accel_bias_x_mg" in tail and "gyro_bias_x_deg_h" in tail
+    assert "95% low" in tail and "1-sigma" in tail and "unit" in tail
+    assert any(ln.split()[:2] == ["accel_bias_x", "mg"] for ln in tail.splitlines())
+    assert any(ln.split()[:2] == ["gyro_bias_x", "deg/h"] for ln in tail.splitlines())
     assert "noise floor" in tail and "raw" in tail and "declared" in tail and "final" in tail and "chi2/dof" in tail
     assert "STATUS: " in tail
     # raw (nominal scale, no calibration) against the table's reference is far above the final model

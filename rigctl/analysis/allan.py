@@ -14,6 +14,8 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
 
@@ -39,6 +41,8 @@ CHUNK_ROWS = 1 << 20
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
 SCHEMA_VERSION = 1
+#: worker threads for the per-axis work (both cores of a 2-core machine)
+WORKERS = max(1, min(2, os.cpu_count() or 1))
 
 
 #: invalid input (exit code 2): the one error type of rigctl.errors
@@ -244,27 +248,50 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
         shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
                              stream=progress_stream, enabled=progress_stream is not None)
-        for a0 in range(s0, s1, CHUNK_ROWS):
-            a1 = min(s1, a0 + CHUNK_ROWS)
-            blocks = {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
-            for name, b in blocks.items():
-                check_finite(path, name, b, a0)
-            for a in axes:
-                name, col, _ = AXES[a]
-                y = streams[a].screen(np.ascontiguousarray(blocks[name][:, col]), a0 - s0,
-                                      outliers == "exclude")
-                streams[a].add(y)
-            del blocks
-            shown.update(a1 - s0)
-        shown.finish()
-    out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-           "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
-           "outliers": outliers,
-           "axes": {}}
-    for a in axes:
-        out["axes"][a] = analyse_axis(streams[a], AXES[a][2], outliers == "exclude")
+        with ThreadPoolExecutor(WORKERS) as pool:
+            _stream_chunks(pool, path, dsets, axes, streams, s0, s1, shown,
+                           outliers == "exclude")
+            shown.finish()
+            out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
+                   "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
+                   "outliers": outliers, "axes": {}}
+            # the axes' analyses (noise ID, EDF, fits) in parallel too, results in axis order
+            done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
+                                                        outliers == "exclude"), axes))
+    for a, r in zip(axes, done):
+        out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
     return out
+
+
+def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[str],
+                   streams: dict, s0: int, s1: int, shown: WorkProgress,
+                   exclude: bool = False) -> None:
+    """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
+    screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
+    task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
+    chunk i + 1. At most two chunks are in memory."""
+    def read(a0: int) -> dict:
+        a1 = min(s1, a0 + CHUNK_ROWS)
+        return {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+
+    def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
+        y = streams[a].screen(np.ascontiguousarray(block[:, col]), first, exclude)
+        streams[a].add(y)
+
+    starts = list(range(s0, s1, CHUNK_ROWS))
+    nxt = read(starts[0]) if starts else None
+    for i, a0 in enumerate(starts):
+        blocks = nxt
+        checks = [pool.submit(check_finite, path, name, b, a0) for name, b in blocks.items()]
+        for c in checks:  # a bad block must not reach the accumulators
+            c.result()
+        tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
+        nxt = read(starts[i + 1]) if i + 1 < len(starts) else None
+        for t in tasks:
+            t.result()
+        del blocks
+        shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:

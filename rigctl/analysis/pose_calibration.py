@@ -223,7 +223,8 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         status = "NOT TRUSTWORTHY"
     elif bad:
         status = pl.STATUS_UNEXPLAINED if any(lp.status == pl.STATUS_UNEXPLAINED for lp in bad) else bad[0].status
-        reasons = [f"{lp.name}: {x}" for lp in bad for x in lp.findings] + reasons
+        first = sorted(bad, key=lambda lp: lp.status != status)  # the reason of the status comes first
+        reasons = [f"{lp.name}: {x}" for lp in first for x in lp.findings] + reasons
     elif reasons:
         status = "OK (accelerometer); gyro scale NOT TRUSTWORTHY"
     else:

@@ -215,3 +215,14 @@ def gather(tail: np.ndarray, x: np.ndarray, start: int, s: int) -> np.ndarray:
     out = np.empty(tail.size + n_new)
     _gather(np.ascontiguousarray(tail, dtype=np.float64), x, int(start), int(s), out)
     return out
+
+
+def gather_into(tail: np.ndarray, x: np.ndarray, start: int, s: int, out: np.ndarray) -> None:
+    """out[:] = concatenate((tail, x[start::s])) (out sized by the caller)."""
+    _gather(np.ascontiguousarray(tail, dtype=np.float64), x, int(start), int(s), out)
+
+
+def phase_into(y: np.ndarray, offset: float, tau0: float, x0: float, out: np.ndarray) -> None:
+    """out[:] = x0 + tau0 * cumsum(y - offset) (as :func:`phase_chunk`, into a given buffer)."""
+    _phase_chunk(np.ascontiguousarray(y, dtype=np.float64), float(offset), float(tau0),
+                 float(x0), out)

@@ -305,11 +305,25 @@ class StridedLevel:
         if start >= x_chunk.size:
             return None
         if K.HAVE_NUMBA:
-            buf = K.gather(self.tail, x_chunk, start, step)
+            n_new = -(-(x_chunk.size - start) // step)
+            buf = self._buffer(self.tail.size + n_new)
+            K.gather_into(self.tail, x_chunk, start, step, buf)
         else:
             new = x_chunk[start:: step]
             buf = np.concatenate((self.tail, new)) if self.tail.size else np.ascontiguousarray(new)
+        return self.feed_buffer(buf), g0 + start * src_s
+
+    def _buffer(self, n: int) -> np.ndarray:
+        """A scratch buffer of n points, kept between chunks (no fresh pages per chunk)."""
+        if getattr(self, "_buf", None) is None or self._buf.size < n:
+            self._buf = np.empty(max(n, 1024))
+        return self._buf[:n]
+
+    def feed_buffer(self, buf: np.ndarray) -> np.ndarray:
+        """Sum the terms of ``buf`` = this level's tail followed by its new points (built by
+        the caller, e.g. the phase written straight after the tail); returns the new points."""
         end = self.b0 + buf.size
+        scratch = None
         if K.HAVE_NUMBA:  # every lag in one compiled pass over the chunk
             ks = np.array(self.ks, dtype=np.int64)
             los = np.array([self.next_start[k] - self.b0 for k in self.ks], dtype=np.int64)
@@ -326,6 +340,8 @@ class StridedLevel:
                 lo = self.next_start[k] - self.b0
                 hi = buf.size - 2 * k
                 if hi > lo:
+                    if scratch is None:
+                        scratch = np.empty(1 << 16)
                     self.sums[k] += sum_d2(buf, k, lo, hi, scratch)
                     self.counts[k] += hi - lo
                     self.next_start[k] = end - 2 * k
@@ -333,4 +349,4 @@ class StridedLevel:
         cut = max(0, buf.size - self.keep)
         self.tail = buf[cut:].copy()
         self.b0 += cut
-        return buf[n_old:], g0 + start * src_s
+        return buf[n_old:]

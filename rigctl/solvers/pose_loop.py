@@ -82,6 +82,8 @@ class PoseData:
     slow: Arr = field(default_factory=lambda: np.zeros(6))
     notes: list[str] = field(default_factory=list)
     white: Arr = field(default_factory=lambda: np.zeros(6))
+    rest_white: Arr = field(default_factory=lambda: np.zeros(6))
+    wander: Arr = field(default_factory=lambda: np.zeros(0))
 
     @property
     def t_ref(self) -> float:
@@ -153,11 +155,25 @@ def pose_statistics(acc: Arr, gyr: Arr, intervals: list[tuple[int, int]], fs_hz:
     else:
         notes.append("slow noise not measured: the longest rest is shorter than a pose plus the pose spacing")
     var = var + slow[None, :]
+    # the sensor's own white noise: batch means on the longest rest alone (placed, not held)
+    rest_white, _ = _batch_white(x, [(rs, re_)], nb)
+    # within-pose wander of the gravity direction (a held pose turns a little): variance of the
+    # batch-mean directions about the pose's mean direction, white part removed (rad^2, per axis)
+    wander = np.zeros(len(intervals))
+    for i, (s, e) in enumerate(intervals):
+        B = (e - s) // nb
+        if B < 2:
+            continue
+        m = acc[s:s + B * nb].reshape(B, nb, 3).mean(axis=1)
+        u = m / np.linalg.norm(m, axis=1)[:, None]
+        u0 = means[i, :3] / np.linalg.norm(means[i, :3])
+        spread = np.mean(np.sum((u - u0) ** 2, axis=1)) / 2
+        wander[i] = max(spread - np.mean(v[:3]) / nb / np.dot(means[i, :3], means[i, :3]), 0.0)
     t = np.array([(s + e) / 2 / fs_hz for s, e in intervals])
     tc = None if temp_c is None else np.array([np.nanmean(temp_c[s:e]) for s, e in intervals])
     return PoseData(acc=means[:, :3], gyr=means[:, 3:], var_acc=var[:, :3], var_gyr=var[:, 3:], t_s=t,
                     temp_c=tc, intervals=list(intervals), fs_hz=fs_hz, noise_dof=float(dof), slow=slow,
-                    notes=notes, white=v)
+                    notes=notes, white=v, rest_white=rest_white, wander=wander)
 
 
 # ------------------------------------------------------------------------------ fits and selection
@@ -696,7 +712,10 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
     ``bias``: (3,) constant, or (n, 3) per sample (bias + g-sensitivity G f(t) during the motion).
 
     Residual of motion k: up_{k+1} - R_k^T up_k (3 components, 2 independent), scaled by the
-    direction uncertainty of both poses plus the angle random walk over the motion."""
+    direction uncertainty of both poses (accelerometer noise, the pose's own wander -- a held
+    pose turns a little, so its ends differ from its mean -- and the accelerometer model's
+    uncertainty) plus the gyro's angle random walk over the motion (white noise measured on the
+    longest rest, not in held poses where real motion would count as noise)."""
     dt = 1.0 / d.fs_hz
     iv = d.intervals
     ks = np.arange(len(iv) - 1) if keep is None else np.flatnonzero(keep)
@@ -706,8 +725,9 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
     w0 = np.asarray(gyr_raw, float)[lo:hi] - (b[lo:hi] if b.ndim == 2 else b)
     bnd = bounds - lo
     g = np.linalg.norm(d.acc, axis=1)
-    dsig = np.sqrt(d.var_acc.mean(axis=1) / g ** 2 + (0 if dir_var is None else dir_var))
-    arw2 = np.mean(d.var_gyr * np.array([e - s for s, e in iv])[:, None]) / d.fs_hz  # rad^2/s
+    wander = d.wander if len(d.wander) == len(iv) else np.zeros(len(iv))
+    dsig = np.sqrt(d.var_acc.mean(axis=1) / g ** 2 + wander + (0 if dir_var is None else dir_var))
+    arw2 = float(np.mean(d.rest_white[3:])) / d.fs_hz  # rad^2/s: the gyro's white noise at rest
     sig = np.sqrt(dsig[ks] ** 2 + dsig[ks + 1] ** 2 + arw2 * (bnd[:, 1] - bnd[:, 0]) * dt)
     u0, u1 = up[ks], up[ks + 1]
 
