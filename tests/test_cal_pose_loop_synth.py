@@ -52,7 +52,8 @@ def test_in_library_effect_named(tmp_path, effect):
     named, honest, other = 0, 0, []
     for p in _many(tmp_path, [(seed, effect, 1.0) for seed in SEEDS]):
         c = p["claims"]
-        wrong = [e for k, v in c.items() for e in v if e != effect]
+        # the cross-coupling's split between the axes (accel_cross_quadratic_split) is part of it
+        wrong = [e for k, v in c.items() for e in v if e != effect and not e.startswith(effect + "_")]
         other += wrong
         hit = any(effect in c.get(sub, []) for sub in subs)
         named += hit
