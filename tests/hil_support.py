@@ -50,11 +50,16 @@ def run(proc: str, cfg_path: Path, out: Path, params: dict[str, str]):
 
 
 def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: str, speed: float,
-              during=None, hw_kw: dict | None = None):
+              during=None, hw_kw: dict | None = None, suspenders: dict | None = None):
     """Run ``proc`` over the wire against fresh emulated hardware (``hw_kw``: e.g.
-    imu_protocol="vectornav"); returns (recording, truth, hw info)."""
+    imu_protocol="vectornav"; ``suspenders``: the config's section); returns (recording, truth,
+    hw info)."""
     with hardware(tmp, speed, **(hw_kw or {})) as (hw, raw):
         cfg_path = write_wire_config(tmp / "wired.yaml", raw, hw, table=table, link=link)
+        if suspenders is not None:
+            d = yaml.safe_load(cfg_path.read_text())
+            d["suspenders"] = suspenders
+            cfg_path.write_text(yaml.safe_dump(d, sort_keys=False))
         timers = [threading.Timer(delay, fn) for delay, fn in (during or [])]
         for t in timers:
             t.start()
