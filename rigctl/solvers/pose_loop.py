@@ -705,11 +705,22 @@ def _rot_matrices(w: Arr, bounds: Arr, dt: float) -> Arr:
     return Rotation.from_quat(q[:, 0]).as_matrix()
 
 
+SPLIT = "accel_cross_quadratic_split"
+
+
+def _rot_k(e: str) -> int:
+    return 2 if e == SPLIT else 3
+
+
 def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                      keep: Arr | None = None, dir_var: Arr | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
+                      keep: Arr | None = None, dir_var: Arr | None = None,
+                      up_fn: Callable[[Arr], Arr] | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
     """(normalised residual function of the parameters, sigma per motion) for the motions.
 
     ``bias``: (3,) constant, or (n, 3) per sample (bias + g-sensitivity G f(t) during the motion).
+    ``up_fn(delta)``: the poses' gravity directions when the accelerometer's cross-coupling is split
+    unevenly between its axes (candidate ``accel_cross_quadratic_split``, 2 parameters: the
+    magnitude model sees only the common coefficient, the directions see the split).
 
     Residual of motion k: up_{k+1} - R_k^T up_k (3 components, 2 independent), scaled by the
     direction uncertainty of both poses (accelerometer noise, the pose's own wander -- a held
@@ -733,12 +744,18 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
 
     def resid(p: Arr) -> Arr:
         w = w0 @ _tg(p).T
-        for i, e in enumerate(effects):
-            th = p[9 + 3 * i: 12 + 3 * i]
-            w = w - (th * np.abs(w) if e == "gyro_scale_asymmetry" else th * w * np.abs(w))
+        a, b0, b1 = 9, u0, u1
+        for e in effects:
+            th = p[a:a + _rot_k(e)]
+            a += _rot_k(e)
+            if e in (SPLIT, "accel_cross_quadratic"):
+                upd = up_fn(th)  # type: ignore[misc]
+                b0, b1 = upd[ks], upd[ks + 1]
+            else:
+                w = w - (th * np.abs(w) if e == "gyro_scale_asymmetry" else th * w * np.abs(w))
         R = _rot_matrices(w, bnd, dt)
-        pred = np.einsum("kji,kj->ki", R, u0)
-        return ((u1 - pred) / sig[:, None]).reshape(-1)
+        pred = np.einsum("kji,kj->ki", R, b0)
+        return ((b1 - pred) / sig[:, None]).reshape(-1)
 
     return resid, sig
 
@@ -751,21 +768,23 @@ def rotation_residuals_at(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, p: Arr,
 
 
 def fit_rotations(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                  keep: Arr | None = None, dir_var: Arr | None = None) -> Fit:
+                  keep: Arr | None = None, dir_var: Arr | None = None,
+                  up_fn: Callable[[Arr], Arr] | None = None) -> Fit:
     """Gyro scale/misalignment (+ candidates) from the motions between poses (module doc);
     ``keep``: (P-1,) bool, the motions to use (clipped ones excluded)."""
-    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep, dir_var)
-    K, ne = len(sig), len(effects)
-    p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(3 * ne)])
+    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep, dir_var, up_fn)
+    K = len(sig)
+    ne = sum(_rot_k(e) for e in effects)
+    p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(ne)])
     sol = scipy.optimize.least_squares(resid, p0, x_scale=np.concatenate([np.full(6, 1e-2), np.full(3, 1e-2),
-                                                                          np.full(3 * ne, 1e-3)]), method="trf")
+                                                                          np.full(ne, 1e-3)]), method="trf")
     J = sol.jac
     cov = np.linalg.pinv(J.T @ J)
     names = ["gyro_misalign_yz_rad", "gyro_misalign_zy_rad", "gyro_misalign_xz_rad", "gyro_misalign_zx_rad",
              "gyro_misalign_xy_rad", "gyro_misalign_yx_rad"] + [f"gyro_scale_{a}_ratio" for a in AX] + \
-        [f"{e}_{a}_{ROTATION_CANDIDATES[e]}" for e in effects for a in AX]
+        [f"{e}_{a}_{ROTATION_CANDIDATES.get(e, 's2_per_m')}" for e in effects for a in (AX if e != SPLIT else "xy")]
     r = sol.fun
-    return Fit(names, sol.x, cov, float(r @ r), 2 * K - 9 - 3 * ne, r, J, np.repeat(np.arange(K), 3),
+    return Fit(names, sol.x, cov, float(r @ r), 2 * K - 9 - ne, r, J, np.repeat(np.arange(K), 3),
                extra={"sigma_rad": sig, "n_motions": K, "resid": r.reshape(-1, 3) * sig[:, None]})
 
 
@@ -854,3 +873,23 @@ def stationarity(x: Arr, intervals: list[tuple[int, int]], white_var: Arr) -> tu
     c = np.sum(np.array(z) ** 2, axis=0)
     P = len(intervals)
     return c / P, scipy.stats.chi2.sf(c, P)
+
+
+def cross_split_up(fit: Fit, effects: list[str], u: Arr, data: Any) -> Callable[[Arr], Arr]:
+    """up(delta): pose gravity directions with the cross-coupling split (c + dx, c + dy,
+    c - dx - dy) instead of the common c the magnitude model fitted, or with per-axis
+    coefficients (3 values) when it fitted none (s^2/m)."""
+    p = fit.values
+    M = _tk(p[0:3], p[3:6])
+    v0 = u - p[6:9]
+    base = (v0 - accel_correction(_accel_split(p, effects), v0, data)) @ M.T
+    B = np.stack([v0[:, 1] * v0[:, 2], v0[:, 0] * v0[:, 2], v0[:, 0] * v0[:, 1]], axis=1)
+
+    def up(delta: Arr) -> Arr:
+        # 2 values: the split of a claimed common coefficient; 3: per-axis coefficients seen only
+        # through the directions (the magnitude model did not claim the effect)
+        dd = np.array([delta[0], delta[1], -delta[0] - delta[1]]) if len(delta) == 2 else np.asarray(delta)
+        a = base - (B * dd) @ M.T
+        return a / np.linalg.norm(a, axis=1)[:, None]
+
+    return up
