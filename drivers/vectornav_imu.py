@@ -82,28 +82,29 @@ class VectorNavImu(StreamImu):
     # ---------------------------------------------------------------------------- ASCII
     def _request(self, cmd: bytes, header: str, what: str, tries: int = 3, required: bool = True,
                  keep_rest: bool = False) -> list[str] | None:
-        """Send ``cmd`` until a reply with ``header`` (e.g. ``VNRRG``) or ``VNERR`` arrives.
-        Returns its fields; ``keep_rest``: bytes after the reply go to the decoder."""
+        """Send ``cmd`` until its reply arrives: a line with ``header`` (e.g. ``VNRRG``) and the
+        same register number, or ``$VNERR``. Returns the reply's fields; ``keep_rest``: bytes
+        after the reply go to the decoder (the binary stream that follows it)."""
         want = ("$" + header).encode()
+        reg = V.parse_line(cmd)[1][0] if header in ("VNRRG", "VNWRG") else None
         for _ in range(tries):
             buf = b""
             self.link.write(cmd)
             deadline = time.monotonic() + self.timeout_s
             while time.monotonic() < deadline and not self._stop.is_set():
                 buf += self.link.read_some(max(1e-3, min(0.05, deadline - time.monotonic())))
-                for start in (buf.find(want), buf.find(b"$VNERR")):
+                while True:
+                    hits = [i for i in (buf.find(want), buf.find(b"$VNERR")) if i >= 0]
+                    start = min(hits) if hits else -1
                     end = buf.find(b"\r\n", start) if start >= 0 else -1
                     if end < 0:
-                        continue
+                        break
+                    line, buf = buf[start:end], buf[end + 2:]
                     try:
-                        head, fields = V.parse_line(buf[start:end])
+                        head, fields = V.parse_line(line)
                     except V.VectorNavError as exc:
                         log.warning("%s: %s", self.name, exc)
-                        buf = buf[end + 2:]
-                        break
-                    rest = buf[end + 2:]
-                    if keep_rest and rest:
-                        self._feed(rest)
+                        continue
                     if head == "VNERR":
                         code = int(fields[0]) if fields and fields[0].isdigit() else -1
                         msg = f"{self.name}: the sensor refused {what}: error {code} ({V.ERRORS.get(code, '?')})"
@@ -111,6 +112,10 @@ class VectorNavImu(StreamImu):
                             log.warning(msg)
                             return None
                         raise VectorNavConfigError(msg)
+                    if reg is not None and (not fields or not fields[0].isdigit() or int(fields[0]) != int(reg)):
+                        continue                    # a reply to something else (a stale request)
+                    if keep_rest and buf:
+                        self._feed(buf)
                     return fields
         if not required:
             log.warning("%s: no answer to %s from %s after %d tries", self.name, what, self.link.url, tries)

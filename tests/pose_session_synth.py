@@ -28,9 +28,10 @@ LAT = np.radians(45.0)
 DEG = np.pi / 180
 UG = 1e-6 * G
 
-#: in-library effects: name -> (sub-model the loop should name it in, amplitude description)
+#: in-library effects: name -> the sub-model(s) the loop may name it in (the cross-coupling's
+#: common part shows in the magnitudes, its split between the axes only in the directions)
 IN_LIBRARY = {
-    "accel_quadratic": "accel", "accel_cross_quadratic": "accel", "accel_scale_asymmetry": "accel",
+    "accel_quadratic": "accel", "accel_cross_quadratic": ("accel", "gyro_rotation"), "accel_scale_asymmetry": "accel",
     "accel_bias_time_drift": "accel", "gyro_g_sensitivity": "gyro_static", "gyro_anisoelastic": "gyro_static",
     "gyro_bias_time_drift": "gyro_static", "gyro_scale_asymmetry": "gyro_rotation",
     "gyro_scale_nonlinearity": "gyro_rotation",

@@ -45,28 +45,23 @@ def _many(tmp_path, jobs: list[tuple[int, str | None, float]]) -> list[dict]:
         return list(ex.map(_run, [tmp_path] * len(jobs), *zip(*jobs)))
 
 
-#: measured (issue 14 stays open for it): named 8/10; the per-axis cross-coupling's direction part,
-#: which the magnitude model cannot see (it tests only the common coefficient), leaves the
-#: rotations above their band in the other seeds.
-HARD = {"accel_cross_quadratic"}
-
-
 @pytest.mark.parametrize("effect", sorted(S.IN_LIBRARY))
 def test_in_library_effect_named(tmp_path, effect):
-    sub = S.IN_LIBRARY[effect]
+    subs = S.IN_LIBRARY[effect]
+    subs = (subs,) if isinstance(subs, str) else subs
     named, honest, other = 0, 0, []
     for p in _many(tmp_path, [(seed, effect, 1.0) for seed in SEEDS]):
         c = p["claims"]
-        wrong = [e for k, v in c.items() for e in v if e != effect]
+        # the cross-coupling's split between the axes (accel_cross_quadratic_split) is part of it
+        wrong = [e for k, v in c.items() for e in v if e != effect and not e.startswith(effect + "_")]
         other += wrong
-        named += effect in c.get(sub, [])
-        honest += (effect in c.get(sub, []) or any(effect in a for a in p["ambiguous"])
+        hit = any(effect in c.get(sub, []) for sub in subs)
+        named += hit
+        honest += (hit or any(effect in a for a in p["ambiguous"])
                    or p["status"] == "UNEXPLAINED RESIDUAL") and not wrong
     print(f"\n{effect}: named in {named}/10 seeds; named, ambiguous or unexplained without a wrong "
           f"claim in {honest}/10; other claims: {other}")
     assert honest >= 9, (honest, other)  # never misnamed
-    if effect in HARD and named < 9:
-        pytest.xfail(f"{effect} named in {named}/10 seeds (its direction part stays in the rotations)")
     assert named >= 9, (named, other)
 
 

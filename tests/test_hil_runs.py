@@ -13,7 +13,7 @@ import pytest
 
 from rigctl.frames import body_references
 
-from hil_support import SIM, run, segments, window_means, wired_run
+from hil_support import run, segments, white_sim, window_means, wired_run
 
 SPEED = 200.0        # rates
 SPEED_24 = 100.0     # 24pos with its 15-minute warm-up: ~1300 s of rig time, ~14 s of wall time
@@ -28,7 +28,7 @@ def reference(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ref")
     out = {}
     for name, params in (("24pos.yaml", P24), ("rates.yaml", PRATES)):
-        res, cfg = run(name, SIM, tmp, params)
+        res, cfg = run(name, white_sim(tmp), tmp, params)  # as the wired runs: white noise
         out[name] = (res.recording, segments(res.recording))
     return out
 
@@ -53,7 +53,7 @@ def same_calibration(wired: dict, ref: dict, family_alpha: float = 0.05) -> None
     Two independent estimates of each parameter (1-sigma s_w, s_r; the wired run's noise is
     another realisation, its windows are cut by wall-clock polls) differ by d with sigma
     sqrt(s_w^2 + s_r^2). The m parameters are tested together at family-wise level 5 %
-    (Bonferroni: each |d| <= z_(1 - 0.05 / 2m) sigma, z = 3.14 for m = 30), since m separate
+    (Bonferroni: each |d| <= z_(1 - 0.05 / 2m) sigma, z = 3.11 for the m = 27), since m separate
     95 % tests would flag one parameter in every other run by chance. Parameters that 24 static
     positions hardly determine (gyro scale factors: Earth rate only) take part with their
     wide intervals."""
@@ -132,9 +132,14 @@ def test_24pos_with_warmup_over_acl_pty(tmp_path, reference, reference_calibrati
 def test_24pos_over_each_imu_protocol(tmp_path, reference, reference_calibration, protocol):
     """The same run with the IMU speaking VectorNav binary (configured over $VNWRG) or the
     declarative frame of docs/hardware.md, each over a pty: same segments, window means on the
-    model, the calibration agrees with the in-process run's, and every frame sent arrived."""
+    model, the calibration agrees with the in-process run's, and every frame sent arrived.
+
+    The IMU-gap suspender waits 10 s of rig time here (default 2 s): at 100x that is 0.1 s of
+    wall time instead of 0.02 s, so a host busy with other work (load 8-12 on 2 cores) does not
+    pause the run and re-run its warm-up; pauses are the subject of the daemon and fault tests,
+    not of this one. (The Xsens runs above keep the default and do pause at that load.)"""
     rec, cfg, info = wired_run(tmp_path, "24pos.yaml", P24, "acl", "pty", SPEED_24,
-                               hw_kw={"imu_protocol": protocol})
+                               hw_kw={"imu_protocol": protocol}, suspenders={"imu_timeout_s": 10})
     check_24pos(rec, cfg, info, reference["24pos.yaml"][1])
     assert cfg.imu.driver == protocol
     with h5py.File(rec, "r") as f:

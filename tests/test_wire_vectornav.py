@@ -19,7 +19,9 @@ https://manualshive.com/en/manual/vectornav/vn-100/3752294?page=39 and ?page=40)
   decodes to the stated values.
 
 ASCII checksums: ``$VNRRG,11*73`` (VN-200 User Manual UM004, 3.1), ``$VNRRG,06,0*69`` (UM004 5.7),
-``$VNERR,03*72`` (UM004 5.11.7). Binary output register example ``$VNWRG,75,1,16,15,0001,000C,
+``$VNERR,03*72`` (UM004 5.11.7), and the command / response pairs of UM001 3.6.1, 5.1.1-5.1.2 and
+UM004 4.4.1-4.4.4, 5.11.1 (MANUAL_LINES; https://manualshive.com/ru/manual/vectornav/vn-100/3752294?page=53,
+https://manualshive.com/en/manual/vectornav/vn-200/3751189?page=20, ?page=21, ?page=35). Binary output register example ``$VNWRG,75,1,16,15,0001,000C,
 0014`` (UM001 p. 35: groups 0x15 = 1, 3, 5; TimeStartup; UncompAccel + UncompGyro; Qtn + MagNed).
 """
 from __future__ import annotations
@@ -82,6 +84,20 @@ def test_crc16_is_ccitt_with_initial_zero() -> None:
     assert V.crc16(b"123456789") == 0x31C3 == manual_crc(b"123456789")
     rows = np.random.default_rng(1).integers(0, 256, (50, 29), dtype=np.uint8)
     assert [int(c) for c in V.crc16_rows(rows)] == [manual_crc(r.tobytes()) for r in rows]
+
+
+#: ASCII messages printed in the manuals (UM001 3.6.1, 5.1.1, 5.1.2; UM004 4.4.1-4.4.4, 5.11.1)
+MANUAL_LINES = ["$VNRRG,5*46", "$VNRRG,5,9600*65", "$VNWRG,5,9600*60", "$VNWNV*57", "$VNRFS*5F", "$VNRRG,8*4B",
+                "$VNRRG,08,-114.314,+000.058,-001.773*5F", "$VNYPR,+010.071,+000.278,-002.026*60",
+                "$VNRRG,30,2,0,0,0,1,0,1*6E", "$VNYPR,+010.071,+000.278,-002.026,T1162704*2F"]
+
+
+@pytest.mark.parametrize("line", MANUAL_LINES)
+def test_ascii_lines_printed_in_the_manuals_check(line: str) -> None:
+    body = line[1:line.index("*")]
+    assert V.command(body) == (line + "\r\n").encode()
+    head, fields = V.parse_line(line)
+    assert [head, *fields] == body.split(",")
 
 
 def test_ascii_checksums_of_the_manual() -> None:

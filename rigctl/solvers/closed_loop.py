@@ -389,9 +389,10 @@ def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
             lines.append(f"  chi2/dof   {'':>29} {r['chi2_per_dof_before']:>14.3g} {r['chi2_per_dof_after']:>14.3g}")
             continue
         u = r["unit"]
-        lines.append(f"  {r['channel']:<10} {r[f'noise_floor_{u}']:>11.4g} {u:<2} "
-                     f"{r.get(f'rms_raw_{u}', float('nan')):>11.4g} {u:<2} {r[f'rms_before_{u}']:>11.4g} "
-                     f"{u:<2} {r[f'rms_after_{u}']:>11.4g} {u}")
+        shown = {"deg_h": "deg/h"}.get(u, u)
+        lines.append(f"  {r['channel']:<10} {r[f'noise_floor_{u}']:>11.4g} {shown:<5} "
+                     f"{r.get(f'rms_raw_{u}', float('nan')):>11.4g} {shown:<5} {r[f'rms_before_{u}']:>11.4g} "
+                     f"{shown:<5} {r[f'rms_after_{u}']:>11.4g} {shown}")
     for u in res.unexplained:
         lines.append(f"  UNEXPLAINED: {u['pattern']} ({u['statistic']})")
     if res.truth_errors:
