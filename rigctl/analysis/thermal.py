@@ -51,6 +51,18 @@ def _cal_rows(f: Any) -> list[int]:
             and last[i] - first[i] >= 10]
 
 
+def _detrend(x: np.ndarray) -> np.ndarray:
+    """The samples less a straight line in time per axis: a temperature changing inside the
+    window (a ramp) moves the output along it, which the model takes from the window's mean
+    powers of dT; left in, the batch means would count that drift as noise."""
+    n = x.shape[0]
+    if n < 3:
+        return x
+    k = np.arange(n, dtype=float) - (n - 1) / 2.0
+    slope = (k @ (x - x.mean(axis=0))) / (k @ k)
+    return x - np.outer(k, slope)
+
+
 def is_thermal(path: str | Path) -> bool:
     """True for a chamber run whose calibration windows span at least MIN_SPAN_K of IMU temperature."""
     with open_recording(path) as f:
@@ -102,8 +114,8 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
             cols["kind"].append(seg["kind"][i].decode())
             cols["acc"].append(acc.mean(axis=0))
             cols["gyro"].append(gyr.mean(axis=0))
-            cols["sa"].append(self_noise_sigma(about_reference(acc, fr), fs))
-            cols["sg"].append(self_noise_sigma(about_reference(gyr, wr), fs))
+            cols["sa"].append(self_noise_sigma(_detrend(about_reference(acc, fr)), fs))
+            cols["sg"].append(self_noise_sigma(_detrend(about_reference(gyr, wr)), fs))
             cols["fr"].append(fr.mean(axis=0))
             cols["wr"].append(wr.mean(axis=0))
             cols["fq"].append((fr * fr).mean(axis=0))
