@@ -1,9 +1,11 @@
 """Allan analysis benchmark (issue 4). Last line: one JSON object of headline figures.
 
 Parts (select with --parts, default all):
-  axis   one 12 h x 2 kHz axis (8.64e7 samples, ~95 log-spaced taus): fast mode, exact mode,
-         allantools.oadev (full length, or --allantools-slice N samples and scaled linearly,
-         which the output then says), exact vs allantools max relative difference.
+  axis   one 12 h x 2 kHz axis (8.64e7 samples, 90 log-spaced taus): exact mode (every term of
+         every tau, the headline, like for like with allantools) and the strided fast mode,
+         each --repeats times (best and median, wall and CPU), allantools.oadev once in the
+         same run (full length, or --allantools-slice N samples and scaled linearly, which the
+         output then says), exact vs allantools max relative difference.
   h5     a 6-axis 12 h x 2 kHz float64 HDF5 recording (4.15 GB, written with h5py to a temp
          dir in /tmp and deleted) analysed and fitted by `rigctl allan` in a subprocess: wall
          time of the command and its peak RSS (VmHWM of the child: ru_maxrss would
@@ -48,35 +50,46 @@ def _load() -> str:
     return "/".join(f"{v:.2f}" for v in os.getloadavg())
 
 
+def _timed(fn):
+    """(result, wall s, CPU s of this process incl. its threads, load average before)."""
+    load = _load()
+    t, c = time.perf_counter(), time.process_time()
+    r = fn()
+    return r, time.perf_counter() - t, time.process_time() - c, load
+
+
 def part_axis(slice_n: int | None, repeats: int) -> dict:
-    """Fast mode (``repeats`` times: min and median), exact mode and allantools.oadev on the
-    same 12 h x 2 kHz axis; load average printed before each timing."""
+    """Exact (fully overlapping, every term) mode ``repeats`` times, the strided fast mode
+    ``repeats`` times and allantools.oadev once, on the same 12 h x 2 kHz axis in the same run;
+    the headline is exact vs allantools (like for like: both sum every term of every tau), best
+    of the repeats, wall and CPU time; load average printed before each timing."""
     y = synth_rate(N12H, FS, 0.2 * D2R / 60, 0.0, 10 * D2R / 3600 / 60, seed=1)
     y += 9.80665  # an offset (gravity-like) on the axis
-    t_fast = []
+    A.oadev(y[:300000], 1 / FS, 20, data_type="rate", mode="exact")  # compile (cached)
+    t_ex, c_ex, t_fast, c_fast = [], [], [], []
     for _ in range(repeats):
-        load = _load()
-        t = time.perf_counter()
-        fast = A.oadev(y, 1 / FS, 95, data_type="rate", mode="fast")
-        t_fast.append(time.perf_counter() - t)
-        print(f"fast mode: {fast.m.size} taus in {t_fast[-1]:.2f} s (load {load})", flush=True)
-    load = _load()
-    t = time.perf_counter()
-    exact = A.oadev(y, 1 / FS, 95, data_type="rate", mode="exact")
-    t_exact = time.perf_counter() - t
-    print(f"exact mode: {exact.m.size} taus in {t_exact:.2f} s (load {load})", flush=True)
+        exact, dt, dc, load = _timed(lambda: A.oadev(y, 1 / FS, 95, data_type="rate",
+                                                     mode="exact"))
+        t_ex.append(dt)
+        c_ex.append(dc)
+        print(f"exact mode (every term, {A.THREADS} threads): {exact.m.size} taus in {dt:.2f} s "
+              f"wall, {dc:.2f} s CPU (load {load})", flush=True)
+        fast, dt, dc, load = _timed(lambda: A.oadev(y, 1 / FS, 95, data_type="rate",
+                                                    mode="fast"))
+        t_fast.append(dt)
+        c_fast.append(dc)
+        print(f"strided fast mode: {fast.m.size} taus in {dt:.2f} s wall, {dc:.2f} s CPU "
+              f"(load {load})", flush=True)
     import allantools
 
     yy = y if slice_n is None else y[:slice_n]
     taus = exact.tau_s[exact.m <= A.max_factor(yy.size + 1, "oadev")]
-    load = _load()
-    t = time.perf_counter()
-    _, devs, _, _ = allantools.oadev(yy, rate=FS, data_type="freq", taus=taus)
-    t_at = time.perf_counter() - t
+    (_, devs, _, _), t_at, c_at, load = _timed(
+        lambda: allantools.oadev(yy, rate=FS, data_type="freq", taus=taus))
     scale = 1.0 if slice_n is None else N12H / yy.size
     note = ("allantools run on the full 8.64e7 samples" if slice_n is None else
             f"allantools run on {yy.size} samples, time scaled x{scale:.1f} (linear)")
-    t_at_full = t_at * scale
+    t_at_full, c_at_full = t_at * scale, c_at * scale
     mine = exact.dev[: devs.size] if slice_n is None else A.oadev(
         yy, 1 / FS, exact.m[exact.m <= A.max_factor(yy.size + 1, "oadev")], "rate",
         mode="exact").dev
@@ -85,16 +98,24 @@ def part_axis(slice_n: int | None, repeats: int) -> dict:
     fs1 = (fast.stride == 1) & np.isin(fast.m, both)
     rel_fast = float(np.max(np.abs(fast.dev[fs1] / exact.dev[np.isin(exact.m, fast.m[fs1])]
                                    - 1)))
-    print(f"allantools.oadev: {t_at:.2f} s ({note}; load {load}); exact vs allantools max "
-          f"rel diff {rel:.1e}; fast (stride-1 taus) vs exact {rel_fast:.1e}", flush=True)
-    tf = float(np.min(t_fast))
-    return {"fast_s": tf, "fast_median_s": float(np.median(t_fast)), "exact_s": t_exact,
-            "allantools_s": t_at_full, "speedup_fast_vs_allantools": t_at_full / tf,
-            "speedup_fast_median_vs_allantools": t_at_full / float(np.median(t_fast)),
-            "speedup_exact_vs_allantools": t_at_full / t_exact,
-            "exact_vs_allantools_rel": rel, "fast_stride1_vs_exact_rel": rel_fast,
+    print(f"allantools.oadev: {t_at:.2f} s wall, {c_at:.2f} s CPU ({note}; load {load}); "
+          f"exact vs allantools max rel diff {rel:.1e}; strided fast (its stride-1 taus) vs "
+          f"exact {rel_fast:.1e}", flush=True)
+    te, ce, tf, cf = (float(np.min(v)) for v in (t_ex, c_ex, t_fast, c_fast))
+    print(f"exact vs allantools: {t_at_full / te:.1f}x wall (best of {repeats}, median "
+          f"{t_at_full / float(np.median(t_ex)):.1f}x), {c_at_full / ce:.1f}x CPU; strided "
+          f"fast vs allantools {t_at_full / tf:.1f}x wall", flush=True)
+    return {"exact_s": te, "exact_median_s": float(np.median(t_ex)), "exact_cpu_s": ce,
+            "exact_threads": A.THREADS, "allantools_s": t_at_full, "allantools_cpu_s": c_at_full,
+            "speedup_exact_vs_allantools": t_at_full / te,
+            "speedup_exact_median_vs_allantools": t_at_full / float(np.median(t_ex)),
+            "speedup_exact_vs_allantools_cpu": c_at_full / ce,
+            "exact_vs_allantools_rel": rel,
+            "strided_fast_s": tf, "strided_fast_cpu_s": cf,
+            "speedup_strided_fast_vs_allantools": t_at_full / tf,
+            "strided_fast_stride1_vs_exact_rel": rel_fast,
             "n_taus_fast": int(fast.m.size), "n_taus_exact": int(exact.m.size),
-            "allantools_note": note, "load_avg_end": _load()}
+            "allantools_note": note, "axis_load_avg_end": _load()}
 
 
 def write_h5(path: str, n: int) -> None:
@@ -106,8 +127,14 @@ def write_h5(path: str, n: int) -> None:
         f.attrs["schema_version"] = 1
         imu = f.create_group("imu")
         imu.attrs["sample_rate_hz"] = FS
-        g = imu.create_dataset("angular_rate", (n, 3), "f8", chunks=(65536, 3))
-        a = imu.create_dataset("specific_force", (n, 3), "f8", chunks=(65536, 3))
+        # the recorder's layout and chunking (rigctl.recorder: 8192 rows per chunk); the reader
+        # requires /imu/time, and checks every /imu dataset present for equal length
+        rows = 8192
+        tt = imu.create_dataset("time", (n,), "f8", chunks=(rows,))
+        cnt = imu.create_dataset("counter", (n,), "u8", chunks=(rows,))
+        g = imu.create_dataset("angular_rate", (n, 3), "f8", chunks=(rows, 3))
+        a = imu.create_dataset("specific_force", (n, 3), "f8", chunks=(rows, 3))
+        tt.attrs["units"], cnt.attrs["units"] = "s", "1"
         g.attrs["units"], a.attrs["units"] = "rad/s", "m/s^2"
         rng = np.random.default_rng(5)
         rw = np.zeros(6)
@@ -116,36 +143,57 @@ def write_h5(path: str, n: int) -> None:
             w = rng.standard_normal((m, 6))
             steps = np.cumsum(rng.standard_normal((m, 6)), axis=0) * 1e-7 + rw
             rw = steps[-1]
+            idx = np.arange(s, s + m)
+            tt[s: s + m] = idx / FS
+            cnt[s: s + m] = idx
             g[s: s + m] = w[:, :3] * 2e-3 + steps[:, :3]
             a[s: s + m] = w[:, 3:] * 1e-3 + steps[:, 3:] + [0.0, 0.0, 9.80665]
 
 
-def part_h5() -> dict:
+def _run_allan_cmd(path: str) -> tuple[int, float, float, float, str]:
+    """`rigctl allan PATH` in a child: exit code, wall s, CPU s (all threads), peak RSS kB."""
+    code = ("import resource,sys,time,argparse\n"
+            "from rigctl import allan_cmd\n"
+            "p=argparse.ArgumentParser();s=p.add_subparsers();allan_cmd.register(s)\n"
+            f"a=p.parse_args(['allan',{path!r}])\n"
+            "import io,contextlib\nbuf=io.StringIO()\n"
+            "t=time.perf_counter();c=time.process_time()\n"
+            "with contextlib.redirect_stdout(buf): rc=a.func(a)\n"
+            "dt=time.perf_counter()-t;dc=time.process_time()-c\n"
+            "hwm=[l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')]\n"
+            "print(rc,dt,dc,hwm[0] if hwm else "
+            "resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+    load = _load()
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=os.environ.copy())
+    out = proc.stdout.split()
+    if proc.returncode or len(out) != 4:
+        raise RuntimeError(f"rigctl allan failed: {proc.stderr.strip()[-2000:]}")
+    return int(out[0]), float(out[1]), float(out[2]), float(out[3]), load
+
+
+def part_h5(h5_file: str | None, repeats: int) -> dict:
+    """`rigctl allan` on a 6-axis 12 h recording, ``repeats`` times (best and every run printed
+    with the load). ``h5_file``: keep the recording there (written if missing) instead of a
+    temporary directory."""
     with tempfile.TemporaryDirectory(dir="/tmp") as d:
-        path = os.path.join(d, "rec12h.h5")
-        t = time.perf_counter()
-        write_h5(path, N12H)
-        print(f"wrote 6-axis 12 h recording ({os.path.getsize(path) / 1e9:.2f} GB) in "
-              f"{time.perf_counter() - t:.1f} s")
-        code = ("import resource,sys,time,argparse\n"
-                "from rigctl import allan_cmd\n"
-                "p=argparse.ArgumentParser();s=p.add_subparsers();allan_cmd.register(s)\n"
-                f"a=p.parse_args(['allan',{path!r}])\n"
-                "import io,contextlib\nbuf=io.StringIO()\n"
-                "t=time.perf_counter()\n"
-                "with contextlib.redirect_stdout(buf): rc=a.func(a)\n"
-                "dt=time.perf_counter()-t\n"
-                "hwm=[l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')]\n"
-                "print(rc,dt,hwm[0] if hwm else "
-                "resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
-        load = _load()
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                             env=os.environ.copy(), check=True).stdout.split()
-    rc, dt, rss_kb = int(out[0]), float(out[1]), float(out[2])
-    print(f"rigctl allan (all 6 axes, 95 taus, fast mode, noise ID, EDF, fits, stored) on "
-          f"6 x 8.64e7 samples (12 h at 2 kHz, float64): exit {rc}, {dt:.1f} s, peak RSS "
-          f"{rss_kb / 1024:.0f} MB (load {load})", flush=True)
-    return {"h5_6axis_s": dt, "h5_peak_rss_MB": rss_kb / 1024.0, "h5_exit": rc,
+        path = h5_file or os.path.join(d, "rec12h.h5")
+        if not os.path.exists(path):
+            t = time.perf_counter()
+            write_h5(path, N12H)
+            print(f"wrote 6-axis 12 h recording ({os.path.getsize(path) / 1e9:.2f} GB) in "
+                  f"{time.perf_counter() - t:.1f} s")
+        runs = []
+        for _ in range(repeats):
+            rc, dt, dc, rss_kb, load = _run_allan_cmd(path)
+            runs.append((dt, dc, rss_kb))
+            print(f"rigctl allan (all 6 axes, 95 taus, fast mode, noise ID, EDF, fits, stored) on "
+                  f"6 x 8.64e7 samples (12 h at 2 kHz, float64): exit {rc}, {dt:.1f} s wall, "
+                  f"{dc:.1f} s CPU, peak RSS {rss_kb / 1024:.0f} MB (load {load})", flush=True)
+    best = min(runs)
+    return {"h5_6axis_s": best[0], "h5_6axis_cpu_s": min(r[1] for r in runs),
+            "h5_6axis_median_s": float(np.median([r[0] for r in runs])),
+            "h5_peak_rss_MB": max(r[2] for r in runs) / 1024.0, "h5_exit": rc,
             "h5_load_avg": load}
 
 
@@ -225,6 +273,7 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
     print(hdr)
     stats = {t: {"cov": [], "covp": [], "tgt": []} for t in "NBK"}
     better, q_false, k_rows = [], [], []
+    over_limit, check_fail = [], []
     t0 = time.perf_counter()
     for prof, sensor, params in _emulator_cases():
         truth = {t: float(np.asarray(params.get(t, 0.0)).ravel()[0]) for t in "QNBKR"}
@@ -255,6 +304,12 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
                         rows[t]["tgt"].append(err <= LIMITS[t])
                         rows[t]["p"].append(abs((pw[t] or 0.0) / tv - 1))
                 q_false.append(truth["Q"] == 0 and fit["terms"]["Q"]["supported"])
+                # issue 15: no bound above the curve's own limit; the self-check's verdict
+                lim = F.curve_limits(r.tau_s, r.dev)
+                over_limit.append(any(
+                    not e["supported"] and e[f"upper95_{si[t]}"] > lim[t] * (1 + 1e-9)
+                    for t, e in fit["terms"].items()))
+                check_fail.append(not fit["check"]["ok"])
         for t in "NBK":
             rw, idt = rows[t], ident[t]
             je = 100 * float(np.mean(rw["j"])) if rw["j"] else float("nan")
@@ -295,7 +350,9 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
           f"{per['B']:.1f}, K {per['K']:.1f}; upper bounds count when >= truth); of the "
           f"pseudo-truth: {100 * np.mean(cover_p):.1f} %; supported estimates within target: "
           f"N {tgt['N']:.1f} %, B {tgt['B']:.1f} %, K {tgt['K']:.1f} %; spurious Q: "
-          f"{int(np.sum(q_false))} of {len(q_false)}; {time.perf_counter() - t0:.0f} s")
+          f"{int(np.sum(q_false))} of {len(q_false)}; bounds above the curve's limit: "
+          f"{int(np.sum(over_limit))} of {len(over_limit)} fits; self-check failed: "
+          f"{int(np.sum(check_fail))}; {time.perf_counter() - t0:.0f} s")
     return {"fit_coverage95_truth_pct": cov,
             "fit_coverage95_N_pct": per["N"], "fit_coverage95_B_pct": per["B"],
             "fit_coverage95_K_pct": per["K"],
@@ -305,7 +362,9 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
             "fit_K_identifiable_cases_12h": f"{n_ident}/{len(k_rows)}",
             "fit_K_best_crb_sd_pct": 100 * min(k["crb"] for _, _, k, _, _ in k_rows),
             "fit_joint_better_than_piecewise_rows": f"{sum(better)}/{len(better)}",
-            "fit_spurious_Q": int(np.sum(q_false))}
+            "fit_spurious_Q": int(np.sum(q_false)),
+            "fit_bounds_above_curve_limit": int(np.sum(over_limit)),
+            "fit_self_check_failed": f"{int(np.sum(check_fail))}/{len(check_fail)}"}
 
 
 def main() -> None:
@@ -313,8 +372,10 @@ def main() -> None:
     ap.add_argument("--parts", default="axis,h5,fit")
     ap.add_argument("--allantools-slice", type=int, default=None,
                     help="run allantools on this many samples and scale (default: full)")
+    ap.add_argument("--h5-file", default=None,
+                    help="keep the 12 h recording here (written if missing; default a temp dir)")
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--repeats", type=int, default=3, help="fast-mode timings (min, median)")
+    ap.add_argument("--repeats", type=int, default=3, help="exact and fast timings (best, median)")
     ap.add_argument("--fit-rate-hz", type=float, default=100.0)
     a = ap.parse_args()
     parts = a.parts.split(",")
@@ -322,7 +383,7 @@ def main() -> None:
     if "axis" in parts:
         res.update(part_axis(a.allantools_slice, a.repeats))
     if "h5" in parts:
-        res.update(part_h5())
+        res.update(part_h5(a.h5_file, a.repeats))
     if "fit" in parts:
         res.update(part_fit(a.seeds, a.fit_rate_hz))
     print(json.dumps({k: v for k, v in res.items() if k != "fit_errors_pct"}))

@@ -1,4 +1,11 @@
-"""MTData2 decode throughput of the vectorised decoder (rigctl.drivers.xsens_decode).
+"""Decode throughput of the vectorised decoders: Xsens MTData2 (rigctl.drivers.xsens_decode),
+VectorNav binary (rigctl.drivers.vectornav) and the declarative frame (rigctl.drivers.frame_decl).
+
+VectorNav frames: group 1 TimeStartup + SyncInCnt, group 3 UncompAccel + UncompGyro + Temp (the
+driver's layout), 46 bytes, CRC-16. Declarative frames: the docs/hardware.md example (sync AA 55,
+length, counter, time, 6 x i32, temperature, status, CRC-16/CCITT), 38 bytes. Each: one buffer,
+256 KiB feeds, feeds with byte errors at 1e-4 (frames hit vs bad frames counted). Target for
+both: >= 1e6 frames/s in 256 KiB feeds.
 
 Frames: PacketCounter, SampleTimeFine, Acceleration, RateOfTurn, Temperature, StatusWord
 (float32), 61 bytes each. Measures frames decoded per second (a) from one large buffer,
@@ -66,6 +73,59 @@ def stream_decode(data: bytes, chunk: int) -> MTData2Stream:
         st.feed(view[i:i + chunk])
     st.flush()
     return st
+
+
+def other_decoders(n: int, chunk: int) -> dict:
+    """VectorNav and declarative-frame throughput (frames/s) and error counting at 1e-4."""
+    from rigctl.drivers import frame_decl
+    from rigctl.drivers import vectornav as V
+    from rigctl.drivers.vectornav_imu import LAYOUT
+    from rigctl.frame_spec import parse_frame_spec
+    from rigctl.sim.frame_server import EXAMPLE
+    from rigctl.yamlio import LocDict
+
+    rng = np.random.default_rng(2)
+    acc, gyr, temp = rng.normal(0, 9.8, (n, 3)), rng.normal(0, 1, (n, 3)), rng.normal(30, 1, n)
+    vn = V.encode(LAYOUT, {"time_startup_ns": 10**9 + 1_250_000 * np.arange(n), "syncin_count": np.arange(n) // 800,
+                           "uncomp_accel": acc, "uncomp_gyro": gyr, "temperature": temp}).tobytes()
+    spec = parse_frame_spec(LocDict({"frame": EXAMPLE}))
+    fr = frame_decl.encode_binary(spec, {"counter": np.arange(n), "time": 1250 * np.arange(n),
+                                         **{f"accel_{a}": acc[:, j] for j, a in enumerate("xyz")},
+                                         **{f"gyro_{a}": gyr[:, j] for j, a in enumerate("xyz")},
+                                         "temperature": temp}).tobytes()
+    out = {}
+    for name, data, make, length in (("vectornav", vn, lambda: V.decoder(LAYOUT), LAYOUT.length),
+                                     ("frame_decl", fr, lambda: frame_decl.binary_decoder(spec), spec.length)):
+        def feed(buf, make=make):
+            st = make()
+            view = memoryview(buf)
+            for i in range(0, len(buf), chunk):
+                st.feed(np.frombuffer(view[i:i + chunk], np.uint8))
+            st.flush()
+            return st
+
+        def one(buf=data, make=make):
+            st = make()
+            st.feed(buf, final=True)
+            return st
+
+        assert one().counters.frames == n
+        noisy = np.frombuffer(data, np.uint8).copy()
+        pos = np.flatnonzero(rng.random(noisy.size) < 1e-4)
+        noisy[pos] ^= rng.integers(1, 256, pos.size).astype(np.uint8)
+        noisy_b = noisy.tobytes()
+        st = feed(noisy_b)
+        hit = int(np.unique(pos // length).size)
+        counted = st.counters.bad_frames + st.counters.truncated_frames
+        t_one, t_stream, t_noisy = best_of(one), best_of(lambda: feed(data)), best_of(lambda: feed(noisy_b))
+        print(f"{name:<10s} {length} bytes: one buffer {n / t_one:,.0f} frames/s, 256 KiB feeds {n / t_stream:,.0f} "
+              f"frames/s, 1e-4 errors {n / t_noisy:,.0f} frames/s (frames hit {hit}, bad counted {counted})")
+        out.update({f"{name}_frames_decoded_per_s": round(n / t_stream),
+                    f"{name}_frames_decoded_per_s_one_buffer": round(n / t_one),
+                    f"{name}_frames_decoded_per_s_errors_1e-4": round(n / t_noisy),
+                    f"{name}_frame_bytes": length, f"{name}_frames_hit_1e-4": hit,
+                    f"{name}_bad_frames_counted_1e-4": counted})
+    return out
 
 
 def record_cpu_share(seconds: float, rate_hz: int = 2000) -> dict:
@@ -147,6 +207,7 @@ def main() -> None:
                "mtdata2_frames_decoded_per_s_errors_1e-4": round(n / t_noisy),
                "frame_bytes": frame_len, "line_921k6_frames_per_s": round(line),
                "headroom_vs_921k6_line_x": round(n / t_stream / line)}
+    figures.update(other_decoders(n, chunk))
     if record_s > 0:
         r = record_cpu_share(record_s)
         print(f"recording 2 kHz over a pty: {r['samples']:,} samples in {r['record_seconds']} s, "

@@ -20,7 +20,7 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = "configs/sim.yaml"
 
 TABLE_DRIVERS = ("sim", "acl", "modbus")
-IMU_DRIVERS = ("sim", "xsens")
+IMU_DRIVERS = ("sim", "xsens", "vectornav", "frame")
 PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
 CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")

@@ -40,7 +40,7 @@ SCHEMA: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "queue_start": {},
     "queue_stop": {},
     "history": {"limit": ((int,), False)},
-    "pause": {},
+    "pause": {"deferred": ((bool,), False)},
     "resume": {"run": ((str,), False)},
     "abort": {},
     "logs": {"lines": ((int,), False)},
@@ -82,7 +82,7 @@ def validate_request(obj: Any) -> tuple[str, dict[str, Any]]:
         if key not in spec:
             raise ProtocolError(f"{cmd}: unknown argument {key!r}")
         types, _ = spec[key]
-        if isinstance(value, bool) or not isinstance(value, types):
+        if (isinstance(value, bool) and bool not in types) or not isinstance(value, types):
             raise ProtocolError(f"{cmd}: argument {key!r} must be {'/'.join(t.__name__ for t in types)}")
     for key, (_, required) in spec.items():
         if required and key not in args:

@@ -173,6 +173,7 @@ class Daemon:
             out["segments"] = eng.rec.n_segments
             out["progress"] = self.progress.status_text()
             out["remaining_s"] = round(self.progress.remaining_s(), 1)
+            out["deferred_pause"] = eng.deferred_pause is not None
             out["step_fraction"] = round(self.progress.fraction(), 3)
         return out
 
@@ -245,9 +246,14 @@ class Daemon:
         self.cv.notify_all()
         return {"ok": True, "job": job.id, "position": list(self.queue).index(job.id) + 1}
 
-    def _cmd_pause(self, _args: dict) -> dict:
+    def _cmd_pause(self, args: dict) -> dict:
         if self.engine is None or self.states.state not in ("running", "pausing", "paused"):
             return {"ok": False, "error": f"nothing to pause (daemon is {self.states.state})"}
+        if args.get("deferred"):
+            self.engine.request_pause("paused by operator at the end of a step (rigctl pause --deferred)",
+                                      deferred=True)
+            return {"ok": True, "state": self.states.state, "deferred": True,
+                    "note": "pauses at the end of the step in flight"}
         self.engine.request_pause("paused by operator (rigctl pause)")
         return {"ok": True, "state": self.states.state}
 
@@ -280,7 +286,11 @@ class Daemon:
         if self.engine is None:
             return {"ok": False, "error": "no job is running"}
         self.engine.request_abort("abort requested (rigctl abort)")
-        return {"ok": True}
+        # as in bluesky-queueserver: an abort stops the queue, the next job does not start at once
+        self.queue_running = False
+        self.log("info", "queue stopped by the abort: 'rigctl queue start' runs the next job")
+        return {"ok": True, "queue_running": False,
+                "note": f"queue stopped ({len(self.queue)} queued); 'rigctl queue start' goes on"}
 
     def _cmd_logs(self, args: dict) -> dict:
         job = self.current or next((j for j in reversed(self.jobs) if j.run_dir), None)
@@ -556,6 +566,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 @_run_client
 def cmd_simple(args: argparse.Namespace) -> int:
     payload = {"lines": args.lines} if args.command == "logs" else None
+    if args.command == "pause" and args.deferred:
+        payload = {"deferred": True}
     return _print_reply(_client(args, args.command, payload), args.command, args)
 
 
@@ -620,6 +632,9 @@ def register(sub: Any) -> None:
         sock(p)
         if name == "logs":
             p.add_argument("-n", "--lines", type=int, default=50)
+        if name == "pause":
+            p.add_argument("--deferred", action="store_true",
+                           help="pause at the end of the step in flight (nothing re-runs) instead of at once")
         p.set_defaults(func=cmd_simple)
     p = sub.add_parser("resume", help="resume the paused job, or with RUN continue a cut-off run")
     sock(p)

@@ -53,6 +53,8 @@ def status_text(r: dict[str, Any]) -> str:
     if job:
         sus = r.get("suspenders") or {}
         rows.append(("suspended", "; ".join(f"{k}: {v}" for k, v in sus.items()) if sus else "no"))
+        if r.get("deferred_pause"):
+            rows.append(("pause", "requested for the end of this step"))
     rows.append(("queue", f"{r.get('queued', 0)} queued, queue {'running' if r.get('queue_running', True) else 'stopped'}"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k + ':':<{width + 1}}  {v}" for k, v in rows)
@@ -112,6 +114,10 @@ def reply_text(cmd: str, r: dict[str, Any]) -> str:
         return "queue stopped: no new job starts" + (f" (job {run} runs to its end)" if run else "")
     if cmd == "queue_start":
         return "queue started"
+    if cmd == "abort":
+        return f"aborting the running job; {r.get('note', '')}".rstrip("; ")
+    if cmd == "pause":
+        return "pausing at the end of the step in flight" if r.get("deferred") else "pausing now (the step in flight re-runs)"
     if cmd == "resume" and "job" in r:
         return f"job {r['job']} queued: resume"
     parts = [f"{cmd}: ok"] + [f"{k} {v}" for k, v in r.items() if k not in ("ok",)]

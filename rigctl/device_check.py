@@ -3,14 +3,16 @@
 ``rigctl validate --devices`` prints the report; ``rigctl run`` (and the daemon, for each job)
 checks before it creates anything, so a run that cannot start leaves no run directory. Per
 device the answer is ``ok`` with what the device said (the ACL controller's ``*IDN?``, the Xsens
-DeviceID, a Modbus unit's input block, the NovAtel receiver's ``<OK`` to MARKCONTROL, a GPIO
+DeviceID, a VectorNav's model / serial number / firmware, one valid frame of a declarative-frame
+IMU, a Modbus unit's input block, the NovAtel receiver's ``<OK`` to MARKCONTROL, a GPIO
 chip's label, a modem line's level), or one line saying what is wrong and what to do
 (:func:`rigctl.drivers.serial_link.explain_link_error`): ``/dev/ttyUSB0: no such device; is the
 adapter plugged in? ls /dev/serial/by-id``, permission denied -> the dialout group, a refused
 TCP port -> is ``rigctl sim up`` / the device server running?
 
 Nothing moves: the probe sends only identity requests (ACL ``*IDN?``; Xsens GoToConfig, ReqDID,
-GoToMeasurement; Modbus reads; NovAtel MARKCONTROL with the configured settings) and closes every
+GoToMeasurement; VectorNav binary output off and register reads 1, 3, 4 -- the binary output
+stays off until a run configures it; Modbus reads; NovAtel MARKCONTROL with the configured settings) and closes every
 port again. The devices are asked in parallel, so the check takes the longest single answer.
 """
 from __future__ import annotations

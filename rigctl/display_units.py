@@ -80,6 +80,8 @@ SUFFIXES: tuple[tuple[str, str, float, str], ...] = (
     ("_s2_per_m", "ug/g^2", G0 * 1e6, "s^2/m"),
     ("_per_K", "ppm/K", 1e6, "1/K"),
     ("_m_s3", "mg/h", 3600.0 * 1e3 / G0, "m/s^3"),
+    ("_m_s2_per_h", "mg/h", 1e3 / G0, "m/s^2/h"),
+    ("_rad_s_per_h", "deg/h/h", DEG_H, "rad/s/h"),
     ("_rad_s2", "deg/h/h", DEG_H * 3600.0, "rad/s^2"),
     ("_m_s2", "mg", 1e3 / G0, "m/s^2"),
     ("_rad_s", "deg/h", DEG_H, "rad/s"),
@@ -110,7 +112,7 @@ NOISE_SI = {"gyro": {"Q": "rad", "N": "rad/sqrt(s)", "B": "rad/s", "K": "rad/s/s
             "accel": {"Q": "m/s", "N": "m/s/sqrt(s)", "B": "m/s^2", "K": "m/s^2/sqrt(s)", "R": "m/s^3"}}
 
 _M = re.compile(r"^(accel|gyro)_M_([xyz])([xyz])_ratio$")
-_SCALE = re.compile(r"^(accel|gyro)_scale_([xyz])_(m_s2_per_m_s2|rad_s_per_rad_s)$")
+_SCALE = re.compile(r"^(accel|gyro)_scale_([xyz])_(m_s2_per_m_s2|rad_s_per_rad_s|ratio)$")
 _NOISE = re.compile(r"^(accel|gyro)_noise_([QNBKR])_([xyz])$")
 
 

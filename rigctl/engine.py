@@ -21,7 +21,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -141,14 +141,22 @@ class Engine:
         #: (time, min, max) of the IMU temperature per poll, while a chamber-wait step runs
         self._temps: deque | None = None
         self.live: Any = None  # a rigctl.livefeed.LiveFeed (the daemon's live views), or None
+        self.deferred_pause: str | None = None  # an operator pause due at the end of the step in flight
+        #: warm-up step index -> seconds of warm-up already done in earlier attempts of that step
+        #: with the IMU powered all along (see :meth:`suspend`)
+        self.warmup_done: dict[int, float] = {}
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
         self.abort_requested = reason
 
-    def request_pause(self, reason: str = "paused by operator") -> None:
-        """Pause at the next poll (thread-safe); the step in flight re-runs after resume."""
-        self.suspenders.operator = reason
+    def request_pause(self, reason: str = "paused by operator", deferred: bool = False) -> None:
+        """Pause at the next poll (thread-safe); the step in flight re-runs after resume. With
+        ``deferred`` the pause waits for the end of the step in flight (nothing re-runs)."""
+        if deferred:
+            self.deferred_pause = reason
+        else:
+            self.suspenders.operator = reason
 
     def request_resume(self) -> None:
         """Lift an operator pause; the run resumes once every suspender has been clear for the
@@ -452,10 +460,18 @@ class Engine:
         n = 0
         while n < len(motion):
             step = motion[n]
+            if self.deferred_pause is not None:  # due now, between two steps: nothing is cut off
+                reason, self.deferred_pause = self.deferred_pause, None
+                self.suspenders.operator = reason
+                try:
+                    self.poll()
+                except Suspend as sus:
+                    self.suspend(step, sus, between_steps=True)
+                    continue
             self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
             self.progress.step_started(step)
             try:
-                seg = self.execute(step)
+                seg = self.execute(self._warmup_left(step))
             except Suspend as sus:
                 self.suspend(step, sus)
                 continue
@@ -467,6 +483,20 @@ class Engine:
         return segments
 
     # -- suspension ------------------------------------------------------------------------------
+    #: suspenders after which the IMU may have been without power: a warm-up starts over
+    POWER_SUSPENDERS = ("imu-link", "imu-gap")
+
+    def _warmup_left(self, step: Step) -> Step:
+        """A warm-up interrupted before with the IMU powered all along runs only what is left."""
+        done = self.warmup_done.get(step.index, 0.0)
+        if step.kind != "warmup" or done <= 0.0:
+            return step
+        left = max(0.0, step.sample_s - done)
+        self.log("info", f"warm-up: {done:.1f} s already done with the IMU powered; {left:.1f} s left")
+        self.rec.add_event(self.rig.clock.now(), "info",
+                           f"step {step.index + 1} ({step.label}): {done:.1f} s of warm-up kept, {left:.1f} s left")
+        return replace(step, sample_s=left)
+
     def _stop_table(self, wait_s: float = 5.0) -> None:
         """Stop the table (rate zero, mode off) and record it until still or ``wait_s``."""
         clock = self.rig.clock
@@ -481,19 +511,33 @@ class Engine:
                 return
             clock.sleep(self.settle_poll_s)
 
-    def suspend(self, step: Step, sus: Suspend) -> None:
+    def suspend(self, step: Step, sus: Suspend, between_steps: bool = False) -> None:
         """Pause on a tripped suspender; return once all have been clear for the hold time.
 
         The step in flight is written as an ``incomplete`` segment when it had started
-        sampling, and always named in an event with its IMU sample range."""
+        sampling, and always named in an event with its IMU sample range. ``between_steps``
+        (a deferred pause): ``step`` has not started; nothing is cut off.
+
+        A warm-up cut off while sampling keeps the time it had sampled (the re-run samples only
+        what is left) unless a suspender that may mean a power loss of the IMU tripped
+        (:data:`POWER_SUSPENDERS`): then the whole warm-up runs again. Time spent paused does
+        not count."""
         clock, rec = self.rig.clock, self.rec
+        if step.kind == "warmup" and self.sampling_from is not None and self._win_start is not None:
+            if set(sus.reasons) & set(self.POWER_SUSPENDERS):
+                if self.warmup_done.pop(step.index, None):
+                    self.log("info", "warm-up starts over: the IMU may have lost power")
+            else:
+                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + clock.now() - self._win_start
         self.n_suspensions += 1
         names = ", ".join(sus.reasons)
         message = str(sus)
         self.states.to("pausing", message)
         self.log("warning", f"suspended ({names}): {message}", suspenders=sus.reasons)
         rec.add_event(clock.now(), "suspend", f"{names}: {message}")
-        if self.sampling_from is not None:
+        if between_steps:
+            pass
+        elif self.sampling_from is not None:
             first, last = self.sampling_from, rec.n_imu
             s = self.last_state
             rec.add_segment(Segment(
@@ -530,7 +574,7 @@ class Engine:
                 raise RunError(f"paused for more than {self.max_pause_s:g} s: "
                                f"{'; '.join(self.suspenders.active.values()) or message}")
         text = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
-                f"re-running step {step.index + 1} ({step.label})")
+                f"{'starting' if between_steps else 're-running'} step {step.index + 1} ({step.label})")
         rec.add_event(now, "resume", text)
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)

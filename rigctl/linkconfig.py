@@ -24,6 +24,10 @@ Per driver (units in the key names; defaults in brackets):
 * imu ``xsens``: port, baudrate [921600], rate_hz (top level of the section), timeout_s [0.5],
   sample_time_fine_wrap [4294967296; 864000000 for MTi-10/100], align_wait_s [0.02],
   link_timeout_s [2.0]; serial (any IMU driver: the unit's label, rigctl.config.imu_serial)
+* imu ``vectornav``: port, baudrate [921600], rate_hz (800 Hz / N), timeout_s [0.5], align_wait_s
+  [0.02], link_timeout_s [2.0]; serial
+* imu ``frame``: port, baudrate [115200], rate_hz, timeout_s [0.5], align_wait_s [0.02],
+  link_timeout_s [2.0], frame (the frame description, rigctl.frame_spec); serial
 * pulses ``novatel``: port, baudrate [115200], signal MARK1..MARK4 [MARK1], polarity
   NEGATIVE|POSITIVE [NEGATIVE], timebias_ns [0], timeguard_ms [4], log MARK1TIMEA|MARKTIMEA
 * pulses ``gpio``: chip [/dev/gpiochip0], line, edge rising|falling|both [rising],
@@ -37,6 +41,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, ClassVar
 
 from . import schema as S
+from .frame_spec import parse_frame_spec
 from .yamlio import LocDict
 
 AUTO = "auto"
@@ -193,6 +198,48 @@ class XsensSettings(LinkSettings):
 
 
 @dataclass(frozen=True, kw_only=True)
+class VectorNavSettings(LinkSettings):
+    """imu ``vectornav`` (rigctl.drivers.vectornav_imu.VectorNavImu; rate_hz is the section's
+    own and must be 800 Hz / N)."""
+
+    DRIVER: ClassVar[str] = "vectornav"
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("serial",)
+    port: str = port()
+    baudrate: int = baudrate(921600)
+    timeout_s: float = timeout()
+    align_wait_s: float = number(0.02, minimum=0, maximum=1)
+    link_timeout_s: float = number(2.0, minimum=0.01, maximum=600)
+
+    def check(self, d: LocDict) -> None:
+        rate = d.get("rate_hz", 100.0)
+        if isinstance(rate, (int, float)) and rate > 0 and (800.0 / rate) != int(800.0 / rate):
+            raise S.error(d, "rate_hz", f"a VectorNav outputs at 800 Hz / N; rate_hz {rate:g} is not one of those",
+                          "e.g. rate_hz: 100 (800 / 8), 200, 400 or 800")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrameSettings(LinkSettings):
+    """imu ``frame`` (rigctl.drivers.frame_imu.FrameImu): a declarative frame description under
+    ``frame:`` (rigctl.frame_spec), checked here with file and line."""
+
+    DRIVER: ClassVar[str] = "frame"
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("serial", "frame")
+    port: str = port()
+    baudrate: int = baudrate(115200)
+    timeout_s: float = timeout()
+    align_wait_s: float = number(0.02, minimum=0, maximum=1)
+    link_timeout_s: float = number(2.0, minimum=0.01, maximum=600)
+
+    def check(self, d: LocDict) -> None:
+        spec = parse_frame_spec(d)
+        rate = d.get("rate_hz", 100.0)
+        if spec.format == "binary" and isinstance(rate, (int, float)) and 10 * spec.length * rate > self.baudrate:
+            raise S.error(d, "baudrate", f"{spec.length}-byte frames at {rate:g} Hz need "
+                          f"{10 * spec.length * rate:,.0f} bit/s, more than baudrate {self.baudrate:,}",
+                          "raise the baud rate (as the IMU is set) or lower rate_hz")
+
+
+@dataclass(frozen=True, kw_only=True)
 class NovatelSettings(LinkSettings):
     """pulses ``novatel`` (rigctl.drivers.novatel_marks.NovatelMarks)."""
 
@@ -240,6 +287,7 @@ class ModemSettings(LinkSettings):
 #: (section, driver) -> its settings
 SETTINGS: dict[tuple[str, str], type[LinkSettings]] = {
     ("table", "acl"): AclSettings, ("table", "modbus"): ModbusSettings, ("imu", "xsens"): XsensSettings,
+    ("imu", "vectornav"): VectorNavSettings, ("imu", "frame"): FrameSettings,
     ("pulses", "novatel"): NovatelSettings, ("pulses", "gpio"): GpioSettings, ("pulses", "modem"): ModemSettings,
 }
 

@@ -365,12 +365,12 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     for t in cl.get("rms_table") or []:
         if t.get("channel") == "all":
             rows.append(["chi2 per dof (all)", "1", None, t.get("chi2_per_dof_before"),
-                         t.get("chi2_per_dof_after")])
+                         t.get("chi2_per_dof_after"), None])
             continue
         u = t.get("unit", "")
-        rows.append([t["channel"], {"deg_h": "deg/h"}.get(u, u), t.get(f"noise_floor_{u}"),
-                     t.get(f"rms_before_{u}"), t.get(f"rms_after_{u}")])
-    out.append(table(["channel", "unit", "noise floor", "RMS before", "RMS after"], rows, num_from=2))
+        rows.append([t["channel"], {"deg_h": "deg/h"}.get(u, u), t.get(f"rms_raw_{u}"),
+                     t.get(f"rms_before_{u}"), t.get(f"rms_after_{u}"), t.get(f"noise_floor_{u}")])
+    out.append(table(["channel", "unit", "raw", "declared model", "final model", "noise floor"], rows, num_from=2))
     out.append(img(plots, "cal_rms", "Residual RMS before/after against the noise floor (mg, deg/h)"))
     for u in cl.get("unexplained") or []:
         out.append(f"<p class=\"warn\">UNEXPLAINED: {esc(u.get('pattern'))} ({esc(u.get('statistic'))})</p>")
@@ -396,7 +396,8 @@ def _term_cell(e: dict[str, Any], unit: str) -> str:
         lo, hi = e.get(f"ci95_{unit}") or [None, None]
         return f"{fmt(e.get(f'value_{unit}'))} [{fmt(lo)}, {fmt(hi)}]"
     ub = e.get(f"upper95_{unit}")
-    return f"< {fmt(ub)} (95 % upper bound)" if ub is not None else "n/a"
+    what = "the curve's own limit" if e.get("bound_from") == "curve" else "95 % upper bound"
+    return f"< {fmt(ub)} ({what})" if ub is not None else "n/a"
 
 
 def _need_cell(e: dict[str, Any]) -> str:

@@ -6,7 +6,7 @@ Two kinds of rig:
 
 * in-process emulator (``driver: sim`` for table and IMU): one :class:`rigctl.sim.world.SimWorld`
   on the config's clock (virtual, real or scaled);
-* wired (table ``acl`` | ``modbus``, IMU ``xsens``, pulses ``novatel`` | ``gpio`` | ``modem`` |
+* wired (table ``acl`` | ``modbus``, IMU ``xsens`` | ``vectornav`` | ``frame``, pulses ``novatel`` | ``gpio`` | ``modem`` |
   ``none``): real drivers on real links (hardware, or ``rigctl sim up``). The run clock is the
   host's (``clock: real``), or real time x ``speed`` (``clock: scaled``) to match an emulator
   started with the same ``--speed``. Recorded times come from the devices, mapped onto the run
@@ -60,6 +60,13 @@ def build_table(cfg: RigConfig, clock: Clock):
 
 def build_imu(cfg: RigConfig, clock: Clock):
     s = cfg.imu.settings
+    if cfg.imu.driver == "vectornav":
+        from .drivers.vectornav_imu import VectorNavImu
+        return VectorNavImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
+    if cfg.imu.driver == "frame":
+        from .drivers.frame_imu import FrameImu
+        from .frame_spec import parse_frame_spec
+        return FrameImu(s.port, parse_frame_spec(cfg.imu.options), cfg.imu_rate_hz, clock, **s.keywords())
     from .drivers.xsens_imu import XsensImu
     return XsensImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
 

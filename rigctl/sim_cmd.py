@@ -33,7 +33,7 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
     try:
         with start_hardware(cfg, args.speed, link_dir=args.link_dir, acl_tcp_port=args.acl_port,
                             modbus_tcp_port=args.modbus_port, imu_baudrate=args.imu_baudrate,
-                            pulse_period_s=args.pulse_period) as hw:
+                            pulse_period_s=args.pulse_period, imu_protocol=args.imu) as hw:
             print(f"rigctl sim up: physics of {cfg_path} at {args.speed:g}x real time", flush=True)
             for name, where in hw.endpoints.items():
                 print(f"  {name:<18s} {where}", flush=True)
@@ -76,6 +76,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--link-dir", help="directory for the pty symlinks (default: a temporary directory)")
     up.add_argument("--acl-port", type=int, default=0, help="ACL TCP port (default: any free port)")
     up.add_argument("--modbus-port", type=int, default=0, help="Modbus TCP port (default: any free port)")
-    up.add_argument("--imu-baudrate", type=int, default=921_600, help="nominal Xsens baud rate (bandwidth check)")
+    up.add_argument("--imu", choices=("xsens", "vectornav", "frame"), default="xsens",
+                    help="IMU protocol on the pty 'imu': Xsens MT, VectorNav binary, or the declarative frame "
+                         "of docs/hardware.md (example 1)")
+    up.add_argument("--imu-baudrate", type=int, default=921_600, help="nominal IMU baud rate (bandwidth check)")
     up.add_argument("--pulse-period", type=float, default=None, help="mark pulse every N s of rig time")
     up.set_defaults(func=cmd_sim_up)

@@ -1,38 +1,50 @@
-"""Solvers a procedure's ``solve`` step names, run on the recording once it is closed."""
+"""Solvers a procedure's ``solve`` step names, run on the recording once it is closed.
+
+Each hook imports its pipeline (rigctl.analysis, the report) when the step runs, not when the
+CLI starts: commands that never solve (status, submit, ...) do not load scipy or matplotlib
+(tests/test_cli.py checks this).
+"""
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from pathlib import Path
 
-from .analysis import sync
 from .procedure import Procedure
-from .report_build import solve_report
 
-Hook = Callable[[Path, Callable[..., None]], None]
+Log = Callable[..., None]
+Hook = Callable[[Path, Log], None]
 
-#: solver name -> hook, called as hook(recording_path, log) -> None. The three calibration
-#: solvers share one hook: the first computes the whole calibration (published fits and the
-#: closed loop) and prints it, the others see it done and return. A "module:function" string is
-#: imported when the step runs.
-SOLVER_HOOKS: dict[str, Hook | str] = {
-    "accel24": "rigctl.analysis.calibration:solve_hook",
-    "gyro-rate": "rigctl.analysis.calibration:solve_hook",
-    "closed-loop": "rigctl.analysis.calibration:solve_hook",
-    "allan": "rigctl.analysis.allan:solve_recording",
-    "sync": sync.solve_recording,
-    "report": solve_report,
+
+def _calibration(recording: Path, log: Log) -> None:
+    """accel24, gyro-rate and closed-loop share one hook: the first computes the whole
+    calibration (published fits and the closed loop) and prints it, the others see it done."""
+    from .analysis import calibration
+    calibration.solve_hook(recording, log)
+
+
+def _allan(recording: Path, log: Log) -> None:
+    from .analysis import allan
+    allan.solve_recording(recording, log)
+
+
+def _sync(recording: Path, log: Log) -> None:
+    from .analysis import sync
+    sync.solve_recording(recording, log)
+
+
+def _report(recording: Path, log: Log) -> None:
+    from .report_build import solve_report
+    solve_report(recording, log)
+
+
+#: solver name (rigctl.procedure.SOLVERS) -> hook(recording_path, log) -> None
+SOLVER_HOOKS: dict[str, Hook] = {
+    "accel24": _calibration, "gyro-rate": _calibration, "closed-loop": _calibration,
+    "allan": _allan, "sync": _sync, "report": _report,
 }
 
 
-def _resolve(hook: Hook | str) -> Hook:
-    if callable(hook):
-        return hook
-    mod, fn = hook.split(":")
-    return getattr(importlib.import_module(mod), fn)
-
-
-def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> None:
+def run_solvers(proc: Procedure, recording: Path, log: Log) -> None:
     for step in proc.steps:
         for name in step.solvers:
             hook = SOLVER_HOOKS.get(name)
@@ -40,4 +52,4 @@ def run_solvers(proc: Procedure, recording: Path, log: Callable[..., None]) -> N
                 log("warning", f"solver {name!r}: not available in this version of rigctl; "
                                f"run it later on {recording}")
                 continue
-            _resolve(hook)(recording, log)
+            hook(recording, log)

@@ -215,6 +215,8 @@ class WebApi:
             if isinstance(body, Response):
                 return body
             args: dict[str, Any] = {}
+            if cmd == "pause" and body.get("deferred") is True:
+                args["deferred"] = True
             if cmd == "resume" and "run" in body:
                 run = self._run_dir(str(body["run"]))
                 if run is None:

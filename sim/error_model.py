@@ -43,8 +43,10 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
+from scipy import signal
 
 from . import effects as fx
+from . import fused as _fused
 from .frontend import FrontEnd
 from .noise import NoiseGenerator
 
@@ -201,6 +203,11 @@ class ImuErrorModel:
               w_dot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Measured (f (n,3) m/s^2, w (n,3) rad/s, T (n,) degC) at the output rate from internal-rate truth."""
         t = np.asarray(t, dtype=float)
+        if _fused.HAVE_NUMBA and len(t) and len(t) % self.decimation == 0:
+            T = self.temperature(t) if temperature is None else np.broadcast_to(
+                np.asarray(temperature, float), t.shape)
+            F_out, W_out = self._internal_fused(t, f_true, w_true, T, w_dot)
+            return self._output(F_out, W_out, T)
         f = np.array(f_true, dtype=float)
         w = np.array(w_true, dtype=float)
         if self.lever:
@@ -231,6 +238,11 @@ class ImuErrorModel:
             W += fx.g_sensitivity_error(f, _mat(self.gsens.get("G_rad_per_s_per_m_per_s2")), None if ae is None else _mat(ae))
         F_out = self.accel_fe.filter_decimate(F)
         W_out = self.gyro_fe.filter_decimate(W)
+        return self._output(F_out, W_out, T)
+
+    def _output(self, F_out: np.ndarray, W_out: np.ndarray, T: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Output-rate part of :meth:`apply`: noise, ADC, temperature channel."""
         n = F_out.shape[0]
         F_out = self.accel_fe.digitize(self.accel_noise.next(n, F_out))
         W_out = self.gyro_fe.digitize(self.gyro_noise.next(n, W_out))
@@ -241,6 +253,75 @@ class ImuErrorModel:
             if lsb > 0:
                 T_out = np.round(T_out / lsb) * lsb
         return F_out, W_out, T_out
+
+    def _fused_params(self) -> tuple:
+        """Constant arguments of sim.fused._internal (built once)."""
+        if getattr(self, "_fp", None) is None:
+            z3, z33 = np.zeros(3), np.zeros((3, 3))
+            wu, gs = self.warmup or {}, self.gsens or {}
+            ae = gs.get("anisoelastic_rad_per_s_per_m2_per_s4")
+            if self.vib:
+                fr = np.asarray(self.vib["freqs_hz"], dtype=float)
+                zero = np.zeros((len(fr), 3))
+                fa = np.asarray(self.vib.get("accel_amp_m_per_s2", zero), dtype=float).reshape(-1, 3)
+                ga = np.asarray(self.vib.get("gyro_amp_rad_per_s", zero), dtype=float).reshape(-1, 3)
+                ph = np.asarray(self.vib_phase, dtype=float)
+                vib = (fr, fa * np.cos(ph), fa * np.sin(ph), ga * np.cos(ph), ga * np.sin(ph),
+                       fa != 0.0, ga != 0.0)
+            else:
+                vib = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                       np.zeros((0, 3)), np.zeros((0, 3), bool), np.zeros((0, 3), bool))
+            self._fp = (
+                _vec(self.lever["r_m"]) if self.lever else z3, *vib,
+                self.accel_bias + self.turn_on_accel + self.accel_power_on_offset,
+                np.ascontiguousarray(self.accel_M, dtype=float), np.asarray(self.accel_k2, float),
+                self.gyro_bias + self.turn_on_gyro + self.gyro_power_on_offset,
+                np.ascontiguousarray(self.gyro_M, dtype=float),
+                float(self.T_ref) if self.warmup else 0.0,
+                _vec(wu.get("accel_bias_tc_m_per_s2_per_K")), _vec(wu.get("accel_scale_tc_per_K")),
+                _vec(wu.get("gyro_bias_tc_rad_per_s_per_K")), _vec(wu.get("gyro_scale_tc_per_K")),
+                0.5 * _vec(self.asym["asymmetry"]) if self.asym else z3,
+                _vec(self.nonlin.get("k2_per_rad_per_s")) if self.nonlin else z3,
+                _vec(self.nonlin.get("k3_per_rad2_per_s2")) if self.nonlin else z3,
+                _mat(gs.get("G_rad_per_s_per_m_per_s2")) if self.gsens else z33,
+                _mat(ae) if (self.gsens and ae is not None) else z33)
+        return self._fp
+
+    def _internal_fused(self, t: np.ndarray, f_true: np.ndarray, w_true: np.ndarray, T: np.ndarray,
+                        w_dot: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Everything of :meth:`apply` at the internal rate, low-pass and decimation included, in
+        one compiled pass (sim.fused); the same arithmetic as the numpy path, state carried."""
+        f_true = np.ascontiguousarray(f_true, dtype=float)
+        w_true = np.ascontiguousarray(w_true, dtype=float)
+        T = np.ascontiguousarray(T, dtype=float)
+        n, L = len(t), self.decimation
+        dw_in = w_dot is not None
+        dw = np.ascontiguousarray(w_dot, dtype=float) if dw_in else np.zeros((1, 3))
+        p = self._fused_params()
+        gs_a = bool(self.gsens and self.gsens.get("anisoelastic_rad_per_s_per_m2_per_s4") is not None)
+        d = self._dw
+        prev = (np.array([d._t, *d._w[0]]) if d._t is not None else
+                np.array([t[0] - 1.0, *w_true[0]]))
+        fes = (self.accel_fe, self.gyro_fe)
+        eff = [bool(self.lever), dw_in, bool(self.vib), bool(self.warmup), bool(self.asym),
+               bool(self.nonlin), bool(self.gsens), gs_a]
+        if any(fe._sos is not None and fe._zi is None for fe in fes):
+            # the filter starts in steady state for the first filtered sample (as filter_decimate)
+            f1, w1 = np.empty((1, 3)), np.empty((1, 3))
+            dummy = (np.zeros((1, 6)), np.zeros((1, 3, 2)))
+            _fused._internal(t[:1], f_true[:1], w_true[:1], T[:1], dw[:1], np.array(eff + [False, False]),
+                             prev.copy(), *p, *dummy, *dummy, 1, f1, w1)
+            for fe, x0 in zip(fes, (f1[0], w1[0])):
+                if fe._sos is not None and fe._zi is None:
+                    fe._zi = signal.sosfilt_zi(fe._sos)[:, None, :] * x0[None, :, None]
+        filt = [(fe._sos, fe._zi) if fe._sos is not None else (np.zeros((1, 6)), np.zeros((1, 3, 2)))
+                for fe in fes]
+        flags = np.array(eff + [fes[0]._sos is not None, fes[1]._sos is not None])
+        out_f, out_w = np.empty((n // L, 3)), np.empty((n // L, 3))
+        _fused._internal(t, f_true, w_true, T, dw, flags, prev, *p, *filt[0], *filt[1], L, out_f, out_w)
+        if self.lever and not dw_in:
+            d._t, d._w = float(prev[0]), prev[1:].reshape(1, 3).copy()
+        return out_f, out_w
 
     # ------------------------------------------------------------------------------------------
     def table_geometry(self) -> dict:

@@ -67,6 +67,8 @@ from .world import SimWorld
 from .xsens_server import MAX_BATCH, XsensServer
 
 log = logging.getLogger(__name__)
+#: IMU protocols the emulator serves on the pty 'imu' (one at a time)
+IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 
 
 class FlowPtyEndpoint(PtyEndpoint):
@@ -99,6 +101,23 @@ class FlowPtyEndpoint(PtyEndpoint):
             self._flowing = sent == len(view)
             self.overflow_bytes += len(view) - sent
             return sent
+
+
+class FreeRunPtyEndpoint(FlowPtyEndpoint):
+    """The port of a device that streams from power-up, whether or not a client listens (the
+    declarative-frame IMU): while dropping, a write first looks whether the client has drained
+    the port since (the master is writable again) and if so resumes flow control -- otherwise a
+    client that connects after the buffer filled would see the stream cut up for good."""
+
+    def write(self, data: bytes) -> int:
+        if not getattr(self, "_flowing", True):
+            try:
+                _, w, _ = select.select([], [self.master], [], 0)
+            except (OSError, ValueError):
+                w = []
+            if w:
+                self._flowing = True
+        return super().write(data)
 
 
 class HwAclCore(AclServerCore):
@@ -329,7 +348,12 @@ class Hardware:
                  imu_baudrate: int = 921_600, imu_max_rate_hz: int = 2000, rtu_baudrate: int = 115_200,
                  acl_tcp_port: int = 0, modbus_tcp_port: int = 0, modbus_word_order: str = "big",
                  modbus_unit_id: int = 1, tick_s: float = 0.002, pulse_period_s: float | None = None,
-                 seed: int = 0, imu_keep_sent: int = 0, imu_device_id: int | None = 0x03780001) -> None:
+                 seed: int = 0, imu_keep_sent: int = 0, imu_device_id: int | None = 0x03780001,
+                 imu_protocol: str = "xsens", imu_frame: dict | None = None) -> None:
+        if imu_protocol not in IMU_PROTOCOLS:
+            raise ValueError(f"imu_protocol must be one of {IMU_PROTOCOLS}, not {imu_protocol!r}")
+        self.imu_protocol = imu_protocol
+        self.imu_frame = imu_frame
         self.cfg, self.speed, self.tick_s = cfg, float(speed), float(tick_s)
         self.imu_device_id = imu_device_id
         self.imu_baudrate, self.rtu_baudrate = imu_baudrate, rtu_baudrate
@@ -372,14 +396,32 @@ class Hardware:
         self.modbus_tcp = self.modbus.start_tcp(port=modbus_tcp_port)
         rtu = self.modbus.start_rtu(baudrate=self.rtu_baudrate)
         self._link("table-rtu", rtu)
-        # IMU
-        HwXsensServer.grid_rate_hz = self.world.rate_hz
-        self.xsens = HwXsensServer(source=self.tap, clock=self.world_clock.now, baudrate=self.imu_baudrate,
-                                   max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed,
-                                   keep_sent=self.imu_keep_sent, device_id=self.imu_device_id)
-        self.xsens.true_clock = self.clock.now
-        self._closers.append(self.xsens.close)
-        self._replace_port(self.xsens, "imu", FlowPtyEndpoint)
+        # IMU: one protocol on the pty 'imu' (Xsens MT, VectorNav binary or a declarative frame)
+        self.xsens: HwXsensServer | None = None
+        if self.imu_protocol == "xsens":
+            HwXsensServer.grid_rate_hz = self.world.rate_hz
+            self.xsens = HwXsensServer(source=self.tap, clock=self.world_clock.now, baudrate=self.imu_baudrate,
+                                       max_rate_hz=max(imu_max_rate_hz, int(self.world.rate_hz)), seed=seed,
+                                       keep_sent=self.imu_keep_sent, device_id=self.imu_device_id)
+            self.imu_server = self.xsens
+        elif self.imu_protocol == "vectornav":
+            from .vectornav_server import VectorNavServer
+            VectorNavServer.grid_rate_hz = self.world.rate_hz
+            self.imu_server = VectorNavServer(self.tap, self.world_clock.now, baudrate=self.imu_baudrate, seed=seed)
+        else:
+            from rigctl.frame_spec import parse_frame_spec
+            from rigctl.yamlio import LocDict
+
+            from .frame_server import EXAMPLE, FrameServer
+            FrameServer.grid_rate_hz = self.world.rate_hz
+            self.imu_frame = self.imu_frame or EXAMPLE
+            spec = parse_frame_spec(LocDict({"frame": self.imu_frame}))
+            self.imu_server = FrameServer(spec, self.tap, self.world_clock.now, rate_hz=self.world.rate_hz,
+                                          seed=seed)
+        self.imu_server.true_clock = self.clock.now
+        self._closers.append(self.imu_server.close)
+        self._replace_port(self.imu_server, "imu", FreeRunPtyEndpoint if self.imu_protocol == "frame"
+                           else FlowPtyEndpoint)
         # climatic chamber: Watlow F4T on Modbus RTU (pty) and TCP, SCPI on TCP (sim/chamber_servers.py)
         from .chamber_servers import ChamberAccess, ScpiChamberServer, WatlowF4TServer
         self.chamber = ChamberAccess(self.world.chamber, lambda: self.world.t, self.lock)
@@ -438,8 +480,8 @@ class Hardware:
                     self.world.advance()
                     self.tap.pull()
                     t = self.table._t()
-                self.xsens.step(t)
-                nt = self.xsens.next_time()
+                self.imu_server.step(t)
+                nt = self.imu_server.next_time()
                 keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
                 self.tap.trim(min(keep, self.world.k - 1))
             except Exception:       # the loop must survive a bug in one device
@@ -453,7 +495,7 @@ class Hardware:
                 "table_acl_tcp": f"socket://{self.acl_tcp[0]}:{self.acl_tcp[1]}",
                 "table_modbus_tcp": f"{self.modbus_tcp[0]}:{self.modbus_tcp[1]}",
                 "table_modbus_rtu": str(self.link_dir / "table-rtu"),
-                "imu_xsens_pty": str(self.slots["imu"].link),
+                f"imu_{self.imu_protocol}_pty": str(self.slots["imu"].link),
                 "gnss_novatel_pty": str(self.slots["gnss"].link),
                 "chamber_watlow_rtu": str(self.link_dir / "chamber-rtu"),
                 "chamber_watlow_tcp": f"{self.watlow_tcp[0]}:{self.watlow_tcp[1]}",
@@ -475,11 +517,12 @@ class Hardware:
         ``rate`` (from the next frame on); ``self.xsens.frames_hit`` counts the MTData2 frames
         that received at least one error, ``frames_hit_undetectable`` those among them whose
         checksum still adds up."""
-        with self.xsens._lock:
-            self.xsens.byte_error_rate = float(rate)
-            self.xsens._err_pending = None
+        imu = self.imu_server
+        with imu._lock:
+            imu.byte_error_rate = float(rate)
+            imu._err_pending = None
             if seed is not None:
-                self.xsens._rng = np.random.default_rng(seed)
+                imu._rng = np.random.default_rng(seed)
 
     def stall(self, device: str, seconds: float, replies: int = 1) -> None:
         """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late."""

@@ -55,7 +55,10 @@ def wire_config(base: dict[str, Any], hw, *, table: str | None = None, link: str
     else:
         raise ValueError(f"unknown table driver {table!r}")
     i = _keep(i_in)
-    i.update(driver="xsens", port=ep["imu_xsens_pty"], baudrate=hw.imu_baudrate, **(imu_options or {}))
+    proto = getattr(hw, "imu_protocol", "xsens")
+    i.update(driver=proto, port=ep[f"imu_{proto}_pty"], baudrate=hw.imu_baudrate, **(imu_options or {}))
+    if proto == "frame":
+        i["frame"] = copy.deepcopy(hw.imu_frame)
     p = {"driver": "novatel", "port": ep["gnss_novatel_pty"]} if pulses == "novatel" else {"driver": "none"}
     d.update(clock="scaled", speed=float(hw.speed), table=t, imu=i, pulses=p)
     c_in = d.get("chamber") or {}
@@ -76,7 +79,8 @@ def wire_config(base: dict[str, Any], hw, *, table: str | None = None, link: str
         d.pop("chamber", None)
     else:
         d["chamber"] = c
-    d["rig"] = f"wired rig on emulated hardware ({table} table over {link}, Xsens IMU, {pulses} pulses)"
+    imu_name = {"xsens": "Xsens", "vectornav": "VectorNav", "frame": "declarative-frame"}[proto]
+    d["rig"] = f"wired rig on emulated hardware ({table} table over {link}, {imu_name} IMU, {pulses} pulses)"
     return d
 
 

@@ -18,13 +18,26 @@ from rigctl.runner import run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 
+from helpers import SLOW_NOISE_KEYS
+
 ROOT = Path(__file__).resolve().parent.parent
 SIM = ROOT / "configs" / "sim.yaml"
 
 
-def sim_config(tmp: Path, **imu: Any):
-    """configs/sim.yaml, with ``imu`` keys changed (e.g. rate_hz=2000)."""
+def white_sim(tmp: Path) -> Path:
+    """configs/sim.yaml on white noise only (its slow terms B and K zeroed): the runs here are
+    checked against the declared model, and against each other, at white-noise tolerances."""
     d = yaml.safe_load(SIM.read_text())
+    d["imu"]["sim"].update({k: 0.0 for k in SLOW_NOISE_KEYS})
+    p = tmp / "sim-white.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+def sim_config(tmp: Path, **imu: Any):
+    """configs/sim.yaml on white noise only (:func:`white_sim`), with ``imu`` keys changed
+    (e.g. rate_hz=2000)."""
+    d = yaml.safe_load(white_sim(tmp).read_text())
     d["imu"].update(imu)
     p = tmp / "physics.yaml"
     p.write_text(yaml.safe_dump(d))
@@ -50,10 +63,16 @@ def run(proc: str, cfg_path: Path, out: Path, params: dict[str, str]):
 
 
 def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: str, speed: float,
-              during=None):
-    """Run ``proc`` over the wire against fresh emulated hardware; returns (recording, truth, hw info)."""
-    with hardware(tmp, speed) as (hw, raw):
+              during=None, hw_kw: dict | None = None, suspenders: dict | None = None):
+    """Run ``proc`` over the wire against fresh emulated hardware (``hw_kw``: e.g.
+    imu_protocol="vectornav"; ``suspenders``: the config's section); returns (recording, truth,
+    hw info)."""
+    with hardware(tmp, speed, **(hw_kw or {})) as (hw, raw):
         cfg_path = write_wire_config(tmp / "wired.yaml", raw, hw, table=table, link=link)
+        if suspenders is not None:
+            d = yaml.safe_load(cfg_path.read_text())
+            d["suspenders"] = suspenders
+            cfg_path.write_text(yaml.safe_dump(d, sort_keys=False))
         timers = [threading.Timer(delay, fn) for delay, fn in (during or [])]
         for t in timers:
             t.start()
@@ -65,7 +84,7 @@ def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: st
                 t.cancel()
                 t.join()
         info = {"wall_s": time.perf_counter() - t0, "truth": hw.truth(), "hw": hw,
-                "imu_overflow": hw.slots["imu"].endpoint.overflow_bytes,
+                "imu_overflow": hw.slots["imu"].endpoint.overflow_bytes, "imu_frames_sent": hw.imu_server.frames_sent,
                 "reconnects": {k: s.reconnects for k, s in hw.slots.items()}}
     return res.recording, cfg, info
 

@@ -99,14 +99,15 @@ def test_report_states_the_noise_model_and_its_coefficients(runs):
     # the profile: N = 5.9e-4 m/s^2/sqrt(Hz) = 60.2 ug/sqrt(Hz), 1.22e-4 rad/s/sqrt(Hz) = 0.419 deg/sqrt(h);
     # B = 1.47e-4 m/s^2 = 15.0 ug, 3.88e-5 rad/s = 8.0 deg/h. White level and the flicker's fast
     # part trade off channel by channel; the medians over the three axes are checked.
-    for sensor, n_unit, n_true, b_unit, b_true in (("accel", "ug_per_rtHz", 60.2, "ug", 15.0),
-                                                   ("gyro", "deg_per_rth", 0.419, "deg_h", 8.0)):
+    # (display units of rigctl.display_units: accel N in m/s/sqrt(h) = ug/sqrt(Hz) * g0 * 60e-6, B in mg)
+    for sensor, n_unit, n_true, b_unit, b_true in (("accel", "m_per_s_per_sqrt_h", 60.2 * 9.80665 * 60e-6, "mg", 0.015),
+                                                   ("gyro", "deg_per_sqrt_h", 0.419, "deg_per_h", 8.0)):
         sub = [r for r in rows if r["channel"].startswith(sensor)]
         n = np.median([r[f"N_{n_unit}"]["orientation"] for r in sub])
         b = np.median([r[f"B_{b_unit}"] for r in sub])
         assert abs(n / n_true - 1) < 0.1, (sensor, n)
         assert 1 / 1.5 < b / b_true < 1.5, (sensor, b)
-    for line in ("accel_x  N", "gyro_z   N", "ug/rts", "deg_h/rth"):
+    for line in ("accel_x  N", "gyro_z   N", "m/s/h/sqrt(h)", "deg/h/sqrt(h)"):
         assert line in out, line
 
 
@@ -158,9 +159,9 @@ def test_noise_from_an_overnight_capture_of_the_same_unit(runs, night, tmp_path)
     with h5py.File(nt, "r") as f:
         acc, gyr = noise_from_allan(f)
     rows = payload["noise_model_channels"]
-    n_ug = [r["N_ug_per_rtHz"]["*"] for r in rows[:3]]  # one white level for every kind
-    np.testing.assert_allclose(n_ug, acc.N * 1e6 / 9.80665, rtol=1e-3)
-    b_degh = [r["B_deg_h"] for r in rows[3:]]
+    n_vrw = [r["N_m_per_s_per_sqrt_h"]["*"] for r in rows[:3]]  # one white level for every kind
+    np.testing.assert_allclose(n_vrw, acc.N * 60.0, rtol=1e-3)
+    b_degh = [r["B_deg_per_h"] for r in rows[3:]]
     np.testing.assert_allclose(b_degh, gyr.B * 180 / np.pi * 3600, rtol=1e-3)
     fin = payload["results"]["closed_loop"]["final"]
     lo, hi = scipy.stats.chi2.ppf([0.005, 0.995], fin["dof"])

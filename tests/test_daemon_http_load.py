@@ -174,6 +174,8 @@ def test_200_clients_for_30s_while_capturing_lose_no_sample(tmp_path):
         t0 = time.monotonic()
         asyncio.run(_load(port, token, sock, stats))
         wall = time.monotonic() - t0
+        during = control.request(sock, "status")
+        assert during["state"] == "running" and during["job"]["id"] == reply["job"], during  # the load ran inside the capture
         print(json.dumps({k: v for k, v in stats.items() if k != "errors"}), f"wall {wall:.1f} s")
         assert not stats["errors"], stats["errors"][:5]
         assert stats["http_bad"] == 0 and stats["sock_bad"] == 0

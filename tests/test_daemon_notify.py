@@ -143,6 +143,8 @@ def test_notices_by_webhook_and_email(receivers, tmp_path):
         assert len(notices("suspended")) == 1  # once per pause
         assert control.request(sock, "abort")["ok"]
         wait_for(lambda: control.request(sock, "queue")["jobs"][-1]["state"] == "interrupted", 20, "abort")
+        assert control.request(sock, "status")["queue_running"] is False  # an abort stops the queue
+        assert control.request(sock, "queue_start")["ok"]
 
         # 3) failed: a settle timeout
         bad = tmp_path / "unsettled.yaml"
@@ -175,11 +177,12 @@ def test_a_dead_receiver_holds_up_nothing_and_is_logged(tmp_path):
                options=RunOptions(suspenders=SuspenderSettings(min_free_bytes=0)))
     d.start()
     try:
-        for w in ("5 s", "6 s"):
+        for w in ("5 s", "6 s"):  # the second job starts while the first one's notice is still being tried
             assert control.request(d.socket_path, "submit", {"procedure": str(ROOT / "procedures" / "warmup.yaml"),
                                                              "params": {"warmup": w}})["ok"]
         wait_for(lambda: [j["state"] for j in control.request(d.socket_path, "queue")["jobs"]] == ["complete"] * 2,
                  30, "both jobs")
+        assert log.getvalue().count("webhook notification not delivered") < 2  # the jobs did not wait for them
         wait_for(lambda: log.getvalue().count("webhook notification not delivered") == 2, 20, "two warnings")
     finally:
         d.stop("test over")

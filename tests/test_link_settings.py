@@ -14,15 +14,18 @@ from rigctl.drivers.gpio_pulses import GpioPulses
 from rigctl.drivers.modbus_table import ModbusTable
 from rigctl.drivers.modem_pulses import ModemPulses
 from rigctl.drivers.novatel_marks import NovatelMarks
+from rigctl.drivers.frame_imu import FrameImu
+from rigctl.drivers.vectornav_imu import VectorNavImu
 from rigctl.drivers.xsens_imu import XsensImu
 from rigctl.errors import InputError
-from rigctl.linkconfig import (SETTINGS, AclSettings, GpioSettings, ModbusSettings, ModemSettings,
-                               NovatelSettings, XsensSettings)
+from rigctl.linkconfig import (SETTINGS, AclSettings, FrameSettings, GpioSettings, ModbusSettings, ModemSettings,
+                               NovatelSettings, VectorNavSettings, XsensSettings)
 
 DRIVERS = {AclSettings: AclTable, ModbusSettings: ModbusTable, XsensSettings: XsensImu,
+           VectorNavSettings: VectorNavImu, FrameSettings: FrameImu,
            NovatelSettings: NovatelMarks, GpioSettings: GpioPulses, ModemSettings: ModemPulses}
 #: the first positional parameter name of each driver that takes the port (or chip) first
-FIRST = {AclTable: "url", XsensImu: "url", NovatelMarks: "url", ModemPulses: "url", GpioPulses: "chip"}
+FIRST = {AclTable: "url", XsensImu: "url", VectorNavImu: "url", FrameImu: "url", NovatelMarks: "url", ModemPulses: "url", GpioPulses: "chip"}
 
 
 def test_every_wired_driver_has_one_settings_class() -> None:

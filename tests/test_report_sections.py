@@ -146,6 +146,7 @@ def test_calibration_sections_show_the_fit_in_field_units(calibrated: Path) -> N
             if t["channel"] != "all":
                 u = t["unit"]
                 assert float(ba[t["channel"]][3]) == pytest.approx(t[f"rms_before_{u}"], rel=1e-4)
+                assert float(ba[t["channel"]][2]) == pytest.approx(t[f"rms_raw_{u}"], rel=1e-4)
     else:
         assert "/results/calibration" in page.not_run["calibration"]
     # no Allan or sync in a full calibration: those sections say so, with what to run

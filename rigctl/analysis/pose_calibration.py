@@ -181,8 +181,14 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         clipped, n_clip = pl.clipped_motions(s["gyr"], iv)
         keep = ~clipped
         dvar = pl.direction_variance(loop.final, loop.claimed, d.acc, d) if ups is None else None
-        rloop = pl.judge("gyro_rotation", lambda e: pl.fit_rotations(s["gyr"], d, up, bias_t, e, keep, dvar),
-                         pl.rotation_candidates(int(keep.sum()), peak), np.inf, {}, ALPHA)
+        rcands = pl.rotation_candidates(int(keep.sum()), peak)
+        up_fn = None
+        if ups is None:  # the accelerometer's cross-coupling, as the directions show it
+            up_fn = pl.cross_split_up(loop.final, loop.claimed, d.acc, d)
+            rcands.append(pl.Candidate(pl.SPLIT, 2) if "accel_cross_quadratic" in loop.claimed
+                          else pl.Candidate("accel_cross_quadratic", 3))
+        rloop = pl.judge("gyro_rotation", lambda e: pl.fit_rotations(s["gyr"], d, up, bias_t, e, keep, dvar, up_fn),
+                         rcands, np.inf, {}, ALPHA)
         if clipped.any():
             rloop.claimed.insert(0, "gyro_range_exceeded")
             rloop.findings.insert(0, f"gyro_range_exceeded: {n_clip} samples at the gyro's range limit "
@@ -223,7 +229,8 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         status = "NOT TRUSTWORTHY"
     elif bad:
         status = pl.STATUS_UNEXPLAINED if any(lp.status == pl.STATUS_UNEXPLAINED for lp in bad) else bad[0].status
-        reasons = [f"{lp.name}: {x}" for lp in bad for x in lp.findings] + reasons
+        first = sorted(bad, key=lambda lp: lp.status != status)  # the reason of the status comes first
+        reasons = [f"{lp.name}: {x}" for lp in first for x in lp.findings] + reasons
     elif reasons:
         status = "OK (accelerometer); gyro scale NOT TRUSTWORTHY"
     else:

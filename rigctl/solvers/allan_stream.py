@@ -34,6 +34,8 @@ from typing import Iterator
 
 import numpy as np
 
+from . import allan_kernels as K
+
 ROW = 16
 _NR = 3  # rows spanned by one term for k <= 16 (a + 2k - 1 <= 46 < 48)
 BLOCK_ROWS = 4096  # rows per block: 512 kB of float64, stays in L2
@@ -292,21 +294,59 @@ class StridedLevel:
         self.sums = {k: 0.0 for k in self.ks}
         self.counts = {k: 0 for k in self.ks}
 
-    def feed(self, x_chunk: np.ndarray, g0: int, scratch: np.ndarray) -> None:
-        """Phase points x[g0 : g0 + len(x_chunk)] (float64)."""
-        start = (-g0) % self.s
-        new = x_chunk[start:: self.s]
-        if new.size == 0:
-            return
-        buf = np.concatenate((self.tail, new)) if self.tail.size else np.ascontiguousarray(new)
+    def feed(self, x_chunk: np.ndarray, g0: int, scratch: np.ndarray, src_s: int = 1
+             ) -> tuple[np.ndarray, int] | None:
+        """Phase points x[g0 + i src_s] = x_chunk[i] (float64; ``src_s`` divides this level's
+        stride). Returns this level's new points and the phase index of the first (a source
+        for a level of a multiple stride: the decimation cascades, each level reads only the
+        previous one's points), or None."""
+        step = self.s // src_s
+        start = ((-g0) % self.s) // src_s
+        if start >= x_chunk.size:
+            return None
+        if K.HAVE_NUMBA:
+            n_new = -(-(x_chunk.size - start) // step)
+            buf = self._buffer(self.tail.size + n_new)
+            K.gather_into(self.tail, x_chunk, start, step, buf)
+        else:
+            new = x_chunk[start:: step]
+            buf = np.concatenate((self.tail, new)) if self.tail.size else np.ascontiguousarray(new)
+        return self.feed_buffer(buf), g0 + start * src_s
+
+    def _buffer(self, n: int) -> np.ndarray:
+        """A scratch buffer of n points, kept between chunks (no fresh pages per chunk)."""
+        if getattr(self, "_buf", None) is None or self._buf.size < n:
+            self._buf = np.empty(max(n, 1024))
+        return self._buf[:n]
+
+    def feed_buffer(self, buf: np.ndarray) -> np.ndarray:
+        """Sum the terms of ``buf`` = this level's tail followed by its new points (built by
+        the caller, e.g. the phase written straight after the tail); returns the new points."""
         end = self.b0 + buf.size
-        for k in self.ks:
-            lo = self.next_start[k] - self.b0
-            hi = buf.size - 2 * k
-            if hi > lo:
-                self.sums[k] += sum_d2(buf, k, lo, hi, scratch)
-                self.counts[k] += hi - lo
-                self.next_start[k] = end - 2 * k
+        scratch = None
+        if K.HAVE_NUMBA:  # every lag in one compiled pass over the chunk
+            ks = np.array(self.ks, dtype=np.int64)
+            los = np.array([self.next_start[k] - self.b0 for k in self.ks], dtype=np.int64)
+            his = buf.size - 2 * ks
+            ok = his > los
+            if ok.any():
+                v = K.range_sums(buf, ks[ok], los[ok], his[ok])
+                for k, lo, hi, s in zip(ks[ok], los[ok], his[ok], v):
+                    self.sums[int(k)] += float(s)
+                    self.counts[int(k)] += int(hi - lo)
+                    self.next_start[int(k)] = end - 2 * int(k)
+        else:
+            for k in self.ks:
+                lo = self.next_start[k] - self.b0
+                hi = buf.size - 2 * k
+                if hi > lo:
+                    if scratch is None:
+                        scratch = np.empty(1 << 16)
+                    self.sums[k] += sum_d2(buf, k, lo, hi, scratch)
+                    self.counts[k] += hi - lo
+                    self.next_start[k] = end - 2 * k
+        n_old = self.tail.size
         cut = max(0, buf.size - self.keep)
         self.tail = buf[cut:].copy()
         self.b0 += cut
+        return buf[n_old:]

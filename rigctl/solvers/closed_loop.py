@@ -175,9 +175,13 @@ class ClosedLoopResult:
 
 
 def _rms_table(prob: _Problem, before: CalibrationResult, after: CalibrationResult,
-               q: NDArray[np.float64]) -> list[dict[str, Any]]:
+               q: NDArray[np.float64], seg: SegmentTable | None = None) -> list[dict[str, Any]]:
+    """RMS per channel: raw (the measurement against the table's reference with nominal scale
+    and no calibration: y - f_ref, y - w_ref), declared model ("before"), final ("after"), and
+    the noise floor."""
     rows = []
     floor = noise_floor(prob, q)
+    raw = None if seg is None else prob.y - np.concatenate([seg.f_ref, seg.w_ref], axis=1).ravel()[prob.keep]
     for c, ch in enumerate(CHANNELS):
         m = prob.channel == c
         if not np.any(m):
@@ -185,6 +189,7 @@ def _rms_table(prob: _Problem, before: CalibrationResult, after: CalibrationResu
         f, unit = (MG_PER_M_S2, "mg") if c < 3 else (DEG_H_PER_RAD_S, "deg_h")
         rows.append({"channel": ch, "unit": unit,
                      f"noise_floor_{unit}": float(floor[c] * f),
+                     **({} if raw is None else {f"rms_raw_{unit}": float(np.sqrt(np.nanmean(raw[m] ** 2)) * f)}),
                      f"rms_before_{unit}": float(np.sqrt(np.mean(before.residuals[m] ** 2)) * f),
                      f"rms_after_{unit}": float(np.sqrt(np.mean(after.residuals[m] ** 2)) * f)})
     rows.append({"channel": "all", "unit": "1", "chi2_per_dof_before": before.chi2_per_dof,
@@ -333,7 +338,7 @@ def closed_loop(
         explain.append({"step": step, "residual_pattern": u["pattern"], "candidate": "(none)",
                         "statistic": u["statistic"], "decision": "unexplained"})
     res = ClosedLoopResult(declared=declared, final=final, effects=effects, explain=explain,
-                           rms_table=_rms_table(prob, declared, final, q_fin), unexplained=unexplained,
+                           rms_table=_rms_table(prob, declared, final, q_fin, seg), unexplained=unexplained,
                            not_available=not_available)
     if truth:
         for nm in names:
@@ -378,14 +383,16 @@ def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
         for p in e["parameters"]:
             lines.append(f"      {p['name']:<40} {p['value']:+.4g} +- {p['sigma']:.2g}  "
                          f"95% [{p['ci95'][0]:+.4g}, {p['ci95'][1]:+.4g}]")
-    lines.append(f"  {'channel':<10} {'noise floor':>14} {'RMS before':>14} {'RMS after':>14}")
+    lines.append(f"  {'channel':<10} {'noise floor':>14} {'raw':>14} {'declared':>14} {'final':>14}")
     for r in res.rms_table:
         if r["channel"] == "all":
-            lines.append(f"  chi2/dof   {r['chi2_per_dof_before']:>29.3g} {r['chi2_per_dof_after']:>14.3g}")
+            lines.append(f"  chi2/dof   {'':>29} {r['chi2_per_dof_before']:>14.3g} {r['chi2_per_dof_after']:>14.3g}")
             continue
         u = r["unit"]
-        lines.append(f"  {r['channel']:<10} {r[f'noise_floor_{u}']:>11.4g} {u:<2} {r[f'rms_before_{u}']:>11.4g} "
-                     f"{u:<2} {r[f'rms_after_{u}']:>11.4g} {u}")
+        shown = {"deg_h": "deg/h"}.get(u, u)
+        lines.append(f"  {r['channel']:<10} {r[f'noise_floor_{u}']:>11.4g} {shown:<5} "
+                     f"{r.get(f'rms_raw_{u}', float('nan')):>11.4g} {shown:<5} {r[f'rms_before_{u}']:>11.4g} "
+                     f"{shown:<5} {r[f'rms_after_{u}']:>11.4g} {shown}")
     for u in res.unexplained:
         lines.append(f"  UNEXPLAINED: {u['pattern']} ({u['statistic']})")
     if res.truth_errors:

@@ -25,7 +25,8 @@ and how each sub-model is tested:
   (applied to the calibrated rate): ``gyro_scale_asymmetry`` d_i |w_i| (ratio) and
   ``gyro_scale_nonlinearity`` n_i w_i |w_i| (s/rad).
 
-Every sub-model runs the same loop (:func:`select_effects`): forward selection, each round
+Every sub-model runs the same loop (:func:`select_effects`) while its chi2/dof is above the
+99 % band (a fit inside its band has nothing left to explain): forward selection, each round
 adding the candidate with the smallest F-test p-value below alpha / m (Bonferroni over the m
 candidates left), if leave-one-pose-out cross-validation (PRESS, whitened, linearised at the
 solution) drops too. Then :func:`judge`: the final chi2/dof against its 99 % band (F band: the
@@ -81,6 +82,8 @@ class PoseData:
     slow: Arr = field(default_factory=lambda: np.zeros(6))
     notes: list[str] = field(default_factory=list)
     white: Arr = field(default_factory=lambda: np.zeros(6))
+    rest_white: Arr = field(default_factory=lambda: np.zeros(6))
+    wander: Arr = field(default_factory=lambda: np.zeros(0))
 
     @property
     def t_ref(self) -> float:
@@ -152,11 +155,25 @@ def pose_statistics(acc: Arr, gyr: Arr, intervals: list[tuple[int, int]], fs_hz:
     else:
         notes.append("slow noise not measured: the longest rest is shorter than a pose plus the pose spacing")
     var = var + slow[None, :]
+    # the sensor's own white noise: batch means on the longest rest alone (placed, not held)
+    rest_white, _ = _batch_white(x, [(rs, re_)], nb)
+    # within-pose wander of the gravity direction (a held pose turns a little): variance of the
+    # batch-mean directions about the pose's mean direction, white part removed (rad^2, per axis)
+    wander = np.zeros(len(intervals))
+    for i, (s, e) in enumerate(intervals):
+        B = (e - s) // nb
+        if B < 2:
+            continue
+        m = acc[s:s + B * nb].reshape(B, nb, 3).mean(axis=1)
+        u = m / np.linalg.norm(m, axis=1)[:, None]
+        u0 = means[i, :3] / np.linalg.norm(means[i, :3])
+        spread = np.mean(np.sum((u - u0) ** 2, axis=1)) / 2
+        wander[i] = max(spread - np.mean(v[:3]) / nb / np.dot(means[i, :3], means[i, :3]), 0.0)
     t = np.array([(s + e) / 2 / fs_hz for s, e in intervals])
     tc = None if temp_c is None else np.array([np.nanmean(temp_c[s:e]) for s, e in intervals])
     return PoseData(acc=means[:, :3], gyr=means[:, 3:], var_acc=var[:, :3], var_gyr=var[:, 3:], t_s=t,
                     temp_c=tc, intervals=list(intervals), fs_hz=fs_hz, noise_dof=float(dof), slow=slow,
-                    notes=notes, white=v)
+                    notes=notes, white=v, rest_white=rest_white, wander=wander)
 
 
 # ------------------------------------------------------------------------------ fits and selection
@@ -219,10 +236,12 @@ def chi2_band(dof: int, noise_dof: float, level: float = 0.99) -> tuple[float, f
     return float(scipy.stats.f.ppf(a, dof, noise_dof)), float(scipy.stats.f.ppf(1 - a, dof, noise_dof))
 
 
-def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01
+def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01,
+                   needed: Callable[[Fit], bool] | None = None
                    ) -> tuple[list[str], list[Fit], list[dict[str, Any]]]:
     """Forward selection (module doc). Returns (accepted names, fits after each step with the
-    declared fit first, explain rows)."""
+    declared fit first, explain rows). ``needed(fit)``: a round runs only while it is true (the
+    loop runs while the chi2 is above its band)."""
     cur: list[str] = []
     fits = [fit_fn(cur)]
     rows: list[dict[str, Any]] = []
@@ -233,8 +252,14 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
     pool = [c for c in cands if c.testable]
     step = 0
     while pool:
-        step += 1
         base = fits[-1]
+        if needed is not None and not needed(base):
+            why = (f"the {'declared' if step == 0 else 'current'} model's chi2/dof {base.chi2_per_dof:.3g} is inside "
+                   "its 99 % band: nothing left to explain")
+            rows += [{"step": step + 1, "candidate": c.name, "statistic": "-", "decision": f"not run: {why}"}
+                     for c in pool]
+            break
+        step += 1
         tried = []
         for c in pool:
             try:
@@ -344,7 +369,10 @@ STATUS_PESSIMISTIC = "NOISE MODEL TOO PESSIMISTIC"
 def judge(name: str, fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], noise_dof: float,
           variables: dict[str, Arr], alpha: float = 0.01) -> SubLoop:
     """Run the selection, then the band and the claims (module doc)."""
-    accepted, fits, rows = select_effects(fit_fn, cands, alpha)
+    def needed(f: Fit) -> bool:
+        return f.dof <= 0 or f.chi2_per_dof > chi2_band(f.dof, noise_dof)[1]
+
+    accepted, fits, rows = select_effects(fit_fn, cands, alpha, needed)
     final, declared = fits[-1], fits[0]
     band = chi2_band(final.dof, noise_dof)
     claimed, not_claimed, findings = list(accepted), [], []
@@ -598,7 +626,7 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
     else:
         y -= OMEGA_EARTH * np.sin(latitude_rad) * up.T.reshape(-1)
         cos2 = np.cos(latitude_rad) ** 2
-    var = d.var_gyr.T.reshape(-1) + OMEGA_EARTH ** 2 * cos2 * (1 - up.T.reshape(-1) ** 2) / 2
+    h2 = OMEGA_EARTH ** 2 * cos2 / 2  # horizontal Earth rate, random heading: (I - up up^T) h2 per pose
     cols = [np.kron(np.eye(3), np.ones((P, 1)))]
     names = [f"gyro_bias_{a}_rad_s" for a in AX]
     if latitude_rad is None:
@@ -609,8 +637,13 @@ def fit_gyro_static(d: PoseData, f: Arr, effects: list[str], latitude_rad: float
         cols.append(c)
         names += n
     X = np.hstack(cols)
-    s = np.sqrt(var)
-    Xw, yw = X / s[:, None], y / s
+    Xw, yw = np.empty_like(X), np.empty_like(y)
+    for p in range(P):  # whiten each pose's three rows by the Cholesky factor of their covariance
+        rows = np.array([p, P + p, 2 * P + p])
+        C = np.diag(d.var_gyr[p]) + h2 * (np.eye(3) - np.outer(up[p], up[p]))
+        L = np.linalg.cholesky(C)
+        Xw[rows] = np.linalg.solve(L, X[rows])
+        yw[rows] = np.linalg.solve(L, y[rows])
     groups = np.tile(np.arange(P), 3)
     if latitude_rad is None:  # prior row: sin(lat) uniform on [-1, 1]
         pr = np.zeros((1, X.shape[1]))
@@ -672,14 +705,28 @@ def _rot_matrices(w: Arr, bounds: Arr, dt: float) -> Arr:
     return Rotation.from_quat(q[:, 0]).as_matrix()
 
 
+SPLIT = "accel_cross_quadratic_split"
+
+
+def _rot_k(e: str) -> int:
+    return 2 if e == SPLIT else 3
+
+
 def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                      keep: Arr | None = None, dir_var: Arr | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
+                      keep: Arr | None = None, dir_var: Arr | None = None,
+                      up_fn: Callable[[Arr], Arr] | None = None) -> tuple[Callable[[Arr], Arr], Arr]:
     """(normalised residual function of the parameters, sigma per motion) for the motions.
 
     ``bias``: (3,) constant, or (n, 3) per sample (bias + g-sensitivity G f(t) during the motion).
+    ``up_fn(delta)``: the poses' gravity directions when the accelerometer's cross-coupling is split
+    unevenly between its axes (candidate ``accel_cross_quadratic_split``, 2 parameters: the
+    magnitude model sees only the common coefficient, the directions see the split).
 
     Residual of motion k: up_{k+1} - R_k^T up_k (3 components, 2 independent), scaled by the
-    direction uncertainty of both poses plus the angle random walk over the motion."""
+    direction uncertainty of both poses (accelerometer noise, the pose's own wander -- a held
+    pose turns a little, so its ends differ from its mean -- and the accelerometer model's
+    uncertainty) plus the gyro's angle random walk over the motion (white noise measured on the
+    longest rest, not in held poses where real motion would count as noise)."""
     dt = 1.0 / d.fs_hz
     iv = d.intervals
     ks = np.arange(len(iv) - 1) if keep is None else np.flatnonzero(keep)
@@ -689,19 +736,26 @@ def _rotation_problem(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: li
     w0 = np.asarray(gyr_raw, float)[lo:hi] - (b[lo:hi] if b.ndim == 2 else b)
     bnd = bounds - lo
     g = np.linalg.norm(d.acc, axis=1)
-    dsig = np.sqrt(d.var_acc.mean(axis=1) / g ** 2 + (0 if dir_var is None else dir_var))
-    arw2 = np.mean(d.var_gyr * np.array([e - s for s, e in iv])[:, None]) / d.fs_hz  # rad^2/s
+    wander = d.wander if len(d.wander) == len(iv) else np.zeros(len(iv))
+    dsig = np.sqrt(d.var_acc.mean(axis=1) / g ** 2 + wander + (0 if dir_var is None else dir_var))
+    arw2 = float(np.mean(d.rest_white[3:])) / d.fs_hz  # rad^2/s: the gyro's white noise at rest
     sig = np.sqrt(dsig[ks] ** 2 + dsig[ks + 1] ** 2 + arw2 * (bnd[:, 1] - bnd[:, 0]) * dt)
     u0, u1 = up[ks], up[ks + 1]
 
     def resid(p: Arr) -> Arr:
         w = w0 @ _tg(p).T
-        for i, e in enumerate(effects):
-            th = p[9 + 3 * i: 12 + 3 * i]
-            w = w - (th * np.abs(w) if e == "gyro_scale_asymmetry" else th * w * np.abs(w))
+        a, b0, b1 = 9, u0, u1
+        for e in effects:
+            th = p[a:a + _rot_k(e)]
+            a += _rot_k(e)
+            if e in (SPLIT, "accel_cross_quadratic"):
+                upd = up_fn(th)  # type: ignore[misc]
+                b0, b1 = upd[ks], upd[ks + 1]
+            else:
+                w = w - (th * np.abs(w) if e == "gyro_scale_asymmetry" else th * w * np.abs(w))
         R = _rot_matrices(w, bnd, dt)
-        pred = np.einsum("kji,kj->ki", R, u0)
-        return ((u1 - pred) / sig[:, None]).reshape(-1)
+        pred = np.einsum("kji,kj->ki", R, b0)
+        return ((b1 - pred) / sig[:, None]).reshape(-1)
 
     return resid, sig
 
@@ -714,21 +768,23 @@ def rotation_residuals_at(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, p: Arr,
 
 
 def fit_rotations(gyr_raw: Arr, d: PoseData, up: Arr, bias: Arr, effects: list[str],
-                  keep: Arr | None = None, dir_var: Arr | None = None) -> Fit:
+                  keep: Arr | None = None, dir_var: Arr | None = None,
+                  up_fn: Callable[[Arr], Arr] | None = None) -> Fit:
     """Gyro scale/misalignment (+ candidates) from the motions between poses (module doc);
     ``keep``: (P-1,) bool, the motions to use (clipped ones excluded)."""
-    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep, dir_var)
-    K, ne = len(sig), len(effects)
-    p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(3 * ne)])
+    resid, sig = _rotation_problem(gyr_raw, d, up, bias, effects, keep, dir_var, up_fn)
+    K = len(sig)
+    ne = sum(_rot_k(e) for e in effects)
+    p0 = np.concatenate([np.zeros(6), np.ones(3), np.zeros(ne)])
     sol = scipy.optimize.least_squares(resid, p0, x_scale=np.concatenate([np.full(6, 1e-2), np.full(3, 1e-2),
-                                                                          np.full(3 * ne, 1e-3)]), method="trf")
+                                                                          np.full(ne, 1e-3)]), method="trf")
     J = sol.jac
     cov = np.linalg.pinv(J.T @ J)
     names = ["gyro_misalign_yz_rad", "gyro_misalign_zy_rad", "gyro_misalign_xz_rad", "gyro_misalign_zx_rad",
              "gyro_misalign_xy_rad", "gyro_misalign_yx_rad"] + [f"gyro_scale_{a}_ratio" for a in AX] + \
-        [f"{e}_{a}_{ROTATION_CANDIDATES[e]}" for e in effects for a in AX]
+        [f"{e}_{a}_{ROTATION_CANDIDATES.get(e, 's2_per_m')}" for e in effects for a in (AX if e != SPLIT else "xy")]
     r = sol.fun
-    return Fit(names, sol.x, cov, float(r @ r), 2 * K - 9 - 3 * ne, r, J, np.repeat(np.arange(K), 3),
+    return Fit(names, sol.x, cov, float(r @ r), 2 * K - 9 - ne, r, J, np.repeat(np.arange(K), 3),
                extra={"sigma_rad": sig, "n_motions": K, "resid": r.reshape(-1, 3) * sig[:, None]})
 
 
@@ -817,3 +873,23 @@ def stationarity(x: Arr, intervals: list[tuple[int, int]], white_var: Arr) -> tu
     c = np.sum(np.array(z) ** 2, axis=0)
     P = len(intervals)
     return c / P, scipy.stats.chi2.sf(c, P)
+
+
+def cross_split_up(fit: Fit, effects: list[str], u: Arr, data: Any) -> Callable[[Arr], Arr]:
+    """up(delta): pose gravity directions with the cross-coupling split (c + dx, c + dy,
+    c - dx - dy) instead of the common c the magnitude model fitted, or with per-axis
+    coefficients (3 values) when it fitted none (s^2/m)."""
+    p = fit.values
+    M = _tk(p[0:3], p[3:6])
+    v0 = u - p[6:9]
+    base = (v0 - accel_correction(_accel_split(p, effects), v0, data)) @ M.T
+    B = np.stack([v0[:, 1] * v0[:, 2], v0[:, 0] * v0[:, 2], v0[:, 0] * v0[:, 1]], axis=1)
+
+    def up(delta: Arr) -> Arr:
+        # 2 values: the split of a claimed common coefficient; 3: per-axis coefficients seen only
+        # through the directions (the magnitude model did not claim the effect)
+        dd = np.array([delta[0], delta[1], -delta[0] - delta[1]]) if len(delta) == 2 else np.asarray(delta)
+        a = base - (B * dd) @ M.T
+        return a / np.linalg.norm(a, axis=1)[:, None]
+
+    return up

@@ -66,7 +66,8 @@ function showStatus(st) {
   $("st-eta").textContent = st.remaining_s !== undefined ? "about " + fmtDuration(st.remaining_s) + " left" : "-";
   $("st-samples").textContent = st.imu_samples !== undefined ? st.imu_samples : "-";
   const sus = st.suspenders || {};
-  $("st-susp").textContent = Object.keys(sus).length ? Object.entries(sus).map(([k, v]) => k + ": " + v).join("; ") : "no";
+  $("st-susp").textContent = (Object.keys(sus).length ? Object.entries(sus).map(([k, v]) => k + ": " + v).join("; ") : "no")
+    + (st.deferred_pause ? " (pause requested for the end of this step)" : "");
   $("st-queue").textContent = `${st.queued || 0} queued, queue ${st.queue_running ? "running" : "stopped"}`;
 }
 
@@ -115,7 +116,7 @@ function plot(canvas, pts, getter, scale, unit, title, labels) {
   for (let i = 0; i <= 4; i++) {
     const v = lo + (hi - lo) * i / 4;
     ctx.beginPath(); ctx.moveTo(L, y(v)); ctx.lineTo(W - R, y(v)); ctx.stroke();
-    ctx.fillText(v.toPrecision(4), 2, y(v) + 4);
+    ctx.fillText(Math.abs(v) < 1e-3 * (hi - lo) ? "0" : v.toPrecision(3), 2, y(v) + 4);
   }
   ctx.fillText(t0.toFixed(0) + " s", L, H - 4);
   ctx.fillText(t1.toFixed(0) + " s", W - R - 50, H - 4);
@@ -217,7 +218,7 @@ async function refreshHistory() {
       const tr = document.createElement("tr");
       cell(tr, j.id); cell(tr, j.state);
       cell(tr, (j.procedure || j.run_dir || "").split("/").pop());
-      cell(tr, j.ended_utc || ""); cell(tr, j.message || "");
+      cell(tr, (j.ended_utc || "").slice(0, 19).replace("T", " ")); cell(tr, j.message || "");
       body.appendChild(tr);
     }
   }
@@ -282,7 +283,8 @@ function setup() {
     loadProcedures(); refreshQueue(); refreshHistory();
   });
   for (const b of document.querySelectorAll("button[data-cmd]")) {
-    b.addEventListener("click", () => control("POST", "/api/" + b.dataset.cmd));
+    b.addEventListener("click", () => control("POST", "/api/" + b.dataset.cmd,
+                                              b.dataset.body ? JSON.parse(b.dataset.body) : undefined));
   }
   $("add-form").addEventListener("submit", e => {
     e.preventDefault();

@@ -1,0 +1,250 @@
+"""Common behaviour of the streaming IMU drivers that are not Xsens (VectorNav binary, declarative
+frames): a reader thread, batched vectorised decoding, the device time base mapped onto the run
+clock, alignment of ``read`` with the rig clock, link loss and reconnect -- as
+:class:`rigctl.drivers.xsens_imu.XsensImu` does it (see its docstring for the reasoning).
+
+A subclass provides ``_new_stream()`` (a decoder with ``feed``/``flush`` and ``counters``),
+``_device_time(out) -> (n,) float s`` (unwrapped device time of each decoded frame, NaN when
+unknown), ``_inertial(out) -> (acc (n,3) m/s^2, gyro (n,3) rad/s, temperature (n,) degC)`` and
+``_configure_device()`` (commands, identity; called with the link open, on every (re)connect).
+
+After a reconnect, a device whose time went back (it restarted: a USB sensor power-cycles with
+its cable) is rebased: its timeline continues from the arrival of its first frame, so the
+outage is a counted gap (``device_restarts``), not a stream of rejected frames.
+
+Time base (units s): ``ImuBlock.counter = round((t_dev - t_dev_first) * rate_hz)`` (a gap means
+samples that never arrived: ``dropped_samples``); a frame whose device time does not advance is
+rejected (``out_of_order``); ``ImuBlock.time = t_dev + offset`` with the offset learnt while the
+stream starts as the minimum over arriving chunks of (rig clock at arrival - t_dev of the newest
+sample), then frozen.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict
+
+import numpy as np
+
+from rigctl.devices import Clock, DeviceFault, ImuBlock, LinkLost
+
+from .reader_thread import ReconnectingReader
+from .serial_link import SerialLink
+
+log = logging.getLogger(__name__)
+BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
+
+
+class StreamImuConfigError(RuntimeError):
+    """The device refused (or never acknowledged) the configuration."""
+
+
+class StreamImuUnitChanged(StreamImuConfigError, DeviceFault):
+    """After a reconnect another unit (another serial number) is on the port."""
+
+
+class StreamImu(ReconnectingReader):
+    config_error = StreamImuConfigError
+    protocol = ""
+
+    def __init__(self, url: str, rate_hz: float, clock: Clock, *, baudrate: int, timeout_s: float,
+                 align_wait_s: float, link_timeout_s: float, learn_s: float = 0.2, name: str = "imu") -> None:
+        self.rate_hz, self.clock, self.name = float(rate_hz), clock, name
+        self.link = SerialLink(url, name, baudrate=baudrate, timeout_s=timeout_s)
+        self.timeout_s, self.align_wait_s, self.link_timeout_s, self.learn_s = \
+            timeout_s, align_wait_s, link_timeout_s, learn_s
+        self.batch_wait_s = 0.02 / float(getattr(clock, "speed", 1.0))
+        self.stream = self._new_stream()
+        self.offset: float | None = None
+        self.incomplete_frames = 0
+        self.configurations = 0
+        self.dropped_samples = 0
+        self.out_of_order = 0
+        self.identity: dict[str, str] = {"device_id": "", "protocol": self.protocol}
+        self._t0: float | None = None
+        self._last_t: float | None = None
+        self._pending: list[tuple[np.ndarray, ...]] = []
+        self._latest_t: float | None = None
+        self._cond = threading.Condition()
+        self._learning = False
+        self._chunks = 0
+        #: device-time shift (s) added after a device restart, so its timeline continues
+        self._shift = 0.0
+        self._rebase_pending = False
+        self.device_restarts = 0
+        self._init_reader()
+        self._last_warn = 0.0
+        self._warned_bad = 0
+
+    # ---------------------------------------------------------------- subclass duties
+    def _new_stream(self):  # pragma: no cover - subclass duty
+        raise NotImplementedError
+
+    def _device_time(self, out: dict) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def _inertial(self, out: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+        raise NotImplementedError
+
+    def _configure_device(self) -> None:
+        """Commands and identity on a (re)connect; the default sends nothing."""
+
+    # -------------------------------------------------------------------- reader thread
+    def connect(self) -> None:
+        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
+
+    def _pump(self) -> None:
+        data = self.link.read_some(0.05)
+        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
+        if data and wait > 0:
+            buf, end = bytearray(data), time.monotonic() + wait
+            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
+                more = self.link.read_some(left)
+                if not more:
+                    break
+                buf += more
+            data = bytes(buf)
+        if data:
+            self._feed(data)
+
+    def _on_link_lost(self) -> None:
+        out = self.stream.flush()
+        self._store(out, None)
+
+    def _feed(self, data: bytes) -> None:
+        arrival = self.clock.now()
+        out = self.stream.feed(data)
+        self._store(out, arrival)
+        c = self.stream.counters
+        bad = c.bad_frames + c.truncated_frames + self.out_of_order
+        if bad != self._warned_bad and time.monotonic() - self._last_warn > 1.0:
+            self._last_warn, self._warned_bad = time.monotonic(), bad
+            log.warning("%s: %d bad, %d truncated, %d out-of-order frames, %d dropped samples so far", self.name,
+                        c.bad_frames, c.truncated_frames, self.out_of_order, self.dropped_samples)
+
+    def _store(self, out: dict, arrival: float | None) -> None:
+        if not len(out.get("offset", ())):
+            return
+        t = self._device_time(out) + self._shift
+        acc, gyr, temp = self._inertial(out)
+        last = self._last_t
+        if self._rebase_pending and t.size and arrival is not None:
+            self._rebase_pending = False
+            if last is not None and self.offset is not None and t[0] <= last:
+                # the device restarted while the link was down (a USB sensor power-cycles with its
+                # cable): its time starts again near 0. Continue its timeline at the arrival time,
+                # so the outage is a counted gap and nothing is rejected as out of order.
+                extra = max((arrival - self.offset) - float(t[-1]), last - float(t[0]) + 1.0 / self.rate_hz)
+                t = t + extra
+                self._shift += extra
+                self.device_restarts += 1
+                log.warning("%s: the device time restarted during the outage; its timeline continues "
+                            "from the reconnect (shift %.3f s)", self.name, self._shift)
+        fast = t.size > 0 and bool(np.isfinite(t).all()) and (t.size < 2 or bool(np.all(np.diff(t) > 0))) \
+            and (last is None or t[0] > last)
+        if fast:
+            keep = np.ones(t.size, dtype=bool)
+            last = float(t[-1])
+        else:       # reject frames whose time does not advance (a replay, a restart mid-stream)
+            keep = np.zeros(t.size, dtype=bool)
+            for i, ti in enumerate(t.tolist()):
+                if np.isfinite(ti) and (last is None or ti > last):
+                    keep[i], last = True, ti
+                else:
+                    self.out_of_order += 1
+        self._last_t = last
+        if not keep.all():
+            t, acc, gyr, temp = t[keep], acc[keep], gyr[keep], temp[keep]
+        if not t.size:
+            return
+        if self._t0 is None:
+            self._t0 = float(t[0])
+        prev = self._latest_t
+        steps = np.rint(np.diff(np.concatenate(([prev], t)) if prev is not None else t) * self.rate_hz)
+        self.dropped_samples += int(np.maximum(steps - 1, 0).sum())
+        if arrival is not None and self._learning:
+            est = arrival - float(t[-1])
+            self.offset = est if self.offset is None else min(self.offset, est)
+        with self._cond:
+            self._pending.append((t, acc, gyr, temp))
+            self._latest_t = float(t[-1])
+            self._chunks += 1
+            self._cond.notify_all()
+
+    def _configure(self) -> None:
+        first = self.offset is None
+        self._rebase_pending = self.configurations > 0
+        self.link.ensure()
+        if first:
+            self.link.drain_input()
+        self._configure_device()
+        self.configurations += 1
+        if self.offset is None:
+            self._learning = True
+            end = time.monotonic() + self.learn_s
+            while time.monotonic() < end and not self._stop.is_set():
+                data = self.link.read_some(0.02)
+                if data:
+                    self._feed(data)
+            self._learning = False
+            if self.offset is None:
+                raise LinkLost(self.name, f"no {self.protocol} frames from {self.link.url}")
+        if self._down_since is not None:
+            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
+        self._configured.set()
+
+    def _discard_preconfig(self) -> None:
+        """Forget what was decoded before our first configuration."""
+        with self._cond:
+            self._pending.clear()
+            self._latest_t = None
+        self._t0, self._last_t = None, None
+        self.stream = self._new_stream()
+
+    # ------------------------------------------------------------------------------ Imu
+    def read(self) -> ImuBlock:
+        if self._fatal is not None:
+            raise self._fatal
+        with self._cond:
+            if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
+                want = self.clock.now() - 1.5 / self.rate_hz
+                deadline = time.monotonic() + self.align_wait_s
+                chunks = self._chunks
+                while (self._latest_t is None or self._latest_t + self.offset < want) \
+                        and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
+                    self._cond.wait(left)
+            batches, self._pending = self._pending, []
+        if not batches:
+            if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
+                raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+            return ImuBlock.empty()
+        t = np.concatenate([b[0] for b in batches])
+        acc = np.concatenate([b[1] for b in batches])
+        gyr = np.concatenate([b[2] for b in batches])
+        temp = np.concatenate([b[3] for b in batches])
+        ok = np.isfinite(acc).all(axis=1) & np.isfinite(gyr).all(axis=1)
+        if not ok.all():
+            self.incomplete_frames += int((~ok).sum())
+            t, acc, gyr, temp = t[ok], acc[ok], gyr[ok], temp[ok]
+        counter = np.maximum(np.rint((t - (self._t0 or 0.0)) * self.rate_hz), 0).astype(np.uint64)
+        return ImuBlock(time=t + (self.offset or 0.0), counter=counter, specific_force=acc, angular_rate=gyr,
+                        temperature=temp)
+
+    @property
+    def counters(self) -> dict:
+        d = asdict(self.stream.counters)
+        d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
+                 device_restarts=self.device_restarts,
+                 incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
+                 reconnects=self.link.reconnects, configurations=self.configurations)
+        return d
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["StreamImu", "StreamImuConfigError", "StreamImuUnitChanged"]

@@ -1,0 +1,228 @@
+"""Compiled kernels for the exact (fully overlapping) Allan-family sums (numba, optional).
+
+The exact overlapping Allan sum for factor m over phase points x[0..N-1] is::
+
+    S(m) = sum_{i=0}^{N-2m-1} (x[i+2m] - 2 x[i+m] + x[i])^2
+
+Every term of every factor is evaluated (stride 1, no approximation). Cost model (docs/allan.md):
+``sum_m (N - 2m)`` terms of three loads and three flops each. The loop runs over blocks of
+``BLOCK`` consecutive i outside and over the factors inside, so x[a:a+BLOCK] is read from memory
+once for all factors and stays in L2; a factor m > BLOCK brings two further streams
+(x[a+m..], x[a+2m..]) of BLOCK contiguous values each, long enough for the hardware
+prefetcher. The inner loop is a SIMD reduction (numba with ``fastmath``: several vector
+accumulators, i.e. pairwise-like summation inside a block); block sums are added with
+Neumaier compensation, so the summation adds no error beyond ~1e-16 relative. The precision
+limit is the phase itself: x is a float64 running sum, so each term carries a rounding error of
+about eps |x| (random, averaging down over the terms); offsets are removed before the running
+sum (see :func:`phase`) so |x| stays small.
+
+``threads`` > 1 splits the blocks into contiguous parts run on numba's thread pool (each part
+its own compensated sums; the parts are added at the end, so results do not depend on the
+thread count beyond the last bits).
+
+Without numba (``HAVE_NUMBA`` False) the callers fall back to numpy.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+try:  # numba is the ``fast`` extra
+    import numba
+    from numba import njit, prange
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only without the extra
+    numba = None
+    HAVE_NUMBA = False
+
+#: phase points per block (512 kB: x[a:a+BLOCK] stays in the 1 MB L2 while the factors run)
+BLOCK = 1 << 16
+
+
+def available() -> bool:
+    return HAVE_NUMBA
+
+
+if HAVE_NUMBA:
+
+    @njit(fastmath=True, cache=True, nogil=True)
+    def _d2_block(p, q, r, n):  # pragma: no cover - compiled
+        s = 0.0
+        for j in range(n):
+            d = p[j] - 2.0 * q[j] + r[j]
+            s += d * d
+        return s
+
+    @njit(fastmath=True, cache=True, nogil=True)
+    def _d3_block(p, q, r, t, n):  # pragma: no cover - compiled
+        s = 0.0
+        for j in range(n):
+            d = p[j] - 3.0 * q[j] + 3.0 * r[j] - t[j]
+            s += d * d
+        return s
+
+    @njit(cache=True, nogil=True)
+    def _part_sums(x, ms, order, lo, hi, block, tot, comp):  # pragma: no cover - compiled
+        """Sums of the blocks [lo, hi) of i for every factor (ms ascending); order 2 = Allan
+        second differences, 3 = Hadamard third differences. Neumaier-compensated."""
+        n = x.size
+        k_n = ms.size
+        for a in range(lo, hi, block):
+            for k in range(k_n):
+                m = ms[k]
+                end = min(a + block, n - order * m)
+                if end <= a:
+                    break
+                ln = end - a
+                if order == 2:
+                    v = _d2_block(x[a + 2 * m: end + 2 * m], x[a + m: end + m], x[a:end], ln)
+                else:
+                    v = _d3_block(x[a + 3 * m: end + 3 * m], x[a + 2 * m: end + 2 * m],
+                                  x[a + m: end + m], x[a:end], ln)
+                t = tot[k] + v
+                if abs(tot[k]) >= abs(v):
+                    comp[k] += (tot[k] - t) + v
+                else:
+                    comp[k] += (v - t) + tot[k]
+                tot[k] = t
+
+    @njit(cache=True, nogil=True)
+    def _range_sums(x, ks, los, his, block, out):  # pragma: no cover - compiled
+        """out[k] += sum_{i=los[k]}^{his[k]-1} (x[i+2ks[k]] - 2x[i+ks[k]] + x[i])^2, blocks of
+        i outside (x[a:a+block] read once for all lags), compensated; out is (K, 2)."""
+        a0 = los.min()
+        a1 = his.max()
+        for a in range(a0, a1, block):
+            for k in range(ks.size):
+                m = ks[k]
+                lo = max(a, los[k])
+                hi = min(a + block, his[k])
+                if hi <= lo:
+                    continue
+                v = _d2_block(x[lo + 2 * m: hi + 2 * m], x[lo + m: hi + m], x[lo:hi], hi - lo)
+                t = out[k, 0] + v
+                if abs(out[k, 0]) >= abs(v):
+                    out[k, 1] += (out[k, 0] - t) + v
+                else:
+                    out[k, 1] += (v - t) + out[k, 0]
+                out[k, 0] = t
+
+    @njit(cache=True, nogil=True)
+    def _phase_chunk(y, c, tau0, x0, x):  # pragma: no cover - compiled
+        acc = 0.0
+        for i in range(y.size):
+            acc += y[i] - c
+            x[i] = acc * tau0 + x0
+
+    @njit(cache=True, nogil=True)
+    def _gather(tail, x, start, s, out):  # pragma: no cover - compiled
+        nt = tail.size
+        for i in range(nt):
+            out[i] = tail[i]
+        j = nt
+        for i in range(start, x.size, s):
+            out[j] = x[i]
+            j += 1
+
+    @njit(parallel=True, cache=True)
+    def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
+        for p in prange(bounds.size - 1):
+            _part_sums(x, ms, order, bounds[p], bounds[p + 1], block, tot[p], comp[p])
+
+    @njit(cache=True, nogil=True)  # no fastmath: (y - c) must be rounded before the sum
+    def _phase(y, c, tau0, x):  # pragma: no cover - compiled
+        acc = 0.0
+        x[0] = 0.0
+        for i in range(y.size):
+            acc += y[i] - c
+            x[i + 1] = acc * tau0
+
+
+def phase(y: np.ndarray, tau0: float, offset: float | None = None) -> np.ndarray:
+    """x[0] = 0, x[k] = tau0 * sum_{j<k} (y[j] - c), c = mean(y) unless given: one pass (two
+    with the mean) instead of numpy's four. The running sum is sequential, like np.cumsum."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    c = float(np.mean(y)) if offset is None else float(offset)
+    x = np.empty(y.size + 1)
+    _phase(y, c, float(tau0), x)
+    return x
+
+
+def _with_threads(n: int):
+    prev = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    return prev
+
+
+def diff_sums(x: np.ndarray, ms: np.ndarray, order: int = 2, threads: int = 1,
+              block: int = BLOCK) -> np.ndarray:
+    """Exact sums of squared order-2 (Allan) or order-3 (Hadamard) differences at lag m, every
+    term, for each factor in ``ms`` (any order; factors with no term give 0)."""
+    if order not in (2, 3):
+        raise ValueError("order must be 2 or 3")
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    ms = np.asarray(ms, dtype=np.int64)
+    srt = np.argsort(ms)
+    mss = np.ascontiguousarray(ms[srt])
+    out = np.zeros(ms.size)
+    if ms.size == 0:
+        return out
+    hi = max(0, x.size - order * int(mss[0]))
+    parts = max(1, min(int(threads), hi // block))
+    # contiguous parts of whole blocks; equal numbers of terms per part (the work)
+    nb = -(-hi // block)
+    bounds = np.minimum(np.linspace(0, nb, parts + 1).round().astype(np.int64) * block, hi)
+    tot = np.zeros((parts, ms.size))
+    comp = np.zeros((parts, ms.size))
+    if parts == 1:
+        _part_sums(x, mss, order, 0, hi, block, tot[0], comp[0])
+    else:
+        prev = _with_threads(parts)
+        try:
+            _par_sums(x, mss, order, bounds, block, tot, comp)
+        finally:
+            numba.set_num_threads(prev)
+    s = (tot + comp).sum(axis=0)
+    out[srt] = s
+    return out
+
+
+def range_sums(x: np.ndarray, ks: np.ndarray, los: np.ndarray, his: np.ndarray,
+               block: int = BLOCK) -> np.ndarray:
+    """Second-difference sums at lag ks[j] over i in [los[j], his[j]) (the caller keeps
+    his[j] + 2 ks[j] <= x.size); one pass over x for all lags (a streamed level's chunk)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    ks = np.asarray(ks, dtype=np.int64)
+    los = np.asarray(los, dtype=np.int64)
+    his = np.asarray(his, dtype=np.int64)
+    out = np.zeros((ks.size, 2))
+    if ks.size and int(np.max(his - los)) > 0:
+        _range_sums(x, ks, los, his, block, out)
+    return out.sum(axis=1)
+
+
+def phase_chunk(y: np.ndarray, offset: float, tau0: float, x0: float) -> np.ndarray:
+    """x0 + tau0 * cumsum(y - offset) in one pass (a streamed chunk of the phase)."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    x = np.empty(y.size)
+    _phase_chunk(y, float(offset), float(tau0), float(x0), x)
+    return x
+
+
+def gather(tail: np.ndarray, x: np.ndarray, start: int, s: int) -> np.ndarray:
+    """concatenate((tail, x[start::s])) in one pass."""
+    n_new = max(0, -(-(x.size - start) // s))
+    out = np.empty(tail.size + n_new)
+    _gather(np.ascontiguousarray(tail, dtype=np.float64), x, int(start), int(s), out)
+    return out
+
+
+def gather_into(tail: np.ndarray, x: np.ndarray, start: int, s: int, out: np.ndarray) -> None:
+    """out[:] = concatenate((tail, x[start::s])) (out sized by the caller)."""
+    _gather(np.ascontiguousarray(tail, dtype=np.float64), x, int(start), int(s), out)
+
+
+def phase_into(y: np.ndarray, offset: float, tau0: float, x0: float, out: np.ndarray) -> None:
+    """out[:] = x0 + tau0 * cumsum(y - offset) (as :func:`phase_chunk`, into a given buffer)."""
+    _phase_chunk(np.ascontiguousarray(y, dtype=np.float64), float(offset), float(tau0),
+                 float(x0), out)
