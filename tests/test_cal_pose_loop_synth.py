@@ -28,7 +28,7 @@ def _run(tmp_path, seed: int, effect: str | None, amplitude: float = 1.0) -> dic
     rec = csv.with_suffix(".h5")
     with contextlib.redirect_stdout(io.StringIO()):
         rc = main(["import", str(csv), "-o", str(rec), "--columns",
-                   "time=t,acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz", "--units",
+                   "time=t,acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz,temp=temp", "--units",
                    "acc=m/s^2,gyr=rad/s,time=s", "--rate", "100", "--segments", str(csv.with_suffix(".json")),
                    "--latitude-deg", "45", "--gravity", str(S.G)])
     assert rc in (0, None)
