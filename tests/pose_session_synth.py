@@ -115,7 +115,7 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: fl
     elif effect == "accel_bias_temperature":
         ua += sgn * np.array([0.5, 0.4, 0.5]) * 1e-3 * G * dT[:, None]
     elif effect == "gyro_bias_temperature":
-        ug += sgn * np.array([15.0, 12.0, 15.0]) * DEG / 3600 * dT[:, None]
+        ug += sgn * np.array([40.0, 30.0, 40.0]) * DEG / 3600 * dT[:, None]
     elif effect == "gyro_g_sensitivity":
         Gs = rng.choice([-1, 1], (3, 3)) * rng.uniform(0.01, 0.03, (3, 3)) * DEG / G
         ug += f @ Gs.T
