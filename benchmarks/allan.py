@@ -273,6 +273,7 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
     print(hdr)
     stats = {t: {"cov": [], "covp": [], "tgt": []} for t in "NBK"}
     better, q_false, k_rows = [], [], []
+    over_limit, check_fail = [], []
     t0 = time.perf_counter()
     for prof, sensor, params in _emulator_cases():
         truth = {t: float(np.asarray(params.get(t, 0.0)).ravel()[0]) for t in "QNBKR"}
@@ -303,6 +304,12 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
                         rows[t]["tgt"].append(err <= LIMITS[t])
                         rows[t]["p"].append(abs((pw[t] or 0.0) / tv - 1))
                 q_false.append(truth["Q"] == 0 and fit["terms"]["Q"]["supported"])
+                # issue 15: no bound above the curve's own limit; the self-check's verdict
+                lim = F.curve_limits(r.tau_s, r.dev)
+                over_limit.append(any(
+                    not e["supported"] and e[f"upper95_{si[t]}"] > lim[t] * (1 + 1e-9)
+                    for t, e in fit["terms"].items()))
+                check_fail.append(not fit["check"]["ok"])
         for t in "NBK":
             rw, idt = rows[t], ident[t]
             je = 100 * float(np.mean(rw["j"])) if rw["j"] else float("nan")
@@ -343,7 +350,9 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
           f"{per['B']:.1f}, K {per['K']:.1f}; upper bounds count when >= truth); of the "
           f"pseudo-truth: {100 * np.mean(cover_p):.1f} %; supported estimates within target: "
           f"N {tgt['N']:.1f} %, B {tgt['B']:.1f} %, K {tgt['K']:.1f} %; spurious Q: "
-          f"{int(np.sum(q_false))} of {len(q_false)}; {time.perf_counter() - t0:.0f} s")
+          f"{int(np.sum(q_false))} of {len(q_false)}; bounds above the curve's limit: "
+          f"{int(np.sum(over_limit))} of {len(over_limit)} fits; self-check failed: "
+          f"{int(np.sum(check_fail))}; {time.perf_counter() - t0:.0f} s")
     return {"fit_coverage95_truth_pct": cov,
             "fit_coverage95_N_pct": per["N"], "fit_coverage95_B_pct": per["B"],
             "fit_coverage95_K_pct": per["K"],
@@ -353,7 +362,9 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
             "fit_K_identifiable_cases_12h": f"{n_ident}/{len(k_rows)}",
             "fit_K_best_crb_sd_pct": 100 * min(k["crb"] for _, _, k, _, _ in k_rows),
             "fit_joint_better_than_piecewise_rows": f"{sum(better)}/{len(better)}",
-            "fit_spurious_Q": int(np.sum(q_false))}
+            "fit_spurious_Q": int(np.sum(q_false)),
+            "fit_bounds_above_curve_limit": int(np.sum(over_limit)),
+            "fit_self_check_failed": f"{int(np.sum(check_fail))}/{len(check_fail)}"}
 
 
 def main() -> None:

@@ -17,8 +17,9 @@ import numpy as np
 
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, UsageError, _jsonable, check_warnings, choose_range, compute,
-    solve_recording, store, summary_line)
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, UsageError, _jsonable, check_notes,
+    check_warnings, choose_range,
+    compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
 from rigctl.solvers import allan as A
@@ -89,43 +90,30 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         v = pw[t][f"value_{unit_f}"]
         parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
     lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
-    for w in check_warnings(r):
+    warns, notes = screening_notes(r)
+    lines += [f"note: {t}" for t in notes + check_notes(r)]
+    for w in warns + check_warnings(r):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
 
 
 def plot(result: dict[str, Any], out_path: str) -> None:
-    """Log-log plot: deviation with 68 % bars, fitted total and each term's line."""
+    """Log-log plot per axis (rigctl.report_plots.draw_allan_axis: 68 % bars, 95 % band, slope
+    guides, fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from rigctl.report_plots import draw_allan_axis
+
     axes = list(result["axes"].items())
-    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.2 * len(axes)), squeeze=False)
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
     for ax, (name, r) in zip(subs[:, 0], axes):
         unit, fac = DEV_UNITS[r["sensor"]]
-        tau = np.asarray(r["tau_s"])
-        dev = np.asarray(r[f"adev_{unit}"])
-        err = [dev - r[f"lo68_{unit}"], r[f"hi68_{unit}"] - dev]
-        ax.errorbar(tau, dev, yerr=err, fmt=".", ms=3, lw=0.8, label="overlapping ADEV (68 %)")
-        tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
-        cols = F.design_matrix(tt)
-        p = r["fit"]["coeff_sq_si"]
-        total = np.zeros_like(tt)
-        for j, t in enumerate(F.TERMS):
-            part = cols[:, j] * p.get(t, 0.0)
-            total += part
-            if p.get(t, 0.0) > 0:
-                ax.loglog(tt, np.sqrt(part) * fac, "--", lw=0.8, label=f"{t} term")
-        ax.loglog(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_title(name)
-        ax.set_xlabel("tau [s]")
-        ax.set_ylabel(f"Allan deviation [{unit}]")
-        ax.grid(True, which="both", lw=0.3)
-        ax.legend(fontsize=7)
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], r["fit"], r["sensor"], unit, fac,
+                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"])
     fig.tight_layout()
     fig.savefig(out_path, dpi=120)
     plt.close(fig)
@@ -170,7 +158,18 @@ def run(args: argparse.Namespace) -> int:
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
-    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr)
+    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
+                     outliers=args.outliers, gaps=args.gaps)
+    g = result.get("gaps") or {}
+    if g.get("count") and g.get("mode") == "longest":
+        a, b = g["range_used"]
+        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s): analysing "
+              f"the longest gap-free stretch, rows {a}..{b - 1} ({b - a} samples)",
+              file=sys.stderr, flush=True)
+    elif g.get("count"):
+        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s), bridged "
+              "on request (--gaps bridge): taus spanning a gap are biased", file=sys.stderr,
+              flush=True)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))
@@ -218,6 +217,12 @@ def register(subparsers: Any) -> None:
                    help="octave, decade, all, or N log-spaced taus (default 95)")
     p.add_argument("--whole", action="store_true",
                    help="analyse the whole recording (default: its longest capture segment, if any)")
+    p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
+                   help="spikes (samples > 10 robust sd from their neighbours): report them "
+                        "(default) or also exclude them (replaced by the running median)")
+    p.add_argument("--gaps", choices=GAP_MODES, default="refuse",
+                   help="dropped samples in the range: refuse (default: say where and what to "
+                        "do), analyse the longest gap-free stretch, or bridge them")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "

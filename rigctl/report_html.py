@@ -396,7 +396,8 @@ def _term_cell(e: dict[str, Any], unit: str) -> str:
         lo, hi = e.get(f"ci95_{unit}") or [None, None]
         return f"{fmt(e.get(f'value_{unit}'))} [{fmt(lo)}, {fmt(hi)}]"
     ub = e.get(f"upper95_{unit}")
-    return f"< {fmt(ub)} (95 % upper bound)" if ub is not None else "n/a"
+    what = "the curve's own limit" if e.get("bound_from") == "curve" else "95 % upper bound"
+    return f"< {fmt(ub)} ({what})" if ub is not None else "n/a"
 
 
 def _need_cell(e: dict[str, Any]) -> str:

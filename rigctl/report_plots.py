@@ -199,13 +199,90 @@ def plot_cal_rms(data: RunData, out: Path) -> Path | None:
     return _save(fig, out / "cal_rms.png")
 
 
+#: reference slopes drawn on every Allan plot (IEEE 952: Q, N, B, K, R)
+GUIDE_SLOPES = ((-1.0, "-1 (Q)"), (-0.5, "-1/2 (N)"), (0.0, "0 (B)"), (0.5, "+1/2 (K)"),
+                (1.0, "+1 (R)"))
+
+
+def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, Any] | None,
+                    sensor: str, unit: str, fac: float, title: str,
+                    lo68: np.ndarray | None = None, hi68: np.ndarray | None = None,
+                    lo95: np.ndarray | None = None, hi95: np.ndarray | None = None) -> None:
+    """One Allan plot, as ``rigctl allan --plot`` and the report draw it: the deviation (field
+    unit) with 68 % bars and the 95 % band, the slope guides -1, -1/2, 0, +1/2, +1 (grey), each
+    fitted term (dashed, value in the legend) and each bounded N/B/K at its bound (dotted), the
+    fitted total (black), and the taus where the self-check finds the total outside the band
+    (red rings)."""
+    from .solvers import allan_fit as F
+
+    tau = np.asarray(tau, dtype=float)
+    dev = np.asarray(dev, dtype=float)
+    if lo95 is not None and hi95 is not None:
+        ax.fill_between(tau, lo95, hi95, color="tab:blue", alpha=0.15, lw=0, label="95 % band")
+    if lo68 is not None and hi68 is not None:
+        ax.errorbar(tau, dev, yerr=[dev - np.asarray(lo68), np.asarray(hi68) - dev], fmt=".",
+                    ms=3, lw=0.7, color="tab:blue", label="overlapping ADEV, 68 %")
+    else:
+        ax.plot(tau, dev, ".", color="tab:blue", label="overlapping ADEV")
+    ok = np.isfinite(dev) & (dev > 0)
+    if np.any(ok):  # slope guides: -1, -1/2 through the first point; 0, +1/2, +1 the minimum
+        t_ok, d_ok = tau[ok], dev[ok]
+        i_min = int(np.argmin(d_ok))
+        span = np.array([t_ok[0], t_ok[-1]])
+        for k, (slope, label) in enumerate(GUIDE_SLOPES):
+            t_a, d_a = (t_ok[0], d_ok[0]) if slope < 0 else (t_ok[i_min], d_ok[i_min])
+            ys = d_a * (span / t_a) ** slope
+            ax.plot(span, ys, ":", color="0.55", lw=0.7, zorder=0)
+            ax.annotate(f"slope {label}", (span[-1], ys[-1]), fontsize=5.5, color="0.4",
+                        ha="right", va="bottom", xytext=(-2, 1 + 7 * k),
+                        textcoords="offset points", annotation_clip=True)
+    fit = fit or {}
+    coeff = fit.get("coeff_sq_si") or {}
+    terms = fit.get("terms") or {}
+    tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
+    cols = F.design_matrix(tt)
+    total = np.zeros_like(tt)
+    for j, term in enumerate(F.TERMS):
+        c2 = float(coeff.get(term) or 0.0)
+        unit_f, ffac = F.FIELD_UNITS[sensor][term]
+        e = terms.get(term) or {}
+        if c2 > 0:
+            part = cols[:, j] * c2
+            total += part
+            ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9,
+                    label=f"{term} {math.sqrt(c2) * ffac:.3g} {unit_f}")
+        elif term in ("N", "B", "K") and e and not e.get("supported"):
+            ub = e.get(f"upper95_{F.SI_UNITS[sensor][term]}")
+            if ub and math.isfinite(ub) and ub > 0:
+                ax.plot(tt, np.sqrt(cols[:, j]) * ub * fac, ":", lw=0.9,
+                        label=f"{term} < {ub * ffac:.3g} {unit_f} (bound)")
+    if coeff:
+        ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
+    check = fit.get("check") or {}
+    marked = np.zeros(tau.size, dtype=bool)
+    for o in check.get("outside") or []:
+        marked |= (tau >= o["tau_from_s"]) & (tau <= o["tau_to_s"])
+    if np.any(marked):
+        ax.plot(tau[marked], dev[marked], "o", mfc="none", mec="tab:red", ms=5, mew=0.8,
+                label="fit outside the 95 % band")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    lo = np.nanmin(lo95 if lo95 is not None else dev)
+    hi = np.nanmax(hi95 if hi95 is not None else dev)
+    if np.isfinite(lo) and np.isfinite(hi) and lo > 0:
+        ax.set_ylim(lo / 2.0, hi * 2.0)
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("tau [s]")
+    ax.set_ylabel(f"Allan deviation [{unit}]")
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=6)
+
+
 def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None) -> Path | None:
-    """Allan deviation per axis: 68 % bars, 95 % band, fitted total and each term's line."""
+    """Allan deviation per axis (:func:`draw_allan_axis`)."""
     curves = allan_curves(data, log)
     if not curves:
         return None
-    from .solvers import allan_fit as F
-
     plt = _plt()
     names = list(curves)
     ncol = 2 if len(names) > 1 else 1
@@ -223,39 +300,10 @@ def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None)
             ax.set_visible(False)
             continue
         cv = curves[name]
-        tau, dev, unit, fac = cv["tau_s"], cv["adev"], cv["unit"], cv["factor"]
-        if cv.get("lo95") is not None:
-            ax.fill_between(tau, cv["lo95"], cv["hi95"], color="tab:blue", alpha=0.15, lw=0,
-                            label="95 % interval")
-        if cv.get("lo68") is not None:
-            ax.errorbar(tau, dev, yerr=[dev - cv["lo68"], cv["hi68"] - dev], fmt=".", ms=3,
-                        lw=0.7, color="tab:blue", label="ADEV, 68 % interval")
-        else:
-            ax.loglog(tau, dev, ".", color="tab:blue", label="ADEV")
-        fit = cv.get("fit") or {}
-        coeff = fit.get("coeff_sq_si") or {}
-        if coeff:
-            tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
-            cols = F.design_matrix(tt)
-            total = np.zeros_like(tt)
-            for j, term in enumerate(F.TERMS):
-                part = cols[:, j] * float(coeff.get(term) or 0.0)
-                total += part
-                if coeff.get(term):
-                    ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9, label=f"{term} term")
-            ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        lo = np.nanmin(cv.get("lo95") if cv.get("lo95") is not None else dev)
-        hi = np.nanmax(cv.get("hi95") if cv.get("hi95") is not None else dev)
-        if np.isfinite(lo) and np.isfinite(hi) and lo > 0:
-            ax.set_ylim(lo / 2.0, hi * 2.0)
-        ax.set_title(f"{name} ({cv['sensor']}){' - quick curve' if cv.get('quick') else ''}",
-                     fontsize=9)
-        ax.set_xlabel("tau [s]")
-        ax.set_ylabel(f"Allan deviation [{unit}]")
-        ax.grid(True, which="both", lw=0.3)
-        ax.legend(fontsize=6)
+        draw_allan_axis(ax, cv["tau_s"], cv["adev"], cv.get("fit"), cv["sensor"], cv["unit"],
+                        cv["factor"],
+                        f"{name} ({cv['sensor']}){' - quick curve' if cv.get('quick') else ''}",
+                        cv.get("lo68"), cv.get("hi68"), cv.get("lo95"), cv.get("hi95"))
     return _save(fig, out / "allan.png")
 
 

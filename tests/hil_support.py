@@ -18,13 +18,26 @@ from rigctl.runner import run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 
+from helpers import SLOW_NOISE_KEYS
+
 ROOT = Path(__file__).resolve().parent.parent
 SIM = ROOT / "configs" / "sim.yaml"
 
 
-def sim_config(tmp: Path, **imu: Any):
-    """configs/sim.yaml, with ``imu`` keys changed (e.g. rate_hz=2000)."""
+def white_sim(tmp: Path) -> Path:
+    """configs/sim.yaml on white noise only (its slow terms B and K zeroed): the runs here are
+    checked against the declared model, and against each other, at white-noise tolerances."""
     d = yaml.safe_load(SIM.read_text())
+    d["imu"]["sim"].update({k: 0.0 for k in SLOW_NOISE_KEYS})
+    p = tmp / "sim-white.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+def sim_config(tmp: Path, **imu: Any):
+    """configs/sim.yaml on white noise only (:func:`white_sim`), with ``imu`` keys changed
+    (e.g. rate_hz=2000)."""
+    d = yaml.safe_load(white_sim(tmp).read_text())
     d["imu"].update(imu)
     p = tmp / "physics.yaml"
     p.write_text(yaml.safe_dump(d))

@@ -172,3 +172,75 @@ def test_warns_when_the_table_moved_in_the_analysed_range(tmp_path: Path,
         assert ("warning: the table moved during the analysed range" in cap.err) is warned, cap.err
         if warned:
             assert "up to 10 deg/s" in cap.err
+
+
+def test_gaps_are_refused_or_handled_as_asked(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Dropped samples are never bridged silently: by default rigctl allan refuses, naming the
+    gap and the two ways on (exit 2, one message); --gaps longest analyses the longest gap-free
+    stretch; --gaps bridge treats the samples as contiguous and says so. Gaps are found from
+    /imu/counter, or from /imu/time when there is no counter."""
+    rec = tmp_path / "gappy.h5"
+    write_recording(rec, 60_000)
+    with h5py.File(rec, "r+") as f:
+        counter = f["imu/counter"][:]
+        counter[40_000:] += 5
+        f["imu/counter"][:] = counter
+    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave"]) == 2
+    err = capsys.readouterr().err
+    assert "5 samples missing in 1 gap(s)" in err and "before row 40000" in err
+    assert "--gaps longest" in err and "40000 samples" in err and "--gaps bridge" in err
+    assert "Traceback" not in err
+    args = _args([str(rec), "--axes", "gx", "--taus", "octave", "--gaps", "longest"])
+    assert args.func(args) == 0
+    assert "analysing the longest gap-free stretch, rows 0..39999" in capsys.readouterr().err
+    with h5py.File(rec, "r") as f:
+        s = json.loads(f["results/allan"].attrs["json"])
+    assert s["n_samples"] == 40_000 and s["first_sample"] == 0 and s["dropped_samples"] == 0
+    args = _args([str(rec), "--axes", "gx", "--taus", "octave", "--gaps", "bridge"])
+    assert args.func(args) == 0
+    assert "5 samples missing in 1 gap(s), bridged on request" in capsys.readouterr().err
+    with h5py.File(rec, "r") as f:
+        assert json.loads(f["results/allan"].attrs["json"])["dropped_samples"] == 5
+    # no counter: the time stamps tell
+    with h5py.File(rec, "r+") as f:
+        del f["imu/counter"]
+        t = f["imu/time"][:]
+        t[30_000:] += 0.5  # a step of 0.51 s: 50 samples missing at 100 Hz
+        f["imu/time"][:] = t
+    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave"]) == 2
+    assert "50 samples missing in 1 gap(s)" in capsys.readouterr().err
+
+
+def test_spikes_and_quantization_on_synthetic_noise(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Known spikes injected into white noise are all found and reported; excluded, N comes
+    back to the truth, left in, it is inflated (and the output says so). A rounded output's step
+    is read from the samples."""
+    rng = np.random.default_rng(5)
+    n, fs = 100_000, 100.0
+    arw = 0.3 * math.pi / 180 / 60
+    y = rng.standard_normal((n, 3)) * arw * math.sqrt(fs)
+    spikes = np.sort(rng.choice(np.arange(100, n - 100), 40, replace=False))
+    y[spikes, 0] += 30.0 * arw * math.sqrt(fs) * np.where(np.arange(40) % 2, 1.0, -1.0)
+    step = arw * math.sqrt(fs) / 4.0  # about four steps of noise per sample
+    y[:, 2] = np.round(y[:, 2] / step) * step
+    rec = tmp_path / "spiky.h5"
+    write_recording(rec, n, with_accel=False)
+    with h5py.File(rec, "r+") as f:
+        f["imu/angular_rate"][:] = y
+    res = allan_cmd.compute(str(rec), ["gx", "gy", "gz"], "octave")
+    sp = res["axes"]["gx"]["spikes"]
+    assert sp["count"] == 40 and np.allclose(sp["first_times_s"], spikes[:10] / fs)
+    assert res["axes"]["gy"]["spikes"]["count"] == 0
+    n_in = res["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    clean = allan_cmd.compute(str(rec), ["gx"], "octave", outliers="exclude")["axes"]["gx"]
+    n_out = clean["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    # 40 spikes of 30 sd in 1e5 samples add 40 * 900 / 1e5 = 0.36 of the white variance
+    assert abs(n_out / 0.3 - 1) < 0.05 and abs(n_in / (0.3 * math.sqrt(1.36)) - 1) < 0.06
+    q = res["axes"]["gz"]["quantization"]
+    assert abs(q["step_si"] / step - 1) < 1e-9 and res["axes"]["gx"]["quantization"] is None
+    assert abs(q["white_N_si"] / (step * math.sqrt(0.01 / 12)) - 1) < 1e-9
+    args = _args([str(rec), "--axes", "gx,gz", "--taus", "octave"])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out
+    assert "warning: 40 samples (0.04 %) more than 10 robust sd" in out and "--outliers exclude" in out
+    assert "note: output quantized in steps of" in out

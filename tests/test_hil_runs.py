@@ -13,7 +13,7 @@ import pytest
 
 from rigctl.frames import body_references
 
-from hil_support import SIM, run, segments, window_means, wired_run
+from hil_support import run, segments, white_sim, window_means, wired_run
 
 SPEED = 200.0        # rates
 SPEED_24 = 100.0     # 24pos with its 15-minute warm-up: ~1300 s of rig time, ~14 s of wall time
@@ -28,7 +28,7 @@ def reference(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ref")
     out = {}
     for name, params in (("24pos.yaml", P24), ("rates.yaml", PRATES)):
-        res, cfg = run(name, SIM, tmp, params)
+        res, cfg = run(name, white_sim(tmp), tmp, params)  # as the wired runs: white noise
         out[name] = (res.recording, segments(res.recording))
     return out
 

@@ -69,3 +69,8 @@ def test_quickstart_commands_work_in_order(tmp_path: Path) -> None:
     assert 'id="plot-table_timeline"' in page and 'id="plot-cal_residuals_orientation"' in page
     allan = sorted((work / "runs").glob("*-allan-overnight"))
     assert len(allan) == 1 and 'id="plot-allan"' in (allan[0] / "report.html").read_text()
+    # the default emulator has B and K: the 5-minute capture shows B as an estimate with its
+    # interval on most axes, and K as a bound (what docs/quickstart.md says it shows)
+    b_est = re.findall(r"allan [ga][xyz]: N [^;]+; B [0-9.e+-]+ (?:deg/h|mg) \[", r.stdout)
+    k_bound = re.findall(r"allan [ga][xyz]: .*; K < [0-9.e+-]+ ", r.stdout)
+    assert len(b_est) >= 4 and len(k_bound) == 6, r.stdout[-3000:]

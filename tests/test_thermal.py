@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import derived_config, run_rigctl
+from helpers import WHITE_NOISE_ONLY, derived_config, run_rigctl
 from rigctl.frames import body_references
 from rigctl.procedure import load_procedure
 from rigctl.solvers import thermal as th
@@ -228,7 +228,8 @@ def _cli(capsys, *args: str) -> tuple[int, str]:
 
 
 def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
-    cfg = derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST},
+    cfg = derived_config(tmp_path, **WHITE_NOISE_ONLY, imu__rate_hz=50,  # coverage of a white-noise fit
+                         imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST},
                          chamber__sim={"heat_max_c_per_min": 10, "cool_max_c_per_min": 10,
                                        "product_tau_s": 30})
     r = run_rigctl("run", "procedures/thermal-ramp.yaml", "--config", str(cfg), "--out", str(tmp_path / "runs"),

@@ -27,6 +27,7 @@ from ..recording_reader import check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
+from ..solvers import allan_checks as CHK
 from ..solvers import allan_noise_id as NID
 from . import production
 
@@ -36,7 +37,7 @@ AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "
 #: display unit of the deviation per sensor: (label, factor from SI)
 DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
 MIN_SAMPLES = 64
-CHUNK_ROWS = 1 << 20
+CHUNK_ROWS = 1 << 19  # rows per read: 2 chunks of 6 axes in flight = 48 MB
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
 SCHEMA_VERSION = 1
@@ -57,14 +58,48 @@ class _AxisStream:
         self.dec = 1
         while (n_rate + 1) // self.dec > DEC_POINTS:
             self.dec *= 2
-        self.head: list[np.ndarray] = []
+        # both phase copies are filled in place (their sizes are known): no list of pieces
+        # and no concatenation, which would hold them twice at the peak
+        self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
-        self.decs: list[np.ndarray] = [np.zeros(1)]  # x[0] = 0
+        self._dec = np.empty(n_rate // self.dec + 1)
+        self._dec[0] = 0.0  # x[0] = 0
+        self.n_dec = 1
         self.part = np.empty(0)  # rate samples of the unfinished decimation block
         self.tau0 = tau0
         self.x_dec = 0.0  # phase at the last decimated point
         self.x_head = 0.0
         self.n_rate = 0
+        self.quant_step: float | None = None  # output step, from the first block
+        self.spike_sigma: float | None = None  # robust sd of the residual, from the first block
+        self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
+        self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
+
+    def screen(self, y: np.ndarray, first: int, exclude: bool) -> np.ndarray:
+        """Quantization step (first block) and spikes (every block) of these samples, ``first``
+        their index in the analysed range; with ``exclude`` the spikes are replaced by the
+        running median of their neighbours (the returned samples)."""
+        if self.n_rate == 0 and not self.spikes:
+            self.quant_step = CHK.quantization_step(y)
+        if self.spike_sigma is None:  # the first block sets sigma (running median of all)
+            idx, med, sd = CHK.find_spikes(y, None)
+            med = med[idx]
+            self.spike_sigma = sd
+        else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
+            sd = self.spike_sigma
+            idx, med = CHK.spikes_beyond(y, sd)
+        if idx.size:
+            self.spikes.append(idx + first)
+            self.spike_size.append(np.abs(y[idx] - med) / max(sd, 1e-300))
+            if exclude:
+                y = y.copy()
+                y[idx] = med
+        return y
+
+    def _put_dec(self, xs: np.ndarray) -> None:
+        self._dec[self.n_dec: self.n_dec + xs.size] = xs
+        self.n_dec += xs.size
+        self.x_dec = float(xs[-1])
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
@@ -74,36 +109,52 @@ class _AxisStream:
             part = y[: HEAD_POINTS - self.n_head] - c
             x = np.cumsum(part) * self.tau0 + self.x_head
             if self.n_head == 0:
-                x = np.concatenate(([0.0], x))
-            self.head.append(x)
+                self._head[0] = 0.0
+                self.n_head = 1
+            self._head[self.n_head: self.n_head + x.size] = x
             self.n_head += x.size
             self.x_head = float(x[-1])
         if self.dec == 1:
-            self.decs.append(np.cumsum(y - c) * self.tau0 + self.x_dec)
-            self.x_dec = float(self.decs[-1][-1])
+            self._put_dec(np.cumsum(y - c) * self.tau0 + self.x_dec)
         else:  # block sums of dec samples, then a short running sum
             z = np.concatenate((self.part, y)) if self.part.size else y
             nb = z.size // self.dec
             if nb:
                 sums = z[: nb * self.dec].reshape(nb, self.dec).sum(axis=1) - self.dec * c
-                xs = np.cumsum(sums) * self.tau0 + self.x_dec
-                self.decs.append(xs)
-                self.x_dec = float(xs[-1])
+                self._put_dec(np.cumsum(sums) * self.tau0 + self.x_dec)
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
 
     def noise_id(self, m: int, n: int) -> int:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
-        if not hasattr(self, "_head"):
-            self._head = np.concatenate(self.head)
-            self._dec = np.concatenate(self.decs)
-            self.head, self.decs = [], []
         if m % self.dec == 0:
-            return NID.noise_id(self._dec, m // self.dec, "oadev", n)
-        return NID.noise_id(self._head, m, "oadev", n)
+            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
 
 
-def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
+               excluded: bool) -> dict[str, Any]:
+    """Spikes and quantization of one axis (SI, and the field unit of the deviation)."""
+    unit, fac = DEV_UNITS[sensor]
+    idx = np.concatenate(stream.spikes) if stream.spikes else np.zeros(0, dtype=np.int64)
+    size = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
+    spikes = {"count": int(idx.size), "fraction": idx.size / max(stream.n_rate, 1),
+              "threshold_sd": CHK.SPIKE_SIGMA, "window_samples": CHK.SPIKE_WINDOW,
+              "sd_si": stream.spike_sigma, "excluded": bool(excluded and idx.size),
+              "largest_sd": float(size.max()) if size.size else 0.0,
+              "first_times_s": [float(i * tau0) for i in idx[:10]]}
+    quant = None
+    if stream.quant_step is not None:
+        n_e = fit["terms"].get("N", {})
+        n_si = n_e.get(f"value_{F.SI_UNITS[sensor]['N']}") if n_e.get("supported") else None
+        quant = CHK.quantization_noise(stream.quant_step, tau0, n_si, dev0)
+        quant[f"step_{unit}"] = stream.quant_step * fac
+        quant["step_si"] = quant.pop("step")
+        quant["white_N_si"] = quant.pop("white_N")
+    return {"spikes": spikes, "quantization": quant}
+
+
+def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
     res = stream.acc.result()
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
@@ -116,7 +167,10 @@ def analyse_axis(stream: _AxisStream, sensor: str) -> dict[str, Any]:
     pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     unit, fac = DEV_UNITS[sensor]
     si = "rad/s" if sensor == "gyro" else "m/s^2"
+    dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
+    screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
+            **screening,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -134,12 +188,29 @@ def _sample_rate(f, path: str) -> float:
     return sample_rate(f)
 
 
+#: what to do with spikes (samples > 10 robust sd from their neighbours): report them only,
+#: or also replace each by the running median of its neighbours before the deviations
+OUTLIER_MODES = ("report", "exclude")
+
+
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
-            progress_stream: Any = None) -> dict[str, Any]:
+            progress_stream: Any = None, outliers: str = "report",
+            gaps: str = "refuse") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
-    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise)."""
+    (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
+    Every axis is screened on the way (:mod:`rigctl.solvers.allan_checks`): its output step if
+    it is quantized, and its spikes, which are reported and, with ``outliers="exclude"``,
+    replaced by the running median of their neighbours before they reach the deviations.
+    Gaps (dropped samples, :func:`find_gaps`) are never bridged silently: ``gaps="refuse"``
+    raises UsageError saying where they are and what to do, ``"longest"`` analyses the longest
+    gap-free stretch, ``"bridge"`` treats the samples as contiguous; the result's ``gaps``
+    records which."""
+    if outliers not in OUTLIER_MODES:
+        raise UsageError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
+    if gaps not in GAP_MODES:
+        raise UsageError(f"gaps={gaps!r}: choose from {', '.join(GAP_MODES)}")
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
@@ -150,8 +221,32 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         if n < MIN_SAMPLES:
             raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
                              "for an Allan analysis (record longer)")
-        gaps = _counter_gaps(f, s0, s1)
         tau0 = 1.0 / fs
+        found = find_gaps(f, s0, s1, fs)
+        missing = sum(m for _, m in found)
+        gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
+                    "largest_samples": int(max((m for _, m in found), default=0)),
+                    "rows": [int(g) for g, _ in found[:20]]}
+        if found and gaps == "refuse":
+            big = max(found, key=lambda g: g[1])
+            a, b = longest_stretch(found, s0, s1)
+            raise UsageError(
+                f"{path}: {missing} samples missing in {len(found)} gap(s) in the analysed range "
+                f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
+                f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
+                "spaced samples and rigctl does not bridge gaps on its own",
+                hint=f"--gaps longest analyses the longest gap-free stretch ({b - a} samples, "
+                     f"{(b - a) * tau0 / 3600:.2f} h); --gaps bridge treats the samples as "
+                     "contiguous (every tau spanning a gap is then biased)")
+        if found and gaps == "longest":
+            s0, s1 = longest_stretch(found, s0, s1)
+            n = s1 - s0
+            gap_info["range_used"] = [int(s0), int(s1)]
+            if n < MIN_SAMPLES:
+                raise UsageError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
+                                 f"need at least {MIN_SAMPLES}")
+            missing = 0
+        gaps_bridged = int(missing)
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
         if mode == "fast" and not isinstance(taus, (list, tuple)):
@@ -161,12 +256,15 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
                              stream=progress_stream, enabled=progress_stream is not None)
         with ThreadPoolExecutor(WORKERS) as pool:
-            _stream_chunks(pool, path, dsets, axes, streams, s0, s1, shown)
+            _stream_chunks(pool, path, dsets, axes, streams, s0, s1, shown,
+                           outliers == "exclude")
             shown.finish()
             out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-                   "first_sample": int(s0), "dropped_samples": int(gaps), "axes": {}}
+                   "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
+                   "outliers": outliers, "axes": {}}
             # the axes' analyses (noise ID, EDF, fits) in parallel too, results in axis order
-            done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2]), axes))
+            done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
+                                                        outliers == "exclude"), axes))
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
@@ -174,16 +272,19 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
 
 
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[str],
-                   streams: dict, s0: int, s1: int, shown: WorkProgress) -> None:
-    """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check and
-    accumulate chunk i (one task per dataset check, one per axis; numpy and BLAS release the
-    GIL), this thread reads chunk i + 1. At most two chunks are in memory."""
+                   streams: dict, s0: int, s1: int, shown: WorkProgress,
+                   exclude: bool = False) -> None:
+    """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
+    screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
+    task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
+    chunk i + 1. At most two chunks are in memory."""
     def read(a0: int) -> dict:
         a1 = min(s1, a0 + CHUNK_ROWS)
         return {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
 
-    def feed(a: str, block: np.ndarray, col: int) -> None:
-        streams[a].add(np.ascontiguousarray(block[:, col]))
+    def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
+        y = streams[a].screen(np.ascontiguousarray(block[:, col]), first, exclude)
+        streams[a].add(y)
 
     starts = list(range(s0, s1, CHUNK_ROWS))
     nxt = read(starts[0]) if starts else None
@@ -192,7 +293,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
         checks = [pool.submit(check_finite, path, name, b, a0) for name, b in blocks.items()]
         for c in checks:  # a bad block must not reach the accumulators
             c.result()
-        tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1]) for a in axes]
+        tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
         nxt = read(starts[i + 1]) if i + 1 < len(starts) else None
         for t in tasks:
             t.result()
@@ -209,6 +310,42 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
         return 0
     first, last = int(c[s0]), int(c[s1 - 1])
     return max(0, (last - first + 1) - (s1 - s0))
+
+
+def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
+    """Gaps in the IMU samples [s0, s1): (row after the gap, samples missing) from the jumps of
+    /imu/counter, or without a counter from /imu/time steps longer than 1.5 sample intervals."""
+    if s1 - s0 < 2:
+        return []
+    # read in chunks (a day's counter is 0.7 GB, its differences another 0.7 GB), each chunk
+    # with the last value of the previous one so that no step is missed
+    if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
+        out = []
+        ds = f["/imu/counter"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            d = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.int64))
+            out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+        return out
+    if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
+        out = []
+        ds = f["/imu/time"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            dt = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.float64)) * fs
+            out += [(int(a + i + 1), int(round(dt[i])) - 1) for i in np.flatnonzero(dt > 1.5)]
+        return out
+    return []
+
+
+def longest_stretch(gaps: list[tuple[int, int]], s0: int, s1: int) -> tuple[int, int]:
+    """The longest run of rows [a, b) within [s0, s1) with no gap inside."""
+    edges = [s0] + [g for g, _ in gaps] + [s1]
+    k = int(np.argmax(np.diff(edges)))
+    return edges[k], edges[k + 1]
+
+
+#: what to do with gaps (dropped samples) in the analysed range: refuse (say what to do),
+#: analyse the longest gap-free stretch, or treat the samples as contiguous
+GAP_MODES = ("refuse", "longest", "bridge")
 
 
 def _capture_range(f: Any) -> tuple[int, int, str] | None:
@@ -287,7 +424,7 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
     if warn:
         log("warning", f"allan: {warn}")
     try:
-        result = compute(path, axes, 95, False, rng)
+        result = compute(path, axes, 95, False, rng, gaps="bridge")  # warned below
     except UsageError as exc:
         log("warning", f"allan: not run: {exc}")
         return
@@ -302,28 +439,94 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
                        "in the analysed range; the deviations assume uniform sampling")
     for a, r in result["axes"].items():
         log("info", f"allan {a}: " + summary_line(r))
-        for w in check_warnings(r):
+        warns, notes = screening_notes(r)
+        for w in warns + check_warnings(r):
             log("warning", f"allan {a}: {w}")
+        for t in notes:  # (taus outside the band by chance: in the results and the CLI only)
+            log("info", f"allan {a}: {t}")
 
 
 def check_warnings(r: dict[str, Any]) -> list[str]:
-    """The fit's self-check as sentences: one per run of taus where the fitted total leaves
-    the curve's 95 % band (with the statistic), [] when it follows the curve."""
+    """The fit's self-check as sentences when it fails (the model does not describe the curve:
+    chi-square beyond its 99 % point): one per run of taus where the fitted total leaves the
+    curve's 95 % band, with the statistic; [] otherwise (see :func:`check_notes`)."""
     check = r["fit"].get("check") or {}
     runs = check.get("outside") or []
-    if not runs:
+    if not runs or check.get("ok"):
         return []
+    return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band")
+
+
+def check_notes(r: dict[str, Any]) -> list[str]:
+    """The taus outside the band when the fit as a whole is consistent with the curve (a few of
+    ~70 taus outside a 95 % band are expected by chance): named, as a note."""
+    check = r["fit"].get("check") or {}
+    runs = check.get("outside") or []
+    if not runs or not check.get("ok"):
+        return []
+    return _check_sentences(check, "the fitted total is outside the 95 % band, as chance "
+                                   "allows for a fit consistent with the curve,", reasons=False)
+
+
+def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
+    runs = check["outside"]
     stat = (f"chi2 {check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}; "
             f"model error {100 * check['model_error_rel']:.0f} % of sigma^2 added"
             if "chi2" in check else "")
-    out = [f"the fitted IEEE 952 total leaves the curve's 95 % band at {check['n_outside']} of "
-           f"{check['n_informative']} informative taus ({stat})"]
+    if not reasons:
+        spans = ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
+                          else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
+        return [f"{head} at {check['n_outside']} of {check['n_informative']} informative taus "
+                f"(tau {spans} s; {stat})"]
+    out = [f"{head} at {check['n_outside']} of {check['n_informative']} informative taus ({stat})"]
     for o in runs:
         span = (f"tau {o['tau_from_s']:.3g} s" if o["tau_from_s"] == o["tau_to_s"]
                 else f"tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s")
         out.append(f"{span}: {o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
                    f"likely {o['likely']}")
     return out
+
+
+#: the output step is mentioned when its rounding noise is at least this share of N^2
+QUANT_NOTE_SHARE = 1e-4
+
+
+def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(warnings, notes) about an axis' samples: spikes (a warning: they are in the noise
+    unless excluded) and the output quantization (a note; a warning when the noise per sample
+    is below half a step, so the rounding is not random)."""
+    warns, notes = [], []
+    unit, fac = DEV_UNITS[r["sensor"]]
+    sp = r.get("spikes") or {}
+    if sp.get("count"):
+        first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])
+        what = (f"{sp['count']} samples ({100 * sp['fraction']:.2g} %) more than "
+                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}) from the "
+                f"running median of {sp['window_samples']} neighbours, the largest "
+                f"{sp['largest_sd']:.0f} sd (first at t = {first} s into the range)")
+        if sp.get("excluded"):
+            warns.append(f"{what}: replaced by that median before the deviations (--outliers exclude)")
+        else:
+            warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
+                         "to leave them out: --outliers exclude")
+    q = r.get("quantization")
+    # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
+    if q and (q.get("share_of_N2", 1.0) >= QUANT_NOTE_SHARE or not q["random_rounding"]):
+        n_unit, n_fac = F.FIELD_UNITS[r["sensor"]]["N"]
+        step = f"{q[f'step_{unit}']:.4g} {unit}"
+        if r["sensor"] == "gyro":
+            step += f" = {math.degrees(q['step_si']):.4g} deg/s"
+        text = (f"output quantized in steps of {step} (read from the samples): the rounding "
+                f"adds white noise N_q = {q['white_N_si'] * n_fac:.3g} {n_unit}")
+        if "share_of_N2" in q:
+            text += (f", {100 * q['share_of_N2']:.2g} % of the fitted N^2 "
+                     f"(N without it: {q['N_without_rounding'] * n_fac:.4g} {n_unit})")
+        notes.append(text)
+        if not q["random_rounding"]:
+            warns.append(f"the noise per sample is {q['noise_per_sample_steps']:.2f} of a step: "
+                         "below half a step the rounding is not random and the shortest taus "
+                         "describe the quantizer, not the sensor")
+    return warns, notes
 
 
 def summary_line(r: dict[str, Any]) -> str:
@@ -368,10 +571,13 @@ def store(path: str, result: dict[str, Any]) -> None:
                    "first_sample": result.get("first_sample", 0),
                    "dropped_samples": result.get("dropped_samples", 0),
                    "segment": result.get("segment", "whole recording"),
+                   "outliers": result.get("outliers", "report"),
                    **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                    "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                                 "fit": _jsonable(r["fit"]),
-                                "piecewise": _jsonable(r["piecewise"])}
+                                "piecewise": _jsonable(r["piecewise"]),
+                                "spikes": _jsonable(r.get("spikes")),
+                                "quantization": _jsonable(r.get("quantization"))}
                             for a, r in result["axes"].items()}}
         g.attrs["schema_version"] = SCHEMA_VERSION
         g.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat()

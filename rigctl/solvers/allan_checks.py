@@ -1,0 +1,119 @@
+"""Checks of a static capture's samples before the Allan fit (pure functions of arrays).
+
+* :func:`quantization_step`: the output step of a quantized sensor, read from the samples
+  (every value on one grid), e.g. 0.05 deg/s and 3.33 mg for an ADIS16405.
+* :func:`quantization_noise`: what that rounding adds to the curve. Rate-quantized output
+  (each sample rounded to a multiple of q) carries white rounding noise of variance q^2/12 per
+  sample while the sensor's own noise spans a few steps, i.e. a white-noise term
+  N_q = q sqrt(tau0 / 12) that adds to N in quadrature (IEEE 952's Q is the quantization of the
+  *integrated* output, slope -1; rate quantization is slope -1/2, part of N). When the noise per
+  sample is below about half a step the rounding is not random any more and the short taus of
+  the curve describe the quantizer, not the sensor.
+* :func:`find_spikes`: samples far from their neighbours (a running median and the median
+  absolute deviation of the residual), reported before the fit instead of being folded into
+  the noise.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.ndimage import maximum_filter1d, median_filter, minimum_filter1d
+
+from . import allan_kernels as K
+
+#: at most this many samples are examined for the grid (the first ones)
+QUANT_SAMPLES = 200_000
+#: a quantized output: the values' offsets from the grid are below this fraction of a step
+QUANT_TOL = 1e-3
+#: spikes: |sample - running median| above this many robust standard deviations
+SPIKE_SIGMA = 10.0
+#: running-median window (samples)
+SPIKE_WINDOW = 25
+
+
+def quantization_step(y: np.ndarray, max_samples: int = QUANT_SAMPLES) -> float | None:
+    """The step q (units of y) when every one of the first ``max_samples`` samples is
+    y0 + k q with integer k (within QUANT_TOL of a step), and there are at least 3 distinct
+    values; None otherwise (a float output, or noise below one step)."""
+    v = np.unique(np.asarray(y[:max_samples], dtype=float))
+    v = v[np.isfinite(v)]
+    if v.size < 3:
+        return None
+    d = np.diff(v)
+    scale = max(float(np.max(np.abs(v))), 1e-300)
+    d = d[d > 1e-12 * scale]
+    if d.size == 0:
+        return None
+    q = float(np.min(d))
+    k = (v - v[0]) / q
+    if np.max(np.abs(k - np.round(k))) > QUANT_TOL:
+        return None
+    # a grid of many more steps than values is a float output that happens to look regular
+    if (v[-1] - v[0]) / q > 50.0 * v.size:
+        return None
+    return q
+
+
+def quantization_noise(q: float, tau0: float, n_fit: float | None, sigma0: float) -> dict:
+    """Rounding noise of a rate output quantized in steps q: its white-noise coefficient
+    N_q = q sqrt(tau0/12) (units of N), its share of the fitted N^2, N with it taken out, and
+    whether the rounding is random (per-sample noise ``sigma0`` >= q/2)."""
+    nq = q * math.sqrt(tau0 / 12.0)
+    out = {"step": q, "white_N": nq, "random_rounding": bool(sigma0 >= 0.5 * q),
+           "noise_per_sample_steps": sigma0 / q}
+    if n_fit is not None and n_fit > 0:
+        out["share_of_N2"] = (nq / n_fit) ** 2
+        out["N_without_rounding"] = math.sqrt(max(n_fit ** 2 - nq ** 2, 0.0))
+    return out
+
+
+def find_spikes(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGMA,
+                window: int = SPIKE_WINDOW) -> tuple[np.ndarray, np.ndarray, float]:
+    """Indices of samples more than ``k`` robust standard deviations from the running median
+    of ``window`` samples, the running median itself (the replacement if they are excluded)
+    and the robust standard deviation used (1.4826 x the median absolute residual, or
+    ``sigma`` if given). A static capture's samples scatter around a slowly moving bias: a
+    sample 10 sigma away from its neighbours has a probability below 1e-22 under Gaussian
+    noise, so on a day of 100 Hz data none is expected."""
+    y = np.asarray(y, dtype=float)
+    if y.size < window:
+        return np.zeros(0, dtype=np.int64), y.copy(), 0.0
+    med = median_filter(y, size=window, mode="nearest")
+    r = y - med
+    if sigma is None:
+        mad = float(np.median(np.abs(r - np.median(r))))
+        sigma = 1.4826 * mad
+        if sigma <= 0:  # a quantized output whose noise is below one step
+            sigma = float(np.std(r))
+    if sigma <= 0:
+        return np.zeros(0, dtype=np.int64), med, 0.0
+    return np.flatnonzero(np.abs(r) > k * sigma), med, sigma
+
+
+def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
+                  window: int = SPIKE_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """The spikes :func:`find_spikes` finds with a given ``sigma`` (the same indices) and the
+    running median at them, without the running median of every sample: the median of a
+    window lies between its minimum and maximum (running min and max cost a few ns per
+    sample, the median ~40), so a sample within k sigma of both cannot be a spike; the exact
+    median is taken only at the others (the same order statistic of the same window)."""
+    y = np.asarray(y, dtype=float)
+    none = np.zeros(0, dtype=np.int64)
+    if y.size < window or not sigma > 0:
+        return none, np.zeros(0)
+    thr = k * sigma
+    if K.HAVE_NUMBA:  # one compiled pass (scipy's min/max filters take ~18 ns per sample each)
+        cand = K.far_from_window_range(y, window, thr)
+    else:
+        mn = minimum_filter1d(y, window, mode="nearest")
+        cand = np.flatnonzero(y - mn > thr)
+        mx = maximum_filter1d(y, window, mode="nearest")
+        cand = np.union1d(cand, np.flatnonzero(mx - y > thr))
+    if cand.size == 0:
+        return none, np.zeros(0)
+    lo, hi = window // 2, (window - 1) // 2
+    rows = np.clip(cand[:, None] + np.arange(-lo, hi + 1)[None, :], 0, y.size - 1)
+    med = np.partition(y[rows], window // 2, axis=1)[:, window // 2]
+    keep = np.abs(y[cand] - med) > thr
+    return cand[keep], med[keep]
