@@ -47,6 +47,7 @@ if HAVE_NUMBA:
         n_sec_a = sos_a.shape[0]
         n_sec_g = sos_g.shape[0]
         j_out = 0
+        phase_l = 0
         for i in range(n):
             for ax in range(3):
                 f[ax] = f_true[i, ax]
@@ -133,7 +134,9 @@ if HAVE_NUMBA:
                         zi_g[s_, ax, 1] = sos_g[s_, 2] * x - sos_g[s_, 5] * y
                         x = y
                     W[ax] = x
-            if (i + 1) % L == 0:
+            phase_l += 1
+            if phase_l == L:  # the last of each group of L (no integer division per sample)
+                phase_l = 0
                 for ax in range(3):
                     out_f[j_out, ax] = F[ax]
                     out_w[j_out, ax] = W[ax]

@@ -37,7 +37,7 @@ AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "
 #: display unit of the deviation per sensor: (label, factor from SI)
 DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
 MIN_SAMPLES = 64
-CHUNK_ROWS = 1 << 20
+CHUNK_ROWS = 1 << 19  # rows per read: 2 chunks of 6 axes in flight = 48 MB
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
 SCHEMA_VERSION = 1
@@ -58,9 +58,13 @@ class _AxisStream:
         self.dec = 1
         while (n_rate + 1) // self.dec > DEC_POINTS:
             self.dec *= 2
-        self.head: list[np.ndarray] = []
+        # both phase copies are filled in place (their sizes are known): no list of pieces
+        # and no concatenation, which would hold them twice at the peak
+        self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
-        self.decs: list[np.ndarray] = [np.zeros(1)]  # x[0] = 0
+        self._dec = np.empty(n_rate // self.dec + 1)
+        self._dec[0] = 0.0  # x[0] = 0
+        self.n_dec = 1
         self.part = np.empty(0)  # rate samples of the unfinished decimation block
         self.tau0 = tau0
         self.x_dec = 0.0  # phase at the last decimated point
@@ -77,16 +81,25 @@ class _AxisStream:
         running median of their neighbours (the returned samples)."""
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
-        idx, med, sd = CHK.find_spikes(y, self.spike_sigma)
-        if self.spike_sigma is None:
+        if self.spike_sigma is None:  # the first block sets sigma (running median of all)
+            idx, med, sd = CHK.find_spikes(y, None)
+            med = med[idx]
             self.spike_sigma = sd
+        else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
+            sd = self.spike_sigma
+            idx, med = CHK.spikes_beyond(y, sd)
         if idx.size:
             self.spikes.append(idx + first)
-            self.spike_size.append(np.abs(y[idx] - med[idx]) / max(sd, 1e-300))
+            self.spike_size.append(np.abs(y[idx] - med) / max(sd, 1e-300))
             if exclude:
                 y = y.copy()
-                y[idx] = med[idx]
+                y[idx] = med
         return y
+
+    def _put_dec(self, xs: np.ndarray) -> None:
+        self._dec[self.n_dec: self.n_dec + xs.size] = xs
+        self.n_dec += xs.size
+        self.x_dec = float(xs[-1])
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
@@ -96,33 +109,27 @@ class _AxisStream:
             part = y[: HEAD_POINTS - self.n_head] - c
             x = np.cumsum(part) * self.tau0 + self.x_head
             if self.n_head == 0:
-                x = np.concatenate(([0.0], x))
-            self.head.append(x)
+                self._head[0] = 0.0
+                self.n_head = 1
+            self._head[self.n_head: self.n_head + x.size] = x
             self.n_head += x.size
             self.x_head = float(x[-1])
         if self.dec == 1:
-            self.decs.append(np.cumsum(y - c) * self.tau0 + self.x_dec)
-            self.x_dec = float(self.decs[-1][-1])
+            self._put_dec(np.cumsum(y - c) * self.tau0 + self.x_dec)
         else:  # block sums of dec samples, then a short running sum
             z = np.concatenate((self.part, y)) if self.part.size else y
             nb = z.size // self.dec
             if nb:
                 sums = z[: nb * self.dec].reshape(nb, self.dec).sum(axis=1) - self.dec * c
-                xs = np.cumsum(sums) * self.tau0 + self.x_dec
-                self.decs.append(xs)
-                self.x_dec = float(xs[-1])
+                self._put_dec(np.cumsum(sums) * self.tau0 + self.x_dec)
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
 
     def noise_id(self, m: int, n: int) -> int:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
-        if not hasattr(self, "_head"):
-            self._head = np.concatenate(self.head)
-            self._dec = np.concatenate(self.decs)
-            self.head, self.decs = [], []
         if m % self.dec == 0:
-            return NID.noise_id(self._dec, m // self.dec, "oadev", n)
-        return NID.noise_id(self._head, m, "oadev", n)
+            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
 
 
 def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
@@ -310,14 +317,22 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
     /imu/counter, or without a counter from /imu/time steps longer than 1.5 sample intervals."""
     if s1 - s0 < 2:
         return []
+    # read in chunks (a day's counter is 0.7 GB, its differences another 0.7 GB), each chunk
+    # with the last value of the previous one so that no step is missed
     if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
-        d = np.diff(np.asarray(f["/imu/counter"][s0:s1], dtype=np.int64))
-        idx = np.flatnonzero(d > 1)
-        return [(int(s0 + i + 1), int(d[i] - 1)) for i in idx]
+        out = []
+        ds = f["/imu/counter"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            d = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.int64))
+            out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+        return out
     if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
-        dt = np.diff(np.asarray(f["/imu/time"][s0:s1], dtype=np.float64)) * fs
-        idx = np.flatnonzero(dt > 1.5)
-        return [(int(s0 + i + 1), int(round(dt[i])) - 1) for i in idx]
+        out = []
+        ds = f["/imu/time"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            dt = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.float64)) * fs
+            out += [(int(a + i + 1), int(round(dt[i])) - 1) for i in np.flatnonzero(dt > 1.5)]
+        return out
     return []
 
 

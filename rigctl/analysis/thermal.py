@@ -5,8 +5,7 @@ results into /results/thermal and a JSON file beside the recording.
 A recording is *thermal* when it holds chamber readings (/chamber) and its static and rate
 windows span at least :data:`MIN_SPAN_K` of IMU temperature (a chamber run; an imported log
 whose temperature drifts is not). Per window: the mean outputs, their
-uncertainty from the window itself (:func:`rigctl.solvers.segment_stats.self_noise_sigma` after
-removing what the reference explains), the reference input from the table's angles
+uncertainty (below), the reference input from the table's angles
 (:func:`rigctl.frames.body_references`), the means of powers of the temperature offset, and the
 candidates' regressors (hysteresis state from a play operator on the IMU temperature, the
 temperature rate, the chamber air minus the IMU temperature from /chamber). Accelerometer: the
@@ -32,7 +31,7 @@ from ..recorder import utc_now, write_results
 from ..recording_reader import check_finite
 from ..segment_builder import _angles_at, _site, open_recording
 from ..solvers import thermal as th
-from ..solvers.segment_stats import self_noise_sigma
+from ..solvers.segment_stats import batch_var
 from ..solvers.segments import about_reference
 
 SCHEMA_VERSION = 1
@@ -49,6 +48,39 @@ def _cal_rows(f: Any) -> list[int]:
     first, last = seg["first_sample"][()], seg["last_sample"][()]
     return [i for i, k in enumerate(kinds) if k in (b"orientation", b"rate") and status[i] == b"complete"
             and last[i] - first[i] >= 10]
+
+
+def _detrend(x: np.ndarray) -> np.ndarray:
+    """The samples less a straight line in time per axis: a temperature changing inside the
+    window (a ramp) moves the output along it, which the model takes from the window's mean
+    powers of dT; left in, the batch means would count that drift as noise."""
+    n = x.shape[0]
+    if n < 3:
+        return x
+    k = np.arange(n, dtype=float) - (n - 1) / 2.0
+    slope = (k @ (x - x.mean(axis=0))) / (k @ k)
+    return x - np.outer(k, slope)
+
+
+def _noise_parts(x: np.ndarray) -> np.ndarray:
+    """(2, c): the white-noise variance of the window mean s^2 / n and the batch-means variance
+    (8 batches) of the same mean."""
+    n = x.shape[0]
+    white = x.var(axis=0, ddof=1) / n
+    batch = batch_var(x, 8) if n >= 32 else 4.0 * white
+    return np.vstack([white, batch])
+
+
+def _pooled_sigma(parts: np.ndarray) -> np.ndarray:
+    """Standard uncertainties (n, c) of the window means of one sensor: each window's white
+    level s^2 / n (thousands of samples: precise) times one factor per axis, the ratio of the
+    batch-means variance to the white variance averaged over all the sensor's windows (never
+    below 1): correlated noise raises it, and pooling over the windows gives it hundreds of
+    degrees of freedom instead of the 7 of one window (whose noisy maximum would bias every
+    uncertainty up and the chi-square down)."""
+    white, batch = parts[:, 0, :], parts[:, 1, :]
+    factor = np.maximum(1.0, np.mean(batch / white, axis=0))
+    return np.sqrt(white * factor)
 
 
 def is_thermal(path: str | Path) -> bool:
@@ -102,8 +134,8 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
             cols["kind"].append(seg["kind"][i].decode())
             cols["acc"].append(acc.mean(axis=0))
             cols["gyro"].append(gyr.mean(axis=0))
-            cols["sa"].append(self_noise_sigma(about_reference(acc, fr), fs))
-            cols["sg"].append(self_noise_sigma(about_reference(gyr, wr), fs))
+            cols["sa"].append(_noise_parts(_detrend(about_reference(acc, fr))))
+            cols["sg"].append(_noise_parts(_detrend(about_reference(gyr, wr))))
             cols["fr"].append(fr.mean(axis=0))
             cols["wr"].append(wr.mean(axis=0))
             cols["fq"].append((fr * fr).mean(axis=0))
@@ -127,7 +159,7 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
     def sub(mask: np.ndarray, sensor: str) -> th.ThermalWindows:
         y, s, ref = (("acc", "sa", "fr") if sensor == "accel" else ("gyro", "sg", "wr"))
         return th.ThermalWindows(
-            sensor=sensor, y=np.asarray(cols[y])[mask], sigma=np.asarray(cols[s])[mask],
+            sensor=sensor, y=np.asarray(cols[y])[mask], sigma=_pooled_sigma(np.asarray(cols[s])[mask]),
             ref=np.asarray(cols[ref])[mask], powers=powers[mask], temperature=T[mask], heating=heating[mask],
             reference_c=reference_c, quad=np.asarray(cols["fq"])[mask] if sensor == "accel" else None,
             regressors={k: v[mask] for k, v in regs.items()})
