@@ -24,37 +24,8 @@ from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_fit as F
-from rigctl.solvers.allan_crb import MAX_CAPTURE_S
+from rigctl.display_units import capture_text, need_text  # noqa: F401 - kept for callers
 from rigctl.spec import load_spec
-
-
-def capture_text(h: float) -> str:
-    """A capture length in hours for people: '40 min', '2.5 h', '47 h', '12 days'; inf (beyond
-    what allan_crb.duration_for considers) 'more than 417 days'."""
-    if not math.isfinite(h):
-        return f"more than {MAX_CAPTURE_S / 86400:.0f} days"
-    if h < 1.0:
-        return f"{max(1.0, h * 60.0):.0f} min"
-    if h < 10.0:
-        return f"{h:.1f} h"
-    return f"{h:.0f} h" if h < 72 else f"{h / 24:.0f} days"
-
-
-def need_text(e: dict[str, Any]) -> str:
-    """How long a capture would resolve a term to +-25 % (95 %), honestly: for a resolved term
-    about the Cramer-Rao length; for a bounded term at least the length at which a term as
-    large as its bound would be resolved -- and where that is no longer than this capture, only
-    that a longer capture is needed (how much longer depends on the term's unknown size)."""
-    need = e.get("capture_h_for_25pct")
-    if need is None:
-        return ""
-    if e.get("supported"):
-        return f"+-25 % needs about {capture_text(need)}"
-    have = e.get("capture_h")
-    if have is not None and need <= 1.05 * have:
-        return (f"+-25 % needs a longer capture than this one ({capture_text(have)}); how much "
-                "longer depends on the term's size, which this capture only bounds")
-    return f"+-25 % would need at least {capture_text(need)} of capture"
 
 
 def format_table(axis: str, r: dict[str, Any]) -> str:
@@ -187,22 +158,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
-    """--kalibr, --json, --csv (rigctl.analysis.noise_export)."""
-    kalibr = noise_export.kalibr_values(result, args.kalibr_inflate) if args.kalibr else None
-    if args.kalibr:
-        import h5py
-
-        with h5py.File(args.recording, "r") as f:
-            topic = args.kalibr_topic or noise_export.imu_topic(f["meta"].attrs if "meta" in f else {})
-        Path(args.kalibr).write_text(noise_export.kalibr_yaml(result, topic, args.kalibr_inflate))
-        print(f"Kalibr imu.yaml written to {args.kalibr}"
-              + ("" if args.kalibr_inflate == 1 else f" (values x{args.kalibr_inflate:g})"))
-    if args.json:
-        Path(args.json).write_text(noise_export.allan_json(result, kalibr))
-        print(f"JSON written to {args.json}")
-    if args.csv:
-        Path(args.csv).write_text(noise_export.deviation_csv(result))
-        print(f"deviation table written to {args.csv}")
+    """--kalibr, --json, --csv (rigctl.analysis.noise_export.write_exports)."""
+    for line in noise_export.write_exports(args.recording, result, args.kalibr, args.kalibr_inflate,
+                                           args.kalibr_topic, args.json, args.csv):
+        print(line)
 
 
 def register(subparsers: Any) -> None:

@@ -194,3 +194,34 @@ def format_value(v: float | None, u: float | None = None, digits: int = U_DIGITS
 def format_number(v: float | None, u: float | None) -> str:
     """A number alone rounded like :func:`format_value` (e.g. an interval end)."""
     return format_value(v, u)[0]
+
+
+def capture_text(h: float) -> str:
+    """A capture length in hours for people: '40 min', '2.5 h', '47 h', '12 days'; inf (beyond
+    what allan_crb.duration_for considers) 'more than 417 days'."""
+    if not math.isfinite(h):
+        from .solvers.allan_crb import MAX_CAPTURE_S
+
+        return f"more than {MAX_CAPTURE_S / 86400:.0f} days"
+    if h < 1.0:
+        return f"{max(1.0, h * 60.0):.0f} min"
+    if h < 10.0:
+        return f"{h:.1f} h"
+    return f"{h:.0f} h" if h < 72 else f"{h / 24:.0f} days"
+
+
+def need_text(e: dict) -> str:
+    """How long a capture would resolve an Allan term to +-25 % (95 %), honestly: for a resolved
+    term about the Cramer-Rao length; for a bounded term at least the length at which a term as
+    large as its bound would be resolved -- and where that is no longer than this capture, only
+    that a longer capture is needed (how much longer depends on the term's unknown size)."""
+    need = e.get("capture_h_for_25pct")
+    if need is None:
+        return ""
+    if e.get("supported"):
+        return f"+-25 % needs about {capture_text(need)}"
+    have = e.get("capture_h")
+    if have is not None and need <= 1.05 * have:
+        return (f"+-25 % needs a longer capture than this one ({capture_text(have)}); how much "
+                "longer depends on the term's size, which this capture only bounds")
+    return f"+-25 % would need at least {capture_text(need)} of capture"

@@ -405,7 +405,7 @@ def _need_cell(e: dict[str, Any]) -> str:
     need = e.get("capture_h_for_25pct")
     if need is None:
         return ""
-    from .allan_cmd import capture_text
+    from .display_units import capture_text
 
     have = e.get("capture_h")
     if not e.get("supported") and have is not None and need <= 1.05 * have:

@@ -202,3 +202,28 @@ def deviation_csv(result: Mapping[str, Any]) -> str:
                         repr(float(sig[i])), *(repr(float(band[k][i])) for k in ("lo68", "hi68", "lo95", "hi95")),
                         repr(float(r["edf"][i])), int(r["alpha"][i])])
     return buf.getvalue()
+
+
+def write_exports(recording: str, result: dict, kalibr_path: str | None, inflate: float,
+                  topic: str | None, json_path: str | None, csv_path: str | None) -> list[str]:
+    """Write the exports ``rigctl allan`` was asked for (Kalibr imu.yaml, the whole result as
+    JSON, the deviation table as CSV); returns one line per file written."""
+    from pathlib import Path
+
+    out = []
+    kalibr = kalibr_values(result, inflate) if kalibr_path else None
+    if kalibr_path:
+        import h5py
+
+        with h5py.File(recording, "r") as f:
+            topic = topic or imu_topic(f["meta"].attrs if "meta" in f else {})
+        Path(kalibr_path).write_text(kalibr_yaml(result, topic, inflate))
+        out.append(f"Kalibr imu.yaml written to {kalibr_path}"
+                   + ("" if inflate == 1 else f" (values x{inflate:g})"))
+    if json_path:
+        Path(json_path).write_text(allan_json(result, kalibr))
+        out.append(f"JSON written to {json_path}")
+    if csv_path:
+        Path(csv_path).write_text(deviation_csv(result))
+        out.append(f"deviation table written to {csv_path}")
+    return out

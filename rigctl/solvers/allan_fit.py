@@ -570,7 +570,7 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
     bounded term at its upper bound, so a lower limit: a smaller term needs longer). For a
     bounded term that lower limit can come out at or below this capture's own length
     (``capture_h``): the term is then smaller than its bound, and the honest statement is
-    only "longer than this capture" (see :func:`rigctl.allan_cmd.need_text`)."""
+    only "longer than this capture" (see :func:`rigctl.display_units.need_text`)."""
     if n_phase < 3:
         return
     base, bounded = {}, {}
