@@ -67,7 +67,7 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
                      f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
                      f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
-    lines.append("fitted terms (joint EDF-weighted fit; 95 % intervals):")
+    lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
     for t, e in r["fit"]["terms"].items():
         unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
         need = need_text(e)

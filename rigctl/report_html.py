@@ -435,7 +435,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             p = (pw.get(t) or {}).get(f"value_{unit}")
             rows.append([axis, e.get("name", t), unit, _term_cell(e, unit), p, _need_cell(e)])
     if rows:
-        out += ["<h3>Fitted noise terms (joint EDF-weighted fit; value [95 % interval])</h3>",
+        out += ["<h3>Fitted noise terms (joint IEEE 952 fit; value [95 % interval] or bound)</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",
                        "capture for +-25 %"], rows, num_from=4),
                 "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "

@@ -34,6 +34,7 @@ IN_LIBRARY = {
     "accel_quadratic": "accel", "accel_cross_quadratic": ("accel", "gyro_rotation"), "accel_scale_asymmetry": "accel",
     "accel_bias_time_drift": "accel", "gyro_g_sensitivity": "gyro_static", "gyro_anisoelastic": "gyro_static",
     "gyro_bias_time_drift": "gyro_static", "gyro_scale_asymmetry": "gyro_rotation",
+    "accel_bias_temperature": "accel", "gyro_bias_temperature": "gyro_static",
     "gyro_scale_nonlinearity": "gyro_rotation",
 }
 #: effects no candidate describes
@@ -43,7 +44,7 @@ OUTSIDE = ("accel_previous_pose_hysteresis", "gyro_bias_rotation_sense")
 def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: float = 100.0,
                  pose_s: float = 3.0, move_s: float = 1.5, rest_s: float = 20.0, noise: float = 1.0,
                  amplitude: float = 1.0) -> tuple[np.ndarray, list[dict]]:
-    """(samples (n, 7): t, f_x.. (m/s^2), w_x.. (rad/s); segments) of one session; ``amplitude``
+    """(samples (n, 8): t, f_x.. (m/s^2), w_x.. (rad/s), temperature (degC); segments) of one session; ``amplitude``
     scales the effect."""
     rng = np.random.default_rng(seed)
     dt = 1.0 / fs
@@ -98,6 +99,9 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: fl
     ua = b_a + f @ M_a.T
     ug = b_g + w_true @ M_g.T
     th_ = (t - t.mean()) / 3600.0
+    # the unit warms up after power-on: +5 K with a 2-minute time constant, 0.01 K sensor noise
+    temp = 25.0 + 5.0 * (1.0 - np.exp(-t / 120.0)) + rng.normal(0, 0.01, n)
+    dT = temp - temp.mean()
     sgn = amplitude * rng.choice([-1.0, 1.0], 3)
     if effect == "accel_quadratic":
         ua += sgn * np.array([1800, 1500, 1800]) * UG / G ** 2 * f ** 2
@@ -108,6 +112,10 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: fl
         ua += sgn * np.array([1500, 1200, 1500]) * 1e-6 * np.abs(f)
     elif effect == "accel_bias_time_drift":
         ua += sgn * np.array([20, 15, 20]) * 1e-3 * G * th_[:, None]
+    elif effect == "accel_bias_temperature":
+        ua += sgn * np.array([0.5, 0.4, 0.5]) * 1e-3 * G * dT[:, None]
+    elif effect == "gyro_bias_temperature":
+        ug += sgn * np.array([40.0, 30.0, 40.0]) * DEG / 3600 * dT[:, None]
     elif effect == "gyro_g_sensitivity":
         Gs = rng.choice([-1, 1], (3, 3)) * rng.uniform(0.01, 0.03, (3, 3)) * DEG / G
         ug += f @ Gs.T
@@ -136,12 +144,12 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: fl
         raise ValueError(effect)
     ua += rng.normal(0, noise * 1e-3 * G, ua.shape)
     ug += rng.normal(0, noise * 0.05 * DEG, ug.shape)
-    return np.column_stack([t, ua, ug]), segs
+    return np.column_stack([t, ua, ug, temp]), segs
 
 
 def write_csv(path: Path, seed: int, effect: str | None = None, **kw: float) -> Path:
-    """The session as a CSV (t, ax..gz in m/s^2 and rad/s) and its sections JSON beside it."""
+    """The session as a CSV (t, ax..gz in m/s^2 and rad/s, temp in degC) and its sections JSON."""
     x, segs = make_session(seed, effect, **kw)
-    np.savetxt(path, x, delimiter=",", header="t,ax,ay,az,gx,gy,gz", comments="", fmt="%.9g")
+    np.savetxt(path, x, delimiter=",", header="t,ax,ay,az,gx,gy,gz,temp", comments="", fmt="%.9g")
     path.with_suffix(".json").write_text(json.dumps(segs))
     return path

@@ -68,3 +68,44 @@ def test_streamed_exact_and_cascade_equal_one_shot():
             d = xs[2 * k:] - 2.0 * xs[k:-k] + xs[: xs.size - 2 * k]
             ref = np.sqrt(np.sum(d * d) / (2.0 * (m * 0.01) ** 2 * d.size))
             assert abs(dev / ref - 1) < 1e-11, (mode, m, s)
+
+
+def test_spikes_beyond_equals_running_median_screen():
+    """The screening's fast path finds exactly the spikes (and medians) of the full running
+    median (scipy.ndimage.median_filter) when sigma is known."""
+    from rigctl.solvers import allan_checks as C
+
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        n, w = int(rng.integers(1, 4000)), int(rng.choice([1, 2, 5, 25]))
+        y = rng.standard_normal(n)
+        if trial % 3 == 0:
+            y = np.round(y * 3) / 3  # quantized: many ties in the windows
+        hit = rng.integers(0, n, int(rng.integers(0, 15)))
+        y[hit] += rng.choice([-1, 1], hit.size) * rng.uniform(0, 30, hit.size)
+        sig, k = float(rng.uniform(0.3, 2.0)), float(rng.choice([1.0, 10.0]))
+        idx, med, _ = C.find_spikes(y, sig, k, w)
+        got, got_med = C.spikes_beyond(y, sig, k, w)
+        assert np.array_equal(idx, got) and np.array_equal(med[idx], got_med)
+
+
+def test_find_gaps_chunked(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    from rigctl.analysis import allan as AA
+
+    rng = np.random.default_rng(3)
+    c = np.arange(5000, dtype=np.int64)
+    for k in list(rng.integers(1, 4999, 25)) + [999, 1000, 2001]:
+        c[k:] += int(rng.integers(1, 5))
+    with h5py.File(tmp_path / "g.h5", "w") as f:
+        f["imu/counter"] = c.astype(np.uint64)
+    old = AA.CHUNK_ROWS
+    AA.CHUNK_ROWS = 1000  # gaps at and next to chunk edges
+    try:
+        with h5py.File(tmp_path / "g.h5", "r") as f:
+            for s0, s1 in ((0, 5000), (5, 4999), (999, 2002)):
+                d = np.diff(c[s0:s1])
+                ref = [(s0 + i + 1, int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+                assert AA.find_gaps(f, s0, s1, 100.0) == ref
+    finally:
+        AA.CHUNK_ROWS = old

@@ -81,15 +81,19 @@ class _AxisStream:
         running median of their neighbours (the returned samples)."""
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
-        idx, med, sd = CHK.find_spikes(y, self.spike_sigma)
-        if self.spike_sigma is None:
+        if self.spike_sigma is None:  # the first block sets sigma (running median of all)
+            idx, med, sd = CHK.find_spikes(y, None)
+            med = med[idx]
             self.spike_sigma = sd
+        else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
+            sd = self.spike_sigma
+            idx, med = CHK.spikes_beyond(y, sd)
         if idx.size:
             self.spikes.append(idx + first)
-            self.spike_size.append(np.abs(y[idx] - med[idx]) / max(sd, 1e-300))
+            self.spike_size.append(np.abs(y[idx] - med) / max(sd, 1e-300))
             if exclude:
                 y = y.copy()
-                y[idx] = med[idx]
+                y[idx] = med
         return y
 
     def _put_dec(self, xs: np.ndarray) -> None:
@@ -313,14 +317,22 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
     /imu/counter, or without a counter from /imu/time steps longer than 1.5 sample intervals."""
     if s1 - s0 < 2:
         return []
+    # read in chunks (a day's counter is 0.7 GB, its differences another 0.7 GB), each chunk
+    # with the last value of the previous one so that no step is missed
     if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
-        d = np.diff(np.asarray(f["/imu/counter"][s0:s1], dtype=np.int64))
-        idx = np.flatnonzero(d > 1)
-        return [(int(s0 + i + 1), int(d[i] - 1)) for i in idx]
+        out = []
+        ds = f["/imu/counter"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            d = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.int64))
+            out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+        return out
     if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
-        dt = np.diff(np.asarray(f["/imu/time"][s0:s1], dtype=np.float64)) * fs
-        idx = np.flatnonzero(dt > 1.5)
-        return [(int(s0 + i + 1), int(round(dt[i])) - 1) for i in idx]
+        out = []
+        ds = f["/imu/time"]
+        for a in range(s0, s1 - 1, CHUNK_ROWS):
+            dt = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.float64)) * fs
+            out += [(int(a + i + 1), int(round(dt[i])) - 1) for i in np.flatnonzero(dt > 1.5)]
+        return out
     return []
 
 

@@ -18,7 +18,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.ndimage import median_filter
+from scipy.ndimage import maximum_filter1d, median_filter, minimum_filter1d
+
+from . import allan_kernels as K
 
 #: at most this many samples are examined for the grid (the first ones)
 QUANT_SAMPLES = 200_000
@@ -87,3 +89,31 @@ def find_spikes(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGM
     if sigma <= 0:
         return np.zeros(0, dtype=np.int64), med, 0.0
     return np.flatnonzero(np.abs(r) > k * sigma), med, sigma
+
+
+def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
+                  window: int = SPIKE_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """The spikes :func:`find_spikes` finds with a given ``sigma`` (the same indices) and the
+    running median at them, without the running median of every sample: the median of a
+    window lies between its minimum and maximum (running min and max cost a few ns per
+    sample, the median ~40), so a sample within k sigma of both cannot be a spike; the exact
+    median is taken only at the others (the same order statistic of the same window)."""
+    y = np.asarray(y, dtype=float)
+    none = np.zeros(0, dtype=np.int64)
+    if y.size < window or not sigma > 0:
+        return none, np.zeros(0)
+    thr = k * sigma
+    if K.HAVE_NUMBA:  # one compiled pass (scipy's min/max filters take ~18 ns per sample each)
+        cand = K.far_from_window_range(y, window, thr)
+    else:
+        mn = minimum_filter1d(y, window, mode="nearest")
+        cand = np.flatnonzero(y - mn > thr)
+        mx = maximum_filter1d(y, window, mode="nearest")
+        cand = np.union1d(cand, np.flatnonzero(mx - y > thr))
+    if cand.size == 0:
+        return none, np.zeros(0)
+    lo, hi = window // 2, (window - 1) // 2
+    rows = np.clip(cand[:, None] + np.arange(-lo, hi + 1)[None, :], 0, y.size - 1)
+    med = np.partition(y[rows], window // 2, axis=1)[:, window // 2]
+    keep = np.abs(y[cand] - med) > thr
+    return cand[keep], med[keep]

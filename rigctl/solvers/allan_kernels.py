@@ -124,6 +124,51 @@ if HAVE_NUMBA:
             out[j] = x[i]
             j += 1
 
+    @njit(cache=True, nogil=True)
+    def _far_from_range(y, w, thr, out):  # pragma: no cover - compiled
+        """Indices i (into out; returns their count) where y[i] - min > thr or max - y[i] > thr
+        over the window y[i - w//2 .. i + (w-1)//2], indices clipped to the ends: running
+        min and max by van Herk / Gil-Werman, one block of w outputs at a time (the window of
+        output b0 + k is the suffix k.. of block b0 and the prefix ..k-1 of the next one in
+        the padded series), O(w) memory."""
+        n = y.size
+        lo = w // 2
+        smin = np.empty(w)
+        smax = np.empty(w)
+        pmin = np.empty(w)
+        pmax = np.empty(w)
+        c = 0
+        for b0 in range(0, n, w):
+            a = y[min(max(b0 + w - 1 - lo, 0), n - 1)]
+            z = a
+            for k in range(w - 1, -1, -1):  # suffix extremes of padded [b0, b0 + w)
+                v = y[min(max(b0 + k - lo, 0), n - 1)]
+                a = v if v < a else a
+                z = v if v > z else z
+                smin[k] = a
+                smax[k] = z
+            a = y[min(max(b0 + w - lo, 0), n - 1)]
+            z = a
+            for k in range(w):  # prefix extremes of padded [b0 + w, b0 + 2w)
+                v = y[min(max(b0 + w + k - lo, 0), n - 1)]
+                a = v if v < a else a
+                z = v if v > z else z
+                pmin[k] = a
+                pmax[k] = z
+            for k in range(min(w, n - b0)):
+                mn = smin[k]
+                mx = smax[k]
+                if k > 0:
+                    q = pmin[k - 1]
+                    mn = q if q < mn else mn
+                    q = pmax[k - 1]
+                    mx = q if q > mx else mx
+                yi = y[b0 + k]
+                if (yi - mn > thr) | (mx - yi > thr):
+                    out[c] = b0 + k
+                    c += 1
+        return c
+
     @njit(parallel=True, cache=True)
     def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
         for p in prange(bounds.size - 1):
@@ -226,3 +271,12 @@ def phase_into(y: np.ndarray, offset: float, tau0: float, x0: float, out: np.nda
     """out[:] = x0 + tau0 * cumsum(y - offset) (as :func:`phase_chunk`, into a given buffer)."""
     _phase_chunk(np.ascontiguousarray(y, dtype=np.float64), float(offset), float(tau0),
                  float(x0), out)
+
+
+def far_from_window_range(y: np.ndarray, w: int, thr: float) -> np.ndarray:
+    """Indices i where y[i] is more than ``thr`` above the minimum or below the maximum of its
+    window of w samples (scipy.ndimage's alignment, "nearest" ends), ascending."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    out = np.empty(y.size, dtype=np.int64)
+    c = _far_from_range(y, int(w), float(thr), out) if y.size else 0
+    return out[:c].copy()
