@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from . import errors
+from .clock import VirtualClock
 from .devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
 from .procedure import CHAMBER_KINDS, Step
 from .progress import CounterGaps, NullProgress, Progress
@@ -227,7 +228,11 @@ class Engine:
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
         wall = time.monotonic()
-        if t - self._chamber_t < self.chamber_poll_s - 1e-9 or wall - self._chamber_wall < self.chamber_poll_wall_s:
+        # the wall-time limit protects a slow link under a fast clock; under the virtual clock
+        # (everything in-process) it would make the readings depend on the machine's speed
+        wall_limited = not isinstance(self.rig.clock, VirtualClock)
+        if t - self._chamber_t < self.chamber_poll_s - 1e-9 or (
+                wall_limited and wall - self._chamber_wall < self.chamber_poll_wall_s):
             return
         self._chamber_t, self._chamber_wall = t, wall
         from .chamber import describe_trip

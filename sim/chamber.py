@@ -95,9 +95,10 @@ class ChamberPhysics:
         self.fault: str | None = None
         self.running = True             # False: controller off (safe idle, air drifts to ambient)
         self.ambient_c = p.initial_c
-        self._ht = [0.0]
-        self._hp = [self.product]
-        self._ha = [self.air]
+        # grid history as numpy arrays (the hardware loop reads it every few ms: no list copies)
+        self._h = np.empty((3, 4096))
+        self._h[:, 0] = (0.0, self.product, self.air)
+        self._n = 1
 
     # -- commands ---------------------------------------------------------------------------
     def set_setpoint(self, t: float, value_c: float, ramp_c_per_min: float | None = None) -> None:
@@ -165,17 +166,20 @@ class ChamberPhysics:
                 else:
                     self.product = target_p + (self.product - target_p) * math.exp(-h / tau)
                 self.t += h
-                self._ht.append(self.t)
-                self._hp.append(self.product)
-                self._ha.append(self.air)
-            if len(self._ht) > 2_000_000:  # nobody reads the history: bound it
-                self._trim(self.t - self.HISTORY_S)
+                if self._n == self._h.shape[1]:
+                    if self._n > 2_000_000:  # nobody reads the history: bound it
+                        self._trim(self.t - self.HISTORY_S)
+                    else:
+                        self._h = np.concatenate([self._h, np.empty_like(self._h)], axis=1)
+                self._h[:, self._n] = (self.t, self.product, self.air)
+                self._n += 1
 
     def _trim(self, t_keep: float) -> None:
         """Forget grid points before ``t_keep`` (keeping at least two)."""
-        i = min(int(np.searchsorted(np.asarray(self._ht), t_keep)), len(self._ht) - 2)
+        i = min(int(np.searchsorted(self._h[0, :self._n], t_keep)), self._n - 2)
         if i > 0:
-            del self._ht[:i], self._hp[:i], self._ha[:i]
+            self._h[:, : self._n - i] = self._h[:, i:self._n].copy()
+            self._n -= i
 
     def history(self, t: np.ndarray) -> np.ndarray:
         """Product temperature (degC) at run times ``t`` (integrating further if needed)."""
@@ -184,17 +188,17 @@ class ChamberPhysics:
             if not t.size:
                 return np.empty(0)
             self.advance(float(t.max()) + self.p.step_s)
-            out = np.interp(t, self._ht, self._hp)
-            if len(self._ht) > 4 * self.HISTORY_S / self.p.step_s:
+            out = np.interp(t, self._h[0, :self._n], self._h[1, :self._n])
+            if self._n > 4 * self.HISTORY_S / self.p.step_s:
                 self._trim(float(t.min()) - self.HISTORY_S)
             return out
 
     def grid_since(self, t0: float) -> tuple[np.ndarray, np.ndarray]:
         """(times, product temperatures) of the grid points after ``t0`` (kept history only)."""
         with self.lock:
-            ht = np.asarray(self._ht)
+            ht = self._h[0, :self._n]
             i = int(np.searchsorted(ht, t0, side="right"))
-            return ht[i:], np.asarray(self._hp[i:])
+            return ht[i:].copy(), self._h[1, i:self._n].copy()
 
     def state(self, t: float) -> dict[str, Any]:
         """What the controller shows: air (its control sensor), product (second input), set points."""
