@@ -128,10 +128,13 @@ def test_socket_refuses_a_client_that_is_not_its_owner(daemon):
     assert control.request(sock, "status")["ok"]
 
 
+# the warm-up is long enough (5 s of wall time at 40x) that `status --watch` can start, print three
+# lines and the pause can land while the job still runs, on a fast idle machine too (with 40 s the
+# job was sometimes done before the pause)
 PROC = """procedure: daemon-job
 steps:
   - warmup:
-      duration: 40 s
+      duration: 200 s
   - orientations:
       angles_deg: [[0, 0, 0], [90, 0, 0]]
       sample: 20 s
