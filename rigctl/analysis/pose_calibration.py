@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ..calibration_text import param_table
 from ..errors import InputError
 from ..segment_builder import open_recording
 from ..solvers import pose_loop as pl
@@ -236,7 +237,6 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
     else:
         status = "OK"
     for key, r in results.items():
-        from ..calibration_text import param_table
         lines.append(param_table(r, key))
     lines.append(format_loops(loops))
     lines.append(format_before_after(before_after))

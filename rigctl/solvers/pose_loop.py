@@ -550,8 +550,8 @@ def direction_variance(fit: Fit, effects: list[str], u: Arr, data: Any) -> Arr:
     return np.trace(C, axis1=1, axis2=2) / 2
 
 
-def pose_variables(d: PoseData, up: Arr, rep: int = 1) -> dict[str, Arr]:
-    """Variables the residual is checked against (one value per pose, repeated per row)."""
+def pose_variables(d: PoseData, up: Arr) -> dict[str, Arr]:
+    """Variables the residual is checked against, one value per pose (callers tile them per row)."""
     P = len(up)
     prev = np.vstack([up[:1], up[:-1]])
     v = {"time": d.t_s, "pose order parity": (np.arange(P) % 2).astype(float)}
@@ -560,7 +560,7 @@ def pose_variables(d: PoseData, up: Arr, rep: int = 1) -> dict[str, Arr]:
     for i, a in enumerate(AX):
         v[f"gravity direction {a}"] = up[:, i]
         v[f"previous pose's gravity direction {a}"] = prev[:, i]
-    return {k: np.repeat(x, rep) if rep == 1 else np.tile(x, rep) for k, x in v.items()}
+    return v
 
 
 # ------------------------------------------------------------------------------ gyro, static
