@@ -240,6 +240,13 @@ class StreamImu(ReconnectingReader):
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
 
+    def close(self) -> None:
+        """Stop the reader; then flush the decoder, so a bad frame at the very end of the stream
+        (known bad only once a later frame or the end shows where it ends) is in the counters."""
+        super().close()
+        if self._thread is None or not self._thread.is_alive():
+            self.stream.flush()
+
     def __enter__(self):
         return self
 
