@@ -134,3 +134,21 @@ def test_clock_fit_residuals_exceed_quantization_finding(solved):
     lo, hi = stats.chi2.ppf([0.005, 0.995], fit.dof)
     assert chi2 > hi, (chi2, fit.dof, hi)
     assert 6e-3 < fit.residual_std_s < 15e-3
+
+
+def test_pipeline_on_non_taps_warns_instead_of_reporting_quietly(ref_data, pair):
+    """The whole pipeline (first-difference tap detector on imu1's x accelerometer, the hand
+    rotations' starts in imu0 as pulses): the detector finds 29 'taps' in hand motion, 6 of 21
+    pulses match, and the drift (-150 +- 620 ppm at 95 %) misses the true ~2360 ppm. The result
+    must say so: a warning that few pulses matched, printed with the summary."""
+    from rigctl.analysis.sync import SyncOptions, summary_lines, synchronise
+
+    w0, _ = pair
+    d1 = np.loadtxt(gzip.open(ref_data / "mikov-mpu9150" / "imu1.log.gz"))
+    pulses = rotation_starts(w0) / FS
+    res = synchronise(np.arange(d1.shape[0]), d1[:, 0], FS, pulses, SyncOptions(response="none"))
+    s = res.summary
+    assert s["n_inliers"] < 0.5 * s["n_pulses"]
+    assert abs(s["drift_ppm"] - 2360.0) > s["drift_ci95_ppm"]  # the wrong answer the warning is for
+    assert len(s["warnings"]) == 1 and "pulses are matched" in s["warnings"][0]
+    assert any(line.startswith("WARNING: only") for line in summary_lines(s))
