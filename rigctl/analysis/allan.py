@@ -99,7 +99,13 @@ class _AxisStream:
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
+        g0 = acc.n_phase if acc.n_phase else 1  # phase index of this chunk's first point
         acc.add_rate(y)
+        x = acc.chunk_phase
+        if x is not None and x.size == y.size:  # the accumulator's own phase: no second pass
+            self._add_phase(x, g0)
+            self.n_rate += y.size
+            return
         c = acc.offset
         if self.n_head < HEAD_POINTS:  # full-resolution phase of the first samples
             part = y[: HEAD_POINTS - self.n_head] - c
@@ -120,6 +126,23 @@ class _AxisStream:
                 self._put_dec(np.cumsum(sums) * self.tau0 + self.x_dec)
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
+
+    def _add_phase(self, x: np.ndarray, g0: int) -> None:
+        """Head and decimated copies from the phase points x[g0 + i] = x[i] (the same running
+        sum as :meth:`add` builds: bit-identical head; the decimated points are the phase at
+        every dec-th index instead of a running sum of block sums)."""
+        if self.n_head < HEAD_POINTS:  # as add(): the same points
+            k = min(HEAD_POINTS - self.n_head, x.size)
+            if self.n_head == 0:
+                self._head[0] = 0.0
+                self.n_head = 1
+            self._head[self.n_head: self.n_head + k] = x[:k]
+            self.n_head += k
+            self.x_head = float(x[k - 1])
+        start = (-g0) % self.dec
+        if start < x.size:
+            xs = x[start:: self.dec]
+            self._put_dec(xs[: self._dec.size - self.n_dec])
 
     def noise_id(self, m: int, n: int) -> int:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
@@ -274,23 +297,37 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
     task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
     chunk i + 1. At most two chunks are in memory."""
-    def read(a0: int) -> dict:
+    # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
+    # column buffer per axis, reused: no fresh pages (page faults) per chunk
+    rows = min(CHUNK_ROWS, max(0, s1 - s0))
+    bufs = [{name: np.empty((rows, *d.shape[1:])) for name, d in dsets.items()}
+            for _ in range(2)]
+    cols = {a: np.empty(rows) for a in axes}
+
+    def read(a0: int, k: int) -> dict:
         a1 = min(s1, a0 + CHUNK_ROWS)
-        return {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+        out = {}
+        for name, d in dsets.items():
+            b = bufs[k][name][: a1 - a0]
+            d.read_direct(b, np.s_[a0:a1], np.s_[0:a1 - a0])
+            out[name] = b
+        return out
 
     def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
-        y = streams[a].screen(np.ascontiguousarray(block[:, col]), first, exclude)
+        y = cols[a][: block.shape[0]]
+        np.copyto(y, block[:, col])
+        y = streams[a].screen(y, first, exclude)
         streams[a].add(y)
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    nxt = read(starts[0]) if starts else None
+    nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks = nxt
         checks = [pool.submit(check_finite, path, name, b, a0) for name, b in blocks.items()]
         for c in checks:  # a bad block must not reach the accumulators
             c.result()
         tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
-        nxt = read(starts[i + 1]) if i + 1 < len(starts) else None
+        nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for t in tasks:
             t.result()
         del blocks
