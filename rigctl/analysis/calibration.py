@@ -41,7 +41,8 @@ from .verdicts import format_verdicts
 from ..calibration_text import noise_summary, param_table
 from ..recorder import utc_now, write_results
 from ..segment_builder import build_segment_table, open_recording
-from ..solvers.calibration_result import CalibrationResult, _jsonable
+from ..jsonable import jsonable
+from ..solvers.calibration_result import CalibrationResult
 from ..solvers.segment_stats import NoiseModel
 from ..errors import InputError
 from ..spec import Spec
@@ -287,7 +288,7 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
     # -- end of the thermal hook
     free = is_orientation_free(p)
     payload, text, explain = (calibrate_free if free else calibrate_table)(p, noise)
-    payload = _jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
+    payload = jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
                          "recording": str(p.resolve()), **payload})
     if spec is not None:
         payload["verdicts"] = production.verdicts_for(spec, "calibration", payload)
