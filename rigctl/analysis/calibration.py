@@ -284,7 +284,9 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
     from . import thermal
     if thermal.is_thermal(p):
-        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise)
+        with open_recording(p) as f:
+            noise_models = _noise(f, noise, p)
+        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models)
         return payload, text, ""
     # -- end of the thermal hook
     free = is_orientation_free(p)

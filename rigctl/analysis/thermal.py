@@ -265,18 +265,17 @@ def parse_degrees(spec: str | int | dict[str, int] | None) -> dict[str, int] | s
 
 
 def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = None,
-                      reference_c: float = 25.0, noise: str = "auto"
+                      reference_c: float = 25.0, noise: tuple[Any, Any, str] | None = None
                       ) -> tuple[dict[str, Any], str, dict[str, tuple[Any, str]]]:
     """(payload, text, arrays) of the thermal calibration of a recording; ``arrays`` are the
     datasets of /results/thermal (per sensor: the windows' temperatures, heating flags, residuals
     before and after, and each axis' coefficient covariance). ``degrees``: per group
     ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default), N / 'B,S,M' (:func:`parse_degrees`)
-    or 'auto' (chosen per sensor by :func:`rigctl.solvers.thermal.select_degrees`). ``noise``: as
-    ``rigctl calibrate --noise`` -- the IEEE 952 coefficients of /results/allan (allan, or auto
-    when present) or of another recording of the unit (FILE.h5), else estimated from the session
-    (self, :func:`rigctl.solvers.thermal.estimate_noise`); the covariance of the window means
-    follows from them."""
-    from .calibration import _noise
+    or 'auto' (chosen per sensor by :func:`rigctl.solvers.thermal.select_degrees`). ``noise``:
+    (accel NoiseModel, gyro NoiseModel, description) as ``rigctl calibrate --noise`` resolved it
+    (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
+    or no ``noise``, estimates that sensor's noise from the session
+    (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
     from ..calibration_text import noise_summary
 
     p = Path(path)
@@ -285,7 +284,12 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                                                               else [0])))
     with open_recording(p) as f:
         truth = truth_coefficients(f)
-        nf, nw, noise_txt = _noise(f, noise, p)
+    nf, nw, noise_txt = noise or (None, None, "")
+    if nf is None and nw is None:
+        noise_txt = ("estimated from the session (no /results/allan): white level per window kind from the "
+                     "batch means within each window (contrasts free of a linear drift), bias instability B "
+                     "and rate random walk K by REML of the window means about the protected design "
+                     "(cubic in temperature, every thermal candidate, an offset per window kind)")
     models = th.estimate_noise(wins["accel"], nf) + th.estimate_noise(wins["gyro"], nw)
     noise_lines, noise_rows = noise_summary(models) if len(models) == 6 else ([], [])
     if len(models) != 6:
@@ -368,7 +372,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
 
 
 def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | Path | None = None,
-                        degrees: dict[str, int] | str | None = None, noise: str = "auto"
+                        degrees: dict[str, int] | str | None = None, noise: tuple[Any, Any, str] | None = None
                         ) -> tuple[dict[str, Any], str]:
     """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``)."""
     p = Path(path)
