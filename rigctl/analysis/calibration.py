@@ -41,7 +41,8 @@ from .verdicts import format_verdicts
 from ..calibration_text import noise_summary, param_table
 from ..recorder import utc_now, write_results
 from ..segment_builder import build_segment_table, open_recording
-from ..solvers.calibration_result import CalibrationResult, _jsonable
+from ..jsonable import jsonable
+from ..solvers.calibration_result import CalibrationResult
 from ..solvers.segment_stats import NoiseModel
 from ..errors import InputError
 from ..spec import Spec
@@ -274,20 +275,23 @@ def is_orientation_free(path: Path) -> bool:
 
 
 def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None,
-              spec: Spec | None = None) -> tuple[dict[str, Any], str, str]:
+              spec: Spec | None = None, thermal_degree: str | None = None) -> tuple[dict[str, Any], str, str]:
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
-    With ``spec`` the verdicts are computed, printed and stored with the results."""
+    With ``spec`` the verdicts are computed, printed and stored with the results. ``thermal_degree``:
+    the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto')."""
     p = Path(path)
     # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
     from . import thermal
     if thermal.is_thermal(p):
-        payload, text = thermal.calibrate_and_store(p, store, json_path)
+        with open_recording(p) as f:
+            noise_models = _noise(f, noise, p)
+        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models)
         return payload, text, ""
     # -- end of the thermal hook
     free = is_orientation_free(p)
     payload, text, explain = (calibrate_free if free else calibrate_table)(p, noise)
-    payload = _jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
+    payload = jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
                          "recording": str(p.resolve()), **payload})
     if spec is not None:
         payload["verdicts"] = production.verdicts_for(spec, "calibration", payload)
