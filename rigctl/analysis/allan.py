@@ -290,61 +290,6 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     return out
 
 
-class _MappedRows:
-    """Rows of an uncompressed, unfiltered little-endian float64 chunked dataset read in place
-    from a read-only memory map of the file: the samples go from the page cache straight into
-    the axes' column buffers (no copy by HDF5 first, and no HDF5 call holding the GIL while
-    the workers wait). :meth:`of` returns None for any other layout (then h5py reads)."""
-
-    def __init__(self, path: str, d: Any, starts: np.ndarray, offsets: np.ndarray):
-        self.rows = int(d.chunks[0])
-        self.cols = d.shape[1:]
-        self.n = int(d.shape[0])
-        self.starts, self.offsets = starts, offsets
-        self.mm = np.memmap(path, dtype=np.uint8, mode="r")
-
-    @classmethod
-    def of(cls, path: str, d: Any) -> "_MappedRows | None":
-        try:
-            if (d.chunks is None or d.dtype != np.dtype("<f8") or d.ndim not in (1, 2)
-                    or d.chunks[1:] != d.shape[1:] or d.shape[0] == 0
-                    or d.id.get_create_plist().get_nfilters() != 0):
-                return None
-            found: list[tuple[int, int, int, int]] = []
-            d.id.chunk_iter(lambda si: found.append(
-                (si.chunk_offset[0], si.byte_offset, si.size, si.filter_mask)))
-        except Exception:  # an h5py or HDF5 without chunk_iter, or any oddity: h5py reads
-            return None
-        rows = int(d.chunks[0])
-        full = rows * int(np.prod(d.shape[1:], dtype=np.int64)) * 8
-        found.sort()
-        if (len(found) != -(-d.shape[0] // rows) or any(
-                r0 != k * rows or size != full or mask for k, (r0, _, size, mask) in enumerate(found))):
-            return None
-        m = cls(path, d, np.array([f[0] for f in found], dtype=np.int64),
-                np.array([f[1] for f in found], dtype=np.int64))
-        # the first and the last chunk must read as HDF5 reads them
-        for r0 in (0, int(m.starts[-1])):
-            r1 = min(m.n, r0 + rows)
-            got = np.concatenate([v for _, v in m.pieces(r0, r1)])
-            if not np.array_equal(got, np.asarray(d[r0:r1]), equal_nan=True):
-                return None
-        return m
-
-    def pieces(self, a0: int, a1: int) -> list[tuple[int, np.ndarray]]:
-        """[(first row relative to a0, view of rows)] covering rows [a0, a1)."""
-        out = []
-        k = a0 // self.rows
-        while k * self.rows < a1:
-            r0 = k * self.rows
-            v = np.ndarray((self.rows, *self.cols), dtype="<f8", buffer=self.mm,
-                           offset=int(self.offsets[k]))
-            lo, hi = max(a0, r0), min(a1, r0 + self.rows, self.n)
-            out.append((lo - a0, v[lo - r0: hi - r0]))
-            k += 1
-        return out
-
-
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False) -> None:
@@ -375,10 +320,6 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
         streams[a].add(y)
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    mapped = {name: _MappedRows.of(path, d) for name, d in dsets.items()}
-    if starts and all(m is not None for m in mapped.values()):
-        _stream_mapped(pool, path, mapped, axes, streams, starts, s1, s0, cols, shown, exclude)
-        return
     nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks = nxt
@@ -391,33 +332,6 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
             t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
-
-
-def _stream_mapped(pool: ThreadPoolExecutor, path: str, mapped: dict, axes: list[str],
-                   streams: dict, starts: list[int], s1: int, s0: int, cols: dict,
-                   shown: WorkProgress, exclude: bool) -> None:
-    """:func:`_stream_chunks` with the datasets read in place (:class:`_MappedRows`): per
-    chunk, one task per dataset checks its pieces, then one task per axis gathers its column
-    from the pieces into its buffer, screens and accumulates."""
-    def check(name: str, a0: int, a1: int) -> None:
-        for r, v in mapped[name].pieces(a0, a1):
-            check_finite(path, name, v, a0 + r)
-
-    def feed(a: str, a0: int, a1: int) -> None:
-        name, col = AXES[a][0], AXES[a][1]
-        y = cols[a][: a1 - a0]
-        for r, v in mapped[name].pieces(a0, a1):
-            np.copyto(y[r: r + v.shape[0]], v[:, col] if v.ndim > 1 else v)
-        y = streams[a].screen(y, a0 - s0, exclude)
-        streams[a].add(y)
-
-    for a0 in starts:
-        a1 = min(s1, a0 + CHUNK_ROWS)
-        for c in [pool.submit(check, name, a0, a1) for name in mapped]:
-            c.result()  # a bad block must not reach the accumulators
-        for t in [pool.submit(feed, a, a0, a1) for a in axes]:
-            t.result()
-        shown.update(a1 - s0)
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
