@@ -83,3 +83,26 @@ def test_errors_name_file_line_and_what_to_do(tmp_path: Path, pulses: str, messa
     with pytest.raises(InputError, match=message) as err:
         load_config(path)
     assert err.value.file == str(path) and err.value.line == line, str(err.value)
+
+
+@pytest.mark.parametrize("extra, message, line", [
+    ("site:\n  latitude_dg: 48\n", r"unknown key 'latitude_dg' in 'site' \(did you mean 'latitude_deg'\?\)", 3),
+    ("site:\n  latitude_deg: 91\n", r"'latitude_deg' = 91 is above its maximum 90", 3),
+    ("site:\n  gravity_m_s2: heavy\n", r"'gravity_m_s2'.*must be a number", 3),
+    ("recorder:\n  flush_intervall_s: 0.2\n", r"unknown key 'flush_intervall_s' in 'recorder' \(did you mean 'flush_interval_s'\?\)", 3),
+    ("recorder:\n  table_rate_hz: 0\n", r"'table_rate_hz' = 0 is below its minimum 0.1", 3),
+])
+def test_site_and_recorder_are_typed_settings_with_the_same_errors(tmp_path: Path, extra: str, message: str,
+                                                                     line: int) -> None:
+    """site: and recorder: go through the same validator as the link settings
+    (rigctl.settings.parse): file, line and "did you mean" on every error."""
+    path = tmp_path / "rig.yaml"
+    path.write_text("clock: virtual\n" + extra + "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    with pytest.raises(InputError, match=message) as err:
+        load_config(path)
+    assert err.value.file == str(path) and err.value.line == line, str(err.value)
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("site:\n  latitude_deg: 48\n  gravity_m_s2: 9.81\nrecorder:\n  table_rate_hz: 20\n"
+                  "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    cfg = load_config(ok)
+    assert cfg.gravity == 9.81 and abs(cfg.latitude - 0.837758041) < 1e-9 and cfg.table_rate_hz == 20
