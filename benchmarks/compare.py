@@ -16,7 +16,8 @@ says (a time, error, memory or size: lower; a rate, ``per_s``, speed-up: higher;
 "?"). Exit status 0; the verdict is the reader's, with the machine's load (printed at the
 start and end: other work on the machine moves wall-clock figures, CPU figures less).
 
-``--args NAME=ARGS`` passes arguments to one benchmark (repeatable; shell-split), e.g. to run a
+``--repeats N`` runs each benchmark N times at each commit, alternating which goes first, and
+compares the means. ``--args NAME=ARGS`` passes arguments to one benchmark (repeatable; shell-split), e.g. to run a
 long benchmark on less work at both commits alike.
 """
 from __future__ import annotations
@@ -33,16 +34,22 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-LOWER = ("_s", "_ms", "_us", "_ns", "wall", "cpu", "time", "err", "error", "rss", "_mb", "_mib",
-         "_gb", "bytes", "latency", "false", "miss")
-HIGHER = ("per_s", "per_cpu", "_per_", "speedup", "throughput", "hz", "ratio_sim_wall", "coverage")
+UNITS_LOWER = {"s", "ms", "us", "ns", "h", "ppm", "ppb", "mb", "mib", "gb", "gib", "bytes", "rss"}
+COUNT_HIGHER = {"frames", "msgs", "messages", "samples", "requests", "rows", "taps", "runs"}
 
 
 def direction(key: str) -> str:
-    k = key.lower()
-    if any(h in k for h in HIGHER):
+    """Which way is better, from the key's name: "lower" for a time, error or size (unit last,
+    or ``S_per_X`` with a time or size S), "higher" for a rate (``frames_per_s``), a speed-up or
+    a ratio of simulated to wall time; "?" otherwise."""
+    tok = key.lower().replace(".", "_").split("_")
+    if "per" in tok:
+        i = tok.index("per")
+        num = tok[i - 1] if i else ""
+        return "lower" if num in UNITS_LOWER else "higher" if (num in COUNT_HIGHER or tok[i + 1:] in (["s"], ["cpu", "s"])) else "?"
+    if "speedup" in tok or ("ratio" in tok and "wall" in tok):
         return "higher"
-    if any(k.endswith(s) or s in k for s in LOWER):
+    if tok[-1] in UNITS_LOWER or any(w in tok for w in ("err", "error", "errors", "false")):
         return "lower"
     return "?"
 
@@ -82,6 +89,17 @@ def run(wt: Path, bench: str, args: list[str], timeout: float) -> tuple[dict, fl
     return out, wall, why
 
 
+def mean_of(results: list[tuple[dict, float, str]]) -> tuple[dict, float, str]:
+    """The mean of each numeric figure over repeated runs (the first error, if any)."""
+    why = next((w for _, _, w in results if w), "")
+    if why:
+        return {}, 0.0, why
+    figs = [flat(r) for r, _, _ in results]
+    keys = set.intersection(*(set(f) for f in figs))
+    return ({k: sum(f[k] for f in figs) / len(figs) for k in keys},
+            sum(w for _, w, _ in results) / len(results), "")
+
+
 def flat(d: dict, prefix: str = "") -> dict[str, float]:
     out: dict[str, float] = {}
     for k, v in d.items():
@@ -100,6 +118,9 @@ def main() -> int:
                                                       if p.stem != "compare")))
     ap.add_argument("--args", action="append", default=[], metavar="NAME=ARGS")
     ap.add_argument("--timeout", type=float, default=3600.0, help="per benchmark run, s")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="runs of each benchmark at each commit, the order alternating (old new, new old, "
+                         "...); figures are the means")
     a = ap.parse_args()
     extra = {k: shlex.split(v) for k, v in (x.split("=", 1) for x in a.args)}
     commits = [subprocess.run(["git", "-C", str(ROOT), "rev-parse", c], capture_output=True, text=True,
@@ -111,19 +132,21 @@ def main() -> int:
         wts = [checkout(c, Path(tmp)) for c in commits]
         try:
             for bench in a.bench.split(","):
-                res = []
-                for wt in wts:
-                    if not (wt / "benchmarks" / f"{bench}.py").exists():
-                        res.append(({}, 0.0, "no such benchmark at this commit"))
-                        continue
-                    res.append(run(wt, bench, extra.get(bench, []), a.timeout))
-                (old, w0, why0), (new, w1, why1) = res
+                runs: list[list[tuple[dict, float, str]]] = [[], []]
+                for r in range(a.repeats):  # old, new; then new, old; ...
+                    for i in ((0, 1) if r % 2 == 0 else (1, 0)):
+                        wt = wts[i]
+                        if not (wt / "benchmarks" / f"{bench}.py").exists():
+                            runs[i].append(({}, 0.0, "no such benchmark at this commit"))
+                        else:
+                            runs[i].append(run(wt, bench, extra.get(bench, []), a.timeout))
+                (old, w0, why0), (new, w1, why1) = (mean_of(x) for x in runs)
                 print(f"\n== {bench} (wall {w0:.0f} s old, {w1:.0f} s new)", flush=True)
                 if why0 or why1:
                     print(f"   not compared: old {why0 or 'ok'}; new {why1 or 'ok'}")
                     summary[bench] = {"error": why0 or why1}
                     continue
-                fo, fn = flat(old), flat(new)
+                fo, fn = old, new
                 rows = {}
                 for k in sorted(set(fo) & set(fn)):
                     ratio = fn[k] / fo[k] if fo[k] else float("nan")
