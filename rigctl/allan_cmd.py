@@ -102,6 +102,20 @@ def _parse_taus(text: str) -> A.TauSpec:
     return n
 
 
+def default_axes(path: str) -> list[str]:
+    """Every axis, or those an import wrote (/meta import_axes: a gyro-only capture stores the
+    other columns as NaN)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            got = f["meta"].attrs.get("import_axes", "") if "meta" in f else ""
+    except OSError:
+        got = ""  # not readable: compute() says why
+    got = got.decode() if isinstance(got, bytes) else str(got)
+    return _parse_axes(got) if got else list(AXES)
+
+
 def _parse_axes(text: str) -> list[str]:
     axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
     bad = [a for a in axes if a not in AXES]
@@ -113,7 +127,7 @@ def _parse_axes(text: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
     codes by rigctl.cli.main)."""
-    axes = _parse_axes(args.axes)
+    axes = _parse_axes(args.axes) if args.axes else default_axes(args.recording)
     taus = _parse_taus(str(args.taus))
     if args.plot:
         try:
@@ -136,6 +150,11 @@ def run(args: argparse.Namespace) -> int:
         a, b = g["range_used"]
         print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s): analysing "
               f"the longest gap-free stretch, rows {a}..{b - 1} ({b - a} samples)",
+              file=sys.stderr, flush=True)
+    elif g.get("count") and g.get("mode") == "skip":
+        print(f"note: {g['missing_samples']} samples missing in {g['count']} gap(s): the Allan "
+              f"terms touching a gap are skipped (Stable32's gap handling; {g['stretches']} "
+              f"gap-free stretches, the longest {g['longest_stretch_samples']} samples)",
               file=sys.stderr, flush=True)
     elif g.get("count"):
         print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s), bridged "
@@ -169,8 +188,9 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("allan", help="Allan analysis of a recording's IMU channels",
                               description=__doc__.splitlines()[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
-    p.add_argument("--axes", default="gx,gy,gz,ax,ay,az",
-                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all)")
+    p.add_argument("--axes", default=None,
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all, or those an "
+                        "import found in the file)")
     p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
     p.add_argument("--taus", default="95",
                    help="octave, decade, all, or N log-spaced taus (default 95)")
@@ -179,9 +199,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
-    p.add_argument("--gaps", choices=GAP_MODES, default="refuse",
-                   help="dropped samples in the range: refuse (default: say where and what to "
-                        "do), analyse the longest gap-free stretch, or bridge them")
+    p.add_argument("--gaps", choices=GAP_MODES, default="skip",
+                   help="dropped samples in the range: skip every Allan term that touches a gap "
+                        "(default; Stable32's gap handling), refuse (say where), analyse the "
+                        "longest gap-free stretch, or bridge them (biased)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "
