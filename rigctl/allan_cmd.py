@@ -17,11 +17,12 @@ import numpy as np
 
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, UsageError, _jsonable, check_notes,
-    check_warnings, choose_range,
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes,
+    check_warnings, choose_range, default_axes, gap_message,
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
+from rigctl.errors import InputError
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_fit as F
 from rigctl.display_units import capture_text, need_text  # noqa: F401 - kept for callers
@@ -96,31 +97,17 @@ def _parse_taus(text: str) -> A.TauSpec:
     try:
         n = int(text)
     except ValueError:
-        raise UsageError(f"--taus {text!r}: use octave, decade, all or a number") from None
+        raise InputError(f"--taus {text!r}: use octave, decade, all or a number") from None
     if n < 2:
-        raise UsageError("--taus N needs N >= 2")
+        raise InputError("--taus N needs N >= 2")
     return n
-
-
-def default_axes(path: str) -> list[str]:
-    """Every axis, or those an import wrote (/meta import_axes: a gyro-only capture stores the
-    other columns as NaN)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            got = f["meta"].attrs.get("import_axes", "") if "meta" in f else ""
-    except OSError:
-        got = ""  # not readable: compute() says why
-    got = got.decode() if isinstance(got, bytes) else str(got)
-    return _parse_axes(got) if got else list(AXES)
 
 
 def _parse_axes(text: str) -> list[str]:
     axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
-        raise UsageError(f"--axes {text!r}: choose from {','.join(AXES)}")
+        raise InputError(f"--axes {text!r}: choose from {','.join(AXES)}")
     return axes
 
 
@@ -133,11 +120,11 @@ def run(args: argparse.Namespace) -> int:
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+            raise InputError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
     if args.kalibr and set(axes) != set(AXES):
-        raise UsageError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
+        raise InputError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
     if not args.kalibr_inflate > 0:
-        raise UsageError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
+        raise InputError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
@@ -145,21 +132,9 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps)
-    g = result.get("gaps") or {}
-    if g.get("count") and g.get("mode") == "longest":
-        a, b = g["range_used"]
-        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s): analysing "
-              f"the longest gap-free stretch, rows {a}..{b - 1} ({b - a} samples)",
-              file=sys.stderr, flush=True)
-    elif g.get("count") and g.get("mode") == "skip":
-        print(f"note: {g['missing_samples']} samples missing in {g['count']} gap(s): the Allan "
-              f"terms touching a gap are skipped (Stable32's gap handling; {g['stretches']} "
-              f"gap-free stretches, the longest {g['longest_stretch_samples']} samples)",
-              file=sys.stderr, flush=True)
-    elif g.get("count"):
-        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s), bridged "
-              "on request (--gaps bridge): taus spanning a gap are biased", file=sys.stderr,
-              flush=True)
+    gap_line = gap_message(result.get("gaps") or {})
+    if gap_line:
+        print(gap_line, file=sys.stderr, flush=True)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))

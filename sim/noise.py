@@ -60,7 +60,47 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from . import block_iir as _bi
 from .block_iir import BlockCascade
+
+if _bi.HAVE_NUMBA:
+    from numba import njit
+
+    @njit(cache=True, nogil=True)
+    def _walk(raw16, mean, s, kappa, quantized, state, row):  # pragma: no cover - compiled
+        """row += the K random walk (quantized: its integral in steps q) sample by sample:
+        W_t = W_{t-1} + s (v_t - mean), Theta_t = Theta_{t-1} + kappa W_t; state = (W, Theta)."""
+        w = state[0]
+        th = state[1]
+        if quantized:
+            for t in range(row.size):
+                w += s * (raw16[t] - mean)
+                th += kappa * w
+                row[t] += th
+        else:
+            for t in range(row.size):
+                w += s * (raw16[t] - mean)
+                row[t] += w
+        state[0] = w
+        state[1] = th
+
+    @njit(cache=True, nogil=True)
+    def _quantize(row, sig, has_sig, k_sig, k_out, state):  # pragma: no cover - compiled
+        """In place, as the numpy path of NoiseGenerator.next (same operations, same order):
+        row (the integral in steps q) += running sum of sig * k_sig (carried in state[0]),
+        rounded, differenced against the previous rounded value (state[1]), times k_out."""
+        th_s = state[0]
+        prev = state[1]
+        for t in range(row.size):
+            v = row[t]
+            if has_sig:
+                th_s += sig[t] * k_sig
+                v += th_s
+            r = np.rint(v)
+            row[t] = (r - prev) * k_out
+            prev = r
+        state[0] = th_s
+        state[1] = prev
 from .spectral_factor import factor, residues
 
 TERMS = ("Q", "N", "B", "K", "R")
@@ -282,6 +322,7 @@ class NoiseGenerator:
                 for ax in np.flatnonzero(self._active & (sb2 > 0)):
                     self._filter.state[ax, : len(a_pole)] = root @ self._rng[ax].standard_normal(len(a_pole))
         self._eps: dict[int, np.ndarray] = {}
+        self._out: dict[int, np.ndarray] = {}
         self._kbuf: dict[int, np.ndarray] = {}
         self._kwork: dict[int, tuple] = {}  # K: (W_b, Theta_b, 1) per sub-block, two products
         self._ramp: dict[int, np.ndarray] = {}
@@ -305,9 +346,17 @@ class NoiseGenerator:
             eps = self._eps[m]
             for ax in np.flatnonzero(self._active):
                 self._rng[ax].standard_normal(out=eps[ax])
-            self._chunk = self._filter.run(eps)
+            if _bi.HAVE_NUMBA:  # sample by sample, compiled (~4x faster than the BLAS blocks)
+                if m not in self._out:
+                    self._out[m] = np.empty((3, m))
+                self._chunk = _bi.run_direct(self._filter, eps, self._out[m])
+            else:
+                self._chunk = self._filter.run(eps)
         for ax in np.flatnonzero(self._k_step > 0):
-            self._add_random_walk(ax, self._chunk[ax], self._kbuf[m])
+            if _bi.HAVE_NUMBA:
+                self._walk_compiled(ax, self._chunk[ax], m)
+            else:
+                self._add_random_walk(ax, self._chunk[ax], self._kbuf[m])
         R = self.params["R"]
         if np.any(R > 0):  # ramp R (k+1) tau0; on quantized axes its integral R tau0^2 (k+1)(k+2)/2, steps q
             if m not in self._ramp:
@@ -324,6 +373,16 @@ class NoiseGenerator:
                     self._chunk[ax] += np.multiply(kk, R[ax] * self.tau0, out=tmp)
         self._k_chunk += m
         self._pos = 0
+
+    def _walk_compiled(self, ax: int, row: np.ndarray, m: int) -> None:
+        """:meth:`_add_random_walk` sample by sample (the same draws, same walk; rounding
+        differs in the last bits from the sub-block products)."""
+        raw = self._rng_k[ax].bit_generator.random_raw(m // 4).view(np.uint16)
+        quantized = bool(self._quantized[ax])
+        state = np.array([self._k_level[ax], self._k_theta[ax]])
+        _walk(raw, _U16_MEAN, self._k_step[ax] / _U16_STD,
+              float(self._k_scale[ax]) if quantized else 1.0, quantized, state, row)
+        self._k_level[ax], self._k_theta[ax] = state[0], state[1]
 
     def _add_random_walk(self, ax: int, row: np.ndarray, buf: np.ndarray) -> None:
         """row += the K random walk W over one chunk (on quantized axes its integral, in steps q), carried.
@@ -398,6 +457,12 @@ class NoiseGenerator:
                     row += sig[:, ax]
                 continue
             q = self._q_step[ax]  # row holds the noise integral in steps q
+            if _bi.HAVE_NUMBA:  # the same operations in one compiled pass
+                st = np.array([self._sig_theta[ax], self._theta_q[ax]])
+                _quantize(row, sig[:, ax] if sig is not None else work, sig is not None,
+                          self.tau0 / q, q * self.rate_hz, st)
+                self._sig_theta[ax], self._theta_q[ax] = st[0], st[1]
+                continue
             if sig is not None:
                 np.multiply(sig[:, ax], self.tau0 / q, out=work)
                 work[0] += self._sig_theta[ax]

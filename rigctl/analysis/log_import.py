@@ -297,7 +297,7 @@ def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, 
                                     last_sample=s["end"], t_start=float(t[s["start"]]),
                                     t_end=float(t[s["end"] - 1]), settle_time=0.0, commanded_angle=NAN3,
                                     commanded_rate=NAN3, measured_angle=NAN3, measured_rate=NAN3),
-                            file_time=True)
+                            file_time=True, flush=False)
         rec.add_event(0.0, "import", f"imported from {meta['import_source']}" + (f"; {note}" if note else ""),
                       file_time=True)
     except BaseException:

@@ -271,10 +271,15 @@ class OadevAccumulator:
         self.phase_input: bool | None = None
         self._x_last = 0.0
         self._scratch = np.empty(_BLOCK)
+        #: after add_rate: the phase points x[n_phase_before + i] of that chunk's samples
+        #: (x[k] = tau0 sum_{j<k} (y[j] - offset)), a view valid until the next add_rate, or
+        #: None when the path taken did not build them (the Gram pyramid alone)
+        self.chunk_phase: np.ndarray | None = None
 
     def add_rate(self, y: np.ndarray) -> None:
         """Append rate samples (any float dtype); converted to float64 per chunk."""
         y = np.asarray(y, dtype=np.float64).ravel()
+        self.chunk_phase = None
         if y.size == 0:
             return
         self._kind(False)
@@ -296,6 +301,7 @@ class OadevAccumulator:
             self._x_last = float(buf[-1])
             with S.blas_single_thread():
                 x = lev.feed_buffer(buf)
+            self.chunk_phase = x
             self._feed_levels(x, self.n_phase, first=1, src_s=1)
         elif self.levels:
             if K.HAVE_NUMBA:  # the same operations in one pass
@@ -307,6 +313,7 @@ class OadevAccumulator:
                 x += self._x_last
             self._feed_levels(x, self.n_phase)
             self._x_last = float(x[-1])
+            self.chunk_phase = x
         self.n_phase += y.size
 
     def add_phase(self, x: np.ndarray) -> None:
