@@ -33,12 +33,20 @@ from rigctl.solvers import clock_model, tap_match
 
 FS = 100.0  # nominal sample rate of every file, Hz
 THRESHOLD = 0.5  # rad/s: |w| above this after >= 1 s below it is a rotation's start
+#: timing error of one pair from whole-sample event times on two clocks: U(0, T) each
+SIGMA_Q = np.sqrt(2.0) * (1.0 / FS) / np.sqrt(12.0)
 
 
 @pytest.fixture(scope="module")
-def pair(ref_data):
-    d0, d1 = (np.loadtxt(gzip.open(ref_data / "mikov-mpu9150" / f"imu{i}.log.gz")) for i in (0, 1))
-    return np.linalg.norm(d0[:, 3:6], axis=1), np.linalg.norm(d1[:, 3:6], axis=1)
+def rates(ref_data):
+    """|w| (rad/s) of imu0 ... imu4."""
+    return [np.linalg.norm(np.loadtxt(gzip.open(ref_data / "mikov-mpu9150" / f"imu{i}.log.gz"))[:, 3:6], axis=1)
+            for i in range(5)]
+
+
+@pytest.fixture(scope="module")
+def pair(rates):
+    return rates[0], rates[1]
 
 
 def rotation_starts(w: np.ndarray, threshold: float = THRESHOLD, rest_s: float = 1.0) -> np.ndarray:
@@ -79,7 +87,7 @@ def solved(pair):
     taps, pulses = rotation_starts(w1) / FS, rotation_starts(w0) / FS
     m = tap_match.match_taps(taps, pulses)
     ti, pj = m.tap_index[m.inlier], m.pulse_index[m.inlier]
-    fit = clock_model.fit_clock(taps[ti] * FS, pulses[pj], FS, detect_steps=False)
+    fit = clock_model.fit_clock(taps[ti] * FS, pulses[pj], FS, detect_steps=False, sigma_floor_s=SIGMA_Q)
     return taps, pulses, m, fit, xcorr_drift(w0, w1)
 
 
@@ -88,8 +96,7 @@ def test_independent_lag_line_is_quantization_limited(solved):
     samplers give (each event known to U(0, T): std T/sqrt(12), two clocks: x sqrt(2))."""
     *_, xc = solved
     assert 2200e-6 < xc["drift"] < 2500e-6
-    sigma_q = np.sqrt(2.0) * (1.0 / FS) / np.sqrt(12.0)
-    chi2 = float(np.sum((xc["resid"] / sigma_q) ** 2))
+    chi2 = float(np.sum((xc["resid"] / SIGMA_Q) ** 2))
     lo, hi = stats.chi2.ppf([0.005, 0.995], xc["dof"])
     assert lo <= chi2 <= hi, (chi2, xc["dof"], lo, hi)
 
@@ -128,9 +135,8 @@ def test_clock_fit_residuals_exceed_quantization_finding(solved):
     by the residuals (s^2 = RSS / dof), so its interval stays honest (previous test); a tap
     rig's hammer events would have to show chi2 in band before that scaling is trusted."""
     *_, fit, _ = solved
-    sigma_q = np.sqrt(2.0) * (1.0 / FS) / np.sqrt(12.0)
     r = fit.residual_s[fit.inlier]
-    chi2 = float(np.sum((r / sigma_q) ** 2))
+    chi2 = float(np.sum((r / SIGMA_Q) ** 2))
     lo, hi = stats.chi2.ppf([0.005, 0.995], fit.dof)
     assert chi2 > hi, (chi2, fit.dof, hi)
     assert 6e-3 < fit.residual_std_s < 15e-3
@@ -152,3 +158,27 @@ def test_pipeline_on_non_taps_warns_instead_of_reporting_quietly(ref_data, pair)
     assert abs(s["drift_ppm"] - 2360.0) > s["drift_ci95_ppm"]  # the wrong answer the warning is for
     assert len(s["warnings"]) == 1 and "pulses are matched" in s["warnings"][0]
     assert any(line.startswith("WARNING: only") for line in summary_lines(s))
+
+
+@pytest.mark.parametrize("imu, drift_ppm", [(1, 2360), (2, 2190), (3, 136), (4, 3)])
+def test_every_pair_drift_against_cross_correlation(rates, imu, drift_ppm):
+    """imu1 ... imu4 against imu0: large (~2200-2400 ppm), small (~140 ppm) and nearly no
+    drift (~3 ppm). imu4's 22 rotation starts all sit exactly 1 sample off imu0's: a fit
+    without a timing floor had RSS 0 and reported 0 +- 0 ppm, an interval that excludes the
+    3 +- 1 ppm of the cross-correlation; with the quantization floor sqrt(2) T / sqrt(12) the
+    interval is honest (tens of ppm)."""
+    taps, pulses = rotation_starts(rates[imu]) / FS, rotation_starts(rates[0]) / FS
+    # whole-sample times: the outlier limit no lower than 5 x the quantization (imu4: 20 of 22
+    # offsets are identical, MAD 0, and with the default 1 ms floor the rest, one sample off,
+    # were outliers)
+    m = tap_match.match_taps(taps, pulses, outlier_floor_s=5 * SIGMA_Q)
+    assert m.inlier.sum() >= 20
+    ti, pj = m.tap_index[m.inlier], m.pulse_index[m.inlier]
+    fit = clock_model.fit_clock(taps[ti] * FS, pulses[pj], FS, detect_steps=False, sigma_floor_s=SIGMA_Q,
+                                outlier_floor_s=5 * SIGMA_Q)
+    xc = xcorr_drift(rates[0], rates[imu])
+    assert abs(xc["drift"] * 1e6 - drift_ppm) < 30
+    s = fit.drift_sigma_ppm * 1e-6
+    assert s > 0
+    assert abs(fit.drift_ppm * 1e-6 - xc["drift"]) <= 1.96 * np.hypot(s, xc["drift_sigma"]), \
+        (imu, fit.drift_ppm, fit.drift_sigma_ppm, xc["drift"] * 1e6, xc["drift_sigma"] * 1e6)

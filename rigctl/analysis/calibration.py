@@ -275,15 +275,18 @@ def is_orientation_free(path: Path) -> bool:
 
 
 def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None,
-              spec: Spec | None = None) -> tuple[dict[str, Any], str, str]:
+              spec: Spec | None = None, thermal_degree: str | None = None) -> tuple[dict[str, Any], str, str]:
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
-    With ``spec`` the verdicts are computed, printed and stored with the results."""
+    With ``spec`` the verdicts are computed, printed and stored with the results. ``thermal_degree``:
+    the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto')."""
     p = Path(path)
     # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
     from . import thermal
     if thermal.is_thermal(p):
-        payload, text = thermal.calibrate_and_store(p, store, json_path)
+        with open_recording(p) as f:
+            noise_models = _noise(f, noise, p)
+        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models)
         return payload, text, ""
     # -- end of the thermal hook
     free = is_orientation_free(p)

@@ -95,14 +95,18 @@ def synchronise(counter: np.ndarray, accel: np.ndarray, rate_hz: float,
             timing = "subsample"
         else:
             response = None
+    # whole-sample tap times are known to U(0, T) at best: std T / sqrt(12); when most pairs
+    # agree to the sample (MAD 0) the outlier limit must not fall below k times that
+    sigma_floor = period / np.sqrt(12.0) if timing == "half_sample" else 0.0
+    floor = max(opts.outlier_floor_s, opts.outlier_k * sigma_floor)
     m = tap_match.match_taps(tap_t, pulse_time_s, tolerance_s=opts.tolerance_s,
-                             outlier_k=opts.outlier_k, outlier_floor_s=opts.outlier_floor_s)
+                             outlier_k=opts.outlier_k, outlier_floor_s=floor)
     if m.inlier.sum() < 3:
         raise ValueError(f"only {int(m.inlier.sum())} taps matched pulses; need at least 3")
     ti, pj = m.tap_index[m.inlier], m.pulse_index[m.inlier]
     fit = clock_model.fit_clock(tap_t[ti] * rate_hz, pulse_time_s[pj], rate_hz,
                                 wander=opts.wander, outlier_k=opts.outlier_k,
-                                outlier_floor_s=opts.outlier_floor_s, gap_counter=counter)
+                                outlier_floor_s=floor, gap_counter=counter, sigma_floor_s=sigma_floor)
     vt = tap_match.virtual_taps(tap_t[ti], pulse_time_s[pj], opts.group_gap_s)
     summary = _summary(det, timing, response, m, fit, vt, pulse_time_s.size, rate_hz, counter)
     return SyncResult(det, tap_t, timing, response, m, fit, vt, summary)
