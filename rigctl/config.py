@@ -180,41 +180,10 @@ def imu_serial(d: LocDict) -> str:
     return v
 
 
-#: keys of the ``suspenders:`` section (docs/daemon.md), units in the names
-SUSPENDER_KEYS = ("hold_s", "imu_timeout_s", "max_counter_gap", "temperature_min_c", "temperature_max_c",
-                  "min_free_mib")
-
-
 def suspender_settings(m: LocDict) -> SuspenderSettings:
-    """The ``suspenders:`` section of a rig config (absent keys keep their defaults).
-
-    hold_s: every suspender clear for this long (s of rig time, or a duration such as '5 s')
-    before a paused run resumes; imu_timeout_s: no IMU sample for this long (rig time) is a data
-    gap; max_counter_gap: IMU samples that may go missing (counter gap) before it counts as a
-    gap; temperature_min_c / temperature_max_c: the IMU temperature band, degC; min_free_mib:
-    free space (MiB = 2**20 bytes) the run directory's filesystem must keep (0 = no check)."""
-    d = SuspenderSettings()
-    if "suspenders" not in m or m["suspenders"] is None:
-        return d
-    s = S.require_mapping(m["suspenders"], "'suspenders'", m, "suspenders")
-    S.check_keys(s, SUSPENDER_KEYS, "'suspenders'")
-    hold = S.get_duration(s, "hold_s", d.hold_s)
-    if not 0.0 <= hold <= 86400.0:
-        raise S.error(s, "hold_s", f"'hold_s' = {hold:g} s must be between 0 s and 24 h")
-    timeout = S.get_duration(s, "imu_timeout_s", d.imu_timeout_s, positive=True)
-    if timeout > 3600.0:
-        raise S.error(s, "imu_timeout_s", f"'imu_timeout_s' = {timeout:g} s is above its maximum 3600 s")
-    gap = S.get_number(s, "max_counter_gap", d.max_counter_gap, minimum=0, maximum=10**9, integer=True)
-    t_lo = S.get_number(s, "temperature_min_c", d.temperature_min_c, minimum=-273.15, maximum=1000.0)
-    t_hi = S.get_number(s, "temperature_max_c", d.temperature_max_c, minimum=-273.15, maximum=1000.0)
-    if not t_lo < t_hi:
-        raise S.error(s, "temperature_max_c" if "temperature_max_c" in s else "temperature_min_c",
-                      f"the temperature band [{t_lo:g}, {t_hi:g}] degC is empty",
-                      "temperature_min_c must be below temperature_max_c")
-    mib = S.get_number(s, "min_free_mib", d.min_free_bytes / 2**20, minimum=0.0, maximum=2.0**30)
-    return SuspenderSettings(hold_s=float(hold), imu_timeout_s=float(timeout), max_counter_gap=int(gap),
-                             temperature_min_c=float(t_lo), temperature_max_c=float(t_hi),
-                             min_free_bytes=int(round(mib * 2**20)))
+    """The ``suspenders:`` section of a rig config (absent keys keep their defaults): the
+    fields of :class:`rigctl.suspenders.SuspenderSettings`."""
+    return section(m, "suspenders", SuspenderSettings)
 
 
 #: keys of the ``traceability:`` section (shown on certificates; all text)

@@ -8,7 +8,8 @@ missing required keys are named, and :meth:`Settings.check` adds the rules betwe
 every error is an InputError with the file and line (rigctl.schema).
 
 Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments) and rigctl.config (``site:``, ``recorder:``).
+keyword arguments), rigctl.config (``site:``, ``recorder:``) and rigctl.suspenders
+(``suspenders:``).
 """
 from __future__ import annotations
 
@@ -28,6 +29,11 @@ def setting(default: Any = MISSING, *, read: Reader, key: str | None = None, **c
     name; ``check``: keyword arguments of the reader (minimum, maximum, integer, allow_none,
     choices, positive)."""
     return field(default=default, metadata={"read": read, "key": key, "check": check})
+
+
+def internal(default: Any) -> Any:
+    """A field that is not a config key (set by the program; :func:`parse` leaves its default)."""
+    return field(default=default, metadata={"internal": True})
 
 
 def number(default: Any = MISSING, **check: Any) -> Any:
@@ -62,12 +68,12 @@ T = TypeVar("T", bound=Settings)
 
 
 def yaml_keys(cls: type[Settings]) -> list[str]:
-    return [f.metadata.get("key") or f.name for f in fields(cls)]
+    return [f.metadata.get("key") or f.name for f in fields(cls) if "read" in f.metadata]
 
 
 def parse(cls: type[T], d: LocDict, what: str, extra_keys: Iterable[str] = ()) -> T:
     """The one validator: ``d`` (a config section) as ``cls``; InputError with file and line."""
-    spec = {f.metadata.get("key") or f.name: f for f in fields(cls)}
+    spec = {f.metadata.get("key") or f.name: f for f in fields(cls) if "read" in f.metadata}
     S.check_keys(d, (*extra_keys, *cls.EXTRA_KEYS, *spec), what)
     values: dict[str, Any] = {}
     for key, f in spec.items():
