@@ -99,11 +99,17 @@ if HAVE_NUMBA:
         lever, dw_in, vib, warm, asym, nonlin, gsens, gs_a, filt_a, filt_g = (
             flags[0], flags[1], flags[2], flags[3], flags[4], flags[5], flags[6], flags[7],
             flags[8], flags[9])
-        f = np.empty(3)
-        w = np.empty(3)
-        F = np.empty(3)
-        W = np.empty(3)
-        e = np.empty(3)
+        r0, r1, r2 = r_lever[0], r_lever[1], r_lever[2]
+        aM00, aM01, aM02 = a_M[0, 0], a_M[0, 1], a_M[0, 2]
+        aM10, aM11, aM12 = a_M[1, 0], a_M[1, 1], a_M[1, 2]
+        aM20, aM21, aM22 = a_M[2, 0], a_M[2, 1], a_M[2, 2]
+        gM00, gM01, gM02 = g_M[0, 0], g_M[0, 1], g_M[0, 2]
+        gM10, gM11, gM12 = g_M[1, 0], g_M[1, 1], g_M[1, 2]
+        gM20, gM21, gM22 = g_M[2, 0], g_M[2, 1], g_M[2, 2]
+        ak0, ak1, ak2 = a_k2[0], a_k2[1], a_k2[2]
+        ab0, ab1, ab2 = a_bias[0], a_bias[1], a_bias[2]
+        gb0, gb1, gb2 = g_bias[0], g_bias[1], g_bias[2]
+        d0 = d1 = d2 = 0.0
         n_sec_a = sos_a.shape[0]
         n_sec_g = sos_g.shape[0]
         j_out = 0
@@ -122,62 +128,79 @@ if HAVE_NUMBA:
                            vib_won, vib_sum_f.T, vib_sum_w.T, vs, vc)
             for ib in range(nb):
                 i = b0 + ib
-                for ax in range(3):
-                    f[ax] = f_true[i, ax]
-                    w[ax] = w_true[i, ax]
+                # scalars (registers), the operations and their order as the numpy path
+                f0 = f_true[i, 0]
+                f1 = f_true[i, 1]
+                f2 = f_true[i, 2]
+                w0 = w_true[i, 0]
+                w1 = w_true[i, 1]
+                w2 = w_true[i, 2]
                 if lever:
                     if dw_in:
                         d0, d1, d2 = dw_given[i, 0], dw_given[i, 1], dw_given[i, 2]
                     else:
                         dt = t[i] - prev_tw[0]
-                        d0 = (w[0] - prev_tw[1]) / dt
-                        d1 = (w[1] - prev_tw[2]) / dt
-                        d2 = (w[2] - prev_tw[3]) / dt
+                        d0 = (w0 - prev_tw[1]) / dt
+                        d1 = (w1 - prev_tw[2]) / dt
+                        d2 = (w2 - prev_tw[3]) / dt
                         prev_tw[0] = t[i]
-                        prev_tw[1] = w[0]
-                        prev_tw[2] = w[1]
-                        prev_tw[3] = w[2]
-                    r0, r1, r2 = r_lever[0], r_lever[1], r_lever[2]
-                    wr = w[0] * r0 + w[1] * r1 + w[2] * r2
-                    ww = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-                    l0 = w[0] * wr - r0 * ww + (d1 * r2 - d2 * r1)
-                    l1 = w[1] * wr - r1 * ww + (d2 * r0 - d0 * r2)
-                    l2 = w[2] * wr - r2 * ww + (d0 * r1 - d1 * r0)
-                    f[0] += l0
-                    f[1] += l1
-                    f[2] += l2
+                        prev_tw[1] = w0
+                        prev_tw[2] = w1
+                        prev_tw[3] = w2
+                    wr = w0 * r0 + w1 * r1 + w2 * r2
+                    ww = w0 * w0 + w1 * w1 + w2 * w2
+                    f0 += w0 * wr - r0 * ww + (d1 * r2 - d2 * r1)
+                    f1 += w1 * wr - r1 * ww + (d2 * r0 - d0 * r2)
+                    f2 += w2 * wr - r2 * ww + (d0 * r1 - d1 * r0)
                 if vib:
-                    for ax in range(3):
-                        f[ax] += vib_sum_f[ax, ib]
-                        w[ax] += vib_sum_w[ax, ib]
-                for ax in range(3):
-                    F[ax] = ((a_M[ax, 0] * f[0] + a_M[ax, 1] * f[1] + a_M[ax, 2] * f[2])
-                             + a_k2[ax] * f[ax] * f[ax]) + a_bias[ax]
-                    W[ax] = (g_M[ax, 0] * w[0] + g_M[ax, 1] * w[1] + g_M[ax, 2] * w[2]) + g_bias[ax]
+                    f0 += vib_sum_f[0, ib]
+                    w0 += vib_sum_w[0, ib]
+                    f1 += vib_sum_f[1, ib]
+                    w1 += vib_sum_w[1, ib]
+                    f2 += vib_sum_f[2, ib]
+                    w2 += vib_sum_w[2, ib]
+                F0 = ((aM00 * f0 + aM01 * f1 + aM02 * f2) + ak0 * f0 * f0) + ab0
+                F1 = ((aM10 * f0 + aM11 * f1 + aM12 * f2) + ak1 * f1 * f1) + ab1
+                F2 = ((aM20 * f0 + aM21 * f1 + aM22 * f2) + ak2 * f2 * f2) + ab2
+                W0 = (gM00 * w0 + gM01 * w1 + gM02 * w2) + gb0
+                W1 = (gM10 * w0 + gM11 * w1 + gM12 * w2) + gb1
+                W2 = (gM20 * w0 + gM21 * w1 + gM22 * w2) + gb2
                 if warm:
                     dT = T[i] - T_ref
-                    for ax in range(3):
-                        F[ax] += dT * (wu_ab[ax] + wu_as[ax] * f[ax])
-                    for ax in range(3):
-                        W[ax] += dT * (wu_gb[ax] + wu_gs[ax] * w[ax])
+                    F0 += dT * (wu_ab[0] + wu_as[0] * f0)
+                    F1 += dT * (wu_ab[1] + wu_as[1] * f1)
+                    F2 += dT * (wu_ab[2] + wu_as[2] * f2)
+                    W0 += dT * (wu_gb[0] + wu_gs[0] * w0)
+                    W1 += dT * (wu_gb[1] + wu_gs[1] * w1)
+                    W2 += dT * (wu_gb[2] + wu_gs[2] * w2)
                 if asym:
-                    for ax in range(3):
-                        F[ax] += asym_h[ax] * abs(f[ax])
+                    F0 += asym_h[0] * abs(f0)
+                    F1 += asym_h[1] * abs(f1)
+                    F2 += asym_h[2] * abs(f2)
                 if nonlin:
-                    for ax in range(3):
-                        W[ax] += w[ax] * w[ax] * (nl_k2[ax] + nl_k3[ax] * w[ax])
+                    W0 += w0 * w0 * (nl_k2[0] + nl_k3[0] * w0)
+                    W1 += w1 * w1 * (nl_k2[1] + nl_k3[1] * w1)
+                    W2 += w2 * w2 * (nl_k2[2] + nl_k3[2] * w2)
                 if gsens:
-                    for ax in range(3):
-                        e[ax] = gs_G[ax, 0] * f[0] + gs_G[ax, 1] * f[1] + gs_G[ax, 2] * f[2]
+                    e0 = gs_G[0, 0] * f0 + gs_G[0, 1] * f1 + gs_G[0, 2] * f2
+                    e1 = gs_G[1, 0] * f0 + gs_G[1, 1] * f1 + gs_G[1, 2] * f2
+                    e2 = gs_G[2, 0] * f0 + gs_G[2, 1] * f1 + gs_G[2, 2] * f2
                     if gs_a:
-                        for ax in range(3):
-                            e[ax] += (gs_A[ax, 0] * (f[0] * f[0]) + gs_A[ax, 1] * (f[1] * f[1])
-                                      + gs_A[ax, 2] * (f[2] * f[2]))
-                    for ax in range(3):
-                        W[ax] += e[ax]
-                for ax in range(3):
-                    Fb[ax, ib] = F[ax]
-                    Wb[ax, ib] = W[ax]
+                        q0 = f0 * f0
+                        q1 = f1 * f1
+                        q2 = f2 * f2
+                        e0 += (gs_A[0, 0] * q0 + gs_A[0, 1] * q1 + gs_A[0, 2] * q2)
+                        e1 += (gs_A[1, 0] * q0 + gs_A[1, 1] * q1 + gs_A[1, 2] * q2)
+                        e2 += (gs_A[2, 0] * q0 + gs_A[2, 1] * q1 + gs_A[2, 2] * q2)
+                    W0 += e0
+                    W1 += e1
+                    W2 += e2
+                Fb[0, ib] = F0
+                Fb[1, ib] = F1
+                Fb[2, ib] = F2
+                Wb[0, ib] = W0
+                Wb[1, ib] = W1
+                Wb[2, ib] = W2
             # the low-pass, section by section over the block (each section's output depends
             # only on its input sequence: the same values as sample-by-sample), state in
             # registers; then every L-th sample

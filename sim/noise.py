@@ -37,9 +37,11 @@ sn^2 = N^2 fs (white), sb^2 = (B c_B)^2 (flicker input):
   about one step or more per sample. The N + B integral comes from the same filter with one more pole at
   z = 1 (gain tau0/q), the walk's and the ramp's in closed form per block, the signal's as a running sum.
 
-Speed: the filter runs on a fixed grid of chunks (``FIRST_CHUNK``, doubling, then ``CHUNK`` samples) with
-BLAS block recursion (:mod:`rigctl.sim.block_iir`); about 25 ns per axis-sample on one core, a third of it
-the normal draw (benchmarks/emulator.py).
+Speed: the filter runs on a fixed grid of chunks (``FIRST_CHUNK``, doubling, then ``CHUNK`` samples). With numba
+(the ``fast`` extra) the filter, the K walk, the ramp and the quantizer are compiled loops over the samples
+(:func:`rigctl.sim.block_iir.run_direct`; the walk, ramp and quantizer do numpy's operations in numpy's order): about
+17-20 ns per axis-sample on one core of the shared test machine, 9-10 of them numpy's normal draw. Without numba:
+BLAS block recursion (:mod:`rigctl.sim.block_iir`), about 30 ns per axis-sample (benchmarks/emulator.py).
 
 :func:`theoretical_avar` gives both the IEEE curve (``rate_hz=None``) and the *exact* expectation of
 the overlapping Allan variance of what :class:`NoiseGenerator` produces (``rate_hz`` given): the
@@ -83,6 +85,18 @@ if _bi.HAVE_NUMBA:
                 row[t] += w
         state[0] = w
         state[1] = th
+
+    @njit(cache=True, nogil=True)
+    def _ramp(row, base, coef, quantized):  # pragma: no cover - compiled
+        """row += R (k+1) tau0 (coef = R tau0), or on a quantized axis its integral
+        (k+1)(k+2) R tau0^2 / (2q) (coef = R tau0^2 / (2q)); k = base - 1 + j: numpy's
+        operations of NoiseGenerator._next_chunk, in one pass."""
+        for j in range(row.size):
+            kk = float(j) + base
+            if quantized:
+                row[j] += ((kk + 1.0) * kk) * coef
+            else:
+                row[j] += kk * coef
 
     @njit(cache=True, nogil=True)
     def _quantize(row, sig, has_sig, k_sig, k_out, state):  # pragma: no cover - compiled
@@ -358,7 +372,13 @@ class NoiseGenerator:
             else:
                 self._add_random_walk(ax, self._chunk[ax], self._kbuf[m])
         R = self.params["R"]
-        if np.any(R > 0):  # ramp R (k+1) tau0; on quantized axes its integral R tau0^2 (k+1)(k+2)/2, steps q
+        if np.any(R > 0) and _bi.HAVE_NUMBA:
+            base = float(self._k_chunk + 1)
+            for ax in np.flatnonzero(R > 0):
+                q = bool(self._quantized[ax])
+                coef = 0.5 * R[ax] * self.tau0**2 / self._q_step[ax] if q else R[ax] * self.tau0
+                _ramp(self._chunk[ax], base, coef, q)
+        elif np.any(R > 0):  # ramp R (k+1) tau0; on quantized axes its integral R tau0^2 (k+1)(k+2)/2, steps q
             if m not in self._ramp:
                 self._ramp[m] = np.empty((2, m))
             kk, (kk2, tmp) = self._kbuf[m], self._ramp[m]

@@ -83,3 +83,32 @@ def test_errors_name_file_line_and_what_to_do(tmp_path: Path, pulses: str, messa
     with pytest.raises(InputError, match=message) as err:
         load_config(path)
     assert err.value.file == str(path) and err.value.line == line, str(err.value)
+
+
+@pytest.mark.parametrize("extra, message, line", [
+    ("site:\n  latitude_dg: 48\n", r"unknown key 'latitude_dg' in 'site' \(did you mean 'latitude_deg'\?\)", 3),
+    ("site:\n  latitude_deg: 91\n", r"'latitude_deg' = 91 is above its maximum 90", 3),
+    ("site:\n  gravity_m_s2: heavy\n", r"'gravity_m_s2'.*must be a number", 3),
+    ("recorder:\n  flush_intervall_s: 0.2\n", r"unknown key 'flush_intervall_s' in 'recorder' \(did you mean 'flush_interval_s'\?\)", 3),
+    ("recorder:\n  table_rate_hz: 0\n", r"'table_rate_hz' = 0 is below its minimum 0.1", 3),
+    ("suspenders:\n  hold_sec: 5\n", r"unknown key 'hold_sec' in 'suspenders' \(did you mean 'hold_s'\?\)", 3),
+    ("notifications:\n  webhook:\n    ulr: http://127.0.0.1:9/x\n",
+     r"unknown key 'ulr' in 'notifications.webhook' \(did you mean 'url'\?\)", 4),
+    ("notifications:\n  email:\n    smtp_host: x\n    from: rig@lab\n    to: [a@b]\n    smtp_prot: 25\n",
+     r"unknown key 'smtp_prot' in 'notifications.email' \(did you mean 'smtp_port'\?\)", 7),
+])
+def test_config_sections_are_typed_settings_with_the_same_errors(tmp_path: Path, extra: str, message: str,
+                                                                     line: int) -> None:
+    """site:, recorder:, suspenders: and notifications: (with its nested sections) go through
+    the same validator as the link settings (rigctl.settings.parse): file, line and "did you
+    mean" on every error."""
+    path = tmp_path / "rig.yaml"
+    path.write_text("clock: virtual\n" + extra + "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    with pytest.raises(InputError, match=message) as err:
+        load_config(path)
+    assert err.value.file == str(path) and err.value.line == line, str(err.value)
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("site:\n  latitude_deg: 48\n  gravity_m_s2: 9.81\nrecorder:\n  table_rate_hz: 20\n"
+                  "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    cfg = load_config(ok)
+    assert cfg.gravity == 9.81 and abs(cfg.latitude - 0.837758041) < 1e-9 and cfg.table_rate_hz == 20

@@ -216,6 +216,53 @@ if HAVE_NUMBA:
                     c += 1
         return c
 
+    @njit(cache=True, nogil=True)
+    def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
+        """Riley & Greenhall's lag-1 noise identification on x[::m]: the same steps as
+        allan_noise_id.noise_id_lag1 (mean removed, r1, delta = r1 / (1 + r1), differenced
+        until delta < 0.25 or d = dmax) in three passes per order, with two accumulators per
+        sum (compensation not needed: the sums are ratios compared with 0.25)."""
+        n = (x.size + m - 1) // m
+        z = np.empty(n)
+        for i in range(n):
+            z[i] = x[i * m]
+        d = 0
+        while True:
+            s0 = 0.0
+            s1 = 0.0
+            i = 0
+            while i + 1 < n:
+                s0 += z[i]
+                s1 += z[i + 1]
+                i += 2
+            if i < n:
+                s0 += z[i]
+            mean = (s0 + s1) / n
+            den0 = 0.0
+            den1 = 0.0
+            num0 = 0.0
+            num1 = 0.0
+            prev = z[0] - mean
+            den0 += prev * prev
+            for i in range(1, n):
+                v = z[i] - mean
+                if i & 1:
+                    den1 += v * v
+                    num1 += prev * v
+                else:
+                    den0 += v * v
+                    num0 += prev * v
+                prev = v
+            den = den0 + den1
+            r1 = (num0 + num1) / den if den > 0 else 0.0
+            delta = r1 / (1.0 + r1)
+            if delta < 0.25 or d >= dmax or n < 3:
+                return 2 - int(np.rint(2.0 * delta)) - 2 * d
+            for i in range(n - 1):
+                z[i] = z[i + 1] - z[i]
+            n -= 1
+            d += 1
+
     @njit(parallel=True, cache=True)
     def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
         for p in prange(bounds.size - 1):
@@ -329,3 +376,9 @@ def far_from_window_range(y: np.ndarray, w: int, thr: float) -> np.ndarray:
         return out[:0].copy()
     c = _far_from_range_blocks(y, int(w), float(thr), max(32, int(w)), out)
     return out[:c].copy()
+
+
+def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:
+    """Compiled lag-1 noise identification of phase ``x`` decimated by m (see
+    allan_noise_id.noise_id_lag1, which calls it for long series)."""
+    return int(_lag1_alpha(np.ascontiguousarray(x, dtype=np.float64), int(m), int(dmax)))
