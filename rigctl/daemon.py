@@ -549,18 +549,28 @@ def watch_line(reply: dict[str, Any]) -> str:
 
 @_run_client
 def cmd_status(args: argparse.Namespace) -> int:
-    """Print the daemon's status; with ``--watch`` one plain line per interval until Ctrl-C."""
+    """Print the daemon's status; with ``--watch`` one plain line per interval until Ctrl-C
+    (SIGINT) or SIGTERM, then exit 0.
+
+    The watch installs its own handlers, as ``serve`` and ``run`` do, instead of relying on
+    Python's KeyboardInterrupt: Python installs that only when SIGINT is not ignored at start-up,
+    and a process started in the background by a non-interactive shell (a CI script, ``cmd &``)
+    inherits SIGINT ignored -- the loop then never ended on SIGINT."""
     if not args.watch:
         return _print_reply(_client(args, "status"), "status", args)
+    stop = threading.Event()
+    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while True:
+        while not stop.is_set():
             reply = _client(args, "status")
             if not reply.get("ok"):
                 return _print_reply(reply, "status", args)
             print(json.dumps(reply, default=str) if args.json else watch_line(reply), flush=True)
-            time.sleep(args.interval)
-    except KeyboardInterrupt:
-        return 0
+            stop.wait(args.interval)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    return 0
 
 
 @_run_client

@@ -60,10 +60,7 @@ class DeviceReport:
 def _where(cfg: RigConfig, role: str) -> tuple[str, str]:
     """(where, kind of port) of a wired device section; kind: serial, tcp or gpio."""
     if role == "chamber":
-        s = cfg.chamber.settings
-        if cfg.chamber.driver == "scpi":
-            return s["resource"], "tcp" if s["resource"].upper().startswith("TCPIP") else "serial"
-        return (s["port"], "serial") if s.get("transport") == "rtu" else (f"{s['host']}:{s['tcp_port']}", "tcp")
+        return cfg.chamber.settings.where()
     dev = {"table": cfg.table, "imu": cfg.imu, "pulses": cfg.pulses}[role]
     s = dev.settings
     if dev.driver == "modbus" and s.transport == "tcp":

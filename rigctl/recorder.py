@@ -316,8 +316,10 @@ class Recorder:
         self._put("pulses", {"time": p.time + self.time_offset, "gps_week": week, "gps_seconds": sec,
                              "source": np.full(n, p.source.encode(), dtype="S16")}, n)
 
-    def add_segment(self, seg: Segment, file_time: bool = False) -> None:
-        """Append a segment row; its times are session times unless ``file_time``."""
+    def add_segment(self, seg: Segment, file_time: bool = False, flush: bool = True) -> None:
+        """Append a segment row; its times are session times unless ``file_time``. The row is
+        flushed to the file at once (a live run's segment boundary is on disk) unless ``flush``
+        is false: a writer of a whole recording at once (an import) flushes on close."""
         cols = {k: [getattr(seg, k)] for k in LAYOUT["segments"]}
         for k in ("kind", "label", "status"):
             cols[k] = [str(getattr(seg, k)).encode()[:48]]
@@ -326,7 +328,8 @@ class Recorder:
             cols["t_end"] = [seg.t_end + self.time_offset]
         self._put("segments", cols, 1)
         self.n_segments += 1
-        self.flush()
+        if flush:
+            self.flush()
 
     def add_event(self, t: float, kind: str, message: str, file_time: bool = False) -> None:
         """Append an event at session time ``t`` (file time if ``file_time``), s."""
