@@ -38,9 +38,10 @@ sn^2 = N^2 fs (white), sb^2 = (B c_B)^2 (flicker input):
   z = 1 (gain tau0/q), the walk's and the ramp's in closed form per block, the signal's as a running sum.
 
 Speed: the filter runs on a fixed grid of chunks (``FIRST_CHUNK``, doubling, then ``CHUNK`` samples). With numba
-(the ``fast`` extra) the filter, the K walk, the ramp and the quantizer are compiled loops over the samples
-(:func:`rigctl.sim.block_iir.run_direct`; the walk, ramp and quantizer do numpy's operations in numpy's order): about
-17-20 ns per axis-sample on one core of the shared test machine, 9-10 of them numpy's normal draw. Without numba:
+(the ``fast`` extra) the filter, the K walk and the ramp of a chunk are one compiled loop over the samples
+(``_chunk_fused``: the cascade in parallel form as :func:`rigctl.sim.block_iir.run_direct`, then the walk and the
+ramp), and the quantizer another (numpy's operations in numpy's order): about 15 ns per axis-sample on one core of
+the shared test machine (load ~10), 8-10 of them numpy's normal draw. Without numba:
 BLAS block recursion (:mod:`rigctl.sim.block_iir`), about 30 ns per axis-sample (benchmarks/emulator.py).
 
 :func:`theoretical_avar` gives both the IEEE curve (``rate_hz=None``) and the *exact* expectation of
