@@ -45,7 +45,10 @@ class VectorNavServer(StreamTwin):
             line, self._buf = self._buf.split(b"\n", 1)
             line = line.strip()
             if line.startswith(b"$"):
-                write(self._handle(line))
+                # the reply goes out before the first frame of an output it switched on, as from
+                # a sensor: the hardware loop encodes frames under the same lock
+                with self._lock:
+                    write(self._handle(line))
         if len(self._buf) > 4096:
             self._buf = b""
 

@@ -197,9 +197,6 @@ def _rows(imu, wall_s: float = 0.3) -> int:
     return rows
 
 
-@pytest.mark.xfail(strict=False, reason="seen once in CI on an idle machine (stop 24): a block stamped 0.7 ms "
-                                        "after clock.now() right after the reconnect (the restart rebase); not yet "
-                                        "fixed (issue 22 open)")
 def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None:
     """Over the emulated rig's pty at 20x: the identity is read on connect; a pulled cable is a
     counted gap of TimeStartup (dropped samples) and the same unit streams on, also when it
