@@ -80,6 +80,10 @@ class StreamImu(ReconnectingReader):
         #: after a restart: the new samples, held until the shift is learnt (rig time _held_until)
         self._held: list[tuple[np.ndarray, ...]] | None = None
         self._held_until = 0.0
+        #: external events the device time-stamps (VectorNav SYNC_IN): device time + shift, with
+        #: those of a held restart epoch apart until the shift is learnt
+        self._events: list[float] = []
+        self._held_events: list[float] = []
         self.device_restarts = 0
         self._init_reader()
         self._last_warn = 0.0
@@ -97,6 +101,11 @@ class StreamImu(ReconnectingReader):
 
     def _configure_device(self) -> None:
         """Commands and identity on a (re)connect; the default sends nothing."""
+
+    def _device_events(self, out: dict) -> np.ndarray:
+        """Device times (s, as ``_device_time``) of external events the frames report (e.g. a
+        VectorNav's SYNC_IN edges); none by default."""
+        return np.empty(0)
 
     # -------------------------------------------------------------------- reader thread
     def connect(self) -> None:
@@ -146,6 +155,9 @@ class StreamImu(ReconnectingReader):
         elif self._held is not None and arrival is not None and t_raw.size and np.isfinite(t_raw[-1]):
             self._lower_shift(arrival - self.offset - float(t_raw[-1]))
         t = t_raw + self._shift
+        ev = self._device_events(out)
+        if ev.size:
+            (self._held_events if self._held is not None else self._events).extend((ev + self._shift).tolist())
         last = self._last_t
         fast = t.size > 0 and bool(np.isfinite(t).all()) and (t.size < 2 or bool(np.all(np.diff(t) > 0))) \
             and (last is None or t[0] > last)
@@ -205,9 +217,13 @@ class StreamImu(ReconnectingReader):
             d, self._shift = self._shift - new, new
             self._last_t -= d
             self._held = [(t - d, *rest) for t, *rest in self._held]
+            self._held_events = [e - d for e in self._held_events]
 
     def _release_held(self) -> None:
         held, self._held = self._held, None
+        with self._cond:
+            self._events.extend(self._held_events)
+        self._held_events = []
         if not held:
             return
         log.warning("%s: the device time restarted during the outage; its timeline continues from the "
@@ -281,6 +297,16 @@ class StreamImu(ReconnectingReader):
             t, acc, gyr, temp, stamp = t[:cut], acc[:cut], gyr[:cut], temp[:cut], stamp[:cut]
         counter = np.maximum(np.rint((t - (self._t0 or 0.0)) * self.rate_hz), 0).astype(np.uint64)
         return ImuBlock(time=stamp, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
+
+    def read_events(self) -> np.ndarray:
+        """Run times (s, the IMU's time base) of the device's external events since the last
+        call, none stamped after ``clock.now()`` (those wait, as samples do)."""
+        now = self.clock.now()
+        with self._cond:
+            ev = np.sort(np.asarray(self._events, float)) + (self.offset or 0.0)
+            keep = ev <= now
+            self._events = (ev[~keep] - (self.offset or 0.0)).tolist()
+        return ev[keep]
 
     @property
     def counters(self) -> dict:

@@ -23,7 +23,7 @@ DEFAULT_CONFIG = "configs/sim.yaml"
 
 TABLE_DRIVERS = ("sim", "acl", "modbus")
 IMU_DRIVERS = ("sim", "xsens", "vectornav", "frame")
-PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
+PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem", "vectornav")
 CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")
 
@@ -263,6 +263,12 @@ def load_config(path: str | Path) -> RigConfig:
     imu = DeviceConfig(imu.driver, i, link_settings("imu", imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
     pulses = DeviceConfig(pulses.driver, p_opts, link_settings("pulses", pulses.driver, p_opts))
+    if pulses.driver == "vectornav":
+        S.check_keys(p_opts, ("driver",), "'pulses' (vectornav)")
+        if imu.driver != "vectornav":
+            raise S.error(m, "pulses", f"pulses from a VectorNav's SYNC_IN need the VectorNav as the IMU "
+                          f"(the imu driver is '{imu.driver}')",
+                          "set imu: driver: vectornav, or choose another pulse source (novatel, gpio, modem)")
     if (table.driver == "sim") != (imu.driver == "sim"):
         raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
                       "together; mixing it with a wired device is not supported",

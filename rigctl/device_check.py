@@ -90,7 +90,7 @@ def check_devices(cfg: RigConfig) -> DeviceReport:
                              for role in ("table", "imu")])
     clock = make_clock("real" if cfg.clock == "virtual" else cfg.clock, cfg.speed)
     jobs = [("table", lambda: build_table(cfg, clock)), ("imu", lambda: build_imu(cfg, clock))]
-    if cfg.pulses.driver not in ("none", "sim"):
+    if cfg.pulses.driver not in ("none", "sim", "vectornav"):     # vectornav: its SYNC_IN, read with the IMU
         jobs.append(("pulses", lambda: build_pulses(cfg, clock)))
     if cfg.chamber.driver in ("watlow", "scpi"):
         jobs.append(("chamber", lambda: build_chamber(cfg, clock)))

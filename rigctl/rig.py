@@ -71,8 +71,11 @@ def build_imu(cfg: RigConfig, clock: Clock):
     return XsensImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
 
 
-def build_pulses(cfg: RigConfig, clock: Clock):
+def build_pulses(cfg: RigConfig, clock: Clock, imu=None):
+    """The pulse source; ``imu``: the IMU built for ``cfg`` (``vectornav``: its SYNC_IN)."""
     s, d = cfg.pulses.settings, cfg.pulses.driver
+    if d == "vectornav":
+        return (imu if imu is not None else build_imu(cfg, clock)).syncin_pulses()
     if d == "novatel":
         from .drivers.novatel_marks import NovatelMarks
         return NovatelMarks(s.port, clock, **s.keywords())
@@ -104,7 +107,7 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
     with ExitStack() as stack:
         devices = []
         for build in (build_table, build_imu, build_pulses):
-            dev = build(cfg, clock)
+            dev = build(cfg, clock, devices[1]) if build is build_pulses else build(cfg, clock)
             if hasattr(dev, "close"):
                 stack.callback(dev.close)
             if hasattr(dev, "connect"):

@@ -9,6 +9,7 @@ import time
 import pytest
 
 from rigctl.clock import ScaledClock
+from rigctl.drivers.vectornav_imu import LAYOUT
 from rigctl.sim.hardware import start_hardware
 
 from hil_support import sim_config
@@ -63,7 +64,7 @@ def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
             rows += len(imu.read())
             hit = twin.frames_hit - h0
             assert f1 - f0 >= n_frames
-            expected = (f1 - f0) * (48 if protocol == "vectornav" else 38) * 1e-4    # bytes x rate
+            expected = (f1 - f0) * (LAYOUT.length if protocol == "vectornav" else 38) * 1e-4   # bytes x rate
             assert 0.85 * expected <= hit <= 1.15 * expected                          # +-5 sigma or so
             assert hw.slots["imu"].endpoint.overflow_bytes == 0
             bad = c["bad_frames"] + c["truncated_frames"] - c0["bad_frames"] - c0["truncated_frames"]
