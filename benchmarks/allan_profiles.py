@@ -252,30 +252,36 @@ def term_text(e: dict, sensor: str, t: str) -> str:
 
 
 # ------------------------------------------------------------------ main
-def analyse(name: str, rec: Path, info: dict, totals: dict) -> None:
+def analyse(name: str, rec: Path, info: dict, totals: dict,
+            tau_sets: tuple = TAU_SETS) -> None:
     from rigctl.analysis import allan as AA
     from rigctl.solvers import allan_fit as F
 
     res = {}
-    for taus in TAU_SETS:
+    for taus in tau_sets:
         t = time.perf_counter()
         res[taus] = AA.compute(str(rec), info["axes"], taus)
         totals["analysis_s"] += time.perf_counter() - t
-    g = res[95]["gaps"]
-    print(f"\n== {name}: {res[95]['n_samples']} samples at {res[95]['sample_rate_hz']:g} Hz "
-          f"({res[95]['n_samples'] / res[95]['sample_rate_hz'] / 3600:.2f} h); gaps: "
+    first = res[tau_sets[-1]]
+    g = first["gaps"]
+    print(f"\n== {name}: {first['n_samples']} samples at {first['sample_rate_hz']:g} Hz "
+          f"({first['n_samples'] / first['sample_rate_hz'] / 3600:.2f} h); gaps: "
           f"{g['count']} ({g['missing_samples']} samples, skipped){'; ' + info['datasheet'] if info.get('datasheet') else ''}")
     print(f"{'axis':>4} {'taus':>6} {'N':>10} {'B':>10} {'K':>10} {'B_floor':>9} "
           f"{'over_lim':>8} {'inf':>4} {'out':>4} {'named':>5} {'unnamed':>7} {'check':>5} "
           f"{'oct~all':>8}")
     for a in info["axes"]:
-        sensor = res[95]["axes"][a]["sensor"]
-        bad = agree(res["octave"]["axes"][a], res["all"]["axes"][a])
+        sensor = first["axes"][a]["sensor"]
+        ra, rb = res["octave"]["axes"][a], res["all"]["axes"][a]
+        bad = agree(ra, rb)
+        both_ok = ra["fit"]["check"]["ok"] and rb["fit"]["check"]["ok"]
         totals["pairs"] += 1
         totals["disagree"] += bool(bad)
+        totals["disagree_checks_ok"] += bool(bad) and both_ok
         if bad:
-            totals["disagree_where"].append(f"{name}:{a}:{''.join(bad)}")
-        for taus in TAU_SETS:
+            totals["disagree_where"].append(
+                f"{name}:{a}:{''.join(bad)}({'checks ok' if both_ok else 'a check failed'})")
+        for taus in tau_sets:
             r = res[taus]["axes"][a]
             c = check_axis(r)
             totals["fits"] += 1
@@ -307,46 +313,57 @@ def analyse(name: str, rec: Path, info: dict, totals: dict) -> None:
           + ", ".join(units["accel"]) + "; B_floor = min sigma / 0.664 (B's unit)")
 
 
+def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = None) -> dict:
+    """Write and analyse every case of ``wanted``; the counts of the three checks."""
+    totals = {"fits": 0, "over_limit": 0, "over_where": [], "informative": 0, "outside": 0,
+              "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
+              "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
+              "analysis_s": 0.0, "generate_s": 0.0}
+    with tempfile.TemporaryDirectory(dir="/tmp") as d:
+        tmp = Path(keep or d)
+        tmp.mkdir(parents=True, exist_ok=True)
+        for case in wanted:
+            if case == "real":
+                for name, rec, info in real_recordings(tmp):
+                    analyse(name, rec, info, totals, sets)
+                continue
+            rec = tmp / f"{case}_{hours:g}h.h5"
+            t = time.perf_counter()
+            if not rec.exists():
+                info = emulated_recording(case, rec, hours)
+            else:
+                info = {"axes": ["gx", "gy", "gz", "ax", "ay", "az"]}
+            totals["generate_s"] += time.perf_counter() - t
+            analyse(f"{case} (emulated, {hours:g} h)", rec, info, totals, sets)
+    return totals
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hours", type=float, default=12.0, help="emulated capture length, h")
     ap.add_argument("--cases", default="all",
                     help="comma-separated: default, profile names, real (default: all)")
     ap.add_argument("--keep", metavar="DIR", help="write the recordings here and keep them")
+    ap.add_argument("--taus", default="octave,all,95",
+                    help="tau sets (octave and all always; default octave,all,95)")
     a = ap.parse_args()
     from rigctl.sim.profiles import profile_names
 
     emulated = ["default"] + [p for p in profile_names() if p != "random"]
     wanted = emulated + ["real"] if a.cases == "all" else a.cases.split(",")
-    totals = {"fits": 0, "over_limit": 0, "over_where": [], "informative": 0, "outside": 0,
-              "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
-              "pairs": 0, "disagree": 0, "disagree_where": [], "analysis_s": 0.0,
-              "generate_s": 0.0}
+    sets = tuple(dict.fromkeys(["octave", "all"] + [int(t) if t.isdigit() else t
+                                                    for t in a.taus.split(",")]))
     load0 = _load()
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(dir="/tmp") as d:
-        tmp = Path(a.keep or d)
-        tmp.mkdir(parents=True, exist_ok=True)
-        for case in wanted:
-            if case == "real":
-                for name, rec, info in real_recordings(tmp):
-                    analyse(name, rec, info, totals)
-                continue
-            rec = tmp / f"{case}_{a.hours:g}h.h5"
-            t = time.perf_counter()
-            if not rec.exists():
-                info = emulated_recording(case, rec, a.hours)
-            else:
-                info = {"axes": ["gx", "gy", "gz", "ax", "ay", "az"]}
-            totals["generate_s"] += time.perf_counter() - t
-            analyse(f"{case} (emulated, {a.hours:g} h)", rec, info, totals)
+    totals = run_cases(wanted, a.hours, sets, a.keep)
     wall = time.perf_counter() - t0
-    print(f"\n{totals['fits']} fits (case x axis x tau set {TAU_SETS}): bounds above the curve's "
+    print(f"\n{totals['fits']} fits (case x axis x tau set {sets}): bounds above the curve's "
           f"limit: {totals['over_limit']}; fitted total outside the 95 % band at "
           f"{totals['outside']} of {totals['informative']} informative taus, of them not named "
           f"by the self-check: {totals['unnamed']} (in {totals['fits_with_unnamed']} fits); "
           f"self-check failed (warning): {totals['check_failed']}; octave vs all disagree "
-          f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes. "
+          f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes "
+          f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
           f"{wall:.0f} s (load {load0} -> {_load()})")
     for k in ("over_where", "unnamed_where", "disagree_where"):
         if totals[k]:
@@ -360,6 +377,7 @@ def main() -> None:
                       "self_check_failed_fits": totals["check_failed"],
                       "octave_vs_all_disagree_axes": totals["disagree"],
                       "octave_vs_all_axes": totals["pairs"],
+                      "octave_vs_all_disagree_with_checks_ok": totals["disagree_checks_ok"],
                       "generate_s": round(totals["generate_s"], 1),
                       "analysis_s": round(totals["analysis_s"], 1), "wall_s": round(wall, 1),
                       "load_avg_start": load0, "load_avg_end": _load()}))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import subprocess
@@ -46,7 +47,10 @@ def direction(key: str) -> str:
     if "per" in tok:
         i = tok.index("per")
         num = tok[i - 1] if i else ""
-        return "lower" if num in UNITS_LOWER else "higher" if (num in COUNT_HIGHER or tok[i + 1:] in (["s"], ["cpu", "s"])) else "?"
+        if num in UNITS_LOWER:
+            return "lower"
+        per_time = tok[i + 1:i + 2] == ["s"] or tok[i + 1:i + 3] == ["cpu", "s"]
+        return "higher" if num in COUNT_HIGHER or per_time else "?"
     if "speedup" in tok or ("ratio" in tok and "wall" in tok):
         return "higher"
     if tok[-1] in UNITS_LOWER or any(w in tok for w in ("err", "error", "errors", "false")):
@@ -149,10 +153,10 @@ def main() -> int:
                 fo, fn = old, new
                 rows = {}
                 for k in sorted(set(fo) & set(fn)):
-                    ratio = fn[k] / fo[k] if fo[k] else float("nan")
+                    ratio = fn[k] / fo[k] if fo[k] else (1.0 if fn[k] == fo[k] else float("inf"))
                     d = direction(k)
                     worse = (d == "lower" and ratio > 1) or (d == "higher" and ratio < 1)
-                    rows[k] = round(ratio, 4)
+                    rows[k] = round(ratio, 4) if math.isfinite(ratio) else None
                     print(f"   {k:55s} {fo[k]:>14.6g} {fn[k]:>14.6g}  x{ratio:8.4f}  better {d:6s}"
                           f"{'  (worse)' if worse else ''}")
                 only = sorted(set(fo) ^ set(fn))

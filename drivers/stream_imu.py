@@ -9,8 +9,12 @@ unknown), ``_inertial(out) -> (acc (n,3) m/s^2, gyro (n,3) rad/s, temperature (n
 ``_configure_device()`` (commands, identity; called with the link open, on every (re)connect).
 
 After a reconnect, a device whose time went back (it restarted: a USB sensor power-cycles with
-its cable) is rebased: its timeline continues from the arrival of its first frame, so the
-outage is a counted gap (``device_restarts``), not a stream of rejected frames.
+its cable) is rebased (``device_restarts``): its new timeline is shifted onto the old one, the
+shift learnt like the offset (the minimum over the chunks arriving within ``learn_s``, in rig
+time, of arrival - offset - newest device time; the new samples are held until then), so the
+outage is a counted gap, not a stream of rejected frames, and the time base goes on as before.
+``read`` never hands out a sample stamped after ``clock.now()`` (one that came faster than any
+chunk of the learning window waits for the next read).
 
 Time base (units s): ``ImuBlock.counter = round((t_dev - t_dev_first) * rate_hz)`` (a gap means
 samples that never arrived: ``dropped_samples``); a frame whose device time does not advance is
@@ -71,7 +75,15 @@ class StreamImu(ReconnectingReader):
         self._chunks = 0
         #: device-time shift (s) added after a device restart, so its timeline continues
         self._shift = 0.0
+        self._shift_floor = 0.0
         self._rebase_pending = False
+        #: after a restart: the new samples, held until the shift is learnt (rig time _held_until)
+        self._held: list[tuple[np.ndarray, ...]] | None = None
+        self._held_until = 0.0
+        #: external events the device time-stamps (VectorNav SYNC_IN): device time + shift, with
+        #: those of a held restart epoch apart until the shift is learnt
+        self._events: list[float] = []
+        self._held_events: list[float] = []
         self.device_restarts = 0
         self._init_reader()
         self._last_warn = 0.0
@@ -89,6 +101,11 @@ class StreamImu(ReconnectingReader):
 
     def _configure_device(self) -> None:
         """Commands and identity on a (re)connect; the default sends nothing."""
+
+    def _device_events(self, out: dict) -> np.ndarray:
+        """Device times (s, as ``_device_time``) of external events the frames report (e.g. a
+        VectorNav's SYNC_IN edges); none by default."""
+        return np.empty(0)
 
     # -------------------------------------------------------------------- reader thread
     def connect(self) -> None:
@@ -125,22 +142,23 @@ class StreamImu(ReconnectingReader):
 
     def _store(self, out: dict, arrival: float | None) -> None:
         if not len(out.get("offset", ())):
+            if arrival is None:
+                self._release_held()
             return
-        t = self._device_time(out) + self._shift
+        t_raw = self._device_time(out)
         acc, gyr, temp = self._inertial(out)
         last = self._last_t
-        if self._rebase_pending and t.size and arrival is not None:
+        if self._rebase_pending and t_raw.size and arrival is not None:
             self._rebase_pending = False
-            if last is not None and self.offset is not None and t[0] <= last:
-                # the device restarted while the link was down (a USB sensor power-cycles with its
-                # cable): its time starts again near 0. Continue its timeline at the arrival time,
-                # so the outage is a counted gap and nothing is rejected as out of order.
-                extra = max((arrival - self.offset) - float(t[-1]), last - float(t[0]) + 1.0 / self.rate_hz)
-                t = t + extra
-                self._shift += extra
-                self.device_restarts += 1
-                log.warning("%s: the device time restarted during the outage; its timeline continues "
-                            "from the reconnect (shift %.3f s)", self.name, self._shift)
+            if last is not None and self.offset is not None and float(t_raw[0]) + self._shift <= last:
+                self._start_rebase(t_raw, arrival, last)
+        elif self._held is not None and arrival is not None and t_raw.size and np.isfinite(t_raw[-1]):
+            self._lower_shift(arrival - self.offset - float(t_raw[-1]))
+        t = t_raw + self._shift
+        ev = self._device_events(out)
+        if ev.size:
+            (self._held_events if self._held is not None else self._events).extend((ev + self._shift).tolist())
+        last = self._last_t
         fast = t.size > 0 and bool(np.isfinite(t).all()) and (t.size < 2 or bool(np.all(np.diff(t) > 0))) \
             and (last is None or t[0] > last)
         if fast:
@@ -156,21 +174,61 @@ class StreamImu(ReconnectingReader):
         self._last_t = last
         if not keep.all():
             t, acc, gyr, temp = t[keep], acc[keep], gyr[keep], temp[keep]
-        if not t.size:
-            return
-        if self._t0 is None:
-            self._t0 = float(t[0])
+        if t.size and self._held is not None:
+            self._held.append((t, acc, gyr, temp))
+        elif t.size:
+            if self._t0 is None:
+                self._t0 = float(t[0])
+            if arrival is not None and self._learning:
+                est = arrival - float(t[-1])
+                self.offset = est if self.offset is None else min(self.offset, est)
+            self._append(t, acc, gyr, temp)
+        if self._held is not None and (arrival is None or arrival >= self._held_until):
+            self._release_held()
+
+    def _append(self, t, acc, gyr, temp) -> None:
         prev = self._latest_t
         steps = np.rint(np.diff(np.concatenate(([prev], t)) if prev is not None else t) * self.rate_hz)
         self.dropped_samples += int(np.maximum(steps - 1, 0).sum())
-        if arrival is not None and self._learning:
-            est = arrival - float(t[-1])
-            self.offset = est if self.offset is None else min(self.offset, est)
         with self._cond:
             self._pending.append((t, acc, gyr, temp))
             self._latest_t = float(t[-1])
             self._chunks += 1
             self._cond.notify_all()
+
+    # Restart rebase. The device time restarted while the link was down (a USB sensor power-cycles
+    # with its cable): its new timeline is shifted onto the old one. The shift is learnt as the
+    # offset was on the first connect: the minimum over the chunks arriving during ``learn_s``
+    # (scaled to rig time) of (arrival - offset - newest device time), never below what keeps the
+    # times increasing across the outage. Until then the new samples are held back (and moved down
+    # with each lower estimate), so no stamp handed out leads the clock: a single chunk's latency
+    # (issue 22: the first chunk after a reconnect arrives late) would put every later stamp of the
+    # run ahead of its arrival by the difference to the minimum latency.
+    def _start_rebase(self, t_raw: np.ndarray, arrival: float, last: float) -> None:
+        self._shift_floor = last - float(t_raw[0]) + 1.0 / self.rate_hz
+        self._shift = max(arrival - self.offset - float(t_raw[-1]), self._shift_floor)
+        self._held = []
+        self._held_until = arrival + self.learn_s * float(getattr(self.clock, "speed", 1.0))
+        self.device_restarts += 1
+
+    def _lower_shift(self, est: float) -> None:
+        new = max(est, self._shift_floor)
+        if new < self._shift:
+            d, self._shift = self._shift - new, new
+            self._last_t -= d
+            self._held = [(t - d, *rest) for t, *rest in self._held]
+            self._held_events = [e - d for e in self._held_events]
+
+    def _release_held(self) -> None:
+        held, self._held = self._held, None
+        with self._cond:
+            self._events.extend(self._held_events)
+        self._held_events = []
+        if not held:
+            return
+        log.warning("%s: the device time restarted during the outage; its timeline continues from the "
+                    "reconnect (shift %.6f s)", self.name, self._shift)
+        self._append(*(np.concatenate(parts) for parts in zip(*held)))
 
     def _configure(self) -> None:
         first = self.offset is None
@@ -199,7 +257,7 @@ class StreamImu(ReconnectingReader):
         with self._cond:
             self._pending.clear()
             self._latest_t = None
-        self._t0, self._last_t = None, None
+        self._t0, self._last_t, self._held = None, None, None
         self.stream = self._new_stream()
 
     # ------------------------------------------------------------------------------ Imu
@@ -227,9 +285,28 @@ class StreamImu(ReconnectingReader):
         if not ok.all():
             self.incomplete_frames += int((~ok).sum())
             t, acc, gyr, temp = t[ok], acc[ok], gyr[ok], temp[ok]
+        stamp = t + (self.offset or 0.0)
+        # never hand out a sample stamped after the clock: the offset is a minimum-latency estimate
+        # over a learning window, and a later chunk can arrive faster than any in it; such samples
+        # wait (for the estimate's error: rig-time milliseconds at most) and come with the next read
+        now = self.clock.now()
+        if stamp.size and stamp[-1] > now:
+            cut = int(np.searchsorted(stamp, now, side="right"))
+            with self._cond:
+                self._pending.insert(0, (t[cut:], acc[cut:], gyr[cut:], temp[cut:]))
+            t, acc, gyr, temp, stamp = t[:cut], acc[:cut], gyr[:cut], temp[:cut], stamp[:cut]
         counter = np.maximum(np.rint((t - (self._t0 or 0.0)) * self.rate_hz), 0).astype(np.uint64)
-        return ImuBlock(time=t + (self.offset or 0.0), counter=counter, specific_force=acc, angular_rate=gyr,
-                        temperature=temp)
+        return ImuBlock(time=stamp, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
+
+    def read_events(self) -> np.ndarray:
+        """Run times (s, the IMU's time base) of the device's external events since the last
+        call, none stamped after ``clock.now()`` (those wait, as samples do)."""
+        now = self.clock.now()
+        with self._cond:
+            ev = np.sort(np.asarray(self._events, float)) + (self.offset or 0.0)
+            keep = ev <= now
+            self._events = (ev[~keep] - (self.offset or 0.0)).tolist()
+        return ev[keep]
 
     @property
     def counters(self) -> dict:
@@ -239,6 +316,13 @@ class StreamImu(ReconnectingReader):
                  incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
+
+    def close(self) -> None:
+        """Stop the reader; then flush the decoder, so a bad frame at the very end of the stream
+        (known bad only once a later frame or the end shows where it ends) is in the counters."""
+        super().close()
+        if self._thread is None or not self._thread.is_alive():
+            self.stream.flush()
 
     def __enter__(self):
         return self

@@ -2,17 +2,18 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import schema as S
+from .chamber import ChamberSettings, chamber_settings
 from .frames import normal_gravity
 from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
-from .settings import Settings, number, section
+from .settings import Settings, number, section, setting
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -22,7 +23,7 @@ DEFAULT_CONFIG = "configs/sim.yaml"
 
 TABLE_DRIVERS = ("sim", "acl", "modbus")
 IMU_DRIVERS = ("sim", "xsens", "vectornav", "frame")
-PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
+PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem", "vectornav")
 CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")
 
@@ -76,11 +77,11 @@ class RecorderSettings(Settings):
 class DeviceConfig:
     """A device section: its driver, the raw options, and the validated settings: for the
     table, IMU and pulse input a :class:`rigctl.linkconfig.LinkSettings` of a wired driver (None
-    for the in-process emulator); for the chamber, rigctl.chamber's mapping."""
+    for the in-process emulator); for the chamber a :class:`rigctl.chamber.ChamberSettings`."""
 
     driver: str
     options: LocDict
-    settings: LinkSettings | dict[str, Any] | None = field(default_factory=dict)
+    settings: LinkSettings | ChamberSettings | None = None
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class RigConfig:
     raw: LocDict = field(default_factory=LocDict, repr=False)
     #: the climatic chamber (docs/thermal.md): ``none``, ``sim`` (in the emulated world),
     #: ``watlow`` (Modbus RTU / TCP) or ``scpi`` (PyVISA); settings from rigctl.chamber
-    chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict()))
+    chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict(), ChamberSettings()))
     #: the daemon's notices (docs/daemon.md): webhook and/or e-mail on job end, suspension, fault
     notifications: NotifySettings = field(default_factory=NotifySettings)
 
@@ -186,28 +187,40 @@ def suspender_settings(m: LocDict) -> SuspenderSettings:
     return section(m, "suspenders", SuspenderSettings)
 
 
-#: keys of the ``traceability:`` section (shown on certificates; all text)
-TRACEABILITY_KEYS = ("laboratory", "address", "accreditation", "table_id", "table_calibration",
-                     "table_calibration_due", "reference_standards", "procedure_document")
+def _statement(d: LocDict, key: str, default: str) -> str:
+    """Text of at most 500 characters; a list of texts (``reference_standards``) joined by '; '."""
+    v = d[key]
+    if isinstance(v, list) and all(isinstance(x, str) for x in v):
+        v = "; ".join(v)
+    if not isinstance(v, str) or not v.strip() or len(v) > 500:
+        raise S.error(d, key, f"'{key}' must be text (at most 500 characters)", f'quote it: {key}: "..."')
+    return v.strip()
+
+
+def _stated(default: str = "") -> Any:
+    return setting(default, read=_statement)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Traceability(Settings):
+    """``traceability:``: what a certificate states about the laboratory and the traceability of
+    the rig (docs/production.md); "" = not stated."""
+
+    laboratory: str = _stated()
+    address: str = _stated()
+    accreditation: str = _stated()
+    table_id: str = _stated()
+    table_calibration: str = _stated()
+    table_calibration_due: str = _stated()
+    reference_standards: str = _stated()
+    procedure_document: str = _stated()
 
 
 def traceability(m: LocDict) -> dict[str, str]:
-    """The ``traceability:`` section of a rig config: what a certificate states about the
-    laboratory and the traceability of the rig (docs/production.md). Each value is text; a
-    list (``reference_standards``) is joined with '; '. Absent: {}."""
-    if m.get("traceability") is None:
-        return {}
-    t = S.require_mapping(m["traceability"], "'traceability'", m, "traceability")
-    S.check_keys(t, TRACEABILITY_KEYS, "'traceability'")
-    out = {}
-    for k, v in t.items():
-        if isinstance(v, list) and all(isinstance(x, str) for x in v):
-            v = "; ".join(v)
-        if not isinstance(v, str) or not v.strip() or len(v) > 500:
-            raise S.error(t, k, f"'{k}' must be text (at most 500 characters)",
-                          f'quote it: {k}: "..."')
-        out[k] = v.strip()
-    return out
+    """The ``traceability:`` section of a rig config as {field: text}, the fields stated only
+    (absent section: {})."""
+    t = section(m, "traceability", Traceability)
+    return {f.name: getattr(t, f.name) for f in fields(t) if getattr(t, f.name)}
 
 
 def load_config(path: str | Path) -> RigConfig:
@@ -250,6 +263,12 @@ def load_config(path: str | Path) -> RigConfig:
     imu = DeviceConfig(imu.driver, i, link_settings("imu", imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
     pulses = DeviceConfig(pulses.driver, p_opts, link_settings("pulses", pulses.driver, p_opts))
+    if pulses.driver == "vectornav":
+        S.check_keys(p_opts, ("driver",), "'pulses' (vectornav)")
+        if imu.driver != "vectornav":
+            raise S.error(m, "pulses", f"pulses from a VectorNav's SYNC_IN need the VectorNav as the IMU "
+                          f"(the imu driver is '{imu.driver}')",
+                          "set imu: driver: vectornav, or choose another pulse source (novatel, gpio, modem)")
     if (table.driver == "sim") != (imu.driver == "sim"):
         raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
                       "together; mixing it with a wired device is not supported",
@@ -265,7 +284,6 @@ def load_config(path: str | Path) -> RigConfig:
     flush, table_rate = rec.flush_interval_s, rec.table_rate_hz
     suspenders = suspender_settings(m)
     notifications = notify_settings(m)
-    from .chamber import chamber_settings  # the chamber section (docs/thermal.md)
     chamber, c_opts = _device(m, "chamber", CHAMBER_DRIVERS, "none")
     chamber = DeviceConfig(chamber.driver, c_opts, chamber_settings(chamber.driver, c_opts))
     # driver: sim is the in-process world's chamber; a wired rig has no in-process world, so

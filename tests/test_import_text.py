@@ -117,3 +117,46 @@ def test_unreadable_input_is_one_error_line(tmp_path: Path) -> None:
         assert p.returncode == 2 and what in p.stderr, p.stderr
         assert "Traceback" not in p.stderr and len(lines) <= 2, p.stderr  # message (+ hint)
         assert not (tmp_path / "o.h5").exists()
+
+
+def _table(path: Path) -> np.ndarray:
+    """Rows (AF, Tau, #, Alpha, Min Sigma, Sigma, Max Sigma) of a Stable32 result file."""
+    return np.array([[float(v) for v in ln.split()] for ln in path.read_text().splitlines()
+                     if ln.strip() and not ln.lstrip().startswith("#")])
+
+
+def test_stable32_phase_files_through_import_and_allan(ref_data: Path, tmp_path: Path) -> None:
+    """A Stable32 phase file (one column of phase in s, # comments, tau0 = 1 s) goes through
+    `rigctl import --units gyr=rad --integrated --rate 1` (the phase differenced into
+    fractional frequency) and `rigctl allan --exact`: the overlapping deviations and term
+    counts are Stable32's (its tables: 5 significant digits)."""
+    cases = [("phasedat/PHASE.DAT", "phasedat/phase_dat_oadev_octave.txt", "octave"),
+             ("Cs5071A/5071A_phase.txt.gz", "Cs5071A/oadev_decade.txt", "decade")]
+    for src, tab, taus in cases:
+        d = ref_data / "stable32-reference"
+        txt = d / src
+        if txt.suffix == ".gz":
+            import gzip
+
+            plain = tmp_path / txt.stem
+            plain.write_bytes(gzip.decompress(txt.read_bytes()))
+            txt = plain
+        rec = tmp_path / (Path(src).stem + ".h5")
+        _ok(str(txt), "-o", str(rec), "--columns", "gyr_x=0", "--units", "gyr=rad",
+            "--integrated", "--rate", "1")
+        js = tmp_path / (Path(src).stem + ".json")
+        assert cli.main(["allan", str(rec), "--taus", taus, "--exact", "--json", str(js)]) == 0
+        r = json.loads(js.read_text())["axes"]["gx"]
+        ref = _table(d / tab)
+        m = np.asarray(r["m"])
+        dev = np.asarray(r["adev_rad/s"])
+        n_terms = np.asarray(r["n_terms"])
+        hits = 0
+        for af, _, count, _, _, sigma, _ in ref:
+            k = np.flatnonzero(m == int(af))
+            if not k.size:
+                continue
+            hits += 1
+            assert abs(dev[k[0]] / sigma - 1) < 1e-4, (src, af, dev[k[0]], sigma)
+            assert n_terms[k[0]] == int(count), (src, af)
+        assert hits >= min(len(ref), 8), (src, hits, len(ref))

@@ -50,6 +50,7 @@ class ImportOptions:
     gravity: float | None = None    # m/s^2
     latitude_deg: float | None = None
     force: bool = False             # replace an existing output
+    integrated: bool = False        # CSV: angle/velocity columns are running integrals
 
 
 G0 = 9.80665
@@ -61,6 +62,10 @@ UNIT_FACTORS = {
     "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
 }
+#: units of per-sample increments (delta angle, delta velocity): divided by the sample interval;
+#: with --integrated the column is their running sum (an angle, a velocity, a clock's phase)
+INCREMENT_UNITS = {"gyr": {"rad": 1.0, "deg": DEG, "mrad": 1e-3, "urad": 1e-6},
+                   "acc": {"m/s": 1.0, "mm/s": 1e-3}}
 NAN3 = np.full(3, np.nan)
 
 
@@ -114,10 +119,14 @@ def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str
                 unit = m.group(3).strip()
             else:
                 scale, unit = 1.0, v
-            out[k] = scale * UNIT_FACTORS[k][unit]
+            if unit in INCREMENT_UNITS.get(k, {}):
+                out[k] = scale * INCREMENT_UNITS[k][unit]
+                out[f"{k}_increment"] = 1.0
+            else:
+                out[k] = scale * UNIT_FACTORS[k][unit]
         except (KeyError, ValueError, ZeroDivisionError):
             raise InputError(f"--units: {part!r} not understood",
-                             hint=f"{k} units: {', '.join(UNIT_FACTORS[k])}, or counts:SCALE UNIT "
+                             hint=f"{k} units: {', '.join([*UNIT_FACTORS[k], *INCREMENT_UNITS.get(k, {})])}, or counts:SCALE UNIT "
                                   "(e.g. counts:1/2048 g)") from None
         given.add(k)
     for k in needed:
@@ -388,7 +397,7 @@ class Imported:
     messages: int = 0  # messages read (bags)
 
 
-CSV_ONLY = ("columns", "units", "rate")
+CSV_ONLY = ("columns", "units", "rate", "integrated")
 BAG_ONLY = ("topic",)
 
 
@@ -446,6 +455,33 @@ def import_csv(args: ImportOptions) -> Imported:
         rate = float(args.rate)
         t = np.arange(n) / rate
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
+    incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
+    if args.integrated and not incr:
+        raise InputError("--integrated needs an angle or velocity unit (e.g. gyr=rad, acc=m/s): "
+                         "the columns are then running integrals, differenced into rates", src)
+    if incr:  # increments per sample (or their running sums) -> rates, SI
+        steps = np.ones(n) if counter is None else np.diff(counter.astype(np.float64), prepend=-1.0)
+        if args.integrated:
+            if n < 3:
+                raise InputError("--integrated needs at least 3 rows", src)
+            if "acc" in incr:
+                acc = np.diff(acc, axis=0)
+            if "gyr" in incr:
+                gyr = np.diff(gyr, axis=0)
+            t, temp, steps = t[1:] - t[1], temp[1:], steps[1:]
+            counter = None if counter is None else counter[1:] - counter[1]
+            n -= 1
+            if "acc" not in incr:
+                acc = acc[1:]
+            if "gyr" not in incr:
+                gyr = gyr[1:]
+        for k in incr:
+            if k == "acc":
+                acc = acc * (rate / steps)[:, None]
+            else:
+                gyr = gyr * (rate / steps)[:, None]
+        lines.append(f"{' and '.join(incr)}: {'running integrals, differenced' if args.integrated else 'increments per sample'} "
+                     f"and divided by the sample interval (1/{rate:g} s) into rates")
     absent = [k for k in REQUIRED if k not in mapping]
     if absent:
         axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
