@@ -274,6 +274,8 @@ def test_the_loop_names_thermal_hysteresis(pooled_fits):
     for seed, (fits, t) in zip(HYST_SEEDS, pooled_fits["hysteresis"]):
         for s, fit in fits.items():
             assert fit.accepted[:1] == ["hysteresis"], (seed, s, fit.explain)
+            # and told apart from the temperature rate (the holds at the ends separate them)
+            assert fit.confounded["hysteresis"] == [], (seed, s, fit.explain)
             h = {q["name"]: q for q in fit.parameters() if "hysteresis" in q["name"]}
             assert len(h) == 3
             # the amplitude the emulator put in, inside (or within 3 sigma of) the interval

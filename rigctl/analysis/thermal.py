@@ -322,6 +322,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         sensors[sensor] = {
             "degrees": deg, "accepted": fit.accepted,
             "effects_found": [th.CANDIDATE_TEXT[c] for c in fit.accepted],
+            "confounded_with": fit.confounded,
             "chi2": fit.chi2, "dof": fit.dof, "chi2_per_dof": c2, "chi2_band_99": [lo, hi], "status": status,
             "windows": {"total": len(w), "heating": int(heat.sum()), "cooling": int((~heat).sum()),
                         "heating_span_c": [float(w.temperature[heat].min()), float(w.temperature[heat].max())]
@@ -333,7 +334,11 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                      f"{deg['misalignment']}; {len(w)} windows ({int(heat.sum())} heating, "
                      f"{int((~heat).sum())} cooling); chi2/dof {c2:.3g} (99 % band {lo:.3g} .. {hi:.3g})"
                      + ("" if status == "ok" else "  <- OUTSIDE THE BAND: the model or the noise is wrong"))
-        found = ", ".join(th.CANDIDATE_TEXT[c] for c in fit.accepted) or "none"
+        conf = fit.confounded
+        found = "; ".join(th.CANDIDATE_TEXT[c] + (
+            f" -- this run cannot tell it from: {', '.join(th.CANDIDATE_TEXT[o] for o in conf[c])} (all "
+            "explain the data nearly as well; a longer hold at each end separates them)" if conf[c] else "")
+            for c in fit.accepted) or "none"
         lines.append(f"  closed loop: thermal effects found: {found}")
         for e in fit.explain:
             lines.append(f"    [{e['step']}] {e['candidate']}: {e['statistic']}, p_adj {e['p_adj']:.2g} -> "
