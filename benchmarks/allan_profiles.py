@@ -132,7 +132,7 @@ def _run_import(argv: list[str]) -> None:
     """`rigctl import ...` as the command line runs it (exit code checked)."""
     from rigctl import cli
 
-    code = cli.main(["import", *argv])
+    code = cli.main(["import", *argv, "--force"])  # its own directory: a kept run rewrites
     if code != 0:
         raise RuntimeError(f"rigctl import {' '.join(argv)}: exit {code}")
 

@@ -4,11 +4,11 @@
 
 For each benchmark, the OLD commit's script then the NEW commit's script run one right after the
 other (same machine load as far as that goes), each on its own commit's code: every commit is
-checked out with ``git worktree add --detach`` in a temporary folder, and run with a package
-tree on PYTHONPATH laid out as installed (rigctl/* of that commit, plus each ``package-dir``
-mapping of its pyproject.toml: drivers/ as rigctl.drivers, sim/ as rigctl.sim), so the venv's
-editable install of the current checkout is not what runs. The interpreter (and so the
-dependencies) is this one.
+checked out with ``git worktree add --detach`` in a temporary folder, laid out as installed
+(each ``package-dir`` mapping of its pyproject.toml linked into its rigctl/: drivers/ as
+rigctl.drivers, sim/ as rigctl.sim) and put first on PYTHONPATH, so the venv's editable install
+of the current checkout is not what runs, in the benchmark or in its child processes. The
+interpreter (and so the dependencies) is this one.
 
 Every benchmark prints one JSON object as its last line (units in the keys). For each numeric
 key the two have in common: old, new, new/old, and which way is better when the key's name
@@ -59,27 +59,24 @@ def direction(key: str) -> str:
 
 
 def checkout(commit: str, where: Path) -> Path:
-    """A detached worktree of ``commit`` and beside it a package tree as installed."""
+    """A detached worktree of ``commit`` whose rigctl/ also holds its ``package-dir`` mappings
+    (drivers/ as rigctl/drivers, sim/ as rigctl/sim, symbolic links), so that ``import rigctl``
+    from that folder -- on PYTHONPATH, or as the current directory of a ``python -c`` or
+    ``python -m`` child -- is that commit's code throughout, and the venv's editable install of
+    another checkout is never reached for a sub-package."""
     wt = where / f"wt-{commit[:10]}"
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(wt), commit], check=True)
-    site = where / f"site-{commit[:10]}"
-    pkg = site / "rigctl"
-    pkg.mkdir(parents=True)
     cfg = tomllib.loads((wt / "pyproject.toml").read_text())
     mapping = cfg.get("tool", {}).get("setuptools", {}).get("package-dir", {})
-    for p in (wt / "rigctl").iterdir():
-        if p.name != "__pycache__":
-            (pkg / p.name).symlink_to(p)
     for name, src in mapping.items():
         parts = name.split(".")
-        if len(parts) == 2 and Path(src).parts[0] != "rigctl" and not (pkg / parts[1]).exists():
-            (pkg / parts[1]).symlink_to(wt / src)
+        if len(parts) == 2 and Path(src).parts[0] != "rigctl" and not (wt / "rigctl" / parts[1]).exists():
+            (wt / "rigctl" / parts[1]).symlink_to(wt / src)
     return wt
 
 
 def run(wt: Path, bench: str, args: list[str], timeout: float) -> tuple[dict, float, str]:
-    site = wt.parent / wt.name.replace("wt-", "site-", 1)
-    env = dict(os.environ, PYTHONPATH=str(site), PYTHONDONTWRITEBYTECODE="1")
+    env = dict(os.environ, PYTHONPATH=str(wt), PYTHONDONTWRITEBYTECODE="1")
     t0 = time.monotonic()
     p = subprocess.run([sys.executable, str(wt / "benchmarks" / f"{bench}.py"), *args], cwd=wt, env=env,
                        capture_output=True, text=True, timeout=timeout)

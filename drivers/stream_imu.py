@@ -1,7 +1,7 @@
-"""Common behaviour of the streaming IMU drivers that are not Xsens (VectorNav binary, declarative
-frames): a reader thread, batched vectorised decoding, the device time base mapped onto the run
-clock, alignment of ``read`` with the rig clock, link loss and reconnect -- as
-:class:`rigctl.drivers.xsens_imu.XsensImu` does it (see its docstring for the reasoning).
+"""The streaming IMU drivers' common base (:class:`StreamReader`: reader thread, batched reads,
+offset learning, aligned ``read``; Xsens derives from it too) and :class:`StreamImu`, the base of
+those that are not Xsens (VectorNav binary, declarative frames): batched vectorised decoding, the
+device time base mapped onto the run clock, link loss and reconnect.
 
 A subclass provides ``_new_stream()`` (a decoder with ``feed``/``flush`` and ``counters``),
 ``_device_time(out) -> (n,) float s`` (unwrapped device time of each decoded frame, NaN when
@@ -37,6 +37,10 @@ from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
 
 log = logging.getLogger(__name__)
+#: Bytes are decoded in batches: after the first byte, the reader keeps reading for 20 ms of rig
+#: time (``batch_wait_s``; 20 ms of wall time at 1x, 0.2 ms at 100x) -- or, when a read of at least
+#: BURST_BYTES shows a burst (a pty carries about 4 KiB per read), for BURST_WAIT_S of wall time --
+#: up to BURST_MAX bytes, since a vectorised decoder costs ~0.4 ms per call plus ~1 us per frame.
 BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
 
 
@@ -48,7 +52,85 @@ class StreamImuUnitChanged(StreamImuConfigError, DeviceFault):
     """After a reconnect another unit (another serial number) is on the port."""
 
 
-class StreamImu(ReconnectingReader):
+class StreamReader(ReconnectingReader):
+    """What every streaming IMU driver shares (Xsens, VectorNav, declarative frame): the reader
+    thread's batched reads, the offset learning after the first configuration, the wait in
+    ``read`` for the stream to reach the rig clock, and the context manager. A subclass sets
+    ``link``, ``clock``, ``rate_hz``, ``timeout_s``, ``learn_s``, ``align_wait_s``,
+    ``batch_wait_s``, ``offset``, ``_cond`` and implements ``_feed(data)`` (decode, store;
+    while ``_learning`` it lowers ``offset`` to the minimum of arrival - newest device time) and
+    ``_latest_run_time()``."""
+
+    _learning = False
+    _chunks = 0
+
+    def connect(self) -> None:
+        """Start the reader thread; return once the device streams (raise if it cannot)."""
+        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
+
+    def _pump(self) -> None:
+        data = self.link.read_some(0.05)
+        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
+        if data and wait > 0:               # gather more before decoding
+            buf, end = bytearray(data), time.monotonic() + wait
+            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
+                more = self.link.read_some(left)
+                if not more:
+                    break
+                buf += more
+            data = bytes(buf)
+        if data:
+            self._feed(data)
+
+    def _feed(self, data: bytes) -> None:  # pragma: no cover - subclass duty
+        raise NotImplementedError
+
+    def _latest_run_time(self) -> float | None:  # pragma: no cover - subclass duty
+        """Run time of the newest stored sample (None before the first)."""
+        raise NotImplementedError
+
+    def _finish_configure(self, no_frames: str) -> None:
+        """After the device was configured: on the first configuration learn the offset for
+        ``learn_s`` of wall time (LinkLost with ``no_frames`` if no frame came), then mark the
+        stream configured."""
+        if self.offset is None:
+            self._learning = True
+            end = time.monotonic() + self.learn_s
+            while time.monotonic() < end and not self._stop.is_set():
+                data = self.link.read_some(0.02)
+                if data:
+                    self._feed(data)
+            self._learning = False
+            if self.offset is None:
+                raise LinkLost(self.name, no_frames)
+        if self._down_since is not None:
+            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
+        self._configured.set()
+
+    def _wait_aligned(self) -> None:
+        """With ``_cond`` held: wait (at most ``align_wait_s`` of wall time) until the newest
+        sample is within 1.5 sample periods of the rig clock or the next chunk has arrived."""
+        if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
+            want = self.clock.now() - 1.5 / self.rate_hz
+            deadline = time.monotonic() + self.align_wait_s
+            chunks = self._chunks
+            while ((latest := self._latest_run_time()) is None or latest < want) \
+                    and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
+                self._cond.wait(left)
+
+    def _raise_if_down(self) -> None:
+        """No data: LinkLost once the link has been down for ``link_timeout_s`` (wall)."""
+        if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
+            raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class StreamImu(StreamReader):
     config_error = StreamImuConfigError
     protocol = ""
 
@@ -108,23 +190,6 @@ class StreamImu(ReconnectingReader):
         return np.empty(0)
 
     # -------------------------------------------------------------------- reader thread
-    def connect(self) -> None:
-        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
-
-    def _pump(self) -> None:
-        data = self.link.read_some(0.05)
-        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
-        if data and wait > 0:
-            buf, end = bytearray(data), time.monotonic() + wait
-            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
-                more = self.link.read_some(left)
-                if not more:
-                    break
-                buf += more
-            data = bytes(buf)
-        if data:
-            self._feed(data)
-
     def _on_link_lost(self) -> None:
         out = self.stream.flush()
         self._store(out, None)
@@ -238,19 +303,7 @@ class StreamImu(ReconnectingReader):
             self.link.drain_input()
         self._configure_device()
         self.configurations += 1
-        if self.offset is None:
-            self._learning = True
-            end = time.monotonic() + self.learn_s
-            while time.monotonic() < end and not self._stop.is_set():
-                data = self.link.read_some(0.02)
-                if data:
-                    self._feed(data)
-            self._learning = False
-            if self.offset is None:
-                raise LinkLost(self.name, f"no {self.protocol} frames from {self.link.url}")
-        if self._down_since is not None:
-            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
-        self._configured.set()
+        self._finish_configure(f"no {self.protocol} frames from {self.link.url}")
 
     def _discard_preconfig(self) -> None:
         """Forget what was decoded before our first configuration."""
@@ -265,17 +318,10 @@ class StreamImu(ReconnectingReader):
         if self._fatal is not None:
             raise self._fatal
         with self._cond:
-            if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
-                want = self.clock.now() - 1.5 / self.rate_hz
-                deadline = time.monotonic() + self.align_wait_s
-                chunks = self._chunks
-                while (self._latest_t is None or self._latest_t + self.offset < want) \
-                        and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
-                    self._cond.wait(left)
+            self._wait_aligned()
             batches, self._pending = self._pending, []
         if not batches:
-            if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
-                raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+            self._raise_if_down()
             return ImuBlock.empty()
         t = np.concatenate([b[0] for b in batches])
         acc = np.concatenate([b[1] for b in batches])
@@ -324,11 +370,9 @@ class StreamImu(ReconnectingReader):
         if self._thread is None or not self._thread.is_alive():
             self.stream.flush()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _latest_run_time(self) -> float | None:
+        return None if self._latest_t is None else self._latest_t + self.offset
 
 
-__all__ = ["StreamImu", "StreamImuConfigError", "StreamImuUnitChanged"]
+__all__ = ["BURST_BYTES", "BURST_MAX", "BURST_WAIT_S", "StreamImu", "StreamImuConfigError", "StreamImuUnitChanged",
+           "StreamReader"]
