@@ -221,7 +221,11 @@ def test_reconnect_counts_the_outage_and_stops_on_another_unit(tmp_path) -> None
             n_drop = imu.counters["dropped_samples"]
             hw.imu_server.power_cycle()
             hw.disconnect("imu", 0.1)
-            wait_until(lambda: imu.configurations == 3 and _rows(imu, 0.1) > 0, 10, "the stream after a restart")
+            # the new epoch's samples come once the shift is learnt (learn_s after the first of
+            # them); samples read before that may be the old epoch's last ones
+            wait_until(lambda: imu.configurations == 3 and imu.counters["device_restarts"] == 1
+                       and imu.counters["dropped_samples"] > n_drop and _rows(imu, 0.1) > 0, 10,
+                       "the stream after a restart")
             c = imu.counters
             assert c["device_restarts"] == 1 and c["out_of_order"] == 0
             assert c["dropped_samples"] - n_drop >= 100         # the outage is a counted gap
