@@ -3,7 +3,8 @@
 Band-limited sensor (second order, 30 Hz, damping 0.7, 100 Hz output), hammer edge jitter
 0.2 ms: single-tap timing error (IMU onset alone, and pulse-vs-tap matching error) and drift
 error over a 3 h 20 min session with 10 + 10 taps. For comparison, the paper-like case (no
-band-limiting, 4.66 ms jitter): matching-error std before correction (paper: 5.48 ms) and the
+band-limiting, 4.66 ms jitter, a value set from the paper's 5.48 ms, so that std equals the
+paper's by construction; the mean before correction is the independent comparison) and the
 quantization-only error after the half-sample correction (limit T/sqrt(12) = 2.89 ms).
 Last line: one JSON object of headline figures.
 """

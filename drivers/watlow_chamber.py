@@ -74,14 +74,18 @@ class WatlowF4T:
         self.identity = {"device_id": "", "protocol": f"Watlow F4T ({self.where})"}
 
     # -- link ------------------------------------------------------------------------------
+    def _open(self) -> None:
+        """Make the client if there is none and connect it (LinkLost if it cannot); under the lock."""
+        if self.client is None:
+            self.client = self._make()
+        if not self.client.connect():
+            self.client.close()
+            self.client = None
+            raise LinkLost(self.name, f"cannot connect to {self.where}")
+
     def connect(self) -> None:
         with self.lock:
-            if self.client is None:
-                self.client = self._make()
-            if not self.client.connect():
-                self.client.close()
-                self.client = None
-                raise LinkLost(self.name, f"cannot connect to {self.where}")
+            self._open()
         self.read()  # the controller answers: the map is there
 
     def close(self) -> None:
@@ -93,11 +97,7 @@ class WatlowF4T:
     def _call(self, what: str, method: str, *args: Any, **kw: Any) -> Any:
         with self.lock:
             if self.client is None:
-                self.client = self._make()
-                if not self.client.connect():
-                    self.client.close()
-                    self.client = None
-                    raise LinkLost(self.name, f"cannot connect to {self.where}")
+                self._open()
             try:
                 rr = getattr(self.client, method)(*args, device_id=self.unit_id, **kw)
             except (ConnectionException, ModbusException, OSError) as exc:

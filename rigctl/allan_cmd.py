@@ -17,11 +17,12 @@ import numpy as np
 
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, UsageError, _jsonable, check_notes,
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes,
     check_warnings, choose_range,
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
+from rigctl.errors import InputError
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_fit as F
 from rigctl.display_units import capture_text, need_text  # noqa: F401 - kept for callers
@@ -96,9 +97,9 @@ def _parse_taus(text: str) -> A.TauSpec:
     try:
         n = int(text)
     except ValueError:
-        raise UsageError(f"--taus {text!r}: use octave, decade, all or a number") from None
+        raise InputError(f"--taus {text!r}: use octave, decade, all or a number") from None
     if n < 2:
-        raise UsageError("--taus N needs N >= 2")
+        raise InputError("--taus N needs N >= 2")
     return n
 
 
@@ -106,7 +107,7 @@ def _parse_axes(text: str) -> list[str]:
     axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
-        raise UsageError(f"--axes {text!r}: choose from {','.join(AXES)}")
+        raise InputError(f"--axes {text!r}: choose from {','.join(AXES)}")
     return axes
 
 
@@ -119,11 +120,11 @@ def run(args: argparse.Namespace) -> int:
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            raise UsageError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+            raise InputError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
     if args.kalibr and set(axes) != set(AXES):
-        raise UsageError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
+        raise InputError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
     if not args.kalibr_inflate > 0:
-        raise UsageError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
+        raise InputError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:

@@ -21,7 +21,8 @@ def run(args: argparse.Namespace) -> int:
     """``rigctl calibrate``: 0 done, 2 invalid input, 1 failure."""
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     try:
-        payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec)
+        payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec,
+                                         args.thermal_degree)
         text += "\n" + production.to_database(args.recording, "calibration", payload, args.db)
     except InputError:
         raise
@@ -45,6 +46,10 @@ def register(subparsers: Any) -> None:
                         "allan if present else self (auto, default), or FILE.h5: the /results/allan of an "
                         "overnight capture of the same IMU (best: a 40-minute session cannot pin down the "
                         "slow terms)")
+    p.add_argument("--thermal-degree", metavar="{N,B,S,M,auto}",
+                   help="thermal calibration (a chamber run): polynomial degree in temperature of every "
+                        "group (N), of bias, scale and misalignment (B,S,M), or chosen from the data (auto); "
+                        "default 2,2,1 (docs/thermal.md)")
     add_production_options(p)
     p.set_defaults(func=run)
 

@@ -14,6 +14,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .errors import InputError
+from .jsonable import jsonable
+
 if TYPE_CHECKING:  # pragma: no cover
     from .report import RunData
 
@@ -70,7 +73,7 @@ def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
     try:
         res = allan_pipeline.compute(str(data.recording), [a for a in axes if a in allan_pipeline.AXES],
                                      taus=QUICK_TAUS, gaps="bridge")  # a quick curve, marked so
-    except (allan_pipeline.UsageError, OSError, ValueError) as exc:
+    except (InputError, OSError, ValueError) as exc:
         if log:
             log("warning", f"report: no Allan curve for {', '.join(axes)}: {exc}")
         return {}
@@ -82,7 +85,7 @@ def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
                      "tau_s": np.asarray(r["tau_s"], float), "adev": np.asarray(r[f"adev_{unit}"]),
                      "lo68": np.asarray(r[f"lo68_{unit}"]), "hi68": np.asarray(r[f"hi68_{unit}"]),
                      "lo95": np.asarray(r[f"lo95_{unit}"]), "hi95": np.asarray(r[f"hi95_{unit}"]),
-                     "fit": stored.get("fit") or allan_pipeline._jsonable(r["fit"]),
-                     "piecewise": stored.get("piecewise") or allan_pipeline._jsonable(r["piecewise"]),
+                     "fit": stored.get("fit") or jsonable(r["fit"], keep_nonfinite=True),
+                     "piecewise": stored.get("piecewise") or jsonable(r["piecewise"], keep_nonfinite=True),
                      "quick": True}
     return out

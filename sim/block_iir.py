@@ -28,6 +28,13 @@ from functools import lru_cache
 
 import numpy as np
 
+try:  # the ``fast`` extra: the cascade sample by sample in a compiled loop
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised only without the extra
+    HAVE_NUMBA = False
+
 _EXP_MAX = 600.0  # largest exponent of lam^-j used in the closed form (e^600 < 1e261)
 
 
@@ -98,6 +105,7 @@ class BlockCascade:
         c_int = np.atleast_2d(np.asarray(c_int, dtype=np.float64))
         gain = np.asarray(gain, dtype=np.float64)
         self.k, self.n_st, self.n_int, self.L = len(gain), len(self.a), c_int.shape[1], int(L)
+        self.residues, self.c_int, self.gain = residues.reshape(self.k, self.n_st), c_int, gain
         self.n_s = self.n_st + self.n_int
         mats = [_matrices(tuple(self.a), tuple(residues[ax]), tuple(c_int[ax]), float(gain[ax]), self.L)
                 for ax in range(self.k)]
@@ -167,3 +175,53 @@ class BlockCascade:
         np.add(Ci[:, :, :-1], start[:, :, None], out=Sg[:, :, 1:])
         Sg[:, :, 1:] *= w
         S[:, i] = Sg.reshape(k, -1)[:, :nb]
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, nogil=True, fastmath=True)
+    def _direct(eps, p, rp, c_int, gain, state, out):  # pragma: no cover - compiled
+        """The cascade sample by sample: per axis k and sample t, with s = state[k, :n_st]
+        (s_{t-1}) and w = state[k, n_st:] (integrators)::
+
+            x = eps_t + sum_i rp[k, i] s_i;   s_i = p_i s_i + eps_t
+            per integrator j: x, w_j = x + c_j w_j, w_j + x;   out[k, t] = gain[k] x
+
+        ``fastmath`` lets the pole sum use several accumulators (and SIMD): the result differs
+        from the block form in the last bits only, and does not depend on how the caller
+        chunks the input (the same compiled arithmetic per sample, the state carried)."""
+        k_n, n = eps.shape
+        n_st = p.size
+        n_int = c_int.shape[1]
+        s = np.empty(n_st)
+        for k in range(k_n):
+            for i in range(n_st):
+                s[i] = state[k, i]
+            g = gain[k]
+            rk = rp[k]
+            for t in range(n):
+                e = eps[k, t]
+                x = 0.0
+                for i in range(n_st):
+                    x += rk[i] * s[i]
+                    s[i] = p[i] * s[i] + e
+                x += e
+                for j in range(n_int):
+                    wj = state[k, n_st + j]
+                    state[k, n_st + j] = wj + x
+                    x = x + c_int[k, j] * wj
+                out[k, t] = g * x
+            for i in range(n_st):
+                state[k, i] = s[i]
+
+
+def run_direct(cascade: "BlockCascade", eps: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``cascade.run(eps)`` sample by sample in the compiled loop (numba; the same filter and
+    state, any chunk length), into ``out`` (k, n). About 3 ns per axis-sample for 14 poles
+    against ~13 for the BLAS blocks at 100 Hz (benchmarks/emulator.py)."""
+    if not hasattr(cascade, "_rp"):
+        p = np.exp(-cascade.a)
+        cascade._p = p
+        cascade._rp = np.ascontiguousarray(cascade.residues * p[None, :])
+    _direct(eps, cascade._p, cascade._rp, cascade.c_int, cascade.gain, cascade.state, out)
+    return out

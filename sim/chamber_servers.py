@@ -10,7 +10,6 @@ hardware's lock. ``requests`` keeps the last requests seen (wall time, text) for
 """
 from __future__ import annotations
 
-import asyncio
 import socketserver
 import threading
 import time
@@ -18,15 +17,13 @@ from collections import deque
 from typing import Any, Callable
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from rigctl.drivers.watlow_chamber import (RAMP_OFF, RAMP_SETPOINT, REGISTERS, SCALE_PER_MINUTE, float_to_regs,
                                            regs_to_float)
 
 from .chamber import ChamberPhysics
-from .links import PtyBridge
+from .modbus_endpoints import ModbusEndpoints
 
 
 class ChamberAccess:
@@ -52,20 +49,18 @@ class ChamberAccess:
                 self.physics.stop(self.now(), None)
 
 
-class WatlowF4TServer:
+class WatlowF4TServer(ModbusEndpoints):
     """Watlow F4T registers over Modbus (asyncio loop in a thread)."""
+
+    name = "watlow"
+    default_baudrate = 9600
 
     def __init__(self, access: ChamberAccess, device_id: int = 1) -> None:
         self.access, self.device_id = access, device_id
         self.hr: dict[int, int] = {REGISTERS["ramp_action"]: RAMP_OFF, REGISTERS["ramp_scale"]: SCALE_PER_MINUTE}
         r = float_to_regs(0.0)
         self.hr[REGISTERS["ramp_rate"]], self.hr[REGISTERS["ramp_rate"] + 1] = r
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="watlow-loop", daemon=True)
-        self._thread.start()
-        self._servers: list = []
-        self._bridges: list[PtyBridge] = []
-        self._closed = False
+        self._start_loop()
 
     def _device(self) -> SimDevice:
         blocks = [SimData(2782, count=30, values=0, datatype=DataType.REGISTERS),
@@ -73,29 +68,6 @@ class WatlowF4TServer:
                   SimData(27586, count=2, values=0, datatype=DataType.REGISTERS)]
         bits = [SimData(0, count=16, datatype=DataType.BITS)]
         return SimDevice(self.device_id, simdata=(bits, list(bits), blocks, list(blocks)), action=self._action)
-
-    def _run(self, coro, timeout: float = 10.0):
-        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
-
-    def start_tcp(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
-        async def go():
-            srv = ModbusTcpServer(self._device(), address=(host, port))
-            await srv.serve_forever(background=True)
-            self._servers.append(srv)
-            return srv.transport.sockets[0].getsockname()[:2]
-        return self._run(go())
-
-    def start_rtu(self, baudrate: int = 9600, parity: str = "N") -> str:
-        bridge = PtyBridge(name="watlow-rtu")
-        self._bridges.append(bridge)
-
-        async def go():
-            srv = ModbusSerialServer(self._device(), framer=FramerType.RTU, port=bridge.path_a,
-                                     baudrate=baudrate, parity=parity)
-            await srv.serve_forever(background=True)
-            self._servers.append(srv)
-        self._run(go())
-        return bridge.path_b
 
     def image(self) -> dict[int, int]:
         s = self.access.state()
@@ -132,23 +104,6 @@ class WatlowF4TServer:
             except ValueError:
                 return ExcCodes.ILLEGAL_VALUE
         return None
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-
-        async def down():
-            for srv in self._servers:
-                await srv.shutdown()
-        try:
-            self._run(down())
-        finally:
-            self._loop.call_soon_threadsafe(self._loop.stop)
-            self._thread.join(timeout=5)
-            self._loop.close()
-            for b in self._bridges:
-                b.close()
 
 
 class ScpiChamberServer:

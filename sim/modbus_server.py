@@ -22,12 +22,9 @@ every axis trips (fault code WATCHDOG) until a fault reset.
 from __future__ import annotations
 
 import asyncio
-import threading
 import time
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from rigctl.drivers.modbus_map import (AXIS_BLOCK, PROTOCOL_VERSION, SCALE_ACCEL, SCALE_POSITION, SCALE_RATE,
@@ -35,12 +32,12 @@ from rigctl.drivers.modbus_map import (AXIS_BLOCK, PROTOCOL_VERSION, SCALE_ACCEL
                                        decode_32, encode_32)
 
 from .acl_server import IdealTable, TableRefused
-from .links import PtyBridge
+from .modbus_endpoints import ModbusEndpoints
 
 MODE_NAME = {Mode.OFF: "off", Mode.POSITION: "position", Mode.RATE: "rate"}
 
 
-class ModbusTableServer:
+class ModbusTableServer(ModbusEndpoints):
     """Modbus front end of a table object (table API: see :mod:`rigctl.sim.acl_server`)."""
 
     def __init__(self, table=None, device_id: int = 1, word_order: str = "big", tick_s: float = 0.01,
@@ -65,16 +62,11 @@ class ModbusTableServer:
             self._put32(b + 10, window_udeg)
             self.hr[b + 12] = dwell_ms
             self.table.set_window(a, window_udeg * SCALE_POSITION, dwell_ms * 1e-3)
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="modbus-loop", daemon=True)
-        self._thread.start()
-        self._servers: list = []
-        self._bridges: list[PtyBridge] = []
+        self._start_loop()
 
         async def start_ticker() -> asyncio.Task:
             return asyncio.get_running_loop().create_task(self._ticker())
         self._tick_task = self._run(start_ticker())
-        self._closed = False
 
     def _axes(self) -> range:
         return range(1, self.n_axes + 1)
@@ -89,58 +81,13 @@ class ModbusTableServer:
             ir.append(SimData(100 * a, count=AXIS_BLOCK, values=0, datatype=DataType.REGISTERS))
         return SimDevice(self.device_id, simdata=(bits, list(bits), hr, ir), action=self._action)
 
-    def _run(self, coro, timeout: float = 10.0):
-        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
-
-    def start_tcp(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
-        """Serve Modbus TCP; returns the bound (host, port)."""
-        async def go():
-            srv = ModbusTcpServer(self._device(), address=(host, port))
-            await srv.serve_forever(background=True)
-            self._servers.append(srv)
-            return srv.transport.sockets[0].getsockname()[:2]
-        return self._run(go())
-
-    def start_rtu(self, baudrate: int = 19200, parity: str = "N") -> str:
-        """Serve Modbus RTU on one end of a pty null-modem pair; returns the path the client opens."""
-        bridge = PtyBridge(name="modbus-rtu")
-        self._bridges.append(bridge)
-
-        async def go():
-            srv = ModbusSerialServer(self._device(), framer=FramerType.RTU, port=bridge.path_a,
-                                     baudrate=baudrate, parity=parity)
-            await srv.serve_forever(background=True)
-            self._servers.append(srv)
-        self._run(go())
-        return bridge.path_b
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-
-        async def down():
-            self._tick_task.cancel()
-            for srv in self._servers:
-                await srv.shutdown()
-            try:
-                await self._tick_task
-            except asyncio.CancelledError:
-                pass
+    async def _shutdown(self) -> None:
+        self._tick_task.cancel()
+        await super()._shutdown()
         try:
-            self._run(down())
-        finally:
-            self._loop.call_soon_threadsafe(self._loop.stop)
-            self._thread.join(timeout=5)
-            self._loop.close()
-            for b in self._bridges:
-                b.close()
-
-    def __enter__(self) -> ModbusTableServer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+            await self._tick_task
+        except asyncio.CancelledError:
+            pass
 
     # ------------------------------------------------------------------------- model
     def _put32(self, addr: int, value: int, signed: bool = True) -> None:

@@ -37,6 +37,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from rigctl.solvers.tap_detect import SecondOrderResponse
+
 #: Shape of a tap for the "none" response, in unit-peak amplitude per sample after the tap.
 RINGING = np.array([1.0, -0.45, 0.2, -0.08])
 
@@ -155,17 +157,16 @@ class TapSession:
 
 
 def unit_peak_second_order(t: np.ndarray, natural_freq_hz: float, damping: float) -> np.ndarray:
-    """Impulse response of wn^2/(s^2 + 2 zeta wn s + wn^2) scaled to unit peak; 0 for t < 0."""
-    wn = 2 * np.pi * natural_freq_hz
-    z = float(damping)
-    if not 0.0 < z < 1.0:
+    """Impulse response of wn^2/(s^2 + 2 zeta wn s + wn^2) scaled to unit peak; 0 for t < 0.
+
+    The same function as the sync solver's template family
+    (:class:`rigctl.solvers.tap_detect.SecondOrderResponse`, one definition): the solver learns
+    the frequency and damping from the taps, it is not told the emulator's. Its behaviour on
+    responses outside this family (two modes, clipping, another axis) is tested with a generator
+    of its own in tests/test_sync_foreign_taps.py."""
+    if not 0.0 < float(damping) < 1.0:
         raise ValueError("damping must be in (0, 1)")
-    wd = wn * np.sqrt(1.0 - z * z)
-    t = np.asarray(t, dtype=float)
-    tp = np.arctan2(wd, z * wn) / wd  # time of the peak
-    peak = np.exp(-z * wn * tp) * np.sin(wd * tp)
-    tt = np.maximum(t, 0.0)
-    return np.where(t >= 0.0, np.exp(-z * wn * tt) * np.sin(wd * tt) / peak, 0.0)
+    return SecondOrderResponse(natural_freq_hz, float(damping))(t)
 
 
 def _schedule(rng: np.random.Generator, sched: ScheduleParams) -> np.ndarray:

@@ -199,3 +199,26 @@ def test_warmup_drift_found(tmp_path):
     before = [abs(e["error_before"]) for e in cl["truth_errors"] if "_M_" in e["name"]]
     after = [abs(e["error_after"]) for e in cl["truth_errors"] if "_M_" in e["name"]]
     assert np.sqrt(np.mean(np.square(after))) < np.sqrt(np.mean(np.square(before)))
+
+
+def test_static_only_run_says_gyro_scale_needs_rates(clean_run, tmp_path):
+    """A 24-position (static only) recording determines the gyro scale factors and
+    misalignments through Earth rate alone: the output says so and names the procedures that
+    would determine them; a recording with rate segments carries no such note."""
+    out = tmp_path / "runs"
+    proc = run_rigctl("run", "procedures/24pos.yaml", "--config",
+                      str(derived_config(tmp_path, **WHITE_NOISE_ONLY)),
+                      *SHORT, "--out", str(out), timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    cal = run_rigctl("calibrate", str(_recording(out)), timeout=300)
+    assert cal.returncode == 0, cal.stderr
+    notes = [ln for ln in cal.stdout.splitlines() if ln.startswith("note: no rate segments")]
+    assert len(notes) == 1 and "procedures/rates.yaml" in notes[0], cal.stdout[-2000:]
+    # Earth rate (7.29e-5 rad/s) against a pose mean's gyro noise: the largest 1-sigma quoted is
+    # that of the JSON's gyro_M parameters, far above 1 % for this MEMS-class emulator
+    payload = json.loads((_recording(out).parent / "recording.calibration.json").read_text())
+    assert payload["notes"] and "Earth rate alone" in payload["notes"][0]
+    worst = float(notes[0].split("largest 1-sigma ")[1].split(" ppm")[0])
+    assert worst > 1e4
+    with_rates, _ = clean_run
+    assert "note: no rate segments" not in with_rates

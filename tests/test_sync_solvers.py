@@ -37,8 +37,11 @@ def exp1_sync(exp1: taps.TapSession):
                        SyncOptions(response="none"))
 
 
-def test_experiment1_error_before_correction_like_paper(exp1, exp1_sync) -> None:
-    """Mean about -T/2 before correction; spread like the paper's 5.48 ms."""
+def test_experiment1_error_before_correction_follows_the_error_model(exp1, exp1_sync) -> None:
+    """Mean -T/2 before correction (first sample after the tap); spread sqrt(j^2 + T^2/12) for
+    the scenario's trigger jitter j. That jitter is set from the paper's 5.48 ms
+    (taps.PAPER_JITTER_S), so a spread equal to the paper's is by construction: this checks the
+    error model, it does not reproduce the paper (docs/sync.md section 5)."""
     res = exp1_sync
     m = res.match
     rows = res.detections.index[m.tap_index]
@@ -47,7 +50,8 @@ def test_experiment1_error_before_correction_like_paper(exp1, exp1_sync) -> None
     sem = err.std(ddof=1) / np.sqrt(err.size)
     assert abs(err.mean() - (-T / 2)) < 3 * sem
     # sample std of n errors: relative standard error 1/sqrt(2(n-1)); allow 3 of them
-    assert abs(err.std(ddof=1) - 0.005482) < 3 * 0.005482 / np.sqrt(2 * (err.size - 1))
+    model = np.sqrt(taps.PAPER_JITTER_S ** 2 + T ** 2 / 12.0)
+    assert abs(err.std(ddof=1) - model) < 3 * model / np.sqrt(2 * (err.size - 1))
     corrected = exp1.pulse_time[m.pulse_index] - exp1.truth.time_of_counter(res.tap_time_s[m.tap_index] * RATE)
     assert abs(corrected.mean()) < 3 * sem
 
@@ -91,14 +95,16 @@ def test_data_loss_from_residual_jump_when_counter_hides_it() -> None:
 
 
 def test_experiment2_drift_and_sample_count_paper_like() -> None:
-    """Paper-like jitter, 10 + 10 taps: drift within its own 95 % interval; counts right."""
+    """The paper's experiment 2 shape (jitter set from its 5.48 ms), 10 + 10 taps: drift within
+    its own 95 % interval; counts right."""
     s = taps.experiment2(seed=2)
     res = synchronise(s.counter, s.specific_force[:, 2], RATE, s.pulse_time,
                       SyncOptions(response="none"))
     fit = res.clock
-    # the stated uncertainty is right: 5.48 ms * sqrt(2 / 10) / span
+    # the stated uncertainty is right: sigma_tap * sqrt(2 / 10) / span, sigma_tap from the model
     span = np.ptp(s.pulse_time)
-    assert fit.drift_sigma_ppm == pytest.approx(0.005482 * np.sqrt(0.2) / span * 1e6, rel=0.35)
+    sigma_tap = np.sqrt(taps.PAPER_JITTER_S ** 2 + T ** 2 / 12.0)
+    assert fit.drift_sigma_ppm == pytest.approx(sigma_tap * np.sqrt(0.2) / span * 1e6, rel=0.35)
     assert abs(fit.drift_ppm - 85.0) < res.summary["drift_ci95_ppm"]
     chk = res.summary["sample_count_check"]
     vt = res.virtual

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import WHITE_NOISE_ONLY, derived_config, run_rigctl
+from helpers import derived_config, run_rigctl
 from rigctl.frames import body_references
 from rigctl.procedure import load_procedure
 from rigctl.solvers import thermal as th
@@ -33,6 +33,9 @@ SIM_THERMAL = {  # configs/sim.yaml's thermal section (SI conversions below)
     "gyro_misalignment_urad_per_K": [[0, 3, -2], [2, 0, 3], [-3, 2, 0]],
 }
 HYST = {"width_K": 2.0, "accel_bias_mg": [0.3, -0.2, 0.25], "gyro_bias_deg_h": [4.0, -3.0, 3.5]}
+#: for the shortened ramps of these tests: a gyro hysteresis of 4 deg/h is below what 11 cycles can
+#: tell from 5 deg/h of bias instability (p_adj 0.01 - 0.14 measured); the full procedure finds it
+HYST_SHORT = {**HYST, "gyro_bias_deg_h": [12.0, -10.0, 11.0]}
 
 
 def test_chamber_air_is_rate_limited_overshoots_and_the_product_lags():
@@ -85,83 +88,162 @@ def test_imu_thermal_errors_match_the_declared_coefficients():
 POSES = [[0, 0, 0], [0, 0, 180], [0, -90, 0], [0, 90, 0], [0, 0, 90], [0, 0, -90]]
 
 
-def _synthetic_windows(seed: int, hysteresis: bool) -> tuple[dict, dict]:
+SIM_UNIT = {"accel_bias_mg": [2, -1.5, 3], "accel_scale_ppm": [800, -500, 300],
+            "accel_misalignment_urad": [[0, 500, -300], [200, 0, 400], [-600, 100, 0]],
+            "accel_quadratic_ug_per_g2": [50, -30, 40], "gyro_bias_deg_h": [20, -15, 10],
+            "gyro_scale_ppm": [1000, -700, 500],
+            "gyro_misalignment_urad": [[0, 800, -400], [300, 0, 600], [-500, 200, 0]],
+            "accel_vrw_m_s_rth": 0.03, "gyro_arw_deg_rth": 0.2,
+            # configs/sim.yaml's slow terms: bias instability and rate random walk
+            "gyro_bias_instability_deg_h": 5.0, "gyro_rrw_deg_h_rth": 3.0,
+            "accel_bias_instability_mg": 0.05, "accel_rrw_m_s_h_rth": 0.05}
+
+
+def _batch_means(x: np.ndarray, nb: int = 8) -> np.ndarray:
+    L = x.shape[0] // nb
+    return x[: L * nb].reshape(nb, L, -1).mean(axis=1)
+
+
+#: the synthetic ramp: (target degC, cycles after the ramp starts) -- shorter than
+#: procedures/thermal-ramp.yaml (11 cycles instead of 20, 8 K/min instead of 2) to keep the
+#: 20-seed study within the test budget; the full procedure's numbers are benchmarks/thermal.py's
+PLAN = [(50.0, 2), (-10.0, 4), (25.0, 2)]
+RAMP_K_PER_MIN = 8.0
+
+
+def _synthetic_windows(seed: int, hysteresis: dict | None) -> tuple[dict, dict]:
     """A ramp session generated with the emulator's chamber and IMU model (no engine): room ->
-    50 -> -10 -> room degC at 4 K/min, six 10-s static poses and six rate windows per cycle, 50 Hz.
-    Window means, their uncertainties (std / sqrt(n), white noise) and <dT^j> by plain numpy."""
-    th_cfg = dict(SIM_THERMAL, **({"hysteresis": LocDict(HYST)} if hysteresis else {}))
-    o = LocDict({"accel_bias_mg": [2, -1.5, 3], "accel_scale_ppm": [800, -500, 300],
-                 "accel_misalignment_urad": [[0, 500, -300], [200, 0, 400], [-600, 100, 0]],
-                 "accel_quadratic_ug_per_g2": [50, -30, 40], "gyro_bias_deg_h": [20, -15, 10],
-                 "gyro_scale_ppm": [1000, -700, 500],
-                 "gyro_misalignment_urad": [[0, 800, -400], [300, 0, 600], [-500, 200, 0]],
-                 "accel_vrw_m_s_rth": 0.03, "gyro_arw_deg_rth": 0.2, "thermal": LocDict(th_cfg)})
+    50 -> -10 -> room degC (:data:`PLAN`), six 10-s static poses and six 10-s rate windows
+    (100 deg/s) per cycle, 50 Hz, with configs/sim.yaml's bias instability and rate random walk. The IMU's samples run without a gap
+    (the 3 s between windows are generated and dropped), so the slow noise evolves in run time.
+    Window means, times, batch means and <dT^j> by plain numpy; the covariance of the means is
+    left to the solver under test."""
+    th_cfg = dict(SIM_THERMAL, **({"hysteresis": LocDict(hysteresis)} if hysteresis else {}))
+    o = LocDict({**SIM_UNIT, "thermal": LocDict(th_cfg)})
     fs = 50.0
     model = build_declared_imu(o, fs, seed)
-    ch = ChamberPhysics(ChamberParams(heat_max_c_per_min=8, cool_max_c_per_min=8, product_tau_s=120))
+    ch = ChamberParams(heat_max_c_per_min=10, cool_max_c_per_min=10, product_tau_s=120)
+    ch = ChamberPhysics(ch)
     track = ThermalTrack(2.0)
     lat = math.radians(45.0)
-    plan = [(50.0, 4), (-10.0, 8), (25.0, 5)]
+    plan = PLAN
     t = 0.0
     rows = {"accel": [], "gyro": []}
+    n, gap = int(10 * fs), int(3 * fs)
     for target, n_cycles in plan:
-        ch.set_setpoint(t, target, 4.0)
+        ch.set_setpoint(t, target, RAMP_K_PER_MIN)
         for _ in range(n_cycles + 1):
-            wins = [("static", np.radians(p), None) for p in POSES]
+            wins = [("orientation", np.radians(p), None) for p in POSES]
             wins += [("rate", np.zeros(3), (ax, sgn)) for ax in range(3) for sgn in (1, -1)]
             for kind, ang, rate in wins:
-                n = int(10 * fs)
-                tt = t + np.arange(n) / fs
-                f_b, w_b = body_references(np.tile(ang, (n, 1)), np.zeros((n, 3)), lat, 100.0, 9.80619)
+                tt = t + np.arange(n + gap) / fs
+                f_b, w_b = body_references(np.tile(ang, (n + gap, 1)), np.zeros((n + gap, 3)), lat, 100.0, 9.80619)
                 if rate is not None:
                     w_b = w_b.copy()
-                    w_b[:, rate[0]] += rate[1] * math.radians(100.0)
+                    w_b[:n, rate[0]] += rate[1] * math.radians(100.0)
                 T = ch.history(tt)
                 ht, hp = ch.grid_since(track._last[0] if track._last else -1.0)
                 track.extend(ht, hp)
                 H, R = track.at(tt)
                 F, W, Tm = model.apply(tt, f_b, w_b, temperature=T, hysteresis=H, temperature_rate=R)
+                F, W, Tm, tw, f_b, w_b = F[:n], W[:n], Tm[:n], tt[:n], f_b[:n], w_b[:n]
                 dT = Tm - 25.0
-                row = {"T": Tm.mean(), "pow": [np.mean(dT**j) for j in range(4)], "H": H.mean(),
-                       "R": np.polyfit(tt - tt[0], Tm, 1)[0]}
-                if kind == "static":
+                row = {"T": Tm.mean(), "pow": [np.mean(dT**j) for j in range(4)], "H": H[:n].mean(),
+                       "R": np.polyfit(tw - tw[0], Tm, 1)[0], "a": tw[0], "b": tw[0] + n / fs, "kind": kind}
+                if kind == "orientation":
                     rows["accel"].append({**row, "y": F.mean(0), "s": F.std(0, ddof=1) / math.sqrt(n),
-                                          "ref": f_b.mean(0), "q": (f_b**2).mean(0)})
+                                          "ref": f_b.mean(0), "q": (f_b**2).mean(0), "bm": _batch_means(F)})
                 rows["gyro"].append({**row, "y": W.mean(0), "s": W.std(0, ddof=1) / math.sqrt(n),
-                                     "ref": w_b.mean(0)})
-                t = tt[-1] + 1.0 / fs + 3.0  # 3 s to move and settle
+                                     "ref": w_b.mean(0), "bm": _batch_means(W)})
+                t = tt[-1] + 1.0 / fs
     wins = {}
     for sensor, rs in rows.items():
         R = np.array([r["R"] for r in rs])
+        kind = np.array([r["kind"] for r in rs])
         wins[sensor] = th.ThermalWindows(
             sensor=sensor, y=np.array([r["y"] for r in rs]), sigma=np.array([r["s"] for r in rs]),
             ref=np.array([r["ref"] for r in rs]), powers=np.array([r["pow"] for r in rs]),
             temperature=np.array([r["T"] for r in rs]), heating=R > 0, reference_c=25.0,
             quad=np.array([r["q"] for r in rs]) if sensor == "accel" else None,
-            regressors={"hysteresis": np.array([r["H"] for r in rs]), "temperature_rate": R})
-    return wins, {"truth": {"imu": model.truth()}}
+            regressors={"hysteresis": np.array([r["H"] for r in rs]), "temperature_rate": R},
+            t_start=np.array([r["a"] for r in rs]), t_end=np.array([r["b"] for r in rs]), kind=kind,
+            revolutions=[0.0 if k == "orientation" else None for k in kind],
+            batch=np.array([r["bm"] for r in rs]), t0=0.0)
+    return wins, o
 
 
-def _truth_names(truth: dict) -> dict[str, float]:
-    class F(dict):  # the analysis layer's truth mapping reads /truth params_json
-        pass
+def _truth_names(o: LocDict) -> dict[str, float]:
+    """The unit's coefficients under the solver's names, SI, from the config written above
+    (mg, deg/h, ppm, urad converted here)."""
+    mg, dph, ppm = 1e-3 * G0, math.pi / 180 / 3600, 1e-6
+    c = o["thermal"]
+    out: dict[str, float] = {}
+    for s, u, bu in (("accel", "m_s2", mg), ("gyro", "rad_s", dph)):
+        for i, a in enumerate("xyz"):
+            out[f"{s}_bias_{a}_{u}"] = o[f"{s}_bias_{'mg' if s == 'accel' else 'deg_h'}"][i] * bu
+            bkey = f"{s}_bias_{'mg' if s == 'accel' else 'deg_h'}"
+            out[f"{s}_bias_{a}_{u}_per_K"] = c[f"{bkey}_per_K"][i] * bu
+            out[f"{s}_bias_{a}_{u}_per_K2"] = c[f"{bkey}_per_K2"][i] * bu
+            hyst = c.get("hysteresis")
+            out[f"{s}_hysteresis_{a}_{u}"] = hyst[bkey][i] * bu if hyst else 0.0
+            for k, b in enumerate("xyz"):
+                if i == k:
+                    out[f"{s}_M_{a}{b}_ratio"] = 1 + o[f"{s}_scale_ppm"][i] * ppm
+                    out[f"{s}_scale_{a}_per_K"] = c[f"{s}_scale_ppm_per_K"][i] * ppm
+                    out[f"{s}_scale_{a}_per_K2"] = c[f"{s}_scale_ppm_per_K2"][i] * ppm
+                else:
+                    out[f"{s}_M_{a}{b}_ratio"] = o[f"{s}_misalignment_urad"][i][k] * 1e-6
+                    out[f"{s}_misalignment_{a}{b}_rad_per_K"] = c[f"{s}_misalignment_urad_per_K"][i][k] * 1e-6
+        if s == "accel":
+            for i, a in enumerate("xyz"):
+                out[f"accel_quad_{a}_s2_per_m"] = o["accel_quadratic_ug_per_g2"][i] * 1e-6 / G0
+    return out
 
-    from rigctl.analysis.thermal import truth_coefficients
 
-    class Attrs:
-        attrs = {"params_json": json.dumps(truth)}
+def _fit(w: th.ThermalWindows) -> th.ThermalFit:
+    th.estimate_noise(w)  # the covariance of the window means from the session (REML)
+    return th.fit_thermal(w)
 
-    return truth_coefficients({"truth": Attrs()})
+
+def _seed_fits(seed: int, hysteresis: dict | None = None) -> tuple[dict, dict]:
+    wins, o = _synthetic_windows(seed, hysteresis)
+    return {s: _fit(w) for s, w in wins.items()}, _truth_names(o)
+
+
+def _seed_fits_star(args: tuple) -> tuple[dict, dict]:
+    return _seed_fits(*args)
+
+
+HYST_SEEDS = (101, 102, 103)
 
 
 @pytest.fixture(scope="module")
-def twenty_seeds():
-    out = []
-    for seed in range(20):
-        wins, truth = _synthetic_windows(seed, hysteresis=False)
-        fits = {s: th.fit_thermal(w) for s, w in wins.items()}
-        out.append((fits, _truth_names(truth["truth"])))
-    return out
+def pooled_fits(monkeypatch_module):
+    """20 seeds without hysteresis and 3 with, on a pool of two fresh processes (the machine's two
+    cores; spawned so that one BLAS thread each takes effect -- the fit's small matrices lose to
+    thread contention on a loaded machine)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    monkeypatch_module.setenv("OPENBLAS_NUM_THREADS", "1")
+    monkeypatch_module.setenv("OMP_NUM_THREADS", "1")
+    jobs = [(s, None) for s in HYST_SEEDS] + [(s, None) for s in range(20)]
+    jobs[:3] = [(s, HYST_SHORT) for s in HYST_SEEDS]
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        out = list(pool.map(_seed_fits_star, jobs))
+    return {"hysteresis": out[:3], "plain": out[3:]}
+
+
+@pytest.fixture(scope="module")
+def twenty_seeds(pooled_fits):
+    return pooled_fits["plain"]
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
 
 
 def test_intervals_cover_the_truth_over_20_seeds(twenty_seeds):
@@ -182,17 +264,14 @@ def test_intervals_cover_the_truth_over_20_seeds(twenty_seeds):
     assert len(chi_out) <= 2, chi_out  # 40 fits, 99 % bands
 
 
-def test_no_false_hysteresis_flag_in_20_seeds(twenty_seeds):
+def test_no_false_thermal_flag_in_20_seeds(twenty_seeds):
     flagged = [(i, s, f.accepted) for i, (fits, _) in enumerate(twenty_seeds) for s, f in fits.items() if f.accepted]
     assert flagged == []
 
 
-def test_the_loop_names_thermal_hysteresis():
-    for seed in (101, 102, 103):
-        wins, truth = _synthetic_windows(seed, hysteresis=True)
-        t = _truth_names(truth["truth"])
-        for s, w in wins.items():
-            fit = th.fit_thermal(w)
+def test_the_loop_names_thermal_hysteresis(pooled_fits):
+    for seed, (fits, t) in zip(HYST_SEEDS, pooled_fits["hysteresis"]):
+        for s, fit in fits.items():
             assert fit.accepted[:1] == ["hysteresis"], (seed, s, fit.explain)
             h = {q["name"]: q for q in fit.parameters() if "hysteresis" in q["name"]}
             assert len(h) == 3
@@ -228,8 +307,9 @@ def _cli(capsys, *args: str) -> tuple[int, str]:
 
 
 def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
-    cfg = derived_config(tmp_path, **WHITE_NOISE_ONLY, imu__rate_hz=50,  # coverage of a white-noise fit
-                         imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST},
+    # configs/sim.yaml's noise, bias instability and rate random walk included
+    cfg = derived_config(tmp_path, imu__rate_hz=50,
+                         imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST_SHORT},
                          chamber__sim={"heat_max_c_per_min": 10, "cool_max_c_per_min": 10,
                                        "product_tau_s": 30})
     r = run_rigctl("run", "procedures/thermal-ramp.yaml", "--config", str(cfg), "--out", str(tmp_path / "runs"),
@@ -252,13 +332,20 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
         d = payload["sensors"][s]
         assert "hysteresis" in d["accepted"], d["explain"]
         assert all(math.isfinite(q["sigma"]) and q["ci95"][0] < q["value"] < q["ci95"][1] for q in d["parameters"])
-        # residuals after the thermal model: far below one calibration at the reference temperature
-        assert max(d["before_after"]["rms_after"]) < 0.2 * min(d["before_after"]["rms_before"])
+        # the window residuals are what the noise model says (chi2 of the GLS fit in its band) ...
+        assert d["status"] == "ok", (s, d["chi2_per_dof"], d["chi2_band_99"])
+        # ... and far below one calibration at the reference temperature: the accelerometer's thermal
+        # error is 10 to 20 times its noise here; the gyro's residual is at its floor of bias
+        # instability and random walk (7 - 12 deg/h measured), 1/5 to 1/14 of the thermal error
+        before, after = np.array(d["before_after"]["rms_before"]), np.array(d["before_after"]["rms_after"])
+        assert after.max() < (0.2 if s == "accel" else 1 / 3) * before.min(), (s, before, after)
     cov = payload["truth_coverage"]
     assert cov["total"] == 63 + 6 and cov["fraction"] >= 0.85, cov
     assert "thermal hysteresis" in text
     # apply-cal with the thermal model, at the recording's own temperatures: the static windows'
-    # means then match gravity (from the table angles, numpy) to within their own noise
+    # means then match gravity (from the table angles, numpy) to within their noise: the white
+    # part s^2 / n from the samples plus the slow part, at most about 2 B^2 (the flicker's variance
+    # between a 6-s window and the 40-min run, ln(400)/pi B^2, less what the fitted bias absorbs)
     out = tmp_path / "corrected.h5"
     code, text = _cli(capsys, "apply-cal", str(rec), "-o", str(out))
     assert code == 0 and "/results/thermal" in text, text[-2000:]
@@ -268,13 +355,15 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
             s = {k: f["segments"][k][()] for k in f["segments"]}
             A = f["imu/specific_force"][()]
             lat, g = math.radians(f["meta"].attrs["latitude_deg"]), f["meta"].attrs["gravity_m_s2"]
-            zs = []
+            dev, white = [], []
             for i in np.flatnonzero(s["kind"] == b"orientation"):
                 a, b = s["first_sample"][i], s["last_sample"][i]
                 fr, _ = body_references(s["commanded_angle"][i], None, lat, f["meta"].attrs["height_m"], g)
-                zs.append((A[a:b].mean(0) - fr) / (A[a:b].std(0, ddof=1) / math.sqrt(b - a)))
-            z2[path] = float(np.mean(np.square(zs)))
-    assert z2[out] < 2.0 and z2[rec] > 100 * z2[out], z2
+                dev.append(A[a:b].mean(0) - fr)
+                white.append(A[a:b].var(0, ddof=1) / (b - a))
+            z2[path] = float(np.mean(np.square(dev)))
+    allowed = float(np.mean(white)) + 2 * (0.05e-3 * G0) ** 2  # configs/sim.yaml: accel B 0.05 mg
+    assert z2[out] < allowed and z2[rec] > 100 * allowed, (z2, allowed)
     # the report's thermal section: the coefficients, the loop's finding and both plots
     code, text = _cli(capsys, "report", str(rec.parent))
     assert code == 0, text[-2000:]

@@ -11,8 +11,6 @@ created_utc, json; curves as datasets with ``units``).
 """
 from __future__ import annotations
 
-import datetime as _dt
-import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -23,6 +21,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import WorkProgress
+from ..jsonable import jsonable
+from ..recorder import write_results
 from ..recording_reader import check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
@@ -43,10 +43,6 @@ DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many p
 SCHEMA_VERSION = 1
 #: worker threads for the per-axis work (both cores of a 2-core machine)
 WORKERS = max(1, min(2, os.cpu_count() or 1))
-
-
-#: invalid input (exit code 2): the one error type of rigctl.errors
-UsageError = InputError
 
 
 class _AxisStream:
@@ -103,7 +99,13 @@ class _AxisStream:
 
     def add(self, y: np.ndarray) -> None:
         acc = self.acc
+        g0 = acc.n_phase if acc.n_phase else 1  # phase index of this chunk's first point
         acc.add_rate(y)
+        x = acc.chunk_phase
+        if x is not None and x.size == y.size:  # the accumulator's own phase: no second pass
+            self._add_phase(x, g0)
+            self.n_rate += y.size
+            return
         c = acc.offset
         if self.n_head < HEAD_POINTS:  # full-resolution phase of the first samples
             part = y[: HEAD_POINTS - self.n_head] - c
@@ -124,6 +126,23 @@ class _AxisStream:
                 self._put_dec(np.cumsum(sums) * self.tau0 + self.x_dec)
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
+
+    def _add_phase(self, x: np.ndarray, g0: int) -> None:
+        """Head and decimated copies from the phase points x[g0 + i] = x[i] (the same running
+        sum as :meth:`add` builds: bit-identical head; the decimated points are the phase at
+        every dec-th index instead of a running sum of block sums)."""
+        if self.n_head < HEAD_POINTS:  # as add(): the same points
+            k = min(HEAD_POINTS - self.n_head, x.size)
+            if self.n_head == 0:
+                self._head[0] = 0.0
+                self.n_head = 1
+            self._head[self.n_head: self.n_head + k] = x[:k]
+            self.n_head += k
+            self.x_head = float(x[k - 1])
+        start = (-g0) % self.dec
+        if start < x.size:
+            xs = x[start:: self.dec]
+            self._put_dec(xs[: self._dec.size - self.n_dec])
 
     def noise_id(self, m: int, n: int) -> int:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
@@ -198,19 +217,19 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             progress_stream: Any = None, outliers: str = "report",
             gaps: str = "refuse") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
-    last) if given, else all); raises UsageError on invalid input. With ``progress_stream``
+    last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
     Every axis is screened on the way (:mod:`rigctl.solvers.allan_checks`): its output step if
     it is quantized, and its spikes, which are reported and, with ``outliers="exclude"``,
     replaced by the running median of their neighbours before they reach the deviations.
     Gaps (dropped samples, :func:`find_gaps`) are never bridged silently: ``gaps="refuse"``
-    raises UsageError saying where they are and what to do, ``"longest"`` analyses the longest
+    raises InputError saying where they are and what to do, ``"longest"`` analyses the longest
     gap-free stretch, ``"bridge"`` treats the samples as contiguous; the result's ``gaps``
     records which."""
     if outliers not in OUTLIER_MODES:
-        raise UsageError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
+        raise InputError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     if gaps not in GAP_MODES:
-        raise UsageError(f"gaps={gaps!r}: choose from {', '.join(GAP_MODES)}")
+        raise InputError(f"gaps={gaps!r}: choose from {', '.join(GAP_MODES)}")
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
@@ -219,7 +238,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             max(0, int(sample_range[0])), min(n_all, int(sample_range[1])))
         n = max(0, s1 - s0)
         if n < MIN_SAMPLES:
-            raise UsageError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
+            raise InputError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
                              "for an Allan analysis (record longer)")
         tau0 = 1.0 / fs
         found = find_gaps(f, s0, s1, fs)
@@ -230,7 +249,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         if found and gaps == "refuse":
             big = max(found, key=lambda g: g[1])
             a, b = longest_stretch(found, s0, s1)
-            raise UsageError(
+            raise InputError(
                 f"{path}: {missing} samples missing in {len(found)} gap(s) in the analysed range "
                 f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
                 f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
@@ -243,7 +262,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             n = s1 - s0
             gap_info["range_used"] = [int(s0), int(s1)]
             if n < MIN_SAMPLES:
-                raise UsageError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
+                raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
                                  f"need at least {MIN_SAMPLES}")
             missing = 0
         gaps_bridged = int(missing)
@@ -278,23 +297,37 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
     task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
     chunk i + 1. At most two chunks are in memory."""
-    def read(a0: int) -> dict:
+    # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
+    # column buffer per axis, reused: no fresh pages (page faults) per chunk
+    rows = min(CHUNK_ROWS, max(0, s1 - s0))
+    bufs = [{name: np.empty((rows, *d.shape[1:])) for name, d in dsets.items()}
+            for _ in range(2)]
+    cols = {a: np.empty(rows) for a in axes}
+
+    def read(a0: int, k: int) -> dict:
         a1 = min(s1, a0 + CHUNK_ROWS)
-        return {name: np.asarray(d[a0:a1], dtype=np.float64) for name, d in dsets.items()}
+        out = {}
+        for name, d in dsets.items():
+            b = bufs[k][name][: a1 - a0]
+            d.read_direct(b, np.s_[a0:a1], np.s_[0:a1 - a0])
+            out[name] = b
+        return out
 
     def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
-        y = streams[a].screen(np.ascontiguousarray(block[:, col]), first, exclude)
+        y = cols[a][: block.shape[0]]
+        np.copyto(y, block[:, col])
+        y = streams[a].screen(y, first, exclude)
         streams[a].add(y)
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    nxt = read(starts[0]) if starts else None
+    nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks = nxt
         checks = [pool.submit(check_finite, path, name, b, a0) for name, b in blocks.items()]
         for c in checks:  # a bad block must not reach the accumulators
             c.result()
         tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
-        nxt = read(starts[i + 1]) if i + 1 < len(starts) else None
+        nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for t in tasks:
             t.result()
         del blocks
@@ -392,7 +425,7 @@ STATIC_RATE_DPS, STATIC_ANGLE_DEG = 0.01, 0.01
 def choose_range(path: str, axes: list[str], whole: bool = False
                  ) -> tuple[tuple[int, int] | None, str, str]:
     """The IMU sample range to analyse -- the longest capture segment unless ``whole`` -- its
-    description, and a warning ('' if none) when the table moved in it. Raises UsageError for
+    description, and a warning ('' if none) when the table moved in it. Raises InputError for
     a file that is not a recording with ``axes``."""
     with _open_checked(path, axes) as f:
         rng = None if whole else _capture_range(f)
@@ -425,7 +458,7 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
         log("warning", f"allan: {warn}")
     try:
         result = compute(path, axes, 95, False, rng, gaps="bridge")  # warned below
-    except UsageError as exc:
+    except InputError as exc:
         log("warning", f"allan: not run: {exc}")
         return
     result["segment"] = where
@@ -543,55 +576,31 @@ def summary_line(r: dict[str, Any]) -> str:
     return "; ".join(parts)
 
 
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items() if not k.startswith("_")}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    return obj
-
-
 def store(path: str, result: dict[str, Any]) -> None:
-    """Write /results/allan (replacing an earlier one): JSON summary + curve datasets."""
-    import h5py
-
-    with h5py.File(path, "r+") as f:
-        grp = f.require_group("results")
-        if "allan" in grp:
-            del grp["allan"]
-        g = grp.create_group("allan")
-        summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
-                   "n_samples": result["n_samples"],
-                   "first_sample": result.get("first_sample", 0),
-                   "dropped_samples": result.get("dropped_samples", 0),
-                   "segment": result.get("segment", "whole recording"),
-                   "outliers": result.get("outliers", "report"),
-                   **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
-                   "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
-                                "fit": _jsonable(r["fit"]),
-                                "piecewise": _jsonable(r["piecewise"]),
-                                "spikes": _jsonable(r.get("spikes")),
-                                "quantization": _jsonable(r.get("quantization"))}
-                            for a, r in result["axes"].items()}}
-        g.attrs["schema_version"] = SCHEMA_VERSION
-        g.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat()
-        g.attrs["json"] = json.dumps(summary)
-        for a, r in result["axes"].items():
-            ga = g.create_group(a)
-            unit = r["_unit"]
-            for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
-                               (f"adev_{r['_si']}", r["_si"]), (f"adev_{unit}", unit),
-                               (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
-                               (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
-                               ("alpha", "1"), ("edf", "1")):
-                name = key.replace("/", "_per_")
-                ds = ga.create_dataset(name, data=np.asarray(r[key]))
-                ds.attrs["units"] = units
+    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recorder.write_results`:
+    the JSON summary (non-finite numbers kept: an unbounded interval end stays inf) and the curve
+    datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units."""
+    summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
+               "n_samples": result["n_samples"],
+               "first_sample": result.get("first_sample", 0),
+               "dropped_samples": result.get("dropped_samples", 0),
+               "segment": result.get("segment", "whole recording"),
+               "outliers": result.get("outliers", "report"),
+               **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
+               "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
+                            **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
+                                                              "quantization")},
+                                       keep_nonfinite=True)}
+                        for a, r in result["axes"].items()}}
+    arrays = {}
+    for a, r in result["axes"].items():
+        unit = r["_unit"]
+        for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
+                           (f"adev_{r['_si']}", r["_si"]), (f"adev_{unit}", unit),
+                           (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
+                           (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
+                           ("alpha", "1"), ("edf", "1")):
+            arrays[f"{a}/{key.replace('/', '_per_')}"] = (r[key], units)
+    write_results(path, "allan", summary, arrays, schema_version=SCHEMA_VERSION)
 
 

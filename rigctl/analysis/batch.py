@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from . import allan as allan_pipeline
+from ..jsonable import jsonable
 from . import calibration
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..spec import load_spec
@@ -48,7 +49,7 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
             res["segment"] = where
             res["verdicts"] = production.verdicts_for(spec, "allan", res)
             allan_pipeline.store(recording, res)
-            out["results"]["allan"] = allan_pipeline._jsonable({k: v for k, v in res.items()})
+            out["results"]["allan"] = jsonable(res, keep_nonfinite=True)
         out["ok"] = True
     except Exception as exc:  # noqa: BLE001 - reported per recording; the batch goes on
         out["error"] = f"{type(exc).__name__}: {exc}"

@@ -41,7 +41,8 @@ from .verdicts import format_verdicts
 from ..calibration_text import noise_summary, param_table
 from ..recorder import utc_now, write_results
 from ..segment_builder import build_segment_table, open_recording
-from ..solvers.calibration_result import CalibrationResult, _jsonable
+from ..jsonable import jsonable
+from ..solvers.calibration_result import CalibrationResult
 from ..solvers.segment_stats import NoiseModel
 from ..errors import InputError
 from ..spec import Spec
@@ -195,8 +196,9 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
         r = out.get(key)
         if r is not None:
             head.append(f"{title}: status {r.status}, dof {r.dof}, chi2/dof {r.chi2_per_dof:.3g}")
+    notes = _observability_notes(kinds, cl.final)
     text = "\n".join(head + [param_table(cl.final, "Calibration (closed-loop model, all segments)"),
-                             format_report(cl, explain=False)])
+                             *notes, format_report(cl, explain=False)])
     explain = "\n".join(["explain (step | residual pattern | candidate | statistic | decision):"]
                         + [f"  [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | "
                            f"{x['decision']}" for x in cl.explain])
@@ -207,8 +209,25 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
                "results": session_to_dict(out),
                "model": _model_from_final(cl.final), "truth_available": truth is not None,
                "trustworthy": trust, "status": cl.final.status, "loop_status": loop_status,
-               "reasons": list(cl.final.warnings) + ([why] if why else [])}
+               "reasons": list(cl.final.warnings) + ([why] if why else []),
+               "notes": [n.strip().removeprefix("note: ") for n in notes]}
     return payload, text, explain
+
+
+def _observability_notes(kinds: dict[str, int], final: CalibrationResult) -> list[str]:
+    """What the recording cannot determine well, and which procedure would: without rate
+    segments the gyro scale factors and misalignments rest on Earth rate alone
+    (7.29e-5 rad/s, 15.04 deg/h), so their 1-sigma is of order (gyro noise on a pose mean) /
+    Earth rate -- tens of percent for a MEMS gyro."""
+    if kinds.get("rate", 0) or kinds.get("ramp", 0):
+        return []
+    idx = [i for i, n in enumerate(final.names) if n.startswith("gyro_M_")]
+    if not idx:
+        return []
+    worst = float(np.max(np.abs(np.asarray(final.sigma)[idx])))
+    return [f"note: no rate segments in this recording: the gyro scale factors and misalignments rest on "
+            f"Earth rate alone (largest 1-sigma {worst * 1e6:.3g} ppm); run procedures/rates.yaml or "
+            f"procedures/full-calibration.yaml to determine them"]
 
 
 def table_status(cl: Any, trusted: bool) -> tuple[str, str]:
@@ -256,20 +275,23 @@ def is_orientation_free(path: Path) -> bool:
 
 
 def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None,
-              spec: Spec | None = None) -> tuple[dict[str, Any], str, str]:
+              spec: Spec | None = None, thermal_degree: str | None = None) -> tuple[dict[str, Any], str, str]:
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
-    With ``spec`` the verdicts are computed, printed and stored with the results."""
+    With ``spec`` the verdicts are computed, printed and stored with the results. ``thermal_degree``:
+    the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto')."""
     p = Path(path)
     # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
     from . import thermal
     if thermal.is_thermal(p):
-        payload, text = thermal.calibrate_and_store(p, store, json_path)
+        with open_recording(p) as f:
+            noise_models = _noise(f, noise, p)
+        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models)
         return payload, text, ""
     # -- end of the thermal hook
     free = is_orientation_free(p)
     payload, text, explain = (calibrate_free if free else calibrate_table)(p, noise)
-    payload = _jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
+    payload = jsonable({"schema_version": SCHEMA_VERSION, "created_utc": utc_now(),
                          "recording": str(p.resolve()), **payload})
     if spec is not None:
         payload["verdicts"] = production.verdicts_for(spec, "calibration", payload)

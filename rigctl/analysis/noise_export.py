@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ..jsonable import jsonable
 from ..solvers.allan_fit import SI_UNITS
 
 #: (sensor, term) -> (Kalibr key, unit of the key)
@@ -153,26 +154,10 @@ def imu_topic(meta: Mapping[str, Any]) -> str:
     return t or DEFAULT_TOPIC
 
 
-def _plain(obj: Any) -> Any:
-    """JSON-ready copy: numpy to lists and numbers, non-finite floats to None, private keys
-    (leading ``_``) dropped."""
-    if isinstance(obj, Mapping):
-        return {str(k): _plain(v) for k, v in obj.items() if not str(k).startswith("_")}
-    if isinstance(obj, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in (obj.tolist() if isinstance(obj, np.ndarray) else obj)]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
 def allan_json(result: Mapping[str, Any], kalibr: list[KalibrValue] | None = None) -> str:
     """The whole Allan result as JSON (units in the key names, as stored in /results/allan;
     non-finite numbers as null), plus the Kalibr values when given."""
-    doc = _plain(result)
+    doc = jsonable(result)
     if kalibr is not None:
         doc["kalibr"] = {v.key: {"unit": v.unit, "written": v.written, "fitted": v.fitted.value,
                                  "axis": v.fitted.axis, "supported": v.fitted.supported,

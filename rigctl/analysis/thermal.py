@@ -31,7 +31,8 @@ from ..recorder import utc_now, write_results
 from ..recording_reader import check_finite
 from ..segment_builder import _angles_at, _site, open_recording
 from ..solvers import thermal as th
-from ..solvers.segment_stats import batch_var
+from ..solvers.segment_noise import window_revolutions
+from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
 from ..solvers.segments import about_reference
 
 SCHEMA_VERSION = 1
@@ -40,6 +41,9 @@ MIN_SPAN_K = 5.0
 #: width of the play operator behind the hysteresis candidate, K
 HYSTERESIS_WIDTH_K = 2.0
 DEFAULT_DEGREES = {"bias": 2, "scale": 2, "misalignment": 1}
+#: highest polynomial degree of --thermal-degree, and the degree of the noise estimate's protected design
+MAX_DEGREE = 4
+MAX_FIT_DEGREE = 3
 
 
 def _cal_rows(f: Any) -> list[int]:
@@ -120,7 +124,8 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
         Hs = th.play_operator(T_all[::step], hysteresis_width_K)
         H_all = np.interp(np.arange(T_all.size), np.arange(0, T_all.size, step)[: Hs.size], Hs)
         cols: dict[str, list] = {k: [] for k in ("kind", "acc", "gyro", "sa", "sg", "fr", "wr", "fq", "T",
-                                                 "bounds", "H", "R", "G")}
+                                                 "bounds", "H", "R", "G", "ta", "tb", "revs",
+                                                 "ba", "bg")}
         for i in rows:
             a, z = int(seg["first_sample"][i]), int(seg["last_sample"][i])
             t = t_imu[a:z]
@@ -134,8 +139,14 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
             cols["kind"].append(seg["kind"][i].decode())
             cols["acc"].append(acc.mean(axis=0))
             cols["gyro"].append(gyr.mean(axis=0))
-            cols["sa"].append(_noise_parts(_detrend(about_reference(acc, fr))))
-            cols["sg"].append(_noise_parts(_detrend(about_reference(gyr, wr))))
+            acc_r, gyr_r = about_reference(acc, fr), about_reference(gyr, wr)
+            cols["sa"].append(_noise_parts(_detrend(acc_r)))
+            cols["sg"].append(_noise_parts(_detrend(gyr_r)))
+            cols["ba"].append(batch_means(acc_r, N_BATCHES))
+            cols["bg"].append(batch_means(gyr_r, N_BATCHES))
+            cols["ta"].append(float(t[0]))  # the window the n samples cover: n / fs
+            cols["tb"].append(float(t[0]) + (z - a) / fs)
+            cols["revs"].append(window_revolutions(seg["kind"][i].decode(), rates, (z - a) / fs))
             cols["fr"].append(fr.mean(axis=0))
             cols["wr"].append(wr.mean(axis=0))
             cols["fq"].append((fr * fr).mean(axis=0))
@@ -146,6 +157,7 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
             cols["G"].append(float(np.interp(t.mean(), ch_t, ch_air)) - float(T.mean())
                              if ch_t.size >= 2 else 0.0)
         powers = th.power_means(T_all, np.asarray(cols["bounds"]), reference_c, max_degree)
+        t0 = float(t_imu[0])  # the emulator's random walk starts at the first sample (power-on)
     kind = np.asarray(cols["kind"])
     T = np.asarray(cols["T"])
     H = np.asarray(cols["H"])
@@ -155,14 +167,17 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
     if np.ptp(np.asarray(cols["G"])) > 0:
         regs["thermal_gradient"] = np.asarray(cols["G"])
     static = kind == "orientation"
+    ta, tb = np.asarray(cols["ta"]), np.asarray(cols["tb"])
 
     def sub(mask: np.ndarray, sensor: str) -> th.ThermalWindows:
-        y, s, ref = (("acc", "sa", "fr") if sensor == "accel" else ("gyro", "sg", "wr"))
+        y, s, ref, bm = (("acc", "sa", "fr", "ba") if sensor == "accel" else ("gyro", "sg", "wr", "bg"))
         return th.ThermalWindows(
             sensor=sensor, y=np.asarray(cols[y])[mask], sigma=_pooled_sigma(np.asarray(cols[s])[mask]),
             ref=np.asarray(cols[ref])[mask], powers=powers[mask], temperature=T[mask], heating=heating[mask],
             reference_c=reference_c, quad=np.asarray(cols["fq"])[mask] if sensor == "accel" else None,
-            regressors={k: v[mask] for k, v in regs.items()})
+            regressors={k: v[mask] for k, v in regs.items()},
+            t_start=ta[mask], t_end=tb[mask], kind=kind[mask],
+            revolutions=[r for r, m in zip(cols["revs"], mask) if m], batch=np.asarray(cols[bm])[mask], t0=t0)
 
     return {"accel": sub(static, "accel"), "gyro": sub(np.ones(len(kind), bool), "gyro")}
 
@@ -228,26 +243,66 @@ def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> tuple[dict[str, A
              "unit": th.UNIT[w.sensor]}, before, after)
 
 
+def parse_degrees(spec: str | int | dict[str, int] | None) -> dict[str, int] | str:
+    """Polynomial degrees from ``--thermal-degree``: None (the default 2, 2, 1), 'auto', N (every
+    group), or 'B,S,M' (bias, scale, misalignment); each 0..MAX_DEGREE."""
+    if spec is None:
+        return dict(DEFAULT_DEGREES)
+    if isinstance(spec, dict):
+        return dict(spec)
+    text = str(spec).strip().lower()
+    if text == "auto":
+        return "auto"
+    parts = text.split(",")
+    try:
+        vals = [int(x) for x in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 3) or not all(0 <= v <= MAX_DEGREE for v in vals):
+        raise InputError(f"--thermal-degree {spec}: give auto, N (every group) or B,S,M (bias, scale, "
+                         f"misalignment), each 0..{MAX_DEGREE}")
+    return dict(zip(("bias", "scale", "misalignment"), vals * 3 if len(vals) == 1 else vals))
+
+
 def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = None,
-                      reference_c: float = 25.0) -> tuple[dict[str, Any], str, dict[str, tuple[Any, str]]]:
+                      reference_c: float = 25.0, noise: tuple[Any, Any, str] | None = None
+                      ) -> tuple[dict[str, Any], str, dict[str, tuple[Any, str]]]:
     """(payload, text, arrays) of the thermal calibration of a recording; ``arrays`` are the
     datasets of /results/thermal (per sensor: the windows' temperatures, heating flags, residuals
     before and after, and each axis' coefficient covariance). ``degrees``: per group
-    ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default) or 'auto' (chosen per sensor by
-    :func:`rigctl.solvers.thermal.select_degrees`)."""
+    ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default), N / 'B,S,M' (:func:`parse_degrees`)
+    or 'auto' (chosen per sensor by :func:`rigctl.solvers.thermal.select_degrees`). ``noise``:
+    (accel NoiseModel, gyro NoiseModel, description) as ``rigctl calibrate --noise`` resolved it
+    (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
+    or no ``noise``, estimates that sensor's noise from the session
+    (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
+    from ..calibration_text import noise_summary
+
     p = Path(path)
-    wins = read_windows(p, reference_c)
+    degrees = parse_degrees(degrees)
+    wins = read_windows(p, reference_c, max(MAX_FIT_DEGREE, *(degrees.values() if isinstance(degrees, dict)
+                                                              else [0])))
     with open_recording(p) as f:
         truth = truth_coefficients(f)
+    nf, nw, noise_txt = noise or (None, None, "")
+    if nf is None and nw is None:
+        noise_txt = ("estimated from the session (no /results/allan): white level per window kind from the "
+                     "batch means within each window (contrasts free of a linear drift), bias instability B "
+                     "and rate random walk K by REML of the window means about the protected design "
+                     "(cubic in temperature, every thermal candidate, an offset per window kind)")
+    models = th.estimate_noise(wins["accel"], nf) + th.estimate_noise(wins["gyro"], nw)
+    noise_lines, noise_rows = noise_summary(models) if len(models) == 6 else ([], [])
+    if len(models) != 6:
+        noise_txt += " (window times unknown: means treated as independent)"
     sensors: dict[str, Any] = {}
     lines = [f"rigctl calibrate: {p} -- thermal calibration ({len(wins['gyro'])} windows, IMU temperature "
              f"{wins['gyro'].temperature.min():.1f} .. {wins['gyro'].temperature.max():.1f} degC, "
-             f"reference {reference_c:g} degC)"]
+             f"reference {reference_c:g} degC)", f"noise model: {noise_txt}", *noise_lines]
     n_in = n_all = 0
     misses: list[str] = []
     arrays: dict[str, tuple[Any, str]] = {}
     for sensor, w in wins.items():
-        deg = th.select_degrees(w) if degrees == "auto" else dict(degrees or DEFAULT_DEGREES)
+        deg = th.select_degrees(w) if degrees == "auto" else dict(degrees)
         fit = th.fit_thermal(w, deg)
         params = fit.parameters()
         lo, hi = fit.band()
@@ -306,7 +361,8 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
         "mode": "thermal", "reference_c": reference_c, "hysteresis_width_K": HYSTERESIS_WIDTH_K,
         "model": "y_i = sum_j dT^j b_ij + sum_k sum_j dT^j u_k M_ikj [+ k2_i u_i^2] + effects; dT = T - reference_c",
-        "sensors": sensors, "truth_available": truth is not None}
+        "sensors": sensors, "truth_available": truth is not None,
+        "noise_model": {"text": noise_txt, "channels": noise_rows}}
     if truth is not None:
         payload["truth_coverage"] = {"inside": n_in, "total": n_all, "fraction": n_in / n_all if n_all else None,
                                      "outside": misses}
@@ -316,10 +372,11 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
 
 
 def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | Path | None = None,
-                        degrees: dict[str, int] | str | None = None) -> tuple[dict[str, Any], str]:
+                        degrees: dict[str, int] | str | None = None, noise: tuple[Any, Any, str] | None = None
+                        ) -> tuple[dict[str, Any], str]:
     """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``)."""
     p = Path(path)
-    payload, text, arrays = calibrate_thermal(p, degrees)
+    payload, text, arrays = calibrate_thermal(p, degrees, noise=noise)
     if store:
         with open_recording(p) as f:
             status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"

@@ -226,6 +226,11 @@ def _oadev_exact_sums(x: np.ndarray, ms: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- streaming
+#: strided levels from this stride on are fed in batches of DEFER_POINTS points
+DEFER_STRIDE = 64
+DEFER_POINTS = 1 << 16
+
+
 class OadevAccumulator:
     """Streaming overlapping Allan deviation with bounded memory.
 
@@ -271,10 +276,21 @@ class OadevAccumulator:
         self.phase_input: bool | None = None
         self._x_last = 0.0
         self._scratch = np.empty(_BLOCK)
+        ss = [lv.s for lv in self.levels]
+        self._defer_at = next((i for i, v in enumerate(ss) if v >= DEFER_STRIDE), -1)
+        if self._defer_at > 0 and any(b % a for a, b in zip(ss, ss[1:])):
+            self._defer_at = -1  # only a pure cascade (power-of-two strides) is deferred
+        self._pending: list[tuple[np.ndarray, int, int]] = []
+        self._pending_n = 0
+        #: after add_rate: the phase points x[n_phase_before + i] of that chunk's samples
+        #: (x[k] = tau0 sum_{j<k} (y[j] - offset)), a view valid until the next add_rate, or
+        #: None when the path taken did not build them (the Gram pyramid alone)
+        self.chunk_phase: np.ndarray | None = None
 
     def add_rate(self, y: np.ndarray) -> None:
         """Append rate samples (any float dtype); converted to float64 per chunk."""
         y = np.asarray(y, dtype=np.float64).ravel()
+        self.chunk_phase = None
         if y.size == 0:
             return
         self._kind(False)
@@ -296,6 +312,7 @@ class OadevAccumulator:
             self._x_last = float(buf[-1])
             with S.blas_single_thread():
                 x = lev.feed_buffer(buf)
+            self.chunk_phase = x
             self._feed_levels(x, self.n_phase, first=1, src_s=1)
         elif self.levels:
             if K.HAVE_NUMBA:  # the same operations in one pass
@@ -307,6 +324,7 @@ class OadevAccumulator:
                 x += self._x_last
             self._feed_levels(x, self.n_phase)
             self._x_last = float(x[-1])
+            self.chunk_phase = x
         self.n_phase += y.size
 
     def add_phase(self, x: np.ndarray) -> None:
@@ -334,17 +352,53 @@ class OadevAccumulator:
 
     def _feed_levels(self, x: np.ndarray, g0: int, first: int = 0, src_s: int = 1) -> None:
         with S.blas_single_thread():
-            src, g = x, g0  # levels by ascending stride: cascade when it divides
-            for lev in self.levels[first:]:
-                if lev.s % src_s:
-                    src, g, src_s = x, g0, 1
-                new = lev.feed(src, g, self._scratch, src_s)
-                if new is not None:
-                    src, g = new
-                    src_s = lev.s
+            self._cascade(x, g0, first, src_s, x, g0)
+
+    def _cascade(self, src: np.ndarray, g: int, first: int, src_s: int, x: np.ndarray,
+                 g0: int) -> None:
+        """Feed levels[first:] (ascending strides) from ``src`` = phase points g, g + src_s,
+        ...; each level passes its new points on when its stride divides the next one's. The
+        levels from stride DEFER_STRIDE on get a few hundred points per chunk, so their points
+        are collected (copied) until DEFER_POINTS are pending and then fed at once: the same
+        points in the same order (the sums are grouped differently, ~1e-16), without a
+        dozen Python calls per level per chunk."""
+        for li in range(first, len(self.levels)):
+            lev = self.levels[li]
+            if lev.s % src_s:
+                src, g, src_s = x, g0, 1
+            if li and li == self._defer_at and src is not x:
+                self._defer(src, g, src_s)
+                return
+            new = lev.feed(src, g, self._scratch, src_s)
+            if new is not None:
+                src, g = new
+                src_s = lev.s
+
+    def _defer(self, src: np.ndarray, g: int, src_s: int) -> None:
+        p = self._pending
+        if p and (p[-1][2] != src_s or p[-1][1] + p[-1][0].size * src_s != g):
+            self._flush()  # not the continuation of the pending points
+        self._pending.append((src.copy(), g, src_s))
+        self._pending_n += src.size
+        if self._pending_n >= DEFER_POINTS:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        pend, self._pending, self._pending_n = self._pending, [], 0
+        xs = pend[0][0] if len(pend) == 1 else np.concatenate([q[0] for q in pend])
+        li = self._defer_at
+        self._defer_at = -1  # feed through (no re-deferral of these points)
+        try:
+            with S.blas_single_thread():
+                self._cascade(xs, pend[0][1], li, pend[0][2], xs, pend[0][1])
+        finally:
+            self._defer_at = li
 
     def result(self) -> DevResult:
         """Deviations for every factor with at least one complete term."""
+        self._flush()
         sums = np.full(self.ms.size, np.nan)
         counts = np.zeros(self.ms.size, dtype=np.int64)
         strides = np.ones(self.ms.size, dtype=np.int64)

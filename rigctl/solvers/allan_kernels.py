@@ -169,6 +169,100 @@ if HAVE_NUMBA:
                     c += 1
         return c
 
+    @njit(cache=True, nogil=True)
+    def _far_from_range_blocks(y, w, thr, bs, out):  # pragma: no cover - compiled
+        """As :func:`_far_from_range` (same indices), with a prefilter: the extremes of blocks
+        of ``bs`` >= w samples (one SIMD-friendly pass); the window of every sample of block b
+        lies inside blocks b-1, b, b+1 (clipped ends: the padding repeats y[0] or y[n-1],
+        which are inside them), so when those three blocks span at most ``thr`` no sample of
+        block b can be flagged. Only the other blocks are examined, sample by sample, with the
+        window's own extremes."""
+        n = y.size
+        nb = (n + bs - 1) // bs
+        bmin = np.empty(nb)
+        bmax = np.empty(nb)
+        for b in range(nb):
+            a = y[b * bs]
+            z = a
+            for i in range(b * bs + 1, min(n, b * bs + bs)):
+                v = y[i]
+                a = v if v < a else a
+                z = v if v > z else z
+            bmin[b] = a
+            bmax[b] = z
+        lo = w // 2
+        c = 0
+        for b in range(nb):
+            mn = bmin[b]
+            mx = bmax[b]
+            if b > 0:
+                mn = min(mn, bmin[b - 1])
+                mx = max(mx, bmax[b - 1])
+            if b + 1 < nb:
+                mn = min(mn, bmin[b + 1])
+                mx = max(mx, bmax[b + 1])
+            if mx - mn <= thr:
+                continue
+            for i in range(b * bs, min(n, b * bs + bs)):
+                a = y[min(max(i - lo, 0), n - 1)]
+                z = a
+                for k in range(i - lo + 1, i - lo + w):
+                    v = y[min(max(k, 0), n - 1)]
+                    a = v if v < a else a
+                    z = v if v > z else z
+                yi = y[i]
+                if (yi - a > thr) | (z - yi > thr):
+                    out[c] = i
+                    c += 1
+        return c
+
+    @njit(cache=True, nogil=True)
+    def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
+        """Riley & Greenhall's lag-1 noise identification on x[::m]: the same steps as
+        allan_noise_id.noise_id_lag1 (mean removed, r1, delta = r1 / (1 + r1), differenced
+        until delta < 0.25 or d = dmax) in three passes per order, with two accumulators per
+        sum (compensation not needed: the sums are ratios compared with 0.25)."""
+        n = (x.size + m - 1) // m
+        z = np.empty(n)
+        for i in range(n):
+            z[i] = x[i * m]
+        d = 0
+        while True:
+            s0 = 0.0
+            s1 = 0.0
+            i = 0
+            while i + 1 < n:
+                s0 += z[i]
+                s1 += z[i + 1]
+                i += 2
+            if i < n:
+                s0 += z[i]
+            mean = (s0 + s1) / n
+            den0 = 0.0
+            den1 = 0.0
+            num0 = 0.0
+            num1 = 0.0
+            prev = z[0] - mean
+            den0 += prev * prev
+            for i in range(1, n):
+                v = z[i] - mean
+                if i & 1:
+                    den1 += v * v
+                    num1 += prev * v
+                else:
+                    den0 += v * v
+                    num0 += prev * v
+                prev = v
+            den = den0 + den1
+            r1 = (num0 + num1) / den if den > 0 else 0.0
+            delta = r1 / (1.0 + r1)
+            if delta < 0.25 or d >= dmax or n < 3:
+                return 2 - int(np.rint(2.0 * delta)) - 2 * d
+            for i in range(n - 1):
+                z[i] = z[i + 1] - z[i]
+            n -= 1
+            d += 1
+
     @njit(parallel=True, cache=True)
     def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
         for p in prange(bounds.size - 1):
@@ -278,5 +372,13 @@ def far_from_window_range(y: np.ndarray, w: int, thr: float) -> np.ndarray:
     window of w samples (scipy.ndimage's alignment, "nearest" ends), ascending."""
     y = np.ascontiguousarray(y, dtype=np.float64)
     out = np.empty(y.size, dtype=np.int64)
-    c = _far_from_range(y, int(w), float(thr), out) if y.size else 0
+    if not y.size:
+        return out[:0].copy()
+    c = _far_from_range_blocks(y, int(w), float(thr), max(32, int(w)), out)
     return out[:c].copy()
+
+
+def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:
+    """Compiled lag-1 noise identification of phase ``x`` decimated by m (see
+    allan_noise_id.noise_id_lag1, which calls it for long series)."""
+    return int(_lag1_alpha(np.ascontiguousarray(x, dtype=np.float64), int(m), int(dmax)))

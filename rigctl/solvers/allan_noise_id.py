@@ -45,9 +45,13 @@ from typing import Sequence
 
 import numpy as np
 
+from . import allan_kernels as K
 from .allan import STOP_RATIO
 
 LAG1_MIN_POINTS = 30  # averages needed for the lag-1 method (Riley & Greenhall 2004)
+#: from this many decimated points on the compiled kernel identifies (the reference tables'
+#: series are shorter: they keep the numpy path, sum for sum)
+LAG1_COMPILED_POINTS = 1 << 16
 _HADAMARD = ("hdev", "ohdev")
 _BLOCK = 1 << 20
 
@@ -82,6 +86,8 @@ def lag1_autocorrelation(z: np.ndarray) -> float:
 
 def noise_id_lag1(x: np.ndarray, m: int, dmax: int = 2) -> int:
     """Lag-1 autocorrelation noise ID on phase ``x`` decimated by ``m`` (alpha, integer)."""
+    if K.HAVE_NUMBA and len(x) // int(m) >= LAG1_COMPILED_POINTS:  # the same, in one kernel
+        return K.lag1_alpha(x, int(m), int(dmax))
     z = np.asarray(x[:: int(m)], dtype=np.float64)
     d = 0
     while True:

@@ -34,6 +34,7 @@ import scipy.linalg
 import scipy.stats
 from numpy.typing import NDArray
 
+from ..jsonable import jsonable
 from .segment_cov import Whitener
 
 #: Result status values.
@@ -162,44 +163,23 @@ class CalibrationResult:
             "status": self.status,
             "warnings": list(self.warnings),
             "parameters": params,
-            "covariance": _jsonable(self.covariance),
-            "correlation": _jsonable(self.correlation),
+            "covariance": jsonable(self.covariance),
+            "correlation": jsonable(self.correlation),
             "dof": int(self.dof),
             "chi2": _num(self.chi2),
             "chi2_per_dof": _num(self.chi2_per_dof),
             "chi2_p_value": _num(self.chi2_p_value),
             "interval": self.interval,
-            "coverage_factors": _jsonable(self.coverage_factors),
-            "residuals": _jsonable(self.residuals),
-            "normalized_residuals": _jsonable(self.normalized_residuals),
-            "extra": _jsonable(self.extra),
+            "coverage_factors": jsonable(self.coverage_factors),
+            "residuals": jsonable(self.residuals),
+            "normalized_residuals": jsonable(self.normalized_residuals),
+            "extra": jsonable(self.extra),
         }
 
 
 def _num(x: Any) -> float | None:
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def _jsonable(obj: Any) -> Any:
-    """Convert numpy containers to lists, non-finite floats to None, recursively."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer, int)):
-        return int(obj)
-    if isinstance(obj, (np.floating, float)):
-        return _num(obj)
-    if isinstance(obj, (np.str_, str)):
-        return str(obj)
-    if obj is None:
-        return None
-    return str(obj)
 
 
 def format_table(result: CalibrationResult, scale: dict[str, tuple[float, str]] | None = None) -> str:

@@ -132,7 +132,7 @@ def fit_clock(counter: np.ndarray, ref_time_s: np.ndarray, rate_hz: float, *,
               wander: str | None = None, knots_s: np.ndarray | None = None,
               loss: str = "soft_l1", outlier_k: float = 5.0, outlier_floor_s: float = 1e-3,
               detect_steps: bool = True, max_steps: int = 3, step_min_sigma: float = 8.0,
-              gap_counter: np.ndarray | None = None) -> ClockFit:
+              gap_counter: np.ndarray | None = None, sigma_floor_s: float = 0.0) -> ClockFit:
     """Fit the IMU clock to matched (fractional counter, reference time) pairs.
 
     ``counter``: each matched tap's position in IMU samples (fractional, on the recorded
@@ -141,7 +141,11 @@ def fit_clock(counter: np.ndarray, ref_time_s: np.ndarray, rate_hz: float, *,
     two consecutive taps, of at least ``step_min_sigma`` standard errors and within 0.3 sample
     of a whole number of samples, is taken as lost samples the counter did not show
     (greedy, at most ``max_steps``); the step is placed mid-way between the two taps and the
-    counter interval between them reported as its bracket.
+    counter interval between them reported as its bracket. ``sigma_floor_s``: the smallest
+    timing error per pair the data can have (e.g. T / sqrt(12) for whole-sample tap times);
+    the residual scale ``s`` is never taken below it, so pairs that happen to agree exactly
+    (whole-sample times on both sides: two real MPU-9150s of tests/data/mikov-mpu9150 gave 22
+    identical offsets) do not give a drift of 0 +- 0 ppm.
     """
     n = np.asarray(counter, dtype=float)
     y = np.asarray(ref_time_s, dtype=float)
@@ -177,7 +181,7 @@ def fit_clock(counter: np.ndarray, ref_time_s: np.ndarray, rate_hz: float, *,
                                           loss, outlier_k, outlier_floor_s)
     a = _design((corrected(n) - n_ref) / rate_hz, wander, knots)[inl]
     dof = int(a.shape[0] - a.shape[1])
-    s2 = float(r[inl] @ r[inl]) / max(dof, 1)
+    s2 = max(float(r[inl] @ r[inl]) / max(dof, 1), float(sigma_floor_s) ** 2)
     cov = np.linalg.inv(a.T @ a) * s2
     resid = np.empty_like(r)
     inlier = np.empty_like(inl)

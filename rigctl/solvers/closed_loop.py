@@ -47,7 +47,8 @@ import scipy.stats
 from numpy.typing import NDArray
 
 from .accel24 import accel_columns
-from .calibration_result import CalibrationResult, _jsonable, fit_linear
+from ..jsonable import jsonable
+from .calibration_result import CalibrationResult, fit_linear
 from .effect_library import LIBRARY, Effect
 from .gyro_rate import gyro_columns
 from .gls_problem import (_chi2_drop, _cv_groups, _fit, _identifiable, _Problem, loso_cv, noise_floor,
@@ -167,7 +168,7 @@ class ClosedLoopResult:
         return [e["name"] for e in self.effects]
 
     def to_dict(self) -> dict[str, Any]:
-        return _jsonable({
+        return jsonable({
             "declared": self.declared.to_dict(), "final": self.final.to_dict(),
             "effects": self.effects, "explain": self.explain, "rms_table": self.rms_table,
             "unexplained": self.unexplained, "not_available": self.not_available,

@@ -129,12 +129,15 @@ def cov_random_walk(a: ArrayLike, b: ArrayLike, t0: float = 0.0,
 def _ou_r(x: NDArray[np.float64], tau: float | NDArray[np.float64]) -> NDArray[np.float64]:
     """tau^2 R(|x|/tau), R(u) = e^-u - 1 + u - u^2/2 (series below u = 0.05)."""
     u = np.abs(x) / tau
+    out = np.expm1(-u)  # the direct form everywhere, in place (one pass per operation) ...
+    out += u
+    out -= u * u / 2.0
     small = u < 0.05
-    us = np.where(small, u, 0.0)
-    series = -us**3 / 6.0 + us**4 / 24.0 - us**5 / 120.0 + us**6 / 720.0 - us**7 / 5040.0
-    ul = np.where(small, 0.0, u)
-    direct = np.expm1(-ul) + ul - ul**2 / 2.0
-    return tau**2 * np.where(small, series, direct)
+    if small.any():  # ... and the series where it cancels
+        us = u[small]
+        out[small] = -us**3 / 6.0 + us**4 / 24.0 - us**5 / 120.0 + us**6 / 720.0 - us**7 / 5040.0
+    out *= tau**2
+    return out
 
 
 def cov_ou(a: ArrayLike, b: ArrayLike, tau: float, a2: ArrayLike | None = None,

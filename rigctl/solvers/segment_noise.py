@@ -108,6 +108,37 @@ class ChannelNoise:
                 "flicker_tau_max_s": self.tau_max_s, "rw_origin_s": self.t0, **self.info}
 
 
+def channel_covs(models: Sequence[ChannelNoise], a: ArrayLike, b: ArrayLike, groups: Sequence[str],
+                 flicker: NDArray[np.float64] | None = None, rw: NDArray[np.float64] | None = None
+                 ) -> NDArray[np.float64]:
+    """(len(models), K, K): :meth:`ChannelNoise.cov` of each model on the same windows, the unit
+    flicker and random-walk components computed once (or given: ``flicker`` for B = 1 on the
+    models' band, ``rw`` for K = 1 from their origin). The models must share band and origin."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if not models:
+        return np.zeros((0, a.size, a.size))
+    m0 = models[0]
+    if any((m.tau_min_s, m.tau_max_s, m.t0) != (m0.tau_min_s, m0.tau_max_s, m0.t0) for m in models):
+        return np.stack([m.cov(a, b, groups) for m in models])
+    if flicker is None and any(m.B for m in models):
+        flicker = sc.cov_flicker(a, b, sc.flicker_bank(m0.tau_min_s, m0.tau_max_s))
+    if rw is None and any(m.K for m in models):
+        rw = sc.cov_random_walk(a, b, m0.t0)
+    out = []
+    for m in models:
+        nw = np.array([m.white_var.get(str(g), max(m.white_var.values())) for g in groups])
+        C = np.diag(nw / (b - a))
+        if m.Q:
+            C = C + m.Q**2 * sc.cov_quantization(a, b)
+        if m.B:
+            C = C + m.B**2 * flicker
+        if m.K:
+            C = C + m.K**2 * rw
+        out.append(0.5 * (C + C.T))
+    return np.stack(out)
+
+
 def _full_rank(X: NDArray[np.float64], rtol: float = 1e-9) -> NDArray[np.float64]:
     """Columns of X spanning its column space (pivoted QR on unit-norm columns)."""
     nrm = np.linalg.norm(X, axis=0)
@@ -120,20 +151,24 @@ def _full_rank(X: NDArray[np.float64], rtol: float = 1e-9) -> NDArray[np.float64
     return X[:, np.sort(piv[d > rtol * d[0]])]
 
 
-def within_basis(n_batches: int, revolutions: float | None) -> NDArray[np.float64]:
+def within_basis(n_batches: int, revolutions: float | None, trend: bool = False) -> NDArray[np.float64]:
     """(n_batches, m) orthonormal contrasts of a window's batch means that no effect of the
     attitude reaches (module docstring).
 
     revolutions: 0 for a static window (complement of the constant: m = n_batches - 1); an
     integer R >= 2 for a rate window holding R whole revolutions (complement of the cosines and
     sines at batch frequencies that are multiples of R); None or anything else: no contrast (m = 0).
+    trend: also the complement of a straight line in batch index (one contrast fewer): a window
+    taken while the temperature ramps drifts along its thermal coefficients, and equal batches
+    of a linear drift have linear means, so no such contrast sees it.
     """
     B = n_batches
     k = np.arange(B)
+    lin = [k - (B - 1) / 2.0] if trend else []
     if revolutions == 0:
-        D = np.ones((B, 1))
+        D = np.stack([np.ones(B), *lin], axis=1)
     elif revolutions is not None and revolutions >= 2 and float(revolutions).is_integer():
-        cols = [np.ones(B)]
+        cols = [np.ones(B), *lin]
         R = int(revolutions)
         for f in range(R, B // 2 + 1, R):
             cols += [np.cos(2 * np.pi * f * k / B), np.sin(2 * np.pi * f * k / B)]
@@ -170,6 +205,9 @@ class WindowTerms:
     windows not holding whole revolutions, ramps) has no white level of its own -- the means
     alone cannot separate it from the other terms -- and shares that of the kind with the most
     contrasts: ``group_of`` maps each kind to the label whose white level it uses.
+
+    ``trend`` (build): the within-window contrasts are also free of a straight line in time
+    (:func:`within_basis`), for windows taken while the temperature ramps (the thermal fit).
     """
 
     a: NDArray[np.float64]
@@ -190,7 +228,7 @@ class WindowTerms:
     def build(cls, a: ArrayLike, b: ArrayLike, groups: Sequence[str], revolutions: Sequence[float | None],
               t0: float = 0.0, tau_min_s: float = 1.0, tau_max_s: float = 1.0e4,
               n_batches: int = N_BATCHES, min_contrasts: int = 8,
-              rest: dict[str, Any] | None = None) -> "WindowTerms":
+              rest: dict[str, Any] | None = None, trend: bool = False) -> "WindowTerms":
         a = np.asarray(a, dtype=np.float64)
         b = np.asarray(b, dtype=np.float64)
         kinds = np.asarray(groups).astype(str)
@@ -199,7 +237,7 @@ class WindowTerms:
         basis = np.zeros((K, B, B - 1))
         mask = np.zeros((K, B - 1), dtype=bool)
         for i, R in enumerate(revolutions):
-            Ni = within_basis(B, R)
+            Ni = within_basis(B, R, trend)
             basis[i, :, : Ni.shape[1]] = Ni
             mask[i, : Ni.shape[1]] = True
         n_con = {k: int(mask[kinds == k].sum()) for k in sorted(set(kinds.tolist()))}

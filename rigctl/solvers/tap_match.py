@@ -11,12 +11,17 @@ pulse). Equal counts are never assumed.
    pulse within ``pattern_tol_s`` after the same shift, i.e. how many of the local tap
    intervals the pulse intervals reproduce. Each tap keeps its best-supported pair if the
    support is at least ``min_support`` and unique.
-2. **Time.** Each tap's predicted pulse time is ``t_i + d_local(t_i)``, with ``d_local`` the
-   median offset of pattern-matched taps within ``window_s`` (else a robust line through all
-   of them, ``scipy.stats.siegelslopes``, which carries the clock drift between groups). Pairs
-   closer than ``tolerance_s`` are accepted one-to-one, nearest first.
-3. **Outlier rule.** With local residual ``r_i = d_i - median(d_k, |t_k - t_i| < window_s)``
-   and ``sigma = 1.4826 MAD(r)``, a pair is an outlier if ``|r_i| > max(k sigma, floor_s)``
+2. **Time.** Each tap's predicted pulse time is ``t_i + L(t_i) + m(t_i)``: ``L`` a robust line
+   through the offsets of the pattern-matched taps (``scipy.stats.siegelslopes``: the clock
+   drift), ``m`` the median of those taps' deviations from the line within ``window_s`` (local
+   wander; 0 where fewer than 3). The line comes first because a drift of D moves the offset
+   by D * window_s across one window (2400 ppm x 120 s = 0.29 s on a real MPU-9150 pair,
+   tests/data/mikov-mpu9150): a plain local median of the offsets would miss every tap near a
+   window's edge by more than ``tolerance_s``. Pairs closer than ``tolerance_s`` are accepted
+   one-to-one, nearest first.
+3. **Outlier rule.** With local residual ``r_i`` = the offset less a robust line through all
+   pairs and less the local median (within ``window_s``) of the deviations from that line, and
+   ``sigma = 1.4826 MAD(r)``, a pair is an outlier if ``|r_i| > max(k sigma, floor_s)``
    (defaults k = 5, floor 1 ms).
 
 Without sub-sample timing a tap's sample is 0..T after the tap (uniform), so its time is biased
@@ -123,23 +128,42 @@ def match_taps(tap_time_s: np.ndarray, pulse_time_s: np.ndarray, *, tolerance_s:
     if t.size == 0 or p.size < 2:
         return MatchResult(empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, bool),
                            outlier_floor_s, np.arange(t.size), np.arange(p.size), 0)
-    best, _ = _pattern_candidates(t, p, window_s, pattern_tol_s, min_support)
-    anchored = np.flatnonzero(best >= 0)
-    if anchored.size == 0:
+    def anchors(ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+        """Pattern-matched taps (times, offsets) on the tap timescale ``ts`` and the robust
+        line through their offsets; anchors that disagree with their neighbours by more than
+        ``tolerance_s`` after the line is removed (an ambiguous pattern choice) are dropped."""
+        best, _ = _pattern_candidates(ts, p, window_s, pattern_tol_s, min_support)
+        idx = np.flatnonzero(best >= 0)
+        if idx.size == 0:
+            return None
+        ta, da = t[idx], p[best[idx]] - t[idx]
+
+        def line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+            if x.size >= 2 and np.ptp(x) > 0:
+                s_, c_ = siegelslopes(y, x)
+                return float(s_), float(c_)
+            return 0.0, float(np.median(y))
+
+        sl, ic = line(ta, da)
+        dev = da - (ic + sl * ta)
+        loc = _local_median(ta, ta, dev, window_s)
+        ok = ~(np.abs(dev - np.where(np.isnan(loc), dev, loc)) > tolerance_s)
+        sl, ic = line(ta[ok], da[ok])
+        return ta[ok], da[ok], sl, ic
+
+    first = anchors(t)
+    if first is None:
         raise ValueError("no tap interval pattern matches the pulse intervals: check that "
                          "the recording holds tap groups and their pulses")
-    d_anchor = p[best[anchored]] - t[anchored]
-    ta = t[anchored]
-    # drop anchors that disagree with their neighbours (an ambiguous pattern choice)
-    loc = _local_median(ta, ta, d_anchor, window_s)
-    ok = ~(np.abs(d_anchor - np.where(np.isnan(loc), d_anchor, loc)) > tolerance_s)
-    ta, d_anchor = ta[ok], d_anchor[ok]
-    if ta.size >= 2 and np.ptp(ta) > 0:
-        slope, intercept = siegelslopes(d_anchor, ta)
-    else:
-        slope, intercept = 0.0, float(np.median(d_anchor))
-    pred = _local_median(t, ta, d_anchor, window_s)
-    pred = np.where(np.isnan(pred), intercept + slope * t, pred) + t
+    ta, d_anchor, slope, intercept = first
+    # a clock drift D stretches a tap interval L by D * L: beyond pattern_tol_s within one
+    # window, the patterns are matched again on drift-corrected tap times
+    if abs(slope) * window_s > pattern_tol_s:
+        second = anchors(t * (1.0 + slope))
+        if second is not None and second[0].size > ta.size:
+            ta, d_anchor, slope, intercept = second
+    loc = _local_median(t, ta, d_anchor - (intercept + slope * ta), window_s)
+    pred = t + intercept + slope * t + np.where(np.isnan(loc), 0.0, loc)
     # one-to-one, nearest first
     ii, jj = np.nonzero(np.abs(p[None, :] - pred[:, None]) < tolerance_s)
     cost = np.abs(p[jj] - pred[ii])
@@ -153,20 +177,19 @@ def match_taps(tap_time_s: np.ndarray, pulse_time_s: np.ndarray, *, tolerance_s:
     ti = np.array([a for a, _ in pairs], int)
     pj = np.array([b for _, b in pairs], int)
     d = p[pj] - t[ti]
-    loc = _local_median(t[ti], t[ti], d, window_s)
-    if np.isnan(loc).any():  # sparse taps: fall back to a robust line through all pairs
-        if ti.size >= 2 and np.ptp(t[ti]) > 0:
-            s2, c2 = siegelslopes(d, t[ti])
-        else:
-            s2, c2 = 0.0, float(np.median(d))
-        loc = np.where(np.isnan(loc), c2 + s2 * t[ti], loc)
-    resid = d - loc
+    if ti.size >= 2 and np.ptp(t[ti]) > 0:
+        s2, c2 = siegelslopes(d, t[ti])
+    else:
+        s2, c2 = 0.0, float(np.median(d)) if d.size else 0.0
+    dev = d - (c2 + s2 * t[ti])
+    loc = _local_median(t[ti], t[ti], dev, window_s)
+    resid = dev - np.where(np.isnan(loc), 0.0, loc)
     out, limit = outlier_mask(resid, outlier_k, outlier_floor_s)
     return MatchResult(tap_index=ti, pulse_index=order[pj], offset_s=d, local_residual_s=resid,
                        inlier=~out, outlier_limit_s=limit,
                        unmatched_taps=np.flatnonzero(~used_t),
                        unmatched_pulses=np.setdiff1d(np.arange(p_raw.size), order[pj]),
-                       n_pattern_matched=int(ok.sum()))
+                       n_pattern_matched=int(ta.size))
 
 
 @dataclass

@@ -17,10 +17,23 @@ the regressors of the thermal candidates the loop accepted:
 * ``temperature_rate``: dT/dt, K/s (a bias proportional to how fast the unit heats or cools);
 * ``thermal_gradient``: chamber air minus IMU temperature, K (a gradient across the unit).
 
-Each axis is a weighted least-squares fit (weights 1/sigma^2 of the window means); parameter
-covariance (A^T W A)^-1, 95 % intervals from Student's t with the fit's degrees of freedom. The
-ramp method's balance: every window counts once whichever half of the cycle it was taken in, and
-the fit reports how many windows each half gave and the temperature span each covered.
+**Noise of the window means.** Over a one-hour ramp the bias instability (flicker) and the
+rate random walk make the window means' errors correlated: the bias wanders while the
+temperature moves. Each axis is fitted by generalised least squares with the covariance Sigma of
+its window means under the IEEE 952 model (white + bias instability + rate random walk,
+:mod:`rigctl.solvers.segment_cov`, the same kernels as the pose calibration), factored once
+(Sigma = L L^T, :class:`~rigctl.solvers.segment_cov.Whitener`); parameter covariance
+(A^T Sigma^-1 A)^-1, chi2 = r^T Sigma^-1 r, 95 % intervals from Student's t with the fit's degrees
+of freedom. Sigma comes from given IEEE 952 coefficients (``rigctl allan`` of the same unit) or
+is estimated from the session by REML (:func:`estimate_noise`,
+:func:`rigctl.solvers.segment_noise.estimate_channel_noise`): the batch-mean contrasts within
+each window that are free of a straight line in time (a window in a ramp drifts along its
+thermal coefficients), plus the window means about a *protected* design -- the highest
+polynomial degrees, every thermal candidate and an offset per window kind -- so that neither a
+thermal effect nor the loop's candidates can be absorbed into the noise terms. Without window
+times the means are independent with standard uncertainties ``sigma`` (weighted least squares).
+The ramp method's balance: every window counts once whichever half of the cycle it was taken
+in, and the fit reports how many windows each half gave and the temperature span each covered.
 
 The loop (forward selection): each candidate not yet in the model is added to all three axes of
 the sensor; F = (dChi2 / 3) / (Chi2_ext / dof_ext); p from F(3, dof_ext), Bonferroni-adjusted over
@@ -35,6 +48,9 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
+
+from . import segment_noise as sn
+from .segment_cov import Whitener
 
 AXES = "xyz"
 CANDIDATES = ("hysteresis", "temperature_rate", "thermal_gradient")
@@ -54,6 +70,12 @@ class ThermalWindows:
     temperature: (n,) mean IMU temperature, degC; heating: (n,) bool (heating half of the cycle);
     quad: (n, 3) <u_i^2> (accelerometer quadratic term) or None;
     regressors: {candidate: (n,)} window means of the candidates' regressors.
+
+    For correlated noise (module docstring): t_start, t_end (n,) the windows' times (s, the
+    clock of the recording, power-on at ``t0``), kind (n,) "orientation" / "rate", revolutions
+    (n,) 0 for static, R for R whole turns, else None, batch (n, B, 3) the batch means of each
+    window's samples about the reference; ``cov`` (3, n, n) the covariance of the means per axis
+    (set by :func:`estimate_noise`), ``noise`` the per-axis noise models behind it.
     """
 
     sensor: str
@@ -66,9 +88,32 @@ class ThermalWindows:
     reference_c: float
     quad: np.ndarray | None = None
     regressors: dict[str, np.ndarray] = field(default_factory=dict)
+    t_start: np.ndarray | None = None
+    t_end: np.ndarray | None = None
+    kind: np.ndarray | None = None
+    revolutions: list[float | None] | None = None
+    batch: np.ndarray | None = None
+    t0: float = 0.0
+    cov: np.ndarray | None = None
+    noise: list[Any] | None = None
+    _white: dict[int, Whitener] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.y.shape[0])
+
+    def whitener(self, axis: int) -> Whitener:
+        """The factored covariance of axis' window means (cached: the loop refits many times)."""
+        if axis not in self._white:
+            self._white[axis] = (Whitener(sigma=self.sigma[:, axis]) if self.cov is None
+                                 else Whitener(cov=self.cov[axis]))
+        return self._white[axis]
+
+    def set_cov(self, cov: np.ndarray | None) -> None:
+        """Use the covariance cov (3, n, n) of the window means (None: independent, ``sigma``)."""
+        self.cov = None if cov is None else np.asarray(cov, float)
+        if self.cov is not None:
+            self.sigma = np.sqrt(np.stack([np.diag(c) for c in self.cov], axis=1))
+        self._white = {}
 
 
 @dataclass
@@ -154,9 +199,10 @@ def design(w: ThermalWindows, axis: int, degrees: dict[str, int], accepted: list
     return np.column_stack(cols)
 
 
-def _wls(A: np.ndarray, y: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Weighted least squares via QR of the whitened system: (x, cov, chi2, residuals)."""
-    Aw, yw = A / s[:, None], y / s
+def _gls(A: np.ndarray, y: np.ndarray, W: Whitener) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Generalised least squares via QR of the whitened system L^-1 A x = L^-1 y:
+    (x, cov, chi2, residuals)."""
+    Aw, yw = W.apply(A), W.apply(y)
     scale = np.sqrt(np.sum(Aw * Aw, axis=0))
     scale[scale == 0] = 1.0
     Q, R = np.linalg.qr(Aw / scale)
@@ -166,18 +212,67 @@ def _wls(A: np.ndarray, y: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.nd
     x = np.linalg.solve(R, Q.T @ yw) / scale
     Rinv = np.linalg.inv(R)
     cov = (Rinv @ Rinv.T) / np.outer(scale, scale)
-    r = y - A @ x
-    return x, cov, float(np.sum((r / s) ** 2)), r
+    rw = yw - Aw @ x
+    return x, cov, float(rw @ rw), y - A @ x
 
 
 def fit_axes(w: ThermalWindows, degrees: dict[str, int], accepted: list[str]) -> list[AxisFit]:
     out = []
     for i in range(3):
         A = design(w, i, degrees, accepted)
-        x, cov, chi2, r = _wls(A, w.y[:, i], w.sigma[:, i])
+        x, cov, chi2, r = _gls(A, w.y[:, i], w.whitener(i))
         out.append(AxisFit(param_names(w.sensor, i, degrees, w.quad is not None, accepted), x, cov, chi2,
                            len(w) - A.shape[1], r))
     return out
+
+
+def protected_design(w: ThermalWindows, axis: int) -> np.ndarray:
+    """(n, p) design for the noise estimate of one axis: the highest degrees the windows' powers
+    allow (misalignment at most 2), every candidate with a regressor, an offset per window kind
+    beyond the first (dependent columns are dropped by the estimator)."""
+    D = w.powers.shape[1] - 1
+    deg = {"bias": D, "scale": D, "misalignment": min(2, D)}
+    cands = [c for c in CANDIDATES if c in w.regressors and np.ptp(w.regressors[c]) > 0]
+    X = design(w, axis, deg, cands)
+    if w.kind is not None:
+        kinds, counts = np.unique(np.asarray(w.kind), return_counts=True)
+        extra = [(np.asarray(w.kind) == k).astype(float) for k in kinds[np.argsort(-counts, kind="stable")][1:]]
+        if extra:
+            X = np.column_stack([X, *extra])
+    return X
+
+
+def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
+                   tau_max_s: float = 1.0e4) -> list[Any]:
+    """Set ``w.cov`` from the IEEE 952 noise of each axis and return the three
+    :class:`~rigctl.solvers.segment_noise.ChannelNoise`.
+
+    model: a :class:`~rigctl.solvers.segment_stats.NoiseModel` (coefficients given, e.g. from
+    ``rigctl allan`` of the same unit) or None: estimated from the session by REML
+    (:func:`rigctl.solvers.segment_noise.estimate_channel_noise`) on the windows' batch means
+    (contrasts free of a linear drift) and means (about :func:`protected_design`). Needs the
+    window times (and ``batch`` for the estimate); without them nothing changes and [] is returned.
+    """
+    if w.t_start is None or w.t_end is None:
+        return []
+    a, b = np.asarray(w.t_start, float), np.asarray(w.t_end, float)
+    kind = np.asarray(w.kind if w.kind is not None else ["orientation"] * len(w)).astype(str)
+    if model is not None:
+        models = sn.noise_from_coefficients(model, w.t0)
+        covs = sn.channel_covs(models, a, b, kind)
+    else:
+        if w.batch is None:
+            return []
+        revs = list(w.revolutions) if w.revolutions is not None else [0.0 if k == "orientation" else None
+                                                                          for k in kind]
+        terms = sn.WindowTerms.build(a, b, kind, revs, w.t0, tau_min_s, tau_max_s,
+                                     n_batches=w.batch.shape[1], trend=True)
+        models = [sn.estimate_channel_noise(w.y[:, i], protected_design(w, i), terms, w.batch[:, :, i])
+                  for i in range(3)]
+        covs = sn.channel_covs(models, a, b, kind, flicker=terms.comps[-2], rw=terms.comps[-1])
+    w.set_cov(covs)
+    w.noise = models
+    return models
 
 
 def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: bool = True,
