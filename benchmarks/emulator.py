@@ -87,8 +87,10 @@ def main() -> None:
     print(f"  CPU time: {cpu_1 / (6 * N_12H) * 1e9:.1f} ns per axis-sample; {N_12H / cpu_1:,.0f} (1 core), "
           f"{N_12H / cpu_2:,.0f} (2 cores) 6-axis samples per CPU-second; load average "
           f"{load_start:.2f} at start, {os.getloadavg()[0]:.2f} at end (2 cores)")
-    print(f"  target >= 10,000,000 6-axis samples/s on 2 cores: {'met' if sets_2 >= 1e7 else 'NOT met'}; "
-          f"12 h in <= 3 s: {'met' if two <= 3.0 else 'NOT met'}")
+    print(f"  target (issue 21) >= 10,000,000 6-axis samples/s on one thread: wall {sets_1:,.0f} "
+          f"({'met' if sets_1 >= 1e7 else 'NOT met'}), per CPU-second {N_12H / cpu_1:,.0f} "
+          f"({'met' if N_12H / cpu_1 >= 1e7 else 'NOT met'}); 12 h in <= 3 s on 2 threads: "
+          f"{'met' if two <= 3.0 else 'NOT met'}")
     print(f"  with a signal integrated before quantization (error-model use), 1 thread: {sets_sig:,.0f} 6-axis samples/s")
     print(f"  speedup vs gnss-ins-sim (published ~18,500 samples/s, not measured here): {sets_2 / GNSS_INS_SIM_PUBLISHED_SAMPLES_PER_S:,.0f}x")
 

@@ -1,7 +1,7 @@
-"""Common behaviour of the streaming IMU drivers that are not Xsens (VectorNav binary, declarative
-frames): a reader thread, batched vectorised decoding, the device time base mapped onto the run
-clock, alignment of ``read`` with the rig clock, link loss and reconnect -- as
-:class:`rigctl.drivers.xsens_imu.XsensImu` does it (see its docstring for the reasoning).
+"""The streaming IMU drivers' common base (:class:`StreamReader`: reader thread, batched reads,
+offset learning, aligned ``read``; Xsens derives from it too) and :class:`StreamImu`, the base of
+those that are not Xsens (VectorNav binary, declarative frames): batched vectorised decoding, the
+device time base mapped onto the run clock, link loss and reconnect.
 
 A subclass provides ``_new_stream()`` (a decoder with ``feed``/``flush`` and ``counters``),
 ``_device_time(out) -> (n,) float s`` (unwrapped device time of each decoded frame, NaN when
@@ -9,8 +9,12 @@ unknown), ``_inertial(out) -> (acc (n,3) m/s^2, gyro (n,3) rad/s, temperature (n
 ``_configure_device()`` (commands, identity; called with the link open, on every (re)connect).
 
 After a reconnect, a device whose time went back (it restarted: a USB sensor power-cycles with
-its cable) is rebased: its timeline continues from the arrival of its first frame, so the
-outage is a counted gap (``device_restarts``), not a stream of rejected frames.
+its cable) is rebased (``device_restarts``): its new timeline is shifted onto the old one, the
+shift learnt like the offset (the minimum over the chunks arriving within ``learn_s``, in rig
+time, of arrival - offset - newest device time; the new samples are held until then), so the
+outage is a counted gap, not a stream of rejected frames, and the time base goes on as before.
+``read`` never hands out a sample stamped after ``clock.now()`` (one that came faster than any
+chunk of the learning window waits for the next read).
 
 Time base (units s): ``ImuBlock.counter = round((t_dev - t_dev_first) * rate_hz)`` (a gap means
 samples that never arrived: ``dropped_samples``); a frame whose device time does not advance is
@@ -33,6 +37,10 @@ from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
 
 log = logging.getLogger(__name__)
+#: Bytes are decoded in batches: after the first byte, the reader keeps reading for 20 ms of rig
+#: time (``batch_wait_s``; 20 ms of wall time at 1x, 0.2 ms at 100x) -- or, when a read of at least
+#: BURST_BYTES shows a burst (a pty carries about 4 KiB per read), for BURST_WAIT_S of wall time --
+#: up to BURST_MAX bytes, since a vectorised decoder costs ~0.4 ms per call plus ~1 us per frame.
 BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
 
 
@@ -44,7 +52,85 @@ class StreamImuUnitChanged(StreamImuConfigError, DeviceFault):
     """After a reconnect another unit (another serial number) is on the port."""
 
 
-class StreamImu(ReconnectingReader):
+class StreamReader(ReconnectingReader):
+    """What every streaming IMU driver shares (Xsens, VectorNav, declarative frame): the reader
+    thread's batched reads, the offset learning after the first configuration, the wait in
+    ``read`` for the stream to reach the rig clock, and the context manager. A subclass sets
+    ``link``, ``clock``, ``rate_hz``, ``timeout_s``, ``learn_s``, ``align_wait_s``,
+    ``batch_wait_s``, ``offset``, ``_cond`` and implements ``_feed(data)`` (decode, store;
+    while ``_learning`` it lowers ``offset`` to the minimum of arrival - newest device time) and
+    ``_latest_run_time()``."""
+
+    _learning = False
+    _chunks = 0
+
+    def connect(self) -> None:
+        """Start the reader thread; return once the device streams (raise if it cannot)."""
+        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
+
+    def _pump(self) -> None:
+        data = self.link.read_some(0.05)
+        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
+        if data and wait > 0:               # gather more before decoding
+            buf, end = bytearray(data), time.monotonic() + wait
+            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
+                more = self.link.read_some(left)
+                if not more:
+                    break
+                buf += more
+            data = bytes(buf)
+        if data:
+            self._feed(data)
+
+    def _feed(self, data: bytes) -> None:  # pragma: no cover - subclass duty
+        raise NotImplementedError
+
+    def _latest_run_time(self) -> float | None:  # pragma: no cover - subclass duty
+        """Run time of the newest stored sample (None before the first)."""
+        raise NotImplementedError
+
+    def _finish_configure(self, no_frames: str) -> None:
+        """After the device was configured: on the first configuration learn the offset for
+        ``learn_s`` of wall time (LinkLost with ``no_frames`` if no frame came), then mark the
+        stream configured."""
+        if self.offset is None:
+            self._learning = True
+            end = time.monotonic() + self.learn_s
+            while time.monotonic() < end and not self._stop.is_set():
+                data = self.link.read_some(0.02)
+                if data:
+                    self._feed(data)
+            self._learning = False
+            if self.offset is None:
+                raise LinkLost(self.name, no_frames)
+        if self._down_since is not None:
+            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
+        self._configured.set()
+
+    def _wait_aligned(self) -> None:
+        """With ``_cond`` held: wait (at most ``align_wait_s`` of wall time) until the newest
+        sample is within 1.5 sample periods of the rig clock or the next chunk has arrived."""
+        if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
+            want = self.clock.now() - 1.5 / self.rate_hz
+            deadline = time.monotonic() + self.align_wait_s
+            chunks = self._chunks
+            while ((latest := self._latest_run_time()) is None or latest < want) \
+                    and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
+                self._cond.wait(left)
+
+    def _raise_if_down(self) -> None:
+        """No data: LinkLost once the link has been down for ``link_timeout_s`` (wall)."""
+        if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
+            raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class StreamImu(StreamReader):
     config_error = StreamImuConfigError
     protocol = ""
 
@@ -71,7 +157,15 @@ class StreamImu(ReconnectingReader):
         self._chunks = 0
         #: device-time shift (s) added after a device restart, so its timeline continues
         self._shift = 0.0
+        self._shift_floor = 0.0
         self._rebase_pending = False
+        #: after a restart: the new samples, held until the shift is learnt (rig time _held_until)
+        self._held: list[tuple[np.ndarray, ...]] | None = None
+        self._held_until = 0.0
+        #: external events the device time-stamps (VectorNav SYNC_IN): device time + shift, with
+        #: those of a held restart epoch apart until the shift is learnt
+        self._events: list[float] = []
+        self._held_events: list[float] = []
         self.device_restarts = 0
         self._init_reader()
         self._last_warn = 0.0
@@ -90,24 +184,12 @@ class StreamImu(ReconnectingReader):
     def _configure_device(self) -> None:
         """Commands and identity on a (re)connect; the default sends nothing."""
 
+    def _device_events(self, out: dict) -> np.ndarray:
+        """Device times (s, as ``_device_time``) of external events the frames report (e.g. a
+        VectorNav's SYNC_IN edges); none by default."""
+        return np.empty(0)
+
     # -------------------------------------------------------------------- reader thread
-    def connect(self) -> None:
-        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
-
-    def _pump(self) -> None:
-        data = self.link.read_some(0.05)
-        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
-        if data and wait > 0:
-            buf, end = bytearray(data), time.monotonic() + wait
-            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
-                more = self.link.read_some(left)
-                if not more:
-                    break
-                buf += more
-            data = bytes(buf)
-        if data:
-            self._feed(data)
-
     def _on_link_lost(self) -> None:
         out = self.stream.flush()
         self._store(out, None)
@@ -125,22 +207,23 @@ class StreamImu(ReconnectingReader):
 
     def _store(self, out: dict, arrival: float | None) -> None:
         if not len(out.get("offset", ())):
+            if arrival is None:
+                self._release_held()
             return
-        t = self._device_time(out) + self._shift
+        t_raw = self._device_time(out)
         acc, gyr, temp = self._inertial(out)
         last = self._last_t
-        if self._rebase_pending and t.size and arrival is not None:
+        if self._rebase_pending and t_raw.size and arrival is not None:
             self._rebase_pending = False
-            if last is not None and self.offset is not None and t[0] <= last:
-                # the device restarted while the link was down (a USB sensor power-cycles with its
-                # cable): its time starts again near 0. Continue its timeline at the arrival time,
-                # so the outage is a counted gap and nothing is rejected as out of order.
-                extra = max((arrival - self.offset) - float(t[-1]), last - float(t[0]) + 1.0 / self.rate_hz)
-                t = t + extra
-                self._shift += extra
-                self.device_restarts += 1
-                log.warning("%s: the device time restarted during the outage; its timeline continues "
-                            "from the reconnect (shift %.3f s)", self.name, self._shift)
+            if last is not None and self.offset is not None and float(t_raw[0]) + self._shift <= last:
+                self._start_rebase(t_raw, arrival, last)
+        elif self._held is not None and arrival is not None and t_raw.size and np.isfinite(t_raw[-1]):
+            self._lower_shift(arrival - self.offset - float(t_raw[-1]))
+        t = t_raw + self._shift
+        ev = self._device_events(out)
+        if ev.size:
+            (self._held_events if self._held is not None else self._events).extend((ev + self._shift).tolist())
+        last = self._last_t
         fast = t.size > 0 and bool(np.isfinite(t).all()) and (t.size < 2 or bool(np.all(np.diff(t) > 0))) \
             and (last is None or t[0] > last)
         if fast:
@@ -156,21 +239,61 @@ class StreamImu(ReconnectingReader):
         self._last_t = last
         if not keep.all():
             t, acc, gyr, temp = t[keep], acc[keep], gyr[keep], temp[keep]
-        if not t.size:
-            return
-        if self._t0 is None:
-            self._t0 = float(t[0])
+        if t.size and self._held is not None:
+            self._held.append((t, acc, gyr, temp))
+        elif t.size:
+            if self._t0 is None:
+                self._t0 = float(t[0])
+            if arrival is not None and self._learning:
+                est = arrival - float(t[-1])
+                self.offset = est if self.offset is None else min(self.offset, est)
+            self._append(t, acc, gyr, temp)
+        if self._held is not None and (arrival is None or arrival >= self._held_until):
+            self._release_held()
+
+    def _append(self, t, acc, gyr, temp) -> None:
         prev = self._latest_t
         steps = np.rint(np.diff(np.concatenate(([prev], t)) if prev is not None else t) * self.rate_hz)
         self.dropped_samples += int(np.maximum(steps - 1, 0).sum())
-        if arrival is not None and self._learning:
-            est = arrival - float(t[-1])
-            self.offset = est if self.offset is None else min(self.offset, est)
         with self._cond:
             self._pending.append((t, acc, gyr, temp))
             self._latest_t = float(t[-1])
             self._chunks += 1
             self._cond.notify_all()
+
+    # Restart rebase. The device time restarted while the link was down (a USB sensor power-cycles
+    # with its cable): its new timeline is shifted onto the old one. The shift is learnt as the
+    # offset was on the first connect: the minimum over the chunks arriving during ``learn_s``
+    # (scaled to rig time) of (arrival - offset - newest device time), never below what keeps the
+    # times increasing across the outage. Until then the new samples are held back (and moved down
+    # with each lower estimate), so no stamp handed out leads the clock: a single chunk's latency
+    # (issue 22: the first chunk after a reconnect arrives late) would put every later stamp of the
+    # run ahead of its arrival by the difference to the minimum latency.
+    def _start_rebase(self, t_raw: np.ndarray, arrival: float, last: float) -> None:
+        self._shift_floor = last - float(t_raw[0]) + 1.0 / self.rate_hz
+        self._shift = max(arrival - self.offset - float(t_raw[-1]), self._shift_floor)
+        self._held = []
+        self._held_until = arrival + self.learn_s * float(getattr(self.clock, "speed", 1.0))
+        self.device_restarts += 1
+
+    def _lower_shift(self, est: float) -> None:
+        new = max(est, self._shift_floor)
+        if new < self._shift:
+            d, self._shift = self._shift - new, new
+            self._last_t -= d
+            self._held = [(t - d, *rest) for t, *rest in self._held]
+            self._held_events = [e - d for e in self._held_events]
+
+    def _release_held(self) -> None:
+        held, self._held = self._held, None
+        with self._cond:
+            self._events.extend(self._held_events)
+        self._held_events = []
+        if not held:
+            return
+        log.warning("%s: the device time restarted during the outage; its timeline continues from the "
+                    "reconnect (shift %.6f s)", self.name, self._shift)
+        self._append(*(np.concatenate(parts) for parts in zip(*held)))
 
     def _configure(self) -> None:
         first = self.offset is None
@@ -180,26 +303,14 @@ class StreamImu(ReconnectingReader):
             self.link.drain_input()
         self._configure_device()
         self.configurations += 1
-        if self.offset is None:
-            self._learning = True
-            end = time.monotonic() + self.learn_s
-            while time.monotonic() < end and not self._stop.is_set():
-                data = self.link.read_some(0.02)
-                if data:
-                    self._feed(data)
-            self._learning = False
-            if self.offset is None:
-                raise LinkLost(self.name, f"no {self.protocol} frames from {self.link.url}")
-        if self._down_since is not None:
-            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
-        self._configured.set()
+        self._finish_configure(f"no {self.protocol} frames from {self.link.url}")
 
     def _discard_preconfig(self) -> None:
         """Forget what was decoded before our first configuration."""
         with self._cond:
             self._pending.clear()
             self._latest_t = None
-        self._t0, self._last_t = None, None
+        self._t0, self._last_t, self._held = None, None, None
         self.stream = self._new_stream()
 
     # ------------------------------------------------------------------------------ Imu
@@ -207,17 +318,10 @@ class StreamImu(ReconnectingReader):
         if self._fatal is not None:
             raise self._fatal
         with self._cond:
-            if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
-                want = self.clock.now() - 1.5 / self.rate_hz
-                deadline = time.monotonic() + self.align_wait_s
-                chunks = self._chunks
-                while (self._latest_t is None or self._latest_t + self.offset < want) \
-                        and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
-                    self._cond.wait(left)
+            self._wait_aligned()
             batches, self._pending = self._pending, []
         if not batches:
-            if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
-                raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+            self._raise_if_down()
             return ImuBlock.empty()
         t = np.concatenate([b[0] for b in batches])
         acc = np.concatenate([b[1] for b in batches])
@@ -227,9 +331,28 @@ class StreamImu(ReconnectingReader):
         if not ok.all():
             self.incomplete_frames += int((~ok).sum())
             t, acc, gyr, temp = t[ok], acc[ok], gyr[ok], temp[ok]
+        stamp = t + (self.offset or 0.0)
+        # never hand out a sample stamped after the clock: the offset is a minimum-latency estimate
+        # over a learning window, and a later chunk can arrive faster than any in it; such samples
+        # wait (for the estimate's error: rig-time milliseconds at most) and come with the next read
+        now = self.clock.now()
+        if stamp.size and stamp[-1] > now:
+            cut = int(np.searchsorted(stamp, now, side="right"))
+            with self._cond:
+                self._pending.insert(0, (t[cut:], acc[cut:], gyr[cut:], temp[cut:]))
+            t, acc, gyr, temp, stamp = t[:cut], acc[:cut], gyr[:cut], temp[:cut], stamp[:cut]
         counter = np.maximum(np.rint((t - (self._t0 or 0.0)) * self.rate_hz), 0).astype(np.uint64)
-        return ImuBlock(time=t + (self.offset or 0.0), counter=counter, specific_force=acc, angular_rate=gyr,
-                        temperature=temp)
+        return ImuBlock(time=stamp, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
+
+    def read_events(self) -> np.ndarray:
+        """Run times (s, the IMU's time base) of the device's external events since the last
+        call, none stamped after ``clock.now()`` (those wait, as samples do)."""
+        now = self.clock.now()
+        with self._cond:
+            ev = np.sort(np.asarray(self._events, float)) + (self.offset or 0.0)
+            keep = ev <= now
+            self._events = (ev[~keep] - (self.offset or 0.0)).tolist()
+        return ev[keep]
 
     @property
     def counters(self) -> dict:
@@ -240,11 +363,16 @@ class StreamImu(ReconnectingReader):
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
 
-    def __enter__(self):
-        return self
+    def close(self) -> None:
+        """Stop the reader; then flush the decoder, so a bad frame at the very end of the stream
+        (known bad only once a later frame or the end shows where it ends) is in the counters."""
+        super().close()
+        if self._thread is None or not self._thread.is_alive():
+            self.stream.flush()
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _latest_run_time(self) -> float | None:
+        return None if self._latest_t is None else self._latest_t + self.offset
 
 
-__all__ = ["StreamImu", "StreamImuConfigError", "StreamImuUnitChanged"]
+__all__ = ["BURST_BYTES", "BURST_MAX", "BURST_WAIT_S", "StreamImu", "StreamImuConfigError", "StreamImuUnitChanged",
+           "StreamReader"]

@@ -11,8 +11,12 @@ uncompensated measurements, which is what a calibration wants. A ``$VNERR`` repl
 insufficient baud rate) raises :class:`VectorNavConfigError` from :meth:`connect`.
 
 Time base: device time = TimeStartup (ns since the sensor started, u64: no wrap) / 1e9 s, mapped
-onto the run clock as in :mod:`rigctl.drivers.stream_imu`. SyncInCnt is decoded and kept with
-each block's diagnostics (``last_syncin_count``).
+onto the run clock as in :mod:`rigctl.drivers.stream_imu`.
+
+SYNC_IN: each frame carries SyncInCnt and TimeSyncIn (ns since the newest SYNC_IN edge); an edge is
+the frame where the count advances, at TimeStartup - TimeSyncIn, on the same time base as the
+samples. :class:`VectorNavSyncIn` hands them to the engine as pulses (``pulses: {driver:
+vectornav}``), recorded in ``/pulses`` with source ``vectornav``.
 
 Identity: ``{"device_id": <serial number>, "model": ..., "firmware": ..., "protocol":
 "VectorNav binary"}``; after a reconnect a different serial number stops the reader with
@@ -25,15 +29,16 @@ import time
 
 import numpy as np
 
-from rigctl.devices import LinkLost
+from rigctl.devices import LinkLost, Pulses
 
 from . import vectornav as V
 from .stream_imu import StreamImu, StreamImuConfigError, StreamImuUnitChanged
 
 log = logging.getLogger(__name__)
 PROTOCOL = "VectorNav binary"
-#: group 1: TimeStartup (bit 0), SyncInCnt (bit 13); group 3: UncompAccel (2), UncompGyro (3), Temp (4)
-LAYOUT = V.Layout.of({1: 0x0001 | 0x2000, 3: 0x0004 | 0x0008 | 0x0010})
+#: group 1: TimeStartup (bit 0), TimeSyncIn (bit 2), SyncInCnt (bit 13); group 3: UncompAccel (2),
+#: UncompGyro (3), Temp (4)
+LAYOUT = V.Layout.of({1: 0x0001 | 0x0004 | 0x2000, 3: 0x0004 | 0x0008 | 0x0010})
 
 
 class VectorNavConfigError(StreamImuConfigError):
@@ -65,6 +70,8 @@ class VectorNavImu(StreamImu):
         self.layout = LAYOUT
         self._rx = b""
         self.last_syncin_count = -1
+        self.syncin_missed = 0
+        self._syncin_prev: int | None = None
         super().__init__(url, rate_hz, clock, baudrate=baudrate, timeout_s=timeout_s, align_wait_s=align_wait_s,
                          link_timeout_s=link_timeout_s, learn_s=learn_s, name=name)
 
@@ -72,9 +79,32 @@ class VectorNavImu(StreamImu):
         return V.decoder(self.layout)
 
     def _device_time(self, out: dict) -> np.ndarray:
-        if len(out.get("syncin_count", ())):
-            self.last_syncin_count = int(out["syncin_count"][-1])
         return out["time_startup_ns"].astype(np.float64) * 1e-9
+
+    def _device_events(self, out: dict) -> np.ndarray:
+        """SYNC_IN edges: where SyncInCnt advances from one frame to the next, the newest edge was
+        TimeSyncIn ns before the frame's TimeStartup. The first frame after a (re)connect and a
+        count that went back (the sensor restarted) set the baseline; a count that advanced by
+        more than one between two frames lost the earlier edges' times (``syncin_missed``)."""
+        if not len(out.get("syncin_count", ())) or "time_syncin_ns" not in out:
+            return np.empty(0)
+        cnt = out["syncin_count"].astype(np.int64)
+        prev = np.concatenate(([self._syncin_prev if self._syncin_prev is not None else cnt[0]], cnt[:-1]))
+        step = cnt - prev
+        self._syncin_prev, self.last_syncin_count = int(cnt[-1]), int(cnt[-1])
+        new = step > 0
+        self.syncin_missed += int((step[new] - 1).sum())
+        return (out["time_startup_ns"][new].astype(np.float64) - out["time_syncin_ns"][new].astype(np.float64)) * 1e-9
+
+    def syncin_pulses(self) -> VectorNavSyncIn:
+        """The pulse source of this sensor's SYNC_IN input (config ``pulses: {driver: vectornav}``)."""
+        return VectorNavSyncIn(self)
+
+    @property
+    def counters(self) -> dict:
+        d = super().counters
+        d["syncin_missed"] = self.syncin_missed
+        return d
 
     def _inertial(self, out: dict):
         return out["uncomp_accel"], out["uncomp_gyro"], out["temperature"]
@@ -162,8 +192,29 @@ class VectorNavImu(StreamImu):
                 "(rigctl resume), or start a new run for the other unit")
         self.stream.flush()
         self.stream = self._new_stream()
+        self._syncin_prev = None                 # the count over the outage is unknown: a new baseline
         self._request(V.write_register(75, *self.layout.register_values(1, self.divisor)), "VNWRG",
                       f"the binary output ({self.rate_hz:g} Hz)", keep_rest=True)
 
 
-__all__ = ["LAYOUT", "PROTOCOL", "VectorNavConfigError", "VectorNavImu", "VectorNavUnitChanged", "rate_divisor"]
+class VectorNavSyncIn:
+    """Pulses from a VectorNav's SYNC_IN input (a tap switch, a PPS wired to it): the edges the
+    sensor time-stamps in its own frames (SyncInCnt, TimeSyncIn), on the IMU's time base -- so a
+    lab can use the VectorNav as the tap timestamper. Read by the engine as any pulse source."""
+
+    source = "vectornav"
+
+    def __init__(self, imu: VectorNavImu) -> None:
+        self.imu = imu
+
+    def read(self) -> Pulses:
+        t = self.imu.read_events()
+        n = t.size
+        return Pulses(time=t, gps_week=np.full(n, -1, np.int32), gps_seconds=np.full(n, np.nan), source=self.source)
+
+    def identify(self) -> str:
+        return "VectorNav SYNC_IN (read with the IMU)"
+
+
+__all__ = ["LAYOUT", "PROTOCOL", "VectorNavConfigError", "VectorNavImu", "VectorNavSyncIn", "VectorNavUnitChanged",
+           "rate_divisor"]

@@ -56,19 +56,14 @@ import numpy as np
 
 from rigctl.devices import Clock, DeviceFault, ImuBlock, LinkLost
 
-from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
+from .stream_imu import StreamReader
 from .xsens import (FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, SAMPLE_TIME_FINE_WRAP, XDI, ErrorCode, OutputItem,
                     XsensError, check_rate_fits, decode_device_id, decode_output_configuration, go_to_config,
                     go_to_measurement, req_did, set_output_configuration)
 from .xsens_decode import MTData2Batch, MTData2Stream
 
 log = logging.getLogger(__name__)
-#: Bytes are decoded in batches: after the first byte, the reader keeps reading for 20 ms of rig
-#: time (``batch_wait_s``; 20 ms of wall time at 1x, 0.2 ms at 100x) -- or, when a read of at least
-#: BURST_BYTES shows a burst (a pty carries about 4 KiB per read), for BURST_WAIT_S of wall time --
-#: up to BURST_MAX bytes, since the vectorised decoder costs ~0.4 ms per call plus ~1 us per frame.
-BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
 
 
 class XsensConfigError(RuntimeError):
@@ -89,7 +84,7 @@ def output_items(rate_hz: int) -> list[OutputItem]:
             OutputItem(XDI.TEMPERATURE, rate_hz), OutputItem(XDI.STATUS_WORD, rate_hz)]
 
 
-class XsensImu(ReconnectingReader):
+class XsensImu(StreamReader):
     """Xsens MTi over ``url``; see the module docstring. ``connect()`` then ``read()``; ``close()``."""
 
     config_error = XsensConfigError
@@ -144,24 +139,6 @@ class XsensImu(ReconnectingReader):
         return f"Xsens MT, device ID {device_id}" if device_id else "Xsens MT (no device ID reported)"
 
     # ----------------------------------------------------------------------- reader thread
-    def connect(self) -> None:
-        """Start the reader thread; return once the device streams (raise if it cannot)."""
-        self._start_reader(10 * self.timeout_s + self.learn_s + 2.0, f"no stream from {self.link.url}")
-
-    def _pump(self) -> None:
-        data = self.link.read_some(0.05)
-        wait = max(self.batch_wait_s, BURST_WAIT_S if len(data) >= BURST_BYTES else 0.0)
-        if data and wait > 0:               # gather more before decoding
-            buf, end = bytearray(data), time.monotonic() + wait
-            while len(buf) < BURST_MAX and (left := end - time.monotonic()) > 0:
-                more = self.link.read_some(left)
-                if not more:
-                    break
-                buf += more
-            data = bytes(buf)
-        if data:
-            self._feed(data)
-
     def _on_link_lost(self) -> None:
         self._flush_stream()
 
@@ -276,19 +253,7 @@ class XsensImu(ReconnectingReader):
                                    f"{decode_output_configuration(ack.data)}")
         self._request(go_to_measurement(), MID.GO_TO_MEASUREMENT_ACK, "GoToMeasurement")
         self.configurations += 1
-        if self.offset is None:
-            self._learning = True
-            end = time.monotonic() + self.learn_s
-            while time.monotonic() < end and not self._stop.is_set():
-                data = self.link.read_some(0.02)
-                if data:
-                    self._feed(data)
-            self._learning = False
-            if self.offset is None:
-                raise LinkLost(self.name, f"no MTData2 frames from {self.link.url} after GoToMeasurement")
-        if self._down_since is not None:
-            log.info("%s: stream back after %.2f s", self.name, time.monotonic() - self._down_since)
-        self._configured.set()
+        self._finish_configure(f"no MTData2 frames from {self.link.url} after GoToMeasurement")
 
     def _discard_preconfig(self) -> None:
         """Forget frames decoded before our first configuration (the device was already
@@ -300,28 +265,20 @@ class XsensImu(ReconnectingReader):
         self._stf0 = None
         self.stream = MTData2Stream(wrap_ticks=self.stream.wrap_ticks)
 
-    _learning = False
-    _chunks = 0
-
     # ------------------------------------------------------------------------------- Imu
     def read(self) -> ImuBlock:
         if self._fatal is not None:
             raise self._fatal
         with self._cond:
-            if self.align_wait_s > 0 and self._configured.is_set() and self.offset is not None:
-                want = self.clock.now() - 1.5 / self.rate_hz
-                deadline = time.monotonic() + self.align_wait_s
-                chunks = self._chunks
-                while (self._latest_stf is None or self._latest_stf / SAMPLE_TIME_FINE_HZ + self.offset < want) \
-                        and self._chunks == chunks and (left := deadline - time.monotonic()) > 0:
-                    self._cond.wait(left)
+            self._wait_aligned()
             batches, self._pending = self._pending, []
         if not batches:
-            if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
-                raise LinkLost(self.name, f"no data from {self.link.url} for "
-                                          f"{time.monotonic() - self._down_since:.1f} s (reconnecting)")
+            self._raise_if_down()
             return ImuBlock.empty()
         return self._to_block(batches)
+
+    def _latest_run_time(self) -> float | None:
+        return None if self._latest_stf is None else self._latest_stf / SAMPLE_TIME_FINE_HZ + self.offset
 
     def _to_block(self, batches: list[MTData2Batch]) -> ImuBlock:
         stf = np.concatenate([b.sample_time_fine for b in batches])
@@ -345,12 +302,6 @@ class XsensImu(ReconnectingReader):
         d.update(incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
-
-    def __enter__(self) -> XsensImu:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 __all__ = ["XsensImu", "XsensConfigError", "XsensUnitChanged", "output_items"]

@@ -18,7 +18,7 @@ import numpy as np
 from rigctl.analysis import noise_export, production
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
     AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes,
-    check_warnings, choose_range,
+    check_warnings, choose_range, default_axes, gap_message,
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.cli_options import add_production_options
@@ -114,7 +114,7 @@ def _parse_axes(text: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
     codes by rigctl.cli.main)."""
-    axes = _parse_axes(args.axes)
+    axes = _parse_axes(args.axes) if args.axes else default_axes(args.recording)
     taus = _parse_taus(str(args.taus))
     if args.plot:
         try:
@@ -132,16 +132,9 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps)
-    g = result.get("gaps") or {}
-    if g.get("count") and g.get("mode") == "longest":
-        a, b = g["range_used"]
-        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s): analysing "
-              f"the longest gap-free stretch, rows {a}..{b - 1} ({b - a} samples)",
-              file=sys.stderr, flush=True)
-    elif g.get("count"):
-        print(f"warning: {g['missing_samples']} samples missing in {g['count']} gap(s), bridged "
-              "on request (--gaps bridge): taus spanning a gap are biased", file=sys.stderr,
-              flush=True)
+    gap_line = gap_message(result.get("gaps") or {})
+    if gap_line:
+        print(gap_line, file=sys.stderr, flush=True)
     result["segment"] = where
     for a, r in result["axes"].items():
         print(format_table(a, r))
@@ -170,8 +163,9 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("allan", help="Allan analysis of a recording's IMU channels",
                               description=__doc__.splitlines()[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
-    p.add_argument("--axes", default="gx,gy,gz,ax,ay,az",
-                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all)")
+    p.add_argument("--axes", default=None,
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all, or those an "
+                        "import found in the file)")
     p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
     p.add_argument("--taus", default="95",
                    help="octave, decade, all, or N log-spaced taus (default 95)")
@@ -180,9 +174,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
-    p.add_argument("--gaps", choices=GAP_MODES, default="refuse",
-                   help="dropped samples in the range: refuse (default: say where and what to "
-                        "do), analyse the longest gap-free stretch, or bridge them")
+    p.add_argument("--gaps", choices=GAP_MODES, default="skip",
+                   help="dropped samples in the range: skip every Allan term that touches a gap "
+                        "(default; Stable32's gap handling), refuse (say where), analyse the "
+                        "longest gap-free stretch, or bridge them (biased)")
     p.add_argument("--exact", action="store_true",
                    help="fully overlapping sums for every tau (slower; default: fast mode)")
     p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "

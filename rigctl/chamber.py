@@ -20,19 +20,16 @@ in-process emulator's is :class:`rigctl.sim.world.SimChamberDevice`. Config (doc
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 from . import schema as S
+from .settings import Settings, number, parse, setting, text
 from .yamlio import LocDict
 
 #: statuses a chamber reports
 STATUSES = ("idle", "running", "off", "fault")
 
-COMMON = ("driver", "safe_c", "band_c", "sim")
-WATLOW_KEYS = ("transport", "port", "baudrate", "parity", "host", "tcp_port", "unit_id", "timeout_s",
-               "registers")
-SCPI_KEYS = ("resource", "model", "commands", "timeout_s")
 
 
 @dataclass(frozen=True)
@@ -59,37 +56,84 @@ class Chamber(Protocol):
         """Safe state (the configured safe set point, as a step)."""
 
 
-def chamber_settings(driver: str, d: LocDict) -> dict[str, Any]:
-    """Validated settings of the ``chamber:`` section for ``driver``."""
+def _band(d: LocDict, key: str, default: tuple[float, float]) -> tuple[float, float]:
+    band = S.number_list(d, key, list(default), length=2)
+    return float(band[0]), float(band[1])
+
+
+def _mapping(d: LocDict, key: str, default: Any) -> dict[str, Any]:
+    return dict(S.require_mapping(d[key], f"'{key}'", d, key))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChamberSettings(Settings):
+    """``chamber:`` (driver sim, and what every chamber driver's section holds): the safe set
+    point, and the band outside which the 'chamber' suspender pauses a run."""
+
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("sim",)
+    safe_c: float = number(25.0, minimum=-100, maximum=200)
+    band_c: tuple[float, float] = setting((-70.0, 180.0), read=_band)
+
+    def check(self, d: LocDict) -> None:
+        if not self.band_c[0] < self.safe_c < self.band_c[1]:
+            raise S.error(d, "band_c", f"band_c [{self.band_c[0]:g}, {self.band_c[1]:g}] must contain safe_c "
+                          f"{self.safe_c:g} degC")
+
+    def keywords(self) -> dict[str, Any]:
+        """The driver's keyword arguments: every field but ``band_c`` (the suspender's band,
+        not the driver's)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "band_c"}
+
+
+@dataclass(frozen=True, kw_only=True)
+class WatlowSettings(ChamberSettings):
+    """``chamber:`` driver ``watlow`` (rigctl.drivers.watlow_chamber.WatlowF4T): Modbus RTU (port,
+    baudrate, parity) or TCP (host, tcp_port); ``registers`` overrides addresses of the map."""
+
+    transport: str = text("rtu", choices=("rtu", "tcp"))
+    port: str | None = text(None)
+    baudrate: int = number(9600, minimum=300, integer=True)
+    parity: str = text("N", choices=("N", "E", "O"))
+    host: str = text("127.0.0.1")
+    tcp_port: int = number(502, minimum=1, maximum=65535, integer=True)
+    unit_id: int = number(1, minimum=0, maximum=247, integer=True)
+    timeout_s: float = number(1.0, minimum=0.01, maximum=60)
+    registers: dict[str, Any] | None = setting(None, read=_mapping)
+
+    def check(self, d: LocDict) -> None:
+        super().check(d)
+        if self.transport == "rtu" and self.port is None:
+            raise S.error(d, None, "'chamber' (watlow) is missing 'port'", "add a line 'port: ...'")
+
+    def where(self) -> tuple[str, str]:
+        """(where, kind of link): serial or tcp."""
+        return (str(self.port), "serial") if self.transport == "rtu" else (f"{self.host}:{self.tcp_port}", "tcp")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScpiChamberSettings(ChamberSettings):
+    """``chamber:`` driver ``scpi`` (rigctl.drivers.scpi_chamber.ScpiChamber, through PyVISA)."""
+
+    resource: str = text()
+    model: str = text("generic")
+    commands: dict[str, str] | None = setting(None, read=_mapping)
+    timeout_s: float = number(2.0, minimum=0.01, maximum=60)
+
+    def where(self) -> tuple[str, str]:
+        return self.resource, "tcp" if self.resource.upper().startswith("TCPIP") else "serial"
+
+
+#: driver -> its settings (``none``: a chamber section that holds only the driver)
+SETTINGS: dict[str, type[ChamberSettings]] = {"sim": ChamberSettings, "watlow": WatlowSettings,
+                                              "scpi": ScpiChamberSettings}
+
+
+def chamber_settings(driver: str, d: LocDict) -> ChamberSettings:
+    """Validated settings of the ``chamber:`` section for ``driver`` (rigctl.settings.parse)."""
     if driver == "none":
         S.check_keys(d, ("driver",), "'chamber'")
-        return {}
-    keys = COMMON + (WATLOW_KEYS if driver == "watlow" else SCPI_KEYS if driver == "scpi" else ())
-    S.check_keys(d, keys, f"'chamber' ({driver})")
-    safe = S.get_number(d, "safe_c", 25.0, minimum=-100, maximum=200)
-    band = S.number_list(d, "band_c", [-70.0, 180.0], length=2)
-    if not band[0] < safe < band[1]:
-        raise S.error(d, "band_c", f"band_c {band} must contain safe_c {safe:g} degC")
-    out: dict[str, Any] = {"safe_c": float(safe), "band_c": (float(band[0]), float(band[1]))}
-    if driver == "watlow":
-        transport = S.get_str(d, "transport", "rtu", choices=("rtu", "tcp"))
-        out.update(transport=transport, unit_id=int(S.get_number(d, "unit_id", 1, minimum=0, maximum=247, integer=True)),
-                   timeout_s=float(S.get_number(d, "timeout_s", 1.0, minimum=0.01, maximum=60)),
-                   registers=dict(S.require_mapping(d["registers"], "'registers'", d, "registers"))
-                   if "registers" in d else {})
-        if transport == "rtu":
-            out.update(port=S.get_str(d, "port"), baudrate=int(S.get_number(d, "baudrate", 9600, minimum=300,
-                                                                               integer=True)),
-                       parity=S.get_str(d, "parity", "N", choices=("N", "E", "O")))
-        else:
-            out.update(host=S.get_str(d, "host", "127.0.0.1"),
-                       tcp_port=int(S.get_number(d, "tcp_port", 502, minimum=1, maximum=65535, integer=True)))
-    elif driver == "scpi":
-        out.update(resource=S.get_str(d, "resource"), model=S.get_str(d, "model", "generic"),
-                   commands=dict(S.require_mapping(d["commands"], "'commands'", d, "commands"))
-                   if "commands" in d else {},
-                   timeout_s=float(S.get_number(d, "timeout_s", 2.0, minimum=0.01, maximum=60)))
-    return out
+        return ChamberSettings()
+    return parse(SETTINGS[driver], d, f"'chamber' ({driver})", ("driver",))
 
 
 def describe_trip(state: ChamberState, band: tuple[float, float]) -> str | None:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from .clock import utc_now
+from .errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.json"
 CHECKPOINT_SCHEMA = 1
@@ -75,8 +76,8 @@ def save(run_dir: Path, ckpt: Checkpoint) -> None:
     write_atomic(run_dir / CHECKPOINT_NAME, json.dumps(asdict(ckpt), indent=1).encode())
 
 
-class CheckpointError(Exception):
-    """No usable checkpoint in a run directory."""
+class CheckpointError(InputError):
+    """No usable checkpoint in a run directory (invalid input: exit code 2, rigctl.errors)."""
 
 
 def load(run_dir: Path) -> Checkpoint:

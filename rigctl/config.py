@@ -2,16 +2,18 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import schema as S
+from .chamber import ChamberSettings, chamber_settings
 from .frames import normal_gravity
 from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
+from .settings import Settings, number, section, setting
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -21,7 +23,7 @@ DEFAULT_CONFIG = "configs/sim.yaml"
 
 TABLE_DRIVERS = ("sim", "acl", "modbus")
 IMU_DRIVERS = ("sim", "xsens", "vectornav", "frame")
-PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem")
+PULSE_DRIVERS = ("none", "sim", "novatel", "gpio", "modem", "vectornav")
 CHAMBER_DRIVERS = ("none", "sim", "watlow", "scpi")
 CLOCKS = ("virtual", "real", "scaled")
 
@@ -53,15 +55,33 @@ class TableLimits:
                         f"{math.degrees(self.rate[i]):.1f} deg/s")
 
 
+@dataclass(frozen=True, kw_only=True)
+class SiteSettings(Settings):
+    """``site:``: where the rig stands (normal gravity from latitude and height, unless the
+    locally measured gravity is given)."""
+
+    latitude_deg: float = number(45.0, minimum=-90, maximum=90)
+    height_m: float = number(0.0, minimum=-500, maximum=10000)
+    gravity_m_s2: float | None = number(None, minimum=9.7, maximum=9.9, allow_none=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RecorderSettings(Settings):
+    """``recorder:``: how often the recording is flushed to disk, and the table's sample rate."""
+
+    flush_interval_s: float = number(0.5, minimum=0.01, maximum=1.0)
+    table_rate_hz: float = number(10.0, minimum=0.1, maximum=1000.0)
+
+
 @dataclass(frozen=True)
 class DeviceConfig:
     """A device section: its driver, the raw options, and the validated settings: for the
     table, IMU and pulse input a :class:`rigctl.linkconfig.LinkSettings` of a wired driver (None
-    for the in-process emulator); for the chamber, rigctl.chamber's mapping."""
+    for the in-process emulator); for the chamber a :class:`rigctl.chamber.ChamberSettings`."""
 
     driver: str
     options: LocDict
-    settings: LinkSettings | dict[str, Any] | None = field(default_factory=dict)
+    settings: LinkSettings | ChamberSettings | None = None
 
 
 @dataclass(frozen=True)
@@ -90,7 +110,7 @@ class RigConfig:
     raw: LocDict = field(default_factory=LocDict, repr=False)
     #: the climatic chamber (docs/thermal.md): ``none``, ``sim`` (in the emulated world),
     #: ``watlow`` (Modbus RTU / TCP) or ``scpi`` (PyVISA); settings from rigctl.chamber
-    chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict()))
+    chamber: DeviceConfig = field(default_factory=lambda: DeviceConfig("none", LocDict(), ChamberSettings()))
     #: the daemon's notices (docs/daemon.md): webhook and/or e-mail on job end, suspension, fault
     notifications: NotifySettings = field(default_factory=NotifySettings)
 
@@ -161,65 +181,46 @@ def imu_serial(d: LocDict) -> str:
     return v
 
 
-#: keys of the ``suspenders:`` section (docs/daemon.md), units in the names
-SUSPENDER_KEYS = ("hold_s", "imu_timeout_s", "max_counter_gap", "temperature_min_c", "temperature_max_c",
-                  "min_free_mib")
-
-
 def suspender_settings(m: LocDict) -> SuspenderSettings:
-    """The ``suspenders:`` section of a rig config (absent keys keep their defaults).
-
-    hold_s: every suspender clear for this long (s of rig time, or a duration such as '5 s')
-    before a paused run resumes; imu_timeout_s: no IMU sample for this long (rig time) is a data
-    gap; max_counter_gap: IMU samples that may go missing (counter gap) before it counts as a
-    gap; temperature_min_c / temperature_max_c: the IMU temperature band, degC; min_free_mib:
-    free space (MiB = 2**20 bytes) the run directory's filesystem must keep (0 = no check)."""
-    d = SuspenderSettings()
-    if "suspenders" not in m or m["suspenders"] is None:
-        return d
-    s = S.require_mapping(m["suspenders"], "'suspenders'", m, "suspenders")
-    S.check_keys(s, SUSPENDER_KEYS, "'suspenders'")
-    hold = S.get_duration(s, "hold_s", d.hold_s)
-    if not 0.0 <= hold <= 86400.0:
-        raise S.error(s, "hold_s", f"'hold_s' = {hold:g} s must be between 0 s and 24 h")
-    timeout = S.get_duration(s, "imu_timeout_s", d.imu_timeout_s, positive=True)
-    if timeout > 3600.0:
-        raise S.error(s, "imu_timeout_s", f"'imu_timeout_s' = {timeout:g} s is above its maximum 3600 s")
-    gap = S.get_number(s, "max_counter_gap", d.max_counter_gap, minimum=0, maximum=10**9, integer=True)
-    t_lo = S.get_number(s, "temperature_min_c", d.temperature_min_c, minimum=-273.15, maximum=1000.0)
-    t_hi = S.get_number(s, "temperature_max_c", d.temperature_max_c, minimum=-273.15, maximum=1000.0)
-    if not t_lo < t_hi:
-        raise S.error(s, "temperature_max_c" if "temperature_max_c" in s else "temperature_min_c",
-                      f"the temperature band [{t_lo:g}, {t_hi:g}] degC is empty",
-                      "temperature_min_c must be below temperature_max_c")
-    mib = S.get_number(s, "min_free_mib", d.min_free_bytes / 2**20, minimum=0.0, maximum=2.0**30)
-    return SuspenderSettings(hold_s=float(hold), imu_timeout_s=float(timeout), max_counter_gap=int(gap),
-                             temperature_min_c=float(t_lo), temperature_max_c=float(t_hi),
-                             min_free_bytes=int(round(mib * 2**20)))
+    """The ``suspenders:`` section of a rig config (absent keys keep their defaults): the
+    fields of :class:`rigctl.suspenders.SuspenderSettings`."""
+    return section(m, "suspenders", SuspenderSettings)
 
 
-#: keys of the ``traceability:`` section (shown on certificates; all text)
-TRACEABILITY_KEYS = ("laboratory", "address", "accreditation", "table_id", "table_calibration",
-                     "table_calibration_due", "reference_standards", "procedure_document")
+def _statement(d: LocDict, key: str, default: str) -> str:
+    """Text of at most 500 characters; a list of texts (``reference_standards``) joined by '; '."""
+    v = d[key]
+    if isinstance(v, list) and all(isinstance(x, str) for x in v):
+        v = "; ".join(v)
+    if not isinstance(v, str) or not v.strip() or len(v) > 500:
+        raise S.error(d, key, f"'{key}' must be text (at most 500 characters)", f'quote it: {key}: "..."')
+    return v.strip()
+
+
+def _stated(default: str = "") -> Any:
+    return setting(default, read=_statement)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Traceability(Settings):
+    """``traceability:``: what a certificate states about the laboratory and the traceability of
+    the rig (docs/production.md); "" = not stated."""
+
+    laboratory: str = _stated()
+    address: str = _stated()
+    accreditation: str = _stated()
+    table_id: str = _stated()
+    table_calibration: str = _stated()
+    table_calibration_due: str = _stated()
+    reference_standards: str = _stated()
+    procedure_document: str = _stated()
 
 
 def traceability(m: LocDict) -> dict[str, str]:
-    """The ``traceability:`` section of a rig config: what a certificate states about the
-    laboratory and the traceability of the rig (docs/production.md). Each value is text; a
-    list (``reference_standards``) is joined with '; '. Absent: {}."""
-    if m.get("traceability") is None:
-        return {}
-    t = S.require_mapping(m["traceability"], "'traceability'", m, "traceability")
-    S.check_keys(t, TRACEABILITY_KEYS, "'traceability'")
-    out = {}
-    for k, v in t.items():
-        if isinstance(v, list) and all(isinstance(x, str) for x in v):
-            v = "; ".join(v)
-        if not isinstance(v, str) or not v.strip() or len(v) > 500:
-            raise S.error(t, k, f"'{k}' must be text (at most 500 characters)",
-                          f'quote it: {k}: "..."')
-        out[k] = v.strip()
-    return out
+    """The ``traceability:`` section of a rig config as {field: text}, the fields stated only
+    (absent section: {})."""
+    t = section(m, "traceability", Traceability)
+    return {f.name: getattr(t, f.name) for f in fields(t) if getattr(t, f.name)}
 
 
 def load_config(path: str | Path) -> RigConfig:
@@ -237,13 +238,8 @@ def load_config(path: str | Path) -> RigConfig:
     speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)
     seed = S.get_number(m, "seed", 0, minimum=0, integer=True)
 
-    site = S.require_mapping(m.get("site", LocDict()), "'site'", m, "site") if "site" in m else None
-    lat, h, g = math.radians(45.0), 0.0, None
-    if site is not None:
-        S.check_keys(site, ("latitude_deg", "height_m", "gravity_m_s2"), "'site'")
-        lat = math.radians(S.get_number(site, "latitude_deg", 45.0, minimum=-90, maximum=90))
-        h = S.get_number(site, "height_m", 0.0, minimum=-500, maximum=10000)
-        g = S.get_number(site, "gravity_m_s2", None, minimum=9.7, maximum=9.9, allow_none=True)
+    site = section(m, "site", SiteSettings)
+    lat, h, g = math.radians(site.latitude_deg), site.height_m, site.gravity_m_s2
 
     table, t = _device(m, "table", TABLE_DRIVERS, None)
     if table.driver == "sim":
@@ -267,6 +263,12 @@ def load_config(path: str | Path) -> RigConfig:
     imu = DeviceConfig(imu.driver, i, link_settings("imu", imu.driver, i))
     pulses, p_opts = _device(m, "pulses", PULSE_DRIVERS, "none")
     pulses = DeviceConfig(pulses.driver, p_opts, link_settings("pulses", pulses.driver, p_opts))
+    if pulses.driver == "vectornav":
+        S.check_keys(p_opts, ("driver",), "'pulses' (vectornav)")
+        if imu.driver != "vectornav":
+            raise S.error(m, "pulses", f"pulses from a VectorNav's SYNC_IN need the VectorNav as the IMU "
+                          f"(the imu driver is '{imu.driver}')",
+                          "set imu: driver: vectornav, or choose another pulse source (novatel, gpio, modem)")
     if (table.driver == "sim") != (imu.driver == "sim"):
         raise S.error(m, "table", "the in-process emulator ('sim') drives the table and the IMU "
                       "together; mixing it with a wired device is not supported",
@@ -278,15 +280,10 @@ def load_config(path: str | Path) -> RigConfig:
                       "use clock: real (hardware) or clock: scaled with the emulator's speed "
                       "(rigctl sim up --speed X)")
 
-    flush, table_rate = 0.5, 10.0
-    if "recorder" in m:
-        r = S.require_mapping(m["recorder"], "'recorder'", m, "recorder")
-        S.check_keys(r, ("flush_interval_s", "table_rate_hz"), "'recorder'")
-        flush = S.get_number(r, "flush_interval_s", 0.5, minimum=0.01, maximum=1.0)
-        table_rate = S.get_number(r, "table_rate_hz", 10.0, minimum=0.1, maximum=1000.0)
+    rec = section(m, "recorder", RecorderSettings)
+    flush, table_rate = rec.flush_interval_s, rec.table_rate_hz
     suspenders = suspender_settings(m)
     notifications = notify_settings(m)
-    from .chamber import chamber_settings  # the chamber section (docs/thermal.md)
     chamber, c_opts = _device(m, "chamber", CHAMBER_DRIVERS, "none")
     chamber = DeviceConfig(chamber.driver, c_opts, chamber_settings(chamber.driver, c_opts))
     # driver: sim is the in-process world's chamber; a wired rig has no in-process world, so

@@ -60,10 +60,7 @@ class DeviceReport:
 def _where(cfg: RigConfig, role: str) -> tuple[str, str]:
     """(where, kind of port) of a wired device section; kind: serial, tcp or gpio."""
     if role == "chamber":
-        s = cfg.chamber.settings
-        if cfg.chamber.driver == "scpi":
-            return s["resource"], "tcp" if s["resource"].upper().startswith("TCPIP") else "serial"
-        return (s["port"], "serial") if s.get("transport") == "rtu" else (f"{s['host']}:{s['tcp_port']}", "tcp")
+        return cfg.chamber.settings.where()
     dev = {"table": cfg.table, "imu": cfg.imu, "pulses": cfg.pulses}[role]
     s = dev.settings
     if dev.driver == "modbus" and s.transport == "tcp":
@@ -93,7 +90,7 @@ def check_devices(cfg: RigConfig) -> DeviceReport:
                              for role in ("table", "imu")])
     clock = make_clock("real" if cfg.clock == "virtual" else cfg.clock, cfg.speed)
     jobs = [("table", lambda: build_table(cfg, clock)), ("imu", lambda: build_imu(cfg, clock))]
-    if cfg.pulses.driver not in ("none", "sim"):
+    if cfg.pulses.driver not in ("none", "sim", "vectornav"):     # vectornav: its SYNC_IN, read with the IMU
         jobs.append(("pulses", lambda: build_pulses(cfg, clock)))
     if cfg.chamber.driver in ("watlow", "scpi"):
         jobs.append(("chamber", lambda: build_chamber(cfg, clock)))

@@ -399,7 +399,11 @@ class Engine:
             n_polls += 1
             sum_angle += s.angle
             sum_rate += s.rate
-        t_end = clock.now()
+        # the window is the one the step asked for: with a clock that runs with wall time (a
+        # wired rig, scaled x100 in the emulated HIL runs) the last sleep and poll end later than
+        # ``end`` by their wall time x speed (20 ms of a loaded host = 2 s of rig time at 100x);
+        # the samples after ``end`` belong to no window, as under the virtual clock
+        t_end = min(clock.now(), end)
         first, last = self._window_rows(t_start, t_end)
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate

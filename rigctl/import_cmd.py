@@ -10,7 +10,10 @@ enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`
   ``temp=`` (degC) and ``section=`` (a column naming each row's section, e.g. imucal's
   ``part``); or the path of a YAML/JSON file holding that mapping.
 * ``--units``: ``acc=g|mg|m/s^2|counts:SCALE UNIT`` and ``gyr=deg/s|rad/s|deg/h|counts:SCALE
-  UNIT`` (e.g. ``acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s``), ``time=s|ms|us``. Samples
+  UNIT`` (e.g. ``acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s``), ``time=s|ms|us|ns``; angle
+  and velocity units (``gyr=rad|deg|mrad|urad``, ``acc=m/s|mm/s``) mark increments per sample
+  (divided by the interval), or with ``--integrated`` running integrals (differenced first: an
+  integrated angle, or a clock's phase in s for a Stable32 phase file). Samples
   are converted to SI (m/s^2, rad/s) with these nominal scales; a calibration then reports
   the residual scale errors as ratios to them.
 * ``--rate HZ``: nominal sample rate. Without a time column, t = k / rate.
@@ -84,6 +87,10 @@ def register(subparsers: Any) -> None:
                    help="CSV: acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
     p.add_argument("--units", help="CSV: e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s")
     p.add_argument("--rate", type=float, help="CSV: nominal sample rate, Hz (bags: estimated from the stamps)")
+    p.add_argument("--integrated", action="store_true",
+                   help="CSV: the angle/velocity columns (--units gyr=rad|deg, acc=m/s) are running "
+                        "integrals (an angle, a clock's phase), differenced into rates; without it "
+                        "such columns are increments per sample")
     p.add_argument("--skip-rows", type=int, default=0, help="CSV: lines before the header (metadata)")
     p.add_argument("--topic", help="bag/MCAP: the sensor_msgs/Imu topic (optional when there is only one)")
     p.add_argument("--time-source", choices=("header", "receive"), default="header",

@@ -37,10 +37,12 @@ Per driver (units in the key names; defaults in brackets):
 """
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import MISSING, dataclass, fields
 from typing import Any, ClassVar
 
 from . import schema as S
+from . import settings
+from .settings import Settings, flag, number, setting, text
 from .frame_spec import parse_frame_spec
 from .yamlio import LocDict
 
@@ -49,26 +51,8 @@ AUTO = "auto"
 COMMON_KEYS = ("driver", "sim", "limits", "rate_hz")
 
 
-def _setting(default: Any = MISSING, *, kind: str, key: str | None = None, **check: Any) -> Any:
-    """A settings field: ``kind`` port | number | text | flag; ``key``: its YAML key when it
-    differs from the field's name; ``check``: minimum, maximum, integer, allow_none, choices."""
-    return field(default=default, metadata={"kind": kind, "key": key, **check})
-
-
 def port(required: bool = True) -> Any:
-    return _setting(MISSING if required else None, kind="port")
-
-
-def number(default: Any = MISSING, **check: Any) -> Any:
-    return _setting(default, kind="number", **check)
-
-
-def text(default: Any = MISSING, **check: Any) -> Any:
-    return _setting(default, kind="text", **check)
-
-
-def flag(default: bool) -> Any:
-    return _setting(default, kind="flag")
+    return setting(MISSING if required else None, read=_port)
 
 
 def baudrate(default: int) -> Any:
@@ -83,61 +67,35 @@ EDGES = ("rising", "falling", "both")
 
 
 @dataclass(frozen=True, kw_only=True)
-class LinkSettings:
+class LinkSettings(Settings):
     """Base of the settings of one wired driver (a section of the rig config)."""
 
     #: the driver's name in the config; the fields the driver takes as positional arguments
     DRIVER: ClassVar[str] = ""
     POSITIONAL: ClassVar[tuple[str, ...]] = ("port",)
-    #: other keys the section may hold (read elsewhere)
-    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ()
 
     def keywords(self) -> dict[str, Any]:
         """The driver's keyword arguments (every field but :attr:`POSITIONAL`)."""
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in self.POSITIONAL}
-
-    def check(self, d: LocDict) -> None:
-        """Rules between fields (after each field is valid); raises InputError."""
 
     def where(self) -> str:
         """Where the device is, as one line names it."""
         return str(getattr(self, "port", ""))
 
 
-def _port(d: LocDict, key: str, driver: str) -> str:
+def _port(d: LocDict, key: str, default: Any = None) -> str:
     value = S.get_str(d, key)
     if not value.strip():
         raise S.error(d, key, f"'{key}' is empty", "give a device path or a pyserial URL")
     if value == AUTO:
-        raise S.error(d, key, f"'{key}: auto' ({driver}) is a placeholder filled in by the emulator",
-                      "start `rigctl sim up --wire-config OUT.yaml` and use OUT.yaml")
+        raise S.error(d, key, f"'{key}: auto' ({d.get('driver', '?')}) is a placeholder filled in by the "
+                      "emulator", "start `rigctl sim up --wire-config OUT.yaml` and use OUT.yaml")
     return value
 
 
 def parse(cls: type[LinkSettings], d: LocDict, what: str) -> LinkSettings:
-    """The one validator: ``d`` (a config section) as ``cls``; InputError with file and line."""
-    spec = {f.metadata.get("key") or f.name: f for f in fields(cls)}
-    S.check_keys(d, (*COMMON_KEYS, *cls.EXTRA_KEYS, *spec), what)
-    values: dict[str, Any] = {}
-    for key, f in spec.items():
-        m = {k: v for k, v in f.metadata.items() if k not in ("kind", "key")}
-        kind = f.metadata["kind"]
-        default = ... if f.default is MISSING else f.default
-        if key not in d:
-            if default is ...:
-                raise S.error(d, None, f"{what} is missing {key!r}", f"add a line '{key}: ...'")
-            values[f.name] = default
-        elif kind == "port":
-            values[f.name] = _port(d, key, cls.DRIVER)
-        elif kind == "number":
-            values[f.name] = S.get_number(d, key, default, **m)
-        elif kind == "text":
-            values[f.name] = S.get_str(d, key, default, **m)
-        else:
-            values[f.name] = S.get_bool(d, key, default)
-    out = cls(**values)
-    out.check(d)
-    return out
+    """The one validator (rigctl.settings.parse), with the keys every device section may carry."""
+    return settings.parse(cls, d, what, COMMON_KEYS)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -22,74 +22,89 @@ from pathlib import Path
 from typing import Any
 
 from . import schema as S
+from .settings import Settings, duration, flag, number, parse, section, setting, text
 from .yamlio import LocDict
 
 EVENTS = ("complete", "failed", "interrupted", "suspended", "faulted")
-KEYS = ("events", "suspended_after_s", "webhook", "email")
-WEBHOOK_KEYS = ("url", "timeout_s")
-EMAIL_KEYS = ("smtp_host", "smtp_port", "from", "to", "starttls", "username", "password_file", "timeout_s")
 
 
-@dataclass(frozen=True)
-class NotifySettings:
-    events: tuple[str, ...] = ("complete", "failed", "suspended", "faulted")
-    suspended_after_s: float = 600.0   # wall seconds a job stays paused/suspended before a notice
-    webhook_url: str = ""
-    webhook_timeout_s: float = 10.0
-    smtp_host: str = ""
-    smtp_port: int = 25
-    mail_from: str = ""
-    mail_to: tuple[str, ...] = ()
-    starttls: bool = False
-    username: str = ""
-    password_file: str = ""            # the password lives in its own file, never in the config
-    smtp_timeout_s: float = 20.0
-    extra: dict[str, Any] = field(default_factory=dict)
+def _events(d: LocDict, key: str, default: tuple[str, ...]) -> tuple[str, ...]:
+    events = tuple(S.get_list(d, key, list(default)))
+    for ev in events:
+        if ev not in EVENTS:
+            raise S.error(d, key, f"'events': unknown event {ev!r}", S.did_you_mean(str(ev), EVENTS))
+    return events
+
+
+def _addresses(d: LocDict, key: str, default: Any = ...) -> tuple[str, ...]:
+    to = S.get_list(d, key, default)
+    if not to or not all(isinstance(a, str) and "@" in a and "\n" not in a for a in to):
+        raise S.error(d, key, "'to' must list e-mail addresses", "to: [lab@example.org]")
+    return tuple(to)
+
+
+def _subsection(cls: type[Settings], what: str) -> Any:
+    """A nested section read by the same validator (null: absent)."""
+    def read(d: LocDict, key: str, default: Any) -> Any:
+        if d[key] is None:
+            return default
+        return parse(cls, S.require_mapping(d[key], what, d, key), what)
+    return setting(None, read=read)
+
+
+@dataclass(frozen=True, kw_only=True)
+class WebhookSettings(Settings):
+    """``notifications.webhook``: a JSON POST to ``url`` per notice."""
+
+    url: str = text()
+    timeout_s: float = duration(10.0, positive=True)
+
+    def check(self, d: LocDict) -> None:
+        u = urllib.parse.urlsplit(self.url)
+        if u.scheme not in ("http", "https") or not u.hostname:
+            raise S.error(d, "url", f"'url' {self.url!r} must be an http:// or https:// address")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EmailSettings(Settings):
+    """``notifications.email``: one e-mail per notice over SMTP (the password, if any, in a file
+    of its own, never in the config)."""
+
+    smtp_host: str = text()
+    smtp_port: int = number(25, minimum=1, maximum=65535, integer=True)
+    mail_from: str = text(key="from")
+    mail_to: tuple[str, ...] = setting(read=_addresses, key="to")
+    starttls: bool = flag(False)
+    username: str = text("")
+    password_file: str = text("")
+    timeout_s: float = duration(20.0, positive=True)
+
+    def check(self, d: LocDict) -> None:
+        if "@" not in self.mail_from or "\n" in self.mail_from:
+            raise S.error(d, "from", f"'from' {self.mail_from!r} is not an e-mail address")
+        if self.password_file and not Path(self.password_file).is_file():
+            raise S.error(d, "password_file", f"'password_file' {self.password_file} does not exist")
+
+
+@dataclass(frozen=True, kw_only=True)
+class NotifySettings(Settings):
+    """The ``notifications:`` section of a rig config (rigctl.settings.parse)."""
+
+    events: tuple[str, ...] = setting(("complete", "failed", "suspended", "faulted"), read=_events)
+    #: wall seconds a job stays paused/suspended before a notice
+    suspended_after_s: float = duration(600.0, positive=True)
+    webhook: WebhookSettings | None = _subsection(WebhookSettings, "'notifications.webhook'")
+    email: EmailSettings | None = _subsection(EmailSettings, "'notifications.email'")
+    extra: dict[str, Any] = field(default_factory=dict, metadata={"internal": True})
 
     @property
     def enabled(self) -> bool:
-        return bool(self.webhook_url or self.smtp_host)
+        return self.webhook is not None or self.email is not None
 
 
 def notify_settings(m: LocDict) -> NotifySettings:
     """The ``notifications:`` section of a rig config (absent: nothing is sent)."""
-    if m.get("notifications") is None:
-        return NotifySettings()
-    n = S.require_mapping(m["notifications"], "'notifications'", m, "notifications")
-    S.check_keys(n, KEYS, "'notifications'")
-    d = NotifySettings()
-    events = tuple(S.get_list(n, "events", list(d.events)))
-    for e in events:
-        if e not in EVENTS:
-            raise S.error(n, "events", f"'events': unknown event {e!r}", S.did_you_mean(str(e), EVENTS))
-    after = S.get_duration(n, "suspended_after_s", d.suspended_after_s, positive=True)
-    kw: dict[str, Any] = {"events": events, "suspended_after_s": float(after)}
-    if n.get("webhook") is not None:
-        w = S.require_mapping(n["webhook"], "'notifications.webhook'", n, "webhook")
-        S.check_keys(w, WEBHOOK_KEYS, "'notifications.webhook'")
-        url = S.get_str(w, "url")
-        u = urllib.parse.urlsplit(url)
-        if u.scheme not in ("http", "https") or not u.hostname:
-            raise S.error(w, "url", f"'url' {url!r} must be an http:// or https:// address")
-        kw.update(webhook_url=url, webhook_timeout_s=float(S.get_duration(w, "timeout_s", 10.0, positive=True)))
-    if n.get("email") is not None:
-        e = S.require_mapping(n["email"], "'notifications.email'", n, "email")
-        S.check_keys(e, EMAIL_KEYS, "'notifications.email'")
-        to = S.get_list(e, "to")
-        if not to or not all(isinstance(a, str) and "@" in a and "\n" not in a for a in to):
-            raise S.error(e, "to", "'to' must list e-mail addresses", "to: [lab@example.org]")
-        sender = S.get_str(e, "from")
-        if "@" not in sender or "\n" in sender:
-            raise S.error(e, "from", f"'from' {sender!r} is not an e-mail address")
-        pw = S.get_str(e, "password_file", "")
-        if pw and not Path(pw).is_file():
-            raise S.error(e, "password_file", f"'password_file' {pw} does not exist")
-        kw.update(smtp_host=S.get_str(e, "smtp_host"),
-                  smtp_port=int(S.get_number(e, "smtp_port", 25, minimum=1, maximum=65535, integer=True)),
-                  mail_from=sender, mail_to=tuple(to), starttls=bool(S.get_bool(e, "starttls", False)),
-                  username=S.get_str(e, "username", ""), password_file=pw,
-                  smtp_timeout_s=float(S.get_duration(e, "timeout_s", 20.0, positive=True)))
-    return NotifySettings(**kw)
+    return section(m, "notifications", NotifySettings)
 
 
 def subject(notice: dict[str, Any]) -> str:
@@ -144,8 +159,8 @@ class Notifier:
 
     def _run(self) -> None:
         while (notice := self.q.get()) is not None:
-            for name, send in (("webhook", self._webhook if self.s.webhook_url else None),
-                               ("e-mail", self._email if self.s.smtp_host else None)):
+            for name, send in (("webhook", self._webhook if self.s.webhook else None),
+                               ("e-mail", self._email if self.s.email else None)):
                 if send is None:
                     continue
                 for attempt in (1, 2):
@@ -161,23 +176,27 @@ class Notifier:
                             time.sleep(2.0)
 
     def _webhook(self, notice: dict[str, Any]) -> None:
-        req = urllib.request.Request(self.s.webhook_url, data=json.dumps(notice, default=str).encode(),
+        w = self.s.webhook
+        assert w is not None
+        req = urllib.request.Request(w.url, data=json.dumps(notice, default=str).encode(),
                                      method="POST", headers={"Content-Type": "application/json",
                                                              "User-Agent": "rigctl-notify"})
-        with urllib.request.urlopen(req, timeout=self.s.webhook_timeout_s) as r:
+        with urllib.request.urlopen(req, timeout=w.timeout_s) as r:
             if not 200 <= r.status < 300:
                 raise OSError(f"HTTP {r.status}")
 
     def _email(self, notice: dict[str, Any]) -> None:
+        e = self.s.email
+        assert e is not None
         msg = EmailMessage()
         msg["Subject"] = subject(notice)
-        msg["From"] = self.s.mail_from
-        msg["To"] = ", ".join(self.s.mail_to)
+        msg["From"] = e.mail_from
+        msg["To"] = ", ".join(e.mail_to)
         msg.set_content(body_text(notice))
-        with smtplib.SMTP(self.s.smtp_host, self.s.smtp_port, timeout=self.s.smtp_timeout_s) as smtp:
-            if self.s.starttls:
+        with smtplib.SMTP(e.smtp_host, e.smtp_port, timeout=e.timeout_s) as smtp:
+            if e.starttls:
                 smtp.starttls(context=ssl.create_default_context())
-            if self.s.username:
-                pw = Path(self.s.password_file).read_text().strip() if self.s.password_file else ""
-                smtp.login(self.s.username, pw)
+            if e.username:
+                pw = Path(e.password_file).read_text().strip() if e.password_file else ""
+                smtp.login(e.username, pw)
             smtp.send_message(msg)

@@ -72,7 +72,7 @@ def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
 
     try:
         res = allan_pipeline.compute(str(data.recording), [a for a in axes if a in allan_pipeline.AXES],
-                                     taus=QUICK_TAUS, gaps="bridge")  # a quick curve, marked so
+                                     taus=QUICK_TAUS, gaps="skip")  # a quick curve, marked so
     except (InputError, OSError, ValueError) as exc:
         if log:
             log("warning", f"report: no Allan curve for {', '.join(axes)}: {exc}")

@@ -71,8 +71,11 @@ def build_imu(cfg: RigConfig, clock: Clock):
     return XsensImu(s.port, cfg.imu_rate_hz, clock, **s.keywords())
 
 
-def build_pulses(cfg: RigConfig, clock: Clock):
+def build_pulses(cfg: RigConfig, clock: Clock, imu=None):
+    """The pulse source; ``imu``: the IMU built for ``cfg`` (``vectornav``: its SYNC_IN)."""
     s, d = cfg.pulses.settings, cfg.pulses.driver
+    if d == "vectornav":
+        return (imu if imu is not None else build_imu(cfg, clock)).syncin_pulses()
     if d == "novatel":
         from .drivers.novatel_marks import NovatelMarks
         return NovatelMarks(s.port, clock, **s.keywords())
@@ -91,11 +94,10 @@ def build_chamber(cfg: RigConfig, clock: Clock):
     s = c.settings
     if c.driver == "watlow":
         from .drivers.watlow_chamber import WatlowF4T
-        return WatlowF4T(clock, safe_c=s["safe_c"], **{k: v for k, v in s.items() if k not in ("safe_c", "band_c")})
+        return WatlowF4T(clock, **s.keywords())
     if c.driver == "scpi":
         from .drivers.scpi_chamber import ScpiChamber
-        return ScpiChamber(s["resource"], clock, model=s["model"], commands=s["commands"],
-                           timeout_s=s["timeout_s"], safe_c=s["safe_c"])
+        return ScpiChamber(s.resource, clock, **{k: v for k, v in s.keywords().items() if k != "resource"})
     return None
 
 
@@ -105,7 +107,7 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
     with ExitStack() as stack:
         devices = []
         for build in (build_table, build_imu, build_pulses):
-            dev = build(cfg, clock)
+            dev = build(cfg, clock, devices[1]) if build is build_pulses else build(cfg, clock)
             if hasattr(dev, "close"):
                 stack.callback(dev.close)
             if hasattr(dev, "connect"):
@@ -117,7 +119,7 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
             stack.callback(chamber.close)
             chamber.connect()
         rig = Rig(table=table, imu=imu, pulses=pulses, clock=clock, description=describe(cfg),
-                  chamber=chamber, chamber_band=cfg.chamber.settings.get("band_c", (-70.0, 180.0)))
+                  chamber=chamber, chamber_band=cfg.chamber.settings.band_c)
         try:
             yield rig
         finally:
@@ -142,11 +144,11 @@ def open_rig(cfg: RigConfig) -> Iterator[tuple[Rig, dict[str, Any] | None]]:
         clock = make_clock(cfg.clock, cfg.speed)
 
         world = SimWorld(cfg, clock)
-        chamber = SimChamberDevice(world, cfg.chamber.settings["safe_c"]) \
+        chamber = SimChamberDevice(world, cfg.chamber.settings.safe_c) \
             if cfg.chamber.driver == "sim" else None
         rig = Rig(table=SimTableDevice(world), imu=SimImuDevice(world), pulses=world.pulses(),
                   clock=clock, description=describe(cfg), operator=world.operator, chamber=chamber,
-                  chamber_band=cfg.chamber.settings.get("band_c", (-70.0, 180.0)))
+                  chamber_band=cfg.chamber.settings.band_c)
         try:
             yield rig, world.truth()
         finally:

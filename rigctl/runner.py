@@ -431,10 +431,7 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     naming their range, so solvers never use them."""
     opts = options or RunOptions()
     d = check_run_dir(run_dir, runs_root)
-    try:
-        ck = ckpt_mod.load(d)
-    except ckpt_mod.CheckpointError as exc:
-        raise InputError(str(exc)) from None
+    ck = ckpt_mod.load(d)  # CheckpointError is an InputError
     if ck.status == "complete":
         raise InputError(f"{d}: the run is already complete; nothing to resume")
     cfg = load_config(d / ck.config_file)

@@ -30,22 +30,50 @@ from typing import Any
 
 import numpy as np
 
+from . import schema as S
 from .devices import AxisStatus, ImuBlock, TableState
+from .settings import Settings, duration, internal, number, setting
+from .yamlio import LocDict
 
 TABLE_TRIP_BITS = (AxisStatus.FAULT, AxisStatus.INTERLOCK_OPEN, AxisStatus.FOLLOWING_ERROR)
 
 
-@dataclass(frozen=True)
-class SuspenderSettings:
-    """Thresholds (SI units; times in rig seconds unless stated)."""
+def _mib_as_bytes(d: LocDict, key: str, default: int) -> int:
+    """``min_free_mib`` (MiB = 2**20 bytes) as bytes."""
+    mib = S.get_number(d, key, default / 2**20, minimum=0.0, maximum=2.0**30)
+    return int(round(mib * 2**20))
 
-    hold_s: float = 5.0
-    imu_timeout_s: float = 2.0
-    max_counter_gap: int = 0
-    temperature_min_c: float = -40.0
-    temperature_max_c: float = 85.0
-    min_free_bytes: int = 64 * 2**20
-    disk_check_interval_s: float = 0.25  # wall time
+
+@dataclass(frozen=True, kw_only=True)
+class SuspenderSettings(Settings):
+    """Thresholds (SI units; times in rig seconds unless stated), and the ``suspenders:``
+    section of a rig config (docs/daemon.md), read by :func:`rigctl.settings.parse`.
+
+    hold_s: every suspender clear for this long (s of rig time, or a duration such as '5 s')
+    before a paused run resumes; imu_timeout_s: no IMU sample for this long (rig time) is a data
+    gap; max_counter_gap: IMU samples that may go missing (counter gap) before it counts as a
+    gap; temperature_min_c / temperature_max_c: the IMU temperature band, degC;
+    ``min_free_mib``: free space (MiB) the run directory's filesystem must keep (0 = no check),
+    held in bytes as ``min_free_bytes``."""
+
+    hold_s: float = duration(5.0)
+    imu_timeout_s: float = duration(2.0, positive=True)
+    max_counter_gap: int = number(0, minimum=0, maximum=10**9, integer=True)
+    temperature_min_c: float = number(-40.0, minimum=-273.15, maximum=1000.0)
+    temperature_max_c: float = number(85.0, minimum=-273.15, maximum=1000.0)
+    min_free_bytes: int = setting(64 * 2**20, read=_mib_as_bytes, key="min_free_mib")
+    disk_check_interval_s: float = internal(0.25)  # wall time
+
+    def check(self, d: LocDict) -> None:
+        if not 0.0 <= self.hold_s <= 86400.0:
+            raise S.error(d, "hold_s", f"'hold_s' = {self.hold_s:g} s must be between 0 s and 24 h")
+        if self.imu_timeout_s > 3600.0:
+            raise S.error(d, "imu_timeout_s",
+                          f"'imu_timeout_s' = {self.imu_timeout_s:g} s is above its maximum 3600 s")
+        if not self.temperature_min_c < self.temperature_max_c:
+            raise S.error(d, "temperature_max_c" if "temperature_max_c" in d else "temperature_min_c",
+                          f"the temperature band [{self.temperature_min_c:g}, {self.temperature_max_c:g}] "
+                          "degC is empty", "temperature_min_c must be below temperature_max_c")
 
     @classmethod
     def from_mapping(cls, m: dict[str, Any] | None) -> "SuspenderSettings":

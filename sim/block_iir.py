@@ -217,8 +217,8 @@ if HAVE_NUMBA:
 
 def run_direct(cascade: "BlockCascade", eps: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``cascade.run(eps)`` sample by sample in the compiled loop (numba; the same filter and
-    state, any chunk length), into ``out`` (k, n). About 3 ns per axis-sample for 14 poles
-    against ~13 for the BLAS blocks at 100 Hz (benchmarks/emulator.py)."""
+    state, any chunk length), into ``out`` (k, n). 4.5-6 ns per axis-sample for 14 poles
+    against ~13 for the BLAS blocks at 100 Hz (CPU time, shared machine at load ~10)."""
     if not hasattr(cascade, "_rp"):
         p = np.exp(-cascade.a)
         cascade._p = p

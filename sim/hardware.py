@@ -569,8 +569,12 @@ class Hardware:
         self.slots[name].endpoint.write(data)
 
     def pulse(self, t: float | None = None) -> bool:
-        """A mark pulse at rig time ``t`` (default now) on the GNSS receiver's MARK1 input."""
-        return self.gnss.pulse(self.world_clock.now() if t is None else float(t))
+        """A mark pulse at rig time ``t`` (default now) on the GNSS receiver's MARK1 input and,
+        with a VectorNav IMU, on its SYNC_IN (the same tap wired to both)."""
+        t = self.world_clock.now() if t is None else float(t)
+        if hasattr(self.imu_server, "syncin"):
+            self.imu_server.syncin(t)
+        return self.gnss.pulse(t)
 
     # -------------------------------------------------------------------------- teardown
     def close(self) -> None:

@@ -38,9 +38,10 @@ sn^2 = N^2 fs (white), sb^2 = (B c_B)^2 (flicker input):
   z = 1 (gain tau0/q), the walk's and the ramp's in closed form per block, the signal's as a running sum.
 
 Speed: the filter runs on a fixed grid of chunks (``FIRST_CHUNK``, doubling, then ``CHUNK`` samples). With numba
-(the ``fast`` extra) the filter, the K walk, the ramp and the quantizer are compiled loops over the samples
-(:func:`rigctl.sim.block_iir.run_direct`; the walk, ramp and quantizer do numpy's operations in numpy's order): about
-17-20 ns per axis-sample on one core of the shared test machine, 9-10 of them numpy's normal draw. Without numba:
+(the ``fast`` extra) the filter, the K walk and the ramp of a chunk are one compiled loop over the samples
+(``_chunk_fused``: the cascade in parallel form as :func:`rigctl.sim.block_iir.run_direct`, then the walk and the
+ramp), and the quantizer another (numpy's operations in numpy's order): about 15 ns per axis-sample on one core of
+the shared test machine (load ~10), 8-10 of them numpy's normal draw. Without numba:
 BLAS block recursion (:mod:`rigctl.sim.block_iir`), about 30 ns per axis-sample (benchmarks/emulator.py).
 
 :func:`theoretical_avar` gives both the IEEE curve (``rate_hz=None``) and the *exact* expectation of
@@ -85,6 +86,61 @@ if _bi.HAVE_NUMBA:
                 row[t] += w
         state[0] = w
         state[1] = th
+
+    @njit(cache=True, nogil=True, fastmath=True)
+    def _chunk_fused(eps, p, rp, c_int, gain, state, raw, k_on, k_s, kappa, quant, wstate,
+                     r_on, r_coef, base, out):  # pragma: no cover - compiled
+        """One chunk of every axis in one pass: the N + B cascade (block_iir._direct's
+        arithmetic, fastmath for the pole sum), then the K walk (:func:`_walk`) and the R ramp
+        (:func:`_ramp`) added in that order with their arithmetic (no reassociation across
+        them: each is one dependent add)."""
+        k_n, n = eps.shape
+        n_st = p.size
+        n_int = c_int.shape[1]
+        s = np.empty(n_st)
+        for k in range(k_n):
+            for i in range(n_st):
+                s[i] = state[k, i]
+            g = gain[k]
+            rk = rp[k]
+            kon = k_on[k]
+            q = quant[k]
+            ks = k_s[k]
+            kap = kappa[k]
+            w = wstate[k, 0]
+            th = wstate[k, 1]
+            ron = r_on[k]
+            rc = r_coef[k]
+            for t in range(n):
+                e = eps[k, t]
+                x = 0.0
+                for i in range(n_st):
+                    x += rk[i] * s[i]
+                    s[i] = p[i] * s[i] + e
+                x += e
+                for j in range(n_int):
+                    wj = state[k, n_st + j]
+                    state[k, n_st + j] = wj + x
+                    x = x + c_int[k, j] * wj
+                v = g * x
+                if kon:
+                    w += ks * (raw[k, t] - _U16_MEAN)
+                    if q:
+                        th += kap * w
+                        v += th
+                    else:
+                        v += w
+                if ron:
+                    kk = float(t) + base
+                    if q:
+                        v += ((kk + 1.0) * kk) * rc
+                    else:
+                        v += kk * rc
+                out[k, t] = v
+            for i in range(n_st):
+                state[k, i] = s[i]
+            wstate[k, 0] = w
+            wstate[k, 1] = th
 
     @njit(cache=True, nogil=True)
     def _ramp(row, base, coef, quantized):  # pragma: no cover - compiled
@@ -337,6 +393,7 @@ class NoiseGenerator:
                     self._filter.state[ax, : len(a_pole)] = root @ self._rng[ax].standard_normal(len(a_pole))
         self._eps: dict[int, np.ndarray] = {}
         self._out: dict[int, np.ndarray] = {}
+        self._raw: dict[int, np.ndarray] = {}
         self._kbuf: dict[int, np.ndarray] = {}
         self._kwork: dict[int, tuple] = {}  # K: (W_b, Theta_b, 1) per sub-block, two products
         self._ramp: dict[int, np.ndarray] = {}
@@ -363,9 +420,11 @@ class NoiseGenerator:
             if _bi.HAVE_NUMBA:  # sample by sample, compiled (~4x faster than the BLAS blocks)
                 if m not in self._out:
                     self._out[m] = np.empty((3, m))
-                self._chunk = _bi.run_direct(self._filter, eps, self._out[m])
-            else:
-                self._chunk = self._filter.run(eps)
+                self._chunk = self._fused_chunk(eps, m)
+                self._k_chunk += m
+                self._pos = 0
+                return
+            self._chunk = self._filter.run(eps)
         for ax in np.flatnonzero(self._k_step > 0):
             if _bi.HAVE_NUMBA:
                 self._walk_compiled(ax, self._chunk[ax], m)
@@ -393,6 +452,30 @@ class NoiseGenerator:
                     self._chunk[ax] += np.multiply(kk, R[ax] * self.tau0, out=tmp)
         self._k_chunk += m
         self._pos = 0
+
+    def _fused_chunk(self, eps: np.ndarray, m: int) -> np.ndarray:
+        """Filter, K walk and R ramp of one chunk in one compiled pass (the same draws and the
+        same arithmetic as the separate passes: bit-identical to them)."""
+        if m not in self._raw:
+            self._raw[m] = np.zeros((3, m), dtype=np.uint16)
+        raw = self._raw[m]
+        k_on = self._k_step > 0
+        for ax in np.flatnonzero(k_on):
+            raw[ax] = self._rng_k[ax].bit_generator.random_raw(m // 4).view(np.uint16)
+        f = self._filter
+        if not hasattr(f, "_rp"):
+            _bi.run_direct(f, eps[:, :0], self._out[m][:, :0])  # builds f._p, f._rp
+        R = self.params["R"]
+        q = self._quantized
+        safe_q = np.where(q, self._q_step, 1.0)
+        r_coef = np.where(q, 0.5 * R * self.tau0**2 / safe_q, R * self.tau0)
+        wstate = np.stack([self._k_level, self._k_theta], axis=1)
+        _chunk_fused(eps, f._p, f._rp, f.c_int, f.gain, f.state, raw, k_on,
+                     self._k_step / _U16_STD, np.where(q, self._k_scale, 1.0), q, wstate,
+                     R > 0, r_coef, float(self._k_chunk + 1), self._out[m])
+        self._k_level[:] = wstate[:, 0]
+        self._k_theta[:] = wstate[:, 1]
+        return self._out[m]
 
     def _walk_compiled(self, ax: int, row: np.ndarray, m: int) -> None:
         """:meth:`_add_random_walk` sample by sample (the same draws, same walk; rounding

@@ -9,7 +9,10 @@ frames at the requested rate need more than the nominal ``baudrate``, 10 bits pe
 
 Binary output 1 streams while its AsyncMode is non-zero, at 800 Hz / RateDivisor, on the
 world's sample grid; TimeStartup = (t - t_origin) in ns + ``startup_ns`` (the sensor powered up
-before the emulator's clock started); SyncInCnt counts whole seconds (a 1 PPS on SYNC_IN).
+before the emulator's clock started); SyncInCnt counts the edges given to :meth:`syncin` (rig
+times: a tap switch or PPS wired to SYNC_IN; :meth:`Hardware.pulse` gives them too) up to each
+frame's time since the sensor powered up, TimeSyncIn the ns since the newest of them (since
+power-up before the first).
 """
 from __future__ import annotations
 
@@ -36,6 +39,9 @@ class VectorNavServer(StreamTwin):
         self.other_outputs: dict[int, tuple[int, int, V.Layout]] = {}
         self.last_error = ""
         self._buf = b""
+        #: SYNC_IN edges (rig times, sorted) and the index of the first since power-up
+        self.syncin_times: list[float] = []
+        self._syncin_base = 0
         super().__init__(source, clock, V.IMU_RATE_HZ / self.divisor, seed=seed, name="vectornav-pty")
 
     # ------------------------------------------------------------------------ requests
@@ -45,7 +51,10 @@ class VectorNavServer(StreamTwin):
             line, self._buf = self._buf.split(b"\n", 1)
             line = line.strip()
             if line.startswith(b"$"):
-                write(self._handle(line))
+                # the reply goes out before the first frame of an output it switched on, as from
+                # a sensor: the hardware loop encodes frames under the same lock
+                with self._lock:
+                    write(self._handle(line))
         if len(self._buf) > 4096:
             self._buf = b""
 
@@ -97,18 +106,30 @@ class VectorNavServer(StreamTwin):
                 return self._err(8, f"register {reg} is not emulated")
             return V.command(f"VNRRG,{reg:02d},{values[reg]}")
 
+    def syncin(self, t: float) -> None:
+        """An edge on SYNC_IN at rig time ``t``."""
+        import bisect
+        with self._lock:
+            bisect.insort(self.syncin_times, float(t))
+
     def power_cycle(self) -> None:
         """The sensor restarts (a USB cable pulled): TimeStartup starts again from 0, the binary
         output is off until configured again."""
         with self._lock:
             self.startup_ns = -int(round((self.clock() - self.t_origin) * 1e9))
             self.async_mode, self.state = 0, "config"
+            self._syncin_base = int(np.searchsorted(self.syncin_times, self.clock(), side="right"))
 
     # ------------------------------------------------------------------------ frames
     def _frames(self, k: np.ndarray, t: np.ndarray, src: dict) -> np.ndarray:
         ns = self.startup_ns + np.rint((t - self.t_origin) * 1e9).astype(np.int64)
-        fields = {"time_startup_ns": ns, "time_syncin_ns": ns % 1_000_000_000,
-                  "syncin_count": ns // 1_000_000_000,
+        edges = np.asarray(self.syncin_times[self._syncin_base:], float)
+        count = np.searchsorted(edges, t, side="right")
+        since_ns = ns
+        if edges.size:
+            newest = edges[np.maximum(count - 1, 0)]
+            since_ns = np.where(count > 0, np.rint((t - newest) * 1e9).astype(np.int64), ns)
+        fields = {"time_startup_ns": ns, "time_syncin_ns": since_ns, "syncin_count": count,
                   "uncomp_accel": src["acceleration"], "uncomp_gyro": src["rate_of_turn"],
                   "accel": src["acceleration"], "angular_rate": src["rate_of_turn"],
                   "temperature": src["temperature"]}

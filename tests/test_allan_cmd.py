@@ -122,7 +122,8 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
 
 def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     """The procedure hook analyses the longest capture segment, stores /results/allan and the
-    results database and logs one info line per axis (plus a warning for counter gaps)."""
+    results database and logs one info line per axis (plus one for counter gaps, whose
+    terms are skipped)."""
     rec = tmp_path / "rec.h5"
     write_recording(rec, 120_000, seed=4)
     with h5py.File(rec, "r+") as f:
@@ -140,12 +141,12 @@ def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     with h5py.File(rec, "r") as f:
         summary = json.loads(f["results/allan"].attrs["json"])
     assert summary["n_samples"] == 80_000 and summary["first_sample"] == 20_000
-    assert summary["dropped_samples"] == 3 and "overnight" in summary["segment"]
+    assert summary["dropped_samples"] == 0 and "overnight" in summary["segment"]
     info = [m for k, m in messages if k == "info"]
     assert any("capture segment 'overnight'" in m for m in info)
     assert sum(m.startswith("allan gx:") for m in info) == 1
-    assert sum(m.startswith("allan: results database: ") for m in info) == 1 and len(info) == 8
-    assert any(k == "warning" and "3 samples missing" in m for k, m in messages)
+    assert sum(m.startswith("allan: results database: ") for m in info) == 1 and len(info) == 9
+    assert any("3 samples missing" in m and "skipped" in m for m in info)
     n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
     assert abs(n_gx / 0.3 - 1) < 0.05
 
@@ -175,17 +176,21 @@ def test_warns_when_the_table_moved_in_the_analysed_range(tmp_path: Path,
 
 
 def test_gaps_are_refused_or_handled_as_asked(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """Dropped samples are never bridged silently: by default rigctl allan refuses, naming the
-    gap and the two ways on (exit 2, one message); --gaps longest analyses the longest gap-free
-    stretch; --gaps bridge treats the samples as contiguous and says so. Gaps are found from
-    /imu/counter, or from /imu/time when there is no counter."""
+    """Dropped samples are never bridged silently: by default the Allan terms touching a gap
+    are skipped (Stable32; tests/test_allan_gaps.py checks the numbers) and the output says so;
+    --gaps refuse refuses, naming the gap and the ways on (exit 2, one message); --gaps longest
+    analyses the longest gap-free stretch; --gaps bridge treats the samples as contiguous and
+    says so. Gaps are found from /imu/counter, or from /imu/time when there is no counter."""
     rec = tmp_path / "gappy.h5"
     write_recording(rec, 60_000)
     with h5py.File(rec, "r+") as f:
         counter = f["imu/counter"][:]
         counter[40_000:] += 5
         f["imu/counter"][:] = counter
-    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave"]) == 2
+    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave"]) == 0
+    err = capsys.readouterr().err
+    assert "note: 5 samples missing in 1 gap(s): the Allan terms touching a gap are skipped" in err
+    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave", "--gaps", "refuse"]) == 2
     err = capsys.readouterr().err
     assert "5 samples missing in 1 gap(s)" in err and "before row 40000" in err
     assert "--gaps longest" in err and "40000 samples" in err and "--gaps bridge" in err
@@ -207,7 +212,7 @@ def test_gaps_are_refused_or_handled_as_asked(tmp_path: Path, capsys: pytest.Cap
         t = f["imu/time"][:]
         t[30_000:] += 0.5  # a step of 0.51 s: 50 samples missing at 100 Hz
         f["imu/time"][:] = t
-    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave"]) == 2
+    assert cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave", "--gaps", "refuse"]) == 2
     assert "50 samples missing in 1 gap(s)" in capsys.readouterr().err
 
 

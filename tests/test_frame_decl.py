@@ -233,3 +233,38 @@ def test_csv_byte_errors_are_counted_per_line() -> None:
     assert len(lost) > 400                                  # ~ 20,000 x 57 bytes x 1e-3
     merged = len(lost) - len(set(np.searchsorted(ends, pos).tolist()))
     assert len(lost) - 2 * merged <= dec.counters.bad_frames <= len(lost) + new_ends
+
+
+def test_bad_frames_are_counted_the_same_wherever_the_reads_split_the_stream() -> None:
+    """Issue 22: a driver once counted 375 bad frames for 376 hit. The decoder is fed one byte
+    stream split at every possible boundary (and byte by byte): the frames, bad and truncated
+    counts never depend on where a read ends. Hits on the sync bytes, the length byte, the CRC,
+    two neighbouring frames and the last frame; the expected count is the frames the test hit.
+    Before the end of the stream a hit frame counts once a later frame shows where it ends: a
+    hit last frame is counted by ``flush`` (the driver flushes on link loss and on close)."""
+    spec = _spec(EXAMPLE)
+    n, L = 40, spec.length
+    rows = frame_decl.encode_binary(spec, _example_values(n))
+    data = rows.reshape(-1).copy()
+    rng = np.random.default_rng(22)
+    pos = np.array([3 * L + 0, 6 * L + 1, 9 * L + 2, 12 * L + L - 1,     # sync, sync, length, CRC
+                    15 * L + 5, 16 * L + 5, 20 * L + 37, 21 * L + 0,     # two neighbours, twice
+                    24 * L + 20, 24 * L + 21, 30 * L + 9, (n - 1) * L + 20])   # two in one, one, the last
+    data[pos] ^= rng.integers(1, 256, pos.size).astype(np.uint8)
+    hit = np.unique(pos // L)
+    last_good = max(set(range(n)) - set(hit.tolist()))
+    hit_before_last_good = int((hit < last_good).sum())
+    b = data.tobytes()
+
+    def run(cuts) -> tuple[int, int, int, int]:
+        dec, got, prev = frame_decl.binary_decoder(spec), 0, 0
+        for c in list(cuts) + [len(b)]:
+            got += len(dec.feed(b[prev:c])["offset"])
+            prev = c
+        early = dec.counters.bad_frames + dec.counters.truncated_frames
+        got += len(dec.flush()["offset"])
+        return got, dec.counters.bad_frames + dec.counters.truncated_frames, early, dec.counters.frames
+
+    for cut in range(len(b) + 1):
+        assert run([cut]) == (n - hit.size, hit.size, hit_before_last_good, n - hit.size), cut
+    assert run(range(1, len(b))) == (n - hit.size, hit.size, hit_before_last_good, n - hit.size)

@@ -78,7 +78,13 @@ def check_24pos(rec, cfg, info, ref_segments) -> None:
     seg = segments(rec)
     same_segments(seg, ref_segments)
     warm = np.flatnonzero(seg["kind"] == b"warmup")
-    assert warm.size == 1 and seg["t_end"][warm[0]] - seg["t_start"][warm[0]] == pytest.approx(900.0, abs=2.0)
+    # the warm-up window is the 900 s the procedure asks for, to the clock's resolution: the
+    # engine no longer stretches a window by the wall time of its last poll x speed (a loaded host
+    # gave 902-918 s at 100x); the IMU samples in it span it (to the edge lag of the wire)
+    assert warm.size == 1
+    w = warm[0]
+    assert seg["t_end"][w] - seg["t_start"][w] == pytest.approx(900.0, abs=1e-6)
+    assert 900.0 - LAG <= (seg["last_sample"][w] - seg["first_sample"][w]) / cfg.imu_rate_hz <= 900.0 + 1.0 / cfg.imu_rate_hz
     truth = info["truth"]["imu"]
     b, m = np.array(truth["accel_bias_m_s2"]), np.array(truth["accel_matrix"])
     k2 = np.array(truth["accel_quadratic_per_m_s2"])
@@ -92,9 +98,9 @@ def check_24pos(rec, cfg, info, ref_segments) -> None:
         n = z - a
         # the engine takes the window as the samples recorded between two polls, so at 200x its
         # edges move by the poll latency (a few ms of wall time, up to ~1.5 s of rig time)
-        assert 5.0 - 1e-9 <= seg["t_end"][i] - seg["t_start"][i] <= 5.0 + LAG
+        assert seg["t_end"][i] - seg["t_start"][i] == pytest.approx(5.0, abs=1e-6)
         assert seg["t_start"][i] - LAG <= t_imu[a] and t_imu[z - 1] <= seg["t_end"][i] + LAG
-        assert 5.0 - LAG <= n / cfg.imu_rate_hz <= 5.0 + 2 * LAG
+        assert 5.0 - LAG <= n / cfg.imu_rate_hz <= 5.0 + 1.0 / cfg.imu_rate_hz
         f_ref, _ = body_references(seg["commanded_angle"][i], None, cfg.latitude, cfg.height_m, cfg.gravity)
         predicted = b + m @ f_ref + k2 * f_ref**2
         sigma = truth["accel_noise_density_m_s2_per_rthz"] * math.sqrt(cfg.imu_rate_hz) / math.sqrt(n)

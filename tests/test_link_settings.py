@@ -83,3 +83,71 @@ def test_errors_name_file_line_and_what_to_do(tmp_path: Path, pulses: str, messa
     with pytest.raises(InputError, match=message) as err:
         load_config(path)
     assert err.value.file == str(path) and err.value.line == line, str(err.value)
+
+
+@pytest.mark.parametrize("extra, message, line", [
+    ("site:\n  latitude_dg: 48\n", r"unknown key 'latitude_dg' in 'site' \(did you mean 'latitude_deg'\?\)", 3),
+    ("site:\n  latitude_deg: 91\n", r"'latitude_deg' = 91 is above its maximum 90", 3),
+    ("site:\n  gravity_m_s2: heavy\n", r"'gravity_m_s2'.*must be a number", 3),
+    ("recorder:\n  flush_intervall_s: 0.2\n", r"unknown key 'flush_intervall_s' in 'recorder' \(did you mean 'flush_interval_s'\?\)", 3),
+    ("recorder:\n  table_rate_hz: 0\n", r"'table_rate_hz' = 0 is below its minimum 0.1", 3),
+    ("traceability:\n  laboratry: Inertial Lab\n",
+     r"unknown key 'laboratry' in 'traceability' \(did you mean 'laboratory'\?\)", 3),
+    ("traceability:\n  table_id: [1, 2]\n", r"'table_id' must be text", 3),
+    ("suspenders:\n  hold_sec: 5\n", r"unknown key 'hold_sec' in 'suspenders' \(did you mean 'hold_s'\?\)", 3),
+    ("notifications:\n  webhook:\n    ulr: http://127.0.0.1:9/x\n",
+     r"unknown key 'ulr' in 'notifications.webhook' \(did you mean 'url'\?\)", 4),
+    ("notifications:\n  email:\n    smtp_host: x\n    from: rig@lab\n    to: [a@b]\n    smtp_prot: 25\n",
+     r"unknown key 'smtp_prot' in 'notifications.email' \(did you mean 'smtp_port'\?\)", 7),
+])
+def test_config_sections_are_typed_settings_with_the_same_errors(tmp_path: Path, extra: str, message: str,
+                                                                     line: int) -> None:
+    """site:, recorder:, suspenders: and notifications: (with its nested sections) go through
+    the same validator as the link settings (rigctl.settings.parse): file, line and "did you
+    mean" on every error."""
+    path = tmp_path / "rig.yaml"
+    path.write_text("clock: virtual\n" + extra + "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    with pytest.raises(InputError, match=message) as err:
+        load_config(path)
+    assert err.value.file == str(path) and err.value.line == line, str(err.value)
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("site:\n  latitude_deg: 48\n  gravity_m_s2: 9.81\nrecorder:\n  table_rate_hz: 20\n"
+                  "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    cfg = load_config(ok)
+    assert cfg.gravity == 9.81 and abs(cfg.latitude - 0.837758041) < 1e-9 and cfg.table_rate_hz == 20
+
+
+def test_the_chamber_settings_are_the_drivers_keyword_arguments() -> None:
+    """Each chamber setting the rig passes (keywords(): all but band_c, the suspender's band) is
+    a keyword of the driver with the same default; ``resource`` is the SCPI driver's first
+    positional parameter."""
+    from rigctl.chamber import ScpiChamberSettings, WatlowSettings
+    from rigctl.drivers.scpi_chamber import ScpiChamber
+    from rigctl.drivers.watlow_chamber import WatlowF4T
+
+    for cls, drv, positional in ((WatlowSettings, WatlowF4T, ()), (ScpiChamberSettings, ScpiChamber, ("resource",))):
+        params = inspect.signature(drv.__init__).parameters
+        for f in dataclasses.fields(cls):
+            if f.name == "band_c" or f.name in positional:
+                continue
+            p = params.get(f.name)
+            assert p is not None and p.kind is inspect.Parameter.KEYWORD_ONLY, (cls.__name__, f.name)
+            if f.default is not dataclasses.MISSING:
+                assert p.default == f.default, (cls.__name__, f.name, p.default, f.default)
+        for name in positional:
+            assert params[name].kind is inspect.Parameter.POSITIONAL_OR_KEYWORD
+
+
+@pytest.mark.parametrize("chamber, message, line", [
+    ("  driver: watlow\n  port: /dev/ttyUSB3\n  trasnport: tcp\n",
+     r"unknown key 'trasnport' in 'chamber' \(watlow\) \(did you mean 'transport'\?\)", 4),
+    ("  driver: watlow\n  transport: rtu\n", r"'chamber' \(watlow\) is missing 'port'", 2),
+    ("  driver: scpi\n  model: generic\n", r"'chamber' \(scpi\) is missing 'resource'", 2),
+    ("  driver: sim\n  safe_c: 25\n  band_c: [30, 90]\n", r"band_c \[30, 90\] must contain safe_c 25 degC", 4),
+])
+def test_chamber_errors_name_file_line_and_what_to_do(tmp_path: Path, chamber: str, message: str, line: int) -> None:
+    path = tmp_path / "rig.yaml"
+    path.write_text("chamber:\n" + chamber + "table:\n  driver: sim\nimu:\n  driver: sim\n")
+    with pytest.raises(InputError, match=message) as err:
+        load_config(path)
+    assert err.value.file == str(path) and err.value.line == line, str(err.value)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import h5py
 import numpy as np
@@ -273,11 +274,32 @@ def test_the_loop_names_thermal_hysteresis(pooled_fits):
     for seed, (fits, t) in zip(HYST_SEEDS, pooled_fits["hysteresis"]):
         for s, fit in fits.items():
             assert fit.accepted[:1] == ["hysteresis"], (seed, s, fit.explain)
+            # and told apart from the temperature rate (the holds at the ends separate them)
+            assert fit.confounded["hysteresis"] == [], (seed, s, fit.explain)
             h = {q["name"]: q for q in fit.parameters() if "hysteresis" in q["name"]}
             assert len(h) == 3
             # the amplitude the emulator put in, inside (or within 3 sigma of) the interval
             for name, q in h.items():
                 assert abs(q["value"] - t[name]) < 3 * q["sigma"] + 0.05 * abs(t[name]), (name, q, t[name])
+
+
+def test_within_window_contrasts_free_of_a_drift_and_shared_channel_covariances():
+    from rigctl.solvers import segment_noise as sn
+
+    k = np.arange(8.0)
+    for revs in (0.0, 2.0):
+        N = sn.within_basis(8, revs, trend=True)
+        assert N.shape[1] == sn.within_basis(8, revs).shape[1] - 1
+        assert np.allclose(N.T @ N, np.eye(N.shape[1]), atol=1e-12)
+        assert np.allclose(N.T @ np.column_stack([np.ones(8), k]), 0.0, atol=1e-12)
+    a = np.array([0.0, 30.0, 100.0, 400.0])
+    b = a + np.array([20.0, 10.0, 20.0, 7.0])
+    kinds = ["orientation", "rate", "orientation", "rate"]
+    models = [sn.ChannelNoise({"orientation": 1e-6, "rate": 2e-6}, B=1e-4 * (i + 1), K=1e-6 * i, t0=-5.0)
+              for i in range(3)]
+    got = sn.channel_covs(models, a, b, kinds)
+    for m, C in zip(models, got):
+        assert np.allclose(C, m.cov(a, b, kinds), rtol=1e-12, atol=0)
 
 
 # --------------------------------------------------------------------------- procedures
@@ -373,6 +395,19 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
     assert "thermal hysteresis" in sec and "accel_hysteresis_x" in sec and "mg/K^2" in sec
     for png in ("thermal_parameters.png", "thermal_residuals.png"):
         assert png in sec and (rec.parent / png).stat().st_size > 10_000
+    # last (it replaces /results/thermal): --thermal-degree, linear in temperature for every group
+    # (and a bad value is one line, exit 2)
+    code, text1 = _cli(capsys, "calibrate", str(rec), "--db", "none", "--thermal-degree", "1",
+                       "--json", str(tmp_path / "deg1.json"))
+    assert code == 0, text1[-2000:]
+    d1 = json.loads((tmp_path / "deg1.json").read_text())["sensors"]
+    for s in ("accel", "gyro"):
+        names = [q["name"] for q in d1[s]["parameters"]]
+        assert d1[s]["degrees"] == {"bias": 1, "scale": 1, "misalignment": 1}
+        poly = [n for n in names if re.search(r"_(bias|scale|misalignment)_.*_per_K\d*$", n)]
+        assert len(poly) == 3 * 4 and all(n.endswith("_per_K") for n in poly), poly  # b1, s1, 2 m1 per axis
+    from rigctl.cli import main
+    assert main(["calibrate", str(rec), "--db", "none", "--thermal-degree", "two"]) == 2
 
 
 # --------------------------------------------------------------------------- unattended

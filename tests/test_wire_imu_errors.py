@@ -9,6 +9,7 @@ import time
 import pytest
 
 from rigctl.clock import ScaledClock
+from rigctl.drivers.vectornav_imu import LAYOUT
 from rigctl.sim.hardware import start_hardware
 
 from hil_support import sim_config
@@ -25,9 +26,7 @@ def _driver(hw, protocol: str, speed: float, rate_hz: float = 800):
                     ScaledClock(speed), baudrate=921_600, align_wait_s=0.0)
 
 
-@pytest.mark.parametrize("protocol", ["vectornav", pytest.param("frame", marks=pytest.mark.xfail(
-    strict=False, reason="seen once in CI on an idle machine (stop 24): 375 bad frames counted for 376 hit; "
-                         "a frame at a read boundary is miscounted -- not yet found (issue 22 open)"))])
+@pytest.mark.parametrize("protocol", ["vectornav", "frame"])
 def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
     cfg, _ = sim_config(tmp_path, rate_hz=800)
     n_frames, speed = 100_000, 100.0
@@ -36,14 +35,24 @@ def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
         imu.connect()
         twin = hw.imu_server
         try:
-            hw.set_imu_byte_errors(1e-4, seed=7)
-            f0, h0 = twin.frames_sent, twin.frames_hit
+            # the baseline before the errors start: the stream is clean until set_imu_byte_errors
+            # returns, so no hit can fall between these snapshots (taken after it, a batch could be
+            # hit and decoded between reading frames_hit and the driver's counters)
             c0 = imu.counters
+            f0, h0 = twin.frames_sent, twin.frames_hit
+            hw.set_imu_byte_errors(1e-4, seed=7)
             rows, deadline = 0, time.monotonic() + 60
             while twin.frames_sent - f0 < n_frames and time.monotonic() < deadline:
                 time.sleep(0.01)
                 rows += len(imu.read())
-            hw.set_imu_byte_errors(0.0)
+            with twin._lock:                                    # no frame encoded in between
+                hw.set_imu_byte_errors(0.0)
+                f1 = twin.frames_sent                           # the frames sent with errors on
+            # a hit frame is known bad only once the next frame (or the end of the stream) shows
+            # where it ends: let error-free frames follow the last hit one before the stream stops
+            clean_from = twin.frames_sent
+            while twin.frames_sent < clean_from + 10 and time.monotonic() < deadline:
+                time.sleep(0.005)
             with twin._lock:
                 twin.state = "config"                           # stop the stream (side channel)
             sent = twin.frames_sent
@@ -54,8 +63,8 @@ def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
                 c = imu.counters
             rows += len(imu.read())
             hit = twin.frames_hit - h0
-            assert sent - f0 >= n_frames
-            expected = (sent - f0) * (48 if protocol == "vectornav" else 38) * 1e-4    # bytes x rate
+            assert f1 - f0 >= n_frames
+            expected = (f1 - f0) * (LAYOUT.length if protocol == "vectornav" else 38) * 1e-4   # bytes x rate
             assert 0.85 * expected <= hit <= 1.15 * expected                          # +-5 sigma or so
             assert hw.slots["imu"].endpoint.overflow_bytes == 0
             bad = c["bad_frames"] + c["truncated_frames"] - c0["bad_frames"] - c0["truncated_frames"]

@@ -51,6 +51,15 @@ class _AxisStream:
 
     def __init__(self, tau0: float, ms: np.ndarray, mode: str, n_rate: int):
         self.acc = A.OadevAccumulator(tau0, ms, mode)
+        self.ms = np.asarray(self.acc.ms)
+        # gap skipping (Stable32): the sums of the finished gap-free stretches, their term
+        # counts and the fully overlapping terms they stand for
+        self.stretches = 0
+        self._sums = np.zeros(self.ms.size)
+        self._counts = np.zeros(self.ms.size, dtype=np.int64)
+        self._terms = np.zeros(self.ms.size, dtype=np.int64)
+        self.x_base = 0.0  # phase at the end of the previous stretch (noise-ID copies)
+        self.x_last = 0.0  # phase of the last point given to the noise-ID copies
         self.dec = 1
         while (n_rate + 1) // self.dec > DEC_POINTS:
             self.dec *= 2
@@ -98,12 +107,16 @@ class _AxisStream:
         self.x_dec = float(xs[-1])
 
     def add(self, y: np.ndarray) -> None:
+        if y.size == 0:
+            return
         acc = self.acc
-        g0 = acc.n_phase if acc.n_phase else 1  # phase index of this chunk's first point
+        g0 = self.n_rate + 1  # phase index of this chunk's first point (in the whole record)
         acc.add_rate(y)
         x = acc.chunk_phase
         if x is not None and x.size == y.size:  # the accumulator's own phase: no second pass
-            self._add_phase(x, g0)
+            # after a gap (break_stretch) the accumulator's phase restarts at 0: the noise-ID
+            # copies continue from the last point before the gap
+            self._add_phase(x + self.x_base if self.x_base else x, g0)
             self.n_rate += y.size
             return
         c = acc.offset
@@ -127,6 +140,31 @@ class _AxisStream:
             self.part = z[nb * self.dec:].copy()
         self.n_rate += y.size
 
+    def break_stretch(self) -> None:
+        """A gap: the terms summed so far are kept, and the next samples start a new stretch,
+        so that no Allan term spans the gap (Stable32's gap skipping). The noise-ID phase
+        copies run on across the gap (they only classify the noise type)."""
+        acc = self.acc
+        if acc.n_phase > 1:
+            sums, counts, strides = acc.raw_sums()
+            self._sums += sums
+            self._counts += counts
+            self._terms += np.maximum(0, acc.n_phase - 2 * self.ms)
+            self._strides = strides
+            self.stretches += 1
+        self.x_base = self.x_last
+        self.acc = A.OadevAccumulator(self.tau0, self.ms, acc.mode, offset=acc.offset)
+
+    def result(self) -> A.DevResult:
+        """The deviations: of the one stretch, or the sums of every gap-free stretch (terms
+        touching a gap skipped, their count reduced accordingly)."""
+        if self.stretches == 0:
+            return self.acc.result()
+        self.break_stretch()
+        return A.dev_from_sums(self.ms, self.tau0, self._sums, self._counts, self._strides,
+                               np.where(self._strides == 1, self._counts, self._terms),
+                               self.n_rate + 1)
+
     def _add_phase(self, x: np.ndarray, g0: int) -> None:
         """Head and decimated copies from the phase points x[g0 + i] = x[i] (the same running
         sum as :meth:`add` builds: bit-identical head; the decimated points are the phase at
@@ -143,6 +181,7 @@ class _AxisStream:
         if start < x.size:
             xs = x[start:: self.dec]
             self._put_dec(xs[: self._dec.size - self.n_dec])
+        self.x_last = float(x[-1])
 
     def noise_id(self, m: int, n: int) -> int:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
@@ -173,12 +212,31 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
     return {"spikes": spikes, "quantization": quant}
 
 
+def fm_after_fm(ms: np.ndarray, alphas: np.ndarray) -> np.ndarray:
+    """The noise types the EDF uses: past the first tau identified as an FM type (alpha <= 0),
+    a phase-modulation type (alpha 1, 2) is read as white FM (alpha 0). For a rate sensor PM
+    noise (white or flicker angle noise, quantization) only rules the shortest taus; at long
+    taus a PM identification comes from a handful of averages whose curve happens to fall,
+    and its EDF (hundreds, where a dozen averages give ~10) would make those taus look
+    well determined (seen on a 12 h emulated tactical capture: alpha 1 from 4000 s on, EDF
+    130-383 at 11 averages, a 95 % band narrow enough to hold B below the floor the curve
+    shows and the fit left with no term at all)."""
+    out = np.array(alphas, dtype=np.int64)
+    order = np.argsort(np.asarray(ms), kind="stable")
+    seen_fm = False
+    for i in order:
+        if seen_fm and out[i] > 0:
+            out[i] = 0
+        seen_fm = seen_fm or out[i] <= 0
+    return out
+
+
 def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
-    res = stream.acc.result()
+    res = stream.result()
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
-    alphas = np.array([NID.clamp_alpha(int(a), "oadev") for a in held])
+    alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
     edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
@@ -215,17 +273,19 @@ OUTLIER_MODES = ("report", "exclude")
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
-            gaps: str = "refuse") -> dict[str, Any]:
+            gaps: str = "skip") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
     Every axis is screened on the way (:mod:`rigctl.solvers.allan_checks`): its output step if
     it is quantized, and its spikes, which are reported and, with ``outliers="exclude"``,
     replaced by the running median of their neighbours before they reach the deviations.
-    Gaps (dropped samples, :func:`find_gaps`) are never bridged silently: ``gaps="refuse"``
-    raises InputError saying where they are and what to do, ``"longest"`` analyses the longest
-    gap-free stretch, ``"bridge"`` treats the samples as contiguous; the result's ``gaps``
-    records which."""
+    Gaps (dropped samples, :func:`find_gaps`) are never bridged silently: ``gaps="skip"`` (the
+    default) sums only the Allan terms that touch no gap, as Stable32 does (each gap-free
+    stretch is summed on its own and the sums and term counts added: exact, nothing is
+    bridged); ``"refuse"`` raises InputError saying where they are and what to do,
+    ``"longest"`` analyses the longest gap-free stretch, ``"bridge"`` treats the samples as
+    contiguous; the result's ``gaps`` records which."""
     if outliers not in OUTLIER_MODES:
         raise InputError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     if gaps not in GAP_MODES:
@@ -254,7 +314,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                 f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
                 f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
                 "spaced samples and rigctl does not bridge gaps on its own",
-                hint=f"--gaps longest analyses the longest gap-free stretch ({b - a} samples, "
+                hint=f"--gaps skip leaves out every Allan term that touches a gap "
+                     f"(Stable32); --gaps longest analyses the longest gap-free stretch ({b - a} samples, "
                      f"{(b - a) * tau0 / 3600:.2f} h); --gaps bridge treats the samples as "
                      "contiguous (every tau spanning a gap is then biased)")
         if found and gaps == "longest":
@@ -265,7 +326,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                 raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
                                  f"need at least {MIN_SAMPLES}")
             missing = 0
-        gaps_bridged = int(missing)
+        gaps_bridged = int(missing) if gaps == "bridge" else 0
+        breaks = [g for g, _ in found] if gaps == "skip" else None
+        if breaks:
+            edges = [s0] + breaks + [s1]
+            gap_info["stretches"] = len(edges) - 1
+            gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
         if mode == "fast" and not isinstance(taus, (list, tuple)):
@@ -276,7 +342,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                              stream=progress_stream, enabled=progress_stream is not None)
         with ThreadPoolExecutor(WORKERS) as pool:
             _stream_chunks(pool, path, dsets, axes, streams, s0, s1, shown,
-                           outliers == "exclude")
+                           outliers == "exclude", breaks)
             shown.finish()
             out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                    "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
@@ -292,11 +358,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
 
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
-                   exclude: bool = False) -> None:
+                   exclude: bool = False, breaks: list[int] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
     task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
-    chunk i + 1. At most two chunks are in memory."""
+    chunk i + 1. At most two chunks are in memory. ``breaks``: rows that follow a gap (each
+    starts a new gap-free stretch of the Allan sums)."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
@@ -313,17 +380,32 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
             out[name] = b
         return out
 
+    cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
+    # only the selected axes' columns must be finite (a gyro-only import stores NaN for the rest)
+    fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
+
     def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         y = streams[a].screen(y, first, exclude)
-        streams[a].add(y)
+        # rows after a gap (gaps="skip") start a new gap-free stretch
+        a0 = s0 + first
+        inside = cuts[(cuts > a0) & (cuts < a0 + y.size)] - a0 if cuts.size else cuts
+        if a0 > s0 and cuts.size and bool(np.any(cuts == a0)):
+            streams[a].break_stretch()
+        prev = 0
+        for c in inside.tolist():
+            streams[a].add(y[prev:c])
+            streams[a].break_stretch()
+            prev = c
+        streams[a].add(y[prev:] if prev else y)
 
     starts = list(range(s0, s1, CHUNK_ROWS))
     nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks = nxt
-        checks = [pool.submit(check_finite, path, name, b, a0) for name, b in blocks.items()]
+        checks = [pool.submit(check_finite, path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]],
+                              a0) for name, b in blocks.items()]
         for c in checks:  # a bad block must not reach the accumulators
             c.result()
         tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
@@ -376,9 +458,10 @@ def longest_stretch(gaps: list[tuple[int, int]], s0: int, s1: int) -> tuple[int,
     return edges[k], edges[k + 1]
 
 
-#: what to do with gaps (dropped samples) in the analysed range: refuse (say what to do),
-#: analyse the longest gap-free stretch, or treat the samples as contiguous
-GAP_MODES = ("refuse", "longest", "bridge")
+#: what to do with gaps (dropped samples) in the analysed range: skip every Allan term that
+#: touches one (Stable32; the default), refuse (say what to do), analyse the longest gap-free
+#: stretch, or treat the samples as contiguous
+GAP_MODES = ("skip", "refuse", "longest", "bridge")
 
 
 def _capture_range(f: Any) -> tuple[int, int, str] | None:
@@ -457,7 +540,7 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
     if warn:
         log("warning", f"allan: {warn}")
     try:
-        result = compute(path, axes, 95, False, rng, gaps="bridge")  # warned below
+        result = compute(path, axes, 95, False, rng, gaps="skip")  # noted below
     except InputError as exc:
         log("warning", f"allan: not run: {exc}")
         return
@@ -467,9 +550,10 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
     n, fs = result["n_samples"], result["sample_rate_hz"]
     log("info", f"allan: {where}, {n} samples at {fs:g} Hz ({n / fs / 3600:.2f} h); "
                 f"results in {path}:/results/allan")
-    if result["dropped_samples"]:
-        log("warning", f"allan: {result['dropped_samples']} samples missing (counter gaps) "
-                       "in the analysed range; the deviations assume uniform sampling")
+    g = result.get("gaps") or {}
+    if g.get("count"):
+        log("info", f"allan: {g['missing_samples']} samples missing in {g['count']} gap(s) "
+                    "(counter gaps); the Allan terms touching a gap are skipped (Stable32)")
     for a, r in result["axes"].items():
         log("info", f"allan {a}: " + summary_line(r))
         warns, notes = screening_notes(r)
@@ -477,6 +561,37 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
             log("warning", f"allan {a}: {w}")
         for t in notes:  # (taus outside the band by chance: in the results and the CLI only)
             log("info", f"allan {a}: {t}")
+
+
+def default_axes(path: str) -> list[str]:
+    """Every axis, or those an import wrote (/meta import_axes: a gyro-only capture stores the
+    other columns as NaN)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            got = f["meta"].attrs.get("import_axes", "") if "meta" in f else ""
+    except OSError:
+        got = ""  # not readable: compute() says why
+    got = got.decode() if isinstance(got, bytes) else str(got)
+    axes = [a.strip() for a in got.split(",") if a.strip() in AXES]
+    return axes or list(AXES)
+
+
+def gap_message(g: dict[str, Any]) -> str:
+    """One line on the gaps of the analysed range and what was done with them ('' if none)."""
+    if not g.get("count"):
+        return ""
+    head = f"{g['missing_samples']} samples missing in {g['count']} gap(s)"
+    if g.get("mode") == "longest":
+        a, b = g["range_used"]
+        return (f"warning: {head}: analysing the longest gap-free stretch, rows {a}..{b - 1} "
+                f"({b - a} samples)")
+    if g.get("mode") == "skip":
+        return (f"note: {head}: the Allan terms touching a gap are skipped (Stable32's gap "
+                f"handling; {g['stretches']} gap-free stretches, the longest "
+                f"{g['longest_stretch_samples']} samples)")
+    return f"warning: {head}, bridged on request (--gaps bridge): taus spanning a gap are biased"
 
 
 def check_warnings(r: dict[str, Any]) -> list[str]:
@@ -487,7 +602,27 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
     runs = check.get("outside") or []
     if not runs or check.get("ok"):
         return []
-    return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band")
+    return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band") + \
+        _small_sentence(check)
+
+
+def _spans(runs: list[dict]) -> str:
+    return ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
+                     else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
+
+
+def _small_sentence(check: dict) -> list[str]:
+    """The informative taus where the total is outside the band by less than the departure
+    the check reports (10 %), named in one sentence."""
+    small = check.get("outside_small") or []
+    if not small:
+        return []
+    worst = max(small, key=lambda o: abs(math.log(o["data_over_fit"])))
+    return [f"the fitted total is also outside the 95 % band, by less than "
+            f"{100 * check.get('departure_rel', 0.1):.0f} %, at tau {_spans(small)} s (worst "
+            f"x{worst['data_over_fit']:.3f} at {worst['worst_tau_s']:.3g} s; chance, or "
+            "a mismatch of the model too small for the check to report: filter ripple, a weak "
+            "term)"]
 
 
 def check_notes(r: dict[str, Any]) -> list[str]:
@@ -495,10 +630,12 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     ~70 taus outside a 95 % band are expected by chance): named, as a note."""
     check = r["fit"].get("check") or {}
     runs = check.get("outside") or []
-    if not runs or not check.get("ok"):
+    if not check.get("ok"):
         return []
-    return _check_sentences(check, "the fitted total is outside the 95 % band, as chance "
-                                   "allows for a fit consistent with the curve,", reasons=False)
+    out = [] if not runs else _check_sentences(
+        check, "the fitted total is outside the 95 % band, as chance allows for a fit "
+               "consistent with the curve,", reasons=False)
+    return out + _small_sentence(check)
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:

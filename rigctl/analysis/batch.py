@@ -45,7 +45,7 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
         if "allan" in analyses:
             axes = list(allan_pipeline.AXES)
             rng, where, _ = allan_pipeline.choose_range(recording, axes)
-            res = allan_pipeline.compute(recording, axes, 95, False, rng, gaps="bridge")  # count kept
+            res = allan_pipeline.compute(recording, axes, 95, False, rng, gaps="skip")  # Stable32; count in res["gaps"]
             res["segment"] = where
             res["verdicts"] = production.verdicts_for(spec, "allan", res)
             allan_pipeline.store(recording, res)

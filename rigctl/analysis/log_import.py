@@ -50,6 +50,7 @@ class ImportOptions:
     gravity: float | None = None    # m/s^2
     latitude_deg: float | None = None
     force: bool = False             # replace an existing output
+    integrated: bool = False        # CSV: angle/velocity columns are running integrals
 
 
 G0 = 9.80665
@@ -59,8 +60,12 @@ OPTIONAL = ("time", "temp", "section")
 UNIT_FACTORS = {
     "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
     "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
-    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6},
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
 }
+#: units of per-sample increments (delta angle, delta velocity): divided by the sample interval;
+#: with --integrated the column is their running sum (an angle, a velocity, a clock's phase)
+INCREMENT_UNITS = {"gyr": {"rad": 1.0, "deg": DEG, "mrad": 1e-3, "urad": 1e-6},
+                   "acc": {"m/s": 1.0, "mm/s": 1e-3}}
 NAN3 = np.full(3, np.nan)
 
 
@@ -89,14 +94,15 @@ def parse_columns(text: str) -> dict[str, str]:
             mapping[k.strip()] = v.strip()
         src = None
     bad = [k for k in mapping if k not in REQUIRED + OPTIONAL]
-    missing = [k for k in REQUIRED if k not in mapping]
-    if bad or missing:
-        raise InputError(f"--columns: unknown keys {bad}" if bad else f"--columns: missing {missing}", src,
-                         hint=f"keys: {', '.join(REQUIRED + OPTIONAL)} (the six sensor columns are required)")
+    if bad or not any(k in mapping for k in REQUIRED):
+        raise InputError(f"--columns: unknown keys {bad}" if bad else "--columns: no sensor column", src,
+                         hint=f"keys: {', '.join(REQUIRED + OPTIONAL)} (at least one sensor column; "
+                              "a sensor column left out is stored as NaN, e.g. a gyro-only capture "
+                              "for rigctl allan)")
     return mapping
 
 
-def parse_units(text: str) -> dict[str, float]:
+def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str, float]:
     """SI factor per sensor from ``acc=...,gyr=...,time=...`` (see the module docstring)."""
     out = {"acc": 1.0, "gyr": 1.0, "time": 1.0}
     given = set()
@@ -113,53 +119,111 @@ def parse_units(text: str) -> dict[str, float]:
                 unit = m.group(3).strip()
             else:
                 scale, unit = 1.0, v
-            out[k] = scale * UNIT_FACTORS[k][unit]
+            if unit in INCREMENT_UNITS.get(k, {}):
+                out[k] = scale * INCREMENT_UNITS[k][unit]
+                out[f"{k}_increment"] = 1.0
+            else:
+                out[k] = scale * UNIT_FACTORS[k][unit]
         except (KeyError, ValueError, ZeroDivisionError):
             raise InputError(f"--units: {part!r} not understood",
-                             hint=f"{k} units: {', '.join(UNIT_FACTORS[k])}, or counts:SCALE UNIT "
+                             hint=f"{k} units: {', '.join([*UNIT_FACTORS[k], *INCREMENT_UNITS.get(k, {})])}, or counts:SCALE UNIT "
                                   "(e.g. counts:1/2048 g)") from None
         given.add(k)
-    for k in ("acc", "gyr"):
+    for k in needed:
         if k not in given:
             raise InputError(f"--units: give the {k} unit", hint="e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g")
     return out
 
 
-def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dict[str, np.ndarray], int]:
-    """Columns of a CSV file as arrays (sensor/time/temp float, section str); header line number."""
-    if not path.is_file():
-        raise InputError("input file not found", path)
+#: separators tried in this order on the first data line (else runs of whitespace)
+DELIMITERS = (",", "\t", ";")
+
+
+def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
+    """The lines of a text table split into fields: comma-, tab- or semicolon-separated (the
+    first line after ``skip_rows`` and any ``#``/``%`` comment lines decides), else runs of
+    whitespace. Returns (rows, delimiter name, number of lines before the rows)."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.reader(fh))
+            text = fh.read()
     except UnicodeDecodeError:
-        raise InputError("not a UTF-8 text (CSV) file", path, hint="give the CSV log") from None
-    except (csv.Error, OSError) as exc:
-        raise InputError(f"cannot be read as CSV ({exc})", path) from None
-    if len(rows) <= skip_rows:
-        raise InputError(f"only {len(rows)} lines, --skip-rows {skip_rows}", path)
-    header_line = skip_rows + 1
-    header = [h.strip() for h in rows[skip_rows]]
+        raise InputError("not a UTF-8 text table (CSV, TSV or whitespace-separated columns)", path,
+                         hint="give the log as text, or a ROS bag / MCAP file") from None
+    except OSError as exc:
+        raise InputError(f"cannot be read ({exc})", path) from None
+    if "\0" in text[:4096]:
+        raise InputError("a binary file, not a text table (CSV, TSV or whitespace-separated columns)",
+                         path, hint="give the log as text, or a ROS bag / MCAP file")
+    lines = text.splitlines()
+    first = skip_rows
+    while first < len(lines) and (not lines[first].strip() or lines[first].lstrip()[:1] in ("#", "%")):
+        first += 1
+    if first >= len(lines):
+        raise InputError(f"no table: {len(lines)} lines, all comments or blank after --skip-rows {skip_rows}",
+                         path)
+    probe = lines[first: first + 2]
+    delim = next((d for d in DELIMITERS if all(d in ln for ln in probe)), None)
+    if delim is None:
+        rows = [ln.split() for ln in lines[first:]]
+        name = "whitespace"
+    else:
+        try:
+            rows = list(csv.reader(lines[first:], delimiter=delim))
+        except csv.Error as exc:
+            raise InputError(f"cannot be read as a table ({exc})", path) from None
+        name = {",": "comma", "\t": "tab", ";": "semicolon"}[delim]
+    return rows, name, first
+
+
+def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dict[str, np.ndarray], int]:
+    """Columns of a text table (CSV, TSV, semicolon or whitespace-separated; a header line or
+    none; ``#``/``%`` comment lines before it skipped) as arrays (sensor/time/temp float,
+    section str); the line number of the first data row."""
+    if not path.is_file():
+        raise InputError("input file not found", path)
+    rows, delim, first = _split_rows(path, skip_rows)
+    header_line = first + 1
+    header = [h.strip() for h in rows[0]]
     numeric_header = all(_is_number(h) for h in header if h)
-    body = rows[skip_rows:] if numeric_header else rows[skip_rows + 1:]
+    body = rows if numeric_header else rows[1:]
     first_data_line = header_line if numeric_header else header_line + 1
     index: dict[str, int] = {}
     for key, col in mapping.items():
         if col.isdigit() and (numeric_header or col not in header):
             index[key] = int(col)
+            if index[key] >= len(header):
+                raise InputError(f"column {col} (for {key}) does not exist: the first line has "
+                                 f"{len(header)} {delim}-separated fields (0..{len(header) - 1})",
+                                 path, header_line, hint="column numbers count from 0")
         elif col in header:
             index[key] = header.index(col)
         else:
             raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
-                             hint="fix --columns, or --skip-rows so the header line is read")
+                             hint="fix --columns (header names, or 0-based numbers for a file without "
+                                  "a header), or --skip-rows so the header line is read")
     out: dict[str, np.ndarray] = {}
-    body = [r for r in body if any(c.strip() for c in r)]
+    keep = [k for k, r in enumerate(body) if any(c.strip() for c in r)
+            and not r[0].lstrip().startswith(("#", "%"))]
+    body = [body[k] for k in keep]
     if not body:
         raise InputError("no data rows", path, first_data_line)
     for key, j in index.items():
         if key == "section":
             out[key] = np.array([r[j].strip() if j < len(r) else "" for r in body])
             continue
+        if key == "time":  # integer stamps (ns since 1970: beyond float64's 2^53) kept exact
+            try:
+                out[key] = np.array([r[j] for r in body], dtype=np.int64)
+                continue
+            except (ValueError, IndexError, OverflowError):
+                pass
+        try:  # the common case at once; the row-by-row pass below only to name a bad row
+            vals = np.array([r[j] for r in body], dtype=np.float64)
+            if np.isfinite(vals).all():
+                out[key] = vals
+                continue
+        except (ValueError, IndexError):
+            pass
         vals = np.empty(len(body))
         for n, r in enumerate(body):
             try:
@@ -169,7 +233,7 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
             except (ValueError, IndexError):
                 got = r[j] if j < len(r) else "(missing)"
                 raise InputError(f"column {mapping[key]!r}: {got!r} is not a number", path,
-                                 first_data_line + n, hint="fix or remove the row, or adjust --skip-rows") from None
+                                 first_data_line + keep[n], hint="fix or remove the row, or adjust --skip-rows") from None
         out[key] = vals
     return out, first_data_line
 
@@ -333,7 +397,7 @@ class Imported:
     messages: int = 0  # messages read (bags)
 
 
-CSV_ONLY = ("columns", "units", "rate")
+CSV_ONLY = ("columns", "units", "rate", "integrated")
 BAG_ONLY = ("topic",)
 
 
@@ -352,31 +416,90 @@ def import_csv(args: ImportOptions) -> Imported:
                              hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
     check_output(src, out, args.force)
     mapping = parse_columns(args.columns)
-    factors = parse_units(args.units)
-    if args.rate is None or not 0 < args.rate <= MAX_RATE_HZ:
-        raise InputError(f"--rate HZ in (0, {MAX_RATE_HZ:g}] is required: the nominal sample rate", src)
+    present = tuple(k for k in ("acc", "gyr") if any(f"{k}_{c}" in mapping for c in "xyz"))
+    factors = parse_units(args.units, present)
+    if args.rate is not None and not 0 < args.rate <= MAX_RATE_HZ:
+        raise InputError(f"--rate {args.rate:g} is outside (0, {MAX_RATE_HZ:g}] Hz", src)
+    if args.rate is None and "time" not in mapping:
+        raise InputError("--rate HZ is required without a time column (time= in --columns)", src,
+                         hint="give the nominal sample rate, e.g. --rate 100")
     check_ranges(args)
-    cols, _ = read_table(src, mapping, args.skip_rows)
-    n = len(cols["acc_x"])
-    acc = np.column_stack([cols[k] for k in REQUIRED[:3]]) * factors["acc"]
-    gyr = np.column_stack([cols[k] for k in REQUIRED[3:]]) * factors["gyr"]
+    cols, first_line = read_table(src, mapping, args.skip_rows)
+    n = next(len(v) for k, v in cols.items() if k in REQUIRED)
+    nan = np.full(n, np.nan)
+    acc = np.column_stack([cols.get(k, nan) for k in REQUIRED[:3]]) * factors["acc"]
+    gyr = np.column_stack([cols.get(k, nan) for k in REQUIRED[3:]]) * factors["gyr"]
+    counter = None
+    lines = []
     if "time" in cols:
-        t = (cols["time"] - cols["time"][0]) * factors["time"]
-        if np.any(np.diff(t) <= 0):
-            k = int(np.flatnonzero(np.diff(t) <= 0)[0])
-            raise InputError(f"time column not increasing at data row {k + 2}", src,
-                             hint="fix the time column or drop time= from --columns")
+        t = (cols["time"] - cols["time"][0]).astype(np.float64) * factors["time"]
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            k = int(np.flatnonzero(dt <= 0)[0])
+            raise InputError(f"time column not increasing at data row {k + 2} (line "
+                             f"{first_line + k + 1})", src,
+                             hint="fix the time column or drop time= from --columns (then --rate)")
+        if n < 2:
+            raise InputError("one data row: no sample rate", src)
+        rate = float(args.rate) if args.rate is not None else 1.0 / float(np.median(dt))
+        if not 0 < rate <= MAX_RATE_HZ:
+            raise InputError(f"the time column gives {rate:g} Hz, outside (0, {MAX_RATE_HZ:g}]", src,
+                             hint="check the time unit (--units time=s|ms|us|ns)")
+        # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
+        counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
+        missing = int(counter[-1]) + 1 - n
+        lines.append(f"sample rate {rate:.8g} Hz ({'given' if args.rate is not None else 'median step of the time column'}); "
+                     + (f"{int((np.rint(dt * rate) > 1).sum())} gaps, {missing} samples missing "
+                        "(/imu/counter jumps)" if missing else "no gaps"))
     else:
-        t = np.arange(n) / float(args.rate)
+        rate = float(args.rate)
+        t = np.arange(n) / rate
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
-    sections, origin = find_sections(args, src, acc, gyr, float(args.rate), cols.get("section"),
-                                     mapping.get("section", ""))
-    meta = import_meta(args, src, float(args.rate), origin,
+    incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
+    if args.integrated and not incr:
+        raise InputError("--integrated needs an angle or velocity unit (e.g. gyr=rad, acc=m/s): "
+                         "the columns are then running integrals, differenced into rates", src)
+    if incr:  # increments per sample (or their running sums) -> rates, SI
+        steps = np.ones(n) if counter is None else np.diff(counter.astype(np.float64), prepend=-1.0)
+        if args.integrated:
+            if n < 3:
+                raise InputError("--integrated needs at least 3 rows", src)
+            if "acc" in incr:
+                acc = np.diff(acc, axis=0)
+            if "gyr" in incr:
+                gyr = np.diff(gyr, axis=0)
+            t, temp, steps = t[1:] - t[1], temp[1:], steps[1:]
+            counter = None if counter is None else counter[1:] - counter[1]
+            n -= 1
+            if "acc" not in incr:
+                acc = acc[1:]
+            if "gyr" not in incr:
+                gyr = gyr[1:]
+        for k in incr:
+            if k == "acc":
+                acc = acc * (rate / steps)[:, None]
+            else:
+                gyr = gyr * (rate / steps)[:, None]
+        lines.append(f"{' and '.join(incr)}: {'running integrals, differenced' if args.integrated else 'increments per sample'} "
+                     f"and divided by the sample interval (1/{rate:g} s) into rates")
+    absent = [k for k in REQUIRED if k not in mapping]
+    if absent:
+        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
+                         "gyr_z": "gz"}[k] for k in REQUIRED if k in mapping)
+        sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
+        origin = "the whole record (sensor columns missing: no static-interval detection)"
+        lines.append(f"not in the file, stored as NaN: {', '.join(absent)}; rigctl allan analyses "
+                     f"the columns present ({axes})")
+    else:
+        axes = ""
+        sections, origin = find_sections(args, src, acc, gyr, rate, cols.get("section"),
+                                         mapping.get("section", ""))
+    meta = import_meta(args, src, rate, origin,
                        {"import_format": "csv", "import_columns_json": json.dumps(mapping),
-                        "import_units_json": json.dumps(args.units)})
-    write_recording(out, t, acc, gyr, temp, float(args.rate), sections, meta)
-    return Imported(out, n, float(args.rate), sections,
-                    [f"imported {n} samples at {args.rate:g} Hz from {args.file}"])
+                        "import_units_json": json.dumps(args.units), "import_axes": axes})
+    write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter)
+    return Imported(out, n, rate, sections,
+                    [f"imported {n} samples at {rate:g} Hz from {args.file}", *lines])
 
 
 def import_bag(args: ImportOptions, progress: Progress | None = None) -> Imported:

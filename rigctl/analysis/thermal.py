@@ -4,8 +4,9 @@ results into /results/thermal and a JSON file beside the recording.
 
 A recording is *thermal* when it holds chamber readings (/chamber) and its static and rate
 windows span at least :data:`MIN_SPAN_K` of IMU temperature (a chamber run; an imported log
-whose temperature drifts is not). Per window: the mean outputs, their
-uncertainty (below), the reference input from the table's angles
+whose temperature drifts is not). Per window: the mean outputs, its times and
+batch means (for the covariance of the means under white noise, bias instability and rate
+random walk, :func:`rigctl.solvers.thermal.estimate_noise`), the reference input from the table's angles
 (:func:`rigctl.frames.body_references`), the means of powers of the temperature offset, and the
 candidates' regressors (hysteresis state from a play operator on the IMU temperature, the
 temperature rate, the chamber air minus the IMU temperature from /chamber). Accelerometer: the
@@ -76,7 +77,8 @@ def _noise_parts(x: np.ndarray) -> np.ndarray:
 
 
 def _pooled_sigma(parts: np.ndarray) -> np.ndarray:
-    """Standard uncertainties (n, c) of the window means of one sensor: each window's white
+    """Standard uncertainties (n, c) of the window means of one sensor when no covariance is
+    set (the fallback of :class:`rigctl.solvers.thermal.ThermalWindows`): each window's white
     level s^2 / n (thousands of samples: precise) times one factor per axis, the ratio of the
     batch-means variance to the white variance averaged over all the sensor's windows (never
     below 1): correlated noise raises it, and pooling over the windows gives it hundreds of
@@ -320,6 +322,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         sensors[sensor] = {
             "degrees": deg, "accepted": fit.accepted,
             "effects_found": [th.CANDIDATE_TEXT[c] for c in fit.accepted],
+            "confounded_with": fit.confounded,
             "chi2": fit.chi2, "dof": fit.dof, "chi2_per_dof": c2, "chi2_band_99": [lo, hi], "status": status,
             "windows": {"total": len(w), "heating": int(heat.sum()), "cooling": int((~heat).sum()),
                         "heating_span_c": [float(w.temperature[heat].min()), float(w.temperature[heat].max())]
@@ -331,7 +334,11 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                      f"{deg['misalignment']}; {len(w)} windows ({int(heat.sum())} heating, "
                      f"{int((~heat).sum())} cooling); chi2/dof {c2:.3g} (99 % band {lo:.3g} .. {hi:.3g})"
                      + ("" if status == "ok" else "  <- OUTSIDE THE BAND: the model or the noise is wrong"))
-        found = ", ".join(th.CANDIDATE_TEXT[c] for c in fit.accepted) or "none"
+        conf = fit.confounded
+        found = "; ".join(th.CANDIDATE_TEXT[c] + (
+            f" -- this run cannot tell it from: {', '.join(th.CANDIDATE_TEXT[o] for o in conf[c])} (all "
+            "explain the data nearly as well; a longer hold at each end separates them)" if conf[c] else "")
+            for c in fit.accepted) or "none"
         lines.append(f"  closed loop: thermal effects found: {found}")
         for e in fit.explain:
             lines.append(f"    [{e['step']}] {e['candidate']}: {e['statistic']}, p_adj {e['p_adj']:.2g} -> "

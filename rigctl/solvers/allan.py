@@ -398,6 +398,15 @@ class OadevAccumulator:
 
     def result(self) -> DevResult:
         """Deviations for every factor with at least one complete term."""
+        sums, counts, strides = self.raw_sums()
+        return dev_from_sums(self.ms, self.tau0, sums, counts, strides,
+                             np.where(strides == 1, counts, self.n_phase - 2 * self.ms),
+                             self.n_phase)
+
+    def raw_sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per factor (``ms``): the sum of the squared second differences summed so far (rate
+        units^2 s^2), the number of terms in it and their stride. Sums of separate series
+        (e.g. the gap-free stretches of a record, :func:`dev_from_sums`) add."""
         self._flush()
         sums = np.full(self.ms.size, np.nan)
         counts = np.zeros(self.ms.size, dtype=np.int64)
@@ -411,12 +420,19 @@ class OadevAccumulator:
             s = fast_stride(m) if self.mode == "fast" else 1
             lev = next(lv for lv in self.levels if lv.s == s)
             sums[i], counts[i], strides[i] = lev.sums[m // s], lev.counts[m // s], s
-        ok = counts > 0
-        tau = self.ms * self.tau0
-        dev = np.sqrt(sums[ok] / (2.0 * tau[ok] ** 2 * counts[ok]))
-        n_terms = np.where(strides == 1, counts, self.n_phase - 2 * self.ms)
-        return DevResult("oadev", self.tau0, self.ms[ok], tau[ok], dev, n_terms[ok],
-                         self.n_phase, strides[ok])
+        return sums, counts, strides
+
+
+def dev_from_sums(ms: np.ndarray, tau0: float, sums: np.ndarray, counts: np.ndarray,
+                  strides: np.ndarray, n_terms: np.ndarray, n_phase: int) -> DevResult:
+    """The overlapping Allan deviation from raw sums (:meth:`OadevAccumulator.raw_sums`), for
+    every factor with at least one term; ``n_terms`` the terms the estimate stands for (the
+    fully overlapping count when the sums are strided)."""
+    ok = counts > 0
+    tau = ms * tau0
+    dev = np.sqrt(sums[ok] / (2.0 * tau[ok] ** 2 * counts[ok]))
+    return DevResult("oadev", tau0, ms[ok], tau[ok], dev, np.asarray(n_terms)[ok], n_phase,
+                     strides[ok])
 
 
 # --------------------------------------------------------------------------- deviations

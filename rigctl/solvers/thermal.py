@@ -136,6 +136,11 @@ class ThermalFit:
     axes: list[AxisFit]
     explain: list[dict[str, Any]]
     reference_c: float
+    alpha: float = 1e-3
+    #: for each accepted candidate, the others that were significant when it was accepted and
+    #: explain it away (it adds nothing significant to a model holding one of them instead):
+    #: this run cannot tell them apart (:func:`fit_thermal`)
+    confounded: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def chi2(self) -> float:
@@ -282,6 +287,7 @@ def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: 
     degrees = dict(degrees or {"bias": 2, "scale": 2, "misalignment": 1})
     accepted: list[str] = []
     explain: list[dict[str, Any]] = []
+    confounded: dict[str, list[str]] = {}
     base = fit_axes(w, degrees, accepted)
     open_ = [c for c in CANDIDATES if c in w.regressors and np.ptp(w.regressors[c]) > 0] if loop else []
     step = 0
@@ -303,10 +309,22 @@ def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: 
         p_adj, c, _, ext = trials[0]
         if p_adj >= alpha:
             break
+        # in a ramp at one rate the hysteresis state, the temperature rate and the air-minus-IMU
+        # gradient all change sign between heating and cooling (only the holds separate them):
+        # a runner-up that was significant too, and with which c adds nothing significant, is
+        # an alternative this run cannot rule out
+        confounded[c] = []
+        for p_o, o, _, ext_o in trials[1:]:
+            if p_o >= alpha:
+                continue
+            both = fit_axes(w, degrees, accepted + [o, c])
+            chi_o, chi_b, dof_b = sum(a.chi2 for a in ext_o), sum(a.chi2 for a in both), sum(a.dof for a in both)
+            if float(stats.f.sf(((chi_o - chi_b) / 3.0) / (chi_b / dof_b), 3, dof_b)) >= alpha:
+                confounded[c].append(o)
         accepted.append(c)
         open_.remove(c)
         base = ext
-    return ThermalFit(w.sensor, degrees, accepted, base, explain, w.reference_c)
+    return ThermalFit(w.sensor, degrees, accepted, base, explain, w.reference_c, alpha, confounded)
 
 
 def select_degrees(w: ThermalWindows, max_degree: int = 3, alpha: float = 0.01) -> dict[str, int]:

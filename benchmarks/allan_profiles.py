@@ -1,0 +1,387 @@
+"""Issue 15's first Done-when on every emulator profile and every real capture in the tests.
+
+For each case the script writes a rigctl recording and runs the Allan pipeline as `rigctl allan`
+does (rigctl.analysis.allan.compute: streamed deviations, noise ID, EDF bands, the joint IEEE 952
+fit and its self-check), once per tau set (--taus octave, all and the default 95), then checks,
+with numbers read here from the curve and not from the fit's own bookkeeping:
+
+  bounds  no term given as a bound exceeds what the curve allows: B <= min sigma / 0.664,
+          N <= min sigma sqrt(tau), K <= min sigma sqrt(3/tau), Q <= min sigma tau / sqrt(3),
+          R <= min sigma sqrt(2) / tau (each term adds a non-negative part to sigma^2).
+  band    the fitted total (sigma^2 = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 +
+          R^2 tau^2/2, from the fitted values) lies inside the curve's 95 % band at every
+          informative tau (hi95 <= 2 lo95), or the tau is named by the self-check (a warning
+          when the check fails, a note when the few taus outside are chance; departures under
+          10 % in one sentence). Counted: taus outside the band; of them, not named; fits
+          whose check failed (a warning naming the taus).
+  taus    octave and all agree: for every term, both supported and their 95 % intervals
+          overlap, or one is a bound and the other's interval starts below it, or both bounds.
+
+Cases: the emulator's default IMU (configs/sim.yaml, the declared model with B and K) and every
+profile of configs/imu-profiles.yaml (full error model: front end, quantization, warm-up, clock
+with dropped samples -- gaps, skipped as Stable32 does), static (gravity up, Earth rate at 45
+deg), --hours each (default 12) at the profile's rate; and the real captures in tests/data
+(ADIS16405 2.8 h, XSens MTi-G gyro 1.4 h), imported with `rigctl import` from whitespace text.
+
+Prints a table per case and axis, then one JSON line (counts over every case, axis and tau set).
+"""
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data"
+OMEGA = 7.292115e-5
+LAT = math.radians(45.0)
+G0 = 9.80665
+TAU_SETS = ("octave", "all", 95)
+B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.664
+
+
+def _load() -> str:
+    return "/".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+# ------------------------------------------------------------------ recordings
+def _h5(path: Path, fs: float) -> tuple:
+    import h5py
+
+    f = h5py.File(path, "w")
+    f.attrs["format"] = "rigctl-recording"
+    f.attrs["schema_version"] = 1
+    f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
+    imu = f.create_group("imu")
+    imu.attrs["sample_rate_hz"] = fs
+    ds = {}
+    for name, shape, dt, unit in (("time", (), "f8", "s"), ("counter", (), "u8", "1"),
+                                  ("angular_rate", (3,), "f8", "rad/s"),
+                                  ("specific_force", (3,), "f8", "m/s^2")):
+        d = imu.create_dataset(name, (0, *shape), dt, maxshape=(None, *shape),
+                               chunks=(8192, *shape))
+        d.attrs["units"] = unit
+        ds[name] = d
+    return f, ds
+
+
+def _append(ds: dict, **cols: np.ndarray) -> None:
+    for k, v in cols.items():
+        d = ds[k]
+        n0 = d.shape[0]
+        d.resize(n0 + len(v), axis=0)
+        d[n0:] = v
+
+
+def emulated_recording(case: str, path: Path, hours: float, seed: int = 1) -> dict:
+    """A static capture of ``hours`` from the emulator (``case``: 'default' or a profile)."""
+    from rigctl.sim.imu import build_imu_model
+    from rigctl.yamlio import load_file
+
+    if case == "default":
+        cfg = load_file(ROOT / "configs" / "sim.yaml")
+        fs = float(cfg["imu"]["rate_hz"])
+        model = build_imu_model(cfg["imu"]["sim"], fs, seed)
+        full = False
+    else:
+        from rigctl.sim.error_model import ImuErrorModel
+        from rigctl.sim.profiles import get_profile
+
+        prof = get_profile(case)
+        model = ImuErrorModel.from_profile(prof, seed=seed)
+        fs = model.output_rate_hz
+        full = True
+    n = int(round(hours * 3600 * fs))
+    chunk = 1 << 16
+    f_up = np.array([0.0, 0.0, G0])
+    w_e = np.array([0.0, OMEGA * math.cos(LAT), OMEGA * math.sin(LAT)])
+    f, ds = _h5(path, fs)
+    done, dropped = 0, 0
+    try:
+        while done < n:
+            m = min(chunk, n - done)
+            if full:
+                g = model.sample_grid(m)
+                k = g.t_internal.size
+                F, W, _ = model.apply(g.t_internal, np.tile(f_up, (k, 1)), np.tile(w_e, (k, 1)))
+                keep = g.keep
+                _append(ds, time=g.t_out[keep], counter=g.counter[keep],
+                        angular_rate=W[keep], specific_force=F[keep])
+                dropped += int((~keep).sum())
+            else:
+                t = (done + np.arange(m)) / fs
+                F, W, _ = model.apply(t, np.tile(f_up, (m, 1)), np.tile(w_e, (m, 1)))
+                _append(ds, time=t, counter=np.arange(done, done + m, dtype=np.uint64),
+                        angular_rate=W, specific_force=F)
+            done += m
+    finally:
+        f.close()
+    return {"rate_hz": fs, "samples": n, "dropped": dropped,
+            "axes": ["gx", "gy", "gz", "ax", "ay", "az"]}
+
+
+def _run_import(argv: list[str]) -> None:
+    """`rigctl import ...` as the command line runs it (exit code checked)."""
+    from rigctl import cli
+
+    code = cli.main(["import", *argv, "--force"])  # its own directory: a kept run rewrites
+    if code != 0:
+        raise RuntimeError(f"rigctl import {' '.join(argv)}: exit {code}")
+
+
+def real_recordings(tmp: Path) -> list[tuple[str, Path, dict]]:
+    """The real captures of tests/data, written as whitespace text and imported with `rigctl
+    import` (as a stranger's capture would be)."""
+    out = []
+    adis = DATA / "adis16405-static"
+    if (adis / "gyro_counts.txt.gz").is_file():
+        g = np.loadtxt(gzip.open(adis / "gyro_counts.txt.gz", "rt"), dtype=np.int64)
+        a = np.loadtxt(gzip.open(adis / "accel_counts.txt.gz", "rt"), dtype=np.int64)
+        txt = tmp / "adis16405.txt"
+        with open(txt, "w") as fh:  # no header, no time column: --rate
+            for row in np.column_stack([g, a]):
+                fh.write(" ".join(str(int(v)) for v in row) + "\n")
+        rec = tmp / "adis16405.h5"
+        _run_import([str(txt), "-o", str(rec), "--rate", "100",
+                     "--columns", "gyr_x=0,gyr_y=1,gyr_z=2,acc_x=3,acc_y=4,acc_z=5",
+                     "--units", "gyr=counts:0.05 deg/s,acc=counts:0.00333 g"])
+        out.append(("adis16405 (real)", rec, {"axes": ["gx", "gy", "gz", "ax", "ay", "az"],
+                                              "datasheet": "gyro B 25.2 deg/h (in-run)"}))
+    mtig = DATA / "mtig-static-contaminated" / "gyro_x_rad_s.txt.gz"
+    if mtig.is_file():
+        y = np.loadtxt(gzip.open(mtig, "rt"))
+        txt = tmp / "mtig.tsv"
+        with open(txt, "w") as fh:  # a header and a time column in ns, tab-separated
+            fh.write("t_ns\tgyro_x\n")
+            for i, v in enumerate(y):
+                fh.write(f"{i * 10_000_000}\t{v:.8g}\n")
+        rec = tmp / "mtig.h5"
+        _run_import([str(txt), "-o", str(rec), "--columns", "time=t_ns,gyr_x=gyro_x",
+                     "--units", "gyr=rad/s,time=ns"])
+        out.append(("mtig (real)", rec, {"axes": ["gx"]}))
+    return out
+
+
+# ------------------------------------------------------------------ checks
+def limits_from_curve(tau: np.ndarray, dev: np.ndarray) -> dict[str, float]:
+    """Each term's largest value the curve allows (SI), read here from the deviations."""
+    return {"Q": float(np.min(dev * tau / math.sqrt(3.0))),
+            "N": float(np.min(dev * np.sqrt(tau))),
+            "B": float(np.min(dev)) / B_FACTOR,
+            "K": float(np.min(dev * np.sqrt(3.0 / tau))),
+            "R": float(np.min(dev * math.sqrt(2.0) / tau))}
+
+
+def _si(sensor: str, t: str) -> str:
+    from rigctl.solvers import allan_fit as F
+
+    return F.SI_UNITS[sensor][t]
+
+
+def total_sigma(tau: np.ndarray, fit: dict, sensor: str) -> np.ndarray:
+    """The fitted IEEE 952 total (SI) from the supported terms' values."""
+    c = {t: (e[f"value_{_si(sensor, t)}"] if e["supported"] else 0.0)
+         for t, e in fit["terms"].items()}
+    s2 = (3 * c.get("Q", 0) ** 2 / tau ** 2 + c.get("N", 0) ** 2 / tau
+          + B_FACTOR ** 2 * c.get("B", 0) ** 2 + c.get("K", 0) ** 2 * tau / 3
+          + c.get("R", 0) ** 2 * tau ** 2 / 2)
+    return np.sqrt(s2)
+
+
+def check_axis(r: dict) -> dict:
+    sensor, unit = r["sensor"], r["_unit"]
+    tau = np.asarray(r["tau_s"], float)
+    dev = np.asarray(r[f"adev_{r['_si']}"], float)
+    fac = float(np.asarray(r[f"adev_{unit}"])[0] / dev[0])
+    lim = limits_from_curve(tau, dev)
+    over = []
+    for t, e in r["fit"]["terms"].items():
+        if not e["supported"] and e[f"upper95_{_si(sensor, t)}"] > lim[t] * (1 + 1e-9):
+            over.append(t)
+    lo = np.asarray(r[f"lo95_{unit}"]) / fac
+    hi = np.asarray(r[f"hi95_{unit}"]) / fac
+    fit = total_sigma(tau, r["fit"], sensor)
+    informative = hi <= 2.0 * lo
+    outside = informative & ((fit < lo) | (fit > hi))
+    check = r["fit"]["check"]
+    named = np.zeros(tau.size, bool)
+    for o in (check.get("outside") or []) + (check.get("outside_small") or []):
+        named |= (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
+    unnamed = outside & ~named
+    return {"over": over, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),
+            "n_unnamed": int(unnamed.sum()),
+            "unnamed_taus": [float(x) for x in tau[unnamed][:6]],
+            "worst_unnamed": float(np.max(np.abs(np.log(dev[unnamed] / fit[unnamed]))))
+            if unnamed.any() else 0.0,
+            "check_ok": bool(check["ok"]), "n_named": int((outside & named).sum())}
+
+
+def agree(ra: dict, rb: dict) -> list[str]:
+    """Terms on which two tau sets disagree beyond their 95 % intervals / bounds."""
+    sensor = ra["sensor"]
+    bad = []
+    for t in ra["fit"]["terms"]:
+        a, b = ra["fit"]["terms"][t], rb["fit"]["terms"][t]
+        si = _si(sensor, t)
+        if a["supported"] and b["supported"]:
+            (la, ha), (lb, hb) = a[f"ci95_{si}"], b[f"ci95_{si}"]
+            if la > hb or lb > ha:
+                bad.append(t)
+        elif a["supported"] != b["supported"]:
+            s, u = (a, b) if a["supported"] else (b, a)
+            if s[f"ci95_{si}"][0] > u[f"upper95_{si}"]:
+                bad.append(t)
+    return bad
+
+
+def term_text(e: dict, sensor: str, t: str) -> str:
+    from rigctl.solvers import allan_fit as F
+
+    u, _ = F.FIELD_UNITS[sensor][t]
+    if e["supported"]:
+        return f"{e[f'value_{u}']:.3g}"
+    return f"<{e[f'upper95_{u}']:.3g}"
+
+
+# ------------------------------------------------------------------ main
+def analyse(name: str, rec: Path, info: dict, totals: dict,
+            tau_sets: tuple = TAU_SETS) -> None:
+    from rigctl.analysis import allan as AA
+    from rigctl.solvers import allan_fit as F
+
+    res = {}
+    for taus in tau_sets:
+        t = time.perf_counter()
+        res[taus] = AA.compute(str(rec), info["axes"], taus)
+        totals["analysis_s"] += time.perf_counter() - t
+    first = res[tau_sets[-1]]
+    g = first["gaps"]
+    print(f"\n== {name}: {first['n_samples']} samples at {first['sample_rate_hz']:g} Hz "
+          f"({first['n_samples'] / first['sample_rate_hz'] / 3600:.2f} h); gaps: "
+          f"{g['count']} ({g['missing_samples']} samples, skipped){'; ' + info['datasheet'] if info.get('datasheet') else ''}")
+    print(f"{'axis':>4} {'taus':>6} {'N':>10} {'B':>10} {'K':>10} {'B_floor':>9} "
+          f"{'over_lim':>8} {'inf':>4} {'out':>4} {'named':>5} {'unnamed':>7} {'check':>5} "
+          f"{'oct~all':>8}")
+    for a in info["axes"]:
+        sensor = first["axes"][a]["sensor"]
+        ra, rb = res["octave"]["axes"][a], res["all"]["axes"][a]
+        bad = agree(ra, rb)
+        both_ok = ra["fit"]["check"]["ok"] and rb["fit"]["check"]["ok"]
+        totals["pairs"] += 1
+        totals["disagree"] += bool(bad)
+        totals["disagree_checks_ok"] += bool(bad) and both_ok
+        if bad:
+            totals["disagree_where"].append(
+                f"{name}:{a}:{''.join(bad)}({'checks ok' if both_ok else 'a check failed'})")
+        for taus in tau_sets:
+            r = res[taus]["axes"][a]
+            c = check_axis(r)
+            totals["fits"] += 1
+            totals["over_limit"] += bool(c["over"])
+            if c["over"]:
+                totals["over_where"].append(f"{name}:{a}:{taus}:{''.join(c['over'])}")
+            totals["outside"] += c["n_out"]
+            totals["informative"] += c["n_inf"]
+            totals["unnamed"] += c["n_unnamed"]
+            totals["fits_with_unnamed"] += bool(c["n_unnamed"])
+            if c["n_unnamed"]:
+                totals["unnamed_where"].append(
+                    f"{name}:{a}:{taus}:{c['n_unnamed']}@{c['unnamed_taus'][0]:.3g}s"
+                    f"(x{math.exp(c['worst_unnamed']):.2f})")
+            totals["check_failed"] += not c["check_ok"]
+            dev = np.asarray(r[f"adev_{r['_unit']}"])
+            bu, bf = F.FIELD_UNITS[sensor]["B"]
+            floor = float(dev.min()) / B_FACTOR  # min sigma / 0.664, field units
+            terms = r["fit"]["terms"]
+            print(f"{a:>4} {str(taus):>6} {term_text(terms['N'], sensor, 'N'):>10} "
+                  f"{term_text(terms['B'], sensor, 'B'):>10} {term_text(terms['K'], sensor, 'K'):>10} "
+                  f"{floor:9.3g} {','.join(c['over']) or '-':>8} {c['n_inf']:4d} {c['n_out']:4d} "
+                  f"{c['n_named']:5d} {c['n_unnamed']:7d} {'ok' if c['check_ok'] else 'FAIL':>5} "
+                  f"{('-' if not bad else ','.join(bad)) if taus == 'octave' else '':>8}",
+                  flush=True)
+    units = {s: (F.FIELD_UNITS[s]["N"][0], F.FIELD_UNITS[s]["B"][0], F.FIELD_UNITS[s]["K"][0])
+             for s in ("gyro", "accel")}
+    print("   units: gyro N, B, K in " + ", ".join(units["gyro"]) + "; accel in "
+          + ", ".join(units["accel"]) + "; B_floor = min sigma / 0.664 (B's unit)")
+
+
+def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = None) -> dict:
+    """Write and analyse every case of ``wanted``; the counts of the three checks."""
+    totals = {"fits": 0, "over_limit": 0, "over_where": [], "informative": 0, "outside": 0,
+              "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
+              "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
+              "analysis_s": 0.0, "generate_s": 0.0}
+    with tempfile.TemporaryDirectory(dir="/tmp") as d:
+        tmp = Path(keep or d)
+        tmp.mkdir(parents=True, exist_ok=True)
+        for case in wanted:
+            if case == "real":
+                for name, rec, info in real_recordings(tmp):
+                    analyse(name, rec, info, totals, sets)
+                continue
+            rec = tmp / f"{case}_{hours:g}h.h5"
+            t = time.perf_counter()
+            if not rec.exists():
+                info = emulated_recording(case, rec, hours)
+            else:
+                info = {"axes": ["gx", "gy", "gz", "ax", "ay", "az"]}
+            totals["generate_s"] += time.perf_counter() - t
+            analyse(f"{case} (emulated, {hours:g} h)", rec, info, totals, sets)
+    return totals
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=12.0, help="emulated capture length, h")
+    ap.add_argument("--cases", default="all",
+                    help="comma-separated: default, profile names, real (default: all)")
+    ap.add_argument("--keep", metavar="DIR", help="write the recordings here and keep them")
+    ap.add_argument("--taus", default="octave,all,95",
+                    help="tau sets (octave and all always; default octave,all,95)")
+    a = ap.parse_args()
+    from rigctl.sim.profiles import profile_names
+
+    emulated = ["default"] + [p for p in profile_names() if p != "random"]
+    wanted = emulated + ["real"] if a.cases == "all" else a.cases.split(",")
+    sets = tuple(dict.fromkeys(["octave", "all"] + [int(t) if t.isdigit() else t
+                                                    for t in a.taus.split(",")]))
+    load0 = _load()
+    t0 = time.perf_counter()
+    totals = run_cases(wanted, a.hours, sets, a.keep)
+    wall = time.perf_counter() - t0
+    print(f"\n{totals['fits']} fits (case x axis x tau set {sets}): bounds above the curve's "
+          f"limit: {totals['over_limit']}; fitted total outside the 95 % band at "
+          f"{totals['outside']} of {totals['informative']} informative taus, of them not named "
+          f"by the self-check: {totals['unnamed']} (in {totals['fits_with_unnamed']} fits); "
+          f"self-check failed (warning): {totals['check_failed']}; octave vs all disagree "
+          f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes "
+          f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
+          f"{wall:.0f} s (load {load0} -> {_load()})")
+    for k in ("over_where", "unnamed_where", "disagree_where"):
+        if totals[k]:
+            print(f"{k}: {'; '.join(totals[k][:30])}")
+    print(json.dumps({"hours_emulated": a.hours, "cases": wanted, "fits": totals["fits"],
+                      "bounds_above_curve_limit": totals["over_limit"],
+                      "informative_taus": totals["informative"],
+                      "taus_outside_band": totals["outside"],
+                      "taus_outside_band_not_named": totals["unnamed"],
+                      "fits_with_unnamed_taus": totals["fits_with_unnamed"],
+                      "self_check_failed_fits": totals["check_failed"],
+                      "octave_vs_all_disagree_axes": totals["disagree"],
+                      "octave_vs_all_axes": totals["pairs"],
+                      "octave_vs_all_disagree_with_checks_ok": totals["disagree_checks_ok"],
+                      "generate_s": round(totals["generate_s"], 1),
+                      "analysis_s": round(totals["analysis_s"], 1), "wall_s": round(wall, 1),
+                      "load_avg_start": load0, "load_avg_end": _load()}))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

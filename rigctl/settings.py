@@ -1,0 +1,97 @@
+"""Typed settings: one frozen dataclass per section of a rig config, and the one validator.
+
+A section's settings are a dataclass whose fields each name one YAML key, with its default and
+its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, or :func:`setting`
+with a reader of its own). :func:`parse` is the one validator: unknown keys are refused with
+"did you mean", each value is read and checked by its field's reader (type, range, choices),
+missing required keys are named, and :meth:`Settings.check` adds the rules between fields;
+every error is an InputError with the file and line (rigctl.schema).
+
+Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
+keyword arguments), rigctl.config (``site:``, ``recorder:``) and rigctl.suspenders
+(``suspenders:``).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, ClassVar, TypeVar
+
+from . import schema as S
+from .yamlio import LocDict
+
+#: reads ``d[key]`` with the field's checks: ``reader(d, key, default, **checks)``
+Reader = Callable[..., Any]
+
+
+def setting(default: Any = MISSING, *, read: Reader, key: str | None = None, **check: Any) -> Any:
+    """A settings field read by ``read``; ``key``: its YAML key when it differs from the field's
+    name; ``check``: keyword arguments of the reader (minimum, maximum, integer, allow_none,
+    choices, positive)."""
+    return field(default=default, metadata={"read": read, "key": key, "check": check})
+
+
+def internal(default: Any) -> Any:
+    """A field that is not a config key (set by the program; :func:`parse` leaves its default)."""
+    return field(default=default, metadata={"internal": True})
+
+
+def number(default: Any = MISSING, **check: Any) -> Any:
+    return setting(default, read=S.get_number, **check)
+
+
+def text(default: Any = MISSING, **check: Any) -> Any:
+    return setting(default, read=S.get_str, **check)
+
+
+def flag(default: bool) -> Any:
+    return setting(default, read=S.get_bool)
+
+
+def duration(default: Any = MISSING, **check: Any) -> Any:
+    """Seconds, given as a number or as text with a unit ('5 min')."""
+    return setting(default, read=S.get_duration, **check)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Settings:
+    """Base of every section's settings."""
+
+    #: other keys the section may hold (read elsewhere)
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ()
+
+    def check(self, d: LocDict) -> None:
+        """Rules between fields (after each field is valid); raises InputError."""
+
+
+T = TypeVar("T", bound=Settings)
+
+
+def yaml_keys(cls: type[Settings]) -> list[str]:
+    return [f.metadata.get("key") or f.name for f in fields(cls) if "read" in f.metadata]
+
+
+def parse(cls: type[T], d: LocDict, what: str, extra_keys: Iterable[str] = ()) -> T:
+    """The one validator: ``d`` (a config section) as ``cls``; InputError with file and line."""
+    spec = {f.metadata.get("key") or f.name: f for f in fields(cls) if "read" in f.metadata}
+    S.check_keys(d, (*extra_keys, *cls.EXTRA_KEYS, *spec), what)
+    values: dict[str, Any] = {}
+    for key, f in spec.items():
+        default = ... if f.default is MISSING else f.default
+        if key not in d:
+            if default is ...:
+                raise S.error(d, None, f"{what} is missing {key!r}", f"add a line '{key}: ...'")
+            values[f.name] = default
+        else:
+            values[f.name] = f.metadata["read"](d, key, default, **f.metadata["check"])
+    out = cls(**values)
+    out.check(d)
+    return out
+
+
+def section(m: LocDict, key: str, cls: type[T], what: str | None = None) -> T:
+    """The settings of section ``key`` of mapping ``m`` (defaults when absent or null)."""
+    what = what or f"'{key}'"
+    if m.get(key) is None:
+        return parse(cls, LocDict(), what)
+    return parse(cls, S.require_mapping(m[key], what, m, key), what)

@@ -1,0 +1,162 @@
+"""`rigctl import` of the text forms a stranger's static capture comes in, then `rigctl allan`:
+comma, tab, semicolon or whitespace columns, with or without a header, `#` comment lines, a
+time column in s or ns (rate from its median step, dropped samples from its jumps) or none
+(--rate), rad/s or deg/s and m/s^2 or g given by --units, a gyro-only file (the other columns
+stored as NaN, rigctl allan analyses the columns present); one error line for what it cannot
+read. Expected values are computed here with numpy from the written text."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from helpers import run_rigctl
+from rigctl import cli
+
+D2R = math.pi / 180.0
+
+
+def _ok(*args: str) -> None:
+    assert cli.main(["import", *args]) == 0
+
+
+def test_whitespace_no_header_counts_and_rate(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    counts = np.round(rng.normal(0, 4, (5000, 6))) + [0, 0, 0, 0, 0, -300]
+    txt = tmp_path / "static.txt"
+    with open(txt, "w") as fh:
+        fh.write("# logger v2, unit 17\n# gx gy gz ax ay az (counts)\n")
+        for row in counts.astype(int):
+            fh.write("  ".join(str(v) for v in row) + "\n")
+    rec = tmp_path / "s.h5"
+    _ok(str(txt), "-o", str(rec), "--rate", "100",
+        "--columns", "gyr_x=0,gyr_y=1,gyr_z=2,acc_x=3,acc_y=4,acc_z=5",
+        "--units", "gyr=counts:0.05 deg/s,acc=counts:0.00333 g")
+    with h5py.File(rec, "r") as f:
+        np.testing.assert_allclose(f["imu/angular_rate"][()], counts[:, :3] * 0.05 * D2R)
+        np.testing.assert_allclose(f["imu/specific_force"][()], counts[:, 3:] * 0.00333 * 9.80665)
+        np.testing.assert_allclose(f["imu/time"][()], np.arange(5000) / 100.0)
+        assert np.array_equal(f["imu/counter"][()], np.arange(5000))
+
+
+def test_tsv_header_time_in_ns_gyro_only_with_a_gap(tmp_path: Path,
+                                                    capsys) -> None:
+    """A one-gyro TSV with nanosecond stamps and 25 dropped samples: the rate comes from the
+    stamps, the gap becomes a counter jump, and rigctl allan analyses gx alone, skipping the
+    terms across the gap (its white noise level checked against numpy)."""
+    rng = np.random.default_rng(2)
+    fs, n_grid = 200.0, 40_000
+    y = rng.normal(0.0, 2e-3, n_grid) + 1e-3  # rad/s
+    keep = np.ones(n_grid, bool)
+    keep[10_000:10_025] = False
+    t_ns = (np.arange(n_grid) * (1e9 / fs)).astype(np.int64) + 1_700_000_000_000_000_000
+    txt = tmp_path / "gyro.tsv"
+    with open(txt, "w") as fh:
+        fh.write("stamp_ns\tgyro_x_rad_s\n")
+        for t, v in zip(t_ns[keep], y[keep]):
+            fh.write(f"{t}\t{v:.9g}\n")
+    rec = tmp_path / "g.h5"
+    _ok(str(txt), "-o", str(rec), "--columns", "time=stamp_ns,gyr_x=gyro_x_rad_s",
+        "--units", "gyr=rad/s,time=ns")
+    out = capsys.readouterr().out
+    assert "sample rate 200 Hz (median step of the time column); 1 gaps, 25 samples missing" in out
+    assert "not in the file, stored as NaN: acc_x, acc_y, acc_z, gyr_y, gyr_z" in out
+    with h5py.File(rec, "r") as f:
+        assert abs(f["imu"].attrs["sample_rate_hz"] / fs - 1) < 1e-9
+        c = f["imu/counter"][()]
+        assert c[-1] == n_grid - 1 and np.count_nonzero(np.diff(c) != 1) == 1
+        np.testing.assert_allclose(f["imu/angular_rate"][:, 0], y[keep], rtol=1e-8)
+    assert cli.main(["allan", str(rec), "--taus", "octave", "--json", str(tmp_path / "a.json")]) == 0
+    cap = capsys.readouterr()
+    assert "== gx (gyro" in cap.out and "== gy" not in cap.out
+    assert "25 samples missing in 1 gap(s): the Allan terms touching a gap are skipped" in cap.err
+    res = json.loads((tmp_path / "a.json").read_text())
+    n_fit = res["axes"]["gx"]["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
+    # white noise: N = sd * sqrt(tau0)
+    n_np = float(np.std(y[keep])) * math.sqrt(1.0 / fs)
+    assert abs(n_fit / n_np - 1) < 0.03
+
+
+def test_semicolon_header_seconds_deg_s_and_g(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    n = 3000
+    g = rng.normal(0, 0.1, (n, 3))
+    a = rng.normal(0, 1e-3, (n, 3)) + [0, 0, 1]
+    csv = tmp_path / "log.csv"
+    with open(csv, "w") as fh:
+        fh.write("% exported\ntime_s;ax_g;ay_g;az_g;wx_dps;wy_dps;wz_dps\n")
+        for k in range(n):
+            fh.write(f"{k * 0.01:.2f};" + ";".join(f"{v:.7g}" for v in (*a[k], *g[k])) + "\n")
+    rec = tmp_path / "o.h5"
+    _ok(str(csv), "-o", str(rec), "--columns",
+        "time=time_s,acc_x=ax_g,acc_y=ay_g,acc_z=az_g,gyr_x=wx_dps,gyr_y=wy_dps,gyr_z=wz_dps",
+        "--units", "acc=g,gyr=deg/s")
+    with h5py.File(rec, "r") as f:
+        assert abs(f["imu"].attrs["sample_rate_hz"] - 100.0) < 1e-6
+        np.testing.assert_allclose(f["imu/specific_force"][()], a * 9.80665, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(f["imu/angular_rate"][()], g * D2R, rtol=1e-6, atol=1e-12)
+
+
+def test_unreadable_input_is_one_error_line(tmp_path: Path) -> None:
+    blob = tmp_path / "capture.bin"
+    blob.write_bytes(bytes(range(256)) * 8)
+    txt = tmp_path / "t.txt"
+    txt.write_text("1 2 3\n4 5 6\n")
+    cases = [
+        ([str(blob), "--columns", "gyr_x=0", "--units", "gyr=rad/s", "--rate", "100"], "text table (CSV, TSV or whitespace-separated columns)"),
+        ([str(txt), "--columns", "gyr_x=7", "--units", "gyr=rad/s", "--rate", "100"], "column 7 (for gyr_x) does not exist"),
+        ([str(txt), "--columns", "gyr_x=0", "--units", "gyr=rad/s"], "--rate HZ is required without a time column"),
+        ([str(txt), "--columns", "gyr_x=0,time=1", "--units", "gyr=rad/s,time=fortnights"], "time units"),
+    ]
+    for argv, what in cases:
+        p = run_rigctl("import", *argv, "-o", str(tmp_path / "o.h5"))
+        lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+        assert p.returncode == 2 and what in p.stderr, p.stderr
+        assert "Traceback" not in p.stderr and len(lines) <= 2, p.stderr  # message (+ hint)
+        assert not (tmp_path / "o.h5").exists()
+
+
+def _table(path: Path) -> np.ndarray:
+    """Rows (AF, Tau, #, Alpha, Min Sigma, Sigma, Max Sigma) of a Stable32 result file."""
+    return np.array([[float(v) for v in ln.split()] for ln in path.read_text().splitlines()
+                     if ln.strip() and not ln.lstrip().startswith("#")])
+
+
+def test_stable32_phase_files_through_import_and_allan(ref_data: Path, tmp_path: Path) -> None:
+    """A Stable32 phase file (one column of phase in s, # comments, tau0 = 1 s) goes through
+    `rigctl import --units gyr=rad --integrated --rate 1` (the phase differenced into
+    fractional frequency) and `rigctl allan --exact`: the overlapping deviations and term
+    counts are Stable32's (its tables: 5 significant digits)."""
+    cases = [("phasedat/PHASE.DAT", "phasedat/phase_dat_oadev_octave.txt", "octave"),
+             ("Cs5071A/5071A_phase.txt.gz", "Cs5071A/oadev_decade.txt", "decade")]
+    for src, tab, taus in cases:
+        d = ref_data / "stable32-reference"
+        txt = d / src
+        if txt.suffix == ".gz":
+            import gzip
+
+            plain = tmp_path / txt.stem
+            plain.write_bytes(gzip.decompress(txt.read_bytes()))
+            txt = plain
+        rec = tmp_path / (Path(src).stem + ".h5")
+        _ok(str(txt), "-o", str(rec), "--columns", "gyr_x=0", "--units", "gyr=rad",
+            "--integrated", "--rate", "1")
+        js = tmp_path / (Path(src).stem + ".json")
+        assert cli.main(["allan", str(rec), "--taus", taus, "--exact", "--json", str(js)]) == 0
+        r = json.loads(js.read_text())["axes"]["gx"]
+        ref = _table(d / tab)
+        m = np.asarray(r["m"])
+        dev = np.asarray(r["adev_rad/s"])
+        n_terms = np.asarray(r["n_terms"])
+        hits = 0
+        for af, _, count, _, _, sigma, _ in ref:
+            k = np.flatnonzero(m == int(af))
+            if not k.size:
+                continue
+            hits += 1
+            assert abs(dev[k[0]] / sigma - 1) < 1e-4, (src, af, dev[k[0]], sigma)
+            assert n_terms[k[0]] == int(count), (src, af)
+        assert hits >= min(len(ref), 8), (src, hits, len(ref))
