@@ -21,8 +21,9 @@ of the last tick (at most ``tick_s * speed`` of rig time old).
 
 Ports: each pty gets a symlink in ``link_dir`` (a fresh temporary directory unless given):
 ``table-acl``, ``table-rtu``, ``imu``, ``gnss``. Clients should open the symlink. A simulated
-disconnect (:meth:`Hardware.disconnect`) closes the pty, waits, opens a NEW pty and re-points the
-SAME symlink to it (the raw ``/dev/pts/N`` path changes; it is returned and logged).
+disconnect (:meth:`Hardware.disconnect`) removes the symlink and closes the pty (as a pulled USB
+adapter takes its device node), waits, opens a NEW pty and points the SAME symlink to it (the raw
+``/dev/pts/N`` path changes; it is returned and logged).
 
 The Xsens MTi answers ReqDID with ``imu_device_id`` (default 0x03780001, printed ``03780001``;
 None: the device answers Error, as one without ReqDID would); a test swaps the unit under test by
@@ -311,6 +312,11 @@ class _Slot:
 
     def disconnect(self, down_s: float) -> str:
         old = self.endpoint
+        # a pulled cable takes its device node with it (a USB serial adapter's /dev/ttyUSB0): the
+        # symlink goes too, or a reconnect during the outage could open the old pty's number
+        # already handed to another process's new pty (seen with two test runs at once)
+        if self.link.is_symlink():
+            self.link.unlink()
         old.close()
         time.sleep(down_s)
         self.endpoint = self.make()
