@@ -47,7 +47,49 @@ def small_fs(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
+# -- parallel runs (opt-in: -n 2 --dist loadfile) ----------------------------------------------
+# A test file is one unit of work, so its module- and session-scoped fixtures (emulated runs,
+# real-data imports) are made once, as in a serial run. Not the default: the wire/HIL/daemon
+# real-time tests (pty floods, 100x-200x rig clocks, kill -9 windows) missed their deadlines with a
+# second worker on a 2-core machine.
+
+#: files that share an expensive session-scoped fixture of this conftest: one worker runs them all
+SHARED_FIXTURE_FILES = {
+    "tests/test_production_certificate.py": "full_calibration_run",
+    "tests/test_report_sections.py": "full_calibration_run",
+    "tests/test_report_html.py": "full_calibration_run",
+}
+
+try:
+    from xdist.scheduler import LoadFileScheduling
+except ImportError:  # a venv installed before pytest-xdist joined the test extras
+    LoadFileScheduling = None
+
+if LoadFileScheduling is not None:
+    class _FileScheduling(LoadFileScheduling):
+        """--dist loadfile, with the files of SHARED_FIXTURE_FILES as one unit."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return SHARED_FIXTURE_FILES.get(path, path)
+
+    @pytest.hookimpl(optionalhook=True)
+    def pytest_xdist_make_scheduler(config, log):
+        return _FileScheduling(config, log) if config.getoption("dist") == "loadfile" else None
+
+
+_SUMMARY: list[str] = []
+
+
+def pytest_runtest_logreport(report):
+    """Collect the lines a test left in its ``user_properties`` under ``rigctl_summary`` (e.g. the
+    hostile-input case count); they travel with the report from an xdist worker."""
+    if report.when == "call":
+        _SUMMARY.extend(line for key, lines in report.user_properties if key == "rigctl_summary"
+                        for line in lines)
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    """Lines a test left in ``config._rigctl_summary`` (e.g. the hostile-input case count)."""
-    for line in getattr(config, "_rigctl_summary", []):
+    """The lines tests left for the summary (pytest_runtest_logreport)."""
+    for line in _SUMMARY:
         terminalreporter.write_line(line)

@@ -526,7 +526,7 @@ def test_the_whole_cli_under_hostile_input(tmp_path, request):
                + f"; failures: {len(failures)}; tracebacks: "
                + str(sum("traceback" in f for f in failures)),
                "slowest: " + "; ".join(f"{s:.2f} s {a[:70]}" for s, a in slowest[:3])]
-    request.config._rigctl_summary = getattr(request.config, "_rigctl_summary", []) + summary
+    request.node.user_properties.append(("rigctl_summary", summary))  # shown at the end (conftest)
     print("\n".join(summary))
     if os.environ.get("RIGCTL_HOSTILE_DUMP"):
         Path(os.environ["RIGCTL_HOSTILE_DUMP"]).write_text("\n".join(failures))
