@@ -114,7 +114,7 @@ def _parse_axes(text: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
     codes by rigctl.cli.main)."""
-    axes = _parse_axes(args.axes) if args.axes else default_axes(args.recording)
+    axes = _parse_axes(args.axes) if args.axes is not None else default_axes(args.recording)
     taus = _parse_taus(str(args.taus))
     if args.plot:
         try:
