@@ -343,6 +343,25 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         tot2 = np.maximum(parts.sum(axis=1), 1e-300)
         tot = np.sqrt(tot2)
         over = (tot > hi95) & (np.sqrt(s2_all) < (1.0 - DEPARTURE_REL) * tot)
+
+        def back_down(i: int, k: int) -> bool:
+            # the curve at tau k has come back down to what the other terms give: their total
+            # without term i reaches the lower end of the band there. A curve still above the
+            # others' total beyond its band shows the term at that tau -- only less of it than
+            # the fit's line, or no more than the curve's limit -- so the term is kept (the
+            # self-check names the taus its line misses). Seen with --taus all: a 12 h
+            # consumer_mems gz (K 24.7 deg/h/sqrt(h) emulated) had K pressed at its limit and
+            # dropped, bounded at 15.1; on the ADIS16405 ay, with the curve flat at 3.4e-3
+            # m/s^2 over 250-600 s and the others' total at 2.1e-3 (lo95 2.5e-3), K dropped by
+            # the tail rule below and bounded at 26.4, against octave's 53.6 [36.7, 99.2]
+            return math.sqrt(max(tot2[k] - parts[k, i], 0.0)) >= lo95[k]
+
+        # a term pressed against its limit: judged at the tau that sets the limit (the tau
+        # where the term's line meets hi95)
+        lim_idx = inf_idx if inf_idx.size else np.arange(tau_all.size)
+        for i in np.flatnonzero(at_limit):
+            k = lim_idx[np.argmin(hi95[lim_idx] ** 2 / np.maximum(a_all[lim_idx, i], 1e-300))]
+            at_limit[i] = back_down(i, int(k))
         for i, j in enumerate(active):
             if TERMS[j] not in CONSTRAINED or p[i] <= 0:
                 continue
@@ -353,20 +372,11 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             # floor is seen (floor_seen: a 30-minute emulated capture with a true floor, whose
             # last floor taus fell low by chance, had B dropped and the total 4x below the
             # curve at 80-160 s)
-            # and the curve there has come back down to what the other terms give: their
-            # total without this term reaches the lower end of the band (lo95). A curve still
-            # above the others' total beyond its band shows the term at its longest taus --
-            # only less of it than this fit's value (e.g. the rise flattening, or an
-            # overestimated K: --taus all on a 12 h consumer_mems gyro, K 24.7 deg/h/sqrt(h)
-            # emulated, was dropped as a bump and bounded at 15.1; on the ADIS16405 ay the
-            # curve flat at 3.4e-3 m/s^2 over 250-600 s, the others' total 2.1e-3, lo95 2.5e-3)
-            # -- and is kept; the self-check names the taus the line misses
+            # and the curve there has come back down to the other terms (back_down)
             if ruled.size and over[ruled[-1]] and not (floor_seen and TERMS[j] == "B"):
                 tail = ruled[tau_all[ruled] >= TAIL_SPAN * tau_all[ruled[-1]] * (1.0 - 1e-9)]
                 ratio = np.sqrt(s2_all[tail]) / tot[tail]
-                rest = math.sqrt(max(tot2[ruled[-1]] - parts[ruled[-1], i], 0.0))
-                if (ratio[-1] < (1.0 - DEPARTURE_REL) * ratio[0]
-                        and rest >= lo95[ruled[-1]]):
+                if ratio[-1] < (1.0 - DEPARTURE_REL) * ratio[0] and back_down(i, ruled[-1]):
                     at_limit[i] = True
         score = np.where(at_limit, -1.0, score)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
