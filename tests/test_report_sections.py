@@ -206,10 +206,24 @@ def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp
     assert cv["quick"] and cv["unit"] == "deg/h"
     with h5py.File(rec, "r") as f:
         w = f["imu/angular_rate"][:, 2]
+        counter = f["imu/counter"][()].astype(np.int64)
         fs = float(f["imu"].attrs["sample_rate_hz"])
-    # the smallest tau against the exact overlapping ADEV of the raw gyro z, in deg/h
-    ref = A.oadev(w, 1.0 / fs, [int(round(cv["tau_s"][0] * fs))])
-    assert cv["adev"][0] == pytest.approx(float(ref.dev[0]) * 180 / math.pi * 3600, rel=1e-9)
+    # the smallest tau against the exact overlapping ADEV of the raw gyro z, in deg/h, with the
+    # recording's dropout skipped as Stable32 does: every gap-free stretch (counter steps of 1)
+    # contributes its own second differences of the phase; sums and term counts are added
+    m = int(round(cv["tau_s"][0] * fs))
+    cuts = np.flatnonzero(np.diff(counter) != 1) + 1
+    assert cuts.size == 1  # the fixture's one dropout of 32 samples
+    ss, nt = 0.0, 0
+    for part in np.split(w, cuts):
+        x = np.concatenate([[0.0], np.cumsum(part)]) / fs
+        d = x[2 * m:] - 2 * x[m:-m] + x[: -2 * m]
+        ss, nt = ss + float(np.sum(d * d)), nt + d.size
+    ref = math.sqrt(ss / (2.0 * nt * (m / fs) ** 2))
+    assert cv["adev"][0] == pytest.approx(ref * 180 / math.pi * 3600, rel=1e-9)
+    # the whole series bridged across the dropout would differ (the old, silent behaviour)
+    bridged = float(A.oadev(w, 1.0 / fs, [m]).dev[0]) * 180 / math.pi * 3600
+    assert abs(cv["adev"][0] / bridged - 1) > 1e-6
     assert np.all(cv["lo95"] <= cv["adev"]) and np.all(cv["adev"] <= cv["hi95"])
 
 
