@@ -31,6 +31,7 @@ from .daemon_text import reply_text
 from .livefeed import LiveFeed
 from .notify import Notifier
 from .errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
+from .stop_signals import stop_on_signals
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the runner pulls in the solvers (scipy, ~1 s): client verbs must not pay it
@@ -552,24 +553,17 @@ def cmd_status(args: argparse.Namespace) -> int:
     """Print the daemon's status; with ``--watch`` one plain line per interval until Ctrl-C
     (SIGINT) or SIGTERM, then exit 0.
 
-    The watch installs its own handlers, as ``serve`` and ``run`` do, instead of relying on
-    Python's KeyboardInterrupt: Python installs that only when SIGINT is not ignored at start-up,
-    and a process started in the background by a non-interactive shell (a CI script, ``cmd &``)
-    inherits SIGINT ignored -- the loop then never ended on SIGINT."""
+    The watch installs its own handlers (:func:`rigctl.stop_signals.stop_on_signals`) instead of
+    relying on KeyboardInterrupt, which a process started with SIGINT ignored never gets."""
     if not args.watch:
         return _print_reply(_client(args, "status"), "status", args)
-    stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals() as stop:
         while not stop.is_set():
             reply = _client(args, "status")
             if not reply.get("ok"):
                 return _print_reply(reply, "status", args)
             print(json.dumps(reply, default=str) if args.json else watch_line(reply), flush=True)
             stop.wait(args.interval)
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
     return 0
 
 

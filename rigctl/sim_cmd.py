@@ -8,13 +8,12 @@ directory removed on exit); a simulated disconnect re-points the same symlink to
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 from pathlib import Path
 
 import yaml
 
 from .config import PROJECT_ROOT, load_config, resolve_config_path
+from .stop_signals import stop_on_signals
 from .yamlio import InputError
 
 TEMPLATE = PROJECT_ROOT / "configs" / "sim-wire.yaml"
@@ -28,9 +27,7 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
     cfg = load_config(cfg_path)
     if not 0.01 <= args.speed <= 1000:
         raise InputError(f"--speed {args.speed:g} is outside 0.01..1000")
-    stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals() as stop:
         with start_hardware(cfg, args.speed, link_dir=args.link_dir, acl_tcp_port=args.acl_port,
                             modbus_tcp_port=args.modbus_port, imu_baudrate=args.imu_baudrate,
                             pulse_period_s=args.pulse_period, imu_protocol=args.imu) as hw:
@@ -53,9 +50,6 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
                 if hw.lag_s > max(5.0, 50 * hw.tick_s * hw.speed):
                     print(f"warning: the emulator is {hw.lag_s:.1f} s of rig time behind the clock; "
                           "lower --speed", flush=True)
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
     print("stopped", flush=True)
     return 0
 
