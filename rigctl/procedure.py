@@ -160,7 +160,7 @@ def _one_of(choices: tuple[str, ...], message: str) -> Any:
         for j, x in enumerate(items):
             if not isinstance(x, str) or x not in choices:
                 raise S.item_error(d, key, items, j, message.format(x),
-                                  S.did_you_mean(str(x), choices, "choose from"))
+                                   S.did_you_mean(str(x), choices, "choose from"))
         return tuple(items)
     return read
 
@@ -180,13 +180,9 @@ def _settle(d: LocDict, key: str, default: Any = None) -> SettleSettings | None:
     return parse(SettleSettings, S.require_mapping(d[key], "'settle'", d, key), "'settle'")
 
 
-def angles() -> Any:
+def _angles_field() -> Any:
     """``angles_deg``: where the table holds, [outer, middle, inner] in degrees (default zero)."""
     return setting((0.0, 0.0, 0.0), read=_triplet)
-
-
-def _label(default: str | None = None) -> Any:
-    return text(default)
 
 
 def _settle_field() -> Any:
@@ -273,8 +269,8 @@ class WarmupStep(Settings):
     """``warmup``: go to the angles, settle, record for the duration (one segment)."""
 
     duration: float = seconds(positive=True)
-    angles_deg: tuple[float, ...] = angles()
-    label: str = _label("warm-up")
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("warm-up")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -282,8 +278,8 @@ class CaptureStep(Settings):
     """``capture``: a static capture (for Allan analysis)."""
 
     duration: float = seconds(positive=True)
-    angles_deg: tuple[float, ...] = angles()
-    label: str = _label("static capture")
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("static capture")
     settle: SettleSettings | None = _settle_field()
     discard: float | None = seconds(None)
 
@@ -294,8 +290,8 @@ class WaitStep(Settings):
 
     duration: float = seconds()
     prompt: str | None = text(None)
-    angles_deg: tuple[float, ...] = angles()
-    label: str = _label("wait")
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("wait")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -305,8 +301,8 @@ class TapsStep(Settings):
     count: int = number(minimum=1, maximum=10000, integer=True)
     prompt: str | None = text(None)
     duration: float = seconds(60.0, positive=True)
-    angles_deg: tuple[float, ...] = angles()
-    label: str | None = _label()
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
     settle: SettleSettings | None = _settle_field()
 
 
@@ -319,7 +315,7 @@ class ChamberSetStep(Settings):
     """``chamber-set``: a new chamber set point (a step), and go on (docs/thermal.md)."""
 
     setpoint_c: float = setpoint()
-    label: str | None = _label()
+    label: str | None = text(None)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -328,7 +324,7 @@ class ChamberRampStep(Settings):
 
     setpoint_c: float = setpoint()
     rate_c_per_min: float = number(minimum=0.01, maximum=100.0)
-    label: str | None = _label()
+    label: str | None = text(None)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -342,8 +338,8 @@ class ChamberWaitStep(Settings):
     air_band_c: float = number(1.0, minimum=0.01, maximum=50.0)
     timeout: float = seconds(4 * 3600.0, positive=True)
     expect: float | None = seconds(None)
-    angles_deg: tuple[float, ...] = angles()
-    label: str | None = _label()
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -362,7 +358,7 @@ class OrientationsStep(Settings):
     axes: tuple[str, ...] = setting(AXES, read=_one_of(AXES, "axis {!r} must be x, y or z"))
     step_deg: float = number(45.0, minimum=1e-3, maximum=360.0)
     count: int = number(8, minimum=1, maximum=360, integer=True)
-    label: str | None = _label()
+    label: str | None = text(None)
     settle: SettleSettings | None = _settle_field()
     sample: float | None = seconds(None)
     discard: float | None = seconds(None)
@@ -383,8 +379,8 @@ class RatesStep(Settings):
         DIRECTIONS, "direction {!r} must be forward or reverse"))
     dwell: float | None = seconds(None)
     revolutions: float | None = number(None, minimum=0.01, allow_none=True)
-    angles_deg: tuple[float, ...] = angles()
-    label: str | None = _label()
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
     settle: SettleSettings | None = _settle_field()
     sample: float | None = seconds(None)
     discard: float | None = seconds(None)
