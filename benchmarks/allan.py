@@ -121,10 +121,12 @@ def part_axis(slice_n: int | None, repeats: int) -> dict:
 def write_h5(path: str, n: int) -> None:
     import h5py
 
+    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION
+
     chunk = 1 << 20
     with h5py.File(path, "w") as f:
-        f.attrs["format"] = "rigctl-recording"
-        f.attrs["schema_version"] = 1
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["schema_version"] = SCHEMA_VERSION
         imu = f.create_group("imu")
         imu.attrs["sample_rate_hz"] = FS
         # the recorder's layout and chunking (rigctl.recorder: 8192 rows per chunk); the reader

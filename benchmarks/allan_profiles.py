@@ -64,10 +64,12 @@ def _load() -> str:
 def _h5(path: Path, fs: float) -> tuple:
     import h5py
 
+    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
+
     f = h5py.File(path, "w")
-    f.attrs["format"] = "rigctl-recording"
-    f.attrs["schema_version"] = 1
-    f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
+    f.attrs["format"] = FORMAT_NAME
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.create_dataset("run/status", data=np.array([b"complete"], dtype=STATUS_DTYPE))
     imu = f.create_group("imu")
     imu.attrs["sample_rate_hz"] = fs
     ds = {}

@@ -13,10 +13,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 
+from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.analysis.allan import CHUNK_ROWS as CHUNK
 from rigctl.solvers import allan_fit as F
@@ -42,19 +42,8 @@ def _need(path: Path) -> Path:
 
 
 def _write(path: Path, gyro: np.ndarray, accel: np.ndarray | None = None) -> Path:
-    n = gyro.shape[0]
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = "rigctl-recording"
-        f.attrs["schema_version"] = 1
-        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = FS
-        imu.create_dataset("time", data=np.arange(n) / FS).attrs["units"] = "s"
-        imu.create_dataset("counter", data=np.arange(n, dtype=np.uint64))
-        imu.create_dataset("angular_rate", data=gyro).attrs["units"] = "rad/s"
-        if accel is not None:
-            imu.create_dataset("specific_force", data=accel).attrs["units"] = "m/s^2"
-    return path
+    return write_recording(path, FS, angular_rate=gyro,
+                           **({"specific_force": accel} if accel is not None else {}))
 
 
 def oadev(y: np.ndarray, ms: np.ndarray) -> np.ndarray:
