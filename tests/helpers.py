@@ -11,6 +11,13 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 
+#: tolerance, s, for comparing a stored duration with the one asked for: the engine ends a window
+#: at min(now, t_start + sample_s) and a resumed session adds its time offset to both ends, so
+#: t_end - t_start is the asked duration only to the rounding of those sums (a few ulps of the
+#: rig time: 4e-13 s at ~1e3 s, 1.5e-11 s at a day). 1 ns is far above that and far below any
+#: real shortfall (a sample, a poll: >= 1 ms)
+DURATION_EPS = 1e-9
+
 
 #: configs/sim.yaml's slow noise terms (bias instability B, random walk K), zeroed: the tests
 #: that check the declared error model against white-noise tolerances (segment means within
