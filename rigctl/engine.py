@@ -43,8 +43,8 @@ TIME_EPS = 1e-6
 #: decoder batch) up to 2 s of rig time -- and, on a clock faster than the wall (an emulated rig
 #: at 100x), at least this much wall time: the delay is the host's, in wall time, and 2 s of rig
 #: time at 100x is 20 ms, less than one scheduling delay of a loaded host (at load 10-12 on 2
-#: cores, 10 of 35 emulated 24-position runs at 100x cut a 5 s window short, 3 to nothing, with
-#: every sample of it recorded after the wait).
+#: cores, 17 of 47 wired 24-position runs at 100x cut a 5 s window short, 3 to no sample at all,
+#: with every sample of it recorded after the wait).
 WINDOW_WAIT_WALL_S = 0.5
 
 
