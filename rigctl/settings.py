@@ -8,7 +8,8 @@ missing required keys are named, and :meth:`Settings.check` adds the rules betwe
 every error is an InputError with the file and line (rigctl.schema).
 
 Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments), rigctl.config (``site:``, ``recorder:``, ``table.limits``, ``traceability:``),
+keyword arguments), rigctl.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
+``traceability:``),
 rigctl.suspenders (``suspenders:``), rigctl.notify, rigctl.chamber, rigctl.procedure (the
 procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
 rigctl.spec (the acceptance limits of ``--spec``).
