@@ -327,6 +327,45 @@ class OadevAccumulator:
             self.chunk_phase = x
         self.n_phase += y.size
 
+    def can_take_phase(self) -> bool:
+        """Whether :meth:`rate_target` / :meth:`commit_rate` can be used: rate samples added
+        before (so the offset and x[0] are set), the compiled kernels, and the direct path
+        starting at stride 1."""
+        return (K.HAVE_NUMBA and self.n_phase > 0 and self.phase_input is False
+                and self.pyramid is None and bool(self.levels) and self.levels[0].s == 1)
+
+    def rate_target(self, n: int) -> np.ndarray:
+        """Where the phase points of the next ``n`` rate samples go when the caller computes
+        them itself (``x[k] = x_last + tau0 * running sum of (y - offset)``, exactly as
+        :func:`rigctl.solvers.allan_kernels.phase_into`; e.g. several axes in one pass,
+        :func:`rigctl.solvers.allan_kernels.phase_cols3`), before :meth:`commit_rate`:
+        a view of the stride-1 level's buffer, right after its tail (valid until the next
+        call of this accumulator). Needs :meth:`can_take_phase`."""
+        lev = self.levels[0]
+        buf = lev._buffer(lev.tail.size + n)
+        return buf[lev.tail.size:]
+
+    @property
+    def x_last(self) -> float:
+        """The last phase point so far (the running sum's start for the next chunk)."""
+        return self._x_last
+
+    def commit_rate(self, n: int) -> None:
+        """Sum the ``n`` phase points written into :meth:`rate_target` (what :meth:`add_rate`
+        does after building them; ``chunk_phase`` is set the same way)."""
+        self.chunk_phase = None
+        if n == 0:
+            return
+        lev = self.levels[0]
+        buf = lev._buffer(lev.tail.size + n)
+        buf[: lev.tail.size] = lev.tail
+        self._x_last = float(buf[-1])
+        with S.blas_single_thread():
+            x = lev.feed_buffer(buf)
+        self.chunk_phase = x
+        self._feed_levels(x, self.n_phase, first=1, src_s=1)
+        self.n_phase += n
+
     def add_phase(self, x: np.ndarray) -> None:
         """Append phase points (rate units x s). A constant offset is removed (float64)."""
         x = np.array(x, dtype=np.float64).ravel()

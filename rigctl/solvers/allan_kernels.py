@@ -170,18 +170,9 @@ if HAVE_NUMBA:
         return c
 
     @njit(cache=True, nogil=True)
-    def _far_from_range_blocks(y, w, thr, bs, out):  # pragma: no cover - compiled
-        """As :func:`_far_from_range` (same indices), with a prefilter: the extremes of blocks
-        of ``bs`` >= w samples (one SIMD-friendly pass); the window of every sample of block b
-        lies inside blocks b-1, b, b+1 (clipped ends: the padding repeats y[0] or y[n-1],
-        which are inside them), so when those three blocks span at most ``thr`` no sample of
-        block b can be flagged. Only the other blocks are examined, sample by sample, with the
-        window's own extremes."""
+    def _block_extremes(y, bs, bmin, bmax):  # pragma: no cover - compiled
         n = y.size
-        nb = (n + bs - 1) // bs
-        bmin = np.empty(nb)
-        bmax = np.empty(nb)
-        for b in range(nb):
+        for b in range((n + bs - 1) // bs):
             a = y[b * bs]
             z = a
             for i in range(b * bs + 1, min(n, b * bs + bs)):
@@ -190,6 +181,12 @@ if HAVE_NUMBA:
                 z = v if v > z else z
             bmin[b] = a
             bmax[b] = z
+
+    @njit(cache=True, nogil=True)
+    def _far_from_range_pre(y, w, thr, bs, bmin, bmax, out):  # pragma: no cover - compiled
+        """The second step of :func:`_far_from_range_blocks`, given the blocks' extremes."""
+        n = y.size
+        nb = (n + bs - 1) // bs
         lo = w // 2
         c = 0
         for b in range(nb):
@@ -215,6 +212,74 @@ if HAVE_NUMBA:
                     out[c] = i
                     c += 1
         return c
+
+    @njit(cache=True, nogil=True)
+    def _far_from_range_blocks(y, w, thr, bs, out):  # pragma: no cover - compiled
+        """As :func:`_far_from_range` (same indices), with a prefilter: the extremes of blocks
+        of ``bs`` >= w samples (one SIMD-friendly pass); the window of every sample of block b
+        lies inside blocks b-1, b, b+1 (clipped ends: the padding repeats y[0] or y[n-1],
+        which are inside them), so when those three blocks span at most ``thr`` no sample of
+        block b can be flagged. Only the other blocks are examined, sample by sample, with the
+        window's own extremes."""
+        nb = (y.size + bs - 1) // bs
+        bmin = np.empty(nb)
+        bmax = np.empty(nb)
+        _block_extremes(y, bs, bmin, bmax)
+        return _far_from_range_pre(y, w, thr, bs, bmin, bmax, out)
+
+    @njit(cache=True, nogil=True)  # no fastmath: the same roundings as _phase_chunk
+    def _phase_cols3(blk, offs, tau0, x0, o0, o1, o2, bs, bmin, bmax):  # pragma: no cover
+        """For each column c of blk (n x 3): o_c[i] = x0[c] + tau0 * sum_{j<=i} (blk[j, c] -
+        offs[c]), the same operations in the same order as _phase_chunk (bit-identical), and
+        the extremes of each block of ``bs`` rows per column (bmin/bmax, 3 x blocks), in one
+        pass over the rows: the three running sums are independent chains, so the pass costs
+        about what one column's running sum alone costs (its add latency). x0 is set to the
+        last phase point of each column."""
+        n = blk.shape[0]
+        c0 = offs[0]
+        c1 = offs[1]
+        c2 = offs[2]
+        b0 = x0[0]
+        b1 = x0[1]
+        b2 = x0[2]
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for b in range((n + bs - 1) // bs):
+            lo = b * bs
+            hi = min(n, lo + bs)
+            mn0 = blk[lo, 0]
+            mx0 = mn0
+            mn1 = blk[lo, 1]
+            mx1 = mn1
+            mn2 = blk[lo, 2]
+            mx2 = mn2
+            for i in range(lo, hi):
+                v0 = blk[i, 0]
+                v1 = blk[i, 1]
+                v2 = blk[i, 2]
+                a0 += v0 - c0
+                a1 += v1 - c1
+                a2 += v2 - c2
+                o0[i] = a0 * tau0 + b0
+                o1[i] = a1 * tau0 + b1
+                o2[i] = a2 * tau0 + b2
+                mn0 = v0 if v0 < mn0 else mn0
+                mx0 = v0 if v0 > mx0 else mx0
+                mn1 = v1 if v1 < mn1 else mn1
+                mx1 = v1 if v1 > mx1 else mx1
+                mn2 = v2 if v2 < mn2 else mn2
+                mx2 = v2 if v2 > mx2 else mx2
+            bmin[0, b] = mn0
+            bmax[0, b] = mx0
+            bmin[1, b] = mn1
+            bmax[1, b] = mx1
+            bmin[2, b] = mn2
+            bmax[2, b] = mx2
+        if n:
+            x0[0] = o0[n - 1]
+            x0[1] = o1[n - 1]
+            x0[2] = o2[n - 1]
 
     @njit(cache=True, nogil=True)
     def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
@@ -367,15 +432,42 @@ def phase_into(y: np.ndarray, offset: float, tau0: float, x0: float, out: np.nda
                  float(x0), out)
 
 
-def far_from_window_range(y: np.ndarray, w: int, thr: float) -> np.ndarray:
+def extremes_block(w: int) -> int:
+    """Rows per block of the spike prefilter's extremes for a window of w samples."""
+    return max(32, int(w))
+
+
+def far_from_window_range(y: np.ndarray, w: int, thr: float,
+                          extremes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Indices i where y[i] is more than ``thr`` above the minimum or below the maximum of its
-    window of w samples (scipy.ndimage's alignment, "nearest" ends), ascending."""
-    y = np.ascontiguousarray(y, dtype=np.float64)
+    window of w samples (scipy.ndimage's alignment, "nearest" ends), ascending. ``extremes``:
+    the minimum and maximum of each block of :func:`extremes_block` samples of y, when the
+    caller has them already (:func:`phase_cols3`); y may then be a strided view."""
+    bs = extremes_block(w)
+    if extremes is None:
+        y = np.ascontiguousarray(y, dtype=np.float64)
     out = np.empty(y.size, dtype=np.int64)
     if not y.size:
         return out[:0].copy()
-    c = _far_from_range_blocks(y, int(w), float(thr), max(32, int(w)), out)
+    if extremes is None:
+        c = _far_from_range_blocks(y, int(w), float(thr), bs, out)
+    else:
+        c = _far_from_range_pre(y, int(w), float(thr), bs, extremes[0], extremes[1], out)
     return out[:c].copy()
+
+
+def phase_cols3(blk: np.ndarray, offsets: np.ndarray, tau0: float, x0: np.ndarray,
+                outs: list[np.ndarray], bs: int) -> tuple[np.ndarray, np.ndarray]:
+    """The running-sum phase of each column of ``blk`` (rows x 3, float64) into outs[c] (each
+    of at least len(blk) points; see :func:`phase_into`), bit-identical to it, in one pass for
+    the three columns; ``x0`` (3) is updated to each column's last phase point. Returns the
+    minimum and maximum of every block of ``bs`` rows per column (3 x blocks)."""
+    nb = (blk.shape[0] + bs - 1) // bs
+    bmin = np.empty((3, nb))
+    bmax = np.empty((3, nb))
+    _phase_cols3(blk, np.asarray(offsets, dtype=np.float64), float(tau0), x0, outs[0], outs[1],
+                 outs[2], int(bs), bmin, bmax)
+    return bmin, bmax
 
 
 def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:
