@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
+from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.errors import InputError
 from rigctl.recording_reader import RowReader
@@ -91,15 +92,7 @@ def _recording(path: Path, n: int, gaps: bool, seed: int = 4) -> None:
     if gaps:
         idx[60_000:] += 5
         idx[123_457:] += 1
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = "rigctl-recording"
-        f.attrs["schema_version"] = 1
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = fs
-        imu.create_dataset("time", data=idx / fs, chunks=(8192,)).attrs["units"] = "s"
-        imu.create_dataset("counter", data=idx, chunks=(8192,))
-        imu.create_dataset("angular_rate", data=g, chunks=(8192, 3)).attrs["units"] = "rad/s"
-        imu.create_dataset("specific_force", data=a, chunks=(8192, 3)).attrs["units"] = "m/s^2"
+    write_recording(path, fs, counter=idx, angular_rate=g, specific_force=a, chunk_rows=8192)
 
 
 def _flat(r: dict) -> dict:
