@@ -11,6 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
+from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 
 
@@ -43,19 +44,11 @@ def _gappy_recording(path: Path, fs: float = 100.0, n_grid: int = 90_000, seed: 
     keep = ~gap
     k = np.flatnonzero(keep)
     n = k.size
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = "rigctl-recording"
-        f.attrs["schema_version"] = 1
-        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = fs
-        imu.create_dataset("time", data=k / fs).attrs["units"] = "s"
-        imu.create_dataset("counter", data=k.astype(np.uint64))
-        g = np.zeros((n, 3))
-        g[:, 0] = y[keep]
-        g[:, 1] = 1e-3
-        g[:, 2] = -1e-3
-        imu.create_dataset("angular_rate", data=g).attrs["units"] = "rad/s"
+    g = np.zeros((n, 3))
+    g[:, 0] = y[keep]
+    g[:, 1] = 1e-3
+    g[:, 2] = -1e-3
+    write_recording(path, fs, counter=k.astype(np.uint64), angular_rate=g)
     return y, gap
 
 
