@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -13,7 +13,7 @@ from .chamber import ChamberSettings, chamber_settings
 from .frames import normal_gravity
 from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
-from .settings import Settings, number, section, setting
+from .settings import Settings, number, parse, section, setting, text
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -71,6 +71,19 @@ class RecorderSettings(Settings):
 
     flush_interval_s: float = number(0.5, minimum=0.01, maximum=1.0)
     table_rate_hz: float = number(10.0, minimum=0.1, maximum=1000.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigSettings(Settings):
+    """The rig config's top level (each section is read by its own settings)."""
+
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("site", "table", "imu", "pulses", "recorder", "suspenders",
+                                             "traceability", "chamber", "notifications")
+    rig: str | None = text(None)
+    #: None: virtual with the emulator, real with wired devices
+    clock: str | None = text(None, choices=CLOCKS)
+    speed: float = number(1.0, minimum=1e-3, maximum=1e4)
+    seed: int = number(0, minimum=0, integer=True)
 
 
 @dataclass(frozen=True)
@@ -246,13 +259,9 @@ def load_config(path: str | Path) -> RigConfig:
     if raw is None:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
-    S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders", "traceability", "chamber", "notifications"), "the rig config")
+    top = parse(RigSettings, m, "the rig config")
     traceability(m)
-    name = S.get_str(m, "rig", p.stem)
-    clock = S.get_str(m, "clock", None, choices=CLOCKS)
-    speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)
-    seed = S.get_number(m, "seed", 0, minimum=0, integer=True)
+    name, clock, speed, seed = top.rig if top.rig is not None else p.stem, top.clock, top.speed, top.seed
 
     site = section(m, "site", SiteSettings)
     lat, h, g = math.radians(site.latitude_deg), site.height_m, site.gravity_m_s2

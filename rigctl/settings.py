@@ -1,15 +1,17 @@
-"""Typed settings: one frozen dataclass per section of a rig config, and the one validator.
+"""Typed settings: one frozen dataclass per concept of a rig config, a procedure or a spec file,
+and the one validator.
 
-A section's settings are a dataclass whose fields each name one YAML key, with its default and
-its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, or :func:`setting`
-with a reader of its own). :func:`parse` is the one validator: unknown keys are refused with
-"did you mean", each value is read and checked by its field's reader (type, range, choices),
-missing required keys are named, and :meth:`Settings.check` adds the rules between fields;
-every error is an InputError with the file and line (rigctl.schema).
+A concept's settings are a dataclass whose fields each name one YAML key, with its default and
+its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, :func:`mapping`,
+:func:`as_written`, or :func:`setting` with a reader of its own). :func:`parse` is the one
+validator: unknown keys are refused with "did you mean", each value is read and checked by its
+field's reader (type, range, choices), missing required keys are named, and
+:meth:`Settings.check` adds the rules between fields; every error is an InputError with the
+file and line (rigctl.schema).
 
 Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments), rigctl.config (``site:``, ``recorder:``, ``table.limits``, ``traceability:``),
-rigctl.suspenders (``suspenders:``), rigctl.notify, rigctl.chamber, rigctl.procedure (the
+keyword arguments), rigctl.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
+``traceability:``), rigctl.suspenders, rigctl.notify, rigctl.chamber, rigctl.procedure (the
 procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
 rigctl.spec (the acceptance limits of ``--spec``).
 """

@@ -146,3 +146,46 @@ def test_fused_pass_refuses_nan_like_the_plain_path(tmp_path: Path,
     monkeypatch.setattr(AA, "FUSED", True)
     res = AA.compute(str(rec), ["ax", "ay", "gz"], 95)
     assert set(res["axes"]) == {"ax", "ay", "gz"}
+
+
+def test_cascade_same_terms_as_the_strided_levels() -> None:
+    """The compiled cascade (fast mode's levels in one pass per chunk) sums the same terms as
+    one StridedLevel per stride: equal term counts, sums equal to rounding, for chunks of
+    every size (1 point to more than a piece), reading the sums midway and feeding on."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    from rigctl.solvers import allan as A
+    from rigctl.solvers import allan_stream as S
+
+    rng = np.random.default_rng(7)
+    n = 300_001
+    y = rng.standard_normal(n) * 1e-3 + np.cumsum(rng.standard_normal(n)) * 1e-6 + 0.3
+    ms = A.snap_fast(A.tau_factors(n + 1, 60, "oadev"))
+    ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+    ms = np.union1d(ms, [3, 5, 1000])  # 1000 = 125 x 8: a wide lag at stride 8
+    levels: dict[int, list[int]] = {}
+    for m in ms:
+        s = A.fast_stride(int(m))
+        levels.setdefault(s, []).append(int(m) // s)
+    x = np.concatenate(([0.0], np.cumsum(y - 0.3))) * 1e-3
+    casc = S.Cascade(levels)
+    ref = [S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
+    scratch = np.empty(1 << 16)
+    pos = 0
+    sizes = [1, 2, 7, 20_000, 1, S.Cascade.SUB + 3, 5000, 100_000]
+    k = 0
+    while pos < x.size:
+        c = min(sizes[k % len(sizes)], x.size - pos)
+        casc.feed(x[pos: pos + c], pos)
+        for lev in ref:
+            lev.feed(x[pos: pos + c], pos, scratch)
+        pos += c
+        k += 1
+        if k == 5:
+            casc.flush()  # sums read midway; feeding goes on
+    casc.flush()
+    for lev in ref:
+        got, cnt = casc.level_sums(lev.s)
+        for lag in lev.ks:
+            assert cnt[lag] == lev.counts[lag] == (x.size - 1) // lev.s + 1 - 2 * lag, (lev.s, lag)
+            assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)

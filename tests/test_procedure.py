@@ -150,6 +150,14 @@ def test_broken_procedure_names_file_and_line(name, tmp_path, cfg):
     assert f"{path}:{expected_line}:" in str(err)
 
 
+def test_every_solver_a_procedure_accepts_has_its_hook():
+    """procedure.SOLVERS (what a solve step may name; the core cannot import the hooks) and
+    solve.SOLVER_HOOKS (what runs) name the same solvers."""
+    from rigctl.procedure import SOLVERS
+    from rigctl.solve import SOLVER_HOOKS
+    assert sorted(SOLVERS) == sorted(SOLVER_HOOKS)
+
+
 def test_include_cycle_is_reported(tmp_path):
     (tmp_path / "a.yaml").write_text("steps:\n  - include: b.yaml\n")
     (tmp_path / "b.yaml").write_text("steps:\n  - include: a.yaml\n")

@@ -257,7 +257,8 @@ def test_noise_model_against_the_allan_deviation_of_the_record(record, fits):
             k = tau // 10
             d = x[2 * k:] - 2 * x[k:-k] + x[:-2 * k]
             adev2 = np.mean(d**2) / (2.0 * tau**2)
-            model = (sum(m.white_var.values()) / tau + 2 * np.log(2) / np.pi * m.B**2 + m.K**2 * tau / 3)
+            model = (sum(v**2 for v in m.white_by_group.values()) / tau + 2 * np.log(2) / np.pi * m.B.value**2
+                     + m.K.value**2 * tau / 3)
             out.append(np.sqrt(adev2 / model))
         return np.array(out)
 
@@ -265,5 +266,6 @@ def test_noise_model_against_the_allan_deviation_of_the_record(record, fits):
         assert np.all(np.abs(ratios(i, [10, 30, 100, 300, 1000, 3000]) - 1) < 0.2), ratios(i, [10, 3000])
         assert np.all(ratios(i, [10000, 30000]) > 1.3)  # the slow excess (finding)
     assert np.all(np.abs(ratios(1, [100, 300, 1000, 3000, 10000]) - 1) < 0.2)
-    assert sum(w.noise[1].white_var.values()) < 1e-3 * sum(w.noise[0].white_var.values())
+    assert (sum(v**2 for v in w.noise[1].white_by_group.values())
+            < 1e-3 * sum(v**2 for v in w.noise[0].white_by_group.values()))
     assert ratios(1, [10])[0] > 1.8  # white level lost on y (finding)

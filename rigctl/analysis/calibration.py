@@ -43,7 +43,7 @@ from ..recorder import utc_now, write_results
 from ..segment_builder import build_segment_table, open_recording
 from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
-from ..solvers.segment_stats import NoiseModel
+from ..solvers.noise_coefficients import Triad, triad
 from ..errors import InputError
 from ..spec import Spec
 
@@ -67,8 +67,8 @@ def _allan_term_si(fit: dict[str, Any], term: str) -> float:
     return math.sqrt(max(float(fit["coeff_sq_si"].get(term, 0.0)), 0.0))
 
 
-def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
-    """IEEE 952 NoiseModels (accel, gyro) from /results/allan's joint fits, if complete."""
+def noise_from_allan(f: h5py.File) -> tuple[Triad, Triad] | None:
+    """IEEE 952 coefficients (accel, gyro: three axes each) from /results/allan's joint fits, if complete."""
     g = f.get("results/allan")
     if g is None or "json" not in g.attrs:
         return None
@@ -77,8 +77,8 @@ def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
     for names in (("ax", "ay", "az"), ("gx", "gy", "gz")):
         if not all(a in axes for a in names):
             return None
-        out.append(NoiseModel(**{t: np.array([_allan_term_si(axes[a]["fit"], t) for a in names])
-                                 for t in "QNBKR"}))
+        out.append(triad("accel" if names[0] == "ax" else "gyro", "rigctl allan (/results/allan)",
+                         **{t: [_allan_term_si(axes[a]["fit"], t) for a in names] for t in "QNBKR"}))
     return out[0], out[1]
 
 

@@ -270,7 +270,7 @@ def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_
                noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
     """Bias against temperature of a static record (:func:`static_windows`): per sensor the windows
     and the fit with scale and misalignment held (one orientation: only the bias terms are
-    identifiable), the covariance of the window means from ``noise`` (accel, gyro NoiseModel; None:
+    identifiable), the covariance of the window means from ``noise`` (accel, gyro: three axes' NoiseCoefficients; None:
     estimated from the record) and, with ``loop``, the thermal candidates tested."""
     wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree))
     out = {}
@@ -371,7 +371,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     before and after, and each axis' coefficient covariance). ``degrees``: per group
     ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default), N / 'B,S,M' (:func:`parse_degrees`)
     or 'auto' (chosen per sensor by :func:`rigctl.solvers.thermal.select_degrees`). ``noise``:
-    (accel NoiseModel, gyro NoiseModel, description) as ``rigctl calibrate --noise`` resolved it
+    (accel, gyro: three axes' NoiseCoefficients each, description) as ``rigctl calibrate --noise`` resolved it
     (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
     or no ``noise``, estimates that sensor's noise from the session
     (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
@@ -390,7 +390,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                      "and rate random walk K by REML of the window means about the protected design "
                      "(cubic in temperature, every thermal candidate, an offset per window kind)")
     models = th.estimate_noise(wins["accel"], nf) + th.estimate_noise(wins["gyro"], nw)
-    noise_lines, noise_rows = noise_summary(models) if len(models) == 6 else ([], [])
+    noise_lines, noise_rows = noise_summary(models, wins["accel"].t0) if len(models) == 6 else ([], [])
     if len(models) != 6:
         noise_txt += " (window times unknown: means treated as independent)"
     sensors: dict[str, Any] = {}

@@ -292,9 +292,9 @@ def protected_design(w: ThermalWindows, axis: int) -> np.ndarray:
 def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
                    tau_max_s: float = 1.0e4) -> list[Any]:
     """Set ``w.cov`` from the IEEE 952 noise of each axis and return the three
-    :class:`~rigctl.solvers.segment_noise.ChannelNoise`.
+    :class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients`.
 
-    model: a :class:`~rigctl.solvers.segment_stats.NoiseModel` (coefficients given, e.g. from
+    model: the three axes' :class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients` (given, e.g. from
     ``rigctl allan`` of the same unit) or None: estimated from the session by REML
     (:func:`rigctl.solvers.segment_noise.estimate_channel_noise`) on the windows' batch means
     (contrasts free of a linear drift) and means (about :func:`protected_design`). Needs the
@@ -305,8 +305,8 @@ def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
     a, b = np.asarray(w.t_start, float), np.asarray(w.t_end, float)
     kind = np.asarray(w.kind if w.kind is not None else ["orientation"] * len(w)).astype(str)
     if model is not None:
-        models = sn.noise_from_coefficients(model, w.t0)
-        covs = sn.channel_covs(models, a, b, kind)
+        models = list(model)
+        covs = sn.channel_covs(models, a, b, kind, w.t0)
     else:
         if w.batch is None:
             return []
@@ -317,7 +317,7 @@ def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
         held = {"scale": HELD} if one_orientation(w.ref) else {"scale": 0}
         models = [sn.estimate_channel_noise(w.y[:, i] - held_part(w, i, held), protected_design(w, i), terms,
                                             w.batch[:, :, i]) for i in range(3)]
-        covs = sn.channel_covs(models, a, b, kind, flicker=terms.comps[-2], rw=terms.comps[-1])
+        covs = sn.channel_covs(models, a, b, kind, w.t0, flicker=terms.comps[-2], rw=terms.comps[-1])
     w.set_cov(covs)
     w.noise = models
     return models
