@@ -30,6 +30,7 @@ coefficients is a cheap weighted sum (:func:`combine`).
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -75,9 +76,32 @@ def _weight(ma_n: np.ndarray, mb_n: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.maximum(0.0, np.minimum(ma_n, mb_n - k) - np.maximum(0.0, -k))
 
 
+_MEMO: dict = {}
+_MEMO_LOCK = threading.Lock()
+_MEMO_MAX = 8
+
+
 def term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
-    p = coefficient^2, f_tu = 1 if t == u else 2 (use :func:`combine`)."""
+    p = coefficient^2, f_tu = 1 if t == u else 2 (use :func:`combine`). A function of
+    (tau0, ms, n_phase) only: the six axes of a recording share it, so the last few are kept
+    (the matrices are read-only)."""
+    key = (float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase))
+    with _MEMO_LOCK:
+        hit = _MEMO.get(key)
+    if hit is not None:
+        return hit
+    out = _term_covariances(tau0, ms, n_phase)
+    for c in out.values():
+        c.setflags(write=False)
+    with _MEMO_LOCK:
+        if len(_MEMO) >= _MEMO_MAX:
+            _MEMO.pop(next(iter(_MEMO)))
+        _MEMO[key] = out
+    return out
+
+
+def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     ms = np.asarray(ms, dtype=float)
     n = ms.size
     big_m = n_phase - 2.0 * ms
