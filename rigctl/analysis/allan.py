@@ -272,13 +272,47 @@ def fm_after_fm(ms: np.ndarray, alphas: np.ndarray) -> np.ndarray:
     return out
 
 
-def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False) -> dict[str, Any]:
-    """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
+def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
+    """EDF of the overlapping Allan variance at factor m when the terms touching a gap are
+    skipped: the estimate is the mean of the terms of the gap-free stretches that hold any
+    (L + 1 phase points, n = L + 1 - 2m terms each), i.e. a sum of independent per-stretch
+    estimates weighted by their term counts, whose EDF is Satterthwaite's
+    (sum n_i)^2 / sum(n_i^2 / nu_i), nu_i Greenhall's EDF of stretch i. Taking the whole
+    record's EDF instead overstates it wherever stretches are short: an Astro Pi record (237
+    stretches, the longest 446 samples) kept 44 terms at m = 208, all in one stretch, with an
+    EDF of 147 for the whole record (~1 for the stretch)."""
+    lengths, count = np.unique(np.asarray(stretch_samples, dtype=np.int64), return_counts=True)
+    num = den = 0.0
+    for length, c in zip(lengths, count):
+        n_terms = int(length) + 1 - 2 * int(m)
+        if n_terms <= 0:
+            continue
+        try:
+            nu = E.edf("oadev", int(alpha), int(m), int(length) + 1)
+        except ValueError:  # too few phase points for a Greenhall EDF
+            continue
+        if not nu > 0:
+            continue
+        num += c * n_terms
+        den += c * n_terms ** 2 / nu
+    return num * num / den if den > 0 else float("nan")
+
+
+def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
+                 stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
+    """Deviation curve, confidence and fits of one streamed axis (SI + field units).
+    ``stretch_samples``: the lengths of the gap-free stretches when gaps are skipped (the EDF
+    is then that of the stretches' terms: :func:`edf_skipping_gaps`)."""
     res = stream.result()
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
     alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
-    edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
+    if stretch_samples is not None and len(stretch_samples) > 1:
+        edfs = np.array([edf_skipping_gaps(int(a), int(m), stretch_samples)
+                         for a, m in zip(alphas, res.m)])
+    else:
+        edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase)
+                         for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
     fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
@@ -369,10 +403,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             missing = 0
         gaps_bridged = int(missing) if gaps == "bridge" else 0
         breaks = [g for g, _ in found] if gaps == "skip" else None
+        stretch_samples = None
         if breaks:
             edges = [s0] + breaks + [s1]
             gap_info["stretches"] = len(edges) - 1
             gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
+            stretch_samples = np.diff(edges)
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
         if mode == "fast" and not isinstance(taus, (list, tuple)):
@@ -392,7 +428,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                        "gaps": gap_info, "outliers": outliers, "axes": {}}
                 # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
                 done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
-                                                            outliers == "exclude"), axes))
+                                                            outliers == "exclude",
+                                                            stretch_samples), axes))
         finally:
             for r in readers.values():
                 r.close()
