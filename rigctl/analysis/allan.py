@@ -560,20 +560,36 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
     # read in chunks (a day's counter is 0.7 GB, its differences another 0.7 GB), each chunk
     # with the last value of the previous one so that no step is missed
     if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
-        out = []
         rd = RowReader(f, "/imu/counter")
         ds = rd.ds
-        buf = np.empty(min(CHUNK_ROWS, s1 - s0) + 1, dtype=ds.dtype)
-        try:
-            for a in range(s0, s1 - 1, CHUNK_ROWS):
+        starts = list(range(s0, s1 - 1, CHUNK_ROWS))
+
+        def scan(part: list[int]) -> list[tuple[int, int]]:
+            out = []
+            buf = np.empty(min(CHUNK_ROWS, s1 - s0) + 1, dtype=ds.dtype)
+            for a in part:
                 c = rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf)
                 if c.dtype == np.uint64:
                     c = c.view(np.int64)  # what the cast to int64 gives, without its pass
+                if KER.HAVE_NUMBA:
+                    idx, d = KER.counter_jumps(c)
+                    out += [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+                    continue
                 d = np.diff(np.asarray(c, dtype=np.int64))
                 out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+            return out
+
+        try:
+            if KER.HAVE_NUMBA and rd.direct is not None and len(starts) > 1 and WORKERS > 1:
+                # the reads (os.preadv) and the scans (compiled) release the GIL: the two
+                # halves of the record on the two cores
+                half = (len(starts) + 1) // 2
+                with ThreadPoolExecutor(2) as pool:
+                    parts = list(pool.map(scan, [starts[:half], starts[half:]]))
+                return parts[0] + parts[1]
+            return scan(starts)
         finally:
             rd.close()
-        return out
     if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
         out = []
         ds = f["/imu/time"]
