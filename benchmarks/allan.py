@@ -199,8 +199,8 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
             "h5_load_avg": load}
 
 
-def _emulator_cases() -> list[tuple[str, str, dict]]:
-    from rigctl.sim.error_model import noise_params
+def _emulator_cases() -> list[tuple[str, str, tuple]]:
+    from rigctl.sim.error_model import sensor_noise
     from rigctl.sim.profiles import get_profile, profile_names
 
     cases = []
@@ -210,7 +210,7 @@ def _emulator_cases() -> list[tuple[str, str, dict]]:
         prof = get_profile(name)
         for sensor in ("gyro", "accel"):
             if sensor in prof:
-                cases.append((name, sensor, noise_params(prof[sensor], sensor)))
+                cases.append((name, sensor, sensor_noise(prof[sensor], sensor)))
     return cases
 
 
@@ -233,11 +233,11 @@ def _covers(entry: dict, si: str, v: float) -> bool:
 LIMITS = {"N": 0.05, "B": 0.20, "K": 0.25}
 
 
-def identifiability(params: dict, fs: float, hours: float) -> dict:
+def identifiability(params: tuple, fs: float, hours: float) -> dict:
     """Per term: Cramer-Rao bound of sd(c)/c from the capture (Whittle, at the truth), the
     share of an efficient unbiased estimator's results within the target, the capture length
     that would put 95 % within it, and (K) where K dominates the Allan variance."""
-    truth = {t: float(np.asarray(params.get(t, 0.0)).ravel()[0]) for t in "QNBKR"}
+    truth = params[0].values()
     crb = R.crb_rel_sd(truth, hours * 3600.0, fs)
     out = {}
     for t in "NBK":
@@ -278,7 +278,7 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
     over_limit, check_fail = [], []
     t0 = time.perf_counter()
     for prof, sensor, params in _emulator_cases():
-        truth = {t: float(np.asarray(params.get(t, 0.0)).ravel()[0]) for t in "QNBKR"}
+        truth = params[0].values()
         ident = identifiability(params, fs, hours)
         rows = {t: {"j": [], "p": [], "cov": [], "covp": [], "sup": 0, "tgt": []} for t in "NBK"}
         pseudo = None

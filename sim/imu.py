@@ -29,6 +29,9 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.yamlio import LocDict
+from rigctl.solvers.noise_coefficients import triad
+
+from .noise import NoiseGenerator
 
 G0 = 9.80665  # m/s^2 per g (for mg / ppm conversions in config values)
 DEG = math.pi / 180.0
@@ -59,13 +62,11 @@ class DeclaredImuModel:
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A0]))
         self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
-        from .noise import NoiseGenerator
-
         self._slow = {}
         for name, b, k, tag in (("gyro", self.gyro_bias_instability, self.gyro_random_walk, 0x1A1),
                                 ("accel", self.accel_bias_instability, self.accel_random_walk, 0x1A2)):
             if b > 0 or k > 0:
-                self._slow[name] = NoiseGenerator({"B": b, "K": k}, self.rate_hz,
+                self._slow[name] = NoiseGenerator(triad(name, B=b, K=k), self.rate_hz,
                                                   np.random.SeedSequence([self.seed, tag]))
 
     def apply(self, t: NDArray, f_true: NDArray, w_true: NDArray,

@@ -100,7 +100,10 @@ def _flat(r: dict) -> dict:
             "lo95_deg/h", "lo95_mg")
     out = {k: np.asarray(r[k]) for k in keys if k in r}
     out["spikes"] = (r["spikes"]["count"], r["spikes"]["first_times_s"], r["spikes"]["largest_sd"])
-    out["fit"] = repr(r["fit"])
+    # the fit's numbers (to rounding: BLAS may split its sums over threads differently)
+    out["fit"] = np.array([v for e in r["fit"]["terms"].values() for k, v in sorted(e.items())
+                           if isinstance(v, float)])
+    out["fit_supported"] = [e["supported"] for e in r["fit"]["terms"].values()]
     return out
 
 
@@ -114,18 +117,40 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     rec = tmp_path / "r.h5"
     _recording(rec, 160_000, gaps)
     monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    # the noise ID's copies: a short head and the phase decimated by 64 (taken inside the
+    # cascade on the fused path, by a strided pass on the other)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
     got = {}
+    decs: list = []
+    orig = AA.analyse_axis
+
+    def keep_dec(stream, *args):
+        assert stream.dec == 64
+        decs.append(stream._dec[: stream.n_dec].copy())
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", keep_dec)
     for fused in (False, True):
         monkeypatch.setattr(AA, "FUSED", fused)
         res = AA.compute(str(rec), axes, 95, outliers=outliers)
         got[fused] = {a: _flat(r) for a, r in res["axes"].items()}
+        got[fused]["dec"] = [np.array(v) for v in decs]
+        decs.clear()
         assert sum(r["spikes"]["count"] for r in res["axes"].values()) >= len(axes)
         if gaps:
             assert res["gaps"]["count"] == 2
+    assert len(got[True]["dec"]) == len(axes)
+    for u in got[False]["dec"]:  # (the axes are analysed on two threads, in any order)
+        assert u.size == 160_000 // 64 + 1
+        assert any(np.array_equal(u, v) for v in got[True]["dec"])
     for a in axes:
         for k, v in got[False][a].items():
             w = got[True][a][k]
-            assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+            if k == "fit":
+                assert np.allclose(v, w, rtol=1e-9, atol=0, equal_nan=True), a
+            else:
+                assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
 
 
 def test_fused_pass_refuses_nan_like_the_plain_path(tmp_path: Path,
@@ -146,3 +171,46 @@ def test_fused_pass_refuses_nan_like_the_plain_path(tmp_path: Path,
     monkeypatch.setattr(AA, "FUSED", True)
     res = AA.compute(str(rec), ["ax", "ay", "gz"], 95)
     assert set(res["axes"]) == {"ax", "ay", "gz"}
+
+
+def test_cascade_same_terms_as_the_strided_levels() -> None:
+    """The compiled cascade (fast mode's levels in one pass per chunk) sums the same terms as
+    one StridedLevel per stride: equal term counts, sums equal to rounding, for chunks of
+    every size (1 point to more than a piece), reading the sums midway and feeding on."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    from rigctl.solvers import allan as A
+    from rigctl.solvers import allan_stream as S
+
+    rng = np.random.default_rng(7)
+    n = 300_001
+    y = rng.standard_normal(n) * 1e-3 + np.cumsum(rng.standard_normal(n)) * 1e-6 + 0.3
+    ms = A.snap_fast(A.tau_factors(n + 1, 60, "oadev"))
+    ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+    ms = np.union1d(ms, [3, 5, 1000])  # 1000 = 125 x 8: a wide lag at stride 8
+    levels: dict[int, list[int]] = {}
+    for m in ms:
+        s = A.fast_stride(int(m))
+        levels.setdefault(s, []).append(int(m) // s)
+    x = np.concatenate(([0.0], np.cumsum(y - 0.3))) * 1e-3
+    casc = S.Cascade(levels)
+    ref = [S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
+    scratch = np.empty(1 << 16)
+    pos = 0
+    sizes = [1, 2, 7, 20_000, 1, S.Cascade.SUB + 3, 5000, 100_000]
+    k = 0
+    while pos < x.size:
+        c = min(sizes[k % len(sizes)], x.size - pos)
+        casc.feed(x[pos: pos + c], pos)
+        for lev in ref:
+            lev.feed(x[pos: pos + c], pos, scratch)
+        pos += c
+        k += 1
+        if k == 5:
+            casc.flush()  # sums read midway; feeding goes on
+    casc.flush()
+    for lev in ref:
+        got, cnt = casc.level_sums(lev.s)
+        for lag in lev.ks:
+            assert cnt[lag] == lev.counts[lag] == (x.size - 1) // lev.s + 1 - 2 * lag, (lev.s, lag)
+            assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)

@@ -44,7 +44,7 @@ def correlated_session(seed: int, effects: dict[str, np.ndarray] | None = None):
         Xe, _ = effect_by_name(name).build(st)
         y = y + Xe @ coef
     i0, i1 = np.round(st.t_start * FS).astype(int), np.round(st.t_end * FS).astype(int)
-    noise = [NoiseGenerator(p, FS, 1000 * seed + k).next(int(i1.max()) + 1) for k, p in enumerate((ACC, GYR))]
+    noise = [NoiseGenerator(triad(**p), FS, 1000 * seed + k).next(int(i1.max()) + 1) for k, p in enumerate((ACC, GYR))]
     x = np.concatenate(noise, axis=1)  # (n, 6)
     win = [x[a:b] for a, b in zip(i0, i1)]
     st.f = y[:, :3] + np.array([w[:, :3].mean(axis=0) for w in win])

@@ -36,7 +36,8 @@ Where they come from and go to:
 
 * the emulator's profiles (configs/imu-profiles.yaml, ``imu.sim.overrides``): :func:`from_config`
   of a ``noise:`` section, whose keys (:data:`CONFIG_KEYS`: the unit in the key name) are
-  checked with file and line by :mod:`rigctl.sim.profiles`;
+  checked with file and line by :mod:`rigctl.sim.profiles`; the emulator generates Q, N, B, K
+  and R (:mod:`rigctl.sim.noise`), not Gauss-Markov terms;
 * the Allan fit (:func:`rigctl.solvers.allan_fit.fit_terms`: ``fit["coefficients"]``);
 * the recording's /results/allan (:mod:`rigctl.analysis.results`: stored and read through
   :func:`to_json` / :func:`from_json`);
@@ -74,11 +75,10 @@ CONFIG_KEYS = {
     "accel": {"Q": "Q_m_per_s", "N": "N_m_per_s2_per_sqrt_hz", "B": "B_m_per_s2",
               "K": "K_m_per_s3_per_sqrt_hz", "R": "R_m_per_s3"},
 }
-#: keys of a ``noise:`` section besides the terms: the flicker band (s), the emulator's flicker
-#: cascade density, and Gauss-Markov terms (lists, one entry per process)
+#: keys of a ``noise:`` section besides the terms: the flicker band (s); the emulator's cascade
+#: density (``flicker_pairs_per_decade``) is read by rigctl.sim.error_model. Gauss-Markov terms are
+#: not a config key: the emulator does not generate them.
 BAND_KEYS = ("flicker_tau_min_s", "flicker_tau_max_s")
-EMULATOR_KEYS = ("flicker_pairs_per_decade",)
-GM_KEYS = {"gyro": ("gm_sigma_rad_per_s", "gm_tau_s"), "accel": ("gm_sigma_m_per_s2", "gm_tau_s")}
 
 
 @dataclass(frozen=True)
@@ -268,37 +268,25 @@ def terms_of(axes: Sequence[NoiseCoefficients], term: str) -> NDArray[np.float64
 
 
 def from_config(section: Mapping[str, Any] | None, sensor: str, source: str = "emulator profile") -> Triad:
-    """The three axes of a profile's ``noise:`` section (keys :data:`CONFIG_KEYS`, flicker band,
-    Gauss-Markov lists; each term a number or [x, y, z]). Checked beforehand, with file and line,
+    """The three axes of a profile's ``noise:`` section (keys :data:`CONFIG_KEYS` and
+    :data:`BAND_KEYS`; each term a number or [x, y, z]). Checked beforehand, with file and line,
     by :mod:`rigctl.sim.profiles`; a negative value here is a ValueError."""
     section = section or {}
     terms = {t: section.get(k, 0.0) for t, k in CONFIG_KEYS[sensor].items()}
     band = {k: float(section[k]) for k in BAND_KEYS if k in section}
-    axes = triad(sensor, source, **band, **terms)
-    ks, kt = GM_KEYS[sensor]
-    sig, tc = section.get(ks), section.get(kt)
-    if sig is None and tc is None:
-        return axes
-    sig = np.atleast_1d(np.asarray(sig if sig is not None else [], dtype=np.float64))
-    tc = np.atleast_1d(np.asarray(tc if tc is not None else [], dtype=np.float64))
-    if sig.shape != tc.shape:
-        raise ValueError(f"{ks} and {kt} need one entry each per Gauss-Markov term")
-    gm = tuple(GaussMarkov(float(s), float(t)) for s, t in zip(sig, tc))
-    return tuple(replace(m, gm=gm) for m in axes)  # type: ignore[return-value]
+    return triad(sensor, source, **band, **terms)
 
 
 def to_config(axes: Sequence[NoiseCoefficients], sensor: str) -> dict[str, Any]:
-    """A profile's ``noise:`` section for these axes (inverse of :func:`from_config`)."""
+    """A profile's ``noise:`` section for these axes (inverse of :func:`from_config`; SI values)."""
+    if any(m.gm for m in axes):
+        raise ValueError("Gauss-Markov terms have no profile keys (the emulator does not generate them)")
     out: dict[str, Any] = {}
     for t, k in CONFIG_KEYS[sensor].items():
         v = terms_of(axes, t)
         out[k] = float(v[0]) if np.all(v == v[0]) else v.tolist()
     out["flicker_tau_min_s"] = axes[0].flicker_tau_min_s
     out["flicker_tau_max_s"] = axes[0].flicker_tau_max_s
-    if axes[0].gm:
-        ks, kt = GM_KEYS[sensor]
-        out[ks] = [g.sigma.value for g in axes[0].gm]
-        out[kt] = [g.tau_c_s for g in axes[0].gm]
     return out
 
 
