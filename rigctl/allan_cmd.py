@@ -132,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
+    production.preload_database(args.db)  # imported while the sums run
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps)
     gap_line = gap_message(result.get("gaps") or {})
