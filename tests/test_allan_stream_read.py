@@ -100,7 +100,10 @@ def _flat(r: dict) -> dict:
             "lo95_deg/h", "lo95_mg")
     out = {k: np.asarray(r[k]) for k in keys if k in r}
     out["spikes"] = (r["spikes"]["count"], r["spikes"]["first_times_s"], r["spikes"]["largest_sd"])
-    out["fit"] = repr(r["fit"])
+    # the fit's numbers (to rounding: BLAS may split its sums over threads differently)
+    out["fit"] = np.array([v for e in r["fit"]["terms"].values() for k, v in sorted(e.items())
+                           if isinstance(v, float)])
+    out["fit_supported"] = [e["supported"] for e in r["fit"]["terms"].values()]
     return out
 
 
@@ -114,18 +117,40 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     rec = tmp_path / "r.h5"
     _recording(rec, 160_000, gaps)
     monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    # the noise ID's copies: a short head and the phase decimated by 64 (taken inside the
+    # cascade on the fused path, by a strided pass on the other)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
     got = {}
+    decs: list = []
+    orig = AA.analyse_axis
+
+    def keep_dec(stream, *args):
+        assert stream.dec == 64
+        decs.append(stream._dec[: stream.n_dec].copy())
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", keep_dec)
     for fused in (False, True):
         monkeypatch.setattr(AA, "FUSED", fused)
         res = AA.compute(str(rec), axes, 95, outliers=outliers)
         got[fused] = {a: _flat(r) for a, r in res["axes"].items()}
+        got[fused]["dec"] = [np.array(v) for v in decs]
+        decs.clear()
         assert sum(r["spikes"]["count"] for r in res["axes"].values()) >= len(axes)
         if gaps:
             assert res["gaps"]["count"] == 2
+    assert len(got[True]["dec"]) == len(axes)
+    for u in got[False]["dec"]:  # (the axes are analysed on two threads, in any order)
+        assert u.size == 160_000 // 64 + 1
+        assert any(np.array_equal(u, v) for v in got[True]["dec"])
     for a in axes:
         for k, v in got[False][a].items():
             w = got[True][a][k]
-            assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+            if k == "fit":
+                assert np.allclose(v, w, rtol=1e-9, atol=0, equal_nan=True), a
+            else:
+                assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
 
 
 def test_fused_pass_refuses_nan_like_the_plain_path(tmp_path: Path,

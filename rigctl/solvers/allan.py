@@ -364,19 +364,22 @@ class OadevAccumulator:
         """The last phase point so far (the running sum's start for the next chunk)."""
         return self._x_last
 
-    def commit_rate(self, n: int) -> None:
+    def commit_rate(self, n: int, tap: np.ndarray | None = None, tap_step: int = 0) -> int:
         """Sum the ``n`` phase points written into :meth:`rate_target` (what :meth:`add_rate`
-        does after building them; ``chunk_phase`` is set the same way)."""
+        does after building them; ``chunk_phase`` is set the same way). ``tap``: see
+        :meth:`rigctl.solvers.allan_stream.Cascade.commit` (the phase points x[k], k a
+        multiple of ``tap_step``, copied into it; only with the cascade, else nothing is
+        copied); returns how many were copied."""
         self.chunk_phase = None
         if n == 0:
-            return
+            return 0
         if self.cascade is not None:
             x = self.cascade.target(n)
             self._x_last = float(x[-1])
-            self.cascade.commit(n)
+            got = self.cascade.commit(n, tap, tap_step)
             self.chunk_phase = x
             self.n_phase += n
-            return
+            return got
         lev = self.levels[0]
         buf = lev._buffer(lev.tail.size + n)
         buf[: lev.tail.size] = lev.tail
@@ -386,6 +389,7 @@ class OadevAccumulator:
         self.chunk_phase = x
         self._feed_levels(x, self.n_phase, first=1, src_s=1)
         self.n_phase += n
+        return 0
 
     def add_phase(self, x: np.ndarray) -> None:
         """Append phase points (rate units x s). A constant offset is removed (float64)."""

@@ -233,18 +233,28 @@ if HAVE_NUMBA:
 
     @njit(cache=True, nogil=True)
     def _casc_chunk(x0, k0, n, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts,
-                    keep, sub, batch, block):  # pragma: no cover - compiled
+                    keep, sub, batch, block, n_before, tap, tap_step):  # pragma: no cover
         """Level 0's new points are x0[k0:k0 + n], its kept points the tlen[0] before them:
         summed where they are, in pieces of ``sub`` points, each piece's every second (or
         step-th) point passed straight on while it is in the core's caches; a deeper level
         runs once it has ``batch`` points pending. Afterwards level 0's last keep[0] points
-        are moved in front of x0[k0] for the next chunk."""
+        are moved in front of x0[k0] for the next chunk. With ``tap_step`` > 0 the new points
+        whose index (x0[k0] is point ``n_before``) is a multiple of tap_step are also copied
+        into ``tap`` (as many as fit), piece by piece while they are in cache; returns how
+        many."""
         nl = strides.size
         base = k0 - tlen[0]
+        tpos = 0
         for a in range(0, n, sub):
             e = min(n, a + sub)
             _casc_pass(0, x0[base: k0 + e], k0 + a - base, strides, ks, nks, bufs, tlen,
                        pend, b0, nstart, sums, counts, block)
+            if tap_step > 0:  # after the pass: the piece is in cache
+                i = k0 + a + (-(n_before + a)) % tap_step
+                while i < k0 + e and tpos < tap.size:
+                    tap[tpos] = x0[i]
+                    tpos += 1
+                    i += tap_step
             lv = 1
             while lv < nl and pend[lv] >= batch:
                 _casc_level(lv, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts,
@@ -256,6 +266,7 @@ if HAVE_NUMBA:
             x0[k0 - kept + j] = x0[k0 + n - kept + j]
         b0[0] += total - kept
         tlen[0] = kept
+        return tpos
 
     @njit(cache=True, nogil=True)
     def _casc_flush(strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts, keep,

@@ -411,14 +411,21 @@ class Cascade:
             self.x0 = grown
         return self.x0[self.k0: self.k0 + n]
 
-    def commit(self, n: int) -> None:
-        """Sum the n points written into :meth:`target`."""
+    def commit(self, n: int, tap: np.ndarray | None = None, tap_step: int = 0) -> int:
+        """Sum the n points written into :meth:`target`. With ``tap``: also copy the new
+        points whose index is a multiple of ``tap_step`` into it (as many as fit) while they
+        pass through the cache (a decimated copy of the phase, without a strided pass over
+        the chunk in memory later); returns how many were copied."""
         if n <= 0:
-            return
-        K._casc_chunk(self.x0, self.k0, n, self.strides, self.ks, self.nks, self.bufs,
-                      self.tlen, self.pend, self.b0, self.nstart, self.sums, self.counts,
-                      self.keep, self.SUB, self.BATCH, K.BLOCK)
+            return 0
+        if tap is None:
+            tap, tap_step = np.empty(0), 0
+        got = K._casc_chunk(self.x0, self.k0, n, self.strides, self.ks, self.nks, self.bufs,
+                            self.tlen, self.pend, self.b0, self.nstart, self.sums, self.counts,
+                            self.keep, self.SUB, self.BATCH, K.BLOCK, self.n, tap,
+                            int(tap_step))
         self.n += n
+        return int(got)
 
     def feed(self, x: np.ndarray, g0: int) -> None:
         """Phase points x[g0 + i] = x[i], the continuation of those fed before."""
