@@ -21,9 +21,10 @@ samples that never arrived: ``dropped_samples``); a frame whose device time does
 rejected (``out_of_order``); ``ImuBlock.time = t_dev + offset`` with the offset learnt while the
 stream starts as the minimum over arriving chunks of (rig clock at arrival - t_dev of the newest
 sample), and kept tracking that minimum (the lower envelope of the latencies) for the rest of the
-run: a late chunk can only raise the estimate, so a stall that spans the learning window at
-connect is corrected by the first timely chunk (``offset_corrections``; samples that the lower
-offset would stamp at or before one already handed out are dropped, ``restamp_dropped``).
+run when it falls by more than 20 ms of wall time (in rig time): a late chunk can only raise the
+estimate, so a stall that spans the learning window at connect is corrected by the first timely
+chunk (``offset_corrections``; samples that the lower offset would stamp at or before one already
+handed out are dropped, ``restamp_dropped``).
 """
 from __future__ import annotations
 
@@ -102,17 +103,25 @@ class StreamReader(ReconnectingReader):
         run, not only over the learning window: a chunk that arrives late (the device or the
         emulator stalled, the host was busy) can only make the estimate larger, so one stall that
         covers the whole learning window at connect would otherwise put every stamp of the run
-        late by the stall. A lowering after the learning window is counted
-        (``offset_corrections``) and logged when it exceeds two sample periods."""
+        late by the stall. After the learning window the offset is lowered only by more than
+        :meth:`_correction_min_s` (20 ms of wall time in rig time): a lowering drops the samples
+        it would stamp before one already handed out, and a counter gap pauses the run, so the
+        ordinary jitter of the window's minimum (a few ms of wall time) stays as before. A
+        lowering after the window is counted (``offset_corrections``) and logged."""
         if self.offset is None:
             self.offset = est
-        elif est < self.offset:
-            if not self._learning:
-                self.offset_corrections += 1
-                if self.offset - est > 2.0 / self.rate_hz:
-                    log.warning("%s: time offset lowered by %.6f s (the chunks of the learning window "
-                                "arrived late)", self.name, self.offset - est)
+        elif self._learning:
+            self.offset = min(self.offset, est)
+        elif self.offset - est > self._correction_min_s():
+            self.offset_corrections += 1
+            log.warning("%s: time offset lowered by %.6f s (the chunks of the learning window arrived "
+                        "late)", self.name, self.offset - est)
             self.offset = est
+
+    def _correction_min_s(self) -> float:
+        """Smallest lowering of the offset applied after the learning window, s of rig time: 20 ms
+        of wall time (2 s at 100x), at least two sample periods."""
+        return max(0.02 * float(getattr(self.clock, "speed", 1.0)), 2.0 / self.rate_hz)
 
     def _monotone(self, stamp: np.ndarray) -> np.ndarray:
         """Mask of the stamps after the last one handed out (and remember the newest): after the
