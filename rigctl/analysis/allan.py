@@ -31,6 +31,7 @@ from ..solvers import allan_fit as F
 from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
+from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, from_json
 from . import production
 
@@ -322,6 +323,27 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
     return num * num / den if den > 0 else float("nan")
 
 
+#: the periodogram reads at most this many samples of each axis (5.8 h at 100 Hz; 0.35 s)
+TONE_POINTS = 1 << 21
+
+
+def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+    """Tones in the axis' rate samples (the full-resolution head of the phase, its first
+    TONE_POINTS samples), :func:`rigctl.solvers.allan_tones.detect_tones`;
+    each tone's amplitude also in the deviation's field unit, and the Allan term it adds."""
+    x = stream._head[: min(stream.n_head, TONE_POINTS + 1)]
+    if x.size < 2:
+        return {"tones": [], "skipped": "no samples"}
+    tau0 = stream.tau0
+    out = TN.detect_tones(np.diff(x) / tau0, 1.0 / tau0)
+    out["samples_used"] = int(x.size - 1)
+    unit, fac = DEV_UNITS[sensor]
+    for t in out["tones"]:
+        t[f"amp_{unit}"] = t["amp_si"] * fac
+        t["amp_unit"] = unit
+    return out
+
+
 def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                  stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units).
@@ -339,14 +361,17 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                          for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
-    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
-    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     unit, fac = DEV_UNITS[sensor]
+    tones = _tones(stream, sensor)
+    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
+                      tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]}
+                             for t in tones["tones"]])
+    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening,
+            **screening, "tones": tones,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -852,6 +877,8 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         else:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
+    for line in tone_notes(r):
+        notes.append(line)
     q = r.get("quantization")
     # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
     if q and (q.get("share_of_N2", 1.0) >= QUANT_NOTE_SHARE or not q["random_rounding"]):
@@ -870,6 +897,26 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
                          "below half a step the rounding is not random and the shortest taus "
                          "describe the quantizer, not the sensor")
     return warns, notes
+
+
+def tone_notes(r: dict[str, Any]) -> list[str]:
+    """One sentence per tone found before the fit (frequency, amplitude in the deviation's
+    field unit, the largest share of sigma^2 its Allan term takes, and that it was added to
+    the fitted model); [] if none."""
+    tn = r.get("tones") or {}
+    got = tn.get("tones") or []
+    if not got:
+        return []
+    unit = DEV_UNITS[r["sensor"]][0]
+    fs = ", ".join(f"{t['freq_hz']:.4g} Hz, amplitude {t[f'amp_{unit}']:.3g} {unit}" for t in got)
+    ft = (r.get("fit") or {}).get("tones") or {}
+    share = (f"; together up to {100 * ft['max_share']:.2g} % of sigma^2 (at tau "
+             f"{ft['max_share_tau_s']:.3g} s)") if ft else ""
+    return [f"{len(got)} tone(s) in the samples ({fs}; Welch periodogram, PSD more than "
+            f"{tn['threshold_ratio']:.3g}x the local level, false-alarm probability "
+            f"{tn['alpha']:g} per axis){share}: a tone is not an IEEE 952 term, so its Allan "
+            "term a^2 sin^4(pi f tau) / (m sin(pi f tau0))^2 (amplitude from the spectrum) "
+            "is part of the fitted model"]
 
 
 def summary_line(r: dict[str, Any]) -> str:
@@ -916,7 +963,7 @@ def store(path: str, result: dict[str, Any]) -> None:
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                             **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
-                                                              "quantization")},
+                                                              "quantization", "tones")},
                                        keep_nonfinite=True)}
                         for a, r in result["axes"].items()}}
     arrays = {}
