@@ -45,7 +45,7 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
     assert png.stat().st_size > 10_000
     with h5py.File(rec, "r") as f:
         g = f["results/allan"]
-        assert g.attrs["schema_version"] == 1 and "T" in g.attrs["created_utc"]
+        assert g.attrs["schema_version"] == 2 and "T" in g.attrs["created_utc"]  # 2: fit["coefficients"]
         summary = json.loads(g.attrs["json"])
         tau = f["results/allan/gx/tau_s"][:]
         assert f["results/allan/gx/tau_s"].attrs["units"] == "s"

@@ -20,6 +20,7 @@ from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.analysis.allan import CHUNK_ROWS as CHUNK
 from rigctl.solvers import allan_fit as F
+from rigctl.solvers.noise_coefficients import resolved_values
 
 FS = 100.0
 TAU0 = 1.0 / FS
@@ -146,7 +147,7 @@ def test_adis16405_gyro_floor_gives_an_estimate_of_b(adis: dict, axis: str) -> N
     # deviation is known to better than ~25 %), and the fitted total follows the floor
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
     assert B_FACTOR * b <= 1.25 * np.min(ind[informative])
-    coeffs = {t: math.sqrt(v) for t, v in r["fit"]["coeff_sq_si"].items()}
+    coeffs = resolved_values(r["fit"]["coefficients"])
     floor = (tau >= 30.0) & (tau <= 300.0)
     total = np.sqrt(F.model_avar(tau[floor], coeffs))
     assert np.all(np.abs(total / ind[floor] - 1.0) < 0.25), total / ind[floor]
@@ -172,7 +173,7 @@ def test_adis16405_accel_floor_and_self_check(adis: dict, axis: str) -> None:
     assert check["p_value"] < 1e-6 and check["model_error_rel"] > 0.05  # not IEEE 952 alone
     # the independent read: where the curve is more than 10 % off the fitted total, inside the
     # band's informative taus, the check lists it
-    coeffs = {t: math.sqrt(v) for t, v in fit["coeff_sq_si"].items()}
+    coeffs = resolved_values(fit["coefficients"])
     total = np.sqrt(F.model_avar(tau, coeffs))
     off = (np.abs(ind / total - 1.0) > 0.15) & informative & (tau > 0.05) & (tau < 100.0)
     named = np.zeros(tau.size, dtype=bool)
@@ -222,7 +223,7 @@ def test_mtig_no_floor_b_is_a_bound_and_the_bump_is_named(mtig: dict) -> None:
             if o["side"] == "data above the fit" and o["tau_from_s"] < 40.0 and o["tau_to_s"] > 5.0]
     assert not fit["check"]["ok"] and bump, fit["check"]["outside"]
     # independently: the curve stands > 15 % above the fitted total somewhere in 5-40 s
-    coeffs = {t: math.sqrt(v) for t, v in fit["coeff_sq_si"].items()}
+    coeffs = resolved_values(fit["coefficients"])
     total = np.sqrt(F.model_avar(tau, coeffs))
     sel = (tau > 5.0) & (tau < 40.0) & informative
     assert np.max(ind[sel] / total[sel]) > 1.15

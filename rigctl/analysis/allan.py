@@ -11,6 +11,7 @@ created_utc, json; curves as datasets with ``units``).
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -30,6 +31,7 @@ from ..solvers import allan_fit as F
 from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
+from ..solvers.noise_coefficients import NoiseCoefficients, from_json
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -41,7 +43,9 @@ MIN_SAMPLES = 64
 CHUNK_ROWS = 1 << 19  # rows per read: 2 chunks of 6 axes in flight = 48 MB
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
-SCHEMA_VERSION = 1
+#: /results/allan layout: 2 added each axis' fit["coefficients"] (rigctl.solvers.noise_coefficients
+#: .to_json) and dropped fit["coeff_sq_si"]; a version-1 group is read by nothing: re-run rigctl allan
+SCHEMA_VERSION = 2
 #: worker threads for the per-axis work (both cores of a 2-core machine)
 WORKERS = max(1, min(2, os.cpu_count() or 1))
 #: after the first chunk, a dataset's three columns go through one compiled pass (running-sum
@@ -880,6 +884,23 @@ def summary_line(r: dict[str, Any]) -> str:
         else:
             parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
     return "; ".join(parts)
+
+
+def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoefficients]:
+    """The IEEE 952 coefficients of each axis in an open recording's /results/allan, as
+    :func:`store` wrote them ({} when the recording has none). A group of an older layout
+    (schema_version 1, before the coefficients were stored) is an InputError: re-run rigctl allan."""
+    g = f.get("results/allan")
+    if g is None or "json" not in g.attrs:
+        return {}
+    version = int(g.attrs.get("schema_version", 1))
+    if version < SCHEMA_VERSION:
+        raise InputError(f"/results/allan has schema_version {version}, before the noise coefficients "
+                         f"were stored (version {SCHEMA_VERSION})", where,
+                         hint=f"run `rigctl allan {where or 'RECORDING'}` again: it replaces the group")
+    axes = json.loads(g.attrs["json"]).get("axes", {})
+    return {a: from_json(r["fit"]["coefficients"]) for a, r in axes.items()
+            if (r.get("fit") or {}).get("coefficients")}
 
 
 def store(path: str, result: dict[str, Any]) -> None:

@@ -47,6 +47,7 @@ from scipy.stats import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
+from . import noise_coefficients as NC
 from .allan_stream import blas_single_thread
 
 TERMS = ("Q", "N", "B", "K", "R")
@@ -406,6 +407,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     lim_tau = curve_limit_taus(tau_all[lim_sel], np.sqrt(s2_all[lim_sel]))
     out_terms: dict[str, dict] = {}
     coeff_sq: dict[str, float] = {}
+    coefs: dict[str, NC.Coefficient] = {}
     for t in terms:
         j = TERMS.index(t)
         pj, sdj = float(values[j]), float(sds[j])
@@ -431,15 +433,19 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                 ci[f"ci{lab}_{unit_f}"] = [lo * fac, hi * fac]
             entry.update({"supported": True, f"value_{unit_si}": val,
                           f"value_{unit_f}": val * fac, **ci})
+            coefs[t] = NC.Coefficient(val, tuple(ci[f"ci68_{unit_si}"]), tuple(ci[f"ci95_{unit_si}"]),
+                                      edf=nu)
         else:
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
             source = "fit"
             if not ub <= lim:  # never above what the curve itself allows (also for nan)
                 ub, source = lim, "curve"
+            est = min(math.sqrt(max(pj, 0.0)), ub)
             entry.update({"supported": False, f"upper95_{unit_si}": ub,
                           f"upper95_{unit_f}": ub * fac, "bound_from": source,
-                          f"estimate_{unit_si}": min(math.sqrt(max(pj, 0.0)), ub)})
+                          f"estimate_{unit_si}": est})
+            coefs[t] = NC.Coefficient(0.0 if math.isnan(est) else est, upper95=ub, bound_from=source)
         entry[f"curve_limit_{unit_si}"] = lim
         entry[f"curve_limit_{unit_f}"] = lim * fac
         entry["curve_limit_tau_s"] = lim_tau[t]  # the tau that sets it
@@ -477,7 +483,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
                       "sigma^2 estimates across taus)" if cov_terms is not None else
                       "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
-            "sensor": sensor, "terms": out_terms, "coeff_sq_si": coeff_sq,
+            "sensor": sensor, "terms": out_terms,
+            # the IEEE 952 coefficients (SI) with their intervals or upper bounds; the model the
+            # fit reports (and checks) is NC.resolved_values(): the bounded terms at 0
+            "coefficients": NC.NoiseCoefficients(**coefs, sensor=sensor, source="rigctl allan (IEEE 952 joint fit)"),
             "reduced_chi2": chi2_red, "n_taus": int(tau.size), "check": check}
 
 
@@ -726,8 +735,8 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
 
 
 def term_value_si(fit: dict, term: str) -> float:
-    """Point value (SI) of a fitted term; the estimate for an upper-bounded term."""
-    return math.sqrt(max(fit["coeff_sq_si"].get(term, 0.0), 0.0))
+    """Value (SI) of a term in the model the fit reports: its estimate if resolved, else 0."""
+    return NC.resolved_values(fit["coefficients"]).get(term, 0.0)
 
 
 def piecewise_readoffs(tau: np.ndarray, adev: np.ndarray, sensor: str = "gyro") -> dict:

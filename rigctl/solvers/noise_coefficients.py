@@ -173,6 +173,10 @@ class NoiseCoefficients:
         if self.sensor not in ("", *SENSORS):
             raise ValueError(f"sensor is 'gyro', 'accel' or '', got {self.sensor!r}")
 
+    def as_json(self) -> dict[str, Any]:
+        """:func:`to_json` (what rigctl.jsonable and /results store)."""
+        return to_json(self)
+
     # ---------------------------------------------------------------- values
     def value(self, term: str) -> float:
         """The estimate of ``term`` (Q, N, B, K or R), SI."""
@@ -265,6 +269,13 @@ def triad_avar(axes: Sequence[NoiseCoefficients], tau_s: ArrayLike) -> NDArray[n
 def terms_of(axes: Sequence[NoiseCoefficients], term: str) -> NDArray[np.float64]:
     """(len(axes),) estimates of one term across axes, SI."""
     return np.array([m.value(term) for m in axes], dtype=np.float64)
+
+
+def resolved_values(m: NoiseCoefficients) -> dict[str, float]:
+    """{term: estimate} with the terms known only as an upper bound at 0: the model an Allan fit
+    reports and checks against the curve (the calibration uses :meth:`NoiseCoefficients.values`,
+    the bounded terms at their estimate: docs/calibration.md section 10)."""
+    return {t: (c.value if c.resolved else 0.0) for t, c in ((t, getattr(m, t)) for t in TERMS)}
 
 
 def from_config(section: Mapping[str, Any] | None, sensor: str, source: str = "emulator profile") -> Triad:
