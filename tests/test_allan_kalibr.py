@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import ROOT, run_rigctl
+from helpers import emulated_capture, run_rigctl
 
 PROCEDURE = "procedure: static-capture\nsteps:\n  - capture:\n      duration: 1 h\n      label: static\n"
 K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the profile's
@@ -33,21 +33,9 @@ K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the pr
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> tuple[Path, dict]:
-    tmp = tmp_path_factory.mktemp("kalibr")
-    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    cfg["seed"] = 11
-    cfg["imu"]["sim"] = {"profile": "declared_only", "overrides": {
+    return emulated_capture(tmp_path_factory.mktemp("kalibr"), {"profile": "declared_only", "overrides": {
         "gyro": {"noise": {"K_rad_per_s2_per_sqrt_hz": K_GYRO}},
-        "accel": {"noise": {"K_m_per_s3_per_sqrt_hz": K_ACC}}}}
-    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    (tmp / "capture.yaml").write_text(PROCEDURE)
-    r = run_rigctl("run", str(tmp / "capture.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
-                   str(tmp / "runs"), timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
-    with h5py.File(rec, "r") as f:
-        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
-    return rec, truth
+        "accel": {"noise": {"K_m_per_s3_per_sqrt_hz": K_ACC}}}}, PROCEDURE)
 
 
 @pytest.fixture(scope="module")

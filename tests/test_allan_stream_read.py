@@ -107,11 +107,11 @@ def _flat(r: dict) -> dict:
     return out
 
 
-@pytest.mark.parametrize("outliers,gaps,axes", [("report", False, list(AA.AXES)),
-                                                 ("exclude", False, ["gy", "ax", "az"]),
-                                                 ("report", True, list(AA.AXES))])
+@pytest.mark.parametrize("outliers,gaps,axes,exact", [
+    ("report", False, list(AA.AXES), False), ("exclude", False, ["gy", "ax", "az"], False),
+    ("report", True, list(AA.AXES), False), ("report", False, ["gx", "ay"], True)])
 def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                 outliers: str, gaps: bool, axes: list) -> None:
+                                 outliers: str, gaps: bool, axes: list, exact: bool) -> None:
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
@@ -133,7 +133,7 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(AA, "analyse_axis", keep_dec)
     for fused in (False, True):
         monkeypatch.setattr(AA, "FUSED", fused)
-        res = AA.compute(str(rec), axes, 95, outliers=outliers)
+        res = AA.compute(str(rec), axes, 95, exact=exact, outliers=outliers)
         got[fused] = {a: _flat(r) for a, r in res["axes"].items()}
         got[fused]["dec"] = [np.array(v) for v in decs]
         decs.clear()
