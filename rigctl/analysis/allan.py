@@ -54,6 +54,9 @@ WORKERS = max(1, min(2, os.cpu_count() or 1))
 #: finiteness check) instead of a column copy, a check and a screen pass per axis; False: the
 #: per-axis path for every chunk (the same results, bit for bit; tests compare the two)
 FUSED = True
+#: the noise IDs read from the full-resolution head are taken while the rest of the record
+#: streams (False: all of them in the analysis after the last chunk; the same values)
+EARLY_NOISE_ID = True
 
 
 class _AxisStream:
@@ -78,6 +81,7 @@ class _AxisStream:
         # and no concatenation, which would hold them twice at the peak
         self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
+        self._nid: dict[tuple[int, int], int] = {}  # noise IDs taken early (head_noise_ids)
         self._dec = np.empty(n_rate // self.dec + 1)
         self._dec[0] = 0.0  # x[0] = 0
         self.n_dec = 1
@@ -253,7 +257,29 @@ class _AxisStream:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
         if m % self.dec == 0:
             return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        hit = self._nid.get((int(m), int(n)))
+        if hit is not None:
+            return hit
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+
+    def head_full(self) -> bool:
+        """The full-resolution head is complete (it does not change any more)."""
+        return self.n_head >= min(HEAD_POINTS, self._head.size)
+
+    def head_noise_ids(self, n_phase: int) -> None:
+        """The noise IDs that read the head (factors not a multiple of ``dec``), for a record
+        of ``n_phase`` phase points, taken as soon as the head is complete (on a worker while
+        the rest of the record streams: the lag-1 sums of the longest series run compiled,
+        without the GIL, instead of in the analysis after the last chunk). The same calls
+        with the same arguments as :meth:`noise_id` makes later, which then finds them."""
+        for m in self.ms.tolist():
+            if m % self.dec == 0:
+                continue
+            n = NID.n_terms("oadev", n_phase, m)
+            try:
+                self._nid[(m, n)] = NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+            except (ValueError, ArithmeticError):
+                pass  # left to the analysis, which reports it as before
 
 
 def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
@@ -579,6 +605,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
 
     starts = list(range(s0, s1, CHUNK_ROWS))
     nxt = read(starts[0], 0) if starts else None
+    early: list = []  # the head's noise IDs, once every head is complete
     for i, a0 in enumerate(starts):
         blocks = nxt
         preps = [pool.submit(dataset, name, b, a0) for name, b in blocks.items()]
@@ -588,6 +615,11 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
+        if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
+                st.head_full() for st in streams.values()):
+            early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
+    for e in early:
+        e.result()
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
