@@ -222,13 +222,22 @@ def limits_from_curve(tau: np.ndarray, dev: np.ndarray) -> dict[str, float]:
             "R": float(np.min(dev * math.sqrt(2.0) / tau))}
 
 
-def total_sigma(tau: np.ndarray, fit: dict, sensor: str) -> np.ndarray:
-    """The fitted IEEE 952 total (SI) from the supported terms' values."""
+def total_sigma(tau: np.ndarray, fit: dict, sensor: str, m: np.ndarray | None = None) -> np.ndarray:
+    """The fitted total (SI) from the supported terms' values, plus the Allan variance of each
+    tone the pipeline found and carried in its model (fit["tones"]: frequency f, amplitude a),
+    written out here for the sampled sinusoid: a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2
+    at tau = m tau0 (``m`` the factors of the taus)."""
     co = fit["coefficients"]
     c = {t: (getattr(co, t).value if getattr(co, t).resolved else 0.0) for t in fit["terms"]}
     s2 = (3 * c.get("Q", 0) ** 2 / tau ** 2 + c.get("N", 0) ** 2 / tau
           + B_FACTOR ** 2 * c.get("B", 0) ** 2 + c.get("K", 0) ** 2 * tau / 3
           + c.get("R", 0) ** 2 * tau ** 2 / 2)
+    if m is not None:
+        mm = np.asarray(m, float)
+        tau0 = float(tau[0] / mm[0])
+        for tone in (fit.get("tones") or {}).get("terms", []):
+            f, a = tone["freq_hz"], tone["amp_si"]
+            s2 = s2 + a * a * np.sin(np.pi * f * mm * tau0) ** 4 / (mm * np.sin(np.pi * f * tau0)) ** 2
     return np.sqrt(s2)
 
 
@@ -260,7 +269,7 @@ def check_axis(r: dict) -> dict:
             over_all.append(t)
     lo = np.asarray(r[f"lo95_{unit}"]) / fac
     hi = np.asarray(r[f"hi95_{unit}"]) / fac
-    fit = total_sigma(tau, r["fit"], sensor)
+    fit = total_sigma(tau, r["fit"], sensor, r["m"])
     outside = informative & ((fit < lo) | (fit > hi))
     check = r["fit"]["check"]
     named = np.zeros(tau.size, bool)
@@ -320,6 +329,10 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
     for a in info["axes"]:
         sensor = first["axes"][a]["sensor"]
         ra, rb = res["octave"]["axes"][a], res["all"]["axes"][a]
+        for tone in (ra.get("tones") or {}).get("tones", []):  # found before the fit
+            unit = ra["_unit"]
+            totals["tones"].append(f"{name}:{a}:{tone['freq_hz']:.2f}Hz:"
+                                   f"{tone[f'amp_{unit}']:.3g}{unit}")
         bad = agree(ra, rb)
         both_ok = ra["fit"]["check"]["ok"] and rb["fit"]["check"]["ok"]
         totals["pairs"] += 1
@@ -373,7 +386,7 @@ def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = N
               "over_all_where": [], "over_all_terms": {}, "informative": 0, "outside": 0,
               "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
               "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
-              "analysis_s": 0.0, "generate_s": 0.0}
+              "tones": [], "analysis_s": 0.0, "generate_s": 0.0}
     with tempfile.TemporaryDirectory(dir="/tmp") as d:
         tmp = Path(keep or d)
         tmp.mkdir(parents=True, exist_ok=True)
@@ -426,7 +439,7 @@ def main() -> None:
           f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes "
           f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
           f"{wall:.0f} s (load {load0} -> {_load()})")
-    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where"):
+    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where", "tones"):
         if totals[k]:
             print(f"{k}: {'; '.join(totals[k][:30])}")
     print(json.dumps({"hours_emulated": a.hours, "warmup_s": a.warmup_s, "cases": wanted,
@@ -442,6 +455,7 @@ def main() -> None:
                       "octave_vs_all_disagree_axes": totals["disagree"],
                       "octave_vs_all_axes": totals["pairs"],
                       "octave_vs_all_disagree_with_checks_ok": totals["disagree_checks_ok"],
+                      "axes_with_tones": len({w.rsplit(":", 2)[0] for w in totals["tones"]}),
                       "generate_s": round(totals["generate_s"], 1),
                       "analysis_s": round(totals["analysis_s"], 1), "wall_s": round(wall, 1),
                       "load_avg_start": load0, "load_avg_end": _load()}))

@@ -47,6 +47,7 @@ from scipy.stats import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
+from . import allan_tones as TN
 from . import noise_coefficients as NC
 from .noise_coefficients import FIELD_UNITS, G0, SI_UNITS, TERM_NAMES  # noqa: F401 - one table, named here too
 from .allan_stream import blas_single_thread
@@ -224,11 +225,40 @@ def _thin(n: int, max_taus: int) -> np.ndarray:
 def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
-              select: bool = True) -> dict:
-    """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded)."""
+              select: bool = True, tones: list[dict] | None = None) -> dict:
+    """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded).
+
+    ``tones`` (needs ``tau0``): periodic components found before the fit (dicts with freq_hz
+    and amp_si, :func:`rigctl.solvers.allan_tones.detect_tones`). Each adds the known term
+    :func:`rigctl.solvers.allan_tones.tone_avar` to the model, its coefficient (a^2) fixed by
+    the spectrum: the IEEE 952 terms are fitted to sigma^2(tau) minus the tones' sum (the
+    self-check compares that too, i.e. the data with the total of the IEEE terms and the
+    tones). The periodogram gives a^2 to a fraction of a per cent on a capture of an hour;
+    a free a^2 column would be determined by the Allan curve far worse (its envelope is Q's
+    1/tau^2). Taus where the tones take all of sigma^2 (difference <= 0) drop out. The result
+    gains ``tones`` (the subtracted terms, with their largest share of sigma^2 and where)."""
     with blas_single_thread():
-        return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus, iterations,
-                          select)
+        if not tones:
+            return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus,
+                              iterations, select)
+        if tau0 is None:
+            raise ValueError("a tone term needs tau0")
+        tau = np.asarray(tau, dtype=float)
+        s2 = np.asarray(adev, dtype=float) ** 2
+        m = np.maximum(1, np.round(tau / tau0))
+        tone2 = TN.tones_avar(tau0, m, tones)
+        rest = s2 - tone2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.where(s2 > 0, tone2 / s2, 0.0)
+        adev_rest = np.where(rest > 0, np.sqrt(np.maximum(rest, 0.0)), np.nan)
+        out = _fit_terms(tau, adev_rest, edf, sensor, terms, tau0, n_phase, max_taus,
+                         iterations, select)
+        i = int(np.nanargmax(share)) if share.size else 0
+        out["tones"] = {"terms": [dict(t) for t in tones],
+                        "max_share": float(share[i]) if share.size else 0.0,
+                        "max_share_tau_s": float(tau[i]) if share.size else float("nan"),
+                        "taus_dropped": int(np.count_nonzero(~(rest > 0)))}
+        return out
 
 
 def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
