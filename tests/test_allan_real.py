@@ -137,12 +137,12 @@ def test_adis16405_gyro_floor_gives_an_estimate_of_b(adis: dict, axis: str) -> N
     r = adis["res"]["axes"][axis]
     tau, ind = _independent(adis["gyro"][:, i], r)
     assert abs(slope(tau, ind, 30.0, 300.0)) < 0.25  # the data: a floor
-    fit = r["fit"]["terms"]
+    co = r["fit"]["coefficients"]
     n_ind = white_level(tau, ind)
-    n_fit = fit["N"]["value_rad/sqrt(s)"]
-    assert fit["N"]["supported"] and abs(n_fit / n_ind - 1.0) < 0.10, (n_fit / n_ind)
-    assert fit["B"]["supported"], fit["B"]
-    b = fit["B"]["value_rad/s"]
+    n_fit = co.N.value
+    assert co.N.resolved and abs(n_fit / n_ind - 1.0) < 0.10, (n_fit / n_ind)
+    assert co.B.resolved, co.B
+    b = co.B.value
     # within what the curve allows (its minimum over the taus with >= 20 averages, where the
     # deviation is known to better than ~25 %), and the fitted total follows the floor
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
@@ -182,9 +182,9 @@ def test_adis16405_accel_floor_and_self_check(adis: dict, axis: str) -> None:
     tau, ind = _independent(y, r)
     assert abs(slope(tau, ind, 10.0, 100.0)) < 0.25
     fit = r["fit"]
-    assert fit["terms"]["B"]["supported"]
+    assert fit["coefficients"].B.resolved
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
-    assert B_FACTOR * fit["terms"]["B"]["value_m/s^2"] <= 1.25 * np.min(ind[informative])
+    assert B_FACTOR * fit["coefficients"].B.value <= 1.25 * np.min(ind[informative])
     check = fit["check"]
     assert check["p_value"] < 1e-6 and check["model_error_rel"] > 0.05  # not IEEE 952 alone
     # the periodic component: the strongest peak of a plain periodogram (2^15-sample Hann
@@ -227,10 +227,10 @@ def test_no_bound_above_what_the_curve_allows(adis: dict, mtig: dict) -> None:
         sel = well_determined(r["edf"])
         assert sel.sum() >= 20
         lim = limits(tau[sel], _reported(r)[sel])
-        for t, e in r["fit"]["terms"].items():
-            if not e["supported"]:
-                si = F.SI_UNITS[r["sensor"]][t]
-                assert e[f"upper95_{si}"] <= lim[t] * (1 + 1e-9), (t, e[f"upper95_{si}"], lim[t])
+        for t in r["fit"]["terms"]:
+            c = getattr(r["fit"]["coefficients"], t)
+            if not c.resolved:
+                assert c.upper95 <= lim[t] * (1 + 1e-9), (t, c.upper95, lim[t])
                 n_bounds += 1
     assert n_bounds >= 10
 
@@ -245,12 +245,12 @@ def test_mtig_no_floor_b_is_a_bound_and_the_bump_is_named(mtig: dict) -> None:
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
     assert slope(tau, ind, 80.0, 400.0) < -0.35  # the data: still falling, no floor
     fit = r["fit"]
-    b = fit["terms"]["B"]
-    assert not b["supported"]
+    b = fit["coefficients"].B
+    assert not b.resolved
     sel = well_determined(r["edf"])
-    assert b["upper95_deg/h"] <= np.min(_reported(r)[sel]) / B_FACTOR * DEG_H * (1 + 1e-9)
+    assert b.upper95 * DEG_H <= np.min(_reported(r)[sel]) / B_FACTOR * DEG_H * (1 + 1e-9)
     n_ind = white_level(tau, ind)
-    assert abs(fit["terms"]["N"]["value_rad/sqrt(s)"] / n_ind - 1.0) < 0.10
+    assert abs(fit["coefficients"].N.value / n_ind - 1.0) < 0.10
     bump = [o for o in fit["check"]["outside"]
             if o["side"] == "data above the fit" and o["tau_from_s"] < 40.0 and o["tau_to_s"] > 5.0]
     assert not fit["check"]["ok"] and bump, fit["check"]["outside"]
@@ -272,7 +272,7 @@ def test_adis16405_quantization_read_from_the_samples(adis: dict) -> None:
         assert q is not None and abs(q["step_si"] / step_si - 1.0) < 1e-9, (axis, q)
         nq = step_si * math.sqrt(TAU0 / 12.0)
         assert abs(q["white_N_si"] / nq - 1.0) < 1e-9
-        n_fit = r["fit"]["terms"]["N"][f"value_{F.SI_UNITS[r['sensor']]['N']}"]
+        n_fit = r["fit"]["coefficients"].N.value
         assert abs(q["share_of_N2"] - (nq / n_fit) ** 2) < 1e-12
         assert q["random_rounding"]  # several steps of noise per sample
 
@@ -319,7 +319,7 @@ def test_spikes_reported_and_optionally_excluded(adis: dict, mtig: dict, tmp_pat
     n_clean = white_level(tau, ind)
     n_dirty = white_level(*_independent(g, mtig["res"]["axes"]["gx"]))
     assert abs((n_dirty ** 2 - n_clean ** 2) / spike_var - 1.0) < 0.10  # the data: spikes = white
-    n_fit = r["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
-    n_raw = mtig["res"]["axes"]["gx"]["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
+    n_fit = r["fit"]["coefficients"].N.value
+    n_raw = mtig["res"]["axes"]["gx"]["fit"]["coefficients"].N.value
     assert 0.5 < (n_raw ** 2 - n_fit ** 2) / spike_var < 2.0
     assert abs((n_fit / n_clean) / (n_raw / n_dirty) - 1.0) < 0.02

@@ -101,9 +101,12 @@ def _flat(r: dict) -> dict:
     out = {k: np.asarray(r[k]) for k in keys if k in r}
     out["spikes"] = (r["spikes"]["count"], r["spikes"]["first_times_s"], r["spikes"]["largest_sd"])
     # the fit's numbers (to rounding: BLAS may split its sums over threads differently)
+    co = r["fit"]["coefficients"]
+    cs = [getattr(co, t) for t in r["fit"]["terms"]]
     out["fit"] = np.array([v for e in r["fit"]["terms"].values() for k, v in sorted(e.items())
-                           if isinstance(v, float)])
-    out["fit_supported"] = [e["supported"] for e in r["fit"]["terms"].values()]
+                           if isinstance(v, float)]
+                          + [x for c in cs for x in (c.value, *(c.ci68 or ()), *(c.ci95 or ()), c.upper95 or 0.0)])
+    out["fit_supported"] = [c.resolved for c in cs]
     return out
 
 

@@ -75,7 +75,6 @@ def test_white_noise_N_recovered_with_and_without_tone(tmp_path: Path, monkeypat
     plain = write_recording(tmp_path / "plain.h5", FS, angular_rate=w, specific_force=w)
     toned = write_recording(tmp_path / "tone.h5", FS, angular_rate=w + tone[:, None],
                             specific_force=w)
-    key, ci = "value_rad/sqrt(s)", "ci95_rad/sqrt(s)"
     got = {}
     for taus in ("octave", "all"):
         fp, tp = _fit_n(plain, taus)
@@ -85,25 +84,27 @@ def test_white_noise_N_recovered_with_and_without_tone(tmp_path: Path, monkeypat
         assert abs(tt["tones"][0]["amp_si"] / AMP - 1.0) < 0.02
         assert ft["tones"]["max_share"] > 0.1  # the tone is a tenth of sigma^2 somewhere
         for fit in (fp, ft):
-            e = fit["terms"]["N"]
-            assert e["supported"] and e[ci][0] <= N_TRUE <= e[ci][1], (taus, e)
-            assert not fit["terms"]["Q"]["supported"], (taus, fit["terms"]["Q"])
+            n = fit["coefficients"].N  # rad/sqrt(s)
+            assert n.resolved and n.ci95[0] <= N_TRUE <= n.ci95[1], (taus, n)
+            assert not fit["coefficients"].Q.resolved, (taus, fit["coefficients"].Q)
         # the tone moves N by less than a third of its interval (undetected it moves the all-tau
         # N by 2.5 half-widths: the control below)
-        half = 0.5 * (fp["terms"]["N"][ci][1] - fp["terms"]["N"][ci][0])
-        assert abs(ft["terms"]["N"][key] - fp["terms"]["N"][key]) < half / 3
-        got[taus] = ft["terms"]["N"]
-    lo = max(got["octave"][ci][0], got["all"][ci][0])
-    hi = min(got["octave"][ci][1], got["all"][ci][1])
+        np_, nt = fp["coefficients"].N, ft["coefficients"].N
+        half = 0.5 * (np_.ci95[1] - np_.ci95[0])
+        assert abs(nt.value - np_.value) < half / 3
+        got[taus] = nt
+    lo = max(got["octave"].ci95[0], got["all"].ci95[0])
+    hi = min(got["octave"].ci95[1], got["all"].ci95[1])
     assert lo <= hi  # octave and all agree
     # control: without the detection the same tone is fitted as a quantization term (so the
     # assertions above are about something the tone does)
     monkeypatch.setattr(AL.TN, "detect_tones", lambda y, fs: {"tones": []})
     for taus in ("octave", "all"):
         fit, _ = _fit_n(toned, taus)
-        assert fit["terms"]["Q"]["supported"], (taus, fit["terms"]["Q"])
+        assert fit["coefficients"].Q.resolved, (taus, fit["coefficients"].Q)
         assert "tones" not in fit
         if taus == "all":
             fp, _ = _fit_n(plain, taus)
-            half = 0.5 * (fp["terms"]["N"][ci][1] - fp["terms"]["N"][ci][0])
-            assert abs(fit["terms"]["N"][key] - fp["terms"]["N"][key]) > half
+            np_ = fp["coefficients"].N
+            half = 0.5 * (np_.ci95[1] - np_.ci95[0])
+            assert abs(fit["coefficients"].N.value - np_.value) > half

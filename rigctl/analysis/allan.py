@@ -32,7 +32,7 @@ from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
-from ..solvers.noise_coefficients import NoiseCoefficients, from_json
+from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -295,8 +295,8 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
               "first_times_s": [float(i * tau0) for i in idx[:10]]}
     quant = None
     if stream.quant_step is not None:
-        n_e = fit["terms"].get("N", {})
-        n_si = n_e.get(f"value_{F.SI_UNITS[sensor]['N']}") if n_e.get("supported") else None
+        n_c = fit["coefficients"].N
+        n_si = n_c.value if n_c.resolved else None
         quant = CHK.quantization_noise(stream.quant_step, tau0, n_si, dev0)
         quant[f"step_{unit}"] = stream.quant_step * fac
         quant["step_si"] = quant.pop("step")
@@ -954,14 +954,14 @@ def tone_notes(r: dict[str, Any]) -> list[str]:
 def summary_line(r: dict[str, Any]) -> str:
     """One line per axis: fitted N, B, K with 95 % intervals or upper bounds."""
     parts = []
+    co = as_coefficients(r["fit"]["coefficients"])
     for t in ("N", "B", "K"):
-        e = r["fit"]["terms"][t]
-        unit = F.FIELD_UNITS[r["sensor"]][t][0]
-        if e["supported"]:
-            lo, hi = e[f"ci95_{unit}"]
-            parts.append(f"{t} {e[f'value_{unit}']:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
+        c, unit = in_field_units(co, t)
+        if c.resolved:
+            lo, hi = c.ci95
+            parts.append(f"{t} {c.value:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
         else:
-            parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
+            parts.append(f"{t} < {c.upper95:.4g} {unit}")
     return "; ".join(parts)
 
 
