@@ -155,7 +155,7 @@ def calibrate_ways(rec: Path, truth_params: dict, night: Path | None = None) -> 
     from rigctl.segment_builder import build_segment_table, open_recording
     from rigctl.solvers.closed_loop import calibrate_session
     from rigctl.solvers.segment_noise import apply_session_noise
-    from rigctl.solvers.segment_stats import NoiseModel
+    from rigctl.solvers.noise_coefficients import from_json
 
     with open_recording(rec) as f:
         truth = _truth(f)
@@ -167,11 +167,8 @@ def calibrate_ways(rec: Path, truth_params: dict, night: Path | None = None) -> 
     models = apply_session_noise(seg)
     out["session"] = _summary(calibrate_session(seg, truth=truth), truth)
     out["session"]["calibrate_s"] = time.monotonic() - t0
-    out["session"]["B_over_true"] = [m.B / b if b else None for m, b in zip(models, _true_b(truth_params))]
-    nm = [NoiseModel(**{t: np.full(3, truth_params[f"{s}_noise_generator_params"].get(t, 0.0)) for t in "QNBK"},
-                     flicker_tau_min_s=truth_params[f"{s}_noise_generator_params"].get("flicker_tau_min_s", 1.0),
-                     flicker_tau_max_s=truth_params[f"{s}_noise_generator_params"].get("flicker_tau_max_s", 1e4))
-          for s in ("accel", "gyro")]
+    out["session"]["B_over_true"] = [m.B.value / b if b else None for m, b in zip(models, _true_b(truth_params))]
+    nm = [tuple(from_json(d) for d in truth_params[f"{s}_noise"]) for s in ("accel", "gyro")]
     seg = build_segment_table(rec, noise_f=nm[0], noise_w=nm[1])
     apply_session_noise(seg, nm[0], nm[1])
     out["coeffs"] = _summary(calibrate_session(seg, truth=truth), truth)
@@ -185,7 +182,7 @@ def calibrate_ways(rec: Path, truth_params: dict, night: Path | None = None) -> 
 
 
 def _true_b(tp: dict) -> list[float]:
-    return [tp["accel_noise_generator_params"].get("B", 0.0)] * 3 + [tp["gyro_noise_generator_params"].get("B", 0.0)] * 3
+    return [d["B"]["value"] for s in ("accel", "gyro") for d in tp[f"{s}_noise"]]
 
 
 def corr_study(seeds: int, profiles: list[str], keep: str | None = None, night_h: float = 12.0) -> dict:

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 from rigctl.sim.error_model import ImuErrorModel  # noqa: E402
 from rigctl.sim.noise import NoiseGenerator  # noqa: E402
 from rigctl.sim.profiles import get_profile  # noqa: E402
+from rigctl.solvers.noise_coefficients import triad as coefficient_triad  # noqa: E402
 
 GNSS_INS_SIM_PUBLISHED_SAMPLES_PER_S = 18_500.0  # published figure (54 us/sample), not measured here
 RATE_HZ = 100.0
@@ -45,7 +46,7 @@ def triad(params: dict, seed: int, n: int, chunk: int = CHUNK, sig: np.ndarray |
     """Generate n samples of one 3-axis triad in chunks (optionally with a (chunk, 3) signal added before
     quantization); returns a checksum (keeps the work honest)."""
     t_cpu = time.thread_time()
-    gen = NoiseGenerator(params, RATE_HZ, seed)
+    gen = NoiseGenerator(coefficient_triad(**params), RATE_HZ, seed)
     acc = 0.0
     for a in range(0, n, chunk):
         m = min(chunk, n - a)

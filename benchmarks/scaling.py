@@ -69,9 +69,10 @@ def _series(n: int, seed: int) -> np.ndarray:
 
 def _noise(n: int, fs: float) -> None:
     from rigctl.sim.noise import NoiseGenerator
+    from rigctl.solvers.noise_coefficients import triad
 
     for seed in (1, 2):
-        gen = NoiseGenerator(NOISE, fs, seed)
+        gen = NoiseGenerator(triad(**NOISE), fs, seed)
         for a in range(0, n, 1 << 17):
             gen.next(min(1 << 17, n - a))
 

@@ -21,6 +21,7 @@ from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for
     check_warnings, choose_range, default_axes, gap_message,
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
+from rigctl.jsonable import jsonable
 from rigctl.cli_options import add_production_options
 from rigctl.errors import InputError
 from rigctl.solvers import allan as A
@@ -83,7 +84,8 @@ def plot(result: dict[str, Any], out_path: str) -> None:
     fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
     for ax, (name, r) in zip(subs[:, 0], axes):
         unit, fac = DEV_UNITS[r["sensor"]]
-        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], r["fit"], r["sensor"], unit, fac,
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
+                        r["sensor"], unit, fac,
                         f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
                         r[f"lo95_{unit}"], r[f"hi95_{unit}"])
     fig.tight_layout()
@@ -130,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
+    production.preload_database(args.db)  # imported while the sums run
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps)
     gap_line = gap_message(result.get("gaps") or {})

@@ -32,21 +32,24 @@ def param_table(res: CalibrationResult, title: str) -> str:
     return "\n".join(lines)
 
 
-def noise_summary(models: list[Any]) -> tuple[list[str], list[dict[str, Any]]]:
-    """Text lines and JSON rows of the six channels' noise models (field units of
-    rigctl.display_units.NOISE_UNITS, slugged into the keys: N_deg_per_sqrt_h, B_mg, ...)."""
+def noise_summary(models: list[Any], t0: float = 0.0) -> tuple[list[str], list[dict[str, Any]]]:
+    """Text lines and JSON rows of the six channels' noise models (NoiseCoefficients; field units
+    of rigctl.display_units.NOISE_UNITS, slugged into the keys: N_deg_per_sqrt_h, B_mg, ...);
+    t0: the random walk's origin the covariance used, s."""
     from .solvers.segments import CHANNELS
 
     lines, rows = [], []
     for ch, m in zip(CHANNELS, models):
         U = NOISE_UNITS[ch.split("_")[0]]
         (nu, nf), (bu, bf), (ku, kf) = U["N"], U["B"], U["K"]
-        nper = {g: float(np.sqrt(v)) * nf for g, v in m.white_var.items()}
-        row = {"channel": ch, "source": m.source, f"N_{slug(nu)}": nper, f"B_{slug(bu)}": m.B * bf,
-               f"K_{slug(ku)}": m.K * kf, "flicker_tau_min_s": m.tau_min_s, "flicker_tau_max_s": m.tau_max_s,
-               "rw_origin_s": m.t0, **{k: v for k, v in m.info.items() if k in ("residual_dof", "converged", "note")}}
+        nper = {g: v * nf for g, v in (m.white_by_group or {"*": m.N.value}).items()}
+        info = m.details
+        row = {"channel": ch, "source": m.source, f"N_{slug(nu)}": nper, f"B_{slug(bu)}": m.B.value * bf,
+               f"K_{slug(ku)}": m.K.value * kf, "flicker_tau_min_s": m.flicker_tau_min_s,
+               "flicker_tau_max_s": m.flicker_tau_max_s, "rw_origin_s": t0,
+               **{k: v for k, v in info.items() if k in ("residual_dof", "converged", "note")}}
         rows.append(row)
         ntxt = ", ".join(f"{v:.4g}" + ("" if g == "*" else f" ({g})") for g, v in nper.items())
-        extra = f"; REML on {m.info['residual_dof']} residual dof" if "residual_dof" in m.info else ""
-        lines.append(f"  {ch:<8} N {ntxt} {nu}, B {m.B * bf:.4g} {bu}, K {m.K * kf:.4g} {ku}{extra}")
+        extra = f"; REML on {info['residual_dof']} residual dof" if "residual_dof" in info else ""
+        lines.append(f"  {ch:<8} N {ntxt} {nu}, B {m.B.value * bf:.4g} {bu}, K {m.K.value * kf:.4g} {ku}{extra}")
     return lines, rows

@@ -24,7 +24,7 @@ from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 from . import schema as S
-from .settings import Settings, number, parse, setting, text
+from .settings import Settings, mapping, number, parse, setting, text
 from .yamlio import LocDict
 
 #: statuses a chamber reports
@@ -61,10 +61,6 @@ def _band(d: LocDict, key: str, default: tuple[float, float]) -> tuple[float, fl
     return float(band[0]), float(band[1])
 
 
-def _mapping(d: LocDict, key: str, default: Any) -> dict[str, Any]:
-    return dict(S.require_mapping(d[key], f"'{key}'", d, key))
-
-
 @dataclass(frozen=True, kw_only=True)
 class ChamberSettings(Settings):
     """``chamber:`` (driver sim, and what every chamber driver's section holds): the safe set
@@ -98,7 +94,7 @@ class WatlowSettings(ChamberSettings):
     tcp_port: int = number(502, minimum=1, maximum=65535, integer=True)
     unit_id: int = number(1, minimum=0, maximum=247, integer=True)
     timeout_s: float = number(1.0, minimum=0.01, maximum=60)
-    registers: dict[str, Any] | None = setting(None, read=_mapping)
+    registers: dict[str, Any] | None = mapping(None)
 
     def check(self, d: LocDict) -> None:
         super().check(d)
@@ -116,7 +112,7 @@ class ScpiChamberSettings(ChamberSettings):
 
     resource: str = text()
     model: str = text("generic")
-    commands: dict[str, str] | None = setting(None, read=_mapping)
+    commands: dict[str, str] | None = mapping(None)
     timeout_s: float = number(2.0, minimum=0.01, maximum=60)
 
     def where(self) -> tuple[str, str]:

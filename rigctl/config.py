@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -13,7 +13,7 @@ from .chamber import ChamberSettings, chamber_settings
 from .frames import normal_gravity
 from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
-from .settings import Settings, number, section, setting
+from .settings import Settings, number, parse, section, setting, text
 from .suspenders import SuspenderSettings
 from .yamlio import InputError, LocDict, load_file
 
@@ -73,6 +73,19 @@ class RecorderSettings(Settings):
     table_rate_hz: float = number(10.0, minimum=0.1, maximum=1000.0)
 
 
+@dataclass(frozen=True, kw_only=True)
+class RigSettings(Settings):
+    """The rig config's top level (each section is read by its own settings)."""
+
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("site", "table", "imu", "pulses", "recorder", "suspenders",
+                                             "traceability", "chamber", "notifications")
+    rig: str | None = text(None)
+    #: None: virtual with the emulator, real with wired devices
+    clock: str | None = text(None, choices=CLOCKS)
+    speed: float = number(1.0, minimum=1e-3, maximum=1e4)
+    seed: int = number(0, minimum=0, integer=True)
+
+
 @dataclass(frozen=True)
 class DeviceConfig:
     """A device section: its driver, the raw options, and the validated settings: for the
@@ -126,25 +139,41 @@ class RigConfig:
         return self.table.driver == "sim" and self.imu.driver == "sim"
 
 
-def _three(m: LocDict, key: str, default: list[float]) -> np.ndarray:
-    v = S.number_list(m, key, default, length=3)
+def _three(m: LocDict, key: str, default: Any = None) -> tuple[float, ...]:
+    """Three positive numbers [outer, middle, inner]."""
+    v = S.number_list(m, key, length=3)
     if any(x <= 0 for x in v):
         raise S.error(m, key, f"{key!r} entries must be positive")
-    return np.radians(np.asarray(v, dtype=float))
+    return tuple(v)
 
 
-def _angle_ranges(m: LocDict) -> tuple[np.ndarray, np.ndarray]:
-    v = S.get_list(m, "angle_deg", [None, None, None], length=3)
-    lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
+def _angle_ranges(m: LocDict, key: str, default: Any = None) -> tuple[tuple[float, float] | None, ...]:
+    """Per axis null (continuous) or [min, max] in degrees."""
+    v = S.get_list(m, key, length=3)
     for i, r in enumerate(v):
-        if r is None:
-            continue
-        if not (isinstance(r, list) and len(r) == 2 and all(isinstance(x, (int, float)) for x in r)
-                and r[0] < r[1]):
-            raise S.error(m, "angle_deg", f"angle_deg entry {i + 1} must be null (continuous) or "
+        if r is not None and not (isinstance(r, list) and len(r) == 2 and all(
+                isinstance(x, (int, float)) for x in r) and r[0] < r[1]):
+            raise S.error(m, key, f"angle_deg entry {i + 1} must be null (continuous) or "
                           "[min, max] in degrees with min < max")
-        lo[i], hi[i] = math.radians(r[0]), math.radians(r[1])
-    return lo, hi
+    return tuple(None if r is None else (r[0], r[1]) for r in v)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TableLimitSettings(Settings):
+    """``table.limits``: the demands a procedure may make, [outer, middle, inner] (the table's
+    own limits, or tighter)."""
+
+    rate_dps: tuple[float, ...] = setting((300.0, 300.0, 500.0), read=_three)
+    accel_dps2: tuple[float, ...] = setting((200.0, 200.0, 400.0), read=_three)
+    angle_deg: tuple[tuple[float, float] | None, ...] = setting((None, None, None), read=_angle_ranges)
+
+    def limits(self) -> TableLimits:
+        """In SI (rad, rad/s, rad/s^2)."""
+        lo = np.array([-np.inf if r is None else math.radians(r[0]) for r in self.angle_deg])
+        hi = np.array([np.inf if r is None else math.radians(r[1]) for r in self.angle_deg])
+        return TableLimits(rate=np.radians(np.asarray(self.rate_dps, dtype=float)),
+                           accel=np.radians(np.asarray(self.accel_dps2, dtype=float)),
+                           angle_min=lo, angle_max=hi)
 
 
 def _device(m: LocDict, key: str, drivers: tuple[str, ...], default_driver: str | None,
@@ -230,13 +259,9 @@ def load_config(path: str | Path) -> RigConfig:
     if raw is None:
         raise InputError("the config file is empty", p)
     m = S.require_mapping(raw, "a rig config")
-    S.check_keys(m, ("rig", "clock", "speed", "seed", "site", "table", "imu", "pulses", "recorder",
-                     "suspenders", "traceability", "chamber", "notifications"), "the rig config")
+    top = parse(RigSettings, m, "the rig config")
     traceability(m)
-    name = S.get_str(m, "rig", p.stem)
-    clock = S.get_str(m, "clock", None, choices=CLOCKS)
-    speed = S.get_number(m, "speed", 1.0, minimum=1e-3, maximum=1e4)
-    seed = S.get_number(m, "seed", 0, minimum=0, integer=True)
+    name, clock, speed, seed = top.rig if top.rig is not None else p.stem, top.clock, top.speed, top.seed
 
     site = section(m, "site", SiteSettings)
     lat, h, g = math.radians(site.latitude_deg), site.height_m, site.gravity_m_s2
@@ -245,15 +270,7 @@ def load_config(path: str | Path) -> RigConfig:
     if table.driver == "sim":
         S.check_keys(t, ("driver", "limits", "sim"), "'table'")
     table = DeviceConfig(table.driver, t, link_settings("table", table.driver, t))
-    lim = S.require_mapping(t.get("limits", LocDict()), "'table.limits'", t, "limits") \
-        if "limits" in t else None
-    if lim is None:
-        lim = LocDict()
-    S.check_keys(lim, ("rate_dps", "accel_dps2", "angle_deg"), "'table.limits'")
-    lo, hi = _angle_ranges(lim)
-    limits = TableLimits(rate=_three(lim, "rate_dps", [300.0, 300.0, 500.0]),
-                         accel=_three(lim, "accel_dps2", [200.0, 200.0, 400.0]),
-                         angle_min=lo, angle_max=hi)
+    limits = section(t, "limits", TableLimitSettings, "'table.limits'").limits()
 
     imu, i = _device(m, "imu", IMU_DRIVERS, None)
     if imu.driver == "sim":

@@ -7,7 +7,8 @@ pipeline's ``_unit``). Non-finite floats (NaN, +-inf) become ``None`` -- JSON ha
 and strict readers refuse Python's ``NaN``/``Infinity`` tokens -- unless ``keep_nonfinite`` is
 set: the Allan results group keeps them (an unbounded interval end stays ``inf`` for the report
 and the database, which read that JSON back with Python's own json module).
-Anything else that JSON cannot hold becomes its ``str``.
+An object with an ``as_json()`` method (:class:`rigctl.solvers.noise_coefficients.NoiseCoefficients`)
+is converted by it. Anything else that JSON cannot hold becomes its ``str``.
 """
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ __all__ = ["jsonable"]
 
 def jsonable(obj: Any, *, keep_nonfinite: bool = False) -> Any:
     """A JSON-ready copy of ``obj`` (see the module docstring)."""
+    if callable(getattr(obj, "as_json", None)):  # a typed result (NoiseCoefficients)
+        return jsonable(obj.as_json(), keep_nonfinite=keep_nonfinite)
     if isinstance(obj, Mapping):
         return {str(k): jsonable(v, keep_nonfinite=keep_nonfinite) for k, v in obj.items()
                 if not str(k).startswith("_")}

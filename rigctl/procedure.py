@@ -3,14 +3,22 @@
 A procedure compiles into a list of :class:`Step` records that never touch hardware (the
 engine executes them against whatever rig it is given). The language is documented in
 docs/procedures.md.
+
+The file is read with the typed settings of rigctl.settings, one model per concept:
+:class:`ProcedureFile` (the top level), :class:`ParameterSettings` (a parameter's long form),
+:class:`SamplingSettings` (``defaults:`` and a step's sampling keys), :class:`SettleSettings`,
+:class:`RepeatSettings`, and one model per step kind (:data:`STEP_MODELS`). Their one validator,
+:func:`rigctl.settings.parse`, gives every error its file and line and a "did you mean" for an
+unknown key; the compiler here only includes files, substitutes ``${parameters}``, and expands
+each validated step into the plan.
 """
 from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import yaml
@@ -18,17 +26,18 @@ import yaml
 from . import schema as S
 from .config import TableLimits
 from .frames import north_pointing_angles
+from .settings import Settings, as_written, mapping, number, parse, setting, text
+from .settings import duration as seconds
 from .yamlio import InputError, InputErrors, LocDict, LocList, load_file
 
-STEP_KINDS = ("warmup", "orientations", "rates", "capture", "taps", "wait", "solve",
-              "chamber-set", "chamber-ramp", "chamber-wait", "repeat")
 #: step kinds that command the climatic chamber (docs/thermal.md)
 CHAMBER_KINDS = ("chamber-set", "chamber-ramp", "chamber-wait")
 SOLVERS = ("accel24", "gyro-rate", "closed-loop", "allan", "sync", "report")
 #: Body axis -> gimbal index [outer, middle, inner] that turns about it at zero angles.
 RATE_AXIS_GIMBAL = {"x": 2, "y": 1, "z": 0}
 _PARAM = re.compile(r"^\$\{([A-Za-z_][A-Za-z0-9_]*)\}$")
-_SAMPLING_KEYS = ("settle", "sample", "discard")
+AXES = ("x", "y", "z")
+DIRECTIONS = ("forward", "reverse")
 
 
 @dataclass(frozen=True)
@@ -123,6 +132,276 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+# -- the procedure file's settings: one model per concept (rigctl.settings) ---------------------
+def _description(d: LocDict, key: str, default: Any = "") -> str:
+    return "" if d[key] is None else str(d[key])
+
+
+def _triplet(d: LocDict, key: str, default: Any = None) -> tuple[float, ...]:
+    """[outer, middle, inner], degrees."""
+    return tuple(S.number_list(d, key, length=3))
+
+
+def _angle_rows(d: LocDict, key: str, default: Any = None) -> tuple[tuple[float, ...], ...]:
+    """A list of [outer, middle, inner] in degrees, each as written (for the step's label)."""
+    rows = S.get_list(d, key, min_length=1)
+    for j, row in enumerate(rows):
+        if not (isinstance(row, list) and len(row) == 3 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in row)):
+            raise S.item_error(d, key, rows, j, f"orientation {j + 1} must be [outer, middle, inner] in degrees")
+    return tuple(tuple(row) for row in rows)
+
+
+def _one_of(choices: tuple[str, ...], message: str) -> Any:
+    """A reader of a non-empty list whose entries are each one of ``choices``; ``message`` is
+    formatted with the wrong entry."""
+    def read(d: LocDict, key: str, default: Any = None) -> tuple[str, ...]:
+        items = S.get_list(d, key, min_length=1)
+        for j, x in enumerate(items):
+            if not isinstance(x, str) or x not in choices:
+                raise S.item_error(d, key, items, j, message.format(x),
+                                   S.did_you_mean(str(x), choices, "choose from"))
+        return tuple(items)
+    return read
+
+
+def _magnitudes(d: LocDict, key: str, default: Any = None) -> tuple[float, ...]:
+    rates = S.number_list(d, key)
+    for r in rates:
+        if r <= 0:
+            raise S.error(d, key, f"rates are magnitudes (> 0), got {r}", "list forward/reverse under 'directions'")
+    return tuple(rates)
+
+
+def _settle(d: LocDict, key: str, default: Any = None) -> SettleSettings | None:
+    """``settle: {...}``; ``settle:`` with nothing = not given (the defaults' policy applies)."""
+    if d[key] is None:
+        return None
+    return parse(SettleSettings, S.require_mapping(d[key], "'settle'", d, key), "'settle'")
+
+
+def _angles_field() -> Any:
+    """``angles_deg``: where the table holds, [outer, middle, inner] in degrees (default zero)."""
+    return setting((0.0, 0.0, 0.0), read=_triplet)
+
+
+def _settle_field() -> Any:
+    return setting(None, read=_settle)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SettleSettings(Settings):
+    """``settle:`` (a step's, or under ``defaults:``): when the table counts as settled."""
+
+    position_window_deg: float = number(0.01, minimum=1e-6)
+    rate_window_dps: float = number(0.05, minimum=1e-6)
+    hold: float = seconds(2.0)
+    timeout: float = seconds(120.0, positive=True)
+
+    def policy(self) -> SettlePolicy:
+        return SettlePolicy(position_window=math.radians(self.position_window_deg),
+                            rate_window=math.radians(self.rate_window_dps), hold_s=self.hold,
+                            timeout_s=self.timeout)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SamplingSettings(Settings):
+    """The sampling policy: a file's ``defaults:`` (for its steps and its includes), and the same
+    keys on a step (each step kind takes those its model declares). None = not given here."""
+
+    #: what applies where neither the step nor any ``defaults:`` gives a value
+    SAMPLE_S: ClassVar[float] = 30.0
+    DISCARD_S: ClassVar[float] = 1.0
+    settle: SettleSettings | None = _settle_field()
+    sample: float | None = seconds(None)
+    discard: float | None = seconds(None)
+
+    @classmethod
+    def of(cls, s: Settings) -> SamplingSettings:
+        """The sampling keys a step's settings hold (None for those its kind does not take)."""
+        return cls(**{f.name: getattr(s, f.name, None) for f in fields(cls)})
+
+    def over(self, outer: SamplingSettings) -> SamplingSettings:
+        """These settings where given, else ``outer``'s."""
+        return SamplingSettings(**{f.name: getattr(outer, f.name) if getattr(self, f.name) is None
+                                   else getattr(self, f.name) for f in fields(self)})
+
+    def resolve(self) -> tuple[SettlePolicy, float, float]:
+        """(settling policy, sampling window s, discarded transient s), defaults filled in."""
+        return (self.settle.policy() if self.settle is not None else SettlePolicy(),
+                self.SAMPLE_S if self.sample is None else self.sample,
+                self.DISCARD_S if self.discard is None else self.discard)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ParameterSettings(Settings):
+    """A parameter in its long form, ``name: {default: ..., description: ..., unit: ...}`` (the
+    short form ``name: value`` is the default alone)."""
+
+    default: Any = as_written()
+    description: str = text("")
+    unit: str = text("")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcedureFile(Settings):
+    """A procedure file's top level. ``defaults`` and ``steps`` are read raw here: their values
+    may hold ``${parameters}``, substituted before :class:`SamplingSettings` and the steps'
+    models read them."""
+
+    procedure: str | None = text(None)
+    description: str = setting("", read=_description)
+    parameters: LocDict | None = mapping(None)
+    defaults: Any = as_written(None)
+    steps: list = setting(read=S.get_list)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RepeatSettings(Settings):
+    """``repeat``: its steps ``count`` times."""
+
+    count: int = number(minimum=1, maximum=10000, integer=True)
+    steps: list = setting(read=S.get_list, min_length=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class WarmupStep(Settings):
+    """``warmup``: go to the angles, settle, record for the duration (one segment)."""
+
+    duration: float = seconds(positive=True)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("warm-up")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CaptureStep(Settings):
+    """``capture``: a static capture (for Allan analysis)."""
+
+    duration: float = seconds(positive=True)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("static capture")
+    settle: SettleSettings | None = _settle_field()
+    discard: float | None = seconds(None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class WaitStep(Settings):
+    """``wait``: hold and record (with a prompt to the operator)."""
+
+    duration: float = seconds()
+    prompt: str | None = text(None)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str = text("wait")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TapsStep(Settings):
+    """``taps``: prompt the operator, record the window in which the taps fall."""
+
+    count: int = number(minimum=1, maximum=10000, integer=True)
+    prompt: str | None = text(None)
+    duration: float = seconds(60.0, positive=True)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
+    settle: SettleSettings | None = _settle_field()
+
+
+def setpoint(required: bool = True) -> Any:
+    return number(MISSING if required else None, minimum=-100.0, maximum=200.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChamberSetStep(Settings):
+    """``chamber-set``: a new chamber set point (a step), and go on (docs/thermal.md)."""
+
+    setpoint_c: float = setpoint()
+    label: str | None = text(None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChamberRampStep(Settings):
+    """``chamber-ramp``: the chamber ramps to the set point while the next steps run."""
+
+    setpoint_c: float = setpoint()
+    rate_c_per_min: float = number(minimum=0.01, maximum=100.0)
+    label: str | None = text(None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChamberWaitStep(Settings):
+    """``chamber-wait``: soak until the chamber and the IMU are stable (None: the current set
+    point)."""
+
+    setpoint_c: float | None = setpoint(required=False)
+    stable_band_c: float = number(0.1, minimum=0.001, maximum=20.0)
+    stable_for: float = seconds(300.0, positive=True)
+    air_band_c: float = number(1.0, minimum=0.01, maximum=50.0)
+    timeout: float = seconds(4 * 3600.0, positive=True)
+    expect: float | None = seconds(None)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SolveStep(Settings):
+    """``solve``: solvers run after the recording is closed."""
+
+    solvers: tuple[str, ...] = setting(read=_one_of(SOLVERS, "unknown solver {!r}"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class OrientationsStep(Settings):
+    """``orientations``: a list of [outer, middle, inner], or the 24-position pattern."""
+
+    angles_deg: tuple[tuple[float, ...], ...] | None = setting(None, read=_angle_rows)
+    pattern: str | None = text(None, choices=("24-position",))
+    axes: tuple[str, ...] = setting(AXES, read=_one_of(AXES, "axis {!r} must be x, y or z"))
+    step_deg: float = number(45.0, minimum=1e-3, maximum=360.0)
+    count: int = number(8, minimum=1, maximum=360, integer=True)
+    label: str | None = text(None)
+    settle: SettleSettings | None = _settle_field()
+    sample: float | None = seconds(None)
+    discard: float | None = seconds(None)
+
+    def check(self, d: LocDict) -> None:
+        if (self.angles_deg is None) == (self.pattern is None):
+            raise S.error(d, None, "'orientations' needs either 'angles_deg' (a list of "
+                          "[outer, middle, inner]) or 'pattern: 24-position'")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RatesStep(Settings):
+    """``rates``: one window per axis x rate x direction."""
+
+    rates_dps: tuple[float, ...] = setting(read=_magnitudes)
+    axes: tuple[str, ...] = setting(AXES, read=_one_of(AXES, "axis {!r} must be x, y or z"))
+    directions: tuple[str, ...] = setting(DIRECTIONS, read=_one_of(
+        DIRECTIONS, "direction {!r} must be forward or reverse"))
+    dwell: float | None = seconds(None)
+    revolutions: float | None = number(None, minimum=0.01, allow_none=True)
+    angles_deg: tuple[float, ...] = _angles_field()
+    label: str | None = text(None)
+    settle: SettleSettings | None = _settle_field()
+    sample: float | None = seconds(None)
+    discard: float | None = seconds(None)
+
+    def check(self, d: LocDict) -> None:
+        if "dwell" in d and "revolutions" in d:
+            raise S.error(d, "revolutions", "give either 'dwell' or 'revolutions', not both")
+
+
+#: step kind -> its settings (besides ``include:`` and ``repeat:``, which the compiler reads)
+STEP_MODELS: dict[str, type[Settings]] = {
+    "warmup": WarmupStep, "orientations": OrientationsStep, "rates": RatesStep, "capture": CaptureStep,
+    "taps": TapsStep, "wait": WaitStep, "solve": SolveStep, "chamber-set": ChamberSetStep,
+    "chamber-ramp": ChamberRampStep, "chamber-wait": ChamberWaitStep}
+STEP_KINDS = (*STEP_MODELS, "repeat")
+
+
+def _or(value: Any, default: Any) -> Any:
+    return default if value is None else value
+
+
 class _Compiler:
     def __init__(self, overrides: dict[str, Any], limits: TableLimits | None) -> None:
         self.overrides = overrides
@@ -137,7 +416,7 @@ class _Compiler:
         self.steps_line = 1
 
     # -- files -------------------------------------------------------------------------------
-    def load(self, path: Path, inc_parent: Any = None, inc_key: Any = None) -> LocDict:
+    def load(self, path: Path, inc_parent: Any = None, inc_key: Any = None) -> tuple[ProcedureFile, LocDict]:
         resolved = path.resolve()
         if resolved in self.stack:
             chain = " -> ".join(p.name for p in [*self.stack, resolved])
@@ -155,23 +434,17 @@ class _Compiler:
             raise InputError("a procedure must be a mapping with a 'steps:' list", path, 1,
                              "see docs/procedures.md")
         m = S.require_mapping(raw, "a procedure")
-        S.check_keys(m, ("procedure", "description", "parameters", "defaults", "steps"),
-                     "the procedure", required=("steps",))
+        f = parse(ProcedureFile, m, "the procedure")
         self.sources[str(path)] = path.read_text(encoding="utf-8")
-        return m
+        return f, m
 
-    def declare_params(self, m: LocDict) -> None:
-        if "parameters" not in m:
-            return
-        params = S.require_mapping(m["parameters"], "'parameters'", m, "parameters")
-        for name, spec in params.items():
+    def declare_params(self, params: LocDict | None) -> None:
+        for name, spec in (params or {}).items():
             if not isinstance(name, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", name):
                 raise S.error(params, name, f"parameter name {name!r} is not a valid identifier")
             if isinstance(spec, dict):
-                spec = S.require_mapping(spec, f"parameter {name!r}")
-                S.check_keys(spec, ("default", "description", "unit"), f"parameter {name!r}",
-                             required=("default",))
-                default = spec["default"]
+                default = parse(ParameterSettings, S.require_mapping(spec, f"parameter {name!r}"),
+                                f"parameter {name!r}").default
             else:
                 default = spec
             if name not in self.params:  # the including (outer) file's default wins
@@ -212,49 +485,35 @@ class _Compiler:
         return value
 
     # -- steps -------------------------------------------------------------------------------
-    def compile_file(self, path: Path, defaults: dict[str, Any] | None = None,
+    def compile_file(self, path: Path, defaults: SamplingSettings | None = None,
                      inc_parent: Any = None, inc_key: Any = None) -> str:
-        m = self.load(path, inc_parent, inc_key)
-        self.declare_params(m)
+        f, m = self.load(path, inc_parent, inc_key)
+        self.declare_params(f.parameters)
         if not self.stack:
-            self.description = str(m.get("description", "") or "")
+            self.description = f.description
         self.stack.append(path.resolve())
         try:
-            local_defaults = dict(defaults or {})
+            local = defaults or SamplingSettings()
             if "defaults" in m:
-                d = S.require_mapping(self.subst(m["defaults"], m, "defaults"), "'defaults'", m, "defaults")
-                S.check_keys(d, _SAMPLING_KEYS, "'defaults'")
-                local_defaults.update(d)
-                local_defaults["__where__"] = d
-            steps = S.get_list(m, "steps")
+                d = S.require_mapping(self.subst(f.defaults, m, "defaults"), "'defaults'", m, "defaults")
+                local = parse(SamplingSettings, d, "'defaults'").over(local)
             if not self.stack[:-1]:
                 self.steps_line = m.line_of("steps")
-            for i, item in enumerate(steps):
+            for i, item in enumerate(f.steps):
                 try:
-                    self.compile_item(path, steps, i, item, local_defaults)
+                    self.compile_item(path, f.steps, i, item, local)
                 except InputError as exc:
                     self.errors.append(exc)
         finally:
             self.stack.pop()
-        return S.get_str(m, "procedure", path.stem)
+        return f.procedure if f.procedure is not None else path.stem
 
-    def compile_item(self, path: Path, steps: LocList, i: int, item: Any,
-                     defaults: dict[str, Any]) -> None:
+    def compile_item(self, path: Path, steps: LocList, i: int, item: Any, defaults: SamplingSettings) -> None:
         if not isinstance(item, dict) or len(item) != 1:
             raise S.error(steps, i, "each step must be one 'kind: {options}' entry",
                           f"kinds: {', '.join(STEP_KINDS)}, or 'include: FILE'")
         item = S.require_mapping(item, "a step")
         (kind, body), = item.items()
-        if kind == "repeat":
-            r = S.require_mapping(self.subst(body, item, kind), "'repeat'", item, kind)
-            r.line, r.file = item.line_of(kind), item.file
-            S.check_keys(r, ("count", "steps"), "'repeat'", required=("count", "steps"))
-            count = S.get_number(r, "count", minimum=1, maximum=10000, integer=True)
-            inner = S.get_list(r, "steps", min_length=1)
-            for _ in range(int(count)):
-                for j, sub in enumerate(inner):
-                    self.compile_item(path, inner, j, sub, defaults)
-            return
         if kind == "include":
             target = self.subst(body, item, kind)
             if not isinstance(target, str):
@@ -266,31 +525,14 @@ class _Compiler:
         body = self.subst(body if body is not None else LocDict(), item, kind)
         opts = S.require_mapping(body, f"the {kind!r} step", item, kind)
         opts.line, opts.file = item.line_of(kind), item.file  # "missing ..." points at the step
-        getattr(self, f"_{kind.replace('-', '_')}")(opts, defaults)
-
-    def _policy(self, o: LocDict, defaults: dict[str, Any]) -> tuple[SettlePolicy, float, float]:
-        where = defaults.get("__where__")
-        settle_src = o.get("settle", defaults.get("settle"))
-        policy = SettlePolicy()
-        if settle_src is not None:
-            owner = o if "settle" in o else where
-            s = S.require_mapping(settle_src, "'settle'", owner, "settle")
-            S.check_keys(s, ("position_window_deg", "rate_window_dps", "hold", "timeout"), "'settle'")
-            policy = SettlePolicy(
-                position_window=math.radians(S.get_number(s, "position_window_deg", 0.01, minimum=1e-6)),
-                rate_window=math.radians(S.get_number(s, "rate_window_dps", 0.05, minimum=1e-6)),
-                hold_s=S.get_duration(s, "hold", 2.0),
-                timeout_s=S.get_duration(s, "timeout", 120.0, positive=True))
-        sample = S.get_duration(o, "sample", None)
-        if sample is None:
-            sample = S.get_duration(where, "sample", 30.0) if where is not None else 30.0
-        discard = S.get_duration(o, "discard", None)
-        if discard is None:
-            discard = S.get_duration(where, "discard", 1.0) if where is not None else 1.0
-        return policy, sample, discard
-
-    def _angles(self, o: LocDict, key: str = "angles_deg") -> np.ndarray:
-        return np.radians(np.asarray(S.number_list(o, key, [0.0, 0.0, 0.0], length=3)))
+        if kind == "repeat":
+            r = parse(RepeatSettings, opts, "'repeat'")
+            for _ in range(r.count):
+                for j, sub in enumerate(r.steps):
+                    self.compile_item(path, r.steps, j, sub, defaults)
+            return
+        s = parse(STEP_MODELS[kind], opts, f"'{kind}'")
+        getattr(self, f"_{kind.replace('-', '_')}")(s, opts, defaults)
 
     def add(self, o: LocDict, key: Any, **kw: Any) -> None:
         nan3 = np.full(3, np.nan)
@@ -304,143 +546,80 @@ class _Compiler:
                                  "change the demand or the table limits in the config") from None
         self.steps.append(step)
 
-    def _warmup(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("duration", "angles_deg", "label"), "'warmup'", required=("duration",))
-        self.add(o, "duration", kind="warmup", label=S.get_str(o, "label", "warm-up"),
-                 angles=self._angles(o), sample_s=S.get_duration(o, "duration", positive=True),
-                 settle=self._policy(LocDict(), d)[0])
+    @staticmethod
+    def _radians(deg: tuple[float, ...]) -> np.ndarray:
+        return np.radians(np.asarray(deg, dtype=float))
 
-    def _capture(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("duration", "angles_deg", "label", "settle", "discard"), "'capture'",
-                     required=("duration",))
-        policy, _, discard = self._policy(o, d)
-        self.add(o, "duration", kind="capture", label=S.get_str(o, "label", "static capture"),
-                 angles=self._angles(o), sample_s=S.get_duration(o, "duration", positive=True),
-                 discard_s=discard, settle=policy)
+    def _warmup(self, s: WarmupStep, o: LocDict, d: SamplingSettings) -> None:
+        self.add(o, "duration", kind="warmup", label=s.label, angles=self._radians(s.angles_deg),
+                 sample_s=s.duration, settle=d.resolve()[0])
 
-    def _wait(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("duration", "prompt", "angles_deg", "label"), "'wait'", required=("duration",))
-        self.add(o, "duration", kind="wait", label=S.get_str(o, "label", "wait"),
-                 angles=self._angles(o), sample_s=S.get_duration(o, "duration"),
-                 prompt=S.get_str(o, "prompt", None), settle=self._policy(LocDict(), d)[0])
+    def _capture(self, s: CaptureStep, o: LocDict, d: SamplingSettings) -> None:
+        policy, _, discard = SamplingSettings.of(s).over(d).resolve()
+        self.add(o, "duration", kind="capture", label=s.label, angles=self._radians(s.angles_deg),
+                 sample_s=s.duration, discard_s=discard, settle=policy)
 
-    def _taps(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("prompt", "count", "duration", "angles_deg", "label", "settle"), "'taps'",
-                     required=("count",))
-        policy, _, _ = self._policy(o, d)
-        count = S.get_number(o, "count", minimum=1, maximum=10000, integer=True)
-        self.add(o, "count", kind="taps", label=S.get_str(o, "label", f"{count} taps"),
-                 angles=self._angles(o), sample_s=S.get_duration(o, "duration", 60.0, positive=True),
-                 prompt=S.get_str(o, "prompt", f"Tap the IMU {count} times"), expected_taps=count,
-                 settle=policy)
+    def _wait(self, s: WaitStep, o: LocDict, d: SamplingSettings) -> None:
+        self.add(o, "duration", kind="wait", label=s.label, angles=self._radians(s.angles_deg),
+                 sample_s=s.duration, prompt=s.prompt, settle=d.resolve()[0])
+
+    def _taps(self, s: TapsStep, o: LocDict, d: SamplingSettings) -> None:
+        policy = SamplingSettings.of(s).over(d).resolve()[0]
+        self.add(o, "count", kind="taps", label=_or(s.label, f"{s.count} taps"),
+                 angles=self._radians(s.angles_deg), sample_s=s.duration,
+                 prompt=_or(s.prompt, f"Tap the IMU {s.count} times"),
+                 expected_taps=s.count, settle=policy)
 
     # -- the climatic chamber (docs/thermal.md) ----------------------------------------------
-    def _setpoint(self, o: LocDict, required: bool) -> float | None:
-        if not required and "setpoint_c" not in o:
-            return None
-        return float(S.get_number(o, "setpoint_c", minimum=-100.0, maximum=200.0))
+    def _chamber_set(self, s: ChamberSetStep, o: LocDict, d: SamplingSettings) -> None:
+        self.add(o, "setpoint_c", kind="chamber-set", label=_or(s.label, f"chamber {s.setpoint_c:g} degC"),
+                 angles=np.zeros(3), sample_s=0.0, chamber={"setpoint_c": s.setpoint_c, "rate_c_per_min": None})
 
-    def _chamber_set(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("setpoint_c", "label"), "'chamber-set'", required=("setpoint_c",))
-        sp = self._setpoint(o, True)
-        self.add(o, "setpoint_c", kind="chamber-set", label=S.get_str(o, "label", f"chamber {sp:g} degC"),
-                 angles=np.zeros(3), sample_s=0.0, chamber={"setpoint_c": sp, "rate_c_per_min": None})
+    def _chamber_ramp(self, s: ChamberRampStep, o: LocDict, d: SamplingSettings) -> None:
+        self.add(o, "setpoint_c", kind="chamber-ramp", label=_or(s.label, f"ramp to {s.setpoint_c:g} degC"),
+                 angles=np.zeros(3), sample_s=0.0,
+                 chamber={"setpoint_c": s.setpoint_c, "rate_c_per_min": s.rate_c_per_min})
 
-    def _chamber_ramp(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("setpoint_c", "rate_c_per_min", "label"), "'chamber-ramp'",
-                     required=("setpoint_c", "rate_c_per_min"))
-        sp = self._setpoint(o, True)
-        rate = float(S.get_number(o, "rate_c_per_min", minimum=0.01, maximum=100.0))
-        self.add(o, "setpoint_c", kind="chamber-ramp", label=S.get_str(o, "label", f"ramp to {sp:g} degC"),
-                 angles=np.zeros(3), sample_s=0.0, chamber={"setpoint_c": sp, "rate_c_per_min": rate})
-
-    def _chamber_wait(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("setpoint_c", "stable_band_c", "stable_for", "air_band_c", "timeout", "expect",
-                         "angles_deg", "label"), "'chamber-wait'")
-        sp = self._setpoint(o, False)
-        c = {"setpoint_c": sp, "rate_c_per_min": None,
-             "stable_band_c": float(S.get_number(o, "stable_band_c", 0.1, minimum=0.001, maximum=20.0)),
-             "stable_for_s": float(S.get_duration(o, "stable_for", 300.0, positive=True)),
-             "air_band_c": float(S.get_number(o, "air_band_c", 1.0, minimum=0.01, maximum=50.0)),
-             "timeout_s": float(S.get_duration(o, "timeout", 4 * 3600.0, positive=True))}
-        expect = S.get_duration(o, "expect", None)
-        label = S.get_str(o, "label", "soak" + (f" at {sp:g} degC" if sp is not None else ""))
+    def _chamber_wait(self, s: ChamberWaitStep, o: LocDict, d: SamplingSettings) -> None:
+        sp = s.setpoint_c
+        c = {"setpoint_c": sp, "rate_c_per_min": None, "stable_band_c": s.stable_band_c,
+             "stable_for_s": s.stable_for, "air_band_c": s.air_band_c, "timeout_s": s.timeout}
+        label = _or(s.label, "soak" + (f" at {sp:g} degC" if sp is not None else ""))
         self.add(o, "setpoint_c" if sp is not None else None, kind="chamber-wait", label=label,
-                 angles=self._angles(o), settle=self._policy(LocDict(), d)[0],
-                 sample_s=float(expect) if expect is not None else c["stable_for_s"], chamber=c)
+                 angles=self._radians(s.angles_deg), settle=d.resolve()[0],
+                 sample_s=s.expect if s.expect is not None else s.stable_for, chamber=c)
 
-    def _solve(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("solvers",), "'solve'", required=("solvers",))
-        names = S.get_list(o, "solvers", min_length=1)
-        for j, n in enumerate(names):
-            if n not in SOLVERS:
-                raise InputError(f"unknown solver {n!r}", o.file, names.line_of(j),
-                                 f"choose from {', '.join(SOLVERS)}")
+    def _solve(self, s: SolveStep, o: LocDict, d: SamplingSettings) -> None:
         self.add(o, "solvers", kind="solve", label="solve", angles=np.zeros(3), sample_s=0.0,
-                 solvers=tuple(names))
+                 solvers=s.solvers)
 
-    def _orientations(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("angles_deg", "pattern", "axes", "step_deg", "count", "label", *_SAMPLING_KEYS),
-                     "'orientations'")
-        policy, sample, discard = self._policy(o, d)
-        if ("angles_deg" in o) == ("pattern" in o):
-            raise S.error(o, None, "'orientations' needs either 'angles_deg' (a list of "
-                          "[outer, middle, inner]) or 'pattern: 24-position'")
-        if "angles_deg" in o:
-            rows = S.get_list(o, "angles_deg", min_length=1)
-            for j, row in enumerate(rows):
-                if not (isinstance(row, list) and len(row) == 3 and all(
-                        isinstance(x, (int, float)) and not isinstance(x, bool) for x in row)):
-                    raise InputError(f"orientation {j + 1} must be [outer, middle, inner] in degrees",
-                                     o.file, rows.line_of(j))
+    def _orientations(self, s: OrientationsStep, o: LocDict, d: SamplingSettings) -> None:
+        policy, sample, discard = SamplingSettings.of(s).over(d).resolve()
+        if s.angles_deg is not None:
+            for row in s.angles_deg:
                 self.add(o, "angles_deg", kind="orientation", label=f"angles {list(row)} deg",
-                         angles=np.radians(np.asarray(row, float)), sample_s=sample,
-                         discard_s=discard, settle=policy)
+                         angles=self._radians(row), sample_s=sample, discard_s=discard, settle=policy)
             return
-        S.get_str(o, "pattern", choices=("24-position",))
-        axes = S.get_list(o, "axes", ["x", "y", "z"], min_length=1)
-        step_deg = S.get_number(o, "step_deg", 45.0, minimum=1e-3, maximum=360.0)
-        count = S.get_number(o, "count", 8, minimum=1, maximum=360, integer=True)
-        for j, ax in enumerate(axes):
-            if ax not in ("x", "y", "z"):
-                raise InputError(f"axis {ax!r} must be x, y or z", o.file,
-                                 axes.line_of(j) if isinstance(axes, LocList) else o.line_of("axes"))
-            for k in range(count):
-                phi = k * step_deg
+        for ax in s.axes:
+            for k in range(s.count):
+                phi = k * s.step_deg
                 self.add(o, "pattern", kind="orientation", label=f"{ax} north, phi {phi:g} deg",
                          angles=np.asarray(north_pointing_angles(ax, math.radians(phi))),
                          sample_s=sample, discard_s=discard, settle=policy)
 
-    def _rates(self, o: LocDict, d: dict[str, Any]) -> None:
-        S.check_keys(o, ("axes", "rates_dps", "directions", "dwell", "revolutions", "angles_deg",
-                         "label", *_SAMPLING_KEYS), "'rates'", required=("rates_dps",))
-        policy, sample, discard = self._policy(o, d)
-        axes = S.get_list(o, "axes", ["x", "y", "z"], min_length=1)
-        rates = S.number_list(o, "rates_dps")
-        directions = S.get_list(o, "directions", ["forward", "reverse"], min_length=1)
-        for j, dname in enumerate(directions):
-            if dname not in ("forward", "reverse"):
-                raise S.error(o, "directions", f"direction {dname!r} must be forward or reverse")
-        if "dwell" in o and "revolutions" in o:
-            raise S.error(o, "revolutions", "give either 'dwell' or 'revolutions', not both")
-        revs = S.get_number(o, "revolutions", None, minimum=0.01, allow_none=True)
-        dwell = S.get_duration(o, "dwell", None)
-        start = self._angles(o)
-        for ax in axes:
-            if ax not in RATE_AXIS_GIMBAL:
-                raise S.error(o, "axes", f"axis {ax!r} must be x, y or z")
-            for r in rates:
-                if r <= 0:
-                    raise S.error(o, "rates_dps", f"rates are magnitudes (> 0), got {r}",
-                                  "list forward/reverse under 'directions'")
-                for dname in directions:
+    def _rates(self, s: RatesStep, o: LocDict, d: SamplingSettings) -> None:
+        policy, sample, discard = SamplingSettings.of(s).over(d).resolve()
+        start = self._radians(s.angles_deg)
+        for ax in s.axes:
+            for r in s.rates_dps:
+                for dname in s.directions:
                     w = math.radians(r) * (1 if dname == "forward" else -1)
                     vec = np.full(3, np.nan)
                     vec[RATE_AXIS_GIMBAL[ax]] = w
-                    if revs is not None:
-                        window = revs * 2 * math.pi / abs(w)
-                    elif dwell is not None:
-                        window = dwell
+                    if s.revolutions is not None:
+                        window = s.revolutions * 2 * math.pi / abs(w)
+                    elif s.dwell is not None:
+                        window = s.dwell
                     else:
                         window = sample
                     self.add(o, "rates_dps", kind="rate", label=f"{ax} {dname} {r:g} deg/s",

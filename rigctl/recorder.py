@@ -46,6 +46,8 @@ FORMAT_NAME = "rigctl-recording"
 STATUSES = ("running", "complete", "interrupted", "failed")
 
 _STR = {"kind": "S16", "label": "S48", "status": "S16", "source": "S16", "message": "S200"}
+#: dtype of /run/status (one of STATUSES)
+STATUS_DTYPE = _STR["status"]
 
 #: group -> dataset -> (per-row shape, dtype, units)
 LAYOUT: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
@@ -148,7 +150,7 @@ class Recorder:
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["rigctl_version"] = __version__
         run = f.create_group("run")
-        run.create_dataset("status", data=np.array([b"running"], dtype="S16"))
+        run.create_dataset("status", data=np.array([b"running"], dtype=STATUS_DTYPE))
         m = f.create_group("meta")
         for key, value in meta.items():
             m.attrs[key] = value if not isinstance(value, (dict, list)) else json.dumps(value)

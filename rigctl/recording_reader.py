@@ -22,6 +22,7 @@ night's recording is not read twice.
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -217,4 +218,109 @@ def check_finite(path: str | Path, name: str, block: np.ndarray, first_row: int 
                           "(rigctl import --segments) or re-record")
 
 
-__all__ = ["open_recording", "check_finite", "sample_rate", "MAX_RATE_HZ"]
+class RowReader:
+    """Reads rows [a, b) of a dataset into a given buffer, the same values as h5py's
+    ``read_direct``. When the dataset is stored as HDF5 writes it by default -- contiguous, or
+    chunked with whole rows per chunk, no filters (no compression), the buffer's dtype in
+    native byte order -- its bytes are the rows themselves, so the rows are read with
+    ``os.preadv`` straight from the chunks' file offsets (HDF5's chunk index, read once;
+    adjacent chunks in one call). That copies the page cache into the buffer and nothing
+    else, and it releases the GIL: another thread's Python work goes on while it reads (h5py
+    holds the GIL for the whole read). Any other layout (compressed, partial-width chunks,
+    a chunk not yet written, a file opened as a SWMR reader) goes through h5py."""
+
+    def __init__(self, f: h5py.File, name: str):
+        self.ds = f[name]
+        self.direct: list[tuple[int, int, int]] | None = None  # (first row, rows, file offset)
+        self._fd = -1
+        try:
+            self._plan(f)
+        except (AttributeError, OSError, RuntimeError, ValueError, TypeError):
+            self.direct = None
+        if self.direct is not None:
+            try:
+                self._fd = os.open(f.filename, os.O_RDONLY)
+            except OSError:
+                self.direct = None
+
+    def _plan(self, f: h5py.File) -> None:
+        ds = self.ds
+        if getattr(f, "swmr_mode", False) or ds.dtype.byteorder not in ("=", "<" if
+                                                                         np.little_endian else ">"):
+            return
+        if ds.dtype.kind not in "fiu" or ds.ndim < 1 or ds.size == 0:
+            return
+        row_bytes = ds.dtype.itemsize * int(np.prod(ds.shape[1:], dtype=np.int64))
+        dcpl = ds.id.get_create_plist()
+        layout = dcpl.get_layout()
+        if dcpl.get_nfilters():
+            return
+        if layout == h5py.h5d.CONTIGUOUS:
+            off = ds.id.get_offset()
+            if off is None:
+                return
+            self.direct = [(0, ds.shape[0], int(off))]
+        elif layout == h5py.h5d.CHUNKED:
+            if tuple(ds.chunks[1:]) != tuple(ds.shape[1:]):
+                return
+            rows = int(ds.chunks[0])
+            got: list[tuple[int, int, int]] = []
+            ds.id.chunk_iter(lambda ci: got.append((int(ci.chunk_offset[0]), int(ci.byte_offset),
+                                                    int(ci.filter_mask))))
+            got.sort()
+            if any(m for _, _, m in got):
+                return
+            # a full index of whole chunks: chunk k holds rows k*rows .. (k+1)*rows - 1
+            if [r for r, _, _ in got] != list(range(0, ds.shape[0], rows)):
+                return
+            self.direct = [(r, min(rows, ds.shape[0] - r), off) for r, off, _ in got]
+        self.row_bytes = row_bytes
+        self._starts = np.array([r for r, _, _ in self.direct or []], dtype=np.int64)
+
+    def read(self, a: int, b: int, out: np.ndarray) -> np.ndarray:
+        """Rows [a, b) into out[:b - a] (C-contiguous, the dataset's dtype and row shape);
+        returns that view."""
+        dst = out[: b - a]
+        if b <= a:
+            return dst
+        if self.direct is None or dst.dtype != self.ds.dtype or not dst.flags.c_contiguous:
+            self.ds.read_direct(dst, np.s_[a:b], np.s_[0:b - a])
+            return dst
+        mv = memoryview(dst.reshape(-1).view(np.uint8))
+        rb = self.row_bytes
+        k = int(np.searchsorted(self._starts, a, side="right")) - 1
+        pos = 0
+        while a < b:
+            r0, n, off = self.direct[k]
+            lo = a - r0
+            # extend over the following chunks that lie right after this one in the file
+            end_off = off + n * rb
+            j = k
+            while j + 1 < len(self.direct) and self.direct[j][0] + self.direct[j][1] < b \
+                    and self.direct[j + 1][2] == end_off:
+                j += 1
+                end_off += self.direct[j][1] * rb
+            hi = min(b, self.direct[j][0] + self.direct[j][1])
+            nbytes = (hi - a) * rb
+            start = off + lo * rb
+            got = 0
+            while got < nbytes:
+                r = os.preadv(self._fd, [mv[pos + got: pos + nbytes]], start + got)
+                if r <= 0:
+                    raise OSError(f"{self.ds.file.filename}: short read at byte {start + got}")
+                got += r
+            pos += nbytes
+            a = hi
+            k = j + 1
+        return dst
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:  # pragma: no cover - closed explicitly by the callers
+        self.close()
+
+
+__all__ = ["open_recording", "check_finite", "sample_rate", "MAX_RATE_HZ", "RowReader"]

@@ -214,6 +214,7 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
     fitted total (black), and the taus where the self-check finds the total outside the band
     (red rings)."""
     from .solvers import allan_fit as F
+    from .solvers import noise_coefficients as NC
 
     tau = np.asarray(tau, dtype=float)
     dev = np.asarray(dev, dtype=float)
@@ -237,22 +238,21 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
                         ha="right", va="bottom", xytext=(-2, 1 + 7 * k),
                         textcoords="offset points", annotation_clip=True)
     fit = fit or {}
-    coeff = fit.get("coeff_sq_si") or {}
-    terms = fit.get("terms") or {}
+    co = NC.from_json(fit["coefficients"]) if fit.get("coefficients") else None
+    coeff = {t: v**2 for t, v in NC.resolved_values(co).items() if v > 0} if co else {}
     tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
     cols = F.design_matrix(tt)
     total = np.zeros_like(tt)
     for j, term in enumerate(F.TERMS):
         c2 = float(coeff.get(term) or 0.0)
         unit_f, ffac = F.FIELD_UNITS[sensor][term]
-        e = terms.get(term) or {}
         if c2 > 0:
             part = cols[:, j] * c2
             total += part
             ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9,
                     label=f"{term} {math.sqrt(c2) * ffac:.3g} {unit_f}")
-        elif term in ("N", "B", "K") and e and not e.get("supported"):
-            ub = e.get(f"upper95_{F.SI_UNITS[sensor][term]}")
+        elif term in ("N", "B", "K") and co and not getattr(co, term).resolved:
+            ub = getattr(co, term).upper95
             if ub and math.isfinite(ub) and ub > 0:
                 ax.plot(tt, np.sqrt(cols[:, j]) * ub * fac, ":", lw=0.9,
                         label=f"{term} < {ub * ffac:.3g} {unit_f} (bound)")

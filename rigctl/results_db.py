@@ -24,19 +24,20 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
-from alembic import command
-from alembic.config import Config
 from sqlalchemy import (Engine, Float, ForeignKey, Integer, String, Text, create_engine, delete,
-                        event, select, text)
+                        event, inspect, select, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 if TYPE_CHECKING:  # annotations only: the application layer imports this module, not the reverse
+    from alembic.config import Config
+
     from .analysis.production import RunInfo
     from .analysis.results import Measured
 
 
 DEFAULT_NAME = "results.sqlite"
-#: the newest schema revision (rigctl/db_migrations/versions)
+#: the newest schema revision (rigctl/db_migrations/versions; tests/test_results_db_concurrency.py
+#: checks it is Alembic's head): a database already there is used without loading Alembic
 HEAD = "0001"
 
 
@@ -101,6 +102,8 @@ def default_path(recording: str | Path) -> Path:
 
 
 def _alembic_config(engine: Engine) -> Config:
+    from alembic.config import Config
+
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(__file__).with_name("db_migrations")))
     cfg.set_main_option("sqlalchemy.url", engine.url.render_as_string(hide_password=False))
@@ -121,10 +124,21 @@ def open_db(target: str | Path) -> Engine:
     with _schema_lock(url), engine.begin() as conn:
         if engine.dialect.name == "postgresql":  # held until this transaction ends
             conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": _SCHEMA_LOCK_KEY})
-        cfg = _alembic_config(engine)
-        cfg.attributes["connection"] = conn
-        command.upgrade(cfg, "head")
+        if _revision(conn) != HEAD:
+            from alembic import command  # ~1 s of imports: only when the schema must change
+
+            cfg = _alembic_config(engine)
+            cfg.attributes["connection"] = conn
+            command.upgrade(cfg, "head")
     return engine
+
+
+def _revision(conn: Any) -> str | None:
+    """The schema revision Alembic recorded in the database (None: none or several)."""
+    if not inspect(conn).has_table("alembic_version"):
+        return None
+    rows = conn.execute(text("SELECT version_num FROM alembic_version")).fetchall()
+    return rows[0][0] if len(rows) == 1 else None
 
 
 #: pg_advisory_xact_lock key serialising schema upgrades (any constant shared by all rigctl)

@@ -24,6 +24,13 @@ def error(obj: Any, key: Any, message: str, hint: str | None = None) -> InputErr
     return InputError(message, file, line, hint)
 
 
+def item_error(m: LocDict, key: Any, items: list, i: int, message: str, hint: str | None = None) -> InputError:
+    """An InputError at entry ``i`` of the list ``m[key]`` (at the key's line for a list without
+    lines of its own, such as one from a ``-p`` value)."""
+    line = items.line_of(i) if isinstance(items, LocList) else _where(m, key)[1]
+    return InputError(message, _where(m)[0], line, hint)
+
+
 def require_mapping(obj: Any, what: str, parent: Any = None, key: Any = None) -> LocDict:
     if not isinstance(obj, dict):
         raise error(parent if parent is not None else obj, key,
@@ -151,8 +158,6 @@ def number_list(m: LocDict, key: str, default: Any = ..., *, length: int | None 
             out.append(None)
             continue
         if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
-            file, _ = _where(m)
-            line = v.line_of(i) if isinstance(v, LocList) else _where(m, key)[1]
-            raise InputError(f"{key!r}: entry {i + 1} must be a number, got {_kind(x)}", file, line)
+            raise item_error(m, key, v, i, f"{key!r}: entry {i + 1} must be a number, got {_kind(x)}")
         out.append(float(x))
     return out

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import recording_reader
 from .frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
-from .solvers.segment_stats import AllanCurve, NoiseModel, self_noise_sigma
+from .solvers.segment_stats import SensorNoise, self_noise_sigma
 from .solvers.segments import SegmentTable, about_reference, rest_batches, segment_table_from_samples
 from .yamlio import InputError
 
@@ -78,8 +78,8 @@ def _residual_sigma(x: np.ndarray, ref: np.ndarray, fs: float) -> np.ndarray:
 
 
 def build_segment_table(path: str | Path, kinds: tuple[bytes, ...] = CAL_KINDS,
-                        noise_f: NoiseModel | AllanCurve | None = None,
-                        noise_w: NoiseModel | AllanCurve | None = None) -> SegmentTable:
+                        noise_f: SensorNoise | None = None,
+                        noise_w: SensorNoise | None = None) -> SegmentTable:
     """Per-segment means, uncertainties and references of a recording's complete segments.
 
     Reads the windows and the references of each segment, then builds the table with

@@ -1,15 +1,19 @@
-"""Typed settings: one frozen dataclass per section of a rig config, and the one validator.
+"""Typed settings: one frozen dataclass per concept of a rig config, a procedure or a spec file,
+and the one validator.
 
-A section's settings are a dataclass whose fields each name one YAML key, with its default and
-its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, or :func:`setting`
-with a reader of its own). :func:`parse` is the one validator: unknown keys are refused with
-"did you mean", each value is read and checked by its field's reader (type, range, choices),
-missing required keys are named, and :meth:`Settings.check` adds the rules between fields;
-every error is an InputError with the file and line (rigctl.schema).
+A concept's settings are a dataclass whose fields each name one YAML key, with its default and
+its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, :func:`mapping`,
+:func:`as_written`, or :func:`setting` with a reader of its own). :func:`parse` is the one
+validator: unknown keys are refused with "did you mean", each value is read and checked by its
+field's reader (type, range, choices), missing required keys are named, and
+:meth:`Settings.check` adds the rules between fields; every error is an InputError with the
+file and line (rigctl.schema).
 
 Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments), rigctl.config (``site:``, ``recorder:``) and rigctl.suspenders
-(``suspenders:``).
+keyword arguments), rigctl.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
+``traceability:``), rigctl.suspenders, rigctl.notify, rigctl.chamber, rigctl.procedure (the
+procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
+rigctl.spec (the acceptance limits of ``--spec``).
 """
 from __future__ import annotations
 
@@ -51,6 +55,24 @@ def flag(default: bool) -> Any:
 def duration(default: Any = MISSING, **check: Any) -> Any:
     """Seconds, given as a number or as text with a unit ('5 min')."""
     return setting(default, read=S.get_duration, **check)
+
+
+def _mapping(d: LocDict, key: str, default: Any = None) -> LocDict:
+    return S.require_mapping(d[key], f"'{key}'", d, key)
+
+
+def mapping(default: Any = MISSING) -> Any:
+    """A mapping (key: value lines), kept as read: a :class:`LocDict` that still knows its lines."""
+    return setting(default, read=_mapping)
+
+
+def _as_written(d: LocDict, key: str, default: Any = None) -> Any:
+    return d[key]
+
+
+def as_written(default: Any = MISSING) -> Any:
+    """Any value, unchecked (read later, e.g. after ``${parameter}`` substitution)."""
+    return setting(default, read=_as_written)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -37,7 +37,8 @@ def _report(recording: Path, log: Log) -> None:
     solve_report(recording, log)
 
 
-#: solver name (rigctl.procedure.SOLVERS) -> hook(recording_path, log) -> None
+#: solver name -> hook(recording_path, log) -> None: one for each name a procedure's solve step
+#: accepts (rigctl.procedure.SOLVERS; tests/test_procedure.py checks they agree)
 SOLVER_HOOKS: dict[str, Hook] = {
     "accel24": _calibration, "gyro-rate": _calibration, "closed-loop": _calibration,
     "allan": _allan, "sync": _sync, "report": _report,
@@ -47,9 +48,4 @@ SOLVER_HOOKS: dict[str, Hook] = {
 def run_solvers(proc: Procedure, recording: Path, log: Log) -> None:
     for step in proc.steps:
         for name in step.solvers:
-            hook = SOLVER_HOOKS.get(name)
-            if hook is None:
-                log("warning", f"solver {name!r}: not available in this version of rigctl; "
-                               f"run it later on {recording}")
-                continue
-            hook(recording, log)
+            SOLVER_HOOKS[name](recording, log)

@@ -13,7 +13,9 @@ Parameter keys are the display names of the results (``rigctl calibrate`` / ``ri
 print them in the first column, without the unit) or shell-style patterns of them
 (``*``, ``?``, ``[xyz]``). Each has ``lower`` and/or ``upper``, or ``within`` (a symmetric
 +-limit), each a number with the parameter's display unit (``5 mg``) or its SI unit; a number
-without a unit is in the display unit. Errors name the file and line.
+without a unit is in the display unit. The file is read by the typed settings of rigctl.settings
+(:class:`SpecSettings`, one :class:`LimitSettings` per parameter): errors name the file and line,
+and an unknown key gets a "did you mean".
 """
 from __future__ import annotations
 
@@ -22,9 +24,11 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from . import schema as S
 from .display_units import NOISE_SI, NOISE_UNITS, SUFFIXES, Display
+from .settings import Settings, mapping, parse, setting, text
 from .solvers.conformity import RULES
 from .yamlio import InputError, LocDict, load_file
 
@@ -88,7 +92,8 @@ class Spec:
         return next((lim for lim in self.limits if lim.matches(base)), None)
 
 
-def _quantity(m: LocDict, key: str) -> tuple[float, str]:
+def _quantity(m: LocDict, key: str, default: Any = None) -> tuple[float, str]:
+    """A limit as written: (number, unit or '')."""
     v = m[key]
     if isinstance(v, bool):
         raise S.error(m, key, f"{key!r} must be a number with its unit, e.g. '5 mg'")
@@ -108,6 +113,48 @@ def _quantity(m: LocDict, key: str) -> tuple[float, str]:
     return num, unit
 
 
+def quantity() -> Any:
+    return setting(None, read=_quantity)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LimitSettings(Settings):
+    """One parameter's limits: ``lower`` and/or ``upper``, or ``within`` (a symmetric
+    +-limit), each a number with its unit."""
+
+    lower: tuple[float, str] | None = quantity()
+    upper: tuple[float, str] | None = quantity()
+    within: tuple[float, str] | None = quantity()
+
+    def check(self, d: LocDict) -> None:
+        if self.within is not None and (self.lower is not None or self.upper is not None):
+            raise S.error(d, "within", "give either 'within' or 'lower'/'upper', not both")
+        if self.within is not None and self.within[0] <= 0:
+            raise S.error(d, "within", "'within' must be positive (the +- half-width)")
+
+    def bounds(self) -> tuple[tuple[float, str] | None, tuple[float, str] | None]:
+        """(lower, upper) as written (``within`` as -w, +w)."""
+        if self.within is not None:
+            (w, unit) = self.within
+            return (-w, unit), (w, unit)
+        return self.lower, self.upper
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpecSettings(Settings):
+    """A spec file's top level; ``parameters`` maps display names (or patterns) to
+    :class:`LimitSettings`."""
+
+    spec: str | None = text(None)
+    decision_rule: str = text("guarded", choices=RULES)
+    parameters: LocDict | None = mapping(None)
+
+    def check(self, d: LocDict) -> None:
+        if self.parameters is None:
+            raise S.error(d, None, "the spec has no 'parameters' section",
+                          "add 'parameters:' with limits, as in configs/spec-example.yaml")
+
+
 def load_spec(path: str | Path, rule: str | None = None) -> Spec:
     """Read and validate a spec file; ``rule`` overrides its decision_rule. InputError with
     file and line on any problem."""
@@ -115,34 +162,19 @@ def load_spec(path: str | Path, rule: str | None = None) -> Spec:
     raw = load_file(p)
     if raw is None:
         raise InputError("the spec file is empty", p, hint="see configs/spec-example.yaml")
-    m = S.require_mapping(raw, "a spec file")
-    S.check_keys(m, ("spec", "decision_rule", "parameters"), "the spec file")
-    name = S.get_str(m, "spec", p.stem)
-    file_rule = S.get_str(m, "decision_rule", "guarded", choices=RULES)
-    if "parameters" not in m:
-        raise S.error(m, None, "the spec has no 'parameters' section",
-                      "add 'parameters:' with limits, as in configs/spec-example.yaml")
-    params = S.require_mapping(m["parameters"], "'parameters'", m, "parameters")
+    f = parse(SpecSettings, S.require_mapping(raw, "a spec file"), "the spec file")
+    params = f.parameters
     limits = []
     for key, entry in params.items():
         line = params.line_of(key)
         if not isinstance(key, str) or not key.strip():
             raise InputError("a parameter name must be text", str(p), line)
         e = S.require_mapping(entry, f"the limits of {key!r}", params, key)
-        S.check_keys(e, ("lower", "upper", "within"), f"the limits of {key!r}")
-        if "within" in e and ("lower" in e or "upper" in e):
-            raise S.error(e, "within", "give either 'within' or 'lower'/'upper', not both")
-        if "within" in e:
-            w, unit = _quantity(e, "within")
-            if w <= 0:
-                raise S.error(e, "within", "'within' must be positive (the +- half-width)")
-            lo, hi = (-w, unit), (w, unit)
-        else:
-            lo = _quantity(e, "lower") if "lower" in e else None
-            hi = _quantity(e, "upper") if "upper" in e else None
-            if lo is None and hi is None:
-                raise InputError(f"{key!r} has no limit", str(p), line, "give lower, upper or within")
-            if lo is not None and hi is not None and lo[1] == hi[1] and not lo[0] < hi[0]:
-                raise S.error(e, "upper", f"{key!r}: upper {hi[0]:g} is not above lower {lo[0]:g}")
+        lo, hi = parse(LimitSettings, e, f"the limits of {key!r}").bounds()
+        if lo is None and hi is None:
+            raise InputError(f"{key!r} has no limit", str(p), line, "give lower, upper or within")
+        if lo is not None and hi is not None and lo[1] == hi[1] and not lo[0] < hi[0]:
+            raise S.error(e, "upper", f"{key!r}: upper {hi[0]:g} is not above lower {lo[0]:g}")
         limits.append(Limit(key.strip(), lo, hi, str(p), line))
-    return Spec(name=name, rule=rule or file_rule, limits=tuple(limits), path=str(p))
+    return Spec(name=f.spec if f.spec is not None else p.stem, rule=rule or f.decision_rule,
+                limits=tuple(limits), path=str(p))

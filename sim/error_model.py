@@ -32,7 +32,7 @@ then each sensor: Butterworth low-pass at the internal rate, decimation, noise a
 (:class:`rigctl.sim.noise.NoiseGenerator`, Q on the integrated output), ADC LSB and saturation.
 The noise coefficients are those of the output (as Allan analyses of output data give them), so
 noise is added after the low-pass: the output's Allan deviation is exactly
-``theoretical_avar(noise, tau, rate_hz, extra_white_var=LSB^2/12)``.
+``theoretical_avar(coefficients, tau, rate_hz, extra_white_var=LSB^2/12)``.
 Table non-orthogonality and levelling / north errors belong to the table's kinematics: use
 :func:`rigctl.sim.effects.table_body_references` (same convention as rigctl.frames.body_references)
 with ``**model.table_geometry()``.
@@ -48,24 +48,19 @@ from scipy import signal
 from . import effects as fx
 from . import fused as _fused
 from .frontend import FrontEnd
+from rigctl.solvers.noise_coefficients import Triad, from_config, to_json
+
 from .noise import NoiseGenerator
 
-# profile noise keys (unit-bearing) -> NoiseGenerator keys
-NOISE_KEYS = {
-    "gyro": {"Q_rad": "Q", "N_rad_per_s_per_sqrt_hz": "N", "B_rad_per_s": "B",
-             "K_rad_per_s2_per_sqrt_hz": "K", "R_rad_per_s2": "R"},
-    "accel": {"Q_m_per_s": "Q", "N_m_per_s2_per_sqrt_hz": "N", "B_m_per_s2": "B",
-              "K_m_per_s3_per_sqrt_hz": "K", "R_m_per_s3": "R"},
-}
-FLICKER_KEYS = ("flicker_tau_min_s", "flicker_tau_max_s", "flicker_pairs_per_decade")
+
+def sensor_noise(sensor_section: Mapping[str, Any], sensor: str) -> Triad:
+    """The three axes' IEEE 952 coefficients of a profile's gyro/accel section (its ``noise:``)."""
+    return from_config(sensor_section.get("noise"), sensor, "emulator profile")
 
 
-def noise_params(sensor_section: Mapping[str, Any], sensor: str) -> dict:
-    """NoiseGenerator params (Q, N, B, K, R, flicker_*) from a profile's gyro/accel section."""
-    noise = sensor_section.get("noise", {}) or {}
-    out = {short: noise[k] for k, short in NOISE_KEYS[sensor].items() if k in noise}
-    out.update({k: noise[k] for k in FLICKER_KEYS if k in noise})
-    return out
+def flicker_density(sensor_section: Mapping[str, Any]) -> float:
+    """The emulator's flicker cascade density (pole/zero pairs per decade) of a ``noise:`` section."""
+    return float((sensor_section.get("noise") or {}).get("flicker_pairs_per_decade", 2))
 
 
 def _vec(x: Any, default: float = 0.0) -> np.ndarray:
@@ -114,10 +109,11 @@ class ImuErrorModel:
         self.internal_rate_hz = internal
         self.decimation = self.gyro_fe.decimation
         g, a = profile.get("gyro", {}) or {}, profile.get("accel", {}) or {}
-        self.gyro_noise_params = noise_params(g, "gyro")
-        self.accel_noise_params = noise_params(a, "accel")
-        self.gyro_noise = NoiseGenerator(self.gyro_noise_params, self.output_rate_hz, s_gn)
-        self.accel_noise = NoiseGenerator(self.accel_noise_params, self.output_rate_hz, s_an)
+        #: the noise coefficients of each sensor's three axes (the generators' input)
+        self.gyro_coefficients = sensor_noise(g, "gyro")
+        self.accel_coefficients = sensor_noise(a, "accel")
+        self.gyro_noise = NoiseGenerator(self.gyro_coefficients, self.output_rate_hz, s_gn, flicker_density(g))
+        self.accel_noise = NoiseGenerator(self.accel_coefficients, self.output_rate_hz, s_an, flicker_density(a))
         # declared errors
         self.gyro_bias = _vec(g.get("bias_rad_per_s"))
         self.gyro_M = np.diag(1.0 + _vec(g.get("scale_error"))) + _mat(g.get("misalignment_rad")) * (1 - np.eye(3))
@@ -148,8 +144,8 @@ class ImuErrorModel:
         # K random walk and R ramp accumulated between power-on and the run start (a constant
         # from the run's point of view): N(0, K^2 t_on) + R t_on per axis
         rng_pre = np.random.default_rng(s_pre)
-        self.gyro_power_on_offset = self._noise_offset(self.gyro_noise_params, rng_pre)
-        self.accel_power_on_offset = self._noise_offset(self.accel_noise_params, rng_pre)
+        self.gyro_power_on_offset = self._noise_offset(self.gyro_noise.params, rng_pre)
+        self.accel_power_on_offset = self._noise_offset(self.accel_noise.params, rng_pre)
         self.time_delay_s = float(self.delay["delay_s"]) if self.delay else 0.0
         self.turn_on_gyro = np.zeros(3)
         self.turn_on_accel = np.zeros(3)
@@ -345,8 +341,9 @@ class ImuErrorModel:
         out = {
             "profile_name": self.profile.get("name"), "seed": self.seed,
             "output_rate_hz": self.output_rate_hz, "power_on_time_s": self.power_on_time_s,
-            "gyro_noise": {k: js(v) for k, v in (self.profile.get("gyro", {}) or {}).get("noise", {}).items()},
-            "accel_noise": {k: js(v) for k, v in (self.profile.get("accel", {}) or {}).get("noise", {}).items()},
+            # three axes each, rigctl.solvers.noise_coefficients.to_json (SI; units in "units")
+            "gyro_noise": [to_json(m) for m in self.gyro_coefficients],
+            "accel_noise": [to_json(m) for m in self.accel_coefficients],
             "gyro_bias_rad_per_s": self.gyro_bias, "gyro_turn_on_bias_rad_per_s": self.turn_on_gyro,
             "gyro_scale_misalignment_matrix": self.gyro_M,
             "accel_bias_m_per_s2": self.accel_bias, "accel_turn_on_bias_m_per_s2": self.turn_on_accel,
@@ -357,9 +354,7 @@ class ImuErrorModel:
             "noise_model": ("IEEE 952 terms per axis (rigctl.sim.noise): Q on the integrated output, "
                             "B as a 1/f pole-zero cascade (flicker_pairs_per_decade, default 2), added at "
                             "the output rate after the front-end low-pass; exact curve: "
-                            "rigctl.sim.noise.theoretical_avar(params, tau, rate_hz, LSB^2/12)"),
-            "gyro_noise_generator_params": {k: js(np.asarray(v)) for k, v in self.gyro_noise_params.items()},
-            "accel_noise_generator_params": {k: js(np.asarray(v)) for k, v in self.accel_noise_params.items()},
+                            "rigctl.sim.noise.theoretical_avar(coefficients, tau, rate_hz, LSB^2/12)"),
             "effects": {name: (dict(cfg) if cfg else {"enabled": False}) for name, cfg in [
                 ("warmup", self.warmup), ("turn_on_bias", self.turn_on), ("g_sensitivity", self.gsens),
                 ("accel_scale_asymmetry", self.asym), ("gyro_nonlinearity", self.nonlin), ("lever_arm", self.lever),

@@ -1,6 +1,7 @@
 """Inertial-sensor noise with exact Allan signatures (IEEE Std 952 coefficients), chunked and seeded.
 
-Terms (per axis; all SI, for a gyro the "rate" unit is rad/s, for an accelerometer m/s^2):
+Terms (per axis: the three axes' :class:`rigctl.solvers.noise_coefficients.NoiseCoefficients`, whose
+docstring gives the PSDs; all SI, for a gyro the "rate" unit is rad/s, for an accelerometer m/s^2):
 
 ==== ======================================= ================== ==========================
 key  term                                    unit (gyro/accel)  Allan variance sigma^2(tau)
@@ -59,9 +60,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
+
+from rigctl.solvers.noise_coefficients import PLATEAU, TERMS, NoiseCoefficients, terms_of
 
 from . import block_iir as _bi
 from .block_iir import BlockCascade
@@ -173,26 +176,24 @@ if _bi.HAVE_NUMBA:
         state[1] = prev
 from .spectral_factor import factor, residues
 
-TERMS = ("Q", "N", "B", "K", "R")
-PLATEAU = 2.0 * np.log(2.0) / np.pi  # sigma^2 / B^2 on the flicker plateau (0.664^2)
-_DEFAULT_FLICKER = {"flicker_tau_min_s": 1.0, "flicker_tau_max_s": 1.0e4, "flicker_pairs_per_decade": 2}
 
 
-def _axis3(value: float | Sequence[float]) -> np.ndarray:
-    """Broadcast a scalar or 3-sequence to a float64 (3,) array."""
-    arr = np.asarray(value, dtype=np.float64)
-    return np.broadcast_to(arr, (3,)).copy()
-
-
-def normalise_params(params: Mapping[str, object]) -> dict:
-    """Fill defaults: every term as a (3,) array (0 when absent), flicker band settings as floats."""
-    out: dict = {t: _axis3(params.get(t, 0.0)) for t in TERMS}
-    for key, default in _DEFAULT_FLICKER.items():
-        out[key] = float(params.get(key, default))
-    if out["flicker_tau_max_s"] <= out["flicker_tau_min_s"]:
-        raise ValueError("flicker_tau_max_s must exceed flicker_tau_min_s")
-    if np.any(np.concatenate([out[t] for t in TERMS]) < 0):
-        raise ValueError("noise coefficients must be >= 0")
+def arrays(axes: Sequence[NoiseCoefficients], flicker_pairs_per_decade: float = 2) -> dict:
+    """The generator's working form of three axes' coefficients: every term a (3,) array, the flicker
+    band (shared by the axes: one cascade) and the cascade's density as floats. Gauss-Markov terms are
+    not emulated (a ValueError, as are axes with different flicker bands)."""
+    axes = list(axes)
+    if len(axes) != 3:
+        raise ValueError(f"the emulator's noise needs three axes, got {len(axes)}")
+    if any(m.gm for m in axes):
+        raise ValueError("Gauss-Markov noise terms are not emulated (rigctl.sim.noise: IEEE 952 Q, N, B, K, R)")
+    band = {(m.flicker_tau_min_s, m.flicker_tau_max_s) for m in axes}
+    if len(band) != 1:
+        raise ValueError(f"the three axes need one flicker band, got {sorted(band)}")
+    (lo, hi), = band
+    out: dict = {t: terms_of(axes, t) for t in TERMS}
+    out.update(flicker_tau_min_s=float(lo), flicker_tau_max_s=float(hi),
+               flicker_pairs_per_decade=float(flicker_pairs_per_decade))
     return out
 
 
@@ -277,9 +278,10 @@ def _cascade_avar(a_pole: np.ndarray, a_zero: np.ndarray, M: np.ndarray) -> np.n
     return total
 
 
-def flicker_variance(params: Mapping[str, object], rate_hz: float) -> np.ndarray:
+def flicker_variance(axes: Sequence[NoiseCoefficients], rate_hz: float,
+                     flicker_pairs_per_decade: float = 2) -> np.ndarray:
     """Stationary variance (3,) of the flicker term's samples, (rate unit)^2."""
-    P = normalise_params(params)
+    P = arrays(axes, flicker_pairs_per_decade)
     d = design_flicker(P["flicker_tau_min_s"], P["flicker_tau_max_s"], rate_hz, P["flicker_pairs_per_decade"])
     return _cascade_autocov(d.a_pole, d.a_zero)[2] * d.input_std_per_B**2 * P["B"] ** 2
 
@@ -307,8 +309,8 @@ def design_flicker(tau_min_s: float, tau_max_s: float, rate_hz: float, pairs_per
 
 
 # ----------------------------------------------------------------------------------------------
-def theoretical_avar(params: Mapping[str, object], tau: np.ndarray, rate_hz: float | None = None,
-                     extra_white_var: np.ndarray | float = 0.0) -> np.ndarray:
+def theoretical_avar(axes: Sequence[NoiseCoefficients], tau: np.ndarray, rate_hz: float | None = None,
+                     extra_white_var: np.ndarray | float = 0.0, flicker_pairs_per_decade: float = 2) -> np.ndarray:
     """Theoretical Allan variance, shape (len(tau), 3), in (rate unit)^2.
 
     rate_hz None: the IEEE 952 sum 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2.
@@ -316,7 +318,7 @@ def theoretical_avar(params: Mapping[str, object], tau: np.ndarray, rate_hz: flo
     M = tau*fs samples), including the flicker cascade's real curve. ``extra_white_var`` adds white
     noise of that per-sample variance (e.g. ADC quantization LSB^2/12), sigma^2 = v tau0/tau.
     """
-    P = normalise_params(params)
+    P = arrays(axes, flicker_pairs_per_decade)
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
     if rate_hz is None:
         t = tau[:, None]
@@ -355,8 +357,10 @@ class NoiseGenerator:
     FIRST_CHUNK = 1 << 12
     BLOCK = 64  # block length L of the BLAS block recursion
 
-    def __init__(self, params: Mapping[str, object], rate_hz: float, seed: int | np.random.SeedSequence | None = 0):
-        self.params = P = normalise_params(params)
+    def __init__(self, axes: Sequence[NoiseCoefficients], rate_hz: float,
+                 seed: int | np.random.SeedSequence | None = 0, flicker_pairs_per_decade: float = 2):
+        self.axes = tuple(axes)
+        self.params = P = arrays(self.axes, flicker_pairs_per_decade)
         self.rate_hz = float(rate_hz)
         self.tau0 = 1.0 / self.rate_hz
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)

@@ -23,6 +23,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from rigctl.solvers.noise_coefficients import CONFIG_KEYS
 from rigctl.yamlio import InputError, LocDict, LocList, load_file
 
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "configs" / "imu-profiles.yaml"
@@ -135,10 +136,9 @@ def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) 
 # out). A leaf is a kind: see _LEAF. Every key is optional except REQUIRED ones of an enabled
 # effect.
 _NOISE = {"flicker_tau_min_s": "pos", "flicker_tau_max_s": "pos", "flicker_pairs_per_decade": "pos"}
-_GYRO_NOISE = {"Q_rad": "coef", "N_rad_per_s_per_sqrt_hz": "coef", "B_rad_per_s": "coef",
-               "K_rad_per_s2_per_sqrt_hz": "coef", "R_rad_per_s2": "coef", **_NOISE}
-_ACCEL_NOISE = {"Q_m_per_s": "coef", "N_m_per_s2_per_sqrt_hz": "coef", "B_m_per_s2": "coef",
-                "K_m_per_s3_per_sqrt_hz": "coef", "R_m_per_s3": "coef", **_NOISE}
+# the term keys are rigctl.solvers.noise_coefficients.CONFIG_KEYS (one spelling, read by from_config)
+_GYRO_NOISE = {**{k: "coef" for k in CONFIG_KEYS["gyro"].values()}, **_NOISE}
+_ACCEL_NOISE = {**{k: "coef" for k in CONFIG_KEYS["accel"].values()}, **_NOISE}
 EFFECTS_SCHEMA: dict[str, dict[str, str]] = {
     "warmup": {"T0_degC": "num", "dT_degC": "num", "tau_s": "pos", "T_ref_degC": "num",
                "gyro_bias_tc_rad_per_s_per_K": "vec3", "gyro_scale_tc_per_K": "vec3",

@@ -1,15 +1,24 @@
 """Test helpers: configs derived from the shipped ones, and the rigctl command."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+import h5py
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
+
+#: tolerance, s, for comparing a stored duration with the one asked for: the engine ends a window
+#: at min(now, t_start + sample_s) and a resumed session adds its time offset to both ends, so
+#: t_end - t_start is the asked duration only to the rounding of those sums (a few ulps of the
+#: rig time: 4e-13 s at ~1e3 s, 1.5e-11 s at a day). 1 ns is far above that and far below any
+#: real shortfall (a sample, a poll: >= 1 ms)
+DURATION_EPS = 1e-9
 
 
 #: configs/sim.yaml's slow noise terms (bias instability B, random walk K), zeroed: the tests
@@ -33,6 +42,23 @@ def derived_config(tmp_path: Path, name: str = "sim.yaml", **changes: Any) -> Pa
     out = tmp_path / f"derived-{name}"
     out.write_text(yaml.safe_dump(data))
     return out
+
+
+def emulated_capture(tmp: Path, imu_sim: dict[str, Any], procedure: str, seed: int = 11) -> tuple[Path, dict]:
+    """``rigctl run`` of ``procedure`` (YAML text) on configs/sim.yaml with ``imu.sim`` replaced:
+    (the recording, its /truth's ``imu`` parameters)."""
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = seed
+    cfg["imu"]["sim"] = imu_sim
+    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    (tmp / "procedure.yaml").write_text(procedure)
+    r = run_rigctl("run", str(tmp / "procedure.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
+                   str(tmp / "runs"), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
+    with h5py.File(rec, "r") as f:
+        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
+    return rec, truth
 
 
 def rigctl_cmd() -> list[str]:

@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
+import recording_helpers
 from rigctl import allan_cmd, cli
 
 
@@ -18,23 +19,11 @@ def write_recording(path: Path, n: int, fs: float = 100.0, seed: int = 0,
     rng = np.random.default_rng(seed)
     arw = 0.3 * math.pi / 180 / 60  # rad/sqrt(s)
     vrw = 0.04 / 60  # m/s/sqrt(s)
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = "rigctl-recording"
-        f.attrs["schema_version"] = 1
-        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = fs
-        t = imu.create_dataset("time", data=np.arange(n) / fs)
-        t.attrs["units"] = "s"
-        imu.create_dataset("counter", data=np.arange(n, dtype=np.uint64))
-        g = rng.standard_normal((n, 3)) * arw * math.sqrt(fs) + 7.29e-5
-        d = imu.create_dataset("angular_rate", data=g, chunks=(min(4096, n), 3))
-        d.attrs["units"] = "rad/s"
-        if with_accel:
-            a = rng.standard_normal((n, 3)) * vrw * math.sqrt(fs) + [0.0, 0.0, 9.80665]
-            d = imu.create_dataset("specific_force", data=a.astype(np.float32),
-                                   chunks=(min(4096, n), 3))
-            d.attrs["units"] = "m/s^2"
+    cols = {"angular_rate": rng.standard_normal((n, 3)) * arw * math.sqrt(fs) + 7.29e-5}
+    if with_accel:
+        a = rng.standard_normal((n, 3)) * vrw * math.sqrt(fs) + [0.0, 0.0, 9.80665]
+        cols["specific_force"] = a.astype(np.float32)
+    recording_helpers.write_recording(path, fs, chunk_rows=4096, **cols)
     return {"arw_deg_rt_h": 0.3, "vrw_m_s_rt_h": 0.04}
 
 
@@ -56,7 +45,7 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
     assert png.stat().st_size > 10_000
     with h5py.File(rec, "r") as f:
         g = f["results/allan"]
-        assert g.attrs["schema_version"] == 1 and "T" in g.attrs["created_utc"]
+        assert g.attrs["schema_version"] == 2 and "T" in g.attrs["created_utc"]  # 2: fit["coefficients"]
         summary = json.loads(g.attrs["json"])
         tau = f["results/allan/gx/tau_s"][:]
         assert f["results/allan/gx/tau_s"].attrs["units"] == "s"

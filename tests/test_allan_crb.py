@@ -55,7 +55,7 @@ def test_fit_scatter_reaches_the_bound() -> None:
         fit = F.fit_terms(r.tau_s, r.dev, c["edf"], "gyro", tau0=1 / fs, n_phase=r.n_phase)
         assert fit["terms"]["K"]["supported"]
         crbs.append(fit["terms"]["K"]["crb_rel_sd"])  # at the fitted model
-        ks.append(fit["coeff_sq_si"]["K"])
+        ks.append(fit["coefficients"].K.value ** 2)
     sd = float(np.std(ks)) / k ** 2 / 2.0  # sd(K)/K from sd(K^2)/K^2
     assert 0.75 * crb < sd < 1.35 * crb, (sd, crb)
     assert float(np.median(crbs)) == pytest.approx(crb, rel=0.15)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
@@ -128,3 +129,36 @@ def test_interval_coverage_and_no_spurious_terms() -> None:
         absent_ok += [not fit["terms"][t]["supported"] for t in ("Q", "B", "R")]
     assert np.mean(cover) >= 0.85, np.mean(cover)
     assert np.mean(absent_ok) >= 0.90, np.mean(absent_ok)
+
+
+def test_curve_limit_read_off_well_determined_taus_only() -> None:
+    """The curve's hard limit on a term (no bound reported above it) comes from the taus whose
+    95 % band is informative, EDF >= 16.95 (hi95/lo95 <= 2), not from the last taus of a
+    capture: there a handful of averages (EDF 3) put the true sigma anywhere in 0.57 .. 3.6 x
+    the measured one. Seen on a 12 h consumer_mems gy (issue 15): the last octave tau, 3.1 EDF,
+    0.23x the emulated K's line, cut the K bound to 5.86 deg/h/sqrt(h) (truth 24.7). Here: an
+    IEEE 952 curve (N, B, K) on octave taus whose EDF falls as T/tau, the last three taus (EDF
+    12, 6, 3) drawn 0.3x low; expected limits computed here in numpy over the taus with EDF
+    >= 16.95 (scipy's chi-square)."""
+    from scipy.stats import chi2
+
+    tau = 2.0 ** np.arange(0, 14)  # 1 .. 8192 s
+    n, b, k = 1e-4, 2e-5, 3e-7  # rad/sqrt(s), rad/s, rad/s/sqrt(s)
+    dev = np.sqrt(n ** 2 / tau + 2 * math.log(2) / math.pi * b ** 2 + k ** 2 * tau / 3)
+    edf = 3.0 * 8192.0 / tau
+    dev[edf < 16] *= 0.3
+    good = np.sqrt(chi2.ppf(0.975, edf) / chi2.ppf(0.025, edf)) <= 2.0
+    assert good.sum() == 11  # tau <= 1024 s (EDF 24 .. 24576)
+    cols = {"N": 1.0 / tau, "B": np.full(tau.size, 2 * math.log(2) / math.pi), "K": tau / 3.0}
+    lim = {t: math.sqrt(np.min(dev[good] ** 2 / c[good])) for t, c in cols.items()}
+    lim_every = {t: math.sqrt(np.min(dev ** 2 / c)) for t, c in cols.items()}
+    assert lim["K"] > 3.0 * lim_every["K"]  # the low last taus would cut K to a third
+    fit = F.fit_terms(tau, dev, edf, "gyro")
+    for t in ("N", "B", "K"):
+        e = fit["terms"][t]
+        assert e[f"curve_limit_{F.SI_UNITS['gyro'][t]}"] == pytest.approx(lim[t], rel=1e-9), t
+    assert fit["terms"]["K"]["curve_limit_tau_s"] == 1024.0
+    for t, e in fit["terms"].items():
+        if not e["supported"]:
+            si = F.SI_UNITS["gyro"][t]
+            assert e[f"upper95_{si}"] <= e[f"curve_limit_{si}"] * (1 + 1e-12)

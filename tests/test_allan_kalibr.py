@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import ROOT, run_rigctl
+from helpers import emulated_capture, run_rigctl
 
 PROCEDURE = "procedure: static-capture\nsteps:\n  - capture:\n      duration: 1 h\n      label: static\n"
 K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the profile's
@@ -33,21 +33,9 @@ K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the pr
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> tuple[Path, dict]:
-    tmp = tmp_path_factory.mktemp("kalibr")
-    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    cfg["seed"] = 11
-    cfg["imu"]["sim"] = {"profile": "declared_only", "overrides": {
+    return emulated_capture(tmp_path_factory.mktemp("kalibr"), {"profile": "declared_only", "overrides": {
         "gyro": {"noise": {"K_rad_per_s2_per_sqrt_hz": K_GYRO}},
-        "accel": {"noise": {"K_m_per_s3_per_sqrt_hz": K_ACC}}}}
-    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    (tmp / "capture.yaml").write_text(PROCEDURE)
-    r = run_rigctl("run", str(tmp / "capture.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
-                   str(tmp / "runs"), timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
-    with h5py.File(rec, "r") as f:
-        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
-    return rec, truth
+        "accel": {"noise": {"K_m_per_s3_per_sqrt_hz": K_ACC}}}}, PROCEDURE)
 
 
 @pytest.fixture(scope="module")
@@ -67,17 +55,18 @@ def _allan(rec: Path, out: Path, *extra: str) -> tuple[dict, dict, str]:
 
 def test_kalibr_values_match_the_emulator_truth(capture, default_run):
     rec, truth = capture
-    assert truth["gyro_noise"]["K_rad_per_s2_per_sqrt_hz"] == K_GYRO
+    # /truth: each sensor's three axes as rigctl.solvers.noise_coefficients.to_json (SI); x axis
+    g, a = truth["gyro_noise"][0], truth["accel_noise"][0]
+    assert g["K"]["value"] == K_GYRO and g["units"]["K"] == "rad/s/sqrt(s)"
     kal, doc, text, out = default_run
-    g, a = truth["gyro_noise"], truth["accel_noise"]
     assert set(kal) == {"accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density",
                         "gyroscope_random_walk", "rostopic", "update_rate"}
     assert kal["rostopic"] == "/imu0" and kal["update_rate"] == 100.0
-    for key, true in (("gyroscope_noise_density", g["N_rad_per_s_per_sqrt_hz"]),
-                      ("accelerometer_noise_density", a["N_m_per_s2_per_sqrt_hz"])):
+    for key, true in (("gyroscope_noise_density", g["N"]["value"]),
+                      ("accelerometer_noise_density", a["N"]["value"])):
         assert abs(kal[key] / true - 1) < 0.05, (key, kal[key], true)
-    for key, true in (("gyroscope_random_walk", g["K_rad_per_s2_per_sqrt_hz"]),
-                      ("accelerometer_random_walk", a["K_m_per_s3_per_sqrt_hz"])):
+    for key, true in (("gyroscope_random_walk", g["K"]["value"]),
+                      ("accelerometer_random_walk", a["K"]["value"])):
         k = doc["kalibr"][key]
         assert k["supported"] and k["written"] == pytest.approx(kal[key], rel=1e-6), (key, k)
         assert k["ci95"][0] <= true <= k["ci95"][1], (key, k, true)

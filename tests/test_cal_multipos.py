@@ -114,12 +114,12 @@ def test_correlated_pose_means_are_whitened():
     whitens |a_p| - g by their covariance. Same truth, same data: the estimate stays consistent,
     and with a flicker/random-walk model the chi2 differs from the independent one."""
     from rigctl.solvers.multipos import pose_cov
-    from rigctl.solvers.segment_stats import NoiseModel
+    from rigctl.solvers.noise_coefficients import triad
 
     raw_a, _, pa, _, _ = _session(30, seed=3)
     iv = detect_static_intervals(raw_a, FS, t_init_s=8.0)
     means, sig = pose_means(raw_a, iv, FS, None)
-    white = NoiseModel(N=10.0 / np.sqrt(FS))  # the generator's white noise, 10 counts per sample
+    white = triad(N=10.0 / np.sqrt(FS))  # the generator's white noise, 10 counts per sample
     pc = pose_cov(iv, FS, white)
     np.testing.assert_allclose(np.sqrt(np.diagonal(pc, axis1=1, axis2=2)).T, 10.0 / np.sqrt(
         [[e - s] * 3 for s, e in iv]), rtol=1e-2)
@@ -127,7 +127,7 @@ def test_correlated_pose_means_are_whitened():
     whit = calibrate_accel_multipos(means, sig, G, pose_cov=pc)  # diagonal: the same fit
     np.testing.assert_allclose(whit.values, ind.values, rtol=1e-6)
     assert np.isclose(whit.chi2, ind.chi2, rtol=1e-6)
-    slow = pose_cov(iv, FS, NoiseModel(N=10.0 / np.sqrt(FS), B=3.0, K=0.3))
+    slow = pose_cov(iv, FS, triad(N=10.0 / np.sqrt(FS), B=3.0, K=0.3))
     corr = calibrate_accel_multipos(means, sig, G, pose_cov=slow)
     assert corr.status == "ok" and not np.isclose(corr.chi2, ind.chi2, rtol=1e-3)
     _z_check(corr, pa)

@@ -2,7 +2,7 @@
 
 The kernels are checked three ways: against brute-force double integrals of the autocovariance,
 against Monte Carlo of the emulator's own noise generator (rigctl.sim.noise.NoiseGenerator,
-public API only: NoiseGenerator(params, rate_hz, seed).next(n)), and through the property the
+public API only: NoiseGenerator(coefficients, rate_hz, seed).next(n)), and through the property the
 calibration relies on: a constant added to every segment changes only the biases' variance.
 
 Monte-Carlo error of a sample covariance from n independent zero-mean Gaussian vectors:
@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from rigctl.sim.noise import NoiseGenerator
+from rigctl.solvers.noise_coefficients import triad
 from rigctl.solvers import segment_cov as sc
 from rigctl.solvers.calibration_result import fit_linear
 
@@ -70,7 +71,7 @@ def _mc(params, fs, reps, seed0):
     n = idx[-1][1] + 1
     out = []
     for r in range(reps):
-        x = NoiseGenerator(params, fs, seed0 + r).next(n)  # 3 independent axes
+        x = NoiseGenerator(triad(**params), fs, seed0 + r).next(n)  # 3 independent axes
         out.append(np.array([x[i:j].mean(axis=0) for i, j in idx]).T)
     return np.concatenate(out)  # (3 reps, K)
 

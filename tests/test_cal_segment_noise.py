@@ -21,7 +21,8 @@ from rigctl.solvers import segment_cov as sc
 from rigctl.solvers import segment_noise as sn
 from rigctl.solvers.closed_loop import closed_loop, declared_design
 from rigctl.solvers.effect_library import effect_by_name
-from rigctl.solvers.segment_stats import NoiseModel, batch_means, self_noise_sigma
+from rigctl.solvers.noise_coefficients import triad
+from rigctl.solvers.segment_stats import batch_means, self_noise_sigma
 from rigctl.solvers.segments import rest_batches
 from test_cal_synth import FS, make_session, segment_plan
 
@@ -43,7 +44,7 @@ def correlated_session(seed: int, effects: dict[str, np.ndarray] | None = None):
         Xe, _ = effect_by_name(name).build(st)
         y = y + Xe @ coef
     i0, i1 = np.round(st.t_start * FS).astype(int), np.round(st.t_end * FS).astype(int)
-    noise = [NoiseGenerator(p, FS, 1000 * seed + k).next(int(i1.max()) + 1) for k, p in enumerate((ACC, GYR))]
+    noise = [NoiseGenerator(triad(**p), FS, 1000 * seed + k).next(int(i1.max()) + 1) for k, p in enumerate((ACC, GYR))]
     x = np.concatenate(noise, axis=1)  # (n, 6)
     win = [x[a:b] for a, b in zip(i0, i1)]
     st.f = y[:, :3] + np.array([w[:, :3].mean(axis=0) for w in win])
@@ -91,8 +92,8 @@ def test_session_noise_model_clean_chi2_coverage_no_flag(clean):
         assert res.effects == [] and res.unexplained == [], (res.effect_names, res.unexplained)
         cover += _covered(res.final, truth)
         # the white level comes out near the generator's (static windows: 7 contrasts each)
-        n_acc = np.array([np.sqrt(m.white_var["orientation"]) for m in models[:3]])
-        n_gyr = np.array([np.sqrt(m.white_var["orientation"]) for m in models[3:]])
+        n_acc = np.array([m.n_of("orientation") for m in models[:3]])
+        n_gyr = np.array([m.n_of("orientation") for m in models[3:]])
         np.testing.assert_allclose(n_acc, ACC["N"], rtol=0.2)
         np.testing.assert_allclose(n_gyr, GYR["N"], rtol=0.2)
     assert len(cover) == 81 and np.mean(cover) >= 0.90, np.mean(cover)
@@ -100,8 +101,8 @@ def test_session_noise_model_clean_chi2_coverage_no_flag(clean):
 
 def test_known_coefficients_give_the_model_covariance():
     st, truth = correlated_session(24)
-    models = sn.apply_session_noise(st, NoiseModel(**ACC), NoiseModel(**GYR))
-    assert [m.source for m in models] == ["IEEE 952 coefficients (rigctl allan)"] * 6
+    models = sn.apply_session_noise(st, triad("accel", "given", **ACC), triad("gyro", "given", **GYR))
+    assert [m.source for m in models] == ["given"] * 6
     np.testing.assert_allclose(st.cov[1], sc.mean_cov(st.t_start, st.t_end, **ACC), rtol=1e-10)
     np.testing.assert_allclose(st.cov[5], sc.mean_cov(st.t_start, st.t_end, **GYR), rtol=1e-10)
     np.testing.assert_allclose(st.w_sigma[:, 2] ** 2, np.diag(st.cov[5]))
@@ -125,9 +126,10 @@ def test_variance_components_do_not_absorb_real_effects(clean):
     st, truth = correlated_session(21, EFFECTS)
     models = sn.apply_session_noise(st)
     for m, m0 in zip(models, models0):
-        for g in m0.white_var:
-            assert np.isclose(m.white_var[g], m0.white_var[g], rtol=0.1), (g, m.white_var, m0.white_var)
-        assert m.B <= 1.3 * m0.B + 0.1 * np.sqrt(m0.white_var["orientation"]) and m.K <= 1.5 * m0.K + 1e-9
+        for g in m0.white_by_group:
+            assert np.isclose(m.n_of(g) ** 2, m0.n_of(g) ** 2, rtol=0.1), (g, m.white_by_group, m0.white_by_group)
+        assert (m.B.value <= 1.3 * m0.B.value + 0.1 * m0.n_of("orientation")
+                and m.K.value <= 1.5 * m0.K.value + 1e-9)
     res = closed_loop(st, truth=truth)
     assert set(res.effect_names) >= {"lever_arm", "accel_time_drift"}, res.effect_names
     assert any(n in res.effect_names for n in ("gyro_warmup_temperature", "gyro_time_drift")), res.effect_names

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from rigctl.solvers.segment_stats import (AllanCurve, NoiseModel, allan_curve_from_samples,
+from rigctl.solvers.noise_coefficients import NoiseCoefficients, triad
+from rigctl.solvers.segment_stats import (AllanCurve, allan_curve_from_samples,
                                           gauss_markov_avar, mean_sigma_from_model,
                                           overlapping_avar, segment_mean, self_noise_sigma)
 
@@ -21,7 +22,7 @@ def _gm(rng, shape, sigma, tc):
 
 def test_white_noise_model_equals_sigma_over_sqrt_n():
     n_white = 2e-3  # unit*sqrt(s)
-    model = NoiseModel(N=n_white)
+    model = triad(N=n_white)
     T = 20.0
     s = mean_sigma_from_model(T, model)
     np.testing.assert_allclose(s, n_white / np.sqrt(T))
@@ -31,12 +32,12 @@ def test_white_noise_model_equals_sigma_over_sqrt_n():
 
 def test_ieee952_terms_at_their_read_off_points():
     q, n, b, k, r = 1e-4, 2e-3, 5e-4, 3e-5, 1e-6
-    assert np.isclose(np.sqrt(NoiseModel(Q=q).avar(np.sqrt(3.0)))[0], q)
-    assert np.isclose(np.sqrt(NoiseModel(N=n).avar(1.0))[0], n)
-    assert np.isclose(np.sqrt(NoiseModel(B=b).avar(123.0))[0], 0.664 * b, rtol=1e-3)
-    assert np.isclose(np.sqrt(NoiseModel(K=k).avar(3.0))[0], k)
-    assert np.isclose(np.sqrt(NoiseModel(R=r).avar(np.sqrt(2.0)))[0], r)
-    both = NoiseModel(N=n, K=k).avar(10.0)[0]
+    assert np.isclose(np.sqrt(NoiseCoefficients(Q=q).avar(np.sqrt(3.0))), q)
+    assert np.isclose(np.sqrt(NoiseCoefficients(N=n).avar(1.0)), n)
+    assert np.isclose(np.sqrt(NoiseCoefficients(B=b).avar(123.0)), 0.664 * b, rtol=1e-3)
+    assert np.isclose(np.sqrt(NoiseCoefficients(K=k).avar(3.0)), k)
+    assert np.isclose(np.sqrt(NoiseCoefficients(R=r).avar(np.sqrt(2.0))), r)
+    both = NoiseCoefficients(N=n, K=k).avar(10.0)
     assert np.isclose(both, n**2 / 10 + k**2 * 10 / 3)  # the terms add
 
 
@@ -104,7 +105,7 @@ def test_segment_table_from_samples_moments():
     acc = [rng.normal(f_static, 0.01, (400, 3)), rng.normal(f_static, 0.01, (400, 3))]
     gyr = [rng.normal(0, 0.001, (400, 3)), w_ramp + rng.normal(0, 0.001, (400, 3))]
     st = segment_table_from_samples(["orientation", "ramp"], acc, gyr, FS, [f_static, f_static],
-                                    [np.zeros(3), w_ramp], acc_noise=NoiseModel(N=0.01 / np.sqrt(FS)),
+                                    [np.zeros(3), w_ramp], acc_noise=triad(N=0.01 / np.sqrt(FS)),
                                     time=np.array([10.0, 20.0]))
     np.testing.assert_allclose(st.ang_accel[1], [0, 0, 0.5], atol=1e-9)
     np.testing.assert_allclose(st.ang_accel[0], 0.0)

@@ -145,6 +145,7 @@ def test_noise_from_an_overnight_capture_of_the_same_unit(runs, night, tmp_path)
 
     import h5py
     from rigctl.analysis.calibration import noise_from_allan
+    from rigctl.solvers.noise_coefficients import terms_of
 
     rec = _with_ids(runs[0][0], tmp_path / "session.h5", imu_serial="SN-0042")
     nt = _with_ids(night, tmp_path / "night.h5", imu_serial="SN-0042")
@@ -160,9 +161,9 @@ def test_noise_from_an_overnight_capture_of_the_same_unit(runs, night, tmp_path)
         acc, gyr = noise_from_allan(f)
     rows = payload["noise_model_channels"]
     n_vrw = [r["N_m_per_s_per_sqrt_h"]["*"] for r in rows[:3]]  # one white level for every kind
-    np.testing.assert_allclose(n_vrw, acc.N * 60.0, rtol=1e-3)
+    np.testing.assert_allclose(n_vrw, terms_of(acc, "N") * 60.0, rtol=1e-3)
     b_degh = [r["B_deg_per_h"] for r in rows[3:]]
-    np.testing.assert_allclose(b_degh, gyr.B * 180 / np.pi * 3600, rtol=1e-3)
+    np.testing.assert_allclose(b_degh, terms_of(gyr, "B") * 180 / np.pi * 3600, rtol=1e-3)
     fin = payload["results"]["closed_loop"]["final"]
     lo, hi = scipy.stats.chi2.ppf([0.005, 0.995], fin["dof"])
     assert lo <= fin["chi2"] <= hi, fin["chi2_per_dof"]

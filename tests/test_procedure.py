@@ -150,6 +150,14 @@ def test_broken_procedure_names_file_and_line(name, tmp_path, cfg):
     assert f"{path}:{expected_line}:" in str(err)
 
 
+def test_every_solver_a_procedure_accepts_has_its_hook():
+    """procedure.SOLVERS (what a solve step may name; the core cannot import the hooks) and
+    solve.SOLVER_HOOKS (what runs) name the same solvers."""
+    from rigctl.procedure import SOLVERS
+    from rigctl.solve import SOLVER_HOOKS
+    assert sorted(SOLVERS) == sorted(SOLVER_HOOKS)
+
+
 def test_include_cycle_is_reported(tmp_path):
     (tmp_path / "a.yaml").write_text("steps:\n  - include: b.yaml\n")
     (tmp_path / "b.yaml").write_text("steps:\n  - include: a.yaml\n")
@@ -172,3 +180,98 @@ def test_yaml_tags_are_not_executed(tmp_path):
     with pytest.raises(InputError) as info:
         load_procedure(path)
     assert info.value.line == 2
+
+
+#: malformed procedures read by the typed step models: name -> (text, the message after
+#: "FILE:LINE: ", where LINE is the line marked "# <-")
+MALFORMED = {
+    "step_key_did_you_mean": ("""steps:
+  - capture:
+      duration: 10 s
+      discrad: 2 s   # <-
+""", "unknown key 'discrad' in 'capture' (did you mean 'discard'?)"),
+    "settle_key_did_you_mean": ("""steps:
+  - rates:
+      rates_dps: [10]
+      settle:
+        hodl: 1 s   # <-
+""", "unknown key 'hodl' in 'settle' (did you mean 'hold'?)"),
+    "parameter_key_did_you_mean": ("""parameters:
+  warm:
+    defualt: 5 s   # <-
+steps:
+  - warmup: {duration: "${warm}"}
+""", "unknown key 'defualt' in parameter 'warm' (did you mean 'default'?)"),
+    "solver_did_you_mean": ("""steps:
+  - solve:
+      solvers:
+        - alan   # <-
+""", "unknown solver 'alan' (did you mean 'allan'?)"),
+    "duration_wrong_unit": ("""steps:
+  - warmup:
+      duration: 15 kg   # <-
+""", "'duration': unknown time unit 'kg' in '15 kg'; use ms, s, min or h"),
+    "sample_unit_on_a_number": ("""defaults:
+  discard: 2 deg   # <-
+steps:
+  - orientations: {pattern: 24-position}
+""", "'discard': unknown time unit 'deg' in '2 deg'; use ms, s, min or h"),
+    "count_wrong_type": ("""steps:
+  - taps:
+      count: many   # <-
+""", "'count' must be a number, got str 'many'"),
+    "axes_wrong_type": ("""steps:
+  - rates:
+      rates_dps: [10]
+      axes: z   # <-
+""", "'axes' must be a list, got str 'z'"),
+    "label_wrong_type": ("""steps:
+  - wait:
+      duration: 1 s
+      label: [a, b]   # <-
+""", "'label' must be text, got a list"),
+    "chamber_rate_missing": ("""steps:
+  - chamber-ramp:   # <-
+      setpoint_c: 40
+""", "'chamber-ramp' is missing 'rate_c_per_min' (add a line 'rate_c_per_min: ...')"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MALFORMED))
+def test_malformed_procedure_message_names_file_line_and_fix(name, tmp_path):
+    text, message = MALFORMED[name]
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text)
+    line = next(i for i, ln in enumerate(text.splitlines(), 1) if "# <-" in ln)
+    with pytest.raises(InputError) as info:
+        load_procedure(path)
+    assert str(info.value) == f"{path}:{line}: {message}"
+
+
+def test_error_in_an_included_file_names_that_file_and_line(tmp_path):
+    (tmp_path / "inner.yaml").write_text("steps:\n  - warmup: {duration: 1 s}\n  - wiat: {duration: 1 s}\n")
+    (tmp_path / "outer.yaml").write_text("steps:\n  - include: inner.yaml\n")
+    with pytest.raises(InputError) as info:
+        load_procedure(tmp_path / "outer.yaml")
+    assert str(info.value) == (f"{tmp_path / 'inner.yaml'}:3: unknown key 'wiat' in the step "
+                               "(did you mean 'wait'?)")
+
+
+def test_a_parameter_given_a_wrong_value_is_reported_where_it_is_used(tmp_path):
+    """-p values are checked by the model of the key they land in, at that key's line."""
+    path = tmp_path / "p.yaml"
+    path.write_text("parameters:\n  n: 3\nsteps:\n  - taps:\n      count: ${n}\n")
+    assert load_procedure(path, {"n": 5}).steps[0].expected_taps == 5
+    with pytest.raises(InputError) as info:
+        load_procedure(path, {"n": "lots"})
+    assert str(info.value) == f"{path}:5: 'count' must be a number, got str 'lots'"
+
+
+def test_an_included_file_inherits_the_defaults_it_does_not_set(tmp_path):
+    """defaults: merge key by key down the includes (the inner file's keys win for its steps)."""
+    (tmp_path / "inner.yaml").write_text("defaults:\n  discard: 3 s\nsteps:\n  - orientations: {pattern: 24-position, axes: [x], count: 1}\n")
+    (tmp_path / "outer.yaml").write_text("defaults:\n  sample: 7 s\n  discard: 2 s\n  settle: {hold: 4 s}\n"
+                                         "steps:\n  - include: inner.yaml\n  - capture: {duration: 1 s}\n")
+    inner, outer = load_procedure(tmp_path / "outer.yaml").steps
+    assert (inner.sample_s, inner.discard_s, inner.settle.hold_s) == (7.0, 3.0, 4.0)
+    assert (outer.discard_s, outer.settle.hold_s) == (2.0, 4.0)

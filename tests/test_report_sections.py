@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from helpers import run_rigctl
+from recording_helpers import write_recording
 
 pytest.importorskip("matplotlib")
 
@@ -172,18 +173,9 @@ def tap_recording(tmp_path_factory) -> Path:
     s = taps.simulate_taps(RATE, 240.0, sched, params, taps.ClockParams(offset_s=0.2, drift_ppm=60.0),
                            random_dropouts=1, dropout_length=32, seed=5)
     path = tmp_path_factory.mktemp("taps") / "taps.h5"
-    n = s.counter.size
-    with h5py.File(path, "w") as f:
-        f.attrs.update({"format": "rigctl-recording", "schema_version": 1, "rigctl_version": "0.1.0"})
-        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = RATE
-        imu.create_dataset("time", data=s.counter.astype(float) / RATE).attrs["units"] = "s"
-        imu.create_dataset("counter", data=s.counter).attrs["units"] = "1"
-        imu.create_dataset("specific_force", data=s.specific_force).attrs["units"] = "m/s^2"
-        gyro = np.random.default_rng(5).normal(0.0, 1e-3, (n, 3))  # white gyro noise
-        imu.create_dataset("angular_rate", data=gyro).attrs["units"] = "rad/s"
-        f.create_dataset("pulses/time", data=s.pulse_time).attrs["units"] = "s"
+    gyro = np.random.default_rng(5).normal(0.0, 1e-3, (s.counter.size, 3))  # white gyro noise
+    write_recording(path, RATE, counter=s.counter, specific_force=s.specific_force, angular_rate=gyro,
+                    pulses={"time": s.pulse_time})
     r = run_rigctl("sync", str(path))
     assert r.returncode == 0, r.stderr
     return path

@@ -31,3 +31,29 @@ def test_processes_creating_one_new_database_at_once(tmp_path: Path) -> None:
     assert outcomes == ["ok"] * n, outcomes
     with sa.create_engine(f"sqlite:///{path}").connect() as c:
         assert c.execute(sa.text("SELECT count(*) FROM alembic_version")).scalar() == 1
+
+
+def test_head_is_alembics_head_and_an_open_database_is_not_migrated_again(tmp_path: Path) -> None:
+    """results_db.HEAD names the newest migration (a new one must move it), and a database
+    already at HEAD is opened without Alembic (its import alone costs ~1 s per command)."""
+    import subprocess
+    import sys
+
+    from alembic.config import Config
+    from alembic.script import ScriptDirectory
+
+    from rigctl import results_db
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(Path(results_db.__file__).with_name("db_migrations")))
+    assert ScriptDirectory.from_config(cfg).get_heads() == [results_db.HEAD]
+    path = tmp_path / "results.sqlite"
+    open_db(str(path)).dispose()  # created and migrated
+    code = ("import sys; from rigctl.results_db import open_db; open_db(sys.argv[1]).dispose(); "
+            "print('alembic' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "False"
+    with sa.create_engine(f"sqlite:///{path}").connect() as c:
+        assert c.execute(sa.text("SELECT version_num FROM alembic_version")).scalar() == "0001"

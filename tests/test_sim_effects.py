@@ -18,6 +18,7 @@ from rigctl.sim import noise as nz
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.frontend import FrontEnd
 from rigctl.sim.profiles import get_profile, random_truth
+from rigctl.solvers.noise_coefficients import terms_of
 
 G = 9.80665
 DEG = math.pi / 180
@@ -50,7 +51,7 @@ def const(f, w):
 
 def tol(model: ImuErrorModel, sensor: str, window_s: float) -> np.ndarray:
     """5 x Allan deviation at the averaging window: bound on the error of a window-mean difference."""
-    params = model.gyro_noise_params if sensor == "gyro" else model.accel_noise_params
+    params = model.gyro_coefficients if sensor == "gyro" else model.accel_coefficients
     return 5 * np.sqrt(nz.theoretical_avar(params, window_s, model.output_rate_hz))[0]
 
 
@@ -58,9 +59,9 @@ def tol_level(model: ImuErrorModel, sensor: str, window_s: float, elapsed_s: flo
     """5 x the standard deviation of a window mean's absolute noise level (not a difference):
     Allan variance at the window + the flicker's stationary variance + the rate random walk's
     K^2 t after ``elapsed_s`` from power-on."""
-    params = model.gyro_noise_params if sensor == "gyro" else model.accel_noise_params
+    params = model.gyro_coefficients if sensor == "gyro" else model.accel_coefficients
     fs = model.output_rate_hz
-    k = np.broadcast_to(np.asarray(params.get("K", 0.0), dtype=float), (3,))
+    k = terms_of(params, "K")
     var = (nz.theoretical_avar(params, window_s, fs)[0] + nz.flicker_variance(params, fs)
            + k**2 * elapsed_s)
     return 5 * np.sqrt(var)

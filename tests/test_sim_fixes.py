@@ -355,7 +355,7 @@ def test_valid_overrides_still_load(tmp_path):
                                             "gyro": {"noise": {"N_rad_per_s_per_sqrt_hz": "1e-4"}}}})
     with open_rig(load_config(path)) as (_rig, truth):
         assert truth["imu"]["effects"]["lever_arm"]["r_m"] == [0.01, 0.0, 0.0]
-        assert truth["imu"]["gyro_noise"]["N_rad_per_s_per_sqrt_hz"] == 1e-4
+        assert [m["N"]["value"] for m in truth["imu"]["gyro_noise"]] == [1e-4] * 3
 
 
 # ---------------------------------------------------------------------------- tap sign

@@ -8,6 +8,7 @@ two-sided 99.9 % per point, because each profile test checks ~90 (tau, axis) poi
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from rigctl.sim import spectral_factor as sf
 from rigctl.sim.block_iir import BlockCascade
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.profiles import get_profile, profile_names
+from rigctl.solvers.noise_coefficients import triad
 
 try:  # prefer the project's own estimator
     from rigctl.solvers.allan import oadev as _oadev
@@ -49,20 +51,18 @@ def simple_edf(alpha: int, m: np.ndarray, n_phase: int) -> np.ndarray:
     return (N - 2) / m * ((N - 1) ** 2 - 3 * m * (N - 1) + 4 * m**2) / (N - 3) ** 2
 
 
-def dominant_alpha(params: dict, m: np.ndarray, rate_hz: float, extra_white: np.ndarray, ax: int) -> np.ndarray:
+def dominant_alpha(axes, m: np.ndarray, rate_hz: float, extra_white: np.ndarray, ax: int) -> np.ndarray:
     """Power-law exponent of the term contributing most Allan variance at each tau (R counts as RW)."""
-    P = nz.normalise_params(params)
     parts = []
     for key, alpha in (("Q", 2), ("N", 0), ("B", -1), ("K", -2), ("R", -2)):
-        sub = {k: v for k, v in P.items() if k not in nz.TERMS}
-        sub[key] = P[key]
+        sub = [replace(a, **{t: 0.0 for t in nz.TERMS if t != key}) for a in axes]
         ew = extra_white if key == "N" else 0.0
         parts.append((nz.theoretical_avar(sub, m / rate_hz, rate_hz, ew)[:, ax], alpha))
     stack = np.stack([p for p, _ in parts])
     return np.array([parts[i][1] for i in np.argmax(stack, axis=0)])
 
 
-def check_within_ci(y: np.ndarray, params: dict, rate_hz: float, m: np.ndarray,
+def check_within_ci(y: np.ndarray, params, rate_hz: float, m: np.ndarray,
                     extra_white: np.ndarray | float = 0.0) -> None:
     """Assert every (tau, axis) theoretical deviation lies in the CONF interval of the estimate."""
     ew = np.broadcast_to(np.asarray(extra_white, dtype=float), (3,))
@@ -87,8 +87,8 @@ def log_factors(n: int, lo: int, hi_div: int = 10, per_decade: int = 4) -> np.nd
 def test_chunked_output_is_bit_identical_to_one_piece() -> None:
     """Slices that cross the generator's internal chunk boundaries give the same bits as one piece."""
     n = 2 * nz.NoiseGenerator.CHUNK + 18_000
-    one = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=11).next(n)
-    g = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=11)
+    one = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=11).next(n)
+    g = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=11)
     sizes = (1, 2, 997, 12_000, nz.NoiseGenerator.CHUNK, n - 13_000 - nz.NoiseGenerator.CHUNK)
     parts = np.concatenate([g.next(k) for k in sizes])
     assert np.array_equal(one, parts)
@@ -99,23 +99,23 @@ def test_chunked_with_signal_is_bit_identical_to_one_piece() -> None:
     n = nz.NoiseGenerator.CHUNK + 5_000
     t = np.arange(n)[:, None] / 100.0
     sig = np.sin(0.7 * t + np.array([0.0, 1.0, 2.0])) * 1e-4 + np.array([0.0, 5e-5, 9.8])
-    one = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=12).next(n, sig)
-    g = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=12)
+    one = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=12).next(n, sig)
+    g = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=12)
     cuts = [0, 3, 40_000, 40_001, n]
     parts = np.concatenate([g.next(b - a, sig[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
     assert np.array_equal(one, parts)
 
 
 def test_same_seed_same_data_other_seed_differs() -> None:
-    a = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=3).next(1000)
-    b = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=3).next(1000)
-    c = nz.NoiseGenerator(ALL_TERMS, 100.0, seed=4).next(1000)
+    a = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=3).next(1000)
+    b = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=3).next(1000)
+    c = nz.NoiseGenerator(triad(**ALL_TERMS), 100.0, seed=4).next(1000)
     assert np.array_equal(a, b)
     assert not np.allclose(a, c)
 
 
 def test_axes_are_independent_streams() -> None:
-    y = nz.NoiseGenerator({"N": 1.0}, 100.0, seed=5).next(200_000)
+    y = nz.NoiseGenerator(triad(N=1.0), 100.0, seed=5).next(200_000)
     r = np.corrcoef(y.T)
     assert np.max(np.abs(r - np.eye(3))) < 5 / math.sqrt(len(y))
 
@@ -138,7 +138,7 @@ def test_flicker_cascade_theory_matches_its_impulse_response() -> None:
 @pytest.mark.parametrize("tau_min, tau_max, rate", [(1.0, 1e4, 100.0), (0.1, 1e3, 100.0), (0.01, 100.0, 1000.0)])
 def test_flicker_plateau_is_flat_over_configured_decades(tau_min: float, tau_max: float, rate: float) -> None:
     taus = np.geomspace(tau_min, tau_max, 40)
-    dev = np.sqrt(nz.theoretical_avar({"B": 1.0, "flicker_tau_min_s": tau_min, "flicker_tau_max_s": tau_max}, taus, rate)[:, 0])
+    dev = np.sqrt(nz.theoretical_avar(triad(B=1.0, flicker_tau_min_s=tau_min, flicker_tau_max_s=tau_max), taus, rate)[:, 0])
     ratio = dev / math.sqrt(nz.PLATEAU)  # 0.664 B
     assert ratio.min() > 0.99 and ratio.max() < 1.035
     # a single first-order Gauss-Markov process with the same peak is nowhere near flat
@@ -199,7 +199,7 @@ def test_combined_filter_allan_variance_is_the_sum_of_the_terms() -> None:
     """With K = 0 the combined filter is a stable cascade: its exact Allan variance (partial fractions)
     equals N^2/tau + the flicker cascade's, i.e. theoretical_avar, to rounding."""
     rate = 100.0
-    params = {"N": 2e-4, "B": 3e-5, "flicker_tau_min_s": 0.1, "flicker_tau_max_s": 1e3}
+    params = triad(N=2e-4, B=3e-5, flicker_tau_min_s=0.1, flicker_tau_max_s=1e3)
     d, sn2, sb2, _ = _sums(rate, 0.1, 1e3, 2, 2e-4, 3e-5, 0.0)
     f = sf.factor(sn2, sb2, 0.0, d.a_pole, d.a_zero)
     M = np.array([1.0, 3.0, 10.0, 100.0, 1e3, 1e4, 1e5])
@@ -246,8 +246,8 @@ def test_block_filter_equals_the_direct_recursion() -> None:
 def test_axes_with_different_terms_keep_their_own_signatures() -> None:
     """Per-axis terms (white only; flicker + random walk; quantization + random walk + ramp): axes without a
     term get identity sections, and each axis still follows its own theoretical curve."""
-    params = {"N": [1e-3, 1e-4, 1e-3], "B": [0.0, 5e-5, 0.0], "K": [0.0, 1e-5, 1e-5], "Q": [0.0, 0.0, 1e-5],
-              "R": [0.0, 0.0, 1e-7], "flicker_tau_min_s": 0.1, "flicker_tau_max_s": 1e3}
+    params = triad(N=[1e-3, 1e-4, 1e-3], B=[0.0, 5e-5, 0.0], K=[0.0, 1e-5, 1e-5], Q=[0.0, 0.0, 1e-5],
+                   R=[0.0, 0.0, 1e-7], flicker_tau_min_s=0.1, flicker_tau_max_s=1e3)
     rate, n = 100.0, 400_000
     y = nz.NoiseGenerator(params, rate, seed=31).next(n)
     check_within_ci(y, params, rate, log_factors(n, 10))
@@ -256,18 +256,18 @@ def test_axes_with_different_terms_keep_their_own_signatures() -> None:
 def test_exact_discrete_theory_agrees_with_ieee_formulas() -> None:
     tau = np.geomspace(0.1, 4e3, 20)
     M = np.round(tau * 100.0)
-    exact = nz.theoretical_avar(ALL_TERMS | {"B": 0.0}, tau, 100.0)
-    ieee = nz.theoretical_avar(ALL_TERMS | {"B": 0.0}, M / 100.0)
+    exact = nz.theoretical_avar(triad(**(ALL_TERMS | {"B": 0.0})), tau, 100.0)
+    ieee = nz.theoretical_avar(triad(**(ALL_TERMS | {"B": 0.0})), M / 100.0)
     assert np.allclose(exact, ieee, rtol=1e-6)
     # only the discrete random walk differs from IEEE: K^2 tau/3 (1 + 1/(2 M^2))
-    k_only = nz.theoretical_avar({"K": 1.0}, tau, 100.0)[:, 0] / nz.theoretical_avar({"K": 1.0}, M / 100.0)[:, 0]
+    k_only = nz.theoretical_avar(triad(K=1.0), tau, 100.0)[:, 0] / nz.theoretical_avar(triad(K=1.0), M / 100.0)[:, 0]
     assert np.allclose(k_only - 1.0, 1.0 / (2 * M**2), rtol=1e-9)
 
 
 def test_stationary_start_has_full_flicker_variance() -> None:
     """The flicker state is drawn from its steady state: sample 0 already has the full stationary
     variance (a zero start would give only the input variance, about half of it)."""
-    p = {"B": 1.0, "flicker_tau_min_s": 1.0, "flicker_tau_max_s": 1e4}
+    p = triad(B=1.0, flicker_tau_min_s=1.0, flicker_tau_max_s=1e4)
     n_seeds = 400
     first = np.concatenate([nz.NoiseGenerator(p, 100.0, seed=s).next(1)[0] for s in range(n_seeds)])
     var = float(nz.flicker_variance(p, 100.0)[0])
@@ -282,7 +282,7 @@ def test_rate_random_walk_starts_at_zero_with_variance_k2_t() -> None:
     """K alone: a walk from 0 at power-on with increments of variance K^2 tau0 (uniform, |dW| <= sqrt(3) K
     sqrt(tau0)); across seeds Var W_t = K^2 tau0 (t + 1), i.e. no stationary offset at power-on."""
     K, rate, n, seeds = 2e-4, 100.0, 3000, 200
-    W = np.stack([nz.NoiseGenerator({"K": K}, rate, seed=s).next(n)[:, 0] for s in range(seeds)])
+    W = np.stack([nz.NoiseGenerator(triad(K=K), rate, seed=s).next(n)[:, 0] for s in range(seeds)])
     step = K * math.sqrt(1 / rate)
     dW = np.diff(np.concatenate([np.zeros((seeds, 1)), W], axis=1), axis=1)
     assert np.max(np.abs(dW)) <= math.sqrt(3) * step
@@ -297,6 +297,7 @@ def test_rate_random_walk_starts_at_zero_with_variance_k2_t() -> None:
                                    {"B": 1e-4, "N": 1e-4, "flicker_tau_min_s": 0.1, "flicker_tau_max_s": 1e3},
                                    {"R": 1e-6, "N": 1e-4}])
 def test_single_term_allan_signature_within_ci(terms: dict) -> None:
+    terms = triad(**terms)
     rate, n = 100.0, 400_000
     y = nz.NoiseGenerator(terms, rate, seed=21).next(n)
     check_within_ci(y, terms, rate, log_factors(n, 10))
@@ -313,8 +314,8 @@ def test_profile_12h_allan_within_ci_of_theory(name: str) -> None:
     n = int(12 * 3600 * rate)
     m = log_factors(n, 10, per_decade=3)
     for gen, fe, const, params in (
-        (model.gyro_noise, model.gyro_fe, [0.0, 5.0e-5, 4.0e-5], model.gyro_noise_params),
-        (model.accel_noise, model.accel_fe, [0.0, 0.0, 9.80665], model.accel_noise_params),
+        (model.gyro_noise, model.gyro_fe, [0.0, 5.0e-5, 4.0e-5], model.gyro_coefficients),
+        (model.accel_noise, model.accel_fe, [0.0, 0.0, 9.80665], model.accel_coefficients),
     ):
         y = fe.digitize(gen.next(n, np.broadcast_to(np.asarray(const), (n, 3))))
         check_within_ci(y, params, rate, m, fe.quantization_white_var())
@@ -335,4 +336,4 @@ def test_model_output_through_front_end_keeps_the_allan_signature() -> None:
         Ws.append(model.apply(g.t_internal, np.tile([0.0, 0.0, 9.80665], (k, 1)), np.tile([0.0, 5e-5, 4e-5], (k, 1)))[1])
     W = np.concatenate(Ws)
     assert model.decimation == 10
-    check_within_ci(W, model.gyro_noise_params, 100.0, log_factors(n, 10), model.gyro_fe.quantization_white_var())
+    check_within_ci(W, model.gyro_coefficients, 100.0, log_factors(n, 10), model.gyro_fe.quantization_white_var())

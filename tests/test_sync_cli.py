@@ -9,6 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
+import recording_helpers
 from rigctl import cli, sync_cmd
 from rigctl.analysis.sync import GPS_WEEK_S
 from rigctl.sim import taps
@@ -27,31 +28,14 @@ def session() -> taps.TapSession:
 
 
 def write_recording(path: Path, s: taps.TapSession, *, pulses: bool = True) -> None:
-    """Minimal recording following the brief's layout."""
-    n = s.counter.size
-    with h5py.File(path, "w") as f:
-        f.attrs.update({"format": "rigctl-recording", "schema_version": 1,
-                        "rigctl_version": "0.1.0"})
-        f.create_dataset("run/status", data=np.array([b"complete"], dtype="S16"))
-        imu = f.create_group("imu")
-        imu.attrs["sample_rate_hz"] = RATE
-        for name, data, units in [("time", s.counter.astype(float) / RATE, "s"),
-                                  ("counter", s.counter, "1"),
-                                  ("specific_force", s.specific_force, "m/s^2"),
-                                  ("angular_rate", np.zeros((n, 3)), "rad/s"),
-                                  ("temperature", np.full(n, 25.0), "degC")]:
-            imu.create_dataset(name, data=data).attrs["units"] = units
-        if pulses:
-            p = f.create_group("pulses")
-            gps0 = 33000.0
-            for name, data, units in [
-                    ("time", s.pulse_time, "s"),
-                    ("gps_week", np.full(s.pulse_time.size, 2300, dtype=np.int32), "week"),
-                    ("gps_seconds", s.pulse_time + gps0, "s"),
-                    ("source", np.full(s.pulse_time.size, b"sim", dtype="S16"), "1")]:
-                p.create_dataset(name, data=data).attrs["units"] = units
-        t = f.create_group("truth")
-        t.attrs["params_json"] = s.truth.params_json()
+    """A tap session as a minimal recording (tests/recording_helpers.py)."""
+    n, k = s.counter.size, s.pulse_time.size
+    gps0 = 33000.0
+    marks = {"time": s.pulse_time, "gps_week": np.full(k, 2300, dtype=np.int32),
+             "gps_seconds": s.pulse_time + gps0, "source": np.full(k, b"sim", dtype="S16")}
+    recording_helpers.write_recording(path, RATE, counter=s.counter, specific_force=s.specific_force,
+                                      angular_rate=np.zeros((n, 3)), temperature=np.full(n, 25.0),
+                                      pulses=marks if pulses else None, truth_json=s.truth.params_json())
 
 
 def _args(path: Path, *extra: str) -> argparse.Namespace:

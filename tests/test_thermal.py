@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from helpers import derived_config, run_rigctl
+from rigctl.solvers.noise_coefficients import NoiseCoefficients
 from rigctl.frames import body_references
 from rigctl.procedure import load_procedure
 from rigctl.solvers import thermal as th
@@ -295,11 +296,11 @@ def test_within_window_contrasts_free_of_a_drift_and_shared_channel_covariances(
     a = np.array([0.0, 30.0, 100.0, 400.0])
     b = a + np.array([20.0, 10.0, 20.0, 7.0])
     kinds = ["orientation", "rate", "orientation", "rate"]
-    models = [sn.ChannelNoise({"orientation": 1e-6, "rate": 2e-6}, B=1e-4 * (i + 1), K=1e-6 * i, t0=-5.0)
-              for i in range(3)]
-    got = sn.channel_covs(models, a, b, kinds)
+    models = [NoiseCoefficients(N=np.sqrt(2e-6), white_by_group={"orientation": 1e-3, "rate": np.sqrt(2e-6)},
+                                B=1e-4 * (i + 1), K=1e-6 * i) for i in range(3)]
+    got = sn.channel_covs(models, a, b, kinds, -5.0)
     for m, C in zip(models, got):
-        assert np.allclose(C, m.cov(a, b, kinds), rtol=1e-12, atol=0)
+        assert np.allclose(C, m.cov(a, b, kinds, -5.0), rtol=1e-12, atol=0)
 
 
 # --------------------------------------------------------------------------- procedures

@@ -67,7 +67,11 @@ def test_byte_errors_through_the_driver_are_all_counted(tmp_path, protocol):
             hit = twin.frames_hit - h0
             assert f1 - f0 >= n_frames
             expected = (f1 - f0) * (LAYOUT.length if protocol == "vectornav" else 38) * 1e-4   # bytes x rate
-            assert 0.85 * expected <= hit <= 1.15 * expected                          # +-5 sigma or so
+            # +-15 % is +-3.5 sigma (VectorNav) / +-2.9 sigma (frame) of a Poisson count, but the
+            # error positions are a renewal process drawn from seed 7 from the first byte on, so
+            # the count is the same every run (542-559 of 560 / 366-375 of 380 expected for
+            # 100,000-102,000 frames): deterministic, no false alarms
+            assert 0.85 * expected <= hit <= 1.15 * expected
             assert hw.slots["imu"].endpoint.overflow_bytes == 0
             bad = c["bad_frames"] + c["truncated_frames"] - c0["bad_frames"] - c0["truncated_frames"]
             assert bad == hit

@@ -11,6 +11,7 @@ created_utc, json; curves as datasets with ``units``).
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -23,12 +24,14 @@ from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
 from ..recorder import write_results
-from ..recording_reader import check_finite, open_recording, sample_rate
+from ..recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
 from ..solvers import allan_checks as CHK
+from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
+from ..solvers.noise_coefficients import NoiseCoefficients, from_json
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -40,9 +43,16 @@ MIN_SAMPLES = 64
 CHUNK_ROWS = 1 << 19  # rows per read: 2 chunks of 6 axes in flight = 48 MB
 HEAD_POINTS = 1 << 22  # full-resolution phase kept for noise ID at short taus
 DEC_POINTS = 1 << 21  # the phase is also kept decimated to at most ~this many points
-SCHEMA_VERSION = 1
+#: /results/allan layout: 2 added each axis' fit["coefficients"] (rigctl.solvers.noise_coefficients
+#: .to_json) and dropped fit["coeff_sq_si"]; a version-1 group is read by nothing: re-run rigctl allan
+SCHEMA_VERSION = 2
 #: worker threads for the per-axis work (both cores of a 2-core machine)
 WORKERS = max(1, min(2, os.cpu_count() or 1))
+#: after the first chunk, a dataset's three columns go through one compiled pass (running-sum
+#: phase of each axis written into its accumulator, the spike prefilter's block extremes, the
+#: finiteness check) instead of a column copy, a check and a screen pass per axis; False: the
+#: per-axis path for every chunk (the same results, bit for bit; tests compare the two)
+FUSED = True
 
 
 class _AxisStream:
@@ -100,6 +110,58 @@ class _AxisStream:
                 y = y.copy()
                 y[idx] = med
         return y
+
+    def takes_phase(self) -> bool:
+        """Whether the next chunk can come as phase points written by the caller
+        (:meth:`phase_target`, :meth:`screen_block`, :meth:`add_written`): the first chunk
+        (which sets the offset, the quantization step and the spike sigma) is done."""
+        return self.spike_sigma is not None and self.acc.can_take_phase()
+
+    def phase_target(self, n: int) -> np.ndarray:
+        return self.acc.rate_target(n)
+
+    def screen_block(self, y: np.ndarray, first: int, exclude: bool,
+                     extremes: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+        """As :meth:`screen` for a later chunk, starting from the block extremes the running-
+        sum pass took (``y`` may be a column view of the read block). Returns the samples with
+        the spikes replaced when ``exclude`` finds any (they must then be added with
+        :meth:`add`), else None (the phase written into :meth:`phase_target` stands)."""
+        idx, med = CHK.spikes_beyond(y, self.spike_sigma, extremes=extremes)
+        if not idx.size:
+            return None
+        sd = self.spike_sigma
+        self.spikes.append(idx + first)
+        self.spike_size.append(np.abs(y[idx] - med) / max(sd, 1e-300))
+        if not exclude:
+            return None
+        y = np.array(y, dtype=np.float64)
+        y[idx] = med
+        return y
+
+    def add_written(self, n: int) -> None:
+        """Add the ``n`` samples whose phase points were written into :meth:`phase_target`.
+        Without a gap so far the accumulator's phase index is the record's, so the decimated
+        copy for the noise ID is taken inside its cascade, while the points are in cache (a
+        strided pass over the chunk afterwards costs a cache miss per point: 0.6 s of the
+        12 h x 6-axis file's CPU)."""
+        g0 = self.n_rate + 1
+        acc = self.acc
+        if self.stretches == 0 and not self.x_base and acc.cascade is not None \
+                and acc.n_phase == g0:
+            n_dec = self.n_dec
+            got = acc.commit_rate(n, self._dec[n_dec:], self.dec)
+            x = acc.chunk_phase
+            if got:
+                self.n_dec += got
+                self.x_dec = float(self._dec[self.n_dec - 1])
+            self._add_head(x)
+            self.x_last = float(x[-1])
+            self.n_rate += n
+            return
+        acc.commit_rate(n)
+        x = acc.chunk_phase
+        self._add_phase(x + self.x_base if self.x_base else x, g0)
+        self.n_rate += n
 
     def _put_dec(self, xs: np.ndarray) -> None:
         self._dec[self.n_dec: self.n_dec + xs.size] = xs
@@ -165,10 +227,7 @@ class _AxisStream:
                                np.where(self._strides == 1, self._counts, self._terms),
                                self.n_rate + 1)
 
-    def _add_phase(self, x: np.ndarray, g0: int) -> None:
-        """Head and decimated copies from the phase points x[g0 + i] = x[i] (the same running
-        sum as :meth:`add` builds: bit-identical head; the decimated points are the phase at
-        every dec-th index instead of a running sum of block sums)."""
+    def _add_head(self, x: np.ndarray) -> None:
         if self.n_head < HEAD_POINTS:  # as add(): the same points
             k = min(HEAD_POINTS - self.n_head, x.size)
             if self.n_head == 0:
@@ -177,6 +236,12 @@ class _AxisStream:
             self._head[self.n_head: self.n_head + k] = x[:k]
             self.n_head += k
             self.x_head = float(x[k - 1])
+
+    def _add_phase(self, x: np.ndarray, g0: int) -> None:
+        """Head and decimated copies from the phase points x[g0 + i] = x[i] (the same running
+        sum as :meth:`add` builds: bit-identical head; the decimated points are the phase at
+        every dec-th index instead of a running sum of block sums)."""
+        self._add_head(x)
         start = (-g0) % self.dec
         if start < x.size:
             xs = x[start:: self.dec]
@@ -231,13 +296,47 @@ def fm_after_fm(ms: np.ndarray, alphas: np.ndarray) -> np.ndarray:
     return out
 
 
-def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False) -> dict[str, Any]:
-    """Deviation curve, confidence and fits of one streamed axis (SI + field units)."""
+def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
+    """EDF of the overlapping Allan variance at factor m when the terms touching a gap are
+    skipped: the estimate is the mean of the terms of the gap-free stretches that hold any
+    (L + 1 phase points, n = L + 1 - 2m terms each), i.e. a sum of independent per-stretch
+    estimates weighted by their term counts, whose EDF is Satterthwaite's
+    (sum n_i)^2 / sum(n_i^2 / nu_i), nu_i Greenhall's EDF of stretch i. Taking the whole
+    record's EDF instead overstates it wherever stretches are short: an Astro Pi record (237
+    stretches, the longest 446 samples) kept 44 terms at m = 208, all in one stretch, with an
+    EDF of 147 for the whole record (~1 for the stretch)."""
+    lengths, count = np.unique(np.asarray(stretch_samples, dtype=np.int64), return_counts=True)
+    num = den = 0.0
+    for length, c in zip(lengths, count):
+        n_terms = int(length) + 1 - 2 * int(m)
+        if n_terms <= 0:
+            continue
+        try:
+            nu = E.edf("oadev", int(alpha), int(m), int(length) + 1)
+        except ValueError:  # too few phase points for a Greenhall EDF
+            continue
+        if not nu > 0:
+            continue
+        num += c * n_terms
+        den += c * n_terms ** 2 / nu
+    return num * num / den if den > 0 else float("nan")
+
+
+def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
+                 stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
+    """Deviation curve, confidence and fits of one streamed axis (SI + field units).
+    ``stretch_samples``: the lengths of the gap-free stretches when gaps are skipped (the EDF
+    is then that of the stretches' terms: :func:`edf_skipping_gaps`)."""
     res = stream.result()
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
     alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
-    edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase) for a, m in zip(alphas, res.m)])
+    if stretch_samples is not None and len(stretch_samples) > 1:
+        edfs = np.array([edf_skipping_gaps(int(a), int(m), stretch_samples)
+                         for a, m in zip(alphas, res.m)])
+    else:
+        edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase)
+                         for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
     fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
@@ -328,10 +427,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             missing = 0
         gaps_bridged = int(missing) if gaps == "bridge" else 0
         breaks = [g for g, _ in found] if gaps == "skip" else None
+        stretch_samples = None
         if breaks:
             edges = [s0] + breaks + [s1]
             gap_info["stretches"] = len(edges) - 1
             gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
+            stretch_samples = np.diff(edges)
         ms = A.tau_factors(n + 1, taus, "oadev")
         mode = "exact" if exact else "fast"
         if mode == "fast" and not isinstance(taus, (list, tuple)):
@@ -340,49 +441,61 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
         shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
                              stream=progress_stream, enabled=progress_stream is not None)
-        with ThreadPoolExecutor(WORKERS) as pool:
-            _stream_chunks(pool, path, dsets, axes, streams, s0, s1, shown,
-                           outliers == "exclude", breaks)
-            shown.finish()
-            out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-                   "first_sample": int(s0), "dropped_samples": gaps_bridged, "gaps": gap_info,
-                   "outliers": outliers, "axes": {}}
-            # the axes' analyses (noise ID, EDF, fits) in parallel too, results in axis order
-            done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
-                                                        outliers == "exclude"), axes))
+        readers = {name: RowReader(f, name) for name in dsets}
+        try:
+            with ThreadPoolExecutor(WORKERS) as pool:
+                _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
+                               outliers == "exclude", breaks)
+                shown.finish()
+                out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
+                       "first_sample": int(s0), "dropped_samples": gaps_bridged,
+                       "gaps": gap_info, "outliers": outliers, "axes": {}}
+                # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
+                done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
+                                                            outliers == "exclude",
+                                                            stretch_samples), axes))
+        finally:
+            for r in readers.values():
+                r.close()
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
     return out
 
 
-def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[str],
+def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
-    screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i (one
-    task per dataset check, one per axis; numpy and BLAS release the GIL), this thread reads
-    chunk i + 1. At most two chunks are in memory. ``breaks``: rows that follow a gap (each
-    starts a new gap-free stretch of the Allan sums)."""
+    screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
+    this thread reads chunk i + 1 (:class:`rigctl.recording_reader.RowReader`: os.preadv
+    from the chunks' offsets, without the GIL, where the layout allows). At most two chunks
+    are in memory. ``breaks``: rows that follow a gap (each starts a new gap-free stretch of
+    the Allan sums).
+
+    One task per dataset: after the first chunk (see :data:`FUSED`), one compiled pass over
+    its rows writes each selected axis' phase into that axis' accumulator and takes the spike
+    prefilter's block extremes, the check and the screen follow from them, and the axes'
+    sums are queued as one task each; the first chunk, a chunk with a gap and an axis whose
+    spikes are replaced go the per-axis way (column copy, check, screen, add)."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
+    dsets = {name: r.ds for name, r in readers.items()}
     bufs = [{name: np.empty((rows, *d.shape[1:])) for name, d in dsets.items()}
             for _ in range(2)]
     cols = {a: np.empty(rows) for a in axes}
+    scratch = {name: np.empty(rows) for name in dsets}  # unselected columns' phase
+    tau0 = next(iter(streams.values())).tau0
 
     def read(a0: int, k: int) -> dict:
         a1 = min(s1, a0 + CHUNK_ROWS)
-        out = {}
-        for name, d in dsets.items():
-            b = bufs[k][name][: a1 - a0]
-            d.read_direct(b, np.s_[a0:a1], np.s_[0:a1 - a0])
-            out[name] = b
-        return out
+        return {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
 
     cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
     # only the selected axes' columns must be finite (a gyro-only import stores NaN for the rest)
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
+    groups = {name: [a for a in axes if AXES[a][0] == name] for name in dsets}
 
     def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
         y = cols[a][: block.shape[0]]
@@ -400,18 +513,54 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, dsets: dict, axes: list[
             prev = c
         streams[a].add(y[prev:] if prev else y)
 
+    def check(name: str, b: np.ndarray, a0: int) -> None:
+        check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
+
+    def dataset(name: str, b: np.ndarray, a0: int) -> list:
+        """Check, screen and queue the accumulation of one dataset's axes for this chunk;
+        returns the queued tasks."""
+        first = a0 - s0
+        group = groups[name]
+        n = b.shape[0]
+        touched = cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))
+        if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
+                and all(streams[a].takes_phase() for a in group)):
+            check(name, b, a0)  # a bad block must not reach the accumulators
+            return [pool.submit(feed, a, b, AXES[a][1], first) for a in group]
+        outs = [scratch[name][:n]] * 3
+        x0 = np.zeros(3)
+        offs = np.zeros(3)
+        for a in group:
+            c = AXES[a][1]
+            outs[c] = streams[a].phase_target(n)
+            x0[c], offs[c] = streams[a].acc.x_last, streams[a].acc.offset
+        bmin, bmax = KER.phase_cols3(b, offs, tau0, x0, outs, KER.extremes_block(CHK.SPIKE_WINDOW))
+        sel = fin_cols[name]
+        hi, lo = float(np.max(bmax[sel])), float(np.min(bmin[sel]))
+        limit = PLAUSIBLE.get(name.lstrip("/"), np.inf)
+        # NaN and infinity propagate into the running sums (x0: each column's last point)
+        if not (np.isfinite(x0[sel]).all() and np.isfinite(hi) and np.isfinite(lo)
+                and max(hi, -lo) <= limit):
+            check(name, b, a0)  # raises, naming the first bad row (nothing was summed yet)
+        tasks = []
+        for a in group:
+            c = AXES[a][1]
+            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c]))
+            if y is None:
+                tasks.append(pool.submit(streams[a].add_written, n))
+            else:  # spikes replaced: the per-axis running sum of the corrected samples
+                tasks.append(pool.submit(streams[a].add, y))
+        return tasks
+
     starts = list(range(s0, s1, CHUNK_ROWS))
     nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks = nxt
-        checks = [pool.submit(check_finite, path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]],
-                              a0) for name, b in blocks.items()]
-        for c in checks:  # a bad block must not reach the accumulators
-            c.result()
-        tasks = [pool.submit(feed, a, blocks[AXES[a][0]], AXES[a][1], a0 - s0) for a in axes]
+        preps = [pool.submit(dataset, name, b, a0) for name, b in blocks.items()]
         nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
-        for t in tasks:
-            t.result()
+        for p in preps:
+            for t in p.result():
+                t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
 
@@ -435,12 +584,36 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
     # read in chunks (a day's counter is 0.7 GB, its differences another 0.7 GB), each chunk
     # with the last value of the previous one so that no step is missed
     if "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1:
-        out = []
-        ds = f["/imu/counter"]
-        for a in range(s0, s1 - 1, CHUNK_ROWS):
-            d = np.diff(np.asarray(ds[a: min(s1, a + CHUNK_ROWS + 1)], dtype=np.int64))
-            out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
-        return out
+        rd = RowReader(f, "/imu/counter")
+        ds = rd.ds
+        starts = list(range(s0, s1 - 1, CHUNK_ROWS))
+
+        def scan(part: list[int]) -> list[tuple[int, int]]:
+            out = []
+            buf = np.empty(min(CHUNK_ROWS, s1 - s0) + 1, dtype=ds.dtype)
+            for a in part:
+                c = rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf)
+                if c.dtype == np.uint64:
+                    c = c.view(np.int64)  # what the cast to int64 gives, without its pass
+                if KER.HAVE_NUMBA:
+                    idx, d = KER.counter_jumps(c)
+                    out += [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+                    continue
+                d = np.diff(np.asarray(c, dtype=np.int64))
+                out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+            return out
+
+        try:
+            if KER.HAVE_NUMBA and rd.direct is not None and len(starts) > 1 and WORKERS > 1:
+                # the reads (os.preadv) and the scans (compiled) release the GIL: the two
+                # halves of the record on the two cores
+                half = (len(starts) + 1) // 2
+                with ThreadPoolExecutor(2) as pool:
+                    parts = list(pool.map(scan, [starts[:half], starts[half:]]))
+                return parts[0] + parts[1]
+            return scan(starts)
+        finally:
+            rd.close()
     if "/imu/time" in f and f["/imu/time"].shape[0] >= s1:
         out = []
         ds = f["/imu/time"]
@@ -711,6 +884,23 @@ def summary_line(r: dict[str, Any]) -> str:
         else:
             parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
     return "; ".join(parts)
+
+
+def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoefficients]:
+    """The IEEE 952 coefficients of each axis in an open recording's /results/allan, as
+    :func:`store` wrote them ({} when the recording has none). A group of an older layout
+    (schema_version 1, before the coefficients were stored) is an InputError: re-run rigctl allan."""
+    g = f.get("results/allan")
+    if g is None or "json" not in g.attrs:
+        return {}
+    version = int(g.attrs.get("schema_version", 1))
+    if version < SCHEMA_VERSION:
+        raise InputError(f"/results/allan has schema_version {version}, before the noise coefficients "
+                         f"were stored (version {SCHEMA_VERSION})", where,
+                         hint=f"run `rigctl allan {where or 'RECORDING'}` again: it replaces the group")
+    axes = json.loads(g.attrs["json"]).get("axes", {})
+    return {a: from_json(r["fit"]["coefficients"]) for a, r in axes.items()
+            if (r.get("fit") or {}).get("coefficients")}
 
 
 def store(path: str, result: dict[str, Any]) -> None:

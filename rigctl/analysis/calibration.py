@@ -43,7 +43,8 @@ from ..recorder import utc_now, write_results
 from ..segment_builder import build_segment_table, open_recording
 from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
-from ..solvers.segment_stats import NoiseModel
+from ..solvers.noise_coefficients import Triad
+from .allan import load_noise
 from ..errors import InputError
 from ..spec import Spec
 
@@ -55,30 +56,18 @@ DEG = math.pi / 180.0
 
 
 # ------------------------------------------------------------------------------ noise model
-def _allan_term_si(fit: dict[str, Any], term: str) -> float:
-    """A term of one axis' Allan fit for the segment covariance (SI): the fitted value, or for a
-    term the fit reports only as an upper bound its unconstrained estimate -- not zero: a
-    12-hour capture rarely makes the rate random walk significant, and K = 0 would make the
-    biases' intervals too narrow (docs/calibration.md, section 10)."""
-    e = fit.get("terms", {}).get(term)
-    if e is not None and not e.get("supported", True):
-        est = [v for k, v in e.items() if k.startswith("estimate_")]
-        return float(est[0]) if est else 0.0
-    return math.sqrt(max(float(fit["coeff_sq_si"].get(term, 0.0)), 0.0))
-
-
-def noise_from_allan(f: h5py.File) -> tuple[NoiseModel, NoiseModel] | None:
-    """IEEE 952 NoiseModels (accel, gyro) from /results/allan's joint fits, if complete."""
-    g = f.get("results/allan")
-    if g is None or "json" not in g.attrs:
-        return None
-    axes = json.loads(g.attrs["json"]).get("axes", {})
+def noise_from_allan(f: h5py.File, where: Path | None = None) -> tuple[Triad, Triad] | None:
+    """IEEE 952 coefficients (accel, gyro: three axes each) from /results/allan's joint fits
+    (:func:`rigctl.analysis.allan.load_noise`), if complete. A term the fit reports only as an
+    upper bound enters at its unconstrained estimate (``Coefficient.value``), not zero: a 12-hour
+    capture rarely makes the rate random walk significant, and K = 0 would make the biases'
+    intervals too narrow (docs/calibration.md, section 10)."""
+    axes = load_noise(f, where)
     out = []
     for names in (("ax", "ay", "az"), ("gx", "gy", "gz")):
         if not all(a in axes for a in names):
             return None
-        out.append(NoiseModel(**{t: np.array([_allan_term_si(axes[a]["fit"], t) for a in names])
-                                 for t in "QNBKR"}))
+        out.append(tuple(axes[a] for a in names))
     return out[0], out[1]
 
 
@@ -104,7 +93,7 @@ def _noise_from_file(f: h5py.File, path: Path, src: Path) -> tuple[Any, Any, str
         raise InputError(f"--noise {src}: no such file", hint="give a recording that `rigctl allan` "
                          "analysed (e.g. an overnight capture of procedures/allan-overnight.yaml), or auto/self")
     with open_recording(src) as g:
-        nm = noise_from_allan(g)
+        nm = noise_from_allan(g, src)
         ids_src, fs_src = _unit_ids(g), float(g["imu"].attrs.get("sample_rate_hz", 0.0))
     if nm is None:
         raise InputError("no complete /results/allan (all six axes) in the noise recording", src,
@@ -128,7 +117,7 @@ def _noise_from_file(f: h5py.File, path: Path, src: Path) -> tuple[Any, Any, str
 def _noise(f: h5py.File, choice: str, path: Path) -> tuple[Any, Any, str]:
     if choice not in NOISE_CHOICES:
         return _noise_from_file(f, path, Path(choice))
-    nm = noise_from_allan(f) if choice in ("auto", "allan") else None
+    nm = noise_from_allan(f, path) if choice in ("auto", "allan") else None
     if choice == "allan" and nm is None:
         raise InputError("--noise allan: the recording has no complete /results/allan (all six axes)", path,
                          hint="run `rigctl allan` on it (if it holds a long static capture), give the "

@@ -8,6 +8,7 @@ test is identified by /meta ``imu_serial`` (the lab's label, rig config ``imu.se
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,6 +82,25 @@ def run_info(recording: str | Path, kind: str, lot: str | None = None) -> RunInf
     return RunInfo(unit_id=unit_id_of(meta, run_name(recording)), kind=kind, run=run_name(recording),
                    recording=str(Path(recording).resolve()), recorded_utc=meta.get("started_utc") or None,
                    procedure=meta.get("procedure_name") or None, software_version=__version__, lot=lot)
+
+
+def preload_database(target: str | None) -> None:
+    """Import the results database's modules (SQLAlchemy and the ORM classes: ~0.6 s of CPU,
+    all of it Python holding the GIL) on a background thread, for a command that writes to
+    the database after a long computation in compiled code (``rigctl allan``: the streamed
+    sums run without the GIL, so the import costs the command no wall time of its own).
+    :func:`to_database` then finds the module imported (or waits for the import to finish,
+    by Python's import lock). Nothing happens for ``target == "none"``."""
+    if target == "none":
+        return
+
+    def load() -> None:
+        try:
+            from .. import results_db  # noqa: F401 - imported for its side effect
+        except ImportError:
+            pass  # to_database says what to install
+
+    threading.Thread(target=load, name="preload-results-db", daemon=True).start()
 
 
 def to_database(recording: str | Path, kind: str, results: dict[str, Any], target: str | None,

@@ -24,8 +24,9 @@ from typing import Any
 from scipy import stats
 from scipy.optimize import brentq
 
-from ..display_units import NOISE_SI, Display, display, noise_name
+from ..display_units import Display, display, noise_name
 from ..solvers.conformity import Estimate
+from ..solvers.noise_coefficients import NoiseCoefficients, from_json
 
 #: calibration fits in the order they are published (orientation-free payloads)
 FREE_ORDER = ("faces_accel", "faces_gyro_bias", "multipos_accel", "multipos_gyro")
@@ -106,27 +107,26 @@ def from_calibration(payload: dict[str, Any]) -> list[Measured]:
 
 
 def from_allan(summary: dict[str, Any]) -> list[Measured]:
-    """The IEEE 952 terms of a ``rigctl allan`` summary, per axis (SI: NOISE_SI)."""
+    """The IEEE 952 terms of a ``rigctl allan`` result or stored summary, per axis (each axis'
+    ``fit["coefficients"]``: NoiseCoefficients, or its JSON form as /results/allan stores it)."""
     out = []
     for axis, info in sorted((summary.get("axes") or {}).items()):
         sensor = info.get("sensor") or ("gyro" if axis.startswith("g") else "accel")
-        terms = ((info.get("fit") or {}).get("terms")) or {}
+        stored = (info.get("fit") or {}).get("coefficients")
+        if not stored:
+            continue
+        co = stored if isinstance(stored, NoiseCoefficients) else from_json(stored)  # live or stored
         for t in NOISE_TERMS:
-            e = terms.get(t)
-            if not e:
-                continue
-            si = NOISE_SI[sensor][t]
+            c = getattr(co, t)
             name = noise_name(sensor, t, axis[-1])
-            if e.get("supported"):
-                v, nu = e.get(f"value_{si}"), e.get("edf")
-                if v is None or not nu:
+            if c.resolved:
+                v, nu = c.value, c.edf
+                if c.ci95 is None or not nu:  # not fitted (a term left out of the fit)
                     continue
                 # c = sqrt(p), Var(p) = 2 p^2 / nu  ->  u(c) = c / sqrt(2 nu) (first order)
                 est = Estimate(float(v), float(v) / math.sqrt(2.0 * nu), float(nu), "chi2")
             else:
-                ub, v = e.get(f"upper95_{si}"), e.get(f"estimate_{si}", 0.0)
-                if ub is None:
-                    continue
+                ub, v = c.upper95, c.value
                 s_p = (ub**2 - v**2) / 1.6448536269514722
                 u = math.sqrt(max(s_p, 0.0)) if v == 0 else s_p / (2.0 * v)
                 est = Estimate(float(v), float(min(u, ub)), math.inf, "bound", float(ub))

@@ -184,6 +184,103 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
     return {"accel": sub(static, "accel"), "gyro": sub(np.ones(len(kind), bool), "gyro")}
 
 
+#: window length of a static record's thermal fit (:func:`static_windows`), s
+STATIC_WINDOW_S = 1800.0
+
+
+def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, reference_c: float = 25.0,
+                   max_degree: int = 3, hysteresis_width_K: float = HYSTERESIS_WIDTH_K,
+                   min_fill: float = 0.5) -> dict[str, th.ThermalWindows]:
+    """The accelerometer and gyro windows of a *static* record with a temperature column: an
+    imported bench log (a warm-up after power-on, days at room temperature), one orientation,
+    no table and no chamber. Each static section (/segments, kind orientation; the whole record
+    when there is none) is cut into windows of ``window_s`` seconds; a window with fewer than
+    ``min_fill`` of its nominal samples (gaps) or fewer than 16 is left out.
+
+    Reference inputs: gravity (the recording's g) along the record's mean specific force, and a
+    zero rate (the earth's rate has no known direction here): every window has the same one, so
+    only the bias terms are identifiable (:func:`rigctl.solvers.thermal.one_orientation`; fit with
+    :data:`rigctl.solvers.thermal.BIAS_ONLY`) and their constant term holds what the reference
+    misses. The candidates' regressors: the hysteresis state (play operator on the temperature)
+    and the temperature rate (slope in the window, K/s); no chamber, so no gradient."""
+    with open_recording(path) as f:
+        _, _, g = _site(f)
+        fs = recording_reader.sample_rate(f)
+        t_all = f["imu/time"][()]
+        if "imu/temperature" not in f:
+            raise InputError("a thermal fit needs the recording's temperature column (/imu/temperature)", path,
+                             hint="import the log with temp=COLUMN in --columns")
+        T_all = f["imu/temperature"][()]
+        acc_all = np.asarray(f["imu/specific_force"][()], float)
+        gyr_all = np.asarray(f["imu/angular_rate"][()], float)
+        check_finite(path, "imu/temperature", T_all, 0)
+        check_finite(path, "imu/specific_force", acc_all, 0)
+        check_finite(path, "imu/angular_rate", gyr_all, 0)
+        seg = f["segments"] if "segments" in f else None
+        sections = [(int(seg["first_sample"][i]), int(seg["last_sample"][i])) for i in range(seg["kind"].shape[0])
+                    if seg["kind"][i] == b"orientation" and seg["status"][i] == b"complete"] if seg is not None else []
+    sections = sections or [(0, t_all.size)]
+    step = max(1, int(round(fs)))
+    Hs = th.play_operator(T_all[::step], hysteresis_width_K)
+    H_all = np.interp(np.arange(T_all.size), np.arange(0, T_all.size, step)[: Hs.size], Hs)
+    nominal = window_s * fs
+    bounds: list[tuple[int, int]] = []
+    for a, z in sections:
+        edges = np.arange(t_all[a], t_all[z - 1] + window_s, window_s)
+        idx = np.searchsorted(t_all[a:z], edges) + a
+        bounds += [(int(i0), int(i1)) for i0, i1 in zip(idx[:-1], idx[1:])
+                   if i1 - i0 >= max(16, min_fill * nominal)]
+    if len(bounds) < 4:
+        raise InputError(f"{len(bounds)} windows of {window_s:g} s in the static record: a thermal fit needs "
+                         "more (a longer record or shorter windows)", path)
+    down = acc_all.mean(axis=0)
+    fr = g * down / np.linalg.norm(down)
+    cols: dict[str, list] = {k: [] for k in ("acc", "gyro", "sa", "sg", "ba", "bg", "T", "R", "H", "ta", "tb")}
+    for a, z in bounds:
+        t, T = t_all[a:z], T_all[a:z]
+        acc, gyr = acc_all[a:z], gyr_all[a:z]
+        cols["acc"].append(acc.mean(axis=0))
+        cols["gyro"].append(gyr.mean(axis=0))
+        cols["sa"].append(_noise_parts(_detrend(acc - fr)))
+        cols["sg"].append(_noise_parts(_detrend(gyr)))
+        cols["ba"].append(batch_means(acc - fr, N_BATCHES))
+        cols["bg"].append(batch_means(gyr, N_BATCHES))
+        cols["T"].append(float(T.mean()))
+        cols["R"].append(float(np.polyfit(t - t[0], T, 1)[0]) if np.ptp(T) > 0 else 0.0)
+        cols["H"].append(float(H_all[a:z].mean()))
+        cols["ta"].append(float(t[0]))
+        cols["tb"].append(float(t[0]) + (z - a) / fs)
+    n = len(bounds)
+    powers = th.power_means(T_all, np.asarray(bounds), reference_c, max_degree)
+    R, H = np.asarray(cols["R"]), np.asarray(cols["H"])
+    out = {}
+    for sensor, y, s, bm, ref in (("accel", "acc", "sa", "ba", fr), ("gyro", "gyro", "sg", "bg", np.zeros(3))):
+        out[sensor] = th.ThermalWindows(
+            sensor=sensor, y=np.asarray(cols[y]), sigma=_pooled_sigma(np.asarray(cols[s])),
+            ref=np.tile(ref, (n, 1)), powers=powers, temperature=np.asarray(cols["T"]),
+            heating=np.where(R != 0, R > 0, H > 0), reference_c=reference_c,
+            regressors={"hysteresis": H, "temperature_rate": R},
+            t_start=np.asarray(cols["ta"]), t_end=np.asarray(cols["tb"]), kind=np.array(["orientation"] * n),
+            revolutions=[0.0] * n, batch=np.asarray(cols[bm]), t0=float(t_all[0]))
+    return out
+
+
+def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_WINDOW_S,
+               reference_c: float = 25.0, loop: bool = True,
+               noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
+    """Bias against temperature of a static record (:func:`static_windows`): per sensor the windows
+    and the fit with scale and misalignment held (one orientation: only the bias terms are
+    identifiable), the covariance of the window means from ``noise`` (accel, gyro: three axes' NoiseCoefficients; None:
+    estimated from the record) and, with ``loop``, the thermal candidates tested."""
+    wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree))
+    out = {}
+    for sensor, model in zip(("accel", "gyro"), noise or (None, None)):
+        w = wins[sensor]
+        th.estimate_noise(w, model)
+        out[sensor] = (w, th.fit_thermal(w, {"bias": bias_degree, **th.BIAS_ONLY}, loop=loop))
+    return out
+
+
 def truth_coefficients(f: Any) -> dict[str, float] | None:
     """The emulator's true coefficients under the solver's names (declared IMU + thermal)."""
     t = f.get("truth")
@@ -274,7 +371,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     before and after, and each axis' coefficient covariance). ``degrees``: per group
     ({'bias': 2, 'scale': 2, 'misalignment': 1}, the default), N / 'B,S,M' (:func:`parse_degrees`)
     or 'auto' (chosen per sensor by :func:`rigctl.solvers.thermal.select_degrees`). ``noise``:
-    (accel NoiseModel, gyro NoiseModel, description) as ``rigctl calibrate --noise`` resolved it
+    (accel, gyro: three axes' NoiseCoefficients each, description) as ``rigctl calibrate --noise`` resolved it
     (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
     or no ``noise``, estimates that sensor's noise from the session
     (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
@@ -293,7 +390,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                      "and rate random walk K by REML of the window means about the protected design "
                      "(cubic in temperature, every thermal candidate, an offset per window kind)")
     models = th.estimate_noise(wins["accel"], nf) + th.estimate_noise(wins["gyro"], nw)
-    noise_lines, noise_rows = noise_summary(models) if len(models) == 6 else ([], [])
+    noise_lines, noise_rows = noise_summary(models, wins["accel"].t0) if len(models) == 6 else ([], [])
     if len(models) != 6:
         noise_txt += " (window times unknown: means treated as independent)"
     sensors: dict[str, Any] = {}
@@ -305,7 +402,10 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     arrays: dict[str, tuple[Any, str]] = {}
     for sensor, w in wins.items():
         deg = th.select_degrees(w) if degrees == "auto" else dict(degrees)
-        fit = th.fit_thermal(w, deg)
+        try:
+            fit = th.fit_thermal(w, deg)
+        except ValueError as e:  # one orientation: only the bias terms are identifiable
+            raise InputError(str(e), p, hint="a static record: docs/thermal.md, 'One orientation'") from None
         params = fit.parameters()
         lo, hi = fit.band()
         c2 = fit.chi2 / fit.dof

@@ -270,7 +270,10 @@ class OadevAccumulator:
         for m in self.ms[~self._gram]:
             s = fast_stride(int(m)) if fast else 1
             levels.setdefault(s, []).append(int(m) // s)
-        self.levels = [S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
+        #: fast mode with the compiled kernels: every strided level in one compiled cascade
+        self.cascade = S.Cascade(levels) if fast and S.Cascade.usable(levels) else None
+        self.levels = [] if self.cascade is not None else [
+            S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
         self.offset = offset
         self.n_phase = 0
         self.phase_input: bool | None = None
@@ -300,9 +303,17 @@ class OadevAccumulator:
             self.n_phase = 1  # x[0] = 0
             if self.levels:
                 self._feed_levels(np.zeros(1), 0)
+            elif self.cascade is not None:
+                self.cascade.feed(np.zeros(1), 0)
         if self.pyramid is not None:
             self.pyramid.feed(y, self.offset)
-        if self.levels and K.HAVE_NUMBA and self.levels[0].s == 1:
+        if self.cascade is not None:
+            x = self.cascade.target(y.size)
+            K.phase_into(y, self.offset, self.tau0, self._x_last, x)
+            self._x_last = float(x[-1])
+            self.cascade.commit(y.size)
+            self.chunk_phase = x
+        elif self.levels and K.HAVE_NUMBA and self.levels[0].s == 1:
             # the phase is written straight after the stride-1 level's tail (no copy), and
             # the other levels cascade from its points
             lev = self.levels[0]
@@ -327,6 +338,59 @@ class OadevAccumulator:
             self.chunk_phase = x
         self.n_phase += y.size
 
+    def can_take_phase(self) -> bool:
+        """Whether :meth:`rate_target` / :meth:`commit_rate` can be used: rate samples added
+        before (so the offset and x[0] are set), the compiled kernels, and the direct path
+        starting at stride 1."""
+        return (K.HAVE_NUMBA and self.n_phase > 0 and self.phase_input is False
+                and self.pyramid is None and (self.cascade is not None or (
+                    bool(self.levels) and self.levels[0].s == 1)))
+
+    def rate_target(self, n: int) -> np.ndarray:
+        """Where the phase points of the next ``n`` rate samples go when the caller computes
+        them itself (``x[k] = x_last + tau0 * running sum of (y - offset)``, exactly as
+        :func:`rigctl.solvers.allan_kernels.phase_into`; e.g. several axes in one pass,
+        :func:`rigctl.solvers.allan_kernels.phase_cols3`), before :meth:`commit_rate`:
+        a view of the stride-1 level's buffer, right after its tail (valid until the next
+        call of this accumulator). Needs :meth:`can_take_phase`."""
+        if self.cascade is not None:
+            return self.cascade.target(n)
+        lev = self.levels[0]
+        buf = lev._buffer(lev.tail.size + n)
+        return buf[lev.tail.size:]
+
+    @property
+    def x_last(self) -> float:
+        """The last phase point so far (the running sum's start for the next chunk)."""
+        return self._x_last
+
+    def commit_rate(self, n: int, tap: np.ndarray | None = None, tap_step: int = 0) -> int:
+        """Sum the ``n`` phase points written into :meth:`rate_target` (what :meth:`add_rate`
+        does after building them; ``chunk_phase`` is set the same way). ``tap``: see
+        :meth:`rigctl.solvers.allan_stream.Cascade.commit` (the phase points x[k], k a
+        multiple of ``tap_step``, copied into it; only with the cascade, else nothing is
+        copied); returns how many were copied."""
+        self.chunk_phase = None
+        if n == 0:
+            return 0
+        if self.cascade is not None:
+            x = self.cascade.target(n)
+            self._x_last = float(x[-1])
+            got = self.cascade.commit(n, tap, tap_step)
+            self.chunk_phase = x
+            self.n_phase += n
+            return got
+        lev = self.levels[0]
+        buf = lev._buffer(lev.tail.size + n)
+        buf[: lev.tail.size] = lev.tail
+        self._x_last = float(buf[-1])
+        with S.blas_single_thread():
+            x = lev.feed_buffer(buf)
+        self.chunk_phase = x
+        self._feed_levels(x, self.n_phase, first=1, src_s=1)
+        self.n_phase += n
+        return 0
+
     def add_phase(self, x: np.ndarray) -> None:
         """Append phase points (rate units x s). A constant offset is removed (float64)."""
         x = np.array(x, dtype=np.float64).ravel()
@@ -341,6 +405,8 @@ class OadevAccumulator:
             self.pyramid.feed(inc)
         if self.levels:
             self._feed_levels(x, self.n_phase)
+        elif self.cascade is not None:
+            self.cascade.feed(x, self.n_phase)
         self._x_last = float(x[-1])
         self.n_phase += x.size
 
@@ -415,11 +481,20 @@ class OadevAccumulator:
             tot, cnt, st = self.pyramid.sums()
             scale = self.tau0 ** 2 if not self.phase_input else 1.0
             sums[self._gram], counts[self._gram], strides[self._gram] = tot * scale, cnt, st
+        if self.cascade is not None:
+            self.cascade.flush()
+        got: dict[int, tuple[dict, dict]] = {}
         for i in np.flatnonzero(~self._gram):
             m = int(self.ms[i])
             s = fast_stride(m) if self.mode == "fast" else 1
-            lev = next(lv for lv in self.levels if lv.s == s)
-            sums[i], counts[i], strides[i] = lev.sums[m // s], lev.counts[m // s], s
+            if self.cascade is not None:
+                if s not in got:
+                    got[s] = self.cascade.level_sums(s)
+                lsums, lcounts = got[s]
+            else:
+                lev = next(lv for lv in self.levels if lv.s == s)
+                lsums, lcounts = lev.sums, lev.counts
+            sums[i], counts[i], strides[i] = lsums[m // s], lcounts[m // s], s
         return sums, counts, strides
 
 

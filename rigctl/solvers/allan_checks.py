@@ -92,19 +92,24 @@ def find_spikes(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGM
 
 
 def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
-                  window: int = SPIKE_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+                  window: int = SPIKE_WINDOW,
+                  extremes: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """The spikes :func:`find_spikes` finds with a given ``sigma`` (the same indices) and the
     running median at them, without the running median of every sample: the median of a
     window lies between its minimum and maximum (running min and max cost a few ns per
     sample, the median ~40), so a sample within k sigma of both cannot be a spike; the exact
-    median is taken only at the others (the same order statistic of the same window)."""
+    median is taken only at the others (the same order statistic of the same window).
+    ``extremes``: the minimum and maximum of y's blocks of ``K.extremes_block(window)``
+    samples, when the caller has them (the streamed pipeline takes them in its running-sum
+    pass); the compiled path then starts from them."""
     y = np.asarray(y, dtype=float)
     none = np.zeros(0, dtype=np.int64)
     if y.size < window or not sigma > 0:
         return none, np.zeros(0)
     thr = k * sigma
     if K.HAVE_NUMBA:  # one compiled pass (scipy's min/max filters take ~18 ns per sample each)
-        cand = K.far_from_window_range(y, window, thr)
+        cand = K.far_from_window_range(y, window, thr, extremes)
     else:
         mn = minimum_filter1d(y, window, mode="nearest")
         cand = np.flatnonzero(y - mn > thr)

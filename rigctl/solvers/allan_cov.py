@@ -29,6 +29,7 @@ coefficients is a cheap weighted sum (:func:`combine`).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -77,7 +78,21 @@ def _weight(ma_n: np.ndarray, mb_n: np.ndarray, k: np.ndarray) -> np.ndarray:
 
 def term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
-    p = coefficient^2, f_tu = 1 if t == u else 2 (use :func:`combine`)."""
+    p = coefficient^2, f_tu = 1 if t == u else 2 (use :func:`combine`). A function of
+    (tau0, ms, n_phase) only: the six axes of a recording share it, so the last few are kept
+    (the matrices are read-only)."""
+    return _cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached(tau0: float, ms_key: bytes, n_phase: int) -> dict:
+    out = _term_covariances(tau0, np.frombuffer(ms_key, dtype=float), n_phase)
+    for c in out.values():
+        c.setflags(write=False)
+    return out
+
+
+def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     ms = np.asarray(ms, dtype=float)
     n = ms.size
     big_m = n_phase - 2.0 * ms

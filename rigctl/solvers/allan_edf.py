@@ -12,6 +12,7 @@
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -85,6 +86,7 @@ def _basic_sum(j_: int, m_: float, s: float, f: float, alpha: int, d: int) -> fl
     return total
 
 
+@functools.lru_cache(maxsize=1 << 14)  # a pure function; the axes of a capture share m and N
 def edf_greenhall(alpha: int, d: int, m: int, n_phase: int, overlapping: bool,
                   modified: bool) -> float:
     """Equivalent degrees of freedom of a finite-difference variance (Greenhall 2003).

@@ -47,6 +47,7 @@ from scipy.stats import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
+from . import noise_coefficients as NC
 from .allan_stream import blas_single_thread
 
 TERMS = ("Q", "N", "B", "K", "R")
@@ -392,9 +393,21 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         values[j], sds[j] = _bound_fit(full_a[:, active + [j]], s2, e, active + [j],
                                        cov_terms, np.append(p, 0.0), iterations, chi2_red,
                                        model_err, inflate)
-    limits = curve_limits(tau_all, np.sqrt(s2_all))
+    # the curve's hard limit on each term (no bound is reported above it): read off the
+    # well-determined taus only -- those whose 95 % band is informative, hi95/lo95 =
+    # sqrt(chi2_0.975(nu) / chi2_0.025(nu)) <= 2, i.e. EDF nu >= 16.95, where the true sigma
+    # lies within 0.75 .. 1.50 x the measured one. A tau with a handful of averages (nu = 3:
+    # 0.57 .. 3.6 x) says little about the true sigma there and must not cut a bound: a 12 h
+    # consumer_mems gy had its K bound cut to 5.86 deg/h/sqrt(h) by the last octave tau
+    # (10486 s, nu 3.1, sigma 5.8 deg/h where the emulated K alone gives 24), excluding the
+    # truth 24.7 and disagreeing with --taus all (30.3 [21.3, 52.3]). Without an informative
+    # tau (a capture of a few minutes) every tau counts
+    lim_sel = inf95 if np.any(inf95) else np.ones(tau_all.size, dtype=bool)
+    limits = curve_limits(tau_all[lim_sel], np.sqrt(s2_all[lim_sel]))
+    lim_tau = curve_limit_taus(tau_all[lim_sel], np.sqrt(s2_all[lim_sel]))
     out_terms: dict[str, dict] = {}
     coeff_sq: dict[str, float] = {}
+    coefs: dict[str, NC.Coefficient] = {}
     for t in terms:
         j = TERMS.index(t)
         pj, sdj = float(values[j]), float(sds[j])
@@ -420,17 +433,22 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                 ci[f"ci{lab}_{unit_f}"] = [lo * fac, hi * fac]
             entry.update({"supported": True, f"value_{unit_si}": val,
                           f"value_{unit_f}": val * fac, **ci})
+            coefs[t] = NC.Coefficient(val, tuple(ci[f"ci68_{unit_si}"]), tuple(ci[f"ci95_{unit_si}"]),
+                                      edf=nu)
         else:
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
             source = "fit"
             if not ub <= lim:  # never above what the curve itself allows (also for nan)
                 ub, source = lim, "curve"
+            est = min(math.sqrt(max(pj, 0.0)), ub)
             entry.update({"supported": False, f"upper95_{unit_si}": ub,
                           f"upper95_{unit_f}": ub * fac, "bound_from": source,
-                          f"estimate_{unit_si}": min(math.sqrt(max(pj, 0.0)), ub)})
+                          f"estimate_{unit_si}": est})
+            coefs[t] = NC.Coefficient(0.0 if math.isnan(est) else est, upper95=ub, bound_from=source)
         entry[f"curve_limit_{unit_si}"] = lim
         entry[f"curve_limit_{unit_f}"] = lim * fac
+        entry["curve_limit_tau_s"] = lim_tau[t]  # the tau that sets it
         out_terms[t] = entry
     if tau0 is not None and n_phase is not None:
         _add_crb(out_terms, sensor, float(tau0), int(n_phase))
@@ -465,7 +483,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
                       "sigma^2 estimates across taus)" if cov_terms is not None else
                       "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
-            "sensor": sensor, "terms": out_terms, "coeff_sq_si": coeff_sq,
+            "sensor": sensor, "terms": out_terms,
+            # the IEEE 952 coefficients (SI) with their intervals or upper bounds; the model the
+            # fit reports (and checks) is NC.resolved_values(): the bounded terms at 0
+            "coefficients": NC.NoiseCoefficients(**coefs, sensor=sensor, source="rigctl allan (IEEE 952 joint fit)"),
             "reduced_chi2": chi2_red, "n_taus": int(tau.size), "check": check}
 
 
@@ -563,7 +584,20 @@ def curve_limits(tau: np.ndarray, adev: np.ndarray) -> dict[str, float]:
     return {t: float(math.sqrt(v)) for t, v in zip(TERMS, lim)}
 
 
-#: a tau's 95 % band is informative when hi/lo is at most this (edf >~ 16)
+def curve_limit_taus(tau: np.ndarray, adev: np.ndarray) -> dict[str, float]:
+    """The tau at which each term's :func:`curve_limits` is set (nan without a usable tau)."""
+    tau = np.asarray(tau, dtype=float)
+    s2 = np.asarray(adev, dtype=float) ** 2
+    ok = np.isfinite(tau) & np.isfinite(s2) & (tau > 0) & (s2 > 0)
+    if not np.any(ok):
+        return {t: math.nan for t in TERMS}
+    k = np.argmin(s2[ok][:, None] / design_matrix(tau[ok]), axis=0)
+    return {t: float(tau[ok][i]) for t, i in zip(TERMS, k)}
+
+
+#: a tau's 95 % band is informative when hi/lo is at most this: sqrt(chi2_0.975(nu) /
+#: chi2_0.025(nu)) <= 2 for EDF nu >= 16.95 (the band is then 0.75 .. 1.50 x sigma). Only such
+#: taus set the curve's limits and are held to the band by the self-check
 INFORMATIVE_RATIO = 2.0
 #: a departure is reported when the fit leaves the band *and* misses the deviation by more
 #: than this fraction: at short taus the band is +-0.1 %, far narrower than any model of a
@@ -701,8 +735,8 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
 
 
 def term_value_si(fit: dict, term: str) -> float:
-    """Point value (SI) of a fitted term; the estimate for an upper-bounded term."""
-    return math.sqrt(max(fit["coeff_sq_si"].get(term, 0.0), 0.0))
+    """Value (SI) of a term in the model the fit reports: its estimate if resolved, else 0."""
+    return NC.resolved_values(fit["coefficients"]).get(term, 0.0)
 
 
 def piecewise_readoffs(tau: np.ndarray, adev: np.ndarray, sensor: str = "gyro") -> dict:

@@ -350,3 +350,100 @@ class StridedLevel:
         self.tail = buf[cut:].copy()
         self.b0 += cut
         return buf[n_old:]
+
+
+class Cascade:
+    """The strided levels of fast mode in one compiled pass per chunk (``K.HAVE_NUMBA``):
+    levels of power-of-two strides s_0 = 1 < s_1 < ..., level j's points every s_j-th phase
+    point, each level's lags summed by direct differences (every term at that stride, the same
+    terms as :class:`StridedLevel`), each level's points taken from the one above.
+
+    Level 0's points are summed where the caller wrote them (:meth:`target`, after the kept
+    tail), in pieces of :data:`SUB` points that go down the cascade while they are in the
+    core's caches (every second point on to level 1, ...); a deeper level runs once it has
+    :data:`BATCH` points pending, so the deep levels, which get a point per thousands of
+    samples, cost nothing per piece. Versus one :class:`StridedLevel` per stride fed chunk by
+    chunk from Python: no Python per level (a dozen calls per chunk per axis), and no pass
+    over the chunk per level to pick the next level's points from memory. Memory: the chunk,
+    and ``levels x (2 max lag + 2 (SUB + BATCH))`` floats."""
+
+    SUB = 1 << 14
+    BATCH = 1 << 10
+
+    def __init__(self, levels: dict[int, list[int]]):
+        strides = sorted(levels)
+        self.strides = np.array(strides, dtype=np.int64)
+        nl = len(strides)
+        kmax = max(len(v) for v in levels.values())
+        self.ks = np.zeros((nl, kmax), dtype=np.int64)
+        self.nks = np.zeros(nl, dtype=np.int64)
+        for j, st in enumerate(strides):
+            ks = sorted(int(k) for k in levels[st])
+            self.ks[j, : len(ks)] = ks
+            self.nks[j] = len(ks)
+        self.keep = np.array([2 * int(self.ks[j, : self.nks[j]].max()) for j in range(nl)],
+                             dtype=np.int64)
+        cap = int(self.keep.max()) + 2 * (self.SUB + self.BATCH) + 2
+        self.bufs = np.empty((nl, cap))  # levels >= 1; pages touched only where points go
+        self.tlen = np.zeros(nl, dtype=np.int64)
+        self.pend = np.zeros(nl, dtype=np.int64)
+        self.b0 = np.zeros(nl, dtype=np.int64)
+        self.nstart = np.zeros((nl, kmax), dtype=np.int64)
+        self.sums = np.zeros((nl, kmax, 2))
+        self.counts = np.zeros((nl, kmax), dtype=np.int64)
+        self.k0 = int(self.keep[0])
+        self.x0 = np.empty(self.k0 + 1024)  # level 0: kept tail, then the chunk's points
+        self.n = 0  # phase points fed
+
+    @staticmethod
+    def usable(levels: dict[int, list[int]]) -> bool:
+        """Power-of-two strides from 1, lags small enough for the per-level buffers."""
+        st = sorted(levels)
+        return (K.HAVE_NUMBA and bool(st) and st[0] == 1
+                and all(s & (s - 1) == 0 for s in st)
+                and max(max(v) for v in levels.values()) <= 1 << 12)
+
+    def target(self, n: int) -> np.ndarray:
+        """Where the next n phase points go (valid until :meth:`commit`)."""
+        if self.x0.size < self.k0 + n:
+            grown = np.empty(self.k0 + n)
+            grown[: self.k0] = self.x0[: self.k0]
+            self.x0 = grown
+        return self.x0[self.k0: self.k0 + n]
+
+    def commit(self, n: int, tap: np.ndarray | None = None, tap_step: int = 0) -> int:
+        """Sum the n points written into :meth:`target`. With ``tap``: also copy the new
+        points whose index is a multiple of ``tap_step`` into it (as many as fit) while they
+        pass through the cache (a decimated copy of the phase, without a strided pass over
+        the chunk in memory later); returns how many were copied."""
+        if n <= 0:
+            return 0
+        if tap is None:
+            tap, tap_step = np.empty(0), 0
+        got = K._casc_chunk(self.x0, self.k0, n, self.strides, self.ks, self.nks, self.bufs,
+                            self.tlen, self.pend, self.b0, self.nstart, self.sums, self.counts,
+                            self.keep, self.SUB, self.BATCH, K.BLOCK, self.n, tap,
+                            int(tap_step))
+        self.n += n
+        return int(got)
+
+    def feed(self, x: np.ndarray, g0: int) -> None:
+        """Phase points x[g0 + i] = x[i], the continuation of those fed before."""
+        if g0 != self.n:
+            raise ValueError(f"cascade fed at point {g0}, expected {self.n}")
+        self.target(x.size)[:] = x
+        self.commit(x.size)
+
+    def flush(self) -> None:
+        """Sum every level's pending points (before reading the sums; feeding may go on)."""
+        if self.pend.any():
+            K._casc_flush(self.strides, self.ks, self.nks, self.bufs, self.tlen, self.pend,
+                          self.b0, self.nstart, self.sums, self.counts, self.keep, K.BLOCK)
+
+    def level_sums(self, s: int) -> tuple[dict[int, float], dict[int, int]]:
+        """(sum per lag, terms per lag) of the level of stride s, after :meth:`flush`."""
+        j = int(np.searchsorted(self.strides, s))
+        ks = self.ks[j, : self.nks[j]]
+        tot = self.sums[j, : self.nks[j]].sum(axis=1)
+        return ({int(k): float(v) for k, v in zip(ks, tot)},
+                {int(k): int(c) for k, c in zip(ks, self.counts[j, : self.nks[j]])})

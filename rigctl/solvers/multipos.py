@@ -32,6 +32,8 @@ anything.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 import scipy.linalg
 import scipy.optimize
@@ -40,7 +42,8 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
 from .calibration_result import STATUS_INSUFFICIENT, STATUS_POOR_FIT, CalibrationResult
-from .segment_stats import AllanCurve, NoiseModel, allan_curve_from_samples
+from .noise_coefficients import NoiseCoefficients
+from .segment_stats import SensorNoise, allan_curve_from_samples, mean_sigma_from_model
 
 AXES = ("x", "y", "z")
 
@@ -113,25 +116,23 @@ def _sufficiency(res: CalibrationResult, n_poses: int, n_params: int, min_dof: i
 
 
 def pose_means(data: ArrayLike, intervals: list[tuple[int, int]], fs_hz: float,
-               noise: NoiseModel | AllanCurve | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+               noise: SensorNoise | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Means (P, 3) of each interval and their uncertainties from the noise model at T."""
     x = np.asarray(data, dtype=np.float64)
     means = np.array([x[s:e].mean(axis=0) for s, e in intervals])
     if noise is None:
         noise = allan_curve_from_samples(x[intervals[0][0]:intervals[0][1]], fs_hz)
-    sig = np.array([np.sqrt(noise.avar((e - s) / fs_hz)) for s, e in intervals])
+    sig = np.array([mean_sigma_from_model((e - s) / fs_hz, noise) for s, e in intervals])
     return means, sig
 
 
-def pose_cov(intervals: list[tuple[int, int]], fs_hz: float, model: NoiseModel, t0_s: float = 0.0
+def pose_cov(intervals: list[tuple[int, int]], fs_hz: float, model: Sequence[NoiseCoefficients], t0_s: float = 0.0
              ) -> NDArray[np.float64]:
     """(3, P, P) covariance of the pose means per axis from IEEE 952 coefficients (time-correlated
     terms included, :mod:`rigctl.solvers.segment_cov`); intervals in samples, time from sample 0."""
-    from .segment_noise import noise_from_coefficients
-
     a = np.array([s for s, _ in intervals], dtype=np.float64) / fs_hz
     b = np.array([e for _, e in intervals], dtype=np.float64) / fs_hz
-    return np.stack([m.cov(a, b, ["*"] * len(a)) for m in noise_from_coefficients(model, t0_s)])
+    return np.stack([m.cov(a, b, t0=t0_s) for m in model])
 
 
 def calibrate_accel_multipos(means: ArrayLike, sigma: ArrayLike, g: float, unit: str = "count",

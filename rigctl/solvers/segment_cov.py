@@ -12,7 +12,7 @@ For a stationary r(s - t) with an even twice-integrable kernel k and F'' = k, F(
 
     int int k(s - t) ds dt = F(b_i - a_j) - F(a_i - a_j) - F(b_i - b_j) + F(a_i - b_j)     (*)
 
-Per IEEE Std 952 term (coefficients as in :class:`~rigctl.solvers.segment_stats.NoiseModel`):
+Per IEEE Std 952 term (coefficients as in :class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients`):
 
 * white (N):  C_ij = N^2 / T_i  if i == j else 0 (sigma_A^2 = N^2/tau: two-sided PSD N^2).
 * quantization (Q) of the integrated output: a window mean is (theta_q(b) - theta_q(a))/T with

@@ -4,7 +4,8 @@ The calibration fits need the covariance of the segment means per channel
 (:mod:`rigctl.solvers.segment_cov`). Two sources:
 
 1. **IEEE 952 coefficients** (``rigctl allan``'s /results/allan, or a datasheet):
-   :func:`noise_from_coefficients`, C = N^2 C_white + Q^2 C_quant + B^2 C_flicker + K^2 C_rw(t0).
+   :meth:`rigctl.solvers.noise_coefficients.NoiseCoefficients.cov`,
+   C = N^2 C_white + Q^2 C_quant + B^2 C_flicker + K^2 C_rw(t0).
 2. **The session itself** (:func:`estimate_channel_noise`), when no characterisation exists.
    Per channel the unknowns are theta = (N_g^2 for each segment kind g -- static and rate
    windows may differ in white noise --, B^2, K^2); Sigma(theta) = sum_j theta_j C_j is linear in
@@ -54,7 +55,7 @@ one residual degree of freedom.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -62,81 +63,29 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from . import segment_cov as sc
+from .noise_coefficients import NoiseCoefficients
 from .segment_stats import N_BATCHES
 
 
-@dataclass
-class ChannelNoise:
-    """Noise model of one channel's segment means (SI: unit = m/s^2 or rad/s).
-
-    white_var: {group: N^2} (unit^2 s) per segment group (e.g. "orientation", "rate");
-    B (unit), K (unit/sqrt(s)), Q (unit s); t0: random-walk origin, s (power-on);
-    bank: the flicker band; source: "allan" or "session (REML)"; info: fit details;
-    theta_cov: covariance of the estimated variance components (N_g^2 per label, B^2, K^2; the
-    inverse expected information; None when the coefficients are given).
-    """
-
-    white_var: dict[str, float]
-    B: float = 0.0
-    K: float = 0.0
-    Q: float = 0.0
-    t0: float = 0.0
-    tau_min_s: float = 1.0
-    tau_max_s: float = 1.0e4
-    source: str = "allan"
-    info: dict[str, Any] = field(default_factory=dict)
-    theta_cov: NDArray[np.float64] | None = None
-
-    def cov(self, a: ArrayLike, b: ArrayLike, groups: Sequence[str]) -> NDArray[np.float64]:
-        """(K, K) covariance of the means of windows [a, b] (segment groups for the white level)."""
-        a = np.asarray(a, dtype=np.float64)
-        b = np.asarray(b, dtype=np.float64)
-        nw = np.array([self.white_var.get(str(g), max(self.white_var.values())) for g in groups])
-        C = np.diag(nw / (b - a))
-        if self.Q:
-            C = C + self.Q**2 * sc.cov_quantization(a, b)
-        if self.B:
-            C = C + self.B**2 * sc.cov_flicker(a, b, sc.flicker_bank(self.tau_min_s, self.tau_max_s))
-        if self.K:
-            C = C + self.K**2 * sc.cov_random_walk(a, b, self.t0)
-        return 0.5 * (C + C.T)
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-able coefficients: N per group (unit sqrt(s)), B, K, Q, band, source."""
-        return {"source": self.source, "N_per_group": {g: float(np.sqrt(v)) for g, v in self.white_var.items()},
-                "B": self.B, "K": self.K, "Q": self.Q, "flicker_tau_min_s": self.tau_min_s,
-                "flicker_tau_max_s": self.tau_max_s, "rw_origin_s": self.t0, **self.info}
-
-
-def channel_covs(models: Sequence[ChannelNoise], a: ArrayLike, b: ArrayLike, groups: Sequence[str],
-                 flicker: NDArray[np.float64] | None = None, rw: NDArray[np.float64] | None = None
-                 ) -> NDArray[np.float64]:
-    """(len(models), K, K): :meth:`ChannelNoise.cov` of each model on the same windows, the unit
-    flicker and random-walk components computed once (or given: ``flicker`` for B = 1 on the
-    models' band, ``rw`` for K = 1 from their origin). The models must share band and origin."""
+def channel_covs(models: Sequence[NoiseCoefficients], a: ArrayLike, b: ArrayLike, groups: Sequence[str],
+                 t0: float = 0.0, flicker: NDArray[np.float64] | None = None,
+                 rw: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """(len(models), K, K): :meth:`NoiseCoefficients.cov` of each channel on the same windows,
+    the unit flicker and random-walk components computed once (or given: ``flicker`` for B = 1
+    on the models' band, ``rw`` for K = 1 from ``t0``) when the models share a flicker band."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     if not models:
         return np.zeros((0, a.size, a.size))
     m0 = models[0]
-    if any((m.tau_min_s, m.tau_max_s, m.t0) != (m0.tau_min_s, m0.tau_max_s, m0.t0) for m in models):
-        return np.stack([m.cov(a, b, groups) for m in models])
-    if flicker is None and any(m.B for m in models):
-        flicker = sc.cov_flicker(a, b, sc.flicker_bank(m0.tau_min_s, m0.tau_max_s))
-    if rw is None and any(m.K for m in models):
-        rw = sc.cov_random_walk(a, b, m0.t0)
-    out = []
-    for m in models:
-        nw = np.array([m.white_var.get(str(g), max(m.white_var.values())) for g in groups])
-        C = np.diag(nw / (b - a))
-        if m.Q:
-            C = C + m.Q**2 * sc.cov_quantization(a, b)
-        if m.B:
-            C = C + m.B**2 * flicker
-        if m.K:
-            C = C + m.K**2 * rw
-        out.append(0.5 * (C + C.T))
-    return np.stack(out)
+    if any((m.flicker_tau_min_s, m.flicker_tau_max_s) != (m0.flicker_tau_min_s, m0.flicker_tau_max_s)
+           for m in models):
+        return np.stack([m.cov(a, b, groups, t0) for m in models])
+    if flicker is None and any(m.B.value for m in models):
+        flicker = sc.cov_flicker(a, b, sc.flicker_bank(m0.flicker_tau_min_s, m0.flicker_tau_max_s))
+    if rw is None and any(m.K.value for m in models):
+        rw = sc.cov_random_walk(a, b, t0)
+    return np.stack([m.cov(a, b, groups, t0, flicker, rw) for m in models])
 
 
 def _full_rank(X: NDArray[np.float64], rtol: float = 1e-9) -> NDArray[np.float64]:
@@ -325,7 +274,7 @@ def _objective(theta: NDArray[np.float64], u: NDArray[np.float64], terms: Window
 
 def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: ArrayLike,
                            rest: ArrayLike | None = None, min_dof: int = 8, max_iter: int = 60
-                           ) -> ChannelNoise:
+                           ) -> NoiseCoefficients:
     """REML estimate of (N_g^2, B^2, K^2) for one channel (module docstring).
 
     Args:
@@ -400,10 +349,11 @@ def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: Ar
     theta_cov = np.linalg.pinv(H) if H is not None and np.all(np.isfinite(H)) else None
     wv = {lab: float(w) for lab, w in zip(terms.labels, th[:nl])}
     info["white_level_shared"] = {k: v for k, v in terms.group_of.items() if k != v}
-    return ChannelNoise(white_var={k: wv[v] for k, v in terms.group_of.items()},
-                        B=float(np.sqrt(th[nl])), K=float(np.sqrt(th[nl + 1])), t0=terms.t0,
-                        tau_min_s=terms.bank.tau_min_s, tau_max_s=terms.bank.tau_max_s,
-                        source="session (REML)", info=info, theta_cov=theta_cov)
+    by_group = {k: float(np.sqrt(wv[v])) for k, v in terms.group_of.items()}
+    return NoiseCoefficients(N=max(by_group.values()), B=float(np.sqrt(th[nl])), K=float(np.sqrt(th[nl + 1])),
+                             flicker_tau_min_s=terms.bank.tau_min_s, flicker_tau_max_s=terms.bank.tau_max_s,
+                             source="session (REML)", white_by_group=by_group, theta_cov=theta_cov,
+                             details=info)
 
 
 # ------------------------------------------------------------------------------ session level
@@ -435,41 +385,27 @@ def protected_design(seg: Any, c: int, quadratic: bool = True) -> NDArray[np.flo
     return np.stack(cols, axis=1)
 
 
-def noise_from_coefficients(model: Any, t0: float = 0.0) -> list[ChannelNoise]:
-    """Three ChannelNoise (one per axis) from a :class:`~rigctl.solvers.segment_stats.NoiseModel`
-    (IEEE 952 coefficients, SI; R left to the closed loop's time-drift candidate)."""
-    out = []
-    for i in range(3):
-        val = {t: float(np.broadcast_to(np.asarray(getattr(model, t), dtype=np.float64), (3,))[i])
-               for t in "QNBK"}
-        out.append(ChannelNoise(white_var={"*": val["N"] ** 2}, B=val["B"], K=val["K"], Q=val["Q"], t0=t0,
-                                tau_min_s=float(getattr(model, "flicker_tau_min_s", 1.0)),
-                                tau_max_s=float(getattr(model, "flicker_tau_max_s", 1.0e4)),
-                                source="IEEE 952 coefficients (rigctl allan)"))
-    return out
-
-
-def apply_session_noise(seg: Any, acc_model: Any = None, gyro_model: Any = None, t0: float = 0.0,
-                        quadratic: bool = True) -> list[ChannelNoise]:
+def apply_session_noise(seg: Any, acc_model: Sequence[NoiseCoefficients] | None = None,
+                        gyro_model: Sequence[NoiseCoefficients] | None = None, t0: float = 0.0,
+                        quadratic: bool = True) -> list[NoiseCoefficients]:
     """Set ``seg.cov`` (6, K, K) from the noise model of each channel; returns the six models.
 
-    With IEEE 952 coefficients (``acc_model``/``gyro_model``: NoiseModel) the covariance comes
+    With IEEE 952 coefficients (``acc_model``/``gyro_model``: three axes' NoiseCoefficients,
+    t0 the random walk's origin) the covariance comes
     from them; otherwise (None) each channel's model is estimated from the session
     (:func:`estimate_channel_noise` on :func:`protected_design`). Needs ``seg.t_start``,
     ``seg.t_end`` (and ``seg.batch_means`` for the estimate); without them nothing is changed and
     [] is returned (the means stay independent).
     """
-    from .segment_stats import NoiseModel
-
     if seg.t_start is None or seg.t_end is None:
         return []
     a, b = np.asarray(seg.t_start, dtype=np.float64), np.asarray(seg.t_end, dtype=np.float64)
-    models: list[ChannelNoise] = []
+    models: list[NoiseCoefficients] = []
     terms = None
     y = seg.y()
     for c, model in enumerate((acc_model,) * 3 + (gyro_model,) * 3):
-        if isinstance(model, NoiseModel):
-            models.append(noise_from_coefficients(model, t0)[c % 3])
+        if model is not None:
+            models.append(model[c % 3])
             continue
         if seg.batch_means is None:
             return []
@@ -481,7 +417,7 @@ def apply_session_noise(seg: Any, acc_model: Any = None, gyro_model: Any = None,
         models.append(estimate_channel_noise(y[:, c], protected_design(seg, c, quadratic), terms,
                                              seg.batch_means[:, c],
                                              None if seg.rest is None else seg.rest["mean"][:, c]))
-    seg.set_cov(np.stack([m.cov(a, b, seg.kind) for m in models]))
+    seg.set_cov(np.stack([m.cov(a, b, seg.kind, t0) for m in models]))
     if terms is not None and all(m.theta_cov is not None for m in models):
         # for the Satterthwaite degrees of freedom of the calibration's intervals
         seg.extra["noise_components"] = {"comps": terms.comps, "theta_cov": [m.theta_cov for m in models]}

@@ -13,12 +13,9 @@ is exactly what a calibration comparing segments needs).
 
 Noise models accepted:
 
-* :class:`NoiseModel`: IEEE Std 952 coefficients per axis (SI units), summed:
-
-      sigma_A^2(tau) = 3 Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2
-
-  Q [unit*s], N [unit*sqrt(s)] (= unit/sqrt(Hz)), B [unit], K [unit/sqrt(s)], R [unit/s],
-  where "unit" is rad/s for gyros and m/s^2 for accelerometers.
+* IEEE Std 952 coefficients: the three axes' :class:`~rigctl.solvers.noise_coefficients.
+  NoiseCoefficients` (a :data:`~rigctl.solvers.noise_coefficients.Triad`; SI units and the
+  Allan variance of each term documented there).
 * :class:`AllanCurve`: a measured Allan deviation curve, interpolated linearly in log-log and
   extrapolated with the end slopes.
 * none: estimated from the segment itself (:func:`self_noise_sigma`): non-overlapping batch
@@ -28,41 +25,16 @@ Noise models accepted:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import allan as _allan
+from .noise_coefficients import NoiseCoefficients, triad_avar
 
-_TWO_LN2_OVER_PI = 2.0 * np.log(2.0) / np.pi
 #: batches of the within-window statistic :func:`batch_var`
 N_BATCHES = 8
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """IEEE Std 952 noise coefficients per axis, SI units (see module docstring).
-
-    Each field is a float or a (3,) array; missing terms are zero. ``flicker_tau_min_s`` and
-    ``flicker_tau_max_s`` bound the bias-instability plateau (used only for the covariance of
-    segment means, :mod:`rigctl.solvers.segment_cov`; the Allan variance here is the plateau).
-    """
-
-    Q: ArrayLike = 0.0
-    N: ArrayLike = 0.0
-    B: ArrayLike = 0.0
-    K: ArrayLike = 0.0
-    R: ArrayLike = 0.0
-    flicker_tau_min_s: float = 1.0
-    flicker_tau_max_s: float = 1.0e4
-
-    def avar(self, tau_s: ArrayLike) -> NDArray[np.float64]:
-        """Allan variance (unit^2) at cluster times tau (s): shape (..., 3) for (...,) tau."""
-        tau = np.asarray(tau_s, dtype=np.float64)[..., None]
-        q, n, b, k, r = (np.broadcast_to(np.asarray(v, dtype=np.float64), (3,))
-                         for v in (self.Q, self.N, self.B, self.K, self.R))
-        return (3.0 * q**2 / tau**2 + n**2 / tau + _TWO_LN2_OVER_PI * b**2
-                + k**2 * tau / 3.0 + r**2 * tau**2 / 2.0)
 
 
 @dataclass(frozen=True)
@@ -107,9 +79,18 @@ class SegmentMean:
     naive_sigma: NDArray[np.float64]
 
 
-def mean_sigma_from_model(duration_s: float, model: NoiseModel | AllanCurve) -> NDArray[np.float64]:
+#: a sensor's noise: its three axes' IEEE 952 coefficients, or a measured Allan curve
+SensorNoise = Union[Sequence[NoiseCoefficients], "AllanCurve"]
+
+
+def sensor_avar(model: SensorNoise, tau_s: ArrayLike) -> NDArray[np.float64]:
+    """Allan variance (..., 3) at tau (...,) of either kind of sensor noise."""
+    return model.avar(tau_s) if isinstance(model, AllanCurve) else triad_avar(model, tau_s)
+
+
+def mean_sigma_from_model(duration_s: float, model: SensorNoise) -> NDArray[np.float64]:
     """Standard uncertainty of a T-second mean: sqrt(sigma_A^2(T)), (3,)."""
-    return np.sqrt(model.avar(float(duration_s)))
+    return np.sqrt(sensor_avar(model, float(duration_s)))
 
 
 def overlapping_avar(x: NDArray[np.float64], m_list: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -190,7 +171,7 @@ def self_noise_sigma(x: ArrayLike, fs_hz: float, n_batches: int = 8) -> NDArray[
 def segment_mean(
     samples: ArrayLike,
     fs_hz: float,
-    noise: NoiseModel | AllanCurve | None = None,
+    noise: SensorNoise | None = None,
 ) -> SegmentMean:
     """Mean of a segment's samples (n, 3) and its standard uncertainty.
 
@@ -212,7 +193,7 @@ def segment_mean(
         sig, method = self_noise_sigma(x, fs_hz), "self"
     else:
         sig = mean_sigma_from_model(T, noise)[: x.shape[1]]
-        method = "noise_model" if isinstance(noise, NoiseModel) else "allan_curve"
+        method = "allan_curve" if isinstance(noise, AllanCurve) else "noise_model"
     return SegmentMean(mean=x.mean(axis=0), sigma=np.asarray(sig, dtype=np.float64), duration_s=T,
                        n=n, method=method, naive_sigma=naive)
 

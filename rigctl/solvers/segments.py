@@ -69,7 +69,7 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from .segment_stats import AllanCurve, NoiseModel, batch_means, segment_mean
+from .segment_stats import SensorNoise, batch_means, segment_mean
 
 #: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros.
 CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
@@ -250,8 +250,8 @@ def segment_table_from_samples(
     fs_hz: float,
     f_ref: Sequence[NDArray[np.float64]],
     w_ref: Sequence[NDArray[np.float64]],
-    acc_noise: NoiseModel | AllanCurve | None = None,
-    gyro_noise: NoiseModel | AllanCurve | None = None,
+    acc_noise: SensorNoise | None = None,
+    gyro_noise: SensorNoise | None = None,
     **optional: Any,
 ) -> SegmentTable:
     """Build a SegmentTable from the samples of each segment.

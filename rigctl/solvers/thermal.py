@@ -35,6 +35,15 @@ times the means are independent with standard uncertainties ``sigma`` (weighted 
 The ramp method's balance: every window counts once whichever half of the cycle it was taken
 in, and the fit reports how many windows each half gave and the temperature span each covered.
 
+**One orientation.** When every window has the same reference input (a static record on a
+bench: a warm-up, a record in a climatic chamber without a table), the scale and misalignment
+columns are proportional to the bias columns and only the sum b(T) + M(T) u is identified.
+:func:`fit_thermal` then refuses the full model (ValueError naming the restriction) and is called
+with the scale and misalignment groups *held* (degree :data:`HELD`, e.g. :data:`BIAS_ONLY`): M
+stays the identity, the model is y_i - u_i = sum_j <dT^j> b_ij [+ effects], and the "bias"
+coefficients are the apparent ones -- the unit's bias plus, on an axis along gravity, the scale
+factor's temperature dependence times g (:func:`one_orientation`).
+
 The loop (forward selection): each candidate not yet in the model is added to all three axes of
 the sensor; F = (dChi2 / 3) / (Chi2_ext / dof_ext); p from F(3, dof_ext), Bonferroni-adjusted over
 the candidates still open; the smallest p_adj below ``alpha`` is accepted and the search repeats.
@@ -58,6 +67,10 @@ CANDIDATE_TEXT = {"hysteresis": "thermal hysteresis (heating and cooling differ)
                   "temperature_rate": "dependence on the temperature rate",
                   "thermal_gradient": "thermal gradient (chamber air minus IMU temperature)"}
 UNIT = {"accel": "m_s2", "gyro": "rad_s"}
+#: the degree of a group that is not fitted: scale held at 1, misalignment at 0 (M = identity)
+HELD = -1
+#: degrees for a record with one orientation: only the bias terms are identifiable
+BIAS_ONLY = {"scale": HELD, "misalignment": HELD}
 
 
 @dataclass
@@ -166,9 +179,31 @@ class ThermalFit:
         return out
 
 
+def _quad(w: ThermalWindows, degrees: dict[str, int]) -> bool:
+    """The accelerometer's quadratic term is fitted with the scale factor (not when it is held)."""
+    return w.quad is not None and degrees["scale"] > HELD
+
+
+def one_orientation(ref: np.ndarray, rtol: float = 1e-6) -> bool:
+    """True when every window has the same reference input (n, 3): scale and misalignment are
+    then not separable from the bias (module docstring)."""
+    ref = np.asarray(ref, float)
+    return bool(np.max(np.ptp(ref, axis=0)) <= rtol * max(1.0, float(np.max(np.abs(ref)))))
+
+
+def check_identifiable(w: ThermalWindows, degrees: dict[str, int]) -> None:
+    """ValueError when the degrees ask for scale or misalignment terms that the windows' reference
+    inputs cannot separate from the bias (one orientation): fit with :data:`BIAS_ONLY`."""
+    if len(w) and one_orientation(w.ref) and (degrees["scale"] > HELD or degrees["misalignment"] > HELD):
+        raise ValueError(f"{w.sensor}: every window has the same reference input (one orientation): only the "
+                         "bias terms are identifiable (they absorb M(T) u) -- fit with the scale and "
+                         "misalignment held, degrees {'scale': -1, 'misalignment': -1}")
+
+
 def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
                 accepted: list[str]) -> list[str]:
-    """Names of one axis' coefficients, in the column order of :func:`design`."""
+    """Names of one axis' coefficients, in the column order of :func:`design` (a group of degree
+    :data:`HELD` has none)."""
     a, u = AXES[axis], UNIT[sensor]
     names = []
     for j in range(degrees["bias"] + 1):
@@ -198,10 +233,16 @@ def design(w: ThermalWindows, axis: int, degrees: dict[str, int], accepted: list
     for k in range(3):
         deg = degrees["scale"] if k == axis else degrees["misalignment"]
         cols += [w.powers[:, j] * w.ref[:, k] for j in range(deg + 1)]
-    if w.quad is not None:
+    if _quad(w, degrees):
         cols.append(w.quad[:, axis])
     cols += [w.regressors[c] for c in accepted]
     return np.column_stack(cols)
+
+
+def held_part(w: ThermalWindows, axis: int, degrees: dict[str, int]) -> np.ndarray:
+    """(n,) the part of the output the held groups fix: u_i when the scale is held at 1 (the
+    misalignment held at 0 adds nothing)."""
+    return w.ref[:, axis] if degrees["scale"] <= HELD else np.zeros(len(w))
 
 
 def _gls(A: np.ndarray, y: np.ndarray, W: Whitener) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -225,8 +266,8 @@ def fit_axes(w: ThermalWindows, degrees: dict[str, int], accepted: list[str]) ->
     out = []
     for i in range(3):
         A = design(w, i, degrees, accepted)
-        x, cov, chi2, r = _gls(A, w.y[:, i], w.whitener(i))
-        out.append(AxisFit(param_names(w.sensor, i, degrees, w.quad is not None, accepted), x, cov, chi2,
+        x, cov, chi2, r = _gls(A, w.y[:, i] - held_part(w, i, degrees), w.whitener(i))
+        out.append(AxisFit(param_names(w.sensor, i, degrees, _quad(w, degrees), accepted), x, cov, chi2,
                            len(w) - A.shape[1], r))
     return out
 
@@ -236,7 +277,8 @@ def protected_design(w: ThermalWindows, axis: int) -> np.ndarray:
     allow (misalignment at most 2), every candidate with a regressor, an offset per window kind
     beyond the first (dependent columns are dropped by the estimator)."""
     D = w.powers.shape[1] - 1
-    deg = {"bias": D, "scale": D, "misalignment": min(2, D)}
+    deg = ({"bias": D, **BIAS_ONLY} if one_orientation(w.ref)
+           else {"bias": D, "scale": D, "misalignment": min(2, D)})
     cands = [c for c in CANDIDATES if c in w.regressors and np.ptp(w.regressors[c]) > 0]
     X = design(w, axis, deg, cands)
     if w.kind is not None:
@@ -250,9 +292,9 @@ def protected_design(w: ThermalWindows, axis: int) -> np.ndarray:
 def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
                    tau_max_s: float = 1.0e4) -> list[Any]:
     """Set ``w.cov`` from the IEEE 952 noise of each axis and return the three
-    :class:`~rigctl.solvers.segment_noise.ChannelNoise`.
+    :class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients`.
 
-    model: a :class:`~rigctl.solvers.segment_stats.NoiseModel` (coefficients given, e.g. from
+    model: the three axes' :class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients` (given, e.g. from
     ``rigctl allan`` of the same unit) or None: estimated from the session by REML
     (:func:`rigctl.solvers.segment_noise.estimate_channel_noise`) on the windows' batch means
     (contrasts free of a linear drift) and means (about :func:`protected_design`). Needs the
@@ -263,8 +305,8 @@ def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
     a, b = np.asarray(w.t_start, float), np.asarray(w.t_end, float)
     kind = np.asarray(w.kind if w.kind is not None else ["orientation"] * len(w)).astype(str)
     if model is not None:
-        models = sn.noise_from_coefficients(model, w.t0)
-        covs = sn.channel_covs(models, a, b, kind)
+        models = list(model)
+        covs = sn.channel_covs(models, a, b, kind, w.t0)
     else:
         if w.batch is None:
             return []
@@ -272,9 +314,10 @@ def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
                                                                           for k in kind]
         terms = sn.WindowTerms.build(a, b, kind, revs, w.t0, tau_min_s, tau_max_s,
                                      n_batches=w.batch.shape[1], trend=True)
-        models = [sn.estimate_channel_noise(w.y[:, i], protected_design(w, i), terms, w.batch[:, :, i])
-                  for i in range(3)]
-        covs = sn.channel_covs(models, a, b, kind, flicker=terms.comps[-2], rw=terms.comps[-1])
+        held = {"scale": HELD} if one_orientation(w.ref) else {"scale": 0}
+        models = [sn.estimate_channel_noise(w.y[:, i] - held_part(w, i, held), protected_design(w, i), terms,
+                                            w.batch[:, :, i]) for i in range(3)]
+        covs = sn.channel_covs(models, a, b, kind, w.t0, flicker=terms.comps[-2], rw=terms.comps[-1])
     w.set_cov(covs)
     w.noise = models
     return models
@@ -283,8 +326,11 @@ def estimate_noise(w: ThermalWindows, model: Any = None, tau_min_s: float = 1.0,
 def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: bool = True,
                 alpha: float = 1e-3) -> ThermalFit:
     """The sensor's thermal model; with ``loop`` the candidates of :data:`CANDIDATES` whose
-    regressors are in ``w.regressors`` are tested by forward selection (module docstring)."""
+    regressors are in ``w.regressors`` are tested by forward selection (module docstring).
+    ValueError when the windows have one orientation and the degrees ask for scale or
+    misalignment terms (:func:`check_identifiable`)."""
     degrees = dict(degrees or {"bias": 2, "scale": 2, "misalignment": 1})
+    check_identifiable(w, degrees)
     accepted: list[str] = []
     explain: list[dict[str, Any]] = []
     confounded: dict[str, list[str]] = {}
@@ -330,15 +376,16 @@ def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: 
 def select_degrees(w: ThermalWindows, max_degree: int = 3, alpha: float = 0.01) -> dict[str, int]:
     """Polynomial degrees chosen from the data: starting from (bias 1, scale 1, misalignment 1),
     raise the degree of a group while the F test of its new coefficients (3 axes) is significant
-    at ``alpha`` (Bonferroni over the groups), up to ``max_degree``."""
-    deg = {"bias": 1, "scale": 1, "misalignment": 1}
+    at ``alpha`` (Bonferroni over the groups), up to ``max_degree``. With one orientation the
+    scale and misalignment stay held (:data:`BIAS_ONLY`) and only the bias degree is chosen."""
+    deg = {"bias": 1, **BIAS_ONLY} if one_orientation(w.ref) else {"bias": 1, "scale": 1, "misalignment": 1}
     n_pow = w.powers.shape[1] - 1
     while True:
         base = fit_axes(w, deg, [])
         chi_b = sum(a.chi2 for a in base)
         best = None
         for g in deg:
-            if deg[g] >= min(max_degree, n_pow):
+            if deg[g] <= HELD or deg[g] >= min(max_degree, n_pow):
                 continue
             trial = dict(deg, **{g: deg[g] + 1})
             try:

@@ -1,0 +1,216 @@
+"""The streamed pipeline's fast paths give the same numbers as the plain ones:
+RowReader (os.preadv from HDF5's chunk offsets) reads what h5py reads, on every layout it
+takes and on those it hands to h5py; the one-pass running sum of a dataset's three columns
+(rigctl.analysis.allan.FUSED) gives the same deviations, noise types, EDFs, fits and spikes,
+bit for bit, as the per-axis path (column copy, check, screen, running sum), with spikes
+reported or replaced and with gaps; and a non-finite value in a later chunk is refused with
+the same message."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from recording_helpers import write_recording
+from rigctl.analysis import allan as AA
+from rigctl.errors import InputError
+from rigctl.recording_reader import RowReader
+from rigctl.solvers import allan_kernels as K
+
+
+def test_row_reader_equals_h5py(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    data = rng.standard_normal((10_000, 3))
+    p = tmp_path / "layouts.h5"
+    with h5py.File(p, "w") as f:
+        f.create_dataset("contiguous", data=data)
+        f.create_dataset("chunked", data=data, chunks=(64, 3), maxshape=(None, 3))
+        f.create_dataset("gzip", data=data, chunks=(100, 3), compression="gzip")
+        f.create_dataset("partial_width", data=data, chunks=(100, 1))
+        f.create_dataset("big_endian", data=data.astype(">f8"), chunks=(64, 3))
+        f.create_dataset("counter", data=np.arange(10_000, dtype=np.uint64), chunks=(256,))
+        u = f.create_dataset("unwritten", shape=(1000, 3), chunks=(64, 3), dtype="f8")
+        u[:100] = 1.0
+        # interleaved writes: the chunks of one dataset are not adjacent in the file
+        a = f.create_dataset("inter_a", shape=(5000, 3), chunks=(64, 3), dtype="f8")
+        b = f.create_dataset("inter_b", shape=(5000, 3), chunks=(64, 3), dtype="f8")
+        for s in range(0, 5000, 700):
+            e = min(5000, s + 700)
+            a[s:e] = data[s:e]
+            b[s:e] = -data[s:e]
+    direct = {}
+    with h5py.File(p, "r") as f:
+        for name in f:
+            ds = f[name]
+            r = RowReader(f, name)
+            direct[name] = r.direct is not None
+            buf = np.empty(ds.shape, ds.dtype)
+            n = ds.shape[0]
+            for a0, a1 in ((0, n), (63, 65), (17, n - 1), (n - 5, n), (640, 960), (3, 3)):
+                got = r.read(a0, a1, buf)
+                assert got.shape[0] == a1 - a0
+                assert np.array_equal(got, ds[a0:a1]), (name, a0, a1)
+            r.close()
+    assert direct == {"contiguous": True, "chunked": True, "gzip": False, "partial_width": False,
+                      "big_endian": False, "counter": True, "unwritten": False,
+                      "inter_a": True, "inter_b": True}
+
+
+def test_phase_cols3_bit_identical() -> None:
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    rng = np.random.default_rng(1)
+    blk = rng.standard_normal((10_007, 3)) * [1e-3, 2.0, 5.0] + [0.0, 9.8, -3.0]
+    offs = np.array([0.1, 9.79, -3.01])
+    x0 = np.array([1e-3, -2.0, 0.5])
+    outs = [np.empty(blk.shape[0]) for _ in range(3)]
+    start = x0.copy()
+    bmin, bmax = K.phase_cols3(blk, offs, 1 / 2000, x0, outs, 32)
+    for c in range(3):
+        ref = K.phase_chunk(blk[:, c].copy(), offs[c], 1 / 2000, start[c])
+        assert np.array_equal(outs[c], ref)
+        assert x0[c] == ref[-1]
+        pad = np.full(-blk.shape[0] % 32, np.nan)
+        cols = np.concatenate((blk[:, c], pad)).reshape(-1, 32)
+        assert np.array_equal(bmin[c], np.nanmin(cols, axis=1))
+        assert np.array_equal(bmax[c], np.nanmax(cols, axis=1))
+
+
+def _recording(path: Path, n: int, gaps: bool, seed: int = 4) -> None:
+    rng = np.random.default_rng(seed)
+    fs = 200.0
+    g = rng.standard_normal((n, 3)) * 1e-3 + np.cumsum(rng.standard_normal((n, 3)), 0) * 1e-7
+    a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
+    for k in (1_000, 45_000, 45_001, 70_123, 100_000, 140_000, 159_990):  # spikes
+        if k >= n:
+            continue
+        g[k, k % 3] += 0.2
+        a[k, (k + 1) % 3] -= 0.5
+    idx = np.arange(n, dtype=np.uint64)
+    if gaps:
+        idx[60_000:] += 5
+        idx[123_457:] += 1
+    write_recording(path, fs, counter=idx, angular_rate=g, specific_force=a, chunk_rows=8192)
+
+
+def _flat(r: dict) -> dict:
+    keys = ("tau_s", "m", "stride", "n_terms", "adev_rad/s", "adev_m/s^2", "alpha", "edf",
+            "lo95_deg/h", "lo95_mg")
+    out = {k: np.asarray(r[k]) for k in keys if k in r}
+    out["spikes"] = (r["spikes"]["count"], r["spikes"]["first_times_s"], r["spikes"]["largest_sd"])
+    # the fit's numbers (to rounding: BLAS may split its sums over threads differently)
+    out["fit"] = np.array([v for e in r["fit"]["terms"].values() for k, v in sorted(e.items())
+                           if isinstance(v, float)])
+    out["fit_supported"] = [e["supported"] for e in r["fit"]["terms"].values()]
+    return out
+
+
+@pytest.mark.parametrize("outliers,gaps,axes", [("report", False, list(AA.AXES)),
+                                                 ("exclude", False, ["gy", "ax", "az"]),
+                                                 ("report", True, list(AA.AXES))])
+def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                 outliers: str, gaps: bool, axes: list) -> None:
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    rec = tmp_path / "r.h5"
+    _recording(rec, 160_000, gaps)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    # the noise ID's copies: a short head and the phase decimated by 64 (taken inside the
+    # cascade on the fused path, by a strided pass on the other)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    got = {}
+    decs: list = []
+    orig = AA.analyse_axis
+
+    def keep_dec(stream, *args):
+        assert stream.dec == 64
+        decs.append(stream._dec[: stream.n_dec].copy())
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", keep_dec)
+    for fused in (False, True):
+        monkeypatch.setattr(AA, "FUSED", fused)
+        res = AA.compute(str(rec), axes, 95, outliers=outliers)
+        got[fused] = {a: _flat(r) for a, r in res["axes"].items()}
+        got[fused]["dec"] = [np.array(v) for v in decs]
+        decs.clear()
+        assert sum(r["spikes"]["count"] for r in res["axes"].values()) >= len(axes)
+        if gaps:
+            assert res["gaps"]["count"] == 2
+    assert len(got[True]["dec"]) == len(axes)
+    for u in got[False]["dec"]:  # (the axes are analysed on two threads, in any order)
+        assert u.size == 160_000 // 64 + 1
+        assert any(np.array_equal(u, v) for v in got[True]["dec"])
+    for a in axes:
+        for k, v in got[False][a].items():
+            w = got[True][a][k]
+            if k == "fit":
+                assert np.allclose(v, w, rtol=1e-9, atol=0, equal_nan=True), a
+            else:
+                assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+
+
+def test_fused_pass_refuses_nan_like_the_plain_path(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    rec = tmp_path / "nan.h5"
+    _recording(rec, 100_000, False)
+    with h5py.File(rec, "r+") as f:
+        f["imu/specific_force"][77_777, 2] = np.nan
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    msgs = []
+    for fused in (False, True):
+        monkeypatch.setattr(AA, "FUSED", fused)
+        with pytest.raises(InputError) as e:
+            AA.compute(str(rec), list(AA.AXES), 95)
+        msgs.append(str(e.value))
+    assert msgs[0] == msgs[1] and "row 77777" in msgs[0]
+    # a NaN in a column not analysed does not matter (a gyro-only import stores NaN there)
+    monkeypatch.setattr(AA, "FUSED", True)
+    res = AA.compute(str(rec), ["ax", "ay", "gz"], 95)
+    assert set(res["axes"]) == {"ax", "ay", "gz"}
+
+
+def test_cascade_same_terms_as_the_strided_levels() -> None:
+    """The compiled cascade (fast mode's levels in one pass per chunk) sums the same terms as
+    one StridedLevel per stride: equal term counts, sums equal to rounding, for chunks of
+    every size (1 point to more than a piece), reading the sums midway and feeding on."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    from rigctl.solvers import allan as A
+    from rigctl.solvers import allan_stream as S
+
+    rng = np.random.default_rng(7)
+    n = 300_001
+    y = rng.standard_normal(n) * 1e-3 + np.cumsum(rng.standard_normal(n)) * 1e-6 + 0.3
+    ms = A.snap_fast(A.tau_factors(n + 1, 60, "oadev"))
+    ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+    ms = np.union1d(ms, [3, 5, 1000])  # 1000 = 125 x 8: a wide lag at stride 8
+    levels: dict[int, list[int]] = {}
+    for m in ms:
+        s = A.fast_stride(int(m))
+        levels.setdefault(s, []).append(int(m) // s)
+    x = np.concatenate(([0.0], np.cumsum(y - 0.3))) * 1e-3
+    casc = S.Cascade(levels)
+    ref = [S.StridedLevel(s, ks) for s, ks in sorted(levels.items())]
+    scratch = np.empty(1 << 16)
+    pos = 0
+    sizes = [1, 2, 7, 20_000, 1, S.Cascade.SUB + 3, 5000, 100_000]
+    k = 0
+    while pos < x.size:
+        c = min(sizes[k % len(sizes)], x.size - pos)
+        casc.feed(x[pos: pos + c], pos)
+        for lev in ref:
+            lev.feed(x[pos: pos + c], pos, scratch)
+        pos += c
+        k += 1
+        if k == 5:
+            casc.flush()  # sums read midway; feeding goes on
+    casc.flush()
+    for lev in ref:
+        got, cnt = casc.level_sums(lev.s)
+        for lag in lev.ks:
+            assert cnt[lag] == lev.counts[lag] == (x.size - 1) // lev.s + 1 - 2 * lag, (lev.s, lag)
+            assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)
