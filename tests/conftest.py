@@ -75,7 +75,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     "wire_xsens_identity", "wire_xsens_server", "hil_faults", "hil_pulses_config", "hil_runs",
     "thermal_wire", "frame_decl",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
-    "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency",
+    "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
 ))
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
