@@ -275,11 +275,12 @@ def _analyse(y: np.ndarray, fs: float, sensor: str) -> tuple:
     return r, c["edf"], fit, F.piecewise_readoffs(r.tau_s, r.dev, sensor)["si"]
 
 
-def _covers(entry: dict, si: str, v: float) -> bool:
-    if entry["supported"]:
-        lo, hi = entry[f"ci95_{si}"]
+def _covers(c, v: float) -> bool:
+    """Whether a fitted Coefficient's 95 % interval (or bound) holds v."""
+    if c.resolved:
+        lo, hi = c.ci95
         return lo <= v <= hi
-    return v <= entry[f"upper95_{si}"]
+    return v <= c.upper95
 
 
 #: targets of issue 4 (relative error of a supported estimate)
@@ -345,20 +346,20 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
                     kw = {"tau0": 1 / fs, "n_phase": r.n_phase}
                     pf = F.fit_terms(r.tau_s, ex, edf, sensor, **kw)  # same selection
                     pa = F.fit_terms(r.tau_s, ex, edf, sensor, select=False, **kw)
-                    pseudo = {t: F.term_value_si(pf if pf["terms"][t]["supported"] else pa, t)
+                    pseudo = {t: F.term_value_si(pf if getattr(pf["coefficients"], t).resolved else pa, t)
                               for t in "QNBKR"}
-                si = F.SI_UNITS[sensor]
+                co = fit["coefficients"]
                 for t in "NBK":
-                    e, tv = fit["terms"][t], truth[t]
-                    rows[t]["cov"].append(_covers(e, si[t], tv))
-                    rows[t]["covp"].append(_covers(e, si[t], pseudo[t]))
-                    if e["supported"]:
+                    e, tv = getattr(co, t), truth[t]
+                    rows[t]["cov"].append(_covers(e, tv))
+                    rows[t]["covp"].append(_covers(e, pseudo[t]))
+                    if e.resolved:
                         rows[t]["sup"] += 1
-                        err = abs(e[f"value_{si[t]}"] / tv - 1)
+                        err = abs(e.value / tv - 1)
                         rows[t]["j"].append(err)
                         rows[t]["tgt"].append(err <= LIMITS[t])
                         rows[t]["p"].append(abs((pw[t] or 0.0) / tv - 1))
-                q_false.append(truth["Q"] == 0 and fit["terms"]["Q"]["supported"])
+                q_false.append(truth["Q"] == 0 and co.Q.resolved)
                 # issue 15: no bound above the curve's own limit (read off the taus with an
                 # informative 95 % band, EDF >= 16.95, as the fit does); the self-check's verdict
                 from scipy.stats import chi2 as _chi2
@@ -366,8 +367,8 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
                 good = good if np.any(good) else np.ones(good.size, bool)
                 lim = F.curve_limits(r.tau_s[good], r.dev[good])
                 over_limit.append(any(
-                    not e["supported"] and e[f"upper95_{si[t]}"] > lim[t] * (1 + 1e-9)
-                    for t, e in fit["terms"].items()))
+                    not getattr(co, t).resolved and getattr(co, t).upper95 > lim[t] * (1 + 1e-9)
+                    for t in fit["terms"]))
                 check_fail.append(not fit["check"]["ok"])
         for t in "NBK":
             rw, idt = rows[t], ident[t]

@@ -222,19 +222,22 @@ def limits_from_curve(tau: np.ndarray, dev: np.ndarray) -> dict[str, float]:
             "R": float(np.min(dev * math.sqrt(2.0) / tau))}
 
 
-def _si(sensor: str, t: str) -> str:
-    from rigctl.solvers import allan_fit as F
-
-    return F.SI_UNITS[sensor][t]
-
-
-def total_sigma(tau: np.ndarray, fit: dict, sensor: str) -> np.ndarray:
-    """The fitted IEEE 952 total (SI) from the supported terms' values."""
-    c = {t: (e[f"value_{_si(sensor, t)}"] if e["supported"] else 0.0)
-         for t, e in fit["terms"].items()}
+def total_sigma(tau: np.ndarray, fit: dict, sensor: str, m: np.ndarray | None = None) -> np.ndarray:
+    """The fitted total (SI) from the supported terms' values, plus the Allan variance of each
+    tone the pipeline found and carried in its model (fit["tones"]: frequency f, amplitude a),
+    written out here for the sampled sinusoid: a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2
+    at tau = m tau0 (``m`` the factors of the taus)."""
+    co = fit["coefficients"]
+    c = {t: (getattr(co, t).value if getattr(co, t).resolved else 0.0) for t in fit["terms"]}
     s2 = (3 * c.get("Q", 0) ** 2 / tau ** 2 + c.get("N", 0) ** 2 / tau
           + B_FACTOR ** 2 * c.get("B", 0) ** 2 + c.get("K", 0) ** 2 * tau / 3
           + c.get("R", 0) ** 2 * tau ** 2 / 2)
+    if m is not None:
+        mm = np.asarray(m, float)
+        tau0 = float(tau[0] / mm[0])
+        for tone in (fit.get("tones") or {}).get("terms", []):
+            f, a = tone["freq_hz"], tone["amp_si"]
+            s2 = s2 + a * a * np.sin(np.pi * f * mm * tau0) ** 4 / (mm * np.sin(np.pi * f * tau0)) ** 2
     return np.sqrt(s2)
 
 
@@ -258,14 +261,15 @@ def check_axis(r: dict) -> dict:
     lim = limits_from_curve(tau[sel], dev[sel])
     lim_all = limits_from_curve(tau, dev)
     over, over_all = [], []
-    for t, e in r["fit"]["terms"].items():
-        if not e["supported"] and e[f"upper95_{_si(sensor, t)}"] > lim[t] * (1 + 1e-9):
+    for t in r["fit"]["terms"]:
+        c = getattr(r["fit"]["coefficients"], t)
+        if not c.resolved and c.upper95 > lim[t] * (1 + 1e-9):
             over.append(t)
-        if not e["supported"] and e[f"upper95_{_si(sensor, t)}"] > lim_all[t] * (1 + 1e-9):
+        if not c.resolved and c.upper95 > lim_all[t] * (1 + 1e-9):
             over_all.append(t)
     lo = np.asarray(r[f"lo95_{unit}"]) / fac
     hi = np.asarray(r[f"hi95_{unit}"]) / fac
-    fit = total_sigma(tau, r["fit"], sensor)
+    fit = total_sigma(tau, r["fit"], sensor, r["m"])
     outside = informative & ((fit < lo) | (fit > hi))
     check = r["fit"]["check"]
     named = np.zeros(tau.size, bool)
@@ -282,29 +286,25 @@ def check_axis(r: dict) -> dict:
 
 def agree(ra: dict, rb: dict) -> list[str]:
     """Terms on which two tau sets disagree beyond their 95 % intervals / bounds."""
-    sensor = ra["sensor"]
     bad = []
     for t in ra["fit"]["terms"]:
-        a, b = ra["fit"]["terms"][t], rb["fit"]["terms"][t]
-        si = _si(sensor, t)
-        if a["supported"] and b["supported"]:
-            (la, ha), (lb, hb) = a[f"ci95_{si}"], b[f"ci95_{si}"]
+        a, b = getattr(ra["fit"]["coefficients"], t), getattr(rb["fit"]["coefficients"], t)
+        if a.resolved and b.resolved:
+            (la, ha), (lb, hb) = a.ci95, b.ci95
             if la > hb or lb > ha:
                 bad.append(t)
-        elif a["supported"] != b["supported"]:
-            s, u = (a, b) if a["supported"] else (b, a)
-            if s[f"ci95_{si}"][0] > u[f"upper95_{si}"]:
+        elif a.resolved != b.resolved:
+            s, u = (a, b) if a.resolved else (b, a)
+            if s.ci95[0] > u.upper95:
                 bad.append(t)
     return bad
 
 
-def term_text(e: dict, sensor: str, t: str) -> str:
-    from rigctl.solvers import allan_fit as F
+def term_text(fit: dict, t: str) -> str:
+    from rigctl.solvers.noise_coefficients import in_field_units
 
-    u, _ = F.FIELD_UNITS[sensor][t]
-    if e["supported"]:
-        return f"{e[f'value_{u}']:.3g}"
-    return f"<{e[f'upper95_{u}']:.3g}"
+    c = in_field_units(fit["coefficients"], t)[0]
+    return f"{c.value:.3g}" if c.resolved else f"<{c.upper95:.3g}"
 
 
 # ------------------------------------------------------------------ main
@@ -329,6 +329,10 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
     for a in info["axes"]:
         sensor = first["axes"][a]["sensor"]
         ra, rb = res["octave"]["axes"][a], res["all"]["axes"][a]
+        for tone in (ra.get("tones") or {}).get("tones", []):  # found before the fit
+            unit = ra["_unit"]
+            totals["tones"].append(f"{name}:{a}:{tone['freq_hz']:.2f}Hz:"
+                                   f"{tone[f'amp_{unit}']:.3g}{unit}")
         bad = agree(ra, rb)
         both_ok = ra["fit"]["check"]["ok"] and rb["fit"]["check"]["ok"]
         totals["pairs"] += 1
@@ -363,9 +367,8 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
             inf = informative_taus(r["edf"])
             # min sigma / 0.664 over the informative taus, field units
             floor = float(dev[inf].min() if inf.any() else dev.min()) / B_FACTOR
-            terms = r["fit"]["terms"]
-            print(f"{a:>4} {str(taus):>6} {term_text(terms['N'], sensor, 'N'):>10} "
-                  f"{term_text(terms['B'], sensor, 'B'):>10} {term_text(terms['K'], sensor, 'K'):>10} "
+            print(f"{a:>4} {str(taus):>6} {term_text(r['fit'], 'N'):>10} "
+                  f"{term_text(r['fit'], 'B'):>10} {term_text(r['fit'], 'K'):>10} "
                   f"{floor:9.3g} {','.join(c['over']) or '-':>8} {c['n_inf']:4d} {c['n_out']:4d} "
                   f"{c['n_named']:5d} {c['n_unnamed']:7d} {'ok' if c['check_ok'] else 'FAIL':>5} "
                   f"{('-' if not bad else ','.join(bad)) if taus == 'octave' else '':>8}",
@@ -383,7 +386,7 @@ def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = N
               "over_all_where": [], "over_all_terms": {}, "informative": 0, "outside": 0,
               "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
               "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
-              "analysis_s": 0.0, "generate_s": 0.0}
+              "tones": [], "analysis_s": 0.0, "generate_s": 0.0}
     with tempfile.TemporaryDirectory(dir="/tmp") as d:
         tmp = Path(keep or d)
         tmp.mkdir(parents=True, exist_ok=True)
@@ -436,7 +439,7 @@ def main() -> None:
           f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes "
           f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
           f"{wall:.0f} s (load {load0} -> {_load()})")
-    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where"):
+    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where", "tones"):
         if totals[k]:
             print(f"{k}: {'; '.join(totals[k][:30])}")
     print(json.dumps({"hours_emulated": a.hours, "warmup_s": a.warmup_s, "cases": wanted,
@@ -452,6 +455,7 @@ def main() -> None:
                       "octave_vs_all_disagree_axes": totals["disagree"],
                       "octave_vs_all_axes": totals["pairs"],
                       "octave_vs_all_disagree_with_checks_ok": totals["disagree_checks_ok"],
+                      "axes_with_tones": len({w.rsplit(":", 2)[0] for w in totals["tones"]}),
                       "generate_s": round(totals["generate_s"], 1),
                       "analysis_s": round(totals["analysis_s"], 1), "wall_s": round(wall, 1),
                       "load_avg_start": load0, "load_avg_end": _load()}))

@@ -22,6 +22,7 @@ from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for
     compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.jsonable import jsonable
+from rigctl.solvers import noise_coefficients as NC
 from rigctl.cli_options import add_production_options
 from rigctl.errors import InputError
 from rigctl.solvers import allan as A
@@ -41,20 +42,19 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
                      f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
                      f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
     lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
+    co = NC.as_coefficients(r["fit"]["coefficients"])
     for t, e in r["fit"]["terms"].items():
-        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
-        need = need_text(e)
-        if e["supported"]:
-            lo, hi = e[f"ci95_{unit_f}"]
+        c, unit_f = NC.in_field_units(co, t)
+        need = need_text(e, c.resolved)
+        if c.resolved:
+            lo, hi = c.ci95
             more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
                     f"(Cramer-Rao); {need})")
-            lines.append(f"  {e['name']:>26}: {e[f'value_{unit_f}']:.5g} {unit_f} "
-                         f"[{lo:.5g}, {hi:.5g}]{more}")
+            lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
         else:
             more = "" if not need else f"; {need}"
-            what = ("the curve's own limit" if e.get("bound_from") == "curve"
-                    else "95 % upper bound")
-            lines.append(f"  {e['name']:>26}: < {e[f'upper95_{unit_f}']:.5g} {unit_f} "
+            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+            lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")
     pw = r["piecewise"]["terms"]
     parts = []

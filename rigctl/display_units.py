@@ -33,6 +33,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from .solvers.noise_coefficients import FIELD_UNITS, SI_UNITS, TERM_NAMES
+
 G0 = 9.80665  #: standard gravity, m/s^2 (1 g)
 DEG = math.pi / 180.0
 DEG_H = 180.0 / math.pi * 3600.0  #: (deg/h) per (rad/s)
@@ -92,24 +94,12 @@ SUFFIXES: tuple[tuple[str, str, float, str], ...] = (
     ("_s", "s", 1.0, "s"),
 )
 
-#: IEEE 952 noise terms: sensor -> term -> (display unit, factor from SI). SI: gyro rad/s-based,
-#: accelerometer m/s^2-based (rigctl.solvers.allan_fit.SI_UNITS).
-NOISE_UNITS: dict[str, dict[str, tuple[str, float]]] = {
-    "gyro": {"Q": ("deg", 1.0 / DEG), "N": ("deg/sqrt(h)", 60.0 / DEG),
-             "B": ("deg/h", DEG_H), "K": ("deg/h/sqrt(h)", DEG_H * 60.0),
-             "R": ("deg/h/h", DEG_H * 3600.0)},
-    "accel": {"Q": ("m/s", 1.0), "N": ("m/s/sqrt(h)", 60.0),
-              "B": ("mg", 1e3 / G0), "K": ("m/s/h/sqrt(h)", 3600.0 * 60.0),
-              "R": ("m/s/h/h", 3600.0**2)},
-}
-#: IEEE 952 term names per sensor (the base names of noise parameters: gyro_angle_random_walk_x)
-NOISE_TERM_NAMES = {"gyro": {"Q": "angle_quantization", "N": "angle_random_walk",
-                             "B": "bias_instability", "K": "rate_random_walk", "R": "rate_ramp"},
-                    "accel": {"Q": "velocity_quantization", "N": "velocity_random_walk",
-                              "B": "bias_instability", "K": "acceleration_random_walk",
-                              "R": "acceleration_ramp"}}
-NOISE_SI = {"gyro": {"Q": "rad", "N": "rad/sqrt(s)", "B": "rad/s", "K": "rad/s/sqrt(s)", "R": "rad/s^2"},
-            "accel": {"Q": "m/s", "N": "m/s/sqrt(s)", "B": "m/s^2", "K": "m/s^2/sqrt(s)", "R": "m/s^3"}}
+#: IEEE 952 noise terms (rigctl.solvers.noise_coefficients, the one table): sensor -> term ->
+#: (display unit, factor from SI); the term names per sensor (the base names of noise
+#: parameters: gyro_angle_random_walk_x); the SI units (gyro rad/s-based, accelerometer m/s^2-based)
+NOISE_UNITS: dict[str, dict[str, tuple[str, float]]] = FIELD_UNITS
+NOISE_TERM_NAMES = TERM_NAMES
+NOISE_SI = SI_UNITS
 
 _M = re.compile(r"^(accel|gyro)_M_([xyz])([xyz])_ratio$")
 _SCALE = re.compile(r"^(accel|gyro)_scale_([xyz])_(m_s2_per_m_s2|rad_s_per_rad_s|ratio)$")
@@ -210,7 +200,7 @@ def capture_text(h: float) -> str:
     return f"{h:.0f} h" if h < 72 else f"{h / 24:.0f} days"
 
 
-def need_text(e: dict) -> str:
+def need_text(e: dict, resolved: bool) -> str:
     """How long a capture would resolve an Allan term to +-25 % (95 %), honestly: for a resolved
     term about the Cramer-Rao length; for a bounded term at least the length at which a term as
     large as its bound would be resolved -- and where that is no longer than this capture, only
@@ -218,7 +208,7 @@ def need_text(e: dict) -> str:
     need = e.get("capture_h_for_25pct")
     if need is None:
         return ""
-    if e.get("supported"):
+    if resolved:
         return f"+-25 % needs about {capture_text(need)}"
     have = e.get("capture_h")
     if have is not None and need <= 1.05 * have:

@@ -391,16 +391,16 @@ def s_closed_loop(d: RunData, plots: dict[str, Path]) -> str:
     return "\n".join(out)
 
 
-def _term_cell(e: dict[str, Any], unit: str) -> str:
-    if e.get("supported"):
-        lo, hi = e.get(f"ci95_{unit}") or [None, None]
-        return f"{fmt(e.get(f'value_{unit}'))} [{fmt(lo)}, {fmt(hi)}]"
-    ub = e.get(f"upper95_{unit}")
-    what = "the curve's own limit" if e.get("bound_from") == "curve" else "95 % upper bound"
-    return f"< {fmt(ub)} ({what})" if ub is not None else "n/a"
+def _term_cell(c: Any) -> str:
+    """A coefficient (in the unit of its column): value [95 % interval], or its bound."""
+    if c.resolved:
+        lo, hi = c.ci95 or (None, None)
+        return f"{fmt(c.value)} [{fmt(lo)}, {fmt(hi)}]"
+    what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+    return f"< {fmt(c.upper95)} ({what})"
 
 
-def _need_cell(e: dict[str, Any]) -> str:
+def _need_cell(e: dict[str, Any], resolved: bool) -> str:
     """Capture length (h) that would resolve the term to +-25 %, or "" when this one does."""
     need = e.get("capture_h_for_25pct")
     if need is None:
@@ -408,16 +408,16 @@ def _need_cell(e: dict[str, Any]) -> str:
     from .display_units import capture_text
 
     have = e.get("capture_h")
-    if not e.get("supported") and have is not None and need <= 1.05 * have:
+    if not resolved and have is not None and need <= 1.05 * have:
         return f"> {capture_text(have)} (this capture)"
-    return (">= " if not e.get("supported") else "") + capture_text(need)
+    return (">= " if not resolved else "") + capture_text(need)
 
 
 def s_allan(d: RunData, plots: dict[str, Path]) -> str:
     if "allan" not in d.results:
         return not_run("no /results/allan in the recording",
                        "Run `rigctl allan RECORDING` (or procedures/allan-overnight.yaml).")
-    from .solvers.allan_fit import FIELD_UNITS
+    from .solvers import noise_coefficients as NC
 
     out = [img(plots, "allan", "Allan deviation (deg/h, mg) against tau (s) with 68 % and 95 % "
                                "intervals, fitted total and each term")]
@@ -429,11 +429,14 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
     rows = []
     for axis, cv in curves.items():
         fit = (cv.get("fit") or {}).get("terms") or {}
+        if not (cv.get("fit") or {}).get("coefficients"):
+            continue
+        co = NC.as_coefficients(cv["fit"]["coefficients"])
         pw = ((cv.get("piecewise") or {}).get("terms")) or {}
         for t, e in fit.items():
-            unit = FIELD_UNITS[cv["sensor"]][t][0]
+            c, unit = NC.in_field_units(co, t)
             p = (pw.get(t) or {}).get(f"value_{unit}")
-            rows.append([axis, e.get("name", t), unit, _term_cell(e, unit), p, _need_cell(e)])
+            rows.append([axis, e.get("name", t), unit, _term_cell(c), p, _need_cell(e, c.resolved)])
     if rows:
         out += ["<h3>Fitted noise terms (joint IEEE 952 fit; value [95 % interval] or bound)</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",

@@ -238,7 +238,7 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
                         ha="right", va="bottom", xytext=(-2, 1 + 7 * k),
                         textcoords="offset points", annotation_clip=True)
     fit = fit or {}
-    co = NC.from_json(fit["coefficients"]) if fit.get("coefficients") else None
+    co = NC.as_coefficients(fit["coefficients"]) if fit.get("coefficients") else None
     coeff = {t: v**2 for t, v in NC.resolved_values(co).items() if v > 0} if co else {}
     tt = np.logspace(np.log10(tau.min()), np.log10(tau.max()), 200)
     cols = F.design_matrix(tt)

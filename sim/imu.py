@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.yamlio import LocDict
-from rigctl.solvers.noise_coefficients import triad
+from rigctl.solvers.noise_coefficients import Triad, terms_of, to_json, triad
 
 from .noise import NoiseGenerator
 
@@ -47,13 +47,10 @@ class DeclaredImuModel:
     accel_quadratic: NDArray = field(default_factory=lambda: np.zeros(3))
     gyro_bias: NDArray = field(default_factory=lambda: np.zeros(3))
     gyro_matrix: NDArray = field(default_factory=lambda: np.eye(3))
-    accel_noise_density: float = 0.0
-    gyro_noise_density: float = 0.0
-    #: bias instability B (rad/s, m/s^2) and random walk K (rad/s/sqrt(s), m/s^2/sqrt(s))
-    gyro_bias_instability: float = 0.0
-    gyro_random_walk: float = 0.0
-    accel_bias_instability: float = 0.0
-    accel_random_walk: float = 0.0
+    #: each sensor's noise, three axes' IEEE 952 coefficients (SI): white N (rate unit/sqrt(Hz)),
+    #: bias instability B, random walk K (the config's keys are in field units: :func:`declared_model`)
+    accel_noise: Triad = field(default_factory=lambda: triad("accel"))
+    gyro_noise: Triad = field(default_factory=lambda: triad("gyro"))
     temperature_c: float = 25.0
     seed: int = 0
     #: temperature-dependent errors (sim/thermal_imu.py), None = none
@@ -63,10 +60,10 @@ class DeclaredImuModel:
         self.rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A0]))
         self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
         self._slow = {}
-        for name, b, k, tag in (("gyro", self.gyro_bias_instability, self.gyro_random_walk, 0x1A1),
-                                ("accel", self.accel_bias_instability, self.accel_random_walk, 0x1A2)):
-            if b > 0 or k > 0:
-                self._slow[name] = NoiseGenerator(triad(name, B=b, K=k), self.rate_hz,
+        for name, axes, tag in (("gyro", self.gyro_noise, 0x1A1), ("accel", self.accel_noise, 0x1A2)):
+            if any(m.B.value > 0 or m.K.value > 0 for m in axes):  # the slow terms (N: below)
+                slow = tuple(m.with_values(Q=0.0, N=0.0, R=0.0) for m in axes)
+                self._slow[name] = NoiseGenerator(slow, self.rate_hz,
                                                   np.random.SeedSequence([self.seed, tag]))
 
     def apply(self, t: NDArray, f_true: NDArray, w_true: NDArray,
@@ -85,10 +82,11 @@ class DeclaredImuModel:
             R = np.zeros(n) if temperature_rate is None else temperature_rate
             f = f + self.thermal.error("accel", f_true, T, H, R)
             w = w + self.thermal.error("gyro", w_true, T, H, R)
-        if self.accel_noise_density > 0:
-            f = f + self.rng.standard_normal((n, 3)) * (self.accel_noise_density * math.sqrt(self.rate_hz))
-        if self.gyro_noise_density > 0:
-            w = w + self.rng.standard_normal((n, 3)) * (self.gyro_noise_density * math.sqrt(self.rate_hz))
+        n_acc, n_gyr = terms_of(self.accel_noise, "N"), terms_of(self.gyro_noise, "N")
+        if np.any(n_acc > 0):
+            f = f + self.rng.standard_normal((n, 3)) * (n_acc * math.sqrt(self.rate_hz))
+        if np.any(n_gyr > 0):
+            w = w + self.rng.standard_normal((n, 3)) * (n_gyr * math.sqrt(self.rate_hz))
         if "accel" in self._slow:
             f = f + self._slow["accel"].next(n)
         if "gyro" in self._slow:
@@ -107,12 +105,9 @@ class DeclaredImuModel:
             "accel_quadratic_per_m_s2": self.accel_quadratic.tolist(),
             "gyro_bias_rad_s": self.gyro_bias.tolist(),
             "gyro_matrix": self.gyro_matrix.tolist(),
-            "accel_noise_density_m_s2_per_rthz": self.accel_noise_density,
-            "gyro_noise_density_rad_s_per_rthz": self.gyro_noise_density,
-            "accel_bias_instability_m_s2": self.accel_bias_instability,
-            "accel_random_walk_m_s2_per_rts": self.accel_random_walk,
-            "gyro_bias_instability_rad_s": self.gyro_bias_instability,
-            "gyro_random_walk_rad_s_per_rts": self.gyro_random_walk,
+            # three axes each, rigctl.solvers.noise_coefficients.to_json (as the profile model's)
+            "accel_noise": [to_json(m) for m in self.accel_noise],
+            "gyro_noise": [to_json(m) for m in self.gyro_noise],
         }
 
 
@@ -151,15 +146,17 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
         * 1e-6 * G0 / G0**2,
         gyro_bias=np.asarray(S.number_list(o, "gyro_bias_deg_h", [0.0] * 3, length=3)) * DEG / 3600,
         gyro_matrix=_matrix(o, "gyro_scale_ppm", "gyro_misalignment_urad", 1e-6),
-        # VRW (m/s/sqrt(h)) -> m/s^2/sqrt(Hz): divide by 60; ARW (deg/sqrt(h)) -> rad/s/sqrt(Hz)
-        accel_noise_density=S.get_number(o, "accel_vrw_m_s_rth", 0.0, minimum=0) / 60.0,
-        gyro_noise_density=S.get_number(o, "gyro_arw_deg_rth", 0.0, minimum=0) * DEG / 60.0,
+        # VRW (m/s/sqrt(h)) -> m/s^2/sqrt(Hz): divide by 60; ARW (deg/sqrt(h)) -> rad/s/sqrt(Hz);
         # B: mg -> m/s^2, deg/h -> rad/s; K: m/s/h/sqrt(h) -> m/s^2/sqrt(s) (/ 3600 / 60),
         # deg/h/sqrt(h) -> rad/s/sqrt(s)
-        accel_bias_instability=S.get_number(o, "accel_bias_instability_mg", 0.0, minimum=0) * 1e-3 * G0,
-        accel_random_walk=S.get_number(o, "accel_rrw_m_s_h_rth", 0.0, minimum=0) / 3600.0 / 60.0,
-        gyro_bias_instability=S.get_number(o, "gyro_bias_instability_deg_h", 0.0, minimum=0) * DEG / 3600.0,
-        gyro_random_walk=S.get_number(o, "gyro_rrw_deg_h_rth", 0.0, minimum=0) * DEG / 3600.0 / 60.0,
+        accel_noise=triad("accel", "emulator config (imu.sim)",
+                          N=S.get_number(o, "accel_vrw_m_s_rth", 0.0, minimum=0) / 60.0,
+                          B=S.get_number(o, "accel_bias_instability_mg", 0.0, minimum=0) * 1e-3 * G0,
+                          K=S.get_number(o, "accel_rrw_m_s_h_rth", 0.0, minimum=0) / 3600.0 / 60.0),
+        gyro_noise=triad("gyro", "emulator config (imu.sim)",
+                         N=S.get_number(o, "gyro_arw_deg_rth", 0.0, minimum=0) * DEG / 60.0,
+                         B=S.get_number(o, "gyro_bias_instability_deg_h", 0.0, minimum=0) * DEG / 3600.0,
+                         K=S.get_number(o, "gyro_rrw_deg_h_rth", 0.0, minimum=0) * DEG / 3600.0 / 60.0),
         temperature_c=S.get_number(o, "temperature_c", 25.0),
         seed=int(S.get_number(o, "seed", seed, minimum=0, integer=True)),
         thermal=thermal,

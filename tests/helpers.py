@@ -1,12 +1,14 @@
 """Test helpers: configs derived from the shipped ones, and the rigctl command."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+import h5py
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -40,6 +42,23 @@ def derived_config(tmp_path: Path, name: str = "sim.yaml", **changes: Any) -> Pa
     out = tmp_path / f"derived-{name}"
     out.write_text(yaml.safe_dump(data))
     return out
+
+
+def emulated_capture(tmp: Path, imu_sim: dict[str, Any], procedure: str, seed: int = 11) -> tuple[Path, dict]:
+    """``rigctl run`` of ``procedure`` (YAML text) on configs/sim.yaml with ``imu.sim`` replaced:
+    (the recording, its /truth's ``imu`` parameters)."""
+    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
+    cfg["seed"] = seed
+    cfg["imu"]["sim"] = imu_sim
+    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    (tmp / "procedure.yaml").write_text(procedure)
+    r = run_rigctl("run", str(tmp / "procedure.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
+                   str(tmp / "runs"), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
+    with h5py.File(rec, "r") as f:
+        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
+    return rec, truth
 
 
 def rigctl_cmd() -> list[str]:

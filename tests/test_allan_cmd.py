@@ -12,6 +12,12 @@ import pytest
 
 import recording_helpers
 from rigctl import allan_cmd, cli
+from rigctl.solvers.noise_coefficients import as_coefficients, in_field_units
+
+
+def fu(fit: dict, term: str):
+    """A fitted term in its field unit (value, ci95, upper95, resolved)."""
+    return in_field_units(as_coefficients(fit["coefficients"]), term)[0]
 
 
 def write_recording(path: Path, n: int, fs: float = 100.0, seed: int = 0,
@@ -53,16 +59,16 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
         lo, hi = f["results/allan/gx/lo68_deg_per_h"][:], f["results/allan/gx/hi68_deg_per_h"][:]
         dev = f["results/allan/gx/adev_deg_per_h"][:]
     assert np.all(np.diff(tau) > 0) and np.all(lo < dev) and np.all(dev < hi)
-    n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
-    n_az = summary["axes"]["az"]["fit"]["terms"]["N"]["value_m/s/sqrt(h)"]
+    n_gx = fu(summary["axes"]["gx"]["fit"], "N").value  # deg/sqrt(h)
+    n_az = fu(summary["axes"]["az"]["fit"], "N").value  # m/s/sqrt(h)
     assert abs(n_gx / truth["arw_deg_rt_h"] - 1) < 0.05
     assert abs(n_az / truth["vrw_m_s_rt_h"] - 1) < 0.05  # float32 with 1 g on the axis
     # white noise only: K is an upper bound, with the capture length that could resolve it
     k = summary["axes"]["gx"]["fit"]["terms"]["K"]
-    assert not k["supported"] and k["capture_h_for_25pct"] > 200_000 / 100.0 / 3600
+    assert not fu(summary["axes"]["gx"]["fit"], "K").resolved and k["capture_h_for_25pct"] > 200_000 / 100.0 / 3600
     assert "rate_random_walk: <" in out and "+-25 % would need at least" in out
     from rigctl.report_html import _need_cell
-    assert _need_cell(k).startswith(">= ") and _need_cell(summary["axes"]["gx"]["fit"]["terms"]["N"]) == ""
+    assert _need_cell(k, False).startswith(">= ") and _need_cell(summary["axes"]["gx"]["fit"]["terms"]["N"], True) == ""
     # running again replaces the results group
     args = _args([str(rec), "--axes", "gz", "--taus", "octave"])
     assert args.func(args) == 0
@@ -136,7 +142,7 @@ def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     assert sum(m.startswith("allan gx:") for m in info) == 1
     assert sum(m.startswith("allan: results database: ") for m in info) == 1 and len(info) == 9
     assert any("3 samples missing" in m and "skipped" in m for m in info)
-    n_gx = summary["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    n_gx = fu(summary["axes"]["gx"]["fit"], "N").value  # deg/sqrt(h)
     assert abs(n_gx / 0.3 - 1) < 0.05
 
 
@@ -225,9 +231,9 @@ def test_spikes_and_quantization_on_synthetic_noise(tmp_path: Path, capsys: pyte
     sp = res["axes"]["gx"]["spikes"]
     assert sp["count"] == 40 and np.allclose(sp["first_times_s"], spikes[:10] / fs)
     assert res["axes"]["gy"]["spikes"]["count"] == 0
-    n_in = res["axes"]["gx"]["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    n_in = fu(res["axes"]["gx"]["fit"], "N").value
     clean = allan_cmd.compute(str(rec), ["gx"], "octave", outliers="exclude")["axes"]["gx"]
-    n_out = clean["fit"]["terms"]["N"]["value_deg/sqrt(h)"]
+    n_out = fu(clean["fit"], "N").value
     # 40 spikes of 30 sd in 1e5 samples add 40 * 900 / 1e5 = 0.36 of the white variance
     assert abs(n_out / 0.3 - 1) < 0.05 and abs(n_in / (0.3 * math.sqrt(1.36)) - 1) < 0.06
     q = res["axes"]["gz"]["quantization"]

@@ -53,7 +53,7 @@ def test_fit_scatter_reaches_the_bound() -> None:
         r = A.oadev(y, 1 / fs, 40, "rate")
         c = E.confidence("oadev", A.phase_from_rate(y, 1 / fs), r.m, r.dev)
         fit = F.fit_terms(r.tau_s, r.dev, c["edf"], "gyro", tau0=1 / fs, n_phase=r.n_phase)
-        assert fit["terms"]["K"]["supported"]
+        assert fit["coefficients"].K.resolved
         crbs.append(fit["terms"]["K"]["crb_rel_sd"])  # at the fitted model
         ks.append(fit["coefficients"].K.value ** 2)
     sd = float(np.std(ks)) / k ** 2 / 2.0  # sd(K)/K from sd(K^2)/K^2
@@ -89,16 +89,14 @@ def test_fit_bounds_an_unidentifiable_term() -> None:
     r = A.oadev(y, 1 / fs, 60, "rate")
     c = E.confidence("oadev", A.phase_from_rate(y, 1 / fs), r.m, r.dev)
     fit = F.fit_terms(r.tau_s, r.dev, c["edf"], "gyro", tau0=1 / fs, n_phase=r.n_phase)
-    k = fit["terms"]["K"]
-    assert not k["supported"] and k["upper95_rad/s/sqrt(s)"] > truth["K"]
+    k, co = fit["terms"]["K"], fit["coefficients"]
+    assert not co.K.resolved and co.K.upper95 > truth["K"]
     assert 0 < k["crb_rel_sd"] < math.inf
-    assert fit["terms"]["N"]["supported"] and fit["terms"]["N"]["crb_rel_sd"] < 0.01
+    assert co.N.resolved and fit["terms"]["N"]["crb_rel_sd"] < 0.01
     # how long a capture would resolve K to +-25 % (95 %), if K were as large as its bound: the
     # bound at that length is the target, and at the truth's K it would take longer still
     need_h = k["capture_h_for_25pct"]
-    at_bound = {**{t: fit["terms"][t]["value_rad/s" if t == "B" else "value_rad/sqrt(s)"]
-                   for t in ("N", "B") if fit["terms"][t]["supported"]},
-                "K": k["upper95_rad/s/sqrt(s)"]}
+    at_bound = {**{t: co.value(t) for t in ("N", "B") if getattr(co, t).resolved}, "K": co.K.upper95}
     assert 1.0 < need_h < 1e5
     assert R.crb_rel_sd(at_bound, need_h * 3600 * 1.01, fs)["K"] <= F.TARGET_REL_SD
     assert R.crb_rel_sd(at_bound, need_h * 3600 * 0.9, fs)["K"] > F.TARGET_REL_SD

@@ -9,8 +9,14 @@ import pytest
 from rigctl.solvers import allan as A
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
+from rigctl.solvers.noise_coefficients import as_coefficients, in_field_units
 
 from allan_synth import synth_rate
+
+
+def fu(fit: dict, term: str):
+    """A fitted term in its field unit (value, ci95, upper95, resolved)."""
+    return in_field_units(as_coefficients(fit["coefficients"]), term)[0]
 
 D2R = math.pi / 180.0
 
@@ -28,14 +34,14 @@ def test_fit_recovers_white_and_random_walk() -> None:
     n_true, k_true = 0.2 * D2R / 60.0, 20.0 * D2R / 3600.0 / 60.0  # 0.2 deg/rt-h, 20 deg/h/rt-h
     y = synth_rate(int(hours * 3600 * fs), fs, n_true, 0.0, k_true, seed=11)
     fit, pw = _analyse(y, fs)
-    t = fit["terms"]
-    assert t["N"]["supported"] and t["K"]["supported"]
-    assert abs(t["N"]["value_deg/sqrt(h)"] / 0.2 - 1) < 0.05
-    assert abs(t["K"]["value_deg/h/sqrt(h)"] / 20.0 - 1) < 0.25
-    lo, hi = t["N"]["ci95_deg/sqrt(h)"]
-    assert lo < t["N"]["value_deg/sqrt(h)"] < hi and hi - lo < 0.02  # coverage: benchmark
-    assert not t["R"]["supported"] and t["R"]["upper95_deg/h/h"] > 0
-    assert not t["Q"]["supported"] and not t["B"]["supported"]  # none in the data
+    co = fit["coefficients"]
+    assert co.N.resolved and co.K.resolved
+    assert abs(fu(fit, "N").value / 0.2 - 1) < 0.05
+    assert abs(fu(fit, "K").value / 20.0 - 1) < 0.25
+    lo, hi = fu(fit, "N").ci95
+    assert lo < fu(fit, "N").value < hi and hi - lo < 0.02  # coverage: benchmark
+    assert not co.R.resolved and fu(fit, "R").upper95 > 0
+    assert not co.Q.resolved and not co.B.resolved  # none in the data
     assert pw["terms"]["N"]["value_deg/sqrt(h)"] is not None
 
 
@@ -44,9 +50,8 @@ def test_fit_recovers_bias_instability() -> None:
     n_true, b_true, k_true = 0.1 * D2R / 60.0, 5.0 * D2R / 3600.0, 10.0 * D2R / 3600.0 / 60.0
     y = synth_rate(int(hours * 3600 * fs), fs, n_true, b_true, k_true, seed=12)
     fit, _ = _analyse(y, fs)
-    t = fit["terms"]
-    assert abs(t["N"]["value_deg/sqrt(h)"] / 0.1 - 1) < 0.05
-    assert t["B"]["supported"] and abs(t["B"]["value_deg/h"] / 5.0 - 1) < 0.20
+    assert abs(fu(fit, "N").value / 0.1 - 1) < 0.05
+    assert fit["coefficients"].B.resolved and abs(fu(fit, "B").value / 5.0 - 1) < 0.20
 
 
 def test_accelerometer_units_and_upper_bound() -> None:
@@ -54,11 +59,11 @@ def test_accelerometer_units_and_upper_bound() -> None:
     vrw = 0.05 / 60.0  # 0.05 m/s/sqrt(h) in m/s/sqrt(s)
     y = 9.80665 + synth_rate(int(3600 * fs), fs, vrw, 0.0, 0.0, seed=13)
     fit, _ = _analyse(y, fs, "accel")
-    t = fit["terms"]
-    assert abs(t["N"]["value_m/s/sqrt(h)"] / 0.05 - 1) < 0.05
-    assert t["N"]["value_m/s/sqrt(h)"] == t["N"]["value_m/s/sqrt(s)"] * 60.0
-    assert not t["B"]["supported"]
-    assert t["B"]["upper95_mg"] == t["B"]["upper95_m/s^2"] * (1000.0 / 9.80665)
+    co = fit["coefficients"]
+    assert co.sensor == "accel" and abs(fu(fit, "N").value / 0.05 - 1) < 0.05
+    assert fu(fit, "N").value == co.N.value * 60.0  # m/s/sqrt(s) -> m/s/sqrt(h)
+    assert not co.B.resolved
+    assert fu(fit, "B").upper95 == co.B.upper95 * (1000.0 / 9.80665)  # m/s^2 -> mg
 
 
 def test_model_roundtrip_exact_curve() -> None:
@@ -122,11 +127,9 @@ def test_interval_coverage_and_no_spurious_terms() -> None:
         c = E.confidence("oadev", A.phase_from_rate(y, 1.0 / fs), r.m, r.dev)
         fit = F.fit_terms(r.tau_s, r.dev, c["edf"], "gyro", tau0=1.0 / fs, n_phase=r.n_phase)
         for t, v in (("N", n_true), ("K", k_true)):
-            e = fit["terms"][t]
-            si = F.SI_UNITS["gyro"][t]
-            cover.append(e[f"ci95_{si}"][0] <= v <= e[f"ci95_{si}"][1] if e["supported"]
-                         else v <= e[f"upper95_{si}"])
-        absent_ok += [not fit["terms"][t]["supported"] for t in ("Q", "B", "R")]
+            c = getattr(fit["coefficients"], t)
+            cover.append(c.ci95[0] <= v <= c.ci95[1] if c.resolved else v <= c.upper95)
+        absent_ok += [not getattr(fit["coefficients"], t).resolved for t in ("Q", "B", "R")]
     assert np.mean(cover) >= 0.85, np.mean(cover)
     assert np.mean(absent_ok) >= 0.90, np.mean(absent_ok)
 
@@ -159,6 +162,6 @@ def test_curve_limit_read_off_well_determined_taus_only() -> None:
         assert e[f"curve_limit_{F.SI_UNITS['gyro'][t]}"] == pytest.approx(lim[t], rel=1e-9), t
     assert fit["terms"]["K"]["curve_limit_tau_s"] == 1024.0
     for t, e in fit["terms"].items():
-        if not e["supported"]:
-            si = F.SI_UNITS["gyro"][t]
-            assert e[f"upper95_{si}"] <= e[f"curve_limit_{si}"] * (1 + 1e-12)
+        c = getattr(fit["coefficients"], t)
+        if not c.resolved:
+            assert c.upper95 <= e[f"curve_limit_{F.SI_UNITS['gyro'][t]}"] * (1 + 1e-12)

@@ -4,7 +4,7 @@ of configs/imu-profiles.yaml, full error model, static) through the Allan pipeli
 with plain numpy (not the fit's own bookkeeping): no term given as a bound above what the
 curve allows (B <= min sigma / 0.664, N, K, Q, R likewise); every informative tau where the
 fitted total leaves the 95 % band named by the self-check; octave and all agree within their
-95 % intervals on every axis whose self-checks both pass (one known exception, a tone: below).
+95 % intervals on every axis whose self-checks both pass (tones found before the fit: below).
 The emulated captures start after procedures/warmup.yaml's 15 minutes, as allan-overnight's do.
 The 12 h run of the Done-when is the benchmark (benchmarks/allan_profiles.py, figures in
 docs/allan.md)."""
@@ -36,14 +36,20 @@ def test_every_profile_one_hour(tmp_path: Path, capsys) -> None:
     assert t["over_limit"] == 0, t["over_where"]
     assert t["informative"] > 1000 and t["unnamed"] == 0, t["unnamed_where"]
     assert t["pairs"] == 6 * len(cases)
-    # one known disagreement on axes whose checks both pass, pinned here so that any other (or
-    # its disappearance) fails: consumer_mems ax Q (--taus all: Q 7.7e-5 m/s [7.18e-5, 8.33e-5];
-    # octave: < 7.13e-5). Its 47.3 Hz vibration tone, aliased at the 100 Hz output, adds
-    # A^2 sin^4(pi f tau) / (pi f tau)^2 to sigma^2: 0.45 A^2 at m = 1, 0.04 A^2 at m = 3 and a
-    # slope -1 run over the odd m, but ~0 at every even m, so only the all-tau set sees a
-    # Q-like term (a tone, outside IEEE 952; not yet detected before the fit)
+    # octave and all agree on every axis whose two checks pass. Until the tones were found
+    # before the fit, consumer_mems ax Q was apart (--taus all: Q 7.7e-5 m/s [7.18e-5,
+    # 8.33e-5]; octave: < 7.13e-5): its 47.3 Hz vibration tone, near the 100 Hz output's
+    # Nyquist, adds a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2 to sigma^2, ~a^2/m^2 at the
+    # odd m and ~0 at the even m up to m ~ 9, so only the all-tau set saw a Q-like term. The
+    # pipeline now finds the tone (Welch periodogram) and carries that term in the model
     ok_pairs = [w for w in t["disagree_where"] if w.endswith("(checks ok)")]
     assert len(ok_pairs) == t["disagree_checks_ok"]
-    assert [w.split(":", 1)[1] for w in ok_pairs] == ["ax:Q(checks ok)"], t["disagree_where"]
-    assert ok_pairs[0].startswith("consumer_mems")
+    assert ok_pairs == [], t["disagree_where"]
+    # ... because the tone was found: on every consumer_mems axis at 47.3 Hz (the emulator's
+    # frequency, seen through its clock's 50 ppm drift), and on no axis of the profiles
+    # without vibration (default, declared_only)
+    cm = [w for w in t["tones"] if w.startswith("consumer_mems")]
+    axes_47 = {w.split(":")[1] for w in cm if abs(float(w.split(":")[2][:-2]) - 47.3) < 0.01}
+    assert axes_47 == {"gx", "gy", "gz", "ax", "ay", "az"}, t["tones"]
+    assert not [w for w in t["tones"] if w.startswith(("default", "declared_only"))], t["tones"]
     assert "== tactical (emulated, 1 h, after 900 s warm-up)" in out

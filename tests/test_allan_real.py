@@ -137,12 +137,12 @@ def test_adis16405_gyro_floor_gives_an_estimate_of_b(adis: dict, axis: str) -> N
     r = adis["res"]["axes"][axis]
     tau, ind = _independent(adis["gyro"][:, i], r)
     assert abs(slope(tau, ind, 30.0, 300.0)) < 0.25  # the data: a floor
-    fit = r["fit"]["terms"]
+    co = r["fit"]["coefficients"]
     n_ind = white_level(tau, ind)
-    n_fit = fit["N"]["value_rad/sqrt(s)"]
-    assert fit["N"]["supported"] and abs(n_fit / n_ind - 1.0) < 0.10, (n_fit / n_ind)
-    assert fit["B"]["supported"], fit["B"]
-    b = fit["B"]["value_rad/s"]
+    n_fit = co.N.value
+    assert co.N.resolved and abs(n_fit / n_ind - 1.0) < 0.10, (n_fit / n_ind)
+    assert co.B.resolved, co.B
+    b = co.B.value
     # within what the curve allows (its minimum over the taus with >= 20 averages, where the
     # deviation is known to better than ~25 %), and the fitted total follows the floor
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
@@ -156,31 +156,63 @@ def test_adis16405_gyro_floor_gives_an_estimate_of_b(adis: dict, axis: str) -> N
     assert 0.5 < B_FACTOR * b * DEG_H / ADIS_BIAS_STAB_DEG_H < 2.0
 
 
+def _tone_avar_numpy(m: np.ndarray, tau0: float, tones: list[dict]) -> np.ndarray:
+    """Allan variance of sampled sinusoids a sin(2 pi f t): a^2 sin^4(pi f m tau0) /
+    (m sin(pi f tau0))^2 each (written out here, not the code under test's)."""
+    m = np.asarray(m, dtype=float)
+    out = np.zeros(m.size)
+    for t in tones:
+        f, a = t["freq_hz"], t["amp_si"]
+        out += a * a * np.sin(np.pi * f * m * tau0) ** 4 / (m * np.sin(np.pi * f * tau0)) ** 2
+    return out
+
+
 @pytest.mark.parametrize("axis", ["ax", "ay", "az"])
 def test_adis16405_accel_floor_and_self_check(adis: dict, axis: str) -> None:
     """Accelerometers: a floor at 10-100 s (B an estimate within the curve's allowance), and a
-    periodic component near 1.7 s (the curve dips below the fit there, 0.85x): the self-check
-    must name those taus, with its statistic."""
+    periodic component with a 1.77 s period (0.564 Hz, and its third harmonic at 1.69 Hz),
+    which made the curve bump and dip around the fitted IEEE 952 total at 0.3-2 s. It is
+    found before the fit (a numpy periodogram here finds the same frequency) and its Allan
+    term carried in the model; the total with it then follows the curve, and wherever it does
+    not (by more than 15 %) the self-check names the taus. The check still fails (the capture
+    is not IEEE 952 plus tones alone)."""
     i = "xyz".index(axis[1])
     r = adis["res"]["axes"][axis]
-    tau, ind = _independent(adis["accel"][:, i], r)
+    y = adis["accel"][:, i]
+    tau, ind = _independent(y, r)
     assert abs(slope(tau, ind, 10.0, 100.0)) < 0.25
     fit = r["fit"]
-    assert fit["terms"]["B"]["supported"]
+    assert fit["coefficients"].B.resolved
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
-    assert B_FACTOR * fit["terms"]["B"]["value_m/s^2"] <= 1.25 * np.min(ind[informative])
+    assert B_FACTOR * fit["coefficients"].B.value <= 1.25 * np.min(ind[informative])
     check = fit["check"]
     assert check["p_value"] < 1e-6 and check["model_error_rel"] > 0.05  # not IEEE 952 alone
-    # the independent read: where the curve is more than 10 % off the fitted total, inside the
-    # band's informative taus, the check lists it
+    # the periodic component: the strongest peak of a plain periodogram (2^15-sample Hann
+    # segments averaged) between 0.1 and 10 Hz is the strongest tone found
+    n_seg = 1 << 15
+    segs = (y[: y.size // n_seg * n_seg] - y.mean()).reshape(-1, n_seg) * np.hanning(n_seg)
+    psd = np.mean(np.abs(np.fft.rfft(segs, axis=1)) ** 2, axis=0)
+    fr = np.fft.rfftfreq(n_seg, 0.01)
+    band = (fr > 0.1) & (fr < 10.0)
+    f_peak = fr[band][np.argmax(psd[band])]
+    tones = r["tones"]["tones"]
+    assert tones and abs(tones[0]["freq_hz"] - f_peak) < 2.0 / (n_seg * 0.01), (tones, f_peak)
+    assert abs(tones[0]["freq_hz"] - 0.564) < 0.005
+    # the independent read: the total (IEEE terms + the tones' term) against the curve; where
+    # it is more than 15 % off, inside the band's informative taus, the check lists it
     coeffs = resolved_values(fit["coefficients"])
-    total = np.sqrt(F.model_avar(tau, coeffs))
-    off = (np.abs(ind / total - 1.0) > 0.15) & informative & (tau > 0.05) & (tau < 100.0)
+    ieee = F.model_avar(tau, coeffs)
+    total = np.sqrt(ieee + _tone_avar_numpy(r["m"], 0.01, tones))
+    sel = informative & (tau > 0.05) & (tau < 100.0)
+    off = (np.abs(ind / total - 1.0) > 0.15) & sel
     named = np.zeros(tau.size, dtype=bool)
     for run in check["outside"]:
         named |= (tau >= run["tau_from_s"]) & (tau <= run["tau_to_s"])
-    assert np.any(off)
     assert np.all(named[off]), tau[off & ~named]
+    # and the tones' term is what the IEEE terms alone miss: without it the total is more
+    # than 15 % off the curve somewhere in 0.3-2 s
+    near = sel & (tau >= 0.3) & (tau <= 2.0)
+    assert np.any(np.abs(ind[near] / np.sqrt(ieee[near]) - 1.0) > 0.15)
 
 
 def test_no_bound_above_what_the_curve_allows(adis: dict, mtig: dict) -> None:
@@ -195,10 +227,10 @@ def test_no_bound_above_what_the_curve_allows(adis: dict, mtig: dict) -> None:
         sel = well_determined(r["edf"])
         assert sel.sum() >= 20
         lim = limits(tau[sel], _reported(r)[sel])
-        for t, e in r["fit"]["terms"].items():
-            if not e["supported"]:
-                si = F.SI_UNITS[r["sensor"]][t]
-                assert e[f"upper95_{si}"] <= lim[t] * (1 + 1e-9), (t, e[f"upper95_{si}"], lim[t])
+        for t in r["fit"]["terms"]:
+            c = getattr(r["fit"]["coefficients"], t)
+            if not c.resolved:
+                assert c.upper95 <= lim[t] * (1 + 1e-9), (t, c.upper95, lim[t])
                 n_bounds += 1
     assert n_bounds >= 10
 
@@ -213,12 +245,12 @@ def test_mtig_no_floor_b_is_a_bound_and_the_bump_is_named(mtig: dict) -> None:
     informative = np.asarray(r["m"]) * 20 <= r["n_samples"]
     assert slope(tau, ind, 80.0, 400.0) < -0.35  # the data: still falling, no floor
     fit = r["fit"]
-    b = fit["terms"]["B"]
-    assert not b["supported"]
+    b = fit["coefficients"].B
+    assert not b.resolved
     sel = well_determined(r["edf"])
-    assert b["upper95_deg/h"] <= np.min(_reported(r)[sel]) / B_FACTOR * DEG_H * (1 + 1e-9)
+    assert b.upper95 * DEG_H <= np.min(_reported(r)[sel]) / B_FACTOR * DEG_H * (1 + 1e-9)
     n_ind = white_level(tau, ind)
-    assert abs(fit["terms"]["N"]["value_rad/sqrt(s)"] / n_ind - 1.0) < 0.10
+    assert abs(fit["coefficients"].N.value / n_ind - 1.0) < 0.10
     bump = [o for o in fit["check"]["outside"]
             if o["side"] == "data above the fit" and o["tau_from_s"] < 40.0 and o["tau_to_s"] > 5.0]
     assert not fit["check"]["ok"] and bump, fit["check"]["outside"]
@@ -240,7 +272,7 @@ def test_adis16405_quantization_read_from_the_samples(adis: dict) -> None:
         assert q is not None and abs(q["step_si"] / step_si - 1.0) < 1e-9, (axis, q)
         nq = step_si * math.sqrt(TAU0 / 12.0)
         assert abs(q["white_N_si"] / nq - 1.0) < 1e-9
-        n_fit = r["fit"]["terms"]["N"][f"value_{F.SI_UNITS[r['sensor']]['N']}"]
+        n_fit = r["fit"]["coefficients"].N.value
         assert abs(q["share_of_N2"] - (nq / n_fit) ** 2) < 1e-12
         assert q["random_rounding"]  # several steps of noise per sample
 
@@ -287,7 +319,7 @@ def test_spikes_reported_and_optionally_excluded(adis: dict, mtig: dict, tmp_pat
     n_clean = white_level(tau, ind)
     n_dirty = white_level(*_independent(g, mtig["res"]["axes"]["gx"]))
     assert abs((n_dirty ** 2 - n_clean ** 2) / spike_var - 1.0) < 0.10  # the data: spikes = white
-    n_fit = r["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
-    n_raw = mtig["res"]["axes"]["gx"]["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
+    n_fit = r["fit"]["coefficients"].N.value
+    n_raw = mtig["res"]["axes"]["gx"]["fit"]["coefficients"].N.value
     assert 0.5 < (n_raw ** 2 - n_fit ** 2) / spike_var < 2.0
     assert abs((n_fit / n_clean) / (n_raw / n_dirty) - 1.0) < 0.02

@@ -101,17 +101,20 @@ def _flat(r: dict) -> dict:
     out = {k: np.asarray(r[k]) for k in keys if k in r}
     out["spikes"] = (r["spikes"]["count"], r["spikes"]["first_times_s"], r["spikes"]["largest_sd"])
     # the fit's numbers (to rounding: BLAS may split its sums over threads differently)
+    co = r["fit"]["coefficients"]
+    cs = [getattr(co, t) for t in r["fit"]["terms"]]
     out["fit"] = np.array([v for e in r["fit"]["terms"].values() for k, v in sorted(e.items())
-                           if isinstance(v, float)])
-    out["fit_supported"] = [e["supported"] for e in r["fit"]["terms"].values()]
+                           if isinstance(v, float)]
+                          + [x for c in cs for x in (c.value, *(c.ci68 or ()), *(c.ci95 or ()), c.upper95 or 0.0)])
+    out["fit_supported"] = [c.resolved for c in cs]
     return out
 
 
-@pytest.mark.parametrize("outliers,gaps,axes", [("report", False, list(AA.AXES)),
-                                                 ("exclude", False, ["gy", "ax", "az"]),
-                                                 ("report", True, list(AA.AXES))])
+@pytest.mark.parametrize("outliers,gaps,axes,exact", [
+    ("report", False, list(AA.AXES), False), ("exclude", False, ["gy", "ax", "az"], False),
+    ("report", True, list(AA.AXES), False), ("report", False, ["gx", "ay"], True)])
 def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                 outliers: str, gaps: bool, axes: list) -> None:
+                                 outliers: str, gaps: bool, axes: list, exact: bool) -> None:
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
@@ -133,7 +136,7 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(AA, "analyse_axis", keep_dec)
     for fused in (False, True):
         monkeypatch.setattr(AA, "FUSED", fused)
-        res = AA.compute(str(rec), axes, 95, outliers=outliers)
+        res = AA.compute(str(rec), axes, 95, exact=exact, outliers=outliers)
         got[fused] = {a: _flat(r) for a, r in res["axes"].items()}
         got[fused]["dec"] = [np.array(v) for v in decs]
         decs.clear()
@@ -214,3 +217,31 @@ def test_cascade_same_terms_as_the_strided_levels() -> None:
         for lag in lev.ks:
             assert cnt[lag] == lev.counts[lag] == (x.size - 1) // lev.s + 1 - 2 * lag, (lev.s, lag)
             assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)
+
+
+def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The noise IDs read from the full-resolution head, taken while the record still streams,
+    are the ones the analysis takes after the last chunk (and they are used)."""
+    rec = tmp_path / "r.h5"
+    _recording(rec, 160_000, True)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)  # complete within the third chunk
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    used = []
+    orig = AA.analyse_axis
+
+    def spy(stream, *args):
+        used.append(len(stream._nid))
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", spy)
+    got = {}
+    for early in (False, True):
+        monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
+        res = AA.compute(str(rec), ["gx", "az"], 95)
+        got[early] = {a: (np.asarray(r["alpha"]), np.asarray(r["edf"])) for a, r in res["axes"].items()}
+    assert used[:2] == [0, 0] and min(used[2:]) >= 20
+    for a in got[False]:
+        assert np.array_equal(got[False][a][0], got[True][a][0])
+        assert np.array_equal(got[False][a][1], got[True][a][1])

@@ -71,7 +71,7 @@ def test_segment_means_follow_the_declared_model(short_24pos):
             assert z - a == pytest.approx(5 * cfg.imu_rate_hz, abs=2)
             f_ref, _ = body_references(seg["commanded_angle"][i], None, cfg.latitude, cfg.height_m, cfg.gravity)
             predicted = b + m @ f_ref + k2 * f_ref**2
-            sigma_mean = truth["accel_noise_density_m_s2_per_rthz"] * math.sqrt(cfg.imu_rate_hz) / math.sqrt(z - a)
+            sigma_mean = truth["accel_noise"][0]["N"]["value"] * math.sqrt(cfg.imu_rate_hz) / math.sqrt(z - a)
             np.testing.assert_allclose(fs[a:z].mean(axis=0), predicted, atol=5 * sigma_mean + 5e-5)
 
 

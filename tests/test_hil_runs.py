@@ -164,7 +164,7 @@ def check_24pos(rec, cfg, info, ref_segments) -> None:
         assert 5.0 - LAG <= n / cfg.imu_rate_hz <= 5.0 + 1.0 / cfg.imu_rate_hz
         f_ref, _ = body_references(seg["commanded_angle"][i], None, cfg.latitude, cfg.height_m, cfg.gravity)
         predicted = b + m @ f_ref + k2 * f_ref**2
-        sigma = truth["accel_noise_density_m_s2_per_rthz"] * math.sqrt(cfg.imu_rate_hz) / math.sqrt(n)
+        sigma = truth["accel_noise"][0]["N"]["value"] * math.sqrt(cfg.imu_rate_hz) / math.sqrt(n)
         np.testing.assert_allclose(mean, predicted, atol=5 * sigma + 5e-5)
     assert info["imu_overflow"] == 0
 
@@ -179,7 +179,7 @@ def check_rates(rec, info, ref) -> None:
     truth = info["truth"]["imu"]
     for i, (w, r) in zip(np.flatnonzero(seg["kind"] == b"rate"), zip(wired, inproc)):
         n = int(seg["last_sample"][i] - seg["first_sample"][i])
-        sigma = truth["gyro_noise_density_rad_s_per_rthz"] * math.sqrt(100.0) / math.sqrt(n)
+        sigma = truth["gyro_noise"][0]["N"]["value"] * math.sqrt(100.0) / math.sqrt(n)
         # the commanded rate dominates; both runs see the same model within noise (+ window-edge
         # effects of Earth rate over a fraction of a revolution, < 2e-6 rad/s)
         np.testing.assert_allclose(w, r, atol=5 * math.sqrt(2) * sigma + 2e-6)

@@ -74,7 +74,7 @@ def test_tsv_header_time_in_ns_gyro_only_with_a_gap(tmp_path: Path,
     assert "== gx (gyro" in cap.out and "== gy" not in cap.out
     assert "25 samples missing in 1 gap(s): the Allan terms touching a gap are skipped" in cap.err
     res = json.loads((tmp_path / "a.json").read_text())
-    n_fit = res["axes"]["gx"]["fit"]["terms"]["N"]["value_rad/sqrt(s)"]
+    n_fit = res["axes"]["gx"]["fit"]["coefficients"]["N"]["value"]  # rad/sqrt(s), as stored
     # white noise: N = sd * sqrt(tau0)
     n_np = float(np.std(y[keep])) * math.sqrt(1.0 / fs)
     assert abs(n_fit / n_np - 1) < 0.03

@@ -25,9 +25,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-import yaml
 
-from helpers import ROOT, run_rigctl
+from helpers import emulated_capture, run_rigctl
 from rigctl.analysis.allan import load_noise
 from rigctl.analysis.calibration import _noise
 from rigctl.solvers.noise_coefficients import (SI_UNITS, Coefficient, GaussMarkov, NoiseCoefficients,
@@ -82,21 +81,11 @@ ACCEL = triad("accel", "test", N=[5.9e-4, 7.5e-4, 4.5e-4], B=1.47e-4, K=3.0e-5)
 
 @pytest.fixture(scope="module")
 def chain(tmp_path_factory) -> tuple[Path, dict]:
-    tmp = tmp_path_factory.mktemp("noise_chain")
-    cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
-    cfg["seed"] = 11
-    cfg["imu"]["sim"] = {"profile": "declared_only", "overrides": {
-        "gyro": {"noise": to_config(GYRO, "gyro")}, "accel": {"noise": to_config(ACCEL, "accel")}}}
-    (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    (tmp / "capture.yaml").write_text(PROCEDURE)
-    r = run_rigctl("run", str(tmp / "capture.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
-                   str(tmp / "runs"), timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
+    rec, truth = emulated_capture(tmp_path_factory.mktemp("noise_chain"), {
+        "profile": "declared_only", "overrides": {"gyro": {"noise": to_config(GYRO, "gyro")},
+                                                  "accel": {"noise": to_config(ACCEL, "accel")}}}, PROCEDURE)
     r = run_rigctl("allan", str(rec), "--db", "none", timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    with h5py.File(rec, "r") as f:
-        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
     return rec, truth
 
 

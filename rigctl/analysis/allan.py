@@ -31,7 +31,8 @@ from ..solvers import allan_fit as F
 from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
-from ..solvers.noise_coefficients import NoiseCoefficients, from_json
+from ..solvers import allan_tones as TN
+from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -53,6 +54,9 @@ WORKERS = max(1, min(2, os.cpu_count() or 1))
 #: finiteness check) instead of a column copy, a check and a screen pass per axis; False: the
 #: per-axis path for every chunk (the same results, bit for bit; tests compare the two)
 FUSED = True
+#: the noise IDs read from the full-resolution head are taken while the rest of the record
+#: streams (False: all of them in the analysis after the last chunk; the same values)
+EARLY_NOISE_ID = True
 
 
 class _AxisStream:
@@ -77,6 +81,7 @@ class _AxisStream:
         # and no concatenation, which would hold them twice at the peak
         self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
+        self._nid: dict[tuple[int, int], int] = {}  # noise IDs taken early (head_noise_ids)
         self._dec = np.empty(n_rate // self.dec + 1)
         self._dec[0] = 0.0  # x[0] = 0
         self.n_dec = 1
@@ -252,7 +257,29 @@ class _AxisStream:
         """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
         if m % self.dec == 0:
             return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        hit = self._nid.get((int(m), int(n)))
+        if hit is not None:
+            return hit
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+
+    def head_full(self) -> bool:
+        """The full-resolution head is complete (it does not change any more)."""
+        return self.n_head >= min(HEAD_POINTS, self._head.size)
+
+    def head_noise_ids(self, n_phase: int) -> None:
+        """The noise IDs that read the head (factors not a multiple of ``dec``), for a record
+        of ``n_phase`` phase points, taken as soon as the head is complete (on a worker while
+        the rest of the record streams: the lag-1 sums of the longest series run compiled,
+        without the GIL, instead of in the analysis after the last chunk). The same calls
+        with the same arguments as :meth:`noise_id` makes later, which then finds them."""
+        for m in self.ms.tolist():
+            if m % self.dec == 0:
+                continue
+            n = NID.n_terms("oadev", n_phase, m)
+            try:
+                self._nid[(m, n)] = NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+            except (ValueError, ArithmeticError):
+                pass  # left to the analysis, which reports it as before
 
 
 def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
@@ -268,8 +295,8 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
               "first_times_s": [float(i * tau0) for i in idx[:10]]}
     quant = None
     if stream.quant_step is not None:
-        n_e = fit["terms"].get("N", {})
-        n_si = n_e.get(f"value_{F.SI_UNITS[sensor]['N']}") if n_e.get("supported") else None
+        n_c = fit["coefficients"].N
+        n_si = n_c.value if n_c.resolved else None
         quant = CHK.quantization_noise(stream.quant_step, tau0, n_si, dev0)
         quant[f"step_{unit}"] = stream.quant_step * fac
         quant["step_si"] = quant.pop("step")
@@ -322,6 +349,27 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
     return num * num / den if den > 0 else float("nan")
 
 
+#: the periodogram reads at most this many samples of each axis (5.8 h at 100 Hz; 0.35 s)
+TONE_POINTS = 1 << 21
+
+
+def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+    """Tones in the axis' rate samples (the full-resolution head of the phase, its first
+    TONE_POINTS samples), :func:`rigctl.solvers.allan_tones.detect_tones`;
+    each tone's amplitude also in the deviation's field unit, and the Allan term it adds."""
+    x = stream._head[: min(stream.n_head, TONE_POINTS + 1)]
+    if x.size < 2:
+        return {"tones": [], "skipped": "no samples"}
+    tau0 = stream.tau0
+    out = TN.detect_tones(np.diff(x) / tau0, 1.0 / tau0)
+    out["samples_used"] = int(x.size - 1)
+    unit, fac = DEV_UNITS[sensor]
+    for t in out["tones"]:
+        t[f"amp_{unit}"] = t["amp_si"] * fac
+        t["amp_unit"] = unit
+    return out
+
+
 def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                  stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units).
@@ -339,14 +387,17 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                          for a, m in zip(alphas, res.m)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
-    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase)
-    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     unit, fac = DEV_UNITS[sensor]
+    tones = _tones(stream, sensor)
+    fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
+                      tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]}
+                             for t in tones["tones"]])
+    pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening,
+            **screening, "tones": tones,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -554,6 +605,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
 
     starts = list(range(s0, s1, CHUNK_ROWS))
     nxt = read(starts[0], 0) if starts else None
+    early: list = []  # the head's noise IDs, once every head is complete
     for i, a0 in enumerate(starts):
         blocks = nxt
         preps = [pool.submit(dataset, name, b, a0) for name, b in blocks.items()]
@@ -563,6 +615,11 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
+        if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
+                st.head_full() for st in streams.values()):
+            early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
+    for e in early:
+        e.result()
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
@@ -852,6 +909,8 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         else:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
+    for line in tone_notes(r):
+        notes.append(line)
     q = r.get("quantization")
     # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
     if q and (q.get("share_of_N2", 1.0) >= QUANT_NOTE_SHARE or not q["random_rounding"]):
@@ -872,17 +931,37 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     return warns, notes
 
 
+def tone_notes(r: dict[str, Any]) -> list[str]:
+    """One sentence per tone found before the fit (frequency, amplitude in the deviation's
+    field unit, the largest share of sigma^2 its Allan term takes, and that it was added to
+    the fitted model); [] if none."""
+    tn = r.get("tones") or {}
+    got = tn.get("tones") or []
+    if not got:
+        return []
+    unit = DEV_UNITS[r["sensor"]][0]
+    fs = ", ".join(f"{t['freq_hz']:.4g} Hz, amplitude {t[f'amp_{unit}']:.3g} {unit}" for t in got)
+    ft = (r.get("fit") or {}).get("tones") or {}
+    share = (f"; together up to {100 * ft['max_share']:.2g} % of sigma^2 (at tau "
+             f"{ft['max_share_tau_s']:.3g} s)") if ft else ""
+    return [f"{len(got)} tone(s) in the samples ({fs}; Welch periodogram, PSD more than "
+            f"{tn['threshold_ratio']:.3g}x the local level, false-alarm probability "
+            f"{tn['alpha']:g} per axis){share}: a tone is not an IEEE 952 term, so its Allan "
+            "term a^2 sin^4(pi f tau) / (m sin(pi f tau0))^2 (amplitude from the spectrum) "
+            "is part of the fitted model"]
+
+
 def summary_line(r: dict[str, Any]) -> str:
     """One line per axis: fitted N, B, K with 95 % intervals or upper bounds."""
     parts = []
+    co = as_coefficients(r["fit"]["coefficients"])
     for t in ("N", "B", "K"):
-        e = r["fit"]["terms"][t]
-        unit = F.FIELD_UNITS[r["sensor"]][t][0]
-        if e["supported"]:
-            lo, hi = e[f"ci95_{unit}"]
-            parts.append(f"{t} {e[f'value_{unit}']:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
+        c, unit = in_field_units(co, t)
+        if c.resolved:
+            lo, hi = c.ci95
+            parts.append(f"{t} {c.value:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
         else:
-            parts.append(f"{t} < {e[f'upper95_{unit}']:.4g} {unit}")
+            parts.append(f"{t} < {c.upper95:.4g} {unit}")
     return "; ".join(parts)
 
 
@@ -916,7 +995,7 @@ def store(path: str, result: dict[str, Any]) -> None:
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                             **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
-                                                              "quantization")},
+                                                              "quantization", "tones")},
                                        keep_nonfinite=True)}
                         for a, r in result["axes"].items()}}
     arrays = {}

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..jsonable import jsonable
-from ..solvers.allan_fit import SI_UNITS
+from ..solvers.noise_coefficients import as_coefficients
 
 #: (sensor, term) -> (Kalibr key, unit of the key)
 KALIBR_KEYS = {("accel", "N"): ("accelerometer_noise_density", "m/s^2/sqrt(Hz)"),
@@ -76,13 +76,10 @@ class KalibrValue:
 
 def term_value(axis: str, r: Mapping[str, Any], term: str) -> TermValue:
     """The fitted ``term`` (N, B, K, ...) of one axis' result ``r`` in SI."""
-    e = r["fit"]["terms"][term]
-    si = SI_UNITS[r["sensor"]][term]
-    if e["supported"]:
-        lo, hi = e[f"ci95_{si}"]
-        return TermValue(axis, float(e[f"value_{si}"]), True, (float(lo), float(hi)))
-    ub = float(e[f"upper95_{si}"])
-    return TermValue(axis, ub, False, (0.0, ub))
+    c = getattr(as_coefficients(r["fit"]["coefficients"]), term)
+    if c.resolved:
+        return TermValue(axis, c.value, True, (float(c.ci95[0]), float(c.ci95[1])))
+    return TermValue(axis, float(c.upper95), False, (0.0, float(c.upper95)))
 
 
 def kalibr_values(result: Mapping[str, Any], inflate: float = 1.0) -> list[KalibrValue]:
@@ -132,7 +129,7 @@ def kalibr_yaml(result: Mapping[str, Any], rostopic: str, inflate: float = 1.0) 
         per = ", ".join(f"{a.axis} {_e(a.value)}{'' if a.supported else ' (bound)'}" for a in v.axes)
         lines.append(f"#   per axis: {per}")
     lines.append("# bias instability B (not in Kalibr's model), per axis, SI (rad/s, m/s^2): " + ", ".join(
-        f"{a} {_e(term_value(a, r, 'B').value)}{'' if r['fit']['terms']['B']['supported'] else ' (bound)'}"
+        f"{a} {_e(term_value(a, r, 'B').value)}{'' if term_value(a, r, 'B').supported else ' (bound)'}"
         for a, r in result["axes"].items()))
     lines.append("")
     for sensor, title in (("accel", "Accelerometers"), ("gyro", "Gyroscopes")):

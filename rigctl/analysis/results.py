@@ -26,7 +26,7 @@ from scipy.optimize import brentq
 
 from ..display_units import Display, display, noise_name
 from ..solvers.conformity import Estimate
-from ..solvers.noise_coefficients import NoiseCoefficients, from_json
+from ..solvers.noise_coefficients import as_coefficients
 
 #: calibration fits in the order they are published (orientation-free payloads)
 FREE_ORDER = ("faces_accel", "faces_gyro_bias", "multipos_accel", "multipos_gyro")
@@ -115,7 +115,7 @@ def from_allan(summary: dict[str, Any]) -> list[Measured]:
         stored = (info.get("fit") or {}).get("coefficients")
         if not stored:
             continue
-        co = stored if isinstance(stored, NoiseCoefficients) else from_json(stored)  # live or stored
+        co = as_coefficients(stored)
         for t in NOISE_TERMS:
             c = getattr(co, t)
             name = noise_name(sensor, t, axis[-1])

@@ -47,37 +47,19 @@ from scipy.stats import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
+from . import allan_tones as TN
 from . import noise_coefficients as NC
+from .noise_coefficients import FIELD_UNITS, G0, SI_UNITS, TERM_NAMES  # noqa: F401 - one table, named here too
 from .allan_stream import blas_single_thread
 
 TERMS = ("Q", "N", "B", "K", "R")
 _B_FACTOR = 2.0 * math.log(2.0) / math.pi
-G0 = 9.80665  # m/s^2, standard gravity (for mg)
 #: a term must reach this share of the fitted sigma^2 at some tau to count as identified
 MIN_SHARE = 0.10
 #: relative sd at which 95 % of an efficient estimator's results lie within +-25 %
 TARGET_REL_SD = 0.25 / 1.96
 _Z95, _Z95_ONE = float(norm.ppf(0.975)), float(norm.ppf(0.95))
 _DEG = 180.0 / math.pi
-
-#: (field unit label, factor from SI) per sensor and term; SI: gyro rad/s, accel m/s^2
-FIELD_UNITS = {
-    "gyro": {"Q": ("deg", _DEG), "N": ("deg/sqrt(h)", _DEG * 60.0),
-             "B": ("deg/h", _DEG * 3600.0), "K": ("deg/h/sqrt(h)", _DEG * 3600.0 * 60.0),
-             "R": ("deg/h/h", _DEG * 3600.0 ** 2)},
-    "accel": {"Q": ("m/s", 1.0), "N": ("m/s/sqrt(h)", 60.0),
-              "B": ("mg", 1000.0 / G0), "K": ("m/s/h/sqrt(h)", 3600.0 * 60.0),
-              "R": ("m/s/h/h", 3600.0 ** 2)},
-}
-SI_UNITS = {"gyro": {"Q": "rad", "N": "rad/sqrt(s)", "B": "rad/s", "K": "rad/s/sqrt(s)",
-                     "R": "rad/s^2"},
-            "accel": {"Q": "m/s", "N": "m/s/sqrt(s)", "B": "m/s^2", "K": "m/s^2/sqrt(s)",
-                      "R": "m/s^3"}}
-TERM_NAMES = {"gyro": {"Q": "angle_quantization", "N": "angle_random_walk",
-                       "B": "bias_instability", "K": "rate_random_walk", "R": "rate_ramp"},
-              "accel": {"Q": "velocity_quantization", "N": "velocity_random_walk",
-                        "B": "bias_instability", "K": "acceleration_random_walk",
-                        "R": "acceleration_ramp"}}
 
 
 def design_matrix(tau: np.ndarray) -> np.ndarray:
@@ -243,11 +225,40 @@ def _thin(n: int, max_taus: int) -> np.ndarray:
 def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
-              select: bool = True) -> dict:
-    """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded)."""
+              select: bool = True, tones: list[dict] | None = None) -> dict:
+    """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded).
+
+    ``tones`` (needs ``tau0``): periodic components found before the fit (dicts with freq_hz
+    and amp_si, :func:`rigctl.solvers.allan_tones.detect_tones`). Each adds the known term
+    :func:`rigctl.solvers.allan_tones.tone_avar` to the model, its coefficient (a^2) fixed by
+    the spectrum: the IEEE 952 terms are fitted to sigma^2(tau) minus the tones' sum (the
+    self-check compares that too, i.e. the data with the total of the IEEE terms and the
+    tones). The periodogram gives a^2 to a fraction of a per cent on a capture of an hour;
+    a free a^2 column would be determined by the Allan curve far worse (its envelope is Q's
+    1/tau^2). Taus where the tones take all of sigma^2 (difference <= 0) drop out. The result
+    gains ``tones`` (the subtracted terms, with their largest share of sigma^2 and where)."""
     with blas_single_thread():
-        return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus, iterations,
-                          select)
+        if not tones:
+            return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus,
+                              iterations, select)
+        if tau0 is None:
+            raise ValueError("a tone term needs tau0")
+        tau = np.asarray(tau, dtype=float)
+        s2 = np.asarray(adev, dtype=float) ** 2
+        m = np.maximum(1, np.round(tau / tau0))
+        tone2 = TN.tones_avar(tau0, m, tones)
+        rest = s2 - tone2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.where(s2 > 0, tone2 / s2, 0.0)
+        adev_rest = np.where(rest > 0, np.sqrt(np.maximum(rest, 0.0)), np.nan)
+        out = _fit_terms(tau, adev_rest, edf, sensor, terms, tau0, n_phase, max_taus,
+                         iterations, select)
+        i = int(np.nanargmax(share)) if share.size else 0
+        out["tones"] = {"terms": [dict(t) for t in tones],
+                        "max_share": float(share[i]) if share.size else 0.0,
+                        "max_share_tau_s": float(tau[i]) if share.size else float("nan"),
+                        "taus_dropped": int(np.count_nonzero(~(rest > 0)))}
+        return out
 
 
 def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
@@ -259,9 +270,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     tau in s, adev in SI rate units, edf per tau (Greenhall, used for the first pass and
     when ``tau0``/``n_phase`` are not given). With ``tau0`` (s) and ``n_phase`` (phase
     points) the full covariance of the sigma^2 estimates under the fitted model is used
-    (:mod:`rigctl.solvers.allan_cov`). Returns per-term dicts with SI and field values (unit
-    in the key), 68 % / 95 % intervals, or a one-sided 95 % upper bound for a term the data
-    do not support.
+    (:mod:`rigctl.solvers.allan_cov`). Returns ``coefficients`` (NoiseCoefficients: each term's
+    SI value with its 68 % / 95 % intervals, or a one-sided 95 % upper bound for a term the data
+    do not support) and per term the fit's diagnostics (``terms``: name, the curve's limit,
+    Cramer-Rao figures, whether it was pinned at the limit).
     """
     tau = np.asarray(tau, dtype=float)
     s2 = np.asarray(adev, dtype=float) ** 2
@@ -419,22 +431,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         entry["pinned_at_curve_limit"] = j in pinned_terms
         if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0):
             coeff_sq[t] = pj
-            val = math.sqrt(pj)
-            ci = {}
             nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
-            entry["edf"] = nu
-            for lab, conf in (("68", 0.683), ("95", 0.95)):
+            ci = []
+            for conf in (0.683, 0.95):
                 q = (1.0 - conf) / 2.0
                 r_hi, r_lo = _chi2_over_nu(1.0 - q, nu), _chi2_over_nu(q, nu)
                 # r_lo, r_hi are 0 only for nu << 1 (a term kept by select=False)
-                lo = math.sqrt(pj / r_hi) if r_lo > 0 else 0.0
-                hi = math.sqrt(pj / r_lo) if r_lo > 0 else math.inf
-                ci[f"ci{lab}_{unit_si}"] = [lo, hi]
-                ci[f"ci{lab}_{unit_f}"] = [lo * fac, hi * fac]
-            entry.update({"supported": True, f"value_{unit_si}": val,
-                          f"value_{unit_f}": val * fac, **ci})
-            coefs[t] = NC.Coefficient(val, tuple(ci[f"ci68_{unit_si}"]), tuple(ci[f"ci95_{unit_si}"]),
-                                      edf=nu)
+                ci.append((math.sqrt(pj / r_hi) if r_lo > 0 else 0.0,
+                           math.sqrt(pj / r_lo) if r_lo > 0 else math.inf))
+            coefs[t] = NC.Coefficient(math.sqrt(pj), ci[0], ci[1], edf=nu)
         else:
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
@@ -442,16 +447,13 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             if not ub <= lim:  # never above what the curve itself allows (also for nan)
                 ub, source = lim, "curve"
             est = min(math.sqrt(max(pj, 0.0)), ub)
-            entry.update({"supported": False, f"upper95_{unit_si}": ub,
-                          f"upper95_{unit_f}": ub * fac, "bound_from": source,
-                          f"estimate_{unit_si}": est})
             coefs[t] = NC.Coefficient(0.0 if math.isnan(est) else est, upper95=ub, bound_from=source)
         entry[f"curve_limit_{unit_si}"] = lim
         entry[f"curve_limit_{unit_f}"] = lim * fac
         entry["curve_limit_tau_s"] = lim_tau[t]  # the tau that sets it
         out_terms[t] = entry
     if tau0 is not None and n_phase is not None:
-        _add_crb(out_terms, sensor, float(tau0), int(n_phase))
+        _add_crb(out_terms, coefs, float(tau0), int(n_phase))
     check = self_check(tau_all, np.sqrt(s2_all), e_all, coeff_sq)
     # the goodness of fit of the model as reported (the supported terms only, statistical
     # covariance): the terms dropped as bounds are not in the total the check compares, so
@@ -690,7 +692,7 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
             "that averages out near these taus (not an IEEE 952 term)")
 
 
-def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
+def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int) -> None:
     """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
     estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
     :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms); for a
@@ -707,14 +709,13 @@ def _add_crb(out_terms: dict, sensor: str, tau0: float, n_phase: int) -> None:
         return
     base, bounded = {}, {}
     for t in R.TERMS4:
-        e = out_terms.get(t)
-        if e is None:
+        c = coefs.get(t)
+        if c is None:
             continue
-        si = SI_UNITS[sensor][t]
-        if e["supported"]:
-            base[t] = e[f"value_{si}"]
-        elif e[f"upper95_{si}"] > 0 and math.isfinite(e[f"upper95_{si}"]):
-            bounded[t] = e[f"upper95_{si}"]
+        if c.resolved:
+            base[t] = c.value
+        elif c.upper95 > 0 and math.isfinite(c.upper95):
+            bounded[t] = c.upper95
     models = [(base, tuple(base))] + [({**base, t: v}, (t,)) for t, v in bounded.items()]
     length = (n_phase - 1) * tau0
     for coeffs, report in models:

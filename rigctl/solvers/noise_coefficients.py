@@ -68,6 +68,23 @@ SI_UNITS = {"gyro": {"Q": "rad", "N": "rad/sqrt(s)", "B": "rad/s", "K": "rad/s/s
                      "R": "rad/s^2"},
             "accel": {"Q": "m/s", "N": "m/s/sqrt(s)", "B": "m/s^2", "K": "m/s^2/sqrt(s)",
                       "R": "m/s^3"}}
+_DEG = 180.0 / math.pi
+G0 = 9.80665  # m/s^2, standard gravity (for mg)
+#: (field unit label, factor from SI) per sensor and term: what reports print
+FIELD_UNITS = {
+    "gyro": {"Q": ("deg", _DEG), "N": ("deg/sqrt(h)", _DEG * 60.0),
+             "B": ("deg/h", _DEG * 3600.0), "K": ("deg/h/sqrt(h)", _DEG * 3600.0 * 60.0),
+             "R": ("deg/h/h", _DEG * 3600.0 ** 2)},
+    "accel": {"Q": ("m/s", 1.0), "N": ("m/s/sqrt(h)", 60.0),
+              "B": ("mg", 1000.0 / G0), "K": ("m/s/h/sqrt(h)", 3600.0 * 60.0),
+              "R": ("m/s/h/h", 3600.0 ** 2)},
+}
+#: IEEE 952 names of the terms per sensor
+TERM_NAMES = {"gyro": {"Q": "angle_quantization", "N": "angle_random_walk",
+                       "B": "bias_instability", "K": "rate_random_walk", "R": "rate_ramp"},
+              "accel": {"Q": "velocity_quantization", "N": "velocity_random_walk",
+                        "B": "bias_instability", "K": "acceleration_random_walk",
+                        "R": "acceleration_ramp"}}
 #: the emulator's profile keys of a ``noise:`` section (unit in the key name) per sensor and term
 CONFIG_KEYS = {
     "gyro": {"Q": "Q_rad", "N": "N_rad_per_s_per_sqrt_hz", "B": "B_rad_per_s",
@@ -269,6 +286,17 @@ def triad_avar(axes: Sequence[NoiseCoefficients], tau_s: ArrayLike) -> NDArray[n
 def terms_of(axes: Sequence[NoiseCoefficients], term: str) -> NDArray[np.float64]:
     """(len(axes),) estimates of one term across axes, SI."""
     return np.array([m.value(term) for m in axes], dtype=np.float64)
+
+
+def in_field_units(m: NoiseCoefficients, term: str) -> tuple[Coefficient, str]:
+    """``term`` of ``m`` (which must know its sensor) in the unit reports print, and that unit."""
+    unit, fac = FIELD_UNITS[m.sensor][term]
+    return getattr(m, term).scaled(fac), unit
+
+
+def as_coefficients(x: NoiseCoefficients | Mapping[str, Any]) -> NoiseCoefficients:
+    """A result's coefficients, live (NoiseCoefficients) or as stored (:func:`to_json`'s form)."""
+    return x if isinstance(x, NoiseCoefficients) else from_json(x)
 
 
 def resolved_values(m: NoiseCoefficients) -> dict[str, float]:

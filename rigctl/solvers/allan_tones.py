@@ -1,0 +1,122 @@
+"""Periodic components (tones) in a static capture, found before the Allan fit (pure functions).
+
+A sinusoid a sin(2 pi f t + phi) in the rate samples y_k = y(k tau0) is not an IEEE 952 term.
+Its overlapping Allan variance at factor m (tau = m tau0), averaged over the phase (the
+overlapping estimator of a long record converges to this), is that of the difference of two
+adjacent m-sample means::
+
+    sigma^2_tone(m) = a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2
+
+(the sampled form of IEEE Std 952-1997 annex C's Omega0^2 (sin^2(pi f0 tau) / (pi f0 tau))^2,
+which it becomes for f tau0 -> 0). f is the frequency as the samples see it: a tone above
+the Nyquist frequency fs/2 of the output is already folded into [0, fs/2] in the samples, and
+the formula holds for the folded frequency (sin^2(pi f tau0) and sin^4(pi f m tau0) are
+unchanged by f -> fs - f and by f -> f + fs). Near fs/2 (a 47.3 Hz vibration at a 100 Hz
+output) the term is ~a^2/m^2 at every odd m and ~0 at every even m, so an octave tau set
+(m = 2^k, all even past m = 1) hardly sees it while a dense set fits it into Q or N.
+
+:func:`detect_tones`: Welch periodogram of the rate samples (Hann window, K segments without
+overlap, constant detrend). For a smooth spectrum S each bin's estimate is S(f) chi2_nu / nu
+with nu = 2 K (independent segments; 50 % overlap would make the tail heavier than the
+Satterthwaite chi-square, and gave 1 % false alarms where 0.1 % were stated). The local level
+is the running median of the PSD over ``LEVEL_BINS`` bins divided by the median of
+chi2_nu / nu (a narrow peak does not move a median; a broad bump raises it, so it is not
+called a tone); the level is itself an estimate, with about nu_l = nu LEVEL_BINS / (2 pi / 2)
+degrees of freedom (a median's efficiency 2/pi, adjacent Hann bins correlated: half as many
+independent ones). A bin is significant when PSD / level exceeds the F(nu, nu_l) quantile
+F.isf(ALPHA / M, nu, nu_l), M the number of bins tested (Bonferroni: under a smooth spectrum
+the probability of any false detection on an axis is at most about ALPHA = 1e-3). Contiguous
+significant bins (within the Hann main lobe, +-``LOBE_BINS``) form one tone; its power is the
+PSD in excess of the level summed over +-LOBE_BINS bins around the highest bin (times the bin
+width), a = sqrt(2 power); its frequency the excess-weighted centroid of those bins. Bins
+within LEVEL_BINS / 2 of 0 Hz and of fs/2 are not tested (no two-sided level there; the red
+noise of B/K lives at the bottom).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.ndimage import median_filter
+from scipy.signal import welch
+from scipy.stats import chi2, f as fdist
+
+#: family-wise false-detection probability per axis under a smooth spectrum
+ALPHA = 1e-3
+#: running-median window of the local level (bins)
+LEVEL_BINS = 129
+#: half-width of a tone's main lobe (Hann: +-2 bins hold 99.9 % of a centred tone's power;
+#: +-4 also hold one that falls between bins, and a slight frequency wander)
+LOBE_BINS = 4
+#: longest Welch segment (samples)
+MAX_SEG = 1 << 16
+#: at most this many tones are reported (the strongest)
+MAX_TONES = 8
+
+
+def tone_avar(tau0: float, m: np.ndarray, freq_hz: float, amp: float) -> np.ndarray:
+    """Overlapping Allan variance of a sampled sinusoid of amplitude ``amp`` (rate units) and
+    frequency ``freq_hz`` at factors ``m`` (tau = m tau0), phase-averaged (see the module
+    docstring). 0 where sin(pi f tau0) = 0 (a tone at 0 or fs: a constant)."""
+    m = np.asarray(m, dtype=float)
+    s1 = math.sin(math.pi * freq_hz * tau0)
+    if abs(s1) < 1e-12:
+        return np.zeros(m.shape)
+    return amp * amp * np.sin(math.pi * freq_hz * m * tau0) ** 4 / (m * s1) ** 2
+
+
+def tones_avar(tau0: float, m: np.ndarray, tones: list[dict]) -> np.ndarray:
+    """The summed :func:`tone_avar` of ``tones`` (dicts with freq_hz and amp_si)."""
+    out = np.zeros(np.shape(m), dtype=float)
+    for t in tones:
+        out += tone_avar(tau0, m, float(t["freq_hz"]), float(t["amp_si"]))
+    return out
+
+
+def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
+    """Tones in the rate samples ``y`` (sample rate ``fs``): see the module docstring.
+    Returns {"tones": [{freq_hz, amp_si, psd_ratio, bins}...] strongest first, "nperseg",
+    "segments", "edf", "threshold_ratio", "bins_tested", "alpha"}; no tones for fewer than
+    16 segments of 4 LEVEL_BINS samples."""
+    y = np.asarray(y, dtype=np.float64)
+    y = y[np.isfinite(y)]
+    out = {"tones": [], "alpha": alpha, "method": "Welch (Hann, no overlap), local median "
+           "level, Bonferroni F test"}
+    nper = MAX_SEG
+    while nper > 4 * LEVEL_BINS and y.size < 16 * nper:
+        nper //= 2
+    if y.size < 16 * nper or nper < 4 * LEVEL_BINS:
+        out["skipped"] = "too few samples for a periodogram"
+        return out
+    f, p = welch(y, fs=fs, window="hann", nperseg=nper, noverlap=0,
+                 detrend="constant", scaling="density")
+    k = y.size // nper
+    nu = 2.0 * k
+    nu_level = nu * LEVEL_BINS / math.pi
+    level = median_filter(p, size=LEVEL_BINS, mode="nearest") / (chi2.median(nu) / nu)
+    half = LEVEL_BINS // 2
+    test = np.zeros(p.size, dtype=bool)
+    test[half: p.size - half] = True
+    n_test = int(np.count_nonzero(test))
+    thr = float(fdist.isf(alpha / max(n_test, 1), nu, nu_level))
+    ratio = np.where(level > 0, p / np.where(level > 0, level, 1.0), 0.0)
+    sig = np.flatnonzero(test & (ratio > thr))
+    out.update({"nperseg": int(nper), "segments": int(k), "edf": nu, "threshold_ratio": thr,
+                "bins_tested": n_test, "bin_hz": float(f[1] - f[0])})
+    df = float(f[1] - f[0])
+    tones = []
+    used = np.zeros(p.size, dtype=bool)
+    for i in sig[np.argsort(-ratio[sig])]:  # strongest first; one tone per main lobe
+        if used[i]:
+            continue
+        a, b = max(0, i - LOBE_BINS), min(p.size, i + LOBE_BINS + 1)
+        used[a:b] = True
+        exc = np.maximum(p[a:b] - level[a:b], 0.0)
+        power = float(exc.sum() * df)
+        if power <= 0:
+            continue
+        tones.append({"freq_hz": float((f[a:b] * exc).sum() / exc.sum()),
+                      "amp_si": math.sqrt(2.0 * power), "psd_ratio": float(ratio[i])})
+    tones.sort(key=lambda t: -t["amp_si"])
+    out["tones"] = tones[:MAX_TONES]
+    return out
