@@ -102,8 +102,9 @@ if LoadScopeScheduling is not None:
 
         An xdist worker runs a test only once it holds the next one (or is told to shut down), so
         a worker counts as done only when it has exited: when the queue reaches the real-time
-        units, each worker that asks for work is shut down except the first one to ask (``_rt``),
-        which gets the real-time units once all the others have been removed."""
+        units, each worker that asks for work is shut down (it runs the tests it holds and exits)
+        while another one still takes work; the last one (``_rt``) gets the real-time units once
+        all the others have been removed, so it holds at most one phase-1 test back meanwhile."""
 
         def __init__(self, config, log=None):
             super().__init__(config, log)
@@ -128,8 +129,11 @@ if LoadScopeScheduling is not None:
             if not self._realtime(next(iter(self.workqueue))):
                 self._assign_work_unit(node)
                 return
-            # phase 2
+            # phase 2: the last worker still taking work runs it; any other one finishes and exits
             if self._rt is None:
+                if any(n is not node and not n.shutting_down for n in self.assigned_work):
+                    node.shutdown()
+                    return
                 self._rt = node
             if node is not self._rt:
                 node.shutdown()
