@@ -47,11 +47,15 @@ def small_fs(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
-# -- parallel runs (opt-in: -n 2 --dist loadfile) ----------------------------------------------
-# A test file is one unit of work, so its module- and session-scoped fixtures (emulated runs,
-# real-data imports) are made once, as in a serial run. Not the default: the wire/HIL/daemon
-# real-time tests (pty floods, 100x-200x rig clocks, kill -9 windows) missed their deadlines with a
-# second worker on a 2-core machine.
+# -- parallel runs: two phases ------------------------------------------------------------------
+# pyproject's addopts start two pytest-xdist workers (-n 2 --dist loadfile) and pytest_xdist_make_scheduler
+# below hands them _TwoPhaseScheduling: a test file is one unit of work (its module- and session-scoped
+# fixtures are made once, as in a serial run). Phase 1: the files not in REALTIME_FILES run on both
+# workers, the slowest first. Phase 2: once every phase-1 file has finished and the other worker has
+# exited, the REALTIME_FILES run one after another on one worker, alone on the cores, as in a serial
+# run: they keep deadlines in wall time (pty floods, 50x-500x rig clocks, kill -9 windows, HTTP
+# load, browsers, terminals) and missed them with a second worker on a 2-core machine. `-n 0` runs
+# everything serially; with the xdist plugin absent (-p no:xdist) the addopts fail, see README.
 
 #: files that share an expensive session-scoped fixture of this conftest: one worker runs them all
 SHARED_FIXTURE_FILES = {
@@ -60,22 +64,121 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
 }
 
-try:
-    from xdist.scheduler import LoadFileScheduling
-except ImportError:  # a venv installed before pytest-xdist joined the test extras
-    LoadFileScheduling = None
+#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running
+REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
+    # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
+    "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
+    "daemon_notify", "daemon_wire", "daemon_wire_config", "daemon_wire_disk", "daemon_wire_memory",
+    "daemon_wire_serve",
+    # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
+    "wire_acl", "wire_imu_errors", "wire_modbus", "wire_novatel", "wire_vectornav",
+    "wire_xsens_identity", "wire_xsens_server", "hil_faults", "hil_pulses_config", "hil_runs",
+    "thermal_wire", "frame_decl",
+    # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
+    "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
+))
 
-if LoadFileScheduling is not None:
-    class _FileScheduling(LoadFileScheduling):
-        """--dist loadfile, with the files of SHARED_FIXTURE_FILES as one unit."""
+_missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
+assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
+
+#: phase-1 files by their CPU seconds (own + subprocesses) in a full run, largest first, so that the
+#: two workers end together (116 s production_batch ... 28 s the full_calibration_run group); the
+#: files not listed (under 15 s each) follow in collection order
+PARALLEL_FIRST: tuple[str, ...] = tuple(f"tests/test_{name}.py" for name in (
+    "production_batch", "cli_hostile", "cal_pose_loop_synth", "calibrate_correlated",
+    "report_quickstart", "calibrate_emulated", "thermal", "daemon_procedures", "capture_memory",
+    "allan_kalibr",
+)) + ("full_calibration_run",)
+
+try:
+    from xdist.scheduler import LoadScopeScheduling
+except ImportError:  # a venv installed before pytest-xdist joined the test extras
+    LoadScopeScheduling = None
+
+if LoadScopeScheduling is not None:
+    class _TwoPhaseScheduling(LoadScopeScheduling):
+        """--dist loadfile (with SHARED_FIXTURE_FILES as one unit) in two phases: the other files
+        on every worker, then REALTIME_FILES on one worker alone.
+
+        An xdist worker runs a test only once it holds the next one (or is told to shut down), so
+        a worker counts as done only when it has exited: when the queue reaches the real-time
+        units, each worker that asks for work is shut down except the first one to ask (``_rt``),
+        which gets the real-time units once all the others have been removed."""
+
+        def __init__(self, config, log=None):
+            super().__init__(config, log)
+            self._rt = None
 
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
             return SHARED_FIXTURE_FILES.get(path, path)
 
+        @staticmethod
+        def _realtime(scope: str) -> bool:
+            return scope in REALTIME_FILES
+
+        def _reschedule(self, node) -> None:
+            if node.shutting_down:
+                return
+            if not self.workqueue:
+                node.shutdown()
+                return
+            if self._pending_of(self.assigned_work[node]) > 2:
+                return
+            if not self._realtime(next(iter(self.workqueue))):
+                self._assign_work_unit(node)
+                return
+            # phase 2
+            if self._rt is None:
+                self._rt = node
+            if node is not self._rt:
+                node.shutdown()
+                return
+            if len(self.assigned_work) > 1:  # another worker is still finishing its phase-1 files
+                return
+            while self.workqueue and self._pending_of(self.assigned_work[node]) <= 2:
+                self._assign_work_unit(node)
+
+        def remove_node(self, node):
+            crashitem = super().remove_node(node)
+            if node is self._rt:
+                self._rt = None  # crashed: the next worker to ask takes phase 2
+                for other in list(self.assigned_work):
+                    self._reschedule(other)
+            elif self._rt is not None and self._rt in self.assigned_work:
+                self._reschedule(self._rt)
+            return crashitem
+
+        def schedule(self) -> None:
+            assert self.collection_is_completed
+            if self.collection is not None:
+                for node in self.nodes:
+                    self._reschedule(node)
+                return
+            if not self._check_nodes_have_same_collection():
+                self.log("**Different tests collected, aborting run**")
+                return
+            self.collection = list(next(iter(self.registered_collections.values())))
+            if not self.collection:
+                return
+            units: dict[str, dict[str, bool]] = {}
+            for nodeid in self.collection:
+                units.setdefault(self._split_scope(nodeid), {})[nodeid] = False
+            rank = {f: i for i, f in enumerate(PARALLEL_FIRST)}
+            order = sorted(units, key=lambda u: (self._realtime(u), rank.get(u, len(rank))))
+            for scope in order:
+                self.workqueue[scope] = units[scope]
+            for _ in range(max(0, len(self.nodes) - len(self.workqueue))):
+                unused, _ = self.assigned_work.popitem()
+                unused.shutdown()
+            for node in self.nodes:
+                self._reschedule(node)
+            for node in self.nodes:
+                self._reschedule(node)
+
     @pytest.hookimpl(optionalhook=True)
     def pytest_xdist_make_scheduler(config, log):
-        return _FileScheduling(config, log) if config.getoption("dist") == "loadfile" else None
+        return _TwoPhaseScheduling(config, log) if config.getoption("dist") == "loadfile" else None
 
 
 _SUMMARY: list[str] = []
