@@ -9,9 +9,11 @@ axis: position, rate, acceleration, status word, controller time in ms).
 Settling: the status words are passed through unchanged (``TARGET_REACHED`` / ``AT_RATE`` from the
 controller's own window and dwell); the engine adds its measured-window check and hold time.
 
-Time: ``TableState.time`` = controller time + an offset fixed at connect time from the probe with
-the shortest round trip (offset = midpoint of the round trip on the rig clock - controller time),
-so table times are on the run's time base but tick with the controller's clock.
+Time: ``TableState.time`` = controller time + an offset (rig clock when a probe's reply arrived -
+controller time) taken as the lower envelope over the 8 probes at connect and every
+``read`` after (:mod:`rigctl.drivers.probe_offset`: a stale controller time at connect is
+corrected by the first on-time read), so table times are on the run's time base but tick with the
+controller's clock.
 
 Errors: ``ERR -221`` (interlock open / fault / wrong mode) raises :class:`rigctl.devices.DeviceFault`;
 ``ERR -222`` (out of range) raises ValueError; a reply timeout raises
@@ -34,6 +36,7 @@ from rigctl.config import TableLimits
 from rigctl.devices import Clock, DeviceFault, LinkLost, TableState
 
 from .acl import AclCode, AclError, parse_read_all, parse_reply
+from .probe_offset import ProbeOffset
 from .serial_link import BadReply, LineReader, ReplyTimeout, SerialLink
 
 log = logging.getLogger(__name__)
@@ -62,7 +65,7 @@ class AclTable:
         self.close_interlocks, self.open_interlocks_on_stop = close_interlocks, open_interlocks_on_stop
         self.counters = AclCounters()
         self.idn = ""
-        self.time_offset = 0.0
+        self.time_base = ProbeOffset(name)
         self._dirty = False
 
     # ------------------------------------------------------------------------- transport
@@ -154,15 +157,14 @@ class AclTable:
         self.command(*parts)
         if self.close_interlocks:
             self.command(":INTERLOCK:CLOSE ALL")
-        best = math.inf
         for _ in range(8):
             t0 = self.clock.now()
             snap = self._read_all()
             t1 = self.clock.now()
-            if t1 - t0 < best:
-                best, self.time_offset = t1 - t0, 0.5 * (t0 + t1) - snap[0][4] * 1e-3
+            self.time_base.probe(t0, t1, snap[0][4] * 1e-3)
+        self.time_base.connected()
         log.info("%s: %s on %s; controller time offset %.6f s (probe round trip %.3g s)", self.name,
-                 self.idn, self.link.url, self.time_offset, best)
+                 self.idn, self.link.url, self.time_base.offset, self.time_base.best_rtt)
 
     def close(self) -> None:
         self.link.close()
@@ -211,9 +213,17 @@ class AclTable:
                     raise BadReply(self.name, f"bad reply to {line!r}: {exc}") from exc
         raise AssertionError("unreachable")
 
+    @property
+    def time_offset(self) -> float:
+        """Controller time -> run time offset, s (:mod:`rigctl.drivers.probe_offset`)."""
+        return self.time_base.offset or 0.0
+
     def read(self) -> TableState:
+        t0 = self.clock.now()
         snaps = self._read_all()
-        return TableState(time=snaps[0][4] * 1e-3 + self.time_offset,
+        t1 = self.clock.now()
+        self.time_base.probe(t0, t1, snaps[0][4] * 1e-3)
+        return TableState(time=self.time_base.stamp(snaps[0][4] * 1e-3),
                           angle=np.array([s[0] for s in snaps]) * DEG,
                           rate=np.array([s[1] for s in snaps]) * DEG,
                           status=tuple(int(s[3]) for s in snaps))  # type: ignore[arg-type]

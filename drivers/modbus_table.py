@@ -15,8 +15,8 @@ following error, fault code, sequence, sample time). Settling comes from the sta
 (TARGET_REACHED / AT_RATE, the controller's window and dwell, optionally set with ``window_deg``
 / ``dwell_s``) plus the engine's measured-window check.
 
-Time: ``TableState.time`` = controller sample time (IR B+12..13, ms) + an offset fixed at connect
-from the shortest-round-trip probe, as in :mod:`rigctl.drivers.acl_table`.
+Time: ``TableState.time`` = controller sample time (IR B+12..13, ms) + an offset kept on the lower
+envelope of the probes at connect and of every ``read``, as in :mod:`rigctl.drivers.acl_table`.
 
 Errors: no reply within ``timeout_s`` -> :class:`~rigctl.drivers.serial_link.ReplyTimeout`
 naming the request (the client is closed and reopened, with backoff, on the next call); a refused
@@ -41,6 +41,7 @@ from rigctl.devices import Clock, DeviceFault, LinkLost, TableState
 
 from .modbus_map import (AXIS_BLOCK, SCALE_ACCEL, SCALE_POSITION, SCALE_RATE, AxisInputs, ControlBit,
                          FaultCode, Mode, decode_32, encode_32, to_counts)
+from .probe_offset import ProbeOffset
 from .serial_link import Backoff, ReplyTimeout
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,7 @@ class ModbusTable:
         self.client = None
         self.backoff = Backoff()
         self.counters = ModbusCounters()
-        self.time_offset = 0.0
+        self.time_base = ProbeOffset(name)
         self._opened = 0
 
     # ------------------------------------------------------------------------- transport
@@ -179,15 +180,14 @@ class ModbusTable:
                 dwell = int(round(self.dwell_s * 1e3)) if self.dwell_s is not None else int(cur[2])
                 self._write(b + 10, win + [dwell], f"axis {ax} in-position window")
             self._write(b, [RUN], f"axis {ax} servo on")
-        best = math.inf
         for _ in range(8):
             t0 = self.clock.now()
             ai = self._inputs(1)
             t1 = self.clock.now()
-            if t1 - t0 < best:
-                best, self.time_offset = t1 - t0, 0.5 * (t0 + t1) - ai.sample_time
+            self.time_base.probe(t0, t1, ai.sample_time)
+        self.time_base.connected()
         log.info("%s: %s, controller time offset %.6f s (probe round trip %.3g s)", self.name, self.where,
-                 self.time_offset, best)
+                 self.time_base.offset, self.time_base.best_rtt)
 
     def close(self) -> None:
         client, self.client = self.client, None
@@ -230,11 +230,20 @@ class ModbusTable:
             self._write(100 * ax, [RUN | ControlBit.FAULT_RESET], f"axis {ax} fault reset")
             self._write(100 * ax, [RUN], f"axis {ax} servo on")
 
+    @property
+    def time_offset(self) -> float:
+        """Controller time -> run time offset, s (:mod:`rigctl.drivers.probe_offset`)."""
+        return self.time_base.offset or 0.0
+
     def read(self) -> TableState:
         if self.watchdog_ms:
             self._call("watchdog kick", "write_register", 2, 1)
-        snaps = [self._inputs(ax) for ax in (1, 2, 3)]
-        return TableState(time=snaps[0].sample_time + self.time_offset,
+        t0 = self.clock.now()
+        snaps = [self._inputs(1)]
+        t1 = self.clock.now()
+        snaps += [self._inputs(ax) for ax in (2, 3)]
+        self.time_base.probe(t0, t1, snaps[0].sample_time)
+        return TableState(time=self.time_base.stamp(snaps[0].sample_time),
                           angle=np.array([s.position for s in snaps]), rate=np.array([s.rate for s in snaps]),
                           status=tuple(int(s.status) for s in snaps))  # type: ignore[arg-type]
 

@@ -20,7 +20,11 @@ Time base (units s): ``ImuBlock.counter = round((t_dev - t_dev_first) * rate_hz)
 samples that never arrived: ``dropped_samples``); a frame whose device time does not advance is
 rejected (``out_of_order``); ``ImuBlock.time = t_dev + offset`` with the offset learnt while the
 stream starts as the minimum over arriving chunks of (rig clock at arrival - t_dev of the newest
-sample), then frozen.
+sample), and kept tracking that minimum (the lower envelope of the latencies) for the rest of the
+run when it falls by more than 20 ms of wall time (in rig time): a late chunk can only raise the
+estimate, so a stall that spans the learning window at connect is corrected by the first timely
+chunk (``offset_corrections``; samples that the lower offset would stamp at or before one already
+handed out are dropped, ``restamp_dropped``).
 """
 from __future__ import annotations
 
@@ -63,6 +67,9 @@ class StreamReader(ReconnectingReader):
 
     _learning = False
     _chunks = 0
+    offset_corrections = 0
+    restamp_dropped = 0
+    _last_stamp: float | None = None
 
     def connect(self) -> None:
         """Start the reader thread; return once the device streams (raise if it cannot)."""
@@ -88,6 +95,44 @@ class StreamReader(ReconnectingReader):
     def _latest_run_time(self) -> float | None:  # pragma: no cover - subclass duty
         """Run time of the newest stored sample (None before the first)."""
         raise NotImplementedError
+
+    def _track_offset(self, est: float) -> None:
+        """Lower ``offset`` to ``est`` (arrival - newest device time of a chunk) if smaller.
+
+        The offset is the lower envelope of the chunks' apparent latencies, kept up for the whole
+        run, not only over the learning window: a chunk that arrives late (the device or the
+        emulator stalled, the host was busy) can only make the estimate larger, so one stall that
+        covers the whole learning window at connect would otherwise put every stamp of the run
+        late by the stall. After the learning window the offset is lowered only by more than
+        :meth:`_correction_min_s` (20 ms of wall time in rig time): a lowering drops the samples
+        it would stamp before one already handed out, and a counter gap pauses the run, so the
+        ordinary jitter of the window's minimum (a few ms of wall time) stays as before. A
+        lowering after the window is counted (``offset_corrections``) and logged."""
+        if self.offset is None:
+            self.offset = est
+        elif self._learning:
+            self.offset = min(self.offset, est)
+        elif self.offset - est > self._correction_min_s():
+            self.offset_corrections += 1
+            log.warning("%s: time offset lowered by %.6f s (the chunks of the learning window arrived "
+                        "late)", self.name, self.offset - est)
+            self.offset = est
+
+    def _correction_min_s(self) -> float:
+        """Smallest lowering of the offset applied after the learning window, s of rig time: 20 ms
+        of wall time (2 s at 100x), at least two sample periods."""
+        return max(0.02 * float(getattr(self.clock, "speed", 1.0)), 2.0 / self.rate_hz)
+
+    def _monotone(self, stamp: np.ndarray) -> np.ndarray:
+        """Mask of the stamps after the last one handed out (and remember the newest): after the
+        offset was lowered, samples that would be stamped at or before a sample already handed out
+        are dropped and counted (``restamp_dropped``), so ``ImuBlock.time`` keeps increasing."""
+        last = self._last_stamp
+        keep = np.ones(stamp.size, dtype=bool) if last is None else stamp > last
+        self.restamp_dropped += int(stamp.size - np.count_nonzero(keep))
+        if keep.any():
+            self._last_stamp = float(stamp[keep][-1])
+        return keep
 
     def _finish_configure(self, no_frames: str) -> None:
         """After the device was configured: on the first configuration learn the offset for
@@ -244,9 +289,8 @@ class StreamImu(StreamReader):
         elif t.size:
             if self._t0 is None:
                 self._t0 = float(t[0])
-            if arrival is not None and self._learning:
-                est = arrival - float(t[-1])
-                self.offset = est if self.offset is None else min(self.offset, est)
+            if arrival is not None and (self._learning or self.offset is not None):
+                self._track_offset(arrival - float(t[-1]))
             self._append(t, acc, gyr, temp)
         if self._held is not None and (arrival is None or arrival >= self._held_until):
             self._release_held()
@@ -341,6 +385,9 @@ class StreamImu(StreamReader):
             with self._cond:
                 self._pending.insert(0, (t[cut:], acc[cut:], gyr[cut:], temp[cut:]))
             t, acc, gyr, temp, stamp = t[:cut], acc[:cut], gyr[:cut], temp[:cut], stamp[:cut]
+        keep = self._monotone(stamp)
+        if not keep.all():
+            t, acc, gyr, temp, stamp = t[keep], acc[keep], gyr[keep], temp[keep], stamp[keep]
         counter = np.maximum(np.rint((t - (self._t0 or 0.0)) * self.rate_hz), 0).astype(np.uint64)
         return ImuBlock(time=stamp, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
 
@@ -358,7 +405,8 @@ class StreamImu(StreamReader):
     def counters(self) -> dict:
         d = asdict(self.stream.counters)
         d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
-                 device_restarts=self.device_restarts,
+                 device_restarts=self.device_restarts, offset_corrections=self.offset_corrections,
+                 restamp_dropped=self.restamp_dropped,
                  incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d

@@ -21,8 +21,11 @@ Time base (units s):
   (dropped on the line or lost during a disconnect);
 * ``ImuBlock.time = t_dev + offset``, the offset learnt while the stream starts (``learn_s`` of
   wall time) as the minimum over arriving chunks of (rig clock at arrival - t_dev of the newest
-  sample in the chunk), i.e. the minimum-latency estimate, then frozen; IMU times are therefore
-  on the run's time base with an error of about the smallest transport latency.
+  sample in the chunk), i.e. the minimum-latency estimate, and kept tracking that lower envelope
+  for the rest of the run (a stall across the learning window is corrected by the first timely
+  chunk: ``offset_corrections``; samples it would stamp at or before one already handed out are
+  dropped, ``restamp_dropped``); IMU times are therefore on the run's time base with an error of
+  about the smallest transport latency.
 
 ``read`` first waits (at most ``align_wait_s`` of wall time) until the newest sample is within 1.5
 sample periods of the rig clock or, failing that, until the next chunk of data has arrived, so
@@ -165,9 +168,8 @@ class XsensImu(StreamReader):
         stf = batch.sample_time_fine
         if self._stf0 is None and (stf >= 0).any():
             self._stf0 = int(stf[stf >= 0][0])
-        if arrival is not None and self._learning and stf.size and stf[-1] >= 0:
-            est = arrival - stf[-1] / SAMPLE_TIME_FINE_HZ
-            self.offset = est if self.offset is None else min(self.offset, est)
+        if arrival is not None and (self._learning or self.offset is not None) and stf.size and stf[-1] >= 0:
+            self._track_offset(arrival - stf[-1] / SAMPLE_TIME_FINE_HZ)
         with self._cond:
             self._pending.append(batch)
             if stf.size and stf[-1] >= 0:
@@ -292,6 +294,9 @@ class XsensImu(StreamReader):
         counter = np.rint((stf - (self._stf0 or 0)) / self.ticks_per_sample).astype(np.int64)
         counter = np.maximum(counter, 0).astype(np.uint64)
         time_s = stf / SAMPLE_TIME_FINE_HZ + (self.offset or 0.0)
+        keep = self._monotone(time_s)
+        if not keep.all():
+            time_s, counter, acc, gyr, temp = time_s[keep], counter[keep], acc[keep], gyr[keep], temp[keep]
         return ImuBlock(time=time_s, counter=counter, specific_force=acc, angular_rate=gyr, temperature=temp)
 
     # --------------------------------------------------------------------------- status
@@ -299,7 +304,8 @@ class XsensImu(StreamReader):
     def counters(self) -> dict:
         """Decoder and link diagnostics (totals since connect)."""
         d = asdict(self.stream.counters)
-        d.update(incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
+        d.update(incomplete_frames=self.incomplete_frames, offset_corrections=self.offset_corrections,
+                 restamp_dropped=self.restamp_dropped, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
 

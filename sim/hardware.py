@@ -31,7 +31,8 @@ setting ``hw.xsens.device_id`` and pulling the cable (:meth:`Hardware.disconnect
 
 Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall`,
 :meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`, :meth:`trip_interlock`,
-:meth:`trip_following_error`, :meth:`clear_fault` (the operator at the table), :meth:`inject`.
+:meth:`trip_following_error`, :meth:`clear_fault` (the operator at the table), :meth:`inject`,
+:meth:`pause_physics` (the hardware loop stands still, as when starved of CPU).
 Observation (side channel, for tests): ``acl.core.received`` (request lines with wall times),
 ``xsens.measurement_starts`` and, with ``imu_keep_sent=N``, ``xsens.sent`` (the last N batches of
 IMU frames put on the wire, with wall times and their float32 values).
@@ -372,6 +373,7 @@ class Hardware:
         self._threads: list[threading.Thread] = []
         self.pulse_period_s = pulse_period_s
         self._next_pulse = 0.0
+        self._paused_until = 0.0
         self.imu_keep_sent = int(imu_keep_sent)
         try:
             self._build(acl_tcp_port, modbus_tcp_port, imu_max_rate_hz, seed)
@@ -480,6 +482,8 @@ class Hardware:
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
+            if time.monotonic() < self._paused_until:
+                continue
             try:
                 with self.lock:
                     self.world_clock.cap = self.table._t() + chunk_s
@@ -534,6 +538,13 @@ class Hardware:
         """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late."""
         target = {"acl": self.acl.core, "modbus": self.modbus}[device]
         target.stall_s, target.stall_replies = float(seconds), int(replies)
+
+    def pause_physics(self, wall_s: float) -> None:
+        """The hardware loop stops for ``wall_s`` of wall time (``wall_s * speed`` of rig time), as
+        when it is starved of CPU: the world, the table's controller time and the IMU stream
+        stand still while the ports keep answering (table reads see the state of the last tick);
+        then it catches up."""
+        self._paused_until = time.monotonic() + float(wall_s)
 
     def drop_replies(self, n: int = 1) -> None:
         """The ACL table swallows its next ``n`` replies (Modbus: use :meth:`stall` beyond the

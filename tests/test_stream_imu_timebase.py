@@ -86,4 +86,55 @@ def test_a_restart_keeps_the_time_base_and_no_stamp_leads_its_arrival(tmp_path) 
     np.testing.assert_allclose(stamps[:20] - true[:20], 0.005, atol=2e-6)
     np.testing.assert_allclose(stamps[20:] - true[20:], lat1[window].min(), atol=2e-6)
     assert lat1[window].min() < 0.02
+    # later chunks as fast as 5 ms lower the offset by less than the correction threshold (20 ms
+    # of wall time): it stays, and no sample is dropped
+    assert lat1.min() == 0.005 and c["offset_corrections"] == 0
+    assert c["restamp_dropped"] == 0
+    imu.close()
+
+
+def test_a_stall_across_the_learning_window_is_corrected_by_the_first_timely_chunk(tmp_path) -> None:
+    """The emulator (or the host) stalls while the driver connects: every chunk of the learning
+    window arrives 2 s (rig time) after its newest sample. The old driver froze the offset at the
+    window's minimum (2 s too large: every stamp of the run 2 s late, so each sampling window
+    held the previous table position); the lower envelope corrects it with the first chunk that
+    arrives on time, and the samples the correction would stamp at or before one already handed
+    out are dropped (counted), so the time base keeps increasing."""
+    spec = parse_frame_spec(LocDict({"frame": EXAMPLE}))
+    clock = HandClock()
+    imu = FrameImu(str(tmp_path / "no-port"), spec, RATE, clock, align_wait_s=0.0, learn_s=0.2)
+    got = []
+
+    def chunk(k0: int, latency_s: float, read: bool = True) -> None:
+        k = np.arange(k0, k0 + 2)
+        clock.t = k[-1] / RATE + latency_s
+        imu._feed(_frames(spec, k, 50.0 + k / RATE))             # device time = true time + 50 s
+        if read:
+            b = imu.read()
+            got.append((b.time, b.counter))
+
+    imu._learning = True
+    for i in range(10):                                         # the stall: 2.00 .. 2.09 s late
+        chunk(2 * i, 2.0 + 0.01 * i, read=False)
+    imu._learning = False
+    assert abs(imu.offset - (2.0 - 50.0)) < 1e-9              # what the window alone gives
+    b = imu.read()                                              # samples 0..19, stamped true + 2 s
+    got.append((b.time, b.counter))
+    # the emulator catches up: the backlog arrives in 2-sample chunks with the latency falling
+    # from 1.9 s to 5 ms, then the stream runs on time (5..8 ms) up to sample 399
+    lat = np.r_[np.linspace(1.9, 0.005, 20), np.full(80, 0.008), 0.005, np.full(89, 0.007)]
+    for j, x in enumerate(lat):
+        chunk(20 + 2 * j, float(x))
+    stamps = np.concatenate([g[0] for g in got])
+    counters = np.concatenate([g[1] for g in got]).astype(int)
+    true = counters / RATE                                      # sample k taken at k / RATE
+    assert np.all(np.diff(stamps) > 0)                          # never goes back
+    # handed out: the 20 samples read during the stall (2 s late), then, once the offset is right
+    # (true time + the 5 ms minimum latency), only samples stamped after 0.19 + 2.0 s: k >= 219
+    np.testing.assert_array_equal(counters, np.r_[0:20, 219:400])
+    np.testing.assert_allclose(stamps[:20] - true[:20], 2.0, atol=2e-6)
+    np.testing.assert_allclose(stamps[20:] - true[20:], 0.005, atol=2e-6)
+    c = imu.counters
+    assert c["offset_corrections"] >= 1 and c["restamp_dropped"] == 219 - 20
+    assert c["dropped_samples"] == 0                            # no sample was lost on the way
     imu.close()
