@@ -64,7 +64,9 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
 }
 
-#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running
+#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running.
+#: A new test file on ptys, TCP devices, a scaled or real clock, subprocess daemons or wall-clock
+#: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
     "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
@@ -73,7 +75,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
     "wire_acl", "wire_imu_errors", "wire_modbus", "wire_novatel", "wire_vectornav",
     "wire_xsens_identity", "wire_xsens_server", "hil_faults", "hil_pulses_config", "hil_runs",
-    "thermal_wire", "frame_decl",
+    "thermal_wire", "frame_decl", "hil_time_offsets",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
     "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
 ))
