@@ -258,6 +258,22 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
                         label=f"{term} < {ub * ffac:.3g} {unit_f} (bound)")
     if coeff:
         ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
+    tones = (fit.get("tones") or {}).get("terms") or []
+    if tones and tau.size and tau.min() > 0:
+        # the tones' Allan term exists at the curve's own taus (m tau0) only, and oscillates
+        # with m: drawn there, with the total it is part of in the fitted model
+        from .solvers import allan_tones as TN
+
+        tau0 = float(fit["tones"].get("tau0_s") or tau.min())
+        m = np.maximum(1.0, np.round(tau / tau0))
+        t2 = TN.tones_avar(tau0, m, tones)
+        keep = t2 > 0
+        freqs = ", ".join(f"{t['freq_hz']:.4g}" for t in tones)
+        ax.plot(tau[keep], np.sqrt(t2[keep]) * fac, "x", ms=3, color="tab:purple",
+                label=f"tones ({freqs} Hz)")
+        tot_t = F.design_matrix(tau) @ np.array([float(coeff.get(t) or 0.0) for t in F.TERMS]) + t2
+        ax.plot(tau, np.sqrt(tot_t) * fac, "-", color="tab:purple", lw=0.8,
+                label="fitted total with tones")
     check = fit.get("check") or {}
     marked = np.zeros(tau.size, dtype=bool)
     for o in check.get("outside") or []:

@@ -64,7 +64,9 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
 }
 
-#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running
+#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running.
+#: A new test file on ptys, TCP devices, a scaled or real clock, subprocess daemons or wall-clock
+#: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
     "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
@@ -73,7 +75,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
     "wire_acl", "wire_imu_errors", "wire_modbus", "wire_novatel", "wire_vectornav",
     "wire_xsens_identity", "wire_xsens_server", "hil_faults", "hil_pulses_config", "hil_runs",
-    "thermal_wire", "frame_decl",
+    "thermal_wire", "frame_decl", "hil_time_offsets",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
     "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
 ))
@@ -102,8 +104,9 @@ if LoadScopeScheduling is not None:
 
         An xdist worker runs a test only once it holds the next one (or is told to shut down), so
         a worker counts as done only when it has exited: when the queue reaches the real-time
-        units, each worker that asks for work is shut down except the first one to ask (``_rt``),
-        which gets the real-time units once all the others have been removed."""
+        units, each worker that asks for work is shut down (it runs the tests it holds and exits)
+        while another one still takes work; the last one (``_rt``) gets the real-time units once
+        all the others have been removed, so it holds at most one phase-1 test back meanwhile."""
 
         def __init__(self, config, log=None):
             super().__init__(config, log)
@@ -128,8 +131,11 @@ if LoadScopeScheduling is not None:
             if not self._realtime(next(iter(self.workqueue))):
                 self._assign_work_unit(node)
                 return
-            # phase 2
+            # phase 2: the last worker still taking work runs it; any other one finishes and exits
             if self._rt is None:
+                if any(n is not node and not n.shutting_down for n in self.assigned_work):
+                    node.shutdown()
+                    return
                 self._rt = node
             if node is not self._rt:
                 node.shutdown()

@@ -108,3 +108,46 @@ def test_white_noise_N_recovered_with_and_without_tone(tmp_path: Path, monkeypat
             np_ = fp["coefficients"].N
             half = 0.5 * (np_.ci95[1] - np_.ci95[0])
             assert abs(fit["coefficients"].N.value - np_.value) > half
+
+
+def test_fit_terms_carries_the_tone_term() -> None:
+    """The pure fit: an exact curve N^2/tau + the tone's term at every m (computed here in
+    numpy) gives N back with the tone, and without it a spurious slope -1 term or a biased N."""
+    from rigctl.solvers import allan_fit as F
+
+    tau0 = 1.0 / FS
+    m = np.unique(np.round(np.logspace(0, 3, 120))).astype(float)
+    tau = m * tau0
+    tone = AMP ** 2 * np.sin(np.pi * F_TONE * m * tau0) ** 4 / (m * np.sin(np.pi * F_TONE * tau0)) ** 2
+    adev = np.sqrt(N_TRUE ** 2 / tau + tone)
+    edf = np.full(m.size, 1e4)
+    with_t = F.fit_terms(tau, adev, edf, "gyro", tau0=tau0,
+                         tones=[{"freq_hz": F_TONE, "amp_si": AMP}])
+    assert abs(with_t["coefficients"].N.value / N_TRUE - 1.0) < 1e-3
+    assert not with_t["coefficients"].Q.resolved
+    assert with_t["tones"]["max_share"] > 0.1 and with_t["tones"]["tau0_s"] == tau0
+    without = F.fit_terms(tau, adev, edf, "gyro", tau0=tau0)
+    assert without["coefficients"].Q.resolved or \
+        abs(without["coefficients"].N.value / N_TRUE - 1.0) > 1e-2
+
+
+def test_plot_draws_the_tones(tmp_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rigctl.report_plots import draw_allan_axis
+
+    n = 360_000
+    rng = np.random.default_rng(8)
+    y = rng.standard_normal((n, 3)) * N_TRUE * math.sqrt(FS)
+    y += AMP * np.sin(2 * np.pi * F_TONE * np.arange(n) / FS)[:, None]
+    rec = write_recording(tmp_path / "t.h5", FS, angular_rate=y, specific_force=y)
+    r = AL.compute(str(rec), ["gx"], "all")["axes"]["gx"]
+    fig, ax = plt.subplots()
+    draw_allan_axis(ax, r["tau_s"], r[f"adev_{r['_unit']}"], r["fit"], "gyro", r["_unit"],
+                    float(r[f"adev_{r['_unit']}"][0] / r[f"adev_{r['_si']}"][0]), "gx")
+    labels = ax.get_legend_handles_labels()[1]
+    plt.close(fig)
+    assert "tones (47.3 Hz)" in labels and "fitted total with tones" in labels

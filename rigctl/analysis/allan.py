@@ -947,7 +947,7 @@ def tone_notes(r: dict[str, Any]) -> list[str]:
     return [f"{len(got)} tone(s) in the samples ({fs}; Welch periodogram, PSD more than "
             f"{tn['threshold_ratio']:.3g}x the local level, false-alarm probability "
             f"{tn['alpha']:g} per axis){share}: a tone is not an IEEE 952 term, so its Allan "
-            "term a^2 sin^4(pi f tau) / (m sin(pi f tau0))^2 (amplitude from the spectrum) "
+            "term a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2 (amplitude from the spectrum) "
             "is part of the fitted model"]
 
 

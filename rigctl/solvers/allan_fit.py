@@ -254,7 +254,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
         out = _fit_terms(tau, adev_rest, edf, sensor, terms, tau0, n_phase, max_taus,
                          iterations, select)
         i = int(np.nanargmax(share)) if share.size else 0
-        out["tones"] = {"terms": [dict(t) for t in tones],
+        out["tones"] = {"terms": [dict(t) for t in tones], "tau0_s": float(tau0),
                         "max_share": float(share[i]) if share.size else 0.0,
                         "max_share_tau_s": float(tau[i]) if share.size else float("nan"),
                         "taus_dropped": int(np.count_nonzero(~(rest > 0)))}
