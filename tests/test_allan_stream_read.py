@@ -245,3 +245,46 @@ def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
     for a in got[False]:
         assert np.array_equal(got[False][a][0], got[True][a][0])
         assert np.array_equal(got[False][a][1], got[True][a][1])
+
+
+def test_early_tones_same_as_after_the_last_chunk(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The tone detection on the head (rigctl.analysis.allan.EARLY_TONES), taken with the early
+    noise IDs while the record still streams, gives the tones and fit the analysis gets when it
+    runs the periodogram after the last chunk, and the early result is the one used."""
+    n, fs = 160_000, 200.0
+    rng = np.random.default_rng(7)
+    t = np.arange(n) / fs
+    g = rng.standard_normal((n, 3)) * 1e-3
+    g[:, 0] += 2e-3 * np.sin(2 * np.pi * 13.7 * t)  # a tone on gx, well above the noise
+    a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
+    rec = tmp_path / "tone.h5"
+    write_recording(rec, fs, angular_rate=g, specific_force=a, chunk_rows=8192)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)  # complete within the third chunk
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    cached = []
+    orig = AA.analyse_axis
+
+    def spy(stream, *args):
+        cached.append(stream._tones is not None)
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", spy)
+    got = {}
+    for early in (False, True):
+        monkeypatch.setattr(AA, "EARLY_TONES", early)
+        got[early] = AA.compute(str(rec), ["gx", "gy", "az"], 95)["axes"]
+    assert cached == [False] * 3 + [True] * 3
+    tones = got[True]["gx"]["tones"]["tones"]
+    assert tones and abs(tones[0]["freq_hz"] - 13.7) < 0.2  # the injected tone was looked for
+    assert got[True]["gx"]["tones"]["samples_used"] == 50_000 - 1  # the head: x[0] = 0 + 49999
+    for ax in got[False]:
+        assert got[False][ax]["tones"] == got[True][ax]["tones"], ax
+        u, w = _flat(got[False][ax]), _flat(got[True][ax])
+        assert u.keys() == w.keys()
+        for k, v in u.items():
+            if k == "fit":  # (to rounding, as above: BLAS)
+                assert np.allclose(v, w[k], rtol=1e-9, atol=0, equal_nan=True), ax
+            else:
+                assert (np.array_equal(v, w[k]) if isinstance(v, np.ndarray) else v == w[k]), (ax, k)

@@ -57,6 +57,10 @@ FUSED = True
 #: the noise IDs read from the full-resolution head are taken while the rest of the record
 #: streams (False: all of them in the analysis after the last chunk; the same values)
 EARLY_NOISE_ID = True
+#: with them (same task), the tone detection's periodogram of the head (TONE_POINTS samples
+#: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
+#: in the analysis; the same values)
+EARLY_TONES = True
 
 
 class _AxisStream:
@@ -82,6 +86,7 @@ class _AxisStream:
         self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
         self._nid: dict[tuple[int, int], int] = {}  # noise IDs taken early (head_noise_ids)
+        self._tones: dict[str, Any] | None = None  # tone detection taken early (head_noise_ids)
         self._dec = np.empty(n_rate // self.dec + 1)
         self._dec[0] = 0.0  # x[0] = 0
         self.n_dec = 1
@@ -280,6 +285,14 @@ class _AxisStream:
                 self._nid[(m, n)] = NID.noise_id(self._head[: self.n_head], m, "oadev", n)
             except (ValueError, ArithmeticError):
                 pass  # left to the analysis, which reports it as before
+        if EARLY_TONES:
+            self._tones = _detect_tones(self)
+
+    def tone_detection(self) -> dict[str, Any]:
+        """The periodogram's tone detection (:func:`_detect_tones`): taken early with the
+        head's noise IDs (the head no longer changes), else now."""
+        out, self._tones = self._tones, None
+        return out if out is not None else _detect_tones(self)
 
 
 def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: float,
@@ -353,16 +366,23 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
 TONE_POINTS = 1 << 21
 
 
-def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
-    """Tones in the axis' rate samples (the full-resolution head of the phase, its first
-    TONE_POINTS samples), :func:`rigctl.solvers.allan_tones.detect_tones`;
-    each tone's amplitude also in the deviation's field unit, and the Allan term it adds."""
+def _detect_tones(stream: _AxisStream) -> dict[str, Any]:
+    """:func:`rigctl.solvers.allan_tones.detect_tones` on the axis' rate samples (the
+    full-resolution head of the phase, its first TONE_POINTS samples), SI."""
     x = stream._head[: min(stream.n_head, TONE_POINTS + 1)]
     if x.size < 2:
         return {"tones": [], "skipped": "no samples"}
     tau0 = stream.tau0
     out = TN.detect_tones(np.diff(x) / tau0, 1.0 / tau0)
     out["samples_used"] = int(x.size - 1)
+    return out
+
+
+def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
+    """Tones in the axis' rate samples (:func:`_detect_tones`, taken early when the head was
+    complete before the last chunk); each tone's amplitude also in the deviation's field
+    unit, and the Allan term it adds."""
+    out = stream.tone_detection()
     unit, fac = DEV_UNITS[sensor]
     for t in out["tones"]:
         t[f"amp_{unit}"] = t["amp_si"] * fac
