@@ -470,64 +470,83 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
         if n < MIN_SAMPLES:
             raise InputError(f"{path}: only {n} IMU samples; need at least {MIN_SAMPLES} "
                              "for an Allan analysis (record longer)")
-        tau0 = 1.0 / fs
-        found = find_gaps(f, s0, s1, fs)
-        missing = sum(m for _, m in found)
-        gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
-                    "largest_samples": int(max((m for _, m in found), default=0)),
-                    "rows": [int(g) for g, _ in found[:20]]}
-        if found and gaps == "refuse":
-            big = max(found, key=lambda g: g[1])
-            a, b = longest_stretch(found, s0, s1)
-            raise InputError(
-                f"{path}: {missing} samples missing in {len(found)} gap(s) in the analysed range "
-                f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
-                f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
-                "spaced samples and rigctl does not bridge gaps on its own",
-                hint=f"--gaps skip leaves out every Allan term that touches a gap "
-                     f"(Stable32); --gaps longest analyses the longest gap-free stretch ({b - a} samples, "
-                     f"{(b - a) * tau0 / 3600:.2f} h); --gaps bridge treats the samples as "
-                     "contiguous (every tau spanning a gap is then biased)")
-        if found and gaps == "longest":
-            s0, s1 = longest_stretch(found, s0, s1)
-            n = s1 - s0
-            gap_info["range_used"] = [int(s0), int(s1)]
-            if n < MIN_SAMPLES:
-                raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
-                                 f"need at least {MIN_SAMPLES}")
-            missing = 0
-        gaps_bridged = int(missing) if gaps == "bridge" else 0
-        breaks = [g for g, _ in found] if gaps == "skip" else None
-        stretch_samples = None
-        if breaks:
-            edges = [s0] + breaks + [s1]
-            gap_info["stretches"] = len(edges) - 1
-            gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
-            stretch_samples = np.diff(edges)
-        ms = A.tau_factors(n + 1, taus, "oadev")
-        mode = "exact" if exact else "fast"
-        if mode == "fast" and not isinstance(taus, (list, tuple)):
-            ms = A.snap_fast(ms)
-            ms = ms[ms <= A.max_factor(n + 1, "oadev")]
-        streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
-        shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
-                             stream=progress_stream, enabled=progress_stream is not None)
-        readers = {name: RowReader(f, name) for name in dsets}
+        # the samples' readers (HDF5's chunk index, a Python callback per chunk: ~0.1 s for a
+        # 12 h file) are set up on a thread while the gap scan reads the counter (os.preadv and
+        # a compiled scan, without the GIL)
+        with ThreadPoolExecutor(1) as setup:
+            made = setup.submit(lambda: {name: RowReader(f, name) for name in dsets})
+            try:
+                found = find_gaps(f, s0, s1, fs)
+            except BaseException:
+                for r in made.result().values():
+                    r.close()
+                raise
+            readers = made.result()
         try:
-            with ThreadPoolExecutor(WORKERS) as pool:
-                _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
-                               outliers == "exclude", breaks)
-                shown.finish()
-                out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
-                       "first_sample": int(s0), "dropped_samples": gaps_bridged,
-                       "gaps": gap_info, "outliers": outliers, "axes": {}}
-                # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
-                done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
-                                                            outliers == "exclude",
-                                                            stretch_samples), axes))
+            return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
+                                     progress_stream, outliers, gaps)
         finally:
             for r in readers.values():
                 r.close()
+
+
+def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
+                      s0: int, s1: int, n: int, found: list, readers: dict,
+                      progress_stream: Any, outliers: str, gaps: str) -> dict[str, Any]:
+    """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
+    the caller)."""
+    tau0 = 1.0 / fs
+    missing = sum(m for _, m in found)
+    gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
+                "largest_samples": int(max((m for _, m in found), default=0)),
+                "rows": [int(g) for g, _ in found[:20]]}
+    if found and gaps == "refuse":
+        big = max(found, key=lambda g: g[1])
+        a, b = longest_stretch(found, s0, s1)
+        raise InputError(
+            f"{path}: {missing} samples missing in {len(found)} gap(s) in the analysed range "
+            f"(largest {big[1]} samples = {big[1] * tau0:.3g} s, before row {big[0]}, "
+            f"t = {(big[0] - s0) * tau0:.1f} s into it): the Allan deviations need evenly "
+            "spaced samples and rigctl does not bridge gaps on its own",
+            hint=f"--gaps skip leaves out every Allan term that touches a gap "
+                 f"(Stable32); --gaps longest analyses the longest gap-free stretch ({b - a} samples, "
+                 f"{(b - a) * tau0 / 3600:.2f} h); --gaps bridge treats the samples as "
+                 "contiguous (every tau spanning a gap is then biased)")
+    if found and gaps == "longest":
+        s0, s1 = longest_stretch(found, s0, s1)
+        n = s1 - s0
+        gap_info["range_used"] = [int(s0), int(s1)]
+        if n < MIN_SAMPLES:
+            raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
+                             f"need at least {MIN_SAMPLES}")
+        missing = 0
+    gaps_bridged = int(missing) if gaps == "bridge" else 0
+    breaks = [g for g, _ in found] if gaps == "skip" else None
+    stretch_samples = None
+    if breaks:
+        edges = [s0] + breaks + [s1]
+        gap_info["stretches"] = len(edges) - 1
+        gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
+        stretch_samples = np.diff(edges)
+    ms = A.tau_factors(n + 1, taus, "oadev")
+    mode = "exact" if exact else "fast"
+    if mode == "fast" and not isinstance(taus, (list, tuple)):
+        ms = A.snap_fast(ms)
+        ms = ms[ms <= A.max_factor(n + 1, "oadev")]
+    streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
+    shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
+                         stream=progress_stream, enabled=progress_stream is not None)
+    with ThreadPoolExecutor(WORKERS) as pool:
+        _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
+                       outliers == "exclude", breaks)
+        shown.finish()
+        out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
+               "first_sample": int(s0), "dropped_samples": gaps_bridged,
+               "gaps": gap_info, "outliers": outliers, "axes": {}}
+        # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
+        done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
+                                                    outliers == "exclude",
+                                                    stretch_samples), axes))
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
