@@ -219,23 +219,30 @@ def test_cascade_same_terms_as_the_strided_levels() -> None:
             assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)
 
 
+def _small_chunks_spying(monkeypatch: pytest.MonkeyPatch, look) -> list:
+    """Stream in 20,000-row chunks with a 50,000-point head (complete within the third chunk)
+    and record ``look(stream)`` for each axis the analysis is handed after the last chunk."""
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    seen: list = []
+    orig = AA.analyse_axis
+
+    def spy(stream, *args):
+        seen.append(look(stream))
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", spy)
+    return seen
+
+
 def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """The noise IDs read from the full-resolution head, taken while the record still streams,
     are the ones the analysis takes after the last chunk (and they are used)."""
     rec = tmp_path / "r.h5"
     _recording(rec, 160_000, True)
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)  # complete within the third chunk
-    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
-    used = []
-    orig = AA.analyse_axis
-
-    def spy(stream, *args):
-        used.append(len(stream._nid))
-        return orig(stream, *args)
-
-    monkeypatch.setattr(AA, "analyse_axis", spy)
+    used = _small_chunks_spying(monkeypatch, lambda stream: len(stream._nid))
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
@@ -260,17 +267,7 @@ def test_early_tones_same_as_after_the_last_chunk(tmp_path: Path,
     a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
     rec = tmp_path / "tone.h5"
     write_recording(rec, fs, angular_rate=g, specific_force=a, chunk_rows=8192)
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)  # complete within the third chunk
-    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
-    cached = []
-    orig = AA.analyse_axis
-
-    def spy(stream, *args):
-        cached.append(stream._tones is not None)
-        return orig(stream, *args)
-
-    monkeypatch.setattr(AA, "analyse_axis", spy)
+    cached = _small_chunks_spying(monkeypatch, lambda stream: stream._tones is not None)
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_TONES", early)
