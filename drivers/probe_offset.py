@@ -59,6 +59,6 @@ class ProbeOffset:
         t = controller_s + (self.offset or 0.0)
         if self._last is not None and t <= self._last:
             self.clamped += 1
-            t = math.nextafter(self._last, math.inf) if t < self._last else t + 1e-9
+            t = math.nextafter(self._last, math.inf)
         self._last = t
         return t

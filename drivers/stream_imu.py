@@ -109,7 +109,8 @@ class StreamReader(ReconnectingReader):
         ordinary jitter of the window's minimum (a few ms of wall time) stays as before. A
         lowering after the window is counted (``offset_corrections``) and logged."""
         if self.offset is None:
-            self.offset = est
+            if self._learning:  # the first estimate comes only from the learning window
+                self.offset = est
         elif self._learning:
             self.offset = min(self.offset, est)
         elif self.offset - est > self._correction_min_s():
@@ -289,7 +290,7 @@ class StreamImu(StreamReader):
         elif t.size:
             if self._t0 is None:
                 self._t0 = float(t[0])
-            if arrival is not None and (self._learning or self.offset is not None):
+            if arrival is not None:
                 self._track_offset(arrival - float(t[-1]))
             self._append(t, acc, gyr, temp)
         if self._held is not None and (arrival is None or arrival >= self._held_until):

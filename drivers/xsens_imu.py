@@ -168,7 +168,7 @@ class XsensImu(StreamReader):
         stf = batch.sample_time_fine
         if self._stf0 is None and (stf >= 0).any():
             self._stf0 = int(stf[stf >= 0][0])
-        if arrival is not None and (self._learning or self.offset is not None) and stf.size and stf[-1] >= 0:
+        if arrival is not None and stf.size and stf[-1] >= 0:
             self._track_offset(arrival - stf[-1] / SAMPLE_TIME_FINE_HZ)
         with self._cond:
             self._pending.append(batch)
