@@ -129,6 +129,21 @@ class Coefficient:
         """False when only an upper bound is known."""
         return self.upper95 is None
 
+    @property
+    def cautious(self) -> float:
+        """The estimate of a resolved term, the 95 % upper bound of one known only as a bound:
+        the value a consumer that must not be over-confident takes (the Kalibr export)."""
+        return self.value if self.upper95 is None else self.upper95
+
+    @property
+    def interval95(self) -> tuple[float, float]:
+        """The 95 % interval: ``ci95`` of a resolved term, [0, upper95] of a bound."""
+        if self.upper95 is not None:
+            return (0.0, float(self.upper95))
+        if self.ci95 is None:
+            raise ValueError("this coefficient has no 95 % interval (a given value)")
+        return (float(self.ci95[0]), float(self.ci95[1]))
+
     def scaled(self, factor: float) -> "Coefficient":
         """The same coefficient in another unit (every number times ``factor`` > 0)."""
         f = float(factor)
