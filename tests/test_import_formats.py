@@ -116,3 +116,21 @@ def test_a_frequency_counter_file_needs_its_scale(tmp_path: Path) -> None:
     np.testing.assert_allclose(w[:, 0], expect, rtol=1e-15)
     # the fractional-frequency fluctuations (~5e-11) survive: differences exact to ~1e-16
     np.testing.assert_allclose(np.diff(w[:, 0]), np.diff(expect), rtol=0, atol=5e-16)
+
+
+def test_epoch_seconds_with_a_fraction_keep_their_steps(tmp_path: Path, capsys) -> None:
+    """Stamps like 1700000000.010 (seconds since 1970, ms digits): as float64 each is off by up
+    to 1.2e-7 s, which put the rate at 100.0001 Hz; read as integer + fraction, the steps and the
+    rate are exact."""
+    g, a = _data(3000, seed=8)
+    csv = tmp_path / "epoch.csv"
+    with open(csv, "w") as fh:
+        fh.write("t,gx,gy,gz,ax,ay,az\n")
+        for k in range(len(g)):
+            fh.write(f"{1_700_000_000 + k // 100}.{k % 100 * 10:03d}," + ",".join(f"{v:.7g}" for v in (*g[k], *a[k])) + "\n")
+    rec = tmp_path / "epoch.h5"
+    assert cli.main(["import", str(csv), "-o", str(rec), "--columns", COLS, "--units", "gyr=rad/s,acc=m/s^2"]) == 0
+    assert "sample rate 100 Hz (median step of the time column); no gaps" in capsys.readouterr().out
+    rate, t, counter, _, _ = _read(rec)
+    assert abs(rate - 100.0) < 1e-9 and np.array_equal(counter, np.arange(len(g)))
+    np.testing.assert_allclose(t, np.arange(len(g)) * 0.01, rtol=0, atol=1e-12)

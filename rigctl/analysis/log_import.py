@@ -248,6 +248,10 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
                 continue
             except (ValueError, IndexError, OverflowError):
                 pass
+            exact = _epoch_seconds([r[j] if j < len(r) else "" for r in body])
+            if exact is not None:  # seconds since 1970 with a decimal fraction, kept exact
+                out[key] = exact
+                continue
             if j < len(body[0]) and not _is_number(body[0][j]) and _datetime_ns(body[0][j]) is not None:
                 ns = np.empty(len(body), dtype=np.int64)
                 for n, r in enumerate(body):
@@ -291,6 +295,28 @@ def _is_number(s: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+_DECIMAL_STAMP = re.compile(r"\s*(\d+)\.(\d*)\s*")
+
+
+def _epoch_seconds(values: list[str]) -> np.ndarray | None:
+    """Decimal time stamps of 1e6 s and more (seconds since 1970 with a fraction, as loggers and
+    ROS CSV exports write them) relative to the first, from their integer and fraction parts:
+    exact where float64 of the whole stamp is not (1.7e9 s holds only ~0.2 us: its steps, and
+    the rate from their median, came out wrong in the 7th digit). None for anything else."""
+    first = _DECIMAL_STAMP.fullmatch(values[0]) if values else None
+    if first is None or len(first.group(1)) < 7:
+        return None
+    ints = np.empty(len(values), dtype=np.int64)
+    fracs = np.empty(len(values))
+    for n, v in enumerate(values):
+        m = _DECIMAL_STAMP.fullmatch(v)
+        if m is None:
+            return None
+        ints[n] = int(m.group(1))
+        fracs[n] = float("0." + (m.group(2) or "0"))
+    return (ints - ints[0]).astype(np.float64) + fracs
 
 
 _ISO_DATETIME = re.compile(r"\s*(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2}(?::\d{2})?)(?:[.,](\d+))?"
