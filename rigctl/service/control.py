@@ -18,11 +18,12 @@ import stat
 import struct
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..errors import EXIT_FAILED, EXIT_INVALID
+from ..errors import EXIT_FAILED, EXIT_INVALID, RigctlError
 
 PROTOCOL_VERSION = 1
 MAX_MESSAGE = 64 * 1024
@@ -218,9 +219,14 @@ class ControlServer:
                 return
             try:
                 reply = self.handler(cmd, args)
-            except Exception as exc:  # noqa: BLE001 - the daemon keeps serving
-                self.log("error", f"control: {cmd} failed: {type(exc).__name__}: {exc}")
-                reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}", "exit_code": EXIT_FAILED}
+            except RigctlError as exc:  # the handler's refusal: its one line and exit code
+                self.log("warning", f"control: {cmd} refused: {exc}")
+                reply = {"ok": False, "error": str(exc), "exit_code": exc.exit_code}
+            except Exception as exc:  # noqa: BLE001 - a bug; the daemon keeps serving
+                self.log("error", f"control: {cmd} failed: {type(exc).__name__}: {exc}",
+                         traceback=traceback.format_exc())
+                reply = {"ok": False, "error": f"{type(exc).__name__}: {exc} (a bug: traceback in the "
+                         "daemon log)", "exit_code": EXIT_FAILED}
             _send(conn, reply)
 
 

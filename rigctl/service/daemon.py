@@ -13,6 +13,7 @@ import json
 import signal
 import threading
 import time
+import traceback
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -30,7 +31,7 @@ from ..run.runlog import RunLog
 from .daemon_text import reply_text
 from .livefeed import LiveFeed
 from ..config.notify import Notifier
-from ..errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RunFailure
+from ..errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
 from ..run.stop_signals import stop_on_signals
 from typing import TYPE_CHECKING
 
@@ -369,10 +370,11 @@ class Daemon:
                     res = resume_run(job.run_dir, self.runs_dir, console=self.log.console,
                                      install_signals=False, options=opts)
                 state, message, run_dir = res.status, res.message, str(res.run_dir)
-            except InputError as exc:
+            except RigctlError as exc:
                 state, message, run_dir = "failed", str(exc), job.run_dir
-            except Exception as exc:  # noqa: BLE001 - the daemon survives a broken job
+            except Exception as exc:  # noqa: BLE001 - a bug; the daemon survives a broken job
                 state, message, run_dir = "failed", f"{type(exc).__name__}: {exc}", job.run_dir
+                self.log("error", f"job {job.id}: {message}", traceback=traceback.format_exc())
                 if self.states.state not in ("idle", "faulted"):
                     self.states.to("faulted", message)
             with self.cv:

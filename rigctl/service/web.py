@@ -25,6 +25,7 @@ import secrets
 import socket
 import threading
 import time
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ from starlette.requests import Request
 from starlette.responses import FileResponse, Response, StreamingResponse
 from starlette.routing import Route
 
-from ..errors import EXIT_INVALID
+from ..errors import EXIT_INVALID, RigctlError
 
 MAX_BODY = 64 * 1024
 MAX_STREAMS = 32           # live-event streams open at once
@@ -379,8 +380,12 @@ class WebApi:
             return _error(409, "the run is still recording; its report is made when it ends")
         try:
             path = await run_in_threadpool(self._build_report, d)
-        except Exception as exc:  # noqa: BLE001 - one line to the client, the daemon goes on
-            return _error(500, f"report failed: {type(exc).__name__}: {exc}")
+        except RigctlError as exc:  # a recording the report cannot read: its one line
+            return _error(422 if exc.exit_code == EXIT_INVALID else 500, f"report failed: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a bug: one line to the client, traceback in the log
+            self.d.log("error", f"report of {d.name} failed: {type(exc).__name__}: {exc}",
+                       traceback=traceback.format_exc())
+            return _error(500, f"report failed: {type(exc).__name__}: {exc} (traceback in the daemon log)")
         return FileResponse(path, media_type="text/html; charset=utf-8")
 
     # -- live ------------------------------------------------------------------------------------
