@@ -426,7 +426,7 @@ def check_output(src: Path, out: Path, force: bool) -> None:
 def check_plausible(src: Path, mapping: dict[str, str], acc: np.ndarray, gyr: np.ndarray,
                     units: str | None, gyr_increment: bool = False, acc_increment: bool = False) -> None:
     """InputError naming the column when a converted sensor value is beyond what any IMU
-    outputs (:data:`rigctl.recording_reader.PLAUSIBLE`, SI): a unit or scale error, e.g. a
+    outputs (:data:`rigctl.recording.recording_reader.PLAUSIBLE`, SI): a unit or scale error, e.g. a
     frequency counter's 10 MHz readings taken as rad/s. Refused here, at the import, with the
     value and the way to scale it, rather than by ``rigctl allan`` later."""
     for sensor, data, key, unit, incr in (("gyr", gyr, "imu/angular_rate", "rad/s", gyr_increment),
