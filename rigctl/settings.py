@@ -9,11 +9,11 @@ field's reader (type, range, choices), missing required keys are named, and
 :meth:`Settings.check` adds the rules between fields; every error is an InputError with the
 file and line (rigctl.schema).
 
-Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments), rigctl.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
-``traceability:``), rigctl.suspenders, rigctl.notify, rigctl.chamber, rigctl.procedure (the
+Users: rigctl.config.linkconfig (the wired drivers' link settings, whose field names are the drivers'
+keyword arguments), rigctl.config.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
+``traceability:``), rigctl.config.suspenders, rigctl.config.notify, rigctl.config.chamber, rigctl.engine.procedure (the
 procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
-rigctl.spec (the acceptance limits of ``--spec``).
+rigctl.config.spec (the acceptance limits of ``--spec``).
 """
 from __future__ import annotations
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.config import load_config
-from rigctl.rig import open_rig
+from rigctl.config.config import load_config
+from rigctl.engine.rig import open_rig
 from rigctl.yamlio import InputError
 
 TEMPLATE = """rig: t
