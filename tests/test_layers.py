@@ -5,7 +5,8 @@ drivers/ and sim/ are installed as rigctl.drivers and rigctl.sim (package-dir in
 so lint-imports, which reads the package's folder, would not see them under rigctl/. The test
 builds a tree with rigctl/* linked in and each mapped sub-package linked at its installed place,
 and runs lint-imports there with the repository's pyproject.toml. A second tree with planted
-violations checks that the contracts can fail and that drivers, sim and solvers are seen.
+violations checks that every contract can fail, that drivers, sim and solvers are seen, and
+that a module of rigctl/ in no layer is reported.
 """
 from __future__ import annotations
 
@@ -74,13 +75,15 @@ def test_the_contracts_hold(tmp_path: Path) -> None:
 
 
 def test_the_contracts_can_fail(tmp_path: Path) -> None:
-    """Violations planted in solvers/, sim/, drivers/, analysis/ and the engine are each reported
-    (and one of them closes an import cycle)."""
+    """Violations planted in solvers/, sim/, drivers/, analysis/, the engine and a foundation
+    are each reported (and some close an import cycle), and so is a module in no layer."""
     planted = {
+        "errors.py": "from rigctl.recording import recorder as _planted\n",
+        "stray.py": "X = 1\n",
         "solvers/_planted.py": "import json\nfrom rigctl.sim import table\n",
         "sim/_planted.py": "from rigctl import cli\n",
         "drivers/_planted.py": "from rigctl.analysis import results\nfrom rigctl.commands import sync_cmd\n",
-        "analysis/_planted.py": "from rigctl.report.report import report\n",
+        "analysis/_planted.py": "from rigctl.report import report\n",
         "engine/engine.py": "from rigctl.analysis import sync as _planted\n",
     }
     r = _lint(_link_tree(tmp_path, planted))
@@ -91,7 +94,8 @@ def test_the_contracts_can_fail(tmp_path: Path) -> None:
     for line in ("rigctl.solvers._planted -> json", "rigctl.solvers._planted -> rigctl.sim.table",
                  "rigctl.sim._planted -> rigctl.cli", "rigctl.drivers._planted -> rigctl.analysis.results",
                  "rigctl.drivers._planted -> rigctl.commands.sync_cmd", "rigctl.analysis._planted -> rigctl.report.report",
-                 "rigctl.engine.engine -> rigctl.analysis.sync"):
+                 "rigctl.engine.engine -> rigctl.analysis.sync", "rigctl.errors -> rigctl.recording.recorder",
+                 "- rigctl.stray\n"):
         assert line in out, (line, out[-4000:])
 
 
