@@ -65,7 +65,7 @@ def _load() -> str:
 def _h5(path: Path, fs: float) -> tuple:
     import h5py
 
-    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
+    from rigctl.recording.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
 
     f = h5py.File(path, "w")
     f.attrs["format"] = FORMAT_NAME

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigctl import schema as S
-from rigctl.config import RigConfig
+from rigctl.config.config import RigConfig
 from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, TableState
 from rigctl.frames import body_references, gimbal_rate_body
 from rigctl.settings import Settings, per_axis, section, yaml_keys
@@ -331,7 +331,7 @@ class SimWorld:
 
 class RunTruth(dict):
     """The truth dict plus the tables of truth drawn during the run, for the recorder
-    (rigctl.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
+    (rigctl.recording.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
 
     def __init__(self, params: dict[str, Any], operator: SimTapOperator) -> None:
         super().__init__(params)
@@ -418,7 +418,7 @@ class SimImuDevice:
 
 
 class SimChamberDevice:
-    """Chamber protocol (rigctl.chamber) over the in-process world's chamber."""
+    """Chamber protocol (rigctl.config.chamber) over the in-process world's chamber."""
 
     def __init__(self, world: SimWorld, safe_c: float = 25.0) -> None:
         self.world = world
@@ -444,7 +444,7 @@ class SimChamberDevice:
             raise DeviceFault(f"chamber: {exc}") from None
 
     def read(self) -> Any:
-        from rigctl.chamber import ChamberState
+        from rigctl.config.chamber import ChamberState
         t = self._now()
         s = self.world.chamber.state(t)
         return ChamberState(time=t, air_c=s["air_c"], product_c=s["product_c"], setpoint_c=s["setpoint_c"],

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.config import load_config
-from rigctl.rig import open_rig
+from rigctl.config.config import load_config
+from rigctl.engine.rig import open_rig
 from rigctl.yamlio import InputError
 
 TEMPLATE = """rig: t
@@ -83,6 +83,14 @@ CASES = {
                         "13: 'imu.sim.thermal.rate' must be a mapping (key: value lines), got int 3"),
     "profile name": (IMU, "    profile: mti_clas\n",
                      "11: 'profile' = 'mti_clas' is not allowed (did you mean 'mti_class'?)"),
+    "profile gm typo": (IMU, "    profile: mti_class\n    overrides:\n      gyro:\n        noise:\n"
+                        "          gm: [{sigma_rad_per_s: 1.0e-5, tau_c: 10}]\n",
+                        "15: unknown key 'tau_c' in imu.sim.overrides.gyro.noise.gm entry 1 "
+                        "(did you mean 'tau_c_s'?; keys, units and defaults: docs/emulator.md sections 3-5)"),
+    "profile gm sigma": (IMU, "    profile: mti_class\n    overrides:\n      accel:\n        noise:\n"
+                         "          gm:\n            - {sigma_m_per_s2: -1.0e-5, tau_c_s: 10}\n",
+                         "16: imu.sim.overrides.accel.noise.gm entry 1.sigma_m_per_s2 must be a number >= 0, "
+                         "got -1e-05 (keys, units and defaults: docs/emulator.md sections 3-5)"),
 }
 
 

@@ -23,8 +23,8 @@ import numpy as np
 from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
-from ..recorder import write_results
-from ..recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
+from ..recording.recorder import write_results
+from ..recording.recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
@@ -436,7 +436,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
 
 
 def _open_checked(path: str, axes: list[str]):
-    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    """The recording, checked (rigctl.recording.recording_reader) for the datasets of ``axes``."""
     return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
 
 
@@ -662,7 +662,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                    corrections: dict | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
-    this thread reads chunk i + 1 (:class:`rigctl.recording_reader.RowReader`: os.preadv
+    this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
     from the chunks' offsets, without the GIL, where the layout allows). At most two chunks
     are in memory. ``breaks``: rows that follow a gap (each starts a new gap-free stretch of
     the Allan sums).
@@ -1130,7 +1130,7 @@ def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoeffi
 
 
 def store(path: str, result: dict[str, Any]) -> None:
-    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recorder.write_results`:
+    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recording.recorder.write_results`:
     the JSON summary (non-finite numbers kept: an unbounded interval end stays inf) and the curve
     datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units."""
     summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
