@@ -18,10 +18,10 @@ from pathlib import Path
 import h5py
 import pytest
 
-from rigctl import control
-from rigctl.daemon import Daemon
-from rigctl.runner import RunOptions
-from rigctl.suspenders import SuspenderSettings
+from rigctl.service import control
+from rigctl.service.daemon import Daemon
+from rigctl.run.runner import RunOptions
+from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import derived_config, rigctl_cmd
 
