@@ -135,24 +135,34 @@ def subsection(cls: type[Settings], what: str | None = None, *, optional: bool =
     return setting(None if optional else cls(), read=read, what=True)
 
 
-def items(cls: type[Settings], what: str | None = None, default: Any = ()) -> Any:
-    """A list of mappings, each read as the settings ``cls`` (errors name ``what``, by default
-    "<parent>.<key>", and the entry's number); a tuple."""
+def entry(d: LocDict, key: str, i: int) -> Any:
+    """Entry ``i`` of the list ``d[key]``; a mapping as a :class:`LocDict` that knows its line
+    (for a list read without lines, such as a dict built in code: the key's line)."""
+    entries = d[key]
+    e = entries[i]
+    if isinstance(e, dict) and not isinstance(e, LocDict):
+        e = LocDict(e)
+        e.file, e.line = d.file, (entries.line_of(i) if isinstance(entries, LocList) else d.line_of(key))
+    return e
+
+
+def items(cls: type[Settings], what: str | None = None, default: Any = (), *, min_length: int = 0,
+          hint: str | None = None) -> Any:
+    """A list of mappings (at least ``min_length``), each read as the settings ``cls`` (errors
+    name ``what``, by default "<parent>.<key>", and the entry's number; ``hint``: what an entry
+    looks like); a tuple."""
     def read(d: LocDict, key: str, default: Any = None, *, what: str = "") -> tuple[Settings, ...]:
-        if d[key] is None:
+        if d[key] is None and not min_length:
             return ()
         name = what_ or f"{what}.{key}"
-        entries = S.get_list(d, key)
+        entries = S.get_list(d, key, min_length=min_length)
         out = []
-        for i, e in enumerate(entries):
+        for i in range(len(entries)):
             label = f"{name} entry {i + 1}"
+            e = entry(d, key, i)
             if not isinstance(e, dict):
                 raise S.item_error(d, key, entries, i, f"{label} must be a mapping (key: value lines), "
-                                   f"got {e!r}")
-            if not isinstance(e, LocDict):
-                e = LocDict(e)
-                e.file, e.line = d.file, (entries.line_of(i) if isinstance(entries, LocList)
-                                          else d.line_of(key))
+                                   f"got {e!r}", hint)
             out.append(parse(cls, e, label))
         return tuple(out)
     what_ = what

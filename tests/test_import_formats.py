@@ -134,3 +134,28 @@ def test_epoch_seconds_with_a_fraction_keep_their_steps(tmp_path: Path, capsys) 
     rate, t, counter, _, _ = _read(rec)
     assert abs(rate - 100.0) < 1e-9 and np.array_equal(counter, np.arange(len(g)))
     np.testing.assert_allclose(t, np.arange(len(g)) * 0.01, rtol=0, atol=1e-12)
+
+
+def test_stable32_two_column_file_with_mjd_tags(tmp_path: Path, capsys) -> None:
+    """A Stable32 two-column frequency file: MJD time tags (days, 1 s apart) and fractional
+    frequency, one tag missing: rate 1 Hz exactly, the gap a counter jump, values unchanged."""
+    rng = np.random.default_rng(9)
+    n = 4000
+    y = rng.normal(0, 3e-12, n)
+    keep = np.ones(n, bool)
+    keep[1234] = False
+    src = tmp_path / "clock.frq"
+    with open(src, "w") as fh:
+        for k in np.flatnonzero(keep):
+            sec = 3600 + int(k)  # from 01:00:00 of MJD 57000
+            fh.write(f"{57000 + sec // 86400}.{round(sec % 86400 / 86400 * 1e12):012d} {y[k]:.6e}\n")
+    rec = tmp_path / "clock.h5"
+    assert cli.main(["import", str(src), "-o", str(rec), "--columns", "time=0,gyr_x=1",
+                     "--units", "gyr=rad/s,time=d"]) == 0
+    assert "sample rate 1 Hz (median step of the time column); 1 gaps, 1 samples missing" in capsys.readouterr().out
+    rate, t, counter, w, _ = _read(rec)
+    # the tags' 12 decimals of a day resolve 86 ns: the median step within 1e-7 of 1 s (as
+    # float64, MJD 57000 resolves only 0.6 us: 6e-7)
+    assert abs(rate - 1.0) < 1e-7 and np.array_equal(counter, np.flatnonzero(keep))
+    np.testing.assert_allclose(t, np.flatnonzero(keep).astype(float), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(w[:, 0], np.array([float(f"{v:.6e}") for v in y[keep]]), rtol=1e-15)

@@ -60,7 +60,8 @@ OPTIONAL = ("time", "temp", "section")
 UNIT_FACTORS = {
     "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
     "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
-    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    # d: days, e.g. the MJD time tags of a Stable32 two-column file (53000.000011574)
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0, "d": 86400.0},
 }
 #: units of per-sample increments (delta angle, delta velocity): divided by the sample interval;
 #: with --integrated the column is their running sum (an angle, a velocity, a clock's phase)
@@ -301,12 +302,13 @@ _DECIMAL_STAMP = re.compile(r"\s*(\d+)\.(\d*)\s*")
 
 
 def _epoch_seconds(values: list[str]) -> np.ndarray | None:
-    """Decimal time stamps of 1e6 s and more (seconds since 1970 with a fraction, as loggers and
-    ROS CSV exports write them) relative to the first, from their integer and fraction parts:
-    exact where float64 of the whole stamp is not (1.7e9 s holds only ~0.2 us: its steps, and
-    the rate from their median, came out wrong in the 7th digit). None for anything else."""
+    """Decimal time stamps of 1000 units and more (seconds since 1970 with a fraction, as loggers
+    and ROS CSV exports write them; a Stable32 file's MJD days) relative to the first, from
+    their integer and fraction parts: exact where float64 of the whole stamp is not (1.7e9 s
+    holds only ~0.2 us, MJD 53000 d only ~1 us: the steps, and the rate from their median,
+    came out wrong in the 7th digit). None for anything else."""
     first = _DECIMAL_STAMP.fullmatch(values[0]) if values else None
-    if first is None or len(first.group(1)) < 7:
+    if first is None or len(first.group(1).lstrip("0")) < 4:
         return None
     ints = np.empty(len(values), dtype=np.int64)
     fracs = np.empty(len(values))
@@ -574,7 +576,7 @@ def import_csv(args: ImportOptions) -> Imported:
         rate = float(args.rate) if args.rate is not None else 1.0 / float(np.median(dt))
         if not 0 < rate <= MAX_RATE_HZ:
             raise InputError(f"the time column gives {rate:g} Hz, outside (0, {MAX_RATE_HZ:g}]", src,
-                             hint="check the time unit (--units time=s|ms|us|ns)")
+                             hint="check the time unit (--units time=s|ms|us|ns|min|h|d)")
         # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
         counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
         missing = int(counter[-1]) + 1 - n
