@@ -180,3 +180,15 @@ def test_metadata_lines_before_the_header_name_the_skip(ref_data: Path, tmp_path
     assert len(t) == len(counts)
     np.testing.assert_allclose(w, counts[:, 3:] / 131 * D2R, rtol=1e-12)
     np.testing.assert_allclose(f, counts[:, :3] / 16384 * G0, rtol=1e-12)
+
+
+def test_a_stable32_result_table_is_not_taken_for_samples(ref_data: Path, tmp_path: Path) -> None:
+    """Stable32's output (AF, Tau, #, Alpha, sigmas per line) has the shape of a numeric table;
+    imported as samples it would give a meaningless curve. Refused, pointing to the data."""
+    for src in (ref_data / "ocxo-frequency-stable32" / "stable32_oadev_alltau.txt",
+                ref_data / "stable32-reference" / "phasedat" / "phase_dat_oadev_octave.txt"):
+        out = tmp_path / "t.h5"
+        p = run_rigctl("import", str(src), "-o", str(out), "--columns", "gyr_x=5", "--units", "gyr=rad/s",
+                       "--rate", "1")
+        assert p.returncode == 2 and "a Stable32 result table" in p.stderr and "Traceback" not in p.stderr, p.stderr
+        assert not out.exists()
