@@ -215,9 +215,14 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
         elif col in header:
             index[key] = header.index(col)
         else:
+            names = {c for c in mapping.values() if not c.isdigit()}
+            found = next((k for k, r in enumerate(rows[:200]) if names <= {c.strip() for c in r}), None)
+            hint = (f"line {header_line + found} holds every named column: give --skip-rows "
+                    f"{first + found}"
+                    if found else "fix --columns (header names, or 0-based numbers for a file without "
+                    "a header), or --skip-rows so the header line is read")
             raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
-                             hint="fix --columns (header names, or 0-based numbers for a file without "
-                                  "a header), or --skip-rows so the header line is read")
+                             hint=hint)
     out: dict[str, np.ndarray] = {}
     keep = [k for k, r in enumerate(body) if any(c.strip() for c in r)
             and not r[0].lstrip().startswith(("#", "%"))]
