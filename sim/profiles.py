@@ -24,7 +24,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 
 from rigctl import schema as S
-from rigctl.settings import Settings, items, parse, setting, subsection
+from rigctl.settings import Settings, items, mapping, parse, setting, subsection
 from rigctl.solvers.noise_coefficients import CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS
 from rigctl.yamlio import InputError, LocDict, LocList, load_file
 
@@ -70,12 +70,11 @@ def _coerce(node: Any, key: str = "") -> Any:
 def load_profiles(path: str | Path | None = None) -> dict:
     """The YAML document as a dict: {'profiles': {name: profile}, 'random': {...}} (safe
     loader; mappings are LocDicts that know their file and lines)."""
-    doc = load_file(path or DEFAULT_PATH)
-    if not isinstance(doc, dict) or not isinstance(doc.get("profiles"), dict):
-        raise ValueError("profile file must be a mapping with a 'profiles' mapping")
-    S.check_keys(doc, ("profiles", "random"), "the profile file")
-    if doc.get("random") is not None:
-        _check_mapping(doc["random"], RandomProfile, "random", doc, "random")
+    file = Path(path or DEFAULT_PATH)
+    doc = load_file(file)
+    if doc is None:
+        raise InputError("the profile file is empty", str(file), hint="it needs a 'profiles:' mapping")
+    parse(ProfileFile, S.require_mapping(doc, "the profile file"), "the profile file")
     try:
         return _coerce(doc)
     except ValueError:
@@ -370,6 +369,15 @@ class RandomProfile(ProfileSection):
 
     base: Any = leaf("text")
     noise_spread: Any = leaf("pos")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProfileFile(ProfileSection):
+    """A profiles file (configs/imu-profiles.yaml): the named profiles (each read as
+    :class:`ImuProfile` when it is used) and the random-truth mode's settings."""
+
+    profiles: Any = mapping()
+    random: Any = subsection(RandomProfile, "random")
 
 
 #: the effects' required keys (when enabled)

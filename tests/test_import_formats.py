@@ -159,3 +159,36 @@ def test_stable32_two_column_file_with_mjd_tags(tmp_path: Path, capsys) -> None:
     assert abs(rate - 1.0) < 1e-7 and np.array_equal(counter, np.flatnonzero(keep))
     np.testing.assert_allclose(t, np.flatnonzero(keep).astype(float), rtol=0, atol=1e-7)
     np.testing.assert_allclose(w[:, 0], np.array([float(f"{v:.6e}") for v in y[keep]]), rtol=1e-15)
+
+
+def test_metadata_lines_before_the_header_name_the_skip(ref_data: Path, tmp_path: Path) -> None:
+    """The MPU-6050 tool's static record starts with four `key,value` lines (Fs,100 ...): the
+    error names the line that holds the columns and the --skip-rows that reaches it, which
+    then imports the record."""
+    src = ref_data / "mpu6050-multipos" / "results_test_data_imu_static_test.csv"
+    lines = src.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.strip() == "ax,ay,az,gx,gy,gz")
+    cols = "acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz"
+    units = "acc=counts:1/16384 g,gyr=counts:1/131 deg/s"
+    out = tmp_path / "mpu.h5"
+    p = run_rigctl("import", str(src), "-o", str(out), "--columns", cols, "--units", units, "--rate", "100")
+    assert p.returncode == 2 and f"line {k + 1} holds every named column: give --skip-rows {k}" in p.stderr, p.stderr
+    assert cli.main(["import", str(src), "-o", str(out), "--columns", cols, "--units", units, "--rate", "100",
+                     "--skip-rows", str(k)]) == 0
+    counts = np.array([[float(v) for v in ln.split(",")] for ln in lines[k + 1:] if ln.strip()])
+    _, t, _, w, f = _read(out)
+    assert len(t) == len(counts)
+    np.testing.assert_allclose(w, counts[:, 3:] / 131 * D2R, rtol=1e-12)
+    np.testing.assert_allclose(f, counts[:, :3] / 16384 * G0, rtol=1e-12)
+
+
+def test_a_stable32_result_table_is_not_taken_for_samples(ref_data: Path, tmp_path: Path) -> None:
+    """Stable32's output (AF, Tau, #, Alpha, sigmas per line) has the shape of a numeric table;
+    imported as samples it would give a meaningless curve. Refused, pointing to the data."""
+    for src in (ref_data / "ocxo-frequency-stable32" / "stable32_oadev_alltau.txt",
+                ref_data / "stable32-reference" / "phasedat" / "phase_dat_oadev_octave.txt"):
+        out = tmp_path / "t.h5"
+        p = run_rigctl("import", str(src), "-o", str(out), "--columns", "gyr_x=5", "--units", "gyr=rad/s",
+                       "--rate", "1")
+        assert p.returncode == 2 and "a Stable32 result table" in p.stderr and "Traceback" not in p.stderr, p.stderr
+        assert not out.exists()

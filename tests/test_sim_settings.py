@@ -111,3 +111,21 @@ def test_the_template_itself_is_valid(tmp_path: Path) -> None:
     path.write_text(TEMPLATE)
     with open_rig(load_config(path)) as (_rig, truth):
         assert truth["pulses"]["taps"]["axis"] == 2
+
+
+@pytest.mark.parametrize("profiles, expected", [
+    ("random: {base: p}\n", "1: the profile file is missing 'profiles' (add a line 'profiles: ...')"),
+    ("profiles: [p]\n", "1: 'profiles' must be a mapping (key: value lines), got a list"),
+    ("profiles: {p: {rate_hz: 100}}\nrandom: {base: p, noise_sprad: 2}\n",
+     "2: unknown key 'noise_sprad' in random (did you mean 'noise_spread'?; keys, units and defaults: "
+     "docs/emulator.md sections 3-5)"),
+])
+def test_a_malformed_profiles_file_is_an_error_in_that_file(tmp_path: Path, profiles: str, expected: str) -> None:
+    prof = tmp_path / "mine.yaml"
+    prof.write_text(profiles)
+    path = tmp_path / "rig.yaml"
+    path.write_text(TEMPLATE.replace(IMU, "    profile: p\n    profiles_file: mine.yaml\n"))
+    with pytest.raises(InputError) as info:
+        with open_rig(load_config(path)):
+            pass
+    assert str(info.value) == f"{prof}:{expected}"

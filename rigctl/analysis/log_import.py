@@ -136,6 +136,8 @@ def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str
     return out
 
 
+#: the column header of a Stable32 result file ("#  AF   Tau   #   Alpha  Min Sigma ...")
+_STABLE32_RESULT = re.compile(r"\s*#\s*AF\s+Tau\s+#\s+Alpha\b")
 #: separators tried in this order on the first data line (else runs of whitespace)
 DELIMITERS = (",", "\t", ";")
 
@@ -162,6 +164,11 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     if first >= len(lines):
         raise InputError(f"no table: {len(lines)} lines, all comments or blank after --skip-rows {skip_rows}",
                          path)
+    if any(_STABLE32_RESULT.match(ln) for ln in lines[:first]):
+        raise InputError("a Stable32 result table (averaging factor, tau, deviation per line), not samples",
+                         path, hint="rigctl import takes the phase or frequency data the table was computed "
+                                    "from (e.g. --columns gyr_x=0 --units gyr=rad --integrated --rate 1 for "
+                                    "phase in s); rigctl allan then computes the deviations")
     probe = lines[first: first + 2]
     # semicolons on every probed line first: a European export separates with ';' because its
     # numbers carry a decimal comma (1,5;0,25), and commas would split those numbers
@@ -215,9 +222,14 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
         elif col in header:
             index[key] = header.index(col)
         else:
+            names = {c for c in mapping.values() if not c.isdigit()}
+            found = next((k for k, r in enumerate(rows[:200]) if names <= {c.strip() for c in r}), None)
+            hint = (f"line {header_line + found} holds every named column: give --skip-rows "
+                    f"{first + found}"
+                    if found else "fix --columns (header names, or 0-based numbers for a file without "
+                    "a header), or --skip-rows so the header line is read")
             raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
-                             hint="fix --columns (header names, or 0-based numbers for a file without "
-                                  "a header), or --skip-rows so the header line is read")
+                             hint=hint)
     out: dict[str, np.ndarray] = {}
     keep = [k for k, r in enumerate(body) if any(c.strip() for c in r)
             and not r[0].lstrip().startswith(("#", "%"))]
