@@ -443,9 +443,12 @@ class Hardware:
         self.gnss = GnssServer(clock=self.world_clock.now, source=self._periodic_pulses)
         self._closers.append(self.gnss.close)
         self._replace_port(self.gnss, "gnss", PtyEndpoint)
-        t = threading.Thread(target=self._loop, name="hardware-loop", daemon=True)
-        t.start()
-        self._threads.append(t)
+        self._imu_t = 0.0                   # world time the IMU stream may reach (set by the loop)
+        self._imu_due = threading.Condition()
+        for target, name in ((self._loop, "hardware-loop"), (self._imu_loop, "imu-stream")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
 
     # ------------------------------------------------------------------------- plumbing
     def _link(self, name: str, target: str) -> None:
@@ -479,23 +482,53 @@ class Hardware:
         return out
 
     def _loop(self) -> None:
+        """Physics: advance the world every tick and buffer its IMU samples in the tap for the
+        IMU stream thread (:meth:`_imu_loop`). The stream's pty writes wait for a slow client
+        (flow control) in that thread, not here: when they ran in this loop, a client slow to drain
+        the port at connect stood the physics still for up to 0.5 s of wall time (50 s of rig
+        time at 100x) -- the table's controller time with it -- and the drivers learnt time
+        offsets that late. Only a backlog beyond ``backlog`` samples (the client slower than the
+        stream for seconds: the emulator runs faster than the wire) holds the physics back."""
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
+        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # ~1 s of wall time
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
             if time.monotonic() < self._paused_until:
                 continue
             try:
+                nt = self.imu_server.next_time()
+                if nt is not None and self.world.k - int(round(nt * self.world.rate_hz)) > backlog:
+                    continue                                    # the stream is far behind: wait
                 with self.lock:
                     self.world_clock.cap = self.table._t() + chunk_s
                     self.world.advance()
                     self.tap.pull()
                     t = self.table._t()
-                self.imu_server.step(t)
+                with self._imu_due:
+                    self._imu_t = t
+                    self._imu_due.notify()
                 nt = self.imu_server.next_time()
                 keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
                 self.tap.trim(min(keep, self.world.k - 1))
             except Exception:       # the loop must survive a bug in one device
                 log.exception("hardware loop")
+
+    def _imu_loop(self) -> None:
+        """IMU stream: encode and send the frames due up to the world time the physics loop
+        reached (its writes may wait for the client; see :meth:`_loop`)."""
+        done = -math.inf
+        while not self._stop.is_set():
+            with self._imu_due:
+                if self._imu_t <= done:
+                    self._imu_due.wait(0.05)
+                t = self._imu_t
+            try:
+                while self.imu_server.step(t) and not self._stop.is_set():
+                    pass                            # more than MAX_BATCH frames were due
+                done = t
+            except Exception:
+                log.exception("IMU stream")
+                self._stop.wait(0.1)
 
     # ------------------------------------------------------------------------ endpoints
     @property

@@ -54,3 +54,32 @@ def test_a_physics_stall_at_connect_does_not_shift_the_table_times(tmp_path, kin
             assert table.time_base.corrections >= 1
         finally:
             table.close()
+
+
+@pytest.mark.parametrize("protocol", ["frame", "xsens"])
+def test_a_slow_imu_client_does_not_stall_the_physics(tmp_path, protocol):
+    """A client that drains the IMU port slowly (as a driver starved of CPU at connect does):
+    the emulator's stream waits for it (flow control), the physics -- the table's controller
+    time -- goes on. The old hardware loop wrote the stream itself and stood still in each write
+    for up to 0.5 s of wall time (50 s of rig time at 100x)."""
+    import serial
+
+    from rigctl.drivers.xsens import go_to_measurement
+
+    with hardware(tmp_path, SPEED, imu_protocol=protocol) as (hw, _raw):
+        port = serial.serial_for_url(hw.endpoints[f"imu_{protocol}_pty"], baudrate=921600, timeout=0)
+        try:
+            if protocol == "xsens":
+                port.write(go_to_measurement())
+            worst, got = 0.0, 0
+            end = time.monotonic() + 1.5
+            while time.monotonic() < end:
+                got += len(port.read(256))                     # 256 bytes per 20 ms: far too slow
+                time.sleep(0.02)
+                worst = max(worst, hw.lag_s)
+            assert got > 0
+            # the physics keeps up within a few ticks of a loaded host (0.2 s wall = 20 s rig);
+            # a write waiting for this client held it 0.5 s (50 s of rig time) at a time
+            assert worst < 20.0, worst
+        finally:
+            port.close()
