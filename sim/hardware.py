@@ -16,8 +16,10 @@ profiles and servo dynamics, IMU error model) on a :class:`~rigctl.clock.ScaledC
 Time base: one clock for all devices. Table controller time (ACL ``t_ms``, Modbus IR 3-4 and
 B+12), Xsens SampleTimeFine (10 kHz ticks since start) and GNSS time (GPS week ``gps_week0`` +
 ``gps_seconds0`` at clock 0) are all that clock. A hardware loop thread advances the world every
-``tick_s`` of wall time and streams the IMU samples that became due; table reads see the state as
-of the last tick (at most ``tick_s * speed`` of rig time old).
+``tick_s`` of wall time; table reads see the state as of the last tick (at most ``tick_s * speed``
+of rig time old). An IMU stream thread sends the IMU frames that became due up to the world's
+time: its pty writes may wait for a slow client (flow control, :class:`FlowPtyEndpoint`) while
+the physics -- the table's controller time -- goes on.
 
 Ports: each pty gets a symlink in ``link_dir`` (a fresh temporary directory unless given):
 ``table-acl``, ``table-rtu``, ``imu``, ``gnss``. Clients should open the symlink. A simulated
@@ -78,16 +80,27 @@ class FlowPtyEndpoint(PtyEndpoint):
     port (flow control) instead of dropping at once; after one timed-out write it drops
     (counting ``overflow_bytes``) until a write goes through whole again, so a client that went
     away cannot stall the emulator. Needed when the emulator runs many times faster than the
-    nominal baud rate would allow."""
+    nominal baud rate would allow.
+
+    Flow control starts once the client has written to the port (``received_bytes``; a
+    commanded device's driver always speaks first: GoToConfig, a register read): until then
+    nobody may have the port open -- the new pty after a pulled cable, into which the device
+    still streams its old measurement period -- and writes drop what does not fit, as
+    :class:`PtyEndpoint`'s do (a UART with nobody listening). Waiting there instead made the IMU
+    stream thread hand the client, when it opened the port, the frames that became due during
+    the wait as one burst of stale data ahead of the reply to its GoToConfig.
+    ``flow_before_client_speaks``: a device that takes no commands sets it."""
 
     write_timeout_s = 0.5
+    flow_before_client_speaks = False
 
     def write(self, data: bytes) -> int:
         with self._wlock:
             if self._closed:
                 return 0
             view, sent = memoryview(data), 0
-            deadline = time.monotonic() + (self.write_timeout_s if getattr(self, "_flowing", True) else 0.0)
+            flowing = getattr(self, "_flowing", True) and (self.received_bytes > 0 or self.flow_before_client_speaks)
+            deadline = time.monotonic() + (self.write_timeout_s if flowing else 0.0)
             while sent < len(view):
                 try:
                     sent += os.write(self.master, view[sent:])
@@ -109,7 +122,10 @@ class FreeRunPtyEndpoint(FlowPtyEndpoint):
     """The port of a device that streams from power-up, whether or not a client listens (the
     declarative-frame IMU): while dropping, a write first looks whether the client has drained
     the port since (the master is writable again) and if so resumes flow control -- otherwise a
-    client that connects after the buffer filled would see the stream cut up for good."""
+    client that connects after the buffer filled would see the stream cut up for good. Its
+    client never writes, so flow control does not wait for it to speak."""
+
+    flow_before_client_speaks = True
 
     def write(self, data: bytes) -> int:
         if not getattr(self, "_flowing", True):
@@ -158,8 +174,9 @@ class HwModbusServer(ModbusTableServer):
 
 
 class HwXsensServer(XsensServer):
-    """Xsens emulator stepped by the hardware loop (no thread of its own); a measurement period
-    starts on the world's sample grid so its frames carry exact world samples."""
+    """Xsens emulator stepped by the hardware's IMU stream thread (no thread of its own); a
+    measurement period starts on the world's sample grid so its frames carry exact world
+    samples."""
 
     grid_rate_hz = 100.0
 
@@ -174,11 +191,11 @@ class HwXsensServer(XsensServer):
         self._last_acc: np.ndarray | None = None
         super().__init__(*args, **kw)
 
-    def _stream(self) -> None:          # the hardware loop calls step() instead
+    def _stream(self) -> None:          # Hardware._imu_loop calls step() instead
         return
 
     #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
-    #: the physics lags behind (e.g. the loop waited for a client that went away), so no frame
+    #: the physics lags behind (e.g. the loop was starved of CPU), so no frame
     #: of it carries a device time from before the GoToMeasurement request
     true_clock: Any = None
 
@@ -490,7 +507,7 @@ class Hardware:
         offsets that late. Only a backlog beyond ``backlog`` samples (the client slower than the
         stream for seconds: the emulator runs faster than the wire) holds the physics back."""
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
-        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # ~1 s of wall time
+        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # >= 1 s of wall time
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
             if time.monotonic() < self._paused_until:
