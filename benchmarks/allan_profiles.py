@@ -44,6 +44,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ def _load() -> str:
 def _h5(path: Path, fs: float) -> tuple:
     import h5py
 
-    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
+    from rigctl.recording.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
 
     f = h5py.File(path, "w")
     f.attrs["format"] = FORMAT_NAME
@@ -96,9 +97,10 @@ WARMUP_S = 900.0
 
 
 def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
-                       warmup_s: float = WARMUP_S) -> dict:
+                       warmup_s: float = WARMUP_S, edit: Any = None) -> dict:
     """A static capture of ``hours`` from the emulator (``case``: 'default' or a profile),
-    starting ``warmup_s`` after power-on (the profiles' warm-up; the default IMU has none)."""
+    starting ``warmup_s`` after power-on (the profiles' warm-up; the default IMU has none).
+    ``edit``: a function that changes the profile (a dict) before the model is built."""
     from rigctl.sim.imu import build_imu_model
     from rigctl.yamlio import load_file
 
@@ -113,6 +115,8 @@ def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
 
         prof = get_profile(case)
         prof["power_on_time_s"] = float(warmup_s)
+        if edit is not None:
+            edit(prof)
         model = ImuErrorModel.from_profile(prof, seed=seed)
         fs = model.output_rate_hz
         full = True

@@ -9,20 +9,21 @@ field's reader (type, range, choices), missing required keys are named, and
 :meth:`Settings.check` adds the rules between fields; every error is an InputError with the
 file and line (rigctl.schema).
 
-Users: rigctl.linkconfig (the wired drivers' link settings, whose field names are the drivers'
-keyword arguments), rigctl.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
-``traceability:``), rigctl.suspenders, rigctl.notify, rigctl.chamber, rigctl.procedure (the
+Users: rigctl.config.linkconfig (the wired drivers' link settings, whose field names are the drivers'
+keyword arguments), rigctl.config.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
+``traceability:``), rigctl.config.suspenders, rigctl.config.notify, rigctl.config.chamber, rigctl.engine.procedure (the
 procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
-rigctl.spec (the acceptance limits of ``--spec``).
+rigctl.config.spec (the acceptance limits of ``--spec``).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, ClassVar, TypeVar
 
 from . import schema as S
-from .yamlio import LocDict
+from .yamlio import LocDict, LocList
 
 #: reads ``d[key]`` with the field's checks: ``reader(d, key, default, **checks)``
 Reader = Callable[..., Any]
@@ -64,6 +65,92 @@ def _mapping(d: LocDict, key: str, default: Any = None) -> LocDict:
 def mapping(default: Any = MISSING) -> Any:
     """A mapping (key: value lines), kept as read: a :class:`LocDict` that still knows its lines."""
     return setting(default, read=_mapping)
+
+
+def _numbers(d: LocDict, key: str, default: Any = None, *, length: int | None = 3,
+             minimum: float | None = None, maximum: float | None = None) -> tuple[float, ...]:
+    v = S.number_list(d, key, length=length)
+    for i, x in enumerate(v):
+        if (minimum is not None and x < minimum) or (maximum is not None and x > maximum):
+            raise S.item_error(d, key, d[key], i, f"{key!r}: entry {i + 1} = {x:g} is outside "
+                               f"[{'-inf' if minimum is None else f'{minimum:g}'}, "
+                               f"{'inf' if maximum is None else f'{maximum:g}'}]")
+    return tuple(v)
+
+
+def numbers(default: Any = MISSING, **check: Any) -> Any:
+    """A list of numbers ([x, y, z] by default: ``length=3``; ``length=None``: any length),
+    each within [minimum, maximum]; a tuple of floats."""
+    return setting(default, read=_numbers, **check)
+
+
+def _per_axis(d: LocDict, key: str, default: Any = None, *, minimum: float | None = None,
+              maximum: float | None = None, integer: bool = False) -> tuple[float, float, float]:
+    if isinstance(d[key], list):
+        vals = S.number_list(d, key, length=3)
+        for v in vals:
+            if (minimum is not None and v < minimum) or (maximum is not None and v > maximum):
+                raise S.error(d, key, f"{key!r} entries must be in [{minimum}, {maximum}]")
+            if integer and int(v) != v:
+                raise S.error(d, key, f"{key!r} entries must be whole numbers")
+        return tuple(int(v) if integer else float(v) for v in vals)  # type: ignore[return-value]
+    v = S.get_number(d, key, minimum=minimum, maximum=maximum, integer=integer)
+    return (v, v, v)
+
+
+def per_axis(default: Any = MISSING, **check: Any) -> Any:
+    """One number for the three axes, or a list of three (each within [minimum, maximum]);
+    a 3-tuple."""
+    return setting(default, read=_per_axis, **check)
+
+
+def _matrix3(d: LocDict, key: str, default: Any = None) -> tuple[tuple[float, ...], ...]:
+    rows = S.get_list(d, key, length=3)
+    out = []
+    for i, row in enumerate(rows):
+        if not (isinstance(row, list) and len(row) == 3 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in row)):
+            raise S.item_error(d, key, rows, i, f"{key!r} must be a 3x3 list of rows of numbers "
+                               f"(row {i + 1} is {row!r})", "e.g. [[0, 1, 0], [0, 0, 0], [-2, 0, 0]]")
+        out.append(tuple(float(x) for x in row))
+    return tuple(out)
+
+
+def matrix3(default: Any = MISSING) -> Any:
+    """A 3x3 list of rows of numbers; a tuple of three 3-tuples."""
+    return setting(default, read=_matrix3)
+
+
+def subsection(cls: type[Settings], what: str) -> Any:
+    """A nested mapping read as the settings ``cls`` (``what``: how errors name it, e.g.
+    "'imu.sim.thermal'"); absent or null: ``cls()``, its defaults."""
+    def read(d: LocDict, key: str, default: Any = None) -> Settings:
+        if d[key] is None:
+            return parse(cls, LocDict(), what)
+        return parse(cls, S.require_mapping(d[key], what, d, key), what)
+    return setting(cls(), read=read)
+
+
+def items(cls: type[Settings], what: str, default: Any = ()) -> Any:
+    """A list of mappings, each read as the settings ``cls`` (errors name ``what`` and the
+    entry's number); a tuple."""
+    def read(d: LocDict, key: str, default: Any = None) -> tuple[Settings, ...]:
+        if d[key] is None:
+            return ()
+        entries = S.get_list(d, key)
+        out = []
+        for i, e in enumerate(entries):
+            label = f"{what} entry {i + 1}"
+            if not isinstance(e, dict):
+                raise S.item_error(d, key, entries, i, f"{label} must be a mapping (key: value lines), "
+                                   f"got {e!r}")
+            if not isinstance(e, LocDict):
+                e = LocDict(e)
+                e.file, e.line = d.file, (entries.line_of(i) if isinstance(entries, LocList)
+                                          else d.line_of(key))
+            out.append(parse(cls, e, label))
+        return tuple(out)
+    return setting(default, read=read)
 
 
 def _as_written(d: LocDict, key: str, default: Any = None) -> Any:

@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.clock import ScaledClock
-from rigctl.config import RigConfig
+from rigctl.config.config import RigConfig
 from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
 from rigctl.drivers.xsens import FREQ_MAX, SAMPLE_TIME_FINE_HZ, encode_mtdata2
 
@@ -434,7 +434,7 @@ class Hardware:
             VectorNavServer.grid_rate_hz = self.world.rate_hz
             self.imu_server = VectorNavServer(self.tap, self.world_clock.now, baudrate=self.imu_baudrate, seed=seed)
         else:
-            from rigctl.frame_spec import parse_frame_spec
+            from rigctl.config.frame_spec import parse_frame_spec
             from rigctl.yamlio import LocDict
 
             from .frame_server import EXAMPLE, FrameServer

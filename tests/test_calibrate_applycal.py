@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.applycal_cmd import invert_accel, invert_gyro
+from rigctl.commands.applycal_cmd import invert_accel, invert_gyro
 
 
 def test_newton_inverts_the_accelerometer_model_with_quadratic_terms():

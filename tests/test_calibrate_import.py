@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from helpers import run_rigctl
-from rigctl.applycal_cmd import invert_accel
+from rigctl.commands.applycal_cmd import invert_accel
 
 ACC_LSB = 9.80665 / 2048.0
 GYR_LSB = math.radians(1.0 / 16.4)

@@ -9,7 +9,7 @@ import numpy as np
 
 from rigctl.drivers import frame_decl
 from rigctl.drivers.frame_imu import FrameImu
-from rigctl.frame_spec import parse_frame_spec
+from rigctl.config.frame_spec import parse_frame_spec
 from rigctl.sim.frame_server import EXAMPLE
 from rigctl.yamlio import LocDict
 

@@ -23,8 +23,8 @@ import numpy as np
 from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
-from ..recorder import write_results
-from ..recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
+from ..recording.recorder import write_results
+from ..recording.recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
@@ -33,6 +33,7 @@ from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
+from . import allan_drift as AD
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -416,8 +417,14 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
+    ybar, block_s = AD.block_means(stream._dec[: stream.n_dec], stream.dec * stream.tau0)
+    warm = AD.start_transient(ybar, block_s, res.tau_s, res.dev, (res.n_phase - 1) * res.tau0_s,
+                              sensor)
+    if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
+        AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
+                         AD.warmup_reason_below(warm))
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening, "tones": tones,
+            **screening, "tones": tones, "warmup": warm,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -427,7 +434,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
 
 
 def _open_checked(path: str, axes: list[str]):
-    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    """The recording, checked (rigctl.recording.recording_reader) for the datasets of ``axes``."""
     return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
 
 
@@ -443,7 +450,50 @@ OUTLIER_MODES = ("report", "exclude")
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
-            gaps: str = "skip") -> dict[str, Any]:
+            gaps: str = "skip", warmup: str = "report") -> dict[str, Any]:
+    """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
+    on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
+    the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
+    deviation), the same cut for every axis. Each axis' ``warmup_excluded`` then keeps the
+    cut, the transient found before it and the first pass's fitted terms; the result's
+    ``warmup`` says which mode ran. Never silent: the cut is in the result and the text."""
+    if warmup not in AD.WARMUP_MODES:
+        raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
+    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps)
+    out["warmup"] = "report"
+    if warmup != "exclude":
+        return out
+    out["warmup"] = "exclude"
+    cut = max((r["warmup"].get("trim_s") or 0.0 for r in out["axes"].values()
+               if r["warmup"].get("detected")), default=0.0)
+    if cut <= 0:
+        return out
+    fs = out["sample_rate_hz"]
+    n_cut = int(math.ceil(cut * fs))
+    s0 = int(out["first_sample"])
+    s1 = s0 + int(out["n_samples"])  # rows (a gap's missing samples have none)
+    if s1 - (s0 + n_cut) < MIN_SAMPLES or n_cut > (s1 - s0) // 2:
+        raise InputError(f"{path}: the start transient would need the first {cut:.0f} s cut, "
+                         f"more than half of the analysed range ({(s1 - s0) / fs:.0f} s)",
+                         hint="record longer, or analyse without --warmup exclude (the "
+                              "transient is then reported and named by the self-check)")
+    again = compute_once(path, axes, taus, exact, (s0 + n_cut, s1), progress_stream, outliers, gaps)
+    again["warmup"] = "exclude"
+    again["warmup_cut_s"] = n_cut / fs
+    for a, r in again["axes"].items():
+        first = out["axes"][a]
+        r["warmup_excluded"] = {"trim_s": n_cut / fs, "trim_samples": n_cut,
+                                "before": first["warmup"],
+                                "summary_before": summary_line(first),
+                                "coefficients_before": first["fit"]["coefficients"],
+                                "check_before": first["fit"]["check"]}
+    return again
+
+
+def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
+                 sample_range: tuple[int, int] | None = None,
+                 progress_stream: Any = None, outliers: str = "report",
+                 gaps: str = "skip") -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -558,7 +608,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                    exclude: bool = False, breaks: list[int] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
-    this thread reads chunk i + 1 (:class:`rigctl.recording_reader.RowReader`: os.preadv
+    this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
     from the chunks' offsets, without the GIL, where the layout allows). At most two chunks
     are in memory. ``breaks``: rows that follow a gap (each starts a new gap-free stretch of
     the Allan sums).
@@ -934,7 +984,7 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     """(warnings, notes) about an axis' samples: spikes (a warning: they are in the noise
     unless excluded) and the output quantization (a note; a warning when the noise per sample
     is below half a step, so the rounding is not random)."""
-    warns, notes = [], []
+    warns, notes = list(AD.warmup_sentences(r)), []
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
     if sp.get("count"):
@@ -1022,7 +1072,7 @@ def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoeffi
 
 
 def store(path: str, result: dict[str, Any]) -> None:
-    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recorder.write_results`:
+    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recording.recorder.write_results`:
     the JSON summary (non-finite numbers kept: an unbounded interval end stays inf) and the curve
     datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units."""
     summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
@@ -1031,10 +1081,12 @@ def store(path: str, result: dict[str, Any]) -> None:
                "dropped_samples": result.get("dropped_samples", 0),
                "segment": result.get("segment", "whole recording"),
                "outliers": result.get("outliers", "report"),
+               "warmup": result.get("warmup", "report"),
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                             **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
-                                                              "quantization", "tones")},
+                                                              "quantization", "tones", "warmup",
+                                                              "warmup_excluded")},
                                        keep_nonfinite=True)}
                         for a, r in result["axes"].items()}}
     arrays = {}

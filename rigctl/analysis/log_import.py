@@ -26,7 +26,7 @@ from .. import __version__
 from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
-from ..recording_reader import MAX_RATE_HZ
+from ..recording.recording_reader import MAX_RATE_HZ
 from . import bag_import as B
 
 #: progress(done, total) while a bag is read (messages)
@@ -287,10 +287,10 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
 def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
                     rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
                     counter: np.ndarray | None = None, note: str = "") -> None:
-    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder: the one
+    """A complete recording (docs/data-format.md) through rigctl.recording.recorder.Recorder: the one
     writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
     jumps; ``note`` is added to the import event's message."""
-    from ..recorder import Recorder, Segment
+    from ..recording.recorder import Recorder, Segment
 
     n = len(t)
     counter = np.arange(n, dtype=np.uint64) if counter is None else np.asarray(counter, np.uint64)

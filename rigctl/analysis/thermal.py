@@ -24,13 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from .. import recording_reader
+from ..recording import recording_reader
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
-from ..recorder import utc_now, write_results
-from ..recording_reader import check_finite
-from ..segment_builder import _angles_at, _site, open_recording
+from ..recording.recorder import utc_now, write_results
+from ..recording.recording_reader import check_finite
+from ..recording.segment_builder import _angles_at, _site, open_recording
 from ..solvers import thermal as th
 from ..solvers.segment_noise import window_revolutions
 from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
@@ -375,7 +375,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
     or no ``noise``, estimates that sensor's noise from the session
     (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
-    from ..calibration_text import noise_summary
+    from .calibration_text import noise_summary
 
     p = Path(path)
     degrees = parse_degrees(degrees)

@@ -1,0 +1,143 @@
+"""Slow features of a static capture that are not IEEE 952 noise, for the Allan pipeline
+(:mod:`rigctl.analysis.allan`): a start transient (warm-up) and a drift that follows the
+recorded temperature. The statistics are :mod:`rigctl.solvers.allan_drift`'s; this module reads
+an axis' block means from the streamed record (the decimated phase the noise identification
+keeps), puts the results in the axis' result (``warmup``, ``temperature``), names them in the
+fit's self-check where they explain the taus outside the band, and words them.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..solvers import allan_drift as D
+
+G0 = 9.80665
+#: display unit of a level (the deviation's field unit) and of a rate of change per K
+LEVEL_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / G0)}
+
+#: what to do with a start transient found before the fit: report it, or cut the record's
+#: start (the longest trim over the axes) and analyse the rest
+WARMUP_MODES = ("report", "exclude")
+
+
+def block_means(phase: np.ndarray, step_s: float) -> tuple[np.ndarray, float]:
+    """Block means of the rate from the phase sampled every ``step_s`` (the stream's
+    decimated copy), averaged down to at most D.MAX_BLOCKS blocks: (means, block length s)."""
+    y = np.diff(np.asarray(phase, dtype=float)) / step_s
+    k = max(1, -(-y.size // D.MAX_BLOCKS))
+    return D.aggregate(y, k), k * step_s
+
+
+def start_transient(ybar: np.ndarray, block_s: float, tau: np.ndarray, dev: np.ndarray,
+                    record_s: float, sensor: str) -> dict[str, Any]:
+    """The start-transient test and, when it finds one, the exponential's fit, its Allan
+    deviation at the curve's taus (``adev_si``, SI) and the cut that would leave less than a
+    tenth of the curve (``trim_s``); amplitude also in the deviation's field unit."""
+    test = D.start_transient_test(ybar, block_s)
+    out: dict[str, Any] = {"detected": test["detected"], "p_value": test["p_value"],
+                           "alpha": test["alpha"], "test": test}
+    if not test["detected"]:
+        return out
+    fit = D.fit_start_transient(ybar, block_s, test["best_T_s"], record_s)
+    if "skipped" in fit:
+        out["fit"] = fit
+        return out
+    unit, fac = LEVEL_UNITS[sensor]
+    amp_hi = max(abs(fit["amp_ci95"][0]), abs(fit["amp_ci95"][1]))
+    tau_hi = fit["tau_ci95"][1]
+    trim = D.trim_for(amp_hi, tau_hi, tau, dev, record_s)
+    w2 = D.transient_avar(tau, fit["amp"], fit["tau_s"], record_s)
+    share = w2 / np.maximum(np.asarray(dev, dtype=float) ** 2, 1e-300)
+    k = int(np.argmax(share))
+    out.update({"fit": fit, "amp_si": fit["amp"], "tau_s": fit["tau_s"],
+                "tau_ci95_s": fit["tau_ci95"], "amp_ci95_si": fit["amp_ci95"],
+                f"amp_{unit}": fit["amp"] * fac,
+                f"amp_ci95_{unit}": [v * fac for v in fit["amp_ci95"]], "unit": unit,
+                "trim_s": float(trim), "adev_si": np.sqrt(w2), "share": share,
+                "max_share": float(share[k]), "max_share_tau_s": float(np.asarray(tau)[k])})
+    return out
+
+
+def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key: str,
+                  why_below: str | None = None) -> int:
+    """Put the runs of taus outside the band down to a feature (``key``) that is not IEEE 952
+    noise: a run where the feature's Allan variance is at least D.NAME_SHARE of the curve's at
+    some tau of it gets ``why``; with ``why_below``, a run of data below the fit at taus past
+    the feature's largest share (when that share reaches D.NAME_SHARE) gets it: the fit's
+    long-tau terms (K, B) took the feature and overshoot the curve there. The earlier reason
+    is kept in ``likely_before``. Returns the runs renamed."""
+    tau = np.asarray(tau, dtype=float)
+    share = np.asarray(share, dtype=float)
+    k = int(np.argmax(share)) if share.size else 0
+    peak_ok = share.size and float(share[k]) >= D.NAME_SHARE
+    renamed = 0
+    for o in check.get("outside") or []:
+        sel = (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
+        if not sel.any():
+            continue
+        if float(np.max(share[sel])) >= D.NAME_SHARE:
+            reason = why
+        elif (why_below and peak_ok and o["side"] == "data below the fit"
+              and o["tau_from_s"] >= float(tau[k])):
+            reason = why_below
+        else:
+            continue
+        if "likely_before" not in o:
+            o["likely_before"] = o["likely"]
+        o["likely"] = reason
+        o["cause"] = key
+        renamed += 1
+    return renamed
+
+
+def warmup_reason(w: dict[str, Any]) -> str:
+    """The self-check's reason for the taus a start transient explains."""
+    unit = w["unit"]
+    return (f"a warm-up transient at the start of the record (the mean settles by "
+            f"{w[f'amp_{unit}']:.3g} {unit} with a time constant of {w['tau_s']:.3g} s; its "
+            f"own Allan deviation is up to {100 * math.sqrt(w['max_share']):.0f} % of the "
+            f"curve's), not a term of the noise: trim the first {w['trim_s']:.0f} s "
+            "(--warmup exclude)")
+
+
+def warmup_reason_below(w: dict[str, Any]) -> str:
+    """The self-check's reason for data below the fit past the transient's taus."""
+    unit = w["unit"]
+    return (f"the fitted K and B take the warm-up transient at the start of the record "
+            f"({w[f'amp_{unit}']:.3g} {unit}, time constant {w['tau_s']:.3g} s; its Allan "
+            f"deviation is up to {100 * math.sqrt(w['max_share']):.0f} % of the curve at "
+            f"{w['max_share_tau_s']:.3g} s) and overshoot the curve here: trim the first "
+            f"{w['trim_s']:.0f} s (--warmup exclude)")
+
+
+def warmup_sentences(r: dict[str, Any]) -> list[str]:
+    """Warnings on an axis' start transient ([] if none was found): the one found (before
+    the cut, with --warmup exclude) and, after a cut, any still found."""
+    ex = r.get("warmup_excluded")
+    w = (ex or {}).get("before") or r.get("warmup") or {}
+    out = []
+    if w.get("detected") and "tau_s" in w:
+        unit = w["unit"]
+        lo, hi = w[f"amp_ci95_{unit}"]
+        tl, th = w["tau_ci95_s"]
+        head = (f"start transient (warm-up): the mean settles exponentially by "
+                f"{w[f'amp_{unit}']:.3g} {unit} [{lo:.3g}, {hi:.3g}] with a time constant of "
+                f"{w['tau_s']:.3g} s [{tl:.3g}, {th:.3g}] (95 %; test p = {w['p_value']:.2g} "
+                f"against the record's own later differences, alpha {w['alpha']:g}); its Allan "
+                f"deviation reaches {100 * math.sqrt(w['max_share']):.0f} % of the curve (at "
+                f"{w['max_share_tau_s']:.3g} s)")
+        if ex:
+            out.append(f"{head}: the first {ex['trim_s']:.0f} s were cut before the deviations "
+                       f"(--warmup exclude; with them: {ex['summary_before']})")
+        else:
+            out.append(f"{head}: it is in the curve and the fit (K and B take it); to leave it "
+                       f"out: --warmup exclude (cuts the first {w['trim_s']:.0f} s)")
+    now = r.get("warmup") or {}
+    if ex and now.get("detected") and "tau_s" in now:
+        unit = now["unit"]
+        out.append(f"after the cut a start transient is still found ({now[f'amp_{unit}']:.3g} "
+                   f"{unit}, time constant {now['tau_s']:.3g} s, p = {now['p_value']:.2g})")
+    return out
