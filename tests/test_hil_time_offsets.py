@@ -17,7 +17,7 @@ from rigctl.drivers.acl_table import AclTable
 from rigctl.drivers.modbus_table import ModbusTable
 from rigctl.drivers.xsens import MID, SAMPLE_TIME_FINE_HZ, go_to_config, go_to_measurement
 from rigctl.drivers.xsens_decode import MTData2Stream
-from rigctl.frame_spec import parse_frame_spec
+from rigctl.config.frame_spec import parse_frame_spec
 from rigctl.sim.frame_server import EXAMPLE
 from rigctl.yamlio import LocDict
 
