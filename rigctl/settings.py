@@ -29,11 +29,12 @@ from .yamlio import LocDict, LocList
 Reader = Callable[..., Any]
 
 
-def setting(default: Any = MISSING, *, read: Reader, key: str | None = None, **check: Any) -> Any:
+def setting(default: Any = MISSING, *, read: Reader, key: str | None = None, what: bool = False,
+            **check: Any) -> Any:
     """A settings field read by ``read``; ``key``: its YAML key when it differs from the field's
-    name; ``check``: keyword arguments of the reader (minimum, maximum, integer, allow_none,
-    choices, positive)."""
-    return field(default=default, metadata={"read": read, "key": key, "check": check})
+    name; ``what``: the reader also gets ``what=`` (how errors name the section); ``check``:
+    keyword arguments of the reader (minimum, maximum, integer, allow_none, choices, positive)."""
+    return field(default=default, metadata={"read": read, "key": key, "check": check, "what": what})
 
 
 def internal(default: Any) -> Any:
@@ -121,36 +122,51 @@ def matrix3(default: Any = MISSING) -> Any:
     return setting(default, read=_matrix3)
 
 
-def subsection(cls: type[Settings], what: str) -> Any:
-    """A nested mapping read as the settings ``cls`` (``what``: how errors name it, e.g.
-    "'imu.sim.thermal'"); absent or null: ``cls()``, its defaults."""
-    def read(d: LocDict, key: str, default: Any = None) -> Settings:
+def subsection(cls: type[Settings], what: str | None = None, *, optional: bool = False) -> Any:
+    """A nested mapping read as the settings ``cls``; errors name it ``what`` (e.g.
+    "'imu.sim.thermal'"), by default the parent's name and the key ("<parent>.<key>"). Absent or
+    null: ``cls()``, its defaults (``optional``: None)."""
+    def read(d: LocDict, key: str, default: Any = None, *, what: str = "") -> Settings | None:
+        name = what_ or f"{what}.{key}"
         if d[key] is None:
-            return parse(cls, LocDict(), what)
-        return parse(cls, S.require_mapping(d[key], what, d, key), what)
-    return setting(cls(), read=read)
+            return None if optional else parse(cls, LocDict(), name)
+        return parse(cls, S.require_mapping(d[key], name, d, key), name)
+    what_ = what
+    return setting(None if optional else cls(), read=read, what=True)
 
 
-def items(cls: type[Settings], what: str, default: Any = ()) -> Any:
-    """A list of mappings, each read as the settings ``cls`` (errors name ``what`` and the
-    entry's number); a tuple."""
-    def read(d: LocDict, key: str, default: Any = None) -> tuple[Settings, ...]:
-        if d[key] is None:
+def entry(d: LocDict, key: str, i: int) -> Any:
+    """Entry ``i`` of the list ``d[key]``; a mapping as a :class:`LocDict` that knows its line
+    (for a list read without lines, such as a dict built in code: the key's line)."""
+    entries = d[key]
+    e = entries[i]
+    if isinstance(e, dict) and not isinstance(e, LocDict):
+        e = LocDict(e)
+        e.file, e.line = d.file, (entries.line_of(i) if isinstance(entries, LocList) else d.line_of(key))
+    return e
+
+
+def items(cls: type[Settings], what: str | None = None, default: Any = (), *, min_length: int = 0,
+          hint: str | None = None) -> Any:
+    """A list of mappings (at least ``min_length``), each read as the settings ``cls`` (errors
+    name ``what``, by default "<parent>.<key>", and the entry's number; ``hint``: what an entry
+    looks like); a tuple."""
+    def read(d: LocDict, key: str, default: Any = None, *, what: str = "") -> tuple[Settings, ...]:
+        if d[key] is None and not min_length:
             return ()
-        entries = S.get_list(d, key)
+        name = what_ or f"{what}.{key}"
+        entries = S.get_list(d, key, min_length=min_length)
         out = []
-        for i, e in enumerate(entries):
-            label = f"{what} entry {i + 1}"
+        for i in range(len(entries)):
+            label = f"{name} entry {i + 1}"
+            e = entry(d, key, i)
             if not isinstance(e, dict):
                 raise S.item_error(d, key, entries, i, f"{label} must be a mapping (key: value lines), "
-                                   f"got {e!r}")
-            if not isinstance(e, LocDict):
-                e = LocDict(e)
-                e.file, e.line = d.file, (entries.line_of(i) if isinstance(entries, LocList)
-                                          else d.line_of(key))
+                                   f"got {e!r}", hint)
             out.append(parse(cls, e, label))
         return tuple(out)
-    return setting(default, read=read)
+    what_ = what
+    return setting(default, read=read, what=True)
 
 
 def _as_written(d: LocDict, key: str, default: Any = None) -> Any:
@@ -168,6 +184,8 @@ class Settings:
 
     #: other keys the section may hold (read elsewhere)
     EXTRA_KEYS: ClassVar[tuple[str, ...]] = ()
+    #: added to the hint of an unknown key (e.g. where the keys are documented)
+    HINT: ClassVar[str] = ""
 
     def check(self, d: LocDict) -> None:
         """Rules between fields (after each field is valid); raises InputError."""
@@ -183,7 +201,11 @@ def yaml_keys(cls: type[Settings]) -> list[str]:
 def parse(cls: type[T], d: LocDict, what: str, extra_keys: Iterable[str] = ()) -> T:
     """The one validator: ``d`` (a config section) as ``cls``; InputError with file and line."""
     spec = {f.metadata.get("key") or f.name: f for f in fields(cls) if "read" in f.metadata}
-    S.check_keys(d, (*extra_keys, *cls.EXTRA_KEYS, *spec), what)
+    allowed = (*extra_keys, *cls.EXTRA_KEYS, *spec)
+    for key in d:
+        if key not in allowed:
+            hint = S.did_you_mean(key, allowed)
+            raise S.error(d, key, f"unknown key {key!r} in {what}", f"{hint}; {cls.HINT}" if cls.HINT else hint)
     values: dict[str, Any] = {}
     for key, f in spec.items():
         default = ... if f.default is MISSING else f.default
@@ -192,7 +214,8 @@ def parse(cls: type[T], d: LocDict, what: str, extra_keys: Iterable[str] = ()) -
                 raise S.error(d, None, f"{what} is missing {key!r}", f"add a line '{key}: ...'")
             values[f.name] = default
         else:
-            values[f.name] = f.metadata["read"](d, key, default, **f.metadata["check"])
+            check = {**f.metadata["check"], **({"what": what} if f.metadata.get("what") else {})}
+            values[f.name] = f.metadata["read"](d, key, default, **check)
     out = cls(**values)
     out.check(d)
     return out

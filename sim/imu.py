@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.yamlio import LocDict
-from rigctl.settings import Settings, items, matrix3, number, numbers, parse, setting
+from rigctl.settings import Settings, items, matrix3, number, numbers, parse, setting, subsection, text
 from rigctl.solvers.noise_coefficients import GaussMarkov, Triad, terms_of, to_json, triad
 
 from .noise import NoiseGenerator
@@ -176,9 +176,7 @@ class DeclaredImuSettings(Settings):
     #: None: the config's seed
     seed: int | None = number(None, minimum=0, integer=True)
     #: None: no temperature-dependent errors
-    thermal: ThermalSettings | None = setting(None, read=lambda d, key, default=None: None if d[key] is None
-                                              else parse(ThermalSettings, S.require_mapping(
-                                                  d[key], "'imu.sim.thermal'", d, key), "'imu.sim.thermal'"))
+    thermal: ThermalSettings | None = subsection(ThermalSettings, "'imu.sim.thermal'", optional=True)
 
 
 def _matrix(scale: tuple[float, ...], misalign: tuple[tuple[float, ...], ...] | None,
@@ -236,6 +234,27 @@ def _deep_merge(base: dict, over: Any, where: LocDict, key: str) -> dict:
     return out
 
 
+def _overrides(d: LocDict, key: str, default: Any = None) -> LocDict:
+    if not isinstance(d[key], dict):
+        raise S.error(d, key, "'overrides' must be a mapping of profile keys",
+                      "same layout as a profile of configs/imu-profiles.yaml")
+    return d[key]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProfileImuSettings(Settings):
+    """``imu.sim`` with a profile: the device profile (its name is checked against the profiles
+    file), its file, the seed and the overrides (a partial profile, checked by
+    :class:`rigctl.sim.profiles.ImuProfile` with file and line)."""
+
+    profile: str = text()
+    #: None: the config's seed
+    seed: int | None = number(None, minimum=0, integer=True)
+    #: relative to the config file; None: configs/imu-profiles.yaml
+    profiles_file: str | None = text(None)
+    overrides: LocDict | None = setting(None, read=_overrides)
+
+
 def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     """The IMU model of an ``imu.sim`` config mapping.
 
@@ -244,7 +263,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     :mod:`rigctl.sim.error_model` (noise with exact Allan signatures, front end, physical
     effects, clock error); ``overrides`` is deep-merged into the profile, e.g.
     ``{effects: {lever_arm: {enabled: true, r_m: [0.01, 0, 0]}}}``. The profile and the
-    overrides are checked against the profile schema (:data:`rigctl.sim.profiles.PROFILE_SCHEMA`):
+    overrides are checked by the profile's settings (:class:`rigctl.sim.profiles.ImuProfile`):
     an unknown key, a value of the wrong kind or an enabled effect without a required key is an
     InputError naming the file and line. Without ``profile``: the declared errors above with
     white noise.
@@ -256,21 +275,18 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     from .error_model import ImuErrorModel
     from .profiles import _coerce, check_merged, check_profile, get_profile, profile_names
 
-    S.check_keys(o, ("profile", "seed", "profiles_file", "overrides"), "'imu.sim' with a profile")
+    c = parse(ProfileImuSettings, o, "'imu.sim' with a profile")
     path = None
-    if "profiles_file" in o:
-        path = Path(o.file).parent / S.get_str(o, "profiles_file")
+    if c.profiles_file is not None:
+        path = Path(o.file).parent / c.profiles_file
         if not path.is_file():
             raise S.error(o, "profiles_file", f"profiles file {str(path)!r} not found",
                           "the path is relative to the config file")
     name = S.get_str(o, "profile", choices=profile_names(path))
-    seed = int(S.get_number(o, "seed", seed, minimum=0, integer=True))
-    profile = get_profile(name, seed=seed, path=path)  # checked against the profile schema
-    base, over = profile, o.get("overrides")
-    if "overrides" in o:
-        if not isinstance(over, dict):
-            raise S.error(o, "overrides", "'overrides' must be a mapping of profile keys",
-                          "same layout as a profile of configs/imu-profiles.yaml")
+    seed = int(seed if c.seed is None else c.seed)
+    profile = get_profile(name, seed=seed, path=path)  # checked against the profile's settings
+    base, over = profile, c.overrides
+    if over is not None:
         check_profile(over, "imu.sim.overrides")  # misspelt keys, wrong kinds: file and line
         profile = _deep_merge(profile, over, o, "overrides")
     check_merged(profile, over, base, f"profile {name!r}" + (" with imu.sim.overrides" if over else ""))

@@ -30,8 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rigctl.devices import Clock, Pulses
-from rigctl.settings import number, parse, yaml_keys
-from rigctl.yamlio import LocDict
+from rigctl.settings import number, yaml_keys
 
 from . import taps as T
 
@@ -75,12 +74,6 @@ class TapRigSettings(T.TapParams):
 
 #: Options of ``pulses.sim`` besides the TapParams fields.
 EXTRA_KEYS = tuple(k for k in yaml_keys(TapRigSettings) if k not in yaml_keys(T.TapParams))
-
-
-def tap_params(o: LocDict) -> tuple[T.TapParams, dict[str, float]]:
-    """TapParams and scheduling options from the ``pulses.sim`` mapping (SI units in key names)."""
-    s = parse(TapRigSettings, o, "'pulses.sim'")
-    return s.tap_params(), {"margin_s": s.margin_s, "slot_jitter": s.slot_jitter, "seed": s.seed}
 
 
 class TapField:

@@ -28,7 +28,7 @@ from .faults import FaultInjector
 from .effects import table_body_references
 from .imu import DeclaredImuModel, build_imu_model
 from .error_model import SampleGrid
-from .tap_rig import TRUTH_TABLES, SimPulses, SimTapOperator, tap_params
+from .tap_rig import TRUTH_TABLES, SimPulses, SimTapOperator, TapRigSettings
 from .table import OFF, POSITION, RATE, ServoParams, SimTurntable
 
 #: Largest block generated in one call, samples (bounds memory on long sleeps).
@@ -157,11 +157,9 @@ class SimWorld:
         self._track_t = -1.0
         self.operator: SimTapOperator | None = None  # emulated tap-hammer operator (pulses: sim)
         if cfg.pulses.driver == "sim":
-            p_opts = cfg.pulses.options.get("sim") or LocDict()
-            p_opts = S.require_mapping(p_opts, "'pulses.sim'", cfg.pulses.options, "sim")
-            params, extra = tap_params(p_opts)
-            self.operator = SimTapOperator(params, extra["margin_s"], extra["slot_jitter"],
-                                           extra["seed"] or cfg.seed)
+            taps = section(cfg.pulses.options, "sim", TapRigSettings, "'pulses.sim'")
+            self.operator = SimTapOperator(taps.tap_params(), taps.margin_s, taps.slot_jitter,
+                                           taps.seed or cfg.seed)
 
     def _wobble(self, ang: NDArray, rates: NDArray, f_b: NDArray,
                 w_b: NDArray) -> tuple[NDArray, NDArray]:

@@ -81,3 +81,30 @@ def test_a_profile_noise_section_round_trips_its_gauss_markov_terms():
     back = to_config(axes, "gyro")
     assert back["gm"] == [{"sigma_rad_per_s": 1e-5, "tau_c_s": 300.0}]
     assert from_config(back, "gyro") == axes
+
+
+def test_a_profile_gauss_markov_term_is_generated(tmp_path):
+    """``imu.sim.overrides.gyro.noise.gm`` on the declared_only profile (its other noise set to
+    zero): the output's variance and lag-1 correlation are those of the term."""
+    import yaml
+
+    from rigctl.sim.imu import build_imu_model
+    from rigctl.yamlio import load_file
+
+    sigma, tc, n = 2.0e-3, 0.05, 200_000  # rad/s, s, samples (2000 s at 100 Hz: 40000 Tc)
+    zero = {"N_rad_per_s_per_sqrt_hz": 0.0, "B_rad_per_s": 0.0, "K_rad_per_s2_per_sqrt_hz": 0.0}
+    imu_sim = {"profile": "declared_only", "seed": 4,
+               "overrides": {"gyro": {"noise": {**zero, "gm": [{"sigma_rad_per_s": sigma, "tau_c_s": tc}]}}}}
+    path = tmp_path / "imu.yaml"
+    path.write_text(yaml.safe_dump({"sim": imu_sim}))
+    model = build_imu_model(load_file(path)["sim"], RATE_HZ, 1)
+    assert [m.gm for m in model.gyro_coefficients] == [(GaussMarkov(sigma, tc),)] * 3
+    assert model.truth()["gyro_noise"][0]["gm"] == [{"sigma": {"value": sigma}, "tau_c_s": tc}]
+    g = model.sample_grid(n)
+    m = g.t_internal.size
+    _, w, _ = model.apply(g.t_internal, np.tile([0.0, 0.0, 9.8], (m, 1)), np.zeros((m, 3)))
+    assert w.shape[0] == n
+    for ax in range(3):
+        s, se_s, t, se_t = _ar1_estimates(w[:, ax], 1.0 / RATE_HZ)
+        assert abs(s - sigma) < 4.5 * se_s, (ax, s, se_s)
+        assert abs(t - tc) < 4.5 * se_t, (ax, t, se_t)

@@ -83,6 +83,14 @@ CASES = {
                         "13: 'imu.sim.thermal.rate' must be a mapping (key: value lines), got int 3"),
     "profile name": (IMU, "    profile: mti_clas\n",
                      "11: 'profile' = 'mti_clas' is not allowed (did you mean 'mti_class'?)"),
+    "profile gm typo": (IMU, "    profile: mti_class\n    overrides:\n      gyro:\n        noise:\n"
+                        "          gm: [{sigma_rad_per_s: 1.0e-5, tau_c: 10}]\n",
+                        "15: unknown key 'tau_c' in imu.sim.overrides.gyro.noise.gm entry 1 "
+                        "(did you mean 'tau_c_s'?; keys, units and defaults: docs/emulator.md sections 3-5)"),
+    "profile gm sigma": (IMU, "    profile: mti_class\n    overrides:\n      accel:\n        noise:\n"
+                         "          gm:\n            - {sigma_m_per_s2: -1.0e-5, tau_c_s: 10}\n",
+                         "16: imu.sim.overrides.accel.noise.gm entry 1.sigma_m_per_s2 must be a number >= 0, "
+                         "got -1e-05 (keys, units and defaults: docs/emulator.md sections 3-5)"),
 }
 
 
@@ -103,3 +111,21 @@ def test_the_template_itself_is_valid(tmp_path: Path) -> None:
     path.write_text(TEMPLATE)
     with open_rig(load_config(path)) as (_rig, truth):
         assert truth["pulses"]["taps"]["axis"] == 2
+
+
+@pytest.mark.parametrize("profiles, expected", [
+    ("random: {base: p}\n", "1: the profile file is missing 'profiles' (add a line 'profiles: ...')"),
+    ("profiles: [p]\n", "1: 'profiles' must be a mapping (key: value lines), got a list"),
+    ("profiles: {p: {rate_hz: 100}}\nrandom: {base: p, noise_sprad: 2}\n",
+     "2: unknown key 'noise_sprad' in random (did you mean 'noise_spread'?; keys, units and defaults: "
+     "docs/emulator.md sections 3-5)"),
+])
+def test_a_malformed_profiles_file_is_an_error_in_that_file(tmp_path: Path, profiles: str, expected: str) -> None:
+    prof = tmp_path / "mine.yaml"
+    prof.write_text(profiles)
+    path = tmp_path / "rig.yaml"
+    path.write_text(TEMPLATE.replace(IMU, "    profile: p\n    profiles_file: mine.yaml\n"))
+    with pytest.raises(InputError) as info:
+        with open_rig(load_config(path)):
+            pass
+    assert str(info.value) == f"{prof}:{expected}"

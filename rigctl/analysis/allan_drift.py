@@ -26,9 +26,10 @@ WARMUP_MODES = ("report", "exclude")
 def block_means(phase: np.ndarray, step_s: float) -> tuple[np.ndarray, float]:
     """Block means of the rate from the phase sampled every ``step_s`` (the stream's
     decimated copy), averaged down to at most D.MAX_BLOCKS blocks: (means, block length s)."""
-    y = np.diff(np.asarray(phase, dtype=float)) / step_s
-    k = max(1, -(-y.size // D.MAX_BLOCKS))
-    return D.aggregate(y, k), k * step_s
+    x = np.asarray(phase, dtype=float)
+    k = max(1, -(-(x.size - 1) // D.MAX_BLOCKS))
+    xs = x[::k]  # every k-th phase point: the block means are their differences
+    return np.diff(xs) / (k * step_s), k * step_s
 
 
 def start_transient(ybar: np.ndarray, block_s: float, tau: np.ndarray, dev: np.ndarray,
@@ -76,7 +77,7 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
     renamed = 0
     for o in check.get("outside") or []:
         sel = (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
-        if not sel.any():
+        if not sel.any() or o.get("cause"):
             continue
         if float(np.max(share[sel])) >= D.NAME_SHARE:
             reason = why
@@ -141,3 +142,131 @@ def warmup_sentences(r: dict[str, Any]) -> list[str]:
         out.append(f"after the cut a start transient is still found ({now[f'amp_{unit}']:.3g} "
                    f"{unit}, time constant {now['tau_s']:.3g} s, p = {now['p_value']:.2g})")
     return out
+
+
+# ------------------------------------------------------------------ temperature
+#: what to do with a drift that follows the recorded temperature: report it, or subtract the
+#: fitted temperature term from the samples and analyse again
+TEMPERATURE_MODES = ("report", "remove")
+#: the slow part of the signal: the record in about this many block means
+TEMP_BLOCKS = 128
+#: the temperature is named when the regression's p is below this (per axis)
+TEMP_ALPHA = 1e-3
+#: per-sample units of a temperature coefficient, per sensor (field unit per K)
+COEF_UNITS = {"gyro": ("deg/h/K", 180.0 / math.pi * 3600.0), "accel": ("mg/K", 1000.0 / G0)}
+
+
+def read_temperature_blocks(path: str, s0: int, rows_per_block: int, n_blocks: int
+                            ) -> np.ndarray | None:
+    """Means of /imu/temperature over the same row blocks as an axis' block means (rows
+    s0 + i rows_per_block ...), read in pieces; None without a usable temperature (absent,
+    not one value per IMU row, fewer than 90 % finite, or constant)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        ds = f.get("imu/temperature")
+        if ds is None or ds.ndim != 1 or ds.shape[0] < s0 + n_blocks * rows_per_block:
+            return None
+        out = np.empty(n_blocks)
+        step = max(1, (1 << 20) // rows_per_block)
+        for i in range(0, n_blocks, step):
+            j = min(n_blocks, i + step)
+            v = np.asarray(ds[s0 + i * rows_per_block: s0 + j * rows_per_block], dtype=float)
+            out[i:j] = v.reshape(j - i, rows_per_block).mean(axis=1)
+    fin = np.isfinite(out)
+    if fin.mean() < 0.9 or np.ptp(out[fin]) <= 0:
+        return None
+    return out
+
+
+def temperature_check(ybar: np.ndarray, tbar: np.ndarray, block_s: float, rows_per_block: int,
+                      tau: np.ndarray, dev: np.ndarray, sensor: str) -> dict[str, Any]:
+    """The regression of the slow part of the signal (about TEMP_BLOCKS block means) on the
+    temperature (:func:`rigctl.solvers.allan_drift.temperature_regression`), the temperature
+    term's Allan deviation at the curve's taus (the coarse temperature interpolated to the
+    fine blocks, times the coefficient) and its share of the curve; ``correction``: the term
+    at the coarse blocks' centre rows (relative to the range's first row), for
+    --temperature remove."""
+    k = max(1, ybar.size // TEMP_BLOCKS)
+    yc, tc = D.aggregate(ybar, k), D.aggregate(tbar, k)
+    reg = D.temperature_regression(yc, tc)
+    unit, fac = COEF_UNITS[sensor]
+    out: dict[str, Any] = {"found": False, "alpha": TEMP_ALPHA, "block_s": k * block_s,
+                           "blocks": int(yc.size), **reg}
+    if "skipped" in reg:
+        return out
+    out.update({"found": bool(reg["p_value"] < TEMP_ALPHA), "coef_field": reg["coef"] * fac,
+                "coef_unit": unit,
+                "coef_ci95_field": [v * fac for v in reg["coef_ci95"]]})
+    fin = np.isfinite(tc)
+    centres = (np.arange(tc.size) + 0.5) * k
+    t_fine = np.interp(np.arange(tbar.size) + 0.5, centres[fin], tc[fin])
+    t_ref = float(np.mean(tc[fin]))
+    term = reg["coef"] * (t_fine - t_ref)
+    adev = D.series_adev(term, block_s, tau)
+    share = np.nan_to_num(adev ** 2 / np.maximum(np.asarray(dev, dtype=float) ** 2, 1e-300))
+    i = int(np.argmax(share))
+    out.update({"temp_ref_degC": t_ref, "adev_si": adev, "share": share,
+                "max_share": float(share[i]), "max_share_tau_s": float(np.asarray(tau)[i]),
+                "correction": {"rows": centres[fin] * rows_per_block,
+                               "values": reg["coef"] * (tc[fin] - t_ref)}})
+    return out
+
+
+def correction_at(corr: dict, first: int, n: int) -> np.ndarray:
+    """The correction of rows first .. first + n - 1 (relative to the range's first row):
+    the term at the block centres, interpolated linearly (held beyond the first and last)."""
+    rows = np.arange(first, first + n, dtype=float)
+    return np.interp(rows, np.asarray(corr["rows"], float), np.asarray(corr["values"], float))
+
+
+def temperature_reason(t: dict[str, Any]) -> str:
+    lo, hi = t["coef_ci95_field"]
+    return (f"the recorded temperature: the slow part of the signal follows it by "
+            f"{t['coef_field']:.3g} {t['coef_unit']} [{lo:.3g}, {hi:.3g}] (95 %), and "
+            f"that term's own Allan deviation is up to {100 * math.sqrt(t['max_share']):.0f} % of "
+            f"the curve's (at {t['max_share_tau_s']:.3g} s), not a term of the noise: "
+            "--temperature remove takes it out")
+
+
+def temperature_step(path: str, s0: int, axes: dict[str, dict]) -> None:
+    """Each analysed axis' ``temperature`` (:func:`temperature_check`) when the recording
+    has a usable /imu/temperature (else ``{"found": False, "skipped": ...}``), and the fit's
+    self-check runs it explains named (after the warm-up's, which go first); the block means
+    the analysis kept (``_blocks``) are dropped."""
+    for r in axes.values():
+        blk = r.pop("_blocks", None)
+        if blk is None:
+            continue
+        tbar = read_temperature_blocks(path, s0, blk["rows_per_block"], blk["ybar"].size)
+        if tbar is None:
+            r["temperature"] = {"found": False, "skipped": "no usable /imu/temperature"}
+            continue
+        dev = np.asarray(r[f"adev_{r['_si']}"], dtype=float)
+        t = temperature_check(blk["ybar"], tbar, blk["block_s"], blk["rows_per_block"],
+                              r["tau_s"], dev, r["sensor"])
+        r["temperature"] = t
+        if t["found"]:
+            name_in_check(r["fit"]["check"], r["tau_s"], t["share"], temperature_reason(t),
+                          "temperature")
+
+
+def temperature_sentences(r: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(warnings, notes) on an axis' drift against the recorded temperature."""
+    rm = r.get("temperature_removed")
+    t = (rm or {}).get("before") or r.get("temperature") or {}
+    if "coef" not in t:
+        return [], []
+    lo, hi = t["coef_ci95_field"]
+    what = (f"{t['coef_field']:.3g} {t['coef_unit']} [{lo:.3g}, {hi:.3g}] (95 %; "
+            f"differences of {t['blocks']} block means of {t['block_s']:.4g} s on the recorded "
+            f"temperature, span {t['temp_span_K']:.3g} K, p = {t['p_value']:.2g})")
+    if not t["found"]:
+        return [], [f"no drift with the recorded temperature: {what}"]
+    head = (f"the slow part of the signal follows the recorded temperature: {what}; that "
+            f"term's Allan deviation reaches {100 * math.sqrt(t['max_share']):.0f} % of the "
+            f"curve (at {t['max_share_tau_s']:.3g} s)")
+    if rm:
+        return [f"{head}: subtracted from the samples before the deviations (--temperature "
+                f"remove; with it: {rm['summary_before']})"], []
+    return [f"{head}: it is in the curve and the fit; to take it out: --temperature remove"], []

@@ -16,11 +16,10 @@ from typing import Any
 import numpy as np
 
 from rigctl.analysis import noise_export, production
-from rigctl.analysis.allan_drift import WARMUP_MODES
+from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes,
-    check_warnings, choose_range, default_axes, gap_message,
-    compute, screening_notes, solve_recording, store, summary_line)
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes, check_warnings, choose_range,
+    default_axes, gap_message, compute, screening_notes, solve_recording, store, summary_line)
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.jsonable import jsonable
 from rigctl.solvers import noise_coefficients as NC
@@ -135,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     production.preload_database(args.db)  # imported while the sums run
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
-                     outliers=args.outliers, gaps=args.gaps, warmup=args.warmup)
+                     outliers=args.outliers, gaps=args.gaps, warmup=args.warmup,
+                     temperature=args.temperature)
     gap_line = gap_message(result.get("gaps") or {})
     if gap_line:
         print(gap_line, file=sys.stderr, flush=True)
@@ -179,8 +179,9 @@ def register(subparsers: Any) -> None:
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
     p.add_argument("--warmup", choices=WARMUP_MODES, default="report",
-                   help="a start transient (warm-up, tested before the fit): report it (default) "
-                        "or exclude it (cut the record's start, the longest cut of the axes)")
+                   help="a start transient (tested before the fit): report it, or cut it (exclude)")
+    p.add_argument("--temperature", choices=TEMPERATURE_MODES, default="report",
+                   help="a drift with /imu/temperature: report it, or subtract it (remove)")
     p.add_argument("--gaps", choices=GAP_MODES, default="skip",
                    help="dropped samples in the range: skip every Allan term that touches a gap "
                         "(default; Stable32's gap handling), refuse (say where), analyse the "

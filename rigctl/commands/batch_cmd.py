@@ -15,7 +15,6 @@ import argparse
 import glob
 import json
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from .cli_options import add_production_options
 from ..display_units import format_value
 from ..recording.recorder import utc_now
 from ..config.spec import load_spec
-from ..yamlio import InputError
+from ..errors import InputError, RunFailure
 
 
 def expand(patterns: list[str]) -> list[str]:
@@ -139,8 +138,7 @@ def run(args: argparse.Namespace) -> int:
         results = B.run_batch(recs, analyses, str(Path(args.spec).resolve()) if args.spec else None,
                               args.decision_rule, args.workers, args.scheduler, args.noise, progress)
     except OSError as exc:
-        print(f"rigctl batch: failed: cannot reach the scheduler ({exc})", file=sys.stderr)
-        return 1
+        raise RunFailure(f"cannot reach the scheduler ({exc})") from exc
     wall = time.perf_counter() - t0
     lots = {r: (args.lot or B.lot_of(r)) for r in recs}
     db_line = ""

@@ -10,7 +10,7 @@ enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`
   ``temp=`` (degC) and ``section=`` (a column naming each row's section, e.g. imucal's
   ``part``); or the path of a YAML/JSON file holding that mapping.
 * ``--units``: ``acc=g|mg|m/s^2|counts:SCALE UNIT`` and ``gyr=deg/s|rad/s|deg/h|counts:SCALE
-  UNIT`` (e.g. ``acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s``), ``time=s|ms|us|ns``; angle
+  UNIT`` (e.g. ``acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s``), ``time=s|ms|us|ns|min|h|d``; angle
   and velocity units (``gyr=rad|deg|mrad|urad``, ``acc=m/s|mm/s``) mark increments per sample
   (divided by the interval), or with ``--integrated`` running integrals (differenced first: an
   integrated angle, or a clock's phase in s for a Stable32 phase file). Samples

@@ -39,10 +39,13 @@ from __future__ import annotations
 import math
 import re
 import struct
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
+
+from typing import Any, ClassVar
 
 from .. import schema as S
-from ..yamlio import InputError, LocDict, LocList
+from ..settings import Settings, entry, items, number, parse, setting, text
+from ..yamlio import LocDict
 
 INT_CODES = "bBhHiIqQ"
 FLOAT_CODES = "efd"
@@ -113,7 +116,7 @@ class FrameSpec:
         return self.length - CHECKSUM_BYTES[self.checksum]
 
 
-def _hexbytes(m: LocDict, key: str) -> bytes:
+def _hexbytes(m: LocDict, key: str, default: bytes | None = None) -> bytes:
     v = m[key]
     if isinstance(v, int) and not isinstance(v, bool):
         v = [v]
@@ -134,92 +137,180 @@ def _hexbytes(m: LocDict, key: str) -> bytes:
     return out
 
 
-def _field(item, fields: LocList, i: int, binary: bool, endian: str, offset: int, seen: set[str]) -> Field:
-    if not isinstance(item, dict):
-        raise InputError(f"'fields' entry {i + 1} must be a mapping such as {{name: gyro_x, type: i, "
-                         "scale: 1.0e-7, unit: rad/s}", fields.file, fields.line_of(i))
-    f = item if isinstance(item, LocDict) else LocDict(item)
-    S.check_keys(f, ("name", "type", "scale", "unit", "value"), f"'fields' entry {i + 1}",
-                 required=("name", "type") if binary else ("name",))
-    name = S.get_str(f, "name")
-    code = S.get_str(f, "type", "") if binary else ""
-    size = 0
-    if binary:
-        pad = re.fullmatch(r"(\d{0,3})x", code)
-        if pad:
-            size = int(pad.group(1) or 1)
-            if size == 0:
-                raise S.error(f, "type", "'type' 0x pads nothing", "remove the entry or give e.g. 2x")
-            return Field(name, "x", size, offset, 1.0, "")
-        if len(code) != 1 or code not in INT_CODES + FLOAT_CODES:
-            raise S.error(f, "type", f"'type' = {code!r} is not a struct code",
-                          "use one of b B h H i I q Q (integers), e f d (floats) or Nx (N pad bytes)")
-        size = struct.calcsize(("<" if endian == "little" else ">") + code)
-    elif "type" in f:
-        raise S.error(f, "type", "a csv column has no 'type' (every column is a decimal number)",
-                      "remove 'type'")
-    if not NAME.match(name):
-        raise S.error(f, "name", f"field name {name!r} is not a plain lower-case name",
-                      "e.g. gyro_x, accel_y, temperature, counter, time, status")
-    if name in seen:
-        raise S.error(f, "name", f"field {name!r} appears twice", "give each field its own name")
-    seen.add(name)
-    r = role(name)
-    scale = S.get_number(f, "scale", 1.0)
-    if scale == 0:
-        raise S.error(f, "scale", "'scale' is 0: every value would read as 0", "give the LSB weight, e.g. 1.0e-7")
-    if r in UNITS:
-        if "unit" not in f:
-            raise S.error(f, None, f"field {name!r} has no 'unit'",
-                          f"add unit: one of {', '.join(UNITS[r])} (the unit of raw x scale)")
-        unit = S.get_str(f, "unit", choices=list(UNITS[r]))
-    else:
-        unit = S.get_str(f, "unit", "")
-    is_float = bool(code) and code in FLOAT_CODES
-    if r == "counter" and (is_float or scale != 1.0):
-        raise S.error(f, "type" if is_float else "scale",
-                      "the counter must be an unscaled integer field", "use type B, H, I or Q and no scale")
-    value = None
-    if "value" in f:
-        if not binary or is_float:
-            raise S.error(f, "value", "'value' fixes an integer field of a binary frame",
-                          "remove 'value', or give the field an integer type")
-        value = S.get_number(f, "value", integer=True)
-        lo, hi = _int_range(code, size)
-        if not lo <= value <= hi:
-            raise S.error(f, "value", f"'value' {value} does not fit type {code} ({lo}..{hi})")
-    return Field(name, code, size, offset, scale, unit, value)
-
-
 def _int_range(code: str, size: int) -> tuple[int, int]:
     bits = 8 * size
     return (0, (1 << bits) - 1) if code.isupper() else (-(1 << (bits - 1)), (1 << (bits - 1)) - 1)
 
 
-def parse_frame_spec(section: LocDict, key: str = "frame") -> FrameSpec:
-    """The ``frame:`` mapping of ``section`` as a :class:`FrameSpec`; InputError with file, line
-    and what to fix."""
-    if key not in section:
-        raise S.error(section, None, f"'imu' (frame) is missing '{key}'",
-                      "describe the frame: sync, endian, fields, checksum (docs/hardware.md)")
-    m = S.require_mapping(section[key], f"'{key}'", section, key)
-    fmt = S.get_str(m, "format", "binary", choices=("binary", "csv"))
-    binary = fmt == "binary"
-    allowed = ("format", "sync", "endian", "fields", "length", "checksum") if binary else \
-        ("format", "prefix", "fields", "checksum")
-    S.check_keys(m, allowed, f"'{key}' ({fmt})", required=("sync", "fields") if binary else ("fields",))
-    endian = S.get_str(m, "endian", "little", choices=("little", "big")) if binary else "little"
-    sync = _hexbytes(m, "sync") if binary else b""
-    items = S.get_list(m, "fields", min_length=1)
-    if not isinstance(items, LocList):
-        items = LocList(items)
-        items.file, items.line = m.file, m.line_of("fields")
+@dataclass(frozen=True, kw_only=True)
+class ColumnSettings(Settings):
+    """A ``fields`` entry of a csv frame: one decimal column (``name``, ``scale``, ``unit``)."""
+
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("type", "value")  # refused below, with the reason
+    name: str = text()
+    scale: float = number(1.0)
+    #: required for a role's field (accel_*, gyro_*, temperature, time), one of UNITS[role]
+    unit: str | None = text(None)
+
+    def check(self, d: LocDict) -> None:
+        if "type" in d:
+            raise S.error(d, "type", "a csv column has no 'type' (every column is a decimal number)",
+                          "remove 'type'")
+        self._check_named(d, is_float=False)
+        if "value" in d:
+            raise S.error(d, "value", "'value' fixes an integer field of a binary frame",
+                          "remove 'value', or give the field an integer type")
+
+    def _check_named(self, d: LocDict, is_float: bool) -> None:
+        name, r = self.name, role(self.name)
+        if not NAME.match(name):
+            raise S.error(d, "name", f"field name {name!r} is not a plain lower-case name",
+                          "e.g. gyro_x, accel_y, temperature, counter, time, status")
+        if self.scale == 0:
+            raise S.error(d, "scale", "'scale' is 0: every value would read as 0", "give the LSB weight, e.g. 1.0e-7")
+        if r in UNITS:
+            if self.unit is None:
+                raise S.error(d, None, f"field {name!r} has no 'unit'",
+                              f"add unit: one of {', '.join(UNITS[r])} (the unit of raw x scale)")
+            if self.unit not in UNITS[r]:
+                raise S.error(d, "unit", f"'unit' = {self.unit!r} is not allowed",
+                              S.did_you_mean(self.unit, UNITS[r], "choose one of"))
+        if r == "counter" and (is_float or self.scale != 1.0):
+            raise S.error(d, "type" if is_float else "scale",
+                          "the counter must be an unscaled integer field", "use type B, H, I or Q and no scale")
+
+    def field(self, offset: int) -> Field:
+        """The column at ``offset`` (its index)."""
+        return Field(self.name, "", 0, offset, self.scale, self.unit or "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BinaryFieldSettings(ColumnSettings):
+    """A ``fields`` entry of a binary frame: a struct ``type`` (or ``Nx`` pad bytes) and
+    optionally the ``value`` every frame holds."""
+
+    EXTRA_KEYS: ClassVar[tuple[str, ...]] = ()
+    type: str = text()
+    value: int | None = number(None, integer=True)
+
+    @property
+    def pad(self) -> int:
+        """Pad bytes (0: not a pad)."""
+        m = re.fullmatch(r"(\d{0,3})x", self.type)
+        return int(m.group(1) or 1) if m else 0
+
+    @property
+    def size(self) -> int:
+        return self.pad or struct.calcsize("<" + self.type)
+
+    def check(self, d: LocDict) -> None:
+        if re.fullmatch(r"(\d{0,3})x", self.type):
+            if self.pad == 0:
+                raise S.error(d, "type", "'type' 0x pads nothing", "remove the entry or give e.g. 2x")
+            return
+        if len(self.type) != 1 or self.type not in INT_CODES + FLOAT_CODES:
+            raise S.error(d, "type", f"'type' = {self.type!r} is not a struct code",
+                          "use one of b B h H i I q Q (integers), e f d (floats) or Nx (N pad bytes)")
+        is_float = self.type in FLOAT_CODES
+        self._check_named(d, is_float)
+        if self.value is not None:
+            if is_float:
+                raise S.error(d, "value", "'value' fixes an integer field of a binary frame",
+                              "remove 'value', or give the field an integer type")
+            lo, hi = _int_range(self.type, self.size)
+            if not lo <= self.value <= hi:
+                raise S.error(d, "value", f"'value' {self.value} does not fit type {self.type} ({lo}..{hi})")
+
+    def field(self, offset: int) -> Field:
+        """The field at byte ``offset``."""
+        if self.pad:
+            return Field(self.name, "x", self.pad, offset, 1.0, "")
+        return Field(self.name, self.type, self.size, offset, self.scale, self.unit or "", self.value)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChecksumSettings(Settings):
+    """``checksum:`` of a binary frame (a type, or a mapping with ``init`` and ``from``)."""
+
+    type: str = text(choices=CHECKSUMS)
+    init: int | None = number(None, minimum=0, maximum=0xFFFF, integer=True)
+    #: first byte covered (None: the first byte after the sync bytes)
+    start: int | None = number(None, key="from", minimum=0, integer=True)
+
+    def check(self, d: LocDict) -> None:
+        if self.init is not None and self.type != "crc16-ccitt":
+            raise S.error(d, "init", f"'init' applies to crc16-ccitt, not {self.type}", "remove 'init'")
+
+
+def _checksum(m: LocDict, key: str, default: Any = None) -> ChecksumSettings:
+    c = m[key]
+    if isinstance(c, str):
+        c = LocDict({"type": c})
+        c.file, c.line = m.file, m.line_of(key)
+    return parse(ChecksumSettings, S.require_mapping(c, f"'{key}'", m, key), f"'{key}'")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LengthSettings(Settings):
+    """``length: {field, counts}``: the field that holds the frame length (sync to checksum:
+    ``frame``; the bytes of the field list: ``fields``)."""
+
+    field: str = text()
+    counts: str = text("frame", choices=("frame", "fields"))
+
+
+def _length(m: LocDict, key: str, default: Any = None) -> int | LengthSettings:
+    v = m[key]
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return S.get_number(m, key, integer=True, minimum=1)
+    return parse(LengthSettings, S.require_mapping(v, f"'{key}'", m, key), f"'{key}'")
+
+
+FIELD_HINT = "e.g. {name: gyro_x, type: i, scale: 1.0e-7, unit: rad/s}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class BinaryFrameSettings(Settings):
+    """``frame:`` with ``format: binary`` (the module docstring)."""
+
+    format: str = text("binary", choices=("binary", "csv"))
+    sync: bytes = setting(read=_hexbytes)
+    endian: str = text("little", choices=("little", "big"))
+    fields: tuple[BinaryFieldSettings, ...] = items(BinaryFieldSettings, "'fields'", MISSING, min_length=1,
+                                                         hint=FIELD_HINT)
+    #: None: not declared; a number: the whole frame's bytes; or the field holding it
+    length: int | LengthSettings | None = setting(None, read=_length)
+    checksum: ChecksumSettings | None = setting(None, read=_checksum)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CsvFrameSettings(Settings):
+    """``frame:`` with ``format: csv`` (the module docstring)."""
+
+    format: str = text("binary", choices=("binary", "csv"))
+    prefix: str = text("")
+    fields: tuple[ColumnSettings, ...] = items(ColumnSettings, "'fields'", MISSING, min_length=1,
+                                               hint="e.g. {name: gyro_x, scale: 1.0e-7, unit: rad/s}")
+    checksum: str = text("none", choices=("none", "nmea"))
+
+    def check(self, d: LocDict) -> None:
+        if "," in self.prefix:
+            raise S.error(d, "prefix", "'prefix' is one column and cannot hold a comma")
+        if self.checksum == "nmea" and not self.prefix.startswith("$"):
+            raise S.error(d, "checksum", "an NMEA checksum covers the bytes after '$'",
+                          "start the prefix with '$' (e.g. prefix: $IMU) or use checksum: none")
+
+
+def _check_names(m: LocDict, cols: tuple[ColumnSettings, ...]) -> None:
+    """Each name once; the six inertial fields and a time or a counter."""
     seen: set[str] = set()
-    fields, offset = [], len(sync)
-    for i, item in enumerate(items):
-        f = _field(item, items, i, binary, endian, offset if binary else i, seen)
-        fields.append(f)
-        offset += f.size
+    for i, c in enumerate(cols):
+        if isinstance(c, BinaryFieldSettings) and c.pad:
+            continue
+        if c.name in seen:
+            raise S.error(entry(m, "fields", i), "name", f"field {c.name!r} appears twice",
+                          "give each field its own name")
+        seen.add(c.name)
     missing = [n for n in INERTIAL if n not in seen]
     if missing:
         raise S.error(m, "fields", f"the frame has no {', '.join(missing)}",
@@ -227,51 +318,52 @@ def parse_frame_spec(section: LocDict, key: str = "frame") -> FrameSpec:
     if "time" not in seen and "counter" not in seen:
         raise S.error(m, "fields", "the frame has neither 'time' nor 'counter'",
                       "add a counter (type H or I) or a time field: the run needs each sample's time")
-    if not binary:
-        ck = S.get_str(m, "checksum", "none", choices=("none", "nmea"))
-        prefix = S.get_str(m, "prefix", "")
-        if "," in prefix:
-            raise S.error(m, "prefix", "'prefix' is one column and cannot hold a comma")
-        if ck == "nmea" and not prefix.startswith("$"):
-            raise S.error(m, "checksum", "an NMEA checksum covers the bytes after '$'",
-                          "start the prefix with '$' (e.g. prefix: $IMU) or use checksum: none")
-        return FrameSpec("csv", tuple(fields), checksum=ck, prefix=prefix)
-    ck, init, start = "none", None, len(sync)
-    if "checksum" in m:
-        c = m["checksum"]
-        if isinstance(c, str):
-            c = LocDict({"type": c})
-            c.file, c.line = m.file, m.line_of("checksum")
-        c = S.require_mapping(c, "'checksum'", m, "checksum")
-        S.check_keys(c, ("type", "init", "from"), "'checksum'", required=("type",))
-        ck = S.get_str(c, "type", choices=CHECKSUMS)
-        if "init" in c:
-            if ck != "crc16-ccitt":
-                raise S.error(c, "init", f"'init' applies to crc16-ccitt, not {ck}", "remove 'init'")
-            init = S.get_number(c, "init", minimum=0, maximum=0xFFFF, integer=True)
-        elif ck == "crc16-ccitt":
-            init = 0xFFFF
-        start = S.get_number(c, "from", len(sync), minimum=0, maximum=offset - 1, integer=True)
+
+
+def parse_frame_spec(section: LocDict, key: str = "frame") -> FrameSpec:
+    """The ``frame:`` mapping of ``section`` as a :class:`FrameSpec` (read by
+    :func:`rigctl.settings.parse` as :class:`BinaryFrameSettings` or :class:`CsvFrameSettings`,
+    then the rules across fields); InputError with file, line and what to fix."""
+    if key not in section:
+        raise S.error(section, None, f"'imu' (frame) is missing '{key}'",
+                      "describe the frame: sync, endian, fields, checksum (docs/hardware.md)")
+    m = S.require_mapping(section[key], f"'{key}'", section, key)
+    fmt = S.get_str(m, "format", "binary", choices=("binary", "csv"))
+    if fmt == "csv":
+        c = parse(CsvFrameSettings, m, f"'{key}' (csv)")
+        _check_names(m, c.fields)
+        return FrameSpec("csv", tuple(f.field(i) for i, f in enumerate(c.fields)), checksum=c.checksum,
+                         prefix=c.prefix)
+    b = parse(BinaryFrameSettings, m, f"'{key}' (binary)")
+    fields, offset = [], len(b.sync)
+    for f in b.fields:
+        fields.append(f.field(offset))
+        offset += f.size
+    _check_names(m, b.fields)
+    ck, init, start = "none", None, len(b.sync)
+    if b.checksum is not None:
+        ck = b.checksum.type
+        init = b.checksum.init if b.checksum.init is not None else (0xFFFF if ck == "crc16-ccitt" else None)
+        if b.checksum.start is not None:
+            start = b.checksum.start
+            if start > offset - 1:
+                raise S.error(m["checksum"], "from", f"'from' = {start} is above its maximum {offset - 1}")
     total = offset + CHECKSUM_BYTES[ck]
-    fields = _length(m, fields, total, len(sync), endian)
-    return FrameSpec("binary", tuple(fields), sync=sync, endian=endian, checksum=ck, checksum_init=init,
+    fields = _with_length(m, b.length, fields, total)
+    return FrameSpec("binary", tuple(fields), sync=b.sync, endian=b.endian, checksum=ck, checksum_init=init,
                      checksum_from=start, length=total)
 
 
-def _length(m: LocDict, fields: list[Field], total: int, nsync: int, endian: str) -> list[Field]:
-    if "length" not in m:
+def _with_length(m: LocDict, length: int | LengthSettings | None, fields: list[Field], total: int) -> list[Field]:
+    """The fields, the length field holding the frame's length (checked against the fields)."""
+    if length is None:
         return fields
-    v = m["length"]
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        n = S.get_number(m, "length", integer=True, minimum=1)
-        if n != total:
-            raise S.error(m, "length", f"'length' is {n} bytes but the fields, sync and checksum make {total}",
+    if isinstance(length, int):
+        if length != total:
+            raise S.error(m, "length", f"'length' is {length} bytes but the fields, sync and checksum make {total}",
                           "fix the field types or the length")
         return fields
-    lm = S.require_mapping(v, "'length'", m, "length")
-    S.check_keys(lm, ("field", "counts"), "'length'", required=("field",))
-    name = S.get_str(lm, "field")
-    counts = S.get_str(lm, "counts", "frame", choices=("frame", "fields"))
+    lm, name = m["length"], length.field
     f = next((x for x in fields if x.name == name), None)
     if f is None:
         raise S.error(lm, "field", f"'length' names field {name!r}, which the frame does not have",
@@ -279,7 +371,7 @@ def _length(m: LocDict, fields: list[Field], total: int, nsync: int, endian: str
     if f.code not in INT_CODES or f.scale != 1.0:
         raise S.error(lm, "field", f"the length field {name!r} must be an unscaled integer",
                       "give it type B or H")
-    want = total if counts == "frame" else sum(x.size for x in fields)
+    want = total if length.counts == "frame" else sum(x.size for x in fields)
     lo, hi = _int_range(f.code, f.size)
     if not lo <= want <= hi:
         raise S.error(lm, "field", f"the frame length {want} does not fit the length field's type {f.code}")
@@ -289,4 +381,5 @@ def _length(m: LocDict, fields: list[Field], total: int, nsync: int, endian: str
     return [Field(x.name, x.code, x.size, x.offset, x.scale, x.unit, want) if x is f else x for x in fields]
 
 
-__all__ = ["CHECKSUMS", "Field", "FrameSpec", "INERTIAL", "UNITS", "parse_frame_spec", "role"]
+__all__ = ["CHECKSUMS", "BinaryFrameSettings", "CsvFrameSettings", "Field", "FrameSpec", "INERTIAL", "UNITS",
+           "parse_frame_spec", "role"]

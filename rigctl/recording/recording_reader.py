@@ -212,10 +212,14 @@ def check_finite(path: str | Path, name: str, block: np.ndarray, first_row: int 
     k = int(np.flatnonzero(rows)[0])
     what = "NaN or infinite values" if not np.isfinite(a[k]).all() else \
         f"values beyond +-{limit:g} (SI units: not an IMU's output)"
+    scale = "acc=counts:SCALE m/s^2" if "force" in key else "gyr=counts:SCALE rad/s"
+    every = bool(rows.all()) and bool(np.isfinite(a).all())  # all beyond the limit: a unit error
     raise InputError(f"/{key} holds {what} (first at row {first_row + k}, {int(rows.sum())} rows in rows "
                      f"{first_row}..{first_row + a.shape[0] - 1})", path,
-                     hint="the sensor or the import produced invalid samples; cut them out "
-                          "(rigctl import --segments) or re-record")
+                     hint=f"every row: a unit or scale error, not bad samples; re-import with the "
+                          f"column's scale (rigctl import --units '{scale}')" if every else
+                     "the sensor or the import produced invalid samples; cut them out "
+                     "(rigctl import --segments) or re-record")
 
 
 class RowReader:
