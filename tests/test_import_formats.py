@@ -159,3 +159,90 @@ def test_stable32_two_column_file_with_mjd_tags(tmp_path: Path, capsys) -> None:
     assert abs(rate - 1.0) < 1e-7 and np.array_equal(counter, np.flatnonzero(keep))
     np.testing.assert_allclose(t, np.flatnonzero(keep).astype(float), rtol=0, atol=1e-7)
     np.testing.assert_allclose(w[:, 0], np.array([float(f"{v:.6e}") for v in y[keep]]), rtol=1e-15)
+
+
+def test_metadata_lines_before_the_header_name_the_skip(ref_data: Path, tmp_path: Path) -> None:
+    """The MPU-6050 tool's static record starts with four `key,value` lines (Fs,100 ...): the
+    error names the line that holds the columns and the --skip-rows that reaches it, which
+    then imports the record."""
+    src = ref_data / "mpu6050-multipos" / "results_test_data_imu_static_test.csv"
+    lines = src.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.strip() == "ax,ay,az,gx,gy,gz")
+    cols = "acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz"
+    units = "acc=counts:1/16384 g,gyr=counts:1/131 deg/s"
+    out = tmp_path / "mpu.h5"
+    p = run_rigctl("import", str(src), "-o", str(out), "--columns", cols, "--units", units, "--rate", "100")
+    assert p.returncode == 2 and f"line {k + 1} holds every named column: give --skip-rows {k}" in p.stderr, p.stderr
+    assert cli.main(["import", str(src), "-o", str(out), "--columns", cols, "--units", units, "--rate", "100",
+                     "--skip-rows", str(k)]) == 0
+    counts = np.array([[float(v) for v in ln.split(",")] for ln in lines[k + 1:] if ln.strip()])
+    _, t, _, w, f = _read(out)
+    assert len(t) == len(counts)
+    np.testing.assert_allclose(w, counts[:, 3:] / 131 * D2R, rtol=1e-12)
+    np.testing.assert_allclose(f, counts[:, :3] / 16384 * G0, rtol=1e-12)
+
+
+def test_a_stable32_result_table_is_not_taken_for_samples(ref_data: Path, tmp_path: Path) -> None:
+    """Stable32's output (AF, Tau, #, Alpha, sigmas per line) has the shape of a numeric table;
+    imported as samples it would give a meaningless curve. Refused, pointing to the data."""
+    for src in (ref_data / "ocxo-frequency-stable32" / "stable32_oadev_alltau.txt",
+                ref_data / "stable32-reference" / "phasedat" / "phase_dat_oadev_octave.txt"):
+        out = tmp_path / "t.h5"
+        p = run_rigctl("import", str(src), "-o", str(out), "--columns", "gyr_x=5", "--units", "gyr=rad/s",
+                       "--rate", "1")
+        assert p.returncode == 2 and "a Stable32 result table" in p.stderr and "Traceback" not in p.stderr, p.stderr
+        assert not out.exists()
+
+
+def _gyro_only_bag(path: Path, gx: np.ndarray, fs: float) -> None:
+    """A rosbag2 (mcap) of sensor_msgs/Imu from a gyro-only sender: linear_acceleration and the
+    other two rates left at 0 in every message (rosbags' writer, as a robot's recorder)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    imu = "sensor_msgs/msg/Imu"
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    z9 = np.zeros(9)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/gyro", imu, typestore=store)
+        for i, v in enumerate(gx):
+            ns = 1_700_000_000_000_000_000 + int(i * 1e9 / fs)
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                           frame_id="gyro")
+            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
+                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
+                       linear_acceleration=vec(0.0, 0.0, 0.0), linear_acceleration_covariance=z9)
+            w.write(c, ns, store.serialize_cdr(m, imu))
+
+
+def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:
+    """A bag whose sender fills only one rate: the five constant fields are stored as NaN and
+    rigctl allan analyses the filled axis alone (before: exit 1, an internal error from the fit
+    of a constant axis). Asking for a constant axis of a recording is one error line naming it."""
+    rng = np.random.default_rng(10)
+    gx = rng.normal(0, 1e-3, 4000)
+    bag = tmp_path / "gyro_bag"
+    _gyro_only_bag(bag, gx, 100.0)
+    rec = tmp_path / "bag.h5"
+    assert cli.main(["import", str(bag), "-o", str(rec)]) == 0
+    assert ("not filled in any message (the same value throughout), stored as NaN: acc_x, acc_y, acc_z, "
+            "gyr_y, gyr_z; rigctl allan analyses the others (gx)") in capsys.readouterr().out
+    with h5py.File(rec, "r") as f:
+        assert f["meta"].attrs["import_axes"] == "gx"
+        w = f["imu/angular_rate"][()]
+        assert np.isnan(f["imu/specific_force"][()]).all() and np.isnan(w[:, 1:]).all()
+        np.testing.assert_array_equal(w[:, 0], gx)
+    assert cli.main(["allan", str(rec), "--db", "none", "--taus", "octave"]) == 0
+    out = capsys.readouterr().out
+    assert "== gx (gyro" in out and "== gy" not in out
+    # a CSV maps its columns explicitly: a constant one is kept, and rigctl allan names it
+    csv = tmp_path / "const.csv"
+    csv.write_text("gx,gy\n" + "\n".join(f"{v:.9g},0.25" for v in gx) + "\n")
+    rec2 = tmp_path / "const.h5"
+    assert cli.main(["import", str(csv), "-o", str(rec2), "--columns", "gyr_x=gx,gyr_y=gy",
+                     "--units", "gyr=rad/s", "--rate", "100"]) == 0
+    p = run_rigctl("allan", str(rec2), "--db", "none", "--axes", "gx,gy")
+    assert p.returncode == 2 and "axis gy: every sample is the same value" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and "internal error" not in p.stderr
