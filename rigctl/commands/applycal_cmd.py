@@ -6,13 +6,8 @@ JSON file with ``--calibration``), SI units:
     accelerometer  A = b_a + M_a a + k2 o (a o a)        (o: element-wise)
     gyro           W = b_g + M_g w + G a
 
-is inverted per sample. The accelerometer by Newton's method, vectorised over samples:
-
-    a_0 = M_a^-1 (A - b_a),   a_{k+1} = a_k - J_k^-1 r_k,
-    r_k = b_a + M_a a_k + k2 o a_k^2 - A,   J_k = M_a + diag(2 k2 o a_k)
-
-(k2 |a| ~ 1e-4 at most, so a few iterations reach float64 precision; the iteration stops when
-the largest step is below 1e-12 m/s^2). Then w = M_g^-1 (W - b_g - G a).
+is inverted per sample (the accelerometer by Newton's method: :mod:`rigctl.solvers.sensor_model`;
+the pipeline: :mod:`rigctl.analysis.apply_cal`).
 
 The output is a complete copy of the recording (docs/data-format.md) with /imu/specific_force and
 /imu/angular_rate replaced, /results emptied (results of the raw data do not describe the
@@ -29,139 +24,13 @@ Exit codes: 0 written, 2 invalid input, 1 failure.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
-from numpy.typing import NDArray
 
-from ..analysis.thermal import apply_thermal, thermal_info
-from ..recording.recorder import utc_now
-from ..recording.recording_reader import check_finite
-from ..recording.segment_builder import open_recording
+from ..analysis.apply_cal import apply_calibration, load_model
 from ..errors import InputError, RunFailure
-
-CHUNK = 1 << 18
-
-
-def invert_accel(A: NDArray[np.float64], b: NDArray[np.float64], M: NDArray[np.float64],
-                 k2: NDArray[np.float64], max_iter: int = 20) -> NDArray[np.float64]:
-    """True specific force a (n, 3) from measured A (n, 3) (module docstring)."""
-    Minv = np.linalg.inv(M)
-    a = (A - b) @ Minv.T
-    if not np.any(k2):
-        return a
-    for _ in range(max_iter):
-        r = b + a @ M.T + k2 * a * a - A
-        J = np.broadcast_to(M, (len(a), 3, 3)).copy()
-        J[:, [0, 1, 2], [0, 1, 2]] += 2.0 * k2 * a
-        step = np.linalg.solve(J, r[..., None])[..., 0]
-        a = a - step
-        if np.max(np.abs(step), initial=0.0) < 1e-12:
-            break
-    return a
-
-
-def invert_gyro(W: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64],
-                M: NDArray[np.float64], G: NDArray[np.float64]) -> NDArray[np.float64]:
-    """True rate w = M^-1 (W - b - G a), (n, 3)."""
-    return (W - b - a @ G.T) @ np.linalg.inv(M).T
-
-
-def load_model(path: Path, calibration: str | None) -> tuple[dict[str, Any], str]:
-    """The sensor model and a description of where it came from."""
-    if calibration:
-        cp = Path(calibration)
-        if not cp.is_file():
-            raise InputError("calibration file not found", cp, hint="give the JSON written by rigctl calibrate")
-        try:
-            data = json.loads(cp.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON ({exc.msg})", cp, exc.lineno) from None
-        except UnicodeDecodeError:
-            raise InputError("not a UTF-8 text file", cp, hint="give the JSON written by rigctl calibrate") from None
-        src = f"{cp.resolve()}"
-    else:
-        with open_recording(path) as f:
-            g = f.get("results/calibration")
-            if g is None and f.get("results/thermal") is not None and "json" in f["results/thermal"].attrs:
-                data = json.loads(f["results/thermal"].attrs["json"])
-                return thermal_info(data, path), f"{path.resolve()}:/results/thermal"
-            if g is None or "json" not in g.attrs:
-                raise InputError("no /results/calibration in the recording", path,
-                                 hint="run `rigctl calibrate` first, or give --calibration JSON")
-            data = json.loads(g.attrs["json"])
-        src = f"{path.resolve()}:/results/calibration"
-    if isinstance(data, dict) and data.get("mode") == "thermal":
-        return thermal_info(data, calibration or path), src
-    model = data.get("model") if isinstance(data, dict) else None
-    try:
-        for sensor, keys in (("accel", ("bias_m_s2", "M", "k2_s2_per_m")), ("gyro", ("bias_rad_s", "M"))):
-            for k in keys:
-                v = np.asarray(model[sensor][k], dtype=np.float64)
-                if v.shape != ((3, 3) if k == "M" else (3,)) or not np.all(np.isfinite(v)):
-                    raise ValueError(f"{sensor} {k}")
-                if k == "M" and abs(np.linalg.det(v)) < 1e-6:
-                    raise ValueError(f"{sensor} {k} is singular")
-    except (TypeError, KeyError, ValueError):
-        raise InputError("the calibration has no complete 'model' (accel bias_m_s2, M, k2_s2_per_m; "
-                         "gyro bias_rad_s, M)", calibration or path,
-                         hint="use a JSON written by rigctl calibrate (schema_version 1)") from None
-    return {"model": model, "schema_version": data.get("schema_version"), "status": data.get("status"),
-            "trustworthy": data.get("trustworthy")}, src
-
-
-def apply_calibration(src: Path, out: Path, info: dict[str, Any], origin: str) -> int:
-    """Write the corrected copy; returns the number of samples."""
-    m = info["model"]
-    if "thermal" in info:  # rigctl/analysis/thermal.py
-        return _apply_copy(src, out, info, origin, lambda fin, fo: apply_thermal(fin, fo, src, info, CHUNK))
-    ba, Ma, k2 = (np.asarray(m["accel"][k], dtype=np.float64) for k in ("bias_m_s2", "M", "k2_s2_per_m"))
-    bg, Mg = (np.asarray(m["gyro"][k], dtype=np.float64) for k in ("bias_rad_s", "M"))
-    G = np.asarray(m["gyro"].get("G_rad_s_per_m_s2", np.zeros((3, 3))), dtype=np.float64)
-
-    def fixed(fin: h5py.File, fo: h5py.File) -> int:
-        fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
-        n = fa.shape[0]
-        for a0 in range(0, n, CHUNK):
-            a1 = min(n, a0 + CHUNK)
-            f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
-            check_finite(src, "imu/specific_force", f_in, a0)
-            check_finite(src, "imu/angular_rate", w_in, a0)
-            fa[a0:a1] = acc = invert_accel(f_in, ba, Ma, k2)
-            fw[a0:a1] = invert_gyro(w_in, acc, bg, Mg, G)
-        return n
-    return _apply_copy(src, out, info, origin, fixed)
-
-
-def _apply_copy(src: Path, out: Path, info: dict[str, Any], origin: str, correct: Any) -> int:
-    """Copy to OUT.h5.part, ``correct(fin, fo)`` its /imu, record the provenance, rename."""
-    m = info["model"]
-    part = out.with_name(out.name + ".part")
-    n = 0
-    try:
-        with open_recording(src) as fin, h5py.File(part, "w", libver="latest") as fo:
-            for k, v in fin.attrs.items():
-                fo.attrs[k] = v
-            for name in fin:
-                if name == "results":
-                    fo.create_group("results")
-                    continue
-                fin.copy(fin[name], fo, name=name)
-            n = correct(fin, fo)
-            fo.require_group("meta").attrs["calibration_applied_json"] = json.dumps({
-                "source": origin, "input": str(src.resolve()), "applied_utc": utc_now(),
-                "schema_version": info["schema_version"], "status": info["status"],
-                "trustworthy": info["trustworthy"], "model": m})
-        os.replace(part, out)
-    except BaseException:
-        if part.exists():
-            part.unlink()
-        raise
-    return n
 
 
 def run(args: argparse.Namespace) -> int:

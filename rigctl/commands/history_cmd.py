@@ -19,7 +19,7 @@ import numpy as np
 
 from ..display_units import format_value
 from ..solvers.calibration_result import fit_linear
-from ..yamlio import InputError
+from ..errors import InputError
 
 YEAR_S = 365.25 * 86400.0
 

@@ -14,7 +14,7 @@ import yaml
 
 from ..config.config import PROJECT_ROOT, load_config, resolve_config_path
 from ..run.stop_signals import stop_on_signals
-from ..yamlio import InputError
+from ..errors import InputError
 
 TEMPLATE = PROJECT_ROOT / "configs" / "sim-wire.yaml"
 

@@ -15,7 +15,8 @@ from .linkconfig import COMMON_KEYS, LinkSettings, link_settings
 from .notify import NotifySettings, notify_settings
 from ..settings import Settings, number, parse, section, setting, text
 from .suspenders import SuspenderSettings
-from ..yamlio import InputError, LocDict, load_file
+from ..errors import InputError
+from ..yamlio import LocDict, load_file
 
 #: Where the project's shipped files live (beside the package in a checkout / editable install).
 PROJECT_ROOT = Path(__file__).resolve().parents[2]

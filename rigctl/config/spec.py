@@ -30,7 +30,8 @@ from .. import schema as S
 from ..display_units import NOISE_SI, NOISE_UNITS, SUFFIXES, Display
 from ..settings import Settings, mapping, parse, setting, text
 from ..solvers.conformity import RULES
-from ..yamlio import InputError, LocDict, load_file
+from ..errors import InputError
+from ..yamlio import LocDict, load_file
 
 _QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
 #: every unit a limit may be written in (display units and SI units of the results)

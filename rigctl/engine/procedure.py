@@ -28,7 +28,8 @@ from ..config.config import TableLimits
 from ..frames import north_pointing_angles
 from ..settings import Settings, as_written, mapping, number, parse, setting, text
 from ..settings import duration as seconds
-from ..yamlio import InputError, InputErrors, LocDict, LocList, load_file
+from ..errors import InputError, InputErrors
+from ..yamlio import LocDict, LocList, load_file
 
 #: step kinds that command the climatic chamber (docs/thermal.md)
 CHAMBER_KINDS = ("chamber-set", "chamber-ramp", "chamber-wait")

@@ -30,7 +30,7 @@ from ..clock import make_clock
 from ..config.config import RigConfig
 from ..devices import Clock, LinkLost, NoPulses
 from .engine import Rig
-from ..yamlio import InputError
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ from . import recording_reader
 from ..frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
 from ..solvers.segment_stats import SensorNoise, self_noise_sigma
 from ..solvers.segments import SegmentTable, about_reference, rest_batches, segment_table_from_samples
-from ..yamlio import InputError
+from ..errors import InputError
 
 #: Segment kinds a calibration uses.
 CAL_KINDS = (b"orientation", b"rate")

@@ -33,7 +33,8 @@ from ..analysis.verdicts import evaluate
 from ..config.config import traceability
 from ..display_units import format_value
 from ..config.spec import Spec
-from ..yamlio import InputError, load_text
+from ..errors import InputError
+from ..yamlio import load_text
 
 CSS = """
 @page{size:A4;margin:16mm 14mm}

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..analysis.production import latest_allan
 from ..recording.recording_reader import open_recording
-from ..yamlio import InputError
+from ..errors import InputError
 
 REPORT_HTML = "report.html"
 RECORDING = "recording.h5"

@@ -31,7 +31,7 @@ from ..config.config import RigConfig, load_config
 from ..engine.device_check import check_devices
 from ..devices import DeviceFault, imu_identity
 from ..engine.engine import Engine, Interrupted, Rig, RunError
-from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError
 from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
 from ..progress import Progress, make_progress
@@ -42,7 +42,6 @@ from .solve import run_solvers
 from ..engine.states import StateMachine
 from ..config.suspenders import SuspenderSet, SuspenderSettings
 from ..units import format_duration
-from ..yamlio import InputError
 
 RECORDING, RUN_LOG, CONFIG_SNAPSHOT = "recording.h5", "run.log.jsonl", "config.yaml"
 

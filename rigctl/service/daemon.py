@@ -31,14 +31,13 @@ from ..run.runlog import RunLog
 from .daemon_text import reply_text
 from .livefeed import LiveFeed
 from ..config.notify import Notifier
-from ..errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
+from ..errors import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, InputError, Interrupted, RigctlError, RunFailure
 from ..run.stop_signals import stop_on_signals
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the runner pulls in the solvers (scipy, ~1 s): client verbs must not pay it
     from ..run.runner import RunOptions
 from ..engine.states import StateMachine
-from ..yamlio import InputError
 
 
 @dataclass
