@@ -273,3 +273,18 @@ def temperature_sentences(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         return [f"{head}: subtracted from the samples before the deviations (--temperature "
                 f"remove; with it: {rm['summary_before']})"], []
     return [f"{head}: it is in the curve and the fit; to take it out: --temperature remove"], []
+
+
+def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(label, tau, Allan deviation in SI) of the warm-up transient and the temperature term
+    found on an axis (as analysed: after a cut or a removal, what is left of them), for the
+    plot; [] if none."""
+    out = []
+    w = r.get("warmup") or {}
+    if w.get("detected") and "adev_si" in w:
+        out.append((f"warm-up transient ({w['tau_s']:.3g} s)", r["tau_s"], w["adev_si"]))
+    t = r.get("temperature") or {}
+    if t.get("found") and "adev_si" in t:
+        out.append((f"temperature term ({t['coef_field']:.3g} {t['coef_unit']})", r["tau_s"],
+                    t["adev_si"]))
+    return out
