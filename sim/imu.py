@@ -11,12 +11,15 @@ Gyroscope, for true rate w (rad/s):
 White noise densities: velocity random walk (m/s^2/sqrt(Hz)) and angle random walk
 (rad/s/sqrt(Hz)); the per-sample standard deviation is density * sqrt(rate). Optionally the
 slow IEEE 952 terms: bias instability B (flicker, Allan plateau 0.664 B between 1 s and
-1e4 s) and rate / acceleration random walk K, from :class:`rigctl.sim.noise.NoiseGenerator`
-(exact Allan signatures; its own seeded streams, so the white noise is the same with or
-without them).
+1e4 s) and rate / acceleration random walk K, and first-order Gauss-Markov bias terms
+(``gyro_gm`` / ``accel_gm``: sigma in deg/h / mg, correlation time in s), from
+:class:`rigctl.sim.noise.NoiseGenerator` (exact Allan signatures; its own seeded streams, so
+the white noise is the same with or without them).
 
 The model is built from a config mapping (see configs/sim.yaml) whose values are in the units
-named by their keys, and reports its truth in SI as a JSON-serialisable dict.
+named by their keys, read by :func:`rigctl.settings.parse` as :class:`DeclaredImuSettings`
+(with a profile: :class:`ProfileImuSettings`), and reports its truth in SI as a
+JSON-serialisable dict.
 """
 from __future__ import annotations
 

@@ -392,11 +392,17 @@ def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
 
 
 def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
-                 stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
+                 stretch_samples: np.ndarray | None = None, axis: str = "") -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units).
     ``stretch_samples``: the lengths of the gap-free stretches when gaps are skipped (the EDF
-    is then that of the stretches' terms: :func:`edf_skipping_gaps`)."""
+    is then that of the stretches' terms: :func:`edf_skipping_gaps`). InputError naming
+    ``axis`` when every sample is the same value (no curve: a channel nobody filled)."""
     res = stream.result()
+    if len(res.dev) and not np.any(np.asarray(res.dev) > 0):
+        others = ",".join(a for a in AXES if a != axis)
+        raise InputError(f"axis {axis or sensor}: every sample is the same value: no Allan curve (a channel "
+                         "the sensor, its driver or the import did not fill, or a stuck one)",
+                         hint=f"leave it out, e.g. --axes {others}")
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
     alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
@@ -648,7 +654,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
         done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
                                                     outliers == "exclude",
-                                                    stretch_samples), axes))
+                                                    stretch_samples, a), axes))
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers

@@ -130,6 +130,9 @@ def warmup_sentences(r: dict[str, Any]) -> list[str]:
                 f"against the record's own later differences, alpha {w['alpha']:g}); its Allan "
                 f"deviation reaches {100 * math.sqrt(w['max_share']):.0f} % of the curve (at "
                 f"{w['max_share_tau_s']:.3g} s)")
+        how = w["fit"].get("interval_from", "")
+        if "Newey-West" in how or "overlapping" in how:
+            head += f" -- intervals from {how}"
         if ex:
             out.append(f"{head}: the first {ex['trim_s']:.0f} s were cut before the deviations "
                        f"(--warmup exclude; with them: {ex['summary_before']})")
