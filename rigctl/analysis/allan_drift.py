@@ -170,6 +170,13 @@ def read_temperature_blocks(path: str, s0: int, rows_per_block: int, n_blocks: i
         ds = f.get("imu/temperature")
         if ds is None or ds.ndim != 1 or ds.shape[0] < s0 + n_blocks * rows_per_block:
             return None
+        # a look at 256 rows first: a constant or missing temperature (the recorder writes
+        # the column for every IMU, a day at 2 kHz is 0.7 GB of it) is not read through
+        probe = np.asarray(ds[np.unique(np.linspace(s0, s0 + n_blocks * rows_per_block - 1,
+                                                    256).astype(np.int64))], dtype=float)
+        fin = np.isfinite(probe)
+        if fin.mean() < 0.9 or np.ptp(probe[fin]) <= 0:
+            return None
         out = np.empty(n_blocks)
         step = max(1, (1 << 20) // rows_per_block)
         for i in range(0, n_blocks, step):
@@ -237,11 +244,15 @@ def temperature_step(path: str, s0: int, axes: dict[str, dict]) -> None:
     has a usable /imu/temperature (else ``{"found": False, "skipped": ...}``), and the fit's
     self-check runs it explains named (after the warm-up's, which go first); the block means
     the analysis kept (``_blocks``) are dropped."""
+    read: dict[tuple[int, int], np.ndarray | None] = {}  # one read per block layout
     for r in axes.values():
         blk = r.pop("_blocks", None)
         if blk is None:
             continue
-        tbar = read_temperature_blocks(path, s0, blk["rows_per_block"], blk["ybar"].size)
+        key = (blk["rows_per_block"], blk["ybar"].size)
+        if key not in read:
+            read[key] = read_temperature_blocks(path, s0, *key)
+        tbar = read[key]
         if tbar is None:
             r["temperature"] = {"found": False, "skipped": "no usable /imu/temperature"}
             continue
@@ -273,3 +284,18 @@ def temperature_sentences(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         return [f"{head}: subtracted from the samples before the deviations (--temperature "
                 f"remove; with it: {rm['summary_before']})"], []
     return [f"{head}: it is in the curve and the fit; to take it out: --temperature remove"], []
+
+
+def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(label, tau, Allan deviation in SI) of the warm-up transient and the temperature term
+    found on an axis (as analysed: after a cut or a removal, what is left of them), for the
+    plot; [] if none."""
+    out = []
+    w = r.get("warmup") or {}
+    if w.get("detected") and "adev_si" in w:
+        out.append((f"warm-up transient ({w['tau_s']:.3g} s)", r["tau_s"], w["adev_si"]))
+    t = r.get("temperature") or {}
+    if t.get("found") and "adev_si" in t:
+        out.append((f"temperature term ({t['coef_field']:.3g} {t['coef_unit']})", r["tau_s"],
+                    t["adev_si"]))
+    return out
