@@ -276,7 +276,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     from pathlib import Path
 
     from .error_model import ImuErrorModel
-    from .profiles import _coerce, check_merged, check_profile, get_profile, profile_names
+    from .profiles import check_merged, check_profile, get_profile, profile_names
 
     c = parse(ProfileImuSettings, o, "'imu.sim' with a profile")
     path = None
@@ -294,8 +294,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
         profile = _deep_merge(profile, over, o, "overrides")
     check_merged(profile, over, base, f"profile {name!r}" + (" with imu.sim.overrides" if over else ""))
     try:
-        profile = _coerce(profile)
-        return ImuErrorModel.from_profile(profile, rate_hz=rate_hz, seed=seed)
+        return ImuErrorModel.from_profile(profile, rate_hz=rate_hz, seed=seed)  # numeric text read as floats
     except (KeyError, ValueError, TypeError) as exc:
         raise S.error(o, "overrides" if "overrides" in o else "profile",
                       f"invalid IMU profile: {exc}") from None

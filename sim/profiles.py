@@ -1,7 +1,9 @@
 """IMU device profiles for the emulator (configs/imu-profiles.yaml) and the seeded random-truth mode.
 
-A profile is a plain mapping (SI values, units in key names; layout documented in the YAML file)
-that :meth:`rigctl.sim.error_model.ImuErrorModel.from_profile` consumes::
+A profile is read as :class:`ImuProfile` (SI values, units in key names; layout documented in the
+YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads;
+:func:`get_profile` still hands out the mapping (the overrides are merged into it, then
+``from_profile`` reads it as an ImuProfile)::
 
     prof = get_profile("mti_class")                 # or consumer_mems, tactical, declared_only
     prof = get_profile("random", seed=7)            # parameters drawn around the `random.base` profile
@@ -137,8 +139,8 @@ def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) 
 # The keys of a profile (docs/emulator.md sections 3-5; configs/imu-profiles.yaml spells them
 # out), one settings class per section (rigctl.settings); a leaf is a kind: see _LEAF. Every key
 # is optional except the REQUIRED ones of an enabled effect (a rule on the merged profile:
-# check_merged) and a Gauss-Markov term's two. The profile itself stays the plain mapping
-# ImuErrorModel.from_profile reads; the classes check it and the overrides with file and line.
+# check_merged) and a Gauss-Markov term's two. ImuErrorModel reads a profile as ImuProfile; the
+# classes also check the file's profiles and the overrides with file and line.
 
 #: leaf kind -> (check, what it must be)
 _LEAF: dict[str, tuple[Any, str]] = {}
