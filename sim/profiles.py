@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import MISSING, dataclass, fields, make_dataclass
+from dataclasses import MISSING, dataclass, fields, make_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
@@ -25,7 +25,8 @@ import numpy as np
 
 from rigctl import schema as S
 from rigctl.settings import Settings, items, mapping, parse, setting, subsection
-from rigctl.solvers.noise_coefficients import CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS
+from rigctl.solvers.noise_coefficients import (BAND_KEYS, CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS, GaussMarkov,
+                                               Triad, triad)
 from rigctl.yamlio import InputError, LocDict, LocList, load_file
 
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "configs" / "imu-profiles.yaml"
@@ -190,16 +191,31 @@ _LEAF.update({
 DOC_HINT = "keys, units and defaults: docs/emulator.md sections 3-5"
 
 
+def _number_text(x: Any) -> Any:
+    """``x`` with numeric text read as a float (YAML 1.1 reads 1e-3 as text), in lists too;
+    numbers keep their type (an int stays an int)."""
+    if isinstance(x, list):
+        return [_number_text(v) for v in x]
+    return float(x) if isinstance(x, str) else x
+
+
 def _read_leaf(d: LocDict, key: str, default: Any = None, *, kind: str, what: str) -> Any:
     ok, must = _LEAF[kind]
     if not ok(d[key]):
         raise S.error(d, key, f"{what}.{key} must be {must}, got {d[key]!r}", DOC_HINT)
-    return d[key]
+    return d[key] if kind == "text" else _number_text(d[key])
 
 
 def leaf(kind: str, default: Any = None) -> Any:
-    """A profile value of ``kind`` (:data:`_LEAF`), kept as written (numeric text allowed)."""
+    """A profile value of ``kind`` (:data:`_LEAF`) as written, numeric text read as a float;
+    None: not given."""
     return setting(default, read=_read_leaf, what=True, kind=kind)
+
+
+def given(section: Settings) -> dict[str, Any]:
+    """The keys a profile section gives (not None), in field order: what the truth reports."""
+    return {f.name: getattr(section, f.name) for f in fields(section)
+            if "read" in f.metadata and getattr(section, f.name) is not None}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -217,14 +233,37 @@ def _gm(sigma_key: str) -> type[ProfileSection]:
                           bases=(ProfileSection,), frozen=True, kw_only=True)
 
 
-def _noise(sensor: str) -> type[ProfileSection]:
+@dataclass(frozen=True, kw_only=True)
+class NoiseSection(ProfileSection):
+    """Base of a sensor's ``noise:`` section (fields: :func:`_noise`)."""
+
+    SENSOR: ClassVar[str] = ""
+
+    def coefficients(self) -> Triad:
+        """The three axes' IEEE 952 coefficients (terms not given: 0; a Gauss-Markov term on
+        every axis); a negative value is a ValueError."""
+        sensor = self.SENSOR
+        terms = {t: (0.0 if getattr(self, k) is None else getattr(self, k)) for t, k in CONFIG_KEYS[sensor].items()}
+        band = {k: float(getattr(self, k)) for k in BAND_KEYS if getattr(self, k) is not None}
+        axes = triad(sensor, "emulator profile", **band, **terms)
+        gm = tuple(GaussMarkov(float(getattr(g, GM_SIGMA_KEYS[sensor])), float(g.tau_c_s))
+                   for g in getattr(self, GM_KEY))
+        return tuple(replace(m, gm=gm) for m in axes) if gm else axes  # type: ignore[return-value]
+
+    def flicker_density(self) -> float:
+        """The flicker cascade density (pole/zero pairs per decade; default 2)."""
+        v = getattr(self, "flicker_pairs_per_decade")
+        return 2.0 if v is None else float(v)
+
+
+def _noise(sensor: str) -> type[NoiseSection]:
     """A sensor's ``noise:`` section: the IEEE 952 terms (CONFIG_KEYS, each a number or
     [x, y, z]), the flicker band and cascade density, and Gauss-Markov terms."""
     terms = [(k, Any, leaf("coef")) for k in CONFIG_KEYS[sensor].values()]
     band = [(k, Any, leaf("pos")) for k in ("flicker_tau_min_s", "flicker_tau_max_s", "flicker_pairs_per_decade")]
     gm = [(GM_KEY, Any, items(_gm(GM_SIGMA_KEYS[sensor])))]
-    return make_dataclass(f"{sensor.capitalize()}Noise", terms + band + gm, bases=(ProfileSection,),
-                          frozen=True, kw_only=True)
+    return make_dataclass(f"{sensor.capitalize()}Noise", terms + band + gm, bases=(NoiseSection,),
+                          frozen=True, kw_only=True, namespace={"SENSOR": sensor})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -361,6 +400,13 @@ class ImuProfile(ProfileSection):
     gyro: Any = subsection(GyroProfile)
     accel: Any = subsection(AccelProfile)
     effects: Any = subsection(EffectsProfile)
+
+    @classmethod
+    def read(cls, profile: Any, what: str = "the IMU profile") -> "ImuProfile":
+        """``profile`` (an ImuProfile, or a mapping as in the profiles file) as an ImuProfile."""
+        if isinstance(profile, ImuProfile):
+            return profile
+        return parse(cls, profile if isinstance(profile, LocDict) else LocDict(profile), what)
 
 
 @dataclass(frozen=True, kw_only=True)
