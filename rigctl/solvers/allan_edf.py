@@ -120,10 +120,9 @@ def _sz_many(t: np.ndarray, f: float, alpha: int, d: int) -> np.ndarray:
                                 -(2.0 * np.log(np.where(a == 0.0, 1.0, a)) + 3.0))
         return f * f * (2.0 * sw(u, alpha) - sw(u - 1.0 / f, alpha) - sw(u + 1.0 / f, alpha))
 
-    total = np.zeros_like(t)
-    for j in range(-d, d + 1):
-        total += (-1) ** abs(j) * comb(2 * d, d + j, exact=True) * sx(t + j)
-    return total
+    js = np.arange(-d, d + 1)
+    wts = np.array([(-1) ** abs(j) * comb(2 * d, d + j, exact=True) for j in js], dtype=float)
+    return wts @ sx(np.asarray(t, dtype=float)[None, :] + js[:, None])
 
 
 def _edf_strided(j_: int, big_m: int, s: float, f: float, alpha: int, d: int) -> float:
