@@ -183,9 +183,12 @@ class HwXsensServer(XsensServer):
     def __init__(self, *args: Any, keep_sent: int = 0, **kw: Any) -> None:
         #: wall times (``time.monotonic()``) at which a measurement period began (GoToMeasurement)
         self.measurement_starts: list[float] = []
-        #: with ``keep_sent`` > 0, the last ``keep_sent`` batches written to the port as (wall
+        #: with ``keep_sent`` > 0, the last ``keep_sent`` batches written to the port as [wall
         #: time after the write, sample times (n,) s, acceleration (n, 3) as the float32 values
-        #: on the wire, whether the port took every byte): what a client could have received
+        #: on the wire, whether the port took every byte]: what a client could have received. A
+        #: batch is listed from the moment its write begins (with that time, and False) until
+        #: the write ends: a flow-controlled write of a large batch (the IMU stream thread
+        #: catching up) can take a while, and the client has its first frames before it ends
         self.sent: deque[tuple[float, np.ndarray, np.ndarray, bool]] = deque(maxlen=max(1, keep_sent))
         self.keep_sent = int(keep_sent)
         self._last_acc: np.ndarray | None = None
@@ -305,9 +308,13 @@ class HwXsensServer(XsensServer):
             self._last_acc = None
             frames = self._encode(k)
             acc = self._last_acc
+            record = [time.monotonic(), self._t0 + k / self.rate_hz, acc, False] \
+                if self.keep_sent and acc is not None else None
+        if record is not None:      # kept from the start: the client may have part of it before the
+            self.sent.append(record)  # write ends (a flow-controlled write waits for it to read)
         sent = self.port.write(frames)
-        if self.keep_sent and acc is not None:
-            self.sent.append((time.monotonic(), self._t0 + k / self.rate_hz, acc, sent == len(frames)))
+        if record is not None:
+            record[0], record[3] = time.monotonic(), sent == len(frames)
         return n
 
 
