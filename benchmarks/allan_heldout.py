@@ -5,7 +5,8 @@ against the curve's floor.
     python benchmarks/allan_heldout.py [--keep DIR] [--only NAME,...]
 
 Captures (those present in tests/data): the ADIS16405 (6 axes, whitespace text of counts), the
-XSens MTi-G gyro (TSV, ns stamps), the Astro Pi Sense HAT's x-up section (its CSV with the
+XSens MTi-G gyro (TSV, ns stamps; and as a rosbag2 with mcap storage
+and 3 dropped messages -- one gap, which rigctl skips as Stable32 does), the Astro Pi Sense HAT's x-up section (its CSV with the
 ISO `time_stamp` column as shipped), the 10 MHz OCXO (the counter's file as published, Hz,
 scaled to fractional frequency), and the Stable32 phase files (Cs5071A, Keysight 53230A,
 PHASE.DAT: `--units gyr=rad --integrated`). Each goes through the CLI as a user types it.
@@ -23,6 +24,7 @@ the floor over the curve there (with its 95 % band), and a verdict:
   FAIL-above     B's 95 % interval lies wholly above floor/0.664, or a bound above it
   MISS           an estimate, but floor/0.664 is outside its 95 % interval (the floor is not
                  B alone: N, K, Q or a tone take part of sigma^2 there -- read the total column)
+  no-floor-estimate  B an estimate (below the limit) although the curve shows no floor
   ok             otherwise
 Last line: one JSON object (counts per verdict, seconds).
 """
@@ -58,6 +60,31 @@ def rigctl(*argv: str) -> None:
         raise RuntimeError(f"rigctl {' '.join(argv)}: exit {code}\n{err.getvalue()[-2000:]}")
 
 
+def _write_bag(path: Path, gyro_x: np.ndarray, drop: range) -> None:
+    """A rosbag2 (mcap storage) of sensor_msgs/Imu at 100 Hz with header stamps, as a robot's
+    recorder writes it (the rosbags package's writer), some messages dropped."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    imu = "sensor_msgs/msg/Imu"
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    z9 = np.zeros(9)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/imu", imu, typestore=store)
+        for i, v in enumerate(gyro_x):
+            if i in drop:
+                continue
+            ns = 1_600_000_000_000_000_000 + i * 10_000_000
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                           frame_id="imu")
+            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
+                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
+                       linear_acceleration=vec(0.0, 0.0, 9.81), linear_acceleration_covariance=z9)
+            w.write(c, ns + 2_000_000, store.serialize_cdr(m, imu))
+
+
 # ------------------------------------------------------------------ the captures, as files
 def captures(tmp: Path) -> list[dict]:
     """(name, recording, axes, {axis: SI samples}, tau0) for every capture present."""
@@ -85,8 +112,15 @@ def captures(tmp: Path) -> list[dict]:
         rec = tmp / "mtig.h5"
         rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "time=t_ns,gyr_x=gyro_x",
                "--units", "gyr=rad/s,time=ns")
-        out.append({"name": "MTi-G", "rec": rec, "si": {"gx": np.array([float(f"{v:.8g}") for v in y])},
-                    "tau0": 0.01})
+        y = np.array([float(f"{v:.8g}") for v in y])
+        out.append({"name": "MTi-G", "rec": rec, "si": {"gx": y}, "tau0": 0.01})
+        bag = tmp / "mtig_bag"  # the same samples as a rosbag2 (mcap) with 3 messages dropped
+        if not bag.exists():
+            _write_bag(bag, y, drop=range(200_000, 200_003))
+        rec = tmp / "mtig_bag.h5"
+        rigctl("import", str(bag), "-o", str(rec), "--force")
+        out.append({"name": "MTi-G bag gap", "rec": rec, "tau0": 0.01,
+                    "si": {"gx": [y[:200_000], y[200_003:]]}})
     f = DATA / "astropi-sensehat-static" / "astro_pi_data_20150824_085954.csv.gz"
     if f.is_file():  # the x-up section (rows 3902 on; its README), the CSV's columns unchanged
         with gzip.open(f, "rt") as fh:
@@ -133,10 +167,21 @@ def captures(tmp: Path) -> list[dict]:
 
 
 # ------------------------------------------------------------------ the independent read
-def oadev(y: np.ndarray, tau0: float, ms: np.ndarray) -> np.ndarray:
-    x = np.concatenate(([0.0], np.cumsum(y - y.mean()))) * tau0
-    return np.array([math.sqrt(np.mean((x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]) ** 2) / (2 * (m * tau0) ** 2))
-                     for m in ms])
+def oadev(y: np.ndarray | list[np.ndarray], tau0: float, ms: np.ndarray) -> np.ndarray:
+    """Fully overlapping ADEV; given gap-free stretches, the terms inside each (a term touching
+    a gap skipped, as Stable32 does) pooled."""
+    parts = y if isinstance(y, list) else [y]
+    mean = np.concatenate(parts).mean()
+    xs = [np.concatenate(([0.0], np.cumsum(p - mean))) * tau0 for p in parts]
+    out = []
+    for m in ms:
+        ss, n = 0.0, 0
+        for x in xs:
+            if len(x) > 2 * m:
+                d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+                ss, n = ss + float(d @ d), n + d.size
+        out.append(math.sqrt(ss / n / (2 * (m * tau0) ** 2)))
+    return np.array(out)
 
 
 def edf(n_phase: int, m: int, alpha: int) -> float:
@@ -153,12 +198,13 @@ def edf(n_phase: int, m: int, alpha: int) -> float:
     return (n - 2) / m * ((n - 1) ** 2 - 3 * m * (n - 1) + 4 * m * m) / (n - 3) ** 2
 
 
-def read_curve(y: np.ndarray, tau0: float, ms: np.ndarray) -> dict:
+def read_curve(y: np.ndarray | list[np.ndarray], tau0: float, ms: np.ndarray) -> dict:
     tau = ms * tau0
     dev = oadev(y, tau0, ms)
+    n_all = sum(len(p) for p in y) if isinstance(y, list) else len(y)
     slope = np.gradient(np.log(dev), np.log(tau))
     alpha = np.clip(np.round(-2 * slope - 1), -2, 2).astype(int)
-    nu = np.array([min(edf(len(y) + 1, int(m), int(a)), edf(len(y) + 1, int(m), -1)) for m, a in zip(ms, alpha)])
+    nu = np.array([min(edf(n_all + 1, int(m), int(a)), edf(n_all + 1, int(m), -1)) for m, a in zip(ms, alpha)])
     lo, hi = dev * np.sqrt(nu / chi2.ppf(0.975, nu)), dev * np.sqrt(nu / chi2.ppf(0.025, nu))
     ok = hi / lo <= 2.0
     i = int(np.argmin(np.where(ok, dev, np.inf)))
@@ -194,6 +240,8 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
         verdict = "FAIL-above"
     elif c["shows_floor"] and not lo <= lim <= hi:
         verdict = "MISS"
+    elif est and not c["shows_floor"]:
+        verdict = "no-floor-estimate"
     else:
         verdict = "ok"
     return {"floor": c["floor"], "tau_floor_s": c["tau_floor"], "floor_slope": c["flat"],
@@ -229,7 +277,8 @@ def main() -> None:
             res = json.loads(js.read_text())["axes"]
             for ax, y in cap["si"].items():
                 r = res[ax]
-                c = read_curve(np.asarray(y, float), cap["tau0"], np.asarray(r["m"], int))
+                c = read_curve(y if isinstance(y, list) else np.asarray(y, float), cap["tau0"],
+                               np.asarray(r["m"], int))
                 j = judge(r, c, cap["tau0"])
                 counts[j["verdict"]] = counts.get(j["verdict"], 0) + 1
                 rows.append({"capture": cap["name"], "taus": taus, "axis": ax, **j})

@@ -31,7 +31,18 @@ LAT = math.radians(45.0)
 AXES = ("gx", "gy", "gz", "ax", "ay", "az")
 
 
-def capture(case: str, hours: float, seed: int, power_on_s: float) -> tuple[np.ndarray, float]:
+def ten_hz(prof: dict) -> None:
+    """consumer_mems at a 10 Hz output (front end 100 Hz, filters 4.2 / 4.4 Hz, no vibration):
+    the same noise terms and warm-up, a tenth of the samples (tests/test_allan_warmup.py)."""
+    prof["rate_hz"] = 10
+    prof["frontend"]["internal_rate_hz"] = 100
+    prof["frontend"]["gyro_bandwidth_hz"] = 4.2
+    prof["frontend"]["accel_bandwidth_hz"] = 4.4
+    prof["effects"]["vibration"]["enabled"] = False
+
+
+def capture(case: str, hours: float, seed: int, power_on_s: float,
+            edit: object = None) -> tuple[np.ndarray, float]:
     """(n, 6) samples (gyro x y z, accel x y z) of a static capture, and the rate."""
     from rigctl.sim.imu import build_imu_model
     from rigctl.yamlio import load_file
@@ -51,6 +62,8 @@ def capture(case: str, hours: float, seed: int, power_on_s: float) -> tuple[np.n
 
     prof = get_profile(case)
     prof["power_on_time_s"] = float(power_on_s)
+    if edit is not None:
+        edit(prof)
     model = ImuErrorModel.from_profile(prof, seed=seed)
     fs = model.output_rate_hz
     n = int(round(hours * 3600 * fs))
@@ -94,7 +107,12 @@ def main() -> None:
     ap.add_argument("--cases", default="default,consumer_mems,mti_class,tactical,declared_only")
     ap.add_argument("--power-on-seeds", type=int, default=None,
                     help="power-on captures of consumer_mems (default: --seeds)")
+    ap.add_argument("--power-on-hours", type=float, default=None,
+                    help="length of the power-on captures (default: --hours)")
+    ap.add_argument("--power-on-10hz", action="store_true",
+                    help="power-on captures at a 10 Hz output (ten_hz)")
     args = ap.parse_args()
+    on_hours = args.power_on_hours if args.power_on_hours is not None else args.hours
     t_start = time.perf_counter()
     cases = [c for c in args.cases.split(",") if c]
     axes_tested = alarms = 0
@@ -117,17 +135,21 @@ def main() -> None:
     found = {a: 0 for a in AXES}
     cover_tau = {a: 0 for a in AXES}
     cover_amp = {a: 0 for a in AXES}
+    replicated = {a: 0 for a in AXES}
     for seed in range(1, n_on + 1):
-        y, fs = capture("consumer_mems", args.hours, 2000 + seed, 0.0)
+        y, fs = capture("consumer_mems", on_hours, 2000 + seed, 0.0,
+                        ten_hz if args.power_on_10hz else None)
         for a, t in zip(AXES, detect(y, fs)):
             if not t["detected"] or "tau_s" not in t.get("fit", {}):
                 continue
             found[a] += 1
+            replicated[a] += t["fit"]["replicates"] >= 4
             lo, hi = t["fit"]["tau_ci95"]
             cover_tau[a] += lo <= 270.0 <= hi
             lo, hi = t["fit"]["amp_ci95"]
             cover_amp[a] += lo <= truth_amp[a] <= hi
-    print(f"power-on consumer_mems, {n_on} captures of {args.hours:g} h: found "
+    print(f"power-on consumer_mems, {n_on} captures of {on_hours:g} h"
+          f"{' at 10 Hz' if args.power_on_10hz else ''}: found "
           + ", ".join(f"{a} {found[a]}" for a in AXES) + "; tau 270 s in the 95 % interval "
           + ", ".join(f"{a} {cover_tau[a]}/{found[a]}" for a in AXES) + "; amplitude "
           + ", ".join(f"{a} {cover_amp[a]}/{found[a]}" for a in AXES))
@@ -138,6 +160,8 @@ def main() -> None:
                       "smallest_p": float(min(p_min)) if p_min else None,
                       "power_on_captures": n_on, "power_on_found": found,
                       "tau_covered": cover_tau, "amp_covered": cover_amp,
+                      "intervals_from_replicates": replicated, "power_on_hours": on_hours,
+                      "power_on_10hz": bool(args.power_on_10hz),
                       "hours": args.hours, "wall_s": time.perf_counter() - t_start,
                       "load": "/".join(f"{v:.2f}" for v in os.getloadavg())}))
 

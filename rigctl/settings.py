@@ -3,7 +3,9 @@ and the one validator.
 
 A concept's settings are a dataclass whose fields each name one YAML key, with its default and
 its checks (:func:`number`, :func:`text`, :func:`flag`, :func:`duration`, :func:`mapping`,
-:func:`as_written`, or :func:`setting` with a reader of its own). :func:`parse` is the one
+:func:`as_written`, :func:`numbers` ([x, y, z]), :func:`per_axis` (a number or three),
+:func:`matrix3`, :func:`subsection` (a nested section's own settings), :func:`items` (a list of
+sections), or :func:`setting` with a reader of its own). :func:`parse` is the one
 validator: unknown keys are refused with "did you mean", each value is read and checked by its
 field's reader (type, range, choices), missing required keys are named, and
 :meth:`Settings.check` adds the rules between fields; every error is an InputError with the
@@ -12,8 +14,11 @@ file and line (rigctl.schema).
 Users: rigctl.config.linkconfig (the wired drivers' link settings, whose field names are the drivers'
 keyword arguments), rigctl.config.config (the top level, ``site:``, ``recorder:``, ``table.limits``,
 ``traceability:``), rigctl.config.suspenders, rigctl.config.notify, rigctl.config.chamber, rigctl.engine.procedure (the
-procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind) and
-rigctl.config.spec (the acceptance limits of ``--spec``).
+procedure file: its top level, parameters, ``defaults:``, ``settle:`` and each step kind),
+rigctl.config.spec (the acceptance limits of ``--spec``), rigctl.config.frame_spec (the declared
+frame format) and the emulator's sections (``table.sim``, ``imu.sim`` with ``thermal:`` and the
+Gauss-Markov terms, the IMU profiles, ``pulses.sim``, ``chamber.sim``: rigctl.sim.world, .imu,
+.thermal_imu, .profiles, .tap_rig, .chamber).
 """
 from __future__ import annotations
 
@@ -126,12 +131,13 @@ def subsection(cls: type[Settings], what: str | None = None, *, optional: bool =
     """A nested mapping read as the settings ``cls``; errors name it ``what`` (e.g.
     "'imu.sim.thermal'"), by default the parent's name and the key ("<parent>.<key>"). Absent or
     null: ``cls()``, its defaults (``optional``: None)."""
+    fixed = what
+
     def read(d: LocDict, key: str, default: Any = None, *, what: str = "") -> Settings | None:
-        name = what_ or f"{what}.{key}"
+        name = fixed or f"{what}.{key}"
         if d[key] is None:
             return None if optional else parse(cls, LocDict(), name)
         return parse(cls, S.require_mapping(d[key], name, d, key), name)
-    what_ = what
     return setting(None if optional else cls(), read=read, what=True)
 
 
@@ -151,10 +157,12 @@ def items(cls: type[Settings], what: str | None = None, default: Any = (), *, mi
     """A list of mappings (at least ``min_length``), each read as the settings ``cls`` (errors
     name ``what``, by default "<parent>.<key>", and the entry's number; ``hint``: what an entry
     looks like); a tuple."""
+    fixed = what
+
     def read(d: LocDict, key: str, default: Any = None, *, what: str = "") -> tuple[Settings, ...]:
         if d[key] is None and not min_length:
             return ()
-        name = what_ or f"{what}.{key}"
+        name = fixed or f"{what}.{key}"
         entries = S.get_list(d, key, min_length=min_length)
         out = []
         for i in range(len(entries)):
@@ -165,7 +173,6 @@ def items(cls: type[Settings], what: str | None = None, default: Any = (), *, mi
                                    f"got {e!r}", hint)
             out.append(parse(cls, e, label))
         return tuple(out)
-    what_ = what
     return setting(default, read=read, what=True)
 
 

@@ -147,11 +147,18 @@ def test_cli_warmup_report_and_json(power_on, tmp_path: Path) -> None:
 
     _, rec = power_on
     out = tmp_path / "r.json"
-    code = cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave", "--json", str(out)])
-    assert code == 0
+    png = tmp_path / "r.png"
+    code = cli.main(["allan", str(rec), "--axes", "gx", "--taus", "octave", "--json", str(out),
+                     "--plot", str(png)])
+    assert code == 0 and png.stat().st_size > 10_000
     doc = json.loads(out.read_text())
     w = doc["axes"]["gx"]["warmup"]
     assert w["detected"] is True and w["trim_s"] > 3 * TAU_W
+    # the plot draws the transient's own Allan deviation (the closed form at the curve's taus)
+    from rigctl.analysis.allan_drift import plot_extras
+
+    extras = plot_extras(doc["axes"]["gx"])
+    assert [e[0].split(" (")[0] for e in extras] == ["warm-up transient"]
     assert any(o.get("cause") == "warmup" for o in doc["axes"]["gx"]["fit"]["check"]["outside"])
 
 

@@ -192,3 +192,57 @@ def test_a_stable32_result_table_is_not_taken_for_samples(ref_data: Path, tmp_pa
                        "--rate", "1")
         assert p.returncode == 2 and "a Stable32 result table" in p.stderr and "Traceback" not in p.stderr, p.stderr
         assert not out.exists()
+
+
+def _gyro_only_bag(path: Path, gx: np.ndarray, fs: float) -> None:
+    """A rosbag2 (mcap) of sensor_msgs/Imu from a gyro-only sender: linear_acceleration and the
+    other two rates left at 0 in every message (rosbags' writer, as a robot's recorder)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    imu = "sensor_msgs/msg/Imu"
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    z9 = np.zeros(9)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/gyro", imu, typestore=store)
+        for i, v in enumerate(gx):
+            ns = 1_700_000_000_000_000_000 + int(i * 1e9 / fs)
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                           frame_id="gyro")
+            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
+                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
+                       linear_acceleration=vec(0.0, 0.0, 0.0), linear_acceleration_covariance=z9)
+            w.write(c, ns, store.serialize_cdr(m, imu))
+
+
+def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:
+    """A bag whose sender fills only one rate: the five constant fields are stored as NaN and
+    rigctl allan analyses the filled axis alone (before: exit 1, an internal error from the fit
+    of a constant axis). Asking for a constant axis of a recording is one error line naming it."""
+    rng = np.random.default_rng(10)
+    gx = rng.normal(0, 1e-3, 4000)
+    bag = tmp_path / "gyro_bag"
+    _gyro_only_bag(bag, gx, 100.0)
+    rec = tmp_path / "bag.h5"
+    assert cli.main(["import", str(bag), "-o", str(rec)]) == 0
+    assert ("not filled in any message (the same value throughout), stored as NaN: acc_x, acc_y, acc_z, "
+            "gyr_y, gyr_z; rigctl allan analyses the others (gx)") in capsys.readouterr().out
+    with h5py.File(rec, "r") as f:
+        assert f["meta"].attrs["import_axes"] == "gx"
+        w = f["imu/angular_rate"][()]
+        assert np.isnan(f["imu/specific_force"][()]).all() and np.isnan(w[:, 1:]).all()
+        np.testing.assert_array_equal(w[:, 0], gx)
+    assert cli.main(["allan", str(rec), "--db", "none", "--taus", "octave"]) == 0
+    out = capsys.readouterr().out
+    assert "== gx (gyro" in out and "== gy" not in out
+    # a CSV maps its columns explicitly: a constant one is kept, and rigctl allan names it
+    csv = tmp_path / "const.csv"
+    csv.write_text("gx,gy\n" + "\n".join(f"{v:.9g},0.25" for v in gx) + "\n")
+    rec2 = tmp_path / "const.h5"
+    assert cli.main(["import", str(csv), "-o", str(rec2), "--columns", "gyr_x=gx,gyr_y=gy",
+                     "--units", "gyr=rad/s", "--rate", "100"]) == 0
+    p = run_rigctl("allan", str(rec2), "--db", "none", "--axes", "gx,gy")
+    assert p.returncode == 2 and "axis gy: every sample is the same value" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and "internal error" not in p.stderr

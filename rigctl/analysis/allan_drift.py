@@ -130,6 +130,9 @@ def warmup_sentences(r: dict[str, Any]) -> list[str]:
                 f"against the record's own later differences, alpha {w['alpha']:g}); its Allan "
                 f"deviation reaches {100 * math.sqrt(w['max_share']):.0f} % of the curve (at "
                 f"{w['max_share_tau_s']:.3g} s)")
+        how = w["fit"].get("interval_from", "")
+        if "Newey-West" in how or "overlapping" in how:
+            head += f" -- intervals from {how}"
         if ex:
             out.append(f"{head}: the first {ex['trim_s']:.0f} s were cut before the deviations "
                        f"(--warmup exclude; with them: {ex['summary_before']})")
@@ -166,6 +169,13 @@ def read_temperature_blocks(path: str, s0: int, rows_per_block: int, n_blocks: i
     with h5py.File(path, "r") as f:
         ds = f.get("imu/temperature")
         if ds is None or ds.ndim != 1 or ds.shape[0] < s0 + n_blocks * rows_per_block:
+            return None
+        # a look at 256 rows first: a constant or missing temperature (the recorder writes
+        # the column for every IMU, a day at 2 kHz is 0.7 GB of it) is not read through
+        probe = np.asarray(ds[np.unique(np.linspace(s0, s0 + n_blocks * rows_per_block - 1,
+                                                    256).astype(np.int64))], dtype=float)
+        fin = np.isfinite(probe)
+        if fin.mean() < 0.9 or np.ptp(probe[fin]) <= 0:
             return None
         out = np.empty(n_blocks)
         step = max(1, (1 << 20) // rows_per_block)
@@ -234,11 +244,15 @@ def temperature_step(path: str, s0: int, axes: dict[str, dict]) -> None:
     has a usable /imu/temperature (else ``{"found": False, "skipped": ...}``), and the fit's
     self-check runs it explains named (after the warm-up's, which go first); the block means
     the analysis kept (``_blocks``) are dropped."""
+    read: dict[tuple[int, int], np.ndarray | None] = {}  # one read per block layout
     for r in axes.values():
         blk = r.pop("_blocks", None)
         if blk is None:
             continue
-        tbar = read_temperature_blocks(path, s0, blk["rows_per_block"], blk["ybar"].size)
+        key = (blk["rows_per_block"], blk["ybar"].size)
+        if key not in read:
+            read[key] = read_temperature_blocks(path, s0, *key)
+        tbar = read[key]
         if tbar is None:
             r["temperature"] = {"found": False, "skipped": "no usable /imu/temperature"}
             continue
@@ -270,3 +284,18 @@ def temperature_sentences(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         return [f"{head}: subtracted from the samples before the deviations (--temperature "
                 f"remove; with it: {rm['summary_before']})"], []
     return [f"{head}: it is in the curve and the fit; to take it out: --temperature remove"], []
+
+
+def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(label, tau, Allan deviation in SI) of the warm-up transient and the temperature term
+    found on an axis (as analysed: after a cut or a removal, what is left of them), for the
+    plot; [] if none."""
+    out = []
+    w = r.get("warmup") or {}
+    if w.get("detected") and "adev_si" in w:
+        out.append((f"warm-up transient ({w['tau_s']:.3g} s)", r["tau_s"], w["adev_si"]))
+    t = r.get("temperature") or {}
+    if t.get("found") and "adev_si" in t:
+        out.append((f"temperature term ({t['coef_field']:.3g} {t['coef_unit']})", r["tau_s"],
+                    t["adev_si"]))
+    return out

@@ -662,7 +662,29 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
     if not 0 < b.rate_hz <= MAX_RATE_HZ:
         raise InputError(f"topic {b.topic}: {b.time_source} gives {b.rate_hz:g} Hz, outside (0, {MAX_RATE_HZ:g}]: "
                          "not sample times", src, hint="try --time-source receive")
-    sections, origin = find_sections(args, src, b.specific_force, b.angular_rate, b.rate_hz)
+    # a field the sender did not fill (every message the same value, e.g. 0 from a gyro-only
+    # driver) is no measurement: stored as NaN and left out of the axes rigctl allan analyses
+    acc, gyr = b.specific_force, b.angular_rate
+    unfilled = [f"{k}_{'xyz'[c]}" for k, d in (("acc", acc), ("gyr", gyr)) for c in range(3)
+                if n >= 64 and np.ptp(d[:, c]) == 0.0]
+    extra: list[str] = []
+    axes = ""
+    if unfilled:
+        acc, gyr = acc.copy(), gyr.copy()
+        for name in unfilled:
+            (acc if name.startswith("acc") else gyr)[:, "xyz".index(name[-1])] = np.nan
+        present = [k for k in REQUIRED if k not in unfilled]
+        if not present:
+            raise InputError(f"topic {b.topic}: every field of every message is constant: no measurement",
+                             src, hint="check the topic (--topic) and the sender")
+        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
+                         "gyr_z": "gz"}[k] for k in present)
+        sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
+        origin = "the whole record (fields not filled: no static-interval detection)"
+        extra.append(f"not filled in any message (the same value throughout), stored as NaN: "
+                     f"{', '.join(unfilled)}; rigctl allan analyses the others ({axes})")
+    else:
+        sections, origin = find_sections(args, src, acc, gyr, b.rate_hz)
     gaps = (f"{b.gaps} gaps, {b.missing_samples} samples missing (/imu/counter jumps)" if b.gaps
             else "no gaps")
     meta = import_meta(args, src, b.rate_hz, origin, {
@@ -675,14 +697,14 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
         "clock_zero_unix_s": b.stamp_zero_ns * 1e-9,
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
-        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s)})
+        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s), "import_axes": axes})
     note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
-    write_recording(out, b.time_s, b.specific_force, b.angular_rate, np.full(n, np.nan), b.rate_hz,
+    write_recording(out, b.time_s, acc, gyr, np.full(n, np.nan), b.rate_hz,
                     sections, meta, counter=b.counter, note=note)
-    return Imported(out, n, b.rate_hz, sections, [f"imported {n} samples from {args.file}", *B.describe(b)],
-                    b.n_messages)
+    return Imported(out, n, b.rate_hz, sections,
+                    [f"imported {n} samples from {args.file}", *B.describe(b), *extra], b.n_messages)
 
 
 def is_bag(src: Path) -> bool:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +29,9 @@ from ..recording import recording_reader
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
-from ..recording.recorder import utc_now, write_results
+from ..recording.recorder import utc_now
 from ..recording.recording_reader import check_finite
-from ..recording.segment_builder import _angles_at, _site, open_recording
+from ..recording.segment_builder import _angles_at, _site, open_recording, store_calibration_results
 from ..solvers import thermal as th
 from ..solvers.segment_noise import window_revolutions
 from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
@@ -485,16 +486,13 @@ def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | P
     p = Path(path)
     payload, text, arrays = calibrate_thermal(p, degrees, noise=noise)
     if store:
-        with open_recording(p) as f:
-            status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
-        if status == "running":
-            text += "\nnot stored in the recording: it is still being written (status running)"
-        else:
-            for s, d in payload["sensors"].items():
-                arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
-                arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
-                arrays[f"{s}_sigma"] = (np.array([q["sigma"] for q in d["parameters"]]), "SI (see names)")
-            write_results(p, "thermal", payload, arrays, schema_version=SCHEMA_VERSION)
+        for s, d in payload["sensors"].items():
+            arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
+            arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
+            arrays[f"{s}_sigma"] = (np.array([q["sigma"] for q in d["parameters"]]), "SI (see names)")
+        not_stored = store_calibration_results(p, "thermal", payload, arrays, schema_version=SCHEMA_VERSION)
+        if not_stored:
+            text += "\n" + not_stored
         jp = Path(json_path) if json_path else p.with_name(p.stem + ".thermal.json")
         jp.write_text(json.dumps(payload, indent=1, default=float))
         text += f"\nresults: {p}:/results/thermal and {jp}"
@@ -521,8 +519,11 @@ def thermal_info(data: dict[str, Any], where: Any) -> dict[str, Any]:
             "model": {"thermal": True, "reference_c": ref, "accepted": accepted}}
 
 
-def apply_thermal(fin: Any, fo: Any, src: Path, info: dict[str, Any], chunk: int = 1 << 18) -> int:
-    """Correct /imu of the copy ``fo`` from ``fin`` with a thermal calibration (rigctl apply-cal)."""
+def thermal_corrector(fin: Any, src: Path, info: dict[str, Any]) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """A thermal calibration's per-chunk correction for ``rigctl apply-cal``
+    (:mod:`rigctl.analysis.apply_cal`): reads the recording's IMU temperature (and the chamber's
+    air temperature) once; returns ``fix(a0, a1, f, w)`` -> the corrected (specific force, rate)
+    of samples a0:a1."""
     if "imu/temperature" not in fin:
         raise InputError("a thermal calibration needs the recording's temperature column (/imu/temperature)", src)
     T = fin["imu/temperature"][()]
@@ -533,14 +534,10 @@ def apply_thermal(fin: Any, fo: Any, src: Path, info: dict[str, Any], chunk: int
         air = np.interp(t, fin["chamber/time"][()], fin["chamber/air_c"][()])
     regs = {s: th.regressors_along(T, t, info["accepted"][s], info["hysteresis_width_K"], air)
             for s in ("accel", "gyro")}
-    fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
-    n = fa.shape[0]
-    for a0 in range(0, n, chunk):
-        a1 = min(n, a0 + chunk)
-        f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
-        check_finite(src, "imu/specific_force", f_in, a0)
-        check_finite(src, "imu/angular_rate", w_in, a0)
-        for ds, sensor, y in ((fa, "accel", f_in), (fw, "gyro", w_in)):
-            ds[a0:a1] = th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
-                                   {c: x[a0:a1] for c, x in regs[sensor].items()})
-    return n
+
+    def fix(a0: int, a1: int, f_in: np.ndarray, w_in: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f, w = (th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
+                           {c: x[a0:a1] for c, x in regs[sensor].items()})
+                for sensor, y in (("accel", f_in), ("gyro", w_in)))
+        return f, w
+    return fix

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.analysis import noise_export, production
-from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
+from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES, plot_extras
 from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
     AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes, check_warnings, choose_range,
     default_axes, gap_message, compute, screening_notes, solve_recording, store, summary_line)
@@ -87,7 +87,7 @@ def plot(result: dict[str, Any], out_path: str) -> None:
         draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
                         r["sensor"], unit, fac,
                         f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
-                        r[f"lo95_{unit}"], r[f"hi95_{unit}"])
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
     fig.tight_layout()
     fig.savefig(out_path, dpi=120)
     plt.close(fig)

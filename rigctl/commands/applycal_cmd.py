@@ -17,7 +17,7 @@ is written. The input is never modified and OUT may not be the input.
 
 A thermal calibration (/results/thermal when there is no /results/calibration, or a JSON with
 ``"mode": "thermal"``) is applied at each sample's temperature (/imu/temperature):
-:func:`rigctl.analysis.thermal.apply_thermal`, docs/thermal.md.
+:func:`rigctl.analysis.thermal.thermal_corrector`, docs/thermal.md.
 
 Exit codes: 0 written, 2 invalid input, 1 failure.
 """

@@ -207,12 +207,14 @@ GUIDE_SLOPES = ((-1.0, "-1 (Q)"), (-0.5, "-1/2 (N)"), (0.0, "0 (B)"), (0.5, "+1/
 def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, Any] | None,
                     sensor: str, unit: str, fac: float, title: str,
                     lo68: np.ndarray | None = None, hi68: np.ndarray | None = None,
-                    lo95: np.ndarray | None = None, hi95: np.ndarray | None = None) -> None:
+                    lo95: np.ndarray | None = None, hi95: np.ndarray | None = None,
+                    extras: list[tuple[str, np.ndarray, np.ndarray]] | None = None) -> None:
     """One Allan plot, as ``rigctl allan --plot`` and the report draw it: the deviation (field
     unit) with 68 % bars and the 95 % band, the slope guides -1, -1/2, 0, +1/2, +1 (grey), each
     fitted term (dashed, value in the legend) and each bounded N/B/K at its bound (dotted), the
     fitted total (black), and the taus where the self-check finds the total outside the band
-    (red rings)."""
+    (red rings). ``extras``: (label, tau, deviation in SI) of features found before the fit
+    that are not IEEE 952 terms (a warm-up transient, a temperature term), dash-dotted."""
     from ..solvers import allan_fit as F
     from ..solvers import noise_coefficients as NC
 
@@ -274,6 +276,11 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
         tot_t = F.design_matrix(tau) @ np.array([float(coeff.get(t) or 0.0) for t in F.TERMS]) + t2
         ax.plot(tau, np.sqrt(tot_t) * fac, "-", color="tab:purple", lw=0.8,
                 label="fitted total with tones")
+    for label, t_x, d_x in extras or []:
+        t_x, d_x = np.asarray(t_x, dtype=float), np.asarray(d_x, dtype=float)
+        keep = np.isfinite(d_x) & (d_x > 0)
+        if np.any(keep):
+            ax.plot(t_x[keep], d_x[keep] * fac, "-.", lw=0.9, label=label)
     check = fit.get("check") or {}
     marked = np.zeros(tau.size, dtype=bool)
     for o in check.get("outside") or []:
