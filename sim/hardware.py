@@ -78,9 +78,12 @@ IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 class FlowPtyEndpoint(PtyEndpoint):
     """A pty endpoint whose writes wait up to ``write_timeout_s`` for the client to drain the
     port (flow control) instead of dropping at once; after one timed-out write it drops
-    (counting ``overflow_bytes``) until a write goes through whole again, so a client that went
-    away cannot stall the emulator. Needed when the emulator runs many times faster than the
-    nominal baud rate would allow.
+    (counting ``overflow_bytes``) until a write goes through whole again or the client has
+    drained the port since (the master is writable again), so a client that went away cannot
+    stall the emulator. Needed when the emulator runs many times faster than the nominal baud
+    rate would allow. (Before, only a whole write ended the dropping: a stream writing batches
+    larger than the port holds -- 2 kHz at 100x, a catch-up batch of the IMU stream thread --
+    never had one, and a driver starved once for 0.5 s lost the rest of the stream.)
 
     Flow control starts once the client has written to the port (``received_bytes``; a
     commanded device's driver always speaks first: GoToConfig, a register read): until then
@@ -95,6 +98,13 @@ class FlowPtyEndpoint(PtyEndpoint):
     flow_before_client_speaks = False
 
     def write(self, data: bytes) -> int:
+        if not getattr(self, "_flowing", True):
+            try:
+                _, w, _ = select.select([], [self.master], [], 0)
+            except (OSError, ValueError):
+                w = []
+            if w:                       # the client drained the port since: it is there again
+                self._flowing = True
         with self._wlock:
             if self._closed:
                 return 0
@@ -120,22 +130,11 @@ class FlowPtyEndpoint(PtyEndpoint):
 
 class FreeRunPtyEndpoint(FlowPtyEndpoint):
     """The port of a device that streams from power-up, whether or not a client listens (the
-    declarative-frame IMU): while dropping, a write first looks whether the client has drained
-    the port since (the master is writable again) and if so resumes flow control -- otherwise a
-    client that connects after the buffer filled would see the stream cut up for good. Its
-    client never writes, so flow control does not wait for it to speak."""
+    declarative-frame IMU): its client never writes, so flow control does not wait for it to
+    speak."""
 
     flow_before_client_speaks = True
 
-    def write(self, data: bytes) -> int:
-        if not getattr(self, "_flowing", True):
-            try:
-                _, w, _ = select.select([], [self.master], [], 0)
-            except (OSError, ValueError):
-                w = []
-            if w:
-                self._flowing = True
-        return super().write(data)
 
 
 class HwAclCore(AclServerCore):
