@@ -1,9 +1,10 @@
 """IMU device profiles for the emulator (configs/imu-profiles.yaml) and the seeded random-truth mode.
 
 A profile is read as :class:`ImuProfile` (SI values, units in key names; layout documented in the
-YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads;
-:func:`get_profile` still hands out the mapping (the overrides are merged into it, then
-``from_profile`` reads it as an ImuProfile)::
+YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads; ``imu.sim.overrides``
+are read as one too and merged into it (:func:`merged`). :func:`get_profile` hands out a named
+profile as its mapping (``from_profile`` reads it as an ImuProfile) and a random one as the
+ImuProfile drawn::
 
     prof = get_profile("mti_class")                 # or consumer_mems, tactical, declared_only
     prof = get_profile("random", seed=7)            # parameters drawn around the `random.base` profile
@@ -81,8 +82,8 @@ def load_profiles(path: str | Path | None = None) -> dict:
     try:
         return _coerce(doc)
     except ValueError:
-        for name, prof in doc["profiles"].items():  # say where the bad value is
-            _check_mapping(prof, ImuProfile, f"profile {name!r}", doc["profiles"], name)
+        for name in doc["profiles"]:  # say where the bad value is
+            _read(doc["profiles"], name)
         raise
 
 
@@ -91,8 +92,9 @@ def profile_names(path: str | Path | None = None) -> list[str]:
     return sorted(load_profiles(path)["profiles"]) + ["random"]
 
 
-def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> dict:
-    """A deep copy of profile `name` (with 'name' set); 'random' draws one with `seed` (default 0)."""
+def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> Any:
+    """A deep copy of profile `name` (a mapping, with 'name' set); 'random' draws one with `seed`
+    (default 0): an :class:`ImuProfile`."""
     doc = load_profiles(path)
     if name == "random":
         cfg = doc.get("random", {}) or {}
@@ -100,27 +102,25 @@ def get_profile(name: str, seed: int | None = None, path: str | Path | None = No
         if base_name not in doc["profiles"]:
             raise _error(cfg, "base", f"random.base {base_name!r} is not a profile of the file",
                          f"known: {sorted(doc['profiles'])}", doc)
-        base = doc["profiles"][base_name]
-        _check_mapping(base, ImuProfile, f"profile {base_name!r}", doc["profiles"], base_name)
+        base = _read(doc["profiles"], base_name)
         prof = random_truth(base, 0 if seed is None else seed, float(cfg.get("noise_spread", 2.0)))
-        prof["name"] = f"random(base={cfg.get('base', 'mti_class')}, seed={0 if seed is None else seed})"
-        return prof
+        return replace(prof, name=f"random(base={base_name}, seed={0 if seed is None else seed})")
     if name not in doc["profiles"]:
         raise KeyError(f"unknown IMU profile {name!r}; known: {sorted(doc['profiles'])}")
-    _check_mapping(doc["profiles"][name], ImuProfile, f"profile {name!r}", doc["profiles"], name)
+    _read(doc["profiles"], name)
     prof = copy.deepcopy(doc["profiles"][name])
     prof["name"] = name
     return prof
 
 
-def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) -> dict:
-    """Draw a profile around `base` (see module docstring). Deterministic for a given seed."""
+def random_truth(base: Any, seed: int, noise_spread: float = 2.0) -> "ImuProfile":
+    """Draw a profile around ``base`` (an :class:`ImuProfile`, or a mapping read as one; see the
+    module docstring). Deterministic for a given seed: the keys a profile gives are drawn in
+    the order of their names, sections included (a section's keys where its name falls)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7247]))
     log_s = np.log(noise_spread)
 
-    def draw(node: Any, key: str) -> Any:
-        if isinstance(node, dict):
-            return {k: draw(v, str(k)) for k, v in sorted(node.items())}
+    def leaf_draw(key: str, node: Any) -> Any:
         if key.startswith(NOISE_PREFIXES) and isinstance(node, (int, float)) and not isinstance(node, bool):
             return float(node) * float(np.exp(rng.uniform(-log_s, log_s)))
         if key in SIGNED_KEYS:
@@ -130,9 +130,15 @@ def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) 
             if key == "misalignment_rad":
                 out = out * (1 - np.eye(3))
             return out.tolist() if arr.ndim else float(out)
-        return copy.deepcopy(node)
+        return node
 
-    return draw(dict(base), "")
+    def draw(section: Settings) -> Settings:
+        new = {}
+        for name, value in sorted(given(section).items()):
+            new[name] = draw(value) if isinstance(value, Settings) else leaf_draw(name, value)
+        return replace(section, **new)
+
+    return draw(ImuProfile.read(base))  # type: ignore[return-value]
 
 
 # ---------------------------------------------------------------------------- schema
@@ -457,40 +463,55 @@ def _error(node: Any, key: Any, message: str, hint: str, fallback: Any = None) -
     return InputError(message, hint=hint)
 
 
-def _check_mapping(node: Any, cls: type[Settings], what: str, parent: Any = None, key: Any = None) -> None:
-    """``node`` read as the settings ``cls``: unknown keys and values of the wrong kind are
-    InputErrors naming file and line."""
-    if node is None:
-        return
+def check_profile(profile: Any, what: str) -> "ImuProfile":
+    """A profile (or an overrides mapping) read as :class:`ImuProfile` (errors with file and line)."""
+    if not isinstance(profile, dict):
+        raise _error(None, None, f"{what} must be a mapping (key: value lines), got {profile!r}", DOC_HINT)
+    return parse(ImuProfile, profile if isinstance(profile, LocDict) else LocDict(profile), what)
+
+
+def _read(profiles: Any, name: str) -> "ImuProfile":
+    """Profile ``name`` of the file's ``profiles:`` mapping as an ImuProfile (errors at its lines)."""
+    node = profiles[name]
     if not isinstance(node, dict):
-        raise _error(parent, key, f"{what} must be a mapping (key: value lines), got {node!r}", DOC_HINT)
-    parse(cls, node if isinstance(node, LocDict) else LocDict(node), what)
+        raise _error(profiles, name, f"profile {name!r} must be a mapping (key: value lines), got {node!r}",
+                     DOC_HINT)
+    return parse(ImuProfile, node if isinstance(node, LocDict) else LocDict(node), f"profile {name!r}")
 
 
-def check_profile(profile: Any, what: str) -> None:
-    """Check a profile (or an overrides mapping): :class:`ImuProfile`."""
-    _check_mapping(profile, ImuProfile, what)
+def merged(base: Settings, overrides: Mapping[str, Any], read: Settings) -> Any:
+    """``base`` with the keys ``overrides`` gives replaced (a section given as a mapping is merged
+    key by key; a key given as null is null); ``read``: the overrides read as the same settings."""
+    new = {}
+    for f in fields(base):
+        if "read" not in f.metadata or f.name not in overrides:
+            continue
+        old, over = getattr(base, f.name), overrides[f.name]
+        new[f.name] = (merged(old, over, getattr(read, f.name))
+                       if isinstance(old, Settings) and isinstance(over, dict) else getattr(read, f.name))
+    return replace(base, **new)
 
 
-def check_merged(profile: Mapping[str, Any], overrides: Any, base: Any, what: str) -> None:
+def check_merged(profile: "ImuProfile", overrides: Any, base: Any, what: str) -> None:
     """Checks that need the merged profile: an enabled effect has its required keys, and a
     vibration has one amplitude row per frequency. Errors point at the override that set the
-    effect, else at the profile file."""
-    effects = profile.get("effects") or {}
-    for name, eff in effects.items():
-        if not isinstance(eff, dict) or not eff.get("enabled", False):
+    effect, else at the profile file (``base``: the profile's mapping, if it has one)."""
+    for name in EFFECTS:
+        eff = getattr(profile.effects, name)
+        if not eff.enabled:
             continue
         where, key = _deepest([overrides, base], ("effects", name))
-        for req in REQUIRED.get(name, ()):
-            if req not in eff:
+        for req in eff.REQUIRED:
+            if getattr(eff, req) is None:
                 raise _error(where, key, f"effect {name!r} is enabled but has no {req!r} ({what})",
                              f"add '{req}: ...' to effects.{name} (units in the key name), or switch "
                              f"the effect off with 'enabled: false'; {DOC_HINT}")
         if name == "vibration":
-            n = len(eff.get("freqs_hz") or [])
+            n = len(eff.freqs_hz or [])
             for k in ("accel_amp_m_per_s2", "gyro_amp_rad_per_s"):
-                if k in eff and len(eff[k]) != n:
-                    raise _error(where, key, f"effects.vibration.{k} has {len(eff[k])} rows for "
+                rows = getattr(eff, k)
+                if rows is not None and len(rows) != n:
+                    raise _error(where, key, f"effects.vibration.{k} has {len(rows)} rows for "
                                  f"{n} frequencies ({what})", "give one [x, y, z] row per entry of freqs_hz")
 
 
