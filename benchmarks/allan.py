@@ -124,7 +124,7 @@ def part_axis(slice_n: int | None, repeats: int) -> dict:
 def write_h5(path: str, n: int) -> None:
     import h5py
 
-    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION
+    from rigctl.recording.recorder import FORMAT_NAME, SCHEMA_VERSION
 
     chunk = 1 << 20
     with h5py.File(path, "w") as f:
@@ -132,7 +132,7 @@ def write_h5(path: str, n: int) -> None:
         f.attrs["schema_version"] = SCHEMA_VERSION
         imu = f.create_group("imu")
         imu.attrs["sample_rate_hz"] = FS
-        # the recorder's layout and chunking (rigctl.recorder: 8192 rows per chunk); the reader
+        # the recorder's layout and chunking (rigctl.recording.recorder: 8192 rows per chunk); the reader
         # requires /imu/time, and checks every /imu dataset present for equal length
         rows = 8192
         tt = imu.create_dataset("time", (n,), "f8", chunks=(rows,))
@@ -157,7 +157,7 @@ def write_h5(path: str, n: int) -> None:
 
 #: per-phase timing in the child: (module, attribute, phase). Thread CPU of every call (any
 #: thread; nested calls counted in each), and wall time of the main thread's top-level steps
-_PHASES = [("rigctl.recording_reader", "RowReader.read", "read"),
+_PHASES = [("rigctl.recording.recording_reader", "RowReader.read", "read"),
            ("rigctl.analysis.allan", "find_gaps", "gaps"),
            ("rigctl.solvers.allan_kernels", "phase_cols3", "one_pass_3_axes"),
            ("rigctl.analysis.allan", "_AxisStream.screen", "screen"),
@@ -166,8 +166,8 @@ _PHASES = [("rigctl.recording_reader", "RowReader.read", "read"),
            ("rigctl.analysis.allan", "_AxisStream.add_written", "accumulate"),
            ("rigctl.analysis.allan", "analyse_axis", "analysis"),
            ("rigctl.analysis.allan", "_stream_chunks", "wall:stream"),
-           ("rigctl.allan_cmd", "compute", "wall:compute"),
-           ("rigctl.allan_cmd", "store", "wall:store"),
+           ("rigctl.commands.allan_cmd", "compute", "wall:compute"),
+           ("rigctl.commands.allan_cmd", "store", "wall:store"),
            ("rigctl.analysis.production", "to_database", "wall:database")]
 
 _CHILD = """
@@ -194,7 +194,7 @@ for mod, attr, key in PH:
     for p in path:
         owner = getattr(owner, p)
     wrap(owner, name, key)
-from rigctl import allan_cmd
+from rigctl.commands import allan_cmd
 p = argparse.ArgumentParser(); s = p.add_subparsers(); allan_cmd.register(s)
 a = p.parse_args(['allan', sys.argv[1]])
 buf = io.StringIO()

@@ -44,6 +44,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ def _load() -> str:
 def _h5(path: Path, fs: float) -> tuple:
     import h5py
 
-    from rigctl.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
+    from rigctl.recording.recorder import FORMAT_NAME, SCHEMA_VERSION, STATUS_DTYPE
 
     f = h5py.File(path, "w")
     f.attrs["format"] = FORMAT_NAME
@@ -96,9 +97,10 @@ WARMUP_S = 900.0
 
 
 def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
-                       warmup_s: float = WARMUP_S) -> dict:
+                       warmup_s: float = WARMUP_S, edit: Any = None) -> dict:
     """A static capture of ``hours`` from the emulator (``case``: 'default' or a profile),
-    starting ``warmup_s`` after power-on (the profiles' warm-up; the default IMU has none)."""
+    starting ``warmup_s`` after power-on (the profiles' warm-up; the default IMU has none).
+    ``edit``: a function that changes the profile (a dict) before the model is built."""
     from rigctl.sim.imu import build_imu_model
     from rigctl.yamlio import load_file
 
@@ -113,6 +115,8 @@ def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
 
         prof = get_profile(case)
         prof["power_on_time_s"] = float(warmup_s)
+        if edit is not None:
+            edit(prof)
         model = ImuErrorModel.from_profile(prof, seed=seed)
         fs = model.output_rate_hz
         full = True
@@ -194,16 +198,16 @@ def real_recordings(tmp: Path) -> list[tuple[str, Path, dict]]:
         t0 = dt.datetime.fromisoformat(rows[0]["time_stamp"]).timestamp()
         txt = tmp / "astropi.csv"
         with open(txt, "w") as fh:  # numeric time (the source's is a date), columns unchanged
-            fh.write("t,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z\n")
-            for r in rows:
+            fh.write("t,temp_h,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z\n")
+            for r in rows:  # with the board temperature: the pipeline checks the drift on it
                 t = dt.datetime.fromisoformat(r["time_stamp"]).timestamp() - t0
-                fh.write(f"{t:.0f},{r['accel_x']},{r['accel_y']},{r['accel_z']},"
+                fh.write(f"{t:.0f},{r['temp_h']},{r['accel_x']},{r['accel_y']},{r['accel_z']},"
                          f"{r['gyro_x']},{r['gyro_y']},{r['gyro_z']}\n")
         seg = tmp / "astropi_sections.json"  # one static section: the whole of it
         seg.write_text(json.dumps({"x up": {"start": 0, "end": len(rows)}}))
         rec = tmp / "astropi.h5"
         _run_import([str(txt), "-o", str(rec), "--columns",
-                     "time=t,acc_x=accel_x,acc_y=accel_y,acc_z=accel_z,gyr_x=gyro_x,"
+                     "time=t,temp=temp_h,acc_x=accel_x,acc_y=accel_y,acc_z=accel_z,gyr_x=gyro_x,"
                      "gyr_y=gyro_y,gyr_z=gyro_z", "--units", "acc=g,gyr=rad/s,time=s",
                      "--segments", str(seg)])
         out.append(("astropi sense hat (real)", rec,

@@ -152,7 +152,7 @@ def calibrate_ways(rec: Path, truth_params: dict, night: Path | None = None) -> 
     """The recording calibrated with each noise model: independent, session, coeffs and (with
     ``night``) overnight, the /results/allan of another recording of the same unit."""
     from rigctl.analysis.calibration import _truth, noise_from_allan
-    from rigctl.segment_builder import build_segment_table, open_recording
+    from rigctl.recording.segment_builder import build_segment_table, open_recording
     from rigctl.solvers.closed_loop import calibrate_session
     from rigctl.solvers.segment_noise import apply_session_noise
     from rigctl.solvers.noise_coefficients import from_json

@@ -92,7 +92,7 @@ def main() -> None:
         sock = str(tmp / "s" / "rigctl.sock")
         if a.capture:
             sys.path.insert(0, str(ROOT))
-            from rigctl import control
+            from rigctl.service import control
             control.wait_for_socket(Path(sock), 30)
             control.request(Path(sock), "submit", {"procedure": str(ROOT / "procedures" / "warmup.yaml"),
                                                    "params": {"warmup": f"{2 * a.seconds + 30:g} s"}})

@@ -80,7 +80,7 @@ def other_decoders(n: int, chunk: int) -> dict:
     from rigctl.drivers import frame_decl
     from rigctl.drivers import vectornav as V
     from rigctl.drivers.vectornav_imu import LAYOUT
-    from rigctl.frame_spec import parse_frame_spec
+    from rigctl.config.frame_spec import parse_frame_spec
     from rigctl.sim.frame_server import EXAMPLE
     from rigctl.yamlio import LocDict
 
@@ -134,7 +134,7 @@ def record_cpu_share(seconds: float, rate_hz: int = 2000) -> dict:
 
     from rigctl.clock import RealClock
     from rigctl.drivers.xsens_imu import XsensImu
-    from rigctl.recorder import Recorder
+    from rigctl.recording.recorder import Recorder
 
     root = Path(__file__).resolve().parent.parent
     tmp = Path(tempfile.mkdtemp(prefix="rigctl-bench-"))

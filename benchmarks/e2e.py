@@ -14,9 +14,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from rigctl.config import load_config  # noqa: E402
-from rigctl.procedure import load_procedure  # noqa: E402
-from rigctl.runner import run_procedure  # noqa: E402
+from rigctl.config.config import load_config  # noqa: E402
+from rigctl.engine.procedure import load_procedure  # noqa: E402
+from rigctl.run.runner import run_procedure  # noqa: E402
 
 
 def main() -> None:

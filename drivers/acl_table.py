@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rigctl.config import TableLimits
+from rigctl.config.config import TableLimits
 from rigctl.devices import Clock, DeviceFault, LinkLost, TableState
 
 from .acl import AclCode, AclError, parse_read_all, parse_reply

@@ -1,4 +1,4 @@
-"""Declarative frames (rigctl.frame_spec): vectorised decoder and encoder of a described frame.
+"""Declarative frames (rigctl.config.frame_spec): vectorised decoder and encoder of a described frame.
 
 Binary: a :class:`~rigctl.drivers.frame_engine.FixedFrameStream` whose fixed bytes are the sync
 bytes and every field with a ``value`` (a length field included), whose check is the described
@@ -16,7 +16,7 @@ import zlib
 
 import numpy as np
 
-from rigctl.frame_spec import CHECKSUM_BYTES, FrameSpec
+from rigctl.config.frame_spec import CHECKSUM_BYTES, FrameSpec
 
 from .frame_engine import FixedFrameStream, FrameCounters, affine_tables, xor_reduce_lookup
 

@@ -1,5 +1,5 @@
 """Declarative frame IMU driver: any IMU whose stream the rig config describes
-(:mod:`rigctl.frame_spec`), decoded by :mod:`rigctl.drivers.frame_decl`, behind the engine's
+(:mod:`rigctl.config.frame_spec`), decoded by :mod:`rigctl.drivers.frame_decl`, behind the engine's
 :class:`rigctl.devices.Imu`. The device is not commanded (it streams on its own); its identity
 is what the config says (``imu: serial:``), since such a frame carries none.
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.frame_spec import FrameSpec
+from rigctl.config.frame_spec import FrameSpec
 
 from . import frame_decl
 from .stream_imu import StreamImu

@@ -36,7 +36,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerType
 
-from rigctl.config import TableLimits
+from rigctl.config.config import TableLimits
 from rigctl.devices import Clock, DeviceFault, LinkLost, TableState
 
 from .modbus_map import (AXIS_BLOCK, SCALE_ACCEL, SCALE_POSITION, SCALE_RATE, AxisInputs, ControlBit,

@@ -24,7 +24,7 @@ import math
 import threading
 from typing import Any
 
-from rigctl.chamber import ChamberState
+from rigctl.config.chamber import ChamberState
 from rigctl.devices import Clock, DeviceFault, LinkLost
 
 MODELS: dict[str, dict[str, str]] = {
@@ -35,7 +35,7 @@ MODELS: dict[str, dict[str, str]] = {
 
 
 class ScpiChamber:
-    """Chamber protocol (rigctl.chamber) over PyVISA."""
+    """Chamber protocol (rigctl.config.chamber) over PyVISA."""
 
     name = "chamber"
 

@@ -96,8 +96,16 @@ class StreamReader(ReconnectingReader):
         """Run time of the newest stored sample (None before the first)."""
         raise NotImplementedError
 
-    def _track_offset(self, est: float) -> None:
-        """Lower ``offset`` to ``est`` (arrival - newest device time of a chunk) if smaller.
+    #: a lowering of the offset after the learning window must be confirmed: the estimate comes
+    #: from a sample whose device time continues the CONFIRM_RUN - 1 samples before it by one
+    #: sample period each (within a quarter period)
+    CONFIRM_RUN = 3
+    offset_unconfirmed = 0
+    _recent_dev: np.ndarray | None = None
+
+    def _track_offset(self, arrival: float, t_dev: np.ndarray) -> None:
+        """Lower ``offset`` to the estimate from a chunk that arrived at rig time ``arrival`` with
+        samples at device times ``t_dev`` (s, in order): arrival - the newest device time.
 
         The offset is the lower envelope of the chunks' apparent latencies, kept up for the whole
         run, not only over the learning window: a chunk that arrives late (the device or the
@@ -107,17 +115,57 @@ class StreamReader(ReconnectingReader):
         :meth:`_correction_min_s` (20 ms of wall time in rig time): a lowering drops the samples
         it would stamp before one already handed out, and a counter gap pauses the run, so the
         ordinary jitter of the window's minimum (a few ms of wall time) stays as before. A
-        lowering after the window is counted (``offset_corrections``) and logged."""
+        lowering after the window is counted (``offset_corrections``) and logged.
+
+        Plausibility: a frame whose checksum passes with a corrupted time field (an 8-bit sum
+        misses about 1 in 256 frames with two byte errors) gives an estimate too low by the
+        corruption. After the learning window the estimate is therefore taken from the newest
+        sample whose device time continues the :attr:`CONFIRM_RUN` - 1 samples before it (across
+        chunks) by one sample period each; a chunk whose newest time is not so confirmed is
+        counted (``offset_unconfirmed``), and lowers the offset only through an older sample of
+        it that is."""
+        t_dev = np.asarray(t_dev, dtype=float)
+        t_dev = t_dev[np.isfinite(t_dev)]
+        if not t_dev.size:
+            return
+        n, prev = self.CONFIRM_RUN, self._recent_dev
+        if n > 1:
+            tail = t_dev[-(n - 1):]
+            self._recent_dev = tail if prev is None or tail.size == n - 1 else \
+                np.concatenate((prev, tail))[-(n - 1):]
+        est = arrival - float(t_dev[-1])
         if self.offset is None:
             if self._learning:  # the first estimate comes only from the learning window
                 self.offset = est
-        elif self._learning:
+            return
+        if self._learning:
             self.offset = min(self.offset, est)
-        elif self.offset - est > self._correction_min_s():
-            self.offset_corrections += 1
-            log.warning("%s: time offset lowered by %.6f s (the chunks of the learning window arrived "
-                        "late)", self.name, self.offset - est)
-            self.offset = est
+            return
+        if self.offset - est <= self._correction_min_s():
+            return
+        if n > 1:
+            est = self._confirmed_estimate(arrival, t_dev, prev)
+            if est is None or self.offset - est <= self._correction_min_s():
+                return
+        self.offset_corrections += 1
+        log.warning("%s: time offset lowered by %.6f s (the chunks of the learning window arrived "
+                    "late)", self.name, self.offset - est)
+        self.offset = est
+
+    def _confirmed_estimate(self, arrival: float, t_dev: np.ndarray, prev: np.ndarray | None) -> float | None:
+        """arrival - the device time of the chunk's newest sample that continues the
+        CONFIRM_RUN - 1 samples before it (``prev``: the last ones of earlier chunks) by one
+        sample period each; None when there is none. Counts ``offset_unconfirmed`` when the
+        newest sample is not confirmed."""
+        n = self.CONFIRM_RUN
+        h = t_dev if prev is None else np.concatenate((prev, t_dev))
+        step_ok = np.abs(np.diff(h) * self.rate_hz - 1.0) < 0.25
+        j, first = h.size - 1, max(h.size - t_dev.size, n - 1)
+        while j >= first and not step_ok[j - n + 1:j].all():
+            j -= 1
+        if j < h.size - 1 or j < first:     # the newest time is not confirmed
+            self.offset_unconfirmed += 1
+        return arrival - float(h[j]) if j >= first else None
 
     def _correction_min_s(self) -> float:
         """Smallest lowering of the offset applied after the learning window, s of rig time: 20 ms
@@ -291,7 +339,7 @@ class StreamImu(StreamReader):
             if self._t0 is None:
                 self._t0 = float(t[0])
             if arrival is not None:
-                self._track_offset(arrival - float(t[-1]))
+                self._track_offset(arrival, t)
             self._append(t, acc, gyr, temp)
         if self._held is not None and (arrival is None or arrival >= self._held_until):
             self._release_held()
@@ -407,7 +455,7 @@ class StreamImu(StreamReader):
         d = asdict(self.stream.counters)
         d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
                  device_restarts=self.device_restarts, offset_corrections=self.offset_corrections,
-                 restamp_dropped=self.restamp_dropped,
+                 offset_unconfirmed=self.offset_unconfirmed, restamp_dropped=self.restamp_dropped,
                  incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d

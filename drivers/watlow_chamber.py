@@ -31,7 +31,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 from pymodbus.framer import FramerType
 
-from rigctl.chamber import ChamberState
+from rigctl.config.chamber import ChamberState
 from rigctl.devices import Clock, DeviceFault, LinkLost
 
 REGISTERS = {"setpoint": 2782, "ramp_action": 2794, "ramp_scale": 2796, "ramp_rate": 2798,
@@ -52,7 +52,7 @@ def regs_to_float(regs: list[int]) -> float:
 
 
 class WatlowF4T:
-    """Chamber protocol (rigctl.chamber) on a Watlow F4T."""
+    """Chamber protocol (rigctl.config.chamber) on a Watlow F4T."""
 
     name = "chamber"
 

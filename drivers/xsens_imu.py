@@ -91,6 +91,14 @@ class XsensImu(StreamReader):
     """Xsens MTi over ``url``; see the module docstring. ``connect()`` then ``read()``; ``close()``."""
 
     config_error = XsensConfigError
+    #: no confirmation of offset lowerings by the samples before (StreamReader.CONFIRM_RUN): the
+    #: decoder unwraps SampleTimeFine modulo 2^32, so after a frame with a corrupted (forward)
+    #: SampleTimeFine that passed the checksum the next true one reads as a wrap and every later
+    #: sample comes 2^32 ticks (4.97 days) late; only lowering the offset at once, on the chunk
+    #: that shows the jump, keeps their stamps on time (a lowering held back a chunk would let
+    #: those samples out stamped days late, and every later sample would be dropped as stamped
+    #: before them). A restarted MTi (SampleTimeFine from 0) takes the same path.
+    CONFIRM_RUN = 1
 
     def __init__(self, url: str, rate_hz: float, clock: Clock, *, baudrate: int = 921_600,
                  timeout_s: float = 0.5, sample_time_fine_wrap: int = SAMPLE_TIME_FINE_WRAP,
@@ -169,7 +177,7 @@ class XsensImu(StreamReader):
         if self._stf0 is None and (stf >= 0).any():
             self._stf0 = int(stf[stf >= 0][0])
         if arrival is not None and stf.size and stf[-1] >= 0:
-            self._track_offset(arrival - stf[-1] / SAMPLE_TIME_FINE_HZ)
+            self._track_offset(arrival, stf[stf >= 0] / SAMPLE_TIME_FINE_HZ)
         with self._cond:
             self._pending.append(batch)
             if stf.size and stf[-1] >= 0:
@@ -305,7 +313,7 @@ class XsensImu(StreamReader):
         """Decoder and link diagnostics (totals since connect)."""
         d = asdict(self.stream.counters)
         d.update(incomplete_frames=self.incomplete_frames, offset_corrections=self.offset_corrections,
-                 restamp_dropped=self.restamp_dropped, link_losses=self.link.losses,
+                 offset_unconfirmed=self.offset_unconfirmed, restamp_dropped=self.restamp_dropped, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)
         return d
 

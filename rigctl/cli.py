@@ -12,12 +12,12 @@ import traceback
 from pathlib import Path
 
 from . import __version__
-from .config import RigConfig, load_config, resolve_config_path
-from .device_check import check_devices
-from .estimate import data_volume_bytes, estimate
-from .procedure import load_procedure, parse_overrides
-from .rig import describe
-from .console import guarded_std_streams
+from .config.config import RigConfig, load_config, resolve_config_path
+from .engine.device_check import check_devices
+from .engine.estimate import data_volume_bytes, estimate
+from .engine.procedure import load_procedure, parse_overrides
+from .engine.rig import describe
+from .run.console import guarded_std_streams
 from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
 from .units import format_bytes, format_duration
 
@@ -25,11 +25,11 @@ from .units import format_bytes, format_duration
 #: the command being run is imported (the solvers pull in scipy, about 1 s, which a client verb
 #: such as ``rigctl status --watch`` need not pay); ``--help`` imports them all.
 COMMANDS: dict[str, str] = {
-    "sync": "rigctl.sync_cmd", "allan": "rigctl.allan_cmd", "calibrate": "rigctl.calibrate_cmd",
-    "import": "rigctl.import_cmd", "apply-cal": "rigctl.applycal_cmd", "report": "rigctl.report_cmd",
-    "sim": "rigctl.sim_cmd", "history": "rigctl.history_cmd", "batch": "rigctl.batch_cmd",
-    "certificate": "rigctl.certificate_cmd",
-    **{verb: "rigctl.daemon" for verb in ("serve", "submit", "status", "queue", "pause", "resume",
+    "sync": "rigctl.commands.sync_cmd", "allan": "rigctl.commands.allan_cmd", "calibrate": "rigctl.commands.calibrate_cmd",
+    "import": "rigctl.commands.import_cmd", "apply-cal": "rigctl.commands.applycal_cmd", "report": "rigctl.commands.report_cmd",
+    "sim": "rigctl.commands.sim_cmd", "history": "rigctl.commands.history_cmd", "batch": "rigctl.commands.batch_cmd",
+    "certificate": "rigctl.commands.certificate_cmd",
+    **{verb: "rigctl.service.daemon" for verb in ("serve", "submit", "status", "queue", "pause", "resume",
                                           "abort", "logs")},
 }
 COMMAND_MODULES: tuple[str, ...] = tuple(dict.fromkeys(COMMANDS.values()))
@@ -43,7 +43,7 @@ def _load(args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .runner import RUN_LOG, run_procedure  # the solvers (scipy): only for a run, not for client verbs
+    from .run.runner import RUN_LOG, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
@@ -139,7 +139,7 @@ def report_error(prog: str, exc: BaseException) -> int:
     """The one place that turns an exception into one line on stderr and an exit code
     (rigctl.errors): RigctlError -> its ``exit_code``; OSError (disk, permissions) -> 1;
     KeyboardInterrupt -> 130; anything else is a bug -> 1, with its traceback only when
-    RIGCTL_DEBUG=1 (a run's own failures go to its run log, rigctl.runner)."""
+    RIGCTL_DEBUG=1 (a run's own failures go to its run log, rigctl.run.runner)."""
     if isinstance(exc, KeyboardInterrupt):
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -161,7 +161,7 @@ def report_error(prog: str, exc: BaseException) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """The entry point of every command: parse, run, map errors to exit codes (rigctl.errors).
-    Standard output and error are console streams that survive their reader (rigctl.console)."""
+    Standard output and error are console streams that survive their reader (rigctl.run.console)."""
     prog = _command_name(argv)
     with guarded_std_streams():
         try:

@@ -10,7 +10,7 @@ Otherwise (piped to a file, a log, ``rigctl status --watch`` output) it writes p
 at every step start and end, and one every ``interval_s`` of wall time in between.
 
 The engine calls, in order: :meth:`Progress.start` with the plan's estimates
-(:func:`rigctl.estimate.estimate`), then per step :meth:`~Progress.step_started`,
+(:func:`rigctl.engine.estimate.estimate`), then per step :meth:`~Progress.step_started`,
 :meth:`~Progress.update` at every poll (rig time in s, the table state, IMU samples recorded,
 samples dropped), :meth:`~Progress.step_finished`; finally :meth:`~Progress.finish`. Log lines
 that must not be torn by the bar go through :meth:`Progress.message` or the file-like

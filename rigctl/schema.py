@@ -7,7 +7,8 @@ from collections.abc import Iterable
 from typing import Any
 
 from .units import parse_duration
-from .yamlio import InputError, LocDict, LocList
+from .errors import InputError
+from .yamlio import LocDict, LocList
 
 
 def _where(obj: Any, key: Any = None) -> tuple[str | None, int | None]:

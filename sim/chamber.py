@@ -30,51 +30,41 @@ from typing import Any
 import numpy as np
 
 from rigctl import schema as S
+from rigctl.settings import Settings, number, parse, yaml_keys
 from rigctl.yamlio import LocDict
 
+@dataclass(frozen=True, kw_only=True)
+class ChamberParams(Settings):
+    """``chamber.sim``: the emulated chamber's physics (module docstring), units in the key
+    names; every key optional. Read by :func:`rigctl.settings.parse` (:func:`chamber_params`)."""
+
+    initial_c: float = number(25.0, minimum=-100, maximum=200)
+    air_period_s: float = number(120.0, minimum=1.0, maximum=1e5)
+    air_damping: float = number(0.6, minimum=0.1, maximum=5.0)
+    heat_max_c_per_min: float = number(5.0, minimum=0.01, maximum=100)
+    cool_max_c_per_min: float = number(3.0, minimum=0.01, maximum=100)
+    product_tau_s: float = number(240.0, minimum=0.0, maximum=1e5)
+    self_heating_c: float = number(0.0, minimum=0.0, maximum=50)
+    step_s: float = number(0.5, minimum=0.01, maximum=10.0)
+    min_c: float = number(-70.0, minimum=-200, maximum=200)
+    max_c: float = number(180.0, minimum=-200, maximum=400)
+    #: the controller reports 'idle' (set point reached) inside this band
+    stable_band_c: float = number(0.3, minimum=0.0, maximum=10)
+
+    def check(self, d: LocDict) -> None:
+        if not self.min_c < self.initial_c < self.max_c:
+            raise S.error(d, "initial_c" if "initial_c" in d else None,
+                          f"'initial_c' {self.initial_c:g} degC must lie inside "
+                          f"[min_c, max_c] = [{self.min_c:g}, {self.max_c:g}] degC")
+
+
 #: keys of ``chamber.sim`` (units in the names)
-CHAMBER_SIM_KEYS = ("initial_c", "air_period_s", "air_damping", "heat_max_c_per_min",
-                    "cool_max_c_per_min", "product_tau_s", "self_heating_c", "step_s",
-                    "min_c", "max_c", "stable_band_c")
-
-
-@dataclass(frozen=True)
-class ChamberParams:
-    initial_c: float = 25.0
-    air_period_s: float = 120.0
-    air_damping: float = 0.6
-    heat_max_c_per_min: float = 5.0
-    cool_max_c_per_min: float = 3.0
-    product_tau_s: float = 240.0
-    self_heating_c: float = 0.0
-    step_s: float = 0.5
-    min_c: float = -70.0
-    max_c: float = 180.0
-    stable_band_c: float = 0.3  # the controller reports 'idle' (set point reached) inside this band
+CHAMBER_SIM_KEYS = tuple(yaml_keys(ChamberParams))
 
 
 def chamber_params(o: LocDict | None) -> ChamberParams:
     """The ``chamber.sim`` mapping of a rig config (all keys optional)."""
-    d = ChamberParams()
-    if not o:
-        return d
-    S.check_keys(o, CHAMBER_SIM_KEYS, "'chamber.sim'")
-    p = ChamberParams(
-        initial_c=S.get_number(o, "initial_c", d.initial_c, minimum=-100, maximum=200),
-        air_period_s=S.get_number(o, "air_period_s", d.air_period_s, minimum=1.0, maximum=1e5),
-        air_damping=S.get_number(o, "air_damping", d.air_damping, minimum=0.1, maximum=5.0),
-        heat_max_c_per_min=S.get_number(o, "heat_max_c_per_min", d.heat_max_c_per_min, minimum=0.01, maximum=100),
-        cool_max_c_per_min=S.get_number(o, "cool_max_c_per_min", d.cool_max_c_per_min, minimum=0.01, maximum=100),
-        product_tau_s=S.get_number(o, "product_tau_s", d.product_tau_s, minimum=0.0, maximum=1e5),
-        self_heating_c=S.get_number(o, "self_heating_c", d.self_heating_c, minimum=0.0, maximum=50),
-        step_s=S.get_number(o, "step_s", d.step_s, minimum=0.01, maximum=10.0),
-        min_c=S.get_number(o, "min_c", d.min_c, minimum=-200, maximum=200),
-        max_c=S.get_number(o, "max_c", d.max_c, minimum=-200, maximum=400),
-        stable_band_c=S.get_number(o, "stable_band_c", d.stable_band_c, minimum=0.0, maximum=10))
-    if not p.min_c < p.initial_c < p.max_c:
-        raise S.error(o, "initial_c", f"'initial_c' {p.initial_c:g} degC must lie inside "
-                      f"[min_c, max_c] = [{p.min_c:g}, {p.max_c:g}] degC")
-    return p
+    return parse(ChamberParams, o or LocDict(), "'chamber.sim'")
 
 
 class ChamberPhysics:

@@ -1,4 +1,4 @@
-"""Emulated IMU that streams the frames of a declarative description (rigctl.frame_spec) on a
+"""Emulated IMU that streams the frames of a declarative description (rigctl.config.frame_spec) on a
 pty, from the moment it is powered (it takes no commands), at ``rate_hz`` on the world's grid.
 
 Field values: ``counter`` = sample number since power-up (wraps at its type), ``time`` = device
@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 
 from rigctl.drivers import frame_decl
-from rigctl.frame_spec import FrameSpec
+from rigctl.config.frame_spec import FrameSpec
 
 from .stream_twin import StreamTwin
 

@@ -16,8 +16,10 @@ profiles and servo dynamics, IMU error model) on a :class:`~rigctl.clock.ScaledC
 Time base: one clock for all devices. Table controller time (ACL ``t_ms``, Modbus IR 3-4 and
 B+12), Xsens SampleTimeFine (10 kHz ticks since start) and GNSS time (GPS week ``gps_week0`` +
 ``gps_seconds0`` at clock 0) are all that clock. A hardware loop thread advances the world every
-``tick_s`` of wall time and streams the IMU samples that became due; table reads see the state as
-of the last tick (at most ``tick_s * speed`` of rig time old).
+``tick_s`` of wall time; table reads see the state as of the last tick (at most ``tick_s * speed``
+of rig time old). An IMU stream thread sends the IMU frames that became due up to the world's
+time: its pty writes may wait for a slow client (flow control, :class:`FlowPtyEndpoint`) while
+the physics -- the table's controller time -- goes on.
 
 Ports: each pty gets a symlink in ``link_dir`` (a fresh temporary directory unless given):
 ``table-acl``, ``table-rtu``, ``imu``, ``gnss``. Clients should open the symlink. A simulated
@@ -56,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.clock import ScaledClock
-from rigctl.config import RigConfig
+from rigctl.config.config import RigConfig
 from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
 from rigctl.drivers.xsens import FREQ_MAX, SAMPLE_TIME_FINE_HZ, encode_mtdata2
 
@@ -78,16 +80,27 @@ class FlowPtyEndpoint(PtyEndpoint):
     port (flow control) instead of dropping at once; after one timed-out write it drops
     (counting ``overflow_bytes``) until a write goes through whole again, so a client that went
     away cannot stall the emulator. Needed when the emulator runs many times faster than the
-    nominal baud rate would allow."""
+    nominal baud rate would allow.
+
+    Flow control starts once the client has written to the port (``received_bytes``; a
+    commanded device's driver always speaks first: GoToConfig, a register read): until then
+    nobody may have the port open -- the new pty after a pulled cable, into which the device
+    still streams its old measurement period -- and writes drop what does not fit, as
+    :class:`PtyEndpoint`'s do (a UART with nobody listening). Waiting there instead made the IMU
+    stream thread hand the client, when it opened the port, the frames that became due during
+    the wait as one burst of stale data ahead of the reply to its GoToConfig.
+    ``flow_before_client_speaks``: a device that takes no commands sets it."""
 
     write_timeout_s = 0.5
+    flow_before_client_speaks = False
 
     def write(self, data: bytes) -> int:
         with self._wlock:
             if self._closed:
                 return 0
             view, sent = memoryview(data), 0
-            deadline = time.monotonic() + (self.write_timeout_s if getattr(self, "_flowing", True) else 0.0)
+            flowing = getattr(self, "_flowing", True) and (self.received_bytes > 0 or self.flow_before_client_speaks)
+            deadline = time.monotonic() + (self.write_timeout_s if flowing else 0.0)
             while sent < len(view):
                 try:
                     sent += os.write(self.master, view[sent:])
@@ -109,7 +122,10 @@ class FreeRunPtyEndpoint(FlowPtyEndpoint):
     """The port of a device that streams from power-up, whether or not a client listens (the
     declarative-frame IMU): while dropping, a write first looks whether the client has drained
     the port since (the master is writable again) and if so resumes flow control -- otherwise a
-    client that connects after the buffer filled would see the stream cut up for good."""
+    client that connects after the buffer filled would see the stream cut up for good. Its
+    client never writes, so flow control does not wait for it to speak."""
+
+    flow_before_client_speaks = True
 
     def write(self, data: bytes) -> int:
         if not getattr(self, "_flowing", True):
@@ -158,8 +174,9 @@ class HwModbusServer(ModbusTableServer):
 
 
 class HwXsensServer(XsensServer):
-    """Xsens emulator stepped by the hardware loop (no thread of its own); a measurement period
-    starts on the world's sample grid so its frames carry exact world samples."""
+    """Xsens emulator stepped by the hardware's IMU stream thread (no thread of its own); a
+    measurement period starts on the world's sample grid so its frames carry exact world
+    samples."""
 
     grid_rate_hz = 100.0
 
@@ -174,11 +191,11 @@ class HwXsensServer(XsensServer):
         self._last_acc: np.ndarray | None = None
         super().__init__(*args, **kw)
 
-    def _stream(self) -> None:          # the hardware loop calls step() instead
+    def _stream(self) -> None:          # Hardware._imu_loop calls step() instead
         return
 
     #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
-    #: the physics lags behind (e.g. the loop waited for a client that went away), so no frame
+    #: the physics lags behind (e.g. the loop was starved of CPU), so no frame
     #: of it carries a device time from before the GoToMeasurement request
     true_clock: Any = None
 
@@ -417,7 +434,7 @@ class Hardware:
             VectorNavServer.grid_rate_hz = self.world.rate_hz
             self.imu_server = VectorNavServer(self.tap, self.world_clock.now, baudrate=self.imu_baudrate, seed=seed)
         else:
-            from rigctl.frame_spec import parse_frame_spec
+            from rigctl.config.frame_spec import parse_frame_spec
             from rigctl.yamlio import LocDict
 
             from .frame_server import EXAMPLE, FrameServer
@@ -443,9 +460,12 @@ class Hardware:
         self.gnss = GnssServer(clock=self.world_clock.now, source=self._periodic_pulses)
         self._closers.append(self.gnss.close)
         self._replace_port(self.gnss, "gnss", PtyEndpoint)
-        t = threading.Thread(target=self._loop, name="hardware-loop", daemon=True)
-        t.start()
-        self._threads.append(t)
+        self._imu_t = 0.0                   # world time the IMU stream may reach (set by the loop)
+        self._imu_due = threading.Condition()
+        for target, name in ((self._loop, "hardware-loop"), (self._imu_loop, "imu-stream")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
 
     # ------------------------------------------------------------------------- plumbing
     def _link(self, name: str, target: str) -> None:
@@ -479,23 +499,53 @@ class Hardware:
         return out
 
     def _loop(self) -> None:
+        """Physics: advance the world every tick and buffer its IMU samples in the tap for the
+        IMU stream thread (:meth:`_imu_loop`). The stream's pty writes wait for a slow client
+        (flow control) in that thread, not here: when they ran in this loop, a client slow to drain
+        the port at connect stood the physics still for up to 0.5 s of wall time (50 s of rig
+        time at 100x) -- the table's controller time with it -- and the drivers learnt time
+        offsets that late. Only a backlog beyond ``backlog`` samples (the client slower than the
+        stream for seconds: the emulator runs faster than the wire) holds the physics back."""
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
+        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # >= 1 s of wall time
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
             if time.monotonic() < self._paused_until:
                 continue
             try:
+                nt = self.imu_server.next_time()
+                if nt is not None and self.world.k - int(round(nt * self.world.rate_hz)) > backlog:
+                    continue                                    # the stream is far behind: wait
                 with self.lock:
                     self.world_clock.cap = self.table._t() + chunk_s
                     self.world.advance()
                     self.tap.pull()
                     t = self.table._t()
-                self.imu_server.step(t)
+                with self._imu_due:
+                    self._imu_t = t
+                    self._imu_due.notify()
                 nt = self.imu_server.next_time()
                 keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
                 self.tap.trim(min(keep, self.world.k - 1))
             except Exception:       # the loop must survive a bug in one device
                 log.exception("hardware loop")
+
+    def _imu_loop(self) -> None:
+        """IMU stream: encode and send the frames due up to the world time the physics loop
+        reached (its writes may wait for the client; see :meth:`_loop`)."""
+        done = -math.inf
+        while not self._stop.is_set():
+            with self._imu_due:
+                if self._imu_t <= done:
+                    self._imu_due.wait(0.05)
+                t = self._imu_t
+            try:
+                while self.imu_server.step(t) and not self._stop.is_set():
+                    pass                            # more than MAX_BATCH frames were due
+                done = t
+            except Exception:
+                log.exception("IMU stream")
+                self._stop.wait(0.1)
 
     # ------------------------------------------------------------------------ endpoints
     @property

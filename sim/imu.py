@@ -11,17 +11,20 @@ Gyroscope, for true rate w (rad/s):
 White noise densities: velocity random walk (m/s^2/sqrt(Hz)) and angle random walk
 (rad/s/sqrt(Hz)); the per-sample standard deviation is density * sqrt(rate). Optionally the
 slow IEEE 952 terms: bias instability B (flicker, Allan plateau 0.664 B between 1 s and
-1e4 s) and rate / acceleration random walk K, from :class:`rigctl.sim.noise.NoiseGenerator`
-(exact Allan signatures; its own seeded streams, so the white noise is the same with or
-without them).
+1e4 s) and rate / acceleration random walk K, and first-order Gauss-Markov bias terms
+(``gyro_gm`` / ``accel_gm``: sigma in deg/h / mg, correlation time in s), from
+:class:`rigctl.sim.noise.NoiseGenerator` (exact Allan signatures; its own seeded streams, so
+the white noise is the same with or without them).
 
 The model is built from a config mapping (see configs/sim.yaml) whose values are in the units
-named by their keys, and reports its truth in SI as a JSON-serialisable dict.
+named by their keys, read by :func:`rigctl.settings.parse` as :class:`DeclaredImuSettings`
+(with a profile: :class:`ProfileImuSettings`), and reports its truth in SI as a
+JSON-serialisable dict.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -29,9 +32,11 @@ from numpy.typing import NDArray
 
 from rigctl import schema as S
 from rigctl.yamlio import LocDict
-from rigctl.solvers.noise_coefficients import Triad, terms_of, to_json, triad
+from rigctl.settings import Settings, items, matrix3, number, numbers, parse, setting, subsection, text
+from rigctl.solvers.noise_coefficients import GaussMarkov, Triad, terms_of, to_json, triad
 
 from .noise import NoiseGenerator
+from .thermal_imu import ThermalErrors, ThermalSettings
 
 G0 = 9.80665  # m/s^2 per g (for mg / ppm conversions in config values)
 DEG = math.pi / 180.0
@@ -61,7 +66,7 @@ class DeclaredImuModel:
         self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
         self._slow = {}
         for name, axes, tag in (("gyro", self.gyro_noise, 0x1A1), ("accel", self.accel_noise, 0x1A2)):
-            if any(m.B.value > 0 or m.K.value > 0 for m in axes):  # the slow terms (N: below)
+            if any(m.B.value > 0 or m.K.value > 0 or m.gm for m in axes):  # the slow terms (N: below)
                 slow = tuple(m.with_values(Q=0.0, N=0.0, R=0.0) for m in axes)
                 self._slow[name] = NoiseGenerator(slow, self.rate_hz,
                                                   np.random.SeedSequence([self.seed, tag]))
@@ -111,55 +116,112 @@ class DeclaredImuModel:
         }
 
 
-def _matrix(o: LocDict, scale_key: str, misalign_key: str, scale_unit: float) -> NDArray:
+ZERO3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class GyroGaussMarkov(Settings):
+    """One entry of ``imu.sim.gyro_gm``: a first-order Gauss-Markov gyro bias term, the same
+    on the three axes: stationary standard deviation (deg/h) and correlation time (s)."""
+
+    sigma_deg_h: float = number(minimum=0)
+    tau_c_s: float = number(minimum=0)
+
+    def check(self, d: LocDict) -> None:
+        _positive_tau(self.tau_c_s, d)
+
+    def term(self) -> GaussMarkov:
+        return GaussMarkov(self.sigma_deg_h * DEG / 3600.0, self.tau_c_s)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AccelGaussMarkov(Settings):
+    """One entry of ``imu.sim.accel_gm``: stationary standard deviation (mg) and correlation
+    time (s) of a first-order Gauss-Markov accelerometer bias term."""
+
+    sigma_mg: float = number(minimum=0)
+    tau_c_s: float = number(minimum=0)
+
+    def check(self, d: LocDict) -> None:
+        _positive_tau(self.tau_c_s, d)
+
+    def term(self) -> GaussMarkov:
+        return GaussMarkov(self.sigma_mg * 1e-3 * G0, self.tau_c_s)
+
+
+def _positive_tau(tau: float, d: LocDict) -> None:
+    if not tau > 0:
+        raise S.error(d, "tau_c_s", "'tau_c_s' must be longer than zero",
+                      "give the term's correlation time in s, e.g. tau_c_s: 300")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeclaredImuSettings(Settings):
+    """``imu.sim`` without a profile: the declared errors, white noise, the slow IEEE 952 terms
+    and Gauss-Markov terms, in field units (the unit in each key's name; docs/emulator.md)."""
+
+    accel_bias_mg: tuple[float, ...] = numbers(ZERO3)
+    accel_scale_ppm: tuple[float, ...] = numbers(ZERO3)
+    accel_misalignment_urad: tuple[tuple[float, ...], ...] | None = matrix3(None)
+    accel_quadratic_ug_per_g2: tuple[float, ...] = numbers(ZERO3)
+    gyro_bias_deg_h: tuple[float, ...] = numbers(ZERO3)
+    gyro_scale_ppm: tuple[float, ...] = numbers(ZERO3)
+    gyro_misalignment_urad: tuple[tuple[float, ...], ...] | None = matrix3(None)
+    accel_vrw_m_s_rth: float = number(0.0, minimum=0)
+    gyro_arw_deg_rth: float = number(0.0, minimum=0)
+    accel_bias_instability_mg: float = number(0.0, minimum=0)
+    accel_rrw_m_s_h_rth: float = number(0.0, minimum=0)
+    gyro_bias_instability_deg_h: float = number(0.0, minimum=0)
+    gyro_rrw_deg_h_rth: float = number(0.0, minimum=0)
+    accel_gm: tuple[AccelGaussMarkov, ...] = items(AccelGaussMarkov, "'imu.sim.accel_gm'")
+    gyro_gm: tuple[GyroGaussMarkov, ...] = items(GyroGaussMarkov, "'imu.sim.gyro_gm'")
+    temperature_c: float = number(25.0)
+    #: None: the config's seed
+    seed: int | None = number(None, minimum=0, integer=True)
+    #: None: no temperature-dependent errors
+    thermal: ThermalSettings | None = subsection(ThermalSettings, "'imu.sim.thermal'", optional=True)
+
+
+def _matrix(scale: tuple[float, ...], misalign: tuple[tuple[float, ...], ...] | None,
+            scale_unit: float) -> NDArray:
     m = np.eye(3)
-    scale = S.number_list(o, scale_key, [0.0, 0.0, 0.0], length=3)
     m[np.diag_indices(3)] += np.asarray(scale) * scale_unit
-    if misalign_key in o:
-        rows = S.get_list(o, misalign_key, length=3)
-        for i, row in enumerate(rows):
-            if not (isinstance(row, list) and len(row) == 3):
-                raise S.error(o, misalign_key, f"{misalign_key!r} must be a 3x3 list of rows")
-            for j, x in enumerate(row):
-                if i != j:
-                    m[i, j] += float(x) * 1e-6  # urad
+    for i, row in enumerate(misalign or ()):
+        for j, x in enumerate(row):
+            if i != j:
+                m[i, j] += float(x) * 1e-6  # urad
     return m
+
+
+def _with_gm(axes: Triad, terms: tuple[Any, ...]) -> Triad:
+    gm = tuple(t.term() for t in terms)
+    return tuple(replace(m, gm=gm) for m in axes) if gm else axes  # type: ignore[return-value]
 
 
 def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuModel:
     """Declared-error IMU from the ``imu.sim`` config mapping (units in the key names)."""
-    S.check_keys(o, ("accel_bias_mg", "accel_scale_ppm", "accel_misalignment_urad",
-                     "accel_quadratic_ug_per_g2", "gyro_bias_deg_h", "gyro_scale_ppm",
-                     "gyro_misalignment_urad", "accel_vrw_m_s_rth", "gyro_arw_deg_rth",
-                     "accel_bias_instability_mg", "accel_rrw_m_s_h_rth",
-                     "gyro_bias_instability_deg_h", "gyro_rrw_deg_h_rth",
-                     "temperature_c", "seed", "thermal"), "'imu.sim'")
-    thermal = None
-    if "thermal" in o:
-        from .thermal_imu import ThermalErrors
-        thermal = ThermalErrors(S.require_mapping(o["thermal"], "'imu.sim.thermal'", o, "thermal"))
+    c = parse(DeclaredImuSettings, o, "'imu.sim'")
     return DeclaredImuModel(
         rate_hz=rate_hz,
-        accel_bias=np.asarray(S.number_list(o, "accel_bias_mg", [0.0] * 3, length=3)) * 1e-3 * G0,
-        accel_matrix=_matrix(o, "accel_scale_ppm", "accel_misalignment_urad", 1e-6),
-        accel_quadratic=np.asarray(S.number_list(o, "accel_quadratic_ug_per_g2", [0.0] * 3, length=3))
-        * 1e-6 * G0 / G0**2,
-        gyro_bias=np.asarray(S.number_list(o, "gyro_bias_deg_h", [0.0] * 3, length=3)) * DEG / 3600,
-        gyro_matrix=_matrix(o, "gyro_scale_ppm", "gyro_misalignment_urad", 1e-6),
+        accel_bias=np.asarray(c.accel_bias_mg) * 1e-3 * G0,
+        accel_matrix=_matrix(c.accel_scale_ppm, c.accel_misalignment_urad, 1e-6),
+        accel_quadratic=np.asarray(c.accel_quadratic_ug_per_g2) * 1e-6 * G0 / G0**2,
+        gyro_bias=np.asarray(c.gyro_bias_deg_h) * DEG / 3600,
+        gyro_matrix=_matrix(c.gyro_scale_ppm, c.gyro_misalignment_urad, 1e-6),
         # VRW (m/s/sqrt(h)) -> m/s^2/sqrt(Hz): divide by 60; ARW (deg/sqrt(h)) -> rad/s/sqrt(Hz);
         # B: mg -> m/s^2, deg/h -> rad/s; K: m/s/h/sqrt(h) -> m/s^2/sqrt(s) (/ 3600 / 60),
-        # deg/h/sqrt(h) -> rad/s/sqrt(s)
-        accel_noise=triad("accel", "emulator config (imu.sim)",
-                          N=S.get_number(o, "accel_vrw_m_s_rth", 0.0, minimum=0) / 60.0,
-                          B=S.get_number(o, "accel_bias_instability_mg", 0.0, minimum=0) * 1e-3 * G0,
-                          K=S.get_number(o, "accel_rrw_m_s_h_rth", 0.0, minimum=0) / 3600.0 / 60.0),
-        gyro_noise=triad("gyro", "emulator config (imu.sim)",
-                         N=S.get_number(o, "gyro_arw_deg_rth", 0.0, minimum=0) * DEG / 60.0,
-                         B=S.get_number(o, "gyro_bias_instability_deg_h", 0.0, minimum=0) * DEG / 3600.0,
-                         K=S.get_number(o, "gyro_rrw_deg_h_rth", 0.0, minimum=0) * DEG / 3600.0 / 60.0),
-        temperature_c=S.get_number(o, "temperature_c", 25.0),
-        seed=int(S.get_number(o, "seed", seed, minimum=0, integer=True)),
-        thermal=thermal,
+        # deg/h/sqrt(h) -> rad/s/sqrt(s); Gauss-Markov sigma: mg, deg/h as B
+        accel_noise=_with_gm(triad("accel", "emulator config (imu.sim)",
+                                   N=c.accel_vrw_m_s_rth / 60.0,
+                                   B=c.accel_bias_instability_mg * 1e-3 * G0,
+                                   K=c.accel_rrw_m_s_h_rth / 3600.0 / 60.0), c.accel_gm),
+        gyro_noise=_with_gm(triad("gyro", "emulator config (imu.sim)",
+                                  N=c.gyro_arw_deg_rth * DEG / 60.0,
+                                  B=c.gyro_bias_instability_deg_h * DEG / 3600.0,
+                                  K=c.gyro_rrw_deg_h_rth * DEG / 3600.0 / 60.0), c.gyro_gm),
+        temperature_c=c.temperature_c,
+        seed=int(seed if c.seed is None else c.seed),
+        thermal=None if c.thermal is None else ThermalErrors(c.thermal),
     )
 
 
@@ -175,6 +237,27 @@ def _deep_merge(base: dict, over: Any, where: LocDict, key: str) -> dict:
     return out
 
 
+def _overrides(d: LocDict, key: str, default: Any = None) -> LocDict:
+    if not isinstance(d[key], dict):
+        raise S.error(d, key, "'overrides' must be a mapping of profile keys",
+                      "same layout as a profile of configs/imu-profiles.yaml")
+    return d[key]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProfileImuSettings(Settings):
+    """``imu.sim`` with a profile: the device profile (its name is checked against the profiles
+    file), its file, the seed and the overrides (a partial profile, checked by
+    :class:`rigctl.sim.profiles.ImuProfile` with file and line)."""
+
+    profile: str = text()
+    #: None: the config's seed
+    seed: int | None = number(None, minimum=0, integer=True)
+    #: relative to the config file; None: configs/imu-profiles.yaml
+    profiles_file: str | None = text(None)
+    overrides: LocDict | None = setting(None, read=_overrides)
+
+
 def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     """The IMU model of an ``imu.sim`` config mapping.
 
@@ -183,7 +266,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     :mod:`rigctl.sim.error_model` (noise with exact Allan signatures, front end, physical
     effects, clock error); ``overrides`` is deep-merged into the profile, e.g.
     ``{effects: {lever_arm: {enabled: true, r_m: [0.01, 0, 0]}}}``. The profile and the
-    overrides are checked against the profile schema (:data:`rigctl.sim.profiles.PROFILE_SCHEMA`):
+    overrides are checked by the profile's settings (:class:`rigctl.sim.profiles.ImuProfile`):
     an unknown key, a value of the wrong kind or an enabled effect without a required key is an
     InputError naming the file and line. Without ``profile``: the declared errors above with
     white noise.
@@ -195,21 +278,18 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     from .error_model import ImuErrorModel
     from .profiles import _coerce, check_merged, check_profile, get_profile, profile_names
 
-    S.check_keys(o, ("profile", "seed", "profiles_file", "overrides"), "'imu.sim' with a profile")
+    c = parse(ProfileImuSettings, o, "'imu.sim' with a profile")
     path = None
-    if "profiles_file" in o:
-        path = Path(o.file).parent / S.get_str(o, "profiles_file")
+    if c.profiles_file is not None:
+        path = Path(o.file).parent / c.profiles_file
         if not path.is_file():
             raise S.error(o, "profiles_file", f"profiles file {str(path)!r} not found",
                           "the path is relative to the config file")
     name = S.get_str(o, "profile", choices=profile_names(path))
-    seed = int(S.get_number(o, "seed", seed, minimum=0, integer=True))
-    profile = get_profile(name, seed=seed, path=path)  # checked against the profile schema
-    base, over = profile, o.get("overrides")
-    if "overrides" in o:
-        if not isinstance(over, dict):
-            raise S.error(o, "overrides", "'overrides' must be a mapping of profile keys",
-                          "same layout as a profile of configs/imu-profiles.yaml")
+    seed = int(seed if c.seed is None else c.seed)
+    profile = get_profile(name, seed=seed, path=path)  # checked against the profile's settings
+    base, over = profile, c.overrides
+    if over is not None:
         check_profile(over, "imu.sim.overrides")  # misspelt keys, wrong kinds: file and line
         profile = _deep_merge(profile, over, o, "overrides")
     check_merged(profile, over, base, f"profile {name!r}" + (" with imu.sim.overrides" if over else ""))

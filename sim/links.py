@@ -43,6 +43,8 @@ class PtyEndpoint:
         os.set_blocking(self.master, False)
         self.on_data = on_data
         self.overflow_bytes = 0
+        #: bytes the client has written into the port (it has it open and talks to the device)
+        self.received_bytes = 0
         self._wlock = threading.Lock()
         self._stop_r, self._stop_w = os.pipe()
         self._closed = False
@@ -82,6 +84,7 @@ class PtyEndpoint:
                     continue
                 except OSError:
                     return
+                self.received_bytes += len(data)
                 if data and self.on_data is not None:
                     try:
                         self.on_data(data, self.write)

@@ -11,6 +11,8 @@ N    angle / velocity random walk            rad/s/sqrt(Hz)     N^2 / tau
 B    bias instability (flicker, 1/f)         rad/s | m/s^2      (2 ln2 / pi) B^2 (plateau)
 K    rate random walk                        rad/s^2/sqrt(Hz)   K^2 tau / 3
 R    rate ramp                               rad/s^2 | m/s^3    R^2 tau^2 / 2
+gm   first-order Gauss-Markov: sigma,        rad/s | m/s^2, s   sigma^2 x (the OU curve,
+     correlation time Tc (each a list)                          rigctl.solvers.noise_coefficients)
 ==== ======================================= ================== ==========================
 
 Realisation at output rate fs (tau0 = 1/fs), for output sample k, in per-sample terms
@@ -32,6 +34,10 @@ sn^2 = N^2 fs (white), sb^2 = (B c_B)^2 (flicker input):
   of 1.2/n after n samples (K only shows at long tau, where n > 1e4). Not folded into G: a filter with a pole at
   z = 1 has exact increments but cannot give the power-on level of "stationary N + B plus a walk from 0".
 * R: deterministic ramp R (k + 1) tau0 from power-on.
+* gm: each Gauss-Markov term is its exact discretisation, the AR(1) sequence
+  x_k = exp(-tau0/Tc) x_(k-1) + sigma sqrt(1 - exp(-2 tau0/Tc)) e_k from the stationary law
+  (:class:`GaussMarkovNoise`, one more stream per axis spawned after the others, so the other
+  terms draw the same numbers with or without it); added to the signal before Q.
 * Q: the running integral theta of (signal + all other terms) is quantized with step
   q = sqrt(12) Q and differenced: y_k = (q round(theta_k/q) - q round(theta_{k-1}/q)) / tau0.
   The error is white and uniform (hence exactly 3 Q^2/tau^2) as long as the integral moves by
@@ -58,6 +64,7 @@ other numbers than releases with separate N, B, K normal streams; the statistics
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Sequence
@@ -65,6 +72,7 @@ from typing import Sequence
 import numpy as np
 
 from rigctl.solvers.noise_coefficients import PLATEAU, TERMS, NoiseCoefficients, terms_of
+from rigctl.solvers.segment_cov import ou_avar
 
 from . import block_iir as _bi
 from .block_iir import BlockCascade
@@ -180,13 +188,11 @@ from .spectral_factor import factor, residues
 
 def arrays(axes: Sequence[NoiseCoefficients], flicker_pairs_per_decade: float = 2) -> dict:
     """The generator's working form of three axes' coefficients: every term a (3,) array, the flicker
-    band (shared by the axes: one cascade) and the cascade's density as floats. Gauss-Markov terms are
-    not emulated (a ValueError, as are axes with different flicker bands)."""
+    band (shared by the axes: one cascade) and the cascade's density as floats (axes with different
+    flicker bands are a ValueError). Gauss-Markov terms are not part of it: :class:`GaussMarkovNoise`."""
     axes = list(axes)
     if len(axes) != 3:
         raise ValueError(f"the emulator's noise needs three axes, got {len(axes)}")
-    if any(m.gm for m in axes):
-        raise ValueError("Gauss-Markov noise terms are not emulated (rigctl.sim.noise: IEEE 952 Q, N, B, K, R)")
     band = {(m.flicker_tau_min_s, m.flicker_tau_max_s) for m in axes}
     if len(band) != 1:
         raise ValueError(f"the three axes need one flicker band, got {sorted(band)}")
@@ -313,7 +319,8 @@ def theoretical_avar(axes: Sequence[NoiseCoefficients], tau: np.ndarray, rate_hz
                      extra_white_var: np.ndarray | float = 0.0, flicker_pairs_per_decade: float = 2) -> np.ndarray:
     """Theoretical Allan variance, shape (len(tau), 3), in (rate unit)^2.
 
-    rate_hz None: the IEEE 952 sum 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2.
+    rate_hz None: the IEEE 952 sum 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2
+    (plus each Gauss-Markov term's continuous-time curve).
     rate_hz given: the exact expectation for :class:`NoiseGenerator` at that rate (tau rounded to
     M = tau*fs samples), including the flicker cascade's real curve. ``extra_white_var`` adds white
     noise of that per-sample variance (e.g. ADC quantization LSB^2/12), sigma^2 = v tau0/tau.
@@ -322,8 +329,12 @@ def theoretical_avar(axes: Sequence[NoiseCoefficients], tau: np.ndarray, rate_hz
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
     if rate_hz is None:
         t = tau[:, None]
-        return (3 * P["Q"] ** 2 / t**2 + P["N"] ** 2 / t + PLATEAU * P["B"] ** 2
+        avar = (3 * P["Q"] ** 2 / t**2 + P["N"] ** 2 / t + PLATEAU * P["B"] ** 2
                 + P["K"] ** 2 * t / 3 + P["R"] ** 2 * t**2 / 2)
+        for ax, m in enumerate(axes):  # Gauss-Markov: the continuous-time curve
+            for g in m.gm:
+                avar[:, ax] = avar[:, ax] + g.sigma.value**2 * ou_avar(tau, g.tau_c_s)
+        return avar
     tau0 = 1.0 / rate_hz
     M = np.maximum(1, np.round(tau * rate_hz))
     t = (M * tau0)[:, None]
@@ -333,6 +344,9 @@ def theoretical_avar(axes: Sequence[NoiseCoefficients], tau: np.ndarray, rate_hz
         d = design_flicker(P["flicker_tau_min_s"], P["flicker_tau_max_s"], rate_hz, P["flicker_pairs_per_decade"])
         unit = _cascade_avar(d.a_pole, d.a_zero, M) * d.input_std_per_B**2
         avar = avar + unit[:, None] * P["B"] ** 2
+    for ax, m in enumerate(axes):  # Gauss-Markov: autocovariance sigma^2 exp(-tau0 |j| / Tc)
+        for g in m.gm:
+            avar[:, ax] = avar[:, ax] + g.sigma.value**2 * _exp_avar(M, tau0 / g.tau_c_s)
     return avar
 
 
@@ -342,6 +356,45 @@ _J1 = np.arange(1.0, _KB + 1.0)
 _U16_MEAN, _U16_STD = 32767.5, np.sqrt((65536.0**2 - 1.0) / 12.0)  # uniform on the 16-bit integers
 _RW_T1 = np.triu(np.ones((_KB, _KB)))  # [m, j] = 1 for m <= j: running sum within a sub-block
 _RW_T2 = np.triu(_J1[None, :] - np.arange(_KB)[:, None])  # [m, j] = j - m + 1 for m <= j: double running sum
+
+
+class GaussMarkovNoise:
+    """First-order Gauss-Markov terms of three axes (each axis' ``gm``), sampled exactly.
+
+    A term of stationary standard deviation sigma and correlation time Tc, sampled every tau0,
+    is the AR(1) sequence x_k = phi x_(k-1) + sigma sqrt(1 - phi^2) e_k with phi = exp(-tau0/Tc)
+    (the continuous process' exact discretisation: autocovariance sigma^2 phi^|k|), started from
+    its stationary law. Each axis draws from its own stream, one normal per term and sample
+    (row-major: the same numbers however the output is sliced), and the recursion's state is
+    carried: bit-identical in one piece or in chunks.
+    """
+
+    def __init__(self, axes: Sequence[NoiseCoefficients], rate_hz: float,
+                 seeds: Sequence[np.random.SeedSequence]) -> None:
+        from scipy.signal import lfilter
+
+        self._lfilter = lfilter
+        tau0 = 1.0 / float(rate_hz)
+        self.terms = [[(math.exp(-tau0 / g.tau_c_s), g.sigma.value * math.sqrt(-math.expm1(-2.0 * tau0 / g.tau_c_s)))
+                       for g in m.gm] for m in axes]
+        self._rng = [np.random.Generator(np.random.SFC64(s)) for s in seeds]
+        # x_(-1) from the stationary law N(0, sigma^2)
+        self._x = [np.array([g.sigma.value for g in m.gm]) * r.standard_normal(len(m.gm))
+                   for m, r in zip(axes, self._rng)]
+
+    def next(self, n: int) -> np.ndarray:
+        """The next n samples (n, 3), rate unit."""
+        out = np.zeros((n, 3))
+        for ax, terms in enumerate(self.terms):
+            if not terms:
+                continue
+            e = self._rng[ax].standard_normal((n, len(terms)))
+            for j, (phi, c) in enumerate(terms):
+                y, zf = self._lfilter([c], [1.0, -phi], e[:, j], zi=[phi * self._x[ax][j]])
+                if n:
+                    self._x[ax][j] = y[-1]
+                out[:, ax] += y
+        return out
 
 
 class NoiseGenerator:
@@ -408,6 +461,10 @@ class NoiseGenerator:
         self._sig_theta = np.zeros(3)  # running integral of the signal, in steps q
         self._theta_q = np.zeros(3)  # quantized integral at the previous sample, in steps q
         self._work = np.empty(0)
+        # Gauss-Markov terms: their own streams (spawned after the six above, so the other terms'
+        # numbers are the same with or without them), added to the signal before Q
+        self._gm = GaussMarkovNoise(self.axes, self.rate_hz, ss.spawn(3)) \
+            if any(m.gm for m in self.axes) else None
 
     def _next_chunk(self) -> None:
         m = min(self.CHUNK, self.FIRST_CHUNK << min(self._n_chunks, 30))
@@ -552,6 +609,9 @@ class NoiseGenerator:
             i += m
             self._pos += m
         sig = None if signal_in is None else np.asarray(signal_in, dtype=np.float64)
+        if self._gm is not None:
+            g = self._gm.next(n)
+            sig = g if sig is None else sig + g
         if n == 0:
             return y.T
         if len(self._work) < n:

@@ -24,7 +24,7 @@ import threading
 
 import numpy as np
 
-from rigctl.config import TableLimits
+from rigctl.config.config import TableLimits
 from rigctl.devices import AxisStatus
 from rigctl.drivers.acl import AclCode
 from rigctl.drivers.modbus_map import FaultCode

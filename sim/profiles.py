@@ -16,14 +16,16 @@ time constants, switches) are kept. The YAML is read with yaml.safe_load only.
 from __future__ import annotations
 
 import copy
-import difflib
 import math
+from dataclasses import MISSING, dataclass, fields, make_dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from rigctl.solvers.noise_coefficients import CONFIG_KEYS
+from rigctl import schema as S
+from rigctl.settings import Settings, items, mapping, parse, setting, subsection
+from rigctl.solvers.noise_coefficients import CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS
 from rigctl.yamlio import InputError, LocDict, LocList, load_file
 
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "configs" / "imu-profiles.yaml"
@@ -68,17 +70,16 @@ def _coerce(node: Any, key: str = "") -> Any:
 def load_profiles(path: str | Path | None = None) -> dict:
     """The YAML document as a dict: {'profiles': {name: profile}, 'random': {...}} (safe
     loader; mappings are LocDicts that know their file and lines)."""
-    doc = load_file(path or DEFAULT_PATH)
-    if not isinstance(doc, dict) or not isinstance(doc.get("profiles"), dict):
-        raise ValueError("profile file must be a mapping with a 'profiles' mapping")
-    _check_keys(doc, {"profiles": None, "random": None}, "the profile file")
-    if doc.get("random") is not None:
-        _check_mapping(doc["random"], RANDOM_SCHEMA, "random", doc, "random")
+    file = Path(path or DEFAULT_PATH)
+    doc = load_file(file)
+    if doc is None:
+        raise InputError("the profile file is empty", str(file), hint="it needs a 'profiles:' mapping")
+    parse(ProfileFile, S.require_mapping(doc, "the profile file"), "the profile file")
     try:
         return _coerce(doc)
     except ValueError:
         for name, prof in doc["profiles"].items():  # say where the bad value is
-            _check_mapping(prof, PROFILE_SCHEMA, f"profile {name!r}", doc["profiles"], name)
+            _check_mapping(prof, ImuProfile, f"profile {name!r}", doc["profiles"], name)
         raise
 
 
@@ -97,13 +98,13 @@ def get_profile(name: str, seed: int | None = None, path: str | Path | None = No
             raise _error(cfg, "base", f"random.base {base_name!r} is not a profile of the file",
                          f"known: {sorted(doc['profiles'])}", doc)
         base = doc["profiles"][base_name]
-        _check_mapping(base, PROFILE_SCHEMA, f"profile {base_name!r}", doc["profiles"], base_name)
+        _check_mapping(base, ImuProfile, f"profile {base_name!r}", doc["profiles"], base_name)
         prof = random_truth(base, 0 if seed is None else seed, float(cfg.get("noise_spread", 2.0)))
         prof["name"] = f"random(base={cfg.get('base', 'mti_class')}, seed={0 if seed is None else seed})"
         return prof
     if name not in doc["profiles"]:
         raise KeyError(f"unknown IMU profile {name!r}; known: {sorted(doc['profiles'])}")
-    _check_mapping(doc["profiles"][name], PROFILE_SCHEMA, f"profile {name!r}", doc["profiles"], name)
+    _check_mapping(doc["profiles"][name], ImuProfile, f"profile {name!r}", doc["profiles"], name)
     prof = copy.deepcopy(doc["profiles"][name])
     prof["name"] = name
     return prof
@@ -133,43 +134,10 @@ def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) 
 
 # ---------------------------------------------------------------------------- schema
 # The keys of a profile (docs/emulator.md sections 3-5; configs/imu-profiles.yaml spells them
-# out). A leaf is a kind: see _LEAF. Every key is optional except REQUIRED ones of an enabled
-# effect.
-_NOISE = {"flicker_tau_min_s": "pos", "flicker_tau_max_s": "pos", "flicker_pairs_per_decade": "pos"}
-# the term keys are rigctl.solvers.noise_coefficients.CONFIG_KEYS (one spelling, read by from_config)
-_GYRO_NOISE = {**{k: "coef" for k in CONFIG_KEYS["gyro"].values()}, **_NOISE}
-_ACCEL_NOISE = {**{k: "coef" for k in CONFIG_KEYS["accel"].values()}, **_NOISE}
-EFFECTS_SCHEMA: dict[str, dict[str, str]] = {
-    "warmup": {"T0_degC": "num", "dT_degC": "num", "tau_s": "pos", "T_ref_degC": "num",
-               "gyro_bias_tc_rad_per_s_per_K": "vec3", "gyro_scale_tc_per_K": "vec3",
-               "accel_bias_tc_m_per_s2_per_K": "vec3", "accel_scale_tc_per_K": "vec3",
-               "temp_noise_degC": "nonneg", "temp_lsb_degC": "nonneg"},
-    "turn_on_bias": {"gyro_sigma_rad_per_s": "nonneg", "accel_sigma_m_per_s2": "nonneg"},
-    "g_sensitivity": {"G_rad_per_s_per_m_per_s2": "mat3", "anisoelastic_rad_per_s_per_m2_per_s4": "mat3"},
-    "accel_scale_asymmetry": {"asymmetry": "vec3"},
-    "gyro_nonlinearity": {"k2_per_rad_per_s": "vec3", "k3_per_rad2_per_s2": "vec3"},
-    "lever_arm": {"r_m": "vec3"},
-    "time_delay": {"delay_s": "nonneg"},
-    "vibration": {"freqs_hz": "nums", "accel_amp_m_per_s2": "rows3", "gyro_amp_rad_per_s": "rows3"},
-    "clock": {"drift_ppm": "num", "wander_ppm": "nonneg", "wander_tau_s": "pos",
-              "drop_probability": "prob", "drop_max_burst": "count"},
-    "table_geometry": {"nonorth_rad": "vec3", "level_x_rad": "num", "level_y_rad": "num", "north_rad": "num"},
-}
-#: keys an enabled effect must have (no default)
-REQUIRED = {"warmup": ("T0_degC", "dT_degC", "tau_s"), "accel_scale_asymmetry": ("asymmetry",),
-            "lever_arm": ("r_m",), "time_delay": ("delay_s",)}
-PROFILE_SCHEMA: dict[str, Any] = {
-    "description": "text", "name": "text", "rate_hz": "pos", "power_on_time_s": "nonneg",
-    "frontend": {"internal_rate_hz": "pos?", "filter_order": "count", "gyro_bandwidth_hz": "pos?",
-                 "accel_bandwidth_hz": "pos?", "gyro_lsb_rad_per_s": "nonneg?",
-                 "gyro_full_scale_rad_per_s": "pos?", "accel_lsb_m_per_s2": "nonneg?",
-                 "accel_full_scale_m_per_s2": "pos?"},
-    "gyro": {"noise": _GYRO_NOISE, "bias_rad_per_s": "vec3", "scale_error": "vec3", "misalignment_rad": "mat3"},
-    "accel": {"noise": _ACCEL_NOISE, "bias_m_per_s2": "vec3", "scale_error": "vec3",
-              "misalignment_rad": "mat3", "quadratic_per_m_per_s2": "vec3"},
-    "effects": {name: {"enabled": "bool", **keys} for name, keys in EFFECTS_SCHEMA.items()},
-}
-RANDOM_SCHEMA = {"base": "text", "noise_spread": "pos"}
+# out), one settings class per section (rigctl.settings); a leaf is a kind: see _LEAF. Every key
+# is optional except the REQUIRED ones of an enabled effect (a rule on the merged profile:
+# check_merged) and a Gauss-Markov term's two. The profile itself stays the plain mapping
+# ImuErrorModel.from_profile reads; the classes check it and the overrides with file and line.
 
 #: leaf kind -> (check, what it must be)
 _LEAF: dict[str, tuple[Any, str]] = {}
@@ -222,6 +190,216 @@ _LEAF.update({
 DOC_HINT = "keys, units and defaults: docs/emulator.md sections 3-5"
 
 
+def _read_leaf(d: LocDict, key: str, default: Any = None, *, kind: str, what: str) -> Any:
+    ok, must = _LEAF[kind]
+    if not ok(d[key]):
+        raise S.error(d, key, f"{what}.{key} must be {must}, got {d[key]!r}", DOC_HINT)
+    return d[key]
+
+
+def leaf(kind: str, default: Any = None) -> Any:
+    """A profile value of ``kind`` (:data:`_LEAF`), kept as written (numeric text allowed)."""
+    return setting(default, read=_read_leaf, what=True, kind=kind)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProfileSection(Settings):
+    """Base of a profile's sections: an unknown key's hint names the docs."""
+
+    HINT: ClassVar[str] = DOC_HINT
+    KIND: ClassVar[str] = "leaf"
+
+
+def _gm(sigma_key: str) -> type[ProfileSection]:
+    """A Gauss-Markov term of a ``noise:`` section, SI: sigma (the sensor's rate unit) and Tc (s)."""
+    return make_dataclass(f"GaussMarkov_{sigma_key}", [(sigma_key, Any, leaf("nonneg", MISSING)),
+                                                       ("tau_c_s", Any, leaf("pos", MISSING))],
+                          bases=(ProfileSection,), frozen=True, kw_only=True)
+
+
+def _noise(sensor: str) -> type[ProfileSection]:
+    """A sensor's ``noise:`` section: the IEEE 952 terms (CONFIG_KEYS, each a number or
+    [x, y, z]), the flicker band and cascade density, and Gauss-Markov terms."""
+    terms = [(k, Any, leaf("coef")) for k in CONFIG_KEYS[sensor].values()]
+    band = [(k, Any, leaf("pos")) for k in ("flicker_tau_min_s", "flicker_tau_max_s", "flicker_pairs_per_decade")]
+    gm = [(GM_KEY, Any, items(_gm(GM_SIGMA_KEYS[sensor])))]
+    return make_dataclass(f"{sensor.capitalize()}Noise", terms + band + gm, bases=(ProfileSection,),
+                          frozen=True, kw_only=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrontendProfile(ProfileSection):
+    internal_rate_hz: Any = leaf("pos?")
+    filter_order: Any = leaf("count")
+    gyro_bandwidth_hz: Any = leaf("pos?")
+    accel_bandwidth_hz: Any = leaf("pos?")
+    gyro_lsb_rad_per_s: Any = leaf("nonneg?")
+    gyro_full_scale_rad_per_s: Any = leaf("pos?")
+    accel_lsb_m_per_s2: Any = leaf("nonneg?")
+    accel_full_scale_m_per_s2: Any = leaf("pos?")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GyroProfile(ProfileSection):
+    noise: Any = subsection(_noise("gyro"))
+    bias_rad_per_s: Any = leaf("vec3")
+    scale_error: Any = leaf("vec3")
+    misalignment_rad: Any = leaf("mat3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AccelProfile(ProfileSection):
+    noise: Any = subsection(_noise("accel"))
+    bias_m_per_s2: Any = leaf("vec3")
+    scale_error: Any = leaf("vec3")
+    misalignment_rad: Any = leaf("mat3")
+    quadratic_per_m_per_s2: Any = leaf("vec3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Effect(ProfileSection):
+    """A switchable effect: ``enabled`` and its keys; REQUIRED: the keys it needs when enabled."""
+
+    REQUIRED: ClassVar[tuple[str, ...]] = ()
+    enabled: Any = leaf("bool")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Warmup(Effect):
+    REQUIRED: ClassVar[tuple[str, ...]] = ("T0_degC", "dT_degC", "tau_s")
+    T0_degC: Any = leaf("num")
+    dT_degC: Any = leaf("num")
+    tau_s: Any = leaf("pos")
+    T_ref_degC: Any = leaf("num")
+    gyro_bias_tc_rad_per_s_per_K: Any = leaf("vec3")
+    gyro_scale_tc_per_K: Any = leaf("vec3")
+    accel_bias_tc_m_per_s2_per_K: Any = leaf("vec3")
+    accel_scale_tc_per_K: Any = leaf("vec3")
+    temp_noise_degC: Any = leaf("nonneg")
+    temp_lsb_degC: Any = leaf("nonneg")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TurnOnBias(Effect):
+    gyro_sigma_rad_per_s: Any = leaf("nonneg")
+    accel_sigma_m_per_s2: Any = leaf("nonneg")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GSensitivity(Effect):
+    G_rad_per_s_per_m_per_s2: Any = leaf("mat3")
+    anisoelastic_rad_per_s_per_m2_per_s4: Any = leaf("mat3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AccelScaleAsymmetry(Effect):
+    REQUIRED: ClassVar[tuple[str, ...]] = ("asymmetry",)
+    asymmetry: Any = leaf("vec3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GyroNonlinearity(Effect):
+    k2_per_rad_per_s: Any = leaf("vec3")
+    k3_per_rad2_per_s2: Any = leaf("vec3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LeverArm(Effect):
+    REQUIRED: ClassVar[tuple[str, ...]] = ("r_m",)
+    r_m: Any = leaf("vec3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TimeDelay(Effect):
+    REQUIRED: ClassVar[tuple[str, ...]] = ("delay_s",)
+    delay_s: Any = leaf("nonneg")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Vibration(Effect):
+    freqs_hz: Any = leaf("nums")
+    accel_amp_m_per_s2: Any = leaf("rows3")
+    gyro_amp_rad_per_s: Any = leaf("rows3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClockEffect(Effect):
+    drift_ppm: Any = leaf("num")
+    wander_ppm: Any = leaf("nonneg")
+    wander_tau_s: Any = leaf("pos")
+    drop_probability: Any = leaf("prob")
+    drop_max_burst: Any = leaf("count")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TableGeometry(Effect):
+    nonorth_rad: Any = leaf("vec3")
+    level_x_rad: Any = leaf("num")
+    level_y_rad: Any = leaf("num")
+    north_rad: Any = leaf("num")
+
+
+#: effect name -> its settings
+EFFECTS: dict[str, type[Effect]] = {
+    "warmup": Warmup, "turn_on_bias": TurnOnBias, "g_sensitivity": GSensitivity,
+    "accel_scale_asymmetry": AccelScaleAsymmetry, "gyro_nonlinearity": GyroNonlinearity,
+    "lever_arm": LeverArm, "time_delay": TimeDelay, "vibration": Vibration, "clock": ClockEffect,
+    "table_geometry": TableGeometry}
+EffectsProfile = make_dataclass("EffectsProfile", [(k, Any, subsection(c)) for k, c in EFFECTS.items()],
+                                bases=(ProfileSection,), frozen=True, kw_only=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImuProfile(ProfileSection):
+    """One device profile (a ``profiles:`` entry, or ``imu.sim.overrides``)."""
+
+    description: Any = leaf("text")
+    name: Any = leaf("text")
+    rate_hz: Any = leaf("pos")
+    power_on_time_s: Any = leaf("nonneg")
+    frontend: Any = subsection(FrontendProfile)
+    gyro: Any = subsection(GyroProfile)
+    accel: Any = subsection(AccelProfile)
+    effects: Any = subsection(EffectsProfile)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RandomProfile(ProfileSection):
+    """The file's ``random:`` section: the profile drawn around and the spread of its noise."""
+
+    base: Any = leaf("text")
+    noise_spread: Any = leaf("pos")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProfileFile(ProfileSection):
+    """A profiles file (configs/imu-profiles.yaml): the named profiles (each read as
+    :class:`ImuProfile` when it is used) and the random-truth mode's settings."""
+
+    profiles: Any = mapping()
+    random: Any = subsection(RandomProfile, "random")
+
+
+#: the effects' required keys (when enabled)
+REQUIRED = {name: c.REQUIRED for name, c in EFFECTS.items() if c.REQUIRED}
+
+
+def _tree(cls: type[Settings]) -> dict[str, Any]:
+    """The key tree of a profile section: {key: kind or sub-tree} (for docs and tests)."""
+    out: dict[str, Any] = {}
+    for f in fields(cls):
+        if "read" not in f.metadata:
+            continue
+        sub = f.default if isinstance(f.default, Settings) else None
+        out[f.name] = _tree(type(sub)) if sub is not None else f.metadata["check"].get("kind", "items")
+    return out
+
+
+PROFILE_SCHEMA: dict[str, Any] = _tree(ImuProfile)
+RANDOM_SCHEMA: dict[str, Any] = _tree(RandomProfile)
+EFFECTS_SCHEMA: dict[str, Any] = PROFILE_SCHEMA["effects"]
+
+
 def _error(node: Any, key: Any, message: str, hint: str, fallback: Any = None) -> InputError:
     """An InputError at node[key] (file and line when the node knows them, else the fallback)."""
     for obj, k in ((node, key), (fallback, None)):
@@ -231,35 +409,19 @@ def _error(node: Any, key: Any, message: str, hint: str, fallback: Any = None) -
     return InputError(message, hint=hint)
 
 
-def _check_keys(node: dict, schema: Mapping[str, Any], what: str) -> None:
-    for key in node:
-        if key not in schema:
-            close = difflib.get_close_matches(str(key), [str(k) for k in schema], n=1)
-            hint = (f"did you mean {close[0]!r}? " if close else "") + f"known keys: {', '.join(schema)}"
-            raise _error(node, key, f"unknown key {key!r} in {what}", f"{hint}; {DOC_HINT}")
-
-
-def _check_mapping(node: Any, schema: Mapping[str, Any], what: str, parent: Any = None,
-                   key: Any = None) -> None:
-    """Unknown keys and values of the wrong kind are InputErrors naming file and line."""
+def _check_mapping(node: Any, cls: type[Settings], what: str, parent: Any = None, key: Any = None) -> None:
+    """``node`` read as the settings ``cls``: unknown keys and values of the wrong kind are
+    InputErrors naming file and line."""
     if node is None:
         return
     if not isinstance(node, dict):
         raise _error(parent, key, f"{what} must be a mapping (key: value lines), got {node!r}", DOC_HINT)
-    _check_keys(node, schema, what)
-    for k, v in node.items():
-        sub = schema[k]
-        if isinstance(sub, dict):
-            _check_mapping(v, sub, f"{what}.{k}", node, k)
-        else:
-            ok, must = _LEAF[sub]
-            if not ok(v):
-                raise _error(node, k, f"{what}.{k} must be {must}, got {v!r}", DOC_HINT)
+    parse(cls, node if isinstance(node, LocDict) else LocDict(node), what)
 
 
 def check_profile(profile: Any, what: str) -> None:
-    """Check a profile (or an overrides mapping) against PROFILE_SCHEMA."""
-    _check_mapping(profile, PROFILE_SCHEMA, what)
+    """Check a profile (or an overrides mapping): :class:`ImuProfile`."""
+    _check_mapping(profile, ImuProfile, what)
 
 
 def check_merged(profile: Mapping[str, Any], overrides: Any, base: Any, what: str) -> None:

@@ -1,5 +1,5 @@
 """Base of the emulated streaming IMUs other than Xsens (VectorNav, declarative frame): a pty, a
-measurement state, frames on the world's sample grid stepped by the hardware loop, and byte
+measurement state, frames on the world's sample grid stepped by the IMU stream thread, and byte
 errors injected as a renewal process over the byte stream (as :class:`HwXsensServer`), with
 ``frames_hit`` counting the frames that received at least one error.
 

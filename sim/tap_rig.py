@@ -23,21 +23,18 @@ Times in s (run timescale), accelerations in m/s^2.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from rigctl import schema as S
 from rigctl.devices import Clock, Pulses
-from rigctl.yamlio import LocDict
+from rigctl.settings import number, yaml_keys
 
 from . import taps as T
 
-AXES = {"x": 0, "y": 1, "z": 2}
-#: Options of ``pulses.sim`` besides the TapParams fields.
-EXTRA_KEYS = ("margin_s", "slot_jitter", "seed")
+AXES = T.AXES
 
 #: Truth drawn during the run, written by the recorder as /truth/<table>/<column>
 #: (column: (per-row shape, dtype, units)); docs/data-format.md.
@@ -62,41 +59,21 @@ TRUTH_TABLES: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
 }
 
 
-def tap_params(o: LocDict) -> tuple[T.TapParams, dict[str, float]]:
-    """TapParams and scheduling options from the ``pulses.sim`` mapping (SI units in key names)."""
-    names = [f.name for f in fields(T.TapParams) if f.name not in ("range_m_s2", "bounce_spacing_s")]
-    S.check_keys(o, (*names, "bounce_spacing_s", *EXTRA_KEYS), "'pulses.sim'")
-    p = T.TapParams()
-    for name in names:
-        if name not in o:
-            continue
-        if name == "axis":
-            p.axis = AXES[S.get_str(o, "axis", choices=tuple(AXES))]
-        elif name == "response":
-            p.response = S.get_str(o, "response", choices=("none", "second_order"))
-        elif name in ("bounce_max_count", "missed_count", "spurious_pulses", "spurious_spikes"):
-            setattr(p, name, int(S.get_number(o, name, minimum=0, maximum=10000, integer=True)))
-        elif name in ("missed_probability", "bounce_probability"):
-            setattr(p, name, float(S.get_number(o, name, minimum=0, maximum=1)))
-        elif name == "sign":
-            p.sign = float(S.get_number(o, name))
-            if p.sign not in (-1.0, 1.0):
-                raise S.error(o, name, f"'sign' must be -1 or +1, got {o[name]!r}",
-                              "it is the direction of the blow along 'axis'; the size of the "
-                              "blow is 'amplitude_median_m_s2'")
-        elif name in ("latency_s",):
-            setattr(p, name, float(S.get_number(o, name)))
-        else:
-            setattr(p, name, float(S.get_number(o, name, minimum=0)))
-    if "bounce_spacing_s" in o:
-        lo, hi = S.number_list(o, "bounce_spacing_s", length=2)
-        p.bounce_spacing_s = (float(lo), float(hi))
-    if p.response == "second_order" and not 0.0 < p.damping < 1.0:
-        raise S.error(o, "damping", "'damping' must be in (0, 1) for response second_order")
-    extra = {"margin_s": float(S.get_number(o, "margin_s", 1.0, minimum=0)),
-             "slot_jitter": float(S.get_number(o, "slot_jitter", 0.3, minimum=0, maximum=0.45)),
-             "seed": int(S.get_number(o, "seed", 0, minimum=0, integer=True))}
-    return p, extra
+@dataclass(frozen=True, kw_only=True)
+class TapRigSettings(T.TapParams):
+    """``pulses.sim``: the hammer, response and receiver (:class:`rigctl.sim.taps.TapParams`)
+    and how the emulated operator schedules the taps of a ``taps`` step."""
+
+    margin_s: float = number(1.0, minimum=0)
+    slot_jitter: float = number(0.3, minimum=0, maximum=0.45)
+    seed: int = number(0, minimum=0, integer=True)
+
+    def tap_params(self) -> T.TapParams:
+        return T.TapParams(**{f.name: getattr(self, f.name) for f in fields(T.TapParams)})
+
+
+#: Options of ``pulses.sim`` besides the TapParams fields.
+EXTRA_KEYS = tuple(k for k in yaml_keys(TapRigSettings) if k not in yaml_keys(T.TapParams))
 
 
 class TapField:

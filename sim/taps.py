@@ -34,10 +34,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 
+from rigctl import schema as S
+from rigctl.settings import Settings, internal, number, numbers, setting, text
 from rigctl.solvers.tap_detect import SecondOrderResponse
+from rigctl.yamlio import LocDict
 
 #: Shape of a tap for the "none" response, in unit-peak amplitude per sample after the tap.
 RINGING = np.array([1.0, -0.45, 0.2, -0.08])
@@ -73,31 +77,56 @@ class ClockParams:
         return c
 
 
-@dataclass
-class TapParams:
-    """Hammer, sensor-response and receiver parameters (SI units)."""
+AXES = {"x": 0, "y": 1, "z": 2}
 
-    axis: int = 2
-    amplitude_median_m_s2: float = 40.0
-    amplitude_log_sigma: float = 0.4
-    sign: float = 1.0
-    cross_axis_fraction: float = 0.05
-    response: str = "none"  # "none" | "second_order"
-    natural_freq_hz: float = 30.0
-    damping: float = 0.7
-    response_length_s: float = 0.25
-    range_m_s2: float | None = None  # saturation level; None = no clipping
-    latency_s: float = 0.0
-    jitter_s: float = 0.0
-    bounce_probability: float = 0.0
-    bounce_max_count: int = 3
-    bounce_spacing_s: tuple[float, float] = (0.5e-3, 4e-3)
-    missed_count: int = 0  # exact number of taps whose pulse is missed
-    missed_probability: float = 0.0
-    spurious_pulses: int = 0  # edges with no tap
-    spurious_spikes: int = 0  # IMU spikes with no edge
-    spurious_spike_scale: float = 0.7  # spike amplitude relative to the tap median
-    timeguard_s: float = 0.4
+
+def _axis(d: LocDict, key: str, default: int = 2) -> int:
+    return AXES[S.get_str(d, key, choices=tuple(AXES))]
+
+
+def _sign(d: LocDict, key: str, default: float = 1.0) -> float:
+    v = float(S.get_number(d, key))
+    if v not in (-1.0, 1.0):
+        raise S.error(d, key, f"'sign' must be -1 or +1, got {d[key]!r}",
+                      "it is the direction of the blow along 'axis'; the size of the "
+                      "blow is 'amplitude_median_m_s2'")
+    return v
+
+
+def _count(default: int) -> Any:
+    return number(default, minimum=0, maximum=10000, integer=True)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TapParams(Settings):
+    """Hammer, sensor-response and receiver parameters (SI units); as settings: the keys of a
+    rig config's ``pulses.sim`` (:class:`rigctl.sim.tap_rig.TapRigSettings`, docs/emulator.md)."""
+
+    axis: int = setting(2, read=_axis)  # config: x | y | z
+    amplitude_median_m_s2: float = number(40.0, minimum=0)
+    amplitude_log_sigma: float = number(0.4, minimum=0)
+    sign: float = setting(1.0, read=_sign)
+    cross_axis_fraction: float = number(0.05, minimum=0)
+    response: str = text("none", choices=("none", "second_order"))
+    natural_freq_hz: float = number(30.0, minimum=0)
+    damping: float = number(0.7, minimum=0)
+    response_length_s: float = number(0.25, minimum=0)
+    range_m_s2: float | None = internal(None)  # saturation level; None = no clipping
+    latency_s: float = number(0.0)
+    jitter_s: float = number(0.0, minimum=0)
+    bounce_probability: float = number(0.0, minimum=0, maximum=1)
+    bounce_max_count: int = _count(3)
+    bounce_spacing_s: tuple[float, float] = numbers((0.5e-3, 4e-3), length=2)
+    missed_count: int = _count(0)  # exact number of taps whose pulse is missed
+    missed_probability: float = number(0.0, minimum=0, maximum=1)
+    spurious_pulses: int = _count(0)  # edges with no tap
+    spurious_spikes: int = _count(0)  # IMU spikes with no edge
+    spurious_spike_scale: float = number(0.7, minimum=0)  # spike amplitude relative to the tap median
+    timeguard_s: float = number(0.4, minimum=0)
+
+    def check(self, d: LocDict) -> None:
+        if self.response == "second_order" and not 0.0 < self.damping < 1.0:
+            raise S.error(d, "damping", "'damping' must be in (0, 1) for response second_order")
 
 
 @dataclass

@@ -30,69 +30,97 @@ Config (units in the key names; every key optional)::
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from rigctl import schema as S
-from rigctl.yamlio import LocDict
+from rigctl.settings import Settings, matrix3, number, numbers, subsection, yaml_keys
 
 G0 = 9.80665
 MG = 1e-3 * G0
 DEG_H = math.pi / 180.0 / 3600.0
-THERMAL_KEYS = ("reference_c", "accel_bias_mg_per_K", "accel_bias_mg_per_K2", "accel_scale_ppm_per_K",
-                "accel_scale_ppm_per_K2", "accel_misalignment_urad_per_K", "gyro_bias_deg_h_per_K",
-                "gyro_bias_deg_h_per_K2", "gyro_scale_ppm_per_K", "gyro_scale_ppm_per_K2",
-                "gyro_misalignment_urad_per_K", "hysteresis", "rate", "temperature_noise_c")
 SENSORS = {"accel": ("accel_bias_mg", MG), "gyro": ("gyro_bias_deg_h", DEG_H)}
+ZERO3 = (0.0, 0.0, 0.0)
 
 
-def _vec(o: LocDict, key: str, unit: float) -> np.ndarray:
-    return np.asarray(S.number_list(o, key, [0.0] * 3, length=3), float) * unit
+@dataclass(frozen=True, kw_only=True)
+class HysteresisSettings(Settings):
+    """``imu.sim.thermal.hysteresis``: width of the play operator and the bias offsets."""
+
+    width_K: float = number(2.0, minimum=0.01, maximum=50)
+    accel_bias_mg: tuple[float, ...] = numbers(ZERO3)
+    gyro_bias_deg_h: tuple[float, ...] = numbers(ZERO3)
 
 
-def _offdiag(o: LocDict, key: str) -> np.ndarray:
+@dataclass(frozen=True, kw_only=True)
+class RateSettings(Settings):
+    """``imu.sim.thermal.rate``: bias per temperature rate."""
+
+    accel_bias_mg_per_K_per_min: tuple[float, ...] = numbers(ZERO3)
+    gyro_bias_deg_h_per_K_per_min: tuple[float, ...] = numbers(ZERO3)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ThermalSettings(Settings):
+    """``imu.sim.thermal`` (module docstring; units in the key names, every key optional)."""
+
+    reference_c: float = number(25.0, minimum=-100, maximum=200)
+    accel_bias_mg_per_K: tuple[float, ...] = numbers(ZERO3)
+    accel_bias_mg_per_K2: tuple[float, ...] = numbers(ZERO3)
+    accel_scale_ppm_per_K: tuple[float, ...] = numbers(ZERO3)
+    accel_scale_ppm_per_K2: tuple[float, ...] = numbers(ZERO3)
+    accel_misalignment_urad_per_K: tuple[tuple[float, ...], ...] | None = matrix3(None)
+    gyro_bias_deg_h_per_K: tuple[float, ...] = numbers(ZERO3)
+    gyro_bias_deg_h_per_K2: tuple[float, ...] = numbers(ZERO3)
+    gyro_scale_ppm_per_K: tuple[float, ...] = numbers(ZERO3)
+    gyro_scale_ppm_per_K2: tuple[float, ...] = numbers(ZERO3)
+    gyro_misalignment_urad_per_K: tuple[tuple[float, ...], ...] | None = matrix3(None)
+    hysteresis: HysteresisSettings = subsection(HysteresisSettings, "'imu.sim.thermal.hysteresis'")
+    rate: RateSettings = subsection(RateSettings, "'imu.sim.thermal.rate'")
+    temperature_noise_c: float = number(0.0, minimum=0, maximum=5)
+
+
+THERMAL_KEYS = tuple(yaml_keys(ThermalSettings))
+
+
+def _vec(v: tuple[float, ...], unit: float) -> np.ndarray:
+    return np.asarray(v, float) * unit
+
+
+def _offdiag(rows: tuple[tuple[float, ...], ...] | None) -> np.ndarray:
     m = np.zeros((3, 3))
-    if key in o:
-        rows = S.get_list(o, key, length=3)
-        for i, row in enumerate(rows):
-            if not (isinstance(row, list) and len(row) == 3):
-                raise S.error(o, key, f"{key!r} must be a 3x3 list of rows")
-            for j, x in enumerate(row):
-                if i != j:
-                    m[i, j] = float(x) * 1e-6
+    for i, row in enumerate(rows or ()):
+        for j, x in enumerate(row):
+            if i != j:
+                m[i, j] = float(x) * 1e-6
     return m
 
 
 class ThermalErrors:
     """The thermal part of the emulated IMU's errors (module docstring), SI inside."""
 
-    def __init__(self, o: LocDict | None) -> None:
-        o = o or LocDict()
-        S.check_keys(o, THERMAL_KEYS, "'imu.sim.thermal'")
-        self.reference_c = float(S.get_number(o, "reference_c", 25.0, minimum=-100, maximum=200))
-        self.temperature_noise_c = float(S.get_number(o, "temperature_noise_c", 0.0, minimum=0, maximum=5))
+    def __init__(self, o: ThermalSettings | None = None) -> None:
+        o = o or ThermalSettings()
+        self.reference_c = float(o.reference_c)
+        self.temperature_noise_c = float(o.temperature_noise_c)
         #: sensor -> list over power j = 1, 2 of (bias (3,), M (3, 3))
         self.poly: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         for sensor, (bias_key, unit) in SENSORS.items():
             terms = []
             for j, suffix in ((1, "per_K"), (2, "per_K2")):
-                b = _vec(o, f"{bias_key}_{suffix}", unit)
-                M = np.diag(_vec(o, f"{sensor}_scale_ppm_{suffix}", 1e-6))
+                b = _vec(getattr(o, f"{bias_key}_{suffix}"), unit)
+                M = np.diag(_vec(getattr(o, f"{sensor}_scale_ppm_{suffix}"), 1e-6))
                 if j == 1:
-                    M = M + _offdiag(o, f"{sensor}_misalignment_urad_per_K")
+                    M = M + _offdiag(getattr(o, f"{sensor}_misalignment_urad_per_K"))
                 terms.append((b, M))
             self.poly[sensor] = terms
-        h = o.get("hysteresis") or LocDict()
-        h = S.require_mapping(h, "'thermal.hysteresis'", o, "hysteresis") if "hysteresis" in o else h
-        S.check_keys(h, ("width_K", "accel_bias_mg", "gyro_bias_deg_h"), "'thermal.hysteresis'")
-        self.hyst_width = float(S.get_number(h, "width_K", 2.0, minimum=0.01, maximum=50))
-        self.hyst = {"accel": _vec(h, "accel_bias_mg", MG), "gyro": _vec(h, "gyro_bias_deg_h", DEG_H)}
-        r = o.get("rate") or LocDict()
-        r = S.require_mapping(r, "'thermal.rate'", o, "rate") if "rate" in o else r
-        S.check_keys(r, ("accel_bias_mg_per_K_per_min", "gyro_bias_deg_h_per_K_per_min"), "'thermal.rate'")
-        self.rate = {"accel": _vec(r, "accel_bias_mg_per_K_per_min", MG * 60.0),
-                     "gyro": _vec(r, "gyro_bias_deg_h_per_K_per_min", DEG_H * 60.0)}
+        h = o.hysteresis
+        self.hyst_width = float(h.width_K)
+        self.hyst = {"accel": _vec(h.accel_bias_mg, MG), "gyro": _vec(h.gyro_bias_deg_h, DEG_H)}
+        r = o.rate
+        self.rate = {"accel": _vec(r.accel_bias_mg_per_K_per_min, MG * 60.0),
+                     "gyro": _vec(r.gyro_bias_deg_h_per_K_per_min, DEG_H * 60.0)}
 
     @property
     def active(self) -> bool:

@@ -52,7 +52,7 @@ class VectorNavServer(StreamTwin):
             line = line.strip()
             if line.startswith(b"$"):
                 # the reply goes out before the first frame of an output it switched on, as from
-                # a sensor: the hardware loop encodes frames under the same lock
+                # a sensor: the IMU stream thread encodes frames under the same lock
                 with self._lock:
                     write(self._handle(line))
         if len(self._buf) > 4096:

@@ -7,75 +7,74 @@ every IMU sample whose true time has passed, in vectorised blocks. With a virtua
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from rigctl import schema as S
-from rigctl.config import RigConfig
+from rigctl.config.config import RigConfig
 from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, TableState
 from rigctl.frames import body_references, gimbal_rate_body
+from rigctl.settings import Settings, per_axis, section, yaml_keys
 from rigctl.yamlio import LocDict
 
 from .faults import FaultInjector
 from .effects import table_body_references
 from .imu import DeclaredImuModel, build_imu_model
 from .error_model import SampleGrid
-from .tap_rig import TRUTH_TABLES, SimPulses, SimTapOperator, tap_params
+from .tap_rig import TRUTH_TABLES, SimPulses, SimTapOperator, TapRigSettings
 from .table import OFF, POSITION, RATE, ServoParams, SimTurntable
 
 #: Largest block generated in one call, samples (bounds memory on long sleeps).
 MAX_BLOCK = 1 << 18
 
 
+@dataclass(frozen=True, kw_only=True)
+class TableSimSettings(Settings):
+    """``table.sim``: the emulated table's servos, per axis (a number for all axes, or
+    [outer, middle, inner]); docs/emulator.md section 6."""
+
+    natural_hz: tuple[float, ...] = per_axis((4.0, 5.0, 6.0), minimum=0.1)
+    damping: tuple[float, ...] = per_axis((0.6,) * 3, minimum=0.05, maximum=2)
+    in_position_window_deg: tuple[float, ...] = per_axis((0.002,) * 3, minimum=0)
+    at_rate_window_dps: tuple[float, ...] = per_axis((0.01,) * 3, minimum=0)
+    dwell_s: tuple[float, ...] = per_axis((0.2,) * 3, minimum=0)
+    encoder_lsb_deg: tuple[float, ...] = per_axis((1e-5,) * 3, minimum=0)
+    encoder_noise_deg: tuple[float, ...] = per_axis((0.0,) * 3, minimum=0)
+    rate_ripple_per_rev: tuple[float, ...] = per_axis((0.0,) * 3, minimum=0, maximum=0.1)
+    rate_ripple_per_rev_phase_deg: tuple[float, ...] = per_axis((0.0,) * 3)
+    rate_ripple_fraction: tuple[float, ...] = per_axis((0.0,) * 3, minimum=0, maximum=0.1)
+    rate_ripple_hz: tuple[float, ...] = per_axis((0.0,) * 3, minimum=0)
+    rate_ripple_phase_deg: tuple[float, ...] = per_axis((0.0,) * 3)
+    wobble_rad: tuple[float, ...] = per_axis((0.0,) * 3, minimum=0, maximum=0.01)
+    wobble_harmonic: tuple[int, ...] = per_axis((2,) * 3, minimum=1, maximum=100, integer=True)
+    wobble_phase_deg: tuple[float, ...] = per_axis((0.0,) * 3)
+    jerk_dps3: tuple[float, ...] = per_axis((math.inf,) * 3, minimum=1e-3)
+
+    def servos(self) -> list[ServoParams]:
+        """The three axes' servo parameters, SI (rad, rad/s)."""
+        r = math.radians
+        return [ServoParams(natural_hz=self.natural_hz[i], damping=self.damping[i],
+                            in_position_window=r(self.in_position_window_deg[i]),
+                            at_rate_window=r(self.at_rate_window_dps[i]), dwell_s=self.dwell_s[i],
+                            encoder_lsb=r(self.encoder_lsb_deg[i]), encoder_noise=r(self.encoder_noise_deg[i]),
+                            ripple_per_rev=self.rate_ripple_per_rev[i],
+                            ripple_per_rev_phase=r(self.rate_ripple_per_rev_phase_deg[i]),
+                            ripple_fraction=self.rate_ripple_fraction[i], ripple_hz=self.rate_ripple_hz[i],
+                            ripple_phase=r(self.rate_ripple_phase_deg[i]), wobble=self.wobble_rad[i],
+                            wobble_harmonic=int(self.wobble_harmonic[i]),
+                            wobble_phase=r(self.wobble_phase_deg[i]), jerk_max=r(self.jerk_dps3[i]))
+                for i in range(3)]
+
+
 #: Per-axis servo keys of ``table.sim`` (a number for all axes, or [outer, middle, inner]).
-SERVO_KEYS = ("natural_hz", "damping", "in_position_window_deg", "at_rate_window_dps", "dwell_s",
-              "encoder_lsb_deg", "encoder_noise_deg", "rate_ripple_per_rev", "rate_ripple_per_rev_phase_deg",
-              "rate_ripple_fraction", "rate_ripple_hz", "rate_ripple_phase_deg", "wobble_rad",
-              "wobble_harmonic", "wobble_phase_deg", "jerk_dps3")
-
-
-def _per_axis(o: LocDict, key: str, default: float, **kw: Any) -> list[float]:
-    """Three values from a number or a 3-list (outer, middle, inner)."""
-    if isinstance(o.get(key), list):
-        vals = S.number_list(o, key, length=3)
-        for v in vals:
-            lo, hi = kw.get("minimum"), kw.get("maximum")
-            if (lo is not None and v < lo) or (hi is not None and v > hi):
-                raise S.error(o, key, f"{key!r} entries must be in [{lo}, {hi}]")
-        return [float(v) for v in vals]
-    return [float(S.get_number(o, key, default, **kw))] * 3
-
-
-def _servos(o: LocDict) -> list[ServoParams]:
-    S.check_keys(o, SERVO_KEYS, "'table.sim'")
-    v = {k: _per_axis(o, k, d, **kw) for k, d, kw in [
-        ("damping", 0.6, {"minimum": 0.05, "maximum": 2}),
-        ("in_position_window_deg", 0.002, {"minimum": 0}), ("at_rate_window_dps", 0.01, {"minimum": 0}),
-        ("dwell_s", 0.2, {"minimum": 0}), ("encoder_lsb_deg", 1e-5, {"minimum": 0}),
-        ("encoder_noise_deg", 0.0, {"minimum": 0}), ("rate_ripple_per_rev", 0.0, {"minimum": 0, "maximum": 0.1}),
-        ("rate_ripple_per_rev_phase_deg", 0.0, {}), ("rate_ripple_fraction", 0.0, {"minimum": 0, "maximum": 0.1}),
-        ("rate_ripple_hz", 0.0, {"minimum": 0}), ("rate_ripple_phase_deg", 0.0, {}),
-        ("wobble_rad", 0.0, {"minimum": 0, "maximum": 0.01}),
-        ("wobble_harmonic", 2, {"minimum": 1, "maximum": 100, "integer": True}),
-        ("wobble_phase_deg", 0.0, {}), ("jerk_dps3", math.inf, {"minimum": 1e-3})]}
-    v["natural_hz"] = _per_axis(o, "natural_hz", 0.0, minimum=0.1) if "natural_hz" in o else [4.0, 5.0, 6.0]
-    r = math.radians
-    return [ServoParams(natural_hz=v["natural_hz"][i], damping=v["damping"][i],
-                        in_position_window=r(v["in_position_window_deg"][i]),
-                        at_rate_window=r(v["at_rate_window_dps"][i]), dwell_s=v["dwell_s"][i],
-                        encoder_lsb=r(v["encoder_lsb_deg"][i]), encoder_noise=r(v["encoder_noise_deg"][i]),
-                        ripple_per_rev=v["rate_ripple_per_rev"][i],
-                        ripple_per_rev_phase=r(v["rate_ripple_per_rev_phase_deg"][i]),
-                        ripple_fraction=v["rate_ripple_fraction"][i], ripple_hz=v["rate_ripple_hz"][i],
-                        ripple_phase=r(v["rate_ripple_phase_deg"][i]), wobble=v["wobble_rad"][i],
-                        wobble_harmonic=int(v["wobble_harmonic"][i]), wobble_phase=r(v["wobble_phase_deg"][i]),
-                        jerk_max=r(v["jerk_dps3"][i]))
-            for i in range(3)]
+SERVO_KEYS = tuple(yaml_keys(TableSimSettings))
 
 
 def _canonical(v: Any) -> Any:
@@ -129,10 +128,9 @@ class SimWorld:
         # the table's grid step is the IMU's internal (pre-decimation) sample period
         self.decimation = int(getattr(self.imu_model, "decimation", 1))
         self.h = self.dt / self.decimation
-        t_opts = cfg.table.options.get("sim") or LocDict()
-        t_opts = S.require_mapping(t_opts, "'table.sim'", cfg.table.options, "sim")
+        servos = section(cfg.table.options, "sim", TableSimSettings, "'table.sim'").servos()
         continuous = [bool(np.isinf(cfg.limits.angle_min[i])) for i in range(3)]
-        self.table = SimTurntable(_servos(t_opts), cfg.limits.rate, cfg.limits.accel, continuous,
+        self.table = SimTurntable(servos, cfg.limits.rate, cfg.limits.accel, continuous,
                                   self.h, rng)
         self.t = 0.0  # run time the world has been advanced to (a grid time when within rounding), s
         self.k = 0  # counter of the next IMU output sample
@@ -151,7 +149,7 @@ class SimWorld:
                             if c_opts is not None else None)
         if c_opts is None or "initial_c" not in c_opts:
             t0 = float(getattr(self.imu_model, "temperature_c", cp.initial_c))
-            cp = type(cp)(**{**cp.__dict__, "initial_c": t0})
+            cp = dataclasses.replace(cp, initial_c=t0)
         self.chamber = ChamberPhysics(cp)
         self.chamber_drives_imu = isinstance(self.imu_model, DeclaredImuModel)
         th = getattr(self.imu_model, "thermal", None)
@@ -159,11 +157,9 @@ class SimWorld:
         self._track_t = -1.0
         self.operator: SimTapOperator | None = None  # emulated tap-hammer operator (pulses: sim)
         if cfg.pulses.driver == "sim":
-            p_opts = cfg.pulses.options.get("sim") or LocDict()
-            p_opts = S.require_mapping(p_opts, "'pulses.sim'", cfg.pulses.options, "sim")
-            params, extra = tap_params(p_opts)
-            self.operator = SimTapOperator(params, extra["margin_s"], extra["slot_jitter"],
-                                           extra["seed"] or cfg.seed)
+            taps = section(cfg.pulses.options, "sim", TapRigSettings, "'pulses.sim'")
+            self.operator = SimTapOperator(taps.tap_params(), taps.margin_s, taps.slot_jitter,
+                                           taps.seed or cfg.seed)
 
     def _wobble(self, ang: NDArray, rates: NDArray, f_b: NDArray,
                 w_b: NDArray) -> tuple[NDArray, NDArray]:
@@ -333,7 +329,7 @@ class SimWorld:
 
 class RunTruth(dict):
     """The truth dict plus the tables of truth drawn during the run, for the recorder
-    (rigctl.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
+    (rigctl.recording.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
 
     def __init__(self, params: dict[str, Any], operator: SimTapOperator) -> None:
         super().__init__(params)
@@ -420,7 +416,7 @@ class SimImuDevice:
 
 
 class SimChamberDevice:
-    """Chamber protocol (rigctl.chamber) over the in-process world's chamber."""
+    """Chamber protocol (rigctl.config.chamber) over the in-process world's chamber."""
 
     def __init__(self, world: SimWorld, safe_c: float = 25.0) -> None:
         self.world = world
@@ -446,7 +442,7 @@ class SimChamberDevice:
             raise DeviceFault(f"chamber: {exc}") from None
 
     def read(self) -> Any:
-        from rigctl.chamber import ChamberState
+        from rigctl.config.chamber import ChamberState
         t = self._now()
         s = self.world.chamber.state(t)
         return ChamberState(time=t, air_c=s["air_c"], product_c=s["product_c"], setpoint_c=s["setpoint_c"],

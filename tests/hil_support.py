@@ -12,9 +12,9 @@ import h5py
 import numpy as np
 import yaml
 
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.runner import run_procedure
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 

@@ -1,9 +1,9 @@
 """A minimal valid recording written by hand with h5py, from the recorder's own constants.
 
 For tests that need a recording of given samples without running the engine: the root
-attributes (:data:`rigctl.recorder.FORMAT_NAME`, :data:`~rigctl.recorder.SCHEMA_VERSION`, the
+attributes (:data:`rigctl.recording.recorder.FORMAT_NAME`, :data:`~rigctl.recording.recorder.SCHEMA_VERSION`, the
 rigctl version), ``/run/status``, ``/imu`` with its sample rate, and optional ``/pulses`` and
-``/truth``, each dataset with the units :data:`rigctl.recorder.LAYOUT` gives it. The data keep
+``/truth``, each dataset with the units :data:`rigctl.recording.recorder.LAYOUT` gives it. The data keep
 the dtype they are given (a test may store float32 on purpose).
 """
 from __future__ import annotations
@@ -14,7 +14,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rigctl import __version__, recorder
+from rigctl import __version__
+from rigctl.recording import recorder
 
 
 def _group(f: h5py.File, name: str, columns: dict[str, Any], chunk_rows: int | None = None) -> h5py.Group:

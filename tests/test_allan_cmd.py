@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import recording_helpers
-from rigctl import allan_cmd, cli
+from rigctl.commands import allan_cmd
+from rigctl import cli
 from rigctl.solvers.noise_coefficients import as_coefficients, in_field_units
 
 
@@ -67,7 +68,7 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
     k = summary["axes"]["gx"]["fit"]["terms"]["K"]
     assert not fu(summary["axes"]["gx"]["fit"], "K").resolved and k["capture_h_for_25pct"] > 200_000 / 100.0 / 3600
     assert "rate_random_walk: <" in out and "+-25 % would need at least" in out
-    from rigctl.report_html import _need_cell
+    from rigctl.report.report_html import _need_cell
     assert _need_cell(k, False).startswith(">= ") and _need_cell(summary["axes"]["gx"]["fit"]["terms"]["N"], True) == ""
     # running again replaces the results group
     args = _args([str(rec), "--axes", "gz", "--taus", "octave"])

@@ -16,7 +16,7 @@ import pytest
 from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.errors import InputError
-from rigctl.recording_reader import RowReader
+from rigctl.recording.recording_reader import RowReader
 from rigctl.solvers import allan_kernels as K
 
 

@@ -137,7 +137,7 @@ def test_plot_draws_the_tones(tmp_path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from rigctl.report_plots import draw_allan_axis
+    from rigctl.report.report_plots import draw_allan_axis
 
     n = 360_000
     rng = np.random.default_rng(8)

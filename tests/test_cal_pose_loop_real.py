@@ -177,7 +177,7 @@ def test_xsens_report_shows_the_loop_and_three_columns(xsens, tmp_path):
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
     from test_report_sections import Page
-    from rigctl import report_build
+    from rigctl.report import report_build
 
     rec, out, cal = xsens
     page = Page(report_build.build_report(rec, tmp_path).read_text())

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rigctl.sim.noise import NoiseGenerator
-from rigctl.solvers.noise_coefficients import triad
+from rigctl.solvers.noise_coefficients import NoiseCoefficients, triad
 from rigctl.solvers import segment_cov as sc
 from rigctl.solvers.calibration_result import fit_linear
 
@@ -126,7 +126,7 @@ def test_gls_equals_closed_form_and_ignores_a_common_constant():
     rng = np.random.default_rng(3)
     K = len(A)
     X = np.column_stack([np.ones(K), rng.normal(size=K), rng.normal(size=K)])  # bias + 2 regressors
-    C = sc.mean_cov(A, B, N=0.3, B=0.2, K=0.01)
+    C = NoiseCoefficients(N=0.3, B=0.2, K=0.01).cov(A, B)
     y = X @ [1.0, 2.0, -1.0] + np.linalg.cholesky(C) @ rng.normal(size=K)
     res = fit_linear(X, y, np.sqrt(np.diag(C)), ["b", "c", "d"], cov=C, rescale_if_poor=False)
     Ci = np.linalg.inv(C)

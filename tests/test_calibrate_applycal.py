@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.applycal_cmd import invert_accel, invert_gyro
+from rigctl.solvers.sensor_model import invert_gyro, invert_quadratic
 
 
 def test_newton_inverts_the_accelerometer_model_with_quadratic_terms():
@@ -13,7 +13,7 @@ def test_newton_inverts_the_accelerometer_model_with_quadratic_terms():
     M = np.eye(3) + rng.normal(0, 3e-3, (3, 3))
     k2 = rng.normal(0, 3e-4, 3)  # 3 mg/g^2: far above real parts, to exercise the iteration
     A = b + a @ M.T + k2 * a * a
-    back = invert_accel(A, b, M, k2)
+    back = invert_quadratic(A, b, M, k2)
     np.testing.assert_allclose(back, a, atol=1e-10)
     linear = (A - b) @ np.linalg.inv(M).T
     assert np.max(np.abs(linear - a)) > 1e-3  # the quadratic term matters, Newton removes it

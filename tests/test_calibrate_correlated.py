@@ -59,7 +59,7 @@ def runs(tmp_path_factory):
 
 
 def test_independent_means_are_the_defect(runs):
-    from rigctl.segment_builder import build_segment_table
+    from rigctl.recording.segment_builder import build_segment_table
     from rigctl.solvers.closed_loop import closed_loop
 
     for rec, _, _ in runs:

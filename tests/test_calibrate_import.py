@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from helpers import run_rigctl
-from rigctl.applycal_cmd import invert_accel
+from rigctl.solvers.sensor_model import invert_quadratic
 
 ACC_LSB = 9.80665 / 2048.0
 GYR_LSB = math.radians(1.0 / 16.4)
@@ -107,7 +107,7 @@ def test_ferraris_session_with_sections_file(ref_data, tmp_path):
         acc = f["imu/specific_force"][()]
         means = np.array([acc[a:z].mean(axis=0) for a, z in zip(f["segments/first_sample"][:6],
                                                                   f["segments/last_sample"][:6])])
-    a = invert_accel(means, np.array(m["bias_m_s2"]), np.array(m["M"]), np.array(m["k2_s2_per_m"]))
+    a = invert_quadratic(means, np.array(m["bias_m_s2"]), np.array(m["M"]), np.array(m["k2_s2_per_m"]))
     ref = 9.80665 * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
     rms = np.sqrt(np.mean(np.array(cal["results"]["faces_accel"]["residuals"]) ** 2))
     assert np.max(np.abs(a - ref)) <= 3 * rms and rms < 0.05  # m/s^2

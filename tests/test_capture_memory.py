@@ -16,11 +16,11 @@ MEMORY_SCRIPT = r"""
 import io, json, sys, resource
 from contextlib import contextmanager
 from pathlib import Path
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
-from rigctl.runner import RunOptions, run_procedure
-from rigctl.suspenders import SuspenderSettings
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import RunOptions, run_procedure
+from rigctl.config.suspenders import SuspenderSettings
 
 def rss_kib():
     for line in open("/proc/self/status"):

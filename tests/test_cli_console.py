@@ -225,7 +225,7 @@ def test_a_failure_during_the_run_ends_failed_with_one_line(tmp_path):
     script = tmp_path / "failing.py"
     script.write_text(
         "import sys\n"
-        "from rigctl import recorder, cli\n"
+        "from rigctl.recording import recorder; from rigctl import cli\n"
         "orig = recorder.Recorder.append_imu\n"
         "calls = [0]\n"
         "def broken(self, block):\n"

@@ -32,11 +32,11 @@ import numpy as np
 from helpers import ROOT, rigctl_cmd
 
 from rigctl import cli
-from rigctl.checkpoint import HDF5_SIGNATURE, lookup3
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.recorder import LAYOUT
-from rigctl.runner import run_procedure
+from rigctl.recording.checkpoint import HDF5_SIGNATURE, lookup3
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.recording.recorder import LAYOUT
+from rigctl.run.runner import run_procedure
 
 #: wall-clock limit of one in-process case, s
 CASE_LIMIT_S = 30.0

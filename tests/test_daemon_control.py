@@ -18,10 +18,10 @@ from pathlib import Path
 import h5py
 import pytest
 
-from rigctl import control
-from rigctl.daemon import Daemon
-from rigctl.runner import RunOptions
-from rigctl.suspenders import SuspenderSettings
+from rigctl.service import control
+from rigctl.service.daemon import Daemon
+from rigctl.run.runner import RunOptions
+from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import derived_config, rigctl_cmd
 
@@ -235,3 +235,37 @@ def test_submit_pause_resume_complete_then_abort(daemon, tmp_path):
         assert f["run/status"][0] == b"interrupted"
         last = int(f["table/status"][-1])
         assert all(not (last >> (16 * a)) & 0x2 for a in range(3))  # servo off
+
+
+def test_a_handler_error_keeps_its_exit_code_and_a_bug_its_traceback(tmp_path):
+    """rigctl.errors through the socket: a refusal raised by the handler answers with its own
+    line and exit code (2 for InputError, 1 for RunFailure); any other exception is a bug: the
+    reply says so with exit code 1 and the daemon log gets the traceback."""
+    from rigctl.errors import InputError, RunFailure
+
+    def handler(cmd, args):
+        if cmd == "status":
+            raise InputError("no such thing", "p.yaml", 3)
+        if cmd == "history":
+            raise RunFailure("the disk is full")
+        return {"ok": True, "n": 1 // 0}
+
+    logged = []
+    base = Path(tempfile.mkdtemp(prefix="rigctl-test-", dir="/tmp"))
+    srv = control.ControlServer(base / "ctl" / "rigctl.sock", handler,
+                                log=lambda kind, msg, **kw: logged.append((kind, msg, kw)))
+    srv.start()
+    try:
+        r = control.request(srv.path, "status")
+        assert r == {"ok": False, "error": "p.yaml:3: no such thing", "exit_code": 2}, r
+        r = control.request(srv.path, "history")
+        assert r == {"ok": False, "error": "the disk is full", "exit_code": 1}, r
+        r = control.request(srv.path, "queue")
+        assert r["ok"] is False and r["exit_code"] == 1 and r["error"].startswith("ZeroDivisionError"), r
+        assert "traceback in the daemon log" in r["error"]
+    finally:
+        srv.close()
+        shutil.rmtree(base, ignore_errors=True)
+    bugs = [kw["traceback"] for kind, msg, kw in logged if kind == "error"]
+    assert len(bugs) == 1 and "Traceback" in bugs[0] and "1 // 0" in bugs[0], logged
+    assert not any("traceback" in kw for kind, msg, kw in logged if kind != "error")

@@ -12,13 +12,13 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import AxisStatus
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
-from rigctl.runner import RunOptions, run_procedure
-from rigctl.states import IllegalTransition, StateMachine
-from rigctl.suspenders import SuspenderSettings
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import RunOptions, run_procedure
+from rigctl.engine.states import IllegalTransition, StateMachine
+from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import DISK_PROCEDURE as DISK, ROOT, fill_disk
 

@@ -1,4 +1,4 @@
-"""The daemon's HTTP API (rigctl/web.py) on a real uvicorn server on loopback, against the
+"""The daemon's HTTP API (rigctl/service/web.py) on a real uvicorn server on loopback, against the
 daemon running the emulated rig: token rules, queue operations, a 24-position job to
 `complete` with its report, oversized requests; and the live feed's bin means against numpy."""
 from __future__ import annotations
@@ -23,12 +23,12 @@ import pytest
 pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 
-from rigctl import control  # noqa: E402
-from rigctl.daemon import Daemon  # noqa: E402
-from rigctl.livefeed import LiveFeed  # noqa: E402
-from rigctl.runner import RunOptions  # noqa: E402
-from rigctl.suspenders import SuspenderSettings  # noqa: E402
-from rigctl.web import MAX_BODY, WebApi, WebServer  # noqa: E402
+from rigctl.service import control  # noqa: E402
+from rigctl.service.daemon import Daemon  # noqa: E402
+from rigctl.service.livefeed import LiveFeed  # noqa: E402
+from rigctl.run.runner import RunOptions  # noqa: E402
+from rigctl.config.suspenders import SuspenderSettings  # noqa: E402
+from rigctl.service.web import MAX_BODY, WebApi, WebServer  # noqa: E402
 
 from helpers import ROOT, derived_config  # noqa: E402
 
@@ -237,7 +237,7 @@ def test_open_read_lets_views_through_but_never_control(daemon):
 
 
 def test_token_file_readable_by_others_is_refused(tmp_path):
-    from rigctl.web import load_or_create_token
+    from rigctl.service.web import load_or_create_token
     p = tmp_path / "tok"
     t = load_or_create_token(p)
     assert stat.S_IMODE(p.stat().st_mode) == 0o600 and load_or_create_token(p) == t

@@ -18,9 +18,9 @@ import pytest
 pytest.importorskip("starlette")
 pytest.importorskip("websockets")
 
-from rigctl.daemon import Daemon  # noqa: E402
-from rigctl.runner import RunOptions  # noqa: E402
-from rigctl.suspenders import SuspenderSettings  # noqa: E402
+from rigctl.service.daemon import Daemon  # noqa: E402
+from rigctl.run.runner import RunOptions  # noqa: E402
+from rigctl.config.suspenders import SuspenderSettings  # noqa: E402
 
 from cdp import Browser, chromium_path  # noqa: E402
 from helpers import ROOT, derived_config  # noqa: E402

@@ -25,7 +25,7 @@ import yaml
 
 pytest.importorskip("starlette")
 
-from rigctl import control  # noqa: E402
+from rigctl.service import control  # noqa: E402
 
 from helpers import ROOT, rigctl_cmd  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""The daemon's notices (rigctl/notify.py) against a local HTTP receiver (http.server) and a
+"""The daemon's notices (rigctl/config/notify.py) against a local HTTP receiver (http.server) and a
 local SMTP server (aiosmtpd) started here: a job complete, a job failed (settle timeout), a
 pause longer than the set time, and a device fault that leaves the rig faulted."""
 from __future__ import annotations
@@ -18,13 +18,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rigctl import control
-from rigctl.config import load_config
-from rigctl.daemon import Daemon
+from rigctl.service import control
+from rigctl.config.config import load_config
+from rigctl.service.daemon import Daemon
 from rigctl.devices import DeviceFault
-from rigctl.rig import open_rig
-from rigctl.runner import RunOptions
-from rigctl.suspenders import SuspenderSettings
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import RunOptions
+from rigctl.config.suspenders import SuspenderSettings
 from rigctl.yamlio import InputError
 
 from helpers import ROOT, derived_config

@@ -11,11 +11,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
-from rigctl.runner import RunOptions, run_procedure
-from rigctl.suspenders import SuspenderSettings
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import RunOptions, run_procedure
+from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import ROOT
 

@@ -10,8 +10,8 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
 from rigctl.yamlio import InputError
 
 from helpers import ROOT

@@ -26,10 +26,10 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.checkpoint import status_flags
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.runner import RunOptions, resume_run, run_procedure
+from rigctl.recording.checkpoint import status_flags
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
 
 from helpers import DURATION_EPS, ROOT, make_cut_off, rigctl_cmd
 
@@ -289,7 +289,7 @@ os.kill(os.getpid(), signal.SIGKILL)                 # ... killed before 'f.swmr
 def test_resume_after_a_kill_inside_the_reopen_window(tmp_path):
     """A kill between a resume's plain 'r+' open and its switch to SWMR leaves the HDF5 write
     flag without the SWMR flag: no h5py reader accepts the file (the gap the kill chain above
-    can hit; the fix belongs in rigctl/recorder.py). `rigctl resume` still recovers the run."""
+    can hit; the fix belongs in rigctl/recording/recorder.py). `rigctl resume` still recovers the run."""
     cfg = load_config(ROOT / "configs" / "sim.yaml")
     proc_path = tmp_path / "p.yaml"
     proc_path.write_text("procedure: window\nsteps:\n  - warmup:\n      duration: 5 s\n"

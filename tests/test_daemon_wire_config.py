@@ -1,4 +1,4 @@
-"""The rig config's ``suspenders:`` section: read by rigctl.config, used by `rigctl run`,
+"""The rig config's ``suspenders:`` section: read by rigctl.config.config, used by `rigctl run`,
 `rigctl resume` (from the run's config snapshot) and `rigctl serve`; a bad value is refused
 with its file and line. (The wired tests show the values at work over the wire: hold times of
 2 s and 3 s, an IMU timeout of 20 s, a 1 MiB disk reserve.)"""
@@ -10,10 +10,10 @@ import pytest
 import yaml
 
 from rigctl import cli
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.runner import RunOptions, resume_run, run_procedure
-from rigctl.suspenders import SuspenderSettings
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
+from rigctl.config.suspenders import SuspenderSettings
 from rigctl.yamlio import InputError
 
 from helpers import ROOT

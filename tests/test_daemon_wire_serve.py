@@ -20,7 +20,7 @@ from pathlib import Path
 import h5py
 import pytest
 
-from rigctl import control
+from rigctl.service import control
 from rigctl.devices import AxisStatus
 
 from helpers import ROOT, rigctl_cmd

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import AxisStatus
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
 from rigctl.sim import faults as sim_faults
 from rigctl.sim import taps as sim_taps
 from rigctl.sim import tap_rig

@@ -8,12 +8,12 @@ import h5py
 import numpy as np
 import pytest
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import AxisStatus
-from rigctl.engine import angle_error
+from rigctl.engine.engine import angle_error
 from rigctl.frames import body_references
-from rigctl.procedure import load_procedure
-from rigctl.runner import run_procedure
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import run_procedure
 
 from helpers import DURATION_EPS, ROOT, WHITE_NOISE_ONLY, derived_config
 

@@ -16,13 +16,13 @@ from contextlib import contextmanager
 import h5py
 import numpy as np
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import ImuBlock
-from rigctl.engine import WINDOW_WAIT_WALL_S
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
-from rigctl.runner import RunOptions, run_procedure
-from rigctl.suspenders import SuspenderSettings
+from rigctl.engine.engine import WINDOW_WAIT_WALL_S
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import RunOptions, run_procedure
+from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import WHITE_NOISE_ONLY, derived_config
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.drivers import frame_decl
 from rigctl.errors import InputError
-from rigctl.frame_spec import parse_frame_spec
+from rigctl.config.frame_spec import parse_frame_spec
 from rigctl.sim.frame_server import EXAMPLE, EXAMPLE_CSV, FrameServer
 from rigctl.sim.xsens_server import still_source
 from rigctl.yamlio import LocDict, load_text

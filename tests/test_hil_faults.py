@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rigctl.clock import ScaledClock
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import AxisStatus, DeviceFault
 from rigctl.drivers.acl_table import AclTable
 from rigctl.drivers.modbus_table import ModbusTable

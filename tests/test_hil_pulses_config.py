@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rigctl.clock import ScaledClock
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.drivers.modem_pulses import ModemPulses, parse_icount
 from rigctl.yamlio import InputError
 

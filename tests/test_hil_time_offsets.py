@@ -8,12 +8,20 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
+import serial
 
+from rigctl.drivers import frame_decl
 from rigctl.drivers.acl_table import AclTable
 from rigctl.drivers.modbus_table import ModbusTable
+from rigctl.drivers.xsens import MID, SAMPLE_TIME_FINE_HZ, go_to_config, go_to_measurement
+from rigctl.drivers.xsens_decode import MTData2Stream
+from rigctl.config.frame_spec import parse_frame_spec
+from rigctl.sim.frame_server import EXAMPLE
+from rigctl.yamlio import LocDict
 
-from hil_support import hardware, sim_config
+from hil_support import hardware, sim_config, wait_until
 
 SPEED = 100.0
 PAUSE_WALL_S = 1.0                  # 100 s of rig time
@@ -54,3 +62,128 @@ def test_a_physics_stall_at_connect_does_not_shift_the_table_times(tmp_path, kin
             assert table.time_base.corrections >= 1
         finally:
             table.close()
+
+
+#: the client's reading, s of wall time from its first read: it reads all along except in these
+#: (start, length) windows -- a short stop, within the emulator's 0.5 s flow-control wait, and a
+#: long one beyond it -- and ends at READ_END_S; samples before WARM_S are not checked (the
+#: stream starting up)
+WARM_S = 0.2
+STOPS = ((0.4, 0.2), (1.1, 1.0))
+READ_END_S = 2.7
+LAG_MAX_S = 20.0                    # rig time: a loaded host's scheduling, not a stalled write
+
+
+def _received_sample_times(hw, data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(rig times s, byte offsets in ``data``) of the IMU frames in ``data``, decoded by the
+    drivers' decoders from the device time field (Xsens SampleTimeFine, the example frame's
+    'time': u32 microseconds) and put back on the rig clock with the emulator's own origin."""
+    imu = hw.imu_server
+    if hw.imu_protocol == "xsens":
+        b = MTData2Stream().feed(data, final=True)
+        ok = b.sample_time_fine >= 0
+        return (b.sample_time_fine[ok] - imu.stf_offset) / SAMPLE_TIME_FINE_HZ + imu.t_origin, b.offsets[ok]
+    out = frame_decl.decoder(parse_frame_spec(LocDict({"frame": EXAMPLE}))).feed(data, final=True)
+    raw = np.asarray(out["time"], np.int64)
+    raw = raw + (np.cumsum(np.concatenate(([0], np.diff(raw) < 0))) << 32)
+    return raw * 1e-6 - imu.time_offset_s + imu.t_origin, np.asarray(out["offset"])
+
+
+@pytest.mark.parametrize("protocol", ["xsens", "frame"])
+def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_path, protocol):
+    """The IMU's client stops reading twice (a driver starved of CPU): the emulator's stream
+    waits for it (flow control) and the physics -- the table's controller time -- goes on.
+    Before, the hardware loop wrote the stream itself and stood still in each write for up to
+    0.5 s of wall time: 50 s of rig time behind the clock at 100x in the long stop.
+
+    The stream the client gets is as before (the same checks pass on the old loop): across the
+    short stop (shorter than the 0.5 s wait) not one sample is missing, the frames arrive late;
+    the long one drops the frames of the stop (as for a client that went away) and the stream
+    is live again once the client reads; sample times strictly increase throughout."""
+    bounds = sorted([WARM_S] + [x for a, n in STOPS for x in (a, a + n)])
+    with hardware(tmp_path, SPEED, imu_protocol=protocol) as (hw, _raw):
+        rate = hw.world.rate_hz
+        wait_until(lambda: hw.lag_s < 5.0, 10.0, "the physics to catch up with the clock after start-up")
+        port = serial.serial_for_url(hw.endpoints[f"imu_{protocol}_pty"], baudrate=921600, timeout=0)
+        try:
+            if protocol == "xsens":
+                port.write(go_to_measurement())
+            data, lags, marks = bytearray(), [], []     # marks: (bytes received, rig time) at bounds
+            t0 = time.monotonic()
+            while (w := time.monotonic() - t0) < READ_END_S:
+                while len(marks) < len(bounds) and w >= bounds[len(marks)]:
+                    marks.append((len(data), hw.clock.now()))
+                if not any(a <= w < a + n for a, n in STOPS):
+                    data += port.read(1 << 16)
+                if w >= WARM_S:
+                    lags.append(hw.lag_s)
+                time.sleep(0.005)
+        finally:
+            port.close()
+    worst = max(lags)
+    assert worst < LAG_MAX_S, f"the physics fell {worst:.1f} s of rig time behind the clock"
+    t, off = _received_sample_times(hw, bytes(data))
+    k = np.rint(t * rate).astype(np.int64)
+    assert np.allclose(t * rate, k, atol=0.01)              # on the world's grid (STF: 0.1 ms ticks)
+    assert (np.diff(k) > 0).all(), "sample times must strictly increase (no repeat, no reordering)"
+    (warm, _), _stop1, _go1, (stop2, r_stop2), (_go2, r_go2) = marks
+    # the short stop: from the warm-up mark until the long stop began, every sample arrived
+    short = k[(off >= warm) & (off < stop2)]
+    assert (short[-1] - short[0]) / rate > 0.3 * SPEED * (STOPS[1][0] - WARM_S), (short[0], short[-1])
+    assert (np.diff(short) == 1).all(), f"{int((np.diff(short) - 1).sum())} samples lost around the short stop"
+    # the long stop: it dropped samples, those due while the client did not read: none before
+    # it began (above), and the frames of the stop up to about when the client read again (not
+    # kept and delivered late), none after but those its first read made room for (the port's
+    # buffer still held frames from before the stop)
+    gaps = np.flatnonzero(np.diff(k) > 1)
+    assert gaps.size, "the long stop dropped nothing: it did not outlast the flow-control wait"
+    last_lost = (k[gaps[-1] + 1] - 1) / rate
+    assert r_go2 - LAG_MAX_S <= last_lost <= r_go2 + 5.0, (last_lost, r_stop2, r_go2)
+
+
+def test_after_a_pulled_cable_the_client_gets_no_stale_frames_ahead_of_its_reply(tmp_path):
+    """The Xsens cable is pulled while the device streams; the client opens the new port 0.2 s
+    (20 s of rig time) later and asks for config mode (GoToConfig), as the driver's reconnect
+    does. Nobody had the new port open: the device's frames of those 0.2 s are lost (opening a
+    serial port flushes what it held), the physics went on, and what the client reads before the
+    acknowledgement is live, not the frames of the outage. With the IMU stream waiting for the
+    unopened port (flow control) it got them as one burst ahead of its reply (1000-2000 frames,
+    20 s of rig time old), which delayed its reconfiguration until after a run had resumed:
+    test_daemon_wire's ten link drops paused the run 1-6 extra times on the gap it left."""
+    with hardware(tmp_path, SPEED, imu_protocol="xsens") as (hw, _raw):
+        wait_until(lambda: hw.lag_s < 5.0, 10.0, "the physics to catch up with the clock after start-up")
+        url = hw.endpoints["imu_xsens_pty"]
+        port = serial.serial_for_url(url, baudrate=921600, timeout=0)
+        lags = []
+        try:
+            port.write(go_to_measurement())
+            end = time.monotonic() + 0.2
+            while time.monotonic() < end:
+                port.read(1 << 16)
+                time.sleep(0.005)
+            hw.disconnect("imu", down_s=0.05)
+        finally:
+            port.close()
+        end = time.monotonic() + 0.2                        # the new port, unopened
+        while time.monotonic() < end:
+            lags.append(hw.lag_s)
+            time.sleep(0.005)
+        r_open = hw.clock.now()
+        port = serial.serial_for_url(url, baudrate=921600, timeout=0)
+        try:
+            port.write(go_to_config())
+            data, end = bytearray(), time.monotonic() + 0.3
+            while time.monotonic() < end:
+                data += port.read(1 << 16)
+                lags.append(hw.lag_s)
+                time.sleep(0.005)
+        finally:
+            port.close()
+    stream = MTData2Stream()
+    b = stream.feed(bytes(data), final=True)
+    assert any(m.mid == MID.GO_TO_CONFIG_ACK for m in b.messages), "no acknowledgement of GoToConfig"
+    t, _off = _received_sample_times(hw, bytes(data))
+    assert max(lags) < LAG_MAX_S, f"the physics fell {max(lags):.1f} s of rig time behind the clock"
+    stale = t < r_open - 3.0
+    assert not stale.any(), (f"{int(stale.sum())} of {t.size} frames ahead of the reply are up to "
+                             f"{r_open - t.min():.1f} s of rig time older than the port's opening")

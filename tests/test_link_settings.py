@@ -1,4 +1,4 @@
-"""The wired drivers' settings (rigctl.linkconfig): one dataclass per driver, one validator, and
+"""The wired drivers' settings (rigctl.config.linkconfig): one dataclass per driver, one validator, and
 the driver's own keyword arguments agreeing with them (names and defaults)."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.drivers.acl_table import AclTable
 from rigctl.drivers.gpio_pulses import GpioPulses
 from rigctl.drivers.modbus_table import ModbusTable
@@ -18,8 +18,8 @@ from rigctl.drivers.frame_imu import FrameImu
 from rigctl.drivers.vectornav_imu import VectorNavImu
 from rigctl.drivers.xsens_imu import XsensImu
 from rigctl.errors import InputError
-from rigctl.linkconfig import (SETTINGS, AclSettings, FrameSettings, GpioSettings, ModbusSettings, ModemSettings,
-                               NovatelSettings, VectorNavSettings, XsensSettings)
+from rigctl.config.linkconfig import (SETTINGS, AclSettings, FrameSettings, GpioSettings, ModbusSettings,
+    ModemSettings, NovatelSettings, VectorNavSettings, XsensSettings)
 
 DRIVERS = {AclSettings: AclTable, ModbusSettings: ModbusTable, XsensSettings: XsensImu,
            VectorNavSettings: VectorNavImu, FrameSettings: FrameImu,
@@ -121,7 +121,7 @@ def test_the_chamber_settings_are_the_drivers_keyword_arguments() -> None:
     """Each chamber setting the rig passes (keywords(): all but band_c, the suspender's band) is
     a keyword of the driver with the same default; ``resource`` is the SCPI driver's first
     positional parameter."""
-    from rigctl.chamber import ScpiChamberSettings, WatlowSettings
+    from rigctl.config.chamber import ScpiChamberSettings, WatlowSettings
     from rigctl.drivers.scpi_chamber import ScpiChamber
     from rigctl.drivers.watlow_chamber import WatlowF4T
 

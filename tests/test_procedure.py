@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import load_config
-from rigctl.estimate import estimate
-from rigctl.procedure import load_procedure, parse_overrides
+from rigctl.config.config import load_config
+from rigctl.engine.estimate import estimate
+from rigctl.engine.procedure import load_procedure, parse_overrides
 from rigctl.yamlio import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -153,8 +153,8 @@ def test_broken_procedure_names_file_and_line(name, tmp_path, cfg):
 def test_every_solver_a_procedure_accepts_has_its_hook():
     """procedure.SOLVERS (what a solve step may name; the core cannot import the hooks) and
     solve.SOLVER_HOOKS (what runs) name the same solvers."""
-    from rigctl.procedure import SOLVERS
-    from rigctl.solve import SOLVER_HOOKS
+    from rigctl.engine.procedure import SOLVERS
+    from rigctl.run.solve import SOLVER_HOOKS
     assert sorted(SOLVERS) == sorted(SOLVER_HOOKS)
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from rigctl.display_units import display, format_value
 from rigctl.solvers.conformity import FAIL, INDETERMINATE, PASS, Estimate, decide, overall
-from rigctl.spec import load_spec
+from rigctl.config.spec import load_spec
 from rigctl.yamlio import InputError
 
 Z = 1.959964

@@ -49,7 +49,7 @@ def test_full_calibration_writes_a_self_contained_report(calibrated_run):
     assert report.is_file(), stdout[-2000:]
     p = _Collect()
     p.feed(report.read_text())
-    from rigctl.report_html import SECTIONS
+    from rigctl.report.report_html import SECTIONS
 
     for sid, _title in SECTIONS:
         assert sid in p.ids, f"section {sid} missing"

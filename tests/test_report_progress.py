@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from rigctl.config import load_config, resolve_config_path
+from rigctl.config.config import load_config, resolve_config_path
 from rigctl.devices import TableState
-from rigctl.estimate import estimate
-from rigctl.procedure import load_procedure
+from rigctl.engine.estimate import estimate
+from rigctl.engine.procedure import load_procedure
 from rigctl.progress import CounterGaps, NullProgress, Progress, WorkProgress, make_progress
 from helpers import ROOT
 

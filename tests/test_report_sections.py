@@ -19,8 +19,8 @@ from recording_helpers import write_recording
 
 pytest.importorskip("matplotlib")
 
-from rigctl import report, report_build, report_html  # noqa: E402
-from rigctl.recorder import write_results  # noqa: E402
+from rigctl.report import report, report_build, report_html  # noqa: E402
+from rigctl.recording.recorder import write_results  # noqa: E402
 
 G0 = 9.80665
 
@@ -191,7 +191,7 @@ def test_allan_quick_curve_when_the_results_lack_arrays(tap_recording: Path, tmp
     assert "plot-allan" in page.imgs["allan"] and "allan" not in page.not_run
     assert "quick" in out.read_text()
     data = report.load_run(rec)
-    from rigctl.report_allan import allan_curves
+    from rigctl.report.report_allan import allan_curves
     from rigctl.solvers import allan as A
 
     cv = allan_curves(data)["gz"]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
-from rigctl.results_db import open_db
+from rigctl.recording.results_db import open_db
 
 
 def _open(args: tuple[str, object]) -> str:
@@ -42,14 +42,14 @@ def test_head_is_alembics_head_and_an_open_database_is_not_migrated_again(tmp_pa
     from alembic.config import Config
     from alembic.script import ScriptDirectory
 
-    from rigctl import results_db
+    from rigctl.recording import results_db
 
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(results_db.__file__).with_name("db_migrations")))
     assert ScriptDirectory.from_config(cfg).get_heads() == [results_db.HEAD]
     path = tmp_path / "results.sqlite"
     open_db(str(path)).dispose()  # created and migrated
-    code = ("import sys; from rigctl.results_db import open_db; open_db(sys.argv[1]).dispose(); "
+    code = ("import sys; from rigctl.recording.results_db import open_db; open_db(sys.argv[1]).dispose(); "
             "print('alembic' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
                          timeout=120)

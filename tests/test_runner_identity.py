@@ -17,14 +17,15 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl import cli, control
-from rigctl.config import load_config
-from rigctl.daemon import Daemon
+from rigctl import cli
+from rigctl.service import control
+from rigctl.config.config import load_config
+from rigctl.service.daemon import Daemon
 from rigctl.devices import imu_identity
-from rigctl.procedure import load_procedure
-from rigctl.runner import RunOptions, resume_run, run_procedure
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
 from rigctl.sim.world import emulated_imu_identity
-from rigctl.suspenders import SuspenderSettings
+from rigctl.config.suspenders import SuspenderSettings
 from rigctl.yamlio import InputError, LocDict
 
 from helpers import ROOT, make_cut_off

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.config import load_config
-from rigctl.rig import open_rig
+from rigctl.config.config import load_config
+from rigctl.engine.rig import open_rig
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.profiles import get_profile
 from rigctl.sim.table import POSITION, Profile, ServoParams, SimTurntable

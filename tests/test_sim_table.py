@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rigctl.clock import make_clock
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.devices import AxisStatus
 from rigctl.sim.table import POSITION, RATE, ServoParams, SimTurntable
 from rigctl.sim.world import SimTableDevice, SimWorld

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from rigctl.clock import make_clock
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.rig import open_rig
-from rigctl.runner import run_procedure
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.engine.rig import open_rig
+from rigctl.run.runner import run_procedure
 from rigctl.devices import NoPulses
 from rigctl.sim.world import SimWorld
 

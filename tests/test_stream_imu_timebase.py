@@ -9,7 +9,7 @@ import numpy as np
 
 from rigctl.drivers import frame_decl
 from rigctl.drivers.frame_imu import FrameImu
-from rigctl.frame_spec import parse_frame_spec
+from rigctl.config.frame_spec import parse_frame_spec
 from rigctl.sim.frame_server import EXAMPLE
 from rigctl.yamlio import LocDict
 
@@ -137,4 +137,53 @@ def test_a_stall_across_the_learning_window_is_corrected_by_the_first_timely_chu
     c = imu.counters
     assert c["offset_corrections"] >= 1 and c["restamp_dropped"] == 219 - 20
     assert c["dropped_samples"] == 0                            # no sample was lost on the way
+    imu.close()
+
+
+def test_a_corrupted_time_field_that_passes_the_checksum_does_not_lower_the_offset(tmp_path) -> None:
+    """After the learning window one frame's time field arrives corrupted with a checksum that
+    still passes (bit 19 of the example frame's u32 microseconds flipped: +0.524288 s; the
+    CRC-16 misses 1 in 65536 corrupted frames, VectorNav's too). Taken at its word it shows a
+    latency 0.52 s lower than any other chunk's, and the lower envelope moved every later stamp
+    of the run 0.52 s early, ahead of its arrival. Its time does not continue the samples before
+    it by one period, so it lowers nothing (counted in ``offset_unconfirmed``); the samples after
+    it keep the learnt time base. (Xsens is not covered: see XsensImu.CONFIRM_RUN.)"""
+    clock = HandClock()
+    spec = parse_frame_spec(LocDict({"frame": EXAMPLE}))
+    imu = FrameImu(str(tmp_path / "no-port"), spec, RATE, clock, align_wait_s=0.0, learn_s=0.2)
+    bump = 2**19 * 1e-6
+    got = []
+
+    def chunk(k0: int, latency_s: float, corrupt: bool = False, read: bool = True) -> None:
+        k = np.arange(k0, k0 + 2)
+        clock.t = k[-1] / RATE + latency_s
+        dev = 50.0 + k / RATE                                   # device time = true time + 50 s
+        if corrupt:
+            dev[-1] += bump
+        imu._feed(_frames(spec, k, dev))
+        if read:
+            b = imu.read()
+            got.append((b.time, b.counter.astype(np.int64)))
+
+    imu._learning = True
+    for i in range(10):
+        chunk(2 * i, 0.005, read=False)
+    imu._learning = False
+    learnt = imu.offset
+    assert abs(learnt - (0.005 - 50.0)) < 1e-6
+    for j in range(10, 200):                                    # on time: 5..8 ms late
+        chunk(2 * j, 0.005 + 0.003 * (j % 2), corrupt=j == 100)
+    c = imu.counters
+    assert imu.offset == learnt and c["offset_corrections"] == 0
+    assert c["offset_unconfirmed"] == 1
+    # every sample handed out is stamped its true time (counter / rate: sample k is taken at
+    # k / RATE) + the learnt 5 ms, but the corrupted one (sample 201, as sample 253.43); the
+    # true samples up to its false time do not advance the time and are rejected, as before
+    stamps = np.concatenate([g[0] for g in got])
+    counters = np.concatenate([g[1] for g in got])
+    off = stamps - counters / RATE - 0.005
+    bad = np.flatnonzero(np.abs(off) > 2e-6)
+    assert bad.size == 1 and abs(stamps[bad[0]] - (2.01 + bump + 0.005)) < 2e-6
+    assert c["out_of_order"] == 52                              # samples 202..253
+    np.testing.assert_array_equal(np.delete(counters, bad), np.r_[0:201, 254:400])
     imu.close()

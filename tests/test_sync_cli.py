@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import recording_helpers
-from rigctl import cli, sync_cmd
+from rigctl import cli
+from rigctl.commands import sync_cmd
 from rigctl.analysis.sync import GPS_WEEK_S
 from rigctl.sim import taps
 

@@ -17,7 +17,7 @@ import pytest
 from helpers import derived_config, run_rigctl
 from rigctl.solvers.noise_coefficients import NoiseCoefficients
 from rigctl.frames import body_references
-from rigctl.procedure import load_procedure
+from rigctl.engine.procedure import load_procedure
 from rigctl.solvers import thermal as th
 from rigctl.yamlio import InputError, LocDict
 from rigctl.sim.chamber import ChamberParams, ChamberPhysics
@@ -427,10 +427,10 @@ def _run_chamber(tmp_path, setup, abort_at=None):
     import io
     from contextlib import contextmanager
 
-    from rigctl.config import load_config
-    from rigctl.rig import open_rig
-    from rigctl.runner import RunOptions, run_procedure
-    from rigctl.suspenders import SuspenderSettings
+    from rigctl.config.config import load_config
+    from rigctl.engine.rig import open_rig
+    from rigctl.run.runner import RunOptions, run_procedure
+    from rigctl.config.suspenders import SuspenderSettings
 
     cfg = load_config("configs/sim.yaml")
     p = tmp_path / "proc.yaml"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.config import load_config
-from rigctl.procedure import load_procedure
-from rigctl.runner import run_procedure
+from rigctl.config.config import load_config
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 
@@ -38,7 +38,7 @@ def test_soak_over_the_wire(tmp_path, link):
                                      chamber=link)
         cfg = load_config(cfg_path)
         assert cfg.chamber.driver == ("watlow" if link == "watlow-rtu" else "scpi")
-        from rigctl.device_check import check_devices
+        from rigctl.engine.device_check import check_devices
         checks = {c.role: c for c in check_devices(cfg).checks}
         assert checks["chamber"].ok and ("air 25.00 degC" in checks["chamber"].text
                                          or "EMULATED-CHAMBER" in checks["chamber"].text), checks["chamber"]
@@ -88,7 +88,7 @@ def test_device_check_names_an_unreachable_chamber(tmp_path):
                       "timeout_s": 0.3}
     p = tmp_path / "wired.yaml"
     p.write_text(yaml.safe_dump(raw))
-    from rigctl.device_check import check_devices
+    from rigctl.engine.device_check import check_devices
     c = {c.role: c for c in check_devices(load_config(p)).checks}["chamber"]
     assert not c.ok and f"127.0.0.1:{port}" in c.text, c
 

@@ -20,7 +20,7 @@ def _driver(hw, protocol: str, speed: float, rate_hz: float = 800):
         from rigctl.drivers.vectornav_imu import VectorNavImu
         return VectorNavImu(hw.endpoints["imu_vectornav_pty"], rate_hz, ScaledClock(speed), align_wait_s=0.0)
     from rigctl.drivers.frame_imu import FrameImu
-    from rigctl.frame_spec import parse_frame_spec
+    from rigctl.config.frame_spec import parse_frame_spec
     from rigctl.yamlio import LocDict
     return FrameImu(hw.endpoints["imu_frame_pty"], parse_frame_spec(LocDict({"frame": hw.imu_frame})), rate_hz,
                     ScaledClock(speed), baudrate=921_600, align_wait_s=0.0)

@@ -292,7 +292,7 @@ def test_syncin_edges_are_pulses_on_the_imu_time_base(tmp_path) -> None:
 def test_syncin_pulses_config_needs_the_vectornav_imu(tmp_path) -> None:
     """``pulses: {driver: vectornav}`` loads with a VectorNav IMU and is refused, with file, line
     and what to do, with any other IMU (or with a key it does not take)."""
-    from rigctl.config import load_config
+    from rigctl.config.config import load_config
     from rigctl.errors import InputError
 
     head = "clock: real\ntable: {driver: acl, port: /dev/null}\n"

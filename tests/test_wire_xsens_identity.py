@@ -14,13 +14,13 @@ import pytest
 import yaml
 
 from rigctl.clock import ScaledClock
-from rigctl.config import load_config
+from rigctl.config.config import load_config
 from rigctl.drivers import xsens as X
 from rigctl.drivers.xsens_imu import XsensImu, XsensUnitChanged
-from rigctl.procedure import load_procedure
-from rigctl.runner import RunOptions, resume_run, run_procedure
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
 from rigctl.sim.xsens_server import XsensServer
-from rigctl.states import StateMachine
+from rigctl.engine.states import StateMachine
 from rigctl.yamlio import InputError
 
 from hil_support import wait_until, wired

@@ -24,8 +24,8 @@ import numpy as np
 from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
-from ..recorder import write_results
-from ..recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
+from ..recording.recorder import write_results
+from ..recording.recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
@@ -34,6 +34,7 @@ from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
+from . import allan_drift as AD
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -414,11 +415,17 @@ def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
 
 
 def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
-                 stretch_samples: np.ndarray | None = None) -> dict[str, Any]:
+                 stretch_samples: np.ndarray | None = None, axis: str = "") -> dict[str, Any]:
     """Deviation curve, confidence and fits of one streamed axis (SI + field units).
     ``stretch_samples``: the lengths of the gap-free stretches when gaps are skipped (the EDF
-    is then that of the stretches' terms: :func:`edf_skipping_gaps`)."""
+    is then that of the stretches' terms: :func:`edf_skipping_gaps`). InputError naming
+    ``axis`` when every sample is the same value (no curve: a channel nobody filled)."""
     res = stream.result()
+    if len(res.dev) and not np.any(np.asarray(res.dev) > 0):
+        others = ",".join(a for a in AXES if a != axis)
+        raise InputError(f"axis {axis or sensor}: every sample is the same value: no Allan curve (a channel "
+                         "the sensor, its driver or the import did not fill, or a stuck one)",
+                         hint=f"leave it out, e.g. --axes {others}")
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
     alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
@@ -439,8 +446,16 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
+    ybar, block_s = AD.block_means(stream._dec[: stream.n_dec], stream.dec * stream.tau0)
+    blocks = {"ybar": ybar, "block_s": block_s,
+              "rows_per_block": int(round(block_s / stream.tau0))}  # for the temperature check
+    warm = AD.start_transient(ybar, block_s, res.tau_s, res.dev, (res.n_phase - 1) * res.tau0_s,
+                              sensor)
+    if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
+        AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
+                         AD.warmup_reason_below(warm))
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening, "tones": tones,
+            **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -450,7 +465,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
 
 
 def _open_checked(path: str, axes: list[str]):
-    """The recording, checked (rigctl.recording_reader) for the datasets of ``axes``."""
+    """The recording, checked (rigctl.recording.recording_reader) for the datasets of ``axes``."""
     return open_recording(path, ["imu/time", *sorted({AXES[a][0].lstrip("/") for a in axes})])
 
 
@@ -466,7 +481,97 @@ OUTLIER_MODES = ("report", "exclude")
 def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
-            gaps: str = "skip") -> dict[str, Any]:
+            gaps: str = "skip", warmup: str = "report",
+            temperature: str = "report") -> dict[str, Any]:
+    """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
+    on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
+    the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
+    deviation), the same cut for every axis. Each axis' ``warmup_excluded`` then keeps the
+    cut, the transient found before it and the first pass's fitted terms; the result's
+    ``warmup`` says which mode ran. Never silent: the cut is in the result and the text.
+    With ``temperature="remove"``, the axes whose slow part follows the recorded temperature
+    (each axis' ``temperature``) are analysed once more with that term subtracted from their
+    samples (:func:`_without_temperature`)."""
+    if warmup not in AD.WARMUP_MODES:
+        raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
+    if temperature not in AD.TEMPERATURE_MODES:
+        raise InputError(f"temperature={temperature!r}: choose from "
+                         f"{', '.join(AD.TEMPERATURE_MODES)}")
+    out = _with_warmup(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
+                       warmup)
+    out["temperature"] = temperature
+    if temperature == "remove":
+        out = _without_temperature(out, path, axes, taus, exact, progress_stream, outliers, gaps)
+    return out
+
+
+def _without_temperature(out: dict[str, Any], path: str, axes: list[str], taus: A.TauSpec,
+                         exact: bool, progress_stream: Any, outliers: str,
+                         gaps: str) -> dict[str, Any]:
+    """``out`` analysed again over the same range with each axis' temperature term (where one
+    was found) subtracted from its samples; each such axis' ``temperature_removed`` keeps the
+    term found, the first pass's terms and self-check. ``out`` itself when none was found."""
+    corr = {a: r["temperature"]["correction"] for a, r in out["axes"].items()
+            if (r.get("temperature") or {}).get("found")}
+    if not corr:
+        return out
+    s0 = int(out["first_sample"])
+    again = compute_once(path, axes, taus, exact, (s0, s0 + int(out["n_samples"])),
+                         progress_stream, outliers, gaps, corrections=corr)
+    for key in ("warmup", "warmup_cut_s", "temperature"):
+        if key in out:
+            again[key] = out[key]
+    for a, r in again["axes"].items():
+        first = out["axes"][a]
+        if "warmup_excluded" in first:
+            r["warmup_excluded"] = first["warmup_excluded"]
+        if a in corr:
+            r["temperature_removed"] = {"before": first["temperature"],
+                                        "summary_before": summary_line(first),
+                                        "coefficients_before": first["fit"]["coefficients"],
+                                        "check_before": first["fit"]["check"]}
+    return again
+
+
+def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
+                 sample_range: tuple[int, int] | None, progress_stream: Any, outliers: str,
+                 gaps: str, warmup: str) -> dict[str, Any]:
+    """:func:`compute_once`, and with ``warmup="exclude"`` once more after the cut."""
+    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps)
+    out["warmup"] = "report"
+    if warmup != "exclude":
+        return out
+    out["warmup"] = "exclude"
+    cut = max((r["warmup"].get("trim_s") or 0.0 for r in out["axes"].values()
+               if r["warmup"].get("detected")), default=0.0)
+    if cut <= 0:
+        return out
+    fs = out["sample_rate_hz"]
+    n_cut = int(math.ceil(cut * fs))
+    s0 = int(out["first_sample"])
+    s1 = s0 + int(out["n_samples"])  # rows (a gap's missing samples have none)
+    if s1 - (s0 + n_cut) < MIN_SAMPLES or n_cut > (s1 - s0) // 2:
+        raise InputError(f"{path}: the start transient would need the first {cut:.0f} s cut, "
+                         f"more than half of the analysed range ({(s1 - s0) / fs:.0f} s)",
+                         hint="record longer, or analyse without --warmup exclude (the "
+                              "transient is then reported and named by the self-check)")
+    again = compute_once(path, axes, taus, exact, (s0 + n_cut, s1), progress_stream, outliers, gaps)
+    again["warmup"] = "exclude"
+    again["warmup_cut_s"] = n_cut / fs
+    for a, r in again["axes"].items():
+        first = out["axes"][a]
+        r["warmup_excluded"] = {"trim_s": n_cut / fs, "trim_samples": n_cut,
+                                "before": first["warmup"],
+                                "summary_before": summary_line(first),
+                                "coefficients_before": first["fit"]["coefficients"],
+                                "check_before": first["fit"]["check"]}
+    return again
+
+
+def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
+                 sample_range: tuple[int, int] | None = None,
+                 progress_stream: Any = None, outliers: str = "report",
+                 gaps: str = "skip", corrections: dict | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -508,7 +613,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             readers = made.result()
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
-                                     progress_stream, outliers, gaps)
+                                     progress_stream, outliers, gaps, corrections)
         finally:
             for r in readers.values():
                 r.close()
@@ -516,9 +621,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
 
 def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
                       s0: int, s1: int, n: int, found: list, readers: dict,
-                      progress_stream: Any, outliers: str, gaps: str) -> dict[str, Any]:
+                      progress_stream: Any, outliers: str, gaps: str,
+                      corrections: dict | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
-    the caller)."""
+    the caller). ``corrections``: per axis, a term subtracted from its samples before
+    everything else (:func:`rigctl.analysis.allan_drift.correction_at`: the temperature term
+    with --temperature remove)."""
     tau0 = 1.0 / fs
     missing = sum(m for _, m in found)
     gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
@@ -562,7 +670,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                          stream=progress_stream, enabled=progress_stream is not None)
     with ThreadPoolExecutor(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
-                       outliers == "exclude", breaks)
+                       outliers == "exclude", breaks, corrections)
         shown.finish()
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
@@ -570,19 +678,21 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
         done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
                                                     outliers == "exclude",
-                                                    stretch_samples), axes))
+                                                    stretch_samples, a), axes))
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
+    AD.temperature_step(path, int(s0), out["axes"])  # each axis' "temperature" (if recorded)
     return out
 
 
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
-                   exclude: bool = False, breaks: list[int] | None = None) -> None:
+                   exclude: bool = False, breaks: list[int] | None = None,
+                   corrections: dict | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
-    this thread reads chunk i + 1 (:class:`rigctl.recording_reader.RowReader`: os.preadv
+    this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
     from the chunks' offsets, without the GIL, where the layout allows). At most two chunks
     are in memory. ``breaks``: rows that follow a gap (each starts a new gap-free stretch of
     the Allan sums).
@@ -614,6 +724,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
+        if corrections and a in corrections:  # rows relative to s0
+            y -= AD.correction_at(corrections[a], first, y.size)
         y = streams[a].screen(y, first, exclude)
         # rows after a gap (gaps="skip") start a new gap-free stretch
         a0 = s0 + first
@@ -638,6 +750,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         n = b.shape[0]
         touched = cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))
         if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
+                and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
             check(name, b, a0)  # a bad block must not reach the accumulators
             return [pool.submit(feed, a, b, AXES[a][1], first) for a in group]
@@ -958,7 +1071,8 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     """(warnings, notes) about an axis' samples: spikes (a warning: they are in the noise
     unless excluded) and the output quantization (a note; a warning when the noise per sample
     is below half a step, so the rounding is not random)."""
-    warns, notes = [], []
+    t_warns, notes = AD.temperature_sentences(r)
+    warns = list(AD.warmup_sentences(r)) + t_warns
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
     if sp.get("count"):
@@ -1046,7 +1160,7 @@ def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoeffi
 
 
 def store(path: str, result: dict[str, Any]) -> None:
-    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recorder.write_results`:
+    """Write /results/allan (replacing an earlier one) through :func:`rigctl.recording.recorder.write_results`:
     the JSON summary (non-finite numbers kept: an unbounded interval end stays inf) and the curve
     datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units."""
     summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
@@ -1055,10 +1169,14 @@ def store(path: str, result: dict[str, Any]) -> None:
                "dropped_samples": result.get("dropped_samples", 0),
                "segment": result.get("segment", "whole recording"),
                "outliers": result.get("outliers", "report"),
+               "warmup": result.get("warmup", "report"),
+               "temperature": result.get("temperature", "report"),
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                             **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
-                                                              "quantization", "tones")},
+                                                              "quantization", "tones", "warmup",
+                                                              "warmup_excluded", "temperature",
+                                                              "temperature_removed")},
                                        keep_nonfinite=True)}
                         for a, r in result["axes"].items()}}
     arrays = {}

@@ -26,7 +26,7 @@ from . import allan as allan_pipeline
 from ..jsonable import jsonable
 from . import calibration
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
-from ..spec import load_spec
+from ..config.spec import load_spec
 from . import production
 
 ANALYSES = ("calibrate", "allan")

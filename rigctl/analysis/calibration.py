@@ -1,7 +1,7 @@
 """Calibration of a recording (application layer of ``rigctl calibrate``, the solve hook and batch).
 
 Turntable recordings (orientation and rate segments with table angles): the segment table
-(:func:`rigctl.segment_builder.build_segment_table`), the published solvers and the joint
+(:func:`rigctl.recording.segment_builder.build_segment_table`), the published solvers and the joint
 closed loop (:func:`rigctl.solvers.closed_loop.calibrate_session`); with /truth (emulator) the
 parameter errors against truth before and after the loop.
 
@@ -38,15 +38,15 @@ import numpy as np
 
 from . import production
 from .verdicts import format_verdicts
-from ..calibration_text import noise_summary, param_table
-from ..recorder import utc_now, write_results
-from ..segment_builder import build_segment_table, open_recording
+from .calibration_text import noise_summary, param_table
+from ..recording.recorder import utc_now, write_results
+from ..recording.segment_builder import build_segment_table, open_recording
 from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
 from .allan import load_noise
 from ..errors import InputError
-from ..spec import Spec
+from ..config.spec import Spec
 
 SCHEMA_VERSION = 1
 G0 = 9.80665

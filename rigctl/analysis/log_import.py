@@ -26,7 +26,7 @@ from .. import __version__
 from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
-from ..recording_reader import MAX_RATE_HZ
+from ..recording.recording_reader import MAX_RATE_HZ, PLAUSIBLE
 from . import bag_import as B
 
 #: progress(done, total) while a bag is read (messages)
@@ -60,7 +60,8 @@ OPTIONAL = ("time", "temp", "section")
 UNIT_FACTORS = {
     "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
     "gyr": {"deg/s": DEG, "rad/s": 1.0, "deg/h": DEG / 3600.0, "mrad/s": 1e-3},
-    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    # d: days, e.g. the MJD time tags of a Stable32 two-column file (53000.000011574)
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0, "d": 86400.0},
 }
 #: units of per-sample increments (delta angle, delta velocity): divided by the sample interval;
 #: with --integrated the column is their running sum (an angle, a velocity, a clock's phase)
@@ -135,6 +136,8 @@ def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str
     return out
 
 
+#: the column header of a Stable32 result file ("#  AF   Tau   #   Alpha  Min Sigma ...")
+_STABLE32_RESULT = re.compile(r"\s*#\s*AF\s+Tau\s+#\s+Alpha\b")
 #: separators tried in this order on the first data line (else runs of whitespace)
 DELIMITERS = (",", "\t", ";")
 
@@ -161,8 +164,16 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     if first >= len(lines):
         raise InputError(f"no table: {len(lines)} lines, all comments or blank after --skip-rows {skip_rows}",
                          path)
+    if any(_STABLE32_RESULT.match(ln) for ln in lines[:first]):
+        raise InputError("a Stable32 result table (averaging factor, tau, deviation per line), not samples",
+                         path, hint="rigctl import takes the phase or frequency data the table was computed "
+                                    "from (e.g. --columns gyr_x=0 --units gyr=rad --integrated --rate 1 for "
+                                    "phase in s); rigctl allan then computes the deviations")
     probe = lines[first: first + 2]
-    delim = next((d for d in DELIMITERS if all(d in ln for ln in probe)), None)
+    # semicolons on every probed line first: a European export separates with ';' because its
+    # numbers carry a decimal comma (1,5;0,25), and commas would split those numbers
+    order = (";", *DELIMITERS) if all(";" in ln for ln in probe) else DELIMITERS
+    delim = next((d for d in order if all(d in ln for ln in probe)), None)
     if delim is None:
         rows = [ln.split() for ln in lines[first:]]
         name = "whitespace"
@@ -175,16 +186,29 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     return rows, name, first
 
 
-def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dict[str, np.ndarray], int]:
+#: a number written with a decimal comma (1,5 / -0,25e-3), as European spreadsheets export
+_DECIMAL_COMMA = re.compile(r"[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?")
+
+
+def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
+               notes: list[str] | None = None) -> tuple[dict[str, np.ndarray], int]:
     """Columns of a text table (CSV, TSV, semicolon or whitespace-separated; a header line or
     none; ``#``/``%`` comment lines before it skipped) as arrays (sensor/time/temp float,
-    section str); the line number of the first data row."""
+    section str); the line number of the first data row.
+
+    Also read as a stranger's export writes them (each said in ``notes``): a units line right
+    after the header (every mapped field in it not a number: skipped), numbers with a decimal
+    comma in a semicolon-, tab- or whitespace-separated table, and a time column of ISO 8601
+    date-times (``2015-08-20 23:58:30.25``, ``...T...Z``), returned as int64 nanoseconds under
+    ``time`` with ``time_is_datetime`` set."""
+    notes = [] if notes is None else notes
     if not path.is_file():
         raise InputError("input file not found", path)
     rows, delim, first = _split_rows(path, skip_rows)
     header_line = first + 1
     header = [h.strip() for h in rows[0]]
-    numeric_header = all(_is_number(h) for h in header if h)
+    numeric_header = all(_is_number(h) or _DECIMAL_COMMA.fullmatch(h) or _datetime_ns(h) is not None
+                         for h in header if h)
     body = rows if numeric_header else rows[1:]
     first_data_line = header_line if numeric_header else header_line + 1
     index: dict[str, int] = {}
@@ -198,15 +222,35 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
         elif col in header:
             index[key] = header.index(col)
         else:
+            names = {c for c in mapping.values() if not c.isdigit()}
+            found = next((k for k, r in enumerate(rows[:200]) if names <= {c.strip() for c in r}), None)
+            hint = (f"line {header_line + found} holds every named column: give --skip-rows "
+                    f"{first + found}"
+                    if found else "fix --columns (header names, or 0-based numbers for a file without "
+                    "a header), or --skip-rows so the header line is read")
             raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
-                             hint="fix --columns (header names, or 0-based numbers for a file without "
-                                  "a header), or --skip-rows so the header line is read")
+                             hint=hint)
     out: dict[str, np.ndarray] = {}
     keep = [k for k, r in enumerate(body) if any(c.strip() for c in r)
             and not r[0].lstrip().startswith(("#", "%"))]
+    if not numeric_header and len(keep) > 1:  # a units line under the header (s, deg/s, g, ...)
+        r0 = body[keep[0]]
+        fields = [r0[j].strip() if j < len(r0) else "" for k, j in index.items() if k != "section"]
+        if fields and not any(_is_number(v) or _DECIMAL_COMMA.fullmatch(v) or _datetime_ns(v) is not None
+                              for v in fields):
+            notes.append(f"line {first_data_line + keep[0]} ({', '.join(repr(v) for v in fields)}) has no "
+                         "number in the columns read: taken for a units line under the header and skipped "
+                         "(the units are those of --units)")
+            keep = keep[1:]
     body = [body[k] for k in keep]
     if not body:
         raise InputError("no data rows", path, first_data_line)
+    comma = delim != "comma" and any(
+        _DECIMAL_COMMA.fullmatch(body[0][j].strip()) for k, j in index.items()
+        if k != "section" and j < len(body[0]))
+    if comma:
+        body = [[c.replace(",", ".") if _DECIMAL_COMMA.fullmatch(c.strip()) else c for c in r] for r in body]
+        notes.append("numbers with a decimal comma: the comma read as the decimal point")
     for key, j in index.items():
         if key == "section":
             out[key] = np.array([r[j].strip() if j < len(r) else "" for r in body])
@@ -217,6 +261,26 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int) -> tuple[dic
                 continue
             except (ValueError, IndexError, OverflowError):
                 pass
+            exact = _epoch_seconds([r[j] if j < len(r) else "" for r in body])
+            if exact is not None:  # seconds since 1970 with a decimal fraction, kept exact
+                out[key] = exact
+                continue
+            if j < len(body[0]) and not _is_number(body[0][j]) and _datetime_ns(body[0][j]) is not None:
+                ns = np.empty(len(body), dtype=np.int64)
+                for n, r in enumerate(body):
+                    v = _datetime_ns(r[j]) if j < len(r) else None
+                    if v is None:
+                        got = r[j] if j < len(r) else "(missing)"
+                        raise InputError(f"column {mapping[key]!r}: {got!r} is not a date-time like the "
+                                         f"first row's {body[0][j]!r}", path, first_data_line + keep[n],
+                                         hint="fix or remove the row") from None
+                    ns[n] = v
+                out[key] = ns
+                out["time_is_datetime"] = np.array(True)
+                notes.append(f"time column {mapping[key]!r}: ISO 8601 date-times (first "
+                             f"{body[0][j].strip()!r}), read to the nanosecond; a date-time without a "
+                             "zone is taken as UTC")
+                continue
         try:  # the common case at once; the row-by-row pass below only to name a bad row
             vals = np.array([r[j] for r in body], dtype=np.float64)
             if np.isfinite(vals).all():
@@ -244,6 +308,53 @@ def _is_number(s: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+_DECIMAL_STAMP = re.compile(r"\s*(\d+)\.(\d*)\s*")
+
+
+def _epoch_seconds(values: list[str]) -> np.ndarray | None:
+    """Decimal time stamps of 1000 units and more (seconds since 1970 with a fraction, as loggers
+    and ROS CSV exports write them; a Stable32 file's MJD days) relative to the first, from
+    their integer and fraction parts: exact where float64 of the whole stamp is not (1.7e9 s
+    holds only ~0.2 us, MJD 53000 d only ~1 us: the steps, and the rate from their median,
+    came out wrong in the 7th digit). None for anything else."""
+    first = _DECIMAL_STAMP.fullmatch(values[0]) if values else None
+    if first is None or len(first.group(1).lstrip("0")) < 4:
+        return None
+    ints = np.empty(len(values), dtype=np.int64)
+    fracs = np.empty(len(values))
+    for n, v in enumerate(values):
+        m = _DECIMAL_STAMP.fullmatch(v)
+        if m is None:
+            return None
+        ints[n] = int(m.group(1))
+        fracs[n] = float("0." + (m.group(2) or "0"))
+    return (ints - ints[0]).astype(np.float64) + fracs
+
+
+_ISO_DATETIME = re.compile(r"\s*(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2}(?::\d{2})?)(?:[.,](\d+))?"
+                           r"\s*(Z|[+-]\d{2}:?\d{2})?\s*")
+
+
+def _datetime_ns(s: str) -> int | None:
+    """Nanoseconds since 1970 of an ISO 8601 date-time (``YYYY-MM-DD[T ]HH:MM[:SS[.f...]][Z|+HH:MM]``,
+    no zone = UTC; the fraction kept to the nanosecond), else None."""
+    import datetime as dt
+
+    m = _ISO_DATETIME.fullmatch(s)
+    if not m:
+        return None
+    zone = m.group(4) or "+00:00"
+    zone = "+00:00" if zone == "Z" else (zone if ":" in zone else zone[:3] + ":" + zone[3:])
+    try:
+        whole = dt.datetime.fromisoformat(f"{m.group(1)}T{m.group(2)}{zone}")
+    except ValueError:
+        return None
+    frac = (m.group(3) or "")[:9].ljust(9, "0")
+    epoch = dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)
+    delta = whole - epoch
+    return (delta.days * 86400 + delta.seconds) * 1_000_000_000 + int(frac)
 
 
 def sections_from_json(path: Path, n: int) -> list[dict[str, Any]]:
@@ -287,10 +398,10 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
 def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
                     rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
                     counter: np.ndarray | None = None, note: str = "") -> None:
-    """A complete recording (docs/data-format.md) through rigctl.recorder.Recorder: the one
+    """A complete recording (docs/data-format.md) through rigctl.recording.recorder.Recorder: the one
     writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
     jumps; ``note`` is added to the import event's message."""
-    from ..recorder import Recorder, Segment
+    from ..recording.recorder import Recorder, Segment
 
     n = len(t)
     counter = np.arange(n, dtype=np.uint64) if counter is None else np.asarray(counter, np.uint64)
@@ -324,6 +435,33 @@ def check_output(src: Path, out: Path, force: bool) -> None:
         raise InputError("the output would replace the input", out, hint="choose another -o")
     if not out.parent.is_dir():
         raise InputError("output directory does not exist", out.parent)
+
+
+def check_plausible(src: Path, mapping: dict[str, str], acc: np.ndarray, gyr: np.ndarray,
+                    units: str | None, gyr_increment: bool = False, acc_increment: bool = False) -> None:
+    """InputError naming the column when a converted sensor value is beyond what any IMU
+    outputs (:data:`rigctl.recording.recording_reader.PLAUSIBLE`, SI): a unit or scale error, e.g. a
+    frequency counter's 10 MHz readings taken as rad/s. Refused here, at the import, with the
+    value and the way to scale it, rather than by ``rigctl allan`` later."""
+    for sensor, data, key, unit, incr in (("gyr", gyr, "imu/angular_rate", "rad/s", gyr_increment),
+                                          ("acc", acc, "imu/specific_force", "m/s^2", acc_increment)):
+        limit = PLAUSIBLE[key]
+        if incr:  # increments are divided by the sample interval later: compare per sample
+            continue
+        with np.errstate(invalid="ignore"):
+            big = np.abs(data) > limit
+        if not big.any():
+            continue
+        row, c = (int(v[0]) for v in np.nonzero(big))
+        name = f"{sensor}_{'xyz'[c]}"
+        share = float(big[:, c].mean())
+        raise InputError(
+            f"column {mapping.get(name, name)!r} ({name}) reads {data[row, c]:.6g} {unit} at data row "
+            f"{row + 1} with --units {units!r} ({share:.0%} of its rows beyond +-{limit:g} {unit}): not an "
+            "IMU's output", src,
+            hint=f"check the unit, or give the column's scale: --units '{sensor}=counts:SCALE UNIT' "
+                 f"(e.g. a counter's 10 MHz frequency readings as fractional frequency: "
+                 f"'{sensor}=counts:1e-7 {'rad/s' if sensor == 'gyr' else 'm/s^2'}')")
 
 
 def check_ranges(args: ImportOptions) -> None:
@@ -424,14 +562,20 @@ def import_csv(args: ImportOptions) -> Imported:
         raise InputError("--rate HZ is required without a time column (time= in --columns)", src,
                          hint="give the nominal sample rate, e.g. --rate 100")
     check_ranges(args)
-    cols, first_line = read_table(src, mapping, args.skip_rows)
+    lines: list[str] = []
+    cols, first_line = read_table(src, mapping, args.skip_rows, lines)
     n = next(len(v) for k, v in cols.items() if k in REQUIRED)
     nan = np.full(n, np.nan)
     acc = np.column_stack([cols.get(k, nan) for k in REQUIRED[:3]]) * factors["acc"]
     gyr = np.column_stack([cols.get(k, nan) for k in REQUIRED[3:]]) * factors["gyr"]
+    check_plausible(src, mapping, acc, gyr, args.units, bool(factors.get("gyr_increment")),
+                    bool(factors.get("acc_increment")))
     counter = None
-    lines = []
     if "time" in cols:
+        if "time_is_datetime" in cols:  # int64 ns since 1970, whatever --units says of time
+            if "time=" in (args.units or "").replace(" ", "") and factors["time"] != 1e-9:
+                lines.append("--units time= does not apply to a date-time column (read in ns)")
+            factors["time"] = 1e-9
         t = (cols["time"] - cols["time"][0]).astype(np.float64) * factors["time"]
         dt = np.diff(t)
         if np.any(dt <= 0):
@@ -444,7 +588,7 @@ def import_csv(args: ImportOptions) -> Imported:
         rate = float(args.rate) if args.rate is not None else 1.0 / float(np.median(dt))
         if not 0 < rate <= MAX_RATE_HZ:
             raise InputError(f"the time column gives {rate:g} Hz, outside (0, {MAX_RATE_HZ:g}]", src,
-                             hint="check the time unit (--units time=s|ms|us|ns)")
+                             hint="check the time unit (--units time=s|ms|us|ns|min|h|d)")
         # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
         counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
         missing = int(counter[-1]) + 1 - n
@@ -518,7 +662,29 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
     if not 0 < b.rate_hz <= MAX_RATE_HZ:
         raise InputError(f"topic {b.topic}: {b.time_source} gives {b.rate_hz:g} Hz, outside (0, {MAX_RATE_HZ:g}]: "
                          "not sample times", src, hint="try --time-source receive")
-    sections, origin = find_sections(args, src, b.specific_force, b.angular_rate, b.rate_hz)
+    # a field the sender did not fill (every message the same value, e.g. 0 from a gyro-only
+    # driver) is no measurement: stored as NaN and left out of the axes rigctl allan analyses
+    acc, gyr = b.specific_force, b.angular_rate
+    unfilled = [f"{k}_{'xyz'[c]}" for k, d in (("acc", acc), ("gyr", gyr)) for c in range(3)
+                if n >= 64 and np.ptp(d[:, c]) == 0.0]
+    extra: list[str] = []
+    axes = ""
+    if unfilled:
+        acc, gyr = acc.copy(), gyr.copy()
+        for name in unfilled:
+            (acc if name.startswith("acc") else gyr)[:, "xyz".index(name[-1])] = np.nan
+        present = [k for k in REQUIRED if k not in unfilled]
+        if not present:
+            raise InputError(f"topic {b.topic}: every field of every message is constant: no measurement",
+                             src, hint="check the topic (--topic) and the sender")
+        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
+                         "gyr_z": "gz"}[k] for k in present)
+        sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
+        origin = "the whole record (fields not filled: no static-interval detection)"
+        extra.append(f"not filled in any message (the same value throughout), stored as NaN: "
+                     f"{', '.join(unfilled)}; rigctl allan analyses the others ({axes})")
+    else:
+        sections, origin = find_sections(args, src, acc, gyr, b.rate_hz)
     gaps = (f"{b.gaps} gaps, {b.missing_samples} samples missing (/imu/counter jumps)" if b.gaps
             else "no gaps")
     meta = import_meta(args, src, b.rate_hz, origin, {
@@ -531,14 +697,14 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
         "clock_zero_unix_s": b.stamp_zero_ns * 1e-9,
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
-        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s)})
+        "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s), "import_axes": axes})
     note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
-    write_recording(out, b.time_s, b.specific_force, b.angular_rate, np.full(n, np.nan), b.rate_hz,
+    write_recording(out, b.time_s, acc, gyr, np.full(n, np.nan), b.rate_hz,
                     sections, meta, counter=b.counter, note=note)
-    return Imported(out, n, b.rate_hz, sections, [f"imported {n} samples from {args.file}", *B.describe(b)],
-                    b.n_messages)
+    return Imported(out, n, b.rate_hz, sections,
+                    [f"imported {n} samples from {args.file}", *B.describe(b), *extra], b.n_messages)
 
 
 def is_bag(src: Path) -> bool:

@@ -1,8 +1,10 @@
 """Allan results in the formats their consumers read: Kalibr's imu.yaml, JSON, a CSV table.
 
 Pure functions of the result that ``rigctl allan`` computes (per axis: the deviation curve with
-its bands and the fitted IEEE 952 terms, ``fit["terms"][T]`` with SI values and 95 % intervals,
-or a 95 % upper bound for a term the data do not support; docs/allan.md).
+its bands and the fitted IEEE 952 coefficients, ``fit["coefficients"]``: a
+:class:`~rigctl.solvers.noise_coefficients.NoiseCoefficients`, or its stored JSON form, whose
+terms carry SI values and 95 % intervals, or a 95 % upper bound for a term the data do not
+support; docs/allan.md).
 
 Kalibr (and OpenVINS, which reads the same keys from ``kalibr_imu_chain.yaml``) models each
 sensor as white noise plus a random-walk bias, in continuous time:
@@ -38,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..jsonable import jsonable
-from ..solvers.noise_coefficients import as_coefficients
+from ..solvers.noise_coefficients import Coefficient, as_coefficients
 
 #: (sensor, term) -> (Kalibr key, unit of the key)
 KALIBR_KEYS = {("accel", "N"): ("accelerometer_noise_density", "m/s^2/sqrt(Hz)"),
@@ -50,36 +52,29 @@ DEFAULT_TOPIC = "/imu0"
 
 
 @dataclass
-class TermValue:
-    """One fitted term of one axis, SI: the value (the 95 % upper bound when not supported)
-    and its 95 % interval ([0, bound] for a bound)."""
-
-    axis: str
-    value: float
-    supported: bool
-    ci95: tuple[float, float]
-
-
-@dataclass
 class KalibrValue:
-    """One Kalibr key: the combined (largest-axis) fitted value, the value written
-    (``fitted * inflate``), and every axis' term."""
+    """One Kalibr key: the combined (largest-axis) value, the value written (``value *
+    inflate``), and every axis' fitted coefficient (SI). For an axis whose term is known only
+    as a 95 % upper bound, the bound counts (:attr:`Coefficient.cautious`)."""
 
     key: str
     unit: str
     sensor: str
     term: str
-    fitted: TermValue
+    axis: str  # the axis that gives the value
+    fitted: Coefficient  # that axis' coefficient
     written: float
-    axes: list[TermValue]
+    axes: dict[str, Coefficient]
+
+    @property
+    def value(self) -> float:
+        """The combined value before inflation: the largest axis' estimate or bound."""
+        return self.fitted.cautious
 
 
-def term_value(axis: str, r: Mapping[str, Any], term: str) -> TermValue:
-    """The fitted ``term`` (N, B, K, ...) of one axis' result ``r`` in SI."""
-    c = getattr(as_coefficients(r["fit"]["coefficients"]), term)
-    if c.resolved:
-        return TermValue(axis, c.value, True, (float(c.ci95[0]), float(c.ci95[1])))
-    return TermValue(axis, float(c.upper95), False, (0.0, float(c.upper95)))
+def axis_coefficient(r: Mapping[str, Any], term: str) -> Coefficient:
+    """The fitted ``term`` (N, B, K, ...) of one axis' result ``r`` (SI)."""
+    return getattr(as_coefficients(r["fit"]["coefficients"]), term)
 
 
 def kalibr_values(result: Mapping[str, Any], inflate: float = 1.0) -> list[KalibrValue]:
@@ -88,17 +83,21 @@ def kalibr_values(result: Mapping[str, Any], inflate: float = 1.0) -> list[Kalib
         raise ValueError(f"the inflation factor must be a positive number, not {inflate!r}")
     out = []
     for (sensor, term), (key, unit) in KALIBR_KEYS.items():
-        axes = [term_value(a, r, term) for a, r in result["axes"].items() if r["sensor"] == sensor]
+        axes = {a: axis_coefficient(r, term) for a, r in result["axes"].items() if r["sensor"] == sensor}
         if len(axes) != 3:
             raise ValueError(f"{key} needs the three {sensor} axes, the result has {len(axes)}")
-        top = max(axes, key=lambda v: v.value)
-        out.append(KalibrValue(key, unit, sensor, term, top, top.value * inflate, axes))
+        top = max(axes, key=lambda a: axes[a].cautious)
+        out.append(KalibrValue(key, unit, sensor, term, top, axes[top], axes[top].cautious * inflate, axes))
     return out
 
 
 def _e(x: float) -> str:
     """A float YAML 1.1 (PyYAML) reads as a float: mantissa with a point, signed exponent."""
     return f"{x:.6e}"
+
+
+def _bound(c: Coefficient) -> str:
+    return "" if c.resolved else " (bound)"
 
 
 def kalibr_yaml(result: Mapping[str, Any], rostopic: str, inflate: float = 1.0) -> str:
@@ -121,16 +120,16 @@ def kalibr_yaml(result: Mapping[str, Any], rostopic: str, inflate: float = 1.0) 
         lines.append(f"# inflation: x{inflate:g} chosen by the user (--kalibr-inflate): every value below "
                      "is the fitted value times this factor")
     for v in vals:
-        f = v.fitted
-        kind = "fitted" if f.supported else "95 % upper bound (not resolved by this capture)"
-        lines.append(f"# {v.key} [{v.unit}]: {kind} {_e(f.value)} on {f.axis}, 95 % interval "
-                     f"[{_e(f.ci95[0])}, {_e(f.ci95[1])}]" + ("" if inflate == 1.0 else
-                                                            f"; written x{inflate:g} = {_e(v.written)}"))
-        per = ", ".join(f"{a.axis} {_e(a.value)}{'' if a.supported else ' (bound)'}" for a in v.axes)
+        lo, hi = v.fitted.interval95
+        kind = "fitted" if v.fitted.resolved else "95 % upper bound (not resolved by this capture)"
+        lines.append(f"# {v.key} [{v.unit}]: {kind} {_e(v.value)} on {v.axis}, 95 % interval "
+                     f"[{_e(lo)}, {_e(hi)}]" + ("" if inflate == 1.0 else
+                                                f"; written x{inflate:g} = {_e(v.written)}"))
+        per = ", ".join(f"{a} {_e(c.cautious)}{_bound(c)}" for a, c in v.axes.items())
         lines.append(f"#   per axis: {per}")
     lines.append("# bias instability B (not in Kalibr's model), per axis, SI (rad/s, m/s^2): " + ", ".join(
-        f"{a} {_e(term_value(a, r, 'B').value)}{'' if term_value(a, r, 'B').supported else ' (bound)'}"
-        for a, r in result["axes"].items()))
+        f"{a} {_e(b.cautious)}{_bound(b)}" for a, b in
+        ((a, axis_coefficient(r, "B")) for a, r in result["axes"].items())))
     lines.append("")
     for sensor, title in (("accel", "Accelerometers"), ("gyro", "Gyroscopes")):
         lines.append(f"#{title}")
@@ -156,9 +155,9 @@ def allan_json(result: Mapping[str, Any], kalibr: list[KalibrValue] | None = Non
     non-finite numbers as null), plus the Kalibr values when given."""
     doc = jsonable(result)
     if kalibr is not None:
-        doc["kalibr"] = {v.key: {"unit": v.unit, "written": v.written, "fitted": v.fitted.value,
-                                 "axis": v.fitted.axis, "supported": v.fitted.supported,
-                                 "ci95": list(v.fitted.ci95)} for v in kalibr}
+        doc["kalibr"] = {v.key: {"unit": v.unit, "written": v.written, "fitted": v.value,
+                                 "axis": v.axis, "supported": v.fitted.resolved,
+                                 "ci95": list(v.fitted.interval95)} for v in kalibr}
     return json.dumps(doc, indent=1, allow_nan=False) + "\n"
 
 

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration_text import param_table
+from .calibration_text import param_table
 from ..errors import InputError
-from ..segment_builder import open_recording
+from ..recording.segment_builder import open_recording
 from ..solvers import pose_loop as pl
 from ..solvers.calibration_result import STATUS_INSUFFICIENT, CalibrationResult
 

@@ -16,8 +16,8 @@ from typing import Any
 import h5py
 
 from .. import __version__
-from ..recording_reader import open_recording
-from ..spec import Spec
+from ..recording.recording_reader import open_recording
+from ..config.spec import Spec
 from . import results as R
 from .verdicts import evaluate
 
@@ -96,7 +96,7 @@ def preload_database(target: str | None) -> None:
 
     def load() -> None:
         try:
-            from .. import results_db  # noqa: F401 - imported for its side effect
+            from ..recording import results_db  # noqa: F401 - imported for its side effect
         except ImportError:
             pass  # to_database says what to install
 
@@ -107,13 +107,13 @@ def to_database(recording: str | Path, kind: str, results: dict[str, Any], targe
                 lot: str | None = None, engine: Any = None) -> str:
     """Write one analysed recording to the results database; returns the line to print.
 
-    ``target``: a URL or SQLite path; None = the default (rigctl.results_db.default_path);
+    ``target``: a URL or SQLite path; None = the default (rigctl.recording.results_db.default_path);
     "none" = do not write. ``engine``: an open engine (batch: one for all recordings).
     """
     if target == "none":
         return ""
     try:
-        from .. import results_db as db  # optional dependency (rigctl[db])
+        from ..recording import results_db as db  # optional dependency (rigctl[db])
     except ImportError:
         return "results database not written: install rigctl[db] (SQLAlchemy, Alembic)"
     where = target or str(db.default_path(recording))

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, RunFailure
-from ..recorder import write_results as store_results
-from ..recording_reader import check_finite, open_recording, sample_rate
+from ..recording.recorder import write_results as store_results
+from ..recording.recording_reader import check_finite, open_recording, sample_rate
 from ..solvers import clock_model, tap_detect, tap_match
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -166,7 +166,7 @@ def _summary(det: tap_detect.Detections, timing: str,
 
 def read_inputs(path: Path, axis: int, timescale: str = "run") -> tuple[Any, ...]:
     """(counter, specific force of ``axis``, sample rate Hz, pulse times s); InputError naming
-    the file for anything a synchronisation cannot use (rigctl.recording_reader checks the rest)."""
+    the file for anything a synchronisation cannot use (rigctl.recording.recording_reader checks the rest)."""
     with open_recording(path, ["imu/counter", "imu/specific_force", "pulses/time"]) as f:
         rate = sample_rate(f)
         counter = f["imu/counter"][()]

@@ -19,18 +19,19 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .. import recording_reader
+from ..recording import recording_reader
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
-from ..recorder import utc_now, write_results
-from ..recording_reader import check_finite
-from ..segment_builder import _angles_at, _site, open_recording
+from ..recording.recorder import utc_now, write_results
+from ..recording.recording_reader import check_finite
+from ..recording.segment_builder import _angles_at, _site, open_recording
 from ..solvers import thermal as th
 from ..solvers.segment_noise import window_revolutions
 from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
@@ -375,7 +376,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
     or no ``noise``, estimates that sensor's noise from the session
     (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
-    from ..calibration_text import noise_summary
+    from .calibration_text import noise_summary
 
     p = Path(path)
     degrees = parse_degrees(degrees)
@@ -521,8 +522,11 @@ def thermal_info(data: dict[str, Any], where: Any) -> dict[str, Any]:
             "model": {"thermal": True, "reference_c": ref, "accepted": accepted}}
 
 
-def apply_thermal(fin: Any, fo: Any, src: Path, info: dict[str, Any], chunk: int = 1 << 18) -> int:
-    """Correct /imu of the copy ``fo`` from ``fin`` with a thermal calibration (rigctl apply-cal)."""
+def thermal_corrector(fin: Any, src: Path, info: dict[str, Any]) -> Callable[..., tuple[np.ndarray, np.ndarray]]:
+    """A thermal calibration's per-chunk correction for ``rigctl apply-cal``
+    (:mod:`rigctl.analysis.apply_cal`): reads the recording's IMU temperature (and the chamber's
+    air temperature) once; returns ``fix(a0, a1, f, w)`` -> the corrected (specific force, rate)
+    of samples a0:a1."""
     if "imu/temperature" not in fin:
         raise InputError("a thermal calibration needs the recording's temperature column (/imu/temperature)", src)
     T = fin["imu/temperature"][()]
@@ -533,14 +537,10 @@ def apply_thermal(fin: Any, fo: Any, src: Path, info: dict[str, Any], chunk: int
         air = np.interp(t, fin["chamber/time"][()], fin["chamber/air_c"][()])
     regs = {s: th.regressors_along(T, t, info["accepted"][s], info["hysteresis_width_K"], air)
             for s in ("accel", "gyro")}
-    fa, fw = fo["imu/specific_force"], fo["imu/angular_rate"]
-    n = fa.shape[0]
-    for a0 in range(0, n, chunk):
-        a1 = min(n, a0 + chunk)
-        f_in, w_in = fin["imu/specific_force"][a0:a1], fin["imu/angular_rate"][a0:a1]
-        check_finite(src, "imu/specific_force", f_in, a0)
-        check_finite(src, "imu/angular_rate", w_in, a0)
-        for ds, sensor, y in ((fa, "accel", f_in), (fw, "gyro", w_in)):
-            ds[a0:a1] = th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
-                                   {c: x[a0:a1] for c, x in regs[sensor].items()})
-    return n
+
+    def fix(a0: int, a1: int, f_in: np.ndarray, w_in: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f, w = (th.correct(sensor, y, T[a0:a1], info["thermal"][sensor], info["reference_c"],
+                           {c: x[a0:a1] for c, x in regs[sensor].items()})
+                for sensor, y in (("accel", f_in), ("gyro", w_in)))
+        return f, w
+    return fix

@@ -1,6 +1,6 @@
 """Verdicts of a unit's results against a spec: one row per specified parameter, an overall.
 
-:func:`evaluate` applies a :class:`rigctl.spec.Spec` to :class:`~rigctl.analysis.results.
+:func:`evaluate` applies a :class:`rigctl.config.spec.Spec` to :class:`~rigctl.analysis.results.
 Measured` parameters with the pure decision rule of :mod:`rigctl.solvers.conformity` and
 returns a JSON-able dict, stored with the results (``payload["verdicts"]`` of
 /results/calibration and /results/allan) and read by the report, the certificate and the
@@ -13,7 +13,7 @@ from typing import Any
 
 from ..display_units import format_value
 from ..solvers.conformity import INDETERMINATE, decide, overall
-from ..spec import Spec
+from ..config.spec import Spec
 from .results import Measured
 
 RULE_TEXT = {

@@ -36,8 +36,9 @@ Where they come from and go to:
 
 * the emulator's profiles (configs/imu-profiles.yaml, ``imu.sim.overrides``): :func:`from_config`
   of a ``noise:`` section, whose keys (:data:`CONFIG_KEYS`: the unit in the key name) are
-  checked with file and line by :mod:`rigctl.sim.profiles`; the emulator generates Q, N, B, K
-  and R (:mod:`rigctl.sim.noise`), not Gauss-Markov terms;
+  checked with file and line by :mod:`rigctl.sim.profiles`, and of the declared ``imu.sim``
+  section (field units, :mod:`rigctl.sim.imu`); the emulator generates every term, Gauss-Markov
+  terms included (:mod:`rigctl.sim.noise`);
 * the Allan fit (:func:`rigctl.solvers.allan_fit.fit_terms`: ``fit["coefficients"]``);
 * the recording's /results/allan (:mod:`rigctl.analysis.results`: stored and read through
   :func:`to_json` / :func:`from_json`);
@@ -93,9 +94,12 @@ CONFIG_KEYS = {
               "K": "K_m_per_s3_per_sqrt_hz", "R": "R_m_per_s3"},
 }
 #: keys of a ``noise:`` section besides the terms: the flicker band (s); the emulator's cascade
-#: density (``flicker_pairs_per_decade``) is read by rigctl.sim.error_model. Gauss-Markov terms are
-#: not a config key: the emulator does not generate them.
+#: density (``flicker_pairs_per_decade``) is read by rigctl.sim.error_model.
 BAND_KEYS = ("flicker_tau_min_s", "flicker_tau_max_s")
+#: a ``noise:`` section's Gauss-Markov terms: ``gm: [{<sigma key>: .., tau_c_s: ..}, ...]``, the
+#: stationary standard deviation in the sensor's SI rate unit and the correlation time in s
+GM_KEY = "gm"
+GM_SIGMA_KEYS = {"gyro": "sigma_rad_per_s", "accel": "sigma_m_per_s2"}
 
 
 @dataclass(frozen=True)
@@ -124,6 +128,21 @@ class Coefficient:
     def resolved(self) -> bool:
         """False when only an upper bound is known."""
         return self.upper95 is None
+
+    @property
+    def cautious(self) -> float:
+        """The estimate of a resolved term, the 95 % upper bound of one known only as a bound:
+        the value a consumer that must not be over-confident takes (the Kalibr export)."""
+        return self.value if self.upper95 is None else self.upper95
+
+    @property
+    def interval95(self) -> tuple[float, float]:
+        """The 95 % interval: ``ci95`` of a resolved term, [0, upper95] of a bound."""
+        if self.upper95 is not None:
+            return (0.0, float(self.upper95))
+        if self.ci95 is None:
+            raise ValueError("this coefficient has no 95 % interval (a given value)")
+        return (float(self.ci95[0]), float(self.ci95[1]))
 
     def scaled(self, factor: float) -> "Coefficient":
         """The same coefficient in another unit (every number times ``factor`` > 0)."""
@@ -307,25 +326,32 @@ def resolved_values(m: NoiseCoefficients) -> dict[str, float]:
 
 
 def from_config(section: Mapping[str, Any] | None, sensor: str, source: str = "emulator profile") -> Triad:
-    """The three axes of a profile's ``noise:`` section (keys :data:`CONFIG_KEYS` and
-    :data:`BAND_KEYS`; each term a number or [x, y, z]). Checked beforehand, with file and line,
-    by :mod:`rigctl.sim.profiles`; a negative value here is a ValueError."""
+    """The three axes of a profile's ``noise:`` section (keys :data:`CONFIG_KEYS`,
+    :data:`BAND_KEYS` and :data:`GM_KEY`; each term a number or [x, y, z], each Gauss-Markov term
+    on every axis). Checked beforehand, with file and line, by :mod:`rigctl.sim.profiles`; a
+    negative value here is a ValueError."""
     section = section or {}
     terms = {t: section.get(k, 0.0) for t, k in CONFIG_KEYS[sensor].items()}
     band = {k: float(section[k]) for k in BAND_KEYS if k in section}
-    return triad(sensor, source, **band, **terms)
+    axes = triad(sensor, source, **band, **terms)
+    gm = tuple(GaussMarkov(float(g[GM_SIGMA_KEYS[sensor]]), float(g["tau_c_s"]))
+               for g in section.get(GM_KEY) or ())
+    return tuple(replace(m, gm=gm) for m in axes) if gm else axes  # type: ignore[return-value]
 
 
 def to_config(axes: Sequence[NoiseCoefficients], sensor: str) -> dict[str, Any]:
-    """A profile's ``noise:`` section for these axes (inverse of :func:`from_config`; SI values)."""
-    if any(m.gm for m in axes):
-        raise ValueError("Gauss-Markov terms have no profile keys (the emulator does not generate them)")
+    """A profile's ``noise:`` section for these axes (inverse of :func:`from_config`; SI values;
+    Gauss-Markov terms must be the same on the three axes)."""
+    if any(m.gm != axes[0].gm for m in axes):
+        raise ValueError("a profile's Gauss-Markov terms hold for the three axes alike")
     out: dict[str, Any] = {}
     for t, k in CONFIG_KEYS[sensor].items():
         v = terms_of(axes, t)
         out[k] = float(v[0]) if np.all(v == v[0]) else v.tolist()
     out["flicker_tau_min_s"] = axes[0].flicker_tau_min_s
     out["flicker_tau_max_s"] = axes[0].flicker_tau_max_s
+    if axes[0].gm:
+        out[GM_KEY] = [{GM_SIGMA_KEYS[sensor]: g.sigma.value, "tau_c_s": g.tau_c_s} for g in axes[0].gm]
     return out
 
 

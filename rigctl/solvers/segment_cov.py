@@ -223,22 +223,6 @@ def cov_flicker(a: ArrayLike, b: ArrayLike, bank: FlickerBank | None = None,
     return float(bank.var_per_b2.sum()) + (d2 @ bank.var_per_b2) / TT
 
 
-def mean_cov(a: ArrayLike, b: ArrayLike, N: float = 0.0, B: float = 0.0, K: float = 0.0, Q: float = 0.0,
-             t0: float = 0.0, bank: FlickerBank | None = None) -> NDArray[np.float64]:
-    """(K, K) covariance of the window means for one axis with IEEE 952 coefficients (SI):
-
-        C = N^2 C_white + Q^2 C_quant + B^2 C_flicker + K^2 C_rw(t0)    (R: deterministic, omitted)
-    """
-    out = N**2 * cov_white(a, b)
-    if Q:
-        out = out + Q**2 * cov_quantization(a, b)
-    if B:
-        out = out + B**2 * cov_flicker(a, b, bank)
-    if K:
-        out = out + K**2 * cov_random_walk(a, b, t0)
-    return 0.5 * (out + out.T)
-
-
 def batch_windows(a: ArrayLike, b: ArrayLike, n_batches: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Start and end times (..., n_batches) of equal batches of the windows [a, b] (...)."""
     a = np.asarray(a, dtype=np.float64)[..., None]

@@ -60,6 +60,7 @@ from scipy import stats
 
 from . import segment_noise as sn
 from .segment_cov import Whitener
+from .sensor_model import invert_quadratic
 
 AXES = "xyz"
 CANDIDATES = ("hysteresis", "temperature_rate", "thermal_gradient")
@@ -473,7 +474,7 @@ def correct(sensor: str, y: np.ndarray, T: np.ndarray, params: dict[str, float],
             regressors: dict[str, np.ndarray] | None = None, max_iter: int = 20) -> np.ndarray:
     """Invert a fitted thermal model sample by sample: the true input u (n, 3) from the measured
     y (n, 3) at temperatures T (n,): y = b(T) + M(T) u [+ k2 o u^2] + effects (Newton's method
-    with the per-sample M when k2 is present)."""
+    with the per-sample M when k2 is present: :func:`rigctl.solvers.sensor_model.invert_quadratic`)."""
     m = evaluate(params, sensor, T, reference_c)
     b, M = m["bias"], m["M"]
     u_name = UNIT[sensor]
@@ -483,15 +484,4 @@ def correct(sensor: str, y: np.ndarray, T: np.ndarray, params: dict[str, float],
         coef = np.array([params.get(key.format(s=sensor, a=a, u=u_name), 0.0) for a in AXES])
         b = b + np.asarray(x, float)[:, None] * coef
     k2 = np.array([params.get(f"{sensor}_quad_{a}_s2_per_m", 0.0) for a in AXES])
-    u = np.linalg.solve(M, (y - b)[..., None])[..., 0]
-    if not np.any(k2):
-        return u
-    for _ in range(max_iter):
-        r = b + (M @ u[..., None])[..., 0] + k2 * u * u - y
-        J = M.copy()
-        J[:, [0, 1, 2], [0, 1, 2]] += 2.0 * k2 * u
-        step = np.linalg.solve(J, r[..., None])[..., 0]
-        u = u - step
-        if np.max(np.abs(step), initial=0.0) < 1e-12:
-            break
-    return u
+    return invert_quadratic(y, b, M, k2, max_iter)

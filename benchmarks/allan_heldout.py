@@ -1,0 +1,300 @@
+"""Rehearsal of issue 15's last check: real captures through `rigctl import` + `rigctl allan`
+(defaults, then --taus octave), each curve read again here with plain numpy, and B judged
+against the curve's floor.
+
+    python benchmarks/allan_heldout.py [--keep DIR] [--only NAME,...]
+
+Captures (those present in tests/data): the ADIS16405 (6 axes, whitespace text of counts), the
+XSens MTi-G gyro (TSV, ns stamps; and as a rosbag2 with mcap storage
+and 3 dropped messages -- one gap, which rigctl skips as Stable32 does), the Astro Pi Sense HAT's x-up section (its CSV with the
+ISO `time_stamp` column as shipped), the 10 MHz OCXO (the counter's file as published, Hz,
+scaled to fractional frequency), and the Stable32 phase files (Cs5071A, Keysight 53230A,
+PHASE.DAT: `--units gyr=rad --integrated`). Each goes through the CLI as a user types it.
+
+The independent read (numpy, scipy's chi-square only): the fully overlapping Allan deviation at
+the taus rigctl reports; each tau's EDF from NIST SP 1065's simple approximations (the smaller of
+the noise type the local slope indicates and flicker FM); informative taus hi95/lo95 <= 2; the
+floor = the minimum over the informative taus; the curve "shows a floor" when informative taus
+reach at least 1.4x past it and the log-log slope over 2.5x either side of it is within +-0.25.
+
+Per axis and tau set: the floor and its tau, floor/0.664 (the largest B the curve allows), B
+(estimate with its 95 % interval, or a bound), B / (floor/0.664), the fitted IEEE 952 total at
+the floor over the curve there (with its 95 % band), and a verdict:
+  FAIL-bound     the curve shows a floor but B is only a bound
+  FAIL-above     B's 95 % interval lies wholly above floor/0.664, or a bound above it
+  MISS           an estimate, but floor/0.664 is outside its 95 % interval (the floor is not
+                 B alone: N, K, Q or a tone take part of sigma^2 there -- read the total column)
+  no-floor-estimate  B an estimate (below the limit) although the curve shows no floor
+  ok             otherwise
+Last line: one JSON object (counts per verdict, seconds).
+"""
+from __future__ import annotations
+
+import argparse
+import gzip
+import io
+import json
+import math
+import sys
+import tempfile
+import time
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data"
+B_FACTOR = math.sqrt(2 * math.log(2) / math.pi)
+D2R = math.pi / 180
+
+
+def rigctl(*argv: str) -> None:
+    from rigctl import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = cli.main([*argv])
+    if code != 0:
+        raise RuntimeError(f"rigctl {' '.join(argv)}: exit {code}\n{err.getvalue()[-2000:]}")
+
+
+def _write_bag(path: Path, gyro_x: np.ndarray, drop: range) -> None:
+    """A rosbag2 (mcap storage) of sensor_msgs/Imu at 100 Hz with header stamps, as a robot's
+    recorder writes it (the rosbags package's writer), some messages dropped."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    imu = "sensor_msgs/msg/Imu"
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    z9 = np.zeros(9)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/imu", imu, typestore=store)
+        for i, v in enumerate(gyro_x):
+            if i in drop:
+                continue
+            ns = 1_600_000_000_000_000_000 + i * 10_000_000
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                           frame_id="imu")
+            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
+                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
+                       linear_acceleration=vec(0.0, 0.0, 9.81), linear_acceleration_covariance=z9)
+            w.write(c, ns + 2_000_000, store.serialize_cdr(m, imu))
+
+
+# ------------------------------------------------------------------ the captures, as files
+def captures(tmp: Path) -> list[dict]:
+    """(name, recording, axes, {axis: SI samples}, tau0) for every capture present."""
+    out = []
+    d = DATA / "adis16405-static"
+    if (d / "gyro_counts.txt.gz").is_file():
+        g = np.loadtxt(d / "gyro_counts.txt.gz", dtype=np.int64)
+        a = np.loadtxt(d / "accel_counts.txt.gz", dtype=np.int64)
+        txt = tmp / "adis16405.txt"
+        np.savetxt(txt, np.column_stack([g, a]), fmt="%d")
+        rec = tmp / "adis16405.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--rate", "100", "--force",
+               "--columns", "gyr_x=0,gyr_y=1,gyr_z=2,acc_x=3,acc_y=4,acc_z=5",
+               "--units", "gyr=counts:0.05 deg/s,acc=counts:0.00333 g")
+        si = {f"g{c}": g[:, i] * (0.05 * D2R) for i, c in enumerate("xyz")}
+        si.update({f"a{c}": a[:, i] * (0.00333 * 9.80665) for i, c in enumerate("xyz")})
+        out.append({"name": "ADIS16405", "rec": rec, "si": si, "tau0": 0.01})
+    f = DATA / "mtig-static-contaminated" / "gyro_x_rad_s.txt.gz"
+    if f.is_file():
+        y = np.loadtxt(f)
+        txt = tmp / "mtig.tsv"
+        with open(txt, "w") as fh:
+            fh.write("t_ns\tgyro_x\n")
+            fh.writelines(f"{k * 10_000_000}\t{v:.8g}\n" for k, v in enumerate(y))
+        rec = tmp / "mtig.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "time=t_ns,gyr_x=gyro_x",
+               "--units", "gyr=rad/s,time=ns")
+        y = np.array([float(f"{v:.8g}") for v in y])
+        out.append({"name": "MTi-G", "rec": rec, "si": {"gx": y}, "tau0": 0.01})
+        bag = tmp / "mtig_bag"  # the same samples as a rosbag2 (mcap) with 3 messages dropped
+        if not bag.exists():
+            _write_bag(bag, y, drop=range(200_000, 200_003))
+        rec = tmp / "mtig_bag.h5"
+        rigctl("import", str(bag), "-o", str(rec), "--force")
+        out.append({"name": "MTi-G bag gap", "rec": rec, "tau0": 0.01,
+                    "si": {"gx": [y[:200_000], y[200_003:]]}})
+    f = DATA / "astropi-sensehat-static" / "astro_pi_data_20150824_085954.csv.gz"
+    if f.is_file():  # the x-up section (rows 3902 on; its README), the CSV's columns unchanged
+        with gzip.open(f, "rt") as fh:
+            lines = fh.read().splitlines()
+        txt = tmp / "astropi.csv"
+        txt.write_text("\n".join([lines[0], *lines[1 + 3902:]]) + "\n")
+        seg = tmp / "astropi_sections.json"
+        seg.write_text(json.dumps({"x up": {"start": 0, "end": len(lines) - 1 - 3902}}))
+        rec = tmp / "astropi.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--segments", str(seg), "--columns",
+               "time=time_stamp,acc_x=accel_x,acc_y=accel_y,acc_z=accel_z,gyr_x=gyro_x,gyr_y=gyro_y,"
+               "gyr_z=gyro_z", "--units", "acc=g,gyr=rad/s")
+        import h5py
+
+        with h5py.File(rec, "r") as h:  # one reading every ~10 s with one-sample gaps: the
+            w, s = h["imu/angular_rate"][()], h["imu/specific_force"][()]  # rows as stored
+        si = {f"g{c}": w[:, i] for i, c in enumerate("xyz")}
+        si.update({f"a{c}": s[:, i] for i, c in enumerate("xyz")})
+        out.append({"name": "AstroPi", "rec": rec, "si": si, "tau0": 10.0,
+                    "note": "gaps read as contiguous here (236 of 20,702)"})
+    f = DATA / "ocxo-frequency-stable32" / "ocxo_frequency.txt.gz"
+    if f.is_file():
+        txt = tmp / "ocxo_frequency.txt"
+        txt.write_bytes(gzip.decompress(f.read_bytes()))
+        rec = tmp / "ocxo.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0",
+               "--units", "gyr=counts:1e-07 rad/s", "--rate", "1")
+        out.append({"name": "OCXO", "rec": rec, "si": {"gx": np.loadtxt(txt) * 1e-7}, "tau0": 1.0})
+    s32 = DATA / "stable32-reference"
+    for name, rel in (("Cs5071A", "Cs5071A/5071A_phase.txt.gz"),
+                      ("Keysight53230A", "Keysight53230A_ti_noise_floor/tic_phase.txt"),
+                      ("PHASE.DAT", "phasedat/PHASE.DAT")):
+        f = s32 / rel
+        if not f.is_file():
+            continue
+        txt = tmp / (name + ".txt")
+        txt.write_bytes(gzip.decompress(f.read_bytes()) if f.suffix == ".gz" else f.read_bytes())
+        rec = tmp / (name + ".h5")
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0", "--units", "gyr=rad",
+               "--integrated", "--rate", "1")
+        x = np.loadtxt(txt, comments=["#", "%"])
+        out.append({"name": name, "rec": rec, "si": {"gx": np.diff(x)}, "tau0": 1.0})
+    return out
+
+
+# ------------------------------------------------------------------ the independent read
+def oadev(y: np.ndarray | list[np.ndarray], tau0: float, ms: np.ndarray) -> np.ndarray:
+    """Fully overlapping ADEV; given gap-free stretches, the terms inside each (a term touching
+    a gap skipped, as Stable32 does) pooled."""
+    parts = y if isinstance(y, list) else [y]
+    mean = np.concatenate(parts).mean()
+    xs = [np.concatenate(([0.0], np.cumsum(p - mean))) * tau0 for p in parts]
+    out = []
+    for m in ms:
+        ss, n = 0.0, 0
+        for x in xs:
+            if len(x) > 2 * m:
+                d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+                ss, n = ss + float(d @ d), n + d.size
+        out.append(math.sqrt(ss / n / (2 * (m * tau0) ** 2)))
+    return np.array(out)
+
+
+def edf(n_phase: int, m: int, alpha: int) -> float:
+    """NIST SP 1065 simple EDF approximations (overlapping ADEV) per power-law noise alpha."""
+    n = float(n_phase)
+    if alpha >= 2:
+        return (n + 1) * (n - 2 * m) / (2 * (n - m))
+    if alpha == 1:
+        return math.exp(math.sqrt(math.log((n - 1) / (2 * m)) * math.log((2 * m + 1) * (n - 1) / 4)))
+    if alpha == 0:
+        return (3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5)
+    if alpha == -1:
+        return 2 * (n - 2) ** 2 / (2.3 * n - 4.9) if m == 1 else 5 * n * n / (4 * m * (n + 3 * m))
+    return (n - 2) / m * ((n - 1) ** 2 - 3 * m * (n - 1) + 4 * m * m) / (n - 3) ** 2
+
+
+def read_curve(y: np.ndarray | list[np.ndarray], tau0: float, ms: np.ndarray) -> dict:
+    tau = ms * tau0
+    dev = oadev(y, tau0, ms)
+    n_all = sum(len(p) for p in y) if isinstance(y, list) else len(y)
+    slope = np.gradient(np.log(dev), np.log(tau))
+    alpha = np.clip(np.round(-2 * slope - 1), -2, 2).astype(int)
+    nu = np.array([min(edf(n_all + 1, int(m), int(a)), edf(n_all + 1, int(m), -1)) for m, a in zip(ms, alpha)])
+    lo, hi = dev * np.sqrt(nu / chi2.ppf(0.975, nu)), dev * np.sqrt(nu / chi2.ppf(0.025, nu))
+    ok = hi / lo <= 2.0
+    i = int(np.argmin(np.where(ok, dev, np.inf)))
+    near = ok & (tau >= tau[i] / 2.5) & (tau <= tau[i] * 2.5)
+    flat = float(np.polyfit(np.log(tau[near]), np.log(dev[near]), 1)[0]) if near.sum() >= 3 else float("nan")
+    reach = float(tau[ok].max() / tau[i])
+    return {"tau": tau, "dev": dev, "lo": lo, "hi": hi, "i": i, "floor": float(dev[i]),
+            "tau_floor": float(tau[i]), "flat": flat, "reach": reach,
+            "shows_floor": bool(reach >= 1.4 and abs(flat) < 0.25)}
+
+
+def total(coef: dict, tones: list[dict], tau: float, tau0: float) -> float:
+    v = lambda t: float(coef[t].get("value") or 0.0)  # noqa: E731
+    s2 = (3 * v("Q") ** 2 / tau ** 2 + v("N") ** 2 / tau + B_FACTOR ** 2 * v("B") ** 2
+          + v("K") ** 2 * tau / 3 + v("R") ** 2 * tau ** 2 / 2)
+    m = tau / tau0
+    for t in tones:
+        s2 += t["amp_si"] ** 2 * math.sin(math.pi * t["freq_hz"] * tau) ** 4 / (
+            m * math.sin(math.pi * t["freq_hz"] * tau0)) ** 2
+    return math.sqrt(s2)
+
+
+def judge(r: dict, c: dict, tau0: float) -> dict:
+    b = r["fit"]["coefficients"]["B"]
+    lim = c["floor"] / B_FACTOR
+    est = "ci95" in b
+    lo, hi = b["ci95"] if est else (float("nan"), b["upper95"])
+    tot = total(r["fit"]["coefficients"], r["fit"].get("tones", {}).get("terms", []), c["tau_floor"], tau0)
+    i = c["i"]
+    if c["shows_floor"] and not est:
+        verdict = "FAIL-bound"
+    elif (est and lo > lim) or (not est and hi > lim * (1 + 1e-9)):
+        verdict = "FAIL-above"
+    elif c["shows_floor"] and not lo <= lim <= hi:
+        verdict = "MISS"
+    elif est and not c["shows_floor"]:
+        verdict = "no-floor-estimate"
+    else:
+        verdict = "ok"
+    return {"floor": c["floor"], "tau_floor_s": c["tau_floor"], "floor_slope": c["flat"],
+            "reach_x": c["reach"], "shows_floor": c["shows_floor"], "limit_b": lim,
+            "b": b.get("value") if est else None, "b_lo95": lo if est else None, "b_hi95": hi,
+            "b_is_estimate": est, "b_over_limit": (b.get("value") if est else hi) / lim,
+            "total_over_curve_at_floor": tot / c["dev"][i],
+            "band95_at_floor": [c["lo"][i] / c["dev"][i], c["hi"][i] / c["dev"][i]],
+            "check_ok": r["fit"]["check"]["ok"], "verdict": verdict}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--keep", help="write the files and recordings here (default: a temporary dir)")
+    ap.add_argument("--only", help="comma-separated capture names")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    tmpd = None if args.keep else tempfile.TemporaryDirectory()
+    tmp = Path(args.keep or tmpd.name)
+    tmp.mkdir(parents=True, exist_ok=True)
+    counts: dict[str, int] = {}
+    rows = []
+    caps = captures(tmp)
+    if args.only:
+        caps = [c for c in caps if c["name"] in args.only.split(",")]
+    print(f"{'capture':15s} {'taus':7s} ax  {'floor':>10s} {'at s':>8s} slope reach floor? "
+          f"{'B (95 %)':>34s} B/lim total/curve [band] verdict")
+    for cap in caps:
+        for taus in ("default", "octave"):
+            js = tmp / f"{cap['rec'].stem}_{taus}.json"
+            rigctl("allan", str(cap["rec"]), "--db", "none", "--json", str(js),
+                   *(["--taus", "octave"] if taus == "octave" else []))
+            res = json.loads(js.read_text())["axes"]
+            for ax, y in cap["si"].items():
+                r = res[ax]
+                c = read_curve(y if isinstance(y, list) else np.asarray(y, float), cap["tau0"],
+                               np.asarray(r["m"], int))
+                j = judge(r, c, cap["tau0"])
+                counts[j["verdict"]] = counts.get(j["verdict"], 0) + 1
+                rows.append({"capture": cap["name"], "taus": taus, "axis": ax, **j})
+                bt = (f"{j['b']:.4g} [{j['b_lo95']:.4g}, {j['b_hi95']:.4g}]" if j["b_is_estimate"]
+                      else f"< {j['b_hi95']:.4g}")
+                print(f"{cap['name']:15s} {taus:7s} {ax}  {j['floor']:10.4g} {j['tau_floor_s']:8.4g} "
+                      f"{j['floor_slope']:+5.2f} {j['reach_x']:5.1f} {'yes' if j['shows_floor'] else 'no':6s} "
+                      f"{bt:>34s} {j['b_over_limit']:5.2f} {j['total_over_curve_at_floor']:5.3f} "
+                      f"[{j['band95_at_floor'][0]:.3f}, {j['band95_at_floor'][1]:.3f}] {j['verdict']}",
+                      flush=True)
+    if args.keep:
+        (tmp / "allan_heldout.json").write_text(json.dumps(rows, indent=1, default=float))
+    print(json.dumps({"axes_x_tau_sets": len(rows), **{f"n_{k.replace('-', '_')}": v for k, v in
+                                                       sorted(counts.items())},
+                      "wall_s": round(time.perf_counter() - t0, 1)}))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

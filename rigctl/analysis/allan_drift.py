@@ -1,0 +1,301 @@
+"""Slow features of a static capture that are not IEEE 952 noise, for the Allan pipeline
+(:mod:`rigctl.analysis.allan`): a start transient (warm-up) and a drift that follows the
+recorded temperature. The statistics are :mod:`rigctl.solvers.allan_drift`'s; this module reads
+an axis' block means from the streamed record (the decimated phase the noise identification
+keeps), puts the results in the axis' result (``warmup``, ``temperature``), names them in the
+fit's self-check where they explain the taus outside the band, and words them.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..solvers import allan_drift as D
+
+G0 = 9.80665
+#: display unit of a level (the deviation's field unit) and of a rate of change per K
+LEVEL_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / G0)}
+
+#: what to do with a start transient found before the fit: report it, or cut the record's
+#: start (the longest trim over the axes) and analyse the rest
+WARMUP_MODES = ("report", "exclude")
+
+
+def block_means(phase: np.ndarray, step_s: float) -> tuple[np.ndarray, float]:
+    """Block means of the rate from the phase sampled every ``step_s`` (the stream's
+    decimated copy), averaged down to at most D.MAX_BLOCKS blocks: (means, block length s)."""
+    x = np.asarray(phase, dtype=float)
+    k = max(1, -(-(x.size - 1) // D.MAX_BLOCKS))
+    xs = x[::k]  # every k-th phase point: the block means are their differences
+    return np.diff(xs) / (k * step_s), k * step_s
+
+
+def start_transient(ybar: np.ndarray, block_s: float, tau: np.ndarray, dev: np.ndarray,
+                    record_s: float, sensor: str) -> dict[str, Any]:
+    """The start-transient test and, when it finds one, the exponential's fit, its Allan
+    deviation at the curve's taus (``adev_si``, SI) and the cut that would leave less than a
+    tenth of the curve (``trim_s``); amplitude also in the deviation's field unit."""
+    test = D.start_transient_test(ybar, block_s)
+    out: dict[str, Any] = {"detected": test["detected"], "p_value": test["p_value"],
+                           "alpha": test["alpha"], "test": test}
+    if not test["detected"]:
+        return out
+    fit = D.fit_start_transient(ybar, block_s, test["best_T_s"], record_s)
+    if "skipped" in fit:
+        out["fit"] = fit
+        return out
+    unit, fac = LEVEL_UNITS[sensor]
+    amp_hi = max(abs(fit["amp_ci95"][0]), abs(fit["amp_ci95"][1]))
+    tau_hi = fit["tau_ci95"][1]
+    trim = D.trim_for(amp_hi, tau_hi, tau, dev, record_s)
+    w2 = D.transient_avar(tau, fit["amp"], fit["tau_s"], record_s)
+    share = w2 / np.maximum(np.asarray(dev, dtype=float) ** 2, 1e-300)
+    k = int(np.argmax(share))
+    out.update({"fit": fit, "amp_si": fit["amp"], "tau_s": fit["tau_s"],
+                "tau_ci95_s": fit["tau_ci95"], "amp_ci95_si": fit["amp_ci95"],
+                f"amp_{unit}": fit["amp"] * fac,
+                f"amp_ci95_{unit}": [v * fac for v in fit["amp_ci95"]], "unit": unit,
+                "trim_s": float(trim), "adev_si": np.sqrt(w2), "share": share,
+                "max_share": float(share[k]), "max_share_tau_s": float(np.asarray(tau)[k])})
+    return out
+
+
+def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key: str,
+                  why_below: str | None = None) -> int:
+    """Put the runs of taus outside the band down to a feature (``key``) that is not IEEE 952
+    noise: a run where the feature's Allan variance is at least D.NAME_SHARE of the curve's at
+    some tau of it gets ``why``; with ``why_below``, a run of data below the fit at taus past
+    the feature's largest share (when that share reaches D.NAME_SHARE) gets it: the fit's
+    long-tau terms (K, B) took the feature and overshoot the curve there. The earlier reason
+    is kept in ``likely_before``. Returns the runs renamed."""
+    tau = np.asarray(tau, dtype=float)
+    share = np.asarray(share, dtype=float)
+    k = int(np.argmax(share)) if share.size else 0
+    peak_ok = share.size and float(share[k]) >= D.NAME_SHARE
+    renamed = 0
+    for o in check.get("outside") or []:
+        sel = (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
+        if not sel.any() or o.get("cause"):
+            continue
+        if float(np.max(share[sel])) >= D.NAME_SHARE:
+            reason = why
+        elif (why_below and peak_ok and o["side"] == "data below the fit"
+              and o["tau_from_s"] >= float(tau[k])):
+            reason = why_below
+        else:
+            continue
+        if "likely_before" not in o:
+            o["likely_before"] = o["likely"]
+        o["likely"] = reason
+        o["cause"] = key
+        renamed += 1
+    return renamed
+
+
+def warmup_reason(w: dict[str, Any]) -> str:
+    """The self-check's reason for the taus a start transient explains."""
+    unit = w["unit"]
+    return (f"a warm-up transient at the start of the record (the mean settles by "
+            f"{w[f'amp_{unit}']:.3g} {unit} with a time constant of {w['tau_s']:.3g} s; its "
+            f"own Allan deviation is up to {100 * math.sqrt(w['max_share']):.0f} % of the "
+            f"curve's), not a term of the noise: trim the first {w['trim_s']:.0f} s "
+            "(--warmup exclude)")
+
+
+def warmup_reason_below(w: dict[str, Any]) -> str:
+    """The self-check's reason for data below the fit past the transient's taus."""
+    unit = w["unit"]
+    return (f"the fitted K and B take the warm-up transient at the start of the record "
+            f"({w[f'amp_{unit}']:.3g} {unit}, time constant {w['tau_s']:.3g} s; its Allan "
+            f"deviation is up to {100 * math.sqrt(w['max_share']):.0f} % of the curve at "
+            f"{w['max_share_tau_s']:.3g} s) and overshoot the curve here: trim the first "
+            f"{w['trim_s']:.0f} s (--warmup exclude)")
+
+
+def warmup_sentences(r: dict[str, Any]) -> list[str]:
+    """Warnings on an axis' start transient ([] if none was found): the one found (before
+    the cut, with --warmup exclude) and, after a cut, any still found."""
+    ex = r.get("warmup_excluded")
+    w = (ex or {}).get("before") or r.get("warmup") or {}
+    out = []
+    if w.get("detected") and "tau_s" in w:
+        unit = w["unit"]
+        lo, hi = w[f"amp_ci95_{unit}"]
+        tl, th = w["tau_ci95_s"]
+        head = (f"start transient (warm-up): the mean settles exponentially by "
+                f"{w[f'amp_{unit}']:.3g} {unit} [{lo:.3g}, {hi:.3g}] with a time constant of "
+                f"{w['tau_s']:.3g} s [{tl:.3g}, {th:.3g}] (95 %; test p = {w['p_value']:.2g} "
+                f"against the record's own later differences, alpha {w['alpha']:g}); its Allan "
+                f"deviation reaches {100 * math.sqrt(w['max_share']):.0f} % of the curve (at "
+                f"{w['max_share_tau_s']:.3g} s)")
+        how = w["fit"].get("interval_from", "")
+        if "Newey-West" in how or "overlapping" in how:
+            head += f" -- intervals from {how}"
+        if ex:
+            out.append(f"{head}: the first {ex['trim_s']:.0f} s were cut before the deviations "
+                       f"(--warmup exclude; with them: {ex['summary_before']})")
+        else:
+            out.append(f"{head}: it is in the curve and the fit (K and B take it); to leave it "
+                       f"out: --warmup exclude (cuts the first {w['trim_s']:.0f} s)")
+    now = r.get("warmup") or {}
+    if ex and now.get("detected") and "tau_s" in now:
+        unit = now["unit"]
+        out.append(f"after the cut a start transient is still found ({now[f'amp_{unit}']:.3g} "
+                   f"{unit}, time constant {now['tau_s']:.3g} s, p = {now['p_value']:.2g})")
+    return out
+
+
+# ------------------------------------------------------------------ temperature
+#: what to do with a drift that follows the recorded temperature: report it, or subtract the
+#: fitted temperature term from the samples and analyse again
+TEMPERATURE_MODES = ("report", "remove")
+#: the slow part of the signal: the record in about this many block means
+TEMP_BLOCKS = 128
+#: the temperature is named when the regression's p is below this (per axis)
+TEMP_ALPHA = 1e-3
+#: per-sample units of a temperature coefficient, per sensor (field unit per K)
+COEF_UNITS = {"gyro": ("deg/h/K", 180.0 / math.pi * 3600.0), "accel": ("mg/K", 1000.0 / G0)}
+
+
+def read_temperature_blocks(path: str, s0: int, rows_per_block: int, n_blocks: int
+                            ) -> np.ndarray | None:
+    """Means of /imu/temperature over the same row blocks as an axis' block means (rows
+    s0 + i rows_per_block ...), read in pieces; None without a usable temperature (absent,
+    not one value per IMU row, fewer than 90 % finite, or constant)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        ds = f.get("imu/temperature")
+        if ds is None or ds.ndim != 1 or ds.shape[0] < s0 + n_blocks * rows_per_block:
+            return None
+        # a look at 256 rows first: a constant or missing temperature (the recorder writes
+        # the column for every IMU, a day at 2 kHz is 0.7 GB of it) is not read through
+        probe = np.asarray(ds[np.unique(np.linspace(s0, s0 + n_blocks * rows_per_block - 1,
+                                                    256).astype(np.int64))], dtype=float)
+        fin = np.isfinite(probe)
+        if fin.mean() < 0.9 or np.ptp(probe[fin]) <= 0:
+            return None
+        out = np.empty(n_blocks)
+        step = max(1, (1 << 20) // rows_per_block)
+        for i in range(0, n_blocks, step):
+            j = min(n_blocks, i + step)
+            v = np.asarray(ds[s0 + i * rows_per_block: s0 + j * rows_per_block], dtype=float)
+            out[i:j] = v.reshape(j - i, rows_per_block).mean(axis=1)
+    fin = np.isfinite(out)
+    if fin.mean() < 0.9 or np.ptp(out[fin]) <= 0:
+        return None
+    return out
+
+
+def temperature_check(ybar: np.ndarray, tbar: np.ndarray, block_s: float, rows_per_block: int,
+                      tau: np.ndarray, dev: np.ndarray, sensor: str) -> dict[str, Any]:
+    """The regression of the slow part of the signal (about TEMP_BLOCKS block means) on the
+    temperature (:func:`rigctl.solvers.allan_drift.temperature_regression`), the temperature
+    term's Allan deviation at the curve's taus (the coarse temperature interpolated to the
+    fine blocks, times the coefficient) and its share of the curve; ``correction``: the term
+    at the coarse blocks' centre rows (relative to the range's first row), for
+    --temperature remove."""
+    k = max(1, ybar.size // TEMP_BLOCKS)
+    yc, tc = D.aggregate(ybar, k), D.aggregate(tbar, k)
+    reg = D.temperature_regression(yc, tc)
+    unit, fac = COEF_UNITS[sensor]
+    out: dict[str, Any] = {"found": False, "alpha": TEMP_ALPHA, "block_s": k * block_s,
+                           "blocks": int(yc.size), **reg}
+    if "skipped" in reg:
+        return out
+    out.update({"found": bool(reg["p_value"] < TEMP_ALPHA), "coef_field": reg["coef"] * fac,
+                "coef_unit": unit,
+                "coef_ci95_field": [v * fac for v in reg["coef_ci95"]]})
+    fin = np.isfinite(tc)
+    centres = (np.arange(tc.size) + 0.5) * k
+    t_fine = np.interp(np.arange(tbar.size) + 0.5, centres[fin], tc[fin])
+    t_ref = float(np.mean(tc[fin]))
+    term = reg["coef"] * (t_fine - t_ref)
+    adev = D.series_adev(term, block_s, tau)
+    share = np.nan_to_num(adev ** 2 / np.maximum(np.asarray(dev, dtype=float) ** 2, 1e-300))
+    i = int(np.argmax(share))
+    out.update({"temp_ref_degC": t_ref, "adev_si": adev, "share": share,
+                "max_share": float(share[i]), "max_share_tau_s": float(np.asarray(tau)[i]),
+                "correction": {"rows": centres[fin] * rows_per_block,
+                               "values": reg["coef"] * (tc[fin] - t_ref)}})
+    return out
+
+
+def correction_at(corr: dict, first: int, n: int) -> np.ndarray:
+    """The correction of rows first .. first + n - 1 (relative to the range's first row):
+    the term at the block centres, interpolated linearly (held beyond the first and last)."""
+    rows = np.arange(first, first + n, dtype=float)
+    return np.interp(rows, np.asarray(corr["rows"], float), np.asarray(corr["values"], float))
+
+
+def temperature_reason(t: dict[str, Any]) -> str:
+    lo, hi = t["coef_ci95_field"]
+    return (f"the recorded temperature: the slow part of the signal follows it by "
+            f"{t['coef_field']:.3g} {t['coef_unit']} [{lo:.3g}, {hi:.3g}] (95 %), and "
+            f"that term's own Allan deviation is up to {100 * math.sqrt(t['max_share']):.0f} % of "
+            f"the curve's (at {t['max_share_tau_s']:.3g} s), not a term of the noise: "
+            "--temperature remove takes it out")
+
+
+def temperature_step(path: str, s0: int, axes: dict[str, dict]) -> None:
+    """Each analysed axis' ``temperature`` (:func:`temperature_check`) when the recording
+    has a usable /imu/temperature (else ``{"found": False, "skipped": ...}``), and the fit's
+    self-check runs it explains named (after the warm-up's, which go first); the block means
+    the analysis kept (``_blocks``) are dropped."""
+    read: dict[tuple[int, int], np.ndarray | None] = {}  # one read per block layout
+    for r in axes.values():
+        blk = r.pop("_blocks", None)
+        if blk is None:
+            continue
+        key = (blk["rows_per_block"], blk["ybar"].size)
+        if key not in read:
+            read[key] = read_temperature_blocks(path, s0, *key)
+        tbar = read[key]
+        if tbar is None:
+            r["temperature"] = {"found": False, "skipped": "no usable /imu/temperature"}
+            continue
+        dev = np.asarray(r[f"adev_{r['_si']}"], dtype=float)
+        t = temperature_check(blk["ybar"], tbar, blk["block_s"], blk["rows_per_block"],
+                              r["tau_s"], dev, r["sensor"])
+        r["temperature"] = t
+        if t["found"]:
+            name_in_check(r["fit"]["check"], r["tau_s"], t["share"], temperature_reason(t),
+                          "temperature")
+
+
+def temperature_sentences(r: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(warnings, notes) on an axis' drift against the recorded temperature."""
+    rm = r.get("temperature_removed")
+    t = (rm or {}).get("before") or r.get("temperature") or {}
+    if "coef" not in t:
+        return [], []
+    lo, hi = t["coef_ci95_field"]
+    what = (f"{t['coef_field']:.3g} {t['coef_unit']} [{lo:.3g}, {hi:.3g}] (95 %; "
+            f"differences of {t['blocks']} block means of {t['block_s']:.4g} s on the recorded "
+            f"temperature, span {t['temp_span_K']:.3g} K, p = {t['p_value']:.2g})")
+    if not t["found"]:
+        return [], [f"no drift with the recorded temperature: {what}"]
+    head = (f"the slow part of the signal follows the recorded temperature: {what}; that "
+            f"term's Allan deviation reaches {100 * math.sqrt(t['max_share']):.0f} % of the "
+            f"curve (at {t['max_share_tau_s']:.3g} s)")
+    if rm:
+        return [f"{head}: subtracted from the samples before the deviations (--temperature "
+                f"remove; with it: {rm['summary_before']})"], []
+    return [f"{head}: it is in the curve and the fit; to take it out: --temperature remove"], []
+
+
+def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(label, tau, Allan deviation in SI) of the warm-up transient and the temperature term
+    found on an axis (as analysed: after a cut or a removal, what is left of them), for the
+    plot; [] if none."""
+    out = []
+    w = r.get("warmup") or {}
+    if w.get("detected") and "adev_si" in w:
+        out.append((f"warm-up transient ({w['tau_s']:.3g} s)", r["tau_s"], w["adev_si"]))
+    t = r.get("temperature") or {}
+    if t.get("found") and "adev_si" in t:
+        out.append((f"temperature term ({t['coef_field']:.3g} {t['coef_unit']})", r["tau_s"],
+                    t["adev_si"]))
+    return out

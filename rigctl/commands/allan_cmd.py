@@ -1,0 +1,200 @@
+"""``rigctl allan RECORDING.h5``: Allan analysis of a recording's IMU channels.
+
+Parses the arguments, calls the pipeline (:mod:`rigctl.analysis.allan`: streamed overlapping
+Allan deviation, Stable32-style noise identification, EDF intervals, the joint IEEE 952 fit
+and its self-check, stored under /results/allan), and presents it: a table per axis, the
+self-check's warnings, ``--plot FILE`` (a log-log plot; needs matplotlib) and the exports.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigctl.analysis import noise_export, production
+from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES, plot_extras
+from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
+    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes, check_warnings, choose_range,
+    default_axes, gap_message, compute, screening_notes, solve_recording, store, summary_line)
+from rigctl.analysis.verdicts import format_verdicts
+from rigctl.jsonable import jsonable
+from rigctl.solvers import noise_coefficients as NC
+from rigctl.commands.cli_options import add_production_options
+from rigctl.errors import InputError
+from rigctl.solvers import allan as A
+from rigctl.solvers import allan_fit as F
+from rigctl.display_units import capture_text, need_text  # noqa: F401 - kept for callers
+from rigctl.config.spec import load_spec
+
+
+def format_table(axis: str, r: dict[str, Any]) -> str:
+    """Human-readable table of one axis plus its fitted terms."""
+    unit = r["_unit"]
+    lines = [f"== {axis} ({r['sensor']}, {r['n_samples']} samples, {r['mode']} mode)",
+             f"{'tau_s':>12} {'adev_' + unit:>14} {'lo68':>12} {'hi68':>12} "
+             f"{'alpha':>5} {'edf':>10}"]
+    for i in range(len(r["tau_s"])):
+        lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
+                     f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
+                     f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
+    lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
+    co = NC.as_coefficients(r["fit"]["coefficients"])
+    for t, e in r["fit"]["terms"].items():
+        c, unit_f = NC.in_field_units(co, t)
+        need = need_text(e, c.resolved)
+        if c.resolved:
+            lo, hi = c.ci95
+            more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
+                    f"(Cramer-Rao); {need})")
+            lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
+        else:
+            more = "" if not need else f"; {need}"
+            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+            lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
+                         f"({what}; not supported by the data{more})")
+    pw = r["piecewise"]["terms"]
+    parts = []
+    for t in ("N", "B", "K"):
+        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        v = pw[t][f"value_{unit_f}"]
+        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
+    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
+    warns, notes = screening_notes(r)
+    lines += [f"note: {t}" for t in notes + check_notes(r)]
+    for w in warns + check_warnings(r):
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def plot(result: dict[str, Any], out_path: str) -> None:
+    """Log-log plot per axis (rigctl.report.report_plots.draw_allan_axis: 68 % bars, 95 % band, slope
+    guides, fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rigctl.report.report_plots import draw_allan_axis
+
+    axes = list(result["axes"].items())
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
+    for ax, (name, r) in zip(subs[:, 0], axes):
+        unit, fac = DEV_UNITS[r["sensor"]]
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
+                        r["sensor"], unit, fac,
+                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
+    fig.tight_layout()
+    fig.savefig(out_path, dpi=120)
+    plt.close(fig)
+
+
+def _parse_taus(text: str) -> A.TauSpec:
+    if text in ("octave", "decade", "all"):
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        raise InputError(f"--taus {text!r}: use octave, decade, all or a number") from None
+    if n < 2:
+        raise InputError("--taus N needs N >= 2")
+    return n
+
+
+def _parse_axes(text: str) -> list[str]:
+    axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
+    bad = [a for a in axes if a not in AXES]
+    if not axes or bad:
+        raise InputError(f"--axes {text!r}: choose from {','.join(AXES)}")
+    return axes
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
+    codes by rigctl.cli.main)."""
+    axes = _parse_axes(args.axes) if args.axes is not None else default_axes(args.recording)
+    taus = _parse_taus(str(args.taus))
+    if args.plot:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise InputError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
+    if args.kalibr and set(axes) != set(AXES):
+        raise InputError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
+    if not args.kalibr_inflate > 0:
+        raise InputError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
+    rng, where, warn = choose_range(args.recording, axes, args.whole)
+    print(f"analysing the {where} of {args.recording}", flush=True)
+    if warn:
+        print(f"warning: {warn}", file=sys.stderr, flush=True)
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
+    production.preload_database(args.db)  # imported while the sums run
+    result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
+                     outliers=args.outliers, gaps=args.gaps, warmup=args.warmup,
+                     temperature=args.temperature)
+    gap_line = gap_message(result.get("gaps") or {})
+    if gap_line:
+        print(gap_line, file=sys.stderr, flush=True)
+    result["segment"] = where
+    for a, r in result["axes"].items():
+        print(format_table(a, r))
+    result["verdicts"] = production.verdicts_for(spec, "allan", result)
+    if result["verdicts"]:
+        print(format_verdicts(result["verdicts"]))
+    store(args.recording, result)
+    print(f"results written to {args.recording}:/results/allan")
+    print(production.to_database(args.recording, "allan", result, args.db))
+    if args.plot:
+        plot(result, args.plot)
+        print(f"plot written to {args.plot}")
+    export(args, result)
+    return 0
+
+
+def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
+    """--kalibr, --json, --csv (rigctl.analysis.noise_export.write_exports)."""
+    for line in noise_export.write_exports(args.recording, result, args.kalibr, args.kalibr_inflate,
+                                           args.kalibr_topic, args.json, args.csv):
+        print(line)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``allan`` subcommand (sets ``func=run``)."""
+    p = subparsers.add_parser("allan", help="Allan analysis of a recording's IMU channels",
+                              description=__doc__.splitlines()[0])
+    p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
+    p.add_argument("--axes", default=None,
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all, or those an "
+                        "import found in the file)")
+    p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
+    p.add_argument("--taus", default="95",
+                   help="octave, decade, all, or N log-spaced taus (default 95)")
+    p.add_argument("--whole", action="store_true",
+                   help="analyse the whole recording (default: its longest capture segment, if any)")
+    p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
+                   help="spikes (samples > 10 robust sd from their neighbours): report them "
+                        "(default) or also exclude them (replaced by the running median)")
+    p.add_argument("--warmup", choices=WARMUP_MODES, default="report",
+                   help="a start transient (tested before the fit): report it, or cut it (exclude)")
+    p.add_argument("--temperature", choices=TEMPERATURE_MODES, default="report",
+                   help="a drift with /imu/temperature: report it, or subtract it (remove)")
+    p.add_argument("--gaps", choices=GAP_MODES, default="skip",
+                   help="dropped samples in the range: skip every Allan term that touches a gap "
+                        "(default; Stable32's gap handling), refuse (say where), analyse the "
+                        "longest gap-free stretch, or bridge them (biased)")
+    p.add_argument("--exact", action="store_true",
+                   help="fully overlapping sums for every tau (slower; default: fast mode)")
+    p.add_argument("--kalibr", metavar="FILE", help="write Kalibr's imu.yaml (noise densities and random "
+                   "walks, SI; the largest axis per sensor; docs/allan.md)")
+    p.add_argument("--kalibr-inflate", type=float, default=1.0, metavar="X",
+                   help="multiply the Kalibr values by X (default 1: as fitted); stated in the file")
+    p.add_argument("--kalibr-topic", metavar="TOPIC",
+                   help="rostopic in imu.yaml (default: the bag topic of an imported recording, else /imu0)")
+    p.add_argument("--json", metavar="FILE", help="write the whole Allan result as JSON")
+    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, sigma, bands, terms; SI) as CSV")
+    add_production_options(p)
+    p.set_defaults(func=run)

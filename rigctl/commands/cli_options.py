@@ -1,0 +1,18 @@
+"""Command-line options shared by the commands that produce or read production results."""
+from __future__ import annotations
+
+import argparse
+
+from ..solvers.conformity import RULES
+
+
+def add_production_options(p: argparse.ArgumentParser) -> None:
+    """--spec, --decision-rule and --db (calibrate, allan, batch)."""
+    p.add_argument("--spec", metavar="SPEC.yaml", help="acceptance limits: a verdict per parameter and "
+                   "overall, stored with the results (configs/spec-example.yaml)")
+    p.add_argument("--decision-rule", choices=RULES, default=None,
+                   help="guarded (JCGM 106 guard band = U: PASS / FAIL / INDETERMINATE) or simple "
+                        "(shared risk, the risk stated per parameter); default: the spec's")
+    p.add_argument("--db", metavar="URL|FILE", default=None,
+                   help="results database: a SQLite file or a URL (postgresql+psycopg://...); default "
+                        "results.sqlite beside the run directories; 'none' to skip")

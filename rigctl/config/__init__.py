@@ -1,0 +1,1 @@
+"""The rig config and its sections: links, frames, specs, the chamber, notifications, suspenders."""

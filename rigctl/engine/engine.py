@@ -1,0 +1,667 @@
+"""The engine: executes a compiled plan of steps against a rig, recording everything.
+
+The engine owns no hardware: it is handed devices that follow the small protocols of
+:mod:`rigctl.devices` and a clock. For every step it commands the table, waits until the table
+has *settled* (the controller reports in position / at rate AND every axis stayed inside the
+step's position and rate windows for the hold time), discards the transient, samples for the
+step's window, and writes a segment record. It never samples before the hold criteria are met;
+a settle timeout stops the run with a message naming the step and what was out of window.
+
+Unattended operation: every poll is handed to the :mod:`rigctl.config.suspenders`. When one trips
+(IMU link lost or data gap, table fault or interlock open, temperature out of band, disk space
+low, operator pause) the engine goes ``running -> pausing -> paused`` (:mod:`rigctl.engine.states`),
+stops the table, writes the step in flight as an ``incomplete`` segment (with its sample range),
+keeps polling until every suspender has been clear for the hold time, then goes back to
+``running`` and re-runs the interrupted step from its start: segments are all-or-nothing.
+Memory stays flat over any step length: a sample window keeps running sums, not per-poll lists.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from .. import errors
+from ..clock import VirtualClock
+from ..devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
+from .procedure import CHAMBER_KINDS, Step
+from ..progress import CounterGaps, NullProgress, Progress
+from ..recording.recorder import Recorder, Segment
+from .states import StateMachine
+from ..config.suspenders import Observation, SuspenderSet
+
+
+#: Times closer than this are equal (sums of poll intervals carry rounding), s.
+TIME_EPS = 1e-6
+
+#: After a sampling window, the engine waits for the samples still in flight (a serial link, a
+#: decoder batch) up to 2 s of rig time -- and, on a clock faster than the wall (an emulated rig
+#: at 100x), at least this much wall time: the delay is the host's, in wall time, and 2 s of rig
+#: time at 100x is 20 ms, less than one scheduling delay of a loaded host (at load 10-12 on 2
+#: cores, 17 of 47 wired 24-position runs at 100x cut a 5 s window short, 3 to no sample at all,
+#: with every sample of it recorded after the wait).
+WINDOW_WAIT_WALL_S = 0.5
+
+
+class RunError(errors.RunFailure):
+    """A failure at run time (settle timeout, device fault)."""
+
+
+class Interrupted(errors.Interrupted):
+    """The run was interrupted (SIGINT / SIGTERM / abort)."""
+
+
+class Suspend(Exception):
+    """One or more suspenders tripped: ``reasons`` maps suspender name -> readable reason."""
+
+    def __init__(self, reasons: dict[str, str]) -> None:
+        self.reasons = dict(reasons)
+        super().__init__("; ".join(reasons.values()))
+
+
+@dataclass
+class Rig:
+    """The devices a run talks to, and the clock of their time base."""
+
+    table: Turntable
+    imu: Imu
+    pulses: PulseSource
+    clock: Clock
+    description: str = ""
+    #: optional operator stand-in (emulator): ``prompt(step, t_start, duration)`` is called when
+    #: a step with a prompt starts sampling (e.g. the emulated operator taps the IMU)
+    operator: Any = None
+    #: the climatic chamber (rigctl.config.chamber.Chamber), None on a rig without one
+    chamber: Any = None
+    #: the chamber's band for the 'chamber' suspender (min, max) degC
+    chamber_band: tuple[float, float] = (-70.0, 180.0)
+
+
+def angle_error(measured: np.ndarray, commanded: np.ndarray) -> np.ndarray:
+    """measured - commanded wrapped to (-pi, pi], rad."""
+    d = np.asarray(measured) - np.asarray(commanded)
+    return np.pi - np.mod(np.pi - d, 2 * np.pi)
+
+
+def settle_check(state: TableState, step: Step) -> str | None:
+    """None when the table is inside the step's windows and reports settled, else the reason."""
+    pol = step.settle
+    rate_axes = ~np.isnan(step.rates)
+    want_rate = np.where(rate_axes, step.rates, 0.0)
+    for i in range(3):
+        status = int(state.status[i])
+        if status & AxisStatus.FAULT:
+            return f"axis {i + 1} reports a fault (status 0x{status:04x})"
+        flag = AxisStatus.AT_RATE if rate_axes[i] else AxisStatus.TARGET_REACHED
+        if not status & flag:
+            return f"axis {i + 1} not yet {'at rate' if rate_axes[i] else 'in position'}"
+    pos_err = angle_error(state.angle, step.angles)
+    for i in np.flatnonzero(~rate_axes):
+        if abs(pos_err[i]) > pol.position_window:
+            return (f"axis {i + 1} position error {math.degrees(pos_err[i]):+.4f} deg outside "
+                    f"+-{math.degrees(pol.position_window):g} deg")
+    rate_err = state.rate - want_rate
+    for i in range(3):
+        if abs(rate_err[i]) > pol.rate_window:
+            return (f"axis {i + 1} rate error {math.degrees(rate_err[i]):+.4f} deg/s outside "
+                    f"+-{math.degrees(pol.rate_window):g} deg/s")
+    return None
+
+
+class Engine:
+    """Runs steps on a rig into a recorder."""
+
+    def __init__(self, rig: Rig, recorder: Recorder, *, settle_poll_s: float = 0.05,
+                 sample_poll_s: float = 0.5, log: Callable[..., None] | None = None,
+                 suspenders: SuspenderSet | None = None, states: StateMachine | None = None,
+                 pause_poll_s: float = 0.25, max_pause_s: float | None = None,
+                 open_interlocks: bool = False, progress: Progress | None = None) -> None:
+        self.rig, self.rec = rig, recorder
+        self.progress = progress if progress is not None else NullProgress()
+        self.gaps = CounterGaps()  # dropped IMU samples (counter gaps) for the progress display
+        self.settle_poll_s, self.sample_poll_s = settle_poll_s, sample_poll_s
+        self.pause_poll_s, self.max_pause_s = pause_poll_s, max_pause_s
+        self.open_interlocks = open_interlocks
+        self.log = log or (lambda kind, msg, **kw: None)
+        self.suspenders = suspenders if suspenders is not None else SuspenderSet()
+        self.states = states if states is not None else StateMachine()
+        self.abort_requested: str | None = None
+        self._track: deque | None = None
+        self._win_start: float | None = None
+        self._first_row: int | None = None
+        self.last_state: TableState | None = None
+        self.current_step: Step | None = None
+        self.sampling_from: int | None = None  # first IMU row of the window being sampled
+        self.n_suspensions = 0
+        self._flushed_once = False
+        #: the chamber is read at most this often (rig time), s; its last reading and trip reason
+        self.chamber_poll_s = 1.0
+        self.last_chamber: Any = None
+        self._chamber_t = -math.inf
+        #: ... and at most this often in wall time (a chamber on a slow link, a fast clock), s
+        self.chamber_poll_wall_s = 0.1
+        self._chamber_wall = -math.inf
+        self._chamber_reason: str | None = None
+        #: (time, min, max) of the IMU temperature per poll, while a chamber-wait step runs
+        self._temps: deque | None = None
+        self.live: Any = None  # a rigctl.service.livefeed.LiveFeed (the daemon's live views), or None
+        self.deferred_pause: str | None = None  # an operator pause due at the end of the step in flight
+        #: warm-up step index -> seconds of warm-up already done in earlier attempts of that step
+        #: with the IMU powered all along (see :meth:`suspend`)
+        self.warmup_done: dict[int, float] = {}
+
+    def request_abort(self, reason: str = "interrupted") -> None:
+        """Ask the run to stop at the next poll (safe to call from a signal handler)."""
+        self.abort_requested = reason
+
+    def request_pause(self, reason: str = "paused by operator", deferred: bool = False) -> None:
+        """Pause at the next poll (thread-safe); the step in flight re-runs after resume. With
+        ``deferred`` the pause waits for the end of the step in flight (nothing re-runs)."""
+        if deferred:
+            self.deferred_pause = reason
+        else:
+            self.suspenders.operator = reason
+
+    def request_resume(self) -> None:
+        """Lift an operator pause; the run resumes once every suspender has been clear for the
+        hold time."""
+        self.suspenders.operator = None
+
+    # -- polling -------------------------------------------------------------------------------
+    def poll(self, check: bool = True, safe_state: bool = False) -> TableState:
+        """Read every device once, record what came in and evaluate the suspenders; raise
+        Interrupted on an abort request and (if ``check``) Suspend when a suspender trips.
+        ``safe_state``: an IMU fault is noted, not raised (the table must still be read)."""
+        clock = self.rig.clock
+        obs = Observation(t=clock.now())
+        try:
+            block = self.rig.imu.read()
+            obs.imu = block
+            if self._track is not None and len(block):
+                self._track_block(self.rec.n_imu, block.time)
+            self.rec.append_imu(block)
+            self.gaps.add(block.counter)
+            if self.live is not None:
+                self.live.add_imu(block)
+        except LinkLost as exc:
+            obs.imu_error = str(exc)
+        except DeviceFault as exc:  # e.g. another unit on the IMU port: fatal, except while
+            if not safe_state:      # going to the safe state, which must still read the table
+                raise
+            obs.imu_error = str(exc)
+        try:
+            self.rec.append_pulses(self.rig.pulses.read())
+        except LinkLost as exc:
+            self.log("warning", f"pulse source: {exc}")
+        if self.rig.chamber is not None:
+            self._poll_chamber(obs.t)
+            obs.chamber_reason = self._chamber_reason
+        if self._temps is not None and obs.imu is not None and len(obs.imu):
+            temp = obs.imu.temperature
+            self._temps.append((obs.t, float(np.min(temp)), float(np.max(temp))))
+        try:
+            state = self.rig.table.read()
+            obs.table = state
+            self.rec.append_table(state)
+            self.last_state = state
+            if self.live is not None:
+                self.live.add_table(state)
+        except LinkLost as exc:
+            obs.table_error = f"table link lost: {exc}"
+            state = self.last_state
+        if not self._flushed_once:  # what the devices sent while connecting: on disk at once
+            self._flushed_once = True
+            self.rec.flush()
+        self.progress.update(obs.t, state, self.rec.n_imu, self.gaps.dropped)
+        if self.abort_requested:
+            raise Interrupted(self.abort_requested)
+        tripped = self.suspenders.check(obs)
+        if self.rec.holding:
+            tripped["disk"] = tripped.get("disk") or self.rec.holding
+            self.suspenders.active, self.suspenders.clear_since = tripped, None
+        if tripped and check:
+            raise Suspend(tripped)
+        if state is None:
+            if check:
+                raise Suspend({"table": "table link lost before its first reading"})
+            nan3 = np.full(3, np.nan)
+            return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
+        return state
+
+    def _poll_chamber(self, t: float) -> None:
+        """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
+        wall = time.monotonic()
+        # the wall-time limit protects a slow link under a fast clock; under the virtual clock
+        # (everything in-process) it would make the readings depend on the machine's speed
+        wall_limited = not isinstance(self.rig.clock, VirtualClock)
+        if t - self._chamber_t < self.chamber_poll_s - 1e-9 or (
+                wall_limited and wall - self._chamber_wall < self.chamber_poll_wall_s):
+            return
+        self._chamber_t, self._chamber_wall = t, wall
+        from ..config.chamber import describe_trip
+        try:
+            state = self.rig.chamber.read()
+        except (LinkLost, DeviceFault, OSError) as exc:
+            self._chamber_reason = f"chamber link lost: {exc}"
+            return
+        self.last_chamber = state
+        self.rec.append_chamber(state)
+        self._chamber_reason = describe_trip(state, self.rig.chamber_band)
+
+    def pump(self, duration: float, period: float) -> TableState:
+        """Let ``duration`` seconds pass, polling every ``period``."""
+        clock = self.rig.clock
+        end = clock.now() + duration
+        state = self.poll()
+        while (remaining := end - clock.now()) > 1e-9:
+            clock.sleep(min(period, remaining))
+            state = self.poll()
+        return state
+
+    # -- steps ---------------------------------------------------------------------------------
+    def command(self, step: Step) -> None:
+        table = self.rig.table
+        try:
+            table.move(step.angles)
+            if step.rate_mode:
+                table.set_rate(step.rates)
+        except (DeviceFault, LinkLost) as exc:
+            raise Suspend({"table": f"table refused the demand: {exc}"}) from None
+
+    def settle(self, step: Step) -> float:
+        """Wait for the settle criteria; returns the time from command to settled, s.
+
+        The timeout fails the step when the table is outside the criteria at a poll after it; a
+        table inside them then finishes its hold first (at most ``hold_s`` more). Otherwise a host
+        stall across the timeout -- one poll 0.24 s of wall time late on a clock at 500x is 120 s
+        of rig time -- failed a table that was in position ('hold time not reached'; seen at
+        load 10 on 2 cores, a resumed warm-up at 500x)."""
+        clock = self.rig.clock
+        t0 = clock.now()
+        inside_since: float | None = None
+        while True:
+            state = self.poll()
+            now = clock.now()
+            reason = settle_check(state, step)
+            if reason is None:
+                inside_since = now if inside_since is None else inside_since
+                if now - inside_since >= step.settle.hold_s - 1e-9:
+                    return now - t0
+            else:
+                inside_since = None
+                if "fault" in reason:
+                    raise RunError(f"step {step.index + 1} ({step.label}): {reason}")
+            if now - t0 > step.settle.timeout_s and reason is not None:
+                raise RunError(
+                    f"step {step.index + 1} ({step.label}) did not settle within "
+                    f"{step.settle.timeout_s:g} s: {reason} "
+                    f"[{step.file}:{step.line}] -- check the table, or widen 'settle' windows / timeout")
+            clock.sleep(self.settle_poll_s)
+
+    # -- the climatic chamber ------------------------------------------------------------------
+    def _chamber(self, step: Step) -> Any:
+        if self.rig.chamber is None:
+            raise RunError(f"step {step.index + 1} ({step.label}) needs a climatic chamber, and the "
+                           f"rig has none [{step.file}:{step.line}] -- add a 'chamber:' section to the config")
+        return self.rig.chamber
+
+    def command_chamber(self, step: Step) -> None:
+        """Send a chamber step's set point (and ramp rate) to the chamber."""
+        c = step.chamber or {}
+        if c.get("setpoint_c") is None:
+            return
+        try:
+            self._chamber(step).set_setpoint(c["setpoint_c"], c.get("rate_c_per_min"))
+        except (DeviceFault, LinkLost, OSError) as exc:
+            raise Suspend({"chamber": f"chamber refused the set point: {exc}"}) from None
+        rate = c.get("rate_c_per_min")
+        self.rec.add_event(self.rig.clock.now(), "chamber",
+                           f"set point {c['setpoint_c']:g} degC" + (f" at {rate:g} degC/min" if rate else ""))
+
+    def chamber_step(self, step: Step) -> Segment:
+        """chamber-set / chamber-ramp: command and go on; chamber-wait: hold the table at the
+        step's angles until the chamber's air is within ``air_band_c`` of its set point and the
+        IMU's temperature has stayed within ``stable_band_c`` (max - min) for ``stable_for_s``."""
+        clock = self.rig.clock
+        self._chamber(step)
+        t0 = clock.now()
+        first = self.rec.n_imu
+        if step.kind != "chamber-wait":
+            self.command_chamber(step)
+            self.poll()
+        else:
+            c = step.chamber
+            self.command_chamber(step)
+            self.command(step)
+            self.settle(step)
+            self._temps = deque()
+            first = self.rec.n_imu
+            self.sampling_from = first
+            t_wait = clock.now()
+            try:
+                while True:
+                    clock.sleep(self.sample_poll_s)
+                    self.poll()
+                    now = clock.now()
+                    while self._temps and self._temps[0][0] < now - c["stable_for_s"]:
+                        self._temps.popleft()
+                    ch = self.last_chamber
+                    air_ok = ch is not None and abs(ch.air_c - ch.setpoint_c) <= c["air_band_c"] and \
+                        (c["setpoint_c"] is None or abs(ch.setpoint_c - c["setpoint_c"]) < 1e-6)
+                    if self._temps and air_ok and now - t_wait >= c["stable_for_s"] - 1e-9:
+                        spread = max(x[2] for x in self._temps) - min(x[1] for x in self._temps)
+                        if spread <= c["stable_band_c"]:
+                            break
+                    if now - t_wait > c["timeout_s"]:
+                        what = (f"air {ch.air_c:.2f} degC, set point {ch.setpoint_c:.2f} degC"
+                                if ch is not None else "no chamber reading")
+                        raise RunError(f"step {step.index + 1} ({step.label}): temperature not stable "
+                                       f"within {c['timeout_s']:g} s ({what}) [{step.file}:{step.line}]")
+            finally:
+                self._temps = None
+        t1 = clock.now()
+        s = self.last_state
+        nan3 = np.full(3, np.nan)
+        seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                      last_sample=self.rec.n_imu, t_start=t0, t_end=t1, settle_time=math.nan,
+                      commanded_angle=step.angles, commanded_rate=np.zeros(3),
+                      measured_angle=s.angle if s is not None else nan3,
+                      measured_rate=s.rate if s is not None else nan3)
+        self.rec.add_segment(seg)
+        self.sampling_from = None
+        return seg
+
+    def execute(self, step: Step) -> Segment:
+        """Command, settle, discard the transient, sample, and record the segment."""
+        if step.kind in CHAMBER_KINDS:
+            self.current_step = step
+            try:
+                return self.chamber_step(step)
+            finally:
+                self.current_step = None
+        self.current_step = step
+        self.sampling_from = None
+        # recent blocks as (row of the block's first sample, its IMU times): flat memory
+        self._track, self._win_start, self._first_row = deque(maxlen=256), None, None
+        clock = self.rig.clock
+        if step.prompt:
+            self.log("prompt", step.prompt)
+        self.command(step)
+        settle_time = self.settle(step)
+        if step.discard_s > 0:
+            self.pump(step.discard_s, self.settle_poll_s)
+        t_start = clock.now()
+        self._win_start = t_start
+        for row0, times in self._track:
+            i = int(np.searchsorted(times, t_start - TIME_EPS))
+            if i < len(times):
+                self._first_row = row0 + i
+                break
+        self.sampling_from = self.rec.n_imu
+        if step.prompt and self.rig.operator is not None:
+            self.rig.operator.prompt(step, t_start, step.sample_s)
+        n_polls, sum_angle, sum_rate = 0, np.zeros(3), np.zeros(3)  # running sums: flat memory
+        end = t_start + step.sample_s
+        while (remaining := end - clock.now()) > 1e-9:
+            clock.sleep(min(self.sample_poll_s, remaining))
+            s = self.poll()
+            n_polls += 1
+            sum_angle += s.angle
+            sum_rate += s.rate
+        # the window is the one the step asked for: with a clock that runs with wall time (a
+        # wired rig, scaled x100 in the emulated HIL runs) the last sleep and poll end later than
+        # ``end`` by their wall time x speed (20 ms of a loaded host = 2 s of rig time at 100x);
+        # the samples after ``end`` belong to no window, as under the virtual clock
+        t_end = min(clock.now(), end)
+        first, last = self._window_rows(t_start, t_end)
+        ang = sum_angle / n_polls if n_polls else self.last_state.angle
+        rate = sum_rate / n_polls if n_polls else self.last_state.rate
+        seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                      last_sample=last, t_start=t_start, t_end=t_end, settle_time=settle_time,
+                      commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
+                      measured_angle=ang, measured_rate=rate)
+        self.rec.add_segment(seg)
+        self.current_step = None
+        self.sampling_from = None
+        return seg
+
+    def _track_block(self, row0: int, times: np.ndarray) -> None:
+        self._track.append((row0, times))
+        if self._win_start is not None and self._first_row is None:
+            i = int(np.searchsorted(times, self._win_start - TIME_EPS))
+            if i < len(times):
+                self._first_row = row0 + i
+
+    def _window_rows(self, t_start: float, t_end: float) -> tuple[int, int]:
+        """Rows [first, last) of the recorded IMU samples whose IMU time lies in [t_start, t_end).
+
+        Samples reach the engine with some latency (a serial link, a decoder batch), so the
+        window is cut by the samples' own times, not by which poll delivered them; the engine
+        keeps polling until a sample at or after ``t_end`` has arrived (bounded wait: 2 s of rig
+        time, at least :data:`WINDOW_WAIT_WALL_S` of wall time)."""
+        clock = self.rig.clock
+        speed = float(getattr(clock, "speed", 1.0))
+        wait_until = clock.now() + max(2.0, 4 * self.sample_poll_s, WINDOW_WAIT_WALL_S * speed)
+        while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
+            clock.sleep(self.settle_poll_s)
+            self.poll()
+        track, first = self._track, self._first_row
+        self._track, self._win_start, self._first_row = None, None, None
+        if first is None:  # no sample inside the window arrived
+            return self.rec.n_imu, self.rec.n_imu
+        last = self.rec.n_imu
+        for row0, times in track:
+            i = int(np.searchsorted(times, t_end - TIME_EPS))
+            if i < len(times):
+                last = row0 + i
+                break
+        return first, max(first, last)
+
+    def run(self, steps: list[Step], start: int = 0,
+            on_step: Callable[[Step, Segment], None] | None = None,
+            stop_first: str | None = None) -> list[Segment]:
+        """Execute ``steps[start:]`` (solve steps are skipped: they run after the recording).
+
+        A suspension pauses the run (see :meth:`suspend`) and the interrupted step then runs
+        again from its start. ``stop_first`` (a resumed run): stop the table before any motion,
+        see :meth:`stop_first`."""
+        segments = []
+        motion = [s for s in steps[start:] if s.is_motion]
+        if self.states.state == "idle":
+            self.states.to("running", f"{len(motion)} steps to run")
+        if stop_first is not None:
+            self.stop_first(stop_first)
+        before = [s for s in steps[:start] if s.kind in ("chamber-set", "chamber-ramp")]
+        if start > 0 and before and self.rig.chamber is not None:
+            # a resumed run: the clean-up of the cut-off session put the chamber at its safe
+            # set point; the last set point commanded before the resume point holds again
+            self.log("info", f"resuming: chamber set point of step {before[-1].index + 1} again")
+            self.command_chamber(before[-1])
+        n = 0
+        while n < len(motion):
+            step = motion[n]
+            if self.deferred_pause is not None:  # due now, between two steps: nothing is cut off
+                reason, self.deferred_pause = self.deferred_pause, None
+                self.suspenders.operator = reason
+                try:
+                    self.poll()
+                except Suspend as sus:
+                    self.suspend(step, sus, between_steps=True)
+                    continue
+            self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
+            self.progress.step_started(step)
+            try:
+                seg = self.execute(self._warmup_left(step))
+            except Suspend as sus:
+                self.suspend(step, sus)
+                continue
+            self.progress.step_finished(step, seg)
+            segments.append(seg)
+            if on_step:
+                on_step(step, seg)
+            n += 1
+        return segments
+
+    # -- suspension ------------------------------------------------------------------------------
+    #: suspenders after which the IMU may have been without power: a warm-up starts over
+    POWER_SUSPENDERS = ("imu-link", "imu-gap")
+
+    def _warmup_left(self, step: Step) -> Step:
+        """A warm-up interrupted before with the IMU powered all along runs only what is left."""
+        done = self.warmup_done.get(step.index, 0.0)
+        if step.kind != "warmup" or done <= 0.0:
+            return step
+        left = max(0.0, step.sample_s - done)
+        self.log("info", f"warm-up: {done:.1f} s already done with the IMU powered; {left:.1f} s left")
+        self.rec.add_event(self.rig.clock.now(), "info",
+                           f"step {step.index + 1} ({step.label}): {done:.1f} s of warm-up kept, {left:.1f} s left")
+        return replace(step, sample_s=left)
+
+    def _stop_table(self, wait_s: float = 5.0) -> None:
+        """Stop the table (rate zero, mode off) and record it until still or ``wait_s``."""
+        clock = self.rig.clock
+        try:
+            self.rig.table.stop()
+        except Exception as exc:  # noqa: BLE001 - a faulted / unreachable table: keep pausing
+            self.log("warning", f"could not command the table to stop: {exc}")
+        t0 = clock.now()
+        while clock.now() - t0 < wait_s:
+            state = self.poll(check=False)
+            if not state.any_has(AxisStatus.MOVING):
+                return
+            clock.sleep(self.settle_poll_s)
+
+    def suspend(self, step: Step, sus: Suspend, between_steps: bool = False) -> None:
+        """Pause on a tripped suspender; return once all have been clear for the hold time.
+
+        The step in flight is written as an ``incomplete`` segment when it had started
+        sampling, and always named in an event with its IMU sample range. ``between_steps``
+        (a deferred pause): ``step`` has not started; nothing is cut off.
+
+        A warm-up cut off while sampling keeps the time it had sampled (the re-run samples only
+        what is left) unless a suspender that may mean a power loss of the IMU tripped
+        (:data:`POWER_SUSPENDERS`): then the whole warm-up runs again. Time spent paused does
+        not count."""
+        clock, rec = self.rig.clock, self.rec
+        if step.kind == "warmup" and self.sampling_from is not None and self._win_start is not None:
+            if set(sus.reasons) & set(self.POWER_SUSPENDERS):
+                if self.warmup_done.pop(step.index, None):
+                    self.log("info", "warm-up starts over: the IMU may have lost power")
+            else:
+                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + clock.now() - self._win_start
+        self.n_suspensions += 1
+        names = ", ".join(sus.reasons)
+        message = str(sus)
+        self.states.to("pausing", message)
+        self.log("warning", f"suspended ({names}): {message}", suspenders=sus.reasons)
+        rec.add_event(clock.now(), "suspend", f"{names}: {message}")
+        if between_steps:
+            pass
+        elif self.sampling_from is not None:
+            first, last = self.sampling_from, rec.n_imu
+            s = self.last_state
+            rec.add_segment(Segment(
+                kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                last_sample=last, t_start=clock.now(), t_end=clock.now(), settle_time=math.nan,
+                commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
+                measured_angle=s.angle if s is not None else np.full(3, np.nan),
+                measured_rate=s.rate if s is not None else np.full(3, np.nan), status="incomplete"))
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off: IMU rows [{first}, {last}) "
+                          "excluded; the step re-runs")
+        else:
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off before sampling; re-runs")
+        self.sampling_from = None
+        self._stop_table()
+        self.states.to("paused", message)
+        hold = self.suspenders.s.hold_s
+        t0 = clock.now()
+        seen = set(sus.reasons)
+        while True:
+            clock.sleep(self.pause_poll_s)
+            self.poll(check=False)
+            now = clock.now()
+            new = set(self.suspenders.active) - seen
+            if new:
+                seen |= new
+                text = "; ".join(self.suspenders.active[k] for k in new)
+                self.log("warning", f"also: {text}")
+                rec.add_event(now, "suspend", f"{', '.join(sorted(new))}: {text}")
+            if not self.suspenders.active and self.suspenders.clear_for(now) >= hold - 1e-9:
+                break
+            if self.max_pause_s is not None and now - t0 > self.max_pause_s:
+                raise RunError(f"paused for more than {self.max_pause_s:g} s: "
+                               f"{'; '.join(self.suspenders.active.values()) or message}")
+        text = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
+                f"{'starting' if between_steps else 're-running'} step {step.index + 1} ({step.label})")
+        rec.add_event(now, "resume", text)
+        self.log("info", f"resuming: {text}")
+        self.states.to("running", text)
+
+    def stop_first(self, why: str, wait_s: float = 30.0) -> None:
+        """Before the first motion of a resumed run: record how the cut-off left the table (a
+        crash cannot stop it: it may still hold a position or spin at a rate), command it to stop
+        (rate zero, mode off) and wait until it stands still, so the next step starts from rest
+        (its move then re-homes the table to the step's angles)."""
+        clock = self.rig.clock
+        names = ("outer", "middle", "inner")
+        try:
+            state = self.rig.table.read()
+        except Exception as exc:  # noqa: BLE001 - a fault here pauses at the first step instead
+            found = f"table state unreadable ({exc})"
+        else:
+            servo = [n for n, w in zip(names, state.status) if int(w) & AxisStatus.SERVO_ON]
+            rates = ", ".join(f"{n} {math.degrees(r):+.3f} deg/s" for n, r in zip(names, state.rate))
+            found = (f"table found {'moving' if state.any_has(AxisStatus.MOVING) else 'still'} "
+                     f"({rates}; servo {'on: ' + ', '.join(servo) if servo else 'off'})")
+        self.log("info", f"{why}: {found}; commanding a stop (rate zero, mode off) before any motion")
+        self.rec.add_event(clock.now(), "safe-state", f"{why}: {found}; stop commanded before any motion")
+        self._stop_table(wait_s)
+        state = self.last_state
+        if state is not None and not state.any_has(AxisStatus.MOVING):
+            self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off; resuming")
+
+    def safe_state(self, wait_s: float = 2.0) -> bool:
+        """Command the table to stop (rate zero, mode off), then record its state until it is
+        still or ``wait_s`` has passed. Returns True when the table reported standing still.
+        Never raises: the caller still has to close the file. The chamber (if any) goes to its
+        safe set point first."""
+        self.abort_requested = None
+        if self.rig.chamber is not None:
+            try:
+                self.rig.chamber.stop()
+                self.rec.add_event(self.rig.clock.now(), "safe-state", "chamber at its safe set point")
+            except Exception as exc:  # noqa: BLE001 - reported; the table must still be stopped
+                self.log("error", f"could not put the chamber at its safe set point: {exc}")
+        try:
+            self.rig.table.stop()
+        except Exception as exc:  # noqa: BLE001 - reported, the caller still closes the file
+            self.log("error", f"could not stop the table: {exc}")
+            return False
+        if self.open_interlocks and hasattr(self.rig.table, "open_interlock"):
+            try:
+                self.rig.table.open_interlock()
+                self.rec.add_event(self.rig.clock.now(), "safe-state", "interlocks opened")
+            except Exception as exc:  # noqa: BLE001
+                self.log("error", f"could not open the interlocks: {exc}")
+        clock = self.rig.clock
+        t0 = clock.now()
+        try:
+            while True:
+                state = self.poll(check=False, safe_state=True)
+                if not state.any_has(AxisStatus.MOVING):
+                    self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
+                    return True
+                if clock.now() - t0 >= wait_s:
+                    self.log("error", "the table still reports motion after the stop command")
+                    return False
+                clock.sleep(self.settle_poll_s)
+        except Exception as exc:  # noqa: BLE001
+            self.log("error", f"could not read the table after stopping it: {exc}")
+            return False

@@ -1,0 +1,1 @@
+"""Alembic migrations of the results database (rigctl.recording.results_db); see env.py."""

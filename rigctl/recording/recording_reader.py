@@ -1,0 +1,330 @@
+"""The one place that opens a recording for reading and checks it (every command uses it).
+
+:func:`open_recording` answers every way a file can fail to be a usable recording with one
+:class:`rigctl.errors.InputError` naming the file and saying what to do, before any analysis
+touches the data:
+
+* the path: missing, a directory (a run directory: give its ``recording.h5``), empty, not HDF5;
+* cut off: a file shorter than the end-of-file address its HDF5 superblock records (a copy that
+  stopped, a full disk) is refused, whether or not the SWMR flags are set (a SWMR reader skips
+  HDF5's own check, and would then read garbage or hang);
+* a run in progress or cut off by a crash (HDF5's write flags still set) is opened as a SWMR
+  reader (docs/data-format.md, "Reading a run in progress");
+* the root attribute ``format`` must be :data:`rigctl.recording.recorder.FORMAT_NAME`;
+* the datasets a command needs (``need``): present, each row of the shape and the kind of dtype
+  :data:`rigctl.recording.recorder.LAYOUT` gives (a string-typed /imu/time is refused), the datasets of
+  one group of the same length, /imu not empty;
+* /imu's ``sample_rate_hz``: finite, > 0 and at most :data:`MAX_RATE_HZ`;
+* /segments rows: ``0 <= first_sample <= last_sample <= `` the number of IMU samples.
+
+Finiteness is checked where the data are read (:func:`check_finite`), block by block, so a
+night's recording is not read twice.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .checkpoint import HDF5_SIGNATURE, superblock_eof
+from ..errors import InputError
+from .recorder import FORMAT_NAME, LAYOUT
+
+#: highest sample rate a recording may declare, Hz
+MAX_RATE_HZ = 1e6
+#: largest magnitude a recorded value may have (SI): beyond it the data are not an IMU's
+#: output (a unit or an import error: mg read as m/s^2 is 1e4, not 1e300)
+PLAUSIBLE = {"imu/specific_force": 1e6, "imu/angular_rate": 1e5, "imu/time": 1e10}
+#: what every message about the layout points to
+LAYOUT_DOC = "see docs/data-format.md"
+
+_KINDS = {np.dtype(np.float64).kind: "f", np.dtype(np.int32).kind: "iu", np.dtype(np.uint64).kind: "iu",
+          "S": "S"}
+
+
+def _check_path(p: Path) -> None:
+    if p.is_dir():
+        inside = p / "recording.h5"
+        hint = f"give the recording inside it: {inside}" if inside.is_file() else \
+            "give a recording .h5 file (a run directory holds recording.h5)"
+        raise InputError("is a directory, not a recording", p, hint=hint)
+    if not p.exists():
+        raise InputError("no such file", p, hint="give the path of a rigctl recording (.h5)")
+    try:
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", p) from None
+    if size == 0:
+        raise InputError("empty file (0 bytes)", p, hint="give a rigctl recording (.h5)")
+    if head != HDF5_SIGNATURE:
+        raise InputError("not an HDF5 file", p, hint="give a rigctl recording (.h5), or convert a CSV "
+                                                     "log with rigctl import")
+    eof = superblock_eof(p)
+    if eof is not None and size < eof:
+        raise InputError(f"cut off: {size} bytes of the {eof} its HDF5 header records "
+                         f"({100.0 * size / eof:.0f} %)", p,
+                         hint="an incomplete copy or a full disk; copy it again from the run directory")
+
+
+def _open_h5(p: Path) -> h5py.File:
+    try:
+        return h5py.File(p, "r")
+    except OSError:
+        pass
+    try:  # a run in progress, or one cut off by a crash: its write flags are still set
+        return h5py.File(p, "r", libver="latest", swmr=True)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise InputError(f"cannot be read as HDF5 ({exc})", p,
+                         hint="the file is damaged; copy it again from the run directory") from None
+
+
+def _check_dataset(f: h5py.File, p: Path, name: str) -> h5py.Dataset:
+    group, _, dname = name.partition("/")
+    try:
+        obj = f.get(name)
+    except (OSError, RuntimeError, KeyError, ValueError) as exc:
+        raise InputError(f"/{name} cannot be read ({exc})", p, hint="the file is damaged") from None
+    if obj is None:
+        raise InputError(f"the recording has no /{name}", p, hint=LAYOUT_DOC)
+    if not isinstance(obj, h5py.Dataset):
+        raise InputError(f"/{name} is not a dataset", p, hint=LAYOUT_DOC)
+    spec = LAYOUT.get(group, {}).get(dname)
+    if spec is not None:
+        shape, dtype, units = spec
+        if obj.ndim != 1 + len(shape) or tuple(obj.shape[1:]) != tuple(shape):
+            want = "(N" + "".join(f", {k}" for k in shape) + ")"
+            raise InputError(f"/{name} has shape {obj.shape}, expected {want}", p, hint=LAYOUT_DOC)
+        want_kinds = _KINDS.get(np.dtype(dtype).kind, np.dtype(dtype).kind)
+        if obj.dtype.kind not in want_kinds:
+            raise InputError(f"/{name} has dtype {obj.dtype}, expected {np.dtype(dtype)}"
+                             + (f" ({units})" if units else ""), p, hint=LAYOUT_DOC)
+    return obj
+
+
+def _sample_rate(f: h5py.File, p: Path) -> float:
+    rate = f["imu"].attrs.get("sample_rate_hz") if "imu" in f else None
+    try:
+        value = float(rate) if rate is not None else float("nan")
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and 0.0 < value <= MAX_RATE_HZ):
+        raise InputError(f"/imu sample_rate_hz is {rate!r}: a sample rate must be a finite number of Hz "
+                         f"in (0, {MAX_RATE_HZ:g}]", p, hint="record with rigctl, or import with --rate HZ")
+    return value
+
+
+def _check_segments(f: h5py.File, p: Path, n_imu: int) -> None:
+    seg = f["segments"]
+    if "first_sample" not in seg or "last_sample" not in seg:
+        return  # a reader that needs them asked for them (need=...) and was refused already
+    first = np.asarray(seg["first_sample"][()], dtype=np.int64)
+    last = np.asarray(seg["last_sample"][()], dtype=np.int64)
+    labels = seg["label"][()] if "label" in seg else None
+    bad = np.flatnonzero((first < 0) | (last < first) | (last > n_imu))
+    if bad.size:
+        i = int(bad[0])
+        label = labels[i].decode("utf-8", "replace") if labels is not None else ""
+        raise InputError(f"/segments row {i} ({label!r}) covers IMU samples [{first[i]}, {last[i]}), "
+                         f"outside the {n_imu} samples recorded"
+                         + (f" ({bad.size} such rows)" if bad.size > 1 else ""), p,
+                         hint="the segment table does not match the data; re-import or re-record")
+
+
+def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
+                   check_present: bool = True) -> h5py.File:
+    """Open the rigctl recording ``path`` read-only and check it (see the module docstring).
+
+    Args:
+        path: the recording (.h5).
+        need: datasets the caller reads, as "group/name" (e.g. "imu/angular_rate",
+            "segments/first_sample"); a group name alone ("segments") means every dataset of it
+            in the layout that the file must have for the caller.
+        check_present: also check every dataset of the layout the file has (default: a file
+            whose layout is broken anywhere is refused by every command). With ``need`` empty
+            (a reader of whatever is there, e.g. the report) /imu may be empty.
+
+    Returns the open file (a context manager); raises InputError naming the file."""
+    p = Path(path)
+    _check_path(p)
+    f = _open_h5(p)
+    try:
+        try:
+            fmt = f.attrs.get("format")
+        except (OSError, RuntimeError) as exc:
+            raise InputError(f"cannot be read as HDF5 ({exc})", p, hint="the file is damaged") from None
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode("utf-8", "replace")
+        if fmt != FORMAT_NAME:
+            raise InputError(f"not a rigctl recording (root attribute format != {FORMAT_NAME!r})", p,
+                             hint="see docs/data-format.md, or convert a CSV log with rigctl import")
+        names: list[str] = []
+        for n in need:
+            names += [f"{n}/{d}" for d in LAYOUT[n]] if n in LAYOUT else [n]
+        if check_present:
+            names += [f"{g}/{d}" for g, ds in LAYOUT.items() if g in f for d in ds if d in f[g]]
+        lengths: dict[str, dict[str, int]] = {}
+        for name in dict.fromkeys(names):
+            ds = _check_dataset(f, p, name)
+            lengths.setdefault(name.partition("/")[0], {})[name] = int(ds.shape[0])
+        for group, lens in lengths.items():
+            if len(set(lens.values())) > 1:
+                what = ", ".join(f"/{k}: {v}" for k, v in lens.items())
+                raise InputError(f"the datasets of /{group} differ in length ({what})", p,
+                                 hint="a damaged or hand-edited file; re-record or re-import it")
+        if "imu" in lengths:
+            n_imu = next(iter(lengths["imu"].values()))
+            if n_imu == 0 and need:
+                raise InputError("/imu is empty (no samples)", p, hint="the run recorded no IMU data")
+            if n_imu:
+                _sample_rate(f, p)
+            if "segments" in lengths:
+                _check_segments(f, p, n_imu)
+        return f
+    except BaseException:
+        f.close()
+        raise
+
+
+def sample_rate(f: h5py.File) -> float:
+    """/imu's sample_rate_hz of a file :func:`open_recording` checked, Hz."""
+    return _sample_rate(f, Path(f.filename))
+
+
+def check_finite(path: str | Path, name: str, block: np.ndarray, first_row: int = 0) -> None:
+    """InputError naming ``path``, the dataset ``name`` and the first row when ``block`` (rows
+    ``first_row``...) holds NaN, infinity, or a magnitude beyond :data:`PLAUSIBLE`."""
+    a = np.asarray(block, dtype=np.float64)
+    key = name.lstrip("/")
+    limit = PLAUSIBLE.get(key, np.inf)
+    if a.size:  # the common case in two read-only passes (NaN propagates into max and min)
+        hi, lo = float(np.max(a)), float(np.min(a))
+        if np.isfinite(hi) and np.isfinite(lo) and max(hi, -lo) <= limit:
+            return
+    ok = np.isfinite(a) & (np.abs(a) <= limit)
+    if ok.all():
+        return
+    rows = ~ok.reshape(a.shape[0], -1).all(axis=1) if a.ndim > 1 else ~ok
+    k = int(np.flatnonzero(rows)[0])
+    what = "NaN or infinite values" if not np.isfinite(a[k]).all() else \
+        f"values beyond +-{limit:g} (SI units: not an IMU's output)"
+    scale = "acc=counts:SCALE m/s^2" if "force" in key else "gyr=counts:SCALE rad/s"
+    every = bool(rows.all()) and bool(np.isfinite(a).all())  # all beyond the limit: a unit error
+    raise InputError(f"/{key} holds {what} (first at row {first_row + k}, {int(rows.sum())} rows in rows "
+                     f"{first_row}..{first_row + a.shape[0] - 1})", path,
+                     hint=f"every row: a unit or scale error, not bad samples; re-import with the "
+                          f"column's scale (rigctl import --units '{scale}')" if every else
+                     "the sensor or the import produced invalid samples; cut them out "
+                     "(rigctl import --segments) or re-record")
+
+
+class RowReader:
+    """Reads rows [a, b) of a dataset into a given buffer, the same values as h5py's
+    ``read_direct``. When the dataset is stored as HDF5 writes it by default -- contiguous, or
+    chunked with whole rows per chunk, no filters (no compression), the buffer's dtype in
+    native byte order -- its bytes are the rows themselves, so the rows are read with
+    ``os.preadv`` straight from the chunks' file offsets (HDF5's chunk index, read once;
+    adjacent chunks in one call). That copies the page cache into the buffer and nothing
+    else, and it releases the GIL: another thread's Python work goes on while it reads (h5py
+    holds the GIL for the whole read). Any other layout (compressed, partial-width chunks,
+    a chunk not yet written, a file opened as a SWMR reader) goes through h5py."""
+
+    def __init__(self, f: h5py.File, name: str):
+        self.ds = f[name]
+        self.direct: list[tuple[int, int, int]] | None = None  # (first row, rows, file offset)
+        self._fd = -1
+        try:
+            self._plan(f)
+        except (AttributeError, OSError, RuntimeError, ValueError, TypeError):
+            self.direct = None
+        if self.direct is not None:
+            try:
+                self._fd = os.open(f.filename, os.O_RDONLY)
+            except OSError:
+                self.direct = None
+
+    def _plan(self, f: h5py.File) -> None:
+        ds = self.ds
+        if getattr(f, "swmr_mode", False) or ds.dtype.byteorder not in ("=", "<" if
+                                                                         np.little_endian else ">"):
+            return
+        if ds.dtype.kind not in "fiu" or ds.ndim < 1 or ds.size == 0:
+            return
+        row_bytes = ds.dtype.itemsize * int(np.prod(ds.shape[1:], dtype=np.int64))
+        dcpl = ds.id.get_create_plist()
+        layout = dcpl.get_layout()
+        if dcpl.get_nfilters():
+            return
+        if layout == h5py.h5d.CONTIGUOUS:
+            off = ds.id.get_offset()
+            if off is None:
+                return
+            self.direct = [(0, ds.shape[0], int(off))]
+        elif layout == h5py.h5d.CHUNKED:
+            if tuple(ds.chunks[1:]) != tuple(ds.shape[1:]):
+                return
+            rows = int(ds.chunks[0])
+            got: list[tuple[int, int, int]] = []
+            ds.id.chunk_iter(lambda ci: got.append((int(ci.chunk_offset[0]), int(ci.byte_offset),
+                                                    int(ci.filter_mask))))
+            got.sort()
+            if any(m for _, _, m in got):
+                return
+            # a full index of whole chunks: chunk k holds rows k*rows .. (k+1)*rows - 1
+            if [r for r, _, _ in got] != list(range(0, ds.shape[0], rows)):
+                return
+            self.direct = [(r, min(rows, ds.shape[0] - r), off) for r, off, _ in got]
+        self.row_bytes = row_bytes
+        self._starts = np.array([r for r, _, _ in self.direct or []], dtype=np.int64)
+
+    def read(self, a: int, b: int, out: np.ndarray) -> np.ndarray:
+        """Rows [a, b) into out[:b - a] (C-contiguous, the dataset's dtype and row shape);
+        returns that view."""
+        dst = out[: b - a]
+        if b <= a:
+            return dst
+        if self.direct is None or dst.dtype != self.ds.dtype or not dst.flags.c_contiguous:
+            self.ds.read_direct(dst, np.s_[a:b], np.s_[0:b - a])
+            return dst
+        mv = memoryview(dst.reshape(-1).view(np.uint8))
+        rb = self.row_bytes
+        k = int(np.searchsorted(self._starts, a, side="right")) - 1
+        pos = 0
+        while a < b:
+            r0, n, off = self.direct[k]
+            lo = a - r0
+            # extend over the following chunks that lie right after this one in the file
+            end_off = off + n * rb
+            j = k
+            while j + 1 < len(self.direct) and self.direct[j][0] + self.direct[j][1] < b \
+                    and self.direct[j + 1][2] == end_off:
+                j += 1
+                end_off += self.direct[j][1] * rb
+            hi = min(b, self.direct[j][0] + self.direct[j][1])
+            nbytes = (hi - a) * rb
+            start = off + lo * rb
+            got = 0
+            while got < nbytes:
+                r = os.preadv(self._fd, [mv[pos + got: pos + nbytes]], start + got)
+                if r <= 0:
+                    raise OSError(f"{self.ds.file.filename}: short read at byte {start + got}")
+                got += r
+            pos += nbytes
+            a = hi
+            k = j + 1
+        return dst
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:  # pragma: no cover - closed explicitly by the callers
+        self.close()
+
+
+__all__ = ["open_recording", "check_finite", "sample_rate", "MAX_RATE_HZ", "RowReader"]

@@ -1,0 +1,1 @@
+"""Reports and certificates: present results of the application layer (rigctl.analysis)."""

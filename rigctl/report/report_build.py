@@ -1,0 +1,40 @@
+"""Build the run report: load the run (:mod:`rigctl.report.report`), draw the plots
+(:mod:`rigctl.report.report_plots`) and write ``report.html`` (:mod:`rigctl.report.report_html`).
+:func:`solve_report` is the hook a procedure's ``solve: [report]`` step calls."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from . import report_html, report_plots
+from .report import REPORT_HTML, ReportDependencyError, load_run, require_matplotlib, resolve_run
+
+
+def build_report(run: str | Path, out_dir: str | Path | None = None,
+                 log: Callable[..., None] | None = None) -> Path:
+    """Write report.html and its PNGs for a run directory or recording; returns the HTML path.
+
+    ``out_dir`` defaults to the run directory (the folder of the recording).
+    """
+    require_matplotlib()
+    rec, run_dir = resolve_run(run)
+    data = load_run(rec, run_dir)
+    out = Path(out_dir) if out_dir is not None else run_dir
+    out.mkdir(parents=True, exist_ok=True)
+    plots = report_plots.make_plots(data, out, log)
+    html = report_html.render(data, plots)
+    target = out / REPORT_HTML
+    tmp = target.with_suffix(".html.tmp")
+    tmp.write_text(html, encoding="utf-8")
+    tmp.replace(target)
+    return target
+
+
+def solve_report(recording_path: str | Path, log: Callable[..., None]) -> None:
+    """SOLVER_HOOKS entry ``report``: write report.html beside the recording."""
+    try:
+        path = build_report(recording_path, log=log)
+    except ReportDependencyError as exc:
+        log("warning", f"report skipped: {exc}")
+        return
+    log("info", f"report: {path}")

@@ -1,0 +1,501 @@
+"""Running a procedure: the run directory, the recording, signals, safe state, checkpoints,
+resuming a cut-off run, exit codes.
+
+A run directory holds ``recording.h5``, ``run.log.jsonl`` (JSON lines), ``config.yaml`` (a
+snapshot of the rig config) and ``checkpoint.json`` (rewritten atomically after every step).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import signal
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ..recording import checkpoint as ckpt_mod
+from . import console as console_mod
+from .console import ConsoleStream
+from ..config.config import RigConfig, load_config
+from ..engine.device_check import check_devices
+from ..devices import DeviceFault, imu_identity
+from ..engine.engine import Engine, Interrupted, Rig, RunError
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError
+from ..engine.estimate import estimate
+from ..engine.procedure import Procedure, Step, load_procedure
+from ..progress import Progress, make_progress
+from ..recording.recorder import Recorder, Segment, library_versions, utc_now
+from ..engine.rig import open_rig
+from .runlog import RunLog
+from .solve import run_solvers
+from ..engine.states import StateMachine
+from ..config.suspenders import SuspenderSet, SuspenderSettings
+from ..units import format_duration
+
+RECORDING, RUN_LOG, CONFIG_SNAPSHOT = "recording.h5", "run.log.jsonl", "config.yaml"
+
+
+@dataclass
+class RunResult:
+    exit_code: int
+    run_dir: Path
+    recording: Path
+    status: str
+    message: str = ""
+
+
+@dataclass
+class RunOptions:
+    """How a run is driven (the daemon and tests set these; ``rigctl run`` uses the defaults)."""
+
+    #: None: the rig config's ``suspenders:`` section (``RigConfig.suspenders``)
+    suspenders: SuspenderSettings | None = None
+    states: StateMachine | None = None
+    rig_opener: Callable[[RigConfig], Any] = open_rig
+    on_engine: Callable[[Engine | None], None] | None = None  # called with the engine, then None
+    max_pause_s: float | None = None
+    sample_poll_s: float = 0.5
+    progress: Progress | None = None  # default: a bar on a terminal, plain lines otherwise
+    #: open each configured port and ask each device who it is before creating anything
+    #: (rigctl.engine.device_check); a failure is a DeviceError and no run directory is made
+    check_devices: bool = True
+
+
+def make_run_dir(parent: Path, procedure_name: str) -> Path:
+    """``parent/<UTC timestamp>-<procedure name>/``, created; never outside ``parent``."""
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", procedure_name).strip(".-") or "run"
+    parent.mkdir(parents=True, exist_ok=True)
+    for n in range(1000):
+        d = parent / (f"{stamp}-{safe}" + (f"-{n}" if n else ""))
+        try:
+            d.mkdir()
+            return d
+        except FileExistsError:
+            continue
+    raise RunError(f"could not create a run directory in {parent}")
+
+
+def check_run_dir(run_dir: str | Path, runs_root: str | Path) -> Path:
+    """The resolved run directory, which must be a direct child of ``runs_root``."""
+    root = Path(runs_root).resolve()
+    d = Path(run_dir).resolve()
+    if d.parent != root:
+        raise InputError(f"{run_dir} is not a run directory inside {root}",
+                         hint="pass --runs DIR, the directory the run was created in")
+    if not d.is_dir():
+        raise InputError(f"{d}: no such run directory")
+    return d
+
+
+class _DiskSafeLog:
+    """A RunLog whose file writes may fail (disk full) without stopping the run: the message
+    still reaches the console."""
+
+    def __init__(self, log: RunLog) -> None:
+        self._log = log
+
+    def __call__(self, kind: str, message: str, **fields: Any) -> None:
+        try:
+            self._log(kind, message, **fields)
+        except OSError as exc:
+            print(f"{kind}: {message} [run log not written: {exc.strerror}]",
+                  file=self._log.console, flush=True)
+
+    def close(self) -> None:
+        try:
+            self._log.close()
+        except OSError:
+            pass
+
+    @property
+    def console(self) -> Any:
+        return self._log.console
+
+
+def _clock_zero_unix(rig: Rig, cfg: RigConfig) -> float:
+    """Unix time at which the rig clock read zero (NaN for a virtual clock), s."""
+    if cfg.clock == "virtual":
+        return math.nan
+    speed = cfg.speed if cfg.clock == "scaled" else 1.0
+    return time.time() - rig.clock.now() / speed
+
+
+def _open_cut_off(recording: Path) -> h5py.File:
+    """A cut-off recording, for reading. A crash leaves HDF5's write flags set, which SWMR
+    readers accept when the SWMR flag is set too; a crash of a resume between its plain 'r+'
+    open and the switch to SWMR leaves the write flag alone, which every reader refuses: then
+    the flags are cleared first (the resume clears them anyway before reopening)."""
+    try:
+        return h5py.File(recording, "r", libver="latest", swmr=True)
+    except OSError:
+        if ckpt_mod.status_flags(recording) != 1:
+            raise
+    ckpt_mod.clear_status_flags(recording)
+    return h5py.File(recording, "r", libver="latest")
+
+
+def imu_meta(rig: Rig, cfg: RigConfig) -> dict[str, str]:
+    """/meta attrs naming the unit under test: ``imu_device_id`` (what the connected IMU reports,
+    "" when it cannot), ``imu_identity_json`` (its whole ``identity``), ``imu_serial`` (the rig
+    config's ``imu.serial``, "" when not given)."""
+    ident = imu_identity(rig.imu)
+    return {"imu_device_id": ident["device_id"], "imu_identity_json": json.dumps(ident, sort_keys=True, default=str),
+            "imu_serial": cfg.imu_serial}
+
+
+def check_same_imu(rig: Rig, recording: Path, recorded_id: str) -> None:
+    """Refuse (InputError) to continue ``recording`` on an IMU whose device ID differs from the
+    one it was started with (both known)."""
+    now_id = imu_identity(rig.imu)["device_id"]
+    if recorded_id and now_id and now_id != recorded_id:
+        raise InputError(f"{recording}: the run was recorded with IMU {recorded_id} but the connected IMU "
+                         f"is {now_id}: resuming would mix two units in one recording",
+                         hint=f"reconnect IMU {recorded_id} and resume again, or start a new run for IMU {now_id}")
+
+
+def _with_settings(options: RunOptions | None, cfg: RigConfig) -> RunOptions:
+    """``options`` with the suspender settings resolved: given ones win, else the config's."""
+    opts = options or RunOptions()
+    return opts if opts.suspenders is not None else replace(opts, suspenders=cfg.suspenders)
+
+
+def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Checkpoint:
+    return ckpt_mod.Checkpoint(procedure_path=str(Path(proc.path).resolve()), overrides=overrides,
+                               source_sha256={str(Path(p).resolve()): ckpt_mod.sha256_text(t)
+                                              for p, t in proc.sources.items()})
+
+
+class _LogHandler(logging.Handler):
+    """Records of the ``rigctl`` loggers (drivers, rig set-up) during a run: into the run log,
+    with their traceback if any; on the console only the message line, never a traceback."""
+
+    def __init__(self, log: Callable[..., None]) -> None:
+        super().__init__(logging.WARNING)
+        self._log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        fields: dict[str, Any] = {"logger": record.name}
+        if record.exc_info:
+            fields["traceback"] = "".join(traceback.format_exception(*record.exc_info))
+        try:
+            self._log("error" if record.levelno >= logging.ERROR else "warning",
+                      f"{record.name}: {record.getMessage()}", **fields)
+        except Exception:  # noqa: BLE001 - logging must never break the run
+            self.handleError(record)
+
+
+@contextmanager
+def _run_context(log: Callable[..., None], install_signals: bool, console_streams: list[ConsoleStream],
+                 hangups: list[str]) -> Iterator[None]:
+    """For the length of a run: console loss noted in the run log (the run goes on), the
+    ``rigctl`` loggers routed to the run log, and (``install_signals``) SIGHUP detaching the
+    console instead of ending the process."""
+    def lost(name: str, reason: str) -> None:
+        log("warning", f"console ({name}) lost: {reason}; the run goes on, its messages go to the "
+                       "run log only", echo=False)
+
+    def on_hangup(_signum: int, _frame: Any) -> None:  # minimal: a signal handler
+        hangups.append(f"hang-up (SIGHUP) at {utc_now()}")
+        for st in console_streams:
+            st.detach("hang-up (SIGHUP)", notify=False)
+        console_mod.detach_all("hang-up (SIGHUP)", notify=False)
+
+    handler = _LogHandler(log)
+    logger = logging.getLogger("rigctl")
+    logger.addHandler(handler)
+    old_hup = None
+    if install_signals and hasattr(signal, "SIGHUP"):
+        old_hup = signal.signal(signal.SIGHUP, on_hangup)
+    try:
+        with console_mod.on_lost(lost):
+            yield
+    finally:
+        if old_hup is not None:
+            signal.signal(signal.SIGHUP, old_hup)
+        logger.removeHandler(handler)
+
+
+def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
+           make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
+           install_signals: bool, progress: Progress, resuming: bool = False) -> RunResult:
+    """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe: the
+    table stopped, the recording closed with a final status, the checkpoint saying the same.
+    Whatever fails (a device, the disk, a bug) is one line on the console and its traceback in
+    the run log; opening the rig or creating the recording may fail too (status ``failed``)."""
+    recording = run_dir / RECORDING
+    log = _DiskSafeLog(log)  # type: ignore[assignment]
+    states = opts.states or StateMachine()
+    status, code, message = "failed", EXIT_FAILED, ""
+    old_handlers: dict[int, Any] = {}
+    rec: Recorder | None = None
+    sim_time = math.nan
+    wall0 = time.monotonic()
+    hangups: list[str] = []
+    streams = [progress.stream] if isinstance(progress.stream, ConsoleStream) else []
+
+    def note_hangups() -> None:
+        while hangups:
+            log("warning", f"{hangups.pop(0)}: console detached; the run goes on (see "
+                           "docs/troubleshooting.md: nohup, systemd-run, tmux)", echo=False)
+
+    def guarded(what: str, fn: Callable[[], Any]) -> bool:
+        """Run one clean-up step; a failure is logged (traceback in the run log), never raised."""
+        try:
+            fn()
+            return True
+        except Exception as exc:  # noqa: BLE001 - every clean-up step must get its turn
+            log("error", f"{what}: {type(exc).__name__}: {exc}", traceback=traceback.format_exc())
+            return False
+
+    with _run_context(log, install_signals, streams, hangups):
+        try:
+            with opts.rig_opener(cfg) as (rig, truth):
+                rec, start = make_recorder(rig, truth)
+                suspenders = SuspenderSet(opts.suspenders, run_dir)
+                engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
+                                sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
+                                open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
+                                progress=progress)
+
+                def on_transition(old: str, new: str, reason: str) -> None:
+                    log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
+                    if rec is not None and not rec.closed:
+                        rec.add_event(rig.clock.now(), "state", f"{old} -> {new}: {reason}")
+
+                states.listeners.append(on_transition)
+
+                def on_signal(signum: int, _frame: Any) -> None:
+                    engine.request_abort(signal.Signals(signum).name)
+
+                def on_step(step: Step, seg: Segment) -> None:
+                    note_hangups()
+                    ckpt.last_step, ckpt.n_imu, ckpt.n_segments = step.index, rec.n_imu, rec.n_segments
+                    ckpt.t_file = seg.t_end + rec.time_offset
+                    try:
+                        ckpt_mod.save(run_dir, ckpt)
+                    except OSError as exc:  # resume falls back on the recording's complete segments
+                        log("warning", f"checkpoint not written: {exc}")
+
+                if install_signals:
+                    for sig in (signal.SIGINT, signal.SIGTERM):
+                        old_handlers[sig] = signal.signal(sig, on_signal)
+                if opts.on_engine:
+                    opts.on_engine(engine)
+                try:
+                    progress.start([e for e in estimate(proc.steps, cfg) if e.step.index >= start], proc.name)
+                    # resuming: the cut-off left the table as it was; stop it before any motion
+                    engine.run(proc.steps, start, on_step=on_step,
+                               stop_first=f"session {ckpt.sessions}" if resuming else None)
+                    status, code = "complete", EXIT_OK
+                except Interrupted as exc:
+                    status, code, message = "interrupted", EXIT_INTERRUPTED, f"interrupted by {exc}"
+                    states.to("aborting", message)
+                    log("error", f"{message}: table stopped, recording closed as interrupted")
+                except RunError as exc:
+                    status, code, message = "failed", EXIT_FAILED, str(exc)
+                    states.to("aborting", message)
+                    log("error", message)
+                except DeviceFault as exc:  # a device that needs an operator, e.g. another IMU on the port
+                    status, code, message = "failed", EXIT_FAILED, str(exc)
+                    if states.state != "idle":
+                        states.to("faulted", message)
+                    log("error", message)
+                except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
+                    status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
+                    tb = traceback.format_exc()
+                    if states.state != "idle":
+                        guarded("state change", lambda: states.to("faulted", message))
+                    log("error", f"unexpected error: {message} (traceback in {run_dir / RUN_LOG})",
+                        traceback=tb)
+                finally:
+                    if not guarded("putting the table in its safe state", engine.safe_state):
+                        if status == "complete":
+                            status, code, message = "failed", EXIT_FAILED, "the table could not be stopped"
+                    guarded("progress display", lambda: progress.finish(status))
+                    for sig, h in old_handlers.items():
+                        signal.signal(sig, h)
+                    if states.state in ("running", "aborting"):
+                        guarded("state change", lambda: states.to("idle", f"run {status}"))
+                    if on_transition in states.listeners:
+                        states.listeners.remove(on_transition)
+                    if opts.on_engine:
+                        guarded("daemon hook", lambda: opts.on_engine(None))
+                    if not rec.closed:
+                        if message:
+                            guarded("event", lambda: rec.add_event(rig.clock.now(), status, message))
+                        if not guarded("closing the recording", lambda: rec.close(status)):
+                            if status == "complete":
+                                status, code, message = "failed", EXIT_FAILED, "the recording could not be closed"
+                sim_time = rig.clock.now()
+        except InputError:  # refused before anything was changed (resume on another IMU)
+            raise
+        except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - opening the rig, creating
+            # the recording, or closing the rig after the run, failed
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            what = "interrupted (SIGINT)" if interrupted else f"{type(exc).__name__}: {exc}"
+            tb = None if interrupted else traceback.format_exc()
+            if rec is None:  # nothing ran: no recording
+                status = "interrupted" if interrupted else "failed"
+                code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED
+                message = f"the run did not start: {what}"
+                log("error", message, traceback=tb)
+            else:  # the run's own outcome is recorded; the devices' teardown failed after it
+                code = EXIT_FAILED if code == EXIT_OK else code
+                message = f"{message}; then closing the devices failed: {what}" if message else \
+                    f"closing the devices failed: {what}"
+                log("error", message, traceback=tb)
+                if not rec.closed:
+                    guarded("closing the recording", lambda: rec.close(status))
+        if rec is not None or not resuming:  # a resume that never started keeps its checkpoint
+            ckpt.status = status
+            try:
+                ckpt_mod.save(run_dir, ckpt)
+            except OSError as exc:
+                log("error", f"checkpoint not written: {exc}")
+        note_hangups()
+        wall = time.monotonic() - wall0
+        if rec is not None:
+            log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
+                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
+        if status == "complete":
+            try:
+                run_solvers(proc, recording, log)
+            except Exception as exc:  # noqa: BLE001 - the recording is complete; the solver failed
+                code, message = EXIT_FAILED, f"solver failed: {type(exc).__name__}: {exc}"
+                log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
+                             f"run the analysis again on {recording}", traceback=traceback.format_exc())
+        if rec is not None:
+            log("info", f"recording: {recording}")
+        log.close()
+    return RunResult(code, run_dir, recording, status, message)
+
+
+def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
+                  console: Any = None, install_signals: bool = True,
+                  options: RunOptions | None = None,
+                  overrides: dict[str, Any] | None = None) -> RunResult:
+    """Execute ``proc`` on the rig of ``cfg``; the recording and log go to a new run directory.
+    ``overrides`` (the ``-p`` values) are kept in the checkpoint for ``rigctl resume``."""
+    opts = _with_settings(options, cfg)
+    if opts.check_devices:  # before anything is created: a run that cannot start leaves nothing
+        check_devices(cfg).raise_for_problems()
+    run_dir = make_run_dir(out_parent, proc.name)
+    (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
+    progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
+    log = RunLog(run_dir / RUN_LOG, progress.console)
+    plan = estimate(proc.steps, cfg)
+    total = sum(e.total_s for e in plan)
+    log("info", f"procedure {proc.name}: {sum(s.is_motion for s in proc.steps)} steps, "
+                f"about {format_duration(total)} of rig time", procedure=proc.path, echo=False)
+    ckpt = _checkpoint_for(proc, dict(overrides if overrides is not None else proc.parameters))
+    versions = json.dumps(library_versions())  # before the rig (and its clock) starts: it is slow
+
+    def make_recorder(rig: Rig, truth: Any) -> tuple[Recorder, int]:
+        meta = {"procedure_name": proc.name, "procedure_path": proc.path, "procedure_text": proc.text,
+                "parameters_json": json.dumps(proc.parameters, default=str),
+                "config_path": cfg.path, "config_yaml": cfg.text,
+                "versions_json": versions, "rig": rig.description,
+                "latitude_deg": math.degrees(cfg.latitude),
+                "height_m": cfg.height_m, "gravity_m_s2": cfg.gravity,
+                "clock_zero_unix_s": _clock_zero_unix(rig, cfg), **imu_meta(rig, cfg)}
+        ckpt_mod.save(run_dir, ckpt)
+        rec = Recorder(run_dir / RECORDING, meta, truth, imu_rate_hz=cfg.imu_rate_hz,
+                       flush_interval_s=cfg.flush_interval_s,
+                       min_free_bytes=opts.suspenders.min_free_bytes // 4)
+        return rec, 0
+
+    return _drive(proc, cfg, run_dir, log, ckpt, make_recorder, opts, install_signals, progress)
+
+
+def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
+               install_signals: bool = True, options: RunOptions | None = None) -> RunResult:
+    """Continue a cut-off (crashed, interrupted or failed) run from the step after its last
+    complete one, into the same run directory and recording.
+
+    The procedure is loaded again from its original path and must be unchanged (its files'
+    SHA-256 are in the checkpoint); the rig config comes from the run's snapshot. Rows recorded
+    while the step in flight ran are written as an ``incomplete`` segment plus a ``resume`` event
+    naming their range, so solvers never use them."""
+    opts = options or RunOptions()
+    d = check_run_dir(run_dir, runs_root)
+    ck = ckpt_mod.load(d)  # CheckpointError is an InputError
+    if ck.status == "complete":
+        raise InputError(f"{d}: the run is already complete; nothing to resume")
+    cfg = load_config(d / ck.config_file)
+    opts = _with_settings(opts, cfg)
+    proc = load_procedure(ck.procedure_path, ck.overrides, cfg.limits)
+    for path, text in proc.sources.items():
+        if ck.source_sha256.get(str(Path(path).resolve())) != ckpt_mod.sha256_text(text):
+            raise InputError(f"{path} changed since the run started (or is not the same file)",
+                             hint="restore the procedure as it was, or start a new run")
+    recording = d / ck.recording
+    if not recording.exists():
+        raise InputError(f"{d}: the run was cut off before its recording was created",
+                         hint="start the procedure again")
+    with _open_cut_off(recording) as f:
+        seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample")}
+        file_status = f["run/status"][0].decode()
+        recorded_id = f["meta"].attrs.get("imu_device_id", "")  # absent: recorded before rigctl knew
+    recorded_id = recorded_id.decode() if isinstance(recorded_id, bytes) else str(recorded_id)
+    if file_status == "complete":
+        raise InputError(f"{recording}: the recording is already complete; nothing to resume")
+    done = seg["status"] == b"complete"
+    last_done = max([ck.last_step, *(int(x) for x in seg["step"][done])])
+    # IMU rows of the step in flight start where the last complete step's samples ended
+    in_flight_from = max([int(ck.n_imu), *(int(x) for x in seg["last_sample"][done])])
+    todo = [s for s in proc.steps if s.is_motion and s.index > last_done]
+    progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
+    log = RunLog(d / RUN_LOG, progress.console)
+    ck.sessions += 1
+    log("info", f"resuming {d.name} (session {ck.sessions}): {len(todo)} steps left after step "
+                f"{last_done + 1}; recording {recording}")
+    by_index = {s.index: s for s in proc.steps}
+
+    def make_recorder(rig: Rig, truth: Any) -> tuple[Recorder, int]:
+        check_same_imu(rig, recording, recorded_id)  # before the recording or the table is touched
+        rec = Recorder.reopen(recording, imu_rate_hz=cfg.imu_rate_hz,
+                              flush_interval_s=cfg.flush_interval_s,
+                              min_free_bytes=opts.suspenders.min_free_bytes // 4)
+        lt = rec.last_times()
+        first = min(in_flight_from, rec.n_imu)
+        t_end = np.nanmax([*lt.values(), ck.t_file])
+        nxt = todo[0] if todo else None
+        if nxt is not None and rec.n_imu > first:
+            nan3 = np.full(3, np.nan)
+            rec.add_segment(Segment(kind=nxt.kind, label=nxt.label, step=nxt.index,
+                                    first_sample=first, last_sample=rec.n_imu, t_start=ck.t_file,
+                                    t_end=float(t_end), settle_time=math.nan,
+                                    commanded_angle=nxt.angles,
+                                    commanded_rate=np.nan_to_num(nxt.rates, nan=0.0),
+                                    measured_angle=nan3, measured_rate=nan3, status="incomplete"),
+                            file_time=True)
+        what = (f"step {nxt.index + 1} ({nxt.label}) was in flight: IMU rows [{first}, {rec.n_imu}) "
+                "marked incomplete" if nxt is not None else "no step was in flight")
+        rec.add_event(float(t_end), "resume",
+                      f"session {ck.sessions} after a cut-off at t={float(t_end):.3f} s; {what}; "
+                      f"new session starts at t={rec.time_offset:.3f} s", file_time=True)
+        log("info", f"{what}; new data start at t={rec.time_offset:.3f} s, IMU counter "
+                    f"{rec.counter_offset}")
+        ck.status = "running"
+        ckpt_mod.save(d, ck)
+        start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
+        return rec, start
+
+    try:
+        return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True)
+    except InputError as exc:  # e.g. another IMU: nothing was changed, say so in the run's log too
+        log("error", f"resume refused: {exc}", echo=False)  # the caller reports it
+        log.close()
+        raise

@@ -1,0 +1,1 @@
+"""The daemon: job queue, control socket, web page, live feed and notifications."""
