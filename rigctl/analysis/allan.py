@@ -63,11 +63,12 @@ EARLY_NOISE_ID = True
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
 EARLY_TONES = True
-#: the streamed pipeline's compiled kernels (allan_kernels.streamed_signatures) are loaded
-#: from numba's cache on a thread started with :func:`compute`, while the file opens and the
-#: gap scan runs, instead of at each kernel's first call (False: at the first call; the same
-#: kernels either way)
-WARM_KERNELS = True
+#: True: the streamed pipeline's compiled kernels (allan_kernels.streamed_signatures) are
+#: loaded from numba's cache on a thread started with :func:`compute_once`, while the file
+#: opens and the gap scan runs, instead of at each kernel's first call (the same kernels
+#: either way). Off: measured no faster (docs/allan.md, issue 21 fifth stop) -- the load is
+#: Python holding the GIL, and the gap scan needs its first kernel at once
+WARM_KERNELS = False
 
 
 def _load_kernels() -> None:
