@@ -253,24 +253,24 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
 
 
 def _emulator_cases() -> list[tuple[str, str, tuple]]:
-    from rigctl.sim.error_model import sensor_noise
-    from rigctl.sim.profiles import get_profile, profile_names
+    from rigctl.sim.profiles import ImuProfile, get_profile, profile_names
 
     cases = []
     for name in profile_names():
         if name == "random":
             continue
         prof = get_profile(name)
+        typed = ImuProfile.read(prof)
         for sensor in ("gyro", "accel"):
             if sensor in prof:
-                cases.append((name, sensor, sensor_noise(prof[sensor], sensor)))
+                cases.append((name, sensor, getattr(typed, sensor).noise.coefficients()))
     return cases
 
 
 def _analyse(y: np.ndarray, fs: float, sensor: str) -> tuple:
     r = A.oadev(y, 1 / fs, 95, "rate")
     x = A.phase_from_rate(y, 1 / fs)
-    c = E.confidence("oadev", x, r.m, r.dev)
+    c = E.confidence("oadev", x, r.m, r.dev, strides=r.stride)
     fit = F.fit_terms(r.tau_s, r.dev, c["edf"], sensor, tau0=1 / fs, n_phase=r.n_phase)
     return r, c["edf"], fit, F.piecewise_readoffs(r.tau_s, r.dev, sensor)["si"]
 
