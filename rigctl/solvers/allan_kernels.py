@@ -670,7 +670,8 @@ def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:
 def streamed_signatures() -> list[tuple[str, tuple]]:
     """(kernel, argument types) of every compiled call the streamed pipeline makes in fast
     mode (``rigctl allan`` on a recording: the counter's gap scan, the one pass per dataset,
-    the spike prefilter, the cascade of strided levels, the lag-1 noise IDs), in the order
+    the spike prefilter, the cascade of strided levels, the lag-1 noise IDs, the strided
+    levels' own sums), in the order
     it first needs them. A test checks that running the pipeline adds no other signature."""
     if not HAVE_NUMBA:
         return []
@@ -688,6 +689,8 @@ def streamed_signatures() -> list[tuple[str, tuple]]:
         ("_far_from_range_pre", (fa, i8, f8, i8, f1, f1, i1)),
         ("_lag1_alpha", (f1, i8, i8)),
         ("_casc_flush", (i1, i2, i1, f2, i1, i1, i1, i2, f3, i2, i1, i8)),
+        ("_gather", (f1, f1, i8, i8, f1)),
+        ("_range_sums", (f1, i1, i1, i1, i8, f2)),
     ]
 
 
