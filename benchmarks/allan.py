@@ -270,7 +270,7 @@ def _emulator_cases() -> list[tuple[str, str, tuple]]:
 def _analyse(y: np.ndarray, fs: float, sensor: str) -> tuple:
     r = A.oadev(y, 1 / fs, 95, "rate")
     x = A.phase_from_rate(y, 1 / fs)
-    c = E.confidence("oadev", x, r.m, r.dev)
+    c = E.confidence("oadev", x, r.m, r.dev, strides=r.stride)
     fit = F.fit_terms(r.tau_s, r.dev, c["edf"], sensor, tau0=1 / fs, n_phase=r.n_phase)
     return r, c["edf"], fit, F.piecewise_readoffs(r.tau_s, r.dev, sensor)["si"]
 

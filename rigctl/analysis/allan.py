@@ -337,7 +337,7 @@ def fm_after_fm(ms: np.ndarray, alphas: np.ndarray) -> np.ndarray:
     return out
 
 
-def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
+def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray, stride: int = 1) -> float:
     """EDF of the overlapping Allan variance at factor m when the terms touching a gap are
     skipped: the estimate is the mean of the terms of the gap-free stretches that hold any
     (L + 1 phase points, n = L + 1 - 2m terms each), i.e. a sum of independent per-stretch
@@ -345,7 +345,8 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
     (sum n_i)^2 / sum(n_i^2 / nu_i), nu_i Greenhall's EDF of stretch i. Taking the whole
     record's EDF instead overstates it wherever stretches are short: an Astro Pi record (237
     stretches, the longest 446 samples) kept 44 terms at m = 208, all in one stretch, with an
-    EDF of 147 for the whole record (~1 for the stretch)."""
+    EDF of 147 for the whole record (~1 for the stretch). ``stride``: the spacing of the
+    terms summed (fast mode), each stretch's EDF then that of its strided terms."""
     lengths, count = np.unique(np.asarray(stretch_samples, dtype=np.int64), return_counts=True)
     num = den = 0.0
     for length, c in zip(lengths, count):
@@ -353,7 +354,7 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray) -> float:
         if n_terms <= 0:
             continue
         try:
-            nu = E.edf("oadev", int(alpha), int(m), int(length) + 1)
+            nu = E.edf("oadev", int(alpha), int(m), int(length) + 1, int(stride))
         except ValueError:  # too few phase points for a Greenhall EDF
             continue
         if not nu > 0:
@@ -406,12 +407,13 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     raw = [stream.noise_id(int(m), NID.n_terms("oadev", res.n_phase, int(m))) for m in res.m]
     held = NID.apply_hold(res.m, raw, res.n_phase, "oadev")
     alphas = fm_after_fm(res.m, np.array([NID.clamp_alpha(int(a), "oadev") for a in held]))
+    strides = res.stride if len(res.stride) == len(res.m) else np.ones_like(res.m)
     if stretch_samples is not None and len(stretch_samples) > 1:
-        edfs = np.array([edf_skipping_gaps(int(a), int(m), stretch_samples)
-                         for a, m in zip(alphas, res.m)])
-    else:
-        edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase)
-                         for a, m in zip(alphas, res.m)])
+        edfs = np.array([edf_skipping_gaps(int(a), int(m), stretch_samples, int(k))
+                         for a, m, k in zip(alphas, res.m, strides)])
+    else:  # the EDF of the terms actually summed (fast mode: strided, Greenhall's S = m/s)
+        edfs = np.array([E.edf("oadev", int(a), int(m), res.n_phase, int(k))
+                         for a, m, k in zip(alphas, res.m, strides)])
     lo68, hi68 = E.chi2_interval(res.dev, edfs, E.ONE_SIGMA)
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
     unit, fac = DEV_UNITS[sensor]
@@ -637,7 +639,9 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
         stretch_samples = np.diff(edges)
     ms = A.tau_factors(n + 1, taus, "oadev")
-    mode = "exact" if exact else "fast"
+    # below A.FAST_MIN_POINTS the sums are exact, as in A.oadev: there they cost milliseconds,
+    # while the strides would throw away most of the EDF of phase-noise-dominated taus
+    mode = "exact" if exact or n + 1 < A.FAST_MIN_POINTS else "fast"
     if mode == "fast" and not isinstance(taus, (list, tuple)):
         ms = A.snap_fast(ms)
         ms = ms[ms <= A.max_factor(n + 1, "oadev")]

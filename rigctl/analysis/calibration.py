@@ -39,8 +39,8 @@ import numpy as np
 from . import production
 from .verdicts import format_verdicts
 from .calibration_text import noise_summary, param_table
-from ..recording.recorder import utc_now, write_results
-from ..recording.segment_builder import build_segment_table, open_recording
+from ..recording.recorder import utc_now
+from ..recording.segment_builder import build_segment_table, open_recording, store_calibration_results
 from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
@@ -286,12 +286,9 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
         payload["verdicts"] = production.verdicts_for(spec, "calibration", payload)
         text += "\n" + format_verdicts(payload["verdicts"])
     if store:
-        with open_recording(p) as f:
-            status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
-        if status == "running":
-            text += "\nnot stored in the recording: it is still being written (status running)"
-        else:
-            write_results(p, "calibration", payload, schema_version=SCHEMA_VERSION)
+        not_stored = store_calibration_results(p, "calibration", payload, schema_version=SCHEMA_VERSION)
+        if not_stored:
+            text += "\n" + not_stored
         jp = Path(json_path) if json_path else p.with_name(p.stem + ".calibration.json")
         jp.write_text(json.dumps(payload, indent=1))
         text += f"\nresults: {p}:/results/calibration and {jp}"

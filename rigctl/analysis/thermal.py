@@ -29,9 +29,9 @@ from ..recording import recording_reader
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
-from ..recording.recorder import utc_now, write_results
+from ..recording.recorder import utc_now
 from ..recording.recording_reader import check_finite
-from ..recording.segment_builder import _angles_at, _site, open_recording
+from ..recording.segment_builder import _angles_at, _site, open_recording, store_calibration_results
 from ..solvers import thermal as th
 from ..solvers.segment_noise import window_revolutions
 from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
@@ -486,16 +486,13 @@ def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | P
     p = Path(path)
     payload, text, arrays = calibrate_thermal(p, degrees, noise=noise)
     if store:
-        with open_recording(p) as f:
-            status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
-        if status == "running":
-            text += "\nnot stored in the recording: it is still being written (status running)"
-        else:
-            for s, d in payload["sensors"].items():
-                arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
-                arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
-                arrays[f"{s}_sigma"] = (np.array([q["sigma"] for q in d["parameters"]]), "SI (see names)")
-            write_results(p, "thermal", payload, arrays, schema_version=SCHEMA_VERSION)
+        for s, d in payload["sensors"].items():
+            arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")
+            arrays[f"{s}_values"] = (np.array([q["value"] for q in d["parameters"]]), "SI (see names)")
+            arrays[f"{s}_sigma"] = (np.array([q["sigma"] for q in d["parameters"]]), "SI (see names)")
+        not_stored = store_calibration_results(p, "thermal", payload, arrays, schema_version=SCHEMA_VERSION)
+        if not_stored:
+            text += "\n" + not_stored
         jp = Path(json_path) if json_path else p.with_name(p.stem + ".thermal.json")
         jp.write_text(json.dumps(payload, indent=1, default=float))
         text += f"\nresults: {p}:/results/thermal and {jp}"

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
 
 from . import recording_reader
+from .recorder import write_results
 from ..frames import body_references, earth_rate_enu, gimbal_dcm, normal_gravity
 from ..solvers.segment_stats import SensorNoise, self_noise_sigma
 from ..solvers.segments import SegmentTable, about_reference, rest_batches, segment_table_from_samples
@@ -39,6 +41,20 @@ def open_recording(path: str | Path) -> h5py.File:
     """Open a rigctl recording read-only for a calibration (SWMR-capable), checked by
     :func:`rigctl.recording.recording_reader.open_recording`; InputError if it cannot be used."""
     return recording_reader.open_recording(path, CAL_NEED)
+
+
+def store_calibration_results(path: Path, name: str, payload: dict[str, Any],
+                              arrays: dict[str, tuple[Any, str]] | None = None,
+                              schema_version: int = 1) -> str | None:
+    """:func:`rigctl.recording.recorder.write_results` of a calibration (/results/``name``),
+    unless a run is still writing the recording (/run/status "running"): then nothing is
+    written and the line saying so is returned (None when stored)."""
+    with open_recording(path) as f:
+        status = bytes(f["run/status"][0]).rstrip(b"\0").decode() if "run/status" in f else "complete"
+    if status == "running":
+        return "not stored in the recording: it is still being written (status running)"
+    write_results(path, name, payload, arrays, schema_version=schema_version)
+    return None
 
 
 def _site(f: h5py.File) -> tuple[float, float, float]:
