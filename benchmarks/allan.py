@@ -253,17 +253,17 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
 
 
 def _emulator_cases() -> list[tuple[str, str, tuple]]:
-    from rigctl.sim.error_model import sensor_noise
-    from rigctl.sim.profiles import get_profile, profile_names
+    from rigctl.sim.profiles import ImuProfile, get_profile, profile_names
 
     cases = []
     for name in profile_names():
         if name == "random":
             continue
         prof = get_profile(name)
+        typed = ImuProfile.read(prof)
         for sensor in ("gyro", "accel"):
             if sensor in prof:
-                cases.append((name, sensor, sensor_noise(prof[sensor], sensor)))
+                cases.append((name, sensor, getattr(typed, sensor).noise.coefficients()))
     return cases
 
 

@@ -2,7 +2,8 @@
 
 API for the in-process IMU (sim/imu.py)::
 
-    model = ImuErrorModel.from_profile(profile_dict, rate_hz=None, seed=0)   # rate_hz overrides profile
+    model = ImuErrorModel.from_profile(profile, rate_hz=None, seed=0)   # rate_hz overrides profile
+    #   profile: a sim.profiles.ImuProfile (or a mapping read as one); the model reads its fields
     grid = model.sample_grid(n_out)          # the IMU's own clock (drift_ppm, wander, drops), n_out samples
     #   grid.t_internal (n_out*L,) true times of the internal-rate samples, run timescale, s
     #                   (output sample k near k / rate_hz x (1 + 1e-6 ppm); sample 0 at t = 0)
@@ -48,19 +49,10 @@ from scipy import signal
 from . import effects as fx
 from . import fused as _fused
 from .frontend import FrontEnd
-from rigctl.solvers.noise_coefficients import Triad, from_config, to_json
+from rigctl.solvers.noise_coefficients import to_json
 
 from .noise import NoiseGenerator
-
-
-def sensor_noise(sensor_section: Mapping[str, Any], sensor: str) -> Triad:
-    """The three axes' IEEE 952 coefficients of a profile's gyro/accel section (its ``noise:``)."""
-    return from_config(sensor_section.get("noise"), sensor, "emulator profile")
-
-
-def flicker_density(sensor_section: Mapping[str, Any]) -> float:
-    """The emulator's flicker cascade density (pole/zero pairs per decade) of a ``noise:`` section."""
-    return float((sensor_section.get("noise") or {}).get("flicker_pairs_per_decade", 2))
+from .profiles import ClockEffect, GSensitivity, ImuProfile, TableGeometry, Warmup, given
 
 
 def _vec(x: Any, default: float = 0.0) -> np.ndarray:
@@ -71,9 +63,14 @@ def _mat(x: Any) -> np.ndarray:
     return np.zeros((3, 3)) if x is None else np.asarray(x, dtype=float).reshape(3, 3)
 
 
-def _on(effects: Mapping[str, Any], name: str) -> dict | None:
-    e = effects.get(name) or {}
-    return dict(e) if e.get("enabled", False) else None
+def _or(x: Any, default: Any) -> Any:
+    """A profile value, or ``default`` when the profile does not give it."""
+    return default if x is None else x
+
+
+def _on(effect: Any) -> Any:
+    """The effect's settings when it is enabled, else None."""
+    return effect if effect.enabled else None
 
 
 @dataclass
@@ -90,76 +87,78 @@ class SampleGrid:
 class ImuErrorModel:
     """Measured IMU outputs from true kinematics; see the module docstring for the equations."""
 
-    def __init__(self, profile: Mapping[str, Any], rate_hz: float | None = None, seed: int = 0):
+    def __init__(self, profile: ImuProfile, rate_hz: float | None = None, seed: int = 0):
         self.profile = profile
         self.seed = int(seed)
-        self.output_rate_hz = float(rate_hz or profile.get("rate_hz", 100.0))
-        fe = profile.get("frontend", {}) or {}
-        internal = float(fe.get("internal_rate_hz") or self.output_rate_hz)
+        self.output_rate_hz = float(rate_hz or _or(profile.rate_hz, 100.0))
+        fe = profile.frontend
+        internal = float(fe.internal_rate_hz or self.output_rate_hz)
         if internal < self.output_rate_hz:
             internal = self.output_rate_hz
         internal = self.output_rate_hz * max(1, round(internal / self.output_rate_hz))
         ss = np.random.SeedSequence(self.seed)
         s_gn, s_an, s_clk, s_on, s_vib, s_temp, s_pre = ss.spawn(7)
-        order = int(fe.get("filter_order", 2))
-        self.gyro_fe = FrontEnd(self.output_rate_hz, internal, fe.get("gyro_bandwidth_hz"), order,
-                                fe.get("gyro_lsb_rad_per_s"), fe.get("gyro_full_scale_rad_per_s"))
-        self.accel_fe = FrontEnd(self.output_rate_hz, internal, fe.get("accel_bandwidth_hz"), order,
-                                 fe.get("accel_lsb_m_per_s2"), fe.get("accel_full_scale_m_per_s2"))
+        order = int(_or(fe.filter_order, 2))
+        self.gyro_fe = FrontEnd(self.output_rate_hz, internal, fe.gyro_bandwidth_hz, order,
+                                fe.gyro_lsb_rad_per_s, fe.gyro_full_scale_rad_per_s)
+        self.accel_fe = FrontEnd(self.output_rate_hz, internal, fe.accel_bandwidth_hz, order,
+                                 fe.accel_lsb_m_per_s2, fe.accel_full_scale_m_per_s2)
         self.internal_rate_hz = internal
         self.decimation = self.gyro_fe.decimation
-        g, a = profile.get("gyro", {}) or {}, profile.get("accel", {}) or {}
+        g, a = profile.gyro, profile.accel
         #: the noise coefficients of each sensor's three axes (the generators' input)
-        self.gyro_coefficients = sensor_noise(g, "gyro")
-        self.accel_coefficients = sensor_noise(a, "accel")
-        self.gyro_noise = NoiseGenerator(self.gyro_coefficients, self.output_rate_hz, s_gn, flicker_density(g))
-        self.accel_noise = NoiseGenerator(self.accel_coefficients, self.output_rate_hz, s_an, flicker_density(a))
+        self.gyro_coefficients = g.noise.coefficients()
+        self.accel_coefficients = a.noise.coefficients()
+        self.gyro_noise = NoiseGenerator(self.gyro_coefficients, self.output_rate_hz, s_gn, g.noise.flicker_density())
+        self.accel_noise = NoiseGenerator(self.accel_coefficients, self.output_rate_hz, s_an,
+                                          a.noise.flicker_density())
         # declared errors
-        self.gyro_bias = _vec(g.get("bias_rad_per_s"))
-        self.gyro_M = np.diag(1.0 + _vec(g.get("scale_error"))) + _mat(g.get("misalignment_rad")) * (1 - np.eye(3))
-        self.accel_bias = _vec(a.get("bias_m_per_s2"))
-        self.accel_M = np.diag(1.0 + _vec(a.get("scale_error"))) + _mat(a.get("misalignment_rad")) * (1 - np.eye(3))
-        self.accel_k2 = _vec(a.get("quadratic_per_m_per_s2"))
-        # switchable effects
-        eff = profile.get("effects", {}) or {}
-        self.warmup = _on(eff, "warmup")
-        self.turn_on = _on(eff, "turn_on_bias")
-        self.gsens = _on(eff, "g_sensitivity")
-        self.asym = _on(eff, "accel_scale_asymmetry")
-        self.nonlin = _on(eff, "gyro_nonlinearity")
-        self.lever = _on(eff, "lever_arm")
-        self.delay = _on(eff, "time_delay")
-        self.vib = _on(eff, "vibration")
-        self.clock_cfg = _on(eff, "clock")
-        self.geometry = _on(eff, "table_geometry")
+        self.gyro_bias = _vec(g.bias_rad_per_s)
+        self.gyro_M = np.diag(1.0 + _vec(g.scale_error)) + _mat(g.misalignment_rad) * (1 - np.eye(3))
+        self.accel_bias = _vec(a.bias_m_per_s2)
+        self.accel_M = np.diag(1.0 + _vec(a.scale_error)) + _mat(a.misalignment_rad) * (1 - np.eye(3))
+        self.accel_k2 = _vec(a.quadratic_per_m_per_s2)
+        # switchable effects: each one's settings (sim.profiles), None when off
+        eff = profile.effects
+        self.warmup = _on(eff.warmup)
+        self.turn_on = _on(eff.turn_on_bias)
+        self.gsens = _on(eff.g_sensitivity)
+        self.asym = _on(eff.accel_scale_asymmetry)
+        self.nonlin = _on(eff.gyro_nonlinearity)
+        self.lever = _on(eff.lever_arm)
+        self.delay = _on(eff.time_delay)
+        self.vib = _on(eff.vibration)
+        self.clock_cfg = _on(eff.clock)
+        self.geometry = _on(eff.table_geometry)
         #: time since power-on when the run starts, s: the warm-up (and the noise's K walk and
         #: R ramp, which start at power-on) are that far along at run time 0; the sample grid
         #: itself starts at run time 0 (counter 0 at t = 0)
-        self.power_on_time_s = float(profile.get("power_on_time_s", 0.0))
+        self.power_on_time_s = float(_or(profile.power_on_time_s, 0.0))
         if self.power_on_time_s < 0:
             raise ValueError("power_on_time_s must be >= 0 (time since power-on at run start)")
         self.T_ref = None
         if self.warmup:
-            self.T_ref = float(self.warmup.get("T_ref_degC", self.warmup["T0_degC"] + self.warmup["dT_degC"]))
+            wu = self.warmup
+            self.T_ref = float(_or(wu.T_ref_degC, wu.T0_degC + wu.dT_degC))
         # K random walk and R ramp accumulated between power-on and the run start (a constant
         # from the run's point of view): N(0, K^2 t_on) + R t_on per axis
         rng_pre = np.random.default_rng(s_pre)
         self.gyro_power_on_offset = self._noise_offset(self.gyro_noise.params, rng_pre)
         self.accel_power_on_offset = self._noise_offset(self.accel_noise.params, rng_pre)
-        self.time_delay_s = float(self.delay["delay_s"]) if self.delay else 0.0
+        self.time_delay_s = float(self.delay.delay_s) if self.delay else 0.0
         self.turn_on_gyro = np.zeros(3)
         self.turn_on_accel = np.zeros(3)
         if self.turn_on:
             rng = np.random.default_rng(s_on)
-            self.turn_on_gyro = rng.standard_normal(3) * float(self.turn_on.get("gyro_sigma_rad_per_s", 0.0))
-            self.turn_on_accel = rng.standard_normal(3) * float(self.turn_on.get("accel_sigma_m_per_s2", 0.0))
+            self.turn_on_gyro = rng.standard_normal(3) * float(_or(self.turn_on.gyro_sigma_rad_per_s, 0.0))
+            self.turn_on_accel = rng.standard_normal(3) * float(_or(self.turn_on.accel_sigma_m_per_s2, 0.0))
         if self.vib:
-            k = len(self.vib.get("freqs_hz", []))
+            k = len(_or(self.vib.freqs_hz, []))
             self.vib_phase = np.random.default_rng(s_vib).uniform(0, 2 * np.pi, (k, 3))
-        c = self.clock_cfg or {}
+        c = self.clock_cfg or ClockEffect()
         self.clock = fx.ClockModel(
-            self.output_rate_hz, c.get("drift_ppm", 0.0), c.get("wander_ppm", 0.0), c.get("wander_tau_s", 600.0),
-            c.get("drop_probability", 0.0), c.get("drop_max_burst", 1), 0.0, s_clk)
+            self.output_rate_hz, _or(c.drift_ppm, 0.0), _or(c.wander_ppm, 0.0), _or(c.wander_tau_s, 600.0),
+            _or(c.drop_probability, 0.0), _or(c.drop_max_burst, 1), 0.0, s_clk)
         self._temp_rng = np.random.default_rng(s_temp)
         self._dw = fx.AngularAcceleration()
         self._t_last_out = -1.0 / self.output_rate_hz
@@ -173,8 +172,10 @@ class ImuErrorModel:
         return K * np.sqrt(t_on) * n + R * t_on
 
     @classmethod
-    def from_profile(cls, profile: Mapping[str, Any], rate_hz: float | None = None, seed: int = 0) -> "ImuErrorModel":
-        return cls(profile, rate_hz, seed)
+    def from_profile(cls, profile: ImuProfile | Mapping[str, Any], rate_hz: float | None = None,
+                     seed: int = 0) -> "ImuErrorModel":
+        """The model of a profile (an :class:`ImuProfile`, or a mapping read as one)."""
+        return cls(ImuProfile.read(profile), rate_hz, seed)
 
     # ------------------------------------------------------------------------------------------
     def sample_grid(self, n_out: int) -> SampleGrid:
@@ -193,7 +194,7 @@ class ImuErrorModel:
         w = self.warmup
         if not w:
             return np.full(len(t), 25.0)
-        return fx.warmup_temperature(np.asarray(t) + self.power_on_time_s, w["T0_degC"], w["dT_degC"], w["tau_s"])
+        return fx.warmup_temperature(np.asarray(t) + self.power_on_time_s, w.T0_degC, w.dT_degC, w.tau_s)
 
     def apply(self, t: np.ndarray, f_true: np.ndarray, w_true: np.ndarray, temperature: np.ndarray | None = None,
               w_dot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -208,12 +209,12 @@ class ImuErrorModel:
         w = np.array(w_true, dtype=float)
         if self.lever:
             dw = self._dw(t, w) if w_dot is None else np.asarray(w_dot, dtype=float)
-            f += fx.lever_arm_specific_force(w, dw, _vec(self.lever["r_m"]))
+            f += fx.lever_arm_specific_force(w, dw, _vec(self.lever.r_m))
         if self.vib:
-            fr = self.vib["freqs_hz"]
+            fr = self.vib.freqs_hz
             zero = np.zeros((len(fr), 3))
-            fv, wv = fx.vibration_many(t, fr, [self.vib.get("accel_amp_m_per_s2", zero),
-                                               self.vib.get("gyro_amp_rad_per_s", zero)], self.vib_phase)
+            fv, wv = fx.vibration_many(t, fr, [_or(self.vib.accel_amp_m_per_s2, zero),
+                                               _or(self.vib.gyro_amp_rad_per_s, zero)], self.vib_phase)
             f += fv
             w += wv
         T = self.temperature(t) if temperature is None else np.broadcast_to(np.asarray(temperature, float), t.shape)
@@ -223,15 +224,15 @@ class ImuErrorModel:
         if self.warmup:
             wu = self.warmup
             dT = T - self.T_ref
-            F += fx.thermal_error(f, dT, _vec(wu.get("accel_bias_tc_m_per_s2_per_K")), _vec(wu.get("accel_scale_tc_per_K")))
-            W += fx.thermal_error(w, dT, _vec(wu.get("gyro_bias_tc_rad_per_s_per_K")), _vec(wu.get("gyro_scale_tc_per_K")))
+            F += fx.thermal_error(f, dT, _vec(wu.accel_bias_tc_m_per_s2_per_K), _vec(wu.accel_scale_tc_per_K))
+            W += fx.thermal_error(w, dT, _vec(wu.gyro_bias_tc_rad_per_s_per_K), _vec(wu.gyro_scale_tc_per_K))
         if self.asym:
-            F += fx.scale_asymmetry_error(f, _vec(self.asym["asymmetry"]))
+            F += fx.scale_asymmetry_error(f, _vec(self.asym.asymmetry))
         if self.nonlin:
-            W += fx.gyro_nonlinearity_error(w, _vec(self.nonlin.get("k2_per_rad_per_s")), _vec(self.nonlin.get("k3_per_rad2_per_s2")))
+            W += fx.gyro_nonlinearity_error(w, _vec(self.nonlin.k2_per_rad_per_s), _vec(self.nonlin.k3_per_rad2_per_s2))
         if self.gsens:
-            ae = self.gsens.get("anisoelastic_rad_per_s_per_m2_per_s4")
-            W += fx.g_sensitivity_error(f, _mat(self.gsens.get("G_rad_per_s_per_m_per_s2")), None if ae is None else _mat(ae))
+            ae = self.gsens.anisoelastic_rad_per_s_per_m2_per_s4
+            W += fx.g_sensitivity_error(f, _mat(self.gsens.G_rad_per_s_per_m_per_s2), None if ae is None else _mat(ae))
         F_out = self.accel_fe.filter_decimate(F)
         W_out = self.gyro_fe.filter_decimate(W)
         return self._output(F_out, W_out, T)
@@ -244,8 +245,8 @@ class ImuErrorModel:
         W_out = self.gyro_fe.digitize(self.gyro_noise.next(n, W_out))
         T_out = T[self.decimation - 1 :: self.decimation].copy()
         if self.warmup:
-            T_out += self._temp_rng.standard_normal(n) * float(self.warmup.get("temp_noise_degC", 0.0))
-            lsb = float(self.warmup.get("temp_lsb_degC", 0.0))
+            T_out += self._temp_rng.standard_normal(n) * float(_or(self.warmup.temp_noise_degC, 0.0))
+            lsb = float(_or(self.warmup.temp_lsb_degC, 0.0))
             if lsb > 0:
                 T_out = np.round(T_out / lsb) * lsb
         return F_out, W_out, T_out
@@ -254,13 +255,13 @@ class ImuErrorModel:
         """Constant arguments of sim.fused._internal (built once)."""
         if getattr(self, "_fp", None) is None:
             z3, z33 = np.zeros(3), np.zeros((3, 3))
-            wu, gs = self.warmup or {}, self.gsens or {}
-            ae = gs.get("anisoelastic_rad_per_s_per_m2_per_s4")
+            wu, gs = self.warmup or Warmup(), self.gsens or GSensitivity()
+            ae = gs.anisoelastic_rad_per_s_per_m2_per_s4
             if self.vib:
-                fr = np.asarray(self.vib["freqs_hz"], dtype=float)
+                fr = np.asarray(self.vib.freqs_hz, dtype=float)
                 zero = np.zeros((len(fr), 3))
-                fa = np.asarray(self.vib.get("accel_amp_m_per_s2", zero), dtype=float).reshape(-1, 3)
-                ga = np.asarray(self.vib.get("gyro_amp_rad_per_s", zero), dtype=float).reshape(-1, 3)
+                fa = np.asarray(_or(self.vib.accel_amp_m_per_s2, zero), dtype=float).reshape(-1, 3)
+                ga = np.asarray(_or(self.vib.gyro_amp_rad_per_s, zero), dtype=float).reshape(-1, 3)
                 ph = np.asarray(self.vib_phase, dtype=float)
                 vib = (fr, fa * np.cos(ph), fa * np.sin(ph), ga * np.cos(ph), ga * np.sin(ph),
                        fa != 0.0, ga != 0.0)
@@ -268,18 +269,18 @@ class ImuErrorModel:
                 vib = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
                        np.zeros((0, 3)), np.zeros((0, 3), bool), np.zeros((0, 3), bool))
             self._fp = (
-                _vec(self.lever["r_m"]) if self.lever else z3, *vib,
+                _vec(self.lever.r_m) if self.lever else z3, *vib,
                 self.accel_bias + self.turn_on_accel + self.accel_power_on_offset,
                 np.ascontiguousarray(self.accel_M, dtype=float), np.asarray(self.accel_k2, float),
                 self.gyro_bias + self.turn_on_gyro + self.gyro_power_on_offset,
                 np.ascontiguousarray(self.gyro_M, dtype=float),
                 float(self.T_ref) if self.warmup else 0.0,
-                _vec(wu.get("accel_bias_tc_m_per_s2_per_K")), _vec(wu.get("accel_scale_tc_per_K")),
-                _vec(wu.get("gyro_bias_tc_rad_per_s_per_K")), _vec(wu.get("gyro_scale_tc_per_K")),
-                0.5 * _vec(self.asym["asymmetry"]) if self.asym else z3,
-                _vec(self.nonlin.get("k2_per_rad_per_s")) if self.nonlin else z3,
-                _vec(self.nonlin.get("k3_per_rad2_per_s2")) if self.nonlin else z3,
-                _mat(gs.get("G_rad_per_s_per_m_per_s2")) if self.gsens else z33,
+                _vec(wu.accel_bias_tc_m_per_s2_per_K), _vec(wu.accel_scale_tc_per_K),
+                _vec(wu.gyro_bias_tc_rad_per_s_per_K), _vec(wu.gyro_scale_tc_per_K),
+                0.5 * _vec(self.asym.asymmetry) if self.asym else z3,
+                _vec(self.nonlin.k2_per_rad_per_s) if self.nonlin else z3,
+                _vec(self.nonlin.k3_per_rad2_per_s2) if self.nonlin else z3,
+                _mat(gs.G_rad_per_s_per_m_per_s2) if self.gsens else z33,
                 _mat(ae) if (self.gsens and ae is not None) else z33)
         return self._fp
 
@@ -294,7 +295,7 @@ class ImuErrorModel:
         dw_in = w_dot is not None
         dw = np.ascontiguousarray(w_dot, dtype=float) if dw_in else np.zeros((1, 3))
         p = self._fused_params()
-        gs_a = bool(self.gsens and self.gsens.get("anisoelastic_rad_per_s_per_m2_per_s4") is not None)
+        gs_a = bool(self.gsens and self.gsens.anisoelastic_rad_per_s_per_m2_per_s4 is not None)
         d = self._dw
         prev = (np.array([d._t, *d._w[0]]) if d._t is not None else
                 np.array([t[0] - 1.0, *w_true[0]]))
@@ -322,9 +323,9 @@ class ImuErrorModel:
     # ------------------------------------------------------------------------------------------
     def table_geometry(self) -> dict:
         """Keyword arguments for effects.table_attitude_and_rate (zeros when the effect is off)."""
-        g = self.geometry or {}
-        return {"nonorth_rad": list(_vec(g.get("nonorth_rad"))), "level_x_rad": float(g.get("level_x_rad", 0.0)),
-                "level_y_rad": float(g.get("level_y_rad", 0.0)), "north_rad": float(g.get("north_rad", 0.0))}
+        g = self.geometry or TableGeometry()
+        return {"nonorth_rad": list(_vec(g.nonorth_rad)), "level_x_rad": float(_or(g.level_x_rad, 0.0)),
+                "level_y_rad": float(_or(g.level_y_rad, 0.0)), "north_rad": float(_or(g.north_rad, 0.0))}
 
     def truth(self) -> dict:
         """Every true parameter, JSON-serialisable, SI, units in the key names."""
@@ -339,7 +340,7 @@ class ImuErrorModel:
                 return x.item()
             return x
         out = {
-            "profile_name": self.profile.get("name"), "seed": self.seed,
+            "profile_name": self.profile.name, "seed": self.seed,
             "output_rate_hz": self.output_rate_hz, "power_on_time_s": self.power_on_time_s,
             # three axes each, rigctl.solvers.noise_coefficients.to_json (SI; units in "units")
             "gyro_noise": [to_json(m) for m in self.gyro_coefficients],
@@ -355,7 +356,7 @@ class ImuErrorModel:
                             "B as a 1/f pole-zero cascade (flicker_pairs_per_decade, default 2), added at "
                             "the output rate after the front-end low-pass; exact curve: "
                             "rigctl.sim.noise.theoretical_avar(coefficients, tau, rate_hz, LSB^2/12)"),
-            "effects": {name: (dict(cfg) if cfg else {"enabled": False}) for name, cfg in [
+            "effects": {name: (given(cfg) if cfg else {"enabled": False}) for name, cfg in [
                 ("warmup", self.warmup), ("turn_on_bias", self.turn_on), ("g_sensitivity", self.gsens),
                 ("accel_scale_asymmetry", self.asym), ("gyro_nonlinearity", self.nonlin), ("lever_arm", self.lever),
                 ("time_delay", self.delay), ("vibration", self.vib), ("clock", self.clock_cfg),

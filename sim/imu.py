@@ -225,18 +225,6 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
     )
 
 
-def _deep_merge(base: dict, over: Any, where: LocDict, key: str) -> dict:
-    if not isinstance(over, dict):
-        raise S.error(where, key, f"{key!r} must be a mapping of profile keys")
-    out = dict(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(base.get(k), dict):
-            out[k] = _deep_merge(base[k], v, over, k)
-        else:
-            out[k] = v
-    return out
-
-
 def _overrides(d: LocDict, key: str, default: Any = None) -> LocDict:
     if not isinstance(d[key], dict):
         raise S.error(d, key, "'overrides' must be a mapping of profile keys",
@@ -276,7 +264,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     from pathlib import Path
 
     from .error_model import ImuErrorModel
-    from .profiles import _coerce, check_merged, check_profile, get_profile, profile_names
+    from .profiles import ImuProfile, check_merged, check_profile, get_profile, merged, profile_names
 
     c = parse(ProfileImuSettings, o, "'imu.sim' with a profile")
     path = None
@@ -287,15 +275,14 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
                           "the path is relative to the config file")
     name = S.get_str(o, "profile", choices=profile_names(path))
     seed = int(seed if c.seed is None else c.seed)
-    profile = get_profile(name, seed=seed, path=path)  # checked against the profile's settings
-    base, over = profile, c.overrides
+    base = get_profile(name, seed=seed, path=path)  # checked against the profile's settings
+    profile, over = ImuProfile.read(base), c.overrides
     if over is not None:
-        check_profile(over, "imu.sim.overrides")  # misspelt keys, wrong kinds: file and line
-        profile = _deep_merge(profile, over, o, "overrides")
+        # misspelt keys, wrong kinds: file and line
+        profile = merged(profile, over, check_profile(over, "imu.sim.overrides"))
     check_merged(profile, over, base, f"profile {name!r}" + (" with imu.sim.overrides" if over else ""))
     try:
-        profile = _coerce(profile)
-        return ImuErrorModel.from_profile(profile, rate_hz=rate_hz, seed=seed)
+        return ImuErrorModel(profile, rate_hz=rate_hz, seed=seed)
     except (KeyError, ValueError, TypeError) as exc:
         raise S.error(o, "overrides" if "overrides" in o else "profile",
                       f"invalid IMU profile: {exc}") from None

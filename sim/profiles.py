@@ -1,7 +1,10 @@
 """IMU device profiles for the emulator (configs/imu-profiles.yaml) and the seeded random-truth mode.
 
-A profile is a plain mapping (SI values, units in key names; layout documented in the YAML file)
-that :meth:`rigctl.sim.error_model.ImuErrorModel.from_profile` consumes::
+A profile is read as :class:`ImuProfile` (SI values, units in key names; layout documented in the
+YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads; ``imu.sim.overrides``
+are read as one too and merged into it (:func:`merged`). :func:`get_profile` hands out a named
+profile as its mapping (``from_profile`` reads it as an ImuProfile) and a random one as the
+ImuProfile drawn::
 
     prof = get_profile("mti_class")                 # or consumer_mems, tactical, declared_only
     prof = get_profile("random", seed=7)            # parameters drawn around the `random.base` profile
@@ -17,7 +20,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import MISSING, dataclass, fields, make_dataclass
+from dataclasses import MISSING, dataclass, fields, make_dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar, Mapping
 
@@ -25,7 +28,8 @@ import numpy as np
 
 from rigctl import schema as S
 from rigctl.settings import Settings, items, mapping, parse, setting, subsection
-from rigctl.solvers.noise_coefficients import CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS
+from rigctl.solvers.noise_coefficients import (BAND_KEYS, CONFIG_KEYS, GM_KEY, GM_SIGMA_KEYS, GaussMarkov,
+                                               Triad, triad)
 from rigctl.yamlio import InputError, LocDict, LocList, load_file
 
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "configs" / "imu-profiles.yaml"
@@ -78,8 +82,8 @@ def load_profiles(path: str | Path | None = None) -> dict:
     try:
         return _coerce(doc)
     except ValueError:
-        for name, prof in doc["profiles"].items():  # say where the bad value is
-            _check_mapping(prof, ImuProfile, f"profile {name!r}", doc["profiles"], name)
+        for name in doc["profiles"]:  # say where the bad value is
+            _read(doc["profiles"], name)
         raise
 
 
@@ -88,8 +92,9 @@ def profile_names(path: str | Path | None = None) -> list[str]:
     return sorted(load_profiles(path)["profiles"]) + ["random"]
 
 
-def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> dict:
-    """A deep copy of profile `name` (with 'name' set); 'random' draws one with `seed` (default 0)."""
+def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> Any:
+    """A deep copy of profile `name` (a mapping, with 'name' set); 'random' draws one with `seed`
+    (default 0): an :class:`ImuProfile`."""
     doc = load_profiles(path)
     if name == "random":
         cfg = doc.get("random", {}) or {}
@@ -97,27 +102,25 @@ def get_profile(name: str, seed: int | None = None, path: str | Path | None = No
         if base_name not in doc["profiles"]:
             raise _error(cfg, "base", f"random.base {base_name!r} is not a profile of the file",
                          f"known: {sorted(doc['profiles'])}", doc)
-        base = doc["profiles"][base_name]
-        _check_mapping(base, ImuProfile, f"profile {base_name!r}", doc["profiles"], base_name)
+        base = _read(doc["profiles"], base_name)
         prof = random_truth(base, 0 if seed is None else seed, float(cfg.get("noise_spread", 2.0)))
-        prof["name"] = f"random(base={cfg.get('base', 'mti_class')}, seed={0 if seed is None else seed})"
-        return prof
+        return replace(prof, name=f"random(base={base_name}, seed={0 if seed is None else seed})")
     if name not in doc["profiles"]:
         raise KeyError(f"unknown IMU profile {name!r}; known: {sorted(doc['profiles'])}")
-    _check_mapping(doc["profiles"][name], ImuProfile, f"profile {name!r}", doc["profiles"], name)
+    _read(doc["profiles"], name)
     prof = copy.deepcopy(doc["profiles"][name])
     prof["name"] = name
     return prof
 
 
-def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) -> dict:
-    """Draw a profile around `base` (see module docstring). Deterministic for a given seed."""
+def random_truth(base: Any, seed: int, noise_spread: float = 2.0) -> "ImuProfile":
+    """Draw a profile around ``base`` (an :class:`ImuProfile`, or a mapping read as one; see the
+    module docstring). Deterministic for a given seed: the keys a profile gives are drawn in
+    the order of their names, sections included (a section's keys where its name falls)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7247]))
     log_s = np.log(noise_spread)
 
-    def draw(node: Any, key: str) -> Any:
-        if isinstance(node, dict):
-            return {k: draw(v, str(k)) for k, v in sorted(node.items())}
+    def leaf_draw(key: str, node: Any) -> Any:
         if key.startswith(NOISE_PREFIXES) and isinstance(node, (int, float)) and not isinstance(node, bool):
             return float(node) * float(np.exp(rng.uniform(-log_s, log_s)))
         if key in SIGNED_KEYS:
@@ -127,17 +130,23 @@ def random_truth(base: Mapping[str, Any], seed: int, noise_spread: float = 2.0) 
             if key == "misalignment_rad":
                 out = out * (1 - np.eye(3))
             return out.tolist() if arr.ndim else float(out)
-        return copy.deepcopy(node)
+        return node
 
-    return draw(dict(base), "")
+    def draw(section: Settings) -> Settings:
+        new = {}
+        for name, value in sorted(given(section).items()):
+            new[name] = draw(value) if isinstance(value, Settings) else leaf_draw(name, value)
+        return replace(section, **new)
+
+    return draw(ImuProfile.read(base))  # type: ignore[return-value]
 
 
 # ---------------------------------------------------------------------------- schema
 # The keys of a profile (docs/emulator.md sections 3-5; configs/imu-profiles.yaml spells them
 # out), one settings class per section (rigctl.settings); a leaf is a kind: see _LEAF. Every key
 # is optional except the REQUIRED ones of an enabled effect (a rule on the merged profile:
-# check_merged) and a Gauss-Markov term's two. The profile itself stays the plain mapping
-# ImuErrorModel.from_profile reads; the classes check it and the overrides with file and line.
+# check_merged) and a Gauss-Markov term's two. ImuErrorModel reads a profile as ImuProfile; the
+# classes also check the file's profiles and the overrides with file and line.
 
 #: leaf kind -> (check, what it must be)
 _LEAF: dict[str, tuple[Any, str]] = {}
@@ -190,16 +199,31 @@ _LEAF.update({
 DOC_HINT = "keys, units and defaults: docs/emulator.md sections 3-5"
 
 
+def _number_text(x: Any) -> Any:
+    """``x`` with numeric text read as a float (YAML 1.1 reads 1e-3 as text), in lists too;
+    numbers keep their type (an int stays an int)."""
+    if isinstance(x, list):
+        return [_number_text(v) for v in x]
+    return float(x) if isinstance(x, str) else x
+
+
 def _read_leaf(d: LocDict, key: str, default: Any = None, *, kind: str, what: str) -> Any:
     ok, must = _LEAF[kind]
     if not ok(d[key]):
         raise S.error(d, key, f"{what}.{key} must be {must}, got {d[key]!r}", DOC_HINT)
-    return d[key]
+    return d[key] if kind == "text" else _number_text(d[key])
 
 
 def leaf(kind: str, default: Any = None) -> Any:
-    """A profile value of ``kind`` (:data:`_LEAF`), kept as written (numeric text allowed)."""
+    """A profile value of ``kind`` (:data:`_LEAF`) as written, numeric text read as a float;
+    None: not given."""
     return setting(default, read=_read_leaf, what=True, kind=kind)
+
+
+def given(section: Settings) -> dict[str, Any]:
+    """The keys a profile section gives (not None), in field order: what the truth reports."""
+    return {f.name: getattr(section, f.name) for f in fields(section)
+            if "read" in f.metadata and getattr(section, f.name) is not None}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -217,14 +241,37 @@ def _gm(sigma_key: str) -> type[ProfileSection]:
                           bases=(ProfileSection,), frozen=True, kw_only=True)
 
 
-def _noise(sensor: str) -> type[ProfileSection]:
+@dataclass(frozen=True, kw_only=True)
+class NoiseSection(ProfileSection):
+    """Base of a sensor's ``noise:`` section (fields: :func:`_noise`)."""
+
+    SENSOR: ClassVar[str] = ""
+
+    def coefficients(self) -> Triad:
+        """The three axes' IEEE 952 coefficients (terms not given: 0; a Gauss-Markov term on
+        every axis); a negative value is a ValueError."""
+        sensor = self.SENSOR
+        terms = {t: (0.0 if getattr(self, k) is None else getattr(self, k)) for t, k in CONFIG_KEYS[sensor].items()}
+        band = {k: float(getattr(self, k)) for k in BAND_KEYS if getattr(self, k) is not None}
+        axes = triad(sensor, "emulator profile", **band, **terms)
+        gm = tuple(GaussMarkov(float(getattr(g, GM_SIGMA_KEYS[sensor])), float(g.tau_c_s))
+                   for g in getattr(self, GM_KEY))
+        return tuple(replace(m, gm=gm) for m in axes) if gm else axes  # type: ignore[return-value]
+
+    def flicker_density(self) -> float:
+        """The flicker cascade density (pole/zero pairs per decade; default 2)."""
+        v = getattr(self, "flicker_pairs_per_decade")
+        return 2.0 if v is None else float(v)
+
+
+def _noise(sensor: str) -> type[NoiseSection]:
     """A sensor's ``noise:`` section: the IEEE 952 terms (CONFIG_KEYS, each a number or
     [x, y, z]), the flicker band and cascade density, and Gauss-Markov terms."""
     terms = [(k, Any, leaf("coef")) for k in CONFIG_KEYS[sensor].values()]
     band = [(k, Any, leaf("pos")) for k in ("flicker_tau_min_s", "flicker_tau_max_s", "flicker_pairs_per_decade")]
     gm = [(GM_KEY, Any, items(_gm(GM_SIGMA_KEYS[sensor])))]
-    return make_dataclass(f"{sensor.capitalize()}Noise", terms + band + gm, bases=(ProfileSection,),
-                          frozen=True, kw_only=True)
+    return make_dataclass(f"{sensor.capitalize()}Noise", terms + band + gm, bases=(NoiseSection,),
+                          frozen=True, kw_only=True, namespace={"SENSOR": sensor})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -362,6 +409,13 @@ class ImuProfile(ProfileSection):
     accel: Any = subsection(AccelProfile)
     effects: Any = subsection(EffectsProfile)
 
+    @classmethod
+    def read(cls, profile: Any, what: str = "the IMU profile") -> "ImuProfile":
+        """``profile`` (an ImuProfile, or a mapping as in the profiles file) as an ImuProfile."""
+        if isinstance(profile, ImuProfile):
+            return profile
+        return parse(cls, profile if isinstance(profile, LocDict) else LocDict(profile), what)
+
 
 @dataclass(frozen=True, kw_only=True)
 class RandomProfile(ProfileSection):
@@ -409,40 +463,55 @@ def _error(node: Any, key: Any, message: str, hint: str, fallback: Any = None) -
     return InputError(message, hint=hint)
 
 
-def _check_mapping(node: Any, cls: type[Settings], what: str, parent: Any = None, key: Any = None) -> None:
-    """``node`` read as the settings ``cls``: unknown keys and values of the wrong kind are
-    InputErrors naming file and line."""
-    if node is None:
-        return
+def check_profile(profile: Any, what: str) -> "ImuProfile":
+    """A profile (or an overrides mapping) read as :class:`ImuProfile` (errors with file and line)."""
+    if not isinstance(profile, dict):
+        raise _error(None, None, f"{what} must be a mapping (key: value lines), got {profile!r}", DOC_HINT)
+    return parse(ImuProfile, profile if isinstance(profile, LocDict) else LocDict(profile), what)
+
+
+def _read(profiles: Any, name: str) -> "ImuProfile":
+    """Profile ``name`` of the file's ``profiles:`` mapping as an ImuProfile (errors at its lines)."""
+    node = profiles[name]
     if not isinstance(node, dict):
-        raise _error(parent, key, f"{what} must be a mapping (key: value lines), got {node!r}", DOC_HINT)
-    parse(cls, node if isinstance(node, LocDict) else LocDict(node), what)
+        raise _error(profiles, name, f"profile {name!r} must be a mapping (key: value lines), got {node!r}",
+                     DOC_HINT)
+    return parse(ImuProfile, node if isinstance(node, LocDict) else LocDict(node), f"profile {name!r}")
 
 
-def check_profile(profile: Any, what: str) -> None:
-    """Check a profile (or an overrides mapping): :class:`ImuProfile`."""
-    _check_mapping(profile, ImuProfile, what)
+def merged(base: Settings, overrides: Mapping[str, Any], read: Settings) -> Any:
+    """``base`` with the keys ``overrides`` gives replaced (a section given as a mapping is merged
+    key by key; a key given as null is null); ``read``: the overrides read as the same settings."""
+    new = {}
+    for f in fields(base):
+        if "read" not in f.metadata or f.name not in overrides:
+            continue
+        old, over = getattr(base, f.name), overrides[f.name]
+        new[f.name] = (merged(old, over, getattr(read, f.name))
+                       if isinstance(old, Settings) and isinstance(over, dict) else getattr(read, f.name))
+    return replace(base, **new)
 
 
-def check_merged(profile: Mapping[str, Any], overrides: Any, base: Any, what: str) -> None:
+def check_merged(profile: "ImuProfile", overrides: Any, base: Any, what: str) -> None:
     """Checks that need the merged profile: an enabled effect has its required keys, and a
     vibration has one amplitude row per frequency. Errors point at the override that set the
-    effect, else at the profile file."""
-    effects = profile.get("effects") or {}
-    for name, eff in effects.items():
-        if not isinstance(eff, dict) or not eff.get("enabled", False):
+    effect, else at the profile file (``base``: the profile's mapping, if it has one)."""
+    for name in EFFECTS:
+        eff = getattr(profile.effects, name)
+        if not eff.enabled:
             continue
         where, key = _deepest([overrides, base], ("effects", name))
-        for req in REQUIRED.get(name, ()):
-            if req not in eff:
+        for req in eff.REQUIRED:
+            if getattr(eff, req) is None:
                 raise _error(where, key, f"effect {name!r} is enabled but has no {req!r} ({what})",
                              f"add '{req}: ...' to effects.{name} (units in the key name), or switch "
                              f"the effect off with 'enabled: false'; {DOC_HINT}")
         if name == "vibration":
-            n = len(eff.get("freqs_hz") or [])
+            n = len(eff.freqs_hz or [])
             for k in ("accel_amp_m_per_s2", "gyro_amp_rad_per_s"):
-                if k in eff and len(eff[k]) != n:
-                    raise _error(where, key, f"effects.vibration.{k} has {len(eff[k])} rows for "
+                rows = getattr(eff, k)
+                if rows is not None and len(rows) != n:
+                    raise _error(where, key, f"effects.vibration.{k} has {len(rows)} rows for "
                                  f"{n} frequencies ({what})", "give one [x, y, z] row per entry of freqs_hz")
 
 

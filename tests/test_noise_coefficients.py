@@ -29,8 +29,9 @@ import pytest
 from helpers import emulated_capture, run_rigctl
 from rigctl.analysis.allan import load_noise
 from rigctl.analysis.calibration import _noise
+from rigctl.sim.profiles import ImuProfile
 from rigctl.solvers.noise_coefficients import (SI_UNITS, Coefficient, GaussMarkov, NoiseCoefficients,
-                                               from_config, from_json, to_config, to_json, triad)
+                                               from_json, to_config, to_json, triad)
 
 
 def _avar_from_psd(m: NoiseCoefficients, tau: float) -> float:
@@ -66,7 +67,8 @@ def test_json_and_config_round_trip() -> None:
     axes = triad("accel", N=[1e-3, 2e-3, 3e-3], K=4e-5, flicker_tau_max_s=500.0)
     section = to_config(axes, "accel")
     assert section["N_m_per_s2_per_sqrt_hz"] == [1e-3, 2e-3, 3e-3] and section["K_m_per_s3_per_sqrt_hz"] == 4e-5
-    assert from_config(section, "accel") == tuple(replace(a, source="emulator profile") for a in axes)
+    assert ImuProfile.read({"accel": {"noise": section}}).accel.noise.coefficients() == tuple(
+        replace(a, source="emulator profile") for a in axes)
     with pytest.raises(ValueError):
         NoiseCoefficients(N=-1.0)
 

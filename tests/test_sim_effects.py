@@ -366,8 +366,8 @@ def test_random_truth_is_seeded_and_within_spread() -> None:
     for s in ("gyro", "accel"):
         for k, v in base[s]["noise"].items():
             if k[:2] in ("Q_", "N_", "B_", "K_", "R_") and v > 0:
-                assert v / 2 <= a[s]["noise"][k] <= 2 * v
-    assert np.allclose(np.diag(np.array(a["gyro"]["misalignment_rad"])), 0.0)
+                assert v / 2 <= getattr(getattr(a, s).noise, k) <= 2 * v
+    assert np.allclose(np.diag(np.array(a.gyro.misalignment_rad)), 0.0)
 
 
 def test_table_geometry_matches_rigctl_frames_when_ideal() -> None:

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from rigctl.sim.noise import NoiseGenerator
-from rigctl.solvers.noise_coefficients import GaussMarkov, from_config, to_config, triad
+from rigctl.sim.profiles import ImuProfile
+from rigctl.solvers.noise_coefficients import GaussMarkov, to_config, triad
 
 from helpers import emulated_capture
 
@@ -77,11 +78,11 @@ def test_gauss_markov_output_does_not_depend_on_the_chunking():
 
 def test_a_profile_noise_section_round_trips_its_gauss_markov_terms():
     section = {"N_rad_per_s_per_sqrt_hz": 1e-4, "gm": [{"sigma_rad_per_s": 1e-5, "tau_c_s": 300.0}]}
-    axes = from_config(section, "gyro")
+    axes = ImuProfile.read({"gyro": {"noise": section}}).gyro.noise.coefficients()
     assert all(m.gm == (GaussMarkov(1e-5, 300.0),) for m in axes)
     back = to_config(axes, "gyro")
     assert back["gm"] == [{"sigma_rad_per_s": 1e-5, "tau_c_s": 300.0}]
-    assert from_config(back, "gyro") == axes
+    assert ImuProfile.read({"gyro": {"noise": back}}).gyro.noise.coefficients() == axes
 
 
 def test_a_profile_gauss_markov_term_is_generated(tmp_path):

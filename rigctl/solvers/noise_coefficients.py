@@ -34,9 +34,9 @@ emulator's profile) is a bare value.
 
 Where they come from and go to:
 
-* the emulator's profiles (configs/imu-profiles.yaml, ``imu.sim.overrides``): :func:`from_config`
-  of a ``noise:`` section, whose keys (:data:`CONFIG_KEYS`: the unit in the key name) are
-  checked with file and line by :mod:`rigctl.sim.profiles`, and of the declared ``imu.sim``
+* the emulator's profiles (configs/imu-profiles.yaml, ``imu.sim.overrides``): a ``noise:``
+  section read as its settings (:meth:`rigctl.sim.profiles.NoiseSection.coefficients`), whose
+  keys (:data:`CONFIG_KEYS`: the unit in the key name) are checked with file and line by :mod:`rigctl.sim.profiles`, and of the declared ``imu.sim``
   section (field units, :mod:`rigctl.sim.imu`); the emulator generates every term, Gauss-Markov
   terms included (:mod:`rigctl.sim.noise`);
 * the Allan fit (:func:`rigctl.solvers.allan_fit.fit_terms`: ``fit["coefficients"]``);
@@ -325,22 +325,8 @@ def resolved_values(m: NoiseCoefficients) -> dict[str, float]:
     return {t: (c.value if c.resolved else 0.0) for t, c in ((t, getattr(m, t)) for t in TERMS)}
 
 
-def from_config(section: Mapping[str, Any] | None, sensor: str, source: str = "emulator profile") -> Triad:
-    """The three axes of a profile's ``noise:`` section (keys :data:`CONFIG_KEYS`,
-    :data:`BAND_KEYS` and :data:`GM_KEY`; each term a number or [x, y, z], each Gauss-Markov term
-    on every axis). Checked beforehand, with file and line, by :mod:`rigctl.sim.profiles`; a
-    negative value here is a ValueError."""
-    section = section or {}
-    terms = {t: section.get(k, 0.0) for t, k in CONFIG_KEYS[sensor].items()}
-    band = {k: float(section[k]) for k in BAND_KEYS if k in section}
-    axes = triad(sensor, source, **band, **terms)
-    gm = tuple(GaussMarkov(float(g[GM_SIGMA_KEYS[sensor]]), float(g["tau_c_s"]))
-               for g in section.get(GM_KEY) or ())
-    return tuple(replace(m, gm=gm) for m in axes) if gm else axes  # type: ignore[return-value]
-
-
 def to_config(axes: Sequence[NoiseCoefficients], sensor: str) -> dict[str, Any]:
-    """A profile's ``noise:`` section for these axes (inverse of :func:`from_config`; SI values;
+    """A profile's ``noise:`` section for these axes (inverse of :meth:`rigctl.sim.profiles.NoiseSection.coefficients`; SI values;
     Gauss-Markov terms must be the same on the three axes)."""
     if any(m.gm != axes[0].gm for m in axes):
         raise ValueError("a profile's Gauss-Markov terms hold for the three axes alike")
