@@ -355,7 +355,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     upper_all = np.array([lim95[t] ** 2 if t in CONSTRAINED else np.inf for t in TERMS])
     # B itself: no more than the curve's own limit, min sigma / 0.664 over those taus (the
     # limit every bound is held to), not its 95 % upper band (see _b_limit)
-    upper_all[TERMS.index("B")] = _b_limit(tau_all, s2_all, inf95, upper_all[TERMS.index("B")])
+    # NOT applied since octall's family-wise band landed: a chance dip of a floor (0.6x at
+    # 3000 s, test_a_chance_dip_of_the_floor_does_not_hold_b_below_the_truth) would hold B
+    # at 0.6x the truth and drop it. Issue 15 finding 2 (Astro Pi gyros) stays open.
+    # upper_all[TERMS.index("B")] = _b_limit(tau_all, s2_all, inf95, upper_all[TERMS.index("B")])
     inf_idx = np.flatnonzero(inf95)
     floor_seen = bool(inf_idx.size) and bool(
         tau_all[inf_idx[-1]] >= FLOOR_AFTER * tau_all[inf_idx[np.argmin(hi_fw[inf_idx])]])
