@@ -15,6 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from rigctl.errors import DeviceError
+
 TERMINATOR = b"\n"
 DEFAULT_TCP_PORT = 9878
 
@@ -29,8 +31,9 @@ class AclCode(IntEnum):
     OUT_OF_RANGE = -222
 
 
-class AclError(Exception):
-    """A request was refused (server side) or the reply was an error (driver side)."""
+class AclError(DeviceError):
+    """A request was refused (server side) or the reply was an error (driver side): the
+    controller answered wrongly (:class:`rigctl.errors.DeviceError`, exit code 1)."""
 
     def __init__(self, code: int, text: str) -> None:
         super().__init__(f"{code},{text}")

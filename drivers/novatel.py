@@ -23,6 +23,8 @@ import zlib
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 
+from rigctl.errors import DeviceError
+
 log = logging.getLogger(__name__)
 
 SECONDS_PER_WEEK = 604_800
@@ -33,7 +35,7 @@ CLOCK_STATUS = ("VALID", "CONVERGING", "ITERATING", "INVALID", "ERROR")
 TIMEGUARD_MIN_MS, TIMEGUARD_MAX_MS, TIMEGUARD_DEFAULT_MS = 4, 3_599_999, 4
 
 
-class NovatelError(ValueError):
+class NovatelError(DeviceError, ValueError):
     """A malformed or mis-checksummed NovAtel sentence or command."""
 
 

@@ -30,6 +30,7 @@ from dataclasses import asdict
 import numpy as np
 
 from rigctl.devices import Clock, LinkLost, Pulses
+from rigctl.errors import InputError
 
 from .novatel import MarkControl, MarkLogReader, MarkTime, format_markcontrol, gps_total_seconds
 from .reader_thread import ReconnectingReader
@@ -38,8 +39,9 @@ from .serial_link import LineReader, SerialLink
 log = logging.getLogger(__name__)
 
 
-class NovatelConfigError(RuntimeError):
-    """The receiver refused a command."""
+class NovatelConfigError(InputError, RuntimeError):
+    """The receiver refused a command carrying the rig config's mark settings: fix the config
+    (:class:`rigctl.errors.InputError`, exit code 2)."""
 
 
 class NovatelMarks(ReconnectingReader):

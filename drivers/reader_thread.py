@@ -5,7 +5,8 @@ pumps its bytes and, when the link drops, reconnects with the link's backoff and
 again.
 
 Subclasses set :attr:`ReconnectingReader.config_error` (the exception their ``_configure`` raises
-when the device refuses a command: fatal, reported by ``read``) and implement ``_configure``
+when the device refuses a command: fatal, reported by ``read``; so is a
+:class:`rigctl.devices.DeviceFault` such as another unit on the port) and implement ``_configure``
 (open the link if needed, configure, then ``self._configured.set()``) and ``_pump`` (read once,
 decode, store). ``_on_link_lost`` runs in the thread when the link is lost (e.g. flush a decoder).
 Any other exception in the thread is fatal too: it is logged and re-raised by the subclass's
@@ -23,7 +24,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from rigctl.devices import Clock, LinkLost, Pulses
+from rigctl.devices import Clock, DeviceFault, LinkLost, Pulses
 
 from .serial_link import SerialLink
 
@@ -78,7 +79,7 @@ class ReconnectingReader:
                     self._down_since = time.monotonic()
                 self._on_link_lost()
                 self._stop.wait(max(0.01, self.link.backoff.wait_s()))
-            except self.config_error as exc:
+            except (self.config_error, DeviceFault) as exc:  # e.g. another unit on the port
                 self._fatal = exc
                 return
             except Exception as exc:  # noqa: BLE001 - reported through read()

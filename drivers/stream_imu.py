@@ -36,6 +36,7 @@ from dataclasses import asdict
 import numpy as np
 
 from rigctl.devices import Clock, DeviceFault, ImuBlock, LinkLost
+from rigctl.errors import InputError
 
 from .reader_thread import ReconnectingReader
 from .serial_link import SerialLink
@@ -48,12 +49,14 @@ log = logging.getLogger(__name__)
 BURST_BYTES, BURST_WAIT_S, BURST_MAX = 4000, 0.002, 1 << 18
 
 
-class StreamImuConfigError(RuntimeError):
-    """The device refused (or never acknowledged) the configuration."""
+class StreamImuConfigError(InputError, RuntimeError):
+    """The device refused (or never acknowledged) the configuration of the rig config (rate,
+    baud rate, output): fix the config (:class:`rigctl.errors.InputError`, exit code 2)."""
 
 
-class StreamImuUnitChanged(StreamImuConfigError, DeviceFault):
-    """After a reconnect another unit (another serial number) is on the port."""
+class StreamImuUnitChanged(DeviceFault):
+    """After a reconnect another unit (another serial number) is on the port (a device fault,
+    exit code 1; fatal for the reader like a refused configuration)."""
 
 
 class StreamReader(ReconnectingReader):

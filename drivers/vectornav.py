@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rigctl.errors import DeviceError
+
 from .frame_engine import FixedFrameStream, affine_tables, xor_reduce_lookup
 
 SYNC = 0xFA
@@ -62,7 +64,7 @@ ERRORS = {1: "hard fault", 2: "serial buffer overflow", 3: "invalid checksum", 4
           11: "output buffer overflow", 12: "insufficient baud rate", 255: "error buffer overflow"}
 
 
-class VectorNavError(ValueError):
+class VectorNavError(DeviceError, ValueError):
     """A malformed message or a configuration the protocol cannot express."""
 
 

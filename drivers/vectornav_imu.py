@@ -45,7 +45,7 @@ class VectorNavConfigError(StreamImuConfigError):
     """The sensor refused a command ($VNERR) or the configuration cannot be expressed."""
 
 
-class VectorNavUnitChanged(VectorNavConfigError, StreamImuUnitChanged):
+class VectorNavUnitChanged(StreamImuUnitChanged):
     """Another serial number on the port after a reconnect."""
 
 

@@ -23,6 +23,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from rigctl.errors import DeviceError, InputError
+
 PREAMBLE = 0xFA
 BID_MASTER = 0xFF
 MAX_STD_LEN = 254
@@ -121,12 +123,13 @@ def item_size(xdi: int) -> int | None:
     return None
 
 
-class XsensError(ValueError):
-    """A malformed Xsens message."""
+class XsensError(DeviceError, ValueError):
+    """A malformed Xsens message (a device answering wrongly: exit code 1)."""
 
 
-class RateDoesNotFitError(ValueError):
-    """The configured MTData2 output does not fit the serial line's bandwidth."""
+class RateDoesNotFitError(InputError, ValueError):
+    """The configured MTData2 output does not fit the serial line's bandwidth (a setting of the
+    rig config: exit code 2)."""
 
 
 # ---------------------------------------------------------------------------------- framing

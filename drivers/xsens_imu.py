@@ -58,6 +58,7 @@ from dataclasses import asdict
 import numpy as np
 
 from rigctl.devices import Clock, DeviceFault, ImuBlock, LinkLost
+from rigctl.errors import InputError
 
 from .serial_link import SerialLink
 from .stream_imu import StreamReader
@@ -69,11 +70,12 @@ from .xsens_decode import MTData2Batch, MTData2Stream
 log = logging.getLogger(__name__)
 
 
-class XsensConfigError(RuntimeError):
-    """The device refused (or never acknowledged) the configuration."""
+class XsensConfigError(InputError, RuntimeError):
+    """The device refused (or never acknowledged) the configuration of the rig config (rate,
+    baud rate, output): fix the config (:class:`rigctl.errors.InputError`, exit code 2)."""
 
 
-class XsensUnitChanged(XsensConfigError, DeviceFault):
+class XsensUnitChanged(DeviceFault):
     """After a reconnect the device on the port reports another DeviceID than the unit the run
     started with: a different IMU. Fatal for the reader (no sample of it is accepted)."""
 

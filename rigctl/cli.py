@@ -18,7 +18,8 @@ from .engine.estimate import data_volume_bytes, estimate
 from .engine.procedure import load_procedure, parse_overrides
 from .engine.rig import describe
 from .run.console import guarded_std_streams
-from .errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, Interrupted, RigctlError, RunFailure
+from .errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, InputError, Interrupted, RigctlError,
+                     RunFailure)
 from .units import format_bytes, format_duration
 
 #: Sub-command -> the module that adds it through ``register(subparsers)``. Only the module of
@@ -53,6 +54,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if result.exit_code == EXIT_INTERRUPTED:
         raise Interrupted(f"{result.message}; recording {result.recording} closed as {result.status} "
                           f"(rigctl resume {result.run_dir} continues it)")
+    if result.exit_code == EXIT_INVALID:  # e.g. a driver setting the device refused when the rig opened
+        raise InputError(f"{result.message} (recording {result.status}; details in {where})")
     raise RunFailure(f"{result.message} (recording {result.status}; details in {where})")
 
 

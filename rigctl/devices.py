@@ -19,6 +19,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import DeviceError
+
 
 class AxisStatus(IntFlag):
     """Per-axis 16-bit status word (CiA-402 flavoured; docs/modbus-map.md)."""
@@ -178,12 +180,14 @@ class PulseSource(Protocol):
         """Edges time-stamped since the previous call (possibly none)."""
 
 
-class LinkLost(ConnectionError):
+class LinkLost(DeviceError, ConnectionError):
     """A device link is down (cable pulled, USB reset, socket closed, reply timeout).
 
     Drivers raise it from ``read`` (or a command) and keep trying to reconnect themselves (with
     backoff) on later calls; the engine treats it as a suspending condition: it pauses the
     procedure, keeps calling ``read`` until data flow again, and re-runs the interrupted step.
+    A run that ends on it (the rig cannot open, or the link stays down) fails with its one line
+    (:class:`rigctl.errors.DeviceError`, exit code 1); it is still an ``OSError``.
     """
 
     def __init__(self, device: str, message: str = "link lost") -> None:
@@ -191,9 +195,10 @@ class LinkLost(ConnectionError):
         super().__init__(f"{device}: {message}")
 
 
-class DeviceFault(RuntimeError):
+class DeviceFault(DeviceError, RuntimeError):
     """A device reports a fault that needs an operator (e.g. the table refuses a command while
-    its drive is faulted). The engine pauses on it like on the fault status bits."""
+    its drive is faulted). The engine pauses on it like on the fault status bits; a run that ends
+    on it fails with its one line (:class:`rigctl.errors.DeviceError`, exit code 1)."""
 
 
 class NoPulses:

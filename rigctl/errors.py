@@ -75,12 +75,16 @@ class RunFailure(RigctlError):
 
 
 class DeviceError(RunFailure):
-    """A configured device cannot be opened or does not answer (checked before a run starts,
-    ``rigctl validate --devices``): one line per device saying what is wrong and what to do.
-    Exit code 1."""
+    """A configured device cannot be opened, does not answer, or answers wrongly (checked before
+    a run starts, ``rigctl validate --devices``; the drivers' own errors for a device that
+    refuses or garbles a reply derive from it): one line per problem saying what is wrong and what
+    to do. Takes one message or a list of them. Exit code 1.
 
-    def __init__(self, problems: list[str]) -> None:
-        self.problems = list(problems)
+    A driver's error for a setting of the rig config that the device cannot take (a rate, a baud
+    rate, a configuration it refuses) derives from :class:`InputError` instead (exit code 2)."""
+
+    def __init__(self, problems: list[str] | str) -> None:
+        self.problems = [problems] if isinstance(problems, str) else list(problems)
         super().__init__("\n".join(self.problems))
 
 

@@ -78,9 +78,12 @@ IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 class FlowPtyEndpoint(PtyEndpoint):
     """A pty endpoint whose writes wait up to ``write_timeout_s`` for the client to drain the
     port (flow control) instead of dropping at once; after one timed-out write it drops
-    (counting ``overflow_bytes``) until a write goes through whole again, so a client that went
-    away cannot stall the emulator. Needed when the emulator runs many times faster than the
-    nominal baud rate would allow.
+    (counting ``overflow_bytes``) until a write goes through whole again or the client has
+    drained the port since (the master is writable again), so a client that went away cannot
+    stall the emulator. Needed when the emulator runs many times faster than the nominal baud
+    rate would allow. (Before, only a whole write ended the dropping: a stream writing batches
+    larger than the port holds -- 2 kHz at 100x, a catch-up batch of the IMU stream thread --
+    never had one, and a driver starved once for 0.5 s lost the rest of the stream.)
 
     Flow control starts once the client has written to the port (``received_bytes``; a
     commanded device's driver always speaks first: GoToConfig, a register read): until then
@@ -95,6 +98,13 @@ class FlowPtyEndpoint(PtyEndpoint):
     flow_before_client_speaks = False
 
     def write(self, data: bytes) -> int:
+        if not getattr(self, "_flowing", True):
+            try:
+                _, w, _ = select.select([], [self.master], [], 0)
+            except (OSError, ValueError):
+                w = []
+            if w:                       # the client drained the port since: it is there again
+                self._flowing = True
         with self._wlock:
             if self._closed:
                 return 0
@@ -120,22 +130,11 @@ class FlowPtyEndpoint(PtyEndpoint):
 
 class FreeRunPtyEndpoint(FlowPtyEndpoint):
     """The port of a device that streams from power-up, whether or not a client listens (the
-    declarative-frame IMU): while dropping, a write first looks whether the client has drained
-    the port since (the master is writable again) and if so resumes flow control -- otherwise a
-    client that connects after the buffer filled would see the stream cut up for good. Its
-    client never writes, so flow control does not wait for it to speak."""
+    declarative-frame IMU): its client never writes, so flow control does not wait for it to
+    speak."""
 
     flow_before_client_speaks = True
 
-    def write(self, data: bytes) -> int:
-        if not getattr(self, "_flowing", True):
-            try:
-                _, w, _ = select.select([], [self.master], [], 0)
-            except (OSError, ValueError):
-                w = []
-            if w:
-                self._flowing = True
-        return super().write(data)
 
 
 class HwAclCore(AclServerCore):
@@ -183,9 +182,12 @@ class HwXsensServer(XsensServer):
     def __init__(self, *args: Any, keep_sent: int = 0, **kw: Any) -> None:
         #: wall times (``time.monotonic()``) at which a measurement period began (GoToMeasurement)
         self.measurement_starts: list[float] = []
-        #: with ``keep_sent`` > 0, the last ``keep_sent`` batches written to the port as (wall
+        #: with ``keep_sent`` > 0, the last ``keep_sent`` batches written to the port as [wall
         #: time after the write, sample times (n,) s, acceleration (n, 3) as the float32 values
-        #: on the wire, whether the port took every byte): what a client could have received
+        #: on the wire, whether the port took every byte]: what a client could have received. A
+        #: batch is listed from the moment its write begins (with that time, and False) until
+        #: the write ends: a flow-controlled write of a large batch (the IMU stream thread
+        #: catching up) can take a while, and the client has its first frames before it ends
         self.sent: deque[tuple[float, np.ndarray, np.ndarray, bool]] = deque(maxlen=max(1, keep_sent))
         self.keep_sent = int(keep_sent)
         self._last_acc: np.ndarray | None = None
@@ -305,9 +307,13 @@ class HwXsensServer(XsensServer):
             self._last_acc = None
             frames = self._encode(k)
             acc = self._last_acc
+            record = [time.monotonic(), self._t0 + k / self.rate_hz, acc, False] \
+                if self.keep_sent and acc is not None else None
+        if record is not None:      # kept from the start: the client may have part of it before the
+            self.sent.append(record)  # write ends (a flow-controlled write waits for it to read)
         sent = self.port.write(frames)
-        if self.keep_sent and acc is not None:
-            self.sent.append((time.monotonic(), self._t0 + k / self.rate_hz, acc, sent == len(frames)))
+        if record is not None:
+            record[0], record[3] = time.monotonic(), sent == len(frames)
         return n
 
 

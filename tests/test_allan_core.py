@@ -127,6 +127,11 @@ def test_fast_mode_keeps_degrees_of_freedom(noise: str) -> None:
     e_exact, e_fast, e_nonov = emp_edf(exact), emp_edf(fast), emp_edf(nonov)
     alpha = 0 if noise == "white_fm" else -2
     e_theory = np.array([E.edf("oadev", alpha, int(m), n + 1) for m in ms])
+    # the EDF reported for the strided estimate (Greenhall with S = m/s): for FM within 2 %
+    # of the overlapping one, and as close to the scatter
+    e_reported = np.array([E.edf("oadev", alpha, int(m), n + 1, int(m) // 8) for m in ms])
+    assert np.all(np.abs(e_reported / e_theory - 1) < 0.02), (e_reported, e_theory)
+    assert np.all(np.abs(e_fast / e_reported - 1) < 0.25), (e_fast, e_reported)
     np.testing.assert_allclose(fast.mean(0), exact.mean(0), rtol=0.03)  # unbiased
     assert np.all(e_fast >= 0.9 * e_exact), (e_fast, e_exact)
     assert np.all(np.abs(e_fast / e_theory - 1) < 0.25), (e_fast, e_theory)

@@ -165,3 +165,79 @@ def test_curve_limit_read_off_well_determined_taus_only() -> None:
         c = getattr(fit["coefficients"], t)
         if not c.resolved:
             assert c.upper95 <= e[f"curve_limit_{F.SI_UNITS['gyro'][t]}"] * (1 + 1e-12)
+
+
+def test_limit_band_holds_the_truth_at_every_tau_for_octave_and_dense_taus() -> None:
+    """B, K and R are held in the fit within the curve's upper band at the informative taus.
+    That band must hold the true curve at *every* such tau with 97.5 % probability, however
+    densely the taus are sampled: the pointwise 97.5 % upper end, whose minimum over the
+    128 informative taus of --taus all fell below the truth (a 12 h consumer_mems ax: B held
+    at 0.128 mg [0.118, 0.138] against octave's 0.151, truth 0.153), does not. Checked here
+    on 1000 plain-numpy white-FM series (sigma^2 = 1/tau exactly), octave and a dense set
+    (every k 2^j, 8 <= k < 16: the fast mode's --taus all): the share of series whose true
+    curve is above the band somewhere, against the design level 2.5 %."""
+    from scipy.stats import chi2
+
+    from rigctl.solvers import allan_cov as C
+
+    n, reps = 4096, 1000
+    rng = np.random.default_rng(7)
+    x = np.zeros((reps, n + 1))
+    np.cumsum(rng.standard_normal((reps, n)), axis=1, out=x[:, 1:])
+    sets = {"octave": 2 ** np.arange(0, 9),
+            "dense": np.unique(np.r_[np.arange(1, 16),
+                                     [k * 2 ** j for j in range(1, 6) for k in range(8, 16)]])}
+    miss, miss_pointwise, m_eff = {}, {}, {}
+    for name, ms in sets.items():
+        ms = ms[ms <= 300]
+        s2 = np.stack([np.mean((x[:, 2 * m:] - 2 * x[:, m:-m] + x[:, :-2 * m]) ** 2, axis=1)
+                       / (2.0 * m * m) for m in ms], axis=1)
+        truth = 1.0 / ms
+        edf = np.array([E.edf("oadev", 0, int(m), n + 1) for m in ms])
+        good = np.sqrt(chi2.ppf(0.975, edf) / chi2.ppf(0.025, edf)) <= 2.0
+        m_eff[name] = F._effective_taus(C.term_covariances(1.0, ms, n + 1),
+                                        F.design_matrix(ms * 1.0), truth, edf, good)
+        band = np.array([F._family_band(s, edf, m_eff[name]) for s in s2])
+        miss[name] = np.mean(np.any(band[:, good] ** 2 < truth[good], axis=1))
+        hi95 = s2 * edf / chi2.ppf(0.025, edf)  # the pointwise band (sigma^2)
+        miss_pointwise[name] = np.mean(np.any(hi95[:, good] < truth[good], axis=1))
+    assert len(sets["dense"]) > 5 * len(sets["octave"])
+    assert m_eff["dense"] < 1.5 * m_eff["octave"]  # a property of the span, not the sampling
+    for name in sets:
+        assert 0.01 <= miss[name] <= 0.045, (name, miss[name])  # 2.5 % +- ~3 sd (1000 series)
+        assert miss_pointwise[name] > 0.10, (name, miss_pointwise[name])
+    assert abs(miss["dense"] - miss["octave"]) < 0.02
+
+
+def test_a_chance_dip_of_the_floor_does_not_hold_b_below_the_truth() -> None:
+    """The 12 h consumer_mems ax case as a curve: N 3.92e-3 m/s/sqrt(s) and B 1.5e-3 m/s^2 (the
+    profile), 100 Hz, 12 h, the floor dipping smoothly to 0.36x in sigma^2 around 3000 s (0.6x
+    in sigma; the capture: 0.38 at 2294 s, 0.33 at 2949 s, 0.36 at 4260 s). The pointwise 95 %
+    band's minimum, read here with scipy, puts B's old limit at 0.915x the truth; with the
+    family-wise band both tau sets give B with a 95 % interval that holds the truth and
+    overlaps the other's."""
+    from scipy.stats import chi2
+
+    tau0, n_phase, nn, bb = 0.01, 4_320_001, 3.92e-3, 1.5e-3
+    c_b = 2.0 * math.log(2.0) / math.pi
+    sets = {"octave": 2 ** np.arange(0, 19),
+            "all": np.unique(np.r_[np.arange(1, 16),
+                                   [k * 2 ** j for j in range(1, 17) for k in range(8, 16)]])}
+    ci = {}
+    for name, ms in sets.items():
+        ms = ms[ms <= (n_phase - 1) // 4]
+        tau = ms * tau0
+        s2 = nn ** 2 / tau + c_b * bb ** 2
+        alpha = np.where(nn ** 2 / tau > c_b * bb ** 2, 0, -1)
+        edf = np.array([E.edf("oadev", int(a), int(m), n_phase) for a, m in zip(alpha, ms)])
+        s2 = s2 * (1.0 - 0.64 * np.exp(-0.5 * (np.log(tau / 3000.0) / 0.6) ** 2))
+        dev = np.sqrt(s2)
+        good = np.sqrt(chi2.ppf(0.975, edf) / chi2.ppf(0.025, edf)) <= 2.0
+        old_limit = np.min(dev[good] * np.sqrt(edf[good] / chi2.ppf(0.025, edf[good]))) / math.sqrt(c_b)
+        assert old_limit < 0.93 * bb
+        fit = F.fit_terms(tau, dev, edf, "accel", tau0=tau0, n_phase=n_phase)
+        b = fit["coefficients"].B
+        assert b.resolved, name
+        assert b.ci95[0] <= bb <= b.ci95[1], (name, b)
+        ci[name] = b.ci95
+    assert ci["octave"][0] <= ci["all"][1] and ci["all"][0] <= ci["octave"][1]

@@ -285,3 +285,49 @@ def test_early_tones_same_as_after_the_last_chunk(tmp_path: Path,
                 assert np.allclose(v, w[k], rtol=1e-9, atol=0, equal_nan=True), ax
             else:
                 assert (np.array_equal(v, w[k]) if isinstance(v, np.ndarray) else v == w[k]), (ax, k)
+
+
+_WARM_CHILD = r"""
+import json, sys
+from numba.core.dispatcher import Dispatcher
+from rigctl.analysis import allan as AA
+from rigctl.solvers import allan_kernels as K, allan_noise_id as NID
+
+def loaded():
+    return {n: sorted(str(s) for s in d.signatures) for n in dir(K)
+            if isinstance(d := getattr(K, n), Dispatcher) and d.signatures}
+
+AA.WARM_KERNELS = False
+first = K.load_kernels()
+warm = loaded()
+AA.CHUNK_ROWS, AA.HEAD_POINTS, AA.DEC_POINTS = 20_000, 50_000, 1 << 12
+NID.LAG1_COMPILED_POINTS = 1 << 10  # the compiled lag-1 noise ID on these short copies too
+AA.compute(sys.argv[1], list(AA.AXES), 95)
+print(json.dumps({"first": first, "again": K.load_kernels(), "warm": warm, "run": loaded()}))
+"""
+
+
+def test_warm_kernels_are_the_ones_the_pipeline_calls(tmp_path: Path) -> None:
+    """allan_kernels.load_kernels (started on a thread by compute) loads every kernel, with
+    the argument types, that the streamed pipeline then calls in fast mode: in a fresh
+    process, a run after it (gap scan, first chunk, fused passes, spike prefilter, cascade,
+    early and late lag-1 noise IDs) adds no kernel and no signature. Were one missing, its
+    first call would load it on the critical path; were a type wrong, a new specialisation
+    would be compiled (seconds)."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    import json
+    import subprocess
+    import sys
+
+    rec = tmp_path / "r.h5"
+    _recording(rec, 160_000, False)
+    p = subprocess.run([sys.executable, "-c", _WARM_CHILD, str(rec)], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    names = [n for n, _ in K.streamed_signatures()]
+    assert got["first"] == len(names) and got["again"] == 0
+    assert sorted(got["warm"]) == sorted(names)
+    assert all(len(v) == 1 for v in got["warm"].values())
+    assert got["run"] == got["warm"]

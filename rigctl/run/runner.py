@@ -31,7 +31,7 @@ from ..config.config import RigConfig, load_config
 from ..engine.device_check import check_devices
 from ..devices import DeviceFault, imu_identity
 from ..engine.engine import Engine, Interrupted, Rig, RunError
-from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError, RigctlError
 from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
 from ..progress import Progress, make_progress
@@ -312,6 +312,12 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                     if states.state != "idle":
                         states.to("faulted", message)
                     log("error", message)
+                except RigctlError as exc:  # a driver's own error (a setting the device refuses, a
+                    # garbled reply): its one line and exit code (rigctl.errors), no traceback
+                    status, code, message = "failed", exc.exit_code, str(exc)
+                    if states.state != "idle":
+                        guarded("state change", lambda: states.to("faulted", message))
+                    log("error", message)
                 except Exception as exc:  # noqa: BLE001 - reported with its traceback in the run log
                     status, code, message = "failed", EXIT_FAILED, f"{type(exc).__name__}: {exc}"
                     tb = traceback.format_exc()
@@ -339,16 +345,19 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                             if status == "complete":
                                 status, code, message = "failed", EXIT_FAILED, "the recording could not be closed"
                 sim_time = rig.clock.now()
-        except InputError:  # refused before anything was changed (resume on another IMU)
-            raise
         except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - opening the rig, creating
             # the recording, or closing the rig after the run, failed
+            if resuming and isinstance(exc, InputError):  # refused before anything was changed
+                raise                                     # (resume on another IMU)
             interrupted = isinstance(exc, KeyboardInterrupt)
-            what = "interrupted (SIGINT)" if interrupted else f"{type(exc).__name__}: {exc}"
-            tb = None if interrupted else traceback.format_exc()
+            # rigctl's own errors (e.g. a driver setting the device refuses when the rig opens):
+            # their one line and exit code; a traceback in the run log only for anything else (a bug)
+            known = isinstance(exc, RigctlError)
+            what = "interrupted (SIGINT)" if interrupted else str(exc) if known else f"{type(exc).__name__}: {exc}"
+            tb = None if interrupted or known else traceback.format_exc()
             if rec is None:  # nothing ran: no recording
                 status = "interrupted" if interrupted else "failed"
-                code = EXIT_INTERRUPTED if interrupted else EXIT_FAILED
+                code = EXIT_INTERRUPTED if interrupted else exc.exit_code if known else EXIT_FAILED
                 message = f"the run did not start: {what}"
                 log("error", message, traceback=tb)
             else:  # the run's own outcome is recorded; the devices' teardown failed after it

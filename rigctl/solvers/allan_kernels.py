@@ -665,3 +665,48 @@ def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:
     """Compiled lag-1 noise identification of phase ``x`` decimated by m (see
     allan_noise_id.noise_id_lag1, which calls it for long series)."""
     return int(_lag1_alpha(np.ascontiguousarray(x, dtype=np.float64), int(m), int(dmax)))
+
+
+def streamed_signatures() -> list[tuple[str, tuple]]:
+    """(kernel, argument types) of every compiled call the streamed pipeline makes in fast
+    mode (``rigctl allan`` on a recording: the counter's gap scan, the one pass per dataset,
+    the spike prefilter, the cascade of strided levels, the lag-1 noise IDs, the strided
+    levels' own sums), in the order
+    it first needs them. A test checks that running the pipeline adds no other signature."""
+    if not HAVE_NUMBA:
+        return []
+    from numba import types as T
+
+    f8, i8 = T.float64, T.int64
+    f1, f2, f3, fa = f8[::1], f8[:, ::1], f8[:, :, ::1], f8[:]
+    i1, i2 = i8[::1], i8[:, ::1]
+    return [
+        ("_jumps", (i1, i1, i1)),
+        ("_phase_chunk", (f1, f8, f8, f8, f1)),
+        ("_casc_chunk", (f1, i8, i8, i1, i2, i1, f2, i1, i1, i1, i2, f3, i2, i1, i8, i8, i8,
+                         i8, f1, i8)),
+        ("_phase_cols3", (f2, f1, f8, f1, f1, f1, f1, i8, f2, f2)),
+        ("_far_from_range_pre", (fa, i8, f8, i8, f1, f1, i1)),
+        ("_lag1_alpha", (f1, i8, i8)),
+        ("_casc_flush", (i1, i2, i1, f2, i1, i1, i1, i2, f3, i2, i1, i8)),
+        ("_gather", (f1, f1, i8, i8, f1)),
+        ("_range_sums", (f1, i1, i1, i1, i8, f2)),
+    ]
+
+
+def load_kernels(signatures: list[tuple[str, tuple]] | None = None) -> int:
+    """Load compiled kernels (:func:`streamed_signatures` by default) into this process
+    before their first call: from numba's on-disk cache (``cache=True``; compiled and cached
+    when missing). The first load in a process also sets up numba's compiler context (~0.15
+    s of CPU, Python holding the GIL); each further kernel takes a few ms. A caller runs it
+    on a thread while it does other work; a kernel called meanwhile waits for its load (the
+    compiler lock) instead of loading it a second time. Returns how many were loaded now."""
+    if not HAVE_NUMBA:
+        return 0
+    done = 0
+    for name, sig in streamed_signatures() if signatures is None else signatures:
+        disp = globals()[name]
+        if sig not in disp.overloads:
+            disp.compile(sig)
+            done += 1
+    return done
