@@ -253,13 +253,13 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
 
 
 def _emulator_cases() -> list[tuple[str, str, tuple]]:
-    from rigctl.sim.profiles import ImuProfile, get_profile, profile_names
+    from rigctl.sim.profiles import ImuProfile, profile_mapping, profile_names
 
     cases = []
     for name in profile_names():
         if name == "random":
             continue
-        prof = get_profile(name)
+        prof = profile_mapping(name)
         typed = ImuProfile.read(prof)
         for sensor in ("gyro", "accel"):
             if sensor in prof:

@@ -111,9 +111,9 @@ def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
         full = False
     else:
         from rigctl.sim.error_model import ImuErrorModel
-        from rigctl.sim.profiles import get_profile
+        from rigctl.sim.profiles import profile_mapping
 
-        prof = get_profile(case)
+        prof = profile_mapping(case)
         prof["power_on_time_s"] = float(warmup_s)
         if edit is not None:
             edit(prof)

@@ -58,9 +58,9 @@ def capture(case: str, hours: float, seed: int, power_on_s: float,
         F, W, _ = model.apply(t, np.tile(f_up, (n, 1)), np.tile(w_e, (n, 1)))
         return np.column_stack([W, F]), fs
     from rigctl.sim.error_model import ImuErrorModel
-    from rigctl.sim.profiles import get_profile
+    from rigctl.sim.profiles import profile_mapping
 
-    prof = get_profile(case)
+    prof = profile_mapping(case)
     prof["power_on_time_s"] = float(power_on_s)
     if edit is not None:
         edit(prof)

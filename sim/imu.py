@@ -264,7 +264,7 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
     from pathlib import Path
 
     from .error_model import ImuErrorModel
-    from .profiles import ImuProfile, check_merged, check_profile, get_profile, merged, profile_names
+    from .profiles import check_merged, check_profile, get_profile, load_profiles, merged, profile_names
 
     c = parse(ProfileImuSettings, o, "'imu.sim' with a profile")
     path = None
@@ -275,8 +275,8 @@ def build_imu_model(o: LocDict, rate_hz: float, seed: int) -> Any:
                           "the path is relative to the config file")
     name = S.get_str(o, "profile", choices=profile_names(path))
     seed = int(seed if c.seed is None else c.seed)
-    base = get_profile(name, seed=seed, path=path)  # checked against the profile's settings
-    profile, over = ImuProfile.read(base), c.overrides
+    profile, over = get_profile(name, seed=seed, path=path), c.overrides  # errors at the file's lines
+    base = load_profiles(path)["profiles"].get(name)  # where a merged-profile error points
     if over is not None:
         # misspelt keys, wrong kinds: file and line
         profile = merged(profile, over, check_profile(over, "imu.sim.overrides"))

@@ -2,9 +2,9 @@
 
 A profile is read as :class:`ImuProfile` (SI values, units in key names; layout documented in the
 YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads; ``imu.sim.overrides``
-are read as one too and merged into it (:func:`merged`). :func:`get_profile` hands out a named
-profile as its mapping (``from_profile`` reads it as an ImuProfile) and a random one as the
-ImuProfile drawn::
+are read as one too and merged into it (:func:`merged`). :func:`get_profile` hands out the
+ImuProfile (named, or drawn at random); :func:`profile_mapping` a named profile's mapping to edit,
+which ``from_profile`` reads as an ImuProfile::
 
     prof = get_profile("mti_class")                 # or consumer_mems, tactical, declared_only
     prof = get_profile("random", seed=7)            # parameters drawn around the `random.base` profile
@@ -40,51 +40,18 @@ SIGNED_KEYS = {
     "G_rad_per_s_per_m_per_s2", "anisoelastic_rad_per_s_per_m2_per_s4", "asymmetry", "k2_per_rad_per_s",
     "k3_per_rad2_per_s2", "r_m", "nonorth_rad", "level_x_rad", "level_y_rad", "north_rad",
 }
-TEXT_KEYS = {"description", "name", "base"}
-
-
-def _like(node: Any, new: Any) -> Any:
-    """``new`` with the source location of ``node`` (LocDict / LocList), if it has one."""
-    if isinstance(node, LocDict):
-        out = LocDict(new)
-        out.file, out.line, out.key_lines = node.file, node.line, dict(node.key_lines)
-        return out
-    if isinstance(node, LocList):
-        out = LocList(new)
-        out.file, out.line, out.item_lines = node.file, node.line, list(node.item_lines)
-        return out
-    return new
-
-
-def _coerce(node: Any, key: str = "") -> Any:
-    """Turn numeric strings (YAML 1.1 reads 1e-3 as text) into floats; reject other text values.
-    Source locations (file, line) are kept."""
-    if isinstance(node, dict):
-        return _like(node, {k: _coerce(v, str(k)) for k, v in node.items()})
-    if isinstance(node, list):
-        return _like(node, [_coerce(v, key) for v in node])
-    if isinstance(node, str) and key not in TEXT_KEYS:
-        try:
-            return float(node)
-        except ValueError as exc:
-            raise ValueError(f"profile value {key!r} = {node!r} is not a number") from exc
-    return node
 
 
 def load_profiles(path: str | Path | None = None) -> dict:
     """The YAML document as a dict: {'profiles': {name: profile}, 'random': {...}} (safe
-    loader; mappings are LocDicts that know their file and lines)."""
+    loader; mappings are LocDicts that know their file and lines), checked as a
+    :class:`ProfileFile` (each profile is read when it is used)."""
     file = Path(path or DEFAULT_PATH)
     doc = load_file(file)
     if doc is None:
         raise InputError("the profile file is empty", str(file), hint="it needs a 'profiles:' mapping")
     parse(ProfileFile, S.require_mapping(doc, "the profile file"), "the profile file")
-    try:
-        return _coerce(doc)
-    except ValueError:
-        for name in doc["profiles"]:  # say where the bad value is
-            _read(doc["profiles"], name)
-        raise
+    return doc
 
 
 def profile_names(path: str | Path | None = None) -> list[str]:
@@ -92,23 +59,31 @@ def profile_names(path: str | Path | None = None) -> list[str]:
     return sorted(load_profiles(path)["profiles"]) + ["random"]
 
 
-def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> Any:
-    """A deep copy of profile `name` (a mapping, with 'name' set); 'random' draws one with `seed`
-    (default 0): an :class:`ImuProfile`."""
+def get_profile(name: str, seed: int | None = None, path: str | Path | None = None) -> "ImuProfile":
+    """Profile ``name`` (with its name set) as an :class:`ImuProfile`; 'random' draws one with
+    ``seed`` (default 0) around the file's ``random.base``."""
     doc = load_profiles(path)
     if name == "random":
-        cfg = doc.get("random", {}) or {}
-        base_name = cfg.get("base", "mti_class")
+        cfg = parse(ProfileFile, doc, "the profile file").random
+        base_name = cfg.base or "mti_class"
         if base_name not in doc["profiles"]:
-            raise _error(cfg, "base", f"random.base {base_name!r} is not a profile of the file",
+            raise _error(doc.get("random"), "base", f"random.base {base_name!r} is not a profile of the file",
                          f"known: {sorted(doc['profiles'])}", doc)
         base = _read(doc["profiles"], base_name)
-        prof = random_truth(base, 0 if seed is None else seed, float(cfg.get("noise_spread", 2.0)))
-        return replace(prof, name=f"random(base={base_name}, seed={0 if seed is None else seed})")
+        seed = 0 if seed is None else seed
+        prof = random_truth(base, seed, float(2.0 if cfg.noise_spread is None else cfg.noise_spread))
+        return replace(prof, name=f"random(base={base_name}, seed={seed})")
     if name not in doc["profiles"]:
         raise KeyError(f"unknown IMU profile {name!r}; known: {sorted(doc['profiles'])}")
-    _read(doc["profiles"], name)
-    prof = copy.deepcopy(doc["profiles"][name])
+    return replace(_read(doc["profiles"], name), name=name)
+
+
+def profile_mapping(name: str, path: str | Path | None = None) -> dict:
+    """A deep copy of named profile ``name``'s mapping as written (with 'name' set), checked, for
+    code that edits a profile before :meth:`ImuErrorModel.from_profile` reads it (tests,
+    benchmarks)."""
+    get_profile(name, path=path)
+    prof = copy.deepcopy(load_profiles(path)["profiles"][name])
     prof["name"] = name
     return prof
 

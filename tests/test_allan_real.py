@@ -323,3 +323,63 @@ def test_spikes_reported_and_optionally_excluded(adis: dict, mtig: dict, tmp_pat
     n_raw = mtig["res"]["axes"]["gx"]["fit"]["coefficients"].N.value
     assert 0.5 < (n_raw ** 2 - n_fit ** 2) / spike_var < 2.0
     assert abs((n_fit / n_clean) / (n_raw / n_dirty) - 1.0) < 0.02
+
+
+def _flat_octave_numpy(tau: np.ndarray, dev: np.ndarray, t0: float, t1: float) -> float:
+    """The largest |log-log slope| of the curve over any octave-long stretch inside [t0, t1]
+    (plain numpy polyfit): small everywhere = flat throughout."""
+    sel = (tau >= t0) & (tau <= t1)
+    lt, ld = np.log(tau[sel]), np.log(dev[sel])
+    worst = 0.0
+    for a in range(lt.size):
+        b = np.flatnonzero(lt - lt[a] >= math.log(2.0) * (1 - 1e-9))
+        if b.size:
+            worst = max(worst, abs(float(np.polyfit(lt[a:b[0] + 1], ld[a:b[0] + 1], 1)[0])))
+    return worst
+
+
+def test_adis16405_gz_octave_floor_gives_an_estimate(adis: dict) -> None:
+    """Issue 15's held-out rehearsal: the ADIS16405 gz with --taus octave, whose curve is flat
+    at 29-34 deg/h over 41-328 s (four octave taus, every octave-long stretch |slope| < 0.25
+    here, the flatness the benchmark's floor read uses), came out as a bound (< 38.0 deg/h): B failed the 1.96 sd test once the model error
+    (16-20 %) was added, and the floor exception covered only a B pressed against its limit.
+    The curve needs B (N and K cannot make a flat octave), so B must be an estimate: within
+    what the curve allows (min sigma / 0.664 over the well-determined taus, numpy), with that
+    limit inside its 95 % interval (the floor is B's level), and the datasheet's bias
+    stability (25.2 deg/h) within 0.5-2x. Measured: 26.5 [17.8, 52.0] deg/h, limit 43.8; the
+    exact deviations give 26.6 [17.9, 51.8]."""
+    res = AA.compute(str(adis["rec"]), ["gz"], taus="octave")
+    r = res["axes"]["gz"]
+    tau, ind = _independent(adis["gyro"][:, 2], r)
+    assert _flat_octave_numpy(tau, ind, 40.0, 330.0) < 0.25  # the data: a flat floor
+    sel = well_determined(r["edf"])
+    lim = np.min(ind[sel]) / B_FACTOR
+    b = r["fit"]["coefficients"].B
+    assert b.resolved, b
+    assert b.value <= lim * (1 + 1e-6)
+    assert b.ci95[0] <= lim <= b.ci95[1], (b.ci95, lim)
+    assert 0.5 < B_FACTOR * b.value * DEG_H / ADIS_BIAS_STAB_DEG_H < 2.0
+
+
+def test_mtig_small_gap_does_not_flip_b(mtig: dict) -> None:
+    """Three dropped messages in a bag of the MTi-G took the EDF of the 369 s tau from 18.1
+    to 16.0, below the 16.95 that makes a tau 'well-determined', and B flipped from a bound
+    (< 12.0 deg/h) to an estimate 13.6 [9.4, 24.5]. The curve there still falls (slope
+    about -1/2 from 160 to 820 s, numpy; no flat octave where B would be): B is a bound
+    whichever side of the cut that tau's EDF lies, and the two bounds agree within 20 %."""
+    r = mtig["res"]["axes"]["gx"]
+    tau, ind = _independent(mtig["gyro"], r)
+    assert slope(tau, ind, 160.0, 820.0) < -0.35
+    assert _flat_octave_numpy(tau, ind, 150.0, 1000.0) > 0.25
+    edf = np.asarray(r["edf"], dtype=float)
+    k = int(np.argmin(np.abs(tau - 368.64)))
+    assert well_determined(edf[k:k + 1])[0]
+    bounds = []
+    for factor in (1.0, 16.0 / float(edf[k])):
+        e = edf.copy()
+        e[k] *= factor
+        fit = F.fit_terms(tau, _reported(r), e, "gyro", tau0=TAU0, n_phase=r["n_samples"] + 1)
+        b = fit["coefficients"].B
+        assert not b.resolved, (factor, b)
+        bounds.append(b.upper95)
+    assert abs(bounds[1] / bounds[0] - 1.0) < 0.2, bounds

@@ -17,7 +17,7 @@ from rigctl.sim import effects as fx
 from rigctl.sim import noise as nz
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.frontend import FrontEnd
-from rigctl.sim.profiles import get_profile, random_truth
+from rigctl.sim.profiles import get_profile, profile_mapping, random_truth
 from rigctl.solvers.noise_coefficients import terms_of
 
 G = 9.80665
@@ -26,8 +26,8 @@ DEG = math.pi / 180
 
 def quiet_profile(rate_hz: float = 100.0, **effects: dict) -> dict:
     """declared_only with declared errors zeroed, tactical-grade noise, the given effects on."""
-    p = get_profile("declared_only")
-    tac = get_profile("tactical")
+    p = profile_mapping("declared_only")
+    tac = profile_mapping("tactical")
     p["rate_hz"] = rate_hz
     for s in ("gyro", "accel"):
         p[s] = {"noise": copy.deepcopy(tac[s]["noise"])}
@@ -107,7 +107,7 @@ def test_lever_arm_tangential_term_during_rate_step() -> None:
 
 # ---------------------------------------------------------------------------- thermal
 def test_warmup_time_constant_recovered_from_gyro_and_temperature() -> None:
-    cons = get_profile("consumer_mems")
+    cons = profile_mapping("consumer_mems")
     wu = cons["effects"]["warmup"]
     model = ImuErrorModel.from_profile(quiet_profile(warmup=wu), seed=3)
     t, _, W, T, _ = run(model, 180_000, const([0, 0, G], [0, 0, 0]))
@@ -129,7 +129,7 @@ def test_warmup_time_constant_recovered_from_gyro_and_temperature() -> None:
 
 def test_scale_temperature_coefficient_during_warmup() -> None:
     """At a constant rate the warm-up transient's amplitude grows by s_tc * dT * w (scale tempco)."""
-    wu = dict(get_profile("consumer_mems")["effects"]["warmup"])
+    wu = dict(profile_mapping("consumer_mems")["effects"]["warmup"])
     w = 100 * DEG
 
     def amplitude(rate: float, seed: int) -> float:
@@ -175,7 +175,7 @@ def test_dropped_samples_rate_and_chunk_invariance() -> None:
 
 # ---------------------------------------------------------------------------- sensor effects
 def test_g_sensitivity_and_anisoelastic_from_plus_minus_g() -> None:
-    gs = get_profile("consumer_mems")["effects"]["g_sensitivity"]
+    gs = profile_mapping("consumer_mems")["effects"]["g_sensitivity"]
     model = ImuErrorModel.from_profile(quiet_profile(g_sensitivity=gs), seed=5)
     Gm = np.array(gs["G_rad_per_s_per_m_per_s2"])
     A = np.array(gs["anisoelastic_rad_per_s_per_m2_per_s4"])
@@ -191,7 +191,7 @@ def test_g_sensitivity_and_anisoelastic_from_plus_minus_g() -> None:
 
 
 def test_accel_scale_asymmetry() -> None:
-    u = get_profile("consumer_mems")["effects"]["accel_scale_asymmetry"]["asymmetry"]
+    u = profile_mapping("consumer_mems")["effects"]["accel_scale_asymmetry"]["asymmetry"]
     model = ImuErrorModel.from_profile(quiet_profile(accel_scale_asymmetry={"asymmetry": u}), seed=6)
     e = tol(model, "accel", 60.0)
     for j in range(3):
@@ -204,7 +204,7 @@ def test_accel_scale_asymmetry() -> None:
 
 
 def test_gyro_scale_nonlinearity_fit_recovers_k2_k3() -> None:
-    nl = get_profile("consumer_mems")["effects"]["gyro_nonlinearity"]
+    nl = profile_mapping("consumer_mems")["effects"]["gyro_nonlinearity"]
     model = ImuErrorModel.from_profile(quiet_profile(gyro_nonlinearity=nl), seed=7)
     rates = np.array([-100, -63, -40, 0, 40, 63, 100]) * DEG
     means = np.array([run(model, 3000, const([0, 0, G], [w, 0, 0]))[2][:, 0].mean() for w in rates])
@@ -360,7 +360,7 @@ def test_truth_is_json_with_units_and_profiles_load() -> None:
 
 
 def test_random_truth_is_seeded_and_within_spread() -> None:
-    base = get_profile("mti_class")
+    base = profile_mapping("mti_class")
     a, b, c = random_truth(base, 1), random_truth(base, 1), random_truth(base, 2)
     assert a == b and a != c
     for s in ("gyro", "accel"):

@@ -15,7 +15,7 @@ import yaml
 from rigctl.config.config import load_config
 from rigctl.engine.rig import open_rig
 from rigctl.sim.error_model import ImuErrorModel
-from rigctl.sim.profiles import get_profile
+from rigctl.sim.profiles import get_profile, profile_mapping
 from rigctl.sim.table import POSITION, Profile, ServoParams, SimTurntable
 from rigctl.yamlio import InputError
 
@@ -248,7 +248,7 @@ def test_power_on_time_shifts_only_the_warm_up_not_the_samples(tmp_path):
 def test_power_on_time_random_walk_and_ramp_have_run_since_power_on():
     """The K random walk and R ramp start at power-on: at run start they are a constant offset
     N(0, K^2 t_on) + R t_on, recorded in the truth, and seen in the first samples."""
-    prof = get_profile("declared_only")
+    prof = profile_mapping("declared_only")
     t_on, K, R = 3600.0, 1.0e-6, 1.0e-9
     prof["power_on_time_s"] = t_on
     prof["gyro"]["noise"] = {"K_rad_per_s2_per_sqrt_hz": K, "R_rad_per_s2": R}
@@ -273,7 +273,7 @@ def test_power_on_time_random_walk_and_ramp_have_run_since_power_on():
 # ---------------------------------------------------------------------------- warm-up truth
 def test_truth_records_the_warm_up_reference_temperature_that_is_applied():
     """A user-set T_ref_degC (not T0 + dT) is what apply() uses, and what /truth says."""
-    prof = get_profile("declared_only")
+    prof = profile_mapping("declared_only")
     prof["gyro"]["noise"] = {}
     prof["accel"]["noise"] = {}
     c_b = 1.0e-4
