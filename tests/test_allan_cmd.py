@@ -245,3 +245,20 @@ def test_spikes_and_quantization_on_synthetic_noise(tmp_path: Path, capsys: pyte
     out = capsys.readouterr().out
     assert "warning: 40 samples (0.04 %) more than 10 robust sd" in out and "--outliers exclude" in out
     assert "note: output quantized in steps of" in out
+
+
+def test_all_taus_below_2_20_points_stay_fast_modes_set(tmp_path) -> None:
+    """Below 2^20 points the sums are exact, but `--taus all` without --exact keeps fast mode's
+    set (at most 8 factors per octave): every factor of a 2.8 h x 100 Hz capture was ~5e5
+    taus and 6 min 21 s (the sums stay exact: stride 1)."""
+    from rigctl.analysis import allan as AA
+    rng = np.random.default_rng(3)
+    n = 200_000
+    rec = recording_helpers.write_recording(tmp_path / "r.h5", 100.0,
+                          angular_rate=rng.normal(0, 1e-3, (n, 3)),
+                          specific_force=rng.normal(0, 1e-2, (n, 3)))
+    r = AA.compute(str(rec), ["gx"], "all")["axes"]["gx"]
+    m = np.asarray(r["m"])
+    octaves = np.floor(np.log2(m)).astype(int)
+    assert np.bincount(octaves).max() <= 8 and len(m) < 200, len(m)
+    assert np.all(np.asarray(r["stride"]) == 1)

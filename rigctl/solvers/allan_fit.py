@@ -353,12 +353,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     lim95 = (curve_limits(tau_all[inf95], hi_fw[inf95]) if np.any(inf95)
              else curve_limits(tau_all, hi_fw))
     upper_all = np.array([lim95[t] ** 2 if t in CONSTRAINED else np.inf for t in TERMS])
-    # B itself: no more than the curve's own limit, min sigma / 0.664 over those taus (the
-    # limit every bound is held to), not its 95 % upper band (see _b_limit)
-    # NOT applied since octall's family-wise band landed: a chance dip of a floor (0.6x at
-    # 3000 s, test_a_chance_dip_of_the_floor_does_not_hold_b_below_the_truth) would hold B
-    # at 0.6x the truth and drop it. Issue 15 finding 2 (Astro Pi gyros) stays open.
-    # upper_all[TERMS.index("B")] = _b_limit(tau_all, s2_all, inf95, upper_all[TERMS.index("B")])
+    # B is not held below this band's limit by min sigma / 0.664 itself: with the family-wise
+    # band a chance dip of a floor (0.6x at 3000 s, test_a_chance_dip_of_the_floor_does_not_
+    # hold_b_below_the_truth) would hold B at 0.6x the truth and drop it. So a B estimate can
+    # sit above min sigma / 0.664 where the curve still falls (Astro Pi gyros; issue 15).
     inf_idx = np.flatnonzero(inf95)
     floor_seen = bool(inf_idx.size) and bool(
         tau_all[inf_idx[-1]] >= FLOOR_AFTER * tau_all[inf_idx[np.argmin(hi_fw[inf_idx])]])
@@ -579,18 +577,6 @@ B_IDX = TERMS.index("B")
 #: a floor needs B when the fit without it leaves the curve's 95 % band (data above) over at
 #: least this ratio of taus (an octave), where the fit with B is within it
 FLOOR_SPAN = 2.0
-
-
-def _b_limit(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray, upper95: float) -> float:
-    """The largest B^2 the fit may take: the curve's own limit (min sigma^2 / 0.664^2 over the
-    well-determined taus), the same limit every bound is held to (issue 15: no B above
-    min(sigma) / 0.664). The 95 % upper band (1.4-1.5 x sigma at EDF 20-25) let the fit put
-    B's line 1.3x above the curve's last well-determined points (a real Astro Pi gyro whose
-    curve still falls at 1100-1300 s: B 23.9 [21.5, 26.8] deg/h against the limit 18.0). The
-    band stays the limit when no tau is well-determined (a capture of a few minutes)."""
-    if not np.any(inf):
-        return upper95
-    return float(np.min(s2[inf]) / _B_FACTOR)
 
 
 def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.ndarray,
