@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
@@ -63,29 +62,6 @@ EARLY_NOISE_ID = True
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
 EARLY_TONES = True
-#: True: the streamed pipeline's compiled kernels (allan_kernels.streamed_signatures) are
-#: loaded from numba's cache on a thread started with :func:`compute_once`, while the file
-#: opens and the gap scan runs, instead of at each kernel's first call (the same kernels
-#: either way). Off: measured no faster (docs/allan.md, issue 21 fifth stop) -- the load is
-#: Python holding the GIL, and the gap scan needs its first kernel at once
-WARM_KERNELS = False
-
-
-def _load_kernels() -> None:
-    try:
-        KER.load_kernels()
-    except Exception:  # noqa: BLE001 - the pipeline's own first call then raises it
-        pass
-
-
-def warm_kernels() -> threading.Thread | None:
-    """Start loading the streamed pipeline's kernels on a daemon thread (None: nothing to
-    load, or :data:`WARM_KERNELS` off)."""
-    if not (WARM_KERNELS and KER.HAVE_NUMBA):
-        return None
-    t = threading.Thread(target=_load_kernels, name="allan-kernels", daemon=True)
-    t.start()
-    return t
 
 
 class _AxisStream:
@@ -591,7 +567,6 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
         raise InputError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     if gaps not in GAP_MODES:
         raise InputError(f"gaps={gaps!r}: choose from {', '.join(GAP_MODES)}")
-    warm_kernels()
     with _open_checked(path, axes) as f:
         fs = _sample_rate(f, path)
         dsets = {name: f[name] for name in {AXES[a][0] for a in axes}}
