@@ -14,6 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from ..analysis.allan import DEV_UNITS
+from ..analysis.allan_drift import plot_extras
+from ..jsonable import jsonable
 from .report import RunData, find_session
 from .report_allan import allan_curves
 
@@ -328,6 +331,24 @@ def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None)
                         f"{name} ({cv['sensor']}){' - quick curve' if cv.get('quick') else ''}",
                         cv.get("lo68"), cv.get("hi68"), cv.get("lo95"), cv.get("hi95"))
     return _save(fig, out / "allan.png")
+
+
+def plot_allan_result(result: dict[str, Any], out_path: str | Path) -> None:
+    """``rigctl allan --plot FILE``: one log-log plot per axis of a fresh Allan result
+    (rigctl.analysis.allan.compute; :func:`draw_allan_axis`: 68 % bars, 95 % band, slope guides,
+    fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
+    plt = _plt()
+    axes = list(result["axes"].items())
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
+    for ax, (name, r) in zip(subs[:, 0], axes):
+        unit, fac = DEV_UNITS[r["sensor"]]
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
+                        r["sensor"], unit, fac,
+                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
+    fig.tight_layout()
+    fig.savefig(out_path, dpi=120)
+    plt.close(fig)
 
 
 def _sync_errors_ms(arr: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
