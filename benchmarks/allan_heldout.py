@@ -62,27 +62,15 @@ def rigctl(*argv: str) -> None:
 
 def _write_bag(path: Path, gyro_x: np.ndarray, drop: range) -> None:
     """A rosbag2 (mcap storage) of sensor_msgs/Imu at 100 Hz with header stamps, as a robot's
-    recorder writes it (the rosbags package's writer), some messages dropped."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    recorder writes it (rigctl.sim.imu_bag: the rosbags package's writer), some messages dropped."""
+    from rigctl.sim.imu_bag import write_imu_bag
 
-    imu = "sensor_msgs/msg/Imu"
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    T = store.types
-    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
-    z9 = np.zeros(9)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c = w.add_connection("/imu", imu, typestore=store)
-        for i, v in enumerate(gyro_x):
-            if i in drop:
-                continue
-            ns = 1_600_000_000_000_000_000 + i * 10_000_000
-            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                           frame_id="imu")
-            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
-                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
-                       linear_acceleration=vec(0.0, 0.0, 9.81), linear_acceleration_covariance=z9)
-            w.write(c, ns + 2_000_000, store.serialize_cdr(m, imu))
+    keep = np.setdiff1d(np.arange(len(gyro_x)), np.arange(drop.start, drop.stop, drop.step))
+    n = len(keep)
+    write_imu_bag(path, 1_600_000_000_000_000_000 + keep * 10_000_000,
+                  np.column_stack([np.asarray(gyro_x, dtype=float)[keep], np.zeros((n, 2))]),
+                  np.tile([0.0, 0.0, 9.81], (n, 1)), topic="/imu", frame_id="imu",
+                  receive_delay_ns=2_000_000)
 
 
 # ------------------------------------------------------------------ the captures, as files
