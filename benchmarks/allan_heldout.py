@@ -8,7 +8,8 @@ Captures (those present in tests/data): the ADIS16405 (6 axes, whitespace text o
 XSens MTi-G gyro (TSV, ns stamps; and as a rosbag2 with mcap storage
 and 3 dropped messages -- one gap, which rigctl skips as Stable32 does), the Astro Pi Sense HAT's x-up section (its CSV with the
 ISO `time_stamp` column as shipped), the 10 MHz OCXO (the counter's file as published, Hz,
-scaled to fractional frequency), and the Stable32 phase files (Cs5071A, Keysight 53230A,
+scaled to fractional frequency), the Samsung Galaxy S5 phone gyro (its CSV as stored, rad/s,
+10 Hz), and the Stable32 phase files (Cs5071A, Keysight 53230A,
 PHASE.DAT: `--units gyr=rad --integrated`). Each goes through the CLI as a user types it.
 
 The independent read (numpy, scipy's chi-square only): the fully overlapping Allan deviation at
@@ -137,6 +138,16 @@ def captures(tmp: Path) -> list[dict]:
         rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0",
                "--units", "gyr=counts:1e-07 rad/s", "--rate", "1")
         out.append({"name": "OCXO", "rec": rec, "si": {"gx": np.loadtxt(txt) * 1e-7}, "tau0": 1.0})
+    f = DATA / "galaxy-s5-static" / "gyro_measured_rad_s.csv.gz"
+    if f.is_file():  # the phone gyro's CSV as stored (rad/s, header gyr_x,gyr_y,gyr_z, 10 Hz)
+        txt = tmp / "galaxy_s5.csv"
+        txt.write_bytes(gzip.decompress(f.read_bytes()))
+        rec = tmp / "galaxy_s5.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0,gyr_y=1,gyr_z=2",
+               "--units", "gyr=rad/s", "--rate", "10")
+        y = np.loadtxt(txt, delimiter=",", skiprows=1)
+        out.append({"name": "GalaxyS5", "rec": rec, "si": {f"g{c}": y[:, i] for i, c in enumerate("xyz")},
+                    "tau0": 0.1})
     s32 = DATA / "stable32-reference"
     for name, rel in (("Cs5071A", "Cs5071A/5071A_phase.txt.gz"),
                       ("Keysight53230A", "Keysight53230A_ti_noise_floor/tic_phase.txt"),
