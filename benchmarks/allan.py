@@ -253,17 +253,15 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
 
 
 def _emulator_cases() -> list[tuple[str, str, tuple]]:
-    from rigctl.sim.profiles import ImuProfile, profile_mapping, profile_names
+    from rigctl.sim.profiles import get_profile, profile_names
 
     cases = []
     for name in profile_names():
         if name == "random":
             continue
-        prof = profile_mapping(name)
-        typed = ImuProfile.read(prof)
-        for sensor in ("gyro", "accel"):
-            if sensor in prof:
-                cases.append((name, sensor, getattr(typed, sensor).noise.coefficients()))
+        prof = get_profile(name)
+        for sensor in ("gyro", "accel"):  # every profile of the file has both
+            cases.append((name, sensor, getattr(prof, sensor).noise.coefficients()))
     return cases
 
 

@@ -418,9 +418,11 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
     unit, fac = DEV_UNITS[sensor]
     tones = _tones(stream, sensor)
+    gapped = stretch_samples is not None and len(stretch_samples) > 1
     fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
                       tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]}
-                             for t in tones["tones"]])
+                             for t in tones["tones"]],
+                      stretch_samples=stretch_samples if gapped else None)
     pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
