@@ -3,7 +3,9 @@ does not describe (issue 15): the Astro Pi Sense HAT's gyros (tests/data/astropi
 static, its x-up section, a reading every ~10 s, 236 one-sample gaps; RTIMULib tracks the gyro
 bias with 100 s). Their curves fall with log-log slope -0.1 .. -0.4 from 10 s to the last
 well-determined tau; N + B put the fitted total 1.4x above the curve at both ends and gave
-B 25.8 [23.6, 28.5] deg/h (gx) where the curve's lowest well-determined point allows 18.3.
+B 25.8 [23.6, 28.5] deg/h (gx) where the curve's lowest well-determined point allows 18.3;
+with B held there, K took its place (54.7 [43.9, 72.8] deg/h/sqrt(h), --taus all, where the
+curve allows 35.3).
 
 The expected values are read off the curve here in plain numpy: the fully overlapping Allan
 deviation over the gap-free stretches (the CSV's time stamps: a step over 1.5x the median is a
@@ -83,7 +85,7 @@ def _curve(y: np.ndarray, t: np.ndarray, ms: np.ndarray, tau0: float) -> dict:
     return {"dev": dev, "edf": nu, "inf": inf, "n_stretches": len(parts)}
 
 
-@pytest.mark.parametrize("taus", [95, "octave"])
+@pytest.mark.parametrize("taus", [95, "octave", "all"])
 def test_astropi_gyro_b_not_above_the_curves_limit(astro, taus) -> None:
     y, t, rec = astro
     res = AA.compute(str(rec), ["gx", "gz"], taus)
@@ -108,3 +110,9 @@ def test_astropi_gyro_b_not_above_the_curves_limit(astro, taus) -> None:
         assert not b.resolved, (ax, taus, b)
         # (the same minimum as rigctl's, in another order of operations: 1e-9 for rounding)
         assert b.upper95 <= limit * (1.0 + 1e-9), (ax, taus, b.upper95, limit)
+        # and the rising K, which then takes the long taus with N, no higher than the curve's
+        # lowest point allows either (K <= min sigma sqrt(3 / tau)): it came out 54.7 [43.9,
+        # 72.8] deg/h/sqrt(h) on gx with --taus all where the curve allows 35.3
+        k = r["fit"]["coefficients"].K
+        k_lim = float(np.min(c["dev"][idx] * np.sqrt(3.0 / tau[idx])))
+        assert (k.value if k.resolved else k.upper95) <= k_lim * (1.0 + 1e-9), (ax, taus, k, k_lim)

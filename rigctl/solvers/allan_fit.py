@@ -380,6 +380,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # the curve still falls (its last well-determined tau): no floor at that level
     b_pt, b_falling = _b_point_limit(tau_all, s2_all, inf95) if model_err > 0 else (math.inf, False)
     upper_all[B_IDX] = min(upper_all[B_IDX], b_pt)
+    if b_falling:  # ... and a rising K no higher than the curve's last well-determined point
+        k_idx = TERMS.index("K")
+        upper_all[k_idx] = min(upper_all[k_idx], float(np.min(
+            s2_all[inf95] / design_matrix(tau_all[inf95])[:, k_idx])))
     inflate = None
     dropped: list[int] = []
     pinned_terms: set[int] = set()
