@@ -280,9 +280,10 @@ def rising_front(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray) -> int:
     that describe the way the samples were made, not the sensor's IEEE 952 noise: a low-pass
     filter's correlation, or an output that dwells on its quantization levels (a raw output
     below one step of noise, smoothed by a decimation filter: the Galaxy S5 gyro in the tests,
-    0.1-2.3 s). Those taus sit below the white-noise line the later curve implies; a fit that
-    includes them decides N by the density of the tau set (--taus octave puts 5 of 16 taus
-    there, the default 18 of 84; issue 15: N 0.26 deg/sqrt(h) against 2.2 on the same data).
+    0.1-2.0 s, top at 2.3 s). Those taus sit below the white-noise line the later curve
+    implies; a fit that includes them decides N by the density of the tau set (--taus octave
+    puts 5 of 16 taus there, the default 16 of 84; issue 15: N < 0.26 deg/sqrt(h) against
+    2.2 on the same data).
     A curve whose first clear move is down (the usual case, a bump later included), or that
     rises and never falls clearly (a rate random walk or ramp from the start, or a capture
     too short to see the fall), has no front. Decided on the curve's values, so every tau set
