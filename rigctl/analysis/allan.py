@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
@@ -58,6 +59,10 @@ FUSED = True
 #: the noise IDs read from the full-resolution head are taken while the rest of the record
 #: streams (False: all of them in the analysis after the last chunk; the same values)
 EARLY_NOISE_ID = True
+#: each dataset's chunks follow each other as soon as its own tasks are done (a chain per
+#: dataset, :func:`_pipelined`) instead of every dataset waiting for the slowest at the end of
+#: each chunk (False: the loop with that barrier; the same numbers)
+PIPELINED = True
 #: with them (same task), the tone detection's periodogram of the head (TONE_POINTS samples
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
@@ -825,8 +830,13 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         return tasks
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    nxt = read(starts[0], 0) if starts else None
     early: list = []  # the head's noise IDs, once every head is complete
+    if PIPELINED and len(starts) > 1:
+        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early)
+        for e in early:
+            e.result()
+        return
+    nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks, cuts = nxt
         preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
@@ -841,6 +851,103 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
     for e in early:
         e.result()
+
+
+def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: Callable,
+               dataset: Callable, streams: dict, s0: int, s1: int, shown: WorkProgress,
+               early: list) -> None:
+    """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
+    each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
+    after the phase chunk j left in the accumulators) is queued by the callback of the last
+    of chunk j's tasks of that dataset, so one dataset's pass runs while the other's sums
+    finish instead of both waiting for the slower. This thread only reads: chunk j into
+    buffer j % 2 once both datasets are done with chunk j - 2 (their tasks read nothing of
+    a chunk after they finish). The same tasks on the same data in the same order per
+    axis: the same numbers. The first error raised by a task is raised here."""
+    names = list(dsets)
+    cond = threading.Condition()
+    ready: dict[int, tuple[dict, np.ndarray]] = {}  # chunk -> (blocks, cuts), read
+    done = {name: -1 for name in names}  # the last chunk each dataset has finished
+    busy = {name: False for name in names}
+    errors: list[BaseException] = []
+
+    def fail(e: BaseException) -> None:
+        with cond:
+            errors.append(e)
+            cond.notify_all()
+
+    def launch(name: str) -> None:  # under cond
+        j = done[name] + 1
+        if not errors and not busy[name] and j in ready:
+            busy[name] = True
+            blocks, cuts = ready[j]
+            pool.submit(run, name, j, blocks[name], cuts)
+
+    def finished(name: str, j: int) -> None:
+        with cond:
+            done[name] = j
+            busy[name] = False
+            launch(name)
+            cond.notify_all()
+
+    def run(name: str, j: int, b: np.ndarray, cuts: np.ndarray) -> None:
+        try:
+            tasks = dataset(name, b, starts[j], cuts)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            fail(e)
+            return
+        if not tasks:
+            finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
+
+    def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
+        with cond:
+            lo = min(done.values())
+        if lo >= 0:
+            shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
+        if EARLY_NOISE_ID and not early and lo >= 0 and lo + 1 < len(starts) and all(
+                st.head_full() for st in streams.values()):
+            early.extend(pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values())
+
+    last = len(starts) - 1
+    for j, a0 in enumerate(starts):
+        with cond:  # buffer j % 2 held chunk j - 2
+            while not errors and min(done.values()) < j - 2:
+                cond.wait()
+            if errors:
+                break
+            ready.pop(j - 2, None)
+        got = read(a0, j % 2)
+        with cond:
+            ready[j] = got
+            for name in names:
+                launch(name)
+        progress()
+    while True:
+        with cond:
+            if errors or min(done.values()) >= last:
+                break
+            cond.wait(0.05)
+        progress()
+    if errors:
+        raise errors[0]
+    progress()
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
