@@ -136,7 +136,9 @@ def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPI
     y = np.asarray(y, dtype=float)
     if y.size < window:
         return np.zeros(0, dtype=np.int64), y.copy(), 0.0, "too few samples"
-    med = median_filter(y, size=window, mode="nearest")
+    med = K.running_median(y, window)  # compiled, without the GIL
+    if med is None:
+        med = median_filter(y, size=window, mode="nearest")
     r = y - med
     basis = "given"
     if sigma is None:
