@@ -158,7 +158,7 @@ def write_h5(path: str, n: int) -> None:
 #: per-phase timing in the child: (module, attribute, phase). Thread CPU of every call (any
 #: thread; nested calls counted in each), and wall time of the main thread's top-level steps
 _PHASES = [("rigctl.recording.recording_reader", "RowReader.read", "read"),
-           ("rigctl.analysis.allan", "find_gaps", "gaps"),
+           ("rigctl.analysis.allan", "counter_jumps_at", "gaps"),  # the scan (its reads: read)
            ("rigctl.solvers.allan_kernels", "phase_cols3", "one_pass_3_axes"),
            ("rigctl.analysis.allan", "_AxisStream.screen", "screen"),
            ("rigctl.analysis.allan", "_AxisStream.screen_block", "screen"),

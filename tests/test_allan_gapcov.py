@@ -247,3 +247,20 @@ def test_astro_pi_octave_and_all_agree(astro_fits) -> None:
             ck = astro_fits[taus]["axes"][a]["fit"]["check"]
             assert stats.chi2.sf(ck["chi2"], ck["dof"]) < 1e-10
             assert not ck["ok"] and ck["outside"], (taus, a)
+
+
+def test_astro_pi_chi_square_printed_and_called_out_beyond_its_band(astro_fits) -> None:
+    """rigctl allan's text gives each fit's chi-square; beyond its 99 % point (scipy here) it
+    says so even when no tau leaves its band (ay all: 78.9 / 37, the self-check's taus all in)."""
+    from rigctl.analysis.allan_text import format_table
+
+    for taus in ("octave", "all"):
+        for a in AXES:
+            r = astro_fits[taus]["axes"][a]
+            ck = r["fit"]["check"]
+            line = [s for s in format_table(a, r).splitlines() if s.startswith("goodness of fit:")]
+            assert len(line) == 1 and f"on {ck['dof']} dof" in line[0], (taus, a, line)
+            beyond = stats.chi2.sf(ck["chi2"], ck["dof"]) < 0.01
+            assert ("beyond its 99 % point" in line[0]) == beyond, (taus, a, line)
+    assert "beyond its 99 % point" in [s for s in format_table("ay", astro_fits["all"]["axes"]["ay"])
+                                       .splitlines() if s.startswith("goodness")][0]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
@@ -58,6 +59,10 @@ FUSED = True
 #: the noise IDs read from the full-resolution head are taken while the rest of the record
 #: streams (False: all of them in the analysis after the last chunk; the same values)
 EARLY_NOISE_ID = True
+#: each dataset's chunks follow each other as soon as its own tasks are done (a chain per
+#: dataset, :func:`_pipelined`) instead of every dataset waiting for the slowest at the end of
+#: each chunk (False: the loop with that barrier; the same numbers)
+PIPELINED = True
 #: with them (same task), the tone detection's periodogram of the head (TONE_POINTS samples
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
@@ -98,6 +103,7 @@ class _AxisStream:
         self.n_rate = 0
         self.quant_step: float | None = None  # output step, from the first block
         self.spike_sigma: float | None = None  # robust sd of the residual, from the first block
+        self.spike_basis = ""  # what that sd was read from (CHK.spike_scale)
         self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
         self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
 
@@ -108,7 +114,7 @@ class _AxisStream:
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
         if self.spike_sigma is None:  # the first block sets sigma (running median of all)
-            idx, med, sd = CHK.find_spikes(y, None)
+            idx, med, sd, self.spike_basis = CHK.find_spikes_scaled(y, None, step=self.quant_step)
             med = med[idx]
             self.spike_sigma = sd
         else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
@@ -304,7 +310,7 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
     size = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
     spikes = {"count": int(idx.size), "fraction": idx.size / max(stream.n_rate, 1),
               "threshold_sd": CHK.SPIKE_SIGMA, "window_samples": CHK.SPIKE_WINDOW,
-              "sd_si": stream.spike_sigma, "excluded": bool(excluded and idx.size),
+              "sd_si": stream.spike_sigma, "sd_from": stream.spike_basis, "excluded": bool(excluded and idx.size),
               "largest_sd": float(size.max()) if size.size else 0.0,
               "first_times_s": [float(i * tau0) for i in idx[:10]]}
     quant = None
@@ -463,7 +469,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
             gaps: str = "skip", warmup: str = "report",
-            temperature: str = "report") -> dict[str, Any]:
+            temperature: str = "report",
+            when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -472,14 +479,16 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     ``warmup`` says which mode ran. Never silent: the cut is in the result and the text.
     With ``temperature="remove"``, the axes whose slow part follows the recorded temperature
     (each axis' ``temperature``) are analysed once more with that term subtracted from their
-    samples (:func:`_without_temperature`)."""
+    samples (:func:`_without_temperature`). ``when_streaming``: called once the first chunk
+    of the record is done and the rest streams (the caller's Python work that holds the GIL,
+    e.g. an import, then runs beside compiled sums instead of before the first chunk)."""
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
         raise InputError(f"temperature={temperature!r}: choose from "
                          f"{', '.join(AD.TEMPERATURE_MODES)}")
     out = _with_warmup(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
-                       warmup)
+                       warmup, when_streaming)
     out["temperature"] = temperature
     if temperature == "remove":
         out = _without_temperature(out, path, axes, taus, exact, progress_stream, outliers, gaps)
@@ -516,9 +525,11 @@ def _without_temperature(out: dict[str, Any], path: str, axes: list[str], taus: 
 
 def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
                  sample_range: tuple[int, int] | None, progress_stream: Any, outliers: str,
-                 gaps: str, warmup: str) -> dict[str, Any]:
+                 gaps: str, warmup: str,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"`` once more after the cut."""
-    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps)
+    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
+                       when_streaming=when_streaming)
     out["warmup"] = "report"
     if warmup != "exclude":
         return out
@@ -552,7 +563,8 @@ def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
 def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
                  sample_range: tuple[int, int] | None = None,
                  progress_stream: Any = None, outliers: str = "report",
-                 gaps: str = "skip", corrections: dict | None = None) -> dict[str, Any]:
+                 gaps: str = "skip", corrections: dict | None = None,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -582,32 +594,70 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
         # the samples' readers (HDF5's chunk index, a Python callback per chunk: ~0.1 s for a
         # 12 h file) are set up on a thread while the gap scan reads the counter (os.preadv and
         # a compiled scan, without the GIL)
-        with ThreadPoolExecutor(1) as setup:
-            made = setup.submit(lambda: {name: RowReader(f, name) for name in dsets})
-            try:
-                found = find_gaps(f, s0, s1, fs)
-            except BaseException:
-                for r in made.result().values():
-                    r.close()
-                raise
-            readers = made.result()
+        counter = _streamed_counter(f, s0, s1, gaps)
+        if counter is not None:  # the gaps are found chunk by chunk while the samples stream
+            found = None
+            readers = {name: RowReader(f, name) for name in dsets}
+        else:
+            with ThreadPoolExecutor(1) as setup:
+                made = setup.submit(lambda: {name: RowReader(f, name) for name in dsets})
+                try:
+                    found = find_gaps(f, s0, s1, fs)
+                except BaseException:
+                    for r in made.result().values():
+                        r.close()
+                    raise
+                readers = made.result()
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
-                                     progress_stream, outliers, gaps, corrections)
+                                     progress_stream, outliers, gaps, corrections, counter,
+                                     when_streaming)
         finally:
             for r in readers.values():
                 r.close()
+            if counter is not None:
+                counter.close()
+
+
+#: with gaps skipped or bridged, /imu/counter is read and scanned chunk by chunk with the
+#: samples (:func:`_stream_chunks`: the main thread reads chunk i + 1's counter rows with its
+#: samples, os.preadv and a compiled scan, without the GIL) instead of in a pass of its own
+#: before the first chunk (False: :func:`find_gaps` first, as ``refuse`` and ``longest``
+#: always do; the same gaps)
+STREAMED_GAPS = True
+
+
+def _streamed_counter(f: Any, s0: int, s1: int, gaps: str) -> RowReader | None:
+    """A reader of /imu/counter when its jumps can be found while the samples stream (see
+    :data:`STREAMED_GAPS`: gaps skipped or bridged, a counter as long as the range, read with
+    os.preadv, the compiled scan), else None (:func:`find_gaps` before the stream)."""
+    if not (STREAMED_GAPS and KER.HAVE_NUMBA and gaps in ("skip", "bridge") and s1 - s0 >= 2
+            and "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1
+            and f["/imu/counter"].ndim == 1):
+        return None
+    rd = RowReader(f, "/imu/counter")
+    if rd.direct is None:
+        rd.close()
+        return None
+    return rd
 
 
 def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
-                      corrections: dict | None = None) -> dict[str, Any]:
+                      corrections: dict | None = None,
+                      counter: RowReader | None = None,
+                      when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
-    the caller). ``corrections``: per axis, a term subtracted from its samples before
-    everything else (:func:`rigctl.analysis.allan_drift.correction_at`: the temperature term
-    with --temperature remove)."""
+    the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
+    from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
+    subtracted from its samples before everything else
+    (:func:`rigctl.analysis.allan_drift.correction_at`: the temperature term with
+    --temperature remove)."""
     tau0 = 1.0 / fs
+    streamed = found is None
+    if streamed:
+        found = []  # filled by _stream_chunks, in row order
     missing = sum(m for _, m in found)
     gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
                 "largest_samples": int(max((m for _, m in found), default=0)),
@@ -632,14 +682,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
             raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
                              f"need at least {MIN_SAMPLES}")
         missing = 0
-    gaps_bridged = int(missing) if gaps == "bridge" else 0
     breaks = [g for g, _ in found] if gaps == "skip" else None
-    stretch_samples = None
-    if breaks:
-        edges = [s0] + breaks + [s1]
-        gap_info["stretches"] = len(edges) - 1
-        gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
-        stretch_samples = np.diff(edges)
     ms = A.tau_factors(n + 1, taus, "oadev")
     # below A.FAST_MIN_POINTS the sums are exact, as in A.oadev: there they cost milliseconds,
     # while the strides would throw away most of the EDF of phase-noise-dominated taus
@@ -655,8 +698,22 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                          stream=progress_stream, enabled=progress_stream is not None)
     with ThreadPoolExecutor(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
-                       outliers == "exclude", breaks, corrections)
+                       outliers == "exclude", breaks, corrections,
+                       (counter, found, gaps == "skip") if streamed else None, when_streaming)
         shown.finish()
+        if streamed:
+            missing = sum(m for _, m in found)
+            gap_info.update(count=len(found), missing_samples=int(missing),
+                            largest_samples=int(max((m for _, m in found), default=0)),
+                            rows=[int(g) for g, _ in found[:20]])
+            breaks = [g for g, _ in found] if gaps == "skip" else None
+        gaps_bridged = int(missing) if gaps == "bridge" else 0
+        stretch_samples = None
+        if breaks:
+            edges = [s0] + breaks + [s1]
+            gap_info["stretches"] = len(edges) - 1
+            gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
+            stretch_samples = np.diff(edges)
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
                "gaps": gap_info, "outliers": outliers, "axes": {}}
@@ -674,7 +731,9 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None,
-                   corrections: dict | None = None) -> None:
+                   corrections: dict | None = None,
+                   scan: tuple[RowReader, list, bool] | None = None,
+                   when_streaming: Callable[[], Any] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -686,7 +745,12 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     its rows writes each selected axis' phase into that axis' accumulator and takes the spike
     prefilter's block extremes, the check and the screen follow from them, and the axes'
     sums are queued as one task each; the first chunk, a chunk with a gap and an axis whose
-    spikes are replaced go the per-axis way (column copy, check, screen, add)."""
+    spikes are replaced go the per-axis way (column copy, check, screen, add).
+
+    ``scan`` = (counter reader, found, skip): the gaps are found here instead of before
+    (``breaks`` is then None): each chunk's /imu/counter rows are read and scanned with its
+    samples, the gaps appended to ``found``, and with ``skip`` the rows after them break the
+    stretches as ``breaks`` would."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
@@ -697,16 +761,27 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     scratch = {name: np.empty(rows) for name in dsets}  # unselected columns' phase
     tau0 = next(iter(streams.values())).tau0
 
-    def read(a0: int, k: int) -> dict:
-        a1 = min(s1, a0 + CHUNK_ROWS)
-        return {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
+    all_cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
+    if scan is not None:
+        counter, found, skip = scan
+        cbuf = np.empty(rows + 1, dtype=counter.ds.dtype)
 
-    cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
+    def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
+        """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
+        a1 = min(s1, a0 + CHUNK_ROWS)
+        got = {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
+        if scan is None:
+            return got, all_cuts
+        # the row before the chunk too: a jump at a0 is a gap before the chunk's first row
+        new = counter_jumps_at(counter.read(max(s0, a0 - 1), a1, cbuf), max(s0, a0 - 1))
+        found.extend(new)
+        return got, np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
+
     # only the selected axes' columns must be finite (a gyro-only import stores NaN for the rest)
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
     groups = {name: [a for a in axes if AXES[a][0] == name] for name in dsets}
 
-    def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
+    def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         if corrections and a in corrections:  # rows relative to s0
@@ -727,9 +802,9 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
 
-    def dataset(name: str, b: np.ndarray, a0: int) -> list:
-        """Check, screen and queue the accumulation of one dataset's axes for this chunk;
-        returns the queued tasks."""
+    def dataset(name: str, b: np.ndarray, a0: int, cuts: np.ndarray) -> list:
+        """Check, screen and queue the accumulation of one dataset's axes for this chunk
+        (``cuts``: the gap breaks, at least those in it); returns the queued tasks."""
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
@@ -738,7 +813,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
             check(name, b, a0)  # a bad block must not reach the accumulators
-            return [pool.submit(feed, a, b, AXES[a][1], first) for a in group]
+            return [pool.submit(feed, a, b, AXES[a][1], first, cuts) for a in group]
         outs = [scratch[name][:n]] * 3
         x0 = np.zeros(3)
         offs = np.zeros(3)
@@ -765,22 +840,132 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         return tasks
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    nxt = read(starts[0], 0) if starts else None
     early: list = []  # the head's noise IDs, once every head is complete
+    if PIPELINED and len(starts) > 1:
+        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early,
+                   when_streaming)
+        for e in early:
+            e.result()
+        return
+    nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
-        blocks = nxt
-        preps = [pool.submit(dataset, name, b, a0) for name, b in blocks.items()]
+        blocks, cuts = nxt
+        preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
         nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for p in preps:
             for t in p.result():
                 t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
+        if i == 0 and when_streaming is not None:
+            when_streaming()
         if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
                 st.head_full() for st in streams.values()):
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
     for e in early:
         e.result()
+
+
+def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: Callable,
+               dataset: Callable, streams: dict, s0: int, s1: int, shown: WorkProgress,
+               early: list, when_streaming: Callable[[], Any] | None = None) -> None:
+    """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
+    each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
+    after the phase chunk j left in the accumulators) is queued by the callback of the last
+    of chunk j's tasks of that dataset, so one dataset's pass runs while the other's sums
+    finish instead of both waiting for the slower. This thread only reads: chunk j into
+    buffer j % 2 once both datasets are done with chunk j - 2 (their tasks read nothing of
+    a chunk after they finish). The same tasks on the same data in the same order per
+    axis: the same numbers. The first error raised by a task is raised here.
+    ``when_streaming`` is called (here) once every dataset has finished the first chunk."""
+    names = list(dsets)
+    cond = threading.Condition()
+    ready: dict[int, tuple[dict, np.ndarray]] = {}  # chunk -> (blocks, cuts), read
+    done = {name: -1 for name in names}  # the last chunk each dataset has finished
+    busy = {name: False for name in names}
+    errors: list[BaseException] = []
+    hook = [when_streaming]
+
+    def fail(e: BaseException) -> None:
+        with cond:
+            errors.append(e)
+            cond.notify_all()
+
+    def launch(name: str) -> None:  # under cond
+        j = done[name] + 1
+        if not errors and not busy[name] and j in ready:
+            busy[name] = True
+            blocks, cuts = ready[j]
+            pool.submit(run, name, j, blocks[name], cuts)
+
+    def finished(name: str, j: int) -> None:
+        with cond:
+            done[name] = j
+            busy[name] = False
+            launch(name)
+            cond.notify_all()
+
+    def run(name: str, j: int, b: np.ndarray, cuts: np.ndarray) -> None:
+        try:
+            tasks = dataset(name, b, starts[j], cuts)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            fail(e)
+            return
+        if not tasks:
+            finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
+
+    def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
+        with cond:
+            lo = min(done.values())
+        if lo >= 0:
+            shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
+            if hook[0] is not None:
+                call, hook[0] = hook[0], None
+                call()
+        if EARLY_NOISE_ID and not early and lo >= 0 and lo + 1 < len(starts) and all(
+                st.head_full() for st in streams.values()):
+            early.extend(pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values())
+
+    last = len(starts) - 1
+    for j, a0 in enumerate(starts):
+        with cond:  # buffer j % 2 held chunk j - 2
+            while not errors and min(done.values()) < j - 2:
+                cond.wait()
+            if errors:
+                break
+            ready.pop(j - 2, None)
+        got = read(a0, j % 2)
+        with cond:
+            ready[j] = got
+            for name in names:
+                launch(name)
+        progress()
+    while True:
+        with cond:
+            if errors or min(done.values()) >= last:
+                break
+            cond.wait(0.05)
+        progress()
+    if errors:
+        raise errors[0]
+    progress()
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
@@ -792,6 +977,18 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
         return 0
     first, last = int(c[s0]), int(c[s1 - 1])
     return max(0, (last - first + 1) - (s1 - s0))
+
+
+def counter_jumps_at(c: np.ndarray, a: int) -> list[tuple[int, int]]:
+    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter): (row after the gap,
+    samples missing) wherever the counter steps by more than 1."""
+    if c.dtype == np.uint64:
+        c = c.view(np.int64)  # what the cast to int64 gives, without its pass
+    if KER.HAVE_NUMBA:
+        idx, d = KER.counter_jumps(c)
+        return [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+    d = np.diff(np.asarray(c, dtype=np.int64))
+    return [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
 
 
 def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
@@ -810,15 +1007,7 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
             out = []
             buf = np.empty(min(CHUNK_ROWS, s1 - s0) + 1, dtype=ds.dtype)
             for a in part:
-                c = rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf)
-                if c.dtype == np.uint64:
-                    c = c.view(np.int64)  # what the cast to int64 gives, without its pass
-                if KER.HAVE_NUMBA:
-                    idx, d = KER.counter_jumps(c)
-                    out += [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
-                    continue
-                d = np.diff(np.asarray(c, dtype=np.int64))
-                out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+                out += counter_jumps_at(rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf), a)
             return out
 
         try:
@@ -994,7 +1183,18 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
     if not runs or check.get("ok"):
         return []
     return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band") + \
-        _small_sentence(check)
+        _small_sentence(check) + _front_sentence(check)
+
+
+def _front_sentence(check: dict) -> list[str]:
+    """The rising front the fit left out (rigctl.solvers.allan_fit.rising_front), named."""
+    f = check.get("front_excluded")
+    if not f:
+        return []
+    return [f"tau {f['tau_from_s']:.3g}-{f['tau_to_s']:.3g} s left out of the fit: the curve "
+            f"rises from its shortest tau to a top at {f['top_tau_s']:.3g} s and then falls, "
+            "which no IEEE 952 total can (a low-pass filter, or an output dwelling on its "
+            f"quantization levels); the terms are fitted from {f['top_tau_s']:.3g} s on"]
 
 
 def _spans(runs: list[dict]) -> str:
@@ -1026,7 +1226,7 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     out = [] if not runs else _check_sentences(
         check, "the fitted total is outside the 95 % band, as chance allows for a fit "
                "consistent with the curve,", reasons=False)
-    return out + _small_sentence(check)
+    return out + _small_sentence(check) + _front_sentence(check)
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
@@ -1060,10 +1260,13 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     warns = list(AD.warmup_sentences(r)) + t_warns
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
+    basis = {"samples": ", the samples' own spread: the residual's collapsed on an output "
+                        "dwelling on its levels",
+             "quantization step": ", the output step / sqrt(12)"}.get(sp.get("sd_from", ""), "")
     if sp.get("count"):
         first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])
         what = (f"{sp['count']} samples ({100 * sp['fraction']:.2g} %) more than "
-                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}) from the "
+                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}{basis}) from the "
                 f"running median of {sp['window_samples']} neighbours, the largest "
                 f"{sp['largest_sd']:.0f} sd (first at t = {first} s into the range)")
         if sp.get("excluded"):
@@ -1071,6 +1274,10 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         else:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
+    elif basis and sp.get("sd_si"):
+        notes.append(f"no spikes: no sample more than {sp['threshold_sd']:g} robust sd "
+                     f"({sp['sd_si'] * fac:.3g} {unit}{basis}) from the running median of "
+                     f"{sp['window_samples']} neighbours")
     for line in tone_notes(r):
         notes.append(line)
     q = r.get("quantization")

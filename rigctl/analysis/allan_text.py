@@ -38,6 +38,9 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
             what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
             lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")
+    fit_line = goodness_line(r["fit"].get("check") or {})
+    if fit_line:
+        lines.append(fit_line)
     pw = r["piecewise"]["terms"]
     parts = []
     for t in ("N", "B", "K"):
@@ -50,3 +53,22 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
     for w in warns + check_warnings(r):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def goodness_line(check: dict[str, Any]) -> str:
+    """The joint fit's chi-square as one line: the reported terms against the deviations with
+    their covariance across taus (that of the gap-free stretches when gaps were skipped),
+    without the model error. Beyond its 99 % point it says so, whatever the self-check's
+    verdict on the individual taus (the curve can stay within every tau's band while the taus
+    together rule the model out)."""
+    if "chi2" not in check:
+        return ""
+    p = check["p_value"]
+    text = f"goodness of fit: chi-square {check['chi2']:.4g} on {check['dof']} dof (p = {p:.2g})"
+    eps = check.get("model_error_rel", 0.0)
+    if p < F.MODEL_ERROR_P:
+        text += ("; beyond its 99 % point: the IEEE 952 terms do not describe this curve "
+                 "within its statistics")
+        if eps > 0:
+            text += f" (a model error of {100 * eps:.2g} % of sigma^2 was added to the weights)"
+    return text
