@@ -291,3 +291,52 @@ def test_noise_white_level_against_the_samples(record, gyro):
         n_samples = float(np.median(ref["se_gyr"][full, i] * np.sqrt(60.0)))
         ratio = w.noise[i].N.value / n_samples
         assert 1.0 < ratio < 1.3, (i, ratio)
+
+
+def test_accel_bias_and_scale_per_K_agree_with_the_differenced_window_means(record):
+    """Three poses, each with one axis along gravity: the accelerometer's bias and scale per K
+    and per K^2 are identifiable (the pose with the axis vertical against the two with it
+    horizontal; misalignment held, constants in the pose offsets). Solver (GLS, noise from the
+    record) against numpy's differences of consecutive window means within a pose, regressed on
+    the differences of <dT>, <dT^2> and u_i times them (u the pose's reference). Measured, bias
+    mg/K and scale ppm/K: solver x 0.736 +- 0.088, -539 +- 226; y -2.70 +- 0.16, -330 +- 186;
+    z 2.86 +- 0.33, 1009 +- 1470; numpy x 0.732 +- 0.097, -526 +- 248; y -2.75 +- 0.15,
+    -385 +- 169; z 2.88 +- 0.24, 1104 +- 1039. The bias per K is 7 - 18 sigma; the scale per K
+    2 sigma at most.
+
+    A finding, asserted as such: the chi-square is *below* its 99 % band (measured 0.686
+    against 0.831 .. 1.187; per axis 1.14, 0.42, 0.49): the noise estimated from the record
+    puts the white level of the accelerometer far below the scatter of its samples (N on y and
+    z under 1/20 of se * sqrt(60)) and a bias instability of about 0.6 mg instead, which
+    over-predicts the scatter of the 30-min means. A likely cause, not verified: in the first
+    hour of each pose the temperature falls by 10 K, the output follows by up to 30 mg along a
+    curve, and the within-window contrasts (free of a straight line only) count that curvature
+    as slow noise."""
+    ref = _numpy_windows(record[0])
+    w = AT.static_windows(record[1], AT.STATIC_WINDOW_S)["accel"]
+    th.estimate_noise(w)
+    fit = th.fit_thermal(w, {"bias": 2, "scale": 2, "misalignment": th.HELD}, loop=False)
+    params = {q["name"]: q for q in fit.parameters()}
+    k = ref["k"]
+    same = np.diff(k) == 0
+    dp1, dp2 = np.diff(ref["p1"])[same], np.diff(ref["p2"])[same]
+    for i, a in enumerate("xyz"):
+        u = w.ref[1:, i][same]
+        A = np.column_stack([dp1, dp2, u * dp1, u * dp2])
+        d = np.diff(ref["acc"][:, i])[same]
+        b = np.linalg.lstsq(A, d, rcond=None)[0]
+        r = d - A @ b
+        s = np.sqrt(np.diag((r @ r) / (d.size - 4) * np.linalg.inv(A.T @ A)))
+        names = (f"accel_bias_{a}_m_s2_per_K", f"accel_bias_{a}_m_s2_per_K2", f"accel_scale_{a}_per_K",
+                 f"accel_scale_{a}_per_K2")
+        for j, name in enumerate(names):
+            q = params[name]
+            assert q["ci95"][0] <= b[j] <= q["ci95"][1], (name, b[j], q["value"])
+            assert abs(q["value"] - b[j]) <= 1.96 * s[j], (name, b[j], q["value"], s[j])
+        assert abs(b[0]) > 7 * s[0]
+    lo, _ = fit.band()
+    assert fit.chi2 / fit.dof < lo
+    se = np.array([[float(r[f"se_acc_{a}"]) for a in "xyz"] for r in record[0]])
+    full = (ref["n"] == 60) & (ref["row_pose"] != "")
+    for i in (1, 2):
+        assert w.noise[i].N.value < np.median(se[full, i] * np.sqrt(60.0)) / 20
