@@ -103,6 +103,7 @@ class _AxisStream:
         self.n_rate = 0
         self.quant_step: float | None = None  # output step, from the first block
         self.spike_sigma: float | None = None  # robust sd of the residual, from the first block
+        self.spike_basis = ""  # what that sd was read from (CHK.spike_scale)
         self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
         self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
 
@@ -113,7 +114,7 @@ class _AxisStream:
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
         if self.spike_sigma is None:  # the first block sets sigma (running median of all)
-            idx, med, sd = CHK.find_spikes(y, None)
+            idx, med, sd, self.spike_basis = CHK.find_spikes_scaled(y, None, step=self.quant_step)
             med = med[idx]
             self.spike_sigma = sd
         else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
@@ -309,7 +310,7 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
     size = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
     spikes = {"count": int(idx.size), "fraction": idx.size / max(stream.n_rate, 1),
               "threshold_sd": CHK.SPIKE_SIGMA, "window_samples": CHK.SPIKE_WINDOW,
-              "sd_si": stream.spike_sigma, "excluded": bool(excluded and idx.size),
+              "sd_si": stream.spike_sigma, "sd_from": stream.spike_basis, "excluded": bool(excluded and idx.size),
               "largest_sd": float(size.max()) if size.size else 0.0,
               "first_times_s": [float(i * tau0) for i in idx[:10]]}
     quant = None
@@ -1182,7 +1183,18 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
     if not runs or check.get("ok"):
         return []
     return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band") + \
-        _small_sentence(check)
+        _small_sentence(check) + _front_sentence(check)
+
+
+def _front_sentence(check: dict) -> list[str]:
+    """The rising front the fit left out (rigctl.solvers.allan_fit.rising_front), named."""
+    f = check.get("front_excluded")
+    if not f:
+        return []
+    return [f"tau {f['tau_from_s']:.3g}-{f['tau_to_s']:.3g} s left out of the fit: the curve "
+            f"rises from its shortest tau to a top at {f['top_tau_s']:.3g} s and then falls, "
+            "which no IEEE 952 total can (a low-pass filter, or an output dwelling on its "
+            f"quantization levels); the terms are fitted from {f['top_tau_s']:.3g} s on"]
 
 
 def _spans(runs: list[dict]) -> str:
@@ -1214,7 +1226,7 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     out = [] if not runs else _check_sentences(
         check, "the fitted total is outside the 95 % band, as chance allows for a fit "
                "consistent with the curve,", reasons=False)
-    return out + _small_sentence(check)
+    return out + _small_sentence(check) + _front_sentence(check)
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
@@ -1248,10 +1260,13 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     warns = list(AD.warmup_sentences(r)) + t_warns
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
+    basis = {"samples": ", the samples' own spread: the residual's collapsed on an output "
+                        "dwelling on its levels",
+             "quantization step": ", the output step / sqrt(12)"}.get(sp.get("sd_from", ""), "")
     if sp.get("count"):
         first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])
         what = (f"{sp['count']} samples ({100 * sp['fraction']:.2g} %) more than "
-                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}) from the "
+                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}{basis}) from the "
                 f"running median of {sp['window_samples']} neighbours, the largest "
                 f"{sp['largest_sd']:.0f} sd (first at t = {first} s into the range)")
         if sp.get("excluded"):
@@ -1259,6 +1274,10 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         else:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
+    elif basis and sp.get("sd_si"):
+        notes.append(f"no spikes: no sample more than {sp['threshold_sd']:g} robust sd "
+                     f"({sp['sd_si'] * fac:.3g} {unit}{basis}) from the running median of "
+                     f"{sp['window_samples']} neighbours")
     for line in tone_notes(r):
         notes.append(line)
     q = r.get("quantization")
