@@ -282,7 +282,7 @@ def test_noise_white_level_against_the_samples(record, gyro):
     """The white level the solver estimated from the record (within-window batch means of the
     60-s means) against the scatter of the 1-Hz samples, which the CSV keeps as each mean's
     standard error: N = se * sqrt(60) s^1/2 (rad/s/sqrt(Hz)). Measured ratio solver / samples:
-    1.16, 1.12, 1.16 (x, y, z): the 60-s means hold a little slow noise beyond white that the
+    1.21, 1.14, 1.13 (x, y, z): the 60-s means hold a little slow noise beyond white that the
     within-window contrasts count as white."""
     ref = _numpy_windows(record[0])
     w, _, _ = gyro
