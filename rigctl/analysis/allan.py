@@ -469,7 +469,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
             gaps: str = "skip", warmup: str = "report",
-            temperature: str = "report") -> dict[str, Any]:
+            temperature: str = "report",
+            when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -478,14 +479,16 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     ``warmup`` says which mode ran. Never silent: the cut is in the result and the text.
     With ``temperature="remove"``, the axes whose slow part follows the recorded temperature
     (each axis' ``temperature``) are analysed once more with that term subtracted from their
-    samples (:func:`_without_temperature`)."""
+    samples (:func:`_without_temperature`). ``when_streaming``: called once the first chunk
+    of the record is done and the rest streams (the caller's Python work that holds the GIL,
+    e.g. an import, then runs beside compiled sums instead of before the first chunk)."""
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
         raise InputError(f"temperature={temperature!r}: choose from "
                          f"{', '.join(AD.TEMPERATURE_MODES)}")
     out = _with_warmup(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
-                       warmup)
+                       warmup, when_streaming)
     out["temperature"] = temperature
     if temperature == "remove":
         out = _without_temperature(out, path, axes, taus, exact, progress_stream, outliers, gaps)
@@ -522,9 +525,11 @@ def _without_temperature(out: dict[str, Any], path: str, axes: list[str], taus: 
 
 def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
                  sample_range: tuple[int, int] | None, progress_stream: Any, outliers: str,
-                 gaps: str, warmup: str) -> dict[str, Any]:
+                 gaps: str, warmup: str,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"`` once more after the cut."""
-    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps)
+    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
+                       when_streaming=when_streaming)
     out["warmup"] = "report"
     if warmup != "exclude":
         return out
@@ -558,7 +563,8 @@ def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
 def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
                  sample_range: tuple[int, int] | None = None,
                  progress_stream: Any = None, outliers: str = "report",
-                 gaps: str = "skip", corrections: dict | None = None) -> dict[str, Any]:
+                 gaps: str = "skip", corrections: dict | None = None,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -604,7 +610,8 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                 readers = made.result()
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
-                                     progress_stream, outliers, gaps, corrections, counter)
+                                     progress_stream, outliers, gaps, corrections, counter,
+                                     when_streaming)
         finally:
             for r in readers.values():
                 r.close()
@@ -639,7 +646,8 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
                       corrections: dict | None = None,
-                      counter: RowReader | None = None) -> dict[str, Any]:
+                      counter: RowReader | None = None,
+                      when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
     the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
     from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
@@ -691,7 +699,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     with ThreadPoolExecutor(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
                        outliers == "exclude", breaks, corrections,
-                       (counter, found, gaps == "skip") if streamed else None)
+                       (counter, found, gaps == "skip") if streamed else None, when_streaming)
         shown.finish()
         if streamed:
             missing = sum(m for _, m in found)
@@ -724,7 +732,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None,
                    corrections: dict | None = None,
-                   scan: tuple[RowReader, list, bool] | None = None) -> None:
+                   scan: tuple[RowReader, list, bool] | None = None,
+                   when_streaming: Callable[[], Any] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -833,7 +842,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     starts = list(range(s0, s1, CHUNK_ROWS))
     early: list = []  # the head's noise IDs, once every head is complete
     if PIPELINED and len(starts) > 1:
-        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early)
+        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early,
+                   when_streaming)
         for e in early:
             e.result()
         return
@@ -847,6 +857,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
+        if i == 0 and when_streaming is not None:
+            when_streaming()
         if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
                 st.head_full() for st in streams.values()):
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
@@ -856,7 +868,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
 
 def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: Callable,
                dataset: Callable, streams: dict, s0: int, s1: int, shown: WorkProgress,
-               early: list) -> None:
+               early: list, when_streaming: Callable[[], Any] | None = None) -> None:
     """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
     each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
     after the phase chunk j left in the accumulators) is queued by the callback of the last
@@ -864,13 +876,15 @@ def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: C
     finish instead of both waiting for the slower. This thread only reads: chunk j into
     buffer j % 2 once both datasets are done with chunk j - 2 (their tasks read nothing of
     a chunk after they finish). The same tasks on the same data in the same order per
-    axis: the same numbers. The first error raised by a task is raised here."""
+    axis: the same numbers. The first error raised by a task is raised here.
+    ``when_streaming`` is called (here) once every dataset has finished the first chunk."""
     names = list(dsets)
     cond = threading.Condition()
     ready: dict[int, tuple[dict, np.ndarray]] = {}  # chunk -> (blocks, cuts), read
     done = {name: -1 for name in names}  # the last chunk each dataset has finished
     busy = {name: False for name in names}
     errors: list[BaseException] = []
+    hook = [when_streaming]
 
     def fail(e: BaseException) -> None:
         with cond:
@@ -922,6 +936,9 @@ def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: C
             lo = min(done.values())
         if lo >= 0:
             shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
+            if hook[0] is not None:
+                call, hook[0] = hook[0], None
+                call()
         if EARLY_NOISE_ID and not early and lo >= 0 and lo + 1 < len(starts) and all(
                 st.head_full() for st in streams.values()):
             early.extend(pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values())
