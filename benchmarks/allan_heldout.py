@@ -8,7 +8,8 @@ Captures (those present in tests/data): the ADIS16405 (6 axes, whitespace text o
 XSens MTi-G gyro (TSV, ns stamps; and as a rosbag2 with mcap storage
 and 3 dropped messages -- one gap, which rigctl skips as Stable32 does), the Astro Pi Sense HAT's x-up section (its CSV with the
 ISO `time_stamp` column as shipped), the 10 MHz OCXO (the counter's file as published, Hz,
-scaled to fractional frequency), and the Stable32 phase files (Cs5071A, Keysight 53230A,
+scaled to fractional frequency), the Samsung Galaxy S5 phone gyro (its CSV as stored, rad/s,
+10 Hz), and the Stable32 phase files (Cs5071A, Keysight 53230A,
 PHASE.DAT: `--units gyr=rad --integrated`). Each goes through the CLI as a user types it.
 
 The independent read (numpy, scipy's chi-square only): the fully overlapping Allan deviation at
@@ -62,27 +63,15 @@ def rigctl(*argv: str) -> None:
 
 def _write_bag(path: Path, gyro_x: np.ndarray, drop: range) -> None:
     """A rosbag2 (mcap storage) of sensor_msgs/Imu at 100 Hz with header stamps, as a robot's
-    recorder writes it (the rosbags package's writer), some messages dropped."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    recorder writes it (rigctl.sim.imu_bag: the rosbags package's writer), some messages dropped."""
+    from rigctl.sim.imu_bag import write_imu_bag
 
-    imu = "sensor_msgs/msg/Imu"
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    T = store.types
-    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
-    z9 = np.zeros(9)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c = w.add_connection("/imu", imu, typestore=store)
-        for i, v in enumerate(gyro_x):
-            if i in drop:
-                continue
-            ns = 1_600_000_000_000_000_000 + i * 10_000_000
-            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                           frame_id="imu")
-            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
-                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
-                       linear_acceleration=vec(0.0, 0.0, 9.81), linear_acceleration_covariance=z9)
-            w.write(c, ns + 2_000_000, store.serialize_cdr(m, imu))
+    keep = np.setdiff1d(np.arange(len(gyro_x)), np.arange(drop.start, drop.stop, drop.step))
+    n = len(keep)
+    write_imu_bag(path, 1_600_000_000_000_000_000 + keep * 10_000_000,
+                  np.column_stack([np.asarray(gyro_x, dtype=float)[keep], np.zeros((n, 2))]),
+                  np.tile([0.0, 0.0, 9.81], (n, 1)), topic="/imu", frame_id="imu",
+                  receive_delay_ns=2_000_000)
 
 
 # ------------------------------------------------------------------ the captures, as files
@@ -149,6 +138,16 @@ def captures(tmp: Path) -> list[dict]:
         rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0",
                "--units", "gyr=counts:1e-07 rad/s", "--rate", "1")
         out.append({"name": "OCXO", "rec": rec, "si": {"gx": np.loadtxt(txt) * 1e-7}, "tau0": 1.0})
+    f = DATA / "galaxy-s5-static" / "gyro_measured_rad_s.csv.gz"
+    if f.is_file():  # the phone gyro's CSV as stored (rad/s, header gyr_x,gyr_y,gyr_z, 10 Hz)
+        txt = tmp / "galaxy_s5.csv"
+        txt.write_bytes(gzip.decompress(f.read_bytes()))
+        rec = tmp / "galaxy_s5.h5"
+        rigctl("import", str(txt), "-o", str(rec), "--force", "--columns", "gyr_x=0,gyr_y=1,gyr_z=2",
+               "--units", "gyr=rad/s", "--rate", "10")
+        y = np.loadtxt(txt, delimiter=",", skiprows=1)
+        out.append({"name": "GalaxyS5", "rec": rec, "si": {f"g{c}": y[:, i] for i, c in enumerate("xyz")},
+                    "tau0": 0.1})
     s32 = DATA / "stable32-reference"
     for name, rel in (("Cs5071A", "Cs5071A/5071A_phase.txt.gz"),
                       ("Keysight53230A", "Keysight53230A_ti_noise_floor/tic_phase.txt"),

@@ -97,10 +97,10 @@ WARMUP_S = 900.0
 
 
 def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
-                       warmup_s: float = WARMUP_S, edit: Any = None) -> dict:
+                       warmup_s: float = WARMUP_S, overrides: Any = None) -> dict:
     """A static capture of ``hours`` from the emulator (``case``: 'default' or a profile),
     starting ``warmup_s`` after power-on (the profiles' warm-up; the default IMU has none).
-    ``edit``: a function that changes the profile (a dict) before the model is built."""
+    ``overrides``: changes to the profile, as imu.sim.overrides (ImuProfile.with_overrides)."""
     from rigctl.sim.imu import build_imu_model
     from rigctl.yamlio import load_file
 
@@ -111,12 +111,9 @@ def emulated_recording(case: str, path: Path, hours: float, seed: int = 1,
         full = False
     else:
         from rigctl.sim.error_model import ImuErrorModel
-        from rigctl.sim.profiles import profile_mapping
+        from rigctl.sim.profiles import get_profile
 
-        prof = profile_mapping(case)
-        prof["power_on_time_s"] = float(warmup_s)
-        if edit is not None:
-            edit(prof)
+        prof = get_profile(case).with_overrides({"power_on_time_s": float(warmup_s), **(overrides or {})})
         model = ImuErrorModel.from_profile(prof, seed=seed)
         fs = model.output_rate_hz
         full = True

@@ -31,18 +31,14 @@ LAT = math.radians(45.0)
 AXES = ("gx", "gy", "gz", "ax", "ay", "az")
 
 
-def ten_hz(prof: dict) -> None:
-    """consumer_mems at a 10 Hz output (front end 100 Hz, filters 4.2 / 4.4 Hz, no vibration):
-    the same noise terms and warm-up, a tenth of the samples (tests/test_allan_warmup.py)."""
-    prof["rate_hz"] = 10
-    prof["frontend"]["internal_rate_hz"] = 100
-    prof["frontend"]["gyro_bandwidth_hz"] = 4.2
-    prof["frontend"]["accel_bandwidth_hz"] = 4.4
-    prof["effects"]["vibration"]["enabled"] = False
+#: consumer_mems at a 10 Hz output (front end 100 Hz, filters 4.2 / 4.4 Hz, no vibration): the
+#: same noise terms and warm-up, a tenth of the samples (tests/test_allan_warmup.py)
+TEN_HZ = {"rate_hz": 10, "effects": {"vibration": {"enabled": False}}, "frontend": {
+    "internal_rate_hz": 100, "gyro_bandwidth_hz": 4.2, "accel_bandwidth_hz": 4.4}}
 
 
 def capture(case: str, hours: float, seed: int, power_on_s: float,
-            edit: object = None) -> tuple[np.ndarray, float]:
+            overrides: dict | None = None) -> tuple[np.ndarray, float]:
     """(n, 6) samples (gyro x y z, accel x y z) of a static capture, and the rate."""
     from rigctl.sim.imu import build_imu_model
     from rigctl.yamlio import load_file
@@ -58,12 +54,9 @@ def capture(case: str, hours: float, seed: int, power_on_s: float,
         F, W, _ = model.apply(t, np.tile(f_up, (n, 1)), np.tile(w_e, (n, 1)))
         return np.column_stack([W, F]), fs
     from rigctl.sim.error_model import ImuErrorModel
-    from rigctl.sim.profiles import profile_mapping
+    from rigctl.sim.profiles import get_profile
 
-    prof = profile_mapping(case)
-    prof["power_on_time_s"] = float(power_on_s)
-    if edit is not None:
-        edit(prof)
+    prof = get_profile(case).with_overrides({"power_on_time_s": float(power_on_s), **(overrides or {})})
     model = ImuErrorModel.from_profile(prof, seed=seed)
     fs = model.output_rate_hz
     n = int(round(hours * 3600 * fs))
@@ -110,7 +103,7 @@ def main() -> None:
     ap.add_argument("--power-on-hours", type=float, default=None,
                     help="length of the power-on captures (default: --hours)")
     ap.add_argument("--power-on-10hz", action="store_true",
-                    help="power-on captures at a 10 Hz output (ten_hz)")
+                    help="power-on captures at a 10 Hz output (TEN_HZ)")
     args = ap.parse_args()
     on_hours = args.power_on_hours if args.power_on_hours is not None else args.hours
     t_start = time.perf_counter()
@@ -138,7 +131,7 @@ def main() -> None:
     replicated = {a: 0 for a in AXES}
     for seed in range(1, n_on + 1):
         y, fs = capture("consumer_mems", on_hours, 2000 + seed, 0.0,
-                        ten_hz if args.power_on_10hz else None)
+                        TEN_HZ if args.power_on_10hz else None)
         for a, t in zip(AXES, detect(y, fs)):
             if not t["detected"] or "tau_s" not in t.get("fit", {}):
                 continue

@@ -19,6 +19,14 @@ Algorithm over one byte buffer ``b`` (numpy uint8), with no Python loop per fram
 :class:`MTData2Stream` keeps the unconsumed tail between feeds, unwraps the u16 PacketCounter
 (gaps -> ``dropped_samples``; a counter that does not advance is rejected and counted as
 ``out_of_order``) and the SampleTimeFine counter (10 kHz ticks, wrap configurable, default 2^32).
+A SampleTimeFine that does not continue the last accepted one -- more than
+:data:`MAX_TICKS_PER_COUNT` ticks per PacketCounter step ahead of it, or behind it (without a
+counter: more than half the wrap either way) -- is not taken as the new reference: a corrupted
+time that passed the checksum would otherwise make the next true one read as a wrap and put
+every later sample 2^32 ticks (4.97 days) late. The frame is kept without a time
+(``sample_time_fine`` -1, ``time_s`` NaN) and counted in ``time_outliers``; two such stamps in a
+row that continue each other are a new time base (a restarted MTi, or a link loss longer than the
+counter resolves), taken as the old decoder took it and counted in ``time_restarts``.
 Unknown data IDs are counted per ID in ``unknown_xdi`` (the known items of such a frame are kept).
 """
 from __future__ import annotations
@@ -35,6 +43,9 @@ from .xsens import (MAX_EXT_LEN, MAX_FRAME_BYTES, MID, PRECISION_BYTES, SAMPLE_T
 
 log = logging.getLogger(__name__)
 RESYNC_RUN = 3  # consecutive in-sequence frames after which a counter jump is taken as a restart
+#: the most SampleTimeFine may advance per PacketCounter step: 1 s, the packet period at 1 Hz,
+#: the slowest whole-Hz output
+MAX_TICKS_PER_COUNT = SAMPLE_TIME_FINE_HZ
 
 
 @dataclass
@@ -52,6 +63,8 @@ class DecodeCounters:
     out_of_order: int = 0       # frames rejected because the counter did not advance
     counter_restarts: int = 0   # counter resynchronised after a run of consistent frames
     frames_without_counter: int = 0
+    time_outliers: int = 0      # SampleTimeFine not continuing the last accepted one: frame kept without a time
+    time_restarts: int = 0      # SampleTimeFine took a new time base (two stamps in a row continuing each other)
     unknown_xdi: dict[int, int] = field(default_factory=dict)
 
 
@@ -192,14 +205,17 @@ class MTData2Stream:
         self._prev_raw: int = 0
         self._run = 0
         self._run_last = -1
-        self._prev_stf: int | None = None
+        self._prev_stf: int | None = None   # unwrapped SampleTimeFine of the last accepted stamp
         self._prev_stf_raw = 0
+        self._prev_stf_counter = -1          # its unwrapped PacketCounter (-1: none)
+        self._stf_cand: tuple[int, int] | None = None  # (raw, counter) of the last rejected stamp
         self._abs = 0                # stream offset of the first byte of the retained tail
 
     def reset_counters(self) -> None:
         """Forget counter/time history (call after the device re-enters measurement)."""
         self._prev_counter = None
         self._prev_stf = None
+        self._stf_cand = None
 
     # ------------------------------------------------------------------ region accounting
     def _account_region(self, g: int, starts_with_header: bool, ref_len: int, synced: bool = True) -> None:
@@ -398,15 +414,56 @@ class MTData2Stream:
         stf_ext = np.full(stf.size, -1, dtype=np.int64)
         si = np.flatnonzero(stf >= 0)
         if si.size:
-            t = stf[si]
-            prev = self._prev_stf_raw if self._prev_stf is not None else int(t[0])
+            t, cn = stf[si].astype(np.int64), ext[keep][si]
+            first = self._prev_stf is None
+            prev = int(t[0]) if first else self._prev_stf_raw
+            prev_c = int(cn[0]) if first else self._prev_stf_counter
             d = np.diff(np.concatenate(([prev], t))) % self.wrap_ticks
-            base = self._prev_stf if self._prev_stf is not None else int(t[0])
-            stf_ext[si] = base + np.cumsum(d)
-            self._prev_stf, self._prev_stf_raw = int(stf_ext[si[-1]]), int(t[-1])
+            dc = np.diff(np.concatenate(([prev_c], cn)))
+            known = (cn >= 0) & (np.concatenate(([prev_c], cn[:-1])) >= 0)
+            if np.all(d <= np.where(known, dc * MAX_TICKS_PER_COUNT, self.wrap_ticks // 2)):
+                base = int(t[0]) if first else self._prev_stf
+                stf_ext[si] = base + np.cumsum(d)
+                self._prev_stf, self._prev_stf_raw = int(stf_ext[si[-1]]), int(t[-1])
+                self._prev_stf_counter, self._stf_cand = int(cn[-1]), None
+            else:
+                self._unwrap_time_slow(si, t.tolist(), cn.tolist(), stf_ext)
         time_s = np.where(stf_ext >= 0, stf_ext / SAMPLE_TIME_FINE_HZ, np.nan)
         return MTData2Batch(counter=ext[keep], sample_time_fine=stf_ext, time_s=time_s,
                             messages=batch.messages, offsets=batch.offsets[keep], **{k: v for k, v in out.items() if k != "sample_time_fine"})
+
+    def _continues(self, t: int, cn: int, t0: int, c0: int) -> bool:
+        """Whether SampleTimeFine ``t`` (counter ``cn``) continues ``t0`` (counter ``c0``): at
+        most MAX_TICKS_PER_COUNT ticks per counter step ahead (counters -1: unknown, then within
+        half the wrap ahead)."""
+        d = (t - t0) % self.wrap_ticks
+        return d <= ((cn - c0) * MAX_TICKS_PER_COUNT if cn >= 0 and c0 >= 0 else self.wrap_ticks // 2)
+
+    def _unwrap_time_slow(self, si: np.ndarray, t: list[int], cn: list[int], stf_ext: np.ndarray) -> None:
+        """Frame by frame: a stamp that does not continue the last accepted one gets no time
+        (``time_outliers``) and is not the reference for the next; the second of two such stamps
+        in a row that continue each other is a new time base (``time_restarts``), unwrapped from
+        the last accepted stamp as a wrap."""
+        c = self.counters
+        for i, v, k in zip(si.tolist(), t, cn):
+            if self._prev_stf is None or self._continues(v, k, self._prev_stf_raw, self._prev_stf_counter):
+                restart = False
+            elif self._stf_cand is not None and self._continues(v, k, *self._stf_cand):
+                restart = True
+            else:
+                c.time_outliers += 1
+                self._stf_cand = (v, k)
+                continue
+            if restart:
+                log.warning("SampleTimeFine restarted at %d; a new time base", v)
+                c.time_restarts += 1
+                c.time_outliers -= 1
+            self._prev_stf = v if self._prev_stf is None else \
+                self._prev_stf + (v - self._prev_stf_raw) % self.wrap_ticks
+            self._prev_stf_raw, self._prev_stf_counter, self._stf_cand = v, k, None
+            stf_ext[i] = self._prev_stf
+        if c.time_outliers:
+            log.warning("%d SampleTimeFine stamps rejected so far: not continuing the stamps before", c.time_outliers)
 
     def _unwrap_slow(self, hi: np.ndarray, r: np.ndarray, ext: np.ndarray, keep: np.ndarray) -> None:
         c = self.counters

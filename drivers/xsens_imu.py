@@ -93,13 +93,14 @@ class XsensImu(StreamReader):
     """Xsens MTi over ``url``; see the module docstring. ``connect()`` then ``read()``; ``close()``."""
 
     config_error = XsensConfigError
-    #: no confirmation of offset lowerings by the samples before (StreamReader.CONFIRM_RUN): the
-    #: decoder unwraps SampleTimeFine modulo 2^32, so after a frame with a corrupted (forward)
-    #: SampleTimeFine that passed the checksum the next true one reads as a wrap and every later
-    #: sample comes 2^32 ticks (4.97 days) late; only lowering the offset at once, on the chunk
-    #: that shows the jump, keeps their stamps on time (a lowering held back a chunk would let
-    #: those samples out stamped days late, and every later sample would be dropped as stamped
-    #: before them). A restarted MTi (SampleTimeFine from 0) takes the same path.
+    #: no confirmation of offset lowerings by the samples before (StreamReader.CONFIRM_RUN): a
+    #: restarted MTi (SampleTimeFine from 0) is a new time base that the decoder unwraps as a
+    #: wrap (``time_restarts``), so its samples read up to 2^32 ticks (4.97 days) late; only
+    #: lowering the offset at once, on the chunk that shows the jump, keeps their stamps on time
+    #: (a lowering held back a chunk would let those samples out stamped days late, and every
+    #: later sample would be dropped as stamped before them). A corrupted SampleTimeFine that
+    #: passed the checksum no longer gets here: the decoder gives its frame no time
+    #: (``time_outliers``) and keeps the reference.
     CONFIRM_RUN = 1
 
     def __init__(self, url: str, rate_hz: float, clock: Clock, *, baudrate: int = 921_600,

@@ -3,11 +3,12 @@
 A profile is read as :class:`ImuProfile` (SI values, units in key names; layout documented in the
 YAML file), whose fields :class:`rigctl.sim.error_model.ImuErrorModel` reads; ``imu.sim.overrides``
 are read as one too and merged into it (:func:`merged`). :func:`get_profile` hands out the
-ImuProfile (named, or drawn at random); :func:`profile_mapping` a named profile's mapping to edit,
-which ``from_profile`` reads as an ImuProfile::
+ImuProfile (named, or drawn at random), and :meth:`ImuProfile.with_overrides` one changed as
+``imu.sim.overrides`` change it::
 
     prof = get_profile("mti_class")                 # or consumer_mems, tactical, declared_only
     prof = get_profile("random", seed=7)            # parameters drawn around the `random.base` profile
+    prof = get_profile("tactical").with_overrides({"effects": {"vibration": {"enabled": False}}})
     model = ImuErrorModel.from_profile(prof, seed=1)
 
 Random truth: noise coefficients (keys starting Q_, N_, B_, K_, R_) log-uniform in
@@ -18,7 +19,6 @@ time constants, switches) are kept. The YAML is read with yaml.safe_load only.
 """
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import MISSING, dataclass, fields, make_dataclass, replace
 from pathlib import Path
@@ -76,16 +76,6 @@ def get_profile(name: str, seed: int | None = None, path: str | Path | None = No
     if name not in doc["profiles"]:
         raise KeyError(f"unknown IMU profile {name!r}; known: {sorted(doc['profiles'])}")
     return replace(_read(doc["profiles"], name), name=name)
-
-
-def profile_mapping(name: str, path: str | Path | None = None) -> dict:
-    """A deep copy of named profile ``name``'s mapping as written (with 'name' set), checked, for
-    code that edits a profile before :meth:`ImuErrorModel.from_profile` reads it (tests,
-    benchmarks)."""
-    get_profile(name, path=path)
-    prof = copy.deepcopy(load_profiles(path)["profiles"][name])
-    prof["name"] = name
-    return prof
 
 
 def random_truth(base: Any, seed: int, noise_spread: float = 2.0) -> "ImuProfile":
@@ -390,6 +380,20 @@ class ImuProfile(ProfileSection):
         if isinstance(profile, ImuProfile):
             return profile
         return parse(cls, profile if isinstance(profile, LocDict) else LocDict(profile), what)
+
+    def with_overrides(self, overrides: Mapping[str, Any], what: str = "the overrides") -> "ImuProfile":
+        """This profile changed as ``imu.sim.overrides`` change it (:func:`merged`): the keys
+        ``overrides`` gives replaced, a section given as a mapping merged key by key, a key or a
+        whole section given as None cleared; checked as the overrides are (:func:`check_profile`,
+        :func:`check_merged`). For code that varies a profile (tests, benchmarks)::
+
+            get_profile("consumer_mems").with_overrides({"rate_hz": 10, "effects": {"vibration": {"enabled": False}}})
+
+        To replace a section wholly, clear it first: ``.with_overrides({"effects": None})
+        .with_overrides({"effects": {...}})``."""
+        out = merged(self, overrides, check_profile(overrides, what))
+        check_merged(out, overrides, None, what)
+        return out
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import recording_helpers
+from rigctl.analysis import allan as AA
 from rigctl.commands import allan_cmd
 from rigctl import cli
 from rigctl.solvers.noise_coefficients import as_coefficients, in_field_units
@@ -80,7 +81,7 @@ def test_allan_command_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture)
 def test_stream_matches_in_memory(tmp_path: Path) -> None:
     rec = tmp_path / "rec.h5"
     write_recording(rec, 150_000, seed=3)
-    res = allan_cmd.compute(str(rec), ["gy"], "octave", exact=True)
+    res = AA.compute(str(rec), ["gy"], "octave", exact=True)
     from rigctl.solvers import allan as A
 
     with h5py.File(rec, "r") as f:
@@ -133,7 +134,7 @@ def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
         counter[50_000:] += 3  # three dropped samples inside the capture
         f["imu/counter"][:] = counter
     messages: list[tuple[str, str]] = []
-    allan_cmd.solve_recording(rec, lambda kind, msg, **_: messages.append((kind, msg)))
+    AA.solve_recording(rec, lambda kind, msg, **_: messages.append((kind, msg)))
     with h5py.File(rec, "r") as f:
         summary = json.loads(f["results/allan"].attrs["json"])
     assert summary["n_samples"] == 80_000 and summary["first_sample"] == 20_000
@@ -228,12 +229,12 @@ def test_spikes_and_quantization_on_synthetic_noise(tmp_path: Path, capsys: pyte
     write_recording(rec, n, with_accel=False)
     with h5py.File(rec, "r+") as f:
         f["imu/angular_rate"][:] = y
-    res = allan_cmd.compute(str(rec), ["gx", "gy", "gz"], "octave")
+    res = AA.compute(str(rec), ["gx", "gy", "gz"], "octave")
     sp = res["axes"]["gx"]["spikes"]
     assert sp["count"] == 40 and np.allclose(sp["first_times_s"], spikes[:10] / fs)
     assert res["axes"]["gy"]["spikes"]["count"] == 0
     n_in = fu(res["axes"]["gx"]["fit"], "N").value
-    clean = allan_cmd.compute(str(rec), ["gx"], "octave", outliers="exclude")["axes"]["gx"]
+    clean = AA.compute(str(rec), ["gx"], "octave", outliers="exclude")["axes"]["gx"]
     n_out = fu(clean["fit"], "N").value
     # 40 spikes of 30 sd in 1e5 samples add 40 * 900 / 1e5 = 0.36 of the white variance
     assert abs(n_out / 0.3 - 1) < 0.05 and abs(n_in / (0.3 * math.sqrt(1.36)) - 1) < 0.06
@@ -251,7 +252,6 @@ def test_all_taus_below_2_20_points_stay_fast_modes_set(tmp_path) -> None:
     """Below 2^20 points the sums are exact, but `--taus all` without --exact keeps fast mode's
     set (at most 8 factors per octave): every factor of a 2.8 h x 100 Hz capture was ~5e5
     taus and 6 min 21 s (the sums stay exact: stride 1)."""
-    from rigctl.analysis import allan as AA
     rng = np.random.default_rng(3)
     n = 200_000
     rec = recording_helpers.write_recording(tmp_path / "r.h5", 100.0,

@@ -129,3 +129,31 @@ def test_edf_with_gaps_skipped_is_that_of_the_stretches() -> None:
             whole = E.edf("oadev", alpha, m, int(lengths.sum()) + 1)
             if m >= 20:
                 assert whole > 1.3 * empirical, (alpha, m, whole, empirical)
+
+
+@pytest.mark.parametrize("gaps,rows", [("skip", 5000), ("skip", 20_010), ("skip", 20_011),
+                                       ("bridge", 20_010)])
+def test_gaps_found_while_streaming_match_the_scan_before(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch,
+                                                          gaps: str, rows: int) -> None:
+    """The counter scanned chunk by chunk with the samples (AA.STREAMED_GAPS, gaps skipped or
+    bridged) finds the same gaps and gives the same numbers, bit for bit, as the scan of the
+    whole counter before the first chunk (find_gaps), with gaps inside chunks and at a chunk's
+    first row (the record's rows after the gaps: 5000, 20010, 46992, 47092)."""
+    pytest.importorskip("numba")
+    rec = tmp_path / "gappy.h5"
+    _gappy_recording(rec)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", rows)
+    got = {}
+    orig = AA.find_gaps
+    for streamed in (True, False):
+        monkeypatch.setattr(AA, "STREAMED_GAPS", streamed)
+        calls: list[int] = []
+        monkeypatch.setattr(AA, "find_gaps", lambda *a: calls.append(1) or orig(*a))
+        got[streamed] = AA.compute(str(rec), ["gx"], "octave", gaps=gaps)
+        assert bool(calls) != streamed  # the path taken is the one named
+    a, b = got[True], got[False]
+    assert a["gaps"] == b["gaps"] and a["gaps"]["count"] == 4
+    assert a["dropped_samples"] == b["dropped_samples"] == (310 if gaps == "bridge" else 0)
+    for key in ("adev_rad/s", "n_terms", "edf", "alpha"):
+        assert np.array_equal(a["axes"]["gx"][key], b["axes"]["gx"][key]), key

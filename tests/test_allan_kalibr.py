@@ -115,8 +115,7 @@ def test_recording_to_rosbag2_to_kalibr(capture, default_run, tmp_path):
     `rigctl import`, analysed with `--kalibr`: the same samples, the bag's topic in imu.yaml and
     the same values as from the recording itself."""
     pytest.importorskip("rosbags")
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    from rigctl.sim.imu_bag import write_imu_bag
 
     rec, _ = capture
     with h5py.File(rec, "r") as f:
@@ -124,20 +123,8 @@ def test_recording_to_rosbag2_to_kalibr(capture, default_run, tmp_path):
         t = f["imu/time"][s0:s1]
         acc, gyr = f["imu/specific_force"][s0:s1], f["imu/angular_rate"][s0:s1]
     stamp = 1_700_000_000_000_000_000 + np.rint(t * 1e9).astype(np.int64)
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    T = store.types
-    V, H, Tm, Imu = (T["geometry_msgs/msg/Vector3"], T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"],
-                     T["sensor_msgs/msg/Imu"])
-    q, z9 = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0), np.zeros(9)
     bag = tmp_path / "capture_bag"
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c = w.add_connection("/vio/imu", "sensor_msgs/msg/Imu", typestore=store)
-        for i in range(len(t)):
-            msg = Imu(header=H(stamp=Tm(sec=int(stamp[i] // 10**9), nanosec=int(stamp[i] % 10**9)), frame_id="imu"),
-                      orientation=q, orientation_covariance=z9, angular_velocity=V(*gyr[i]),
-                      angular_velocity_covariance=z9, linear_acceleration=V(*acc[i]),
-                      linear_acceleration_covariance=z9)
-            w.write(c, int(stamp[i]) + 2_000_000, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+    write_imu_bag(bag, stamp, gyr, acc, topic="/vio/imu", frame_id="imu", receive_delay_ns=2_000_000)
     imported = tmp_path / "imported.h5"
     r = run_rigctl("import", str(bag), "-o", str(imported))
     assert r.returncode == 0, r.stderr[-2000:]

@@ -70,6 +70,32 @@ def test_streamed_exact_and_cascade_equal_one_shot():
             assert abs(dev / ref - 1) < 1e-11, (mode, m, s)
 
 
+def test_running_median_equals_scipy_median_filter():
+    """The compiled running median (the spike screen's first chunk) gives scipy.ndimage's
+    median_filter(mode="nearest") value for value: continuous, quantized (ties) and sparse
+    data with zeros, records shorter than the window, windows 1 to 129; a non-finite value
+    leaves it to scipy (None)."""
+    from scipy.ndimage import median_filter
+
+    rng = np.random.default_rng(11)
+    for trial in range(90):
+        n, w = int(rng.integers(1, 5000)), int(rng.choice([1, 3, 5, 25, 129]))
+        y = rng.standard_normal(n) * 10.0 ** rng.uniform(-4, 2)
+        if trial % 3 == 1:
+            y = np.round(y / y.std() * 3) / 3 if n > 1 else y  # many equal values
+        elif trial % 3 == 2:
+            y = np.where(rng.random(n) < 0.6, 0.0, y)  # mostly zeros
+        got = K.running_median(y, w)
+        assert got is not None and np.array_equal(got, median_filter(y, size=w, mode="nearest")), \
+            (trial, n, w)
+    y = rng.standard_normal(100)
+    assert K.running_median(y, 4) is None  # even windows: scipy's
+    for bad in (np.nan, np.inf):
+        z = y.copy()
+        z[37] = bad
+        assert K.running_median(z, 25) is None
+
+
 def test_spikes_beyond_equals_running_median_screen():
     """The screening's fast path finds exactly the spikes (and medians) of the full running
     median (scipy.ndimage.median_filter) when sigma is known."""

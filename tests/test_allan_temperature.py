@@ -2,8 +2,9 @@
 (rigctl.analysis.allan_drift.temperature_check), on the real Astro Pi record
 (tests/data/astropi-sensehat-static: a Sense HAT's LSM9DS1, 58 h static with its x axis up,
 board temperature 25.6 - 32.5 degC, a reading every ~10 s; README there). Its accelerometer
-follows the room's temperature by ~0.5 mg/K, a drift outside IEEE 952 that made --taus octave
-and all disagree: the pipeline must name the temperature, give its coefficient with an
+follows the room's temperature by ~0.5 mg/K, a drift outside IEEE 952 (once taken for the cause
+of --taus octave and all disagreeing there; that was the covariance across taus ignoring the
+gaps, test_allan_gapcov.py): the pipeline must name the temperature, give its coefficient with an
 interval that an independent plain-numpy estimate (30-min windows by time from the CSV,
 differences of consecutive window means regressed on the temperature's) agrees with, and with
 --temperature remove analyse the samples without the term.
@@ -133,16 +134,20 @@ def test_remove_takes_the_term_out_and_octave_and_all_then_agree(results) -> Non
             # the second pass finds no temperature dependence left
             after = r["axes"][a]["temperature"]
             assert not after["found"] and abs(after["coef"]) < 0.1 * abs(rm["before"]["coef"]), after
-    # ax: with the temperature in, octave and all are apart (all: B < 0.031 mg and K 8.0
-    # [7.4, 8.7] m/s/h/sqrt(h), the drift taken for a random walk; octave: N 0.148 [0.141,
-    # 0.156], B 0.039 [0.033, 0.048]); without it they agree
-    assert _apart(results[("octave", "report")]["axes"]["ax"],
-                  results[("all", "report")]["axes"]["ax"])
+    # ax: octave and all agree with the temperature in and without it. (With the covariance of
+    # one continuous record they were apart with it in -- all: B < 0.031 mg, K 8.0 [7.4, 8.7]
+    # m/s/h/sqrt(h), chi-square 7561 for 36 dof -- and that was put down to the drift; with the
+    # covariance of the gap-free stretches (issue 15, test_allan_gapcov.py) the all-tau fit with
+    # the temperature in is within its statistics: N 0.144, B 0.044 mg, 25.2 / 37)
+    assert not _apart(results[("octave", "report")]["axes"]["ax"],
+                      results[("all", "report")]["axes"]["ax"])
     assert not _apart(results[("octave", "remove")]["axes"]["ax"],
                       results[("all", "remove")]["axes"]["ax"])
-    # and the all-tau fit of ax, which failed its self-check, now holds
-    assert not results[("all", "report")]["axes"]["ax"]["fit"]["check"]["ok"]
-    assert results[("all", "remove")]["axes"]["ax"]["fit"]["check"]["ok"]
+    ck = results[("all", "report")]["axes"]["ax"]["fit"]["check"]
+    assert ck["ok"] and stats.chi2.sf(ck["chi2"], ck["dof"]) >= 0.01, ck
+    # (with it removed, the all-tau fit drops K at z = 1.94 -- unselected 2.61 [1.75, 5.14]
+    # m/s/h/sqrt(h), octave 2.79 [1.91, 5.11] -- and its check names 520-720 s, data 1.19x
+    # above the total: docs/allan.md, not asserted either way)
 
 
 def test_no_temperature_channel_no_check(tmp_path: Path) -> None:

@@ -39,12 +39,9 @@ def _bench():
     return mod
 
 
-def _ten_hz(prof: dict) -> None:
-    prof["rate_hz"] = 10
-    prof["frontend"]["internal_rate_hz"] = 100
-    prof["frontend"]["gyro_bandwidth_hz"] = 4.2
-    prof["frontend"]["accel_bandwidth_hz"] = 4.4
-    prof["effects"]["vibration"]["enabled"] = False
+#: consumer_mems at a 10 Hz output (front end 100 Hz, filters 4.2 / 4.4 Hz, no vibration)
+_TEN_HZ = {"rate_hz": 10, "effects": {"vibration": {"enabled": False}}, "frontend": {
+    "internal_rate_hz": 100, "gyro_bandwidth_hz": 4.2, "accel_bandwidth_hz": 4.4}}
 
 
 def _numpy_adev_of_exponential(amp: float, tau_w: float, t0: float, record_s: float,
@@ -74,7 +71,7 @@ def test_closed_form_allan_of_an_exponential_matches_numpy() -> None:
 @pytest.fixture(scope="module")
 def power_on(tmp_path_factory) -> tuple[dict, Path]:
     rec = tmp_path_factory.mktemp("warmup") / "consumer_mems_10hz_power_on.h5"
-    _bench().emulated_recording("consumer_mems", rec, 12.0, seed=1, warmup_s=0.0, edit=_ten_hz)
+    _bench().emulated_recording("consumer_mems", rec, 12.0, seed=1, warmup_s=0.0, overrides=_TEN_HZ)
     return AA.compute(str(rec), list(GYROS), 95, warmup="exclude"), rec
 
 
@@ -166,9 +163,9 @@ def test_cli_warmup_report_and_json(power_on, tmp_path: Path) -> None:
                                        ("mti_class", 13), ("default", 14)])
 def test_stationary_capture_no_detection(tmp_path: Path, case: str, seed: int) -> None:
     rec = tmp_path / "settled.h5"
-    edit = _ten_hz if case == "consumer_mems" else None
+    over = _TEN_HZ if case == "consumer_mems" else None
     _bench().emulated_recording(case, rec, 2.0 if case == "consumer_mems" else 1.0, seed=seed,
-                                warmup_s=36000.0, edit=edit)
+                                warmup_s=36000.0, overrides=over)
     res = AA.compute(str(rec), ["gx", "gy", "gz", "ax", "ay", "az"], "octave")
     for a, r in res["axes"].items():
         w = r["warmup"]

@@ -196,25 +196,15 @@ def test_a_stable32_result_table_is_not_taken_for_samples(ref_data: Path, tmp_pa
 
 def _gyro_only_bag(path: Path, gx: np.ndarray, fs: float) -> None:
     """A rosbag2 (mcap) of sensor_msgs/Imu from a gyro-only sender: linear_acceleration and the
-    other two rates left at 0 in every message (rosbags' writer, as a robot's recorder)."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    other two rates left at 0 in every message (rigctl.sim.imu_bag: rosbags' writer, as a
+    robot's recorder)."""
+    from rigctl.sim.imu_bag import write_imu_bag
 
-    imu = "sensor_msgs/msg/Imu"
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    T = store.types
-    vec, quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
-    z9 = np.zeros(9)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c = w.add_connection("/gyro", imu, typestore=store)
-        for i, v in enumerate(gx):
-            ns = 1_700_000_000_000_000_000 + int(i * 1e9 / fs)
-            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-                                           frame_id="gyro")
-            m = T[imu](header=hdr, orientation=quat, orientation_covariance=z9,
-                       angular_velocity=vec(float(v), 0.0, 0.0), angular_velocity_covariance=z9,
-                       linear_acceleration=vec(0.0, 0.0, 0.0), linear_acceleration_covariance=z9)
-            w.write(c, ns, store.serialize_cdr(m, imu))
+    n = len(gx)
+    stamps = [1_700_000_000_000_000_000 + int(i * 1e9 / fs) for i in range(n)]
+    write_imu_bag(path, np.array(stamps, dtype=np.int64),
+                  np.column_stack([np.asarray(gx, dtype=float), np.zeros((n, 2))]), np.zeros((n, 3)),
+                  topic="/gyro", frame_id="gyro")
 
 
 def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:

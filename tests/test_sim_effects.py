@@ -4,9 +4,9 @@ error_model / profiles). Tolerances come from the noise: 5 x the theoretical All
 the averaging time used, unless stated."""
 from __future__ import annotations
 
-import copy
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,22 +17,21 @@ from rigctl.sim import effects as fx
 from rigctl.sim import noise as nz
 from rigctl.sim.error_model import ImuErrorModel
 from rigctl.sim.frontend import FrontEnd
-from rigctl.sim.profiles import get_profile, profile_mapping, random_truth
+from rigctl.sim.profiles import AccelProfile, GyroProfile, ImuProfile, get_profile, given, random_truth
 from rigctl.solvers.noise_coefficients import terms_of
 
 G = 9.80665
 DEG = math.pi / 180
 
 
-def quiet_profile(rate_hz: float = 100.0, **effects: dict) -> dict:
-    """declared_only with declared errors zeroed, tactical-grade noise, the given effects on."""
-    p = profile_mapping("declared_only")
-    tac = profile_mapping("tactical")
-    p["rate_hz"] = rate_hz
-    for s in ("gyro", "accel"):
-        p[s] = {"noise": copy.deepcopy(tac[s]["noise"])}
-    p["effects"] = {k: dict(v, enabled=True) for k, v in effects.items()}
-    return p
+def quiet_profile(rate_hz: float = 100.0, **effects: dict) -> ImuProfile:
+    """declared_only with declared errors zeroed, tactical-grade noise, the given effects on
+    (each a mapping of its keys) and no other."""
+    tac = get_profile("tactical")
+    p = replace(get_profile("declared_only"), gyro=GyroProfile(noise=tac.gyro.noise),
+                accel=AccelProfile(noise=tac.accel.noise))
+    return p.with_overrides({"rate_hz": rate_hz, "effects": None}).with_overrides(
+        {"effects": {k: dict(v, enabled=True) for k, v in effects.items()}})
 
 
 def run(model: ImuErrorModel, n_out: int, kin, chunk: int = 20_000):
@@ -107,8 +106,7 @@ def test_lever_arm_tangential_term_during_rate_step() -> None:
 
 # ---------------------------------------------------------------------------- thermal
 def test_warmup_time_constant_recovered_from_gyro_and_temperature() -> None:
-    cons = profile_mapping("consumer_mems")
-    wu = cons["effects"]["warmup"]
+    wu = given(get_profile("consumer_mems").effects.warmup)
     model = ImuErrorModel.from_profile(quiet_profile(warmup=wu), seed=3)
     t, _, W, T, _ = run(model, 180_000, const([0, 0, G], [0, 0, 0]))
     blocks = W[:, 0].reshape(-1, 1000).mean(axis=1)
@@ -129,7 +127,7 @@ def test_warmup_time_constant_recovered_from_gyro_and_temperature() -> None:
 
 def test_scale_temperature_coefficient_during_warmup() -> None:
     """At a constant rate the warm-up transient's amplitude grows by s_tc * dT * w (scale tempco)."""
-    wu = dict(profile_mapping("consumer_mems")["effects"]["warmup"])
+    wu = given(get_profile("consumer_mems").effects.warmup)
     w = 100 * DEG
 
     def amplitude(rate: float, seed: int) -> float:
@@ -175,7 +173,7 @@ def test_dropped_samples_rate_and_chunk_invariance() -> None:
 
 # ---------------------------------------------------------------------------- sensor effects
 def test_g_sensitivity_and_anisoelastic_from_plus_minus_g() -> None:
-    gs = profile_mapping("consumer_mems")["effects"]["g_sensitivity"]
+    gs = given(get_profile("consumer_mems").effects.g_sensitivity)
     model = ImuErrorModel.from_profile(quiet_profile(g_sensitivity=gs), seed=5)
     Gm = np.array(gs["G_rad_per_s_per_m_per_s2"])
     A = np.array(gs["anisoelastic_rad_per_s_per_m2_per_s4"])
@@ -191,7 +189,7 @@ def test_g_sensitivity_and_anisoelastic_from_plus_minus_g() -> None:
 
 
 def test_accel_scale_asymmetry() -> None:
-    u = profile_mapping("consumer_mems")["effects"]["accel_scale_asymmetry"]["asymmetry"]
+    u = get_profile("consumer_mems").effects.accel_scale_asymmetry.asymmetry
     model = ImuErrorModel.from_profile(quiet_profile(accel_scale_asymmetry={"asymmetry": u}), seed=6)
     e = tol(model, "accel", 60.0)
     for j in range(3):
@@ -204,7 +202,7 @@ def test_accel_scale_asymmetry() -> None:
 
 
 def test_gyro_scale_nonlinearity_fit_recovers_k2_k3() -> None:
-    nl = profile_mapping("consumer_mems")["effects"]["gyro_nonlinearity"]
+    nl = given(get_profile("consumer_mems").effects.gyro_nonlinearity)
     model = ImuErrorModel.from_profile(quiet_profile(gyro_nonlinearity=nl), seed=7)
     rates = np.array([-100, -63, -40, 0, 40, 63, 100]) * DEG
     means = np.array([run(model, 3000, const([0, 0, G], [w, 0, 0]))[2][:, 0].mean() for w in rates])
@@ -228,9 +226,9 @@ def test_time_delay_seen_as_offset_of_a_rate_ramp() -> None:
 
 def test_vibration_amplitude_from_sine_fit() -> None:
     vib = {"freqs_hz": [47.3], "accel_amp_m_per_s2": [[0.02, 0.015, 0.03]], "gyro_amp_rad_per_s": [[1e-4, 1.5e-4, 1e-4]]}
-    p = quiet_profile(rate_hz=1000.0, vibration=vib)
-    p["accel"]["noise"] = {"N_m_per_s2_per_sqrt_hz": 2e-4}  # low noise: the test is about the sines
-    p["gyro"]["noise"] = {"N_rad_per_s_per_sqrt_hz": 1e-6}
+    p = quiet_profile(rate_hz=1000.0, vibration=vib).with_overrides(
+        {"accel": {"noise": None}, "gyro": {"noise": None}}).with_overrides(  # low noise: the test is about the sines
+        {"accel": {"noise": {"N_m_per_s2_per_sqrt_hz": 2e-4}}, "gyro": {"noise": {"N_rad_per_s_per_sqrt_hz": 1e-6}}})
     model = ImuErrorModel.from_profile(p, seed=9)
     t, F, W, *_ = run(model, 20_000, const([0, 0, G], [0, 0, 0]))
     X = np.column_stack([np.sin(2 * np.pi * 47.3 * t), np.cos(2 * np.pi * 47.3 * t), np.ones_like(t)])
@@ -360,11 +358,11 @@ def test_truth_is_json_with_units_and_profiles_load() -> None:
 
 
 def test_random_truth_is_seeded_and_within_spread() -> None:
-    base = profile_mapping("mti_class")
+    base = get_profile("mti_class")
     a, b, c = random_truth(base, 1), random_truth(base, 1), random_truth(base, 2)
     assert a == b and a != c
     for s in ("gyro", "accel"):
-        for k, v in base[s]["noise"].items():
+        for k, v in given(getattr(base, s).noise).items():
             if k[:2] in ("Q_", "N_", "B_", "K_", "R_") and v > 0:
                 assert v / 2 <= getattr(getattr(a, s).noise, k) <= 2 * v
     assert np.allclose(np.diag(np.array(a.gyro.misalignment_rad)), 0.0)

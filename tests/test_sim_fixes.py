@@ -15,7 +15,7 @@ import yaml
 from rigctl.config.config import load_config
 from rigctl.engine.rig import open_rig
 from rigctl.sim.error_model import ImuErrorModel
-from rigctl.sim.profiles import get_profile, profile_mapping
+from rigctl.sim.profiles import get_profile
 from rigctl.sim.table import POSITION, Profile, ServoParams, SimTurntable
 from rigctl.yamlio import InputError
 
@@ -248,12 +248,10 @@ def test_power_on_time_shifts_only_the_warm_up_not_the_samples(tmp_path):
 def test_power_on_time_random_walk_and_ramp_have_run_since_power_on():
     """The K random walk and R ramp start at power-on: at run start they are a constant offset
     N(0, K^2 t_on) + R t_on, recorded in the truth, and seen in the first samples."""
-    prof = profile_mapping("declared_only")
     t_on, K, R = 3600.0, 1.0e-6, 1.0e-9
-    prof["power_on_time_s"] = t_on
-    prof["gyro"]["noise"] = {"K_rad_per_s2_per_sqrt_hz": K, "R_rad_per_s2": R}
-    prof["gyro"]["bias_rad_per_s"] = ZERO3
-    prof["accel"]["noise"] = {}
+    prof = get_profile("declared_only").with_overrides(
+        {"power_on_time_s": t_on, "gyro": {"noise": None, "bias_rad_per_s": ZERO3}, "accel": {"noise": None}}
+    ).with_overrides({"gyro": {"noise": {"K_rad_per_s2_per_sqrt_hz": K, "R_rad_per_s2": R}}})
     offs = []
     for seed in range(40):
         model = ImuErrorModel.from_profile(prof, seed=seed)
@@ -273,12 +271,11 @@ def test_power_on_time_random_walk_and_ramp_have_run_since_power_on():
 # ---------------------------------------------------------------------------- warm-up truth
 def test_truth_records_the_warm_up_reference_temperature_that_is_applied():
     """A user-set T_ref_degC (not T0 + dT) is what apply() uses, and what /truth says."""
-    prof = profile_mapping("declared_only")
-    prof["gyro"]["noise"] = {}
-    prof["accel"]["noise"] = {}
     c_b = 1.0e-4
-    prof["effects"] = {"warmup": {"enabled": True, "T0_degC": 20.0, "dT_degC": 8.0, "tau_s": 10.0,
-                                  "T_ref_degC": 25.0, "gyro_bias_tc_rad_per_s_per_K": [c_b, 0.0, 0.0]}}
+    prof = get_profile("declared_only").with_overrides(
+        {"gyro": {"noise": None}, "accel": {"noise": None}, "effects": None}
+    ).with_overrides({"effects": {"warmup": {"enabled": True, "T0_degC": 20.0, "dT_degC": 8.0, "tau_s": 10.0,
+                                             "T_ref_degC": 25.0, "gyro_bias_tc_rad_per_s_per_K": [c_b, 0.0, 0.0]}}})
     model = ImuErrorModel.from_profile(prof, seed=1)
     g = model.sample_grid(30_000)  # 300 s = 30 tau: settled at 28 degC
     n = g.t_internal.size

@@ -19,7 +19,7 @@ from rigctl.sim import noise as nz
 from rigctl.sim import spectral_factor as sf
 from rigctl.sim.block_iir import BlockCascade
 from rigctl.sim.error_model import ImuErrorModel
-from rigctl.sim.profiles import get_profile, profile_mapping, profile_names
+from rigctl.sim.profiles import get_profile, profile_names
 from rigctl.solvers.noise_coefficients import triad
 
 try:  # prefer the project's own estimator
@@ -325,8 +325,7 @@ def test_model_output_through_front_end_keeps_the_allan_signature() -> None:
     """1 h static capture through ImuErrorModel.apply (1 kHz internal rate, 42 Hz low-pass,
     decimation, ADC): the noise is added after the low-pass, so the output's OADEV is still the
     theoretical curve (plus LSB^2/12 white) within its CI from 10 tau0 to T/10."""
-    prof = profile_mapping("consumer_mems")
-    prof["effects"] = {}
+    prof = get_profile("consumer_mems").with_overrides({"effects": None})
     model = ImuErrorModel.from_profile(prof, seed=8)
     n = 360_000
     Ws = []

@@ -1,14 +1,17 @@
 """Xsens MT protocol: framing, configuration messages, MTData2 codec and the vectorised decoder."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rigctl.drivers import xsens as X
-from rigctl.drivers.xsens_decode import MTData2Stream, decode_buffer
+from rigctl.drivers.xsens_decode import RESYNC_RUN, MTData2Stream, decode_buffer
 
+REF_DATA = Path(__file__).resolve().parent / "data"
 BASE = [X.XDI.PACKET_COUNTER, X.XDI.SAMPLE_TIME_FINE, X.XDI.ACCELERATION, X.XDI.RATE_OF_TURN,
         X.XDI.TEMPERATURE, X.XDI.STATUS_WORD]
 
@@ -193,6 +196,87 @@ def test_sample_time_fine_one_day_wrap_option():
     data, _ = frames_bytes(BASE, f)
     batch, _ = decode_buffer(data, wrap_ticks=day)
     np.testing.assert_array_equal(batch.sample_time_fine, day - 10 + 5 * np.arange(6))
+
+
+def _real_session(start_ticks: int) -> tuple[dict, np.ndarray]:
+    """imu_tk's real Xsens MTi session (tests/data/imutk-xsens: 51,175 samples, 512 s, its
+    timestamps jittering 9.0-10.4 ms) as MTData2 fields: PacketCounter the sample index,
+    SampleTimeFine the time column in 10 kHz ticks from ``start_ticks`` (mod 2^32 on the wire),
+    acceleration and rate of turn from the raw counts at the MTi's nominal scales. Returns the
+    fields and the true unwrapped ticks."""
+    d = REF_DATA / "imutk-xsens"
+    acc, gyr = np.loadtxt(d / "xsens_acc.mat.gz"), np.loadtxt(d / "xsens_gyro.mat.gz")
+    n = len(acc)
+    ticks = start_ticks + np.rint((acc[:, 0] - acc[0, 0]) * 1e4).astype(np.int64)
+    f = make_fields(n)
+    f.update(packet_counter=np.arange(n), sample_time_fine=ticks % 2**32,
+             acceleration=(acc[:, 1:] - 32768) / 415.0, rate_of_turn=(gyr[:, 1:] - 32768) / 4770.0)
+    return f, ticks
+
+
+def _set_stf_bit(arr: np.ndarray, k: int, bit: int) -> None:
+    """Frame k's SampleTimeFine with ``bit`` set (it was clear), the checksum made to pass again:
+    a corruption the checksum does not catch."""
+    assert tuple(arr[k, 9:12]) == (X.XDI.SAMPLE_TIME_FINE >> 8, X.XDI.SAMPLE_TIME_FINE & 0xFF, 4)
+    byte, mask = 12 + 3 - bit // 8, 1 << (bit % 8)
+    assert not arr[k, byte] & mask
+    arr[k, byte] |= mask
+    arr[k, -1] = (-int(arr[k, 1:-1].sum(dtype=np.int64))) & 0xFF
+
+
+def test_a_corrupted_sample_time_fine_is_rejected_and_never_shifts_the_rest():
+    """Real frames (imu_tk's MTi session), SampleTimeFine starting 20 s before its 2^32 wrap.
+    Three frames carry a corrupted time that passes the checksum: +2^20 ticks (105 s ahead: the
+    next true one would read as a wrap), the top bit (2^31: ahead by more than half the wrap),
+    and +2^22 on the last frame of one feed (the next true one comes in the next feed). Each is
+    kept without a time and counted; every other frame keeps its true time (before the fix every
+    sample after the first one came 2^32 ticks, 4.97 days, late)."""
+    f, ticks = _real_session(2**32 - 200_000)
+    data, L = frames_bytes(BASE, f)
+    arr = np.frombuffer(data, np.uint8).reshape(-1, L).copy()
+    n = len(arr)
+    chunk = 997
+    bad = {12_000: 20, 30_000: 31, 5 * chunk - 1: 22}
+    for k, bit in bad.items():
+        assert not (int(f["sample_time_fine"][k]) >> bit) & 1
+        _set_stf_bit(arr, k, bit)
+    st = MTData2Stream()
+    got = [st.feed(arr[i:i + chunk].tobytes()) for i in range(0, n, chunk)] + [st.flush()]
+    stf = np.concatenate([b.sample_time_fine for b in got])
+    t = np.concatenate([b.time_s for b in got])
+    c = st.counters
+    assert c.frames == n and c.bad_frames == 0 and c.time_outliers == 3 and c.time_restarts == 0
+    np.testing.assert_array_equal(np.concatenate([b.counter for b in got]), np.arange(n))
+    flagged = np.flatnonzero(stf < 0)
+    np.testing.assert_array_equal(flagged, sorted(bad))
+    assert np.isnan(t[flagged]).all()
+    good = np.setdiff1d(np.arange(n), flagged)
+    np.testing.assert_array_equal(stf[good], ticks[good])       # past the true wrap too
+    np.testing.assert_array_equal(t[good], ticks[good] / 1e4)
+    assert ticks[-1] > 2**32 and np.all(np.diff(t[good]) > 0)
+    np.testing.assert_array_equal(np.concatenate([b.acceleration for b in got]),
+                                  f["acceleration"].astype(np.float32).astype(np.float64))
+
+
+def test_a_restarted_sample_time_fine_is_a_new_time_base_not_an_outlier_each_frame():
+    """The MTi restarts mid-session (PacketCounter and SampleTimeFine from 0): after the
+    counter's resynchronisation the first stamp of the new time base is left without a time, the
+    second continues it and is taken (counted as a restart, not as an outlier; unwrapped as the
+    old decoder did, as a wrap), and the later ones follow it one true step each."""
+    f, ticks = _real_session(50_000_000)
+    k = 2000
+    f["packet_counter"][k:] -= k
+    f["sample_time_fine"][k:] = ticks[k:] - ticks[k]
+    data, _ = frames_bytes(BASE, {key: v[:4000] for key, v in f.items()})
+    batch, c = decode_buffer(data)
+    assert c.counter_restarts == 1 and c.out_of_order == RESYNC_RUN - 1
+    assert c.time_restarts == 1 and c.time_outliers == 0
+    stf = batch.sample_time_fine
+    np.testing.assert_array_equal(stf[:k], ticks[:k])
+    first = k + RESYNC_RUN - 1                  # the counter's first frame after its resync
+    assert stf[k] == -1 and np.all(stf[k + 1:] >= 0)
+    np.testing.assert_array_equal(np.diff(stf[k + 1:]), np.diff(ticks[first + 1:4000]))
+    assert stf[k + 1] == ticks[k - 1] + (ticks[first + 1] - ticks[k] - ticks[k - 1]) % 2**32
 
 
 def test_unknown_data_id_counted_known_items_kept():

@@ -418,9 +418,11 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     lo95, hi95 = E.chi2_interval(res.dev, edfs, 0.95)
     unit, fac = DEV_UNITS[sensor]
     tones = _tones(stream, sensor)
+    gapped = stretch_samples is not None and len(stretch_samples) > 1
     fit = F.fit_terms(res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
                       tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]}
-                             for t in tones["tones"]])
+                             for t in tones["tones"]],
+                      stretch_samples=stretch_samples if gapped else None)
     pw = F.piecewise_readoffs(res.tau_s, res.dev, sensor)
     si = "rad/s" if sensor == "gyro" else "m/s^2"
     dev0 = float(res.dev[0]) if len(res.m) and int(res.m[0]) == 1 else float("nan")
@@ -580,32 +582,68 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
         # the samples' readers (HDF5's chunk index, a Python callback per chunk: ~0.1 s for a
         # 12 h file) are set up on a thread while the gap scan reads the counter (os.preadv and
         # a compiled scan, without the GIL)
-        with ThreadPoolExecutor(1) as setup:
-            made = setup.submit(lambda: {name: RowReader(f, name) for name in dsets})
-            try:
-                found = find_gaps(f, s0, s1, fs)
-            except BaseException:
-                for r in made.result().values():
-                    r.close()
-                raise
-            readers = made.result()
+        counter = _streamed_counter(f, s0, s1, gaps)
+        if counter is not None:  # the gaps are found chunk by chunk while the samples stream
+            found = None
+            readers = {name: RowReader(f, name) for name in dsets}
+        else:
+            with ThreadPoolExecutor(1) as setup:
+                made = setup.submit(lambda: {name: RowReader(f, name) for name in dsets})
+                try:
+                    found = find_gaps(f, s0, s1, fs)
+                except BaseException:
+                    for r in made.result().values():
+                        r.close()
+                    raise
+                readers = made.result()
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
-                                     progress_stream, outliers, gaps, corrections)
+                                     progress_stream, outliers, gaps, corrections, counter)
         finally:
             for r in readers.values():
                 r.close()
+            if counter is not None:
+                counter.close()
+
+
+#: with gaps skipped or bridged, /imu/counter is read and scanned chunk by chunk with the
+#: samples (:func:`_stream_chunks`: the main thread reads chunk i + 1's counter rows with its
+#: samples, os.preadv and a compiled scan, without the GIL) instead of in a pass of its own
+#: before the first chunk (False: :func:`find_gaps` first, as ``refuse`` and ``longest``
+#: always do; the same gaps)
+STREAMED_GAPS = True
+
+
+def _streamed_counter(f: Any, s0: int, s1: int, gaps: str) -> RowReader | None:
+    """A reader of /imu/counter when its jumps can be found while the samples stream (see
+    :data:`STREAMED_GAPS`: gaps skipped or bridged, a counter as long as the range, read with
+    os.preadv, the compiled scan), else None (:func:`find_gaps` before the stream)."""
+    if not (STREAMED_GAPS and KER.HAVE_NUMBA and gaps in ("skip", "bridge") and s1 - s0 >= 2
+            and "/imu/counter" in f and f["/imu/counter"].shape[0] >= s1
+            and f["/imu/counter"].ndim == 1):
+        return None
+    rd = RowReader(f, "/imu/counter")
+    if rd.direct is None:
+        rd.close()
+        return None
+    return rd
 
 
 def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
-                      corrections: dict | None = None) -> dict[str, Any]:
+                      corrections: dict | None = None,
+                      counter: RowReader | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
-    the caller). ``corrections``: per axis, a term subtracted from its samples before
-    everything else (:func:`rigctl.analysis.allan_drift.correction_at`: the temperature term
-    with --temperature remove)."""
+    the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
+    from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
+    subtracted from its samples before everything else
+    (:func:`rigctl.analysis.allan_drift.correction_at`: the temperature term with
+    --temperature remove)."""
     tau0 = 1.0 / fs
+    streamed = found is None
+    if streamed:
+        found = []  # filled by _stream_chunks, in row order
     missing = sum(m for _, m in found)
     gap_info = {"mode": gaps, "count": len(found), "missing_samples": int(missing),
                 "largest_samples": int(max((m for _, m in found), default=0)),
@@ -630,14 +668,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
             raise InputError(f"{path}: the longest gap-free stretch has only {n} IMU samples; "
                              f"need at least {MIN_SAMPLES}")
         missing = 0
-    gaps_bridged = int(missing) if gaps == "bridge" else 0
     breaks = [g for g, _ in found] if gaps == "skip" else None
-    stretch_samples = None
-    if breaks:
-        edges = [s0] + breaks + [s1]
-        gap_info["stretches"] = len(edges) - 1
-        gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
-        stretch_samples = np.diff(edges)
     ms = A.tau_factors(n + 1, taus, "oadev")
     # below A.FAST_MIN_POINTS the sums are exact, as in A.oadev: there they cost milliseconds,
     # while the strides would throw away most of the EDF of phase-noise-dominated taus
@@ -653,8 +684,22 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                          stream=progress_stream, enabled=progress_stream is not None)
     with ThreadPoolExecutor(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
-                       outliers == "exclude", breaks, corrections)
+                       outliers == "exclude", breaks, corrections,
+                       (counter, found, gaps == "skip") if streamed else None)
         shown.finish()
+        if streamed:
+            missing = sum(m for _, m in found)
+            gap_info.update(count=len(found), missing_samples=int(missing),
+                            largest_samples=int(max((m for _, m in found), default=0)),
+                            rows=[int(g) for g, _ in found[:20]])
+            breaks = [g for g, _ in found] if gaps == "skip" else None
+        gaps_bridged = int(missing) if gaps == "bridge" else 0
+        stretch_samples = None
+        if breaks:
+            edges = [s0] + breaks + [s1]
+            gap_info["stretches"] = len(edges) - 1
+            gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
+            stretch_samples = np.diff(edges)
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
                "gaps": gap_info, "outliers": outliers, "axes": {}}
@@ -672,7 +717,8 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
 def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None,
-                   corrections: dict | None = None) -> None:
+                   corrections: dict | None = None,
+                   scan: tuple[RowReader, list, bool] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -684,7 +730,12 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     its rows writes each selected axis' phase into that axis' accumulator and takes the spike
     prefilter's block extremes, the check and the screen follow from them, and the axes'
     sums are queued as one task each; the first chunk, a chunk with a gap and an axis whose
-    spikes are replaced go the per-axis way (column copy, check, screen, add)."""
+    spikes are replaced go the per-axis way (column copy, check, screen, add).
+
+    ``scan`` = (counter reader, found, skip): the gaps are found here instead of before
+    (``breaks`` is then None): each chunk's /imu/counter rows are read and scanned with its
+    samples, the gaps appended to ``found``, and with ``skip`` the rows after them break the
+    stretches as ``breaks`` would."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
@@ -695,16 +746,27 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     scratch = {name: np.empty(rows) for name in dsets}  # unselected columns' phase
     tau0 = next(iter(streams.values())).tau0
 
-    def read(a0: int, k: int) -> dict:
-        a1 = min(s1, a0 + CHUNK_ROWS)
-        return {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
+    all_cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
+    if scan is not None:
+        counter, found, skip = scan
+        cbuf = np.empty(rows + 1, dtype=counter.ds.dtype)
 
-    cuts = np.asarray(sorted(breaks or ()), dtype=np.int64)
+    def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
+        """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
+        a1 = min(s1, a0 + CHUNK_ROWS)
+        got = {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
+        if scan is None:
+            return got, all_cuts
+        # the row before the chunk too: a jump at a0 is a gap before the chunk's first row
+        new = counter_jumps_at(counter.read(max(s0, a0 - 1), a1, cbuf), max(s0, a0 - 1))
+        found.extend(new)
+        return got, np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
+
     # only the selected axes' columns must be finite (a gyro-only import stores NaN for the rest)
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
     groups = {name: [a for a in axes if AXES[a][0] == name] for name in dsets}
 
-    def feed(a: str, block: np.ndarray, col: int, first: int) -> None:
+    def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         if corrections and a in corrections:  # rows relative to s0
@@ -725,9 +787,9 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
 
-    def dataset(name: str, b: np.ndarray, a0: int) -> list:
-        """Check, screen and queue the accumulation of one dataset's axes for this chunk;
-        returns the queued tasks."""
+    def dataset(name: str, b: np.ndarray, a0: int, cuts: np.ndarray) -> list:
+        """Check, screen and queue the accumulation of one dataset's axes for this chunk
+        (``cuts``: the gap breaks, at least those in it); returns the queued tasks."""
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
@@ -736,7 +798,7 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
             check(name, b, a0)  # a bad block must not reach the accumulators
-            return [pool.submit(feed, a, b, AXES[a][1], first) for a in group]
+            return [pool.submit(feed, a, b, AXES[a][1], first, cuts) for a in group]
         outs = [scratch[name][:n]] * 3
         x0 = np.zeros(3)
         offs = np.zeros(3)
@@ -766,8 +828,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     nxt = read(starts[0], 0) if starts else None
     early: list = []  # the head's noise IDs, once every head is complete
     for i, a0 in enumerate(starts):
-        blocks = nxt
-        preps = [pool.submit(dataset, name, b, a0) for name, b in blocks.items()]
+        blocks, cuts = nxt
+        preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
         nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for p in preps:
             for t in p.result():
@@ -792,6 +854,18 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
     return max(0, (last - first + 1) - (s1 - s0))
 
 
+def counter_jumps_at(c: np.ndarray, a: int) -> list[tuple[int, int]]:
+    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter): (row after the gap,
+    samples missing) wherever the counter steps by more than 1."""
+    if c.dtype == np.uint64:
+        c = c.view(np.int64)  # what the cast to int64 gives, without its pass
+    if KER.HAVE_NUMBA:
+        idx, d = KER.counter_jumps(c)
+        return [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+    d = np.diff(np.asarray(c, dtype=np.int64))
+    return [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+
+
 def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
     """Gaps in the IMU samples [s0, s1): (row after the gap, samples missing) from the jumps of
     /imu/counter, or without a counter from /imu/time steps longer than 1.5 sample intervals."""
@@ -808,15 +882,7 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
             out = []
             buf = np.empty(min(CHUNK_ROWS, s1 - s0) + 1, dtype=ds.dtype)
             for a in part:
-                c = rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf)
-                if c.dtype == np.uint64:
-                    c = c.view(np.int64)  # what the cast to int64 gives, without its pass
-                if KER.HAVE_NUMBA:
-                    idx, d = KER.counter_jumps(c)
-                    out += [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
-                    continue
-                d = np.diff(np.asarray(c, dtype=np.int64))
-                out += [(int(a + i + 1), int(d[i] - 1)) for i in np.flatnonzero(d > 1)]
+                out += counter_jumps_at(rd.read(a, min(s1, a + CHUNK_ROWS + 1), buf), a)
             return out
 
         try:

@@ -15,6 +15,7 @@ max in the display unit).
 from __future__ import annotations
 
 import math
+import os
 import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -28,6 +29,7 @@ from . import calibration
 from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..config.spec import load_spec
 from . import production
+from ..display_units import format_value
 
 ANALYSES = ("calibrate", "allan")
 
@@ -128,3 +130,52 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
                     "failed": L["failed"], "verdicts": L["verdicts"],
                     "yield": L["verdicts"][PASS] / decided if decided else None, "parameters": params}
     return out
+
+
+def database_home(recordings: Iterable[str]) -> Path:
+    """The folder that holds all the run directories: the common folder of each recording's
+    default results database (rigctl.recording.results_db.default_path)."""
+    from ..recording import results_db as db  # optional dependency: rigctl[db]
+
+    return Path(os.path.commonpath([str(db.default_path(r).parent) for r in recordings]))
+
+
+def store_in_database(results: list[dict[str, Any]], lots: dict[str, str], target: str | None,
+                      home: Path) -> str:
+    """Write every analysed recording of a batch to the results database through one engine
+    (one writer); ``target`` None: results.sqlite in ``home``, "none": nothing. Returns the
+    line to print ("" when nothing was written)."""
+    if target == "none":
+        return ""
+    from ..recording import results_db as db  # optional dependency: rigctl[db]
+
+    target = target or str(home / db.DEFAULT_NAME)
+    line = ""
+    engine = db.open_db(target)
+    try:
+        for r in results:
+            for kind, payload in r["results"].items():
+                line = production.to_database(r["recording"], kind, payload, target,
+                                              lot=lots[r["recording"]], engine=engine)
+    finally:
+        engine.dispose()
+    return line
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """The lot summary as a table."""
+    lines = []
+    for lot, s in summary.items():
+        v = s["verdicts"]
+        y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} %"
+        lines.append(f"lot {lot}: {s['recordings']} recordings, {s['analysed']} analysed, {len(s['failed'])} failed; "
+                     f"yield {y} (PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']})")
+        lines.append(f"  {'parameter':<32} {'unit':<14} {'n':>3} {'mean':>12} {'sd':>10} {'min':>12} {'max':>12}")
+        for name, p in s["parameters"].items():
+            ref = p["median_u"]  # digits from the units' typical uncertainty
+            f = [format_value(p[k], ref)[0] for k in ("mean", "min", "max")]
+            sd = format_value(p["sd"], ref)[0] if p["sd"] == p["sd"] else "n/a"
+            lines.append(f"  {name:<32} {p['unit']:<14} {p['n']:>3} {f[0]:>12} {sd:>10} {f[1]:>12} {f[2]:>12}")
+        for fl in s["failed"]:
+            lines.append(f"  FAILED {fl['recording']}: {fl['error']}")
+    return "\n".join(lines)

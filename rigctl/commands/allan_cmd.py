@@ -2,95 +2,26 @@
 
 Parses the arguments, calls the pipeline (:mod:`rigctl.analysis.allan`: streamed overlapping
 Allan deviation, Stable32-style noise identification, EDF intervals, the joint IEEE 952 fit
-and its self-check, stored under /results/allan), and presents it: a table per axis, the
-self-check's warnings, ``--plot FILE`` (a log-log plot; needs matplotlib) and the exports.
+and its self-check, stored under /results/allan), and prints it: a table per axis with the
+self-check's warnings (:mod:`rigctl.analysis.allan_text`), ``--plot FILE`` (a log-log plot,
+:func:`rigctl.report.report_plots.plot_allan_result`; needs matplotlib) and the exports.
 """
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from rigctl.analysis import noise_export, production
-from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES, plot_extras
-from rigctl.analysis.allan import (  # noqa: F401 - the pipeline; names kept for callers
-    AXES, DEV_UNITS, GAP_MODES, OUTLIER_MODES, check_notes, check_warnings, choose_range,
-    default_axes, gap_message, compute, screening_notes, solve_recording, store, summary_line)
+from rigctl.analysis.allan import (AXES, GAP_MODES, OUTLIER_MODES, choose_range, compute,
+                                   default_axes, gap_message, store)
+from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
+from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
-from rigctl.jsonable import jsonable
-from rigctl.solvers import noise_coefficients as NC
 from rigctl.commands.cli_options import add_production_options
+from rigctl.config.spec import load_spec
 from rigctl.errors import InputError
 from rigctl.solvers import allan as A
-from rigctl.solvers import allan_fit as F
-from rigctl.display_units import capture_text, need_text  # noqa: F401 - kept for callers
-from rigctl.config.spec import load_spec
-
-
-def format_table(axis: str, r: dict[str, Any]) -> str:
-    """Human-readable table of one axis plus its fitted terms."""
-    unit = r["_unit"]
-    lines = [f"== {axis} ({r['sensor']}, {r['n_samples']} samples, {r['mode']} mode)",
-             f"{'tau_s':>12} {'adev_' + unit:>14} {'lo68':>12} {'hi68':>12} "
-             f"{'alpha':>5} {'edf':>10}"]
-    for i in range(len(r["tau_s"])):
-        lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
-                     f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
-                     f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
-    lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
-    co = NC.as_coefficients(r["fit"]["coefficients"])
-    for t, e in r["fit"]["terms"].items():
-        c, unit_f = NC.in_field_units(co, t)
-        need = need_text(e, c.resolved)
-        if c.resolved:
-            lo, hi = c.ci95
-            more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
-                    f"(Cramer-Rao); {need})")
-            lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
-        else:
-            more = "" if not need else f"; {need}"
-            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
-            lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
-                         f"({what}; not supported by the data{more})")
-    pw = r["piecewise"]["terms"]
-    parts = []
-    for t in ("N", "B", "K"):
-        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
-        v = pw[t][f"value_{unit_f}"]
-        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
-    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
-    warns, notes = screening_notes(r)
-    lines += [f"note: {t}" for t in notes + check_notes(r)]
-    for w in warns + check_warnings(r):
-        lines.append(f"warning: {w}")
-    return "\n".join(lines)
-
-
-def plot(result: dict[str, Any], out_path: str) -> None:
-    """Log-log plot per axis (rigctl.report.report_plots.draw_allan_axis: 68 % bars, 95 % band, slope
-    guides, fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from rigctl.report.report_plots import draw_allan_axis
-
-    axes = list(result["axes"].items())
-    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
-    for ax, (name, r) in zip(subs[:, 0], axes):
-        unit, fac = DEV_UNITS[r["sensor"]]
-        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
-                        r["sensor"], unit, fac,
-                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
-                        r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
-    fig.tight_layout()
-    fig.savefig(out_path, dpi=120)
-    plt.close(fig)
 
 
 def _parse_taus(text: str) -> A.TauSpec:
@@ -149,7 +80,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"results written to {args.recording}:/results/allan")
     print(production.to_database(args.recording, "allan", result, args.db))
     if args.plot:
-        plot(result, args.plot)
+        from rigctl.report.report_plots import plot_allan_result  # matplotlib: only with --plot
+
+        plot_allan_result(result, args.plot)
         print(f"plot written to {args.plot}")
     export(args, result)
     return 0

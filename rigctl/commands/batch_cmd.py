@@ -14,18 +14,16 @@ from __future__ import annotations
 import argparse
 import glob
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 from ..analysis import batch as B
-from ..analysis import production
-from .cli_options import add_production_options
-from ..display_units import format_value
-from ..recording.recorder import utc_now
 from ..config.spec import load_spec
 from ..errors import InputError, RunFailure
+from ..recording.recorder import utc_now
+from ..report.report_plots import plot_batch_summary
+from .cli_options import add_production_options
 
 
 def expand(patterns: list[str]) -> list[str]:
@@ -36,79 +34,6 @@ def expand(patterns: list[str]) -> list[str]:
             if Path(p).is_file():
                 out[str(Path(p).resolve())] = None
     return list(out)
-
-
-def summary_text(summary: dict[str, Any]) -> str:
-    """The lot summary as a table."""
-    lines = []
-    for lot, s in summary.items():
-        v = s["verdicts"]
-        y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} %"
-        lines.append(f"lot {lot}: {s['recordings']} recordings, {s['analysed']} analysed, {len(s['failed'])} failed; "
-                     f"yield {y} (PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']})")
-        lines.append(f"  {'parameter':<32} {'unit':<14} {'n':>3} {'mean':>12} {'sd':>10} {'min':>12} {'max':>12}")
-        for name, p in s["parameters"].items():
-            ref = p["median_u"]  # digits from the units' typical uncertainty
-            f = [format_value(p[k], ref)[0] for k in ("mean", "min", "max")]
-            sd = format_value(p["sd"], ref)[0] if p["sd"] == p["sd"] else "n/a"
-            lines.append(f"  {name:<32} {p['unit']:<14} {p['n']:>3} {f[0]:>12} {sd:>10} {f[1]:>12} {f[2]:>12}")
-        for fl in s["failed"]:
-            lines.append(f"  FAILED {fl['recording']}: {fl['error']}")
-    return "\n".join(lines)
-
-
-def plot_summary(results: list[dict[str, Any]], lots: dict[str, str], out: Path, spec: Any) -> Path | None:
-    """Each specified (or the first 12) parameter across units, per lot: value with its 95 %
-    interval, and the spec's limits."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return None
-    series: dict[str, list[tuple[str, int, float, float, float, Any]]] = {}
-    for i, r in enumerate(x for x in results if x["ok"]):
-        for kind, payload in r["results"].items():
-            for m in production.measured(kind, payload):
-                d = m.display
-                lo, hi = m.interval
-                series.setdefault(d.base, []).append((lots[r["recording"]], i, d.value(m.value),
-                                                      d.value(lo), d.value(hi), d))
-    names = [n for n in series if spec is None or spec.limit_for(n) is not None][:12] if series else []
-    if not names:
-        return None
-    ncol = 3
-    nrow = -(-len(names) // ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(11, 2.6 * nrow), squeeze=False)
-    for ax, name in zip(axes.flat, names):
-        pts = series[name]
-        d = pts[0][5]
-        for lot in sorted({p[0] for p in pts}):
-            sel = [p for p in pts if p[0] == lot]
-            x = [p[1] for p in sel]
-            y = [p[2] for p in sel]
-            err = [[p[2] - p[3] for p in sel], [p[4] - p[2] for p in sel]]
-            ax.errorbar(x, y, yerr=err, fmt="o", ms=3, lw=0.8, label=f"lot {lot}")
-        lim = spec.limit_for(name) if spec is not None else None
-        if lim is not None:
-            for v in lim.si(d):
-                if v is not None:
-                    ax.axhline(d.value(v), color="tab:red", lw=0.8, ls="--")
-        ax.set_title(name, fontsize=8)
-        ax.set_ylabel(f"[{d.unit}]", fontsize=8)
-        ax.set_xlabel("recording", fontsize=7)
-        ax.tick_params(labelsize=7)
-        ax.grid(True, lw=0.3)
-    for ax in list(axes.flat)[len(names):]:
-        ax.set_visible(False)
-    axes.flat[0].legend(fontsize=6)
-    fig.suptitle("Parameters across units (95 % intervals; dashed: spec limits)", fontsize=10)
-    fig.tight_layout()
-    path = out / "batch.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,28 +66,16 @@ def run(args: argparse.Namespace) -> int:
         raise RunFailure(f"cannot reach the scheduler ({exc})") from exc
     wall = time.perf_counter() - t0
     lots = {r: (args.lot or B.lot_of(r)) for r in recs}
-    db_line = ""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
-
-    home = Path(os.path.commonpath([str(db.default_path(r).parent) for r in recs]))
-    if args.db != "none":
-        target = args.db or str(home / db.DEFAULT_NAME)
-        engine = db.open_db(target)
-        try:
-            for r in results:
-                for kind, payload in r["results"].items():
-                    db_line = production.to_database(r["recording"], kind, payload, target,
-                                                     lot=lots[r["recording"]], engine=engine)
-        finally:
-            engine.dispose()
+    home = B.database_home(recs)
+    db_line = B.store_in_database(results, lots, args.db, home)
     summary = B.summarise(results, lots)
     out = Path(args.out) if args.out else home / f"batch-{utc_now()[:19].replace(':', '')}"
     out.mkdir(parents=True, exist_ok=True)
-    text = summary_text(summary)
+    text = B.summary_text(summary)
     (out / "summary.txt").write_text(text + "\n", encoding="utf-8")
     (out / "summary.json").write_text(json.dumps({"recordings": recs, "wall_s": wall, "summary": summary},
                                                  indent=1, default=str), encoding="utf-8")
-    png = plot_summary(results, lots, out, spec)
+    png = plot_batch_summary(results, lots, out, spec)
     print(text)
     print(f"{sum(r['ok'] for r in results)} of {len(recs)} analysed in {wall:.1f} s; summary: {out}"
           + (f", plot {png.name}" if png else ""))

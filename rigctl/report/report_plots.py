@@ -14,6 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from ..analysis.allan import DEV_UNITS
+from ..analysis.allan_drift import plot_extras
+from ..analysis.production import measured
+from ..jsonable import jsonable
 from .report import RunData, find_session
 from .report_allan import allan_curves
 
@@ -328,6 +332,76 @@ def plot_allan(data: RunData, out: Path, log: Callable[..., None] | None = None)
                         f"{name} ({cv['sensor']}){' - quick curve' if cv.get('quick') else ''}",
                         cv.get("lo68"), cv.get("hi68"), cv.get("lo95"), cv.get("hi95"))
     return _save(fig, out / "allan.png")
+
+
+def plot_allan_result(result: dict[str, Any], out_path: str | Path) -> None:
+    """``rigctl allan --plot FILE``: one log-log plot per axis of a fresh Allan result
+    (rigctl.analysis.allan.compute; :func:`draw_allan_axis`: 68 % bars, 95 % band, slope guides,
+    fitted terms and bounds, fitted total, taus where the fit leaves the band)."""
+    plt = _plt()
+    axes = list(result["axes"].items())
+    fig, subs = plt.subplots(len(axes), 1, figsize=(7, 3.4 * len(axes)), squeeze=False)
+    for ax, (name, r) in zip(subs[:, 0], axes):
+        unit, fac = DEV_UNITS[r["sensor"]]
+        draw_allan_axis(ax, r["tau_s"], r[f"adev_{unit}"], jsonable(r["fit"], keep_nonfinite=True),
+                        r["sensor"], unit, fac,
+                        f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
+                        r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
+    fig.tight_layout()
+    fig.savefig(out_path, dpi=120)
+    plt.close(fig)
+
+
+def plot_batch_summary(results: list[dict[str, Any]], lots: dict[str, str], out: Path, spec: Any) -> Path | None:
+    """``rigctl batch``: each specified (or the first 12) parameter across units, per lot: value
+    with its 95 % interval, and the spec's limits; batch.png in ``out``. None without
+    matplotlib or without a parameter to draw."""
+    try:
+        plt = _plt()
+    except ImportError:
+        return None
+    series: dict[str, list[tuple[str, int, float, float, float, Any]]] = {}
+    for i, r in enumerate(x for x in results if x["ok"]):
+        for kind, payload in r["results"].items():
+            for m in measured(kind, payload):
+                d = m.display
+                lo, hi = m.interval
+                series.setdefault(d.base, []).append((lots[r["recording"]], i, d.value(m.value),
+                                                      d.value(lo), d.value(hi), d))
+    names = [n for n in series if spec is None or spec.limit_for(n) is not None][:12] if series else []
+    if not names:
+        return None
+    ncol = 3
+    nrow = -(-len(names) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(11, 2.6 * nrow), squeeze=False)
+    for ax, name in zip(axes.flat, names):
+        pts = series[name]
+        d = pts[0][5]
+        for lot in sorted({p[0] for p in pts}):
+            sel = [p for p in pts if p[0] == lot]
+            x = [p[1] for p in sel]
+            y = [p[2] for p in sel]
+            err = [[p[2] - p[3] for p in sel], [p[4] - p[2] for p in sel]]
+            ax.errorbar(x, y, yerr=err, fmt="o", ms=3, lw=0.8, label=f"lot {lot}")
+        lim = spec.limit_for(name) if spec is not None else None
+        if lim is not None:
+            for v in lim.si(d):
+                if v is not None:
+                    ax.axhline(d.value(v), color="tab:red", lw=0.8, ls="--")
+        ax.set_title(name, fontsize=8)
+        ax.set_ylabel(f"[{d.unit}]", fontsize=8)
+        ax.set_xlabel("recording", fontsize=7)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, lw=0.3)
+    for ax in list(axes.flat)[len(names):]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=6)
+    fig.suptitle("Parameters across units (95 % intervals; dashed: spec limits)", fontsize=10)
+    fig.tight_layout()
+    path = out / "batch.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
 
 
 def _sync_errors_ms(arr: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 
 import numpy as np
 
@@ -155,3 +156,119 @@ def combine(cov_terms: dict, coeff_sq: dict) -> np.ndarray:
         part = f * cov_terms[(t, u)]
         total = part if total is None else total + part
     return total
+
+
+# --- gaps skipped (Stable32): the pooled estimator of independent gap-free stretches --------
+#: pairs of factors whose lag range holds at most this many integer lags are summed exactly
+#: (gapped records: the range is bounded by the longest stretch, so short stretches are exact)
+GAPPED_DISCRETE_LAGS = 4096
+
+
+def gapped_term_covariances(tau0: float, ms: np.ndarray, stretch_samples: np.ndarray) -> dict:
+    """:func:`term_covariances` for the estimate that skips gaps: the terms of every gap-free
+    stretch (L_s samples, P_s = L_s + 1 phase points, n_s(m) = max(0, P_s - 2m) terms) pooled,
+    s2(m) = sum_s sum_i D_{s,m}[i]^2 / (2 tau^2 N(m)), N(m) = sum_s n_s(m). With the stretches
+    independent (exact for Q, N, K, whose second differences over disjoint spans are; flicker's
+    correlation across a gap is neglected, as in the EDF)::
+
+        Cov(s2(a), s2(b)) = 2 sum_k R_ab(k)^2 W_ab(k) / (4 tau_a^2 tau_b^2 N(a) N(b)),
+        W_ab(k) = sum_s w(n_s(a), n_s(b), k)
+
+    R_ab is the same as for one record (it does not depend on the length), so the stretches
+    enter through the summed pair-count W only: exactly sum_s n_s(a) n_s(b) Cov_s(a, b) / (N(a)
+    N(b)) with Cov_s that of stretch s alone, at the cost of one record of the longest stretch's
+    lag range. W is piecewise linear with 4 kinks per distinct length, evaluated exactly
+    (np.interp on its values at the kinks). A pair is summed over integer lags where
+    m_a + m_b <= DISCRETE_MAX or its lag range holds at most GAPPED_DISCRETE_LAGS lags, else
+    integrated with Gauss-Legendre between the kinks of R and W. One stretch: identical to
+    :func:`term_covariances` (it is called)."""
+    st = np.asarray(stretch_samples, dtype=np.int64)
+    st = st[st > 0]
+    lengths, counts = np.unique(st, return_counts=True)
+    if lengths.size == 1 and counts[0] == 1:
+        return term_covariances(tau0, ms, int(lengths[0]) + 1)
+    # the axes of a sensor are fitted on threads at once and share this matrix: one computes
+    # it, the others wait for the cache (it holds the GIL nearly throughout anyway)
+    with _GAPPED_LOCK:
+        return _gapped_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(),
+                              lengths.tobytes(), counts.tobytes())
+
+
+_GAPPED_LOCK = threading.Lock()
+
+
+@functools.lru_cache(maxsize=8)
+def _gapped_cached(tau0: float, ms_key: bytes, len_key: bytes, cnt_key: bytes) -> dict:
+    out = _gapped(tau0, np.frombuffer(ms_key, dtype=float),
+                  np.frombuffer(len_key, dtype=np.int64), np.frombuffer(cnt_key, dtype=np.int64))
+    for c in out.values():
+        c.setflags(write=False)
+    return out
+
+
+def _w_knots(na: np.ndarray, nb: np.ndarray, cnt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """W(k) = sum_s cnt_s w(na_s, nb_s, k) (stretches with terms at both factors) as its
+    kinks and its values there; zero outside."""
+    use = (na > 0) & (nb > 0)
+    na, nb, c = na[use], nb[use], cnt[use].astype(float)
+    if na.size == 0:
+        return np.zeros(2), np.zeros(2)
+    d = nb - na
+    # w = relu(k + na) - relu(k - min(0, d)) - relu(k - max(0, d)) + relu(k - nb)
+    kn = np.concatenate([-na, np.minimum(0.0, d), np.maximum(0.0, d), nb])
+    sl = np.concatenate([c, -c, -c, c])
+    o = np.argsort(kn, kind="stable")
+    kn, sl = kn[o], sl[o]
+    slope = np.cumsum(sl)  # slope right of each kink
+    val = np.zeros(kn.size)
+    val[1:] = np.cumsum(slope[:-1] * np.diff(kn))
+    return kn, val
+
+
+def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray) -> dict:
+    ms = np.asarray(ms, dtype=float)
+    n = ms.size
+    phase = lengths.astype(float) + 1.0
+    n_s = np.maximum(0.0, phase[None, :] - 2.0 * ms[:, None])  # terms per stretch, per factor
+    big_n = n_s @ counts.astype(float)
+    tau = ms * tau0
+    out = {p: np.zeros((n, n)) for p in PAIRS}
+    for a in range(n):
+        for b in range(a, n):
+            if big_n[a] <= 0 or big_n[b] <= 0:
+                continue
+            kn, val = _w_knots(n_s[a], n_s[b], counts)
+            ma, mb = ms[a], ms[b]
+            s = ma + mb
+            lo, hi = -2.0 * mb, 2.0 * ma  # the taps' range: R's support (+ flicker's tail)
+            k_lo, k_hi = max(lo - 16.0 * s, kn[0]), min(hi + 16.0 * s, kn[-1])
+            if k_hi <= k_lo:
+                continue
+            if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
+                k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
+                w = np.interp(k, kn, val)
+                r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
+                for t, u in PAIRS:
+                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
+                continue
+            taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
+            geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+            bp = np.concatenate([[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn])
+            bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
+            half = 0.5 * np.diff(bp)
+            mid = 0.5 * (bp[1:] + bp[:-1])
+            k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
+            wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
+            r = {t: _r_lags(t, ma, mb, k, tau0) for t in ("N", "B", "K")}
+            for t, u in PAIRS:
+                if t == "Q" or u == "Q":
+                    continue
+                out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
+    norm[~np.isfinite(norm)] = 0.0
+    for p in PAIRS:
+        c = out[p]
+        c = c + np.triu(c, 1).T
+        out[p] = c * norm
+    return out

@@ -394,8 +394,15 @@ def _thin(n: int, max_taus: int) -> np.ndarray:
 def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
-              select: bool = True, tones: list[dict] | None = None) -> dict:
+              select: bool = True, tones: list[dict] | None = None,
+              stretch_samples: np.ndarray | None = None) -> dict:
     """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded).
+
+    ``stretch_samples`` (with ``tau0``): the lengths (samples) of the gap-free stretches when
+    the deviations pool the terms of several (gaps skipped, Stable32). The covariance across
+    taus is then that of the pooled estimate
+    (:func:`rigctl.solvers.allan_cov.gapped_term_covariances`), not that of one record of
+    ``n_phase`` points; ``n_phase`` still gives the capture's length (Cramer-Rao figures).
 
     ``tones`` (needs ``tau0``): periodic components found before the fit (dicts with freq_hz
     and amp_si, :func:`rigctl.solvers.allan_tones.detect_tones`). Each adds the known term
@@ -409,7 +416,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
     with blas_single_thread():
         if not tones:
             return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus,
-                              iterations, select)
+                              iterations, select, stretch_samples)
         if tau0 is None:
             raise ValueError("a tone term needs tau0")
         tau = np.asarray(tau, dtype=float)
@@ -421,7 +428,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
             share = np.where(s2 > 0, tone2 / s2, 0.0)
         adev_rest = np.where(rest > 0, np.sqrt(np.maximum(rest, 0.0)), np.nan)
         out = _fit_terms(tau, adev_rest, edf, sensor, terms, tau0, n_phase, max_taus,
-                         iterations, select)
+                         iterations, select, stretch_samples)
         i = int(np.nanargmax(share)) if share.size else 0
         out["tones"] = {"terms": [dict(t) for t in tones], "tau0_s": float(tau0),
                         "max_share": float(share[i]) if share.size else 0.0,
@@ -433,7 +440,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
 def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
                terms: tuple[str, ...] = TERMS, tau0: float | None = None,
                n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
-               select: bool = True) -> dict:
+               select: bool = True, stretch_samples: np.ndarray | None = None) -> dict:
     """Joint generalized least-squares fit of the IEEE 952 terms. See the module docstring.
 
     tau in s, adev in SI rate units, edf per tau (Greenhall, used for the first pass and
@@ -455,7 +462,11 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     keep = _thin(tau.size, max_taus)
     tau, s2, e = tau[keep], s2[keep], e[keep]
     cov_terms = None
-    if tau0 is not None and n_phase is not None:
+    if tau0 is not None and stretch_samples is not None and len(stretch_samples) > 1:
+        # gaps skipped: the pooled estimate of independent gap-free stretches
+        ms = np.maximum(1, np.round(tau / tau0)).astype(np.int64)
+        cov_terms = C.gapped_term_covariances(tau0, ms, np.asarray(stretch_samples))
+    elif tau0 is not None and n_phase is not None:
         ms = np.maximum(1, np.round(tau / tau0)).astype(np.int64)
         cov_terms = C.term_covariances(tau0, ms, int(n_phase))
     full_a = design_matrix(tau)

@@ -463,6 +463,46 @@ if HAVE_NUMBA:
             x0[2] = o2[n - 1]
 
     @njit(cache=True, nogil=True)
+    def _running_median(y, w, out):  # pragma: no cover - compiled
+        """out[i] = the median of y[i - w//2 .. i + w//2] (odd w; indices clipped to the
+        ends: scipy.ndimage's mode "nearest"), from a sorted copy of the window: each step
+        takes the value leaving out and puts the one entering in its place (their places
+        are counts of smaller values, branch-free over the window; the values between
+        move by one). Returns False at the first non-finite value (the sorted order would
+        not hold; the caller falls back)."""
+        n = y.size
+        h = w // 2
+        buf = np.empty(w)
+        for j in range(w):
+            v = y[min(max(j - h, 0), n - 1)]
+            if not np.isfinite(v):
+                return False
+            buf[j] = v
+        buf.sort()
+        out[0] = buf[h]
+        for i in range(1, n):
+            old = y[min(max(i - 1 - h, 0), n - 1)]
+            new = y[min(i + h, n - 1)]
+            if not np.isfinite(new):
+                return False
+            if new != old:
+                p = 0  # the first place holding old
+                q = 0  # values below new (old among them when new > old)
+                for j in range(w):
+                    p += buf[j] < old
+                    q += buf[j] < new
+                if new > old:
+                    for j in range(p, q - 1):
+                        buf[j] = buf[j + 1]
+                    buf[q - 1] = new
+                else:
+                    for j in range(p, q, -1):
+                        buf[j] = buf[j - 1]
+                    buf[q] = new
+            out[i] = buf[h]
+        return True
+
+    @njit(cache=True, nogil=True)
     def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
         """Riley & Greenhall's lag-1 noise identification on x[::m]: the same steps as
         allan_noise_id.noise_id_lag1 (mean removed, r1, delta = r1 / (1 + r1), differenced
@@ -659,6 +699,19 @@ def counter_jumps(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     out_d = np.empty_like(out_i)
     k = _jumps(c, out_i, out_d) if c.size > 1 else 0
     return out_i[:k].copy(), out_d[:k].copy()
+
+
+def running_median(y: np.ndarray, w: int) -> np.ndarray | None:
+    """The running median of ``w`` samples (odd w) with the ends' values repeated, as
+    ``scipy.ndimage.median_filter(y, size=w, mode="nearest")`` gives it (the same order
+    statistic of the same window, so the same values), compiled without the GIL (scipy's
+    holds it for the whole filter: six axes' first chunks ran one at a time). None without
+    numba, for an even or too-long window, or when y holds a non-finite value."""
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    if not HAVE_NUMBA or w % 2 == 0 or w < 1 or y.size == 0:
+        return None
+    out = np.empty_like(y)
+    return out if _running_median(y, int(w), out) else None
 
 
 def lag1_alpha(x: np.ndarray, m: int, dmax: int) -> int:

@@ -1,0 +1,74 @@
+"""Presentation of an Allan result as text: the per-axis table ``rigctl allan`` prints.
+
+The pipeline is :mod:`rigctl.analysis.allan`; field units and their spellings come from
+:mod:`rigctl.solvers.noise_coefficients` and :mod:`rigctl.display_units`.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from ..display_units import need_text
+from ..solvers import allan_fit as F
+from ..solvers import noise_coefficients as NC
+from .allan import check_notes, check_warnings, screening_notes
+
+
+def format_table(axis: str, r: dict[str, Any]) -> str:
+    """Human-readable table of one axis plus its fitted terms."""
+    unit = r["_unit"]
+    lines = [f"== {axis} ({r['sensor']}, {r['n_samples']} samples, {r['mode']} mode)",
+             f"{'tau_s':>12} {'adev_' + unit:>14} {'lo68':>12} {'hi68':>12} "
+             f"{'alpha':>5} {'edf':>10}"]
+    for i in range(len(r["tau_s"])):
+        lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
+                     f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
+                     f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
+    lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
+    co = NC.as_coefficients(r["fit"]["coefficients"])
+    for t, e in r["fit"]["terms"].items():
+        c, unit_f = NC.in_field_units(co, t)
+        need = need_text(e, c.resolved)
+        if c.resolved:
+            lo, hi = c.ci95
+            more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
+                    f"(Cramer-Rao); {need})")
+            lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
+        else:
+            more = "" if not need else f"; {need}"
+            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+            lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
+                         f"({what}; not supported by the data{more})")
+    fit_line = goodness_line(r["fit"].get("check") or {})
+    if fit_line:
+        lines.append(fit_line)
+    pw = r["piecewise"]["terms"]
+    parts = []
+    for t in ("N", "B", "K"):
+        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        v = pw[t][f"value_{unit_f}"]
+        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
+    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
+    warns, notes = screening_notes(r)
+    lines += [f"note: {t}" for t in notes + check_notes(r)]
+    for w in warns + check_warnings(r):
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def goodness_line(check: dict[str, Any]) -> str:
+    """The joint fit's chi-square as one line: the reported terms against the deviations with
+    their covariance across taus (that of the gap-free stretches when gaps were skipped),
+    without the model error. Beyond its 99 % point it says so, whatever the self-check's
+    verdict on the individual taus (the curve can stay within every tau's band while the taus
+    together rule the model out)."""
+    if "chi2" not in check:
+        return ""
+    p = check["p_value"]
+    text = f"goodness of fit: chi-square {check['chi2']:.4g} on {check['dof']} dof (p = {p:.2g})"
+    eps = check.get("model_error_rel", 0.0)
+    if p < F.MODEL_ERROR_P:
+        text += ("; beyond its 99 % point: the IEEE 952 terms do not describe this curve "
+                 "within its statistics")
+        if eps > 0:
+            text += f" (a model error of {100 * eps:.2g} % of sigma^2 was added to the weights)"
+    return text
