@@ -22,7 +22,9 @@ Model selection (backward elimination): a term is kept only if its estimate is s
 fitted sigma^2 at some tau (``MIN_SHARE``; a smaller share is within the model's own
 idealisation error, e.g. filters and the edges of the flicker band, and is what produced
 spurious quantization terms). The weakest failing term is dropped and the rest refitted until
-all pass. A dropped term is reported as a one-sided 95 % upper bound, sqrt(max(p_j, 0) +
+all pass. B must in addition pass its presence test (:func:`b_presence_test`: a likelihood
+ratio at B_TEST_ALPHA = 2.5 % with every other shape and a low-pass's own 1/tau^2 term
+present); a B that does not goes first. A dropped term is reported as a one-sided 95 % upper bound, sqrt(max(p_j, 0) +
 1.645 sd_j) from the fit with it restored (unconstrained). Parameter covariance:
 (A^T Sigma^-1 A)^-1, inflated by the reduced chi-square when > 1. Intervals of a kept term:
 chi-square with nu = 2 p_j^2 / sd_j^2 degrees of freedom (Satterthwaite), the same form as the
@@ -672,7 +674,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         out_terms[t] = entry
     if tau0 is not None and n_phase is not None:
         _add_crb(out_terms, coefs, float(tau0), int(n_phase))
-    check = self_check(tau_all, np.sqrt(s2_all), e_all, coeff_sq)
+    check = self_check(tau_all, np.sqrt(s2_all), e_all, coeff_sq, m_eff)
     # the goodness of fit of the model as reported (the supported terms only, statistical
     # covariance): the terms dropped as bounds are not in the total the check compares, so
     # the statistic must not be that of the fit with them (seen: a B pinned at the curve's
@@ -699,7 +701,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # the fit passes when no informative tau is off, or when the reported model describes the
     # curve as a whole (statistical chi-square within its 99 % point: a few of ~70 taus
     # outside a 95 % band are then chance, and are still listed)
-    check["ok"] = check["n_outside"] == 0 or p_value >= MODEL_ERROR_P
+    # outside: against the family-wise band (self_check), so that a pure-noise curve fails
+    # at the design rate CHECK_ALPHA (at most) whether its taus are octave-spaced or dense
+    check["ok"] = check["n_outside_familywise"] == 0 or p_value >= MODEL_ERROR_P
     return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
                       "sigma^2 estimates across taus)" if cov_terms is not None else
                       "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
@@ -902,14 +906,31 @@ INFORMATIVE_RATIO = 2.0
 DEPARTURE_REL = 0.10
 
 
-def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dict) -> dict:
+#: design false-alarm rate of the self-check on a curve the model describes: the chance that
+#: the fitted total leaves the band (by more than DEPARTURE_REL) at *any* informative tau
+CHECK_ALPHA = 0.05
+
+
+def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dict,
+               m_eff: float | None = None) -> dict:
     """Does the fitted total follow the curve? At every tau whose 95 % chi-square band
     (EDF) is informative (hi/lo <= INFORMATIVE_RATIO), the fitted sigma must lie in the band.
     Returns {"ok", "n_informative", "n_outside", "outside": runs of consecutive taus outside
     the band with the side ("data above"/"data below" the fit), the largest ratio data/fit,
     and the likely reason (a feature outside IEEE 952)}. A tau counts as outside when the fit
     leaves its band and misses the deviation by more than DEPARTURE_REL; ``n_outside_band``
-    counts every informative tau outside the band."""
+    counts every informative tau outside the band.
+
+    Those runs are read against each tau's own (pointwise) 95 % band, so their number grows
+    with the density of the taus: on pure noise some informative tau of ``--taus all`` is
+    outside it far more often than one of ``--taus octave``. Whether the check *fails* is
+    therefore decided on the family-wise band: two-sided, simultaneous over the informative
+    taus at CHECK_ALPHA (Sidak over ``m_eff`` independent estimates, the effective number of
+    the informative taus from the correlation of their estimates, :func:`_effective_taus`;
+    without it, the number of informative taus, as if independent). ``n_outside_familywise``
+    counts the informative taus outside that band by more than DEPARTURE_REL (and
+    ``n_outside_familywise_band`` every one outside it): on a curve the model describes the
+    latter is 0 in 1 - CHECK_ALPHA of captures, at any tau density."""
     tau = np.asarray(tau, dtype=float)
     dev = np.asarray(adev, dtype=float)
     e = np.asarray(edf, dtype=float)
@@ -957,7 +978,19 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
         else:
             i += 1
     n_out = int(np.count_nonzero(above | below))
-    return {"ok": n_out == 0, "n_informative": int(np.count_nonzero(informative)),
+    n_inf = int(np.count_nonzero(informative))
+    m = float(m_eff) if m_eff is not None and m_eff >= 1 else float(max(n_inf, 1))
+    q_fw = -math.expm1(math.log1p(-CHECK_ALPHA) / m)  # per tau, both tails together
+    qf = chi2.ppf([1.0 - q_fw / 2.0, q_fw / 2.0], e[:, None]).T
+    lo_fw, hi_fw = dev * np.sqrt(e / qf[0]), dev * np.sqrt(e / qf[1])
+    fw_band = informative & ((fit < lo_fw) | (fit > hi_fw))
+    fw = fw_band & (((fit < lo_fw) & (dev > (1.0 + DEPARTURE_REL) * fit))
+                    | ((fit > hi_fw) & (dev < (1.0 - DEPARTURE_REL) * fit)))
+    return {"ok": n_out == 0, "n_informative": n_inf,
+            "n_outside_familywise": int(np.count_nonzero(fw)),
+            "n_outside_familywise_band": int(np.count_nonzero(fw_band)),
+            "familywise_alpha": CHECK_ALPHA,
+            "m_eff": m,
             "n_outside": n_out, "outside": runs, "outside_small": small_runs,
             "band": "95 % chi-square (EDF)",
             "n_outside_band": int(np.count_nonzero(strict_above | strict_below)),
