@@ -144,6 +144,40 @@ def wait_until(pred, timeout: float, what: str, poll: float = 0.005):
         time.sleep(poll)
 
 
+def wait_progress(pred, progress, what: str, stall_s: float = 30.0, poll: float = 0.01):
+    """Poll ``pred()`` until it returns something truthy, as long as ``progress()`` (a count
+    that grows while the work goes on: frames sent, frames decoded, rig seconds computed) keeps
+    changing; AssertionError naming ``what`` once it has not changed for ``stall_s`` wall
+    seconds. A deadline that scales with the machine's speed: a loaded machine gets there
+    later, a stuck one still fails."""
+    last, since = progress(), time.monotonic()
+    while True:
+        v = pred()
+        if v:
+            return v
+        now = progress()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since > stall_s:
+            raise AssertionError(f"no progress for {stall_s:g} s waiting for {what} (at {last})")
+        time.sleep(poll)
+
+
+def affordable_speed(cfg, tmp: Path, want: float, **kw: Any) -> float:
+    """The speed (x real time, at most ``want``) at which the emulator's physics for ``cfg``
+    keeps up on this machine now: throwaway hardware at ``want`` (``kw``: start_hardware's) is
+    timed over 1 s of wall time after its first chunk; 70 % of the rig seconds it computed per
+    wall second, or ``want`` when it kept up. A test that needs the stream to flow picks its speed
+    with it (on an idle machine ``want``; under load lower, so the test takes longer instead of
+    starving its stream)."""
+    with start_hardware(cfg, want, link_dir=tmp / "probe-ports", **kw) as hw:
+        wait_progress(lambda: hw.table._t() > 0, lambda: 0, "the emulator's first physics chunk", 60.0)
+        t0, w0 = time.monotonic(), hw.table._t()
+        time.sleep(1.0)
+        rate = (hw.table._t() - w0) / (time.monotonic() - t0)
+    return want if rate >= 0.9 * want else max(1.0, 0.7 * rate)
+
+
 def commands_since(hw, t0: float) -> list[tuple[float, str]]:
     """ACL request lines the emulated controller received since wall time ``t0``."""
     return [(t, line) for t, line in list(hw.acl.core.received) if t >= t0]

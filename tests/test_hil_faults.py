@@ -18,39 +18,51 @@ from rigctl.drivers.xsens import RateDoesNotFitError
 from rigctl.drivers.xsens_imu import XsensConfigError, XsensImu
 from rigctl.sim.hardware import start_hardware
 
-from hil_support import hardware, segments, sim_config, wired_run
+from hil_support import affordable_speed, hardware, segments, sim_config, wait_progress, wired_run
 
 
 def test_imu_byte_errors_1e6_frames_through_the_driver(tmp_path):
     """1e6 MTData2 frames at 2 kHz over a pty, 100x real time (500 s of rig time in ~6 s), byte
     errors at 1e-4: no crash, no bytes dropped on the pty, and the driver counts the frames hit
-    (all of them, bar hit frames whose 8-bit checksum still adds up -- undetectable by design)."""
+    (all of them, bar hit frames whose 8-bit checksum still adds up -- undetectable by design).
+    On a loaded machine the emulator runs slower (affordable_speed: as fast as its physics keeps
+    up) and the waits last as long as frames keep coming (wait_progress)."""
     cfg, _ = sim_config(tmp_path, rate_hz=2000)
     n_frames = 1_000_000
-    with start_hardware(cfg, 100.0, link_dir=tmp_path / "ports", imu_baudrate=4_000_000, tick_s=0.02) as hw:
-        imu = XsensImu(hw.endpoints["imu_xsens_pty"], 2000, ScaledClock(100.0), baudrate=4_000_000,
+    hw_kw = {"imu_baudrate": 4_000_000, "tick_s": 0.02}
+    speed = affordable_speed(cfg, tmp_path, 100.0, **hw_kw)
+    with start_hardware(cfg, speed, link_dir=tmp_path / "ports", **hw_kw) as hw:
+        # a start-up stall of the physics is behind it before the device starts measuring (its
+        # frames are due from then on, and come only once the physics has reached it)
+        wait_progress(lambda: hw.lag_s < 0.1 * speed, lambda: hw.table._t(), "the physics to reach the clock")
+        imu = XsensImu(hw.endpoints["imu_xsens_pty"], 2000, ScaledClock(speed), baudrate=4_000_000,
                        align_wait_s=0.0)
         imu.connect()
         try:
+            rows = 0
+
+            def read() -> dict:
+                nonlocal rows
+                rows += len(imu.read())
+                return imu.counters
+
+            def decoded() -> int:
+                c = imu.counters
+                return c["frames"] + c["bad_frames"] + c["truncated_frames"]
+
             hw.set_imu_byte_errors(1e-4, seed=11)
             f0 = hw.xsens.frames_sent
-            rows = 0
-            deadline = time.monotonic() + 60
-            while hw.xsens.frames_sent - f0 < n_frames and time.monotonic() < deadline:
-                time.sleep(0.01)
-                rows += len(imu.read())
+            wait_progress(lambda: read() and hw.xsens.frames_sent - f0 >= n_frames,
+                          lambda: (hw.xsens.frames_sent, decoded()), f"{n_frames} frames sent")
             hw.set_imu_byte_errors(0.0)
             sent = hw.xsens.frames_sent
-            c = imu.counters
-            while c["frames"] + c["bad_frames"] + c["truncated_frames"] < sent + 100 and time.monotonic() < deadline:
-                time.sleep(0.01)
-                rows += len(imu.read())
-                c = imu.counters
+            wait_progress(lambda: read() and decoded() >= sent + 100, decoded, "the driver to catch up")
             with hw.xsens._lock:
                 hw.xsens.state = "config"                       # stop the stream (side channel)
-            time.sleep(0.3)
-            rows += len(imu.read())
-            c = imu.counters
+            final = hw.xsens.frames_sent
+            # every frame sent is decoded (or counted lost) and handed out
+            wait_progress(lambda: read() and decoded() >= final, decoded, "the last frames")
+            c = read()
             assert sent - f0 >= n_frames
             hit, invisible = hw.xsens.frames_hit, hw.xsens.frames_hit_undetectable
             assert hit > 4000                                   # ~61 bytes x 1e6 x 1e-4 = 6100 errors

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
@@ -58,6 +59,10 @@ FUSED = True
 #: the noise IDs read from the full-resolution head are taken while the rest of the record
 #: streams (False: all of them in the analysis after the last chunk; the same values)
 EARLY_NOISE_ID = True
+#: each dataset's chunks follow each other as soon as its own tasks are done (a chain per
+#: dataset, :func:`_pipelined`) instead of every dataset waiting for the slowest at the end of
+#: each chunk (False: the loop with that barrier; the same numbers)
+PIPELINED = True
 #: with them (same task), the tone detection's periodogram of the head (TONE_POINTS samples
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
@@ -98,6 +103,7 @@ class _AxisStream:
         self.n_rate = 0
         self.quant_step: float | None = None  # output step, from the first block
         self.spike_sigma: float | None = None  # robust sd of the residual, from the first block
+        self.spike_basis = ""  # what that sd was read from (CHK.spike_scale)
         self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
         self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
 
@@ -108,7 +114,7 @@ class _AxisStream:
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
         if self.spike_sigma is None:  # the first block sets sigma (running median of all)
-            idx, med, sd = CHK.find_spikes(y, None)
+            idx, med, sd, self.spike_basis = CHK.find_spikes_scaled(y, None, step=self.quant_step)
             med = med[idx]
             self.spike_sigma = sd
         else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
@@ -304,7 +310,7 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
     size = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
     spikes = {"count": int(idx.size), "fraction": idx.size / max(stream.n_rate, 1),
               "threshold_sd": CHK.SPIKE_SIGMA, "window_samples": CHK.SPIKE_WINDOW,
-              "sd_si": stream.spike_sigma, "excluded": bool(excluded and idx.size),
+              "sd_si": stream.spike_sigma, "sd_from": stream.spike_basis, "excluded": bool(excluded and idx.size),
               "largest_sd": float(size.max()) if size.size else 0.0,
               "first_times_s": [float(i * tau0) for i in idx[:10]]}
     quant = None
@@ -463,7 +469,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             sample_range: tuple[int, int] | None = None,
             progress_stream: Any = None, outliers: str = "report",
             gaps: str = "skip", warmup: str = "report",
-            temperature: str = "report") -> dict[str, Any]:
+            temperature: str = "report",
+            when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -472,14 +479,16 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     ``warmup`` says which mode ran. Never silent: the cut is in the result and the text.
     With ``temperature="remove"``, the axes whose slow part follows the recorded temperature
     (each axis' ``temperature``) are analysed once more with that term subtracted from their
-    samples (:func:`_without_temperature`)."""
+    samples (:func:`_without_temperature`). ``when_streaming``: called once the first chunk
+    of the record is done and the rest streams (the caller's Python work that holds the GIL,
+    e.g. an import, then runs beside compiled sums instead of before the first chunk)."""
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
         raise InputError(f"temperature={temperature!r}: choose from "
                          f"{', '.join(AD.TEMPERATURE_MODES)}")
     out = _with_warmup(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
-                       warmup)
+                       warmup, when_streaming)
     out["temperature"] = temperature
     if temperature == "remove":
         out = _without_temperature(out, path, axes, taus, exact, progress_stream, outliers, gaps)
@@ -516,9 +525,11 @@ def _without_temperature(out: dict[str, Any], path: str, axes: list[str], taus: 
 
 def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
                  sample_range: tuple[int, int] | None, progress_stream: Any, outliers: str,
-                 gaps: str, warmup: str) -> dict[str, Any]:
+                 gaps: str, warmup: str,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"`` once more after the cut."""
-    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps)
+    out = compute_once(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
+                       when_streaming=when_streaming)
     out["warmup"] = "report"
     if warmup != "exclude":
         return out
@@ -552,7 +563,8 @@ def _with_warmup(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
 def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = False,
                  sample_range: tuple[int, int] | None = None,
                  progress_stream: Any = None, outliers: str = "report",
-                 gaps: str = "skip", corrections: dict | None = None) -> dict[str, Any]:
+                 gaps: str = "skip", corrections: dict | None = None,
+                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -598,7 +610,8 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                 readers = made.result()
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
-                                     progress_stream, outliers, gaps, corrections, counter)
+                                     progress_stream, outliers, gaps, corrections, counter,
+                                     when_streaming)
         finally:
             for r in readers.values():
                 r.close()
@@ -633,7 +646,8 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
                       corrections: dict | None = None,
-                      counter: RowReader | None = None) -> dict[str, Any]:
+                      counter: RowReader | None = None,
+                      when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
     the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
     from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
@@ -685,7 +699,7 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     with ThreadPoolExecutor(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
                        outliers == "exclude", breaks, corrections,
-                       (counter, found, gaps == "skip") if streamed else None)
+                       (counter, found, gaps == "skip") if streamed else None, when_streaming)
         shown.finish()
         if streamed:
             missing = sum(m for _, m in found)
@@ -718,7 +732,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None,
                    corrections: dict | None = None,
-                   scan: tuple[RowReader, list, bool] | None = None) -> None:
+                   scan: tuple[RowReader, list, bool] | None = None,
+                   when_streaming: Callable[[], Any] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -825,8 +840,14 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         return tasks
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    nxt = read(starts[0], 0) if starts else None
     early: list = []  # the head's noise IDs, once every head is complete
+    if PIPELINED and len(starts) > 1:
+        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early,
+                   when_streaming)
+        for e in early:
+            e.result()
+        return
+    nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
         blocks, cuts = nxt
         preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
@@ -836,11 +857,115 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 t.result()
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
+        if i == 0 and when_streaming is not None:
+            when_streaming()
         if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
                 st.head_full() for st in streams.values()):
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
     for e in early:
         e.result()
+
+
+def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: Callable,
+               dataset: Callable, streams: dict, s0: int, s1: int, shown: WorkProgress,
+               early: list, when_streaming: Callable[[], Any] | None = None) -> None:
+    """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
+    each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
+    after the phase chunk j left in the accumulators) is queued by the callback of the last
+    of chunk j's tasks of that dataset, so one dataset's pass runs while the other's sums
+    finish instead of both waiting for the slower. This thread only reads: chunk j into
+    buffer j % 2 once both datasets are done with chunk j - 2 (their tasks read nothing of
+    a chunk after they finish). The same tasks on the same data in the same order per
+    axis: the same numbers. The first error raised by a task is raised here.
+    ``when_streaming`` is called (here) once every dataset has finished the first chunk."""
+    names = list(dsets)
+    cond = threading.Condition()
+    ready: dict[int, tuple[dict, np.ndarray]] = {}  # chunk -> (blocks, cuts), read
+    done = {name: -1 for name in names}  # the last chunk each dataset has finished
+    busy = {name: False for name in names}
+    errors: list[BaseException] = []
+    hook = [when_streaming]
+
+    def fail(e: BaseException) -> None:
+        with cond:
+            errors.append(e)
+            cond.notify_all()
+
+    def launch(name: str) -> None:  # under cond
+        j = done[name] + 1
+        if not errors and not busy[name] and j in ready:
+            busy[name] = True
+            blocks, cuts = ready[j]
+            pool.submit(run, name, j, blocks[name], cuts)
+
+    def finished(name: str, j: int) -> None:
+        with cond:
+            done[name] = j
+            busy[name] = False
+            launch(name)
+            cond.notify_all()
+
+    def run(name: str, j: int, b: np.ndarray, cuts: np.ndarray) -> None:
+        try:
+            tasks = dataset(name, b, starts[j], cuts)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            fail(e)
+            return
+        if not tasks:
+            finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
+
+    def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
+        with cond:
+            lo = min(done.values())
+        if lo >= 0:
+            shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
+            if hook[0] is not None:
+                call, hook[0] = hook[0], None
+                call()
+        if EARLY_NOISE_ID and not early and lo >= 0 and lo + 1 < len(starts) and all(
+                st.head_full() for st in streams.values()):
+            early.extend(pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values())
+
+    last = len(starts) - 1
+    for j, a0 in enumerate(starts):
+        with cond:  # buffer j % 2 held chunk j - 2
+            while not errors and min(done.values()) < j - 2:
+                cond.wait()
+            if errors:
+                break
+            ready.pop(j - 2, None)
+        got = read(a0, j % 2)
+        with cond:
+            ready[j] = got
+            for name in names:
+                launch(name)
+        progress()
+    while True:
+        with cond:
+            if errors or min(done.values()) >= last:
+                break
+            cond.wait(0.05)
+        progress()
+    if errors:
+        raise errors[0]
+    progress()
 
 
 def _counter_gaps(f: Any, s0: int, s1: int) -> int:
@@ -1058,7 +1183,18 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
     if not runs or check.get("ok"):
         return []
     return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band") + \
-        _small_sentence(check)
+        _small_sentence(check) + _front_sentence(check)
+
+
+def _front_sentence(check: dict) -> list[str]:
+    """The rising front the fit left out (rigctl.solvers.allan_fit.rising_front), named."""
+    f = check.get("front_excluded")
+    if not f:
+        return []
+    return [f"tau {f['tau_from_s']:.3g}-{f['tau_to_s']:.3g} s left out of the fit: the curve "
+            f"rises from its shortest tau to a top at {f['top_tau_s']:.3g} s and then falls, "
+            "which no IEEE 952 total can (a low-pass filter, or an output dwelling on its "
+            f"quantization levels); the terms are fitted from {f['top_tau_s']:.3g} s on"]
 
 
 def _spans(runs: list[dict]) -> str:
@@ -1090,7 +1226,7 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     out = [] if not runs else _check_sentences(
         check, "the fitted total is outside the 95 % band, as chance allows for a fit "
                "consistent with the curve,", reasons=False)
-    return out + _small_sentence(check)
+    return out + _small_sentence(check) + _front_sentence(check)
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
@@ -1124,10 +1260,13 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     warns = list(AD.warmup_sentences(r)) + t_warns
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
+    basis = {"samples": ", the samples' own spread: the running-median residual's MAD "
+                        "collapses on an output that dwells on its levels",
+             "quantization step": ", the output step / sqrt(12)"}.get(sp.get("sd_from", ""), "")
     if sp.get("count"):
         first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])
         what = (f"{sp['count']} samples ({100 * sp['fraction']:.2g} %) more than "
-                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}) from the "
+                f"{sp['threshold_sd']:g} robust sd ({sp['sd_si'] * fac:.3g} {unit}{basis}) from the "
                 f"running median of {sp['window_samples']} neighbours, the largest "
                 f"{sp['largest_sd']:.0f} sd (first at t = {first} s into the range)")
         if sp.get("excluded"):
@@ -1135,6 +1274,10 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         else:
             warns.append(f"{what}: spikes or outliers, left in the noise the fit sees; "
                          "to leave them out: --outliers exclude")
+    elif basis and sp.get("sd_si"):
+        notes.append(f"no spikes: no sample more than {sp['threshold_sd']:g} robust sd "
+                     f"({sp['sd_si'] * fac:.3g} {unit}{basis}) from the running median of "
+                     f"{sp['window_samples']} neighbours")
     for line in tone_notes(r):
         notes.append(line)
     q = r.get("quantization")

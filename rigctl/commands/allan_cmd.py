@@ -63,10 +63,13 @@ def run(args: argparse.Namespace) -> int:
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
-    production.preload_database(args.db)  # imported while the sums run
+    # the results database's modules are imported (Python holding the GIL) on a thread
+    # started once the first chunk is done, beside the compiled sums, not before the first
+    # chunk, where the command's own start-up holds the GIL (docs/allan.md)
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps, warmup=args.warmup,
-                     temperature=args.temperature)
+                     temperature=args.temperature,
+                     when_streaming=lambda: production.preload_database(args.db))
     gap_line = gap_message(result.get("gaps") or {})
     if gap_line:
         print(gap_line, file=sys.stderr, flush=True)

@@ -492,13 +492,16 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
                             file_time=True)
         what = (f"step {nxt.index + 1} ({nxt.label}) was in flight: IMU rows [{first}, {rec.n_imu}) "
                 "marked incomplete" if nxt is not None else "no step was in flight")
+        # the checkpoint counts this session before the file names it: a kill between the two
+        # leaves the count one ahead of the file's resume events, never behind (behind, the next
+        # session would take this one's number)
+        ck.status = "running"
+        ckpt_mod.save(d, ck)
         rec.add_event(float(t_end), "resume",
                       f"session {ck.sessions} after a cut-off at t={float(t_end):.3f} s; {what}; "
                       f"new session starts at t={rec.time_offset:.3f} s", file_time=True)
         log("info", f"{what}; new data start at t={rec.time_offset:.3f} s, IMU counter "
                     f"{rec.counter_offset}")
-        ck.status = "running"
-        ckpt_mod.save(d, ck)
         start = min((by_index[s.index].index for s in todo), default=len(proc.steps))
         return rec, start
 

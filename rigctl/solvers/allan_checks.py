@@ -10,7 +10,8 @@
   sample is below about half a step the rounding is not random any more and the short taus of
   the curve describe the quantizer, not the sensor.
 * :func:`find_spikes`: samples far from their neighbours (a running median and the median
-  absolute deviation of the residual), reported before the fit instead of being folded into
+  absolute deviation of the residual, or the samples' own spread where that collapses on a
+  dwelling output: :func:`spike_scale`), reported before the fit instead of being folded into
   the noise.
 """
 from __future__ import annotations
@@ -30,6 +31,11 @@ QUANT_TOL = 1e-3
 SPIKE_SIGMA = 10.0
 #: running-median window (samples)
 SPIKE_WINDOW = 25
+#: the residual's MAD scale has collapsed (a dwelling output) when both its 90 % point and the
+#: samples' own spread exceed it by more than this factor (see spike_scale)
+SPIKE_COLLAPSE = 2.0
+#: |N(0, 1)|'s 90 % point
+SPIKE_Q90_Z = 1.6448536269514722
 
 
 def quantization_step(y: np.ndarray, max_samples: int = QUANT_SAMPLES) -> float | None:
@@ -68,29 +74,78 @@ def quantization_noise(q: float, tau0: float, n_fit: float | None, sigma0: float
     return out
 
 
+def spike_scale(y: np.ndarray, r: np.ndarray, step: float | None = None) -> tuple[float, str]:
+    """The robust standard deviation spikes are judged against, and what it was read from.
+
+    Normally 1.4826 x the median absolute deviation of the running-median residual ``r``
+    (``"residual"``). That scale collapses on an output that dwells on its levels -- a
+    quantized sensor whose noise is below a step, or such an output after a smoothing filter
+    (a phone gyro decimated by its publisher: most samples sit within a few deg/h of a level
+    0.061 deg/s apart, between bursts that cross several levels): the residual is then ~0
+    for most samples, its median absolute value says nothing about the bursts, and every
+    burst sample comes out "10 sd" away (5.5 % of the samples of such a capture). The collapse
+    is read off two independent signs, both needed:
+
+    * the residual's body is not Gaussian: its 90 % point of |r| / 1.645 (which a
+      collapsed centre leaves alone) exceeds the MAD scale by more than SPIKE_COLLAPSE
+      (1.0 for Gaussian noise, 1.26 for Student-t with 3 dof, 1.36 for Laplace);
+    * the data's own spread (1.4826 x the MAD of the samples about their median) exceeds the
+      MAD scale by more than SPIKE_COLLAPSE (white noise: 1.03, the running median of 25
+      taking a little of each sample).
+
+    Then the data's spread is the scale (``"samples"``): a spike has to stand out of what the
+    output does, not out of its dwell. A capture with real spikes in Gaussian-bodied noise
+    keeps the residual's scale (the MTi-G capture in the tests: 2.9 on the first sign, 0.99 on
+    the second), and so does a smooth (low-pass filtered) output without dwell (its residual is
+    small but Gaussian). With the output's step ``step`` known (:func:`quantization_step`)
+    the scale is at least the rounding's sd, step / sqrt(12) (``"quantization step"``): a
+    residual of one step is the quantizer, not an outlier. With everything zero (a constant
+    output with a few departures) the plain sd of the residual is taken (``"residual sd"``)."""
+    mad_r = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    sigma, basis = mad_r, "residual"
+    if r.size:
+        q90 = float(np.quantile(np.abs(r - np.median(r)), 0.90)) / SPIKE_Q90_Z
+        spread = 1.4826 * float(np.median(np.abs(y - np.median(y))))
+        if q90 > SPIKE_COLLAPSE * mad_r and spread > SPIKE_COLLAPSE * mad_r:
+            sigma, basis = spread, "samples"
+    if sigma <= 0 and r.size:
+        sigma, basis = float(np.std(r)), "residual sd"
+    if step is not None and step > 0 and sigma < step / math.sqrt(12.0):
+        sigma, basis = step / math.sqrt(12.0), "quantization step"
+    return sigma, basis
+
+
 def find_spikes(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGMA,
-                window: int = SPIKE_WINDOW) -> tuple[np.ndarray, np.ndarray, float]:
+                window: int = SPIKE_WINDOW, step: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray, float]:
     """Indices of samples more than ``k`` robust standard deviations from the running median
     of ``window`` samples, the running median itself (the replacement if they are excluded)
-    and the robust standard deviation used (1.4826 x the median absolute residual, or
-    ``sigma`` if given). A static capture's samples scatter around a slowly moving bias: a
-    sample 10 sigma away from its neighbours has a probability below 1e-22 under Gaussian
-    noise, so on a day of 100 Hz data none is expected."""
+    and the robust standard deviation used (:func:`spike_scale`: 1.4826 x the median absolute
+    residual unless that collapses on a dwelling output; ``step`` the output's quantization
+    step if known; or ``sigma`` if given). A static capture's samples scatter around a slowly
+    moving bias: a sample 10 sigma away from its neighbours has a probability below 1e-22
+    under Gaussian noise, so on a day of 100 Hz data none is expected."""
+    return find_spikes_scaled(y, sigma, k, window, step)[:3]
+
+
+def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGMA,
+                       window: int = SPIKE_WINDOW, step: float | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """:func:`find_spikes` and what its scale was read from (:func:`spike_scale`'s basis,
+    ``"given"`` for a given ``sigma``)."""
     y = np.asarray(y, dtype=float)
     if y.size < window:
-        return np.zeros(0, dtype=np.int64), y.copy(), 0.0
+        return np.zeros(0, dtype=np.int64), y.copy(), 0.0, "too few samples"
     med = K.running_median(y, window)  # compiled, without the GIL
     if med is None:
         med = median_filter(y, size=window, mode="nearest")
     r = y - med
+    basis = "given"
     if sigma is None:
-        mad = float(np.median(np.abs(r - np.median(r))))
-        sigma = 1.4826 * mad
-        if sigma <= 0:  # a quantized output whose noise is below one step
-            sigma = float(np.std(r))
+        sigma, basis = spike_scale(y, r, step)
     if sigma <= 0:
-        return np.zeros(0, dtype=np.int64), med, 0.0
-    return np.flatnonzero(np.abs(r) > k * sigma), med, sigma
+        return np.zeros(0, dtype=np.int64), med, 0.0, basis
+    return np.flatnonzero(np.abs(r) > k * sigma), med, sigma, basis
 
 
 def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,

@@ -24,7 +24,8 @@ idealisation error, e.g. filters and the edges of the flicker band, and is what 
 spurious quantization terms). The weakest failing term is dropped and the rest refitted until
 all pass. B must in addition pass its presence test (:func:`b_presence_test`: a likelihood
 ratio at B_TEST_ALPHA = 2.5 % with every other shape and a low-pass's own 1/tau^2 term
-present); a B that does not goes first. A dropped term is reported as a one-sided 95 % upper bound, sqrt(max(p_j, 0) +
+present); a B that does not goes first. A dropped term is reported as a one-sided 95 % upper
+bound, sqrt(max(p_j, 0) +
 1.645 sd_j) from the fit with it restored (unconstrained). Parameter covariance:
 (A^T Sigma^-1 A)^-1, inflated by the reduced chi-square when > 1. Intervals of a kept term:
 chi-square with nu = 2 p_j^2 / sd_j^2 degrees of freedom (Satterthwaite), the same form as the
@@ -393,6 +394,57 @@ def _thin(n: int, max_taus: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, max_taus)).astype(int))
 
 
+#: a rising front: the curve climbs from its shortest tau to more than this factor over its
+#: lowest point so far, then falls to below 1 / this factor of its top (each step outside
+#: both 95 % bands); sqrt(2): what white noise falls over one octave
+FRONT_FACTOR = math.sqrt(2.0)
+
+
+def rising_front(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray) -> int:
+    """How many of the shortest taus form a rising front that no IEEE 952 total can follow:
+    the index of the front's top, 0 when there is none.
+
+    Every IEEE 952 total is a sum of powers of tau with non-negative weights, so log sigma is
+    convex in log tau: the curve can fall and then rise, never rise and then fall. A curve
+    that climbs from its shortest taus to a top and then falls clearly (both by more than
+    FRONT_FACTOR, outside the 95 % bands, on the informative taus) has, before its top, taus
+    that describe the way the samples were made, not the sensor's IEEE 952 noise: a low-pass
+    filter's correlation, or an output that dwells on its quantization levels (a raw output
+    below one step of noise, smoothed by a decimation filter: the Galaxy S5 gyro in the tests,
+    0.1-2.0 s, top at 2.3 s). Those taus sit below the white-noise line the later curve
+    implies; a fit that includes them decides N by the density of the tau set (--taus octave
+    puts 5 of 16 taus there, the default 16 of 84; issue 15: N < 0.26 deg/sqrt(h) against
+    2.2 on the same data).
+    A curve whose first clear move is down (the usual case, a bump later included), or that
+    rises and never falls clearly (a rate random walk or ramp from the start, or a capture
+    too short to see the fall), has no front. Decided on the curve's values, so every tau set
+    that samples the top finds the same front up to its tau spacing."""
+    tau = np.asarray(tau, dtype=float)
+    dev = np.asarray(adev, dtype=float)
+    e = np.asarray(edf, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lo = dev * np.sqrt(e / chi2.ppf(0.975, e))
+        hi = dev * np.sqrt(e / chi2.ppf(0.025, e))
+    idx = np.flatnonzero(np.isfinite(dev) & (dev > 0) & np.isfinite(lo) & np.isfinite(hi)
+                         & (hi <= INFORMATIVE_RATIO * lo))
+    if idx.size < 3:
+        return 0
+    top = low = idx[0]
+    rose = False
+    for j in idx[1:]:
+        if dev[j] > dev[top]:
+            top = j
+        if not rose:
+            if dev[j] * FRONT_FACTOR < dev[top] and hi[j] < lo[top]:
+                return 0  # the curve's first clear move is down
+            if dev[j] < dev[low]:
+                low = j
+            rose = dev[j] > FRONT_FACTOR * dev[low] and lo[j] > hi[low]
+        elif dev[j] * FRONT_FACTOR < dev[top] and hi[j] < lo[top]:
+            return int(top)  # up, then clearly down: the taus before the top are the front
+    return 0
+
+
 def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
@@ -460,6 +512,14 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     tau, s2, e = tau[ok], s2[ok], e[ok]
     if tau.size < 2:
         raise ValueError("need at least two finite Allan variance points to fit")
+    # a rising front (a filter's or a dwelling quantizer's short taus, see rising_front) is
+    # left out of the fit, so that every tau set fits the same part of the curve; the
+    # self-check and the curve's limits on each term still see every tau
+    front = rising_front(tau, np.sqrt(s2), e)
+    if tau.size - front < 2:
+        front = 0
+    tau_front, s2_front, e_front = tau, s2, e
+    tau, s2, e = tau[front:], s2[front:], e[front:]
     tau_all, s2_all, e_all = tau, s2, e
     keep = _thin(tau.size, max_taus)
     tau, s2, e = tau[keep], s2[keep], e[keep]
@@ -628,9 +688,12 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # (10486 s, nu 3.1, sigma 5.8 deg/h where the emulated K alone gives 24), excluding the
     # truth 24.7 and disagreeing with --taus all (30.3 [21.3, 52.3]). Without an informative
     # tau (a capture of a few minutes) every tau counts
-    lim_sel = inf95 if np.any(inf95) else np.ones(tau_all.size, dtype=bool)
-    limits = curve_limits(tau_all[lim_sel], np.sqrt(s2_all[lim_sel]))
-    lim_tau = curve_limit_taus(tau_all[lim_sel], np.sqrt(s2_all[lim_sel]))
+    # (every tau, a rising front included: no bound is reported above what the curve shows)
+    inf95_front = (np.sqrt(s2_front) * np.sqrt(e_front / chi2.ppf(0.025, e_front))
+                   <= INFORMATIVE_RATIO * np.sqrt(s2_front) * np.sqrt(e_front / chi2.ppf(0.975, e_front)))
+    lim_sel = inf95_front if np.any(inf95_front) else np.ones(tau_front.size, dtype=bool)
+    limits = curve_limits(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
+    lim_tau = curve_limit_taus(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
     out_terms: dict[str, dict] = {}
     coeff_sq: dict[str, float] = {}
     coefs: dict[str, NC.Coefficient] = {}
@@ -674,7 +737,11 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         out_terms[t] = entry
     if tau0 is not None and n_phase is not None:
         _add_crb(out_terms, coefs, float(tau0), int(n_phase))
-    check = self_check(tau_all, np.sqrt(s2_all), e_all, coeff_sq, m_eff)
+    check = self_check(tau_front, np.sqrt(s2_front), e_front, coeff_sq, m_eff)
+    # the rising front left out of the fit (rising_front): its taus, which the check names
+    check["front_excluded"] = ({"n_taus": int(front), "tau_from_s": float(tau_front[0]),
+                                "tau_to_s": float(tau_front[front - 1]),
+                                "top_tau_s": float(tau_front[front])} if front else None)
     # the goodness of fit of the model as reported (the supported terms only, statistical
     # covariance): the terms dropped as bounds are not in the total the check compares, so
     # the statistic must not be that of the fit with them (seen: a B pinned at the curve's
@@ -1006,8 +1073,9 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
     slope = float((ld[b] - ld[a]) / (lt[b] - lt[a])) if b > a else 0.0
     first, last = i == 0 or i <= 1, j >= n - 2
     if first and not above:
-        return ("the sensor's low-pass filter: samples correlated at the shortest taus "
-                "(below the white-noise line; not an IEEE 952 term)")
+        return ("the sensor's low-pass filter, or an output dwelling on its quantization "
+                "levels: samples correlated at the shortest taus (below the white-noise line; "
+                "not an IEEE 952 term)")
     if first and above:
         return (f"quantization or white phase noise at the shortest taus (local slope "
                 f"{slope:+.2f}, steeper than -1/2)")
