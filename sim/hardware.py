@@ -60,7 +60,7 @@ import numpy as np
 from rigctl.clock import ScaledClock
 from rigctl.config.config import RigConfig
 from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
-from rigctl.drivers.xsens import FREQ_MAX, SAMPLE_TIME_FINE_HZ, encode_mtdata2
+from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtdata2
 
 from .acl_server import AclServer, AclServerCore, _LineHandler
 from .gnss_server import GnssServer
@@ -191,10 +191,22 @@ class HwXsensServer(XsensServer):
         self.sent: deque[tuple[float, np.ndarray, np.ndarray, bool]] = deque(maxlen=max(1, keep_sent))
         self.keep_sent = int(keep_sent)
         self._last_acc: np.ndarray | None = None
+        #: held by step() from encoding a batch until its write ends, and by GoToConfig / Reset
+        #: before they stop the stream: frames encoded before the request reach the wire before
+        #: its acknowledgement, as a device's do (before, a batch encoded just before GoToConfig
+        #: could be written after the ack, and a reconnecting driver took those frames of the old
+        #: measurement period for its own: stamped before its session began)
+        self._wire = threading.Lock()
         super().__init__(*args, **kw)
 
     def _stream(self) -> None:          # Hardware._imu_loop calls step() instead
         return
+
+    def _handle(self, mid: int, data: bytes) -> bytes:
+        if mid in (MID.GO_TO_CONFIG, MID.RESET):
+            with self._wire:
+                return super()._handle(mid, data)
+        return super()._handle(mid, data)
 
     #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
     #: the physics lags behind (e.g. the loop was starved of CPU), so no frame
@@ -296,6 +308,10 @@ class HwXsensServer(XsensServer):
 
     def step(self, until: float) -> int:
         """Encode and send every frame due up to time ``until`` (at most MAX_BATCH); returns the count."""
+        with self._wire:
+            return self._step(until)
+
+    def _step(self, until: float) -> int:
         with self._lock:
             if self.state != "measurement":
                 return 0

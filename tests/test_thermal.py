@@ -472,3 +472,71 @@ def test_abort_puts_the_chamber_at_its_safe_set_point(tmp_path):
     assert res.status == "interrupted"
     assert (b"safe-state", b"chamber at its safe set point") in ev
     assert world.chamber.target == 25.0 and world.chamber.working == 25.0  # a step, not the ramp
+
+
+def _posed_windows(rng: np.random.Generator, sensor: str, truth: dict[str, np.ndarray], sigma: float
+                   ) -> th.ThermalWindows:
+    """90 windows of a unit held still in three poses (z, x, y along gravity, 30 windows each,
+    each pose warming from 5 to 25 degC along its own curve), without a table: the model of the
+    module docstring with a constant M0 (scale and misalignment at 25 degC, the pose's tilt) and
+    scale per K, plus a pose-dependent bias (gyro: g-sensitivity), white noise ``sigma``."""
+    g = 9.80665
+    T = np.concatenate([5 + 20 * np.linspace(0, 1, 30) ** p for p in (1.0, 1.5, 0.7)])
+    dT = T - 25.0
+    pose = np.repeat(["z down", "x down", "y down"], 30)
+    u = np.repeat(np.array([[0, 0, -g], [-g, 0, 0], [0, -g, 0]], float), 30, axis=0)
+    if sensor == "gyro":
+        u_true = np.zeros_like(u)
+    else:
+        u_true = u
+    M = np.eye(3) + truth["M0"]
+    y = (truth["b0"] + np.outer(dT, truth["b1"]) + np.outer(dT**2, truth["b2"])
+         + u_true @ M.T + np.outer(dT, truth["s1"]) * u_true + truth["g_sens"][np.repeat(np.arange(3), 30)])
+    y = y + rng.normal(0.0, sigma, y.shape)
+    return th.ThermalWindows(sensor=sensor, y=y, sigma=np.full_like(y, sigma), ref=u_true,
+                             powers=np.column_stack([dT**j for j in range(4)]), temperature=T,
+                             heating=np.ones(90, bool), reference_c=25.0, pose=pose)
+
+
+@pytest.mark.parametrize("sensor", ["gyro", "accel"])
+def test_several_poses_without_a_table_recovers_the_temperature_terms(sensor):
+    """Pose offsets (ThermalWindows.pose): the temperature coefficients of a unit held still in
+    three poses with a tilt, misalignment at 25 degC and (gyro) a pose-dependent bias are
+    recovered within 4 sigma and the chi-square is in its band; without the offsets the same
+    windows fit far outside it (the solver before poses)."""
+    rng = np.random.default_rng(11)
+    unit = 1e-3 if sensor == "gyro" else 1e-2
+    truth = {"b0": np.array([0.5, -0.2, 0.3]) * unit, "b1": np.array([0.02, 0.05, -0.03]) * unit,
+             "b2": np.array([4e-4, -2e-4, 1e-4]) * unit,
+             "M0": np.array([[0.01, 0.02, -0.015], [0.005, -0.02, 0.03], [-0.01, 0.012, 0.03]]),
+             "s1": np.array([-2e-4, 1e-4, 3e-4]) if sensor == "accel" else np.zeros(3),
+             "g_sens": (np.array([[0, 0, 0], [0.3, -0.2, 0.1], [-0.1, 0.4, 0.2]]) * unit
+                        if sensor == "gyro" else np.zeros((3, 3)))}
+    w = _posed_windows(rng, sensor, truth, 1e-3 * unit)
+    deg = ({"bias": 2, **th.BIAS_ONLY} if sensor == "gyro"
+           else {"bias": 2, "scale": 1, "misalignment": th.HELD})
+    fit = th.fit_thermal(w, deg, loop=False)
+    assert fit.poses == ["z down", "x down", "y down"]
+    p = {q["name"]: q for q in fit.parameters()}
+    u = th.UNIT[sensor]
+    for i, a in enumerate("xyz"):
+        want = {f"{sensor}_bias_{a}_{u}_per_K": truth["b1"][i], f"{sensor}_bias_{a}_{u}_per_K2": truth["b2"][i]}
+        if sensor == "accel":
+            want[f"{sensor}_scale_{a}_per_K"] = truth["s1"][i]
+        for name, v in want.items():
+            assert abs(p[name]["value"] - v) < 4 * p[name]["sigma"], (name, p[name], v)
+        assert f"{sensor}_pose3_{a}_{u}" in p and f"{sensor}_M_{a}{a}_ratio" not in p
+    lo, hi = fit.band()
+    assert lo <= fit.chi2 / fit.dof <= hi
+    w.pose = None
+    w._white = {}
+    if sensor == "gyro":
+        one = th.fit_thermal(w, deg, loop=False)
+        assert one.chi2 / one.dof > 100 * hi
+
+
+def test_group_poses_merges_sections_that_point_the_same_way():
+    from rigctl.analysis.thermal import group_poses
+
+    down = [np.array([0, 0, -9.8]), np.array([-9.8, 0, 0]), np.array([0.5, 0.3, -9.7]), np.array([0, 0, 9.8])]
+    assert group_poses(down, ["a", "b", "c", "d"]) == ["a", "b", "a", "d"]

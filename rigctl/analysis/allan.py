@@ -1260,8 +1260,8 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     warns = list(AD.warmup_sentences(r)) + t_warns
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
-    basis = {"samples": ", the samples' own spread: the residual's collapsed on an output "
-                        "dwelling on its levels",
+    basis = {"samples": ", the samples' own spread: the running-median residual's MAD "
+                        "collapses on an output that dwells on its levels",
              "quantization step": ", the output step / sqrt(12)"}.get(sp.get("sd_from", ""), "")
     if sp.get("count"):
         first = ", ".join(f"{t:.2f}" for t in sp["first_times_s"][:5])

@@ -187,6 +187,24 @@ def read_windows(path: str | Path, reference_c: float = 25.0, max_degree: int = 
 
 #: window length of a static record's thermal fit (:func:`static_windows`), s
 STATIC_WINDOW_S = 1800.0
+#: static sections whose mean specific force directions are within this angle are one pose, deg
+SAME_POSE_DEG = 10.0
+
+
+def group_poses(downs: list[np.ndarray], labels: list[str], same_deg: float = SAME_POSE_DEG) -> list[str]:
+    """A pose label per static section: sections whose mean specific force points within
+    ``same_deg`` of an earlier section's share its pose (labelled by the first such section)."""
+    out: list[str] = []
+    for k, d in enumerate(downs):
+        u = d / np.linalg.norm(d)
+        for j in range(k):
+            v = downs[j] / np.linalg.norm(downs[j])
+            if np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))) <= same_deg:
+                out.append(out[j])
+                break
+        else:
+            out.append(labels[k])
+    return out
 
 
 def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, reference_c: float = 25.0,
@@ -198,11 +216,16 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
     when there is none) is cut into windows of ``window_s`` seconds; a window with fewer than
     ``min_fill`` of its nominal samples (gaps) or fewer than 16 is left out.
 
-    Reference inputs: gravity (the recording's g) along the record's mean specific force, and a
-    zero rate (the earth's rate has no known direction here): every window has the same one, so
-    only the bias terms are identifiable (:func:`rigctl.solvers.thermal.one_orientation`; fit with
+    Reference inputs: gravity (the recording's g) along the mean specific force of each static
+    section, and a zero rate (the earth's rate has no known direction here). Sections whose
+    directions agree within :data:`SAME_POSE_DEG` are one pose (:func:`group_poses`). One pose:
+    every window has the same reference, so only the bias terms are identifiable
+    (:func:`rigctl.solvers.thermal.one_orientation`; fit with
     :data:`rigctl.solvers.thermal.BIAS_ONLY`) and their constant term holds what the reference
-    misses. The candidates' regressors: the hysteresis state (play operator on the temperature)
+    misses. Several poses (a record held still in a few orientations): the windows carry their
+    pose (``ThermalWindows.pose``) and the solver fits an offset per pose (the gyro's
+    g-sensitivity and earth rate, what the measured direction misses) beside the temperature
+    terms. The candidates' regressors: the hysteresis state (play operator on the temperature)
     and the temperature rate (slope in the window, K/s); no chamber, so no gradient."""
     with open_recording(path) as f:
         _, _, g = _site(f)
@@ -218,26 +241,38 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
         check_finite(path, "imu/specific_force", acc_all, 0)
         check_finite(path, "imu/angular_rate", gyr_all, 0)
         seg = f["segments"] if "segments" in f else None
-        sections = [(int(seg["first_sample"][i]), int(seg["last_sample"][i])) for i in range(seg["kind"].shape[0])
-                    if seg["kind"][i] == b"orientation" and seg["status"][i] == b"complete"] if seg is not None else []
-    sections = sections or [(0, t_all.size)]
+        rows = [i for i in range(seg["kind"].shape[0]) if seg["kind"][i] == b"orientation"
+                and seg["status"][i] == b"complete"] if seg is not None else []
+        sections = [(int(seg["first_sample"][i]), int(seg["last_sample"][i])) for i in rows]
+        labels = [seg["label"][i].decode() if "label" in seg else f"section {k + 1}" for k, i in enumerate(rows)]
+    if not sections:
+        sections, labels = [(0, t_all.size)], ["whole record"]
+    downs = [acc_all[a:z].mean(axis=0) for a, z in sections]
+    poses = group_poses(downs, labels)
+    # the reference of a pose: gravity along the mean specific force of all its sections
+    down_of = {p: np.mean(np.concatenate([acc_all[a:z] for (a, z), q in zip(sections, poses) if q == p]), axis=0)
+               for p in set(poses)}
     step = max(1, int(round(fs)))
     Hs = th.play_operator(T_all[::step], hysteresis_width_K)
     H_all = np.interp(np.arange(T_all.size), np.arange(0, T_all.size, step)[: Hs.size], Hs)
     nominal = window_s * fs
     bounds: list[tuple[int, int]] = []
-    for a, z in sections:
+    fr_w: list[np.ndarray] = []
+    pose_w: list[str] = []
+    for (a, z), pose in zip(sections, poses):
+        down = down_of[pose]
         edges = np.arange(t_all[a], t_all[z - 1] + window_s, window_s)
         idx = np.searchsorted(t_all[a:z], edges) + a
-        bounds += [(int(i0), int(i1)) for i0, i1 in zip(idx[:-1], idx[1:])
-                   if i1 - i0 >= max(16, min_fill * nominal)]
+        keep = [(int(i0), int(i1)) for i0, i1 in zip(idx[:-1], idx[1:]) if i1 - i0 >= max(16, min_fill * nominal)]
+        bounds += keep
+        fr_w += [g * down / np.linalg.norm(down)] * len(keep)
+        pose_w += [pose] * len(keep)
     if len(bounds) < 4:
         raise InputError(f"{len(bounds)} windows of {window_s:g} s in the static record: a thermal fit needs "
                          "more (a longer record or shorter windows)", path)
-    down = acc_all.mean(axis=0)
-    fr = g * down / np.linalg.norm(down)
+    several = len(set(poses)) > 1
     cols: dict[str, list] = {k: [] for k in ("acc", "gyro", "sa", "sg", "ba", "bg", "T", "R", "H", "ta", "tb")}
-    for a, z in bounds:
+    for (a, z), fr in zip(bounds, fr_w):
         t, T = t_all[a:z], T_all[a:z]
         acc, gyr = acc_all[a:z], gyr_all[a:z]
         cols["acc"].append(acc.mean(axis=0))
@@ -255,10 +290,11 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
     powers = th.power_means(T_all, np.asarray(bounds), reference_c, max_degree)
     R, H = np.asarray(cols["R"]), np.asarray(cols["H"])
     out = {}
-    for sensor, y, s, bm, ref in (("accel", "acc", "sa", "ba", fr), ("gyro", "gyro", "sg", "bg", np.zeros(3))):
+    for sensor, y, s, bm, ref in (("accel", "acc", "sa", "ba", np.asarray(fr_w)),
+                                  ("gyro", "gyro", "sg", "bg", np.zeros((n, 3)))):
         out[sensor] = th.ThermalWindows(
             sensor=sensor, y=np.asarray(cols[y]), sigma=_pooled_sigma(np.asarray(cols[s])),
-            ref=np.tile(ref, (n, 1)), powers=powers, temperature=np.asarray(cols["T"]),
+            ref=ref, pose=np.asarray(pose_w) if several else None, powers=powers, temperature=np.asarray(cols["T"]),
             heating=np.where(R != 0, R > 0, H > 0), reference_c=reference_c,
             regressors={"hysteresis": H, "temperature_rate": R},
             t_start=np.asarray(cols["ta"]), t_end=np.asarray(cols["tb"]), kind=np.array(["orientation"] * n),
@@ -270,15 +306,21 @@ def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_
                reference_c: float = 25.0, loop: bool = True,
                noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
     """Bias against temperature of a static record (:func:`static_windows`): per sensor the windows
-    and the fit with scale and misalignment held (one orientation: only the bias terms are
-    identifiable), the covariance of the window means from ``noise`` (accel, gyro: three axes' NoiseCoefficients; None:
-    estimated from the record) and, with ``loop``, the thermal candidates tested."""
+    and the fit, the covariance of the window means from ``noise`` (accel, gyro: three axes'
+    NoiseCoefficients; None: estimated from the record) and, with ``loop``, the thermal
+    candidates tested. One pose: scale and misalignment held (only the bias terms are
+    identifiable). Several poses: an offset per pose and axis; the accelerometer's scale per K
+    is fitted too (degree ``bias_degree``, from K^1: its constant is in the pose offsets), its
+    misalignment held (a few poses with one axis each along gravity cannot separate
+    misalignment per K from bias per K); the gyro has no rate input: bias only."""
     wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree))
     out = {}
     for sensor, model in zip(("accel", "gyro"), noise or (None, None)):
         w = wins[sensor]
         th.estimate_noise(w, model)
-        out[sensor] = (w, th.fit_thermal(w, {"bias": bias_degree, **th.BIAS_ONLY}, loop=loop))
+        deg = ({"bias": bias_degree, **th.BIAS_ONLY} if th.one_orientation(w.ref)
+               else {"bias": bias_degree, "scale": bias_degree, "misalignment": th.HELD})
+        out[sensor] = (w, th.fit_thermal(w, deg, loop=loop))
     return out
 
 

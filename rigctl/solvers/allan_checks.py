@@ -101,13 +101,22 @@ def spike_scale(y: np.ndarray, r: np.ndarray, step: float | None = None) -> tupl
     the scale is at least the rounding's sd, step / sqrt(12) (``"quantization step"``): a
     residual of one step is the quantizer, not an outlier. With everything zero (a constant
     output with a few departures) the plain sd of the residual is taken (``"residual sd"``)."""
-    mad_r = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    sigma, basis = mad_r, "residual"
+    sigma, basis = 0.0, "residual"
     if r.size:
-        q90 = float(np.quantile(np.abs(r - np.median(r)), 0.90)) / SPIKE_Q90_Z
-        spread = 1.4826 * float(np.median(np.abs(y - np.median(y))))
-        if q90 > SPIKE_COLLAPSE * mad_r and spread > SPIKE_COLLAPSE * mad_r:
-            sigma, basis = spread, "samples"
+        # one partition gives the median of |r - median r| (as np.median: the mean of the two
+        # middle values for an even count) and its 90 % point (the order statistic at
+        # floor(0.9 (n - 1))); the samples' spread only where the first sign is there
+        a = np.abs(r - np.median(r))
+        n = a.size
+        k90 = int(0.9 * (n - 1))
+        mid = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+        part = np.partition(a, sorted(set(mid + [k90])))
+        mad_r = 1.4826 * float(np.mean(part[mid]))
+        sigma = mad_r
+        if float(part[k90]) / SPIKE_Q90_Z > SPIKE_COLLAPSE * mad_r:
+            spread = 1.4826 * float(np.median(np.abs(y - np.median(y))))
+            if spread > SPIKE_COLLAPSE * mad_r:
+                sigma, basis = spread, "samples"
     if sigma <= 0 and r.size:
         sigma, basis = float(np.std(r)), "residual sd"
     if step is not None and step > 0 and sigma < step / math.sqrt(12.0):

@@ -44,6 +44,19 @@ stays the identity, the model is y_i - u_i = sum_j <dT^j> b_ij [+ effects], and 
 coefficients are the apparent ones -- the unit's bias plus, on an axis along gravity, the scale
 factor's temperature dependence times g (:func:`one_orientation`).
 
+**Several static poses without a table.** A bench record held still in a few orientations (an
+animal tag in a fridge, a board turned by hand between soaks) has a different reference input
+per pose but no table to say exactly what it is, and a gyro whose bias depends on the specific
+force (g-sensitivity) and sees the earth's rate along a different axis in each. With
+``ThermalWindows.pose`` (a label per window) every pose after the first gets its own constant
+per axis (``<sensor>_pose<k>_<axis>_<unit>``, relative to pose 1): what a static pose adds as a
+constant -- (M0 - I) u of the pose, the g-sensitive bias, the earth rate, a tilt the reference
+misses -- goes there, so the constant terms of scale and misalignment (j = 0) and the
+accelerometer's quadratic term (constant in a pose) are not fitted, the temperature
+coefficients (j >= 1) are. With three poses that each put one axis along gravity (no pose
+upside down), scale per K is identifiable (the pose with the axis vertical against the others),
+misalignment per K is not (it needs more poses than bias and scale leave): hold it.
+
 The loop (forward selection): each candidate not yet in the model is added to all three axes of
 the sensor; F = (dChi2 / 3) / (Chi2_ext / dof_ext); p from F(3, dof_ext), Bonferroni-adjusted over
 the candidates still open; the smallest p_adj below ``alpha`` is accepted and the search repeats.
@@ -110,10 +123,21 @@ class ThermalWindows:
     t0: float = 0.0
     cov: np.ndarray | None = None
     noise: list[Any] | None = None
+    #: (n,) a pose label per window (several static poses without a table, module docstring)
+    pose: np.ndarray | None = None
     _white: dict[int, Whitener] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return int(self.y.shape[0])
+
+    def poses(self) -> list[str]:
+        """The pose labels in order of first appearance when there are two or more (each after
+        the first gets an offset per axis), else []."""
+        if self.pose is None:
+            return []
+        labels = [str(p) for p in np.asarray(self.pose)]
+        out = list(dict.fromkeys(labels))
+        return out if len(out) > 1 else []
 
     def whitener(self, axis: int) -> Whitener:
         """The factored covariance of axis' window means (cached: the loop refits many times)."""
@@ -155,6 +179,9 @@ class ThermalFit:
     #: explain it away (it adds nothing significant to a model holding one of them instead):
     #: this run cannot tell them apart (:func:`fit_thermal`)
     confounded: dict[str, list[str]] = field(default_factory=dict)
+    #: the pose labels when the windows have several (``<sensor>_pose<k>_...`` is the offset of
+    #: poses[k - 1] against poses[0])
+    poses: list[str] = field(default_factory=list)
 
     @property
     def chi2(self) -> float:
@@ -181,8 +208,15 @@ class ThermalFit:
 
 
 def _quad(w: ThermalWindows, degrees: dict[str, int]) -> bool:
-    """The accelerometer's quadratic term is fitted with the scale factor (not when it is held)."""
-    return w.quad is not None and degrees["scale"] > HELD
+    """The accelerometer's quadratic term is fitted with the scale factor (not when it is held,
+    nor with pose offsets: it is a constant of each pose)."""
+    return w.quad is not None and degrees["scale"] > HELD and not w.poses()
+
+
+def _first_power(w: ThermalWindows) -> int:
+    """The lowest power of dT of the scale and misalignment columns: 1 with pose offsets (the
+    constant M0 u of a static pose is in its offset), else 0."""
+    return 1 if w.poses() else 0
 
 
 def one_orientation(ref: np.ndarray, rtol: float = 1e-6) -> bool:
@@ -202,9 +236,10 @@ def check_identifiable(w: ThermalWindows, degrees: dict[str, int]) -> None:
 
 
 def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
-                accepted: list[str]) -> list[str]:
+                accepted: list[str], n_poses: int = 0, first: int = 0) -> list[str]:
     """Names of one axis' coefficients, in the column order of :func:`design` (a group of degree
-    :data:`HELD` has none)."""
+    :data:`HELD` has none; ``n_poses`` >= 2: an offset for each pose after the first, and the
+    scale and misalignment powers from ``first``)."""
     a, u = AXES[axis], UNIT[sensor]
     names = []
     for j in range(degrees["bias"] + 1):
@@ -212,7 +247,7 @@ def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
     for k in range(3):
         b = AXES[k]
         deg = degrees["scale"] if k == axis else degrees["misalignment"]
-        for j in range(deg + 1):
+        for j in range(first, deg + 1):
             if j == 0:
                 names.append(f"{sensor}_M_{a}{b}_ratio")
             elif k == axis:
@@ -221,6 +256,7 @@ def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
                 names.append(f"{sensor}_misalignment_{a}{b}_rad_per_K" + ("" if j == 1 else str(j)))
     if quad:
         names.append(f"{sensor}_quad_{a}_s2_per_m")
+    names += [f"{sensor}_pose{k}_{a}_{u}" for k in range(2, n_poses + 1)]
     for c in accepted:
         names.append({"hysteresis": f"{sensor}_hysteresis_{a}_{u}",
                       "temperature_rate": f"{sensor}_temp_rate_{a}_{u}_per_K_per_s",
@@ -231,19 +267,22 @@ def param_names(sensor: str, axis: int, degrees: dict[str, int], quad: bool,
 def design(w: ThermalWindows, axis: int, degrees: dict[str, int], accepted: list[str]) -> np.ndarray:
     """Design matrix (n, p) of one axis (columns as :func:`param_names`)."""
     cols = [w.powers[:, j] for j in range(degrees["bias"] + 1)]
+    first = _first_power(w)
     for k in range(3):
         deg = degrees["scale"] if k == axis else degrees["misalignment"]
-        cols += [w.powers[:, j] * w.ref[:, k] for j in range(deg + 1)]
+        cols += [w.powers[:, j] * w.ref[:, k] for j in range(first, deg + 1)]
     if _quad(w, degrees):
         cols.append(w.quad[:, axis])
+    labels = np.asarray(w.pose).astype(str) if w.pose is not None else None
+    cols += [(labels == p).astype(float) for p in w.poses()[1:]]
     cols += [w.regressors[c] for c in accepted]
     return np.column_stack(cols)
 
 
 def held_part(w: ThermalWindows, axis: int, degrees: dict[str, int]) -> np.ndarray:
     """(n,) the part of the output the held groups fix: u_i when the scale is held at 1 (the
-    misalignment held at 0 adds nothing)."""
-    return w.ref[:, axis] if degrees["scale"] <= HELD else np.zeros(len(w))
+    misalignment held at 0 adds nothing), or when its constant is in the pose offsets."""
+    return w.ref[:, axis] if degrees["scale"] <= HELD or w.poses() else np.zeros(len(w))
 
 
 def _gls(A: np.ndarray, y: np.ndarray, W: Whitener) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -268,8 +307,8 @@ def fit_axes(w: ThermalWindows, degrees: dict[str, int], accepted: list[str]) ->
     for i in range(3):
         A = design(w, i, degrees, accepted)
         x, cov, chi2, r = _gls(A, w.y[:, i] - held_part(w, i, degrees), w.whitener(i))
-        out.append(AxisFit(param_names(w.sensor, i, degrees, _quad(w, degrees), accepted), x, cov, chi2,
-                           len(w) - A.shape[1], r))
+        out.append(AxisFit(param_names(w.sensor, i, degrees, _quad(w, degrees), accepted, len(w.poses()),
+                                       _first_power(w)), x, cov, chi2, len(w) - A.shape[1], r))
     return out
 
 
@@ -371,7 +410,7 @@ def fit_thermal(w: ThermalWindows, degrees: dict[str, int] | None = None, loop: 
         accepted.append(c)
         open_.remove(c)
         base = ext
-    return ThermalFit(w.sensor, degrees, accepted, base, explain, w.reference_c, alpha, confounded)
+    return ThermalFit(w.sensor, degrees, accepted, base, explain, w.reference_c, alpha, confounded, w.poses())
 
 
 def select_degrees(w: ThermalWindows, max_degree: int = 3, alpha: float = 0.01) -> dict[str, int]:
