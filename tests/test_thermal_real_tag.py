@@ -48,17 +48,14 @@ def _folder(ref_data: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def record(ref_data, tmp_path_factory):
-    """(rows of the CSV, the imported recording)."""
+    """(rows of the CSV, the recording ``rigctl import`` made of the .csv.gz as it is stored)."""
     d = _folder(ref_data)
     raw = (d / CSV).read_bytes()
     assert hashlib.sha256(raw).hexdigest() == SHA256
     text = gzip.decompress(raw).decode()
     rows = list(csv.DictReader(text.splitlines()))
-    out = tmp_path_factory.mktemp("cats")
-    src = out / "cats_tag_60s.csv"  # rigctl import reads text: the file as published, unzipped
-    src.write_text(text)
-    rec = out / "cats.h5"
-    proc = run_rigctl("import", str(src), "-o", str(rec), "--columns",
+    rec = tmp_path_factory.mktemp("cats") / "cats.h5"
+    proc = run_rigctl("import", str(d / CSV), "-o", str(rec), "--columns",
                       "time=t_s,temp=temp_c,acc_x=acc_x,acc_y=acc_y,acc_z=acc_z,"
                       "gyr_x=gyr_x,gyr_y=gyr_y,gyr_z=gyr_z,section=pose",
                       "--units", "acc=m/s^2,gyr=mrad/s,time=s")
@@ -66,9 +63,10 @@ def record(ref_data, tmp_path_factory):
     return rows, rec
 
 
-def _numpy_windows(rows: list[dict[str, str]]) -> dict[str, np.ndarray]:
-    """Per pose, consecutive chunks of 30 rows from its first row; a last chunk kept with at
-    least 16 rows (the application layer's rule for a window of 30 samples)."""
+def _numpy_windows(rows: list[dict[str, str]], skip_rows: int = 0) -> dict[str, np.ndarray]:
+    """Per pose, consecutive chunks of 30 rows from its first row (after ``skip_rows``); a last
+    chunk kept with at least 16 rows (the application layer's rule for a window of 30
+    samples)."""
     pose = np.array([r["pose"] for r in rows])
     T = np.array([float(r["temp_c"]) for r in rows])
     gyr = np.array([[float(r[f"gyr_{a}"]) for a in "xyz"] for r in rows]) * MRAD
@@ -76,7 +74,7 @@ def _numpy_windows(rows: list[dict[str, str]]) -> dict[str, np.ndarray]:
     t = np.array([float(r["t_s"]) for r in rows])
     chunks, labels = [], []
     for p in POSES:
-        idx = np.flatnonzero(pose == p)
+        idx = np.flatnonzero(pose == p)[skip_rows:]
         for s in range(0, idx.size, WINDOW_ROWS):
             c = idx[s:s + WINDOW_ROWS]
             if c.size >= 16:
@@ -296,24 +294,25 @@ def test_noise_white_level_against_the_samples(record, gyro):
 def test_accel_bias_and_scale_per_K_agree_with_the_differenced_window_means(record):
     """Three poses, each with one axis along gravity: the accelerometer's bias and scale per K
     and per K^2 are identifiable (the pose with the axis vertical against the two with it
-    horizontal; misalignment held, constants in the pose offsets). Solver (GLS, noise from the
-    record) against numpy's differences of consecutive window means within a pose, regressed on
-    the differences of <dT>, <dT^2> and u_i times them (u the pose's reference). Measured, bias
-    mg/K and scale ppm/K: solver x 0.736 +- 0.088, -539 +- 226; y -2.70 +- 0.16, -330 +- 186;
-    z 2.86 +- 0.33, 1009 +- 1470; numpy x 0.732 +- 0.097, -526 +- 248; y -2.75 +- 0.15,
-    -385 +- 169; z 2.88 +- 0.24, 1104 +- 1039. The bias per K is 7 - 18 sigma; the scale per K
-    2 sigma at most.
+    horizontal; misalignment held, constants in the pose offsets). The first hour of each pose
+    is left out (``settle_s`` 3600): there the temperature falls by 10 K along a curve and the
+    output follows it by up to 30 mg, and the within-window contrasts of the noise estimate
+    (free of a straight line only) count that curvature as noise -- with it the estimate put
+    the white level under 1/20 of the samples' scatter and 0.6 mg of bias instability, and the
+    chi-square fell *below* its band (measured 0.686 against 0.831 .. 1.187; docs/thermal.md).
+    Settled: chi2/dof 1.044 inside 0.828 .. 1.191, and the white level from the record is
+    1.17 - 1.22 times the samples' scatter (se * sqrt(60)).
 
-    A finding, asserted as such: the chi-square is *below* its 99 % band (measured 0.686
-    against 0.831 .. 1.187; per axis 1.14, 0.42, 0.49): the noise estimated from the record
-    puts the white level of the accelerometer far below the scatter of its samples (N on y and
-    z under 1/20 of se * sqrt(60)) and a bias instability of about 0.6 mg instead, which
-    over-predicts the scatter of the 30-min means. A likely cause, not verified: in the first
-    hour of each pose the temperature falls by 10 K, the output follows by up to 30 mg along a
-    curve, and the within-window contrasts (free of a straight line only) count that curvature
-    as slow noise."""
-    ref = _numpy_windows(record[0])
-    w = AT.static_windows(record[1], AT.STATIC_WINDOW_S)["accel"]
+    Solver (GLS, noise from the record) against numpy's differences of consecutive window means
+    within a pose, regressed on the differences of <dT>, <dT^2> and u_i times them (u the
+    pose's reference). Measured, bias mg/K and scale ppm/K: solver x 0.915 +- 0.090,
+    -869 +- 242; y -2.62 +- 0.16, -328 +- 181; z 2.95 +- 0.28, 2919 +- 1371; numpy x
+    0.916 +- 0.089, -848 +- 238; y -2.61 +- 0.16, -324 +- 175; z 2.96 +- 0.25, 2901 +- 1212.
+    Bias per K 10 - 17 sigma; scale per K 3.6 sigma on x, under 2.2 on y and z."""
+    ref = _numpy_windows(record[0], skip_rows=60)
+    w = AT.static_windows(record[1], AT.STATIC_WINDOW_S, settle_s=3600.0)["accel"]
+    assert len(w) == len(ref["T"]) == 141
+    assert np.allclose(w.y, ref["acc"], rtol=1e-12, atol=1e-12)
     th.estimate_noise(w)
     fit = th.fit_thermal(w, {"bias": 2, "scale": 2, "misalignment": th.HELD}, loop=False)
     params = {q["name"]: q for q in fit.parameters()}
@@ -333,10 +332,11 @@ def test_accel_bias_and_scale_per_K_agree_with_the_differenced_window_means(reco
             q = params[name]
             assert q["ci95"][0] <= b[j] <= q["ci95"][1], (name, b[j], q["value"])
             assert abs(q["value"] - b[j]) <= 1.96 * s[j], (name, b[j], q["value"], s[j])
-        assert abs(b[0]) > 7 * s[0]
-    lo, _ = fit.band()
-    assert fit.chi2 / fit.dof < lo
+        assert abs(b[0]) > 7 * s[0], (a, b[0], s[0])
+    lo, hi = fit.band()
+    assert lo <= fit.chi2 / fit.dof <= hi
     se = np.array([[float(r[f"se_acc_{a}"]) for a in "xyz"] for r in record[0]])
     full = (ref["n"] == 60) & (ref["row_pose"] != "")
-    for i in (1, 2):
-        assert w.noise[i].N.value < np.median(se[full, i] * np.sqrt(60.0)) / 20
+    for i in range(3):
+        ratio = w.noise[i].N.value / np.median(se[full, i] * np.sqrt(60.0))
+        assert 1.0 < ratio < 1.35, (i, ratio)

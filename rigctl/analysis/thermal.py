@@ -209,12 +209,14 @@ def group_poses(downs: list[np.ndarray], labels: list[str], same_deg: float = SA
 
 def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, reference_c: float = 25.0,
                    max_degree: int = 3, hysteresis_width_K: float = HYSTERESIS_WIDTH_K,
-                   min_fill: float = 0.5) -> dict[str, th.ThermalWindows]:
+                   min_fill: float = 0.5, settle_s: float = 0.0) -> dict[str, th.ThermalWindows]:
     """The accelerometer and gyro windows of a *static* record with a temperature column: an
     imported bench log (a warm-up after power-on, days at room temperature), one orientation,
     no table and no chamber. Each static section (/segments, kind orientation; the whole record
     when there is none) is cut into windows of ``window_s`` seconds; a window with fewer than
-    ``min_fill`` of its nominal samples (gaps) or fewer than 16 is left out.
+    ``min_fill`` of its nominal samples (gaps) or fewer than 16 is left out; ``settle_s``
+    leaves out the first seconds of every section (a unit put into a fridge or chamber: its
+    temperature falls fast along a curve the windows' straight-line contrasts count as noise).
 
     Reference inputs: gravity (the recording's g) along the mean specific force of each static
     section, and a zero rate (the earth's rate has no known direction here). Sections whose
@@ -261,6 +263,9 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
     pose_w: list[str] = []
     for (a, z), pose in zip(sections, poses):
         down = down_of[pose]
+        a = int(np.searchsorted(t_all[a:z], t_all[a] + settle_s)) + a if settle_s > 0 else a
+        if z - a < 1:
+            continue
         edges = np.arange(t_all[a], t_all[z - 1] + window_s, window_s)
         idx = np.searchsorted(t_all[a:z], edges) + a
         keep = [(int(i0), int(i1)) for i0, i1 in zip(idx[:-1], idx[1:]) if i1 - i0 >= max(16, min_fill * nominal)]
@@ -304,7 +309,8 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
 
 def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_WINDOW_S,
                reference_c: float = 25.0, loop: bool = True,
-               noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
+               noise: tuple[Any, Any] | None = None, settle_s: float = 0.0
+               ) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
     """Bias against temperature of a static record (:func:`static_windows`): per sensor the windows
     and the fit, the covariance of the window means from ``noise`` (accel, gyro: three axes'
     NoiseCoefficients; None: estimated from the record) and, with ``loop``, the thermal
@@ -313,7 +319,7 @@ def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_
     is fitted too (degree ``bias_degree``, from K^1: its constant is in the pose offsets), its
     misalignment held (a few poses with one axis each along gravity cannot separate
     misalignment per K from bias per K); the gyro has no rate input: bias only."""
-    wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree))
+    wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree), settle_s=settle_s)
     out = {}
     for sensor, model in zip(("accel", "gyro"), noise or (None, None)):
         w = wins[sensor]
