@@ -41,14 +41,13 @@ def _profiles_bench():
 
 def write_noise(path: Path, profile: str, hours: float, fs: float, seed: int, bench) -> dict:
     """A static 6-axis recording of the profile's noise only; returns the truth per axis (SI)."""
-    from rigctl.sim.error_model import sensor_noise
     from rigctl.sim.noise import NoiseGenerator
     from rigctl.sim.profiles import get_profile
 
     prof = get_profile(profile)
     n = int(round(hours * 3600 * fs))
-    g = sensor_noise(prof["gyro"], "gyro")
-    a = sensor_noise(prof["accel"], "accel")
+    g = prof.gyro.noise.coefficients()
+    a = prof.accel.noise.coefficients()
     w = NoiseGenerator(g, fs, np.random.SeedSequence([seed, 1])).next(n)
     f = NoiseGenerator(a, fs, np.random.SeedSequence([seed, 2])).next(n) + np.array([0.0, 0.0, 9.80665])
     h5, ds = bench._h5(path, fs)

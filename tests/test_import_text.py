@@ -100,6 +100,29 @@ def test_semicolon_header_seconds_deg_s_and_g(tmp_path: Path) -> None:
         np.testing.assert_allclose(f["imu/angular_rate"][()], g * D2R, rtol=1e-6, atol=1e-12)
 
 
+def test_a_gzipped_table_imports_as_the_plain_one(tmp_path: Path) -> None:
+    import gzip
+
+    rng = np.random.default_rng(5)
+    rows = "t,temp,ax,ay,az,gx,gy,gz,pose\n" + "".join(
+        f"{k * 60},{20 + 0.01 * k:.3f}," + ",".join(f"{v:.7g}" for v in (*rng.normal(0, 1e-3, 2), -9.8,
+                                                                          *rng.normal(0, 1e-3, 3))) + ",z down\n"
+        for k in range(200))
+    plain, packed = tmp_path / "log.csv", tmp_path / "log.csv.gz"
+    plain.write_text(rows)
+    packed.write_bytes(gzip.compress(rows.encode()))
+    cols = "time=t,temp=temp,acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz,section=pose"
+    for src in (plain, packed):
+        _ok(str(src), "-o", str(tmp_path / f"{src.name}.h5"), "--columns", cols, "--units", "acc=m/s^2,gyr=mrad/s")
+    with h5py.File(tmp_path / "log.csv.h5", "r") as a, h5py.File(tmp_path / "log.csv.gz.h5", "r") as b:
+        for k in ("imu/time", "imu/temperature", "imu/specific_force", "imu/angular_rate"):
+            assert np.array_equal(a[k][()], b[k][()]), k
+    bad = tmp_path / "cut.csv.gz"
+    bad.write_bytes(packed.read_bytes()[:40])
+    p = run_rigctl("import", str(bad), "--columns", cols, "--units", "acc=m/s^2,gyr=mrad/s", "-o", str(tmp_path / "x.h5"))
+    assert p.returncode == 2 and "gzip" in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
 def test_unreadable_input_is_one_error_line(tmp_path: Path) -> None:
     blob = tmp_path / "capture.bin"
     blob.write_bytes(bytes(range(256)) * 8)

@@ -48,17 +48,14 @@ def _folder(ref_data: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def record(ref_data, tmp_path_factory):
-    """(rows of the CSV, the imported recording)."""
+    """(rows of the CSV, the recording ``rigctl import`` made of the .csv.gz as it is stored)."""
     d = _folder(ref_data)
     raw = (d / CSV).read_bytes()
     assert hashlib.sha256(raw).hexdigest() == SHA256
     text = gzip.decompress(raw).decode()
     rows = list(csv.DictReader(text.splitlines()))
-    out = tmp_path_factory.mktemp("cats")
-    src = out / "cats_tag_60s.csv"  # rigctl import reads text: the file as published, unzipped
-    src.write_text(text)
-    rec = out / "cats.h5"
-    proc = run_rigctl("import", str(src), "-o", str(rec), "--columns",
+    rec = tmp_path_factory.mktemp("cats") / "cats.h5"
+    proc = run_rigctl("import", str(d / CSV), "-o", str(rec), "--columns",
                       "time=t_s,temp=temp_c,acc_x=acc_x,acc_y=acc_y,acc_z=acc_z,"
                       "gyr_x=gyr_x,gyr_y=gyr_y,gyr_z=gyr_z,section=pose",
                       "--units", "acc=m/s^2,gyr=mrad/s,time=s")

@@ -11,7 +11,9 @@ cannot be used, naming the file, the line and what to do.
 from __future__ import annotations
 
 import csv
+import gzip
 import json
+import zlib
 import math
 import re
 from collections.abc import Callable
@@ -145,10 +147,15 @@ DELIMITERS = (",", "\t", ";")
 def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     """The lines of a text table split into fields: comma-, tab- or semicolon-separated (the
     first line after ``skip_rows`` and any ``#``/``%`` comment lines decides), else runs of
-    whitespace. Returns (rows, delimiter name, number of lines before the rows)."""
+    whitespace. Returns (rows, delimiter name, number of lines before the rows). A gzip file
+    (by its first bytes, e.g. LOG.csv.gz) is read decompressed."""
     try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            text = fh.read()
+        raw = path.read_bytes()
+        if raw[:2] == b"\x1f\x8b":
+            raw = gzip.decompress(raw)
+        text = raw.decode("utf-8-sig")
+    except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
+        raise InputError(f"a damaged gzip file ({exc})", path) from None
     except UnicodeDecodeError:
         raise InputError("not a UTF-8 text table (CSV, TSV or whitespace-separated columns)", path,
                          hint="give the log as text, or a ROS bag / MCAP file") from None

@@ -81,7 +81,7 @@ def register(subparsers: Any) -> None:
     """Add the ``import`` sub-command."""
     p = subparsers.add_parser("import", help="convert a foreign IMU log (CSV, ROS bag, MCAP) into a rigctl "
                               "recording", description=__doc__.split("\n\n")[0])
-    p.add_argument("file", help="CSV file, ROS 1 bag, rosbag2 directory (sqlite3 or mcap storage) or MCAP file")
+    p.add_argument("file", help="CSV file (or .csv.gz), ROS 1 bag, rosbag2 directory (sqlite3 or mcap storage) or MCAP file")
     p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
     p.add_argument("--columns",
                    help="CSV: acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
