@@ -14,10 +14,7 @@ hi/lo <= 2), their minimum, and the slope over the last octave of them.
 """
 from __future__ import annotations
 
-import csv
 import datetime as dt
-import gzip
-import json
 import math
 from pathlib import Path
 
@@ -25,32 +22,17 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from rigctl import cli
+from astropi_support import import_xup, xup_rows
 from rigctl.analysis import allan as AA
 
-SET = "astropi-sensehat-static"
-CSV = "astro_pi_data_20150824_085954.csv.gz"
-FIRST_ROW = 3902  # the x-up section (README there)
 C_B = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.664
 
 
 @pytest.fixture(scope="module")
 def astro(ref_data, tmp_path_factory) -> tuple[dict, np.ndarray, Path]:
-    with gzip.open(ref_data / SET / CSV, "rt", newline="") as fh:
-        rows = list(csv.DictReader(fh))[FIRST_ROW:]
+    rows = xup_rows(ref_data)
     t = np.array([dt.datetime.fromisoformat(r["time_stamp"]).timestamp() for r in rows])
-    d = tmp_path_factory.mktemp("astro_b")
-    src = d / "xup.csv"
-    with src.open("w") as fh:
-        fh.write("t,gyro_x,gyro_y,gyro_z\n")
-        for tk, r in zip(t - t[0], rows):
-            fh.write(f"{tk:.0f},{r['gyro_x']},{r['gyro_y']},{r['gyro_z']}\n")
-    seg = d / "sections.json"
-    seg.write_text(json.dumps({"x up": {"start": 0, "end": len(rows)}}))
-    rec = d / "xup.h5"
-    assert cli.main(["import", str(src), "-o", str(rec), "--columns",
-                     "time=t,gyr_x=gyro_x,gyr_y=gyro_y,gyr_z=gyro_z",
-                     "--units", "gyr=rad/s,time=s", "--segments", str(seg)]) == 0
+    rec = import_xup(rows, tmp_path_factory.mktemp("astro_b"), ("gyro_x", "gyro_y", "gyro_z"))
     y = {a: np.array([float(r[f"gyro_{a[1]}"]) for r in rows]) for a in ("gx", "gz")}
     return y, t, rec
 

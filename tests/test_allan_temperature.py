@@ -11,45 +11,24 @@ differences of consecutive window means regressed on the temperature's) agrees w
 """
 from __future__ import annotations
 
-import csv
 import datetime as dt
-import gzip
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from rigctl import cli
+from astropi_support import import_xup, xup_rows
 from rigctl.analysis import allan as AA
 
-SET = "astropi-sensehat-static"
-CSV = "astro_pi_data_20150824_085954.csv.gz"
-FIRST_ROW = 3902  # the x-up section (README)
 WINDOW_S = 1800.0
 
 
 @pytest.fixture(scope="module")
 def astro(ref_data, tmp_path_factory) -> tuple[list[dict], Path]:
-    with gzip.open(ref_data / SET / CSV, "rt", newline="") as fh:
-        rows = list(csv.DictReader(fh))[FIRST_ROW:]
-    d = tmp_path_factory.mktemp("astro_t")
-    t0 = dt.datetime.fromisoformat(rows[0]["time_stamp"]).timestamp()
-    src = d / "xup.csv"
-    with src.open("w") as fh:
-        fh.write("t,temp_h,accel_x,accel_y,accel_z,gyro_x,gyro_y,gyro_z\n")
-        for r in rows:
-            t = dt.datetime.fromisoformat(r["time_stamp"]).timestamp() - t0
-            fh.write(f"{t:.0f},{r['temp_h']},{r['accel_x']},{r['accel_y']},{r['accel_z']},"
-                     f"{r['gyro_x']},{r['gyro_y']},{r['gyro_z']}\n")
-    seg = d / "sections.json"
-    seg.write_text(json.dumps({"x up": {"start": 0, "end": len(rows)}}))
-    rec = d / "xup.h5"
-    assert cli.main(["import", str(src), "-o", str(rec), "--columns",
-                     "time=t,temp=temp_h,acc_x=accel_x,acc_y=accel_y,acc_z=accel_z,"
-                     "gyr_x=gyro_x,gyr_y=gyro_y,gyr_z=gyro_z",
-                     "--units", "acc=g,gyr=rad/s,time=s", "--segments", str(seg)]) == 0
+    rows = xup_rows(ref_data)
+    rec = import_xup(rows, tmp_path_factory.mktemp("astro_t"),
+                     ("temp_h", "accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z"))
     return rows, rec
 
 
