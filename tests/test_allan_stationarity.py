@@ -95,3 +95,27 @@ def test_bartlett_matches_its_textbook_form_on_equal_and_unequal_variances() -> 
         c = 1 + (2 / nu - 1 / (2 * nu)) / 3
         assert stat == pytest.approx(m / c, rel=1e-12)
         assert 0.0 <= p <= 1.0
+
+
+def test_a_small_change_of_level_does_not_explain_a_large_bump() -> None:
+    """The analysis layer's naming (rigctl.analysis.allan_drift.name_bumps): a bump of x1.3
+    over the fit whose level changes by ~5 % along a long record (significant with thousands
+    of averages per window) is not put down to the change: the median window has it too."""
+    from rigctl.analysis import allan_drift as AD
+
+    rng = np.random.default_rng(3)
+    n = 200_000
+    y = rng.standard_normal(n) * np.linspace(0.95, 1.05, n)  # white, its level drifting 10 %
+    tau = 20.0
+    whole = oadev(y, np.array([20]))[0]
+    run = {"tau_from_s": 15.0, "tau_to_s": 25.0, "side": "data above the fit",
+           "worst_tau_s": tau, "data_over_fit": 1.3, "likely": "a bump: ..."}
+    check = {"outside": [dict(run)]}
+    assert AD.name_bumps(check, y, 1.0) == 0
+    o = check["outside"][0]
+    assert o["stationarity"]["tested"] and not o["stationarity"]["stationary"], o["stationarity"]
+    assert "cause" not in o and "median window" in o["likely"]
+    # the same record with the bump only in its typical level: (data / fit 1.05) renamed
+    check = {"outside": [dict(run, data_over_fit=1.05)]}
+    assert AD.name_bumps(check, y, 1.0) == 1 and check["outside"][0]["cause"] == "nonstationary"
+    assert abs(check["outside"][0]["stationarity"]["adev_whole_si"] / whole - 1) < 1e-9

@@ -120,6 +120,8 @@ def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALP
     loud = [(float(edges[i] * tau0), float(edges[i + 1] * tau0), float(ratio[i]))
             for i in range(k) if ratio[i] > thr[i]]
     out.update({"tested": True, "windows": int(k), "window_s": float(edges[1] - edges[0]) * tau0,
+                "adev_whole_si": math.sqrt(_oavar(y, m)),
+                "adev_median_window_si": math.sqrt(med),
                 "edf": nu.tolist(), "adev_si": np.sqrt(s2).tolist(),
                 "ratio_to_median": ratio.tolist(), "statistic": stat, "dof": k - 1,
                 "p_value": p, "stationary": bool(p >= alpha), "loud": loud})
