@@ -113,9 +113,10 @@ def name_bumps(check: dict, ybar: np.ndarray, block_s: float) -> int:
         if not st["tested"]:
             continue
         if st["stationary"]:
-            o["likely"] = (f"{o['likely']}; stationary: its Allan variance at "
-                           f"{st['tau_s']:.3g} s agrees across {st['windows']} windows of the "
-                           f"record (Bartlett p = {st['p_value']:.2g})")
+            o["likely"] = (f"{o['likely']}; stationary as far as the record shows: its Allan "
+                           f"variance at {st['tau_s']:.3g} s does not differ across "
+                           f"{st['windows']} windows of {st['window_s']:.0f} s beyond chance "
+                           f"(Bartlett p = {st['p_value']:.2g}, alpha {st['alpha']:g})")
             continue
         # the bump is the excursions' only when the typical (median) window has none of it:
         # its deviation within the self-check's DEPARTURE_REL of the fitted total (with
@@ -144,6 +145,7 @@ def bump_reason(st: dict[str, Any]) -> str:
         np.arange(st["windows"]) * st["window_s"], np.arange(1, st["windows"] + 1) * st["window_s"],
         st["ratio_to_median"])), key=lambda w: w[2])]
     where = ", ".join(f"t = {a:.0f}-{b:.0f} s (x{math.sqrt(v):.2g})" for a, b, v in loud)
+    q = st["quiet"]
     return (f"not stationary noise: the Allan deviation at {st['tau_s']:.3g} s differs across "
             f"the record's {st['windows']} windows of {st['window_s']:.0f} s beyond chance "
             f"(x{r.min():.2g} to x{r.max():.2g} of the median window's; Bartlett p = "
@@ -151,7 +153,8 @@ def bump_reason(st: dict[str, Any]) -> str:
             f"{100 * F.DEPARTURE_REL:.0f} % of the fit); it comes from {where}: a disturbance "
             "in part of the record (excursions of the rate, a noise level that changes), not "
             "a term of a stationary noise model; to see the noise without it, analyse a quiet "
-            "stretch (rigctl import --segments)")
+            f"stretch (rigctl import --segments): the longest whose windows agree is t = "
+            f"{q[0]:.0f}-{q[1]:.0f} s (x{q[2]:.2g} the record's deviation there)")
 
 
 def warmup_reason(w: dict[str, Any]) -> str:

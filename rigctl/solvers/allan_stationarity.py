@@ -93,11 +93,26 @@ def bartlett(s2: np.ndarray, nu: np.ndarray) -> tuple[float, float]:
     return stat, float(chi2.sf(stat, k - 1))
 
 
+def quiet_stretch(s2: np.ndarray, nu: np.ndarray, alpha: float = ALPHA) -> tuple[int, int]:
+    """The longest run of consecutive windows [a, b) whose variances agree (Bartlett p >=
+    alpha; one window always does), the lowest pooled variance among runs of that length:
+    the stretch of the record least touched by a disturbance that adds variance."""
+    k = len(s2)
+    best = (1, -float(s2.min()), int(np.argmin(s2)), int(np.argmin(s2)) + 1)
+    for a in range(k):
+        for b in range(a + 2, k + 1):
+            if bartlett(s2[a:b], nu[a:b])[1] >= alpha:
+                pooled = float((nu[a:b] * s2[a:b]).sum() / nu[a:b].sum())
+                best = max(best, (b - a, -pooled, a, b))
+    return best[2], best[3]
+
+
 def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALPHA) -> dict:
     """Bartlett's test (module docstring) of the Allan variance at ``tau`` across windows of
     the rate samples ``y`` (``tau0`` apart: block means will do). Returns {"tested", "tau_s",
     "windows", "p_value", "stationary", "window_s", "ratio_to_median" per window, "loud": the
-    windows (start, end s) whose variance exceeds the median window's beyond chance}; tested
+    windows (start, end s) whose variance exceeds the median window's beyond chance, "quiet":
+    :func:`quiet_stretch` as (start s, end s, its deviation over the whole record's)}; tested
     False (with "skipped") when the record holds fewer than two windows of WINDOW_TAUS taus."""
     y = np.asarray(y, dtype=float)
     y = y[np.isfinite(y)]
@@ -119,6 +134,10 @@ def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALP
     ratio = s2 / med
     loud = [(float(edges[i] * tau0), float(edges[i + 1] * tau0), float(ratio[i]))
             for i in range(k) if ratio[i] > thr[i]]
+    q = quiet_stretch(s2, nu, alpha)
+    out["quiet"] = [float(edges[q[0]] * tau0), float(edges[q[1]] * tau0),
+                    math.sqrt(float((nu[q[0]:q[1]] * s2[q[0]:q[1]]).sum() / nu[q[0]:q[1]].sum())
+                              / _oavar(y, m))]
     out.update({"tested": True, "windows": int(k), "window_s": float(edges[1] - edges[0]) * tau0,
                 "adev_whole_si": math.sqrt(_oavar(y, m)),
                 "adev_median_window_si": math.sqrt(med),
