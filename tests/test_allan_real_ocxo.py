@@ -146,7 +146,7 @@ def test_the_bump_beside_the_floor_is_not_stationary_and_is_named_so(ocxo: dict)
     deviation between 60 and 400 s, every m: 146 s when written, 5.40e-12 over the 4.92e-12
     floor) and the two halves of the record at that tau (plain numpy, an F test with
     flicker FM's EDF: first half 7.1e-12, second 2.9e-12 when written) -- the bump lives in
-    the record's first half (frequency excursions of -5 .. -9e-11 lasting 30-300 s). The
+    the record's first half (frequency excursions of -4 .. -9e-11 lasting 30-300 s). The
     pipeline's self-check names the run of taus holding the hump 'not stationary noise'
     (cause nonstationary, Bartlett p below its alpha) and places it in the first half."""
     y = ocxo["y"]

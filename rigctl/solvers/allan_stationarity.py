@@ -5,7 +5,7 @@ data lie above the fitted IEEE 952 total "a bump". A stationary correlated proce
 first-order Gauss-Markov process: a hump near 1.9 x its correlation time; a periodic
 disturbance of period T: near 0.37 T) makes one, and so do a few transient excursions of the
 rate in part of the record (a disturbance of the source or of its environment: the record of a
-10 MHz OCXO in tests/data has excursions of -5 .. -9e-11 lasting 30-300 s in its first 2.7 h and
+10 MHz OCXO in tests/data has excursions of -4 .. -9e-11 lasting 30-300 s in its first 2.7 h and
 none after; its curve's bump at 65-175 s is theirs). The two are told apart by where in the
 record the Allan variance at the bump's tau comes from -- the dynamic Allan variance
 (Galleani and Tavella, IEEE Trans. UFFC 56 (2009) 450): the record is cut into k windows of
