@@ -119,3 +119,13 @@ def test_a_small_change_of_level_does_not_explain_a_large_bump() -> None:
     check = {"outside": [dict(run, data_over_fit=1.05)]}
     assert AD.name_bumps(check, y, 1.0) == 1 and check["outside"][0]["cause"] == "nonstationary"
     assert abs(check["outside"][0]["stationarity"]["adev_whole_si"] / whole - 1) < 1e-9
+
+
+def test_no_test_where_the_samples_are_too_coarse_for_the_tau() -> None:
+    """Block means 10 s apart cannot give the Allan variance at 4 s (nor at 14 s, 1.4x one
+    block): skipped, not tested at another tau."""
+    y = np.random.default_rng(0).standard_normal(5000)
+    for tau in (4.0, 14.0):
+        st = ST.bump_stationarity(y, 10.0, tau)
+        assert not st["tested"] and "apart" in st["skipped"], st
+    assert ST.bump_stationarity(y, 10.0, 20.0)["tested"]
