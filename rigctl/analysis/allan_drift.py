@@ -79,7 +79,9 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
     renamed = 0
     for o in check.get("outside") or []:
         sel = (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
-        if not sel.any() or o.get("cause"):
+        # a named cause stays, but for "nonstationary" (name_bumps): a warm-up or the
+        # temperature says what the disturbance is
+        if not sel.any() or o.get("cause") not in (None, "nonstationary"):
             continue
         if float(np.max(share[sel])) >= D.NAME_SHARE:
             reason = why
@@ -90,6 +92,8 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
             continue
         if "likely_before" not in o:
             o["likely_before"] = o["likely"]
+        elif o.get("cause") == "nonstationary":
+            o["likely_nonstationary"] = o["likely"]
         o["likely"] = reason
         o["cause"] = key
         renamed += 1
