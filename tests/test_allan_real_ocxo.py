@@ -184,7 +184,9 @@ def test_the_quiet_stretch_the_warning_names_has_no_bump(ocxo: dict, ref_data: P
     r0 = ocxo["res"]["default"]
     q = [o["stationarity"]["quiet"] for o in r0["fit"]["check"]["outside"] if o.get("cause") == "nonstationary"]
     assert q and q[0][:2] == [9991.0, 19982.0], q
-    a, b = int(q[0][0]), int(q[0][1])
+    a, b = [o["stationarity"]["quiet_samples"] for o in r0["fit"]["check"]["outside"]
+            if o.get("cause") == "nonstationary"][0]
+    assert (a, b) == (9991, 19982)
     y = ocxo["y"]
     whole = oadev(y, np.array([45, 146]))
     quiet = oadev(y[a:b], np.array([45, 146]))

@@ -79,7 +79,9 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
     renamed = 0
     for o in check.get("outside") or []:
         sel = (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
-        if not sel.any() or o.get("cause"):
+        # a named cause stays, but for "nonstationary" (name_bumps): a warm-up or the
+        # temperature says what the disturbance is
+        if not sel.any() or o.get("cause") not in (None, "nonstationary"):
             continue
         if float(np.max(share[sel])) >= D.NAME_SHARE:
             reason = why
@@ -90,13 +92,15 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
             continue
         if "likely_before" not in o:
             o["likely_before"] = o["likely"]
+        elif o.get("cause") == "nonstationary":
+            o["likely_nonstationary"] = o["likely"]
         o["likely"] = reason
         o["cause"] = key
         renamed += 1
     return renamed
 
 
-def name_bumps(check: dict, ybar: np.ndarray, block_s: float) -> int:
+def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None = None) -> int:
     """Test each run of taus the self-check calls a bump (data above the fit, not at either
     end, no cause named yet) for stationarity (:func:`rigctl.solvers.allan_stationarity.
     bump_stationarity` on the block means, at the run's worst tau; the result in the run's
@@ -131,6 +135,9 @@ def name_bumps(check: dict, ybar: np.ndarray, block_s: float) -> int:
                            f"{st['tau_s']:.3g} s)")
             continue
         o["likely_before"] = o["likely"]
+        if tau0:  # the quiet stretch in samples of the range analysed (for --segments)
+            st["quiet_samples"] = [int(round(st["quiet"][0] / tau0)),
+                                   int(round(st["quiet"][1] / tau0))]
         o["likely"] = bump_reason(st)
         o["cause"] = "nonstationary"
         renamed += 1
@@ -154,7 +161,9 @@ def bump_reason(st: dict[str, Any]) -> str:
             "in part of the record (excursions of the rate, a noise level that changes), not "
             "a term of a stationary noise model; to see the noise without it, analyse a quiet "
             f"stretch (rigctl import --segments): the longest whose windows agree is t = "
-            f"{q[0]:.0f}-{q[1]:.0f} s (x{q[2]:.2g} the record's deviation there)")
+            f"{q[0]:.0f}-{q[1]:.0f} s (x{q[2]:.2g} the record's deviation there)"
+            + (f", samples {st['quiet_samples'][0]}-{st['quiet_samples'][1]} of the range "
+               "analysed" if "quiet_samples" in st else ""))
 
 
 def warmup_reason(w: dict[str, Any]) -> str:
