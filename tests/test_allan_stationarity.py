@@ -95,3 +95,55 @@ def test_bartlett_matches_its_textbook_form_on_equal_and_unequal_variances() -> 
         c = 1 + (2 / nu - 1 / (2 * nu)) / 3
         assert stat == pytest.approx(m / c, rel=1e-12)
         assert 0.0 <= p <= 1.0
+
+
+def test_a_small_change_of_level_does_not_explain_a_large_bump() -> None:
+    """The analysis layer's naming (rigctl.analysis.allan_drift.name_bumps): a bump of x1.3
+    over the fit whose level changes by ~5 % along a long record (significant with thousands
+    of averages per window) is not put down to the change: the median window has it too."""
+    from rigctl.analysis import allan_drift as AD
+
+    rng = np.random.default_rng(3)
+    n = 200_000
+    y = rng.standard_normal(n) * np.linspace(0.95, 1.05, n)  # white, its level drifting 10 %
+    tau = 20.0
+    whole = oadev(y, np.array([20]))[0]
+    run = {"tau_from_s": 15.0, "tau_to_s": 25.0, "side": "data above the fit",
+           "worst_tau_s": tau, "data_over_fit": 1.3, "likely": "a bump: ..."}
+    check = {"outside": [dict(run)]}
+    assert AD.name_bumps(check, y, 1.0) == 0
+    o = check["outside"][0]
+    assert o["stationarity"]["tested"] and not o["stationarity"]["stationary"], o["stationarity"]
+    assert "cause" not in o and "median window" in o["likely"]
+    # the same record with the bump only in its typical level: (data / fit 1.05) renamed
+    check = {"outside": [dict(run, data_over_fit=1.05)]}
+    assert AD.name_bumps(check, y, 1.0) == 1 and check["outside"][0]["cause"] == "nonstationary"
+    assert abs(check["outside"][0]["stationarity"]["adev_whole_si"] / whole - 1) < 1e-9
+
+
+def test_no_test_where_the_samples_are_too_coarse_for_the_tau() -> None:
+    """Block means 10 s apart cannot give the Allan variance at 4 s (nor at 14 s, 1.4x one
+    block): skipped, not tested at another tau."""
+    y = np.random.default_rng(0).standard_normal(5000)
+    for tau in (4.0, 14.0):
+        st = ST.bump_stationarity(y, 10.0, tau)
+        assert not st["tested"] and "apart" in st["skipped"], st
+    assert ST.bump_stationarity(y, 10.0, 20.0)["tested"]
+
+
+def test_a_temperature_or_warmup_cause_replaces_the_nonstationary_naming() -> None:
+    """name_in_check (the warm-up's and the temperature's naming) may replace a bump named
+    "nonstationary" (what the disturbance is beats that there is one), not another cause."""
+    from rigctl.analysis import allan_drift as AD
+
+    tau = np.array([10.0, 20.0, 40.0])
+    runs = [{"tau_from_s": 10.0, "tau_to_s": 20.0, "side": "data above the fit",
+             "likely": "not stationary noise: ...", "likely_before": "a bump: ...",
+             "cause": "nonstationary"},
+            {"tau_from_s": 40.0, "tau_to_s": 40.0, "side": "data above the fit",
+             "likely": "a warm-up ...", "cause": "warmup"}]
+    check = {"outside": runs}
+    assert AD.name_in_check(check, tau, np.array([0.5, 0.5, 0.5]), "the temperature", "temperature") == 1
+    assert runs[0]["cause"] == "temperature" and runs[0]["likely"] == "the temperature"
+    assert runs[0]["likely_before"] == "a bump: ..." and runs[0]["likely_nonstationary"].startswith("not stationary")
+    assert runs[1]["cause"] == "warmup"

@@ -5,7 +5,7 @@ data lie above the fitted IEEE 952 total "a bump". A stationary correlated proce
 first-order Gauss-Markov process: a hump near 1.9 x its correlation time; a periodic
 disturbance of period T: near 0.37 T) makes one, and so do a few transient excursions of the
 rate in part of the record (a disturbance of the source or of its environment: the record of a
-10 MHz OCXO in tests/data has excursions of -5 .. -9e-11 lasting 30-300 s in its first 2.7 h and
+10 MHz OCXO in tests/data has excursions of -4 .. -9e-11 lasting 30-300 s in its first 2.7 h and
 none after; its curve's bump at 65-175 s is theirs). The two are told apart by where in the
 record the Allan variance at the bump's tau comes from -- the dynamic Allan variance
 (Galleani and Tavella, IEEE Trans. UFFC 56 (2009) 450): the record is cut into k windows of
@@ -28,6 +28,7 @@ than a single window reaches with probability ALPHA / k are named (where the bum
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy.stats import chi2
@@ -56,6 +57,7 @@ def _nist_edfs(n_phase: int, m: int) -> list[float]:
     return out
 
 
+@lru_cache(maxsize=1024)
 def window_edf(n_samples: int, m: int) -> float:
     """The EDF used for a window of ``n_samples`` rate samples at factor m: the smallest over
     the power-law noises of Greenhall's EDF (:func:`rigctl.solvers.allan_edf.edf`) and of
@@ -67,7 +69,7 @@ def window_edf(n_samples: int, m: int) -> float:
 def _oavar(y: np.ndarray, m: int) -> float:
     x = np.concatenate(([0.0], np.cumsum(y - y.mean())))
     d = x[2 * m:] - 2.0 * x[m:-m] + x[:-2 * m]
-    return float(d @ d) / d.size / (2.0 * m * m)  # in units of y^2 (tau0 cancels)
+    return float(np.square(d).sum()) / d.size / (2.0 * m * m)  # y^2 units (tau0 cancels)
 
 
 def dynamic_avar(y: np.ndarray, m: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -80,24 +82,45 @@ def dynamic_avar(y: np.ndarray, m: int, k: int) -> tuple[np.ndarray, np.ndarray,
     return s2, nu, edges
 
 
-def bartlett(s2: np.ndarray, nu: np.ndarray) -> tuple[float, float]:
-    """Bartlett's statistic M / C for equal variances from estimates s2 with EDFs nu, and its
-    p-value from chi2(k - 1)."""
-    s2, nu = np.asarray(s2, dtype=float), np.asarray(nu, dtype=float)
+def _bartlett_stat(s2: np.ndarray, nu: np.ndarray) -> float:
     k = s2.size
     n = float(nu.sum())
     sp = float((nu * s2).sum()) / n
     m = n * math.log(sp) - float((nu * np.log(s2)).sum())
     c = 1.0 + (float((1.0 / nu).sum()) - 1.0 / n) / (3.0 * (k - 1))
-    stat = max(m / c, 0.0)
-    return stat, float(chi2.sf(stat, k - 1))
+    return max(m / c, 0.0)
+
+
+def bartlett(s2: np.ndarray, nu: np.ndarray) -> tuple[float, float]:
+    """Bartlett's statistic M / C for equal variances from estimates s2 with EDFs nu, and its
+    p-value from chi2(k - 1)."""
+    s2, nu = np.asarray(s2, dtype=float), np.asarray(nu, dtype=float)
+    stat = _bartlett_stat(s2, nu)
+    return stat, float(chi2.sf(stat, s2.size - 1))
+
+
+def quiet_stretch(s2: np.ndarray, nu: np.ndarray, alpha: float = ALPHA) -> tuple[int, int]:
+    """The longest run of consecutive windows [a, b) whose variances agree (Bartlett p >=
+    alpha; one window always does), the lowest pooled variance among runs of that length:
+    the stretch of the record least touched by a disturbance that adds variance."""
+    k = len(s2)
+    s2, nu = np.asarray(s2, dtype=float), np.asarray(nu, dtype=float)
+    crit = chi2.isf(alpha, np.arange(1, k))  # the statistic's limit for b - a windows
+    best = (1, -float(s2.min()), int(np.argmin(s2)), int(np.argmin(s2)) + 1)
+    for a in range(k):
+        for b in range(a + 2, k + 1):
+            if _bartlett_stat(s2[a:b], nu[a:b]) <= crit[b - a - 2]:
+                pooled = float((nu[a:b] * s2[a:b]).sum() / nu[a:b].sum())
+                best = max(best, (b - a, -pooled, a, b))
+    return best[2], best[3]
 
 
 def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALPHA) -> dict:
     """Bartlett's test (module docstring) of the Allan variance at ``tau`` across windows of
     the rate samples ``y`` (``tau0`` apart: block means will do). Returns {"tested", "tau_s",
     "windows", "p_value", "stationary", "window_s", "ratio_to_median" per window, "loud": the
-    windows (start, end s) whose variance exceeds the median window's beyond chance}; tested
+    windows (start, end s) whose variance exceeds the median window's beyond chance, "quiet":
+    :func:`quiet_stretch` as (start s, end s, its deviation over the whole record's)}; tested
     False (with "skipped") when the record holds fewer than two windows of WINDOW_TAUS taus."""
     y = np.asarray(y, dtype=float)
     y = y[np.isfinite(y)]
@@ -106,6 +129,9 @@ def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALP
     out = {"tested": False, "tau_s": m * tau0, "alpha": alpha,
            "method": "dynamic Allan variance in equal windows, Bartlett's test (EDF: the "
                      "smallest NIST SP 1065 simple approximation)"}
+    if abs(m * tau0 / tau - 1.0) > 0.25:  # block means too coarse for this tau
+        out["skipped"] = f"the samples given are {tau0:g} s apart: no Allan variance at {tau:g} s"
+        return out
     if k < 2:
         out["skipped"] = f"fewer than 2 windows of {WINDOW_TAUS} taus in the record"
         return out
@@ -119,7 +145,14 @@ def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALP
     ratio = s2 / med
     loud = [(float(edges[i] * tau0), float(edges[i + 1] * tau0), float(ratio[i]))
             for i in range(k) if ratio[i] > thr[i]]
+    whole = _oavar(y, m)
+    q = quiet_stretch(s2, nu, alpha)
+    out["quiet"] = [float(edges[q[0]] * tau0), float(edges[q[1]] * tau0),
+                    math.sqrt(float((nu[q[0]:q[1]] * s2[q[0]:q[1]]).sum() / nu[q[0]:q[1]].sum())
+                              / whole)]
     out.update({"tested": True, "windows": int(k), "window_s": float(edges[1] - edges[0]) * tau0,
+                "adev_whole_si": math.sqrt(whole),
+                "adev_median_window_si": math.sqrt(med),
                 "edf": nu.tolist(), "adev_si": np.sqrt(s2).tolist(),
                 "ratio_to_median": ratio.tolist(), "statistic": stat, "dof": k - 1,
                 "p_value": p, "stationary": bool(p >= alpha), "loud": loud})
