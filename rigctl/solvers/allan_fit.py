@@ -909,10 +909,11 @@ def _filter_taus(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,
     filter's region (b_presence_test). Read off S = sigma^2 tau (N^2 on a white-noise line)
     at m = 1, 2, 4, ... samples (interpolated in log tau), two cases differ:
 
-    * S rises by less each octave, each rise below FILTER_DECAY of the one before: a filter's
-      deficit c / tau fading (it halves per octave). The region then runs to the octave where
-      the rises stop shrinking (ADIS16405 gx: rises 0.30, 0.16, 0.07, 0.04, 0.02 of S(tau0)
-      from m = 1 to 32, then B's rise: m < 32).
+    * S rises by less each octave from the second octave on, each rise below FILTER_DECAY of
+      the one before: a filter's deficit c / tau fading (it halves per octave). The region
+      then runs to the octave where the rises stop shrinking (ADIS16405 gx: rises 0.30, 0.16,
+      0.07, 0.04, 0.02 of S(tau0) from m = 1 to 32, then B's rise: m < 32; a 3-tap (1/4, 1/2,
+      1/4) filter: 0.30, 0.28, 0.14, 0.07, ... of N^2, m up to where K's rise takes over).
     * S rises by more each octave (the second rise over 1 / FILTER_DECAY of the first): a
       correlated process above the white noise from the first tau on (B, a bump), no filter:
       no tau is left out (the Astro Pi gyros, RTIMULib's output point-sampled every 10 s:
@@ -932,10 +933,12 @@ def _filter_taus(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,
         d = np.diff(np.interp(ks, lm, s2[idx] * tau[idx]))
         if d[0] > 0 and d[1] > d[0] / FILTER_DECAY:
             return out
-        k = 1
+        # from the second octave on (tau0 itself is special for any filter longer than one
+        # sample: a 3-tap (1/4, 1/2, 1/4) gives rises 0.30, 0.28, 0.14, 0.07 of N^2)
+        k = 2
         while k < d.size and d[0] > 0 and 0.0 < d[k] < FILTER_DECAY * d[k - 1]:
             k += 1
-        if k > 1:
+        if k > 2:
             m_to = max(m_to, 2.0 ** ks[k])
     out[idx[tau[idx] < tau0 * m_to * (1.0 - 1e-9)]] = True
     return out
