@@ -303,7 +303,8 @@ class HwXsensServer(XsensServer):
         return pos, vals
 
     def next_time(self) -> float | None:
-        """Time of the next frame to send, s (None when not measuring)."""
+        """Time of the next frame not yet encoded, s (None when not measuring): the physics
+        loop keeps the tap's samples from there on (:meth:`Hardware._trim_tap`)."""
         return self._t0 + self._k / self.rate_hz if self.state == "measurement" else None
 
     def step(self, until: float) -> int:
@@ -319,9 +320,14 @@ class HwXsensServer(XsensServer):
             if n == 0:
                 return 0
             k = self._k + np.arange(n)
-            self._k += n
             self._last_acc = None
             frames = self._encode(k)
+            # counted as sent only once encoded: the physics loop reads next_time() without
+            # this lock and trims the tap's samples before it, so a count raised before the
+            # encoder read its samples let the trim take them away (the tap then gave every
+            # frame of the batch the first sample it still had: 30-180 frames of one frozen
+            # sample, several times per 24-position run; tests/test_hil_tap.py)
+            self._k += n
             acc = self._last_acc
             record = [time.monotonic(), self._t0 + k / self.rate_hz, acc, False] \
                 if self.keep_sent and acc is not None else None
@@ -546,11 +552,18 @@ class Hardware:
                 with self._imu_due:
                     self._imu_t = t
                     self._imu_due.notify()
-                nt = self.imu_server.next_time()
-                keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
-                self.tap.trim(min(keep, self.world.k - 1))
+                self._trim_tap(horizon)
             except Exception:       # the loop must survive a bug in one device
                 log.exception("hardware loop")
+
+    def _trim_tap(self, horizon: int) -> None:
+        """Forget the tap's samples that no frame will need: those before the IMU server's
+        next frame not yet encoded (its ``next_time``), or more than ``horizon`` samples behind
+        the world while it does not stream. Runs in the physics loop, concurrently with the
+        stream thread's encoding (which therefore counts a batch only once encoded)."""
+        nt = self.imu_server.next_time()
+        keep = int(round(nt * self.world.rate_hz)) if nt is not None else self.world.k - horizon
+        self.tap.trim(min(keep, self.world.k - 1))
 
     def _imu_loop(self) -> None:
         """IMU stream: encode and send the frames due up to the world time the physics loop

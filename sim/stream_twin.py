@@ -60,6 +60,7 @@ class StreamTwin:
         self.measurement_starts.append(time.monotonic())
 
     def next_time(self) -> float | None:
+        """Time of the next frame not yet encoded, s (None when not measuring)."""
         return self._t0 + self._k / self.rate_hz if self.state == "measurement" else None
 
     def encode(self, k: np.ndarray) -> bytes:
@@ -108,8 +109,8 @@ class StreamTwin:
             if n == 0:
                 return 0
             k = self._k + np.arange(n)
-            self._k += n
             frames = self.encode(k)
+            self._k += n        # only once encoded: see HwXsensServer._step (sim/hardware.py)
         self.port.write(frames)
         return n
 

@@ -101,6 +101,31 @@ def window_means(path: Path, seg: dict[str, np.ndarray], kind: bytes, field: str
                 zip(seg["kind"], seg["first_sample"], seg["last_sample"]) if k == kind]
 
 
+def repeated_samples(path: Path) -> list[tuple[int, int]]:
+    """(first row, number of rows) of every run of consecutive recorded IMU samples that are
+    identical in all six channels. On a noisy IMU two consecutive samples are never alike (white
+    noise of 5e-3 m/s^2 per sample against float32 steps of 1e-6 at 1 g), so any run is a sample
+    the emulator or the recorder repeated (such runs biased 5 s window means by up to 9 sigma
+    before the tap fix of tests/test_hil_tap.py)."""
+    with h5py.File(path, "r") as f:
+        x = np.hstack([f["imu/specific_force"][()], f["imu/angular_rate"][()]])
+    same = np.concatenate([[False], np.all(x[1:] == x[:-1], axis=1), [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(same))
+    return [(int(a) - 1, int(b - a) + 1) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def white_noise_only(truth_imu: dict) -> None:
+    """The run's IMU (the emulator's ``/truth`` imu) has white noise only on both sensors -- the
+    premise of the tests that hold window means to 5 sigma of white noise (:func:`white_sim`
+    zeroes the slow terms; a flicker B or a random walk K would add to a window mean's spread)."""
+    for sensor in ("accel_noise", "gyro_noise"):
+        for axis in truth_imu[sensor]:
+            slow = {k: axis[k]["value"] for k in ("Q", "B", "K", "R") if axis.get(k, {}).get("value")}
+            if axis.get("gm"):
+                slow["gm"] = axis["gm"]
+            assert not slow, f"{sensor}: the tolerance counts white noise only, but the IMU also has {slow}"
+
+
 # -- unattended operation over the wire (tests/test_daemon_wire*.py) -------------------------------
 def write_wired(tmp: Path, raw: dict, hw, *, table: str = "acl", link: str = "pty", pulses: str = "novatel",
                 suspenders: dict | None = None, imu: dict | None = None, name: str = "wired.yaml") -> Path:

@@ -135,3 +135,43 @@ def test_find_gaps_chunked(tmp_path):
                 assert AA.find_gaps(f, s0, s1, 100.0) == ref
     finally:
         AA.CHUNK_ROWS = old
+
+
+def _lag1_numpy(x, m, dmax):
+    """Riley & Greenhall's lag-1 noise ID in plain numpy: decimate, remove the mean, r1,
+    delta = r1 / (1 + r1), difference until delta < 0.25 or d = dmax. (alpha, d)."""
+    z = np.asarray(x[::m], dtype=float)
+    d = 0
+    while True:
+        c = z - z.mean()
+        den = float(c @ c)
+        r1 = float(c[:-1] @ c[1:]) / den if den > 0 else 0.0
+        delta = r1 / (1.0 + r1)
+        if delta < 0.25 or d >= dmax or z.size < 3:
+            return 2 - int(round(2.0 * delta)) - 2 * d, d
+        z = np.diff(z)
+        d += 1
+
+
+def test_lag1_alpha_equals_numpy_steps():
+    """The compiled lag-1 noise ID (one pass per differencing order, the differences formed
+    on the fly) gives the alpha of the plain numpy steps on power-law phase noise of every
+    type from white PM (alpha 2) to alpha -4, decimations 1 to 17, dmax 2 and 3 (Hadamard),
+    with an offset, so that every differencing order 0-3 is taken."""
+    rng = np.random.default_rng(21)
+    orders = set()
+    for alpha in (2, 1, 0, -1, -2, -3, -4):
+        for trial in range(5):
+            n = int(rng.integers(3000, 30000))
+            f = np.fft.rfftfreq(n)
+            f[0] = 1.0
+            spec = (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) \
+                * f ** ((alpha - 2) / 2.0)
+            spec[0] = 0.0
+            x = np.fft.irfft(spec, n) * 10.0 ** rng.uniform(-9, 2) + rng.uniform(-5, 5)
+            for m in (1, 2, 3, 8, 17):
+                for dmax in (2, 3):
+                    want, d = _lag1_numpy(x, m, dmax)
+                    orders.add(d)
+                    assert K.lag1_alpha(x, m, dmax) == want, (alpha, trial, n, m, dmax)
+    assert orders == {0, 1, 2, 3}

@@ -67,6 +67,82 @@ PIPELINED = True
 #: of it: complete, unchanged, once the head is): off the tail after the last chunk (False:
 #: in the analysis; the same values)
 EARLY_TONES = True
+#: with :data:`PIPELINED`, the first axis' dataset leads: its chunk tasks go before the other
+#: dataset's on the workers, so it finishes first, and its axes' analyses (noise ID, EDF,
+#: fits: Python holding the GIL) run while the other dataset's last chunks are summed
+#: (compiled, without the GIL) instead of all six after the last chunk (False: both datasets
+#: side by side, every analysis after the last chunk; the same numbers)
+LEAD_DATASET = True
+
+
+class _PriorityPool:
+    """A fixed set of worker threads taking tasks by rank, then in the order queued (a
+    :class:`concurrent.futures.ThreadPoolExecutor` takes them in the order queued only):
+    ``submit_at(rank, fn, *args)``, lower ranks first; ``submit`` and ``map`` at rank 0.
+    Returns :class:`concurrent.futures.Future` objects; leaving the ``with`` block waits
+    for every queued task."""
+
+    def __init__(self, workers: int):
+        import heapq
+        from concurrent.futures import Future
+
+        self._heapq, self._future = heapq, Future
+        self._heap: list = []
+        self._seq = 0
+        self._cond = threading.Condition()
+        self._closed = False
+        self._threads = [threading.Thread(target=self._work, name=f"allan-worker-{i}",
+                                          daemon=True) for i in range(max(1, workers))]
+        for t in self._threads:
+            t.start()
+
+    def submit_at(self, rank: int, fn: Callable, *args: Any) -> Any:
+        fut = self._future()
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("pool shut down")
+            self._heapq.heappush(self._heap, (rank, self._seq, fut, fn, args))
+            self._seq += 1
+            self._cond.notify()
+        return fut
+
+    def submit(self, fn: Callable, *args: Any) -> Any:
+        return self.submit_at(0, fn, *args)
+
+    def map(self, fn: Callable, items: Any) -> Any:
+        futs = [self.submit(fn, x) for x in items]
+        return (f.result() for f in futs)
+
+    def _work(self) -> None:
+        while True:
+            with self._cond:
+                while not self._heap and not self._closed:
+                    self._cond.wait()
+                if not self._heap:
+                    return
+                _, _, fut, fn, args = self._heapq.heappop(self._heap)
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                res = fn(*args)
+            except BaseException as e:  # noqa: BLE001 - handed to the future's owner
+                fut.set_exception(e)
+            else:
+                fut.set_result(res)
+            del fut, fn, args
+
+    def shutdown(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        for t in self._threads:
+            t.join()
+
+    def __enter__(self) -> "_PriorityPool":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.shutdown()
 
 
 class _AxisStream:
@@ -443,6 +519,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))
+    if not gapped:  # a bump the warm-up does not explain: stationary noise, or not?
+        AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
@@ -698,10 +776,29 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
     shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
                          stream=progress_stream, enabled=progress_stream is not None)
-    with ThreadPoolExecutor(WORKERS) as pool:
+    exclude = outliers == "exclude"
+
+    def stretches() -> np.ndarray | None:
+        """The gap-free stretches' lengths when gaps are skipped (every gap known: after the
+        stream, or once a dataset has had its last chunk, whose read scanned the last of the
+        counter), else None."""
+        b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
+        return np.diff([s0] + b + [s1]) if b else None
+
+    def analyse(a: str) -> dict[str, Any]:
+        return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+
+    early: dict[str, Any] = {}  # axis -> its analysis, queued when its dataset was done
+
+    def dataset_done(group: list[str]) -> None:
+        for a in group:  # after every chunk task that is queued (the other dataset's)
+            early[a] = pool.submit_at(2, analyse, a)
+
+    with _PriorityPool(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
-                       outliers == "exclude", breaks, corrections,
-                       (counter, found, gaps == "skip") if streamed else None, when_streaming)
+                       exclude, breaks, corrections,
+                       (counter, found, gaps == "skip") if streamed else None, when_streaming,
+                       dataset_done if LEAD_DATASET else None)
         shown.finish()
         if streamed:
             missing = sum(m for _, m in found)
@@ -710,19 +807,17 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                             rows=[int(g) for g, _ in found[:20]])
             breaks = [g for g, _ in found] if gaps == "skip" else None
         gaps_bridged = int(missing) if gaps == "bridge" else 0
-        stretch_samples = None
+        stretch_samples = stretches()
         if breaks:
-            edges = [s0] + breaks + [s1]
-            gap_info["stretches"] = len(edges) - 1
-            gap_info["longest_stretch_samples"] = int(np.max(np.diff(edges)))
-            stretch_samples = np.diff(edges)
+            gap_info["stretches"] = len(stretch_samples)
+            gap_info["longest_stretch_samples"] = int(np.max(stretch_samples))
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
                "gaps": gap_info, "outliers": outliers, "axes": {}}
-        # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order
-        done = list(pool.map(lambda a: analyse_axis(streams[a], AXES[a][2],
-                                                    outliers == "exclude",
-                                                    stretch_samples, a), axes))
+        # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
+        # a dataset that finished first are queued already)
+        futs = {a: early[a] if a in early else pool.submit(analyse, a) for a in axes}
+        done = [futs[a].result() for a in axes]
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
@@ -730,12 +825,13 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     return out
 
 
-def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: list[str],
+def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str],
                    streams: dict, s0: int, s1: int, shown: WorkProgress,
                    exclude: bool = False, breaks: list[int] | None = None,
                    corrections: dict | None = None,
                    scan: tuple[RowReader, list, bool] | None = None,
-                   when_streaming: Callable[[], Any] | None = None) -> None:
+                   when_streaming: Callable[[], Any] | None = None,
+                   dataset_done: Callable[[list[str]], Any] | None = None) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -752,7 +848,11 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
     ``scan`` = (counter reader, found, skip): the gaps are found here instead of before
     (``breaks`` is then None): each chunk's /imu/counter rows are read and scanned with its
     samples, the gaps appended to ``found``, and with ``skip`` the rows after them break the
-    stretches as ``breaks`` would."""
+    stretches as ``breaks`` would.
+
+    ``dataset_done``: with :data:`PIPELINED`, the chunks of the first axis' dataset go first
+    (:func:`_pipelined`) and this is called with a dataset's axes as soon as its last chunk
+    is summed (from a worker; every gap is known by then)."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
@@ -768,16 +868,27 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         counter, found, skip = scan
         cbuf = np.empty(rows + 1, dtype=counter.ds.dtype)
 
-    def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
-        """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
-        a1 = min(s1, a0 + CHUNK_ROWS)
-        got = {name: r.read(a0, a1, bufs[k][name]) for name, r in readers.items()}
+    def cuts_at(a0: int) -> np.ndarray:
+        """The gap breaks of chunk [a0, a1) (at least those in it); with ``scan``, its
+        counter rows are read and scanned here (call once per chunk, in chunk order)."""
         if scan is None:
-            return got, all_cuts
+            return all_cuts
+        a1 = min(s1, a0 + CHUNK_ROWS)
         # the row before the chunk too: a jump at a0 is a gap before the chunk's first row
         new = counter_jumps_at(counter.read(max(s0, a0 - 1), a1, cbuf), max(s0, a0 - 1))
         found.extend(new)
-        return got, np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
+        return np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
+
+    def read_rows(name: str, a0: int, k: int) -> np.ndarray:
+        """Chunk [a0, a1)'s rows of one dataset, into its buffer k."""
+        return readers[name].read(a0, min(s1, a0 + CHUNK_ROWS), bufs[k][name])
+
+    def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
+        """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
+        got = {name: read_rows(name, a0, k) for name in readers}
+        return got, cuts_at(a0)
+
+    rank = {name: 0 for name in dsets}  # the datasets' tasks' rank on the workers (_pipelined)
 
     # only the selected axes' columns must be finite (a gyro-only import stores NaN for the rest)
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
@@ -815,7 +926,8 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
             check(name, b, a0)  # a bad block must not reach the accumulators
-            return [pool.submit(feed, a, b, AXES[a][1], first, cuts) for a in group]
+            return [pool.submit_at(rank[name], feed, a, b, AXES[a][1], first, cuts)
+                    for a in group]
         outs = [scratch[name][:n]] * 3
         x0 = np.zeros(3)
         offs = np.zeros(3)
@@ -836,16 +948,20 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
             c = AXES[a][1]
             y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c]))
             if y is None:
-                tasks.append(pool.submit(streams[a].add_written, n))
+                tasks.append(pool.submit_at(rank[name], streams[a].add_written, n))
             else:  # spikes replaced: the per-axis running sum of the corrected samples
-                tasks.append(pool.submit(streams[a].add, y))
+                tasks.append(pool.submit_at(rank[name], streams[a].add, y))
         return tasks
 
     starts = list(range(s0, s1, CHUNK_ROWS))
     early: list = []  # the head's noise IDs, once every head is complete
     if PIPELINED and len(starts) > 1:
-        _pipelined(pool, starts, dsets, read, dataset, streams, s0, s1, shown, early,
-                   when_streaming)
+        # the first axis' dataset first (LEAD_DATASET: its tasks go first on the workers)
+        order = sorted(dsets, key=lambda nm: min(axes.index(a) for a in groups[nm]))
+        if dataset_done is not None:
+            rank.update({nm: i for i, nm in enumerate(order)})
+        _pipelined(pool, starts, order, read_rows, cuts_at, dataset, streams, groups, rank,
+                   s0, s1, shown, early, when_streaming, dataset_done)
         for e in early:
             e.result()
         return
@@ -868,25 +984,36 @@ def _stream_chunks(pool: ThreadPoolExecutor, path: str, readers: dict, axes: lis
         e.result()
 
 
-def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: Callable,
-               dataset: Callable, streams: dict, s0: int, s1: int, shown: WorkProgress,
-               early: list, when_streaming: Callable[[], Any] | None = None) -> None:
+def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_rows: Callable,
+               cuts_at: Callable, dataset: Callable, streams: dict, groups: dict, rank: dict,
+               s0: int, s1: int, shown: WorkProgress, early: list,
+               when_streaming: Callable[[], Any] | None = None,
+               dataset_done: Callable[[list[str]], Any] | None = None) -> None:
     """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
     each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
     after the phase chunk j left in the accumulators) is queued by the callback of the last
     of chunk j's tasks of that dataset, so one dataset's pass runs while the other's sums
-    finish instead of both waiting for the slower. This thread only reads: chunk j into
-    buffer j % 2 once both datasets are done with chunk j - 2 (their tasks read nothing of
-    a chunk after they finish). The same tasks on the same data in the same order per
-    axis: the same numbers. The first error raised by a task is raised here.
-    ``when_streaming`` is called (here) once every dataset has finished the first chunk."""
-    names = list(dsets)
+    finish instead of both waiting for the slower. This thread only reads, each dataset on
+    its own: its chunk j into its buffer j % 2 once it is done with its chunk j - 2 (its
+    tasks read nothing of a chunk after they finish), ``names[0]`` first when both can
+    (the counter rows of chunk j, for the gaps, with the first dataset's read of chunk j).
+    With ``dataset_done`` (:data:`LEAD_DATASET`) the datasets' tasks have the ranks
+    ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead, and
+    ``dataset_done(axes)`` is called as soon as a dataset's last chunk is summed. The same
+    tasks on the same data in the same order per axis: the same numbers. The first error
+    raised by a task is raised here. ``when_streaming`` is called (here) once every dataset
+    has finished the first chunk; a dataset's early noise IDs of the head
+    (:data:`EARLY_NOISE_ID`) are queued (at its rank) once its heads are complete."""
     cond = threading.Condition()
-    ready: dict[int, tuple[dict, np.ndarray]] = {}  # chunk -> (blocks, cuts), read
+    ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
     done = {name: -1 for name in names}  # the last chunk each dataset has finished
     busy = {name: False for name in names}
     errors: list[BaseException] = []
     hook = [when_streaming]
+    last = len(starts) - 1
+    cuts: dict[int, np.ndarray] = {}  # chunk -> its gap breaks (scanned with its first read)
+    nxt = {name: 0 for name in names}  # the next chunk to read, per dataset
+    queued_ids = {name: False for name in names}
 
     def fail(e: BaseException) -> None:
         with cond:
@@ -895,21 +1022,26 @@ def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: C
 
     def launch(name: str) -> None:  # under cond
         j = done[name] + 1
-        if not errors and not busy[name] and j in ready:
+        if not errors and not busy[name] and j in ready[name]:
             busy[name] = True
-            blocks, cuts = ready[j]
-            pool.submit(run, name, j, blocks[name], cuts)
+            b, c = ready[name].pop(j)
+            pool.submit_at(rank[name], run, name, j, b, c)
 
     def finished(name: str, j: int) -> None:
+        if j == last and dataset_done is not None:  # before the stream can be seen as done
+            try:
+                dataset_done(groups[name])
+            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+                fail(e)
         with cond:
             done[name] = j
             busy[name] = False
             launch(name)
             cond.notify_all()
 
-    def run(name: str, j: int, b: np.ndarray, cuts: np.ndarray) -> None:
+    def run(name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
         try:
-            tasks = dataset(name, b, starts[j], cuts)
+            tasks = dataset(name, b, starts[j], c)
         except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
             fail(e)
             return
@@ -926,8 +1058,8 @@ def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: C
                 return
             with lock:
                 left[0] -= 1
-                last = left[0] == 0
-            if last:
+                end = left[0] == 0
+            if end:
                 finished(name, j)
 
         for t in tasks:
@@ -936,28 +1068,47 @@ def _pipelined(pool: ThreadPoolExecutor, starts: list[int], dsets: dict, read: C
     def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
         with cond:
             lo = min(done.values())
+            now = dict(done)
         if lo >= 0:
             shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
             if hook[0] is not None:
                 call, hook[0] = hook[0], None
                 call()
-        if EARLY_NOISE_ID and not early and lo >= 0 and lo + 1 < len(starts) and all(
-                st.head_full() for st in streams.values()):
-            early.extend(pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values())
+        if not EARLY_NOISE_ID:
+            return
+        for name in names:
+            sts = [streams[a] for a in groups[name]]
+            if not queued_ids[name] and 0 <= now[name] < last and all(
+                    st.head_full() for st in sts):
+                queued_ids[name] = True
+                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
+                             for st in sts)
 
-    last = len(starts) - 1
-    for j, a0 in enumerate(starts):
-        with cond:  # buffer j % 2 held chunk j - 2
-            while not errors and min(done.values()) < j - 2:
+    def pick() -> str | None:  # under cond: the dataset to read for next (names' order)
+        for name in names:
+            if nxt[name] <= last and done[name] >= nxt[name] - 2:
+                return name
+        return None
+
+    while True:
+        with cond:
+            while not errors and pick() is None and any(nxt[nm] <= last for nm in names):
                 cond.wait()
             if errors:
                 break
-            ready.pop(j - 2, None)
-        got = read(a0, j % 2)
+            name = pick()
+            if name is None:
+                break
+            j = nxt[name]
+        if j not in cuts:  # the first read of chunk j (datasets read their chunks in order)
+            cuts[j] = cuts_at(starts[j])
+        got = read_rows(name, starts[j], j % 2)
         with cond:
-            ready[j] = got
-            for name in names:
-                launch(name)
+            nxt[name] = j + 1
+            ready[name][j] = (got, cuts[j])
+            if all(nxt[nm] > j for nm in names):
+                cuts.pop(j, None)
+            launch(name)
         progress()
     while True:
         with cond:

@@ -637,8 +637,13 @@ def import_csv(args: ImportOptions) -> Imported:
     if absent:
         axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
                          "gyr_z": "gz"}[k] for k in REQUIRED if k in mapping)
-        sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
-        origin = "the whole record (sensor columns missing: no static-interval detection)"
+        if args.segments:  # the user's sections (a capture each unless it says otherwise)
+            sections = [{**s, "kind": s["kind"] or "capture"}
+                        for s in sections_from_json(Path(args.segments), n)]
+            origin = f"sections file {args.segments} (sensor columns missing: captures)"
+        else:
+            sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
+            origin = "the whole record (sensor columns missing: no static-interval detection)"
         lines.append(f"not in the file, stored as NaN: {', '.join(absent)}; rigctl allan analyses "
                      f"the columns present ({axes})")
     else:

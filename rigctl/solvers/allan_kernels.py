@@ -506,47 +506,146 @@ if HAVE_NUMBA:
     def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
         """Riley & Greenhall's lag-1 noise identification on x[::m]: the same steps as
         allan_noise_id.noise_id_lag1 (mean removed, r1, delta = r1 / (1 + r1), differenced
-        until delta < 0.25 or d = dmax) in three passes per order, with two accumulators per
-        sum (compensation not needed: the sums are ratios compared with 0.25)."""
-        n = (x.size + m - 1) // m
-        z = np.empty(n)
-        for i in range(n):
-            z[i] = x[i * m]
-        d = 0
-        while True:
-            s0 = 0.0
-            s1 = 0.0
+        until delta < 0.25 or d = dmax), with two accumulators per sum (compensation not
+        needed: the sums are ratios compared with 0.25). Each differencing order takes one
+        pass: its differences are formed on the fly from the decimated series (the same
+        subtractions as differencing it in place, order by order), and the pass that sums
+        the products of order d also sums the differences of order d + 1 for their mean
+        (each sum in index order, as a pass of its own would). The decimated series is
+        copied (with its mean's sums) only for m > 1; for m = 1 x itself is read."""
+        n0 = (x.size + m - 1) // m
+        s0 = 0.0
+        s1 = 0.0
+        if m == 1:
+            z = x
             i = 0
-            while i + 1 < n:
+            while i + 1 < n0:
                 s0 += z[i]
                 s1 += z[i + 1]
                 i += 2
-            if i < n:
+            if i < n0:
                 s0 += z[i]
+        else:
+            z = np.empty(n0)
+            i = 0
+            while i + 1 < n0:
+                v0 = x[i * m]
+                v1 = x[(i + 1) * m]
+                z[i] = v0
+                z[i + 1] = v1
+                s0 += v0
+                s1 += v1
+                i += 2
+            if i < n0:
+                v0 = x[i * m]
+                z[i] = v0
+                s0 += v0
+        cur = np.zeros(dmax + 1)  # the latest value of each order below d
+        d = 0
+        while True:
+            n = n0 - d
             mean = (s0 + s1) / n
+            # z_d[i] from z[i .. i + d]: push z[i + d] through the orders
+            for t in range(d):
+                v = z[t]
+                for k in range(1, t + 1):
+                    nv = v - cur[k - 1]
+                    cur[k - 1] = v
+                    v = nv
+                cur[t] = v
             den0 = 0.0
             den1 = 0.0
             num0 = 0.0
             num1 = 0.0
-            prev = z[0] - mean
-            den0 += prev * prev
-            for i in range(1, n):
-                v = z[i] - mean
-                if i & 1:
-                    den1 += v * v
-                    num1 += prev * v
-                else:
-                    den0 += v * v
-                    num0 += prev * v
-                prev = v
+            s0 = 0.0  # the next order's sums (its differences, index order)
+            s1 = 0.0
+            if d == 0:  # (orders 0 and 1 written out, two terms a step: the same sums)
+                last = z[0]
+                prev = last - mean
+                den0 += prev * prev
+                i = 1
+                while i + 1 < n:
+                    v = z[i]
+                    s0 += v - last
+                    w = v - mean
+                    den1 += w * w
+                    num1 += prev * w
+                    u = z[i + 1]
+                    s1 += u - v
+                    q = u - mean
+                    den0 += q * q
+                    num0 += w * q
+                    last = u
+                    prev = q
+                    i += 2
+                if i < n:
+                    v = z[i]
+                    s0 += v - last
+                    w = v - mean
+                    den1 += w * w
+                    num1 += prev * w
+            elif d == 1:
+                b = z[1]
+                last = b - z[0]
+                prev = last - mean
+                den0 += prev * prev
+                i = 1
+                while i + 1 < n:
+                    c = z[i + 1]
+                    v = c - b
+                    s0 += v - last
+                    w = v - mean
+                    den1 += w * w
+                    num1 += prev * w
+                    b = z[i + 2]
+                    u = b - c
+                    s1 += u - v
+                    q = u - mean
+                    den0 += q * q
+                    num0 += w * q
+                    last = u
+                    prev = q
+                    i += 2
+                if i < n:
+                    c = z[i + 1]
+                    v = c - b
+                    s0 += v - last
+                    w = v - mean
+                    den1 += w * w
+                    num1 += prev * w
+            else:
+                v = z[d]
+                for k in range(1, d + 1):
+                    nv = v - cur[k - 1]
+                    cur[k - 1] = v
+                    v = nv
+                last = v
+                prev = v - mean
+                den0 += prev * prev
+                for i in range(1, n):
+                    v = z[i + d]
+                    for k in range(1, d + 1):
+                        nv = v - cur[k - 1]
+                        cur[k - 1] = v
+                        v = nv
+                    if i & 1:  # the next order's term i - 1 (even)
+                        s0 += v - last
+                    else:
+                        s1 += v - last
+                    last = v
+                    w = v - mean
+                    if i & 1:
+                        den1 += w * w
+                        num1 += prev * w
+                    else:
+                        den0 += w * w
+                        num0 += prev * w
+                    prev = w
             den = den0 + den1
             r1 = (num0 + num1) / den if den > 0 else 0.0
             delta = r1 / (1.0 + r1)
             if delta < 0.25 or d >= dmax or n < 3:
                 return 2 - int(np.rint(2.0 * delta)) - 2 * d
-            for i in range(n - 1):
-                z[i] = z[i + 1] - z[i]
-            n -= 1
             d += 1
 
     @njit(parallel=True, cache=True)
