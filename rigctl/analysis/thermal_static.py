@@ -167,8 +167,8 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                      "poses_from": str(poses_file) if poses_file else "the recording's segments"},
         "temperature_c": {"min": float(T.min()), "max": float(T.max()), "span_K": span, "of": "window means"},
         "poses": pose_rows, "sensors": sensors,
-        "noise_model": {"text": "the noise of the window means estimated from the record (REML: white, bias "
-                                "instability, random walk)", "channels": noise_rows, "lines": noise_lines},
+        "noise_model": {"text": "estimated from the record (REML: white, bias instability, random walk)",
+                        "channels": noise_rows, "lines": noise_lines},
         "findings": [f"{s} chi2/dof {d['chi2_per_dof']:.3g} {d['finding']}" for s, d in sensors.items()
                      if d["status"] != "ok"] + [
             f"{s} {a['axis']} chi2/dof {a['chi2_per_dof']:.3g} outside its 99 % band "
@@ -195,8 +195,8 @@ def format_text(r: dict[str, Any]) -> str:
              f"settle: " + (f"the first {s['settle_s']:g} s of every pose left out" if s["settle_s"] > 0 else
                             "none (every window from the start of each pose; --settle-s leaves a fast start out)"),
              f"temperature covered (window means): {T['min']:.2f} .. {T['max']:.2f} degC, span {T['span_K']:.2f} K",
-             f"noise: {r['noise_model']['text']}", *r["noise_model"]["lines"],
-             f"poses ({s['poses_from']}):"]
+             f"noise of the window means: {r['noise_model']['text']}", *r["noise_model"]["lines"],
+             f"poses ({s['poses_from']}; the offsets pose2, pose3 ... are against the first):"]
     for p in r["poses"]:
         d = p["direction"]
         lines.append(f"  {p['label']:<24} {p['windows']:4d} windows  {p['temperature_c'][0]:6.2f} .. "

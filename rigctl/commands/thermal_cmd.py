@@ -16,9 +16,11 @@ Pose file (YAML or JSON; seconds on the recording's time axis, /imu/time)::
     - {label: z up, from_s: 480, to_s: 92460}
     - {label: x up, from_s: 92880, to_s: 182100}
 
-The work: :mod:`rigctl.analysis.thermal_static` (docs/thermal.md, "rigctl thermal"). Exit
-codes: 0 done, 2 invalid input (no temperature column, one pose, too small a temperature span:
-one line each), 1 failure.
+Exit codes: 0 done; 2 invalid input, one line: no temperature readings, one pose (--one-pose:
+the apparent bias per K only), an IMU temperature span under 5 K, a bad pose file, a chamber
+run (--static); 1 failure. Docs: docs/thermal.md, "Static records".
+
+The work: :mod:`rigctl.analysis.thermal_static`.
 """
 from __future__ import annotations
 
@@ -57,7 +59,7 @@ def register(subparsers: Any) -> None:
     """Add the ``thermal`` sub-command."""
     p = subparsers.add_parser("thermal", help="bias and scale against temperature of a record held still in "
                               "several poses (no table)", description=__doc__.split("\n\n")[0],
-                              epilog="\n\n".join(__doc__.split("\n\n")[1:3]).replace("::", ":"),
+                              epilog="\n\n".join(__doc__.split("\n\n")[1:5]).replace("::", ":"),
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", help="rigctl HDF5 recording with an IMU temperature column (read only)")
     p.add_argument("--static", action="store_true",
