@@ -29,7 +29,7 @@ COMMANDS: dict[str, str] = {
     "sync": "rigctl.commands.sync_cmd", "allan": "rigctl.commands.allan_cmd", "calibrate": "rigctl.commands.calibrate_cmd",
     "import": "rigctl.commands.import_cmd", "apply-cal": "rigctl.commands.applycal_cmd", "report": "rigctl.commands.report_cmd",
     "sim": "rigctl.commands.sim_cmd", "history": "rigctl.commands.history_cmd", "batch": "rigctl.commands.batch_cmd",
-    "certificate": "rigctl.commands.certificate_cmd",
+    "certificate": "rigctl.commands.certificate_cmd", "thermal": "rigctl.commands.thermal_cmd",
     **{verb: "rigctl.service.daemon" for verb in ("serve", "submit", "status", "queue", "pause", "resume",
                                           "abort", "logs")},
 }

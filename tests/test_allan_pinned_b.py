@@ -80,3 +80,11 @@ def test_a_clear_b_is_kept_with_dense_taus_seed_20002() -> None:
     sel = (tau >= 1.0) & (tau <= 600.0)
     assert np.all((ratio[sel] > 1 / 1.5) & (ratio[sel] < 1.5)), (ratio[sel].min(), ratio[sel].max())
     assert np.all((ratio > 1 / 3) & (ratio < 3)), (ratio.min(), ratio.max())
+    # the self-check judges no tau past the first uninformative one: beyond 737 s (<= 8
+    # averages) B1 calls the curve's chance fall flicker PM (EDF 100-212, where any FM type
+    # gives <= 12, an uninformative band): those taus were named "a dip, 0.49x" at 901-1638 s
+    n_avg = (N // np.round(tau / tau0)).astype(int)
+    for run in fit["check"]["outside"]:
+        k = int(np.argmin(np.abs(tau - run["tau_from_s"])))
+        assert n_avg[k] > 8, run
+    assert fits["all"][2]["check"]["n_informative"] <= int(np.count_nonzero(n_avg > 12)) + 1

@@ -17,79 +17,24 @@ measured when this was written are in the docstrings.
 """
 from __future__ import annotations
 
-import csv
-import gzip
-import hashlib
-from pathlib import Path
-
 import h5py
 import numpy as np
 import pytest
 from scipy import stats
 
-from helpers import run_rigctl
+import cats_support as cats
 from rigctl.analysis import thermal as AT
 from rigctl.solvers import thermal as th
 
-SET = "cats-tag-thermal"
-CSV = "cats_tag_60s.csv.gz"
-SHA256 = "6be37b416b36f489e89501cddbfc8a21a432786b3d05f8ee74bde947e44f4187"
-POSES = ["z along gravity", "x along gravity", "y along gravity"]
-WINDOW_ROWS = 30  # 30 min of 60-s means
-MRAD = 1e-3
-
-
-def _folder(ref_data: Path) -> Path:
-    d = ref_data / SET
-    if not (d / CSV).is_file():
-        pytest.skip(f"{d} not present (AGPL-3.0 data: a redistribution may leave it out, see its README)")
-    return d
+POSES = cats.POSES
+MRAD = cats.MRAD
 
 
 @pytest.fixture(scope="module")
 def record(ref_data, tmp_path_factory):
     """(rows of the CSV, the recording ``rigctl import`` made of the .csv.gz as it is stored)."""
-    d = _folder(ref_data)
-    raw = (d / CSV).read_bytes()
-    assert hashlib.sha256(raw).hexdigest() == SHA256
-    text = gzip.decompress(raw).decode()
-    rows = list(csv.DictReader(text.splitlines()))
-    rec = tmp_path_factory.mktemp("cats") / "cats.h5"
-    proc = run_rigctl("import", str(d / CSV), "-o", str(rec), "--columns",
-                      "time=t_s,temp=temp_c,acc_x=acc_x,acc_y=acc_y,acc_z=acc_z,"
-                      "gyr_x=gyr_x,gyr_y=gyr_y,gyr_z=gyr_z,section=pose",
-                      "--units", "acc=m/s^2,gyr=mrad/s,time=s")
-    assert proc.returncode == 0, proc.stderr
-    return rows, rec
-
-
-def _numpy_windows(rows: list[dict[str, str]], skip_rows: int = 0) -> dict[str, np.ndarray]:
-    """Per pose, consecutive chunks of 30 rows from its first row (after ``skip_rows``); a last
-    chunk kept with at least 16 rows (the application layer's rule for a window of 30
-    samples)."""
-    pose = np.array([r["pose"] for r in rows])
-    T = np.array([float(r["temp_c"]) for r in rows])
-    gyr = np.array([[float(r[f"gyr_{a}"]) for a in "xyz"] for r in rows]) * MRAD
-    acc = np.array([[float(r[f"acc_{a}"]) for a in "xyz"] for r in rows])
-    t = np.array([float(r["t_s"]) for r in rows])
-    chunks, labels = [], []
-    for p in POSES:
-        idx = np.flatnonzero(pose == p)[skip_rows:]
-        for s in range(0, idx.size, WINDOW_ROWS):
-            c = idx[s:s + WINDOW_ROWS]
-            if c.size >= 16:
-                chunks.append(c)
-                labels.append(p)
-    down = {p: acc[pose == p].mean(axis=0) for p in POSES}
-    return {"chunks": chunks, "pose": np.array(labels), "k": np.array([POSES.index(p) for p in labels]),
-            "T": np.array([T[c].mean() for c in chunks]),
-            "p1": np.array([np.mean(T[c] - 25.0) for c in chunks]),
-            "p2": np.array([np.mean((T[c] - 25.0) ** 2) for c in chunks]),
-            "rate_K_h": np.array([np.polyfit(t[c] - t[c][0], T[c], 1)[0] * 3600.0 for c in chunks]),
-            "gyr": np.array([gyr[c].mean(axis=0) for c in chunks]),
-            "acc": np.array([acc[c].mean(axis=0) for c in chunks]),
-            "down": down, "se_gyr": np.array([[float(r[f"se_gyr_{a}"]) for a in "xyz"] for r in rows]) * MRAD,
-            "n": np.array([int(r["n"]) for r in rows]), "row_pose": pose}
+    rows = cats.rows(ref_data)
+    return rows, cats.import_record(ref_data, tmp_path_factory.mktemp("cats") / "cats.h5")
 
 
 def _differenced(ref: dict[str, np.ndarray], axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -139,7 +84,7 @@ def test_the_application_layer_windows_and_references_match_numpy(record, window
     the accelerometer's reference per pose is g along that pose's mean specific force (the
     recording's g, 9.80665), so the accelerometer has several orientations and the gyro (zero
     rate in every pose) one."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     wg, wa = windows["gyro"], windows["accel"]
     assert len(wg) == len(ref["T"]) == 147
     assert [int(np.sum(ref["pose"] == p)) for p in POSES] == [51, 50, 46]
@@ -162,7 +107,7 @@ def test_without_window_times_the_fits_are_numpy_weighted_least_squares(record, 
     numpy's weighted least squares on the same design. And treating the means as independent is
     wrong here: the gyro chi-square is far outside its band (measured chi2/dof 27.6 against a band
     up to 1.19: the bias wanders between windows by far more than the white noise of a mean)."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     off = [(ref["k"] == k).astype(float) for k in (1, 2)]
     for sensor in ("gyro", "accel"):
         w = AT.static_windows(record[1], AT.STATIC_WINDOW_S)[sensor]
@@ -192,7 +137,7 @@ def test_gyro_bias_per_K_agrees_with_the_differenced_window_means(record, gyro):
     numpy x -0.067 +- 0.093, -0.0009 +- 0.0033; y 0.653 +- 0.041, 0.0103 +- 0.0015; z
     0.175 +- 0.073, 0.0010 +- 0.0026. The y bias moves by 0.65 mrad/s/K at 25 degC (0.30 at
     8 degC): the 6.5 mrad/s over 17 K seen in the raw means."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     _, plain, _ = gyro
     params = {q["name"]: q for q in plain.parameters()}
     for i, a in enumerate("xyz"):
@@ -218,7 +163,7 @@ def test_gyro_chi_square_inside_its_band_and_the_pose_offsets(record, gyro):
     and covariance without them fit worse but only at the 1 % level (measured chi2/dof 1.039;
     F(6) = 2.95, p = 0.008): the gyro's sensitivity to the specific force is there but is not
     told apart from the wander by this record at the loop's alpha (1e-3)."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     w, plain, _ = gyro
     lo, hi = plain.band()
     assert lo <= plain.chi2 / plain.dof <= hi
@@ -250,7 +195,7 @@ def test_the_loop_names_the_temperature_rate_but_no_single_lag(record, gyro):
     coefficient turns negative (-0.12 mrad/s per K/h: the heating phases lower y as well); the
     z coefficient comes from its 2 mrad/s dip at 36 - 37 h, where the temperature's rise kinks at
     10 degC. Neither hysteresis nor one lag: transients where the temperature turns fast."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     _, _, looped = gyro
     assert looped.accepted == ["temperature_rate"]
     first = {e["candidate"]: e for e in looped.explain if e["step"] == 1}
@@ -282,7 +227,7 @@ def test_noise_white_level_against_the_samples(record, gyro):
     standard error: N = se * sqrt(60) s^1/2 (rad/s/sqrt(Hz)). Measured ratio solver / samples:
     1.21, 1.14, 1.13 (x, y, z): the 60-s means hold a little slow noise beyond white that the
     within-window contrasts count as white."""
-    ref = _numpy_windows(record[0])
+    ref = cats.numpy_windows(record[0])
     w, _, _ = gyro
     full = (ref["n"] == 60) & (ref["row_pose"] != "")
     for i in range(3):
@@ -309,7 +254,7 @@ def test_accel_bias_and_scale_per_K_agree_with_the_differenced_window_means(reco
     -869 +- 242; y -2.62 +- 0.16, -328 +- 181; z 2.95 +- 0.28, 2919 +- 1371; numpy x
     0.916 +- 0.089, -848 +- 238; y -2.61 +- 0.16, -324 +- 175; z 2.96 +- 0.25, 2901 +- 1212.
     Bias per K 10 - 17 sigma; scale per K 3.6 sigma on x, under 2.2 on y and z."""
-    ref = _numpy_windows(record[0], skip_rows=60)
+    ref = cats.numpy_windows(record[0], skip_rows=60)
     w = AT.static_windows(record[1], AT.STATIC_WINDOW_S, settle_s=3600.0)["accel"]
     assert len(w) == len(ref["T"]) == 141
     assert np.allclose(w.y, ref["acc"], rtol=1e-12, atol=1e-12)

@@ -402,6 +402,8 @@ def _screening(stream: _AxisStream, sensor: str, fit: dict, dev0: float, tau0: f
         quant[f"step_{unit}"] = stream.quant_step * fac
         quant["step_si"] = quant.pop("step")
         quant["white_N_si"] = quant.pop("white_N")
+        # the file's decimal digits (a power of ten of its unit) or the sensor's output step
+        quant["step_source"] = CHK.step_source(stream.quant_step, sensor)
     return {"spikes": spikes, "quantization": quant}
 
 
@@ -523,7 +525,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))
     if not gapped:  # a bump the warm-up does not explain: stationary noise, or not?
-        AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s)
+        AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
@@ -1439,13 +1441,26 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
         notes.append(line)
     q = r.get("quantization")
     # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
+    src = (q or {}).get("step_source") or {}
+    if q and src.get("kind") == "file_digits" and q.get("share_of_N2", 1.0) < QUANT_NOTE_SHARE \
+            and q["random_rounding"]:
+        # said once, so that the step in --json is not read as the sensor's LSB
+        notes.append(f"samples on a grid of 1e-{src['decimals']} {src['unit']}: the numbers' last "
+                     "digit, most likely the resolution the file was written with, not the "
+                     "sensor's LSB (its rounding is negligible here)")
     if q and (q.get("share_of_N2", 1.0) >= QUANT_NOTE_SHARE or not q["random_rounding"]):
         n_unit, n_fac = F.FIELD_UNITS[r["sensor"]]["N"]
         step = f"{q[f'step_{unit}']:.4g} {unit}"
         if r["sensor"] == "gyro":
             step += f" = {math.degrees(q['step_si']):.4g} deg/s"
-        text = (f"output quantized in steps of {step} (read from the samples): the rounding "
-                f"adds white noise N_q = {q['white_N_si'] * n_fac:.3g} {n_unit}")
+        src = q.get("step_source") or {}
+        if src.get("kind") == "file_digits":
+            what = (f"the numbers' last digit, 1e-{src['decimals']} {src['unit']}: most likely "
+                    "the resolution the file was written with, not the sensor's LSB")
+        else:
+            what = "the sensor's output step"
+        text = (f"output quantized in steps of {step} (read from the samples: {what}): the "
+                f"rounding adds white noise N_q = {q['white_N_si'] * n_fac:.3g} {n_unit}")
         if "share_of_N2" in q:
             text += (f", {100 * q['share_of_N2']:.2g} % of the fitted N^2 "
                      f"(N without it: {q['N_without_rounding'] * n_fac:.4g} {n_unit})")

@@ -15,6 +15,8 @@ import numpy as np
 from ..solvers import allan_drift as D
 from ..solvers import allan_fit as F
 from ..solvers import allan_stationarity as ST
+from ..solvers import allan_tones as TN
+from ..solvers import noise_coefficients as NC
 
 G0 = 9.80665
 #: display unit of a level (the deviation's field unit) and of a rate of change per K
@@ -100,39 +102,92 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
     return renamed
 
 
-def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None = None) -> int:
+def _fit_dev(fit: dict, tau: float) -> float:
+    """The fitted total the self-check compares at ``tau``: the resolved IEEE 952 terms
+    (:func:`rigctl.solvers.noise_coefficients.resolved_values`) plus the tones' Allan term."""
+    s2 = float(F.model_avar(np.array([tau]), NC.resolved_values(fit["coefficients"]))[0])
+    tn = fit.get("tones") or {}
+    if tn.get("terms"):
+        t0 = float(tn["tau0_s"])
+        s2 += float(TN.tones_avar(t0, np.array([max(1.0, round(tau / t0))]), tn["terms"])[0])
+    return math.sqrt(max(s2, 0.0))
+
+
+def _test_run(o: dict, ybar: np.ndarray, block_s: float, fit: dict | None) -> dict:
+    """The stationarity test of one run: at its worst tau and, given the fit, also at its
+    first, middle and last tau (those with at least two windows; each at ST.ALPHA / the
+    number tested, Bonferroni). A bump's worst tau can lie far from the hump when the fit
+    itself is pulled by it (a strong Gauss-Markov process: the fit's N follows its 1/tau tail).
+    Returns the result at the worst tau when it is significant or the only one, else at the
+    tau of the smallest p."""
+    worst = float(o["worst_tau_s"])
+    taus = [worst]
+    if fit is not None:
+        a, b = float(o["tau_from_s"]), float(o["tau_to_s"])
+        for t in (a, math.sqrt(a * b), b):
+            if all(abs(t / u - 1.0) > 0.1 for u in taus):
+                taus.append(t)
+    first = [ST.bump_stationarity(ybar, block_s, t) for t in taus]
+    # the tau the block means give (a multiple of their length) must lie in the run: the
+    # ADIS16405 gz's one-tau run at 0.07 s, block means 0.02 s long, would be tested at 0.08 s
+    lo, hi = float(o["tau_from_s"]) * 0.95, float(o["tau_to_s"]) * 1.05
+    ok = [t for t, st in zip(taus, first) if st["tested"] and lo <= st["tau_s"] <= hi]
+    if not ok:
+        st = first[0]
+        if st["tested"]:
+            st = {"tested": False, "tau_s": st["tau_s"], "alpha": st["alpha"],
+                  "skipped": f"the block means ({block_s:g} s) give no tau inside the run"}
+        return st
+    alpha = ST.ALPHA / len(ok)
+    res = [ST.bump_stationarity(ybar, block_s, t, alpha=alpha) for t in ok]
+    for st in res:
+        st["taus_tested"] = len(ok)
+    if ok[0] == worst and not res[0]["stationary"]:
+        return res[0]
+    return min(res, key=lambda st: st["p_value"])
+
+
+def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None = None,
+               fit: dict | None = None) -> int:
     """Test each run of taus the self-check calls a bump (data above the fit, not at either
     end, no cause named yet) for stationarity (:func:`rigctl.solvers.allan_stationarity.
-    bump_stationarity` on the block means, at the run's worst tau; the result in the run's
-    ``stationarity``). A bump that is not stationary gets :func:`bump_reason` (``cause``
-    "nonstationary", the earlier reason in ``likely_before``); a stationary one keeps its
-    reason with the test's outcome appended. Returns the runs renamed."""
+    bump_stationarity` on the block means, at the run's worst tau, and given the ``fit``
+    (its ``coefficients`` and ``tones``) at its ends and middle too, :func:`_test_run`; the
+    result in the run's ``stationarity``). A bump that is not stationary, and absent from the
+    median window (within DEPARTURE_REL of the fitted total there), gets :func:`bump_reason`
+    (``cause`` "nonstationary", the earlier reason in ``likely_before``); otherwise the run
+    keeps its reason with the test's outcome appended. Returns the runs renamed."""
     renamed = 0
     for o in check.get("outside") or []:
         if (o.get("cause") or o.get("side") != "data above the fit"
                 or not str(o.get("likely", "")).startswith("a bump")):
             continue
-        st = ST.bump_stationarity(ybar, block_s, float(o["worst_tau_s"]))
+        st = _test_run(o, ybar, block_s, fit)
         o["stationarity"] = st
         if not st["tested"]:
             continue
+        many = (f" each of {st['taus_tested']} taus of the run tested"
+                if st.get("taus_tested", 1) > 1 else "")
         if st["stationary"]:
             o["likely"] = (f"{o['likely']}; stationary as far as the record shows: its Allan "
                            f"variance at {st['tau_s']:.3g} s does not differ across "
                            f"{st['windows']} windows of {st['window_s']:.0f} s beyond chance "
-                           f"(Bartlett p = {st['p_value']:.2g}, alpha {st['alpha']:g})")
+                           f"(Bartlett p = {st['p_value']:.2g}, alpha {st['alpha']:.2g}{many})")
             continue
         # the bump is the excursions' only when the typical (median) window has none of it:
         # its deviation within the self-check's DEPARTURE_REL of the fitted total (with
         # thousands of averages per window a 2 % change of level is significant, and
         # explains no bump of 12 %)
-        fit_at = st["adev_whole_si"] / float(o["data_over_fit"])
-        st["median_window_over_fit"] = st["adev_median_window_si"] / fit_at
+        if fit is not None:
+            fit_at = _fit_dev(fit, st["tau_s"])
+        else:  # the run's own ratio, at its worst tau (the only one tested without the fit)
+            fit_at = st["adev_whole_si"] / float(o["data_over_fit"])
+        st["median_window_over_fit"] = st["adev_median_window_si"] / max(fit_at, 1e-300)
         if st["median_window_over_fit"] > 1.0 + F.DEPARTURE_REL:
             o["likely"] = (f"{o['likely']}; its level varies along the record (Bartlett p = "
-                           f"{st['p_value']:.2g}), but the median window of {st['window_s']:.0f} s "
-                           f"has it too (x{st['median_window_over_fit']:.2f} the fit at "
-                           f"{st['tau_s']:.3g} s)")
+                           f"{st['p_value']:.2g}, alpha {st['alpha']:.2g}{many}), but the median window of "
+                           f"{st['window_s']:.0f} s has it too (x{st['median_window_over_fit']:.2f} "
+                           f"the fit at {st['tau_s']:.3g} s)")
             continue
         o["likely_before"] = o["likely"]
         if tau0:  # the quiet stretch in samples of the range analysed (for --segments)
@@ -156,7 +211,9 @@ def bump_reason(st: dict[str, Any]) -> str:
     return (f"not stationary noise: the Allan deviation at {st['tau_s']:.3g} s differs across "
             f"the record's {st['windows']} windows of {st['window_s']:.0f} s beyond chance "
             f"(x{r.min():.2g} to x{r.max():.2g} of the median window's; Bartlett p = "
-            f"{st['p_value']:.2g}, alpha {st['alpha']:g}; the median window within "
+            f"{st['p_value']:.2g}, alpha {st['alpha']:.2g}"
+            + (f" each of {st['taus_tested']} taus of the run tested" if st.get("taus_tested", 1) > 1 else "")
+            + "; the median window within "
             f"{100 * F.DEPARTURE_REL:.0f} % of the fit); it comes from {where}: a disturbance "
             "in part of the record (excursions of the rate, a noise level that changes), not "
             "a term of a stationary noise model; to see the noise without it, analyse a quiet "

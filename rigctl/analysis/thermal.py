@@ -209,7 +209,8 @@ def group_poses(downs: list[np.ndarray], labels: list[str], same_deg: float = SA
 
 def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, reference_c: float = 25.0,
                    max_degree: int = 3, hysteresis_width_K: float = HYSTERESIS_WIDTH_K,
-                   min_fill: float = 0.5, settle_s: float = 0.0) -> dict[str, th.ThermalWindows]:
+                   min_fill: float = 0.5, settle_s: float = 0.0,
+                   sections: list[tuple[str, float, float]] | None = None) -> dict[str, th.ThermalWindows]:
     """The accelerometer and gyro windows of a *static* record with a temperature column: an
     imported bench log (a warm-up after power-on, days at room temperature), one orientation,
     no table and no chamber. Each static section (/segments, kind orientation; the whole record
@@ -217,6 +218,8 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
     ``min_fill`` of its nominal samples (gaps) or fewer than 16 is left out; ``settle_s``
     leaves out the first seconds of every section (a unit put into a fridge or chamber: its
     temperature falls fast along a curve the windows' straight-line contrasts count as noise).
+    ``sections``: (label, from_s, to_s) on the recording's time axis (/imu/time) instead of
+    /segments (a record whose poses were not marked when it was made or imported).
 
     Reference inputs: gravity (the recording's g) along the mean specific force of each static
     section, and a zero rate (the earth's rate has no known direction here). Sections whose
@@ -229,14 +232,16 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
     g-sensitivity and earth rate, what the measured direction misses) beside the temperature
     terms. The candidates' regressors: the hysteresis state (play operator on the temperature)
     and the temperature rate (slope in the window, K/s); no chamber, so no gradient."""
+    given = sections
     with open_recording(path) as f:
         _, _, g = _site(f)
         fs = recording_reader.sample_rate(f)
         t_all = f["imu/time"][()]
-        if "imu/temperature" not in f:
-            raise InputError("a thermal fit needs the recording's temperature column (/imu/temperature)", path,
+        T_all = f["imu/temperature"][()] if "imu/temperature" in f else np.empty(0)
+        if not np.isfinite(T_all).any():  # an import without temp= writes the column as NaN
+            raise InputError("a thermal fit needs the recording's temperature column (/imu/temperature"
+                             + ("): it has none" if T_all.size == 0 else " holds no reading)"), path,
                              hint="import the log with temp=COLUMN in --columns")
-        T_all = f["imu/temperature"][()]
         acc_all = np.asarray(f["imu/specific_force"][()], float)
         gyr_all = np.asarray(f["imu/angular_rate"][()], float)
         check_finite(path, "imu/temperature", T_all, 0)
@@ -247,6 +252,13 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
                 and seg["status"][i] == b"complete"] if seg is not None else []
         sections = [(int(seg["first_sample"][i]), int(seg["last_sample"][i])) for i in rows]
         labels = [seg["label"][i].decode() if "label" in seg else f"section {k + 1}" for k, i in enumerate(rows)]
+    if given is not None:
+        bounds_of = [(int(np.searchsorted(t_all, a)), int(np.searchsorted(t_all, z))) for _, a, z in given]
+        empty = [lab for (lab, _, _), (a, z) in zip(given, bounds_of) if z <= a]
+        if empty:
+            raise InputError(f"pose {empty[0]!r} holds no sample of the record (its time axis runs "
+                             f"{t_all[0]:g} .. {t_all[-1]:g} s)", path)
+        sections, labels = bounds_of, [lab for lab, _, _ in given]
     if not sections:
         sections, labels = [(0, t_all.size)], ["whole record"]
     downs = [acc_all[a:z].mean(axis=0) for a, z in sections]
@@ -309,7 +321,8 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
 
 def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_WINDOW_S,
                reference_c: float = 25.0, loop: bool = True,
-               noise: tuple[Any, Any] | None = None, settle_s: float = 0.0
+               noise: tuple[Any, Any] | None = None, settle_s: float = 0.0,
+               sections: list[tuple[str, float, float]] | None = None
                ) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
     """Bias against temperature of a static record (:func:`static_windows`): per sensor the windows
     and the fit, the covariance of the window means from ``noise`` (accel, gyro: three axes'
@@ -318,8 +331,16 @@ def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_
     identifiable). Several poses: an offset per pose and axis; the accelerometer's scale per K
     is fitted too (degree ``bias_degree``, from K^1: its constant is in the pose offsets), its
     misalignment held (a few poses with one axis each along gravity cannot separate
-    misalignment per K from bias per K); the gyro has no rate input: bias only."""
-    wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree), settle_s=settle_s)
+    misalignment per K from bias per K); the gyro has no rate input: bias only. ``sections``:
+    the poses' time ranges instead of /segments (:func:`static_windows`)."""
+    wins = static_windows(path, window_s, reference_c, max(MAX_FIT_DEGREE, bias_degree), settle_s=settle_s,
+                          sections=sections)
+    return fit_static_windows(wins, bias_degree, loop, noise)
+
+
+def fit_static_windows(wins: dict[str, th.ThermalWindows], bias_degree: int = 2, loop: bool = True,
+                       noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
+    """:func:`fit_static` of windows :func:`static_windows` made."""
     out = {}
     for sensor, model in zip(("accel", "gyro"), noise or (None, None)):
         w = wins[sensor]

@@ -146,7 +146,7 @@ def bump_stationarity(y: np.ndarray, tau0: float, tau: float, alpha: float = ALP
     loud = [(float(edges[i] * tau0), float(edges[i + 1] * tau0), float(ratio[i]))
             for i in range(k) if ratio[i] > thr[i]]
     whole = _oavar(y, m)
-    q = quiet_stretch(s2, nu, alpha)
+    q = quiet_stretch(s2, nu)  # at ALPHA whatever the test's own alpha: a smaller one lengthens it
     out["quiet"] = [float(edges[q[0]] * tau0), float(edges[q[1]] * tau0),
                     math.sqrt(float((nu[q[0]:q[1]] * s2[q[0]:q[1]]).sum() / nu[q[0]:q[1]].sum())
                               / whole)]
