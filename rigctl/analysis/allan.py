@@ -73,6 +73,11 @@ EARLY_TONES = True
 #: (compiled, without the GIL) instead of all six after the last chunk (False: both datasets
 #: side by side, every analysis after the last chunk; the same numbers)
 LEAD_DATASET = True
+#: ... by at most this many chunks (2^19 rows each): enough for its analyses to run beside the
+#: other dataset's last chunks (~0.3 s of Python against ~5 ms per chunk), not so many that
+#: the other dataset's chunks run alone for long (one dataset's chain keeps ~1.3 cores busy:
+#: its one pass, then its three sums on two workers)
+LEAD_CHUNKS = 32
 
 
 class _PriorityPool:
@@ -998,12 +1003,14 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     tasks read nothing of a chunk after they finish), ``names[0]`` first when both can
     (the counter rows of chunk j, for the gaps, with the first dataset's read of chunk j).
     With ``dataset_done`` (:data:`LEAD_DATASET`) the datasets' tasks have the ranks
-    ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead, and
+    ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead (by at most
+    :data:`LEAD_CHUNKS` chunks: it reads no further until the others catch up), and
     ``dataset_done(axes)`` is called as soon as a dataset's last chunk is summed. The same
     tasks on the same data in the same order per axis: the same numbers. The first error
     raised by a task is raised here. ``when_streaming`` is called (here) once every dataset
     has finished the first chunk; a dataset's early noise IDs of the head
-    (:data:`EARLY_NOISE_ID`) are queued (at its rank) once its heads are complete."""
+    (:data:`EARLY_NOISE_ID`) are queued (at its rank, before its next chunk's task) by the
+    first of its chunks after which its heads are complete, if another chunk follows."""
     cond = threading.Condition()
     ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
     done = {name: -1 for name in names}  # the last chunk each dataset has finished
@@ -1036,6 +1043,12 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         with cond:
             done[name] = j
             busy[name] = False
+            sts = [streams[a] for a in groups[name]]
+            if EARLY_NOISE_ID and not queued_ids[name] and j < last and all(
+                    st.head_full() for st in sts):  # (before its next chunk's task)
+                queued_ids[name] = True
+                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
+                             for st in sts)
             launch(name)
             cond.notify_all()
 
@@ -1065,28 +1078,21 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         for t in tasks:
             t.add_done_callback(one)
 
-    def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
+    def progress() -> None:  # this thread: the bar, and the hook after the first chunk
         with cond:
             lo = min(done.values())
-            now = dict(done)
         if lo >= 0:
             shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
             if hook[0] is not None:
                 call, hook[0] = hook[0], None
                 call()
-        if not EARLY_NOISE_ID:
-            return
-        for name in names:
-            sts = [streams[a] for a in groups[name]]
-            if not queued_ids[name] and 0 <= now[name] < last and all(
-                    st.head_full() for st in sts):
-                queued_ids[name] = True
-                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
-                             for st in sts)
 
     def pick() -> str | None:  # under cond: the dataset to read for next (names' order)
-        for name in names:
-            if nxt[name] <= last and done[name] >= nxt[name] - 2:
+        for k, name in enumerate(names):
+            j = nxt[name]
+            if j <= last and done[name] >= j - 2 and (
+                    k or dataset_done is None
+                    or all(done[o] >= j - LEAD_CHUNKS for o in names[1:])):
                 return name
         return None
 
