@@ -85,3 +85,15 @@ def test_a_quantizer_below_one_step_has_the_rounding_as_its_floor() -> None:
     r = _residual(y)
     one = np.flatnonzero(np.isclose(np.abs(r), q))
     assert _mad(r) == 0.0 and one.size > 100 and not np.intersect1d(one, found).size
+
+
+def test_step_source_tells_file_digits_from_an_output_step() -> None:
+    """A power of ten of a unit the file may be written in is its printed digits; an LSB such
+    as the ADIS16405's 0.05 deg/s or 3.33 mg is an output step."""
+    d2r = math.pi / 180.0
+    assert C.step_source(1e-6, "gyro") == {"kind": "file_digits", "unit": "rad/s", "decimals": 6}
+    assert C.step_source(0.001 * d2r, "gyro") == {"kind": "file_digits", "unit": "deg/s", "decimals": 3}
+    assert C.step_source(1e-6 * 9.80665, "accel") == {"kind": "file_digits", "unit": "g", "decimals": 6}
+    assert C.step_source(0.05 * d2r, "gyro") == {"kind": "output_step"}
+    assert C.step_source(3.33e-3 * 9.80665, "accel") == {"kind": "output_step"}
+    assert C.step_source(0.0, "gyro") == {"kind": "output_step"}

@@ -128,9 +128,16 @@ def _test_run(o: dict, ybar: np.ndarray, block_s: float, fit: dict | None) -> di
             if all(abs(t / u - 1.0) > 0.1 for u in taus):
                 taus.append(t)
     first = [ST.bump_stationarity(ybar, block_s, t) for t in taus]
-    ok = [t for t, st in zip(taus, first) if st["tested"]]
+    # the tau the block means give (a multiple of their length) must lie in the run: the
+    # ADIS16405 gz's one-tau run at 0.07 s, block means 0.02 s long, would be tested at 0.08 s
+    lo, hi = float(o["tau_from_s"]) * 0.95, float(o["tau_to_s"]) * 1.05
+    ok = [t for t, st in zip(taus, first) if st["tested"] and lo <= st["tau_s"] <= hi]
     if not ok:
-        return first[0]
+        st = first[0]
+        if st["tested"]:
+            st = {"tested": False, "tau_s": st["tau_s"], "alpha": st["alpha"],
+                  "skipped": f"the block means ({block_s:g} s) give no tau inside the run"}
+        return st
     alpha = ST.ALPHA / len(ok)
     res = [ST.bump_stationarity(ybar, block_s, t, alpha=alpha) for t in ok]
     for st in res:

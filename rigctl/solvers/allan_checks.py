@@ -2,6 +2,8 @@
 
 * :func:`quantization_step`: the output step of a quantized sensor, read from the samples
   (every value on one grid), e.g. 0.05 deg/s and 3.33 mg for an ADIS16405.
+* :func:`step_source`: whether that step is the file's decimal digits (a power of ten of a unit
+  the numbers may be written in) or an output step of the sensor.
 * :func:`quantization_noise`: what that rounding adds to the curve. Rate-quantized output
   (each sample rounded to a multiple of q) carries white rounding noise of variance q^2/12 per
   sample while the sensor's own noise spans a few steps, i.e. a white-noise term
@@ -59,6 +61,33 @@ def quantization_step(y: np.ndarray, max_samples: int = QUANT_SAMPLES) -> float 
     if (v[-1] - v[0]) / q > 50.0 * v.size:
         return None
     return q
+
+
+#: units a file's numbers may be written in (SI per unit), per sensor: a step that is a power of
+#: ten of one of them is most likely the digits the file was printed with
+FILE_UNITS = {"gyro": {"rad/s": 1.0, "deg/s": math.pi / 180.0, "deg/h": math.pi / 648000.0},
+              "accel": {"m/s^2": 1.0, "g": 9.80665}}
+#: |log10(step / unit) - nearest integer| below this: a power of ten of that unit
+DECIMAL_TOL = 1e-6
+
+
+def step_source(q: float, sensor: str) -> dict:
+    """What a step read by :func:`quantization_step` most likely is. A power of ten of a unit
+    the file may be written in (1e-6 rad/s, 1e-8 rad/s, 1e-6 g: the Astro Pi's and the Galaxy
+    S5's CSVs, printed with 6 decimals and 7 significant digits) is the resolution of the
+    file's decimal digits -- the sensor's own LSB is then not visible in the numbers (the S5
+    gyro's 0.061 deg/s levels were smoothed by its publisher's filter): {"kind": "file_digits",
+    "unit": that unit, "decimals": -log10(step / unit)}. Anything else (0.05 deg/s, 3.33 mg on
+    the ADIS16405, an integer count scaled by its factor) is an output step: {"kind":
+    "output_step"}. A sensor whose LSB is itself a power of ten of such a unit reads as file
+    digits: the wording says "most likely"."""
+    if not (q > 0 and math.isfinite(q)):
+        return {"kind": "output_step"}
+    for unit, f in FILE_UNITS.get(sensor, {"SI": 1.0}).items():
+        x = math.log10(q / f)
+        if abs(x - round(x)) < DECIMAL_TOL:
+            return {"kind": "file_digits", "unit": unit, "decimals": int(-round(x))}
+    return {"kind": "output_step"}
 
 
 def quantization_noise(q: float, tau0: float, n_fit: float | None, sigma0: float) -> dict:

@@ -577,14 +577,18 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     b_pt, b_falling = (_b_point_limit(tau_all, s2_all, inf95) if model_err >= MODEL_ERROR_HOLD
                        else (math.inf, False))
     upper_all[B_IDX] = min(upper_all[B_IDX], b_pt)
-    if b_falling:  # ... and a rising K no higher than the curve's last well-determined point
-        k_idx = TERMS.index("K")
-        upper_all[k_idx] = min(upper_all[k_idx], float(np.min(
-            s2_all[inf95] / design_matrix(tau_all[inf95])[:, k_idx])))
+    # ... and so is every other term (the same principle, each at its own curve limit: N <=
+    # min sigma sqrt(tau), K <= min sigma sqrt(3 / tau), R <= min sigma sqrt(2) / tau, Q <=
+    # min sigma tau / sqrt(3); see _point_limits): a real Astro Pi gyro's N came out 2.3x its
+    # limit, the total 2.3x above the curve at 10 s, once B was held and bounded
+    held = (_point_limits(tau_all, s2_all, inf95, tau0) if model_err >= MODEL_ERROR_HOLD
+            else np.full(len(TERMS), np.inf))
+    upper_all = np.minimum(upper_all, held)
     inflate = None
     dropped: list[int] = []
     pinned_terms: set[int] = set()
     needed_terms: set[int] = set()
+    held_needed: set[int] = set()
     while True:
         a = full_a[:, active]
         w = e / (2.0 * s2 ** 2)
@@ -609,6 +613,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # curve allows, i.e. it fills a feature outside IEEE 952 (a bump): dropped first
         up = upper_all[active]
         at_limit = np.isfinite(up) & (p >= up * (1.0 - 1e-6)) & (p > 0)
+        # (Q and N, held only where the model needs its own error, _point_limits: a white
+        # noise pressed against the curve's shortest taus is the curve, not a bump)
+        at_limit &= np.array([TERMS[j] in CONSTRAINED for j in active])
         # ... except a B pressed against a floor: the curve's lowest informative point (which
         # sets B's limit) has informative taus after it, i.e. the curve flattened or came
         # back up rather than still falling at the end (the MTi-G's fall after its bump). A
@@ -695,6 +702,17 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             # dominates: on the emulator's declared_only profile, N + B + K, that dropped a
             # true B hidden in the bottom of the V and K took it: 1.50e-5 [1.28e-5, 1.79e-5]
             # rad/s/sqrt(s) for 1e-5; the MTi-G small-gap case it was made for holds without it)
+        # a white noise (N) held at the curve's own limit is what the curve's shortest
+        # well-determined taus show (sigma known there to < 1 %): kept as an estimate however
+        # the misfit elsewhere inflates its sd (the Astro Pi gyros: N at its limit, B and K
+        # bounds, every term dropped otherwise and the total 0). Not Q: each limit is that of
+        # the term alone, and Q and N both at theirs put the total 1.41x over the same tau
+        for i, j in enumerate(active):
+            if TERMS[j] == "N" and p[i] > 0 and p[i] >= held[j] * (1.0 - 1e-6):
+                score[i] = max(score[i], 1.0)
+                held_needed.add(j)
+            else:
+                held_needed.discard(j)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
             break
@@ -738,10 +756,22 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # kept because the curve needs it (a floor the other terms cannot reach): reported
         # as an estimate with its interval however wide
         entry["kept_for_floor"] = j in needed_terms and j in active
+        # held at the curve's own limit (_point_limits, model error >= MODEL_ERROR_HOLD): the
+        # fit wanted more of the term than the curve allows
+        entry["held_at_curve_limit"] = bool(j in active and math.isfinite(held[j])
+                                            and upper_all[j] <= held[j]
+                                            and pj >= held[j] * (1.0 - 1e-6) and pj > 0)
+        if math.isfinite(held[j]):
+            # the limit the fit held the term to: curve_limit_* below, but for Q and N read
+            # past a low-pass filter's taus (_filter_taus) and, like every hold, past a rising
+            # front -- so an N above curve_limit_* (set inside the filter's taus) is not a
+            # contradiction (ADIS16405: N 1.2x the curve at tau0, at the limit past m = 32)
+            entry[f"held_limit_{unit_si}"] = math.sqrt(held[j])
+            entry[f"held_limit_{unit_f}"] = math.sqrt(held[j]) * fac
         if t == "B" and b_test.get("tested"):
             entry["presence_test"] = dict(b_test)  # b_presence_test: the p-value that decided
         if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
-                                        or j in needed_terms and pj > 0):
+                                        or (j in needed_terms or j in held_needed) and pj > 0):
             coeff_sq[t] = pj
             nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
             ci = []
@@ -869,6 +899,78 @@ def _b_point_limit(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray) -> tuple[fl
     idx = np.flatnonzero(inf)
     k = idx[int(np.argmin(s2[idx]))]
     return float(s2[k]) / _B_FACTOR, bool(k == idx[-1])
+
+
+#: a low-pass filter's region: S = sigma^2 tau rises by less each octave, each rise below this
+#: fraction of the one before (a filter's deficit c / tau halves per octave: 0.5)
+FILTER_DECAY = 0.75
+
+
+def _filter_taus(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,
+                 tau0: float | None) -> np.ndarray:
+    """The leading well-determined taus that a low-pass filter may pull below the white-noise
+    line, where N's and Q's curve limits do not hold (a filter subtracts c / tau^2 from
+    sigma^2: not an IEEE 952 term, whose parts are all non-negative).
+
+    By default those of fewer than B_TEST_M_MIN samples: the fit's own convention for the
+    filter's region (b_presence_test). Read off S = sigma^2 tau (N^2 on a white-noise line)
+    at m = 1, 2, 4, ... samples (interpolated in log tau), two cases differ:
+
+    * S rises by less each octave from the second octave on, each rise below FILTER_DECAY of
+      the one before: a filter's deficit c / tau fading (it halves per octave). The region
+      then runs to the octave where the rises stop shrinking (ADIS16405 gx: rises 0.30, 0.16,
+      0.07, 0.04, 0.02 of S(tau0) from m = 1 to 32, then B's rise: m < 32; a 3-tap (1/4, 1/2,
+      1/4) filter: 0.30, 0.28, 0.14, 0.07, ... of N^2, m up to where K's rise takes over).
+    * S rises by more each octave (the second rise over 1 / FILTER_DECAY of the first): a
+      correlated process above the white noise from the first tau on (B, a bump), no filter:
+      no tau is left out (the Astro Pi gyros, RTIMULib's output point-sampled every 10 s:
+      rises 0.51, 1.10, 2.02; N came out 2.3x the curve at 10 s).
+
+    Without tau0, or a curve that does not start at tau0: none."""
+    out = np.zeros(tau.size, dtype=bool)
+    idx = np.flatnonzero(inf)
+    if tau0 is None or idx.size < 3:
+        return out
+    lm = np.log2(tau[idx] / tau0)
+    if lm[0] > 0.5:
+        return out
+    ks = np.arange(0, int(np.floor(lm[-1])) + 1)
+    m_to = float(B_TEST_M_MIN)
+    if ks.size >= 3:
+        d = np.diff(np.interp(ks, lm, s2[idx] * tau[idx]))
+        if d[0] > 0 and d[1] > d[0] / FILTER_DECAY:
+            return out
+        # from the second octave on (tau0 itself is special for any filter longer than one
+        # sample: a 3-tap (1/4, 1/2, 1/4) gives rises 0.30, 0.28, 0.14, 0.07 of N^2)
+        k = 2
+        while k < d.size and d[0] > 0 and 0.0 < d[k] < FILTER_DECAY * d[k - 1]:
+            k += 1
+        if k > 2:
+            m_to = max(m_to, 2.0 ** ks[k])
+    out[idx[tau[idx] < tau0 * m_to * (1.0 - 1e-9)]] = True
+    return out
+
+
+def _point_limits(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,
+                  tau0: float | None) -> np.ndarray:
+    """Each term's hold (c_j^2, order TERMS) where the IEEE 952 model needs its own error
+    (model_err >= MODEL_ERROR_HOLD): the curve's own limit, min sigma^2 / A_j(tau) over the
+    well-determined taus ``inf`` -- the principle of _b_point_limit for every term: where
+    the model does not describe the curve, no term is fitted above what the curve allows
+    (issue 15). For Q and N the taus of a low-pass filter's region are left out
+    (:func:`_filter_taus`); the taus of a rising front are not passed in (rising_front).
+    No well-determined tau: no hold."""
+    tau, s2, inf = np.asarray(tau, float), np.asarray(s2, float), np.asarray(inf, bool)
+    if not np.any(inf):
+        return np.full(len(TERMS), np.inf)
+    a = design_matrix(tau)
+    lim = np.min(s2[inf][:, None] / a[inf], axis=0)
+    past = inf & ~_filter_taus(tau, s2, inf, tau0)
+    if np.any(past):
+        short = np.min(s2[past][:, None] / a[past], axis=0)
+        for t in ("Q", "N"):
+            lim[TERMS.index(t)] = short[TERMS.index(t)]
+    return lim
 
 
 def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.ndarray,
@@ -1157,9 +1259,13 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
         return ("the sensor's low-pass filter, or an output dwelling on its quantization "
                 "levels: samples correlated at the shortest taus (below the white-noise line; "
                 "not an IEEE 952 term)")
-    if first and above:
+    if first and above and slope < -0.5:
         return (f"quantization or white phase noise at the shortest taus (local slope "
                 f"{slope:+.2f}, steeper than -1/2)")
+    if first and above:  # shallower than white noise from the start (the Astro Pi gyros)
+        return (f"a correlated process above the white noise from the shortest taus on (local "
+                f"slope {slope:+.2f}, shallower than -1/2: e.g. a flicker floor or a "
+                f"Gauss-Markov process, which no IEEE 952 term within the curve's limits follows)")
     if last and above:
         return (f"a drift or temperature trend at the longest taus (local slope {slope:+.2f})")
     if above:
