@@ -383,3 +383,30 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
         for k, v in got[False][a].items():
             w = got[True][a][k]
             assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+
+
+def test_switch_interval_while_streaming(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The GIL switch interval is AA.SWITCH_INTERVAL_S while the record streams and its axes
+    are analysed (workers back from a compiled kernel wait less for the GIL while another
+    thread runs Python), the caller's interval afterwards, also after an error."""
+    import sys
+
+    rec = tmp_path / "r.h5"
+    _recording(rec, 40_000, False)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    seen: list = []
+    orig = AA.analyse_axis
+    monkeypatch.setattr(AA, "analyse_axis", lambda st, *a: (
+        seen.append(sys.getswitchinterval()), orig(st, *a))[1])
+    before = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.0123)
+        AA.compute(str(rec), ["gx", "az"], 95)
+        assert seen and all(abs(v - AA.SWITCH_INTERVAL_S) < 1e-9 for v in seen)
+        assert abs(sys.getswitchinterval() - 0.0123) < 1e-9
+        monkeypatch.setattr(AA, "analyse_axis", lambda *a: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            AA.compute(str(rec), ["gx"], 95)
+        assert abs(sys.getswitchinterval() - 0.0123) < 1e-9
+    finally:
+        sys.setswitchinterval(before)

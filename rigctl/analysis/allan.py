@@ -11,9 +11,11 @@ created_utc, json; curves as datasets with ``units``).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -78,6 +80,14 @@ LEAD_DATASET = True
 #: the other dataset's chunks run alone for long (one dataset's chain keeps ~1.3 cores busy:
 #: its one pass, then its three sums on two workers)
 LEAD_CHUNKS = 32
+#: the interpreter's GIL switch interval (s) while a record streams and its axes are analysed
+#: (restored afterwards; None: left alone). A worker coming back from a compiled kernel (the
+#: sums, the one pass; they run without the GIL) needs the GIL for its few lines of Python
+#: before the next kernel, and while another thread runs Python (a dataset's fits, the
+#: database import) it gets it only when that thread is made to drop it: after the switch
+#: interval, 5 ms by default, against ~1.5 ms per kernel call. ~8 such waits per chunk
+#: would stall the other dataset's chunks during the lead dataset's fits
+SWITCH_INTERVAL_S: float | None = 5e-4
 
 
 class _PriorityPool:
@@ -792,6 +802,46 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
         return np.diff([s0] + b + [s1]) if b else None
 
+    with _switch_interval(SWITCH_INTERVAL_S):
+        return _stream_and_analyse(path, fs, axes, streams, s0, s1, n, shown, readers, exclude,
+                                   breaks, corrections, counter, found, streamed, gaps,
+                                   gap_info, missing, outliers, when_streaming, stretches)
+
+
+_SWITCH = {"depth": 0, "saved": 0.0}
+_SWITCH_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _switch_interval(seconds: float | None):
+    """sys.setswitchinterval(seconds) inside the block (:data:`SWITCH_INTERVAL_S`), the
+    interval before it restored when the last of overlapping blocks (analyses on several
+    threads) ends; nothing with None."""
+    if seconds is None:
+        yield
+        return
+    with _SWITCH_LOCK:
+        if _SWITCH["depth"] == 0:
+            _SWITCH["saved"] = sys.getswitchinterval()
+            sys.setswitchinterval(seconds)
+        _SWITCH["depth"] += 1
+    try:
+        yield
+    finally:
+        with _SWITCH_LOCK:
+            _SWITCH["depth"] -= 1
+            if _SWITCH["depth"] == 0:
+                sys.setswitchinterval(_SWITCH["saved"])
+
+
+def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0: int, s1: int,
+                        n: int, shown: WorkProgress, readers: dict, exclude: bool,
+                        breaks: list[int] | None, corrections: dict | None,
+                        counter: RowReader | None, found: list, streamed: bool, gaps: str,
+                        gap_info: dict, missing: int, outliers: str,
+                        when_streaming: Callable[[], Any] | None,
+                        stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
+    """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
     def analyse(a: str) -> dict[str, Any]:
         return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
 
