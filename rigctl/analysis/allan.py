@@ -536,6 +536,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                          AD.warmup_reason_below(warm))
     if not gapped:  # a bump the warm-up does not explain: stationary noise, or not?
         AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
+        # ... stationary: does a Gauss-Markov process fit it? (a named candidate)
+        AD.gauss_markov(fit, res.tau_s, res.dev, edfs, res.tau0_s, res.n_phase, sensor)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,

@@ -128,7 +128,7 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
     if not (math.isfinite(window_s) and window_s > 0):
         raise InputError(f"--window-s {window_s:g}: give a window length in seconds (> 0)")
     if not force_static and AT.is_thermal(p):
-        raise InputError("a chamber run (table and /chamber): rigctl calibrate RECORDING does its thermal "
+        raise InputError("a chamber run (/chamber readings): rigctl calibrate RECORDING does its thermal "
                          "calibration", p, hint="--static fits it as a static record anyway")
     sections = read_pose_file(poses_file) if poses_file else None
     wins = AT.static_windows(p, window_s, reference_c, max(AT.MAX_FIT_DEGREE, bias_degree), settle_s=settle_s,
