@@ -200,6 +200,12 @@ def test_the_mtig_gyros_stationary_bump_is_named_with_a_gauss_markov_candidate(
     assert gm["chi2_after"] / gm["dof_after"] * 3 <= gm["chi2_before"] / gm["dof_before"]
     assert gm["ratio_before"][0] < 0.8 or gm["ratio_before"][1] > 1.2
     assert gm["n_outside95_after"] * 3 <= gm["n_outside95_before"], gm
+    # --taus octave: the same candidate (measured Tc 3.36 s [2.54, 4.46], 61.5 deg/h; before
+    # its run at 2.6-328 s was named "a drift ... (local slope -0.44)" and never tested)
+    oc = AA.compute(str(rec), ["gx"], taus="octave")["axes"]["gx"]["fit"]["gauss_markov"]
+    assert oc["detected"], oc
+    assert oc["tc_ci95_s"][0] <= gm["tc_s"] <= oc["tc_ci95_s"][1]
+    assert gm["tc_ci95_s"][0] <= oc["tc_s"] <= gm["tc_ci95_s"][1]
 
 
 def test_the_pipeline_names_the_process_the_ieee_fit_cannot_follow(tmp_path: Path, capsys) -> None:
