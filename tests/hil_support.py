@@ -18,7 +18,7 @@ from rigctl.run.runner import run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 
-from helpers import SLOW_NOISE_KEYS
+from helpers import SLOW_NOISE_KEYS, white_noise_only  # noqa: F401  (white_noise_only: re-exported)
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM = ROOT / "configs" / "sim.yaml"
@@ -112,18 +112,6 @@ def repeated_samples(path: Path) -> list[tuple[int, int]]:
     same = np.concatenate([[False], np.all(x[1:] == x[:-1], axis=1), [False]]).astype(np.int8)
     edges = np.flatnonzero(np.diff(same))
     return [(int(a) - 1, int(b - a) + 1) for a, b in zip(edges[::2], edges[1::2])]
-
-
-def white_noise_only(truth_imu: dict) -> None:
-    """The run's IMU (the emulator's ``/truth`` imu) has white noise only on both sensors -- the
-    premise of the tests that hold window means to 5 sigma of white noise (:func:`white_sim`
-    zeroes the slow terms; a flicker B or a random walk K would add to a window mean's spread)."""
-    for sensor in ("accel_noise", "gyro_noise"):
-        for axis in truth_imu[sensor]:
-            slow = {k: axis[k]["value"] for k in ("Q", "B", "K", "R") if axis.get(k, {}).get("value")}
-            if axis.get("gm"):
-                slow["gm"] = axis["gm"]
-            assert not slow, f"{sensor}: the tolerance counts white noise only, but the IMU also has {slow}"
 
 
 # -- unattended operation over the wire (tests/test_daemon_wire*.py) -------------------------------

@@ -149,3 +149,9 @@ def test_astropi_gyro_no_term_above_the_curves_limit(astro, taus) -> None:
         named = np.array([any(u["tau_from_s"] <= x <= u["tau_to_s"] for u in runs) for x in tau])
         assert np.all(named[out]), (ax, taus, tau[out & ~named])
         assert not chk["ok"] and chk["outside"], (ax, taus, chk["ok"])
+        # and why, read off the curve: shallower than white noise from 10 s on (S rising), not
+        # the quantization a steeper-than -1/2 start would mean (the wording before)
+        long_run = max(chk["outside"], key=lambda u: u["tau_to_s"] / u["tau_from_s"])
+        assert long_run["side"] == "data above the fit", long_run
+        assert "correlated process" in long_run["likely"], long_run
+        assert "quantization" not in long_run["likely"], long_run

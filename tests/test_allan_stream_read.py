@@ -319,3 +319,94 @@ def test_pipelined_chunks_same_results(tmp_path: Path, monkeypatch: pytest.Monke
         for k, v in got[False][a].items():
             w = got[True][a][k]
             assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+
+
+@pytest.mark.parametrize("lead_chunks,gaps,axes", [
+    (1, False, list(AA.AXES)), (3, True, ["az", "gx", "gy"]),
+    (100, False, ["ax", "ay", "az", "gx", "gy", "gz"])])
+def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                   lead_chunks: int, gaps: bool, axes: list) -> None:
+    """The first axis' dataset running ahead (AA.LEAD_DATASET, by at most AA.LEAD_CHUNKS
+    chunks), its axes analysed while the other dataset still streams, gives the numbers of
+    the loop that waits for every dataset at the end of each chunk (AA.PIPELINED False),
+    bit for bit, with gaps skipped; the lead dataset is never read more than LEAD_CHUNKS
+    chunks ahead of the other, and (when it may run ahead over the whole record) its analyses
+    start before the other's last chunk is summed: while the other dataset's one pass runs
+    alone, a worker has nothing of higher rank to take)."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    rec = tmp_path / "r.h5"
+    _recording(rec, 160_000, gaps)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    monkeypatch.setattr(AA, "LEAD_CHUNKS", lead_chunks)
+    lead = AA.AXES[axes[0]][0]
+    made: list = []  # the axes' streams, in the order of ``axes``
+    events: list = []
+    orig_init, orig_add, orig_an = (AA._AxisStream.__init__, AA._AxisStream.add_written,
+                                    AA.analyse_axis)
+    monkeypatch.setattr(AA._AxisStream, "__init__",
+                        lambda self, *a: (orig_init(self, *a), made.append(self))[0])
+    monkeypatch.setattr(AA._AxisStream, "add_written",
+                        lambda self, n: (orig_add(self, n), events.append(("sum", self)))[0])
+    monkeypatch.setattr(AA, "analyse_axis",
+                        lambda st, sensor, *a: (events.append(("analyse", st)),
+                                                orig_an(st, sensor, *a))[1])
+    reads: list = []
+    orig_read = AA.RowReader.read
+    monkeypatch.setattr(AA.RowReader, "read", lambda self, a, b, out: (
+        reads.append(self.ds.name), orig_read(self, a, b, out))[1])
+    got = {}
+    for pipelined in (False, True):
+        monkeypatch.setattr(AA, "PIPELINED", pipelined)
+        made.clear()
+        events.clear()
+        reads.clear()
+        res = AA.compute(str(rec), axes, 95, gaps="skip")
+        got[pipelined] = {a: _flat(r) for a, r in res["axes"].items()}
+    # (the pipelined run) the lead's analyses start before the other dataset's last sum
+    ds_of = {id(st): AA.AXES[a][0] for st, a in zip(made, axes)}
+    first_an = next(i for i, (k, st) in enumerate(events) if k == "analyse")
+    last_other = max(i for i, (k, st) in enumerate(events)
+                     if k == "sum" and ds_of[id(st)] != lead)
+    if lead_chunks >= 8:  # (a tighter lead: whether they do depends on the timing)
+        assert ds_of[id(events[first_an][1])] == lead and first_an < last_other
+    # the lead dataset is never read more than lead_chunks chunks ahead of the other
+    n_read: dict = {}
+    for name in reads:
+        if name in ("/imu/angular_rate", "/imu/specific_force"):
+            n_read[name] = n_read.get(name, 0) + 1
+            behind = min((v for k, v in n_read.items() if k != lead), default=0)
+            assert name != lead or n_read[lead] - behind <= lead_chunks
+    for a in axes:
+        for k, v in got[False][a].items():
+            w = got[True][a][k]
+            assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+
+
+def test_switch_interval_while_streaming(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The GIL switch interval is AA.SWITCH_INTERVAL_S while the record streams and its axes
+    are analysed (workers back from a compiled kernel wait less for the GIL while another
+    thread runs Python), the caller's interval afterwards, also after an error."""
+    import sys
+
+    rec = tmp_path / "r.h5"
+    _recording(rec, 40_000, False)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    seen: list = []
+    orig = AA.analyse_axis
+    monkeypatch.setattr(AA, "analyse_axis", lambda st, *a: (
+        seen.append(sys.getswitchinterval()), orig(st, *a))[1])
+    before = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.0123)
+        AA.compute(str(rec), ["gx", "az"], 95)
+        assert seen and all(abs(v - AA.SWITCH_INTERVAL_S) < 1e-9 for v in seen)
+        assert abs(sys.getswitchinterval() - 0.0123) < 1e-9
+        monkeypatch.setattr(AA, "analyse_axis", lambda *a: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            AA.compute(str(rec), ["gx"], 95)
+        assert abs(sys.getswitchinterval() - 0.0123) < 1e-9
+    finally:
+        sys.setswitchinterval(before)

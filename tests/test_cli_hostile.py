@@ -123,7 +123,7 @@ def _set_write_flags(path: Path) -> None:
 #: which recorded values each command reads ("sf" /imu/specific_force, "rate" angular_rate,
 #: "time" /imu/time): NaN / inf there must be refused (2); elsewhere the command may run (0)
 READS = {"allan": {"sf", "rate"}, "allan-gx": {"rate"}, "calibrate": {"time", "sf", "rate"},
-         "apply-cal": {"sf", "rate"}, "sync": {"sf"}, "report": set()}
+         "apply-cal": {"sf", "rate"}, "sync": {"sf"}, "report": set(), "thermal": {"time", "sf", "rate"}}
 
 
 def make_variants(base: Path, d: Path) -> tuple[dict[str, Path], dict[str, Path], dict[str, str]]:
@@ -263,7 +263,8 @@ def make_variants(base: Path, d: Path) -> tuple[dict[str, Path], dict[str, Path]
 
 #: which datasets each command needs at all: a missing one must be refused (2)
 NEEDS = {"allan": {"time", "sf", "rate"}, "allan-gx": {"time", "rate"}, "calibrate": {"time", "sf", "rate"},
-         "apply-cal": {"time", "sf", "rate"}, "sync": {"sf"}, "report": {"time", "sf", "rate"}}
+         "apply-cal": {"time", "sf", "rate"}, "sync": {"sf"}, "report": {"time", "sf", "rate"},
+         "thermal": {"time", "sf", "rate"}}
 
 
 def expected(argv: list[str], tag: str) -> set[int]:
@@ -355,7 +356,8 @@ def build_cases(tmp: Path) -> tuple[list[Case], dict[str, Path]]:
                 ["sync", str(p)], ["sync", str(p), "--timescale", "gps", "--axis", "x"],
                 ["report", str(p), "--out", str(out / "report")],
                 ["apply-cal", str(p), "-o", o, "--force"],
-                ["apply-cal", str(p), "-o", o, "--force", "--calibration", str(cal_json)]]
+                ["apply-cal", str(p), "-o", o, "--force", "--calibration", str(cal_json)],
+                ["thermal", str(p)], ["thermal", str(p), "--static", "--one-pose", "--window-s", "1"]]
 
     for name, p in bad.items():
         for argv in rec_cmds(p):
@@ -368,7 +370,8 @@ def build_cases(tmp: Path) -> tuple[list[Case], dict[str, Path]]:
     # partial recordings: each command runs or refuses, naming the file; never a traceback
     for name, p in partial.items():
         for argv in (["allan", str(p), "--taus", "octave"], ["calibrate", str(p), "--noise", "self"],
-                     ["sync", str(p)], ["apply-cal", str(p), "-o", str(out / "x.h5"), "--force"]):
+                     ["sync", str(p)], ["apply-cal", str(p), "-o", str(out / "x.h5"), "--force"],
+                     ["thermal", str(p), "--one-pose"]):
             cases.append(Case(argv, {0, 1, 2}, [str(p)]))
     for name in ("group-missing-table", "group-missing-meta", "dataset-missing-imu-counter",
                  "nan-table-angle", "nan-segment-times"):

@@ -15,7 +15,7 @@ from rigctl.frames import body_references
 from rigctl.engine.procedure import load_procedure
 from rigctl.run.runner import run_procedure
 
-from helpers import DURATION_EPS, ROOT, WHITE_NOISE_ONLY, derived_config
+from helpers import DURATION_EPS, ROOT, WHITE_NOISE_ONLY, derived_config, white_noise_only
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +62,7 @@ def test_segment_means_follow_the_declared_model(short_24pos):
     res, cfg, _ = short_24pos
     with h5py.File(res.recording, "r") as f:
         truth = json.loads(f["truth"].attrs["params_json"])["imu"]
+        white_noise_only(truth)     # so 5 sigma of white noise is the window mean's whole noise model
         seg = {k: f["segments"][k][()] for k in ("kind", "first_sample", "last_sample", "commanded_angle")}
         fs = f["imu/specific_force"]
         b, m = np.array(truth["accel_bias_m_s2"]), np.array(truth["accel_matrix"])

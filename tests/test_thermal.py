@@ -540,3 +540,5 @@ def test_group_poses_merges_sections_that_point_the_same_way():
 
     down = [np.array([0, 0, -9.8]), np.array([-9.8, 0, 0]), np.array([0.5, 0.3, -9.7]), np.array([0, 0, 9.8])]
     assert group_poses(down, ["a", "b", "c", "d"]) == ["a", "b", "a", "d"]
+    # one name for two directions: still two poses
+    assert group_poses(down, ["a", "a", "c", "d"]) == ["a", "a (section 2)", "a", "d"]

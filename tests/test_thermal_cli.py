@@ -26,6 +26,7 @@ import subprocess
 import csv as csvmod
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 from scipy import stats
@@ -275,6 +276,20 @@ def test_bad_pose_files_and_options_are_one_line(runs, tmp_path):
     _one_line_error(run_rigctl("thermal", str(plain), "--poses", str(f)), f"{f}:1:", "label, from_s and to_s")
     _one_line_error(run_rigctl("thermal", str(plain), "--bias-degree", "0"), "--bias-degree 0")
     _one_line_error(run_rigctl("thermal", str(plain), "--settle-s", "-5"), "--settle-s -5")
+
+
+def test_a_chamber_run_is_one_line_pointing_to_calibrate(runs, tmp_path):
+    """The segments import with chamber readings written into its /chamber (as a chamber run
+    records them): refused, naming rigctl calibrate and --static."""
+    _, _, plain, _ = runs
+    rec = tmp_path / "chamber.h5"
+    rec.write_bytes(plain.with_name("marked.h5").read_bytes())
+    with h5py.File(rec, "a") as f:
+        g = f["chamber"]
+        for k in g:
+            g[k].resize((3,))
+            g[k][:] = [b"ok"] * 3 if g[k].dtype.kind == "S" else [0.0, 1e5, 2.7e5] if k == "time" else [20.0, 10, 20]
+    _one_line_error(run_rigctl("thermal", str(rec)), str(rec), "a chamber run", "rigctl calibrate", "--static")
 
 
 def test_help_names_the_options():

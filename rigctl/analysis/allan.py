@@ -11,9 +11,11 @@ created_utc, json; curves as datasets with ``units``).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -73,6 +75,19 @@ EARLY_TONES = True
 #: (compiled, without the GIL) instead of all six after the last chunk (False: both datasets
 #: side by side, every analysis after the last chunk; the same numbers)
 LEAD_DATASET = True
+#: ... by at most this many chunks (2^19 rows each): enough for its analyses to run beside the
+#: other dataset's last chunks (~0.3 s of Python against ~5 ms per chunk), not so many that
+#: the other dataset's chunks run alone for long (one dataset's chain keeps ~1.3 cores busy:
+#: its one pass, then its three sums on two workers)
+LEAD_CHUNKS = 32
+#: the interpreter's GIL switch interval (s) while a record streams and its axes are analysed
+#: (restored afterwards; None: left alone). A worker coming back from a compiled kernel (the
+#: sums, the one pass; they run without the GIL) needs the GIL for its few lines of Python
+#: before the next kernel, and while another thread runs Python (a dataset's fits, the
+#: database import) it gets it only when that thread is made to drop it: after the switch
+#: interval, 5 ms by default, against ~1.5 ms per kernel call. ~8 such waits per chunk
+#: would stall the other dataset's chunks during the lead dataset's fits
+SWITCH_INTERVAL_S: float | None = 5e-4
 
 
 class _PriorityPool:
@@ -521,6 +536,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
                          AD.warmup_reason_below(warm))
     if not gapped:  # a bump the warm-up does not explain: stationary noise, or not?
         AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
+        # ... stationary: does a Gauss-Markov process fit it? (a named candidate)
+        AD.gauss_markov(fit, res.tau_s, res.dev, edfs, res.tau0_s, res.n_phase, sensor)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
@@ -785,6 +802,46 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
         return np.diff([s0] + b + [s1]) if b else None
 
+    with _switch_interval(SWITCH_INTERVAL_S):
+        return _stream_and_analyse(path, fs, axes, streams, s0, s1, n, shown, readers, exclude,
+                                   breaks, corrections, counter, found, streamed, gaps,
+                                   gap_info, missing, outliers, when_streaming, stretches)
+
+
+_SWITCH = {"depth": 0, "saved": 0.0}
+_SWITCH_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _switch_interval(seconds: float | None):
+    """sys.setswitchinterval(seconds) inside the block (:data:`SWITCH_INTERVAL_S`), the
+    interval before it restored when the last of overlapping blocks (analyses on several
+    threads) ends; nothing with None."""
+    if seconds is None:
+        yield
+        return
+    with _SWITCH_LOCK:
+        if _SWITCH["depth"] == 0:
+            _SWITCH["saved"] = sys.getswitchinterval()
+            sys.setswitchinterval(seconds)
+        _SWITCH["depth"] += 1
+    try:
+        yield
+    finally:
+        with _SWITCH_LOCK:
+            _SWITCH["depth"] -= 1
+            if _SWITCH["depth"] == 0:
+                sys.setswitchinterval(_SWITCH["saved"])
+
+
+def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0: int, s1: int,
+                        n: int, shown: WorkProgress, readers: dict, exclude: bool,
+                        breaks: list[int] | None, corrections: dict | None,
+                        counter: RowReader | None, found: list, streamed: bool, gaps: str,
+                        gap_info: dict, missing: int, outliers: str,
+                        when_streaming: Callable[[], Any] | None,
+                        stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
+    """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
     def analyse(a: str) -> dict[str, Any]:
         return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
 
@@ -998,12 +1055,14 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     tasks read nothing of a chunk after they finish), ``names[0]`` first when both can
     (the counter rows of chunk j, for the gaps, with the first dataset's read of chunk j).
     With ``dataset_done`` (:data:`LEAD_DATASET`) the datasets' tasks have the ranks
-    ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead, and
+    ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead (by at most
+    :data:`LEAD_CHUNKS` chunks: it reads no further until the others catch up), and
     ``dataset_done(axes)`` is called as soon as a dataset's last chunk is summed. The same
     tasks on the same data in the same order per axis: the same numbers. The first error
     raised by a task is raised here. ``when_streaming`` is called (here) once every dataset
     has finished the first chunk; a dataset's early noise IDs of the head
-    (:data:`EARLY_NOISE_ID`) are queued (at its rank) once its heads are complete."""
+    (:data:`EARLY_NOISE_ID`) are queued (at its rank, before its next chunk's task) by the
+    first of its chunks after which its heads are complete, if another chunk follows."""
     cond = threading.Condition()
     ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
     done = {name: -1 for name in names}  # the last chunk each dataset has finished
@@ -1036,6 +1095,12 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         with cond:
             done[name] = j
             busy[name] = False
+            sts = [streams[a] for a in groups[name]]
+            if EARLY_NOISE_ID and not queued_ids[name] and j < last and all(
+                    st.head_full() for st in sts):  # (before its next chunk's task)
+                queued_ids[name] = True
+                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
+                             for st in sts)
             launch(name)
             cond.notify_all()
 
@@ -1065,28 +1130,21 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         for t in tasks:
             t.add_done_callback(one)
 
-    def progress() -> None:  # this thread: the bar, and the head's noise IDs once complete
+    def progress() -> None:  # this thread: the bar, and the hook after the first chunk
         with cond:
             lo = min(done.values())
-            now = dict(done)
         if lo >= 0:
             shown.update(min(s1, starts[lo] + CHUNK_ROWS) - s0)
             if hook[0] is not None:
                 call, hook[0] = hook[0], None
                 call()
-        if not EARLY_NOISE_ID:
-            return
-        for name in names:
-            sts = [streams[a] for a in groups[name]]
-            if not queued_ids[name] and 0 <= now[name] < last and all(
-                    st.head_full() for st in sts):
-                queued_ids[name] = True
-                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
-                             for st in sts)
 
     def pick() -> str | None:  # under cond: the dataset to read for next (names' order)
-        for name in names:
-            if nxt[name] <= last and done[name] >= nxt[name] - 2:
+        for k, name in enumerate(names):
+            j = nxt[name]
+            if j <= last and done[name] >= j - 2 and (
+                    k or dataset_done is None
+                    or all(done[o] >= j - LEAD_CHUNKS for o in names[1:])):
                 return name
         return None
 

@@ -12,8 +12,10 @@ from typing import Any
 
 import numpy as np
 
+from .. import display_units as DU
 from ..solvers import allan_drift as D
 from ..solvers import allan_fit as F
+from ..solvers import allan_gm as GM
 from ..solvers import allan_stationarity as ST
 from ..solvers import allan_tones as TN
 from ..solvers import noise_coefficients as NC
@@ -428,3 +430,57 @@ def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
         out.append((f"temperature term ({t['coef_field']:.3g} {t['coef_unit']})", r["tau_s"],
                     t["adev_si"]))
     return out
+
+
+def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, tau0: float,
+                 n_phase: int, sensor: str) -> dict | None:
+    """A first-order Gauss-Markov candidate for the stationary bumps of the self-check
+    (:func:`rigctl.solvers.allan_gm.gm_candidate`: its likelihood-ratio test against the IEEE
+    952 terms alone), run only when a run of taus the check calls a bump was tested stationary
+    by :func:`name_bumps` (never for one it calls nonstationary). The result goes into
+    ``fit["gauss_markov"]`` (sigma_GM also in the deviation's field unit,
+    :data:`rigctl.display_units.NOISE_UNITS`: B's); where the test finds the process and its
+    hump (1.89 Tc) lies within a factor 4 of the run, the run's reason names it as a candidate
+    with the error before and after. The fitted total and the self-check are those of the IEEE
+    952 terms: the candidate is not in them."""
+    runs = [o for o in (fit.get("check") or {}).get("outside") or []
+            if o.get("cause") is None and o.get("side") == "data above the fit"
+            and str(o.get("likely", "")).startswith("a bump")
+            and (o.get("stationarity") or {}).get("stationary")]
+    if not runs:
+        return None
+    tn = fit.get("tones") or {}
+    gm = GM.gm_candidate(tau, dev, edf, tau0, n_phase,
+                         tones=tn.get("terms") or None)
+    unit, fac = DU.NOISE_UNITS[sensor]["B"]
+    if gm.get("tested"):
+        gm["sigma_gm_unit"] = unit
+        gm[f"sigma_gm_{DU.slug(unit)}"] = gm["sigma_gm_si"] * fac
+        gm[f"sigma_gm_ci95_{DU.slug(unit)}"] = [v * fac for v in gm["sigma_gm_ci95_si"]]
+    gm["runs_stationary"] = len(runs)
+    fit["gauss_markov"] = gm
+    if not gm.get("detected"):
+        return gm
+    peak = GM.GM_PEAK * gm["tc_s"]
+    for o in runs:
+        if not (float(o["tau_from_s"]) / 4.0 <= peak <= 4.0 * float(o["tau_to_s"])):
+            continue
+        o["gauss_markov"] = True
+        o["likely"] = f"{o['likely']}; {gm_reason(gm)}"
+    return gm
+
+
+def gm_reason(gm: dict) -> str:
+    """The candidate's sentence in the self-check's reason for a stationary bump."""
+    unit = gm["sigma_gm_unit"]
+    s, (s_lo, s_hi) = gm[f"sigma_gm_{DU.slug(unit)}"], gm[f"sigma_gm_ci95_{DU.slug(unit)}"]
+    tc_lo, tc_hi = gm["tc_ci95_s"]
+    rb, ra = gm["ratio_before"], gm["ratio_after"]
+    return (f"a Gauss-Markov process with Tc ~ {gm['tc_s']:.3g} s [{tc_lo:.3g}, {tc_hi:.3g}] "
+            f"and sigma_GM {s:.3g} {unit} [{s_lo:.3g}, {s_hi:.3g}] (95 %) fits the bump: "
+            f"chi2/dof {gm['chi2_before']:.1f}/{gm['dof_before']} -> "
+            f"{gm['chi2_after']:.1f}/{gm['dof_after']}, data/total {rb[0]:.2f}-{rb[1]:.2f} -> "
+            f"{ra[0]:.2f}-{ra[1]:.2f} over taus {gm['tau_range_s'][0]:.3g}-"
+            f"{gm['tau_range_s'][1]:.3g} s (likelihood ratio against the IEEE 952 terms alone, "
+            f"p = {gm['p_value']:.2g}, alpha {gm['alpha']:.3g}; a candidate, not in the fitted "
+            "total)")

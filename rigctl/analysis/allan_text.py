@@ -32,6 +32,8 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
             lo, hi = c.ci95
             more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
                     f"(Cramer-Rao); {need})")
+            if e.get("held_at_curve_limit"):  # the fit wanted more than the curve allows
+                more += " (held at the curve's own limit: the fit wanted more)"
             lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
         else:
             more = "" if not need else f"; {need}"

@@ -193,7 +193,9 @@ SAME_POSE_DEG = 10.0
 
 def group_poses(downs: list[np.ndarray], labels: list[str], same_deg: float = SAME_POSE_DEG) -> list[str]:
     """A pose label per static section: sections whose mean specific force points within
-    ``same_deg`` of an earlier section's share its pose (labelled by the first such section)."""
+    ``same_deg`` of an earlier section's share its pose (labelled by the first such section); a
+    new pose whose label an earlier pose already has gets its section number appended (two
+    directions under one name would otherwise be one pose)."""
     out: list[str] = []
     for k, d in enumerate(downs):
         u = d / np.linalg.norm(d)
@@ -203,7 +205,7 @@ def group_poses(downs: list[np.ndarray], labels: list[str], same_deg: float = SA
                 out.append(out[j])
                 break
         else:
-            out.append(labels[k])
+            out.append(labels[k] if labels[k] not in out else f"{labels[k]} (section {k + 1})")
     return out
 
 
@@ -244,6 +246,7 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
                              hint="import the log with temp=COLUMN in --columns")
         acc_all = np.asarray(f["imu/specific_force"][()], float)
         gyr_all = np.asarray(f["imu/angular_rate"][()], float)
+        check_finite(path, "imu/time", t_all, 0)
         check_finite(path, "imu/temperature", T_all, 0)
         check_finite(path, "imu/specific_force", acc_all, 0)
         check_finite(path, "imu/angular_rate", gyr_all, 0)

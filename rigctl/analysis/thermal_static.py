@@ -89,7 +89,9 @@ FINDING = {
 
 def _param(q: dict[str, Any]) -> dict[str, Any]:
     d = display(q["name"])
-    return {"name": q["name"], "quantity": d.base, "unit": d.unit, "value": d.value(q["value"]),
+    m = _COEF.match(q["name"])  # the per-K coefficients: their power in the name, not only in the unit
+    quantity = f"{m.group(1)}_{m.group(2)}_{m.group(3)}_per_K{m.group(4)}" if m else d.base
+    return {"name": q["name"], "quantity": quantity, "unit": d.unit, "value": d.value(q["value"]),
             "sigma": d.sigma(q["sigma"]), "ci95": [d.value(q["ci95"][0]), d.value(q["ci95"][1])],
             "si": {"value": q["value"], "sigma": q["sigma"], "ci95": list(q["ci95"]), "unit": d.si_unit}}
 
@@ -128,7 +130,7 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
     if not (math.isfinite(window_s) and window_s > 0):
         raise InputError(f"--window-s {window_s:g}: give a window length in seconds (> 0)")
     if not force_static and AT.is_thermal(p):
-        raise InputError("a chamber run (table and /chamber): rigctl calibrate RECORDING does its thermal "
+        raise InputError("a chamber run (/chamber readings): rigctl calibrate RECORDING does its thermal "
                          "calibration", p, hint="--static fits it as a static record anyway")
     sections = read_pose_file(poses_file) if poses_file else None
     wins = AT.static_windows(p, window_s, reference_c, max(AT.MAX_FIT_DEGREE, bias_degree), settle_s=settle_s,

@@ -63,7 +63,7 @@ def register(subparsers: Any) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", help="rigctl HDF5 recording with an IMU temperature column (read only)")
     p.add_argument("--static", action="store_true",
-                   help="fit a chamber run (table and /chamber) as a static record too (default: refused, "
+                   help="fit a chamber run (/chamber readings) as a static record too (default: refused, "
                         "rigctl calibrate does its thermal calibration)")
     p.add_argument("--poses", metavar="FILE",
                    help="the poses' time ranges (YAML/JSON list of {label, from_s, to_s}, seconds on the "

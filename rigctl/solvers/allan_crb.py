@@ -47,7 +47,10 @@ def _columns(f: np.ndarray, tau0: float) -> dict[str, np.ndarray]:
 def psd(f: np.ndarray, coeffs: Mapping[str, float], tau0: float) -> np.ndarray:
     """One-sided PSD S(f) of the rate (u^2/Hz) for SI coefficients {Q, N, B, K}."""
     f = np.asarray(f, dtype=float)
-    cols = _columns(f, tau0)
+    return _psd_of(_columns(f, tau0), coeffs)
+
+
+def _psd_of(cols: dict[str, np.ndarray], coeffs: Mapping[str, float]) -> np.ndarray:
     return sum(float(coeffs.get(t, 0.0)) ** 2 * cols[t] for t in TERMS4)
 
 
@@ -62,8 +65,8 @@ def fisher(coeffs: Mapping[str, float], duration_s: float, rate_hz: float,
     info = np.zeros((len(terms), len(terms)))
 
     def add(f: np.ndarray, w: np.ndarray) -> None:
-        s = psd(f, coeffs, tau0)
         cols = _columns(f, tau0)
+        s = _psd_of(cols, coeffs)  # psd(f, coeffs, tau0), its columns computed once
         g = np.array([cols[t] / s for t in terms])
         info[:, :] += (g * w) @ g.T
 

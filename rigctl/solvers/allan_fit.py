@@ -761,6 +761,13 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         entry["held_at_curve_limit"] = bool(j in active and math.isfinite(held[j])
                                             and upper_all[j] <= held[j]
                                             and pj >= held[j] * (1.0 - 1e-6) and pj > 0)
+        if math.isfinite(held[j]):
+            # the limit the fit held the term to: curve_limit_* below, but for Q and N read
+            # past a low-pass filter's taus (_filter_taus) and, like every hold, past a rising
+            # front -- so an N above curve_limit_* (set inside the filter's taus) is not a
+            # contradiction (ADIS16405: N 1.2x the curve at tau0, at the limit past m = 32)
+            entry[f"held_limit_{unit_si}"] = math.sqrt(held[j])
+            entry[f"held_limit_{unit_f}"] = math.sqrt(held[j]) * fac
         if t == "B" and b_test.get("tested"):
             entry["presence_test"] = dict(b_test)  # b_presence_test: the p-value that decided
         if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
@@ -1252,9 +1259,13 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
         return ("the sensor's low-pass filter, or an output dwelling on its quantization "
                 "levels: samples correlated at the shortest taus (below the white-noise line; "
                 "not an IEEE 952 term)")
-    if first and above:
+    if first and above and slope < -0.5:
         return (f"quantization or white phase noise at the shortest taus (local slope "
                 f"{slope:+.2f}, steeper than -1/2)")
+    if first and above:  # shallower than white noise from the start (the Astro Pi gyros)
+        return (f"a correlated process above the white noise from the shortest taus on (local "
+                f"slope {slope:+.2f}, shallower than -1/2: e.g. a flicker floor or a "
+                f"Gauss-Markov process, which no IEEE 952 term within the curve's limits follows)")
     if last and above:
         return (f"a drift or temperature trend at the longest taus (local slope {slope:+.2f})")
     if above:

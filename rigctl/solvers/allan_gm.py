@@ -1,0 +1,250 @@
+"""A first-order Gauss-Markov (exponentially correlated) process beside the IEEE 952 terms:
+a named candidate for a stationary bump the IEEE 952 fit cannot follow (pure functions).
+
+The rate y(t) with autocovariance sigma_GM^2 exp(-|t| / Tc) has the Allan variance (IEEE Std
+952-1997 annex C; e.g. Jerath et al., "Bridging the gap between sensor noise modeling and sensor
+characterization", 2018)::
+
+    sigma^2(tau) = sigma_GM^2 (Tc / tau)^2 (2 tau / Tc - 3 + 4 e^(-tau/Tc) - e^(-2 tau/Tc))
+
+a hump near tau = 1.89 Tc: for tau << Tc a rate random walk (K^2 = 2 sigma_GM^2 / Tc), for
+tau >> Tc a white noise (N^2 = 2 sigma_GM^2 Tc). Linear in sigma_GM^2 at a fixed Tc.
+
+:func:`gm_candidate` asks whether the curve needs it: a likelihood-ratio test of sigma_GM^2 = 0
+against sigma_GM^2 > 0 beside every IEEE 952 shape, built like the fit's B presence test
+(:func:`rigctl.solvers.allan_fit.b_presence_test`: taus of at least B_TEST_M_MIN samples, Q's
+1/tau^2 column with a free sign for a low-pass, non-negative generalized least squares with the
+covariance of the sigma^2 estimates, a relative model error where even the alternative leaves
+scatter beyond the statistics), with two differences:
+
+* the covariance of the estimates (allan_cov) has no Gauss-Markov kernel: it is that of the
+  fitted N, B and K, scaled tau by tau to the alternative's total (the way the fit scales it
+  for the ramp). An approximation: the correlation across taus of a hump's estimates is taken
+  to be that of the IEEE terms under it;
+* Tc is not defined under the null (Davies' problem): the statistic is the largest over a grid
+  of Tc (4 per octave, the hump's peak 1.89 Tc inside the well-determined curve), and its
+  boundary p-value (chi-bar-square, chi2.sf(stat, 1) / 2) is multiplied by the number of
+  independent looks, one per factor GM_LOOK_SPAN of Tc (Bonferroni). The false-add rate this
+  gives is measured, not assumed (tests/test_allan_gm.py, benchmarks/allan_gm.py).
+
+A hump whose best Tc lies at either end of the grid is not a candidate (there the process is a
+white noise or a random walk, which N and K already are).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.optimize import lsq_linear
+from scipy.stats import chi2
+
+from . import allan_cov as C
+from . import allan_fit as F
+from . import allan_tones as TN
+from .allan_stream import blas_single_thread
+
+#: design level: the chance that a curve of IEEE 952 noise (white + random walk; N + B + K) is
+#: given a Gauss-Markov candidate (the B presence test's level)
+GM_TEST_ALPHA = 0.025
+#: one independent look at the data per this factor of Tc (the hump spans ~1.5 decades)
+GM_LOOK_SPAN = 4.0
+#: Tc grid: this many points per octave
+GM_GRID_PER_OCTAVE = 4
+#: the hump's peak (1.89 Tc) must lie this factor inside the well-determined taus
+GM_PEAK = 1.89
+
+
+def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
+    """Allan variance of a first-order Gauss-Markov rate of variance ``var_gm`` (SI^2) and
+    correlation time ``tc`` (s) at averaging times ``tau`` (s). Series below tau/Tc = 0.05
+    (the closed form cancels there)."""
+    x = np.asarray(tau, dtype=float) / float(tc)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        closed = (2.0 * x - 3.0 + 4.0 * np.exp(-x) - np.exp(-2.0 * x)) / x ** 2
+    series = x * (2.0 / 3.0 - x / 2.0 + x * x * 7.0 / 30.0 - x ** 3 / 12.0)
+    return float(var_gm) * np.where(x < 0.05, series, closed)
+
+
+def _interval(p: float, sd: float, conf: float) -> tuple[float, float]:
+    """Satterthwaite chi-square interval of a variance p with sd (the fit's form), as sqrt."""
+    if not (p > 0 and sd > 0):
+        return (0.0, math.inf)
+    nu = 2.0 * p * p / (sd * sd)
+    q = (1.0 - conf) / 2.0
+    r_hi, r_lo = F._chi2_over_nu(1.0 - q, nu), F._chi2_over_nu(q, nu)
+    if not r_lo > 0:  # nu << 1: nothing known
+        return (0.0, math.inf)
+    return (math.sqrt(p / r_hi), math.sqrt(p / r_lo))
+
+
+def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
+                 n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
+                 iterations: int = 3) -> dict:
+    """:func:`_gm_candidate` with BLAS single-threaded (40 x 40 systems: threads only cost)."""
+    with blas_single_thread():
+        return _gm_candidate(tau, adev, edf, tau0, n_phase, tones, max_taus, iterations)
+
+
+def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
+                  n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
+                  iterations: int = 3) -> dict:
+    """Does a first-order Gauss-Markov term fit the curve beyond the IEEE 952 terms? (see the
+    module docstring). ``tones``: the tones the fit subtracts (their Allan term is taken off
+    here too). Returns {"tested", "detected", "p_value", "statistic", "alpha", "n_looks",
+    "tc_s", "tc_ci95_s", "sigma_gm_si", "sigma_gm_ci95_si", "chi2_before", "chi2_after",
+    "dof_before", "dof_after", "ratio_before", "ratio_after" (data / fitted total over the
+    well-determined taus tested: min, max), "n_informative", "n_outside95_before",
+    "n_outside95_after" (of those taus, outside their pointwise 95 % band), "tau_range_s",
+    "model_error_rel"}; "before" is the IEEE 952 terms alone refitted on the same taus with the
+    same covariance, not the main fit's reported total."""
+    out: dict = {"tested": False, "detected": False, "p_value": math.nan,
+                 "alpha": GM_TEST_ALPHA}
+    tau = np.asarray(tau, dtype=float)
+    s2 = np.asarray(adev, dtype=float) ** 2
+    e = np.asarray(edf, dtype=float)
+    ms = np.maximum(1, np.round(tau / tau0))
+    if tones:
+        s2 = s2 - TN.tones_avar(tau0, ms, tones)
+    lo = s2 * e / chi2.ppf(0.975, np.maximum(e, 1e-9))
+    hi = s2 * e / chi2.ppf(0.025, np.maximum(e, 1e-9))
+    ok = np.isfinite(s2) & (s2 > 0) & np.isfinite(e) & (e > 0) & (ms >= F.B_TEST_M_MIN)
+    inf = ok & (np.sqrt(hi) <= F.INFORMATIVE_RATIO * np.sqrt(lo))
+    if np.count_nonzero(inf) < 8:
+        out["skipped"] = "fewer than 8 well-determined taus past the filter's"
+        return out
+    sel = np.flatnonzero(ok)
+    sel = sel[F._thin(sel.size, max_taus)]
+    t, y, ee = tau[sel], s2[sel], e[sel]
+    t_inf = tau[inf]
+    tc_lo, tc_hi = 2.0 * t_inf[0] / GM_PEAK, t_inf[-1] / (2.0 * GM_PEAK)
+    if tc_hi <= 2.0 * tc_lo:
+        out["skipped"] = "the well-determined curve is too short for a hump inside it"
+        return out
+    n_grid = int(math.ceil(math.log2(tc_hi / tc_lo) * GM_GRID_PER_OCTAVE)) + 1
+    grid = np.exp(np.linspace(math.log(tc_lo), math.log(tc_hi), n_grid))
+    n_looks = max(1.0, math.log(tc_hi / tc_lo) / math.log(GM_LOOK_SPAN))
+    ct = C.term_covariances(tau0, np.round(t / tau0).astype(np.int64), int(n_phase))
+    a0 = F.design_matrix(t)
+    lower = np.array([-np.inf, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+    def solve(a: np.ndarray, lw: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        aw = solve_triangular(lw, a, lower=True)
+        bw = solve_triangular(lw, y, lower=True)
+        sc = np.linalg.norm(aw, axis=0)
+        sc[sc == 0] = 1.0
+        k = a.shape[1]
+        res = lsq_linear(aw / sc, bw, bounds=(lower[:k], np.full(k, np.inf)), method="bvls")
+        q = res.x / sc
+        r = bw - aw @ q
+        return q, float(r @ r), aw
+
+    def whiten_at(a: np.ndarray, q: np.ndarray, eps: float) -> np.ndarray:
+        mod = np.maximum(a @ q, 1e-300)
+        cov = C.combine(ct, {"N": max(q[1], 0.0), "B": max(q[2], 0.0), "K": max(q[3], 0.0)})
+        noisy = np.maximum(a0[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
+        g = mod / noisy
+        with np.errstate(over="ignore", invalid="ignore"):
+            cov = cov * np.outer(g, g)
+        if not np.all(np.isfinite(cov)) or not np.all(np.diag(cov) > 0):
+            cov = np.diag(2.0 * mod ** 2 / ee)
+        if eps > 0:
+            cov = cov + np.diag((eps * mod) ** 2)
+        return F._whiten(cov)
+
+    def at(tc: float, eps: float) -> dict:
+        a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
+        lw = F._whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
+        for _ in range(iterations):
+            q, _, _ = solve(a, lw)
+            lw = whiten_at(a, q, eps)
+        q1, c1, aw = solve(a, lw)
+        q0, c0, _ = solve(a0, lw)
+        return {"tc": tc, "q1": q1, "c1": c1, "q0": q0, "c0": c0, "aw": aw, "a": a}
+
+    runs = [at(tc, 0.0) for tc in grid]
+    best = min(runs, key=lambda r: r["c1"])
+    dof1 = max(1, t.size - int(np.count_nonzero(best["q1"])))
+    eps = 0.0
+    if chi2.sf(best["c1"], dof1) < F.MODEL_ERROR_P:
+        # the alternative does not describe the taus to their statistical precision either:
+        # its relative model error, as in the B test (reduced chi-square 1 at the best Tc)
+        lo_e, hi_e = math.log(1e-4), math.log(10.0)
+        for _ in range(30):
+            mid = 0.5 * (lo_e + hi_e)
+            if at(best["tc"], math.exp(mid))["c1"] / dof1 > 1.0:
+                lo_e = mid
+            else:
+                hi_e = mid
+            if hi_e - lo_e < 0.02:
+                break
+        eps = math.exp(hi_e)
+        runs = [at(tc, eps) for tc in grid]
+        best = min(runs, key=lambda r: r["c1"])
+    over = max(1.0, best["c1"] / dof1)
+    # the best Tc (least alternative chi-square: the profile over Tc) and the statistic there
+    i = int(np.argmin([r["c1"] for r in runs]))
+    interior = 0 < i < len(runs) - 1
+    # ... refined 8x around the coarse grid's best (the profile is a few grid steps wide)
+    fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]), math.log(grid[min(i + 2, grid.size - 1)]),
+                              33))
+    runs = sorted(runs + [at(tc, eps) for tc in fine if not np.any(np.isclose(tc, grid))],
+                  key=lambda r: r["tc"])
+    grid = np.array([r["tc"] for r in runs])
+    i = int(np.argmin([r["c1"] for r in runs]))
+    stat = max(runs[i]["c0"] - runs[i]["c1"], 0.0) / over
+    p = min(1.0, n_looks * 0.5 * float(chi2.sf(stat, 1))) if stat > 0 else 1.0
+    top = runs[i]
+    # Tc's 95 % interval: the Tc whose alternative chi-square is within chi2_0.95(1) of the best
+    # (profile likelihood, scaled by the overdispersion), bracketed: its ends are the first
+    # evaluated Tc outside that set on either side (the crossing lies between)
+    c1s = np.array([r["c1"] for r in runs]) / over
+    inside = np.flatnonzero(c1s <= c1s.min() + float(chi2.ppf(0.95, 1)))
+    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, len(runs) - 1) + 1)
+    # sigma_GM: the GLS sd of its coefficient at each Tc of that set; the interval the union
+    pos = top["q1"] > 0
+    cis = []
+    for k in inside:
+        r = runs[k]
+        pk = r["q1"] > 0
+        if not pk[-1]:
+            continue
+        cov = F._param_cov(r["aw"][:, pk]) * over
+        sd = math.sqrt(max(cov[-1, -1], 0.0))
+        cis.append(_interval(float(r["q1"][-1]), sd, 0.95))
+    cov_top = F._param_cov(top["aw"][:, pos]) * over if np.any(pos) else None
+    sd_top = math.sqrt(max(cov_top[-1, -1], 0.0)) if (cov_top is not None and pos[-1]) else math.nan
+
+    def ratios(a: np.ndarray, q: np.ndarray) -> list[float]:
+        tot = a @ q
+        w = inf[sel] & (tot > 0)
+        r = np.sqrt(y[w] / tot[w])
+        return [float(r.min()), float(r.max())] if r.size else [math.nan, math.nan]
+
+    def n_out(a: np.ndarray, q: np.ndarray) -> int:  # informative taus outside their 95 % band
+        tot = a @ q
+        w = inf[sel]
+        return int(np.count_nonzero(w & ((tot < lo[sel]) | (tot > hi[sel]))))
+
+    dof0 = max(1, t.size - int(np.count_nonzero(top["q0"])))
+    dof_a = max(1, t.size - int(np.count_nonzero(top["q1"])))
+    out.update({
+        "tested": True, "detected": bool(p < GM_TEST_ALPHA and interior and top["q1"][-1] > 0),
+        "p_value": p, "statistic": stat, "n_looks": n_looks, "best_at_grid_end": not interior,
+        "tc_s": float(top["tc"]),
+        "tc_ci95_s": [float(grid[inside].min()), float(grid[inside].max())],
+        "tc_grid_s": [float(grid[0]), float(grid[-1])],
+        "sigma_gm_si": math.sqrt(max(float(top["q1"][-1]), 0.0)),
+        "sigma_gm_sd_var_si": sd_top,
+        "sigma_gm_ci95_si": ([min(c[0] for c in cis), max(c[1] for c in cis)] if cis
+                             else [0.0, math.inf]),
+        "chi2_before": float(top["c0"]), "dof_before": dof0,
+        "chi2_after": float(top["c1"]), "dof_after": dof_a,
+        "ratio_before": ratios(a0, top["q0"]), "ratio_after": ratios(top["a"], top["q1"]),
+        "n_informative": int(np.count_nonzero(inf[sel])),
+        "n_outside95_before": n_out(a0, top["q0"]), "n_outside95_after": n_out(top["a"], top["q1"]),
+        "ieee_after_si2": {k: float(v) for k, v in zip(("Q2_signed", "N2", "B2", "K2", "R2"),
+                                                      top["q1"][:5])},
+        "tau_range_s": [float(t[0]), float(t[-1])], "model_error_rel": eps,
+        "overdispersion": over})
+    return out
