@@ -354,6 +354,11 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
             "floor_taus": int(ft.size), "floor_taus_total_outside_band": int((~in_band).sum()),
             "floor_taus_total_missed": int((~inside).sum()),
             "worst_total_over_curve_on_floor": float(tot_f[worst] / c["dev"][ft][worst]) if ft.size else float("nan"),
+            # the two reads of that tau's EDF (this script's, for the noise type its slope
+            # shows; rigctl's, for its noise ID): a verdict at a band's edge turns on them
+            "worst_tau_s": float(c["tau"][ft][worst]) if ft.size else float("nan"),
+            "edf_worst_script": float(c["edf"][ft][worst]) if ft.size else float("nan"),
+            "edf_worst_rigctl": float(np.asarray(r["edf"], float)[ft][worst]) if ft.size else float("nan"),
             "check_ok": r["fit"]["check"]["ok"], "verdict": verdict}
 
 
