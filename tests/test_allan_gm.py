@@ -242,3 +242,32 @@ def test_the_pipeline_names_the_process_the_ieee_fit_cannot_follow(tmp_path: Pat
     assert gm["sigma_gm_deg_per_h"] == pytest.approx(truth, rel=0.10), gm
     assert gm["n_outside95_before"] > gm["n_informative"] / 2
     assert gm["n_outside95_after"] <= gm["n_informative"] / 10
+
+
+def test_only_a_bump_tested_stationary_gets_the_candidate_and_accel_reads_mg() -> None:
+    """rigctl.analysis.allan_drift.gauss_markov on a simulated accelerometer curve (white 1e-3
+    m/s^2 sqrt(s) + a process of 1e-3 m/s^2, Tc 5 s): no run called stationary (a bump called
+    not stationary, a drift, an untested run) -> nothing is run; a stationary bump near the
+    hump -> the candidate, sigma_GM in mg (1e3 / 9.80665 per m/s^2) in the run's reason."""
+    from rigctl.analysis import allan_drift as AD
+
+    n = 360_000
+    rng = np.random.default_rng(3)
+    y = 1e-3 / math.sqrt(TAU0) * rng.standard_normal(n) + ar1(n, 5.0 / TAU0, 1e-3, rng)
+    tau, dev, edf = _curve(y, n)
+    base = {"tau_from_s": 2.0, "tau_to_s": 40.0, "side": "data above the fit",
+            "likely": "a bump: a correlated (Gauss-Markov) process ..."}
+    for other in ({"cause": "nonstationary", "stationarity": {"stationary": False}},
+                  {"stationarity": {"stationary": False}},
+                  {"stationarity": {"tested": False}},
+                  {"likely": "a drift or temperature trend", "stationarity": {"stationary": True}}):
+        fit = {"check": {"outside": [{**base, **other}]}}
+        assert AD.gauss_markov(fit, tau, dev, edf, TAU0, n + 1, "accel") is None
+        assert "gauss_markov" not in fit
+    run = {**base, "stationarity": {"stationary": True}}
+    fit = {"check": {"outside": [run]}}
+    gm = AD.gauss_markov(fit, tau, dev, edf, TAU0, n + 1, "accel")
+    assert gm is fit["gauss_markov"] and gm["detected"]
+    assert gm["sigma_gm_unit"] == "mg"
+    assert gm["sigma_gm_mg"] == pytest.approx(gm["sigma_gm_si"] * 1e3 / 9.80665)
+    assert run["gauss_markov"] and f"sigma_GM {gm['sigma_gm_mg']:.3g} mg" in run["likely"]
