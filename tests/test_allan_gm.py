@@ -242,6 +242,13 @@ def test_the_pipeline_names_the_process_the_ieee_fit_cannot_follow(tmp_path: Pat
     assert gm["sigma_gm_deg_per_h"] == pytest.approx(truth, rel=0.10), gm
     assert gm["n_outside95_before"] > gm["n_informative"] / 2
     assert gm["n_outside95_after"] <= gm["n_informative"] / 10
+    # ... and the report's Allan section lists it, Tc and sigma_GM with their intervals
+    from rigctl.report import report_build
+
+    page = report_build.build_report(rec, tmp_path / "rep").read_text()
+    assert "Gauss-Markov candidates for stationary bumps" in page
+    assert f"{gm['tc_s']:.3g} [{gm['tc_ci95_s'][0]:.3g}, {gm['tc_ci95_s'][1]:.3g}]" in page
+    assert f"{gm['sigma_gm_deg_per_h']:.3g} [" in page and "deg/h" in page
 
 
 def test_only_a_bump_tested_stationary_gets_the_candidate_and_accel_reads_mg() -> None:

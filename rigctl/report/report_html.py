@@ -444,10 +444,34 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
+    gm_rows = []
+    for axis, cv in curves.items():
+        gm = (cv.get("fit") or {}).get("gauss_markov") or {}
+        if not gm.get("detected"):
+            continue
+        unit = gm.get("sigma_gm_unit", "")
+        slug = unit.replace("/", "_per_").replace("(", "_").replace(")", "").replace("^", "")
+        s_ci = gm.get(f"sigma_gm_ci95_{slug}") or [None, None]
+        gm_rows.append([axis, f"{gm['tc_s']:.3g} [{gm['tc_ci95_s'][0]:.3g}, {gm['tc_ci95_s'][1]:.3g}]",
+                        f"{gm[f'sigma_gm_{slug}']:.3g} [{_g3(s_ci[0])}, {_g3(s_ci[1])}] {unit}",
+                        f"{gm['chi2_before']:.1f}/{gm['dof_before']} -> "
+                        f"{gm['chi2_after']:.1f}/{gm['dof_after']}",
+                        f"{gm['p_value']:.2g}"])
+    if gm_rows:
+        out += ["<h3>Gauss-Markov candidates for stationary bumps (not in the fitted total)</h3>",
+                table(["axis", "Tc [s] (95 %)", "sigma_GM (95 %)", "chi2/dof without -> with",
+                       "likelihood-ratio p"], gm_rows),
+                "<p class=\"muted\">A first-order Gauss-Markov process fits a bump of the curve "
+                "that the IEEE 952 terms cannot follow and that is the same throughout the record "
+                "(docs/allan.md, 'A stationary bump: a Gauss-Markov candidate').</p>"]
     if any(cv.get("quick") for cv in curves.values()):
         out.append("<p class=\"muted\">Curves marked 'quick' were computed for this report "
                    "(30 taus, fast mode): the results group lacked the curve arrays.</p>")
     return "\n".join(out)
+
+
+def _g3(v: float | None) -> str:
+    return "inf" if v is None else f"{v:.3g}"
 
 
 def s_sync(d: RunData, plots: dict[str, Path]) -> str:
