@@ -274,7 +274,8 @@ def check_axis(r: dict) -> dict:
     outside = informative & ((fit < lo) | (fit > hi))
     check = r["fit"]["check"]
     named = np.zeros(tau.size, bool)
-    for o in (check.get("outside") or []) + (check.get("outside_small") or []):
+    for o in ((check.get("outside") or []) + (check.get("outside_small") or [])
+              + (check.get("outside_past_prefix") or [])):
         named |= (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
     unnamed = outside & ~named
     return {"over": over, "over_all": over_all, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),

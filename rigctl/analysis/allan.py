@@ -1394,7 +1394,7 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
     if not runs or check.get("ok"):
         return []
     return _check_sentences(check, "the fitted IEEE 952 total leaves the curve's 95 % band") + \
-        _small_sentence(check) + _front_sentence(check)
+        _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
 
 
 def _front_sentence(check: dict) -> list[str]:
@@ -1427,6 +1427,20 @@ def _small_sentence(check: dict) -> list[str]:
             "term)"]
 
 
+def _past_sentence(check: dict) -> list[str]:
+    """The taus past the well-determined ones (rigctl.solvers.allan_fit._informative_prefix)
+    whose band is informative again and where the total leaves it: not judged, named."""
+    past = check.get("outside_past_prefix") or []
+    if not past:
+        return []
+    worst = max(past, key=lambda o: abs(math.log(o["data_over_fit"])))
+    return [f"past the well-determined taus (from {check['prefix_end_s']:.3g} s the band is "
+            f"wider than x{check.get('informative_ratio', 2.0):g}; where it narrows again, only "
+            f"because the noise type read on a handful of averages changed, it is not judged) "
+            f"the fitted total is outside the 95 % band at tau {_spans(past)} s (worst "
+            f"data/fit x{worst['data_over_fit']:.3f} at {worst['worst_tau_s']:.3g} s)"]
+
+
 def check_notes(r: dict[str, Any]) -> list[str]:
     """The taus outside the band when the fit as a whole is consistent with the curve (a few of
     ~70 taus outside a 95 % band are expected by chance): named, as a note."""
@@ -1437,7 +1451,7 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     out = [] if not runs else _check_sentences(
         check, "the fitted total is outside the 95 % band, as chance allows for a fit "
                "consistent with the curve,", reasons=False)
-    return out + _small_sentence(check) + _front_sentence(check)
+    return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
