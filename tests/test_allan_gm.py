@@ -278,3 +278,16 @@ def test_only_a_bump_tested_stationary_gets_the_candidate_and_accel_reads_mg() -
     assert gm["sigma_gm_unit"] == "mg"
     assert gm["sigma_gm_mg"] == pytest.approx(gm["sigma_gm_si"] * 1e3 / 9.80665)
     assert run["gauss_markov"] and f"sigma_GM {gm['sigma_gm_mg']:.3g} mg" in run["likely"]
+
+
+def test_a_curve_no_term_describes_is_not_tested_and_does_not_crash() -> None:
+    """A moving table's curve (rising from 0.01 s to ~1 s, then falling: no positive IEEE 952
+    term fits it) made the weighted least squares singular: `rigctl allan` on an emulated
+    24-position recording exited with an internal error (test_cli_hostile, 0bb5983)."""
+    tau = np.geomspace(0.01, 34.0, 77)
+    adev = (0.1 * tau / np.sqrt(1 + (tau / 0.6) ** 2) * np.exp(-(tau / 3) ** 2)
+            + 0.03 * np.sqrt(tau / 10))
+    edf = 1e4 * (0.01 / tau) + 3
+    gm = GM.gm_candidate(tau, adev, edf, 0.01, 13577)
+    assert gm["tested"] is False and gm["detected"] is False
+    assert "singular" in gm["skipped"]

@@ -123,3 +123,19 @@ def test_spec_example_loads_and_converts():
     assert hi == pytest.approx(5e-3 * 9.80665) and lo == pytest.approx(-5e-3 * 9.80665)
     lo, hi = spec.limit_for("gyro_scale_error_z").si(display("gyro_M_zz_ratio"))
     assert hi == pytest.approx(1.005) and lo == pytest.approx(0.995)
+
+
+def test_chi2_interval_of_a_vanishing_dof_is_everything():
+    """A noise coefficient whose Satterthwaite dof is ~0 (a term held at its curve limit where
+    the model needs 135 % of sigma^2 as its own error: test_cli_hostile's recordings of a
+    moving table) has chi-square quantiles that underflow to 0: the interval is [0, inf), not
+    a division by zero. A sane dof keeps its interval (scipy's quantiles, computed here)."""
+    from scipy.stats import chi2
+
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert Estimate(2.0, dof=1e-300, kind="chi2").interval() == (0.0, math.inf)
+    lo, hi = Estimate(2.0, dof=10.0, kind="chi2").interval()
+    assert math.isclose(lo, 2.0 * math.sqrt(10.0 / chi2.ppf(0.975, 10.0)))
+    assert math.isclose(hi, 2.0 * math.sqrt(10.0 / chi2.ppf(0.025, 10.0)))

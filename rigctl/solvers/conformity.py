@@ -86,8 +86,11 @@ class Estimate:
             k = stats.norm.ppf(1 - q) if math.isinf(self.dof) else stats.t.ppf(1 - q, self.dof)
             return self.value - k * self.u, self.value + k * self.u
         if self.kind == "chi2":
-            return (self.value * math.sqrt(self.dof / stats.chi2.ppf(1 - q, self.dof)),
-                    self.value * math.sqrt(self.dof / stats.chi2.ppf(q, self.dof)))
+            q_hi, q_lo = stats.chi2.ppf(1 - q, self.dof), stats.chi2.ppf(q, self.dof)
+            if not (q_hi > 0 and q_lo > 0):  # dof ~ 0 (a term held where the model fails):
+                return 0.0, math.inf  # its quantiles underflow; nothing is known
+            return (self.value * math.sqrt(self.dof / q_hi),
+                    self.value * math.sqrt(self.dof / q_lo))
         return 0.0, self.upper  # a term the data do not resolve: [0, one-sided 95 % bound]
 
     @property
