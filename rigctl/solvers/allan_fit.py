@@ -42,6 +42,7 @@ slope +1/2 above the minimum -> K at tau = 3 s) are reported beside it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
@@ -192,6 +193,56 @@ def _chi2_over_nu(q: float, nu: float) -> float:
     return (1.0 - h + float(norm.ppf(q)) * math.sqrt(h)) ** 3
 
 
+def _chi2_ci(p: float, nu: float, conf: float) -> tuple[float, float]:
+    """Two-sided interval (confidence ``conf``) of a coefficient sqrt(p) whose variance p has
+    Satterthwaite dof nu: sqrt(p nu / chi2_{1-q}(nu)) .. sqrt(p nu / chi2_q(nu)), q = (1 -
+    conf) / 2; [0, inf) where nu << 1 leaves nothing known."""
+    q = (1.0 - conf) / 2.0
+    r_hi, r_lo = _chi2_over_nu(1.0 - q, nu), _chi2_over_nu(q, nu)
+    if not r_lo > 0:
+        return 0.0, math.inf
+    return math.sqrt(p / r_hi), math.sqrt(p / r_lo)
+
+
+def _unit_reduced_chi2_eps(reduced: Callable[[float], float]) -> float:
+    """The relative model error eps in [1e-4, 10] at which ``reduced(eps)`` (a fit's reduced
+    chi-square with eps sigma^2 added to each sigma^2's standard deviation) falls to 1:
+    bisection on log eps to 0.02 (at most 30 steps); the upper end of the last bracket."""
+    lo, hi = math.log(1e-4), math.log(10.0)
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if reduced(math.exp(mid)) > 1.0:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 0.02:
+            break
+    return math.exp(hi)
+
+
+def _model_whitener(ct: dict | None, q_nbk: np.ndarray, mod: np.ndarray, noisy: np.ndarray,
+                    e: np.ndarray, eps: float) -> np.ndarray:
+    """Whitener of the sigma^2 estimates at a fitted model: the covariance of the N, B, K
+    terms (allan_cov, ``ct``) at their fitted values ``q_nbk``, scaled per tau by the whole
+    model ``mod`` over those terms' part ``noisy`` (the other terms: the same correlations,
+    scaled); the diagonal 2 mod^2 / e where there is none or it is not positive; plus the
+    model error (eps mod)^2 on the diagonal."""
+    cov = None
+    if ct is not None:
+        cov = C.combine(ct, {"N": max(q_nbk[0], 0.0), "B": max(q_nbk[1], 0.0),
+                             "K": max(q_nbk[2], 0.0)})
+        g = mod / noisy
+        with np.errstate(over="ignore", invalid="ignore"):
+            cov = cov * np.outer(g, g)
+        if not np.all(np.isfinite(cov)) or not np.all(np.diag(cov) > 0):
+            cov = None
+    if cov is None:
+        cov = np.diag(2.0 * mod ** 2 / e)
+    if eps > 0:
+        cov = cov + np.diag((eps * mod) ** 2)
+    return _whiten(cov)
+
+
 def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
                cov_terms: dict | None, p: np.ndarray, iterations: int, chi2_red: float,
                model_err: float = 0.0, inflate: np.ndarray | None = None) -> tuple[float, float]:
@@ -335,22 +386,9 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         return q, float(r @ r)
 
     def whiten_at(q: np.ndarray, eps: float = 0.0) -> np.ndarray:
-        mod = np.maximum(a @ q, 1e-300)
-        cov = None
-        if ct is not None:
-            cov = C.combine(ct, {"N": max(q[1], 0.0), "B": max(q[2], 0.0),
-                                 "K": max(q[3], 0.0)})
-            noisy = np.maximum(a[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
-            g = mod / noisy  # the filter term and the ramp: the same correlations, scaled
-            with np.errstate(over="ignore", invalid="ignore"):
-                cov = cov * np.outer(g, g)
-            if not np.all(np.isfinite(cov)) or not np.all(np.diag(cov) > 0):
-                cov = None
-        if cov is None:
-            cov = np.diag(2.0 * mod ** 2 / ee)
-        if eps > 0:
-            cov = cov + np.diag((eps * mod) ** 2)
-        return _whiten(cov)
+        # the filter term and the ramp: the N, B, K correlations, scaled
+        noisy = np.maximum(a[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
+        return _model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps)
 
     alt, null = [0, 1, 2, 3, 4], [0, 1, 3, 4]
 
@@ -369,16 +407,7 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         # the model (with the filter term) does not describe these taus to their statistical
         # precision (a real sensor: quantization, a bump): its relative error eps as in
         # _model_error, so that the alternative's reduced chi-square is 1
-        lo, hi = math.log(1e-4), math.log(10.0)
-        for _ in range(30):
-            mid = 0.5 * (lo + hi)
-            if fit_alt(math.exp(mid))[1] / dof > 1.0:
-                lo = mid
-            else:
-                hi = mid
-            if hi - lo < 0.02:
-                break
-        eps = math.exp(hi)
+        eps = _unit_reduced_chi2_eps(lambda x: fit_alt(x)[1] / dof)
         q1, c1, lw = fit_alt(eps)
     _, c0 = solve(null, lw)
     over = max(1.0, c1 / dof)
@@ -774,14 +803,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                                         or (j in needed_terms or j in held_needed) and pj > 0):
             coeff_sq[t] = pj
             nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
-            ci = []
-            for conf in (0.683, 0.95):
-                q = (1.0 - conf) / 2.0
-                r_hi, r_lo = _chi2_over_nu(1.0 - q, nu), _chi2_over_nu(q, nu)
-                # r_lo, r_hi are 0 only for nu << 1 (a term kept by select=False)
-                ci.append((math.sqrt(pj / r_hi) if r_lo > 0 else 0.0,
-                           math.sqrt(pj / r_lo) if r_lo > 0 else math.inf))
-            coefs[t] = NC.Coefficient(math.sqrt(pj), ci[0], ci[1], edf=nu)
+            # [0, inf) only for nu << 1 (a term kept by select=False)
+            coefs[t] = NC.Coefficient(math.sqrt(pj), _chi2_ci(pj, nu, 0.683),
+                                      _chi2_ci(pj, nu, 0.95), edf=nu)
         else:
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
@@ -1075,19 +1099,10 @@ def _model_error(a: np.ndarray, s2: np.ndarray, e: np.ndarray, cols: list[int],
     stat = (chi, dof, float(chi2.sf(chi, dof)))
     if stat[2] >= MODEL_ERROR_P:
         return 0.0, stat
-    lo, hi = math.log(1e-4), math.log(10.0)
-    if red(math.exp(hi))[0] / dof > 1.0:
-        return math.exp(hi), stat
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        c, d = red(math.exp(mid))
-        if c / d > 1.0:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 0.02:
-            break
-    return math.exp(hi), stat
+    top = math.exp(math.log(10.0))  # the bisection's upper end, as it computes it
+    if red(top)[0] / dof > 1.0:
+        return top, stat
+    return _unit_reduced_chi2_eps(lambda x: (lambda c, d: c / d)(*red(x))), stat
 
 
 #: Huber constant of the robust weights (standardized residual of sigma^2)

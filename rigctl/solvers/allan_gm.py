@@ -70,12 +70,7 @@ def _interval(p: float, sd: float, conf: float) -> tuple[float, float]:
     """Satterthwaite chi-square interval of a variance p with sd (the fit's form), as sqrt."""
     if not (p > 0 and sd > 0):
         return (0.0, math.inf)
-    nu = 2.0 * p * p / (sd * sd)
-    q = (1.0 - conf) / 2.0
-    r_hi, r_lo = F._chi2_over_nu(1.0 - q, nu), F._chi2_over_nu(q, nu)
-    if not r_lo > 0:  # nu << 1: nothing known
-        return (0.0, math.inf)
-    return (math.sqrt(p / r_hi), math.sqrt(p / r_lo))
+    return F._chi2_ci(p, 2.0 * p * p / (sd * sd), conf)
 
 
 def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
@@ -149,17 +144,8 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
         return q, float(r @ r), aw
 
     def whiten_at(a: np.ndarray, q: np.ndarray, eps: float) -> np.ndarray:
-        mod = np.maximum(a @ q, 1e-300)
-        cov = C.combine(ct, {"N": max(q[1], 0.0), "B": max(q[2], 0.0), "K": max(q[3], 0.0)})
         noisy = np.maximum(a0[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
-        g = mod / noisy
-        with np.errstate(over="ignore", invalid="ignore"):
-            cov = cov * np.outer(g, g)
-        if not np.all(np.isfinite(cov)) or not np.all(np.diag(cov) > 0):
-            cov = np.diag(2.0 * mod ** 2 / ee)
-        if eps > 0:
-            cov = cov + np.diag((eps * mod) ** 2)
-        return F._whiten(cov)
+        return F._model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps)
 
     def at(tc: float, eps: float) -> dict:
         a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
@@ -178,16 +164,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     if chi2.sf(best["c1"], dof1) < F.MODEL_ERROR_P:
         # the alternative does not describe the taus to their statistical precision either:
         # its relative model error, as in the B test (reduced chi-square 1 at the best Tc)
-        lo_e, hi_e = math.log(1e-4), math.log(10.0)
-        for _ in range(30):
-            mid = 0.5 * (lo_e + hi_e)
-            if at(best["tc"], math.exp(mid))["c1"] / dof1 > 1.0:
-                lo_e = mid
-            else:
-                hi_e = mid
-            if hi_e - lo_e < 0.02:
-                break
-        eps = math.exp(hi_e)
+        eps = F._unit_reduced_chi2_eps(lambda x: at(best["tc"], x)["c1"] / dof1)
         runs = [at(tc, eps) for tc in grid]
         best = min(runs, key=lambda r: r["c1"])
     over = max(1.0, best["c1"] / dof1)

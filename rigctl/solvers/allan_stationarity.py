@@ -33,6 +33,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2
 
+from . import allan as AL
 from . import allan_edf as E
 
 #: false-alarm probability per bump tested
@@ -67,9 +68,9 @@ def window_edf(n_samples: int, m: int) -> float:
 
 
 def _oavar(y: np.ndarray, m: int) -> float:
-    x = np.concatenate(([0.0], np.cumsum(y - y.mean())))
-    d = x[2 * m:] - 2.0 * x[m:-m] + x[:-2 * m]
-    return float(np.square(d).sum()) / d.size / (2.0 * m * m)  # y^2 units (tau0 cancels)
+    """The fully overlapping Allan variance of the rate samples ``y`` at factor m, in y^2
+    units (tau0 cancels): the project's exact estimator (:func:`rigctl.solvers.allan.oadev`)."""
+    return float(AL.oadev(y, 1.0, [m], mode="exact").dev[0]) ** 2
 
 
 def dynamic_avar(y: np.ndarray, m: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
