@@ -270,7 +270,12 @@ def test_syncin_edges_are_pulses_on_the_imu_time_base(tmp_path) -> None:
             pulses = imu.syncin_pulses()
             assert len(pulses.read()) == 0
             now = hw.clock.now()
-            edges = [now + 0.5, now + 0.61, now + 1.2, now + 1.2005]    # the last two: one frame
+            # the last two 0.5 ms apart inside one frame interval (g, g + 10 ms] of the twin's
+            # 100 Hz grid (frame times _t0 + k / 100): a frame reports every edge up to its own
+            # time, so both reach the same frame. Placed at now + 1.2 without the grid, a frame
+            # fell between them 1 time in 20 (the CI run at 32ea0ec got 4 edges, 0 missed).
+            g = twin._t0 + np.ceil((now + 1.2 - twin._t0) * 100.0) / 100.0
+            edges = [now + 0.5, now + 0.61, g + 0.003, g + 0.0035]
             for t in edges:
                 hw.pulse(t)
             got: list[float] = []
