@@ -1483,9 +1483,16 @@ def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
     for o in runs:
         span = (f"tau {o['tau_from_s']:.3g} s" if o["tau_from_s"] == o["tau_to_s"]
                 else f"tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s")
-        out.append(f"{span}: {o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
-                   f"likely {o['likely']}")
+        r = o["data_over_fit"]
+        how = (f"x{r:.2f} at {o['worst_tau_s']:.3g} s" if r is not None and r < NO_TOTAL_RATIO
+               else "no fitted total there: every term is a bound")
+        out.append(f"{span}: {o['side']} ({how}); likely {o['likely']}")
     return out
+
+
+#: a data/fit ratio this large is a curve over a fitted total of 0 (every term a bound; the
+#: self-check floors the total at 1e-300): said in words, not as a 300-digit factor
+NO_TOTAL_RATIO = 1e12
 
 
 #: the output step is mentioned when its rounding noise is at least this share of N^2

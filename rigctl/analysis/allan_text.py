@@ -39,6 +39,9 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
             lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
         else:
             more = "" if not need else f"; {need}"
+            if e.get("edf_below_estimate") is not None:  # held or kept, but with EDF < 1
+                more += (f"; the fit's EDF there {e['edf_below_estimate']:.2g} < "
+                         f"{F.MIN_ESTIMATE_EDF:g}: no estimate")
             what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
             lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")

@@ -886,11 +886,17 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             entry[f"held_limit_{unit_f}"] = math.sqrt(held[j]) * fac
         if t == "B" and b_test.get("tested"):
             entry["presence_test"] = dict(b_test)  # b_presence_test: the p-value that decided
-        if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
-                                        or (j in needed_terms or j in held_needed) and pj > 0):
+        nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
+        kept = j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
+                                            or (j in needed_terms or j in held_needed) and pj > 0)
+        if kept and not nu >= MIN_ESTIMATE_EDF:
+            # kept without its own significance (held at the curve's limit, kept for a floor,
+            # select=False) but knowing less than one squared normal deviate: a bound at the
+            # curve's limit (docs/allan.md, "An estimate needs one degree of freedom")
+            entry["edf_below_estimate"] = nu
+            kept = False
+        if kept:
             coeff_sq[t] = pj
-            nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
-            # [0, inf) only for nu << 1 (a term kept by select=False)
             coefs[t] = NC.Coefficient(math.sqrt(pj), _chi2_ci(pj, nu, 0.683),
                                       _chi2_ci(pj, nu, 0.95), edf=nu)
         else:
@@ -1120,6 +1126,14 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         term["held_limit_si"] = math.sqrt(point_limit)
     return term, coef
 
+
+#: an estimate needs at least this Satterthwaite EDF (nu = 2 p^2 / sd(p)^2): below it sd(p) >
+#: sqrt(2) p, less than one squared normal deviate tells about its variance, and the chi-square
+#: interval degenerates (nu = 0.01: [1.18, inf) x the value; below ~1e-3 [0, inf)). A term kept
+#: without its own significance (held at the curve's limit, kept for a floor) with fewer is a
+#: bound at the curve's limit -- the one thing the data say about it. A significant term has
+#: nu > 2 x 1.96^2 = 7.7 and is never affected.
+MIN_ESTIMATE_EDF = 1.0
 
 #: a B, K or R is dropped as a bump when the curve is clearly below the total at the last
 #: informative tau it dominates and falls away from it from TAIL_SPAN x that tau on
