@@ -305,6 +305,14 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
             if ub and math.isfinite(ub) and ub > 0:
                 ax.plot(tt, np.sqrt(cols[:, j]) * ub * fac, ":", lw=0.9,
                         label=f"{term} < {ub * ffac:.3g} {unit_f} (bound)")
+    for g in (co.gm if co else ()):  # the fit's Gauss-Markov term (allan_fit: gm_term)
+        if g.sigma.resolved and g.sigma.value > 0:
+            part = F.gm_column(tt, g.tau_c_s) * g.sigma.value ** 2
+            total += part
+            coeff = coeff or {"GM": g.sigma.value ** 2}
+            unit_f, ffac = F.FIELD_UNITS[sensor]["B"]
+            ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9,
+                    label=f"GM {g.sigma.value * ffac:.3g} {unit_f}, Tc {g.tau_c_s:.3g} s")
     if coeff:
         ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
     tones = (fit.get("tones") or {}).get("terms") or []
@@ -320,7 +328,7 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
         freqs = ", ".join(f"{t['freq_hz']:.4g}" for t in tones)
         ax.plot(tau[keep], np.sqrt(t2[keep]) * fac, "x", ms=3, color="tab:purple",
                 label=f"tones ({freqs} Hz)")
-        tot_t = F.design_matrix(tau) @ np.array([float(coeff.get(t) or 0.0) for t in F.TERMS]) + t2
+        tot_t = F.fitted_avar(fit, tau) + t2
         ax.plot(tau, np.sqrt(tot_t) * fac, "-", color="tab:purple", lw=0.8,
                 label="fitted total with tones")
     for label, t_x, d_x in extras or []:
