@@ -333,3 +333,25 @@ def test_mcap_cut_anywhere_keeps_what_was_read(tmp_path, capsys, frac):
     n = len(imu["time"])
     assert n == n_lib
     assert np.array_equal(imu["specific_force"], s["acc"][:n]) and np.array_equal(imu["angular_rate"], s["gyr"][:n])
+
+
+def test_a_binary_file_is_not_called_a_csv_file(tmp_path, capsys):
+    """A PNG (matplotlib's, as an Allan plot) given to `rigctl import`: it was refused as "a CSV
+    file" lacking --columns; it is binary data, neither a table nor a bag."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    png = tmp_path / "allan.png"
+    fig, ax = plt.subplots()
+    ax.plot([1, 2], [3, 4])
+    fig.savefig(png)
+    plt.close(fig)
+    code, out, err = _rigctl(capsys, str(png), "-o", str(tmp_path / "x.h5"))
+    assert code == 2 and err.count("\n") == 1 and str(png) in err
+    assert "a binary file, not a text table" in err and "--columns" not in err, err
+    # a text table without --columns is still asked for them
+    csv = tmp_path / "log.csv"
+    csv.write_text("time,ax\n0,1\n")
+    code, out, err = _rigctl(capsys, str(csv), "-o", str(tmp_path / "y.h5"))
+    assert code == 2 and "--columns is required" in err
