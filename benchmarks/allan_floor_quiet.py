@@ -26,7 +26,9 @@ stretch its stationarity test names:
    and whether rigctl's self-check names the tau;
 5. with --sim N: how often item 2 (the total in the band at every floor tau, or within 10 %)
    fails for N simulated stationary records with the OCXO's and the ADIS16405's terms, with
-   the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record.
+   the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record;
+   with --sim-rigctl N: rigctl itself on N simulated stationary OCXO-like records (its
+   verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B).
 
 Last line: one JSON object (counts, seconds).
 """
@@ -311,10 +313,43 @@ def simulate(name, n, tau0, ms, N, B, K, Q, tau_lo, terms, nsim, seed=15) -> dic
     return res
 
 
+def simulate_rigctl(keep: Path, nsim: int, seed: int = 2015) -> dict:
+    """rigctl itself (`rigctl import` + `rigctl allan`, default and octave) on nsim simulated
+    stationary OCXO-like records, judged with allan_heldout's judge: its verdicts, and whether B's
+    95 % interval holds the simulated B."""
+    rng = np.random.default_rng(seed)
+    n, tau0, Bt, Kt, Qt = 19982, 1.0, 6.4e-12, 2.7e-13, 4.3e-11
+    ms0 = np.unique(np.round(np.logspace(0, math.log10(n / 3), 95)).astype(int))
+    c0 = H.read_curve(_flicker(rng, n, tau0), tau0, ms0)
+    scale = BF / float(np.median(c0["dev"][informative(c0) & (ms0 > 10)]))
+    out = {t: {"verdicts": {}, "b_ci_holds_truth": 0, "b_over_truth": []} for t in ("default", "octave")}
+    d = keep / "sim_rigctl"
+    d.mkdir(exist_ok=True)
+    for i in range(nsim):
+        y = Bt * scale * _flicker(rng, n, tau0) + np.cumsum(Kt * math.sqrt(tau0) * rng.standard_normal(n))
+        y += np.diff(Qt * rng.standard_normal(n + 1)) / tau0
+        txt, rec = d / f"s{i}.txt", d / f"s{i}.h5"
+        np.savetxt(txt, y / 1e-7, fmt="%.9e")
+        H.rigctl("import", str(txt), "-o", str(rec), "--force", *OCXO_COLS)
+        for taus, o in out.items():
+            js = d / f"s{i}_{taus}.json"
+            H.rigctl("allan", str(rec), "--db", "none", "--json", str(js), *(["--taus", "octave"] if taus == "octave" else []))
+            r = json.loads(js.read_text())["axes"]["gx"]
+            j = H.judge(r, H.read_curve(y, tau0, np.asarray(r["m"], int)), tau0)
+            o["verdicts"][j["verdict"]] = o["verdicts"].get(j["verdict"], 0) + 1
+            o["b_ci_holds_truth"] += int((j["b_lo95"] or 0.0) <= Bt <= j["b_hi95"])
+            o["b_over_truth"].append((j["b"] or j["b_hi95"]) / Bt)
+    for o in out.values():
+        o["b_over_truth_median"] = float(np.median(o.pop("b_over_truth")))
+    return {"case": "rigctl on OCXO-like records", "n": nsim, **out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", help="files, recordings and rigctl's JSON here (reused when present)")
     ap.add_argument("--sim", type=int, default=0, help="simulated records per case (5.)")
+    ap.add_argument("--sim-rigctl", type=int, default=0,
+                    help="simulated OCXO-like records through rigctl itself (5.)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     tmpd = None if args.keep else tempfile.TemporaryDirectory()
@@ -337,6 +372,9 @@ def main() -> None:
                      ("ADIS16405 gx-like octave", 10 ** 6, 0.01, gx_ms, 6.8e-4, 1.5e-4, 7e-6, 0.0, 0.05, TERMS["ADIS16405"])):
             sims.append(simulate(*case, nsim=args.sim if case[1] < 10 ** 5 else max(1, args.sim // 3)))
             print(json.dumps(sims[-1]), flush=True)
+    if args.sim_rigctl:
+        sims.append(simulate_rigctl(keep, args.sim_rigctl))
+        print(json.dumps(sims[-1]), flush=True)
     if args.keep:
         (keep / "allan_floor_quiet.json").write_text(json.dumps({"rows": rows, "sims": sims}, indent=1, default=float))
     print(json.dumps({"rows": len(rows),
