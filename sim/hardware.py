@@ -433,6 +433,16 @@ class Hardware:
         self.world = SimWorld(self.cfg, self.world_clock)
         self.table = PhysicsTable(self.world, self.lock, self.cfg.limits)
         self.tap = ImuTap(self.world, self.lock)
+        # the world's first step, before any port or thread exists and before the clock starts:
+        # it loads the noise kernels (numba: 0.6 s from its cache, 3.4 s compiling on a clean
+        # clone, seconds more on a loaded host). Taken by the physics loop's first tick instead,
+        # under the hardware lock, it held back the first table commands of a client that
+        # connected as soon as the ports were up (`rigctl sim up` at 100x under load: 0.2-1.3 s
+        # for the reply to the first command after 'ready', past the wired config's 0.5 s timeout)
+        self.world_clock.cap = 0.0
+        self.world.advance()
+        self.world_clock.cap = math.inf
+        self.clock = self.world_clock.clock = ScaledClock(self.speed)
         # turntable, ASCII
         self.acl = AclServer(self.table)
         self.acl.core = HwAclCore(self.table)
