@@ -269,15 +269,21 @@ def test_syncin_edges_are_pulses_on_the_imu_time_base(tmp_path) -> None:
             assert LAYOUT.length == 56 and twin.layout == LAYOUT
             pulses = imu.syncin_pulses()
             assert len(pulses.read()) == 0
-            now = hw.clock.now()
-            # the last two 0.5 ms apart inside one frame interval (g, g + 10 ms] of the twin's
-            # 100 Hz grid (frame times _t0 + k / 100): a frame reports every edge up to its own
-            # time, so both reach the same frame. Placed at now + 1.2 without the grid, a frame
-            # fell between them 1 time in 20 (the CI run at 32ea0ec got 4 edges, 0 missed).
-            g = twin._t0 + np.ceil((now + 1.2 - twin._t0) * 100.0) / 100.0
-            edges = [now + 0.5, now + 0.61, g + 0.003, g + 0.0035]
-            for t in edges:
-                hw.pulse(t)
+            # the edges are placed after the twin's next frame not yet encoded (next_time), with
+            # its lock held so that no frame is encoded meanwhile: placed after the clock's now
+            # instead, a test thread held up for 25 ms of wall time (0.5 s of rig time at 20x)
+            # between reading the clock and the first hw.pulse left frames past the first two
+            # edges sent already, and the next frame counted both (2 missed, 2 edges).
+            # The last two are 0.5 ms apart inside one frame interval (g, g + 10 ms] of the
+            # twin's 100 Hz grid (frame times _t0 + k / 100): a frame reports every edge up to
+            # its own time, so both reach the same frame. Placed at now + 1.2 without the grid,
+            # a frame fell between them 1 time in 20 (the CI run at 32ea0ec got 4 edges, 0 missed).
+            with twin._lock:
+                now = twin.next_time()
+                g = twin._t0 + np.ceil((now + 1.2 - twin._t0) * 100.0) / 100.0
+                edges = [now + 0.5, now + 0.61, g + 0.003, g + 0.0035]
+                for t in edges:
+                    hw.pulse(t)
             got: list[float] = []
             wait_until(lambda: got.extend(pulses.read().time.tolist()) or len(got) >= 3, 10, "SYNC_IN edges")
             time.sleep(0.1)
