@@ -117,6 +117,29 @@ def test_bad_input_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture, case: s
         assert str(rec) in err
 
 
+@pytest.mark.parametrize("opts, names", [
+    (["--kalibr", "{d}/no-dir/imu.yaml"], "no-dir"), (["--json", "{d}/no-dir/r.json"], "no-dir"),
+    (["--csv", "{d}"], "is a directory"), (["--plot", "{d}/no-dir/p.png"], "no-dir"),
+    (["--kalibr-inflate", "3"], "--kalibr-inflate without --kalibr"),
+    (["--kalibr-topic", "/imu"], "--kalibr-topic without --kalibr")])
+def test_export_options_are_checked_before_the_analysis(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                         opts: list[str], names: str) -> None:
+    """An export into a directory that does not exist failed only after the analysis (minutes
+    on a long capture) with exit 1 ("failed: ...: No such file or directory"), the results
+    already stored; --kalibr-inflate / --kalibr-topic without --kalibr were silently ignored.
+    Now each is invalid input: exit 2, one line naming the path or the option, nothing run."""
+    rec = tmp_path / "rec.h5"
+    write_recording(rec, 1000)
+    argv = ["allan", str(rec), "--db", "none", *[o.format(d=tmp_path) for o in opts]]
+    assert cli.main(argv) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith("rigctl allan: error:") and err.count("\n") == 1, err
+    assert names in err and "Traceback" not in err
+    with h5py.File(rec, "r") as f:
+        assert "results/allan" not in f  # refused before the analysis
+    assert not (tmp_path / "no-dir").exists()
+
+
 def test_solve_recording_uses_capture_segment(tmp_path: Path) -> None:
     """The procedure hook analyses the longest capture segment, stores /results/allan and the
     results database and logs one info line per axis (plus one for counter gaps, whose

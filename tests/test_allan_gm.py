@@ -173,8 +173,11 @@ def test_the_mtig_gyros_stationary_bump_is_named_with_a_gauss_markov_candidate(
     fit = res["fit"]
     gm = fit["gauss_markov"]
     assert gm["detected"], gm
-    runs = [o for o in fit["check"]["outside"] if o.get("gauss_markov")]
+    # the candidate named the IEEE 952 fit's stationary bump; the term is then in the fit
+    # (test_allan_gm_fit.py), whose check the IEEE-only one was
+    runs = [o for o in fit["ieee_only"]["check"]["outside"] if o.get("gauss_markov")]
     assert runs and all(o["stationarity"]["stationary"] for o in runs)
+    assert gm["in_fit"] and fit["gm_term"]
     assert "a Gauss-Markov process with Tc ~" in runs[0]["likely"]
     assert "deg/h" in runs[0]["likely"]
     assert gm["sigma_gm_unit"] == "deg/h"
@@ -234,8 +237,12 @@ def test_the_pipeline_names_the_process_the_ieee_fit_cannot_follow(tmp_path: Pat
     capsys.readouterr()
     assert cli.main(["allan", str(rec), "--db", "none", "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "a Gauss-Markov process with Tc ~" in text and "fits the bump: chi2/dof" in text
-    gm = json.loads(out.read_text())["axes"]["gx"]["fit"]["gauss_markov"]
+    assert "a first-order Gauss-Markov term was added to the fit: Tc" in text
+    fit = json.loads(out.read_text())["axes"]["gx"]["fit"]
+    gm = fit["gauss_markov"]
+    assert gm["in_fit"]
+    assert any("a Gauss-Markov process with Tc ~" in o["likely"] and "fits the bump: chi2/dof"
+               in o["likely"] for o in fit["ieee_only"]["check"]["outside"])
     assert gm["detected"]
     assert gm["tc_ci95_s"][0] <= 60.0 <= gm["tc_ci95_s"][1], gm
     truth = 1e-6 * 180 / math.pi * 3600
@@ -246,9 +253,13 @@ def test_the_pipeline_names_the_process_the_ieee_fit_cannot_follow(tmp_path: Pat
     from rigctl.report import report_build
 
     page = report_build.build_report(rec, tmp_path / "rep").read_text()
-    assert "Gauss-Markov candidates for stationary bumps" in page
+    assert "Gauss-Markov processes found at stationary bumps (fitted" in page
     assert f"{gm['tc_s']:.3g} [{gm['tc_ci95_s'][0]:.3g}, {gm['tc_ci95_s'][1]:.3g}]" in page
     assert f"{gm['sigma_gm_deg_per_h']:.3g} [" in page and "deg/h" in page
+    # ... and the fitted term in the term table: sigma_GM (deg/h) and Tc (s) with intervals
+    t = fit["gm_term"]
+    assert "Gauss-Markov sigma_GM" in page and "Gauss-Markov correlation time Tc" in page
+    assert f"{t['tc_s']:.4g} [{t['tc_ci95_s'][0]:.4g}, {t['tc_ci95_s'][1]:.4g}]" in page
 
 
 def test_only_a_bump_tested_stationary_gets_the_candidate_and_accel_reads_mg() -> None:

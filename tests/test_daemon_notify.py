@@ -54,10 +54,27 @@ class Mailbox:
         return "250 OK"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def bound_socket() -> socket.socket:
+    """A TCP socket bound to a loopback port the kernel chose, held for the caller: a port
+    looked up, closed and bound again later can be taken meanwhile by any other process
+    (another xdist worker's server or client) -- the port stays ours while this socket lives."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    s.bind(("127.0.0.1", 0))
+    return s
+
+
+class SmtpOnSocket(aiosmtpd_controller.Controller):
+    """aiosmtpd's threaded Controller serving on a socket bound beforehand (``bound_socket``)
+    instead of binding its host:port itself after we looked a free one up."""
+
+    def __init__(self, handler, sock: socket.socket, **kw) -> None:
+        host, port = sock.getsockname()[:2]
+        super().__init__(handler, hostname=host, port=port, **kw)
+        self._sock = sock
+
+    def _create_server(self):
+        return self.loop.create_server(self._factory_invoker, sock=self._sock, ssl=self.ssl_context)
 
 
 @pytest.fixture
@@ -66,7 +83,9 @@ def receivers():
     http = ThreadingHTTPServer(("127.0.0.1", 0), Receiver)
     threading.Thread(target=http.serve_forever, daemon=True).start()
     box = Mailbox()
-    smtp = aiosmtpd_controller.Controller(box, hostname="127.0.0.1", port=free_port())
+    # ready_timeout: aiosmtpd's default 5 s for its thread to start serving is a wall-clock
+    # deadline on a loaded machine; the test's own waits are 20-30 s
+    smtp = SmtpOnSocket(box, bound_socket(), ready_timeout=60.0)
     smtp.start()
     try:
         yield http.server_address[1], smtp.port, box
@@ -169,7 +188,10 @@ def test_notices_by_webhook_and_email(receivers, tmp_path):
 
 
 def test_a_dead_receiver_holds_up_nothing_and_is_logged(tmp_path):
-    dead = free_port()  # nobody listens there
+    # bound and never listening: a connection to it is refused, and no other process can take
+    # the port and answer while the test runs (a port looked up and closed could be)
+    holder = bound_socket()
+    dead = holder.getsockname()[1]
     cfg = derived_config(tmp_path, notifications={"webhook": {"url": f"http://127.0.0.1:{dead}/x", "timeout_s": 1}})
     base = Path(tempfile.mkdtemp(prefix="rigctl-notify-", dir="/tmp"))
     log = io.StringIO()
@@ -187,6 +209,7 @@ def test_a_dead_receiver_holds_up_nothing_and_is_logged(tmp_path):
     finally:
         d.stop("test over")
         shutil.rmtree(base, ignore_errors=True)
+        holder.close()
 
 
 @pytest.mark.parametrize("section, why", [

@@ -300,3 +300,58 @@ def test_vectorised_decoding_equals_rosbags_message_by_message():
         assert frame == "imu_link"
         assert np.array_equal(stamp, s["stamp"][:300])
         assert acc.tobytes() == s["acc"][:300].tobytes() and gyr.tobytes() == s["gyr"][:300].tobytes()
+
+
+@pytest.mark.parametrize("frac", [0.3, 0.5, 0.77, 0.999])
+def test_mcap_cut_anywhere_keeps_what_was_read(tmp_path, capsys, frac):
+    """Wherever the cut falls -- on a record's opcode (mcap's own stream reader: EndOfFile) or
+    inside a record's length or fields (struct.error, the commoner case: a 1 h bare MCAP cut
+    at half its length was refused with "cannot read the MCAP file (error: unpack requires a
+    buffer of 8 bytes)") -- the import warns and keeps the messages read before the cut, a
+    prefix of the samples (64 kB chunks, zstd; four cut points)."""
+    from mcap.reader import NonSeekingReader
+
+    s = _samples()
+    full = write_mcap_ros2(tmp_path / "full.mcap", s, chunk_size=64_000).read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full[: int(len(full) * frac)])
+    # what mcap's own reader makes of the cut (read here, not by rigctl)
+    n_lib = 0
+    with open(cut, "rb") as fh:
+        try:
+            for _schema, ch, _msg in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                n_lib += ch.topic == "/imu"
+            raised = None
+        except Exception as exc:  # noqa: BLE001 - the type is what the test reports
+            raised = type(exc).__name__
+    assert raised is not None and n_lib > 0
+    rec = tmp_path / "cut.h5"
+    code, out, err = _rigctl(capsys, str(cut), "-o", str(rec))
+    assert code == 0, (raised, err)
+    assert "warning: the file ends early (" in out and "(error)" not in out
+    imu, _, _ = _read(rec)
+    n = len(imu["time"])
+    assert n == n_lib
+    assert np.array_equal(imu["specific_force"], s["acc"][:n]) and np.array_equal(imu["angular_rate"], s["gyr"][:n])
+
+
+def test_a_binary_file_is_not_called_a_csv_file(tmp_path, capsys):
+    """A PNG (matplotlib's, as an Allan plot) given to `rigctl import`: it was refused as "a CSV
+    file" lacking --columns; it is binary data, neither a table nor a bag."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    png = tmp_path / "allan.png"
+    fig, ax = plt.subplots()
+    ax.plot([1, 2], [3, 4])
+    fig.savefig(png)
+    plt.close(fig)
+    code, out, err = _rigctl(capsys, str(png), "-o", str(tmp_path / "x.h5"))
+    assert code == 2 and err.count("\n") == 1 and str(png) in err
+    assert "a binary file, not a text table" in err and "--columns" not in err, err
+    # a text table without --columns is still asked for them
+    csv = tmp_path / "log.csv"
+    csv.write_text("time,ax\n0,1\n")
+    code, out, err = _rigctl(capsys, str(csv), "-o", str(tmp_path / "y.h5"))
+    assert code == 2 and "--columns is required" in err

@@ -261,15 +261,24 @@ def postgres(tmp_path_factory):
     base = Path(tempfile.mkdtemp(prefix="rigctl-pg-"))
     os.chown(base, pw.pw_uid, pw.pw_gid)
     data, sock = base / "data", base
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     r = subprocess.run([*as_user, _pg_bin("initdb"), "-D", str(data), "-U", "rigctl", "--auth=trust", "-E", "UTF8"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
-    r = subprocess.run([*as_user, _pg_bin("pg_ctl"), "-D", str(data), "-l", str(base / "log"), "-w", "-t", "60",
-                        "-o", f"-h 127.0.0.1 -p {port} -k {sock}", "start"], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stdout + r.stderr + (base / "log").read_text()
+    # The server cannot be handed a bound socket: the port is looked up (bind to 0, close) and
+    # PostgreSQL binds it a moment later, when another process (the other xdist worker, any
+    # client's outgoing connection) may have taken it. Only that case -- the server's own log
+    # says the address is in use -- is tried again, on another port.
+    for attempt in range(5):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        log = base / f"log{attempt}"
+        r = subprocess.run([*as_user, _pg_bin("pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "60",
+                            "-o", f"-h 127.0.0.1 -p {port} -k {sock}", "start"], capture_output=True, text=True,
+                           timeout=120)
+        if r.returncode == 0 or "Address already in use" not in (log.read_text() if log.exists() else ""):
+            break
+    assert r.returncode == 0, r.stdout + r.stderr + (log.read_text() if log.exists() else "")
     try:
         r = subprocess.run([*as_user, _pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(port), "-U", "rigctl",
                             "results"], capture_output=True, text=True, timeout=60)

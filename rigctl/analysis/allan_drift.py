@@ -106,8 +106,9 @@ def name_in_check(check: dict, tau: np.ndarray, share: np.ndarray, why: str, key
 
 def _fit_dev(fit: dict, tau: float) -> float:
     """The fitted total the self-check compares at ``tau``: the resolved IEEE 952 terms
-    (:func:`rigctl.solvers.noise_coefficients.resolved_values`) plus the tones' Allan term."""
-    s2 = float(F.model_avar(np.array([tau]), NC.resolved_values(fit["coefficients"]))[0])
+    (:func:`rigctl.solvers.noise_coefficients.resolved_values`), the Gauss-Markov term where
+    the fit has one, plus the tones' Allan term."""
+    s2 = float(F.fitted_avar(fit, np.array([tau]))[0])
     tn = fit.get("tones") or {}
     if tn.get("terms"):
         t0 = float(tn["tau0_s"])
@@ -468,6 +469,67 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
         o["gauss_markov"] = True
         o["likely"] = f"{o['likely']}; {gm_reason(gm)}"
     return gm
+
+
+def gm_added(gm: dict | None, fit: dict) -> bool:
+    """Does the Gauss-Markov term go into the joint fit? When (and only when) the candidate's
+    likelihood-ratio test found it (``detected``) and its hump lies at a stationary bump the
+    self-check names (:func:`gauss_markov` marked the run)."""
+    return bool(gm and gm.get("detected") and any(
+        o.get("gauss_markov") for o in (fit.get("check") or {}).get("outside") or []))
+
+
+def refit_with_gm(fit: dict, gm: dict, sensor: str, refit: Any) -> dict:
+    """The joint fit again with the Gauss-Markov term in the model (``refit(gm_spec)``:
+    :func:`rigctl.solvers.allan_fit.fit_terms` with ``gm``), Tc searched over the candidate's
+    range. The new fit keeps the candidate (``gauss_markov``, ``in_fit`` True) and what the IEEE
+    952 terms alone gave (``ieee_only``: their coefficients and self-check); its ``gm_term``
+    gains sigma_GM in the deviation's field unit (B's) and the candidate's test, for the
+    warning (:func:`gm_added_sentence`)."""
+    new = refit({"tc_grid_s": gm["tc_grid_s"]})
+    unit, fac = DU.NOISE_UNITS[sensor]["B"]
+    t = new.get("gm_term") or {}
+    if t:
+        t["sigma_unit"] = unit
+        t[f"sigma_{DU.slug(unit)}"] = t["sigma_si"] * fac
+        t[f"sigma_ci95_{DU.slug(unit)}"] = [v * fac for v in t["sigma_ci95_si"]]
+        t["test"] = {k: gm.get(k) for k in ("p_value", "alpha", "statistic", "n_looks")}
+    gm = dict(gm)
+    gm["in_fit"] = bool(t)
+    new["gauss_markov"] = gm
+    ch = fit.get("check") or {}
+    new["ieee_only"] = {"coefficients": fit["coefficients"], "terms": fit.get("terms"),
+                        "check": {k: ch.get(k) for k in (
+                            "ok", "chi2", "dof", "p_value", "model_error_rel", "n_outside",
+                            "n_informative", "n_outside_band", "outside")}}
+    return new
+
+
+def gm_added_sentence(fit: dict) -> str:
+    """The warning that a Gauss-Markov term is in the fit, and why ('' when none)."""
+    t = fit.get("gm_term")
+    if not t:
+        return ""
+    unit = t["sigma_unit"]
+    s, (s_lo, s_hi) = t[f"sigma_{DU.slug(unit)}"], t[f"sigma_ci95_{DU.slug(unit)}"]
+    gm = fit.get("gauss_markov") or {}
+    io = (fit.get("ieee_only") or {}).get("check") or {}
+    ch = fit.get("check") or {}
+    test = t.get("test") or {}
+    before = (f"; chi2/dof of the reported model {io['chi2']:.4g}/{io['dof']} without it -> "
+              f"{ch['chi2']:.4g}/{ch['dof']} with it" if io.get("chi2") is not None
+              and ch.get("chi2") is not None else "")
+    what = (f"sigma_GM {s:.3g} {unit} [{s_lo:.3g}, {s_hi:.3g}]" if t.get("resolved")
+            else f"sigma_GM < {s_hi:.3g} {unit} (the joint fit does not resolve it)")
+    return (f"a first-order Gauss-Markov term was added to the fit: Tc {t['tc_s']:.3g} s "
+            f"[{t['tc_ci95_s'][0]:.3g}, {t['tc_ci95_s'][1]:.3g}], {what} (95 %), "
+            f"because the curve has a stationary bump the IEEE 952 terms cannot follow and the "
+            f"likelihood-ratio test against them finds the process (p = "
+            f"{test.get('p_value', math.nan):.2g}, alpha {test.get('alpha', math.nan):.3g}, "
+            f"{test.get('n_looks', math.nan):.2g} looks over Tc; the candidate's Tc "
+            f"{gm.get('tc_s', math.nan):.3g} s){before}; the terms, the fitted total and the "
+            "self-check include it"
+            + ("; held at the curve's own limit" if t.get("held_at_curve_limit") else ""))
 
 
 def gm_reason(gm: dict) -> str:

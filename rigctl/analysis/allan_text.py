@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..display_units import need_text
+from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
 from .allan import check_notes, check_warnings, screening_notes
@@ -23,7 +23,9 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
         lines.append(f"{r['tau_s'][i]:12.5g} {r['adev_' + unit][i]:14.6g} "
                      f"{r['lo68_' + unit][i]:12.6g} {r['hi68_' + unit][i]:12.6g} "
                      f"{int(r['alpha'][i]):5d} {r['edf'][i]:10.4g}")
-    lines.append("fitted terms (joint IEEE 952 fit over all taus; 95 % intervals or bounds):")
+    lines.append("fitted terms (joint IEEE 952 fit over all taus"
+                 + (" with a first-order Gauss-Markov term" if r["fit"].get("gm_term") else "")
+                 + "; 95 % intervals or bounds):")
     co = NC.as_coefficients(r["fit"]["coefficients"])
     for t, e in r["fit"]["terms"].items():
         c, unit_f = NC.in_field_units(co, t)
@@ -37,10 +39,16 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
             lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
         else:
             more = "" if not need else f"; {need}"
+            if e.get("edf_below_estimate") is not None:  # held or kept, but with EDF < 1
+                more += (f"; the fit's EDF there {e['edf_below_estimate']:.2g} < "
+                         f"{F.MIN_ESTIMATE_EDF:g}: no estimate")
             what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
             lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")
-    fit_line = goodness_line(r["fit"].get("check") or {})
+    gm_line = gm_term_line(r["fit"])
+    if gm_line:
+        lines.append(gm_line)
+    fit_line = goodness_line(r["fit"].get("check") or {}, bool(r["fit"].get("gm_term")))
     if fit_line:
         lines.append(fit_line)
     pw = r["piecewise"]["terms"]
@@ -57,7 +65,26 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def goodness_line(check: dict[str, Any]) -> str:
+def gm_term_line(fit: dict[str, Any]) -> str:
+    """The fitted Gauss-Markov term as a row of the term table ('' when the fit has none):
+    sigma_GM in the deviation's field unit (B's) and Tc in s, each with its 95 % interval."""
+    t = fit.get("gm_term")
+    if not t:
+        return ""
+    unit = t["sigma_unit"]
+    s, (lo, hi) = t[f"sigma_{slug(unit)}"], t[f"sigma_ci95_{slug(unit)}"]
+    tc, (tlo, thi) = t["tc_s"], t["tc_ci95_s"]
+    name = "Gauss-Markov sigma_GM, Tc"
+    if t.get("resolved"):
+        val = f"{s:.5g} {unit} [{lo:.5g}, {hi:.5g}]"
+    else:
+        val = f"< {hi:.5g} {unit} (not resolved by the joint fit)"
+    more = " (held at the curve's own limit: the fit wanted more)" if t.get(
+        "held_at_curve_limit") else ""
+    return f"  {name:>26}: {val}, Tc {tc:.4g} s [{tlo:.4g}, {thi:.4g}]{more}"
+
+
+def goodness_line(check: dict[str, Any], with_gm: bool = False) -> str:
     """The joint fit's chi-square as one line: the reported terms against the deviations with
     their covariance across taus (that of the gap-free stretches when gaps were skipped),
     without the model error. Beyond its 99 % point it says so, whatever the self-check's
@@ -69,8 +96,9 @@ def goodness_line(check: dict[str, Any]) -> str:
     text = f"goodness of fit: chi-square {check['chi2']:.4g} on {check['dof']} dof (p = {p:.2g})"
     eps = check.get("model_error_rel", 0.0)
     if p < F.MODEL_ERROR_P:
-        text += ("; beyond its 99 % point: the IEEE 952 terms do not describe this curve "
-                 "within its statistics")
+        text += ("; beyond its 99 % point: the IEEE 952 terms"
+                 + (" and the Gauss-Markov term" if with_gm else "")
+                 + " do not describe this curve within its statistics")
         if eps > 0:
             text += f" (a model error of {100 * eps:.2g} % of sigma^2 was added to the weights)"
     return text

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import struct
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -418,12 +419,16 @@ def _read_mcap(path: Path, topic: str | None, progress: Progress | None
                 n += 1
                 if progress is not None and n % BLOCK == 0:
                     progress(n, 0)
-        except McapError as exc:
+        except (McapError, struct.error, EOFError) as exc:
+            # the file ends inside a record: mcap's stream reader raises EndOfFile where the cut
+            # falls on a record's opcode, struct.error ("unpack requires a buffer of 8 bytes")
+            # where it falls inside a record's length or fields -- the commoner case
             if n == 0:
                 raise InputError(f"MCAP file without a summary and without a complete message "
                                  f"({type(exc).__name__}: {exc}): cut off before its first chunk ended?", path,
                                  hint="give an MCAP file written by ros2 bag or an MCAP writer") from None
-            truncated = (f"the file ends early ({type(exc).__name__}): no summary, read as far as it "
+            why = "a record cut short" if isinstance(exc, (struct.error, EOFError)) else type(exc).__name__
+            truncated = (f"the file ends early ({why}): no summary, read as far as it "
                          f"goes ({n} messages)")
         topics = sorted(seen.values(), key=lambda t: t.topic)
         chosen = choose_topic(path, topics, topic)

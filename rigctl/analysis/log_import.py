@@ -546,6 +546,15 @@ CSV_ONLY = ("columns", "units", "rate", "integrated")
 BAG_ONLY = ("topic",)
 
 
+def _binary(src: Path) -> bool:
+    """Binary data, not a text table: a NUL byte in the first 4 kB of a file that is not gzip
+    (read_table's rule, there on the decompressed text). Said as such, not as a CSV file
+    lacking --columns (a PNG given to `rigctl import` was)."""
+    with open(src, "rb") as fh:
+        head = fh.read(4096)
+    return b"\x00" in head and not head.startswith(b"\x1f\x8b")
+
+
 def import_csv(args: ImportOptions) -> Imported:
     """Read, convert and write a CSV log."""
     src = Path(args.file)
@@ -555,6 +564,9 @@ def import_csv(args: ImportOptions) -> Imported:
     for opt in BAG_ONLY:
         if getattr(args, opt) is not None:
             raise InputError(f"--{opt} applies to ROS bags and MCAP files only", src)
+    if _binary(src):  # as read_table says it, before asking for --columns
+        raise InputError("a binary file, not a text table (CSV, TSV or whitespace-separated columns)",
+                         src, hint="give the log as text, or a ROS bag / MCAP file")
     for opt in ("columns", "units"):
         if not getattr(args, opt):
             raise InputError(f"--{opt} is required for a CSV file", src,

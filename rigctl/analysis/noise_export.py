@@ -130,6 +130,7 @@ def kalibr_yaml(result: Mapping[str, Any], rostopic: str, inflate: float = 1.0) 
     lines.append("# bias instability B (not in Kalibr's model), per axis, SI (rad/s, m/s^2): " + ", ".join(
         f"{a} {_e(b.cautious)}{_bound(b)}" for a, b in
         ((a, axis_coefficient(r, "B")) for a, r in result["axes"].items())))
+    lines += gm_comment(result)
     lines.append("")
     for sensor, title in (("accel", "Accelerometers"), ("gyro", "Gyroscopes")):
         lines.append(f"#{title}")
@@ -140,6 +141,31 @@ def kalibr_yaml(result: Mapping[str, Any], rostopic: str, inflate: float = 1.0) 
     lines.append(f"rostopic: {json.dumps(rostopic)}")
     lines.append(f"update_rate: {fs:.6f}   # Hz")
     return "\n".join(lines) + "\n"
+
+
+def gm_comment(result: Mapping[str, Any]) -> list[str]:
+    """Comment lines for the axes whose joint fit holds a first-order Gauss-Markov term
+    (``coefficients.gm``): Kalibr's model has none, so it is not exported; the N and K above
+    are those fitted with it in the model. [] when no axis has one."""
+    rows = []
+    for a, r in result["axes"].items():
+        co = as_coefficients(r["fit"]["coefficients"])
+        for g in co.gm:
+            lo, hi = g.sigma.interval95
+            tc = "" if g.tau_c_ci95 is None else f" [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]"
+            kind = "" if g.sigma.resolved else " (bound)"
+            rows.append(f"#   {a}: sigma_GM {_e(g.sigma.cautious)}{kind} [{_e(lo)}, {_e(hi)}] "
+                        f"(rad/s or m/s^2), Tc {g.tau_c_s:.4g} s{tc} (95 %)")
+    if not rows:
+        return []
+    return ["# a first-order Gauss-Markov term was fitted (beside the IEEE 952 terms; the noise",
+            "# densities and random walks above were fitted with it in the model) and is NOT",
+            "# exported: Kalibr's model (white noise + random-walk bias) has no such term.",
+            *rows,
+            "# To carry it in a white + random-walk model (docs/allan.md, 'Where the values go'):",
+            "# over times well below Tc it acts as a random walk, K^2 = 2 sigma_GM^2 / Tc; well above",
+            "# Tc as white noise, N^2 = 2 sigma_GM^2 Tc; add the one that matches the estimator's",
+            "# horizon to the written value's square (or model it as an extra bias state)."]
 
 
 def imu_topic(meta: Mapping[str, Any]) -> str:

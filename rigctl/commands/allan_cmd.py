@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from rigctl.analysis import noise_export, production
@@ -58,6 +59,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
     if not args.kalibr_inflate > 0:
         raise InputError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")
+    if not args.kalibr and (args.kalibr_inflate != 1.0 or args.kalibr_topic is not None):
+        opt = "--kalibr-inflate" if args.kalibr_inflate != 1.0 else "--kalibr-topic"
+        raise InputError(f"{opt} without --kalibr: no imu.yaml is written",
+                         hint="add --kalibr imu.yaml")
+    _check_outputs(args)
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
@@ -89,6 +95,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"plot written to {args.plot}")
     export(args, result)
     return 0
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before the analysis (minutes on a long capture), a --plot, --kalibr, --json or
+    --csv file whose directory does not exist or that is a directory."""
+    for opt, name in (("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
+                      ("--csv", args.csv)):
+        if not name:
+            continue
+        out = Path(name)
+        if out.is_dir():
+            raise InputError(f"{opt}: is a directory", out, hint=f"give a file name, e.g. {out / 'x'}")
+        if not out.resolve().parent.is_dir():
+            raise InputError(f"{opt}: output directory does not exist", out.parent,
+                             hint="create it, or give a file in an existing directory")
 
 
 def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
@@ -131,6 +152,6 @@ def register(subparsers: Any) -> None:
     p.add_argument("--kalibr-topic", metavar="TOPIC",
                    help="rostopic in imu.yaml (default: the bag topic of an imported recording, else /imu0)")
     p.add_argument("--json", metavar="FILE", help="write the whole Allan result as JSON")
-    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, sigma, bands, terms; SI) as CSV")
+    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, m, sigma, 68 % and 95 % bands, EDF, noise type; SI) as CSV")
     add_production_options(p)
     p.set_defaults(func=run)

@@ -62,6 +62,8 @@ def fmt(v: Any, digits: int = 5) -> str:
         return "n/a"
     if isinstance(v, bool):
         return str(v)
+    if isinstance(v, int):  # a count is shown whole (360000 IMU samples, not 3.6e+05)
+        return str(v)
     if isinstance(v, (int, float)):
         if isinstance(v, float) and not math.isfinite(v):
             return "n/a"
@@ -437,6 +439,13 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             c, unit = NC.in_field_units(co, t)
             p = (pw.get(t) or {}).get(f"value_{unit}")
             rows.append([axis, e.get("name", t), unit, _term_cell(c), p, _need_cell(e, c.resolved)])
+        for g in co.gm:  # the fit's Gauss-Markov term: sigma_GM in B's unit, and Tc in s
+            unit, fac = NC.FIELD_UNITS[co.sensor]["B"]
+            rows.append([axis, "Gauss-Markov sigma_GM", unit, _term_cell(g.sigma.scaled(fac)),
+                         None, ""])
+            tc = (f"{g.tau_c_s:.4g}" if g.tau_c_ci95 is None else
+                  f"{g.tau_c_s:.4g} [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]")
+            rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None, ""])
     if rows:
         out += ["<h3>Fitted noise terms (joint IEEE 952 fit; value [95 % interval] or bound)</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",
@@ -458,7 +467,12 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                         f"{gm['chi2_after']:.1f}/{gm['dof_after']}",
                         f"{gm['p_value']:.2g}"])
     if gm_rows:
-        out += ["<h3>Gauss-Markov candidates for stationary bumps (not in the fitted total)</h3>",
+        in_fit = all(((cv.get("fit") or {}).get("gauss_markov") or {}).get("in_fit")
+                     for cv in curves.values()
+                     if ((cv.get("fit") or {}).get("gauss_markov") or {}).get("detected"))
+        what = ("fitted: in the terms above and the fitted total" if in_fit else
+                "where fitted, in the terms above and the fitted total")
+        out += [f"<h3>Gauss-Markov processes found at stationary bumps ({what})</h3>",
                 table(["axis", "Tc [s] (95 %)", "sigma_GM (95 %)", "chi2/dof without -> with",
                        "likelihood-ratio p"], gm_rows),
                 "<p class=\"muted\">A first-order Gauss-Markov process fits a bump of the curve "

@@ -208,6 +208,38 @@ GUIDE_SLOPES = ((-1.0, "-1 (Q)"), (-0.5, "-1/2 (N)"), (0.0, "0 (B)"), (0.5, "+1/
                 (1.0, "+1 (R)"))
 
 
+def _allan_ylim(dev: np.ndarray, lo95: np.ndarray | None, hi95: np.ndarray | None
+                ) -> tuple[float | None, float | None]:
+    """The Allan plot's y range: half the lowest band point to twice the highest (None: none)."""
+    with np.errstate(invalid="ignore"):
+        lo = np.nanmin(lo95 if lo95 is not None else dev) if np.size(dev) else np.nan
+        hi = np.nanmax(hi95 if hi95 is not None else dev) if np.size(dev) else np.nan
+    if np.isfinite(lo) and np.isfinite(hi) and lo > 0:
+        return float(lo) / 2.0, float(hi) * 2.0
+    return None, None
+
+
+def _guide_label_at(slope: float, t_a: float, d_a: float, span: np.ndarray,
+                    y_lo: float | None, y_hi: float | None) -> tuple[float, float] | None:
+    """Where a slope guide d_a (tau / t_a)^slope is labelled: the flat guide at its left end; a
+    falling one at the last tau it is inside the plot (where it leaves through the bottom, or
+    the span's end), a rising one at the first (where it enters through the bottom); each a
+    hair inside the y range. None when no part of it is inside."""
+    t0, t1 = float(span[0]), float(span[-1])
+    if y_lo is None:
+        return (t0, d_a) if slope >= 0 else (t1, d_a * (t1 / t_a) ** slope)
+    lo_in, hi_in = y_lo * (y_hi / y_lo) ** 0.01, y_hi * (y_lo / y_hi) ** 0.01
+    if slope == 0:
+        return (t0, d_a) if lo_in <= d_a <= hi_in else None
+    # the taus where the guide is between lo_in and hi_in, within the span
+    ta, tb = sorted((t_a * (lo_in / d_a) ** (1.0 / slope), t_a * (hi_in / d_a) ** (1.0 / slope)))
+    a, b = max(t0, ta), min(t1, tb)
+    if not a <= b:
+        return None
+    t = b if slope < 0 else a
+    return t, d_a * (t / t_a) ** slope
+
+
 def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, Any] | None,
                     sensor: str, unit: str, fac: float, title: str,
                     lo68: np.ndarray | None = None, hi68: np.ndarray | None = None,
@@ -232,17 +264,28 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
     else:
         ax.plot(tau, dev, ".", color="tab:blue", label="overlapping ADEV")
     ok = np.isfinite(dev) & (dev > 0)
+    y_lo, y_hi = _allan_ylim(dev, lo95, hi95)
     if np.any(ok):  # slope guides: -1, -1/2 through the first point; 0, +1/2, +1 the minimum
         t_ok, d_ok = tau[ok], dev[ok]
         i_min = int(np.argmin(d_ok))
         span = np.array([t_ok[0], t_ok[-1]])
-        for k, (slope, label) in enumerate(GUIDE_SLOPES):
+        row = 0
+        for slope, label in GUIDE_SLOPES:
             t_a, d_a = (t_ok[0], d_ok[0]) if slope < 0 else (t_ok[i_min], d_ok[i_min])
             ys = d_a * (span / t_a) ** slope
             ax.plot(span, ys, ":", color="0.55", lw=0.7, zorder=0)
-            ax.annotate(f"slope {label}", (span[-1], ys[-1]), fontsize=5.5, color="0.4",
-                        ha="right", va="bottom", xytext=(-2, 1 + 7 * k),
-                        textcoords="offset points", annotation_clip=True)
+            at = _guide_label_at(slope, t_a, d_a, span, y_lo, y_hi)
+            if at is None:  # the guide is outside the plotted range
+                continue
+            # each label on its own row of 7 points above its anchor (a falling guide's where
+            # it leaves the plot, a rising one's where it enters; the flat one at its left
+            # end), so that labels of guides meeting in one point do not overprint
+            ax.annotate(f"slope {label}", at, fontsize=5.5, color="0.4",
+                        ha="right" if slope < 0 else "left", va="bottom",
+                        xytext=(-2 if slope < 0 else 2, 1 + (0 if slope == 0 else 7 * row)),
+                        textcoords="offset points", annotation_clip=True,
+                        bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.4})
+            row += slope != 0
     fit = fit or {}
     co = NC.as_coefficients(fit["coefficients"]) if fit.get("coefficients") else None
     coeff = {t: v**2 for t, v in NC.resolved_values(co).items() if v > 0} if co else {}
@@ -262,6 +305,14 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
             if ub and math.isfinite(ub) and ub > 0:
                 ax.plot(tt, np.sqrt(cols[:, j]) * ub * fac, ":", lw=0.9,
                         label=f"{term} < {ub * ffac:.3g} {unit_f} (bound)")
+    for g in (co.gm if co else ()):  # the fit's Gauss-Markov term (allan_fit: gm_term)
+        if g.sigma.resolved and g.sigma.value > 0:
+            part = F.gm_column(tt, g.tau_c_s) * g.sigma.value ** 2
+            total += part
+            coeff = coeff or {"GM": g.sigma.value ** 2}
+            unit_f, ffac = F.FIELD_UNITS[sensor]["B"]
+            ax.plot(tt, np.sqrt(part) * fac, "--", lw=0.9,
+                    label=f"GM {g.sigma.value * ffac:.3g} {unit_f}, Tc {g.tau_c_s:.3g} s")
     if coeff:
         ax.plot(tt, np.sqrt(total) * fac, "k-", lw=1.2, label="fitted total")
     tones = (fit.get("tones") or {}).get("terms") or []
@@ -277,7 +328,7 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
         freqs = ", ".join(f"{t['freq_hz']:.4g}" for t in tones)
         ax.plot(tau[keep], np.sqrt(t2[keep]) * fac, "x", ms=3, color="tab:purple",
                 label=f"tones ({freqs} Hz)")
-        tot_t = F.design_matrix(tau) @ np.array([float(coeff.get(t) or 0.0) for t in F.TERMS]) + t2
+        tot_t = F.fitted_avar(fit, tau) + t2
         ax.plot(tau, np.sqrt(tot_t) * fac, "-", color="tab:purple", lw=0.8,
                 label="fitted total with tones")
     for label, t_x, d_x in extras or []:
@@ -294,10 +345,8 @@ def draw_allan_axis(ax: Any, tau: np.ndarray, dev: np.ndarray, fit: dict[str, An
                 label="fit outside the 95 % band")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    lo = np.nanmin(lo95 if lo95 is not None else dev)
-    hi = np.nanmax(hi95 if hi95 is not None else dev)
-    if np.isfinite(lo) and np.isfinite(hi) and lo > 0:
-        ax.set_ylim(lo / 2.0, hi * 2.0)
+    if y_lo is not None:
+        ax.set_ylim(y_lo, y_hi)
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("tau [s]")
     ax.set_ylabel(f"Allan deviation [{unit}]")

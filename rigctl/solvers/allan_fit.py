@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
@@ -77,6 +78,52 @@ def model_avar(tau: np.ndarray, coeffs: dict[str, float]) -> np.ndarray:
     """sigma^2(tau) of the IEEE 952 model from SI coefficients {Q, N, B, K, R}."""
     p = np.array([coeffs.get(t, 0.0) ** 2 for t in TERMS])
     return design_matrix(tau) @ p
+
+
+#: the columns of the joint fit: the IEEE 952 terms and, where the Gauss-Markov candidate
+#: (rigctl.solvers.allan_gm) found one, a first-order Gauss-Markov term (sigma_GM^2 at a fixed Tc)
+COLS = TERMS + ("GM",)
+GM_IDX = COLS.index("GM")
+
+
+def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
+    """Allan variance of a first-order Gauss-Markov rate of variance ``var_gm`` (SI^2) and
+    correlation time ``tc`` (s) at averaging times ``tau`` (s) (IEEE Std 952-1997 annex C)::
+
+        sigma^2(tau) = var_gm (Tc / tau)^2 (2 tau / Tc - 3 + 4 e^(-tau/Tc) - e^(-2 tau/Tc))
+
+    Series below tau/Tc = 0.05 (the closed form cancels there)."""
+    x = np.asarray(tau, dtype=float) / float(tc)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        closed = (2.0 * x - 3.0 + 4.0 * np.exp(-x) - np.exp(-2.0 * x)) / x ** 2
+    series = x * (2.0 / 3.0 - x / 2.0 + x * x * 7.0 / 30.0 - x ** 3 / 12.0)
+    return float(var_gm) * np.where(x < 0.05, series, closed)
+
+
+def gm_column(tau: np.ndarray, tc: float) -> np.ndarray:
+    """d sigma^2 / d sigma_GM^2 of a first-order Gauss-Markov rate of correlation time ``tc``
+    (:func:`gm_avar` at unit variance)."""
+    return gm_avar(np.asarray(tau, dtype=float), 1.0, float(tc))
+
+
+def full_design(tau: np.ndarray, tc: float | None) -> np.ndarray:
+    """:func:`design_matrix` with the Gauss-Markov column (index GM_IDX) when ``tc`` is given."""
+    a = design_matrix(tau)
+    return a if tc is None else np.column_stack((a, gm_column(tau, tc)))
+
+
+def fitted_avar(fit_or_coeffs: Any, tau: np.ndarray) -> np.ndarray:
+    """sigma^2(tau) of the model a fit reports: its resolved IEEE 952 terms
+    (:func:`rigctl.solvers.noise_coefficients.resolved_values`) plus its Gauss-Markov terms
+    (``coefficients.gm``, in the fit when the candidate found one). Not the tones."""
+    co = fit_or_coeffs.get("coefficients") if isinstance(fit_or_coeffs, dict) else fit_or_coeffs
+    co = NC.as_coefficients(co)
+    tau = np.asarray(tau, dtype=float)
+    out = model_avar(tau, NC.resolved_values(co))
+    for g in co.gm:
+        if g.sigma.resolved:
+            out = out + gm_column(tau, g.tau_c_s) * g.sigma.value ** 2
+    return out
 
 
 def _nnls_cols(a: np.ndarray, b: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
@@ -138,7 +185,10 @@ def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.nda
 
 def _stat_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.ndarray,
               edf: np.ndarray) -> np.ndarray:
-    full = np.zeros(len(TERMS))
+    # the Gauss-Markov column (GM_IDX) has no kernel in allan_cov yet: like the ramp, its part
+    # of the total takes the correlations of the Q, N, B, K terms, scaled tau by tau to the
+    # total (the approximation rigctl.solvers.allan_gm makes)
+    full = np.zeros(len(COLS))
     full[cols] = p
     mod = np.maximum(a @ p, 1e-300)
     if cov_terms is None:
@@ -323,7 +373,8 @@ B_TEST_M_MIN = 4
 
 def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
                     tau0: float | None = None, n_phase: int | None = None,
-                    cov_terms: dict | None = None, iterations: int = 4) -> dict:
+                    cov_terms: dict | None = None, iterations: int = 4,
+                    extra: np.ndarray | None = None) -> dict:
     """Is B in the curve? A likelihood-ratio test of B = 0 against B > 0 with every other
     IEEE 952 shape present, on the taus where the model holds.
 
@@ -351,6 +402,9 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
     * B on the boundary of its range (B^2 >= 0): the statistic is a 50:50 mixture of 0 and
       chi-square(1) under the null (chi-bar-square), p = chi2.sf(stat, 1) / 2.
 
+    ``extra``: a further non-negative column at every tau (the joint fit's Gauss-Markov term
+    at its fitted Tc), present in both models.
+
     Returns {"p_value", "statistic", "n_taus", "overdispersion", "tested"}; "tested" False
     (p_value nan) when too few taus remain."""
     tau = np.asarray(tau, dtype=float)
@@ -373,6 +427,9 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
                                 int(n_phase))
     a = design_matrix(t)  # columns Q(signed here), N, B, K, R
     lower = np.array([-np.inf, 0.0, 0.0, 0.0, 0.0])
+    if extra is not None:  # (GM_IDX): in the null and the alternative alike
+        a = np.column_stack((a, np.asarray(extra, dtype=float)[sel]))
+        lower = np.append(lower, 0.0)
 
     def solve(cols: list[int], lw: np.ndarray) -> tuple[np.ndarray, float]:
         aw = solve_triangular(lw, a[:, cols], lower=True)
@@ -391,6 +448,8 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         return _model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps)
 
     alt, null = [0, 1, 2, 3, 4], [0, 1, 3, 4]
+    if extra is not None:
+        alt, null = alt + [5], null + [5]
 
     def fit_alt(eps: float) -> tuple[np.ndarray, float, np.ndarray]:
         lw = _whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
@@ -479,8 +538,14 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
               terms: tuple[str, ...] = TERMS, tau0: float | None = None,
               n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
               select: bool = True, tones: list[dict] | None = None,
-              stretch_samples: np.ndarray | None = None) -> dict:
+              stretch_samples: np.ndarray | None = None, gm: dict | None = None) -> dict:
     """Joint generalized least-squares fit (see :func:`_fit_terms`; BLAS single-threaded).
+
+    ``gm``: a first-order Gauss-Markov term in the model beside the IEEE 952 terms (the
+    candidate of :func:`rigctl.solvers.allan_gm.gm_candidate` found significant): a dict with
+    ``tc_grid_s`` [lo, hi], the range of correlation times searched (the candidate's). Tc is
+    the profile's best over that grid (GM_GRID_PER_OCTAVE per octave), refined around it; the
+    result gains ``gm_term`` and ``coefficients.gm``.
 
     ``stretch_samples`` (with ``tau0``): the lengths (samples) of the gap-free stretches when
     the deviations pool the terms of several (gaps skipped, Stable32). The covariance across
@@ -500,7 +565,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
     with blas_single_thread():
         if not tones:
             return _fit_terms(tau, adev, edf, sensor, terms, tau0, n_phase, max_taus,
-                              iterations, select, stretch_samples)
+                              iterations, select, stretch_samples, gm)
         if tau0 is None:
             raise ValueError("a tone term needs tau0")
         tau = np.asarray(tau, dtype=float)
@@ -512,7 +577,7 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
             share = np.where(s2 > 0, tone2 / s2, 0.0)
         adev_rest = np.where(rest > 0, np.sqrt(np.maximum(rest, 0.0)), np.nan)
         out = _fit_terms(tau, adev_rest, edf, sensor, terms, tau0, n_phase, max_taus,
-                         iterations, select, stretch_samples)
+                         iterations, select, stretch_samples, gm)
         i = int(np.nanargmax(share)) if share.size else 0
         out["tones"] = {"terms": [dict(t) for t in tones], "tau0_s": float(tau0),
                         "max_share": float(share[i]) if share.size else 0.0,
@@ -524,7 +589,8 @@ def fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = 
 def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str = "gyro",
                terms: tuple[str, ...] = TERMS, tau0: float | None = None,
                n_phase: int | None = None, max_taus: int = 40, iterations: int = 4,
-               select: bool = True, stretch_samples: np.ndarray | None = None) -> dict:
+               select: bool = True, stretch_samples: np.ndarray | None = None,
+               gm: dict | None = None) -> dict:
     """Joint generalized least-squares fit of the IEEE 952 terms. See the module docstring.
 
     tau in s, adev in SI rate units, edf per tau (Greenhall, used for the first pass and
@@ -593,10 +659,26 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     inf_idx = np.flatnonzero(inf95)
     floor_seen = bool(inf_idx.size) and bool(
         tau_all[inf_idx[-1]] >= FLOOR_AFTER * tau_all[inf_idx[np.argmin(hi_fw[inf_idx])]])
-    b_test = (b_presence_test(tau, s2, e, tau0, n_phase, cov_terms, iterations)
+    # a first-order Gauss-Markov term (the candidate found it: see fit_terms' ``gm``): Tc by
+    # the profile of the fit's chi-square over its grid, refined; from here on it is a column
+    # of the model like the others (GM_IDX), held within the curve's limits like B, K and R,
+    # and never dropped by the selection (its presence was decided by its own test)
+    tc_fit, gm_prof = None, None
+    if gm is not None:
+        tc_fit, gm_prof, model_err, chi2_stat = _gm_profile(
+            gm, tau, s2, e, full_a, active, upper_all, cov_terms, iterations, tau_all, s2_all,
+            inf95, hi_fw)
+        full_a = full_design(tau, tc_fit)
+        upper_all = np.append(upper_all, _gm_limit(tc_fit, tau_all, s2_all, inf95, hi_fw,
+                                                   model_err))
+        active = active + [GM_IDX]
+    else:
+        model_err, chi2_stat = _model_error(full_a[:, active], s2, e, active, cov_terms,
+                                            iterations, upper_all[active])
+    full_a_all = full_design(tau_all, tc_fit)
+    b_test = (b_presence_test(tau, s2, e, tau0, n_phase, cov_terms, iterations,
+                              extra=None if tc_fit is None else full_a[:, GM_IDX])
               if select and B_IDX in active else {"tested": False})
-    model_err, chi2_stat = _model_error(full_a[:, active], s2, e, active, cov_terms, iterations,
-                                        upper_all[active])
     # ... but where the curve is not IEEE 952 (the model needs its own error, eps >=
     # MODEL_ERROR_HOLD), B is
     # held to the curve's own limit, min sigma / 0.664 over the well-determined taus, like
@@ -612,6 +694,8 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # limit, the total 2.3x above the curve at 10 s, once B was held and bounded
     held = (_point_limits(tau_all, s2_all, inf95, tau0) if model_err >= MODEL_ERROR_HOLD
             else np.full(len(TERMS), np.inf))
+    if tc_fit is not None:  # GM's hold is in its limit already (_gm_limit)
+        held = np.append(held, np.inf)
     upper_all = np.minimum(upper_all, held)
     inflate = None
     dropped: list[int] = []
@@ -644,7 +728,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         at_limit = np.isfinite(up) & (p >= up * (1.0 - 1e-6)) & (p > 0)
         # (Q and N, held only where the model needs its own error, _point_limits: a white
         # noise pressed against the curve's shortest taus is the curve, not a bump)
-        at_limit &= np.array([TERMS[j] in CONSTRAINED for j in active])
+        at_limit &= np.array([COLS[j] in CONSTRAINED for j in active])
         # ... except a B pressed against a floor: the curve's lowest informative point (which
         # sets B's limit) has informative taus after it, i.e. the curve flattened or came
         # back up rather than still falling at the end (the MTi-G's fall after its bump). A
@@ -652,14 +736,14 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # on a 30-minute emulated capture, 95 taus: B dropped, the total 4x below the curve
         # at 80 s)
         if floor_seen:
-            at_limit &= np.array([TERMS[j] != "B" for j in active])
+            at_limit &= np.array([COLS[j] != "B" for j in active])
         # a B, K or R whose line the curve ends up clearly below -- the fitted total above
         # the 95 % band, by more than 10 %, at the last well-determined tau where that term is
         # the largest part of the total -- is not in the data either (the MTi-G: a "floor" of
         # 11.7 deg/h fitted across a bump, while the curve goes on falling to 5-9 deg/h from
         # 300 s on): treated the same way. A dip in the middle (a periodic component, as on
         # the ADIS16405 accelerometers at 2-10 s) with the floor back after it is not.
-        a_all = design_matrix(tau_all)[:, active]
+        a_all = full_a_all[:, active]
         parts = a_all * p
         tot2 = np.maximum(parts.sum(axis=1), 1e-300)
         tot = np.sqrt(tot2)
@@ -691,7 +775,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             k = lim_idx[np.argmin(hi_fw[lim_idx] ** 2 / np.maximum(a_all[lim_idx, i], 1e-300))]
             at_limit[i] = back_down(i, int(k))
         for i, j in enumerate(active):
-            if TERMS[j] not in CONSTRAINED or p[i] <= 0:
+            if COLS[j] not in CONSTRAINED or p[i] <= 0:
                 continue
             ruled = np.flatnonzero(inf95 & (parts[:, i] >= 0.5 * tot2))
             # and the curve keeps falling away from the line over the last octave of those
@@ -701,7 +785,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             # last floor taus fell low by chance, had B dropped and the total 4x below the
             # curve at 80-160 s)
             # and the curve there has come back down to the other terms (back_down)
-            if ruled.size and over[ruled[-1]] and not (floor_seen and TERMS[j] == "B"):
+            if ruled.size and over[ruled[-1]] and not (floor_seen and COLS[j] == "B"):
                 tail = ruled[tau_all[ruled] >= TAIL_SPAN * tau_all[ruled[-1]] * (1.0 - 1e-9)]
                 ratio = np.sqrt(s2_all[tail]) / tot[tail]
                 if ratio[-1] < (1.0 - DEPARTURE_REL) * ratio[0] and back_down(i, ruled[-1]):
@@ -722,7 +806,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                 score[ib] = min(score[ib], 0.0)
             if 0.0 <= score[ib] < 1.0 and p[ib] > 0 and _floor_needs_b(
                     full_a, s2, e, tau, active, p, cov_terms, iterations, model_err,
-                    upper_all, inflate, s2_all, lo95, hi95, tau_all, e_all):
+                    upper_all, inflate, s2_all, lo95, hi95, tau_all, e_all, full_a_all):
                 score[ib] = 1.0
                 needed_terms.add(B_IDX)
             else:
@@ -737,11 +821,29 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # bounds, every term dropped otherwise and the total 0). Not Q: each limit is that of
         # the term alone, and Q and N both at theirs put the total 1.41x over the same tau
         for i, j in enumerate(active):
-            if TERMS[j] == "N" and p[i] > 0 and p[i] >= held[j] * (1.0 - 1e-6):
+            if COLS[j] == "N" and p[i] > 0 and p[i] >= held[j] * (1.0 - 1e-6):
                 score[i] = max(score[i], 1.0)
                 held_needed.add(j)
             else:
                 held_needed.discard(j)
+        # the Gauss-Markov term stays: its own likelihood-ratio test (allan_gm) decided it
+        if GM_IDX in active:
+            score[active.index(GM_IDX)] = max(score[active.index(GM_IDX)], 1.0)
+            # ... and beside it a K whose significance it weakens (at tau << Tc the process
+            # is a random walk too) is kept where the curve needs it, as B for a floor: the
+            # model without K runs below the band (data above) over an octave of rising
+            # curve (slope >= +FLAT_SLOPE) where the fit with K is inside it (simulated white +
+            # GM + K, tests/test_allan_gm_fit.py seed 4: K dropped at z = 1.80, the total
+            # 0.23-0.30x the curve past 1000 s)
+            ik = active.index(K_IDX) if K_IDX in active else None
+            if (select and ik is not None and 0.0 <= score[ik] < 1.0 and p[ik] > 0
+                    and _floor_needs_b(full_a, s2, e, tau, active, p, cov_terms, iterations,
+                                       model_err, upper_all, inflate, s2_all, lo95, hi95,
+                                       tau_all, e_all, full_a_all, term=K_IDX)):
+                score[ik] = 1.0
+                needed_terms.add(K_IDX)
+            else:
+                needed_terms.discard(K_IDX)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
             break
@@ -784,7 +886,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         entry["pinned_at_curve_limit"] = j in pinned_terms
         # kept because the curve needs it (a floor the other terms cannot reach): reported
         # as an estimate with its interval however wide
-        entry["kept_for_floor"] = j in needed_terms and j in active
+        entry["kept_for_floor"] = j in needed_terms and j in active and t == "B"
+        if t == "K" and tc_fit is not None:  # kept beside the Gauss-Markov term for a rise
+            entry["kept_for_rise"] = j in needed_terms and j in active
         # held at the curve's own limit (_point_limits, model error >= MODEL_ERROR_HOLD): the
         # fit wanted more of the term than the curve allows
         entry["held_at_curve_limit"] = bool(j in active and math.isfinite(held[j])
@@ -799,11 +903,17 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             entry[f"held_limit_{unit_f}"] = math.sqrt(held[j]) * fac
         if t == "B" and b_test.get("tested"):
             entry["presence_test"] = dict(b_test)  # b_presence_test: the p-value that decided
-        if j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
-                                        or (j in needed_terms or j in held_needed) and pj > 0):
+        nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
+        kept = j in active and sdj > 0 and (pj - _Z95 * sdj > 0 or not select and pj > 0
+                                            or (j in needed_terms or j in held_needed) and pj > 0)
+        if kept and not nu >= MIN_ESTIMATE_EDF:
+            # kept without its own significance (held at the curve's limit, kept for a floor,
+            # select=False) but knowing less than one squared normal deviate: a bound at the
+            # curve's limit (docs/allan.md, "An estimate needs one degree of freedom")
+            entry["edf_below_estimate"] = nu
+            kept = False
+        if kept:
             coeff_sq[t] = pj
-            nu = 2.0 * pj * pj / max(sdj * sdj, 1e-300)  # Satterthwaite dof of p_j
-            # [0, inf) only for nu << 1 (a term kept by select=False)
             coefs[t] = NC.Coefficient(math.sqrt(pj), _chi2_ci(pj, nu, 0.683),
                                       _chi2_ci(pj, nu, 0.95), edf=nu)
         else:
@@ -820,7 +930,20 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         out_terms[t] = entry
     if tau0 is not None and n_phase is not None:
         _add_crb(out_terms, coefs, float(tau0), int(n_phase))
-    check = self_check(tau_front, np.sqrt(s2_front), e_front, coeff_sq, m_eff)
+    gm_coefs: tuple = ()
+    gm_term = None
+    gm_s2_front = None
+    if tc_fit is not None:
+        gm_term, gm_coef = _gm_result(
+            gm_prof, tc_fit, values[GM_IDX], sds[GM_IDX], sensor, tau, s2, e, full_a, active,
+            upper_all, cov_terms, iterations, model_err, inflate, tau_front, s2_front,
+            e_front, _gm_limit(tc_fit, tau_all, s2_all, inf95, None, model_err))
+        gm_coefs = (gm_coef,)
+        coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
+        gm_s2_front = gm_column(tau_front, tc_fit) * coeff_sq["GM"]
+    check = self_check(tau_front, np.sqrt(s2_front), e_front,
+                       {t: v for t, v in coeff_sq.items() if t in TERMS}, m_eff,
+                       extra_avar=gm_s2_front)
     # the rising front left out of the fit (rising_front): its taus, which the check names
     check["front_excluded"] = ({"n_taus": int(front), "tau_from_s": float(tau_front[0]),
                                 "tau_to_s": float(tau_front[front - 1]),
@@ -832,6 +955,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # 0.83 and the departure was called chance)
     cols_rep = [TERMS.index(t) for t in terms]
     p_rep = np.array([coeff_sq[t] for t in terms])
+    if tc_fit is not None:  # the Gauss-Markov term is part of the reported model
+        cols_rep = cols_rep + [GM_IDX]
+        p_rep = np.append(p_rep, coeff_sq["GM"])
     a_rep = full_a[:, cols_rep]
     try:
         if not np.all(a_rep @ p_rep > 0):
@@ -854,15 +980,177 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # outside: against the family-wise band (self_check), so that a pure-noise curve fails
     # at the design rate CHECK_ALPHA (at most) whether its taus are octave-spaced or dense
     check["ok"] = check["n_outside_familywise"] == 0 or p_value >= MODEL_ERROR_P
-    return {"method": "joint generalized least squares (IEEE 952 model, covariance of the "
-                      "sigma^2 estimates across taus)" if cov_terms is not None else
-                      "joint EDF-weighted least squares (IEEE 952 model, diagonal)",
-            "sensor": sensor, "terms": out_terms,
-            # the IEEE 952 coefficients (SI) with their intervals or upper bounds; the model the
-            # fit reports (and checks) is NC.resolved_values(): the bounded terms at 0
-            "coefficients": NC.NoiseCoefficients(**coefs, sensor=sensor, source="rigctl allan (IEEE 952 joint fit)"),
-            "reduced_chi2": chi2_red, "n_taus": int(tau.size), "check": check}
+    model = "IEEE 952 model" + (" + a first-order Gauss-Markov term" if tc_fit is not None else "")
+    out = {"method": f"joint generalized least squares ({model}, covariance of the "
+                     "sigma^2 estimates across taus)" if cov_terms is not None else
+                     f"joint EDF-weighted least squares ({model}, diagonal)",
+           "sensor": sensor, "terms": out_terms,
+           # the IEEE 952 coefficients (SI) with their intervals or upper bounds, and the
+           # Gauss-Markov term when fitted (gm); the model the fit reports (and checks) is
+           # fitted_avar(): the bounded terms at 0
+           "coefficients": NC.NoiseCoefficients(**coefs, gm=gm_coefs, sensor=sensor,
+                                                source="rigctl allan (IEEE 952 joint fit"
+                                                + (" + Gauss-Markov)" if gm_coefs else ")")),
+           "reduced_chi2": chi2_red, "n_taus": int(tau.size), "check": check}
+    if gm_term is not None:
+        out["gm_term"] = gm_term
+    return out
 
+
+#: the Gauss-Markov term's Tc: this many grid points per octave over the candidate's range,
+#: then FINE_POINTS between the points two steps either side of the best
+GM_GRID_PER_OCTAVE = 4
+GM_FINE_POINTS = 33
+
+
+def _gm_limit(tc: float, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
+              hi_fw: np.ndarray | None, model_err: float) -> float:
+    """sigma_GM^2's limit at correlation time ``tc``: the curve's family-wise upper band
+    ``hi_fw`` over the well-determined taus (as B, K and R: every term adds a non-negative
+    part, sigma_GM^2 g(tau) <= hi^2), and, where the model needs its own error (model_err >=
+    MODEL_ERROR_HOLD), the curve's own limit min sigma^2 / g(tau) (as every term, _point_limits).
+    ``hi_fw`` None: the latter alone (inf where it does not apply)."""
+    g = np.maximum(gm_column(tau_all, tc), 1e-300)
+    sel = inf95 if np.any(inf95) else np.ones(tau_all.size, dtype=bool)
+    lim = math.inf if hi_fw is None else float(np.min(hi_fw[sel] ** 2 / g[sel]))
+    if model_err >= MODEL_ERROR_HOLD and np.any(inf95):
+        lim = min(lim, float(np.min(s2_all[inf95] / g[inf95])))
+    return lim
+
+
+def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
+                active: list[int], upper_all: np.ndarray, cov_terms: dict | None,
+                iterations: int, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
+                hi_fw: np.ndarray) -> tuple[float, dict, float, tuple]:
+    """Tc of the fit's Gauss-Markov term: the profile of the joint fit's chi-square (every
+    IEEE 952 term of ``active`` and sigma_GM^2, non-negative, within their limits; the
+    covariance of the estimates at the fit) over GM_GRID_PER_OCTAVE points per octave of the
+    candidate's range ``gm["tc_grid_s"]``, first with the statistical covariance alone, then,
+    where that leaves the model's own error (the fit's _model_error at the best Tc), with it;
+    refined with GM_FINE_POINTS between the grid points two steps either side of the best.
+    Returns (Tc, the profile {"tc_s", "chi2", "dof", "model_error_rel"}, the model error at
+    Tc, the statistical goodness of fit at Tc (chi2, dof, p))."""
+    lo, hi = (float(v) for v in gm["tc_grid_s"])
+    n = max(2, int(math.ceil(math.log2(hi / lo) * GM_GRID_PER_OCTAVE)) + 1)
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), n))
+    w = e / (2.0 * s2 ** 2)
+
+    def at(tc: float, eps: float) -> float:
+        a = np.column_stack((full_a[:, active], gm_column(tau, tc)))
+        cols = active + [GM_IDX]
+        up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, eps))
+        p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
+        _, _, rw = _gls(a, s2, e, cols, cov_terms, p0, iterations, eps, up)
+        return float(rw @ rw)
+
+    def err_at(tc: float) -> tuple[float, tuple]:
+        a = np.column_stack((full_a[:, active], gm_column(tau, tc)))
+        up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, 0.0))
+        return _model_error(a, s2, e, active + [GM_IDX], cov_terms, iterations, up)
+
+    c = np.array([at(tc, 0.0) for tc in grid])
+    eps, stat = err_at(float(grid[int(np.argmin(c))]))
+    if eps > 0:  # the profile with the model's own error (its weights decide the fit)
+        c = np.array([at(tc, eps) for tc in grid])
+    i = int(np.argmin(c))
+    fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]),
+                              math.log(grid[min(i + 2, grid.size - 1)]), GM_FINE_POINTS))
+    fine = fine[~np.any(np.isclose(fine[:, None], grid[None, :], rtol=1e-9), axis=1)]
+    tcs = np.concatenate((grid, fine))
+    c = np.concatenate((c, [at(tc, eps) for tc in fine]))
+    o = np.argsort(tcs)
+    tcs, c = tcs[o], c[o]
+    tc = float(tcs[int(np.argmin(c))])
+    if eps > 0:  # the model error at the refined Tc (the one the fit then uses)
+        eps, stat = err_at(tc)
+    dof = max(1, tau.size - len(active) - 1)
+    return tc, {"tc_s": tcs, "chi2": c, "dof": dof, "model_error_rel": eps}, eps, stat
+
+
+def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
+               tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
+               active: list[int], upper_all: np.ndarray, cov_terms: dict | None,
+               iterations: int, model_err: float, inflate: np.ndarray | None,
+               tau_front: np.ndarray, s2_front: np.ndarray, e_front: np.ndarray,
+               point_limit: float) -> tuple[dict, "NC.GaussMarkov"]:
+    """The fitted Gauss-Markov term: Tc's 95 % interval from the profile (the Tc whose
+    chi-square is within chi2_0.95(1) of the least, scaled by the overdispersion, bracketed by
+    the next evaluated Tc either side), sigma_GM's 95 % interval the union over that set of
+    each Tc's Satterthwaite interval (the final terms refitted at that Tc, as the selection
+    fits them), the curve's limit and whether the fit was held at it."""
+    tcs, c = prof["tc_s"], prof["chi2"]
+    over = max(1.0, float(c.min()) / prof["dof"])
+    inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
+    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
+    ig = active.index(GM_IDX)
+
+    def interval(pj: float, sdj: float, conf: float) -> tuple[float, float] | None:
+        if not (pj > 0 and sdj > 0):
+            return None
+        return _chi2_ci(pj, 2.0 * pj * pj / (sdj * sdj), conf)
+
+    ci95 = interval(p_gm, sd_gm, 0.95)
+    ci68 = interval(p_gm, sd_gm, 0.683)
+    ends = [ci95] if ci95 else []
+    for k in inside:
+        if math.isclose(float(tcs[k]), tc, rel_tol=1e-12):
+            continue
+        a = full_a.copy()
+        a[:, GM_IDX] = gm_column(tau, float(tcs[k]))
+        a = a[:, active]
+        w = e / (2.0 * s2 ** 2)
+        up = upper_all[active]
+        p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
+        try:
+            p, aw, rw = _gls(a, s2, e, active, cov_terms, p0, iterations, model_err, up,
+                             inflate)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        pos = p > 0
+        if not pos[ig]:
+            continue
+        red = float(rw @ rw) / max(1, tau.size - int(np.count_nonzero(pos)))
+        cov = _param_cov(aw[:, pos]) * max(1.0, red)
+        sdk = math.sqrt(max(cov[int(np.count_nonzero(pos[:ig])), int(np.count_nonzero(pos[:ig]))],
+                            0.0))
+        ck = interval(float(p[ig]), sdk, 0.95)
+        if ck:
+            ends.append(ck)
+    g_front = np.maximum(gm_column(tau_front, tc), 1e-300)
+    inf_front = (np.sqrt(e_front / chi2.ppf(0.025, e_front))
+                 <= INFORMATIVE_RATIO * np.sqrt(e_front / chi2.ppf(0.975, e_front)))
+    sel = inf_front if np.any(inf_front) else np.ones(tau_front.size, dtype=bool)
+    lim = math.sqrt(float(np.min(s2_front[sel] / g_front[sel])))
+    held = bool(math.isfinite(point_limit) and p_gm >= point_limit * (1.0 - 1e-6) and p_gm > 0)
+    if ci95:
+        sig = NC.Coefficient(math.sqrt(p_gm), ci68,
+                             (min(x[0] for x in ends), max(x[1] for x in ends)),
+                             edf=2.0 * p_gm * p_gm / (sd_gm * sd_gm))
+    else:  # the joint fit put no Gauss-Markov term where the candidate saw one: a bound
+        ub = min(math.sqrt(max(p_gm, 0.0) + _Z95_ONE * max(sd_gm, 0.0)), lim)
+        sig = NC.Coefficient(min(math.sqrt(max(p_gm, 0.0)), ub), upper95=ub,
+                             bound_from="curve" if ub >= lim else "fit")
+    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
+    coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
+    term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
+            "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),
+            "sigma_si": sig.value, "sigma_ci95_si": list(sig.interval95),
+            "resolved": sig.resolved, "curve_limit_si": lim, "held_at_curve_limit": held,
+            "overdispersion": over, "profile_model_error_rel": prof["model_error_rel"],
+            "covariance": "the Q, N, B, K terms' correlations across taus, scaled to the total "
+                          "(no Gauss-Markov kernel)"}
+    if math.isfinite(point_limit):
+        term["held_limit_si"] = math.sqrt(point_limit)
+    return term, coef
+
+
+#: an estimate needs at least this Satterthwaite EDF (nu = 2 p^2 / sd(p)^2): below it sd(p) >
+#: sqrt(2) p, less than one squared normal deviate tells about its variance, and the chi-square
+#: interval degenerates (nu = 0.01: [1.18, inf) x the value; below ~1e-3 [0, inf)). A term kept
+#: without its own significance (held at the curve's limit, kept for a floor) with fewer is a
+#: bound at the curve's limit -- the one thing the data say about it. A significant term has
+#: nu > 2 x 1.96^2 = 7.7 and is never affected.
+MIN_ESTIMATE_EDF = 1.0
 
 #: a B, K or R is dropped as a bump when the curve is clearly below the total at the last
 #: informative tau it dominates and falls away from it from TAIL_SPAN x that tau on
@@ -873,6 +1161,7 @@ FLOOR_AFTER = 1.4
 #: terms held within the curve's 95 % limit in the fit (see _fit_terms)
 CONSTRAINED = ("B", "K", "R")
 B_IDX = TERMS.index("B")
+K_IDX = TERMS.index("K")
 #: a floor needs B when the fit without it leaves the curve's 95 % band (data above) over at
 #: least this ratio of taus (an octave), where the fit with B is within it
 FLOOR_SPAN = 2.0
@@ -1001,7 +1290,8 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
                    active: list[int], p: np.ndarray, cov_terms: dict | None, iterations: int,
                    model_err: float, upper_all: np.ndarray, inflate: np.ndarray | None,
                    s2_all: np.ndarray, lo95: np.ndarray, hi95: np.ndarray,
-                   tau_all: np.ndarray, e_all: np.ndarray) -> bool:
+                   tau_all: np.ndarray, e_all: np.ndarray,
+                   a_all_full: np.ndarray | None = None, term: int = B_IDX) -> bool:
     """Does the curve need B, whatever its significance in the joint fit? Yes when the
     model refitted without B (same weights, model error and robust inflation) runs below the
     curve's 95 % band -- the data above it -- over a run of consecutive taus spanning at
@@ -1020,10 +1310,10 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
     off: no hard cut on the EDF. On white noise + random walk (no B) the model without B
     follows the curve's V-shaped minimum within the band: the false-B rate is measured in
     tests/test_allan_fit.py."""
-    keep = [j for j in active if j != B_IDX]
+    keep = [j for j in active if j != term]
     if not keep:
         return True
-    ib = active.index(B_IDX)
+    ib = active.index(term)
     a = full_a[:, keep]
     p0 = np.delete(p, ib)
     try:
@@ -1031,7 +1321,7 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
                        inflate)
     except (ValueError, np.linalg.LinAlgError):
         return False
-    a_all = design_matrix(tau_all)
+    a_all = design_matrix(tau_all) if a_all_full is None else a_all_full
     without = np.sqrt(np.maximum(a_all[:, keep] @ q, 0.0))
     with_b = np.sqrt(np.maximum(a_all[:, active] @ p, 0.0))
     hit = (without < lo95) & (with_b >= lo95) & (with_b <= hi95) & (e_all > 2.0)
@@ -1042,7 +1332,7 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
             j = i
             while j + 1 < n and hit[j + 1]:
                 j += 1
-            if _flat_octave(lt[i:j + 1], ld[i:j + 1]):
+            if _flat_octave(lt[i:j + 1], ld[i:j + 1], rising=term != B_IDX):
                 return True
             i = j + 1
         else:
@@ -1055,14 +1345,16 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
 FLAT_SLOPE = 0.25
 
 
-def _flat_octave(lt: np.ndarray, ld: np.ndarray) -> bool:
+def _flat_octave(lt: np.ndarray, ld: np.ndarray, rising: bool = False) -> bool:
     """Is there a stretch of these (log tau, log sigma) points spanning at least FLOOR_SPAN
-    in tau over which the least-squares log-log slope is within +-FLAT_SLOPE?"""
+    in tau over which the least-squares log-log slope is within +-FLAT_SLOPE? (``rising``:
+    at least +FLAT_SLOPE, a rise such as a random walk's +1/2)"""
     span = math.log(FLOOR_SPAN) * (1.0 - 1e-9)
     for a in range(lt.size):
         for b in range(a + 1, lt.size):
             if lt[b] - lt[a] >= span:
-                if abs(float(np.polyfit(lt[a:b + 1], ld[a:b + 1], 1)[0])) < FLAT_SLOPE:
+                slope = float(np.polyfit(lt[a:b + 1], ld[a:b + 1], 1)[0])
+                if (slope >= FLAT_SLOPE) if rising else abs(slope) < FLAT_SLOPE:
                     return True
                 break  # longer stretches from a: tried from the next start
     return False
@@ -1172,7 +1464,7 @@ CHECK_ALPHA = 0.05
 
 
 def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dict,
-               m_eff: float | None = None) -> dict:
+               m_eff: float | None = None, extra_avar: np.ndarray | None = None) -> dict:
     """Does the fitted total follow the curve? At every well-determined tau (its 95 %
     chi-square band informative, hi/lo <= INFORMATIVE_RATIO, as are all the taus before it:
     :func:`_informative_prefix`), the fitted sigma must lie in the band.
@@ -1191,14 +1483,18 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
     without it, the number of informative taus, as if independent). ``n_outside_familywise``
     counts the informative taus outside that band by more than DEPARTURE_REL (and
     ``n_outside_familywise_band`` every one outside it): on a curve the model describes the
-    latter is 0 in 1 - CHECK_ALPHA of captures, at any tau density."""
+    latter is 0 in 1 - CHECK_ALPHA of captures, at any tau density. ``extra_avar``: a further
+    part of the fitted total at each tau (the fit's Gauss-Markov term), added to the IEEE 952
+    terms' sigma^2."""
     tau = np.asarray(tau, dtype=float)
     dev = np.asarray(adev, dtype=float)
     e = np.asarray(edf, dtype=float)
     q = chi2.ppf([0.975, 0.025], e[:, None]).T
     lo, hi = dev * np.sqrt(e / q[0]), dev * np.sqrt(e / q[1])
-    fit = np.sqrt(np.maximum(model_avar(tau, {t: math.sqrt(v) for t, v in coeff_sq.items()}),
-                             0.0))
+    fit2 = model_avar(tau, {t: math.sqrt(v) for t, v in coeff_sq.items()})
+    if extra_avar is not None:
+        fit2 = fit2 + np.asarray(extra_avar, dtype=float)
+    fit = np.sqrt(np.maximum(fit2, 0.0))
     # the well-determined taus (_informative_prefix): a tau past an uninformative one whose EDF
     # rose again only because the noise ID changed on a handful of averages is not judged (seed
     # 20002, --taus all: flicker PM from B1 on 4-8 averages, EDF 100-212 at 819-1638 s where

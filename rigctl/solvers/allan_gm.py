@@ -55,15 +55,8 @@ GM_GRID_PER_OCTAVE = 4
 GM_PEAK = 1.89
 
 
-def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
-    """Allan variance of a first-order Gauss-Markov rate of variance ``var_gm`` (SI^2) and
-    correlation time ``tc`` (s) at averaging times ``tau`` (s). Series below tau/Tc = 0.05
-    (the closed form cancels there)."""
-    x = np.asarray(tau, dtype=float) / float(tc)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        closed = (2.0 * x - 3.0 + 4.0 * np.exp(-x) - np.exp(-2.0 * x)) / x ** 2
-    series = x * (2.0 / 3.0 - x / 2.0 + x * x * 7.0 / 30.0 - x ** 3 / 12.0)
-    return float(var_gm) * np.where(x < 0.05, series, closed)
+#: the Allan variance of the process (defined in allan_fit, whose joint fit carries the term)
+gm_avar = F.gm_avar
 
 
 def _interval(p: float, sd: float, conf: float) -> tuple[float, float]:

@@ -163,10 +163,12 @@ def _coef(x: Any) -> Coefficient:
 @dataclass(frozen=True)
 class GaussMarkov:
     """A first-order Gauss-Markov term: stationary standard deviation ``sigma`` (u) and
-    correlation time ``tau_c_s`` (s)."""
+    correlation time ``tau_c_s`` (s); ``tau_c_ci95``: Tc's 95 % interval (s) where it was
+    estimated (the Allan fit), None where given."""
 
     sigma: Coefficient
     tau_c_s: float
+    tau_c_ci95: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sigma", _coef(self.sigma))
@@ -361,7 +363,9 @@ def to_json(m: NoiseCoefficients) -> dict[str, Any]:
                            "flicker_tau_min_s": m.flicker_tau_min_s, "flicker_tau_max_s": m.flicker_tau_max_s,
                            **{t: _coef_json(getattr(m, t)) for t in TERMS}}
     if m.gm:
-        out["gm"] = [{"sigma": _coef_json(g.sigma), "tau_c_s": g.tau_c_s} for g in m.gm]
+        out["gm"] = [{"sigma": _coef_json(g.sigma), "tau_c_s": g.tau_c_s,
+                      **({} if g.tau_c_ci95 is None else {"tau_c_ci95_s": list(g.tau_c_ci95)})}
+                     for g in m.gm]
     if m.white_by_group is not None:
         out["white_by_group"] = {str(k): float(v) for k, v in m.white_by_group.items()}
     return out
@@ -370,7 +374,10 @@ def to_json(m: NoiseCoefficients) -> dict[str, Any]:
 def from_json(d: Mapping[str, Any]) -> NoiseCoefficients:
     """Inverse of :func:`to_json`."""
     return NoiseCoefficients(**{t: _coef_from(d.get(t) or {}) for t in TERMS},
-                             gm=tuple(GaussMarkov(_coef_from(g["sigma"]), float(g["tau_c_s"]))
+                             gm=tuple(GaussMarkov(_coef_from(g["sigma"]), float(g["tau_c_s"]),
+                                                  None if g.get("tau_c_ci95_s") is None else
+                                                  (float(g["tau_c_ci95_s"][0]),
+                                                   float(g["tau_c_ci95_s"][1])))
                                       for g in d.get("gm") or ()),
                              flicker_tau_min_s=float(d.get("flicker_tau_min_s", 1.0)),
                              flicker_tau_max_s=float(d.get("flicker_tau_max_s", 1.0e4)),
