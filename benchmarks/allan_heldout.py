@@ -22,7 +22,8 @@ informative taus; the curve "shows a floor" when informative taus reach at least
 and the log-log slope over 2.5x either side of it is within +-0.25.
 
 "Near the floor" (docs/allan.md, "B near the floor"): where the curve shows a floor, B is an
-estimate, the fitted total (every resolved term and the tones) lies inside the deviations' 95 %
+estimate, the fitted total (every resolved term, a Gauss-Markov term the fit carries, and the
+tones) lies inside the deviations' 95 %
 band at each of the floor's taus (informative, within 2x of the minimum; where that band is
 narrower than 10 %, within 10 % of the deviation, as rigctl's self-check), and B <= floor/0.664
 -- B's 95 % interval reaches down to that limit. B / (floor/0.664) < 1 is expected where N, K, Q
@@ -301,6 +302,10 @@ def total(coef: dict, tones: list[dict], tau: float, tau0: float) -> float:
     v = lambda t: float(coef[t].get("value") or 0.0) if "ci95" in coef[t] else 0.0  # noqa: E731
     s2 = (3 * v("Q") ** 2 / tau ** 2 + v("N") ** 2 / tau + B_FACTOR ** 2 * v("B") ** 2
           + v("K") ** 2 * tau / 3 + v("R") ** 2 * tau ** 2 / 2)
+    for g in coef.get("gm") or []:  # a first-order Gauss-Markov term the fit carries
+        if "ci95" in g["sigma"]:
+            x = tau / g["tau_c_s"]
+            s2 += g["sigma"]["value"] ** 2 * (2 * x - 3 + 4 * math.exp(-x) - math.exp(-2 * x)) / x ** 2
     m = tau / tau0
     for t in tones:
         s2 += t["amp_si"] ** 2 * math.sin(math.pi * t["freq_hz"] * tau) ** 4 / (

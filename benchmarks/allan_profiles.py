@@ -233,6 +233,10 @@ def total_sigma(tau: np.ndarray, fit: dict, sensor: str, m: np.ndarray | None = 
     s2 = (3 * c.get("Q", 0) ** 2 / tau ** 2 + c.get("N", 0) ** 2 / tau
           + B_FACTOR ** 2 * c.get("B", 0) ** 2 + c.get("K", 0) ** 2 * tau / 3
           + c.get("R", 0) ** 2 * tau ** 2 / 2)
+    for g in getattr(co, "gm", ()):  # a first-order Gauss-Markov term the fit carries
+        if g.sigma.resolved:
+            x = tau / g.tau_c_s
+            s2 = s2 + g.sigma.value ** 2 * (2 * x - 3 + 4 * np.exp(-x) - np.exp(-2 * x)) / x ** 2
     if m is not None:
         mm = np.asarray(m, float)
         tau0 = float(tau[0] / mm[0])
@@ -355,6 +359,8 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
                 totals["over_all_where"].append(f"{name}:{a}:{taus}:{''.join(c['over_all'])}")
             if c["over"]:
                 totals["over_where"].append(f"{name}:{a}:{taus}:{''.join(c['over'])}")
+            if r["fit"].get("gm_term"):
+                totals["gm_terms"].append(f"{name}:{a}:{taus}:Tc{r['fit']['gm_term']['tc_s']:.3g}s")
             totals["outside"] += c["n_out"]
             totals["informative"] += c["n_inf"]
             totals["unnamed"] += c["n_unnamed"]
@@ -388,7 +394,7 @@ def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = N
               "over_all_where": [], "over_all_terms": {}, "informative": 0, "outside": 0,
               "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
               "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
-              "tones": [], "analysis_s": 0.0, "generate_s": 0.0}
+              "tones": [], "analysis_s": 0.0, "generate_s": 0.0, "gm_terms": []}
     with tempfile.TemporaryDirectory(dir="/tmp") as d:
         tmp = Path(keep or d)
         tmp.mkdir(parents=True, exist_ok=True)
@@ -441,7 +447,9 @@ def main() -> None:
           f"beyond their intervals: {totals['disagree']} of {totals['pairs']} axes "
           f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
           f"{wall:.0f} s (load {load0} -> {_load()})")
-    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where", "tones"):
+    print(f"Gauss-Markov terms in the fit: {len(totals['gm_terms'])} of {totals['fits']} fits")
+    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where", "tones",
+              "gm_terms"):
         if totals[k]:
             print(f"{k}: {'; '.join(totals[k][:30])}")
     print(json.dumps({"hours_emulated": a.hours, "warmup_s": a.warmup_s, "cases": wanted,
@@ -458,6 +466,7 @@ def main() -> None:
                       "octave_vs_all_axes": totals["pairs"],
                       "octave_vs_all_disagree_with_checks_ok": totals["disagree_checks_ok"],
                       "axes_with_tones": len({w.rsplit(":", 2)[0] for w in totals["tones"]}),
+                      "fits_with_gauss_markov_term": len(totals["gm_terms"]),
                       "generate_s": round(totals["generate_s"], 1),
                       "analysis_s": round(totals["analysis_s"], 1), "wall_s": round(wall, 1),
                       "load_avg_start": load0, "load_avg_end": _load()}))

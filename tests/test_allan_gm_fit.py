@@ -100,16 +100,15 @@ def test_a_gauss_markov_process_is_fitted_beside_white_noise_and_random_walk() -
     on every one and the joint fit with it puts the truth inside its 95 % intervals -- Tc and
     sigma_GM in at least 7 of 8 (measured, seeds 1-8: Tc 7, sigma_GM 7 -- seed 4's Tc came out
     19.6 [15.2, 26.0], seed 1's sigma 0.537 [0.507, 0.599]e-3: the intervals are narrower than
-    95 %, the Gauss-Markov part of the covariance is approximated), N in at least 7 (measured 8;
-    GM does not swallow the white noise), K's interval or bound holds the truth in at least 6
-    (measured 6: seeds 2 and 4 bound K below the truth at the curve's own limit, the data at
-    1125 s 0.89x the truth's line). The fitted total with the term lies inside the band
-    (Bonferroni over the informative taus, or within 10 %) at every informative tau in at least
-    6 of 8 (measured 6: seed 2 leaves it at 2 of 53 taus, seed 4 at 13 -- K dropped at z = 1.80
-    beside the term, the total 0.23-0.3x the curve past 1000 s: a finding, the IEEE-only fit
-    stays within 10 % there); the informative taus outside it, summed over the seeds, are at
-    most a third of the IEEE 952 terms' alone (measured 15 against 62 of 424), and rigctl's
-    self-check passes on at least 6 (measured 6; IEEE-only 1 of 8)."""
+    95 %, the Gauss-Markov part of the covariance is approximated), N and K in at least 7
+    (measured 8 and 8: GM swallows neither; before K was kept for the rise beside the term, seeds
+    2 and 4 dropped it at z ~ 1.8 and bounded it below the truth). The fitted total with the
+    term lies inside the band (Bonferroni over the informative taus, or within 10 %) at every
+    informative tau in at least 7 of 8 (measured 8; with K dropped, seed 4 left it at 13 taus,
+    0.23-0.3x the curve past 1000 s); the informative taus outside it, summed over the seeds,
+    are at most a third of the IEEE 952 terms' alone (measured 0 against 62 of 424), and
+    rigctl's self-check passes on at least 7 (measured 7, seed 4's chi2 61.6/37; IEEE-only 1 of
+    8). Seed 2 has a B estimate where there is none (2.2e-4 [1.6e-4, 3.7e-4]): a finding."""
     n_tc = n_sig = n_n = n_k = n_total = n_check = n_check_ieee = 0
     out_gm = out_ieee = 0
     for seed in range(1, 9):
@@ -138,9 +137,9 @@ def test_a_gauss_markov_process_is_fitted_beside_white_noise_and_random_walk() -
         n_check += fit["check"]["ok"]
         n_check_ieee += ieee["check"]["ok"]
     assert n_tc >= 7 and n_sig >= 7, (n_tc, n_sig)
-    assert n_n >= 7 and n_k >= 6, (n_n, n_k)
-    assert n_total >= 6 and 3 * out_gm <= out_ieee, (n_total, out_gm, out_ieee)
-    assert n_check >= 6 and n_check > n_check_ieee, (n_check, n_check_ieee)
+    assert n_n >= 7 and n_k >= 7, (n_n, n_k)
+    assert n_total >= 7 and 3 * out_gm <= out_ieee, (n_total, out_gm, out_ieee)
+    assert n_check >= 7 and n_check > n_check_ieee, (n_check, n_check_ieee)
 
 
 def _ieee_series(kind: str, n: int, tau0: float, rng: np.random.Generator) -> np.ndarray:

@@ -829,6 +829,21 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         # the Gauss-Markov term stays: its own likelihood-ratio test (allan_gm) decided it
         if GM_IDX in active:
             score[active.index(GM_IDX)] = max(score[active.index(GM_IDX)], 1.0)
+            # ... and beside it a K whose significance it weakens (at tau << Tc the process
+            # is a random walk too) is kept where the curve needs it, as B for a floor: the
+            # model without K runs below the band (data above) over an octave of rising
+            # curve (slope >= +FLAT_SLOPE) where the fit with K is inside it (simulated white +
+            # GM + K, tests/test_allan_gm_fit.py seed 4: K dropped at z = 1.80, the total
+            # 0.23-0.30x the curve past 1000 s)
+            ik = active.index(K_IDX) if K_IDX in active else None
+            if (select and ik is not None and 0.0 <= score[ik] < 1.0 and p[ik] > 0
+                    and _floor_needs_b(full_a, s2, e, tau, active, p, cov_terms, iterations,
+                                       model_err, upper_all, inflate, s2_all, lo95, hi95,
+                                       tau_all, e_all, full_a_all, term=K_IDX)):
+                score[ik] = 1.0
+                needed_terms.add(K_IDX)
+            else:
+                needed_terms.discard(K_IDX)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
             break
@@ -871,7 +886,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         entry["pinned_at_curve_limit"] = j in pinned_terms
         # kept because the curve needs it (a floor the other terms cannot reach): reported
         # as an estimate with its interval however wide
-        entry["kept_for_floor"] = j in needed_terms and j in active
+        entry["kept_for_floor"] = j in needed_terms and j in active and t == "B"
+        if t == "K" and tc_fit is not None:  # kept beside the Gauss-Markov term for a rise
+            entry["kept_for_rise"] = j in needed_terms and j in active
         # held at the curve's own limit (_point_limits, model error >= MODEL_ERROR_HOLD): the
         # fit wanted more of the term than the curve allows
         entry["held_at_curve_limit"] = bool(j in active and math.isfinite(held[j])
@@ -1144,6 +1161,7 @@ FLOOR_AFTER = 1.4
 #: terms held within the curve's 95 % limit in the fit (see _fit_terms)
 CONSTRAINED = ("B", "K", "R")
 B_IDX = TERMS.index("B")
+K_IDX = TERMS.index("K")
 #: a floor needs B when the fit without it leaves the curve's 95 % band (data above) over at
 #: least this ratio of taus (an octave), where the fit with B is within it
 FLOOR_SPAN = 2.0
@@ -1273,7 +1291,7 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
                    model_err: float, upper_all: np.ndarray, inflate: np.ndarray | None,
                    s2_all: np.ndarray, lo95: np.ndarray, hi95: np.ndarray,
                    tau_all: np.ndarray, e_all: np.ndarray,
-                   a_all_full: np.ndarray | None = None) -> bool:
+                   a_all_full: np.ndarray | None = None, term: int = B_IDX) -> bool:
     """Does the curve need B, whatever its significance in the joint fit? Yes when the
     model refitted without B (same weights, model error and robust inflation) runs below the
     curve's 95 % band -- the data above it -- over a run of consecutive taus spanning at
@@ -1292,10 +1310,10 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
     off: no hard cut on the EDF. On white noise + random walk (no B) the model without B
     follows the curve's V-shaped minimum within the band: the false-B rate is measured in
     tests/test_allan_fit.py."""
-    keep = [j for j in active if j != B_IDX]
+    keep = [j for j in active if j != term]
     if not keep:
         return True
-    ib = active.index(B_IDX)
+    ib = active.index(term)
     a = full_a[:, keep]
     p0 = np.delete(p, ib)
     try:
@@ -1314,7 +1332,7 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
             j = i
             while j + 1 < n and hit[j + 1]:
                 j += 1
-            if _flat_octave(lt[i:j + 1], ld[i:j + 1]):
+            if _flat_octave(lt[i:j + 1], ld[i:j + 1], rising=term != B_IDX):
                 return True
             i = j + 1
         else:
@@ -1327,14 +1345,16 @@ def _floor_needs_b(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray, tau: np.nd
 FLAT_SLOPE = 0.25
 
 
-def _flat_octave(lt: np.ndarray, ld: np.ndarray) -> bool:
+def _flat_octave(lt: np.ndarray, ld: np.ndarray, rising: bool = False) -> bool:
     """Is there a stretch of these (log tau, log sigma) points spanning at least FLOOR_SPAN
-    in tau over which the least-squares log-log slope is within +-FLAT_SLOPE?"""
+    in tau over which the least-squares log-log slope is within +-FLAT_SLOPE? (``rising``:
+    at least +FLAT_SLOPE, a rise such as a random walk's +1/2)"""
     span = math.log(FLOOR_SPAN) * (1.0 - 1e-9)
     for a in range(lt.size):
         for b in range(a + 1, lt.size):
             if lt[b] - lt[a] >= span:
-                if abs(float(np.polyfit(lt[a:b + 1], ld[a:b + 1], 1)[0])) < FLAT_SLOPE:
+                slope = float(np.polyfit(lt[a:b + 1], ld[a:b + 1], 1)[0])
+                if (slope >= FLAT_SLOPE) if rising else abs(slope) < FLAT_SLOPE:
                     return True
                 break  # longer stretches from a: tried from the next start
     return False
