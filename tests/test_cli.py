@@ -88,7 +88,11 @@ def test_swmr_read_during_run_then_sigint_leaves_interrupted_file(tmp_path):
             time.sleep(0.1)
         assert files, "no recording appeared"
         path = files[0]
-        seen = []
+        # SWMR reads until three different lengths were seen. The writer flushes every 0.5 s of
+        # wall time after its last flush ended, so two reads 0.7 s apart could both fall between
+        # two flushes when the writer was held up ~0.2 s (a loaded host; seen at load 15: the
+        # same length twice); every read is kept, and the lengths must never shrink
+        reads, seen = [], []
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end and len(seen) < 3:
             try:
@@ -97,13 +101,16 @@ def test_swmr_read_during_run_then_sigint_leaves_interrupted_file(tmp_path):
                     ds.refresh()
                     status = f["run/status"][0]
                     if ds.shape[0] > 0:
-                        seen.append((ds.shape[0], float(ds[-1]), status))
+                        reads.append((ds.shape[0], float(ds[-1]), status))
+                        if not seen or ds.shape[0] != seen[-1][0]:
+                            seen.append(reads[-1])
             except OSError:
                 pass  # file not yet in SWMR mode
             time.sleep(0.7)
-        assert len(seen) >= 3
-        assert seen[0][0] < seen[1][0] < seen[2][0]  # growing while being written
-        assert all(s[2] == b"running" for s in seen)
+        assert len(seen) >= 3, reads
+        assert seen[0][0] < seen[1][0] < seen[2][0], reads  # growing while being written
+        assert all(a[0] <= b[0] and a[1] <= b[1] for a, b in zip(reads, reads[1:])), reads
+        assert all(s[2] == b"running" for s in reads)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     finally:

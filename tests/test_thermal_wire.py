@@ -76,10 +76,12 @@ def test_soak_over_the_wire(tmp_path, link):
 def test_device_check_names_an_unreachable_chamber(tmp_path):
     import socket
 
+    # bound and never listening, held open: a connection is refused, and neither another process
+    # nor the driver's own outgoing connection (a TCP self-connect, when the kernel picks the
+    # destination port as the source port) can take the port, as with a port looked up and closed
     s = socket.socket()
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
-    s.close()  # nothing listens there now
     raw = yaml.safe_load((ROOT / "configs" / "sim-wire.yaml").read_text())
     raw["table"]["port"] = str(tmp_path / "no-table")
     raw["imu"]["port"] = str(tmp_path / "no-imu")
@@ -89,7 +91,10 @@ def test_device_check_names_an_unreachable_chamber(tmp_path):
     p = tmp_path / "wired.yaml"
     p.write_text(yaml.safe_dump(raw))
     from rigctl.engine.device_check import check_devices
-    c = {c.role: c for c in check_devices(load_config(p)).checks}["chamber"]
+    try:
+        c = {c.role: c for c in check_devices(load_config(p)).checks}["chamber"]
+    finally:
+        s.close()
     assert not c.ok and f"127.0.0.1:{port}" in c.text, c
 
 
