@@ -76,14 +76,19 @@ IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 
 
 class FlowPtyEndpoint(PtyEndpoint):
-    """A pty endpoint whose writes wait up to ``write_timeout_s`` for the client to drain the
-    port (flow control) instead of dropping at once; after one timed-out write it drops
+    """A pty endpoint whose writes wait for the client to drain the port (flow control) instead
+    of dropping at once, as long as the client takes some of the bytes at least every
+    ``write_timeout_s``; after one timed-out write it drops
     (counting ``overflow_bytes``) until a write goes through whole again or the client has
     drained the port since (the master is writable again), so a client that went away cannot
     stall the emulator. Needed when the emulator runs many times faster than the nominal baud
     rate would allow. (Before, only a whole write ended the dropping: a stream writing batches
     larger than the port holds -- 2 kHz at 100x, a catch-up batch of the IMU stream thread --
     never had one, and a driver starved once for 0.5 s lost the rest of the stream.)
+    The timeout is on the client's progress, not on the whole write: with one deadline for the
+    whole write, a catch-up batch larger than the client drains in 0.5 s (333 kB of VectorNav
+    frames at 50x, at load 15) was cut although the client read all along (its longest pause
+    22 ms), and test_wire_imu_errors / test_hil_faults / test_hil_runs found bytes lost.
 
     Flow control starts once the client has written to the port (``received_bytes``; a
     commanded device's driver always speaks first: GoToConfig, a register read): until then
@@ -114,6 +119,8 @@ class FlowPtyEndpoint(PtyEndpoint):
             while sent < len(view):
                 try:
                     sent += os.write(self.master, view[sent:])
+                    if flowing:                 # the client took bytes: it is there, wait on
+                        deadline = time.monotonic() + self.write_timeout_s
                 except BlockingIOError:
                     left = deadline - time.monotonic()
                     if left <= 0:
@@ -433,6 +440,16 @@ class Hardware:
         self.world = SimWorld(self.cfg, self.world_clock)
         self.table = PhysicsTable(self.world, self.lock, self.cfg.limits)
         self.tap = ImuTap(self.world, self.lock)
+        # the world's first step, before any port or thread exists and before the clock starts:
+        # it loads the noise kernels (numba: 0.6 s from its cache, 3.4 s compiling on a clean
+        # clone, seconds more on a loaded host). Taken by the physics loop's first tick instead,
+        # under the hardware lock, it held back the first table commands of a client that
+        # connected as soon as the ports were up (`rigctl sim up` at 100x under load: 0.2-1.3 s
+        # for the reply to the first command after 'ready', past the wired config's 0.5 s timeout)
+        self.world_clock.cap = 0.0
+        self.world.advance()
+        self.world_clock.cap = math.inf
+        self.clock = self.world_clock.clock = ScaledClock(self.speed)
         # turntable, ASCII
         self.acl = AclServer(self.table)
         self.acl.core = HwAclCore(self.table)

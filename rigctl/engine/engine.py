@@ -129,6 +129,8 @@ class Engine:
         self.open_interlocks = open_interlocks
         self.log = log or (lambda kind, msg, **kw: None)
         self.suspenders = suspenders if suspenders is not None else SuspenderSet()
+        if not isinstance(rig.clock, VirtualClock):     # the no-sample wait's wall-time floor
+            self.suspenders.clock_speed = float(getattr(rig.clock, "speed", 1.0))
         self.states = states if states is not None else StateMachine()
         self.abort_requested: str | None = None
         self._track: deque | None = None
