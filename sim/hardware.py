@@ -99,8 +99,20 @@ class FlowPtyEndpoint(PtyEndpoint):
     the wait as one burst of stale data ahead of the reply to its GoToConfig.
     ``flow_before_client_speaks``: a device that takes no commands sets it."""
 
-    write_timeout_s = 0.5
+    #: the client's longest pause (no byte taken) before the port drops, wall s: longer than a
+    #: reader thread of a loaded host is held up (0.5 s was not, at load 15-18 on 2 cores: the
+    #: wired 24-position runs at 100x lost 4,000-24,000 samples at a time, test_hil_runs)
+    write_timeout_s = 1.5
     flow_before_client_speaks = False
+    _aborted = False
+
+    def abort_writes(self) -> None:
+        """A write waiting for the client gives up now (the emulator is shutting down)."""
+        self._aborted = True
+
+    def close(self) -> None:
+        self.abort_writes()
+        super().close()
 
     def write(self, data: bytes) -> int:
         if not getattr(self, "_flowing", True):
@@ -123,7 +135,7 @@ class FlowPtyEndpoint(PtyEndpoint):
                         deadline = time.monotonic() + self.write_timeout_s
                 except BlockingIOError:
                     left = deadline - time.monotonic()
-                    if left <= 0:
+                    if left <= 0 or self._aborted:
                         break
                     select.select([], [self.master], [], min(left, 0.01))
                 except OSError as exc:
@@ -552,7 +564,9 @@ class Hardware:
         offsets that late. Only a backlog beyond ``backlog`` samples (the client slower than the
         stream for seconds: the emulator runs faster than the wire) holds the physics back."""
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
-        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # >= 1 s of wall time
+        # >= the port's flow-control wait + 0.5 s of wall time: a client paused for less than the
+        # wait gets every frame and the physics does not stop meanwhile
+        backlog = max(horizon, int(self.world.rate_hz * self.speed * (FlowPtyEndpoint.write_timeout_s + 0.5)))
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
             if time.monotonic() < self._paused_until:
@@ -698,6 +712,9 @@ class Hardware:
     # -------------------------------------------------------------------------- teardown
     def close(self) -> None:
         self._stop.set()
+        for slot in self.slots.values() if hasattr(self, "slots") else ():
+            if isinstance(slot.endpoint, FlowPtyEndpoint):
+                slot.endpoint.abort_writes()     # the IMU stream thread may wait for its client
         for t in self._threads:
             t.join(timeout=5)
         self._threads.clear()

@@ -65,12 +65,12 @@ def test_a_physics_stall_at_connect_does_not_shift_the_table_times(tmp_path, kin
 
 
 #: the client's reading, s of wall time from its first read: it reads all along except in these
-#: (start, length) windows -- a short stop, within the emulator's 0.5 s flow-control wait, and a
-#: long one beyond it -- and ends at READ_END_S; samples before WARM_S are not checked (the
-#: stream starting up)
+#: (start, length) windows -- a short stop, within the emulator's flow-control wait
+#: (FlowPtyEndpoint.write_timeout_s, 1.5 s), and a long one beyond it -- and ends at READ_END_S;
+#: samples before WARM_S are not checked (the stream starting up)
 WARM_S = 0.2
-STOPS = ((0.4, 0.2), (1.1, 1.0))
-READ_END_S = 2.7
+STOPS = ((0.4, 0.2), (1.1, 2.0))
+READ_END_S = 3.7
 LAG_MAX_S = 20.0                    # rig time: a loaded host's scheduling, not a stalled write
 
 
@@ -94,10 +94,10 @@ def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_p
     """The IMU's client stops reading twice (a driver starved of CPU): the emulator's stream
     waits for it (flow control) and the physics -- the table's controller time -- goes on.
     Before, the hardware loop wrote the stream itself and stood still in each write for up to
-    0.5 s of wall time: 50 s of rig time behind the clock at 100x in the long stop.
+    0.5 s of wall time (the wait then): 50 s of rig time behind the clock at 100x in the long stop.
 
     The stream the client gets is as before (the same checks pass on the old loop): across the
-    short stop (shorter than the 0.5 s wait) not one sample is missing, the frames arrive late;
+    short stop (shorter than the wait) not one sample is missing, the frames arrive late;
     the long one drops the frames of the stop (as for a client that went away) and the stream
     is live again once the client reads; sample times strictly increase throughout."""
     bounds = sorted([WARM_S] + [x for a, n in STOPS for x in (a, a + n)])
