@@ -28,7 +28,8 @@ stretch its stationarity test names:
    fails for N simulated stationary records with the OCXO's and the ADIS16405's terms, with
    the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record;
    with --sim-rigctl N: rigctl itself on N simulated stationary OCXO-like records (its
-   verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B).
+   verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B);
+   --sim-rigctl-adis N: the same on N ADIS16405 ax-like records (1e6 samples each).
 
 Last line: one JSON object (counts, seconds).
 """
@@ -344,12 +345,44 @@ def simulate_rigctl(keep: Path, nsim: int, seed: int = 2015) -> dict:
     return {"case": "rigctl on OCXO-like records", "n": nsim, **out}
 
 
+def simulate_rigctl_adis(keep: Path, nsim: int, seed: int = 405) -> dict:
+    """As :func:`simulate_rigctl` for ADIS16405 ax-like records (white 4.3e-3 m/s/sqrt(s),
+    B 3.5e-3 m/s^2, K 4.2e-4 m/s^2/sqrt(s); 1e6 samples at 100 Hz, no tones), default taus."""
+    rng = np.random.default_rng(seed)
+    n, tau0, Nt, Bt, Kt = 10 ** 6, 0.01, 4.3e-3, 3.5e-3, 4.2e-4
+    ms0 = np.unique(np.round(np.logspace(0, math.log10(n / 3), 95)).astype(int))
+    c0 = H.read_curve(_flicker(rng, n, tau0), tau0, ms0)
+    scale = BF / float(np.median(c0["dev"][informative(c0) & (ms0 > 10)]))
+    out = {"verdicts": {}, "b_ci_holds_truth": 0, "check_ok": 0, "b_over_truth": []}
+    d = keep / "sim_rigctl_adis"
+    d.mkdir(exist_ok=True)
+    for i in range(nsim):
+        y = (Nt / math.sqrt(tau0) * rng.standard_normal(n) + Bt * scale * _flicker(rng, n, tau0)
+             + np.cumsum(Kt * math.sqrt(tau0) * rng.standard_normal(n)))
+        txt, rec, js = d / f"s{i}.txt", d / f"s{i}.h5", d / f"s{i}.json"
+        np.savetxt(txt, y / 9.80665, fmt="%.9e")
+        H.rigctl("import", str(txt), "-o", str(rec), "--force", "--rate", "100", "--columns", "acc_x=0",
+                 "--units", "acc=g")
+        H.rigctl("allan", str(rec), "--db", "none", "--json", str(js))
+        r = json.loads(js.read_text())["axes"]["ax"]
+        j = H.judge(r, H.read_curve(y, tau0, np.asarray(r["m"], int)), tau0)
+        out["verdicts"][j["verdict"]] = out["verdicts"].get(j["verdict"], 0) + 1
+        out["b_ci_holds_truth"] += int((j["b_lo95"] or 0.0) <= Bt <= j["b_hi95"])
+        out["check_ok"] += int(bool(j["check_ok"]))
+        out["b_over_truth"].append((j["b"] or j["b_hi95"]) / Bt)
+    bt = out.pop("b_over_truth")
+    out["b_over_truth_range"] = [float(min(bt)), float(max(bt))]
+    return {"case": "rigctl on ADIS16405 ax-like records", "n": nsim, **out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", help="files, recordings and rigctl's JSON here (reused when present)")
     ap.add_argument("--sim", type=int, default=0, help="simulated records per case (5.)")
     ap.add_argument("--sim-rigctl", type=int, default=0,
                     help="simulated OCXO-like records through rigctl itself (5.)")
+    ap.add_argument("--sim-rigctl-adis", type=int, default=0,
+                    help="simulated ADIS16405 ax-like records through rigctl itself (5.)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     tmpd = None if args.keep else tempfile.TemporaryDirectory()
@@ -374,6 +407,9 @@ def main() -> None:
             print(json.dumps(sims[-1]), flush=True)
     if args.sim_rigctl:
         sims.append(simulate_rigctl(keep, args.sim_rigctl))
+        print(json.dumps(sims[-1]), flush=True)
+    if args.sim_rigctl_adis:
+        sims.append(simulate_rigctl_adis(keep, args.sim_rigctl_adis))
         print(json.dumps(sims[-1]), flush=True)
     if args.keep:
         (keep / "allan_floor_quiet.json").write_text(json.dumps({"rows": rows, "sims": sims}, indent=1, default=float))

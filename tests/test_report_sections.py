@@ -297,3 +297,16 @@ def test_without_matplotlib_the_command_says_what_to_install(tap_recording: Path
         f.attrs["format"] = "something-else"
     assert main(["report", str(bad)]) == 2
     assert "not a rigctl recording" in capsys.readouterr().err
+
+
+def test_the_summary_shows_counts_whole(tmp_path: Path) -> None:
+    """An imported 1 h bag's 360000 samples read "3.6e+05" in the summary (every number went
+    through 5 significant digits): a count is shown whole."""
+    n = 123_457
+    rng = np.random.default_rng(3)
+    rec = write_recording(tmp_path / "rec.h5", 100.0, angular_rate=rng.standard_normal((n, 3)) * 1e-3,
+                          specific_force=rng.standard_normal((n, 3)) * 1e-2 + [0.0, 0.0, G0])
+    out = report_build.build_report(rec, tmp_path / "rep")
+    rows = {r[0]: r[1:] for r in Page(out.read_text()).rows["summary"] if r}
+    assert rows["IMU samples"] == [str(n)], rows["IMU samples"]
+    assert report_html.fmt(2.5) == "2.5" and report_html.fmt(1.234567) == "1.2346"

@@ -62,6 +62,8 @@ def fmt(v: Any, digits: int = 5) -> str:
         return "n/a"
     if isinstance(v, bool):
         return str(v)
+    if isinstance(v, int):  # a count is shown whole (360000 IMU samples, not 3.6e+05)
+        return str(v)
     if isinstance(v, (int, float)):
         if isinstance(v, float) and not math.isfinite(v):
             return "n/a"

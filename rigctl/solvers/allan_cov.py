@@ -41,9 +41,12 @@ _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 DISCRETE_MAX = 64  # m_a + m_b up to this: exact sum over integer lags
 
 
-def _kernel(term: str, t: np.ndarray) -> np.ndarray:
-    """Generalized autocovariance of the phase for unit coefficient, t in s."""
+def _kernel(term: str, t: np.ndarray, tc: float | None = None) -> np.ndarray:
+    """Generalized autocovariance of the phase for unit coefficient, t in s (``tc``: the
+    Gauss-Markov term's correlation time, s; see :func:`gm_term_covariances`)."""
     a = np.abs(t)
+    if term == "G":
+        return tc * tc * _gm_phi(a / tc)
     if term == "N":
         return -0.5 * a
     if term == "K":
@@ -57,8 +60,8 @@ def _kernel(term: str, t: np.ndarray) -> np.ndarray:
     raise ValueError(term)
 
 
-def _r_lags(term: str, ma: np.ndarray, mb: np.ndarray, k: np.ndarray, tau0: float
-            ) -> np.ndarray:
+def _r_lags(term: str, ma: np.ndarray, mb: np.ndarray, k: np.ndarray, tau0: float,
+            tc: float | None = None) -> np.ndarray:
     """R_ab(k) for unit coefficient; ma, mb, k broadcast together (sample units)."""
     out = np.zeros(np.broadcast(ma, mb, k).shape)
     for j in range(3):
@@ -67,7 +70,7 @@ def _r_lags(term: str, ma: np.ndarray, mb: np.ndarray, k: np.ndarray, tau0: floa
                 lag = j * ma - l * mb - k
                 out += _C[j] * _C[l] * (np.abs(lag) < 0.5)
             else:
-                out += _C[j] * _C[l] * _kernel(term, (j * ma - l * mb - k) * tau0)
+                out += _C[j] * _C[l] * _kernel(term, (j * ma - l * mb - k) * tau0, tc)
     return out
 
 
@@ -76,12 +79,18 @@ def _weight(ma_n: np.ndarray, mb_n: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.maximum(0.0, np.minimum(ma_n, mb_n - k) - np.maximum(0.0, -k))
 
 
-def term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
+def term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float | None = None
+                     ) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
     p = coefficient^2, f_tu = 1 if t == u else 2 (use :func:`combine`). A function of
     (tau0, ms, n_phase) only: the six axes of a recording share it, so the last few are kept
-    (the matrices are read-only)."""
-    return _cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase))
+    (the matrices are read-only). With ``tc`` (s), also the Gauss-Markov pairs GPAIRS for
+    p_G = sigma_GM^2 at that correlation time (:func:`gm_term_covariances`)."""
+    base = _cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase))
+    if tc is None:
+        return base
+    return {**base, **_gm_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(),
+                                 int(n_phase), float(tc))}
 
 
 @functools.lru_cache(maxsize=8)
@@ -148,9 +157,12 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
 
 
 def combine(cov_terms: dict, coeff_sq: dict) -> np.ndarray:
-    """Covariance matrix of the AVAR estimates for coefficients^2 {Q, N, B, K} (SI)."""
+    """Covariance matrix of the AVAR estimates for coefficients^2 {Q, N, B, K} (SI), and
+    {"G": sigma_GM^2} where ``cov_terms`` holds the Gauss-Markov pairs (``tc`` given to
+    :func:`term_covariances` / :func:`gapped_term_covariances`)."""
     total = None
-    for t, u in PAIRS:
+    pairs = PAIRS + [p for p in GPAIRS if p in cov_terms and coeff_sq.get("G", 0.0)]
+    for t, u in pairs:
         f = (1.0 if t == u else 2.0) * coeff_sq.get(t, 0.0) * coeff_sq.get(u, 0.0)
         part = f * cov_terms[(t, u)]
         total = part if total is None else total + part
@@ -163,7 +175,8 @@ def combine(cov_terms: dict, coeff_sq: dict) -> np.ndarray:
 GAPPED_DISCRETE_LAGS = 4096
 
 
-def gapped_term_covariances(tau0: float, ms: np.ndarray, stretch_samples: np.ndarray) -> dict:
+def gapped_term_covariances(tau0: float, ms: np.ndarray, stretch_samples: np.ndarray,
+                            tc: float | None = None) -> dict:
     """:func:`term_covariances` for the estimate that skips gaps: the terms of every gap-free
     stretch (L_s samples, P_s = L_s + 1 phase points, n_s(m) = max(0, P_s - 2m) terms) pooled,
     s2(m) = sum_s sum_i D_{s,m}[i]^2 / (2 tau^2 N(m)), N(m) = sum_s n_s(m). With the stretches
@@ -180,12 +193,17 @@ def gapped_term_covariances(tau0: float, ms: np.ndarray, stretch_samples: np.nda
     (np.interp on its values at the kinks). A pair is summed over integer lags where
     m_a + m_b <= DISCRETE_MAX or its lag range holds at most GAPPED_DISCRETE_LAGS lags, else
     integrated with Gauss-Legendre between the kinks of R and W. One stretch: identical to
-    :func:`term_covariances` (it is called)."""
+    :func:`term_covariances` (it is called). ``tc``: as there (the Gauss-Markov pairs; a GM
+    rate is correlated across a gap as e^(-gap / Tc), which is neglected like flicker's)."""
     st = np.asarray(stretch_samples, dtype=np.int64)
     st = st[st > 0]
     lengths, counts = np.unique(st, return_counts=True)
     if lengths.size == 1 and counts[0] == 1:
-        return term_covariances(tau0, ms, int(lengths[0]) + 1)
+        return term_covariances(tau0, ms, int(lengths[0]) + 1, tc)
+    if tc is not None:
+        return {**gapped_term_covariances(tau0, ms, stretch_samples),
+                **_gm_gapped_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(),
+                                    lengths.tobytes(), counts.tobytes(), float(tc))}
     # the axes of a sensor share this matrix (kept in the cache). No lock here: solvers import
     # no threading (the layers contract); axes fitted on threads at once may each compute it
     # (Astro Pi, 6 axes, --taus all: 2 computations, 0.67 s thread CPU instead of 0.30 s).
@@ -264,6 +282,304 @@ def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
         norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
     norm[~np.isfinite(norm)] = 0.0
     for p in PAIRS:
+        c = out[p]
+        c = c + np.triu(c, 1).T
+        out[p] = c * norm
+    return out
+
+
+# --- a first-order Gauss-Markov rate ------------------------------------------------------
+#: the Gauss-Markov term's pairs with every term (f_tu = 2 except ("G", "G"))
+GPAIRS = [(t, "G") for t in TERMS4 + ("G",)]
+#: breakpoints either side of every tap at these multiples of h = Tc / tau0 (where h < s / 4):
+#: the exponential part of the kernel varies on the scale h there, not s
+_GM_NEAR = np.array([1.0, 4.0, 16.0])
+#: the (G, G) tail past the lag range of the other terms, at these multiples of h
+#: (beyond 64 h: e^-128)
+_GM_TAIL = np.array([0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
+_PHI_SERIES = [(-1.0) ** (n + 1) / math.factorial(n) for n in range(3, 18)]
+
+
+def _gm_phi(u: np.ndarray) -> np.ndarray:
+    """phi(u) = 1 - u + u^2 / 2 - e^-u (u >= 0) without cancellation: its series
+    u^3/6 - u^4/24 + ... (to u^17) below u = 0.5, else -expm1(-u) - u + u^2/2."""
+    u = np.asarray(u, dtype=float)
+    out = -np.expm1(-u)
+    out -= u
+    out += 0.5 * u * u
+    small = u < 0.5
+    if np.any(small):
+        us = u[small]
+        acc = np.full_like(us, _PHI_SERIES[-1])
+        for a in reversed(_PHI_SERIES[:-1]):
+            acc = acc * us + a
+        out[small] = acc * us ** 3
+    return out
+
+
+def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict:
+    """The Gauss-Markov pairs alone: {(t, "G"): matrix} for t in Q, N, B, K, G, in the form of
+    :func:`term_covariances` (which adds them to the IEEE 952 pairs when given ``tc``).
+
+    The rate y(t) (rad/s, or m/s^2, ...) with autocovariance sigma_GM^2 e^(-|t| / Tc)
+    integrates to a phase x (rad, m/s) whose generalized autocovariance is minus the even
+    function whose second derivative is the rate's autocovariance::
+
+        s(t) = -sigma_GM^2 Tc^2 (|t| / Tc + e^(-|t| / Tc))       [SI phase^2]
+
+    (a C^2 function, its third derivative jumps at t = 0), up to a quadratic in t, which the
+    second differences cancel. The kernel used is the cancellation-free member
+    sigma_GM^2 Tc^2 phi(|t| / Tc), phi(u) = 1 - u + u^2 / 2 - e^-u = u^3 / 6 - u^4 / 24 + ...
+    (a rate random walk, K^2 = 2 sigma_GM^2 / Tc, for |t| << Tc; a white FM, N^2 =
+    2 sigma_GM^2 Tc, for |t| >> Tc). Its Allan variance, Var(D) / (2 tau^2) with Var(D) =
+    6 s(0) - 8 s(tau) + 2 s(2 tau)::
+
+        sigma^2(tau) = sigma_GM^2 (Tc / tau)^2 (2 tau / Tc - 3 + 4 e^(-tau/Tc) - e^(-2 tau/Tc))
+
+    (rigctl.solvers.allan_gm.gm_avar). Per Tc (h = Tc / tau0 samples) the pairs are summed like
+    the others: exactly over integer lags where m_a + m_b <= DISCRETE_MAX; otherwise
+    integrated over the lags, on a mesh that does not depend on Tc (the kinks of R and w, and
+    breakpoints graded by 4 toward every tap down to one sample, so that e^(-|k - tap| / h) is
+    followed for any h >= 1) with 4-point Gauss-Legendre, R_G = 2 Tc R_N + R_E, R_E =
+    -Tc^2 sum_taps c e^(-|t - tap| / Tc) (the kernel directly where h > 1e3 (m_a + m_b));
+    R_G R_G is followed past the other terms' lag range (16 (m_a + m_b)) to 64 h by its
+    exponential tail (R_G times flicker's R there is neglected: both are small). The gapped
+    path does the same per pair with 8-point Gauss-Legendre and breakpoints at h, 4 h, 16 h
+    either side of the taps where h < (m_a + m_b) / 4. The kernel is not a polynomial, so the
+    quadrature is not exact: against the exact integer-lag sums (4e5 phase points, m from 5
+    to 3000, h from 1 to 1e4 samples) the diagonal was within 1.3e-4 and the largest entries
+    within 7.9e-3, both from the white-FM-like part's sum-vs-integral difference, which N's
+    own kernel has too (2.6e-4 and 2e-2 there); against a brute force from the exact phase
+    covariance see tests/test_allan_gmcov.py. (Q, G) is 0 past DISCRETE_MAX, as Q's other
+    pairs. Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s for the first
+    (the mesh, kept per (tau0, ms, n_phase)); the matrices are kept per Tc too (the fits try
+    one Tc after another and come back to them)."""
+    return _gm_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase),
+                      float(tc))
+
+
+@functools.lru_cache(maxsize=128)
+def _gm_cached(tau0: float, ms_key: bytes, n_phase: int, tc: float) -> dict:
+    out = _gm_contiguous(tau0, np.frombuffer(ms_key, dtype=float), n_phase, tc)
+    for c in out.values():
+        c.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _gm_gapped_cached(tau0: float, ms_key: bytes, len_key: bytes, cnt_key: bytes,
+                      tc: float) -> dict:
+    out = _gm_gapped(tau0, np.frombuffer(ms_key, dtype=float),
+                     np.frombuffer(len_key, dtype=np.int64),
+                     np.frombuffer(cnt_key, dtype=np.int64), tc)
+    for c in out.values():
+        c.setflags(write=False)
+    return out
+
+
+def _gm_tail(start: np.ndarray, end: np.ndarray, sign: float, amp: np.ndarray, h: float,
+             kinks: np.ndarray, weight) -> np.ndarray:
+    """Integral of amp^2 e^(-2 |k - start| / h) weight(k) from ``start`` towards ``end``
+    (sign +1: right, -1: left); per pair (rows), the weight piecewise linear with ``kinks``.
+    Past all taps R_G is amp e^(-|k - start| / h) exactly."""
+    length = np.maximum((end - start) * sign, 0.0)[:, None]
+    d = np.concatenate([np.zeros_like(length), np.broadcast_to(h * _GM_TAIL, (length.shape[0],
+                        _GM_TAIL.size)), (kinks - start[:, None]) * sign, length], axis=1)
+    d = np.sort(np.clip(d, 0.0, length), axis=1)
+    half = 0.5 * np.diff(d, axis=1)
+    mid = 0.5 * (d[:, 1:] + d[:, :-1])
+    x = mid[:, :, None] + half[:, :, None] * _GL_X[None, None, :]
+    k = start[:, None, None] + sign * x
+    f = np.exp(-2.0 * x / h) * weight(k) * (half[:, :, None] * _GL_W[None, None, :])
+    return amp ** 2 * np.sum(f, axis=(1, 2))
+
+
+#: the GL pairs' fixed mesh: breakpoints at (m_a + m_b) 4^-j either side of every tap, j = 1..,
+#: down to one sample, so that e^(-|k - tap| / h) is followed for any h >= 1 sample
+_GM_GRADE = 4.0
+#: Gauss-Legendre order on the graded mesh (its intervals are short next to the scale of
+#: the exponentials; measured against the exact sums: see gm_term_covariances)
+_GM_GL_X, _GM_GL_W = np.polynomial.legendre.leggauss(4)
+#: past this h / (m_a + m_b) the split R_G = 2 Tc R_N + R_E loses digits: the kernel directly
+_GM_SPLIT_MAX = 1e3
+
+
+@functools.lru_cache(maxsize=4)
+def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
+    """What does not depend on Tc: the lags, weights and the other terms' R at them (the
+    integer lags of the small pairs; the Gauss-Legendre nodes of a fixed graded mesh for the
+    rest), and each node's interval with the taps left and right of it."""
+    ms = np.frombuffer(ms_key, dtype=float)
+    big_m = n_phase - 2.0 * ms
+    ia, ib = np.triu_indices(ms.size)
+    disc = (ms[ia] + ms[ib]) <= DISCRETE_MAX
+    out: dict = {"ia": ia, "ib": ib}
+    da, db = ia[disc], ib[disc]
+    if da.size:
+        ma, mb = ms[da][:, None], ms[db][:, None]
+        span = 16 * (ma + mb)
+        k0 = -2 * mb - span
+        length = int(np.max(2 * ma + span - k0)) + 1
+        k = k0 + np.arange(length)[None, :]
+        w = _weight(big_m[da][:, None], big_m[db][:, None], k)
+        w = np.where(k <= 2 * ma + span, w, 0.0)
+        out["disc"] = {"a": da, "b": db, "ma": ma, "mb": mb, "k": k, "w": w,
+                       "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4},
+                       "left": (k0 - 0.5)[:, 0], "right": (2 * ma + span + 0.5)[:, 0]}
+    ca, cb = ia[~disc], ib[~disc]
+    if ca.size:
+        ma, mb = ms[ca][:, None], ms[cb][:, None]
+        taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
+        coef = np.array([_C[j] * _C[l] for j in range(3) for l in range(3)])
+        s = ma + mb
+        lo, hi = taps.min(1, keepdims=True), taps.max(1, keepdims=True)
+        geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])[None, :]
+        wk = np.concatenate([-big_m[ca][:, None], np.zeros_like(ma),
+                             (big_m[cb] - big_m[ca])[:, None], big_m[cb][:, None]], axis=1)
+        k_lo = np.maximum(lo - 16 * s, -big_m[ca][:, None])
+        k_hi = np.minimum(hi + 16 * s, big_m[cb][:, None])
+        levels = _GM_GRADE ** -np.arange(1, int(math.ceil(math.log(float(s.max()), _GM_GRADE))) + 1)
+        off = s[:, :, None] * levels[None, None, :]
+        bp = np.concatenate([taps, lo - s * geo, hi + s * geo, wk,
+                             (taps[:, :, None] + off).reshape(taps.shape[0], -1),
+                             (taps[:, :, None] - off).reshape(taps.shape[0], -1)], axis=1)
+        bp = np.sort(np.clip(bp, k_lo, k_hi), axis=1)
+        bp = np.concatenate([k_lo, bp, k_hi], axis=1)
+        a_i, b_i = bp[:, :-1], bp[:, 1:]
+        half = 0.5 * (b_i - a_i)
+        k = 0.5 * (a_i + b_i)[:, :, None] + half[:, :, None] * _GM_GL_X[None, None, :]
+        wq = (half[:, :, None] * _GM_GL_W[None, None, :]) * _weight(
+            big_m[ca][:, None, None], big_m[cb][:, None, None], k)
+        mab, mbb = ma[:, :, None], mb[:, :, None]
+        left = taps[:, None, :] <= a_i[:, :, None]
+        out["gl"] = {"a": ca, "b": cb, "ma": ma[:, 0], "mb": mb[:, 0], "s": s[:, 0], "k": k,
+                     "wq": wq, "r": {t: _r_lags(t, mab, mbb, k, tau0) for t in ("N", "B", "K")},
+                     "x": k - a_i[:, :, None], "y": b_i[:, :, None] - k,
+                     "c_left": np.where(left, coef, 0.0), "c_right": np.where(left, 0.0, coef),
+                     "d_left": np.maximum(a_i[:, :, None] - taps[:, None, :], 0.0),
+                     "d_right": np.maximum(taps[:, None, :] - b_i[:, :, None], 0.0),
+                     "k_lo": k_lo[:, 0], "k_hi": k_hi[:, 0]}
+    return out
+
+
+def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict:
+    ms = np.asarray(ms, dtype=float)
+    n = ms.size
+    big_m = n_phase - 2.0 * ms
+    tau = ms * tau0
+    h = tc / tau0
+    nodes = _gm_nodes(float(tau0), ms.tobytes(), int(n_phase))
+    out = {p: np.zeros((n, n)) for p in GPAIRS}
+
+    def tails(a_idx, b_idx, k_left, k_right):
+        """(G, G) past [k_left, k_right] to the ends of w (-M_a, M_b)."""
+        ma, mb = ms[a_idx], ms[b_idx]
+        na, nb = big_m[a_idx], big_m[b_idx]
+        kinks = np.column_stack((-na, np.zeros_like(na), nb - na, nb))
+
+        def weight(k):
+            return _weight(na[:, None, None], nb[:, None, None], k)
+        amp_r = _r_lags("G", ma, mb, k_right, tau0, tc)
+        amp_l = _r_lags("G", ma, mb, k_left, tau0, tc)
+        return (_gm_tail(k_right, nb, 1.0, amp_r, h, kinks, weight)
+                + _gm_tail(k_left, -na, -1.0, amp_l, h, kinks, weight))
+
+    d = nodes.get("disc")
+    if d is not None:
+        r = dict(d["r"])
+        r["G"] = _r_lags("G", d["ma"], d["mb"], d["k"], tau0, tc)
+        for t, u in GPAIRS:
+            out[(t, u)][d["a"], d["b"]] = np.sum(r[t] * r[u] * d["w"], axis=1)
+        # the integer lags past them: the midpoint rule's integral from half a lag out
+        out[("G", "G")][d["a"], d["b"]] += tails(d["a"], d["b"], d["left"], d["right"])
+    g = nodes.get("gl")
+    if g is not None:
+        # R_G = 2 Tc R_N + R_E, R_E = -Tc^2 sum_taps c e^(-|k - tap| / h): on a mesh interval
+        # [a_i, b_i] (no tap inside) the taps left of it give A_i e^(-(k - a_i) / h), those
+        # right of it B_i e^(-(b_i - k) / h)
+        a_l = np.sum(g["c_left"] * np.exp(-g["d_left"] / h), axis=2)[:, :, None]
+        b_r = np.sum(g["c_right"] * np.exp(-g["d_right"] / h), axis=2)[:, :, None]
+        rg = 2.0 * tc * g["r"]["N"] - tc * tc * (a_l * np.exp(-g["x"] / h)
+                                                 + b_r * np.exp(-g["y"] / h))
+        direct = h > _GM_SPLIT_MAX * g["s"]
+        if np.any(direct):
+            rg[direct] = _r_lags("G", g["ma"][direct][:, None, None],
+                                 g["mb"][direct][:, None, None], g["k"][direct], tau0, tc)
+        r = dict(g["r"])
+        r["G"] = rg
+        for t, u in GPAIRS:
+            if t == "Q":  # white PM is negligible past DISCRETE_MAX (as in term_covariances)
+                continue
+            out[(t, u)][g["a"], g["b"]] = np.sum(r[t] * r[u] * g["wq"], axis=(1, 2))
+        out[("G", "G")][g["a"], g["b"]] += tails(g["a"], g["b"], g["k_lo"], g["k_hi"])
+    norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_m, tau ** 2 * big_m))
+    for p in GPAIRS:
+        c = out[p]
+        c = c + np.triu(c, 1).T
+        out[p] = c * norm
+    return out
+
+
+def _gm_gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray,
+               tc: float) -> dict:
+    ms = np.asarray(ms, dtype=float)
+    n = ms.size
+    phase = lengths.astype(float) + 1.0
+    n_s = np.maximum(0.0, phase[None, :] - 2.0 * ms[:, None])
+    big_n = n_s @ counts.astype(float)
+    tau = ms * tau0
+    h = tc / tau0
+    out = {p: np.zeros((n, n)) for p in GPAIRS}
+    for a in range(n):
+        for b in range(a, n):
+            if big_n[a] <= 0 or big_n[b] <= 0:
+                continue
+            kn, val = _w_knots(n_s[a], n_s[b], counts)
+            ma, mb = ms[a], ms[b]
+            s = ma + mb
+            lo, hi = -2.0 * mb, 2.0 * ma
+            k_lo, k_hi = max(lo - 16.0 * s, kn[0]), min(hi + 16.0 * s, kn[-1])
+            if k_hi <= k_lo:
+                continue
+
+            def weight(k, kn=kn, val=val):
+                return np.interp(k, kn, val)
+            if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
+                k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
+                w = np.interp(k, kn, val)
+                r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in TERMS4 + ("G",)}
+                for t, u in GPAIRS:
+                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
+                left, right = k[0] - 0.5, k[-1] + 0.5
+            else:
+                taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
+                geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+                parts = [[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn]
+                if h < s / 4.0:
+                    off = h * _GM_NEAR
+                    parts += [(taps[:, None] + off[None, :]).ravel(),
+                              (taps[:, None] - off[None, :]).ravel()]
+                bp = np.concatenate(parts)
+                bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
+                half = 0.5 * np.diff(bp)
+                mid = 0.5 * (bp[1:] + bp[:-1])
+                k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
+                wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
+                r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in ("N", "B", "K", "G")}
+                for t, u in GPAIRS:
+                    if t == "Q":
+                        continue
+                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+                left, right = k_lo, k_hi
+            kinks = kn[None, :]
+            for start, end, sign in ((right, kn[-1], 1.0), (left, kn[0], -1.0)):
+                amp = _r_lags("G", ma, mb, np.array([start]), tau0, tc)
+                out[("G", "G")][a, b] += float(_gm_tail(np.array([start]), np.array([end]),
+                                                        sign, amp, h, kinks, weight)[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
+    norm[~np.isfinite(norm)] = 0.0
+    for p in GPAIRS:
         c = out[p]
         c = c + np.triu(c, 1).T
         out[p] = c * norm
