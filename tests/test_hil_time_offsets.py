@@ -198,3 +198,30 @@ def test_after_a_pulled_cable_the_client_gets_no_stale_frames_ahead_of_its_reply
     stale = t < r_open - 3.0
     assert not stale.any(), (f"{int(stale.sum())} of {t.size} frames ahead of the reply are up to "
                              f"{r_open - t.min():.1f} s of rig time older than the port's opening")
+
+
+def test_first_frames_later_than_the_learning_window_still_connect(tmp_path):
+    """The physics stands still for 0.4 s of wall time from each GoToMeasurement, so the first
+    frames come later than the driver's learning window (0.2 s). The window starts at the first
+    frame: the driver connects on the first try. Before, a window without frames failed the
+    configuration and started it over -- with the same wait each time: 'no stream' after 7.2 s
+    (the 1e6-frame test of test_hil_faults at load 14-19, whose first frames come late)."""
+    from rigctl.clock import ScaledClock
+    from rigctl.drivers.xsens_imu import XsensImu
+
+    cfg, _ = sim_config(tmp_path)
+    with hardware(tmp_path, 20.0) as (hw, _raw):
+        wait_until(lambda: hw.lag_s < 5.0, 10.0, "the physics to catch up with the clock after start-up")
+        enter = hw.xsens._enter_measurement
+
+        def late_first_frames():
+            hw.pause_physics(0.4)
+            enter()
+        hw.xsens._enter_measurement = late_first_frames
+        imu = XsensImu(hw.endpoints["imu_xsens_pty"], 100, ScaledClock(20.0), align_wait_s=0.0)
+        imu.connect()
+        try:
+            assert len(hw.xsens.measurement_starts) == 1 and imu.configurations == 1
+            assert wait_until(lambda: len(imu.read()), 10.0, "samples")
+        finally:
+            imu.close()
