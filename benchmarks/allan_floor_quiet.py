@@ -28,7 +28,8 @@ stretch its stationarity test names:
    fails for N simulated stationary records with the OCXO's and the ADIS16405's terms, with
    the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record;
    with --sim-rigctl N: rigctl itself on N simulated stationary OCXO-like records (its
-   verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B).
+   verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B);
+   --sim-rigctl-adis N: the same on N ADIS16405 ax-like records (1e6 samples each).
 
 Last line: one JSON object (counts, seconds).
 """
@@ -44,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import nnls
+from scipy.stats import beta as beta_dist
 from scipy.stats import chi2
 from scipy.stats import t as student
 
@@ -284,32 +286,85 @@ def _flicker(rng, n, tau0):
     return np.fft.irfft((rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * a)[:n]
 
 
-def simulate(name, n, tau0, ms, N, B, K, Q, tau_lo, terms, nsim, seed=15) -> dict:
+def simulate(name, n, tau0, ms, N, B, K, Q, tau_lo, terms, nsim, seed=15, keep=None, judge_only=False) -> dict:
+    """Item 2 on nsim simulated stationary records (5. of the module docstring): how often the
+    true total (the ensemble's mean Allan variance) and the numpy fit's total miss a floor tau,
+    by the pointwise rule (allan_heldout's `FAIL-total`) and by the family-wise one
+    (allan_heldout.familywise_band, under the total judged: the simulated terms for the true
+    total, the fit's for the fit); beside them Sidak over the count of floor taus (as if
+    independent). Record i is drawn from its own generator (seed, i); with ``keep`` each
+    record's curve and fit are kept there and reused (``judge_only``: judge the records kept,
+    none drawn), so a run cut short can be judged on the records it drew."""
     rng = np.random.default_rng(seed)
     f = _flicker(rng, n, tau0)
     c0 = H.read_curve(f, tau0, ms)
     scale = BF / float(np.median(c0["dev"][informative(c0) & (ms > 10)]))
-    ys, devs = [], []
-    for _ in range(nsim):
-        y = N / math.sqrt(tau0) * rng.standard_normal(n) + B * scale * _flicker(rng, n, tau0)
-        y += np.cumsum(K * math.sqrt(tau0) * rng.standard_normal(n))
-        if Q:  # white phase noise of s.d. Q: sigma^2 = 3 Q^2 / tau^2
-            y += np.diff(Q * rng.standard_normal(n + 1)) / tau0
-        ys.append(y)
-        devs.append(H.oadev(y, tau0, ms))
+    store = Path(keep) / ("sim_" + name.replace(" ", "_")) if keep else None
+    if store:
+        store.mkdir(parents=True, exist_ok=True)
+    if judge_only and store:
+        nsim = 0
+        while (store / f"r{nsim}.npz").is_file():
+            nsim += 1
+    curves, devs = [], []
+    for i in range(nsim):
+        fn = store / f"r{i}.npz" if store else None
+        if fn is not None and fn.is_file():
+            z = np.load(fn)
+            c = {k: z[k] for k in ("tau", "dev", "lo", "hi", "edf", "floor_taus")}
+            c["lengths"], c["shows_floor"] = [int(x) for x in z["lengths"]], bool(z["shows_floor"])
+            coef = dict(zip(terms, z["coef"])) if c["shows_floor"] else None
+        else:
+            rng = np.random.default_rng([seed, i])
+            y = N / math.sqrt(tau0) * rng.standard_normal(n) + B * scale * _flicker(rng, n, tau0)
+            y += np.cumsum(K * math.sqrt(tau0) * rng.standard_normal(n))
+            if Q:  # white phase noise of s.d. Q: sigma^2 = 3 Q^2 / tau^2
+                y += np.diff(Q * rng.standard_normal(n + 1)) / tau0
+            c = H.read_curve(y, tau0, ms)
+            coef = (wls(c["tau"], c["dev"], c["edf"], informative(c) & (c["tau"] >= tau_lo), terms)[0]
+                    if c["shows_floor"] else None)
+            if fn is not None:
+                np.savez(fn, **{k: c[k] for k in ("tau", "dev", "lo", "hi", "edf", "floor_taus")},
+                         lengths=np.asarray(c["lengths"]), shows_floor=c["shows_floor"],
+                         coef=np.array([coef[t] for t in terms]) if coef else np.zeros(len(terms)))
+        devs.append(c["dev"])
+        if c["shows_floor"]:
+            curves.append((c, coef))
     truth = np.sqrt((np.array(devs) ** 2).mean(axis=0))
-    res = {"case": name, "n": nsim, "shows_floor": 0, "true_outside": 0, "true_missed": 0,
-           "fit_outside": 0, "fit_missed": 0}
-    for y in ys:
-        c = H.read_curve(y, tau0, ms)
-        if not c["shows_floor"]:
-            continue
-        res["shows_floor"] += 1
-        coef = wls(c["tau"], c["dev"], c["edf"], informative(c) & (c["tau"] >= tau_lo), terms)[0]
-        for key, T in (("true", truth), ("fit", total(coef, c["tau"]))):
-            out = c["floor_taus"] & ((T < c["lo"]) | (T > c["hi"]))
-            res[f"{key}_outside"] += int(out.any())
-            res[f"{key}_missed"] += int(missed(c, T, c["floor_taus"]).any())
+    true_s2 = {"Q": Q ** 2, "N": N ** 2, "B": (BF * B) ** 2, "K": K ** 2}
+    res = {"case": name, "n": nsim, "shows_floor": len(curves), "n_floor_taus": [],
+           "fw_level_per_tau_true": [], "fw_m_equiv_true": []}
+    for key in ("true", "fit"):
+        for rule in ("outside", "missed", "outside_fw", "missed_fw", "missed_sidak_n"):
+            res[f"{key}_{rule}"] = 0
+    for c, coef in curves:
+        ft = np.flatnonzero(c["floor_taus"])
+        res["n_floor_taus"].append(int(ft.size))
+        d, lo, hi = c["dev"][ft], c["lo"][ft], c["hi"][ft]
+        q_n = -math.expm1(math.log1p(-H.FW_ALPHA) / max(ft.size, 1))  # Sidak over the count
+        nu = c["edf"][ft]
+        lo_n, hi_n = d * np.sqrt(nu / chi2.ppf(1 - q_n / 2, nu)), d * np.sqrt(nu / chi2.ppf(q_n / 2, nu))
+        for key, T, s2 in (("true", truth[ft], true_s2),
+                           ("fit", total(coef, c["tau"][ft]),
+                            {t: (BF ** 2 if t == "B" else 1.0) * v ** 2 for t, v in coef.items()})):
+            fwb = H.familywise_band(c, ft, s2, tau0, c["lengths"])
+            if key == "true":
+                res["fw_level_per_tau_true"].append(fwb["q"])
+                res["fw_m_equiv_true"].append(fwb["m_equiv"])
+            res[f"{key}_outside"] += int(((T < lo) | (T > hi)).any())
+            res[f"{key}_missed"] += int(H.item2_missed(d, lo, hi, T).any())
+            res[f"{key}_outside_fw"] += int(((T < fwb["lo"]) | (T > fwb["hi"])).any())
+            res[f"{key}_missed_fw"] += int(H.item2_missed(d, fwb["lo"], fwb["hi"], T).any())
+            res[f"{key}_missed_sidak_n"] += int(H.item2_missed(d, lo_n, hi_n, T).any())
+    for k in ("n_floor_taus", "fw_level_per_tau_true", "fw_m_equiv_true"):
+        v = res.pop(k)
+        res[k + "_range"] = [min(v), max(v)] if v else None
+    nf = max(res["shows_floor"], 1)
+    for k in [k for k in res if k.startswith(("true_", "fit_"))]:
+        # the rate and its 95 % upper bound (Clopper-Pearson) among the records showing a floor
+        x = res[k]
+        res[k + "_rate"] = x / nf
+        res[k + "_up95"] = float(beta_dist.ppf(0.95, x + 1, nf - x)) if x < nf else 1.0
     return res
 
 
@@ -322,21 +377,26 @@ def simulate_rigctl(keep: Path, nsim: int, seed: int = 2015) -> dict:
     ms0 = np.unique(np.round(np.logspace(0, math.log10(n / 3), 95)).astype(int))
     c0 = H.read_curve(_flicker(rng, n, tau0), tau0, ms0)
     scale = BF / float(np.median(c0["dev"][informative(c0) & (ms0 > 10)]))
-    out = {t: {"verdicts": {}, "b_ci_holds_truth": 0, "b_over_truth": []} for t in ("default", "octave")}
+    out = {t: {"verdicts": {}, "verdicts_familywise": {}, "b_ci_holds_truth": 0, "b_over_truth": []}
+           for t in ("default", "octave")}
     d = keep / "sim_rigctl"
     d.mkdir(exist_ok=True)
     for i in range(nsim):
         y = Bt * scale * _flicker(rng, n, tau0) + np.cumsum(Kt * math.sqrt(tau0) * rng.standard_normal(n))
         y += np.diff(Qt * rng.standard_normal(n + 1)) / tau0
         txt, rec = d / f"s{i}.txt", d / f"s{i}.h5"
-        np.savetxt(txt, y / 1e-7, fmt="%.9e")
-        H.rigctl("import", str(txt), "-o", str(rec), "--force", *OCXO_COLS)
+        if not all((d / f"s{i}_{taus}.json").is_file() for taus in out):  # rigctl's JSON kept: reused
+            np.savetxt(txt, y / 1e-7, fmt="%.9e")
+            H.rigctl("import", str(txt), "-o", str(rec), "--force", *OCXO_COLS)
         for taus, o in out.items():
             js = d / f"s{i}_{taus}.json"
-            H.rigctl("allan", str(rec), "--db", "none", "--json", str(js), *(["--taus", "octave"] if taus == "octave" else []))
+            if not js.is_file():
+                H.rigctl("allan", str(rec), "--db", "none", "--json", str(js),
+                         *(["--taus", "octave"] if taus == "octave" else []))
             r = json.loads(js.read_text())["axes"]["gx"]
             j = H.judge(r, H.read_curve(y, tau0, np.asarray(r["m"], int)), tau0)
             o["verdicts"][j["verdict"]] = o["verdicts"].get(j["verdict"], 0) + 1
+            o["verdicts_familywise"][j["verdict_familywise"]] = o["verdicts_familywise"].get(j["verdict_familywise"], 0) + 1
             o["b_ci_holds_truth"] += int((j["b_lo95"] or 0.0) <= Bt <= j["b_hi95"])
             o["b_over_truth"].append((j["b"] or j["b_hi95"]) / Bt)
     for o in out.values():
@@ -344,23 +404,63 @@ def simulate_rigctl(keep: Path, nsim: int, seed: int = 2015) -> dict:
     return {"case": "rigctl on OCXO-like records", "n": nsim, **out}
 
 
+def simulate_rigctl_adis(keep: Path, nsim: int, seed: int = 405) -> dict:
+    """As :func:`simulate_rigctl` for ADIS16405 ax-like records (white 4.3e-3 m/s/sqrt(s),
+    B 3.5e-3 m/s^2, K 4.2e-4 m/s^2/sqrt(s); 1e6 samples at 100 Hz, no tones), default taus."""
+    rng = np.random.default_rng(seed)
+    n, tau0, Nt, Bt, Kt = 10 ** 6, 0.01, 4.3e-3, 3.5e-3, 4.2e-4
+    ms0 = np.unique(np.round(np.logspace(0, math.log10(n / 3), 95)).astype(int))
+    c0 = H.read_curve(_flicker(rng, n, tau0), tau0, ms0)
+    scale = BF / float(np.median(c0["dev"][informative(c0) & (ms0 > 10)]))
+    out = {"verdicts": {}, "verdicts_familywise": {}, "b_ci_holds_truth": 0, "check_ok": 0, "b_over_truth": []}
+    d = keep / "sim_rigctl_adis"
+    d.mkdir(exist_ok=True)
+    for i in range(nsim):
+        y = (Nt / math.sqrt(tau0) * rng.standard_normal(n) + Bt * scale * _flicker(rng, n, tau0)
+             + np.cumsum(Kt * math.sqrt(tau0) * rng.standard_normal(n)))
+        txt, rec, js = d / f"s{i}.txt", d / f"s{i}.h5", d / f"s{i}.json"
+        if not js.is_file():  # rigctl's JSON kept in --keep: reused
+            np.savetxt(txt, y / 9.80665, fmt="%.9e")
+            H.rigctl("import", str(txt), "-o", str(rec), "--force", "--rate", "100", "--columns", "acc_x=0",
+                     "--units", "acc=g")
+            H.rigctl("allan", str(rec), "--db", "none", "--json", str(js))
+        r = json.loads(js.read_text())["axes"]["ax"]
+        j = H.judge(r, H.read_curve(y, tau0, np.asarray(r["m"], int)), tau0)
+        out["verdicts"][j["verdict"]] = out["verdicts"].get(j["verdict"], 0) + 1
+        out["verdicts_familywise"][j["verdict_familywise"]] = out["verdicts_familywise"].get(j["verdict_familywise"], 0) + 1
+        out["b_ci_holds_truth"] += int((j["b_lo95"] or 0.0) <= Bt <= j["b_hi95"])
+        out["check_ok"] += int(bool(j["check_ok"]))
+        out["b_over_truth"].append((j["b"] or j["b_hi95"]) / Bt)
+    bt = out.pop("b_over_truth")
+    out["b_over_truth_range"] = [float(min(bt)), float(max(bt))]
+    return {"case": "rigctl on ADIS16405 ax-like records", "n": nsim, **out}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", help="files, recordings and rigctl's JSON here (reused when present)")
     ap.add_argument("--sim", type=int, default=0, help="simulated records per case (5.)")
+    ap.add_argument("--sim-adis", type=int, default=None,
+                    help="simulated records per ADIS16405-like case (default: --sim // 3)")
+    ap.add_argument("--sim-only", action="store_true", help="skip the five rows (1.-4.)")
+    ap.add_argument("--sim-cases", help="comma-separated words; only the simulated cases whose name holds one")
+    ap.add_argument("--sim-judge", action="store_true",
+                    help="with --keep: judge the simulated records kept there (none drawn)")
     ap.add_argument("--sim-rigctl", type=int, default=0,
                     help="simulated OCXO-like records through rigctl itself (5.)")
+    ap.add_argument("--sim-rigctl-adis", type=int, default=0,
+                    help="simulated ADIS16405 ax-like records through rigctl itself (5.)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     tmpd = None if args.keep else tempfile.TemporaryDirectory()
     keep = Path(args.keep or tmpd.name)
     keep.mkdir(parents=True, exist_ok=True)
     data = load(keep)
-    rows = [analyse_row(data, keep, *row) for row in ROWS]
+    rows = [] if args.sim_only else [analyse_row(data, keep, *row) for row in ROWS]
     for r in rows:
         print(json.dumps(r, default=float))
     sims = []
-    if args.sim:
+    if args.sim or args.sim_adis or args.sim_judge:
         ax_ms = np.asarray(rigctl_json(keep, data[("ADIS16405", "ax")][2], ADIS_COLS, None, "default", "ax")["m"], int)
         gx_ms = np.asarray(rigctl_json(keep, data[("ADIS16405", "gx")][2], ADIS_COLS, None, "octave", "gx")["m"], int)
         o_txt = data[("OCXO", "gx")][2]
@@ -370,16 +470,26 @@ def main() -> None:
                      ("OCXO-like octave", 19982, 1.0, oo, 0.0, 6.4e-12, 2.7e-13, 4.3e-11, 1.0, TERMS["OCXO"]),
                      ("ADIS16405 ax-like default", 10 ** 6, 0.01, ax_ms, 4.3e-3, 3.5e-3, 4.2e-4, 0.0, 0.05, TERMS["ADIS16405"]),
                      ("ADIS16405 gx-like octave", 10 ** 6, 0.01, gx_ms, 6.8e-4, 1.5e-4, 7e-6, 0.0, 0.05, TERMS["ADIS16405"])):
-            sims.append(simulate(*case, nsim=args.sim if case[1] < 10 ** 5 else max(1, args.sim // 3)))
+            nad = args.sim_adis if args.sim_adis is not None else max(1, args.sim // 3)
+            if not (args.sim if case[1] < 10 ** 5 else nad) and not args.sim_judge:
+                continue
+            if args.sim_cases and not any(w in case[0] for w in args.sim_cases.split(",")):
+                continue
+            sims.append(simulate(*case, nsim=args.sim if case[1] < 10 ** 5 else nad,
+                                 keep=keep if args.keep else None, judge_only=args.sim_judge))
             print(json.dumps(sims[-1]), flush=True)
     if args.sim_rigctl:
         sims.append(simulate_rigctl(keep, args.sim_rigctl))
+        print(json.dumps(sims[-1]), flush=True)
+    if args.sim_rigctl_adis:
+        sims.append(simulate_rigctl_adis(keep, args.sim_rigctl_adis))
         print(json.dumps(sims[-1]), flush=True)
     if args.keep:
         (keep / "allan_floor_quiet.json").write_text(json.dumps({"rows": rows, "sims": sims}, indent=1, default=float))
     print(json.dumps({"rows": len(rows),
                       "rigctl_quiet_ok": sum(r.get("quiet", {}).get("rigctl_quiet_verdict") == "ok" for r in rows),
-                      "best_at_floor_worst_depth_max": max(r["whole"]["best_at_floor"]["worst_depth_floor"] for r in rows),
+                      "best_at_floor_worst_depth_max": max((r["whole"]["best_at_floor"]["worst_depth_floor"] for r in rows),
+                                                           default=None),
                       "sims": len(sims), "wall_s": round(time.perf_counter() - t0, 1)}))
 
 

@@ -66,8 +66,15 @@ DEPARTURE_REL = 0.10
 D2R = math.pi / 180
 
 
+#: set by --reuse: a recording already in --keep is not imported again
+REUSE = False
+
+
 def rigctl(*argv: str) -> None:
     from rigctl import cli
+
+    if REUSE and argv[0] == "import" and "-o" in argv and Path(argv[argv.index("-o") + 1]).exists():
+        return
 
     out, err = io.StringIO(), io.StringIO()
     with redirect_stdout(out), redirect_stderr(err):
@@ -294,7 +301,7 @@ def read_curve(y: np.ndarray | list[np.ndarray], tau0: float, ms: np.ndarray) ->
     floor_taus = ok & (tau >= tau[i] / V_R * (1 - 1e-9)) & (tau <= tau[i] * V_R * (1 + 1e-9))
     return {"tau": tau, "dev": dev, "lo": lo, "hi": hi, "edf": nu, "i": i, "floor": float(dev[i]),
             "tau_floor": float(tau[i]), "flat": flat, "reach": reach, "v_sides": sides,
-            "floor_taus": floor_taus,
+            "floor_taus": floor_taus, "lengths": lengths,
             "shows_floor": bool(reach >= 1.4 and abs(flat) < 0.25)}
 
 
@@ -311,6 +318,127 @@ def total(coef: dict, tones: list[dict], tau: float, tau0: float) -> float:
         s2 += t["amp_si"] ** 2 * math.sin(math.pi * t["freq_hz"] * tau) ** 4 / (
             m * math.sin(math.pi * t["freq_hz"] * tau0)) ** 2
     return math.sqrt(s2)
+
+
+# ------------------------------------------------------------------ item 2, family-wise
+#: the family-wise level of item 2's calibrated version: the chance that the true total is
+#: outside the band at *any* of the floor's taus
+FW_ALPHA = 0.05
+#: draws of the max statistic (fixed seed: the same band on every run)
+FW_DRAWS = 20000
+
+# the generalised autocovariance of the phase (lags in samples, up to a positive factor and
+# terms a second difference annihilates) for each power-law term: white PM (x white), white FM
+# (x a random walk, -|l|/2), flicker FM (+l^2 ln|l|), random-walk FM (+|l|^3 / 12): signs
+# alternating with the order, so that every second difference's variance is positive. Each is
+# scaled below so that its Allan variance is the term's.
+_TERM_KERNELS = {
+    "Q": lambda a: (a == 0).astype(float),
+    "N": lambda a: -0.5 * a,
+    "B": lambda a: a * a * np.log(np.where(a > 0, a, 1.0)),
+    "K": lambda a: a ** 3 / 12.0,
+}
+_SD = np.array([1.0, -2.0, 1.0])  # the second difference
+
+
+def _cross(kern, ma: int, mb: int, lags: np.ndarray) -> np.ndarray:
+    """cov(d_a(t), d_b(t + l)) for the second differences of the phase at factors ma, mb."""
+    out = np.zeros(lags.size)
+    for i, ui in enumerate(_SD):
+        for j, vj in enumerate(_SD):
+            out += ui * vj * kern(np.abs(lags + j * mb - i * ma).astype(float))
+    return out
+
+
+def avar_corr(ms: np.ndarray, tau0: float, lengths: list[int], s2_terms: dict) -> np.ndarray:
+    """Correlation of the overlapping Allan-variance estimates at factors ``ms`` for a Gaussian
+    sum of independent power-law terms whose Allan variances at tau are ``s2_terms`` {Q: 3 Q^2 /
+    tau^2 coefficient Q^2, N: N^2, B: (0.664 B)^2, K: K^2} (the null: the total judged), pooled
+    over the gap-free stretches ``lengths`` (samples; independent of each other). The estimate
+    at m is (1/n_m) sum_t d_m(t)^2 / (2 tau^2) with d_m the second difference of the phase, so
+    cov = 2 / (n_a n_b) sum_{t,s} c_ab(s - t)^2 / (4 tau_a^2 tau_b^2), c_ab the covariance of
+    d_a(t) and d_b(t + l) from the phase's generalised autocovariance (_TERM_KERNELS). White
+    PM, white and random-walk FM: c_ab = 0 past |l| = 2 (m_a + m_b); flicker FM's tail (~l^-2)
+    summed to 16 (m_a + m_b) (its squares fall as l^-4). For large factors the lags are
+    stepped (the kernel is smooth between its kinks at multiples of m): step min(m)/200."""
+    ms = np.asarray(ms, dtype=int)
+    k = ms.size
+    # each term's scale: its second difference's variance over 2 m^2 tau0^2 is its AVAR
+    a_of = {"Q": lambda t: 3.0 / t ** 2, "N": lambda t: 1.0 / t, "B": lambda t: 1.0, "K": lambda t: t / 3.0}
+    scale = {}
+    for term, v in s2_terms.items():
+        if v > 0:
+            m = int(ms[0])
+            c0 = float(_cross(_TERM_KERNELS[term], m, m, np.zeros(1))[0])
+            scale[term] = v * a_of[term](m * tau0) * 2.0 * (m * tau0) ** 2 / c0
+    if not scale:  # nothing resolved: flicker FM's correlation
+        scale = {"B": 1.0}
+    lens, mult = np.unique(np.asarray(lengths, dtype=int), return_counts=True)
+    S = np.zeros((k, k))
+    for p in range(k):
+        for q in range(p, k):
+            ma, mb = int(ms[p]), int(ms[q])
+            reach = (16 if "B" in scale else 2) * (ma + mb)
+            step = max(1, min(ma, mb) // 200)
+            lags = np.arange(-reach, reach + 1, step)
+            c = sum(s * _cross(_TERM_KERNELS[t], ma, mb, lags) for t, s in scale.items())
+            na, nb = lens + 1 - 2 * ma, lens + 1 - 2 * mb  # terms per stretch
+            use = (na > 0) & (nb > 0)
+            # pairs (t, s) with s - t = l inside one stretch, summed over the stretches
+            cnt = np.zeros(lags.size)
+            for n_a, n_b, w in zip(na[use], nb[use], mult[use]):
+                cnt += w * np.clip(np.minimum(n_a, n_b - lags) - np.maximum(0, -lags), 0, None)
+            tot_a, tot_b = float((na[use] * mult[use]).sum()), float((nb[use] * mult[use]).sum())
+            S[p, q] = S[q, p] = step * float(cnt @ (c * c)) / max(tot_a * tot_b, 1.0)
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    return S / np.outer(d, d)
+
+
+def familywise_level(corr: np.ndarray, alpha: float = FW_ALPHA) -> float:
+    """Per-tau two-sided level q of a band simultaneous over taus whose estimates are
+    correlated ``corr``: the (1 - alpha) point c of max_k |Z_k| for Z ~ N(0, corr) (FW_DRAWS
+    draws, fixed seed), q = 2 (1 - Phi(c)). Each tau's band is then its chi-square band at q
+    (a Gaussian copula of chi-square marginals). One tau: q = alpha; independent taus: Sidak."""
+    from scipy.stats import norm
+
+    k = corr.shape[0]
+    if k <= 1:
+        return alpha
+    lam, vec = np.linalg.eigh(0.5 * (corr + corr.T))
+    root = vec * np.sqrt(np.clip(lam, 0.0, None))
+    z = np.random.default_rng(95).standard_normal((FW_DRAWS, k)) @ root.T
+    c = float(np.quantile(np.abs(z).max(axis=1), 1.0 - alpha))
+    return float(2.0 * norm.sf(c))
+
+
+def familywise_band(c: dict, ft: np.ndarray, s2_terms: dict, tau0: float, lengths: list[int]) -> dict:
+    """Item 2's family-wise band at the floor's taus ``ft`` (indices into the curve ``c``): each
+    tau's chi-square band (the script's EDF) at the per-tau level that makes the band hold at
+    every floor tau together with probability 1 - FW_ALPHA under the total judged
+    (``s2_terms``: its power-law terms' Allan-variance coefficients)."""
+    if ft.size == 0:
+        return {"lo": np.zeros(0), "hi": np.zeros(0), "q": FW_ALPHA, "m_equiv": 0.0}
+    ms = np.round(c["tau"][ft] / tau0).astype(int)
+    q = familywise_level(avar_corr(ms, tau0, lengths, s2_terms))
+    nu, dev = c["edf"][ft], c["dev"][ft]
+    lo = dev * np.sqrt(nu / chi2.ppf(1.0 - q / 2.0, nu))
+    hi = dev * np.sqrt(nu / chi2.ppf(q / 2.0, nu))
+    # the number of independent taus that would need the same per-tau level (Sidak)
+    m_eq = math.log1p(-FW_ALPHA) / math.log1p(-q) if q < 1 else 1.0
+    return {"lo": lo, "hi": hi, "q": q, "m_equiv": m_eq}
+
+
+def coef_s2_terms(coef: dict) -> dict:
+    """{Q, N, B, K} Allan-variance coefficients of rigctl's resolved terms (estimates only, as
+    :func:`total` reads them)."""
+    v = lambda t: float(coef[t].get("value") or 0.0) if t in coef and "ci95" in coef[t] else 0.0  # noqa: E731
+    return {"Q": v("Q") ** 2, "N": v("N") ** 2, "B": (B_FACTOR * v("B")) ** 2, "K": v("K") ** 2}
+
+
+def item2_missed(dev: np.ndarray, lo: np.ndarray, hi: np.ndarray, tot: np.ndarray) -> np.ndarray:
+    """Item 2's miss at each tau: outside the band and off the deviation by more than
+    DEPARTURE_REL."""
+    return ((tot < lo) & (dev > (1 + DEPARTURE_REL) * tot)) | ((tot > hi) & (dev < (1 - DEPARTURE_REL) * tot))
 
 
 def judge(r: dict, c: dict, tau0: float) -> dict:
@@ -336,6 +464,10 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
     # averages is a few per cent wide, narrower than any model of a real sensor follows it)
     inside = ~(((tot_f < c["lo"][ft]) & (d > (1 + DEPARTURE_REL) * tot_f))
                | ((tot_f > c["hi"][ft]) & (d < (1 - DEPARTURE_REL) * tot_f)))
+    # item 2 (family-wise): the same rule against a band simultaneous over the floor's taus
+    # under the total judged (its power-law terms give the correlation across taus)
+    fwb = familywise_band(c, ft, coef_s2_terms(coef), tau0, c.get("lengths") or [int(round(c["tau"][-1] / tau0))])
+    inside_fw = ~item2_missed(d, fwb["lo"], fwb["hi"], tot_f)
     worst = int(np.argmax(np.abs(np.log(tot_f / c["dev"][ft])))) if ft.size else 0
     b_share = (B_FACTOR * b["value"] / tot) ** 2 if est else 0.0
     if c["shows_floor"] and not est:
@@ -348,6 +480,11 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
         verdict = "no-floor-estimate"
     else:
         verdict = "ok"
+    # the same verdict with item 2 read on the family-wise band (docs/allan.md, "item 2
+    # (family-wise)"); every other rule as above
+    verdict_fw = verdict
+    if verdict == "FAIL-total" and inside_fw.all():
+        verdict_fw = "no-floor-estimate" if est and not c["shows_floor"] else "ok"
     return {"floor": c["floor"], "tau_floor_s": c["tau_floor"], "floor_slope": c["flat"],
             "reach_x": c["reach"], "shows_floor": c["shows_floor"], "limit_b": lim,
             "rise_over_v": c["v_sides"], "edf_floor": float(c["edf"][i]),
@@ -364,7 +501,10 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
             "worst_tau_s": float(c["tau"][ft][worst]) if ft.size else float("nan"),
             "edf_worst_script": float(c["edf"][ft][worst]) if ft.size else float("nan"),
             "edf_worst_rigctl": float(np.asarray(r["edf"], float)[ft][worst]) if ft.size else float("nan"),
-            "check_ok": r["fit"]["check"]["ok"], "verdict": verdict}
+            "check_ok": r["fit"]["check"]["ok"], "verdict": verdict,
+            "fw_level_per_tau": fwb["q"], "fw_m_equiv": fwb["m_equiv"],
+            "floor_taus_total_missed_familywise": int((~inside_fw).sum()),
+            "verdict_familywise": verdict_fw}
 
 
 def main() -> None:
@@ -372,19 +512,24 @@ def main() -> None:
     ap.add_argument("--keep", help="write the files and recordings here (default: a temporary dir)")
     ap.add_argument("--only", help="comma-separated capture names")
     ap.add_argument("--reuse", action="store_true",
-                    help="with --keep: judge the `rigctl allan --json` results already in DIR")
+                    help="with --keep: judge the `rigctl allan --json` results already in DIR "
+                         "(and the recordings there, not imported again)")
     args = ap.parse_args()
+    global REUSE
+    REUSE = bool(args.reuse and args.keep)
     t0 = time.perf_counter()
     tmpd = None if args.keep else tempfile.TemporaryDirectory()
     tmp = Path(args.keep or tmpd.name)
     tmp.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
+    counts_fw: dict[str, int] = {}
     rows = []
     caps = captures(tmp)
     if args.only:
         caps = [c for c in caps if c["name"] in args.only.split(",")]
     print(f"{'capture':15s} {'taus':7s} ax  {'floor':>10s} {'at s':>8s} slope reach rise/V  floor? "
-          f"{'B (95 %)':>34s} B/lim Bshare total/curve [band] out/missed/floor-taus worst verdict")
+          f"{'B (95 %)':>34s} B/lim Bshare total/curve [band] out/missed/floor-taus worst verdict "
+          f"| fw: q/tau m_eq missed verdict")
     for cap in caps:
         for taus in ("default", "octave"):
             js = tmp / f"{cap['rec'].stem}_{taus}.json"
@@ -398,6 +543,7 @@ def main() -> None:
                                np.asarray(r["m"], int))
                 j = judge(r, c, cap["tau0"])
                 counts[j["verdict"]] = counts.get(j["verdict"], 0) + 1
+                counts_fw[j["verdict_familywise"]] = counts_fw.get(j["verdict_familywise"], 0) + 1
                 rows.append({"capture": cap["name"], "taus": taus, "axis": ax, **j})
                 bt = (f"{j['b']:.4g} [{j['b_lo95']:.4g}, {j['b_hi95']:.4g}]" if j["b_is_estimate"]
                       else f"< {j['b_hi95']:.4g}")
@@ -407,12 +553,18 @@ def main() -> None:
                       f"{bt:>34s} {j['b_over_limit']:5.2f} {j['b_share_at_floor']:6.2f} {j['total_over_curve_at_floor']:5.3f} "
                       f"[{j['band95_at_floor'][0]:.3f}, {j['band95_at_floor'][1]:.3f}] "
                       f"{j['floor_taus_total_outside_band']}/{j['floor_taus_total_missed']}/{j['floor_taus']} "
-                      f"{j['worst_total_over_curve_on_floor']:5.3f} {j['verdict']}",
+                      f"{j['worst_total_over_curve_on_floor']:5.3f} {j['verdict']} "
+                      f"| {j['fw_level_per_tau']:.4f} {j['fw_m_equiv']:4.1f} "
+                      f"{j['floor_taus_total_missed_familywise']} {j['verdict_familywise']}",
                       flush=True)
     if args.keep:
         (tmp / "allan_heldout.json").write_text(json.dumps(rows, indent=1, default=float))
     print(json.dumps({"axes_x_tau_sets": len(rows), **{f"n_{k.replace('-', '_')}": v for k, v in
                                                        sorted(counts.items())},
+                      # the verdicts with item 2 read on the family-wise band (FW_ALPHA over
+                      # the floor's taus); n_FAIL_total above is item 2 on the pointwise band
+                      **{f"n_{k.replace('-', '_')}_familywise": v for k, v in sorted(counts_fw.items())},
+                      "n_FAIL_total_familywise": counts_fw.get("FAIL-total", 0),
                       "wall_s": round(time.perf_counter() - t0, 1)}))
 
 

@@ -188,12 +188,24 @@ class StreamReader(ReconnectingReader):
 
     def _finish_configure(self, no_frames: str) -> None:
         """After the device was configured: on the first configuration learn the offset for
-        ``learn_s`` of wall time (LinkLost with ``no_frames`` if no frame came), then mark the
-        stream configured."""
+        ``learn_s`` of wall time from the first frame on (LinkLost with ``no_frames`` if none
+        came within ``link_timeout_s``, at least ``learn_s``), then mark the stream configured.
+
+        The window starts at the first frame, not at the configuration's end: the first frames
+        of a device (or of an emulator whose stream follows its physics) may take longer than
+        ``learn_s`` to arrive, and a window that had none failed the connect and started the
+        configuration over, each time with the same wait (the 1e6-frame test of
+        tests/test_hil_faults.py: 'no stream' after 7.2 s of such tries at load 14-19)."""
         if self.offset is None:
             self._learning = True
-            end = time.monotonic() + self.learn_s
-            while time.monotonic() < end and not self._stop.is_set():
+            first_by = time.monotonic() + max(self.learn_s, float(getattr(self, "link_timeout_s", 0.0)))
+            end = None
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if end is None and self.offset is not None:
+                    end = now + self.learn_s        # the first frame came: learn from it on
+                if now >= (first_by if end is None else end):
+                    break
                 data = self.link.read_some(0.02)
                 if data:
                     self._feed(data)

@@ -42,11 +42,9 @@ IMU frames put on the wire, with wall times and their float32 values).
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import math
 import os
-import select
 import shutil
 import tempfile
 import threading
@@ -64,7 +62,7 @@ from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtda
 
 from .acl_server import AclServer, AclServerCore, _LineHandler
 from .gnss_server import GnssServer
-from .links import PtyEndpoint
+from .links import FlowPtyEndpoint, FreeRunPtyEndpoint, PtyEndpoint
 from .modbus_server import ModbusTableServer
 from .physics_table import ImuTap, PhysicsTable
 from .world import SimWorld
@@ -73,75 +71,6 @@ from .xsens_server import MAX_BATCH, XsensServer
 log = logging.getLogger(__name__)
 #: IMU protocols the emulator serves on the pty 'imu' (one at a time)
 IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
-
-
-class FlowPtyEndpoint(PtyEndpoint):
-    """A pty endpoint whose writes wait for the client to drain the port (flow control) instead
-    of dropping at once, as long as the client takes some of the bytes at least every
-    ``write_timeout_s``; after one timed-out write it drops
-    (counting ``overflow_bytes``) until a write goes through whole again or the client has
-    drained the port since (the master is writable again), so a client that went away cannot
-    stall the emulator. Needed when the emulator runs many times faster than the nominal baud
-    rate would allow. (Before, only a whole write ended the dropping: a stream writing batches
-    larger than the port holds -- 2 kHz at 100x, a catch-up batch of the IMU stream thread --
-    never had one, and a driver starved once for 0.5 s lost the rest of the stream.)
-    The timeout is on the client's progress, not on the whole write: with one deadline for the
-    whole write, a catch-up batch larger than the client drains in 0.5 s (333 kB of VectorNav
-    frames at 50x, at load 15) was cut although the client read all along (its longest pause
-    22 ms), and test_wire_imu_errors / test_hil_faults / test_hil_runs found bytes lost.
-
-    Flow control starts once the client has written to the port (``received_bytes``; a
-    commanded device's driver always speaks first: GoToConfig, a register read): until then
-    nobody may have the port open -- the new pty after a pulled cable, into which the device
-    still streams its old measurement period -- and writes drop what does not fit, as
-    :class:`PtyEndpoint`'s do (a UART with nobody listening). Waiting there instead made the IMU
-    stream thread hand the client, when it opened the port, the frames that became due during
-    the wait as one burst of stale data ahead of the reply to its GoToConfig.
-    ``flow_before_client_speaks``: a device that takes no commands sets it."""
-
-    write_timeout_s = 0.5
-    flow_before_client_speaks = False
-
-    def write(self, data: bytes) -> int:
-        if not getattr(self, "_flowing", True):
-            try:
-                _, w, _ = select.select([], [self.master], [], 0)
-            except (OSError, ValueError):
-                w = []
-            if w:                       # the client drained the port since: it is there again
-                self._flowing = True
-        with self._wlock:
-            if self._closed:
-                return 0
-            view, sent = memoryview(data), 0
-            flowing = getattr(self, "_flowing", True) and (self.received_bytes > 0 or self.flow_before_client_speaks)
-            deadline = time.monotonic() + (self.write_timeout_s if flowing else 0.0)
-            while sent < len(view):
-                try:
-                    sent += os.write(self.master, view[sent:])
-                    if flowing:                 # the client took bytes: it is there, wait on
-                        deadline = time.monotonic() + self.write_timeout_s
-                except BlockingIOError:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        break
-                    select.select([], [self.master], [], min(left, 0.01))
-                except OSError as exc:
-                    if exc.errno in (errno.EIO, errno.EBADF):
-                        break
-                    raise
-            self._flowing = sent == len(view)
-            self.overflow_bytes += len(view) - sent
-            return sent
-
-
-class FreeRunPtyEndpoint(FlowPtyEndpoint):
-    """The port of a device that streams from power-up, whether or not a client listens (the
-    declarative-frame IMU): its client never writes, so flow control does not wait for it to
-    speak."""
-
-    flow_before_client_speaks = True
-
 
 
 class HwAclCore(AclServerCore):
@@ -552,7 +481,9 @@ class Hardware:
         offsets that late. Only a backlog beyond ``backlog`` samples (the client slower than the
         stream for seconds: the emulator runs faster than the wire) holds the physics back."""
         horizon = int(2.0 * self.world.rate_hz) + MAX_BATCH
-        backlog = max(horizon, int(self.world.rate_hz * self.speed))   # >= 1 s of wall time
+        # >= the port's flow-control wait + 0.5 s of wall time: a client paused for less than the
+        # wait gets every frame and the physics does not stop meanwhile
+        backlog = max(horizon, int(self.world.rate_hz * self.speed * (FlowPtyEndpoint.write_timeout_s + 0.5)))
         chunk_s = MAX_BATCH / self.world.rate_hz
         while not self._stop.wait(self.tick_s):
             if time.monotonic() < self._paused_until:
@@ -698,6 +629,9 @@ class Hardware:
     # -------------------------------------------------------------------------- teardown
     def close(self) -> None:
         self._stop.set()
+        for slot in self.slots.values() if hasattr(self, "slots") else ():
+            if isinstance(slot.endpoint, FlowPtyEndpoint):
+                slot.endpoint.abort_writes()     # the IMU stream thread may wait for its client
         for t in self._threads:
             t.join(timeout=5)
         self._threads.clear()

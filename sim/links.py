@@ -5,6 +5,9 @@
   client closing and reopening the port never makes the master read EIO. Output is written
   non-blocking: if no one drains the port, bytes are dropped and counted (``overflow_bytes``),
   like a UART with nobody listening, instead of stalling the emulator.
+- :class:`FlowPtyEndpoint`: a :class:`PtyEndpoint` whose writes wait for a client that drains
+  the port (flow control, for emulators faster than the baud rate), and
+  :class:`FreeRunPtyEndpoint`, the same for a device that never hears from its client.
 - :class:`PtyBridge`: two ptys joined master-to-master (a null-modem cable) for servers that
   want to open a port path themselves (pymodbus RTU): ``bridge.path_a`` <-> ``bridge.path_b``.
 - :class:`TcpEndpoint`: a listening socket on 127.0.0.1 (port 0 = OS-picked), one thread and one
@@ -21,6 +24,7 @@ import os
 import select
 import socket
 import threading
+import time
 import tty
 from collections.abc import Callable
 
@@ -109,6 +113,86 @@ class PtyEndpoint:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class FlowPtyEndpoint(PtyEndpoint):
+    """A pty endpoint whose writes wait for the client to drain the port (flow control) instead
+    of dropping at once, as long as the client takes some of the bytes at least every
+    ``write_timeout_s``; after one timed-out write it drops
+    (counting ``overflow_bytes``) until a write goes through whole again or the client has
+    drained the port since (the master is writable again), so a client that went away cannot
+    stall the emulator. Needed when the emulator runs many times faster than the nominal baud
+    rate would allow. (Before, only a whole write ended the dropping: a stream writing batches
+    larger than the port holds -- 2 kHz at 100x, a catch-up batch of the IMU stream thread --
+    never had one, and a driver starved once for 0.5 s lost the rest of the stream.)
+    The timeout is on the client's progress, not on the whole write: with one deadline for the
+    whole write, a catch-up batch larger than the client drains in 0.5 s (333 kB of VectorNav
+    frames at 50x, at load 15) was cut although the client read all along (its longest pause
+    22 ms), and test_wire_imu_errors / test_hil_faults / test_hil_runs found bytes lost.
+
+    Flow control starts once the client has written to the port (``received_bytes``; a
+    commanded device's driver always speaks first: GoToConfig, a register read): until then
+    nobody may have the port open -- the new pty after a pulled cable, into which the device
+    still streams its old measurement period -- and writes drop what does not fit, as
+    :class:`PtyEndpoint`'s do (a UART with nobody listening). Waiting there instead made the IMU
+    stream thread hand the client, when it opened the port, the frames that became due during
+    the wait as one burst of stale data ahead of the reply to its GoToConfig.
+    ``flow_before_client_speaks``: a device that takes no commands sets it."""
+
+    #: the client's longest pause (no byte taken) before the port drops, wall s: longer than a
+    #: reader thread of a loaded host is held up (0.5 s was not, at load 15-18 on 2 cores: the
+    #: wired 24-position runs at 100x lost 4,000-24,000 samples at a time, test_hil_runs)
+    write_timeout_s = 1.5
+    flow_before_client_speaks = False
+    _aborted = False
+
+    def abort_writes(self) -> None:
+        """A write waiting for the client gives up now (the emulator is shutting down)."""
+        self._aborted = True
+
+    def close(self) -> None:
+        self.abort_writes()
+        super().close()
+
+    def write(self, data: bytes) -> int:
+        if not getattr(self, "_flowing", True):
+            try:
+                _, w, _ = select.select([], [self.master], [], 0)
+            except (OSError, ValueError):
+                w = []
+            if w:                       # the client drained the port since: it is there again
+                self._flowing = True
+        with self._wlock:
+            if self._closed:
+                return 0
+            view, sent = memoryview(data), 0
+            flowing = getattr(self, "_flowing", True) and (self.received_bytes > 0 or self.flow_before_client_speaks)
+            deadline = time.monotonic() + (self.write_timeout_s if flowing else 0.0)
+            while sent < len(view):
+                try:
+                    sent += os.write(self.master, view[sent:])
+                    if flowing:                 # the client took bytes: it is there, wait on
+                        deadline = time.monotonic() + self.write_timeout_s
+                except BlockingIOError:
+                    left = deadline - time.monotonic()
+                    if left <= 0 or self._aborted:
+                        break
+                    select.select([], [self.master], [], min(left, 0.01))
+                except OSError as exc:
+                    if exc.errno in (errno.EIO, errno.EBADF):
+                        break
+                    raise
+            self._flowing = sent == len(view)
+            self.overflow_bytes += len(view) - sent
+            return sent
+
+
+class FreeRunPtyEndpoint(FlowPtyEndpoint):
+    """The port of a device that streams from power-up, whether or not a client listens (the
+    declarative-frame IMU): its client never writes, so flow control does not wait for it to
+    speak."""
+
+    flow_before_client_speaks = True
 
 
 class PtyBridge:

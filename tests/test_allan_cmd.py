@@ -285,3 +285,25 @@ def test_all_taus_below_2_20_points_stay_fast_modes_set(tmp_path) -> None:
     octaves = np.floor(np.log2(m)).astype(int)
     assert np.bincount(octaves).max() <= 8 and len(m) < 200, len(m)
     assert np.all(np.asarray(r["stride"]) == 1)
+
+
+def test_kalibr_on_a_gyro_only_import_says_what_the_recording_has(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture) -> None:
+    """A gyro-only log (a bag whose linear_acceleration is never filled, here a CSV without
+    accelerometer columns): --kalibr was refused with "(--axes gx,gy,gz,ax,ay,az)", advice that
+    then fails on the NaN accelerometer. Now the error says which axes the recording has."""
+    rng = np.random.default_rng(4)
+    t = np.arange(3000) / 100.0
+    g = rng.standard_normal((t.size, 3)) * 1e-3
+    csv = tmp_path / "gyro.csv"
+    csv.write_text("time,gx,gy,gz\n" + "\n".join(f"{a:.2f},{b:.6e},{c:.6e},{d:.6e}"
+                                                 for a, (b, c, d) in zip(t, g)) + "\n")
+    rec = tmp_path / "gyro.h5"
+    assert cli.main(["import", str(csv), "-o", str(rec), "--columns",
+                     "time=time,gyr_x=gx,gyr_y=gy,gyr_z=gz", "--units", "gyr=rad/s"]) == 0
+    capsys.readouterr()
+    assert cli.main(["allan", str(rec), "--db", "none", "--kalibr", str(tmp_path / "imu.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(rec) in err and "has gx,gy,gz only" in err, err
+    assert "--axes gx,gy,gz,ax,ay,az" not in err
+    assert not (tmp_path / "imu.yaml").exists()

@@ -96,22 +96,20 @@ def _within(c, truth: float) -> bool:
 
 def test_a_gauss_markov_process_is_fitted_beside_white_noise_and_random_walk() -> None:
     """White noise (N 1e-3 u sqrt(s)) + a Gauss-Markov process (sigma 5e-4 u, Tc 10 s) + a rate
-    random walk (K 2e-5 u/sqrt(s)), 4 h at 20 Hz, eight seeds: the candidate finds the process
-    on every one and the joint fit with it puts the truth inside its 95 % intervals -- Tc and
-    sigma_GM in at least 7 of 8 (measured, seeds 1-8: Tc 7, sigma_GM 7 -- seed 4's Tc came out
-    19.6 [15.2, 26.0], seed 1's sigma 0.537 [0.507, 0.599]e-3: the intervals are narrower than
-    95 %, the Gauss-Markov part of the covariance is approximated), N and K in at least 7
-    (measured 8 and 8: GM swallows neither; before K was kept for the rise beside the term, seeds
-    2 and 4 dropped it at z ~ 1.8 and bounded it below the truth). The fitted total with the
-    term lies inside the band (Bonferroni over the informative taus, or within 10 %) at every
-    informative tau in at least 7 of 8 (measured 8; with K dropped, seed 4 left it at 13 taus,
-    0.23-0.3x the curve past 1000 s); the informative taus outside it, summed over the seeds,
-    are at most a third of the IEEE 952 terms' alone (measured 0 against 62 of 424), and
-    rigctl's self-check passes on at least 7 (measured 7, seed 4's chi2 61.6/37; IEEE-only 1 of
-    8). Seed 2 has a B estimate where there is none (2.2e-4 [1.6e-4, 3.7e-4]): a finding."""
+    random walk (K 2e-5 u/sqrt(s)), 4 h at 20 Hz, six seeds: the candidate finds the process on
+    every one and the joint fit with it (the Gauss-Markov kernel of allan_cov in its
+    covariance) puts the truth inside its 95 % intervals -- Tc and sigma_GM in at least 5 of 6
+    (measured, seeds 1-6: Tc 5, seed 4's 13.3 s [10.5, 17.6]; sigma_GM 6), N and K in at least 5
+    (measured 6 and 6: GM swallows neither; before K was kept for the rise beside the term,
+    seeds 2 and 4 dropped it at z ~ 1.8 and bounded it below the truth). The fitted total with
+    the term lies inside the band (Bonferroni over the informative taus, or within 10 %) at
+    every informative tau in at least 5 of 6 (measured 6); the informative taus outside it,
+    summed over the seeds, are at most a third of the IEEE 952 terms' alone (measured 0
+    against 49 of 318), and rigctl's self-check passes on at least 5 (measured 6; IEEE-only 1
+    of 6). Seed 2 has a B estimate where there is none (2.0e-4 [1.4e-4, 3.8e-4]): a finding."""
     n_tc = n_sig = n_n = n_k = n_total = n_check = n_check_ieee = 0
     out_gm = out_ieee = 0
-    for seed in range(1, 9):
+    for seed in range(1, 7):
         tau, dev, ms, n = _simulated(seed)
         edf_r = np.array([E.edf("oadev", 0, int(m), n + 1) for m in ms])  # what rigctl feeds in
         cand = GM.gm_candidate(tau, dev, edf_r, TAU0_SIM, n + 1)
@@ -136,10 +134,10 @@ def test_a_gauss_markov_process_is_fitted_beside_white_noise_and_random_walk() -
             tau, dev, edf, np.sqrt(total_avar(tau, ieee["coefficients"].as_json())))))
         n_check += fit["check"]["ok"]
         n_check_ieee += ieee["check"]["ok"]
-    assert n_tc >= 7 and n_sig >= 7, (n_tc, n_sig)
-    assert n_n >= 7 and n_k >= 7, (n_n, n_k)
-    assert n_total >= 7 and 3 * out_gm <= out_ieee, (n_total, out_gm, out_ieee)
-    assert n_check >= 7 and n_check > n_check_ieee, (n_check, n_check_ieee)
+    assert n_tc >= 5 and n_sig >= 5, (n_tc, n_sig)
+    assert n_n >= 5 and n_k >= 5, (n_n, n_k)
+    assert n_total >= 5 and 3 * out_gm <= out_ieee, (n_total, out_gm, out_ieee)
+    assert n_check >= 5 and n_check > n_check_ieee, (n_check, n_check_ieee)
 
 
 def _ieee_series(kind: str, n: int, tau0: float, rng: np.random.Generator) -> np.ndarray:
@@ -188,14 +186,14 @@ def test_the_mtig_gyro_through_the_cli_has_the_gauss_markov_term_in_its_fit(
         ref_data: Path, tmp_path: Path) -> None:
     """The real MTi-G gyro (1.39 h at 100 Hz) through `rigctl import` + `rigctl allan --json`:
     the Gauss-Markov term is in the fit, the statistical chi-square of the reported model is
-    back within its 99 % point (measured 33.98 on 38 dof, p = 0.66; without the term 792.4 on
+    back within its 99 % point (measured 36.05 on 38 dof, p = 0.56; without the term 792.4 on
     39, and the IEEE-only fit needed a 25 % model error), the warning says the term was added
     with Tc in s and sigma_GM in deg/h, and the fitted total (written out here) follows the
     deviations computed here: inside the Bonferroni band or within 10 % at every informative
-    tau but for at most the two the self-check names as chance (measured: 80-91 s, 0.84x).
+    tau but for at most the two the self-check names as chance (measured: 80 s, 0.85x).
     Tc and sigma_GM agree with a white + GM least-squares read written in
     tests/test_allan_gm_real.py (there: Tc 3.00 s [2.46, 3.68], 62.6 deg/h [59.1, 66.2];
-    here measured Tc 3.42 s [2.59, 4.52], 61.9 deg/h [55.7, 69.2])."""
+    here measured Tc 3.35 s [2.48, 5.15], 62.0 deg/h [54.4, 70.1])."""
     d = ref_data / "mtig-static-contaminated"
     if not d.exists():
         pytest.skip(f"{d} not present (CC BY-NC-SA 4.0, see its README)")

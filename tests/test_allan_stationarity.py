@@ -173,13 +173,18 @@ def test_the_pipeline_names_a_confined_hump_and_leaves_a_stationary_one(tmp_path
         assert cli.main(["import", str(txt), "-o", str(rec), "--columns", "gyr_x=0",
                          "--units", "gyr=rad/s", "--rate", "1"]) == 0
         assert cli.main(["allan", str(rec), "--db", "none", "--json", str(out)]) == 0
-        runs = [o for o in json.loads(out.read_text())["axes"]["gx"]["fit"]["check"]["outside"]
-                if "stationarity" in o]
+        fit = json.loads(out.read_text())["axes"]["gx"]["fit"]
+        # a stationary bump the Gauss-Markov term then explains: named in the IEEE-only check
+        check = (fit.get("ieee_only") or fit)["check"]
+        runs = [o for o in check["outside"] if "stationarity" in o]
         assert len(runs) == 1, runs
         got[name] = runs[0]
+        got[name + "_fit"] = fit
     o = got["confined"]
     assert o["cause"] == "nonstationary" and o["likely"].startswith("not stationary"), o
     assert [(round(a), round(b)) for a, b, _ in o["stationarity"]["loud"]] == [(10000, 15000)]
+    assert "gm_term" not in got["confined_fit"]  # not stationary: no Gauss-Markov term
     o = got["throughout"]
     assert "cause" not in o and o["stationarity"]["stationary"], o
+    assert got["throughout_fit"]["gm_term"]  # stationary: the term is in the fit
     assert o["likely"].startswith("a bump") and "stationary as far as the record shows" in o["likely"]

@@ -73,8 +73,11 @@ def test_page_shows_live_imu_refuses_control_without_token_and_edits_the_queue(c
         b.type("#token", api.token)
         b.click("#token-form button")
         b.wait_for("Number(document.body.dataset.liveReceived) > 20", 15, "live IMU points")
-        t1 = float(b.js("document.body.dataset.liveLastT"))
-        text1 = b.js("document.getElementById('live-values').textContent")
+        # the newest point's time and the text showing it, read in one evaluation: the page sets
+        # both in one call per live batch (a batch every 0.5 s, ~10 s of rig time at 20x), so two
+        # reads could straddle a batch and the wait below return before the next one
+        t1, text1 = b.js("[Number(document.body.dataset.liveLastT), "
+                         "document.getElementById('live-values').textContent]")
         b.wait_for(f"Number(document.body.dataset.liveLastT) > {t1 + 5}", 15, "newer live points")
         text2 = b.js("document.getElementById('live-values').textContent")
         assert text1 != text2

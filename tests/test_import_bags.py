@@ -193,7 +193,7 @@ def test_every_format_imports_to_the_same_recording(bags, tmp_path, capsys):
             assert imu2[k].dtype == imu[k].dtype and imu2[k].tobytes() == imu[k].tobytes(), (name, k)
         for k in seg:
             assert seg2[k].tobytes() == seg[k].tobytes(), (name, k)
-        skip = {"import_source", "import_format", "started_utc", "ended_utc"}
+        skip = {"import_source", "import_format", "started_utc", "ended_utc", "import_utc"}
         assert {k: str(v) for k, v in meta2.items() if k not in skip} == \
             {k: str(v) for k, v in meta.items() if k not in skip}, name
 
@@ -355,3 +355,35 @@ def test_a_binary_file_is_not_called_a_csv_file(tmp_path, capsys):
     csv.write_text("time,ax\n0,1\n")
     code, out, err = _rigctl(capsys, str(csv), "-o", str(tmp_path / "y.h5"))
     assert code == 2 and "--columns is required" in err
+
+
+def test_an_imported_bag_is_dated_by_its_own_stamps(bags, tmp_path, capsys):
+    """/meta started_utc and ended_utc of an imported bag are the capture's (first and last
+    stamp), not the import's: the report's "started (UTC)" and the results database's
+    "recorded" time read them. A 2023 bag imported today said today. The import's own time is
+    kept in import_utc. Stamps that are no wall-clock time (a sensor's time since boot) leave
+    the import's times."""
+    import datetime as dt
+
+    def iso(ns: int) -> str:  # written out here: ns since the epoch -> the recorder's ISO form
+        t = dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc) + dt.timedelta(microseconds=ns // 1000)
+        return t.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+    s = _samples()
+    rec = tmp_path / "dated.h5"
+    code, out, err = _rigctl(capsys, str(bags["rosbag2 (sqlite3 storage)"]), "-o", str(rec))
+    assert code == 0, err
+    _, _, meta = _read(rec)
+    assert meta["started_utc"] == iso(int(s["stamp"][0])) == "2023-11-14T22:13:20.123456Z"
+    assert meta["ended_utc"] == iso(int(s["stamp"][-1]))
+    today = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d")
+    assert meta["import_utc"].startswith(today)
+    # stamps since boot (5 s): the import's own times
+    boot = {k: v for k, v in s.items()}
+    boot["stamp"] = s["stamp"] - T0_NS + 5_000_000_000
+    boot["recv"] = s["recv"] - T0_NS + 5_000_000_000
+    rec2 = tmp_path / "boot.h5"
+    code, out, err = _rigctl(capsys, str(write_mcap_ros2(tmp_path / "boot.mcap", boot)), "-o", str(rec2))
+    assert code == 0, err
+    _, _, meta2 = _read(rec2)
+    assert meta2["started_utc"].startswith(today) and "import_utc" not in meta2

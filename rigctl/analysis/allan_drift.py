@@ -498,6 +498,10 @@ def refit_with_gm(fit: dict, gm: dict, sensor: str, refit: Any) -> dict:
     gm["in_fit"] = bool(t)
     new["gauss_markov"] = gm
     ch = fit.get("check") or {}
+    for o in ch.get("outside") or []:  # the candidate's sentence: now in the fit
+        if o.get("gauss_markov") and new.get("gm_term"):
+            o["likely"] = str(o["likely"]).replace("a candidate, not in the fitted total",
+                                                   "added to the joint fit")
     new["ieee_only"] = {"coefficients": fit["coefficients"], "terms": fit.get("terms"),
                         "check": {k: ch.get(k) for k in (
                             "ok", "chi2", "dof", "p_value", "model_error_rel", "n_outside",

@@ -402,12 +402,35 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
     return bool(np.linalg.norm(gyr.std(axis=0)) < 10.0 * ref_noise)
 
 
+#: first-stamp range read as wall-clock (Unix) time: 1990-01-01 .. 2100-01-01 UTC, ns; outside it
+#: (a sensor's or a computer's time since boot) the recording keeps the import's own times
+_WALL_CLOCK_NS = (631_152_000 * 10**9, 4_102_444_800 * 10**9)
+
+
+def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] | None:
+    """(started_utc, ended_utc) of a capture whose first stamp is ``stamp_zero_ns`` (ns since
+    the Unix epoch) and which lasts ``duration_s``, as the recorder writes times; None when the
+    stamp is not a wall-clock time (see _WALL_CLOCK_NS)."""
+    import datetime as _dt
+
+    if not _WALL_CLOCK_NS[0] <= int(stamp_zero_ns) < _WALL_CLOCK_NS[1]:
+        return None
+    t0 = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc) + _dt.timedelta(
+        microseconds=int(stamp_zero_ns) // 1000)
+    t1 = t0 + _dt.timedelta(seconds=float(duration_s))
+    iso = "%Y-%m-%dT%H:%M:%S.%fZ"
+    return t0.strftime(iso), t1.strftime(iso)
+
+
 def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
                     rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
-                    counter: np.ndarray | None = None, note: str = "") -> None:
+                    counter: np.ndarray | None = None, note: str = "",
+                    ended_utc: str | None = None) -> None:
     """A complete recording (docs/data-format.md) through rigctl.recording.recorder.Recorder: the one
     writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
-    jumps; ``note`` is added to the import event's message."""
+    jumps; ``note`` is added to the import event's message. ``ended_utc`` (with ``meta``'s
+    ``started_utc``): the capture's own end, written over the recorder's closing time; the
+    import's own time is kept in ``import_utc``."""
     from ..recording.recorder import Recorder, Segment
 
     n = len(t)
@@ -431,6 +454,12 @@ def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, 
         rec.close("failed")
         raise
     rec.close("complete")
+    if ended_utc is not None:
+        import h5py
+
+        with h5py.File(out, "r+") as f:
+            f["meta"].attrs["import_utc"] = f["meta"].attrs["ended_utc"]
+            f["meta"].attrs["ended_utc"] = ended_utc
 
 
 def check_output(src: Path, out: Path, force: bool) -> None:
@@ -725,8 +754,12 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
     note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
+    span = _wall_clock_span(b.stamp_zero_ns, float(b.time_s[-1]) if n else 0.0)
+    if span is not None:  # the capture's own start and end, not the import's
+        meta["started_utc"] = span[0]
     write_recording(out, b.time_s, acc, gyr, np.full(n, np.nan), b.rate_hz,
-                    sections, meta, counter=b.counter, note=note)
+                    sections, meta, counter=b.counter, note=note,
+                    ended_utc=None if span is None else span[1])
     return Imported(out, n, b.rate_hz, sections,
                     [f"imported {n} samples from {args.file}", *B.describe(b), *extra], b.n_messages)
 

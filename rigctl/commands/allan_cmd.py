@@ -56,6 +56,12 @@ def run(args: argparse.Namespace) -> int:
         except ImportError:
             raise InputError("--plot needs matplotlib: pip install 'rigctl[report]'") from None
     if args.kalibr and set(axes) != set(AXES):
+        if args.axes is None:  # the import found only these axes (/meta import_axes)
+            raise InputError(f"--kalibr needs all six axes; this recording has {','.join(axes)} "
+                             "only (the others were not filled in the imported log): Kalibr's "
+                             "imu.yaml holds both sensors' noise", args.recording,
+                             hint="analyse these axes without --kalibr and write the other "
+                                  "sensor's values into imu.yaml yourself")
         raise InputError("--kalibr needs all six axes (--axes gx,gy,gz,ax,ay,az)")
     if not args.kalibr_inflate > 0:
         raise InputError(f"--kalibr-inflate {args.kalibr_inflate:g}: give a factor > 0 (1: none)")

@@ -185,17 +185,22 @@ def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.nda
 
 def _stat_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.ndarray,
               edf: np.ndarray) -> np.ndarray:
-    # the Gauss-Markov column (GM_IDX) has no kernel in allan_cov yet: like the ramp, its part
-    # of the total takes the correlations of the Q, N, B, K terms, scaled tau by tau to the
-    # total (the approximation rigctl.solvers.allan_gm makes)
+    # the Gauss-Markov column (GM_IDX): its own kernel where ``cov_terms`` holds the pairs of
+    # allan_cov at the column's Tc (term_covariances(..., tc=)); without them, like the ramp,
+    # its part of the total takes the correlations of the Q, N, B, K terms, scaled tau by tau
+    # to the total (the approximation rigctl.solvers.allan_gm makes)
     full = np.zeros(len(COLS))
     full[cols] = p
     mod = np.maximum(a @ p, 1e-300)
     if cov_terms is None:
         return np.diag(2.0 * mod ** 2 / edf)
-    cov = C.combine(cov_terms, dict(zip(C.TERMS4, full[:4])))
-    noisy = np.maximum(a[:, [i for i, c in enumerate(cols) if c < 4]] @ p[
-        [i for i, c in enumerate(cols) if c < 4]], 1e-300) if any(c < 4 for c in cols) else mod
+    coeffs = dict(zip(C.TERMS4, full[:4]))
+    has_g = GM_IDX in cols and ("G", "G") in cov_terms
+    if has_g:
+        coeffs["G"] = full[GM_IDX]
+    cov = C.combine(cov_terms, coeffs)
+    kern = [i for i, c in enumerate(cols) if c < 4 or (has_g and c == GM_IDX)]
+    noisy = np.maximum(a[:, kern] @ p[kern], 1e-300) if kern else mod
     g = mod / noisy  # the deterministic ramp R: same correlations, scaled to the total
     # where the noise terms are ~0 beside a ramp (noisy floored at 1e-300) g**2 overflows: those
     # taus have no usable noise covariance and take the diagonal fallback below
@@ -627,6 +632,16 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     elif tau0 is not None and n_phase is not None:
         ms = np.maximum(1, np.round(tau / tau0)).astype(np.int64)
         cov_terms = C.term_covariances(tau0, ms, int(n_phase))
+
+    def cov_at(tc: float) -> dict | None:
+        """The covariance pairs with the Gauss-Markov kernel at correlation time ``tc``."""
+        if cov_terms is None:
+            return None
+        ms_ = np.maximum(1, np.round(tau / tau0)).astype(np.int64)
+        if stretch_samples is not None and len(stretch_samples) > 1:
+            return C.gapped_term_covariances(tau0, ms_, np.asarray(stretch_samples), tc=tc)
+        return C.term_covariances(tau0, ms_, int(n_phase), tc=tc)
+
     full_a = design_matrix(tau)
     active = [TERMS.index(t) for t in terms]
     # B, K and R no larger than the curve allows within its 95 % band (c_j^2 A_j <= hi95^2;
@@ -666,8 +681,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     tc_fit, gm_prof = None, None
     if gm is not None:
         tc_fit, gm_prof, model_err, chi2_stat = _gm_profile(
-            gm, tau, s2, e, full_a, active, upper_all, cov_terms, iterations, tau_all, s2_all,
+            gm, tau, s2, e, full_a, active, upper_all, cov_at, iterations, tau_all, s2_all,
             inf95, hi_fw)
+        cov_terms = cov_at(tc_fit)
         full_a = full_design(tau, tc_fit)
         upper_all = np.append(upper_all, _gm_limit(tc_fit, tau_all, s2_all, inf95, hi_fw,
                                                    model_err))
@@ -936,7 +952,7 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     if tc_fit is not None:
         gm_term, gm_coef = _gm_result(
             gm_prof, tc_fit, values[GM_IDX], sds[GM_IDX], sensor, tau, s2, e, full_a, active,
-            upper_all, cov_terms, iterations, model_err, inflate, tau_front, s2_front,
+            upper_all, cov_at, iterations, model_err, inflate, tau_front, s2_front,
             e_front, _gm_limit(tc_fit, tau_all, s2_all, inf95, None, model_err))
         gm_coefs = (gm_coef,)
         coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
@@ -1019,7 +1035,7 @@ def _gm_limit(tc: float, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndar
 
 
 def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
-                active: list[int], upper_all: np.ndarray, cov_terms: dict | None,
+                active: list[int], upper_all: np.ndarray, cov_at: Callable[[float], dict | None],
                 iterations: int, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
                 hi_fw: np.ndarray) -> tuple[float, dict, float, tuple]:
     """Tc of the fit's Gauss-Markov term: the profile of the joint fit's chi-square (every
@@ -1040,13 +1056,13 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
         cols = active + [GM_IDX]
         up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, eps))
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
-        _, _, rw = _gls(a, s2, e, cols, cov_terms, p0, iterations, eps, up)
+        _, _, rw = _gls(a, s2, e, cols, cov_at(tc), p0, iterations, eps, up)
         return float(rw @ rw)
 
     def err_at(tc: float) -> tuple[float, tuple]:
         a = np.column_stack((full_a[:, active], gm_column(tau, tc)))
         up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, 0.0))
-        return _model_error(a, s2, e, active + [GM_IDX], cov_terms, iterations, up)
+        return _model_error(a, s2, e, active + [GM_IDX], cov_at(tc), iterations, up)
 
     c = np.array([at(tc, 0.0) for tc in grid])
     eps, stat = err_at(float(grid[int(np.argmin(c))]))
@@ -1064,12 +1080,14 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
     if eps > 0:  # the model error at the refined Tc (the one the fit then uses)
         eps, stat = err_at(tc)
     dof = max(1, tau.size - len(active) - 1)
-    return tc, {"tc_s": tcs, "chi2": c, "dof": dof, "model_error_rel": eps}, eps, stat
+    return tc, {"tc_s": tcs, "chi2": c, "dof": dof, "model_error_rel": eps,
+                "kernel": cov_at(tc) is not None}, eps, stat
 
 
 def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
                tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
-               active: list[int], upper_all: np.ndarray, cov_terms: dict | None,
+               active: list[int], upper_all: np.ndarray,
+               cov_at: Callable[[float], dict | None],
                iterations: int, model_err: float, inflate: np.ndarray | None,
                tau_front: np.ndarray, s2_front: np.ndarray, e_front: np.ndarray,
                point_limit: float) -> tuple[dict, "NC.GaussMarkov"]:
@@ -1102,8 +1120,8 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         up = upper_all[active]
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
         try:
-            p, aw, rw = _gls(a, s2, e, active, cov_terms, p0, iterations, model_err, up,
-                             inflate)
+            p, aw, rw = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
+                             model_err, up, inflate)
         except (ValueError, np.linalg.LinAlgError):
             continue
         pos = p > 0
@@ -1137,8 +1155,8 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             "sigma_si": sig.value, "sigma_ci95_si": list(sig.interval95),
             "resolved": sig.resolved, "curve_limit_si": lim, "held_at_curve_limit": held,
             "overdispersion": over, "profile_model_error_rel": prof["model_error_rel"],
-            "covariance": "the Q, N, B, K terms' correlations across taus, scaled to the total "
-                          "(no Gauss-Markov kernel)"}
+            "covariance": ("the Gauss-Markov kernel of allan_cov at each Tc"
+                           if prof.get("kernel") else "none (EDF-weighted, diagonal)")}
     if math.isfinite(point_limit):
         term["held_limit_si"] = math.sqrt(point_limit)
     return term, coef
