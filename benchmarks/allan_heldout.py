@@ -360,7 +360,8 @@ def avar_corr(ms: np.ndarray, tau0: float, lengths: list[int], s2_terms: dict) -
     d_a(t) and d_b(t + l) from the phase's generalised autocovariance (_TERM_KERNELS). White
     PM, white and random-walk FM: c_ab = 0 past |l| = 2 (m_a + m_b); flicker FM's tail (~l^-2)
     summed to 16 (m_a + m_b) (its squares fall as l^-4). For large factors the lags are
-    stepped (the kernel is smooth between its kinks at multiples of m): step min(m)/200."""
+    stepped (the kernel is smooth between its kinks at multiples of m): step min(m)/200; white
+    PM, nonzero at 9 lags only, is added there exactly."""
     ms = np.asarray(ms, dtype=int)
     k = ms.size
     # each term's scale: its second difference's variance over 2 m^2 tau0^2 is its AVAR
@@ -381,15 +382,28 @@ def avar_corr(ms: np.ndarray, tau0: float, lengths: list[int], s2_terms: dict) -
             reach = (16 if "B" in scale else 2) * (ma + mb)
             step = max(1, min(ma, mb) // 200)
             lags = np.arange(-reach, reach + 1, step)
-            c = sum(s * _cross(_TERM_KERNELS[t], ma, mb, lags) for t, s in scale.items())
+            smooth = {t: v for t, v in scale.items() if t != "Q"}
+            c = sum((s * _cross(_TERM_KERNELS[t], ma, mb, lags) for t, s in smooth.items()),
+                    np.zeros(lags.size))
             na, nb = lens + 1 - 2 * ma, lens + 1 - 2 * mb  # terms per stretch
             use = (na > 0) & (nb > 0)
-            # pairs (t, s) with s - t = l inside one stretch, summed over the stretches
-            cnt = np.zeros(lags.size)
-            for n_a, n_b, w in zip(na[use], nb[use], mult[use]):
-                cnt += w * np.clip(np.minimum(n_a, n_b - lags) - np.maximum(0, -lags), 0, None)
+
+            def count(ls: np.ndarray) -> np.ndarray:
+                """pairs (t, s) with s - t = l inside one stretch, summed over the stretches"""
+                out = np.zeros(ls.size)
+                for n_a, n_b, w in zip(na[use], nb[use], mult[use]):
+                    out += w * np.clip(np.minimum(n_a, n_b - ls) - np.maximum(0, -ls), 0, None)
+                return out
+
+            acc = step * float(count(lags) @ (c * c))
+            if "Q" in scale:  # white PM: nonzero only at the 9 lags i m_a - j m_b, added exactly
+                ql = np.unique(np.array([i * ma - j * mb for i in range(3) for j in range(3)]))
+                cs = sum((s * _cross(_TERM_KERNELS[t], ma, mb, ql) for t, s in smooth.items()),
+                         np.zeros(ql.size))
+                cq = scale["Q"] * _cross(_TERM_KERNELS["Q"], ma, mb, ql)
+                acc += float(count(ql) @ ((cs + cq) ** 2 - cs ** 2))
             tot_a, tot_b = float((na[use] * mult[use]).sum()), float((nb[use] * mult[use]).sum())
-            S[p, q] = S[q, p] = step * float(cnt @ (c * c)) / max(tot_a * tot_b, 1.0)
+            S[p, q] = S[q, p] = acc / max(tot_a * tot_b, 1.0)
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
     return S / np.outer(d, d)
 
