@@ -36,7 +36,7 @@ def test_bad_commands_raise_command_error(bad):
     assert e.value.code == A.AclCode.COMMAND_ERROR
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
 @given(st.binary(max_size=60))
 def test_server_core_never_crashes_on_random_input(data):
     core = AclServerCore(IdealTable())

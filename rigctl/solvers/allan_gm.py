@@ -17,12 +17,14 @@ against sigma_GM^2 > 0 beside every IEEE 952 shape, built like the fit's B prese
 covariance of the sigma^2 estimates, a relative model error where even the alternative leaves
 scatter beyond the statistics), with two differences:
 
-* the covariance of the estimates (allan_cov) has no Gauss-Markov kernel: it is that of the
-  fitted N, B and K, scaled tau by tau to the alternative's total (the way the fit scales it
-  for the ramp). An approximation: the correlation across taus of a hump's estimates is taken
-  to be that of the IEEE terms under it;
+* the covariance of the estimates is that of the fitted N, B, K and Gauss-Markov terms with
+  their cross terms, at each Tc tried (allan_cov's Gauss-Markov kernel,
+  :func:`rigctl.solvers.allan_cov.gm_term_covariances`), scaled tau by tau to the whole
+  alternative (the signed Q and the ramp take the same correlations, as in the fit);
 * Tc is not defined under the null (Davies' problem): the statistic is the largest over a grid
-  of Tc (4 per octave, the hump's peak 1.89 Tc inside the well-determined curve), and its
+  of Tc (4 per octave on the lattice 2^(i/4) s, refined to 2^(j/32) s around the best, so
+  that axes and records of one sampling share the kernel's cache; the hump's peak 1.89 Tc
+  inside the well-determined curve), and its
   boundary p-value (chi-bar-square, chi2.sf(stat, 1) / 2) is multiplied by the number of
   independent looks, one per factor GM_LOOK_SPAN of Tc (Bonferroni). The false-add rate this
   gives is measured, not assumed (tests/test_allan_gm.py, benchmarks/allan_gm.py).
@@ -118,10 +120,11 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     if tc_hi <= 2.0 * tc_lo:
         out["skipped"] = "the well-determined curve is too short for a hump inside it"
         return out
-    n_grid = int(math.ceil(math.log2(tc_hi / tc_lo) * GM_GRID_PER_OCTAVE)) + 1
-    grid = np.exp(np.linspace(math.log(tc_lo), math.log(tc_hi), n_grid))
+    i_lo = int(math.ceil(math.log2(tc_lo) * GM_GRID_PER_OCTAVE))
+    i_hi = int(math.floor(math.log2(tc_hi) * GM_GRID_PER_OCTAVE))
+    grid = 2.0 ** (np.arange(i_lo, i_hi + 1) / GM_GRID_PER_OCTAVE)
     n_looks = max(1.0, math.log(tc_hi / tc_lo) / math.log(GM_LOOK_SPAN))
-    ct = C.term_covariances(tau0, np.round(t / tau0).astype(np.int64), int(n_phase))
+    ms_t = np.round(t / tau0).astype(np.int64)
     a0 = F.design_matrix(t)
     lower = np.array([-np.inf, 0.0, 0.0, 0.0, 0.0, 0.0])
 
@@ -136,16 +139,30 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
         r = bw - aw @ q
         return q, float(r @ r), aw
 
-    def whiten_at(a: np.ndarray, q: np.ndarray, eps: float) -> np.ndarray:
-        noisy = np.maximum(a0[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
-        return F._model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps)
+    def whiten_at(a: np.ndarray, q: np.ndarray, eps: float, ct: dict) -> np.ndarray:
+        """The covariance of the N, B, K and GM terms at q (the GM kernel's, with the cross
+        terms), scaled per tau to the whole model; the diagonal 2 mod^2 / edf if it is not
+        positive; plus the model error (eps mod)^2."""
+        p = np.maximum(q, 0.0)
+        noisy = np.maximum(a[:, [1, 2, 3, 5]] @ p[[1, 2, 3, 5]], 1e-300)
+        mod = np.maximum(a @ q, 1e-300)
+        cov = C.combine(ct, {"N": p[1], "B": p[2], "K": p[3], "G": p[5]})
+        g = mod / noisy
+        with np.errstate(over="ignore", invalid="ignore"):
+            cov = cov * np.outer(g, g)
+        if not np.all(np.isfinite(cov)) or not np.all(np.diag(cov) > 0):
+            cov = np.diag(2.0 * mod ** 2 / ee)
+        if eps > 0:
+            cov = cov + np.diag((eps * mod) ** 2)
+        return F._whiten(cov)
 
     def at(tc: float, eps: float) -> dict:
         a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
+        ct = C.term_covariances(tau0, ms_t, int(n_phase), tc)
         lw = F._whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
         for _ in range(iterations):
             q, _, _ = solve(a, lw)
-            lw = whiten_at(a, q, eps)
+            lw = whiten_at(a, q, eps, ct)
         q1, c1, aw = solve(a, lw)
         q0, c0, _ = solve(a0, lw)
         return {"tc": tc, "q1": q1, "c1": c1, "q0": q0, "c0": c0, "aw": aw, "a": a}
@@ -165,8 +182,9 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     i = int(np.argmin([r["c1"] for r in runs]))
     interior = 0 < i < len(runs) - 1
     # ... refined 8x around the coarse grid's best (the profile is a few grid steps wide)
-    fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]), math.log(grid[min(i + 2, grid.size - 1)]),
-                              33))
+    j0 = 8 * (i_lo + max(i - 2, 0))
+    j1 = 8 * (i_lo + min(i + 2, grid.size - 1))
+    fine = 2.0 ** (np.arange(j0, j1 + 1) / (8 * GM_GRID_PER_OCTAVE))
     runs = sorted(runs + [at(tc, eps) for tc in fine if not np.any(np.isclose(tc, grid))],
                   key=lambda r: r["tc"])
     grid = np.array([r["tc"] for r in runs])
@@ -212,7 +230,8 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
         "p_value": p, "statistic": stat, "n_looks": n_looks, "best_at_grid_end": not interior,
         "tc_s": float(top["tc"]),
         "tc_ci95_s": [float(grid[inside].min()), float(grid[inside].max())],
-        "tc_grid_s": [float(grid[0]), float(grid[-1])],
+        # the Tc range searched (the lattice points inside it are the ones evaluated)
+        "tc_grid_s": [float(tc_lo), float(tc_hi)],
         "sigma_gm_si": math.sqrt(max(float(top["q1"][-1]), 0.0)),
         "sigma_gm_sd_var_si": sd_top,
         "sigma_gm_ci95_si": ([min(c[0] for c in cis), max(c[1] for c in cis)] if cis
