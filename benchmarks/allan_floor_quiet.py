@@ -26,7 +26,11 @@ stretch its stationarity test names:
    and whether rigctl's self-check names the tau;
 5. with --sim N: how often item 2 (the total in the band at every floor tau, or within 10 %)
    fails for N simulated stationary records with the OCXO's and the ADIS16405's terms, with
-   the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record;
+   the true total (the ensemble's mean Allan variance) and with the fit of 1. on each record,
+   on the pointwise band and on allan_heldout's family-wise band (and Sidak over the count of
+   floor taus), with Clopper-Pearson 95 % upper bounds (--sim-adis N: records per ADIS16405
+   case, default N // 3; --sim-cases: some cases only; each record's curve kept in --keep,
+   --sim-judge judges the kept records without drawing);
    with --sim-rigctl N: rigctl itself on N simulated stationary OCXO-like records (its
    verdicts by allan_heldout's judge, and how often B's 95 % interval holds the simulated B);
    --sim-rigctl-adis N: the same on N ADIS16405 ax-like records (1e6 samples each).

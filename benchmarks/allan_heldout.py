@@ -40,7 +40,13 @@ floor's taus where the total is outside the band, and a verdict:
                  the band alone is printed too)
   no-floor-estimate  B an estimate (not above the limit) although the curve shows no floor
   ok             otherwise
-Last line: one JSON object (counts per verdict, seconds).
+Beside it (`| fw:` columns, `verdict_familywise`): the same verdict with item 2 read on a band
+simultaneous over the floor's taus (`familywise_band`: each tau's chi-square band at the per-tau
+level that holds at all of them together with probability 95 % under the total judged, from the
+correlation of the estimates across taus; the 10 % rule kept) -- docs/allan.md, "Item 2
+(family-wise)".
+Last line: one JSON object (counts per verdict, n_FAIL_total_familywise and the other
+n_*_familywise counts, seconds).
 """
 from __future__ import annotations
 
