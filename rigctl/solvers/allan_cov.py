@@ -79,6 +79,35 @@ def _weight(ma_n: np.ndarray, mb_n: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.maximum(0.0, np.minimum(ma_n, mb_n - k) - np.maximum(0.0, -k))
 
 
+def _integer_lags(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The integer lags k of an exact lag sum for pairs (m_a, m_b) (columns), padded to a common
+    length, from -2 m_b - span to 2 m_a + span (span = 16 (m_a + m_b)), and their pair counts w
+    (0 past a pair's own end). Returns (k0, span, k, w)."""
+    span = 16 * (ma + mb)
+    k0 = -2 * mb - span
+    length = int(np.max(2 * ma + span - k0)) + 1
+    k = k0 + np.arange(length)[None, :]
+    w = _weight(big_a, big_b, k)
+    return k0, span, k, np.where(k <= 2 * ma + span, w, 0.0)
+
+
+def _kinks(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where R_ab and w have kinks, for the Gauss-Legendre lag integral of pairs (m_a, m_b):
+    the nine taps j m_a - l m_b, points 1-16 (m_a + m_b) outside the outer taps, and w's four
+    corners; the integral runs from k_lo to k_hi (16 (m_a + m_b) past the taps, within the
+    record). Returns (taps, m_a + m_b, k_lo, k_hi, kinks)."""
+    taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
+    s = ma + mb
+    lo, hi = taps.min(1, keepdims=True), taps.max(1, keepdims=True)
+    geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])[None, :]
+    wk = np.concatenate([-big_a, np.zeros_like(ma), big_b - big_a, big_b], axis=1)
+    k_lo = np.maximum(lo - 16 * s, -big_a)
+    k_hi = np.minimum(hi + 16 * s, big_b)
+    return taps, s, k_lo, k_hi, np.concatenate([taps, lo - s * geo, hi + s * geo, wk], axis=1)
+
+
 def term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float | None = None
                      ) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
@@ -113,12 +142,7 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     da, db = ia[disc], ib[disc]
     if da.size:
         ma, mb = ms[da][:, None], ms[db][:, None]
-        span = 16 * (ma + mb)
-        k0 = -2 * mb - span
-        length = int(np.max(2 * ma + span - k0)) + 1
-        k = k0 + np.arange(length)[None, :]
-        w = _weight(big_m[da][:, None], big_m[db][:, None], k)
-        w = np.where(k <= 2 * ma + span, w, 0.0)
+        k0, span, k, w = _integer_lags(ma, mb, big_m[da][:, None], big_m[db][:, None])
         r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
         for t, u in PAIRS:
             out[(t, u)][da, db] = np.sum(r[t] * r[u] * w, axis=1)
@@ -126,15 +150,8 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
         ma, mb = ms[ca][:, None], ms[cb][:, None]
-        taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
-        s = ma + mb
-        lo, hi = taps.min(1, keepdims=True), taps.max(1, keepdims=True)
-        geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])[None, :]
-        wk = np.concatenate([-big_m[ca][:, None], np.zeros_like(ma),
-                             (big_m[cb] - big_m[ca])[:, None], big_m[cb][:, None]], axis=1)
-        k_lo = np.maximum(lo - 16 * s, -big_m[ca][:, None])
-        k_hi = np.minimum(hi + 16 * s, big_m[cb][:, None])
-        bp = np.concatenate([taps, lo - s * geo, hi + s * geo, wk], axis=1)
+        taps, s, k_lo, k_hi, kinks = _kinks(ma, mb, big_m[ca][:, None], big_m[cb][:, None])
+        bp = kinks
         bp = np.sort(np.clip(bp, k_lo, k_hi), axis=1)
         bp = np.concatenate([k_lo, bp, k_hi], axis=1)
         half = 0.5 * (bp[:, 1:] - bp[:, :-1])
@@ -417,30 +434,18 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
     da, db = ia[disc], ib[disc]
     if da.size:
         ma, mb = ms[da][:, None], ms[db][:, None]
-        span = 16 * (ma + mb)
-        k0 = -2 * mb - span
-        length = int(np.max(2 * ma + span - k0)) + 1
-        k = k0 + np.arange(length)[None, :]
-        w = _weight(big_m[da][:, None], big_m[db][:, None], k)
-        w = np.where(k <= 2 * ma + span, w, 0.0)
+        k0, span, k, w = _integer_lags(ma, mb, big_m[da][:, None], big_m[db][:, None])
         out["disc"] = {"a": da, "b": db, "ma": ma, "mb": mb, "k": k, "w": w,
                        "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4},
                        "left": (k0 - 0.5)[:, 0], "right": (2 * ma + span + 0.5)[:, 0]}
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
         ma, mb = ms[ca][:, None], ms[cb][:, None]
-        taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
+        taps, s, k_lo, k_hi, kinks = _kinks(ma, mb, big_m[ca][:, None], big_m[cb][:, None])
         coef = np.array([_C[j] * _C[l] for j in range(3) for l in range(3)])
-        s = ma + mb
-        lo, hi = taps.min(1, keepdims=True), taps.max(1, keepdims=True)
-        geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])[None, :]
-        wk = np.concatenate([-big_m[ca][:, None], np.zeros_like(ma),
-                             (big_m[cb] - big_m[ca])[:, None], big_m[cb][:, None]], axis=1)
-        k_lo = np.maximum(lo - 16 * s, -big_m[ca][:, None])
-        k_hi = np.minimum(hi + 16 * s, big_m[cb][:, None])
         levels = _GM_GRADE ** -np.arange(1, int(math.ceil(math.log(float(s.max()), _GM_GRADE))) + 1)
         off = s[:, :, None] * levels[None, None, :]
-        bp = np.concatenate([taps, lo - s * geo, hi + s * geo, wk,
+        bp = np.concatenate([kinks,
                              (taps[:, :, None] + off).reshape(taps.shape[0], -1),
                              (taps[:, :, None] - off).reshape(taps.shape[0], -1)], axis=1)
         bp = np.sort(np.clip(bp, k_lo, k_hi), axis=1)
