@@ -256,45 +256,60 @@ def _w_knots(na: np.ndarray, nb: np.ndarray, cnt: np.ndarray) -> tuple[np.ndarra
     return kn, val
 
 
-def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray) -> dict:
-    ms = np.asarray(ms, dtype=float)
-    n = ms.size
-    phase = lengths.astype(float) + 1.0
-    n_s = np.maximum(0.0, phase[None, :] - 2.0 * ms[:, None])  # terms per stretch, per factor
-    big_n = n_s @ counts.astype(float)
-    tau = ms * tau0
-    out = {p: np.zeros((n, n)) for p in PAIRS}
-    for a in range(n):
-        for b in range(a, n):
+def _stretch_terms(ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Terms per stretch at each factor (rows: factors, columns: stretch lengths) and their
+    total over the record (``counts`` stretches of each length)."""
+    n_s = np.maximum(0.0, (lengths.astype(float) + 1.0)[None, :] - 2.0 * ms[:, None])
+    return n_s, n_s @ counts.astype(float)
+
+
+def _gapped_pairs(ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray):
+    """Each pair of factors a <= b with terms at both and a lag range to sum over: (a, b, the
+    knots and values of W(k) (_w_knots), m_a, m_b, m_a + m_b, the taps' range (R's support,
+    + flicker's tail) lo, hi, and the lag range k_lo..k_hi, 16 (m_a + m_b) past the taps within
+    W's support)."""
+    n_s, big_n = _stretch_terms(ms, lengths, counts)
+    for a in range(ms.size):
+        for b in range(a, ms.size):
             if big_n[a] <= 0 or big_n[b] <= 0:
                 continue
             kn, val = _w_knots(n_s[a], n_s[b], counts)
             ma, mb = ms[a], ms[b]
             s = ma + mb
-            lo, hi = -2.0 * mb, 2.0 * ma  # the taps' range: R's support (+ flicker's tail)
+            lo, hi = -2.0 * mb, 2.0 * ma
             k_lo, k_hi = max(lo - 16.0 * s, kn[0]), min(hi + 16.0 * s, kn[-1])
-            if k_hi <= k_lo:
-                continue
-            if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
-                k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
-                w = np.interp(k, kn, val)
-                r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
-                for t, u in PAIRS:
-                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
-                continue
-            taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
-            geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
-            bp = np.concatenate([[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn])
-            bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
-            half = 0.5 * np.diff(bp)
-            mid = 0.5 * (bp[1:] + bp[:-1])
-            k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
-            wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
-            r = {t: _r_lags(t, ma, mb, k, tau0) for t in ("N", "B", "K")}
+            if k_hi > k_lo:
+                yield a, b, kn, val, ma, mb, s, lo, hi, k_lo, k_hi
+
+
+def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray) -> dict:
+    ms = np.asarray(ms, dtype=float)
+    n = ms.size
+    big_n = _stretch_terms(ms, lengths, counts)[1]
+    tau = ms * tau0
+    out = {p: np.zeros((n, n)) for p in PAIRS}
+    for a, b, kn, val, ma, mb, s, lo, hi, k_lo, k_hi in _gapped_pairs(ms, lengths, counts):
+        if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
+            k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
+            w = np.interp(k, kn, val)
+            r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
             for t, u in PAIRS:
-                if t == "Q" or u == "Q":
-                    continue
-                out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+                out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
+            continue
+        taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
+        geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+        bp = np.concatenate([[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn])
+        bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
+        half = 0.5 * np.diff(bp)
+        mid = 0.5 * (bp[1:] + bp[:-1])
+        k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
+        wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
+        r = {t: _r_lags(t, ma, mb, k, tau0) for t in ("N", "B", "K")}
+        for t, u in PAIRS:
+            if t == "Q" or u == "Q":
+                continue
+            out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
     norm[~np.isfinite(norm)] = 0.0
@@ -529,58 +544,46 @@ def _gm_gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndar
                tc: float) -> dict:
     ms = np.asarray(ms, dtype=float)
     n = ms.size
-    phase = lengths.astype(float) + 1.0
-    n_s = np.maximum(0.0, phase[None, :] - 2.0 * ms[:, None])
-    big_n = n_s @ counts.astype(float)
+    big_n = _stretch_terms(ms, lengths, counts)[1]
     tau = ms * tau0
     h = tc / tau0
     out = {p: np.zeros((n, n)) for p in GPAIRS}
-    for a in range(n):
-        for b in range(a, n):
-            if big_n[a] <= 0 or big_n[b] <= 0:
-                continue
-            kn, val = _w_knots(n_s[a], n_s[b], counts)
-            ma, mb = ms[a], ms[b]
-            s = ma + mb
-            lo, hi = -2.0 * mb, 2.0 * ma
-            k_lo, k_hi = max(lo - 16.0 * s, kn[0]), min(hi + 16.0 * s, kn[-1])
-            if k_hi <= k_lo:
-                continue
+    for a, b, kn, val, ma, mb, s, lo, hi, k_lo, k_hi in _gapped_pairs(ms, lengths, counts):
 
-            def weight(k, kn=kn, val=val):
-                return np.interp(k, kn, val)
-            if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
-                k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
-                w = np.interp(k, kn, val)
-                r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in TERMS4 + ("G",)}
-                for t, u in GPAIRS:
-                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
-                left, right = k[0] - 0.5, k[-1] + 0.5
-            else:
-                taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
-                geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
-                parts = [[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn]
-                if h < s / 4.0:
-                    off = h * _GM_NEAR
-                    parts += [(taps[:, None] + off[None, :]).ravel(),
-                              (taps[:, None] - off[None, :]).ravel()]
-                bp = np.concatenate(parts)
-                bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
-                half = 0.5 * np.diff(bp)
-                mid = 0.5 * (bp[1:] + bp[:-1])
-                k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
-                wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
-                r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in ("N", "B", "K", "G")}
-                for t, u in GPAIRS:
-                    if t == "Q":
-                        continue
-                    out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
-                left, right = k_lo, k_hi
-            kinks = kn[None, :]
-            for start, end, sign in ((right, kn[-1], 1.0), (left, kn[0], -1.0)):
-                amp = _r_lags("G", ma, mb, np.array([start]), tau0, tc)
-                out[("G", "G")][a, b] += float(_gm_tail(np.array([start]), np.array([end]),
-                                                        sign, amp, h, kinks, weight)[0])
+        def weight(k, kn=kn, val=val):
+            return np.interp(k, kn, val)
+        if s <= DISCRETE_MAX or k_hi - k_lo <= GAPPED_DISCRETE_LAGS:
+            k = np.arange(math.ceil(k_lo), math.floor(k_hi) + 1, dtype=float)
+            w = np.interp(k, kn, val)
+            r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in TERMS4 + ("G",)}
+            for t, u in GPAIRS:
+                out[(t, u)][a, b] = np.sum(r[t] * r[u] * w)
+            left, right = k[0] - 0.5, k[-1] + 0.5
+        else:
+            taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
+            geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+            parts = [[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn]
+            if h < s / 4.0:
+                off = h * _GM_NEAR
+                parts += [(taps[:, None] + off[None, :]).ravel(),
+                          (taps[:, None] - off[None, :]).ravel()]
+            bp = np.concatenate(parts)
+            bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
+            half = 0.5 * np.diff(bp)
+            mid = 0.5 * (bp[1:] + bp[:-1])
+            k = (mid[:, None] + half[:, None] * _GL_X[None, :]).ravel()
+            wq = (half[:, None] * _GL_W[None, :]).ravel() * np.interp(k, kn, val)
+            r = {t: _r_lags(t, ma, mb, k, tau0, tc) for t in ("N", "B", "K", "G")}
+            for t, u in GPAIRS:
+                if t == "Q":
+                    continue
+                out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+            left, right = k_lo, k_hi
+        kinks = kn[None, :]
+        for start, end, sign in ((right, kn[-1], 1.0), (left, kn[0], -1.0)):
+            amp = _r_lags("G", ma, mb, np.array([start]), tau0, tc)
+            out[("G", "G")][a, b] += float(_gm_tail(np.array([start]), np.array([end]),
+                                                    sign, amp, h, kinks, weight)[0])
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
     norm[~np.isfinite(norm)] = 0.0
