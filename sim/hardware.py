@@ -58,7 +58,7 @@ import numpy as np
 from rigctl.clock import ScaledClock
 from rigctl.config.config import RigConfig
 from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
-from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtdata2
+from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtdata2, mtdata2_frame_bytes
 
 from .acl_server import AclServer, AclServerCore, _LineHandler
 from .gnss_server import GnssServer
@@ -133,6 +133,11 @@ class HwXsensServer(XsensServer):
         #: could be written after the ack, and a reconnecting driver took those frames of the old
         #: measurement period for its own: stamped before its session began)
         self._wire = threading.Lock()
+        #: cleared while a GoToConfig / Reset waits for (or holds) the wire: step() lets it go
+        #: first. A Lock is not fair, and the stream thread, catching up batch after batch, took
+        #: the wire again before the waiting request thread woke up
+        self._wire_free = threading.Event()
+        self._wire_free.set()
         super().__init__(*args, **kw)
 
     def _stream(self) -> None:          # Hardware._imu_loop calls step() instead
@@ -140,8 +145,12 @@ class HwXsensServer(XsensServer):
 
     def _handle(self, mid: int, data: bytes) -> bytes:
         if mid in (MID.GO_TO_CONFIG, MID.RESET):
-            with self._wire:
-                return super()._handle(mid, data)
+            self._wire_free.clear()
+            try:
+                with self._wire:
+                    return super()._handle(mid, data)
+            finally:
+                self._wire_free.set()
         return super()._handle(mid, data)
 
     #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
@@ -243,8 +252,19 @@ class HwXsensServer(XsensServer):
         loop keeps the tap's samples from there on (:meth:`Hardware._trim_tap`)."""
         return self._t0 + self._k / self.rate_hz if self.state == "measurement" else None
 
+    #: bytes of frames encoded and written per step at most (268 frames of 61 bytes): a
+    #: GoToConfig / Reset waits for the batch on the wire, so its acknowledgement comes after at
+    #: most one such write, as a device's comes after the frames already in its UART. Steps of up
+    #: to MAX_BATCH frames (20,000 frames, 1.2 MB: the stream catching up at 100x on a loaded
+    #: host), each written whole at the pace of the client's reads, held the request for 1-5 s,
+    #: past the driver's 3 tries of 0.5 s: 'no acknowledgement of GoToConfig' / 'no stream' at
+    #: connect
+    wire_bytes = 16384
+
     def step(self, until: float) -> int:
-        """Encode and send every frame due up to time ``until`` (at most MAX_BATCH); returns the count."""
+        """Encode and send the frames due up to time ``until``, at most :attr:`wire_bytes`;
+        returns the count (0: none due, or not measuring)."""
+        self._wire_free.wait()
         with self._wire:
             return self._step(until)
 
@@ -252,7 +272,8 @@ class HwXsensServer(XsensServer):
         with self._lock:
             if self.state != "measurement":
                 return 0
-            n = min(max(int(math.floor((until - self._t0) * self.rate_hz + 1e-9)) + 1 - self._k, 0), MAX_BATCH)
+            most = max(1, self.wire_bytes // mtdata2_frame_bytes([it.xdi for it in self.config]))
+            n = min(max(int(math.floor((until - self._t0) * self.rate_hz + 1e-9)) + 1 - self._k, 0), most)
             if n == 0:
                 return 0
             k = self._k + np.arange(n)
@@ -524,7 +545,7 @@ class Hardware:
                 t = self._imu_t
             try:
                 while self.imu_server.step(t) and not self._stop.is_set():
-                    pass                            # more than MAX_BATCH frames were due
+                    pass                            # more than one batch was due
                 done = t
             except Exception:
                 log.exception("IMU stream")
