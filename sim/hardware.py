@@ -73,38 +73,76 @@ log = logging.getLogger(__name__)
 IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 
 
-class HwAclCore(AclServerCore):
-    """ACL protocol core with a counted stall: the next ``stall_replies`` replies come
-    ``stall_s`` late (the port's reader thread sleeps, as a busy controller would). Every
-    request line is kept in :attr:`received` as (wall time ``time.monotonic()``, line), the
-    last 20,000, so a test can see which commands reached the controller and when."""
+class _Stall:
+    """The next ``replies`` replies of a controller come ``seconds`` late, or (``seconds`` inf)
+    only once :meth:`release` is called; ``held`` counts the replies being held back now."""
 
-    stall_replies = 0
-    stall_s = 0.0
+    def __init__(self) -> None:
+        self.replies, self.seconds, self.held = 0, 0.0, 0
+        self._released = threading.Event()
+
+    def arm(self, seconds: float, replies: int) -> None:
+        self._released.clear()
+        self.seconds, self.replies = float(seconds), int(replies)
+
+    def release(self) -> None:
+        self._released.set()
+
+    def take(self) -> bool:
+        """Whether this reply is held back (then counted in ``held`` until :meth:`done`)."""
+        if self.replies <= 0:
+            return False
+        self.replies -= 1
+        self.held += 1
+        return True
+
+    def wait(self) -> None:
+        self._released.wait(None if math.isinf(self.seconds) else self.seconds)
+
+    def is_released(self) -> bool:
+        return self._released.is_set()
+
+    def done(self) -> None:
+        self.held -= 1
+
+
+class HwAclCore(AclServerCore):
+    """ACL protocol core with a counted stall (:class:`_Stall`, :meth:`Hardware.stall`: the
+    port's reader thread waits, as a busy controller would). Every request line is kept in
+    :attr:`received` as (wall time ``time.monotonic()``, line), the last 20,000, so a test can
+    see which commands reached the controller and when."""
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
         self.received: deque[tuple[float, str]] = deque(maxlen=20_000)
+        self.stalls = _Stall()
 
     def handle_line(self, line: str | bytes) -> str | None:
         self.received.append((time.monotonic(), line.decode("ascii", "replace").strip()
                               if isinstance(line, bytes) else line.strip()))
-        if self.stall_replies > 0:
-            self.stall_replies -= 1
-            time.sleep(self.stall_s)
+        if self.stalls.take():
+            try:
+                self.stalls.wait()
+            finally:
+                self.stalls.done()
         return super().handle_line(line)
 
 
 class HwModbusServer(ModbusTableServer):
-    """Modbus table server whose next ``stall_replies`` requests are answered ``stall_s`` late."""
+    """Modbus table server with a counted stall (:class:`_Stall`, :meth:`Hardware.stall`)."""
 
-    stall_replies = 0
-    stall_s = 0.0
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.stalls = _Stall()
 
     async def _action(self, fc, start, address, count, registers, set_values):
-        if self.stall_replies > 0:
-            self.stall_replies -= 1
-            await asyncio.sleep(self.stall_s)
+        if self.stalls.take():
+            try:
+                end = time.monotonic() + self.stalls.seconds
+                while not self.stalls.is_released() and time.monotonic() < end:
+                    await asyncio.sleep(0.01)
+            finally:
+                self.stalls.done()
         return await super()._action(fc, start, address, count, registers, set_values)
 
 
@@ -588,10 +626,19 @@ class Hardware:
             if seed is not None:
                 imu._rng = np.random.default_rng(seed)
 
-    def stall(self, device: str, seconds: float, replies: int = 1) -> None:
-        """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late."""
-        target = {"acl": self.acl.core, "modbus": self.modbus}[device]
-        target.stall_s, target.stall_replies = float(seconds), int(replies)
+    def stall(self, device: str, seconds: float = math.inf, replies: int = 1) -> None:
+        """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late
+        (wall), or by default only once :meth:`release_stall` is called: a test of a driver's
+        reply timeout then does not depend on how fast this host runs the two sides.
+        ``self.acl.core.stalls.held`` / ``self.modbus.stalls.held``: replies held back now."""
+        self._stalls(device).arm(seconds, replies)
+
+    def release_stall(self, device: str) -> None:
+        """The replies ``device`` holds back (:meth:`stall`) go out now."""
+        self._stalls(device).release()
+
+    def _stalls(self, device: str) -> _Stall:
+        return {"acl": self.acl.core, "modbus": self.modbus}[device].stalls
 
     def pause_physics(self, wall_s: float) -> None:
         """The hardware loop stops for ``wall_s`` of wall time (``wall_s * speed`` of rig time), as
