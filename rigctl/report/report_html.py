@@ -147,9 +147,13 @@ def s_summary(d: RunData) -> str:
     segs = d.segments or {}
     n_inc = int(sum(1 for s in segs.get("status", []) if s != "complete"))
     res = ", ".join(sorted(d.results)) or "none"
+    # an imported log without wall-clock stamps: its capture time is unknown (/meta capture_time)
+    unknown = str(m.get("capture_time", "")).startswith("unknown")
+    started = (f"unknown (imported {m.get('import_utc', '?')}: the file has no wall-clock time stamps)"
+               if unknown else m.get("started_utc", "?"))
     rows = [["status", f"{d.status}"], ["procedure", m.get("procedure_name", "?")],
-            ["recording", str(d.recording)], ["started (UTC)", m.get("started_utc", "?")],
-            ["ended (UTC)", m.get("ended_utc", "?")],
+            ["recording", str(d.recording)], ["started (UTC)", started],
+            ["ended (UTC)", "unknown" if unknown else m.get("ended_utc", "?")],
             ["recorded span [s]", None if t0 is None else round(t1 - t0, 3)],
             ["IMU samples", d.imu.get("n")], ["IMU rate [Hz]", d.imu.get("rate_hz")],
             ["dropped samples (counter gaps)", f"{d.imu.get('dropped', 0)} in {d.imu.get('gaps', 0)} gaps"],
