@@ -49,7 +49,7 @@ MIN_FRACTION = 0.25
 RULE = ("the record's Allan variance at the taus of a run the self-check names is not the same "
         "across its windows (not stationary): the terms are also fitted on the quiet stretch the "
         "stationarity test names (the longest run of windows whose variances agree there; at least "
-        f"{MIN_WINDOWS} windows and {MIN_FRACTION:.0%} of the range), beside the whole record's")
+        f"{MIN_WINDOWS} windows and {100 * MIN_FRACTION:.0f} % of the range), beside the whole record's")
 
 
 def _informative_floor_tau(r: dict[str, Any]) -> float | None:
@@ -107,7 +107,7 @@ def choose(r: dict[str, Any], tau0: float) -> dict[str, Any] | None:
         out["reason"] = (f"no quiet stretch qualifies: the longest whose windows agree at "
                          f"{st['tau_s']:.3g} s, t = {a * tau0:.0f}-{b * tau0:.0f} s, holds {windows} of the "
                          f"{k} windows ({100 * (b - a) / max(n, 1):.0f} % of the range); a fit of its own "
-                         f"needs at least {MIN_WINDOWS} windows and {MIN_FRACTION:.0%} of the range")
+                         f"needs at least {MIN_WINDOWS} windows and {100 * MIN_FRACTION:.0f} % of the range")
         return out
     if b - a >= n:  # cannot happen for a run named not stationary (the windows disagree)
         out["reason"] = "the stretch is the whole range: nothing to fit beside it"
