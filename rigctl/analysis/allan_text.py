@@ -88,6 +88,11 @@ def quiet_head(q: dict[str, Any]) -> str:
 
 def quiet_check_text(check: dict[str, Any]) -> str:
     """The quiet stretch's own self-check in one clause."""
+    if check.get("ok") and check.get("chi2_beyond_99"):
+        return (f"its self-check: every informative tau within the stretch's family-wise band, "
+                f"but the chi-square across taus is beyond its 99 % point ({check['chi2']:.4g} on "
+                f"{check['dof']} dof, p = {check['p_value']:.2g}): a finding, not a pass -- the "
+                "terms do not describe the stretch's curve within its statistics")
     if check.get("ok"):
         return "its self-check passed"
     runs = check.get("outside") or []

@@ -508,7 +508,9 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
         whole = NC.as_coefficients(cv["fit"]["coefficients"])
         quiet = NC.as_coefficients(q["fit"]["coefficients"])
         stretch = (f"t = {q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} s ({100 * q['fraction']:.0f} %; "
-                   + ("self-check passed" if q["fit"]["check"].get("ok") else "self-check failed") + ")")
+                   + ("self-check failed" if not q["fit"]["check"].get("ok") else
+                      "chi-square beyond its 99 % point" if q["fit"]["check"].get("chi2_beyond_99")
+                      else "self-check passed") + ")")
         for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row
             cw, unit = NC.in_field_units(whole, t)
             cq, _ = NC.in_field_units(quiet, t)

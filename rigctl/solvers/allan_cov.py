@@ -108,6 +108,23 @@ def _kinks(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray
     return taps, s, k_lo, k_hi, np.concatenate([taps, lo - s * geo, hi + s * geo, wk], axis=1)
 
 
+def _q_tap_sums(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray,
+                tau0: float) -> dict:
+    """sum_k R_Q(k) R_u(k) w(k) for u in Q, N, B, K over pairs (m_a, m_b) (columns): white PM's
+    R_ab(k) is nonzero only at the taps k = j m_a - l m_b, so the lag sum is exact over those
+    (each distinct tap once). Left out past DISCRETE_MAX, white PM made the covariance of a
+    white-PM-dominated curve (an OCXO's, Q up to tau ~100 s) indefinite: the diagonal without
+    Q's share, its cross terms with N, B, K cut at m_a + m_b = 64 (correlation eigenvalues down
+    to -0.064 on the OCXO's quiet half, chi-square 2.8e5 on 37 dof from the clipped
+    directions)."""
+    taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
+    eq = taps[:, :, None] == taps[:, None, :]
+    first = ~np.any(np.tril(eq, -1), axis=2)  # a tap equal to an earlier one is not summed again
+    w = _weight(big_a, big_b, taps) * first
+    rq = _r_lags("Q", ma, mb, taps, tau0)
+    return {u: np.sum(rq * _r_lags(u, ma, mb, taps, tau0) * w, axis=1) for u in TERMS4}
+
+
 def term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float | None = None
                      ) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
@@ -146,7 +163,7 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
         r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
         for t, u in PAIRS:
             out[(t, u)][da, db] = np.sum(r[t] * r[u] * w, axis=1)
-    # Gauss-Legendre between kinks for the rest (Q negligible there)
+    # Gauss-Legendre between kinks for the rest; the white-PM (Q) pairs exactly at its taps
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
         ma, mb = ms[ca][:, None], ms[cb][:, None]
@@ -165,6 +182,9 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
             if t == "Q" or u == "Q":
                 continue
             out[(t, u)][ca, cb] = np.sum(r[t] * r[u] * wq, axis=(1, 2))
+        # white PM's R_ab is zero except at the nine taps: its pairs are exact sums over them
+        for u, v in _q_tap_sums(ma, mb, big_m[ca][:, None], big_m[cb][:, None], tau0).items():
+            out[("Q", u)][ca, cb] = v
     norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_m, tau ** 2 * big_m))
     for p in PAIRS:
         c = out[p]
@@ -310,6 +330,12 @@ def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
             if t == "Q" or u == "Q":
                 continue
             out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+        # white PM exactly at its taps (as in _term_covariances: each distinct tap once)
+        kt = np.unique(taps)
+        wt = np.where((kt >= kn[0]) & (kt <= kn[-1]), np.interp(kt, kn, val), 0.0)
+        rq = _r_lags("Q", ma, mb, kt, tau0)
+        for u in TERMS4:
+            out[("Q", u)][a, b] = np.sum(rq * _r_lags(u, ma, mb, kt, tau0) * wt)
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
     norm[~np.isfinite(norm)] = 0.0
