@@ -300,13 +300,18 @@ class StreamImu(StreamReader):
 
     # -------------------------------------------------------------------- reader thread
     def _on_link_lost(self) -> None:
-        out = self.stream.flush()
-        self._store(out, None)
+        with self._cond:            # decode and store as one step (see _feed)
+            out = self.stream.flush()
+            self._store(out, None)
 
     def _feed(self, data: bytes) -> None:
         arrival = self.clock.now()
-        out = self.stream.feed(data)
-        self._store(out, arrival)
+        # decoding counts the frames and storing makes them readable: one step under the lock
+        # that ``counters`` and ``read`` take, so no snapshot of the counters ever includes
+        # frames that ``read`` cannot yet return
+        with self._cond:
+            out = self.stream.feed(data)
+            self._store(out, arrival)
         c = self.stream.counters
         bad = c.bad_frames + c.truncated_frames + self.out_of_order
         if bad != self._warned_bad and time.monotonic() - self._last_warn > 1.0:
@@ -467,12 +472,15 @@ class StreamImu(StreamReader):
 
     @property
     def counters(self) -> dict:
-        d = asdict(self.stream.counters)
-        d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
-                 device_restarts=self.device_restarts, offset_corrections=self.offset_corrections,
-                 offset_unconfirmed=self.offset_unconfirmed, restamp_dropped=self.restamp_dropped,
-                 incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
-                 reconnects=self.link.reconnects, configurations=self.configurations)
+        """Decoder and link diagnostics (totals since connect): one consistent snapshot, in which
+        every frame counted as decoded is already returned by ``read`` or waiting for it."""
+        with self._cond:
+            d = asdict(self.stream.counters)
+            d.update(dropped_samples=self.dropped_samples, out_of_order=self.out_of_order,
+                     device_restarts=self.device_restarts, offset_corrections=self.offset_corrections,
+                     offset_unconfirmed=self.offset_unconfirmed, restamp_dropped=self.restamp_dropped,
+                     incomplete_frames=self.incomplete_frames, link_losses=self.link.losses,
+                     reconnects=self.link.reconnects, configurations=self.configurations)
         return d
 
     def close(self) -> None:

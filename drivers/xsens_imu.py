@@ -157,17 +157,23 @@ class XsensImu(StreamReader):
         self._flush_stream()
 
     def _flush_stream(self) -> None:
-        batch = self.stream.flush()
-        if len(batch):
-            self._store(batch)
+        with self._cond:            # decode and store as one step (see _feed)
+            batch = self.stream.flush()
+            if len(batch):
+                self._store(batch)
 
     def _feed(self, data: bytes) -> None:
         arrival = self.clock.now()
-        batch = self.stream.feed(data)
-        if batch.messages:
-            self._msgs.extend(batch.messages)
-        if len(batch):
-            self._store(batch, arrival)
+        # decoding counts the frames and storing makes them readable: one step under the lock
+        # that ``counters`` and ``read`` take, so no snapshot of the counters ever includes
+        # frames that ``read`` cannot yet return (a reader thread descheduled between the two
+        # made a burst of ~800 counted frames missing from the reads that followed)
+        with self._cond:
+            batch = self.stream.feed(data)
+            if batch.messages:
+                self._msgs.extend(batch.messages)
+            if len(batch):
+                self._store(batch, arrival)
         c = self.stream.counters
         bad = c.bad_frames + c.truncated_frames + c.out_of_order
         if bad != self._warned_bad and time.monotonic() - self._last_warn > 1.0:
@@ -313,8 +319,10 @@ class XsensImu(StreamReader):
     # --------------------------------------------------------------------------- status
     @property
     def counters(self) -> dict:
-        """Decoder and link diagnostics (totals since connect)."""
-        d = asdict(self.stream.counters)
+        """Decoder and link diagnostics (totals since connect): one consistent snapshot, in which
+        every frame counted as decoded is already returned by ``read`` or waiting for it."""
+        with self._cond:
+            d = asdict(self.stream.counters)
         d.update(incomplete_frames=self.incomplete_frames, offset_corrections=self.offset_corrections,
                  offset_unconfirmed=self.offset_unconfirmed, restamp_dropped=self.restamp_dropped, link_losses=self.link.losses,
                  reconnects=self.link.reconnects, configurations=self.configurations)

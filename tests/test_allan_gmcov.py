@@ -15,6 +15,7 @@ Expected values come from plain numpy written here, not from the kernel:
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -65,29 +66,27 @@ def brute_cov(p: np.ndarray, ms: list[int], dt: float,
     if stretches is None:
         stretches = [(0, p.shape[0])]
 
-    def dmat(m: int) -> list[np.ndarray]:
-        rows = []
+    def diff2(q: np.ndarray, m: int, axis: int) -> np.ndarray:
+        """The second differences D_m applied along ``axis`` (rows of D: the terms of every
+        stretch), by slicing: D_m q without forming D_m."""
+        parts = []
         for first, npts in stretches:
             nt = npts - 2 * m
             if nt <= 0:
                 continue
-            d = np.zeros((nt, p.shape[0]))
-            i = np.arange(nt)
-            d[i, first + i] += 1.0
-            d[i, first + i + m] -= 2.0
-            d[i, first + i + 2 * m] += 1.0
-            rows.append(d)
-        return np.concatenate(rows) if rows else np.zeros((0, p.shape[0]))
+            take = [np.take(q, np.arange(first + j * m, first + j * m + nt), axis=axis)
+                    for j in range(3)]
+            parts.append(take[0] - 2.0 * take[1] + take[2])
+        return np.concatenate(parts, axis=axis)
 
-    ds = [dmat(m) for m in ms]
     out = np.zeros((len(ms), len(ms)))
     for a in range(len(ms)):
-        dpa = ds[a] @ p
+        dpa = diff2(p, ms[a], 0)
         for b in range(a, len(ms)):
-            cab = dpa @ ds[b].T
+            cab = diff2(dpa, ms[b], 1)
             ta, tb = ms[a] * dt, ms[b] * dt
             out[a, b] = out[b, a] = (2.0 * np.sum(cab * cab)
-                                     / (4.0 * ta ** 2 * tb ** 2 * ds[a].shape[0] * ds[b].shape[0]))
+                                     / (4.0 * ta ** 2 * tb ** 2 * cab.shape[0] * cab.shape[1]))
     return out
 
 
@@ -191,11 +190,11 @@ def test_monte_carlo_covariance_across_taus() -> None:
     assert np.all(np.abs(est.mean(axis=0) - avar) < 4.0 * np.sqrt(np.diag(model) / reps))
 
 
-def test_gapped_covariance_matches_the_brute_force() -> None:
-    """Three stretches of 300, 520 and 180 samples separated by gaps of 600 samples (60 Tc):
-    the pooled estimator's covariance from the brute force on the whole time axis against
-    gapped_term_covariances with tc (exact sums here: within 1e-8 of it), and against the
-    contiguous record's, which it is not (the check could fail)."""
+@functools.lru_cache(maxsize=1)
+def _three_stretches() -> tuple:
+    """Three stretches of 300, 520 and 180 samples separated by gaps of 600 samples (60 Tc),
+    GM + white FM: (tc, var, n2, lengths, ms, the pooled estimator's covariance by brute
+    force on the whole time axis). Shared by the two gapped tests (the brute force costs)."""
     tc_samples, var, n2 = 10.0, 1.0, 2.0 * TAU0
     tc = tc_samples * TAU0
     lengths, gap = [300, 520, 180], 600
@@ -207,6 +206,15 @@ def test_gapped_covariance_matches_the_brute_force() -> None:
     p = gm_phase_cov(total, tc, var, TAU0) + other_phase_cov(total, n2, 0.0, TAU0)
     ms = [1, 4, 16, 50, 100]
     want = brute_cov(p, ms, TAU0, [(s0, ln + 1) for s0, ln in zip(starts, lengths)])
+    return tc, var, n2, lengths, ms, want
+
+
+def test_gapped_covariance_matches_the_brute_force() -> None:
+    """Three stretches of 300, 520 and 180 samples separated by gaps of 600 samples (60 Tc):
+    the pooled estimator's covariance from the brute force on the whole time axis against
+    gapped_term_covariances with tc (exact sums here: within 1e-8 of it), and against the
+    contiguous record's, which it is not (the check could fail)."""
+    tc, var, n2, lengths, ms, want = _three_stretches()
     ct = C.gapped_term_covariances(TAU0, np.array(ms), np.array(lengths), tc)
     got = C.combine(ct, {"N": n2, "G": var})
     scale = np.sqrt(np.outer(np.diag(want), np.diag(want)))
@@ -214,3 +222,28 @@ def test_gapped_covariance_matches_the_brute_force() -> None:
     one = C.combine(C.term_covariances(TAU0, np.array(ms), sum(lengths) + 1, tc),
                     {"N": n2, "G": var})
     assert np.max(np.abs(one / want - 1.0)) > 0.05
+
+
+def test_gapped_long_stretches_through_the_contiguous_kernel(monkeypatch: pytest.MonkeyPatch
+                                                              ) -> None:
+    """Long stretches (C.GM_LONG_MIN samples and more) enter the gapped Gauss-Markov pairs
+    through the contiguous kernel of their own length; here the threshold is lowered so that
+    two of the three stretches (520 and 300 samples) go that way and the third (180) through
+    the pair loop. Against the brute force on the whole time axis (gaps of 60 Tc): the
+    contiguous kernel's own accuracy (test_covariance_matches_the_exact_brute_force: exact sums
+    where m_a + m_b <= 64, every entry within 8e-3, the diagonal within 2e-3)."""
+    monkeypatch.setattr(C, "GM_LONG_MIN", 250)
+    C._gm_gapped_cached.cache_clear()
+    try:
+        tc, var, n2, lengths, ms, want = _three_stretches()
+        ct = C.gapped_term_covariances(TAU0, np.array(ms), np.array(lengths), tc)
+        got = C.combine(ct, {"N": n2, "G": var})
+    finally:
+        C._gm_gapped_cached.cache_clear()
+    scale = np.sqrt(np.outer(np.diag(want), np.diag(want)))
+    err = np.abs(got - want) / scale
+    m = np.array(ms)
+    exact = (m[:, None] + m[None, :]) <= C.DISCRETE_MAX
+    assert np.max(err[exact]) < 1e-7, err
+    assert np.max(err) < 8e-3, err
+    assert np.max(np.abs(np.diag(got) / np.diag(want) - 1.0)) < 2e-3, np.diag(got) / np.diag(want)
