@@ -91,7 +91,8 @@ def test_sigterm_stops_a_run_that_the_host_cannot_keep_up_with(tmp_path):
     out = _Lines(proc)
     try:
         out.wait_for("started: warmup")
-        time.sleep(3.0)  # the speed is measured over 2 s of wall time: the warning is out by now
+        out.wait_for("cannot keep up", timeout=30)  # measured over 2 s of wall time
+        time.sleep(0.5)
     finally:
         took, err = _terminate(proc)
     time.sleep(0.2)  # the reader thread: the last lines
@@ -170,9 +171,9 @@ def _run_warmup(tmp_path: Path, speed: float, warmup: str) -> dict:
             except Interrupted:
                 pass
             wall = time.monotonic() - wall0
-            rig_time = rig.clock.now()
             engine.safe_state()
             rec.close("complete")
+            rig_time = rig.clock.now()  # after the safe state's polls: the last samples
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
