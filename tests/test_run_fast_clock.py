@@ -3,7 +3,7 @@
 Before: the emulator caught up with the clock at every device read, each catch-up took longer
 than the rig time it covered, so the next had more to do: one poll ran hours of rig time ahead
 (a 30 s warm-up at 500x on a loaded 2-core host: 7.5 min of wall time, 560 MB), and SIGTERM,
-noticed at the end of a poll, waited for it. Now the emulator gives up a catch-up after 0.1 s of
+noticed at the end of a poll, waited for it. Now the emulator gives up a catch-up after 0.05 s of
 wall time and sets the clock back (rigctl.clock.ScaledClock.slip_to): rig time runs as fast as
 the host computes, the run says so once, and a signal is noticed within a poll.
 """
