@@ -416,7 +416,14 @@ def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) ->
                       float(tc))
 
 
-@functools.lru_cache(maxsize=128)
+#: Gauss-Markov matrices kept (one dict of 5 matrices per (tau0, taus, record length, Tc), 64 KB
+#: at 40 taus): the candidate's lattice Tc (~80) stay in while the fit's profile grid (~70 Tc of
+#: its own taus per axis) passes through; at 128 one axis' candidate + fit (~150) cycled the
+#: lattice out before the next axis of the same sampling came back to it
+GM_CACHE_SIZE = 256
+
+
+@functools.lru_cache(maxsize=GM_CACHE_SIZE)
 def _gm_cached(tau0: float, ms_key: bytes, n_phase: int, tc: float) -> dict:
     out = _gm_contiguous(tau0, np.frombuffer(ms_key, dtype=float), n_phase, tc)
     for c in out.values():
@@ -476,8 +483,17 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
     if da.size:
         ma, mb = ms[da][:, None], ms[db][:, None]
         k0, span, k, w = _integer_lags(ma, mb, big_m[da][:, None], big_m[db][:, None])
+        # |j m_a - l m_b - k| of each tap (integers): R_G from a table of the kernel at the
+        # integer lags (its values there, so R_G is the same number for number as _r_lags')
+        # (integer factors, as the callers' round(tau / tau0); others: _r_lags itself)
+        lags = [np.abs(j * ma - l * mb - k) for j in range(3) for l in range(3)]
+        if all(np.array_equal(v, np.round(v)) for v in lags):
+            lags = [v.astype(np.intp) for v in lags]
+        else:
+            lags = None
         out["disc"] = {"a": da, "b": db, "ma": ma, "mb": mb, "k": k, "w": w,
-                       "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4},
+                       "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}, "lags": lags,
+                       "lag_max": None if lags is None else max(int(v.max()) for v in lags),
                        "left": (k0 - 0.5)[:, 0], "right": (2 * ma + span + 0.5)[:, 0]}
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
@@ -498,12 +514,16 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
             big_m[ca][:, None, None], big_m[cb][:, None, None], k)
         mab, mbb = ma[:, :, None], mb[:, :, None]
         left = taps[:, None, :] <= a_i[:, :, None]
+        d_left = np.maximum(a_i[:, :, None] - taps[:, None, :], 0.0)
+        d_right = np.maximum(taps[:, None, :] - b_i[:, :, None], 0.0)
+        # no tap inside an interval (they are breakpoints): one of the two distances is 0, so
+        # their sum is the other one exactly and one exponential per tap serves both sides
+        assert not np.any(np.minimum(d_left, d_right) > 0)
         out["gl"] = {"a": ca, "b": cb, "ma": ma[:, 0], "mb": mb[:, 0], "s": s[:, 0], "k": k,
                      "wq": wq, "r": {t: _r_lags(t, mab, mbb, k, tau0) for t in ("N", "B", "K")},
                      "x": k - a_i[:, :, None], "y": b_i[:, :, None] - k,
                      "c_left": np.where(left, coef, 0.0), "c_right": np.where(left, 0.0, coef),
-                     "d_left": np.maximum(a_i[:, :, None] - taps[:, None, :], 0.0),
-                     "d_right": np.maximum(taps[:, None, :] - b_i[:, :, None], 0.0),
+                     "d_tap": d_left + d_right,
                      "k_lo": k_lo[:, 0], "k_hi": k_hi[:, 0]}
     return out
 
@@ -533,7 +553,14 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
     d = nodes.get("disc")
     if d is not None:
         r = dict(d["r"])
-        r["G"] = _r_lags("G", d["ma"], d["mb"], d["k"], tau0, tc)
+        if d["lags"] is None:
+            r["G"] = _r_lags("G", d["ma"], d["mb"], d["k"], tau0, tc)
+        else:
+            table = _kernel("G", np.arange(d["lag_max"] + 1, dtype=float) * tau0, tc)
+            rg = np.zeros(d["k"].shape)
+            for (j, l), lag in zip(((j, l) for j in range(3) for l in range(3)), d["lags"]):
+                rg += _C[j] * _C[l] * table[lag]
+            r["G"] = rg
         for t, u in GPAIRS:
             out[(t, u)][d["a"], d["b"]] = np.sum(r[t] * r[u] * d["w"], axis=1)
         # the integer lags past them: the midpoint rule's integral from half a lag out
@@ -543,8 +570,9 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
         # R_G = 2 Tc R_N + R_E, R_E = -Tc^2 sum_taps c e^(-|k - tap| / h): on a mesh interval
         # [a_i, b_i] (no tap inside) the taps left of it give A_i e^(-(k - a_i) / h), those
         # right of it B_i e^(-(b_i - k) / h)
-        a_l = np.sum(g["c_left"] * np.exp(-g["d_left"] / h), axis=2)[:, :, None]
-        b_r = np.sum(g["c_right"] * np.exp(-g["d_right"] / h), axis=2)[:, :, None]
+        e_tap = np.exp(-g["d_tap"] / h)
+        a_l = np.sum(g["c_left"] * e_tap, axis=2)[:, :, None]
+        b_r = np.sum(g["c_right"] * e_tap, axis=2)[:, :, None]
         rg = 2.0 * tc * g["r"]["N"] - tc * tc * (a_l * np.exp(-g["x"] / h)
                                                  + b_r * np.exp(-g["y"] / h))
         direct = h > _GM_SPLIT_MAX * g["s"]
