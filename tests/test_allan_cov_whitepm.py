@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy import stats
 
 from rigctl.analysis import allan_text as T
@@ -81,3 +82,36 @@ def test_ocxo_quiet_half_goodness_and_self_check_agree(tmp_path):
         assert check["chi2_beyond_99"]
         assert "passed" not in T.quiet_check_text(check)
         assert "beyond its 99 % point" in T.quiet_check_text(check)
+
+
+def test_white_pm_pairs_equal_the_integer_lag_sum_past_discrete_max():
+    # the lag sum written here over every integer lag (R_ab from the phase kernels of the
+    # module docstring: white PM a unit impulse, white FM -|t|/2, a first-order Gauss-Markov
+    # rate -Tc^2 (e^(-|t|/Tc) - 1 + |t|/Tc); a quadratic cancels), against
+    # term_covariances and gm_term_covariances for pairs with m_a + m_b > 64
+    n_phase, tc, ms = 1500, 7.0, np.array([30, 41, 90])
+    c = np.array([1.0, -2.0, 1.0])
+
+    def phi(term, t):
+        a = np.abs(t)
+        if term == "Q":
+            return (a < 0.5).astype(float)
+        if term == "N":
+            return -0.5 * a
+        # G: Gauss-Markov rate of unit variance, -1/2 its phase's structure function
+        return -tc * tc * (np.exp(-a / tc) - 1.0 + a / tc)
+
+    def r(term, ma, mb, k):
+        return sum(c[j] * c[l] * phi(term, j * ma - l * mb - k) for j in range(3) for l in range(3))
+
+    cov = C.term_covariances(1.0, ms, n_phase)
+    gcov = C.gm_term_covariances(1.0, ms, n_phase, tc)
+    for i, ma in enumerate(ms):
+        for j, mb in enumerate(ms):
+            na, nb = n_phase - 2 * ma, n_phase - 2 * mb
+            k = np.arange(-na, nb + 1, dtype=float)
+            w = np.maximum(0.0, np.minimum(na, nb - k) - np.maximum(0.0, -k))
+            norm = 2.0 / (4.0 * ma * ma * na * mb * mb * nb)
+            for u, got in (("Q", cov[("Q", "Q")]), ("N", cov[("Q", "N")]), ("G", gcov[("Q", "G")])):
+                want = norm * np.sum(r("Q", ma, mb, k) * r(u, ma, mb, k) * w)
+                assert got[i, j] == pytest.approx(want, rel=1e-9, abs=1e-12 * abs(norm)), (u, ma, mb)

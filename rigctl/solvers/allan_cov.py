@@ -408,8 +408,8 @@ def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) ->
     to 3000, h from 1 to 1e4 samples) the diagonal was within 1.3e-4 and the largest entries
     within 7.9e-3, both from the white-FM-like part's sum-vs-integral difference, which N's
     own kernel has too (2.6e-4 and 2e-2 there); against a brute force from the exact phase
-    covariance see tests/test_allan_gmcov.py. (Q, G) is 0 past DISCRETE_MAX, as Q's other
-    pairs. Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s for the first
+    covariance see tests/test_allan_gmcov.py. (Q, G) is summed exactly at white PM's taps
+    past DISCRETE_MAX, as Q's other pairs (:func:`_q_tap_sums`). Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s for the first
     (the mesh, kept per (tau0, ms, n_phase)); the matrices are kept per Tc too (the fits try
     one Tc after another and come back to them)."""
     return _gm_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase),
@@ -582,9 +582,17 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
         r = dict(g["r"])
         r["G"] = rg
         for t, u in GPAIRS:
-            if t == "Q":  # white PM is negligible past DISCRETE_MAX (as in term_covariances)
+            if t == "Q":  # white PM: exactly at its taps, below
                 continue
             out[(t, u)][g["a"], g["b"]] = np.sum(r[t] * r[u] * g["wq"], axis=(1, 2))
+        gma, gmb = g["ma"][:, None], g["mb"][:, None]
+        taps = np.concatenate([j * gma - l * gmb for j in range(3) for l in range(3)], axis=1)
+        eq = taps[:, :, None] == taps[:, None, :]
+        wt = _weight(big_m[g["a"]][:, None], big_m[g["b"]][:, None], taps) * ~np.any(
+            np.tril(eq, -1), axis=2)
+        out[("Q", "G")][g["a"], g["b"]] = np.sum(
+            _r_lags("Q", gma, gmb, taps, tau0) * _r_lags("G", gma, gmb, taps, tau0, tc) * wt,
+            axis=1)
         out[("G", "G")][g["a"], g["b"]] += tails(g["a"], g["b"], g["k_lo"], g["k_hi"])
     norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_m, tau ** 2 * big_m))
     for p in GPAIRS:
@@ -676,6 +684,10 @@ def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np
                 if t == "Q":
                     continue
                 out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+            kt = np.unique(taps)  # white PM exactly at its taps (each distinct tap once)
+            wt = np.where((kt >= kn[0]) & (kt <= kn[-1]), np.interp(kt, kn, val), 0.0)
+            out[("Q", "G")][a, b] = np.sum(_r_lags("Q", ma, mb, kt, tau0)
+                                           * _r_lags("G", ma, mb, kt, tau0, tc) * wt)
             left, right = k_lo, k_hi
         kinks = kn[None, :]
         for start, end, sign in ((right, kn[-1], 1.0), (left, kn[0], -1.0)):
