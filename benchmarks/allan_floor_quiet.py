@@ -213,7 +213,10 @@ def rigctl_json(keep: Path, txt: Path, cols: list[str], rows: tuple[int, int] | 
         src = txt
         if rows:
             src = keep / f"{tag}.txt"
-            lines = txt.read_text().splitlines()
+            # the data rows (the OCXO file's '#' header lines are not samples: slicing the
+            # text's lines shifted its stretch by their count)
+            lines = [ln for ln in txt.read_text().splitlines()
+                     if ln.strip() and not ln.lstrip().startswith(("#", "%"))]
             src.write_text("\n".join(lines[rows[0]:rows[1]]) + "\n")
         rec = keep / f"{tag}.h5"
         if not rec.is_file():

@@ -45,8 +45,15 @@ simultaneous over the floor's taus (`familywise_band`: each tau's chi-square ban
 level that holds at all of them together with probability 95 % under the total judged, from the
 correlation of the estimates across taus; the 10 % rule kept) -- docs/allan.md, "Item 2
 (family-wise)".
+Beside both (`| quiet:` columns, `verdict_quiet`, `verdict_quiet_familywise`): where rigctl
+reports a quiet-stretch fit (`quiet_stretch` in its JSON: the record not stationary by its own
+test; docs/allan.md, "Non-stationary records: the quiet stretch"), the same verdicts for that
+fit against the stretch's own curve (read here on the stretch's samples, at the taus rigctl
+reports for it); elsewhere the whole record's verdicts are repeated. The whole record's
+columns are printed as before.
 Last line: one JSON object (counts per verdict, n_FAIL_total_familywise and the other
-n_*_familywise counts, seconds).
+n_*_familywise counts; n_*_quiet and n_*_quiet_familywise: item 2 judged on the quiet
+stretch's fit where rigctl reports one; n_quiet_stretch_fits; seconds).
 """
 from __future__ import annotations
 
@@ -562,13 +569,17 @@ def main() -> None:
     tmp.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
     counts_fw: dict[str, int] = {}
+    counts_q: dict[str, int] = {}
+    counts_qfw: dict[str, int] = {}
+    n_quiet = 0
     rows = []
     caps = captures(tmp)
     if args.only:
         caps = [c for c in caps if c["name"] in args.only.split(",")]
     print(f"{'capture':15s} {'taus':7s} ax  {'floor':>10s} {'at s':>8s} slope reach rise/V  floor? "
           f"{'B (95 %)':>34s} B/lim Bshare total/curve [band] out/missed/floor-taus worst verdict "
-          f"| fw: q/tau m_eq missed verdict")
+          f"| fw: q/tau m_eq missed verdict | quiet: stretch s, B (95 %), B/lim, missed/floor-taus, "
+          f"verdict, fw verdict")
     for cap in caps:
         for taus in ("default", "octave"):
             js = tmp / f"{cap['rec'].stem}_{taus}.json"
@@ -583,7 +594,29 @@ def main() -> None:
                 j = judge(r, c, cap["tau0"])
                 counts[j["verdict"]] = counts.get(j["verdict"], 0) + 1
                 counts_fw[j["verdict_familywise"]] = counts_fw.get(j["verdict_familywise"], 0) + 1
-                rows.append({"capture": cap["name"], "taus": taus, "axis": ax, **j})
+                q = r.get("quiet_stretch") or {}
+                jq, qtext = None, "-"
+                if q.get("fitted") and not isinstance(y, list):
+                    # the quiet stretch's fit against the stretch's own curve (read here)
+                    a, b = q["samples"]
+                    cq = read_curve(np.asarray(y, float)[a:b], cap["tau0"], np.asarray(q["m"], int))
+                    jq = judge(q, cq, cap["tau0"])
+                    n_quiet += 1
+                    bq = (f"{jq['b']:.4g} [{jq['b_lo95']:.4g}, {jq['b_hi95']:.4g}]" if jq["b_is_estimate"]
+                          else f"< {jq['b_hi95']:.4g}")
+                    qtext = (f"{q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} {bq} {jq['b_over_limit']:.2f} "
+                             f"{jq['floor_taus_total_missed']}/{jq['floor_taus']} {jq['verdict']} "
+                             f"{jq['verdict_familywise']}")
+                elif q:
+                    qtext = "not fitted: " + q.get("reason", "")[:60]
+                vq = jq["verdict"] if jq else j["verdict"]
+                vqf = jq["verdict_familywise"] if jq else j["verdict_familywise"]
+                counts_q[vq] = counts_q.get(vq, 0) + 1
+                counts_qfw[vqf] = counts_qfw.get(vqf, 0) + 1
+                rows.append({"capture": cap["name"], "taus": taus, "axis": ax, **j,
+                             "quiet_stretch": ({"samples": q["samples"], "t_s": q["t_s"], **jq} if jq
+                                               else ({"fitted": False, "reason": q.get("reason")} if q else None)),
+                             "verdict_quiet": vq, "verdict_quiet_familywise": vqf})
                 bt = (f"{j['b']:.4g} [{j['b_lo95']:.4g}, {j['b_hi95']:.4g}]" if j["b_is_estimate"]
                       else f"< {j['b_hi95']:.4g}")
                 hv = "/".join("-" if math.isnan(v) else f"{v:.2f}" for v in j["rise_over_v"])
@@ -594,7 +627,8 @@ def main() -> None:
                       f"{j['floor_taus_total_outside_band']}/{j['floor_taus_total_missed']}/{j['floor_taus']} "
                       f"{j['worst_total_over_curve_on_floor']:5.3f} {j['verdict']} "
                       f"| {j['fw_level_per_tau']:.4f} {j['fw_m_equiv']:4.1f} "
-                      f"{j['floor_taus_total_missed_familywise']} {j['verdict_familywise']}",
+                      f"{j['floor_taus_total_missed_familywise']} {j['verdict_familywise']} "
+                      f"| {qtext}",
                       flush=True)
     if args.keep:
         (tmp / "allan_heldout.json").write_text(json.dumps(rows, indent=1, default=float))
@@ -604,6 +638,13 @@ def main() -> None:
                       # the floor's taus); n_FAIL_total above is item 2 on the pointwise band
                       **{f"n_{k.replace('-', '_')}_familywise": v for k, v in sorted(counts_fw.items())},
                       "n_FAIL_total_familywise": counts_fw.get("FAIL-total", 0),
+                      # item 2 judged on the quiet stretch's fit where rigctl reports one (the
+                      # record not stationary by its own test), else on the whole record's
+                      "n_quiet_stretch_fits": n_quiet,
+                      **{f"n_{k.replace('-', '_')}_quiet": v for k, v in sorted(counts_q.items())},
+                      **{f"n_{k.replace('-', '_')}_quiet_familywise": v for k, v in sorted(counts_qfw.items())},
+                      "n_FAIL_total_quiet": counts_q.get("FAIL-total", 0),
+                      "n_FAIL_total_quiet_familywise": counts_qfw.get("FAIL-total", 0),
                       "wall_s": round(time.perf_counter() - t0, 1)}))
 
 

@@ -25,20 +25,50 @@ class VirtualClock:
 
 
 class ScaledClock:
-    """Wall time multiplied by ``speed`` (1.0 = real time), starting at zero."""
+    """Wall time multiplied by ``speed`` (1.0 = real time), starting at zero.
+
+    An in-process emulator that cannot compute as fast as this clock runs sets it back
+    (:meth:`slip_to`) to the time it has reached, instead of falling further behind at every
+    call: rig time then runs slower than ``speed`` x wall time. :attr:`slipped` adds up those
+    set-backs (rig time, s): zero on a host that keeps up. :meth:`now` never goes back: after a
+    set-back it holds at the latest time it returned until the clock passes it again."""
 
     def __init__(self, speed: float = 1.0) -> None:
         if speed <= 0:
             raise ValueError("speed must be positive")
         self.speed = float(speed)
         self._t0 = time.monotonic()
+        self.slipped = 0.0
+        self._high = 0.0  # the latest time now() returned
+
+    def running_now(self) -> float:
+        """The time the clock has run to, without the hold of :meth:`now` after a set-back
+        (the emulator's catch-up target: reading it does not hold the clock)."""
+        return (time.monotonic() - self._t0) * self.speed
 
     def now(self) -> float:
-        return (time.monotonic() - self._t0) * self.speed
+        t = (time.monotonic() - self._t0) * self.speed
+        if t < self._high:  # set back (slip_to) and not yet past what it returned before
+            return self._high
+        self._high = t
+        return t
 
     def sleep(self, seconds: float) -> None:
         if seconds > 0:
             time.sleep(seconds / self.speed)
+
+    def restart(self) -> None:
+        """Zero now (before anyone has read the clock: an in-process emulator, once built)."""
+        self._t0 = time.monotonic()
+        self._high = 0.0
+
+    def slip_to(self, t: float) -> None:
+        """Set the clock back to ``t`` (rig time, s) if it is ahead of it: it goes on from there
+        at ``speed`` (:meth:`now` holds meanwhile at the latest time it returned)."""
+        ahead = (time.monotonic() - self._t0) * self.speed - t
+        if ahead > 0:
+            self._t0 += ahead / self.speed
+            self.slipped += ahead
 
 
 class RealClock(ScaledClock):

@@ -243,7 +243,10 @@ class AclServerCore:
 
     Side-channel faults (not on the wire): ``drop_replies`` (swallow the next n replies),
     ``delay_s`` (sleep before replying), ``garble_replies`` (corrupt the next n replies).
+    ``answered`` counts the request lines done: reply written to the port (or swallowed).
     """
+
+    answered = 0
 
     def __init__(self, table, serial: str = "SIM0001", version: str = "0.1") -> None:
         self.table = table
@@ -377,6 +380,8 @@ class _LineHandler:
             reply = self.core.handle_line(line)
             if reply is not None:
                 write(reply.encode("ascii", "replace") + b"\n")
+            with self.core.lock:
+                self.core.answered += 1
 
 
 class AclServer:

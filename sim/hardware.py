@@ -58,7 +58,7 @@ import numpy as np
 from rigctl.clock import ScaledClock
 from rigctl.config.config import RigConfig
 from rigctl.drivers.modbus_map import SCALE_POSITION, FaultCode
-from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtdata2
+from rigctl.drivers.xsens import FREQ_MAX, MID, SAMPLE_TIME_FINE_HZ, encode_mtdata2, mtdata2_frame_bytes
 
 from .acl_server import AclServer, AclServerCore, _LineHandler
 from .gnss_server import GnssServer
@@ -73,38 +73,76 @@ log = logging.getLogger(__name__)
 IMU_PROTOCOLS = ("xsens", "vectornav", "frame")
 
 
-class HwAclCore(AclServerCore):
-    """ACL protocol core with a counted stall: the next ``stall_replies`` replies come
-    ``stall_s`` late (the port's reader thread sleeps, as a busy controller would). Every
-    request line is kept in :attr:`received` as (wall time ``time.monotonic()``, line), the
-    last 20,000, so a test can see which commands reached the controller and when."""
+class _Stall:
+    """The next ``replies`` replies of a controller come ``seconds`` late, or (``seconds`` inf)
+    only once :meth:`release` is called; ``held`` counts the replies being held back now."""
 
-    stall_replies = 0
-    stall_s = 0.0
+    def __init__(self) -> None:
+        self.replies, self.seconds, self.held = 0, 0.0, 0
+        self._released = threading.Event()
+
+    def arm(self, seconds: float, replies: int) -> None:
+        self._released.clear()
+        self.seconds, self.replies = float(seconds), int(replies)
+
+    def release(self) -> None:
+        self._released.set()
+
+    def take(self) -> bool:
+        """Whether this reply is held back (then counted in ``held`` until :meth:`done`)."""
+        if self.replies <= 0:
+            return False
+        self.replies -= 1
+        self.held += 1
+        return True
+
+    def wait(self) -> None:
+        self._released.wait(None if math.isinf(self.seconds) else self.seconds)
+
+    def is_released(self) -> bool:
+        return self._released.is_set()
+
+    def done(self) -> None:
+        self.held -= 1
+
+
+class HwAclCore(AclServerCore):
+    """ACL protocol core with a counted stall (:class:`_Stall`, :meth:`Hardware.stall`: the
+    port's reader thread waits, as a busy controller would). Every request line is kept in
+    :attr:`received` as (wall time ``time.monotonic()``, line), the last 20,000, so a test can
+    see which commands reached the controller and when."""
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
         self.received: deque[tuple[float, str]] = deque(maxlen=20_000)
+        self.stalls = _Stall()
 
     def handle_line(self, line: str | bytes) -> str | None:
         self.received.append((time.monotonic(), line.decode("ascii", "replace").strip()
                               if isinstance(line, bytes) else line.strip()))
-        if self.stall_replies > 0:
-            self.stall_replies -= 1
-            time.sleep(self.stall_s)
+        if self.stalls.take():
+            try:
+                self.stalls.wait()
+            finally:
+                self.stalls.done()
         return super().handle_line(line)
 
 
 class HwModbusServer(ModbusTableServer):
-    """Modbus table server whose next ``stall_replies`` requests are answered ``stall_s`` late."""
+    """Modbus table server with a counted stall (:class:`_Stall`, :meth:`Hardware.stall`)."""
 
-    stall_replies = 0
-    stall_s = 0.0
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.stalls = _Stall()
 
     async def _action(self, fc, start, address, count, registers, set_values):
-        if self.stall_replies > 0:
-            self.stall_replies -= 1
-            await asyncio.sleep(self.stall_s)
+        if self.stalls.take():
+            try:
+                end = time.monotonic() + self.stalls.seconds
+                while not self.stalls.is_released() and time.monotonic() < end:
+                    await asyncio.sleep(0.01)
+            finally:
+                self.stalls.done()
         return await super()._action(fc, start, address, count, registers, set_values)
 
 
@@ -133,6 +171,11 @@ class HwXsensServer(XsensServer):
         #: could be written after the ack, and a reconnecting driver took those frames of the old
         #: measurement period for its own: stamped before its session began)
         self._wire = threading.Lock()
+        #: cleared while a GoToConfig / Reset waits for (or holds) the wire: step() lets it go
+        #: first. A Lock is not fair, and the stream thread, catching up batch after batch, took
+        #: the wire again before the waiting request thread woke up
+        self._wire_free = threading.Event()
+        self._wire_free.set()
         super().__init__(*args, **kw)
 
     def _stream(self) -> None:          # Hardware._imu_loop calls step() instead
@@ -140,8 +183,12 @@ class HwXsensServer(XsensServer):
 
     def _handle(self, mid: int, data: bytes) -> bytes:
         if mid in (MID.GO_TO_CONFIG, MID.RESET):
-            with self._wire:
-                return super()._handle(mid, data)
+            self._wire_free.clear()
+            try:
+                with self._wire:
+                    return super()._handle(mid, data)
+            finally:
+                self._wire_free.set()
         return super()._handle(mid, data)
 
     #: the uncapped clock (set by :class:`Hardware`): a measurement period starts NOW even when
@@ -243,8 +290,19 @@ class HwXsensServer(XsensServer):
         loop keeps the tap's samples from there on (:meth:`Hardware._trim_tap`)."""
         return self._t0 + self._k / self.rate_hz if self.state == "measurement" else None
 
+    #: bytes of frames encoded and written per step at most (268 frames of 61 bytes): a
+    #: GoToConfig / Reset waits for the batch on the wire, so its acknowledgement comes after at
+    #: most one such write, as a device's comes after the frames already in its UART. Steps of up
+    #: to MAX_BATCH frames (20,000 frames, 1.2 MB: the stream catching up at 100x on a loaded
+    #: host), each written whole at the pace of the client's reads, held the request for 1-5 s,
+    #: past the driver's 3 tries of 0.5 s: 'no acknowledgement of GoToConfig' / 'no stream' at
+    #: connect
+    wire_bytes = 16384
+
     def step(self, until: float) -> int:
-        """Encode and send every frame due up to time ``until`` (at most MAX_BATCH); returns the count."""
+        """Encode and send the frames due up to time ``until``, at most :attr:`wire_bytes`;
+        returns the count (0: none due, or not measuring)."""
+        self._wire_free.wait()
         with self._wire:
             return self._step(until)
 
@@ -252,7 +310,8 @@ class HwXsensServer(XsensServer):
         with self._lock:
             if self.state != "measurement":
                 return 0
-            n = min(max(int(math.floor((until - self._t0) * self.rate_hz + 1e-9)) + 1 - self._k, 0), MAX_BATCH)
+            most = max(1, self.wire_bytes // mtdata2_frame_bytes([it.xdi for it in self.config]))
+            n = min(max(int(math.floor((until - self._t0) * self.rate_hz + 1e-9)) + 1 - self._k, 0), most)
             if n == 0:
                 return 0
             k = self._k + np.arange(n)
@@ -524,7 +583,7 @@ class Hardware:
                 t = self._imu_t
             try:
                 while self.imu_server.step(t) and not self._stop.is_set():
-                    pass                            # more than MAX_BATCH frames were due
+                    pass                            # more than one batch was due
                 done = t
             except Exception:
                 log.exception("IMU stream")
@@ -567,10 +626,19 @@ class Hardware:
             if seed is not None:
                 imu._rng = np.random.default_rng(seed)
 
-    def stall(self, device: str, seconds: float, replies: int = 1) -> None:
-        """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late."""
-        target = {"acl": self.acl.core, "modbus": self.modbus}[device]
-        target.stall_s, target.stall_replies = float(seconds), int(replies)
+    def stall(self, device: str, seconds: float = math.inf, replies: int = 1) -> None:
+        """The next ``replies`` replies of ``device`` (``acl`` | ``modbus``) come ``seconds`` late
+        (wall), or by default only once :meth:`release_stall` is called: a test of a driver's
+        reply timeout then does not depend on how fast this host runs the two sides.
+        ``self.acl.core.stalls.held`` / ``self.modbus.stalls.held``: replies held back now."""
+        self._stalls(device).arm(seconds, replies)
+
+    def release_stall(self, device: str) -> None:
+        """The replies ``device`` holds back (:meth:`stall`) go out now."""
+        self._stalls(device).release()
+
+    def _stalls(self, device: str) -> _Stall:
+        return {"acl": self.acl.core, "modbus": self.modbus}[device].stalls
 
     def pause_physics(self, wall_s: float) -> None:
         """The hardware loop stops for ``wall_s`` of wall time (``wall_s * speed`` of rig time), as

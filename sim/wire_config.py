@@ -17,11 +17,14 @@ import yaml
 
 KEEP = ("limits", "sim", "rate_hz")
 
-#: the table's reply timeout on emulated hardware, wall s: the emulator shares the host (in the
-#: tests, the process) with its client, so its replies wait for the host's scheduler as well --
+#: the reply timeout of the table and the chamber on emulated hardware, wall s: the emulator
+#: shares the host (in the tests, the process) with its client, so its replies wait for the
+#: host's scheduler as well --
 #: at load 15-18 on 2 cores more than the 0.5 s of a real controller's default (wired 24-position
 #: runs paused on 'no reply to :READ:ALL? ... within 0.5 s' and re-ran steps). The same allowance
-#: as the IMU port's flow-control wait (sim/hardware.py FlowPtyEndpoint.write_timeout_s).
+#: as the IMU port's flow-control wait (sim/hardware.py FlowPtyEndpoint.write_timeout_s). The
+#: chamber's was 0.5 s (Watlow) and 1.0 s (SCPI): the soaks paused on 'chamber link lost: ... No
+#: response received' and re-ran their chamber-wait step (set points 15, 15, 25, ...).
 REPLY_TIMEOUT_S = 1.5
 
 
@@ -73,12 +76,12 @@ def wire_config(base: dict[str, Any], hw, *, table: str | None = None, link: str
     c = {k: v for k, v in c_in.items() if k in ("safe_c", "band_c", "sim")}
     if chamber == "watlow-rtu":
         c.update(driver="watlow", transport="rtu", port=ep["chamber_watlow_rtu"], baudrate=hw.rtu_baudrate,
-                 timeout_s=0.5)
+                 timeout_s=REPLY_TIMEOUT_S)
     elif chamber == "watlow-tcp":
         host, port = ep["chamber_watlow_tcp"].rsplit(":", 1)
-        c.update(driver="watlow", transport="tcp", host=host, tcp_port=int(port), timeout_s=0.5)
+        c.update(driver="watlow", transport="tcp", host=host, tcp_port=int(port), timeout_s=REPLY_TIMEOUT_S)
     elif chamber == "scpi":
-        c.update(driver="scpi", resource=ep["chamber_scpi_visa"], model="generic", timeout_s=1.0)
+        c.update(driver="scpi", resource=ep["chamber_scpi_visa"], model="generic", timeout_s=REPLY_TIMEOUT_S)
     elif chamber is None:
         c = {"driver": "none"}
     else:

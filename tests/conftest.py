@@ -30,6 +30,45 @@ def full_calibration_run(tmp_path_factory) -> tuple[Path, str]:
     return next(out.glob("*-full-calibration")), r.stdout
 
 
+@pytest.fixture(scope="session")
+def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
+    """The real MTi-G gyro's x axis (tests/data/mtig-static-contaminated, 1.39 h at 100 Hz)
+    through `rigctl import` + `rigctl allan --db none --json` in process, once per session:
+    {"y": the rates, "text": allan's stdout, "res": the JSON's axes.gx, "ind": the independent
+    white + GM read (test_allan_gm_real.independent_fit)}. test_allan_gm_real and
+    test_allan_gm_fit both check this run (SHARED_FIXTURE_FILES: one worker makes it once)."""
+    import io
+    import json
+    from contextlib import redirect_stderr, redirect_stdout
+
+    import numpy as np
+
+    from rigctl import cli
+    from test_allan_gm_real import independent_fit
+
+    d = ref_data / "mtig-static-contaminated"
+    if not d.exists():
+        pytest.skip(f"{d} not present (a commercial redistribution leaves it out: CC BY-NC-SA "
+                    "4.0, see its README)")
+
+    def rigctl(*argv: str) -> str:
+        out, err = io.StringIO(), io.StringIO()
+        with redirect_stdout(out), redirect_stderr(err):
+            code = cli.main(list(argv))
+        assert code == 0, err.getvalue()[-2000:]
+        return out.getvalue()
+
+    y = np.loadtxt(d / "gyro_x_rad_s.txt.gz")
+    tmp = tmp_path_factory.mktemp("mtig_gm")
+    txt, rec, js = tmp / "mtig.txt", tmp / "mtig.h5", tmp / "mtig.json"
+    np.savetxt(txt, y, fmt="%.8g")  # the file's own 8 significant digits: the same numbers
+    rigctl("import", str(txt), "-o", str(rec), "--rate", "100", "--columns", "gyr_x=0",
+           "--units", "gyr=rad/s")
+    text = rigctl("allan", str(rec), "--db", "none", "--json", str(js))
+    return {"y": y, "text": text, "res": json.loads(js.read_text())["axes"]["gx"],
+            "ind": independent_fit(y)}
+
+
 @pytest.fixture
 def small_fs(tmp_path):
     """A 6 MiB tmpfs (a disk that fills up); skips unless this process may mount one (root)."""
@@ -62,6 +101,8 @@ SHARED_FIXTURE_FILES = {
     "tests/test_production_certificate.py": "full_calibration_run",
     "tests/test_report_sections.py": "full_calibration_run",
     "tests/test_report_html.py": "full_calibration_run",
+    "tests/test_allan_gm_real.py": "mtig_gx_allan",
+    "tests/test_allan_gm_fit.py": "mtig_gx_allan",
 }
 
 #: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running.
@@ -90,7 +131,7 @@ PARALLEL_FIRST: tuple[str, ...] = tuple(f"tests/test_{name}.py" for name in (
     "production_batch", "cli_hostile", "cal_pose_loop_synth", "calibrate_correlated",
     "report_quickstart", "calibrate_emulated", "thermal", "daemon_procedures", "capture_memory",
     "allan_kalibr",
-)) + ("full_calibration_run",)
+)) + ("full_calibration_run", "mtig_gx_allan")
 
 try:
     from xdist.scheduler import LoadScopeScheduling

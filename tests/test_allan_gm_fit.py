@@ -183,7 +183,7 @@ def _rigctl(*argv: str) -> str:
 
 
 def test_the_mtig_gyro_through_the_cli_has_the_gauss_markov_term_in_its_fit(
-        ref_data: Path, tmp_path: Path) -> None:
+        mtig_gx_allan: dict) -> None:
     """The real MTi-G gyro (1.39 h at 100 Hz) through `rigctl import` + `rigctl allan --json`:
     the Gauss-Markov term is in the fit, the statistical chi-square of the reported model is
     back within its 99 % point (measured 36.05 on 38 dof, p = 0.56; without the term 792.4 on
@@ -194,20 +194,13 @@ def test_the_mtig_gyro_through_the_cli_has_the_gauss_markov_term_in_its_fit(
     Tc and sigma_GM agree with a white + GM least-squares read written in
     tests/test_allan_gm_real.py (there: Tc 3.00 s [2.46, 3.68], 62.6 deg/h [59.1, 66.2];
     here measured Tc 3.35 s [2.48, 5.15], 62.0 deg/h [54.4, 70.1])."""
-    d = ref_data / "mtig-static-contaminated"
-    if not d.exists():
-        pytest.skip(f"{d} not present (CC BY-NC-SA 4.0, see its README)")
+    # the run (import + allan --json, in process) and the independent read are made once per
+    # session by tests/conftest.py's mtig_gx_allan, which test_allan_gm_real checks too
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_allan_gm_real import agree, independent_fit
+    from test_allan_gm_real import agree
 
-    y = np.loadtxt(d / "gyro_x_rad_s.txt.gz")
-    txt, rec, js = tmp_path / "mtig.txt", tmp_path / "mtig.h5", tmp_path / "mtig.json"
-    np.savetxt(txt, y, fmt="%.8g")
-    _rigctl("import", str(txt), "-o", str(rec), "--rate", "100", "--columns", "gyr_x=0",
-            "--units", "gyr=rad/s")
-    text = _rigctl("allan", str(rec), "--db", "none", "--json", str(js))
-    res = json.loads(js.read_text())["axes"]["gx"]
+    y, text, res = mtig_gx_allan["y"], mtig_gx_allan["text"], mtig_gx_allan["res"]
     fit = res["fit"]
     t = fit["gm_term"]
     co = fit["coefficients"]
@@ -223,7 +216,7 @@ def test_the_mtig_gyro_through_the_cli_has_the_gauss_markov_term_in_its_fit(
     assert "Gauss-Markov sigma_GM, Tc:" in text  # the term table's row
     assert t["sigma_deg_per_h"] == pytest.approx(t["sigma_si"] * 180 / math.pi * 3600)
     # the independent read (white + GM)
-    ind = independent_fit(y)
+    ind = mtig_gx_allan["ind"]
     assert agree(t["tc_s"], tuple(t["tc_ci95_s"]), ind["tc"], ind["tc_ci95"]), (t, ind["tc"])
     assert agree(t["sigma_si"], tuple(t["sigma_ci95_si"]), ind["sigma"], ind["sigma_ci95"])
     # the total against the deviations computed here

@@ -25,10 +25,7 @@ comparison rejects a Tc or a sigma_GM 2x off (asserted), so it can fail.
 """
 from __future__ import annotations
 
-import io
 import math
-from contextlib import redirect_stderr, redirect_stdout
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,15 +34,6 @@ from scipy.stats import chi2
 
 TAU0 = 0.01
 RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
-
-
-def _rigctl(*argv: str) -> None:
-    from rigctl import cli
-
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        code = cli.main(list(argv))
-    assert code == 0, err.getvalue()[-2000:]
 
 
 def _gm_fields(axis_result: dict, source: str) -> dict:
@@ -109,22 +97,10 @@ def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, floa
 
 
 @pytest.fixture(scope="module")
-def mtig(ref_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    import json
-
-    d = ref_data / "mtig-static-contaminated"
-    if not d.exists():
-        pytest.skip(f"{d} not present (a commercial redistribution leaves it out: CC BY-NC-SA "
-                    "4.0, see its README)")
-    y = np.loadtxt(d / "gyro_x_rad_s.txt.gz")
-    tmp = tmp_path_factory.mktemp("mtig_gm")
-    txt = tmp / "mtig.txt"
-    np.savetxt(txt, y, fmt="%.8g")  # the file's own 8 significant digits: the same numbers
-    rec, js = tmp / "mtig.h5", tmp / "mtig.json"
-    _rigctl("import", str(txt), "-o", str(rec), "--rate", "100", "--columns", "gyr_x=0",
-            "--units", "gyr=rad/s")
-    _rigctl("allan", str(rec), "--db", "none", "--json", str(js))
-    return {"y": y, "res": json.loads(js.read_text())["axes"]["gx"], "ind": independent_fit(y)}
+def mtig(mtig_gx_allan: dict) -> dict:
+    """import + allan --json of the real gyro, and the independent fit (tests/conftest.py's
+    session fixture, shared with test_allan_gm_fit)."""
+    return mtig_gx_allan
 
 
 def test_independent_white_plus_gm_fit_describes_the_curve(mtig: dict) -> None:

@@ -410,3 +410,47 @@ def test_switch_interval_while_streaming(tmp_path: Path, monkeypatch: pytest.Mon
         assert abs(sys.getswitchinterval() - 0.0123) < 1e-9
     finally:
         sys.setswitchinterval(before)
+
+
+def test_gc_paused_while_streaming(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cyclic garbage collector is off while the record streams and its axes are analysed
+    (AA.PAUSE_GC), on again afterwards, also after an error; left off when it was off before;
+    and the results are those with the collector running (nothing in the pipeline relies on
+    it), bit for bit."""
+    import gc
+
+    rec = tmp_path / "r.h5"
+    _recording(rec, 40_000, False)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    seen: list = []
+    orig = AA.analyse_axis
+    monkeypatch.setattr(AA, "analyse_axis", lambda st, *a: (seen.append(gc.isenabled()),
+                                                            orig(st, *a))[1])
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        paused = AA.compute(str(rec), ["gx", "az"], 95)
+        assert seen and not any(seen)
+        assert gc.isenabled()
+        seen.clear()
+        monkeypatch.setattr(AA, "PAUSE_GC", False)
+        running = AA.compute(str(rec), ["gx", "az"], 95)
+        assert seen and all(seen)
+        for a in ("gx", "az"):
+            for k in ("tau_s", "adev_rad/s", "adev_m/s^2", "alpha", "edf"):
+                if k in paused["axes"][a]:
+                    assert np.array_equal(paused["axes"][a][k], running["axes"][a][k]), (a, k)
+        monkeypatch.setattr(AA, "PAUSE_GC", True)
+        monkeypatch.setattr(AA, "analyse_axis", lambda *a: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            AA.compute(str(rec), ["gx"], 95)
+        assert gc.isenabled()
+        gc.disable()
+        monkeypatch.setattr(AA, "analyse_axis", orig)
+        AA.compute(str(rec), ["gx"], 95)
+        assert not gc.isenabled()
+    finally:
+        if was:
+            gc.enable()
+        else:
+            gc.disable()

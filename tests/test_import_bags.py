@@ -362,7 +362,7 @@ def test_an_imported_bag_is_dated_by_its_own_stamps(bags, tmp_path, capsys):
     stamp), not the import's: the report's "started (UTC)" and the results database's
     "recorded" time read them. A 2023 bag imported today said today. The import's own time is
     kept in import_utc. Stamps that are no wall-clock time (a sensor's time since boot) leave
-    the import's times."""
+    the import's times, and /meta capture_time says the capture's time is unknown."""
     import datetime as dt
 
     def iso(ns: int) -> str:  # written out here: ns since the epoch -> the recorder's ISO form
@@ -386,4 +386,5 @@ def test_an_imported_bag_is_dated_by_its_own_stamps(bags, tmp_path, capsys):
     code, out, err = _rigctl(capsys, str(write_mcap_ros2(tmp_path / "boot.mcap", boot)), "-o", str(rec2))
     assert code == 0, err
     _, _, meta2 = _read(rec2)
-    assert meta2["started_utc"].startswith(today) and "import_utc" not in meta2
+    assert meta2["started_utc"].startswith(today) and meta2["capture_time"].startswith("unknown")
+    assert meta["capture_time"] == "the file's own time stamps (wall clock)"

@@ -236,3 +236,57 @@ def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:
     p = run_rigctl("allan", str(rec2), "--db", "none", "--axes", "gx,gy")
     assert p.returncode == 2 and "axis gy: every sample is the same value" in p.stderr, p.stderr
     assert "Traceback" not in p.stderr and "internal error" not in p.stderr
+
+
+def _meta(rec: Path) -> dict:
+    with h5py.File(rec, "r") as f:
+        return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f["meta"].attrs.items()}
+
+
+def test_a_csv_is_dated_by_its_own_wall_clock_stamps(tmp_path: Path, capsys) -> None:
+    """/meta started_utc and ended_utc of an imported CSV are the capture's own first and last
+    stamp where its time column holds wall-clock times -- ISO 8601 date-times, Unix seconds with
+    a fraction, Unix milliseconds as integers -- not the import's (as a bag's are); the import's
+    time is kept in import_utc. A time column counting from 0, or none (--rate), leaves the
+    import's times and says in capture_time that the capture's start is unknown. Expected ISO
+    strings written here with datetime from what the test wrote."""
+    g, a = _data(600, seed=8)
+    fs = 20.0
+    t0 = dt.datetime(2019, 3, 4, 5, 6, 7, 125000, tzinfo=dt.timezone.utc)
+    iso = lambda t: t.strftime("%Y-%m-%dT%H:%M:%S.%fZ")  # noqa: E731  (the recorder's form)
+    start, end = iso(t0), iso(t0 + dt.timedelta(seconds=(len(g) - 1) / fs))
+    unix = (t0 - dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)).total_seconds()
+    stamps = {
+        "iso": ([(t0 + dt.timedelta(microseconds=int(k * 1e6 / fs))).isoformat() for k in range(len(g))], ""),
+        "unix_s": ([f"{unix + k / fs:.6f}" for k in range(len(g))], ",time=s"),
+        "unix_ms": ([str(int(round(unix * 1000)) + k * 50) for k in range(len(g))], ",time=ms"),
+        "from_zero": ([f"{k / fs:.3f}" for k in range(len(g))], ",time=s"),
+    }
+    today = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d")
+    for name, (col, unit) in stamps.items():
+        csv = tmp_path / f"{name}.csv"
+        csv.write_text("t,gx,gy,gz,ax,ay,az\n" + "".join(
+            f"{col[k]}," + ",".join(f"{v:.7g}" for v in (*g[k], *a[k])) + "\n" for k in range(len(g))))
+        rec = tmp_path / f"{name}.h5"
+        assert cli.main(["import", str(csv), "-o", str(rec), "--columns", COLS,
+                         "--units", "gyr=rad/s,acc=m/s^2" + unit]) == 0
+        out = capsys.readouterr().out
+        m = _meta(rec)
+        assert m["import_utc"].startswith(today), (name, m)
+        if name == "from_zero":
+            assert m["capture_time"].startswith("unknown") and m["started_utc"].startswith(today), (name, m)
+            assert "the capture's start is unknown" in out
+        else:
+            assert (m["started_utc"], m["ended_utc"]) == (start, end), (name, m["started_utc"], m["ended_utc"])
+            assert m["capture_time"] == "the file's own time stamps (wall clock)"
+            assert abs(m["clock_zero_unix_s"] - unix) < 1e-6
+            assert f"dated by the time column: {start} to {end}" in out
+    # no time column: --rate, the start unknown
+    csv = tmp_path / "rate.csv"
+    csv.write_text("".join(",".join(f"{v:.7g}" for v in (*g[k], *a[k])) + "\n" for k in range(len(g))))
+    rec = tmp_path / "rate.h5"
+    assert cli.main(["import", str(csv), "-o", str(rec), "--columns",
+                     "gyr_x=0,gyr_y=1,gyr_z=2,acc_x=3,acc_y=4,acc_z=5", "--units", "gyr=rad/s,acc=m/s^2",
+                     "--rate", str(fs)]) == 0
+    m = _meta(rec)
+    assert m["capture_time"].startswith("unknown") and m["started_utc"].startswith(today)

@@ -15,6 +15,8 @@ from rigctl.drivers import modbus_map as M
 from rigctl.sim.acl_server import IdealTable
 from rigctl.sim.modbus_server import ModbusTableServer
 
+from hil_support import wait_until
+
 DEG = math.pi / 180
 
 
@@ -146,16 +148,25 @@ def test_rate_mode_quick_stop_and_refusal(server, tcp_client):
     assert ai.rate == 0.0 and ai.status & M.StatusBit.QUICK_STOP and ai.mode == M.Mode.OFF
 
 
+#: the watchdog in test_watchdog_trips_and_fault_reset, ms: the test's kicks 40 ms apart must
+#: each reach the emulator within it. At 100 ms a test thread or server loop held up for 0.1 s
+#: on a loaded host tripped it between kicks, and a server loop held up past the 0.3 s the test
+#: then slept had not tripped it yet: both measured the host, not the watchdog
+WATCHDOG_MS = 1500
+
+
 def test_watchdog_trips_and_fault_reset(server, tcp_client):
     enable(tcp_client, 1, M.Mode.POSITION)
-    tcp_client.write_register(1, 100, device_id=1)                  # 100 ms watchdog
+    tcp_client.write_register(1, WATCHDOG_MS, device_id=1)
     for _ in range(3):
         time.sleep(0.04)
+        kicked = time.monotonic()
         tcp_client.write_register(2, 1, device_id=1)
     assert not axis_inputs(tcp_client, 1).status & M.StatusBit.FAULT
-    time.sleep(0.3)
-    ai = axis_inputs(tcp_client, 1)
-    assert ai.status & M.StatusBit.FAULT and ai.fault_code == M.FaultCode.WATCHDOG
+    ai = wait_until(lambda: (a := axis_inputs(tcp_client, 1)).status & M.StatusBit.FAULT and a, 30,
+                    "the watchdog to trip")
+    assert time.monotonic() - kicked >= WATCHDOG_MS * 1e-3      # not before the watchdog ran out
+    assert ai.fault_code == M.FaultCode.WATCHDOG
     tcp_client.write_register(1, 0, device_id=1)
     ctl = M.ControlBit.NO_QUICK_STOP
     tcp_client.write_register(100, int(ctl | M.ControlBit.FAULT_RESET), device_id=1)

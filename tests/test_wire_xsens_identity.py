@@ -21,9 +21,10 @@ from rigctl.engine.procedure import load_procedure
 from rigctl.run.runner import RunOptions, resume_run, run_procedure
 from rigctl.sim.xsens_server import XsensServer
 from rigctl.engine.states import StateMachine
+from rigctl.progress import NullProgress
 from rigctl.yamlio import InputError
 
-from hil_support import wait_until, wired
+from hil_support import wait_progress, wait_until, wired
 
 SPEED = 20.0
 
@@ -51,12 +52,17 @@ def connect(srv: XsensServer, clock: ScaledClock) -> XsensImu:
     return imu
 
 
-def stream_rows(imu: XsensImu, wall_s: float = 0.3) -> int:
-    end, rows = time.monotonic() + wall_s, 0
-    while time.monotonic() < end:
-        time.sleep(0.02)
+def streams(imu: XsensImu, srv, n: int) -> bool:
+    """Read until more than ``n`` rows have come, for as long as the emulator ``srv`` keeps
+    sending frames (it read for 0.3 s of wall time before: an emulator starved for that long on a
+    loaded host sent nothing in it)."""
+    rows = 0
+
+    def more() -> bool:
+        nonlocal rows
         rows += len(imu.read())
-    return rows
+        return rows > n
+    return wait_progress(more, lambda: srv.frames_sent, f"more than {n} IMU rows")
 
 
 def test_device_id_messages():
@@ -79,7 +85,7 @@ def test_driver_reads_the_device_id_in_config_mode(device_id, printed):
             mids = [m for m, _ in srv.requests]
             assert (X.MID.REQ_DID, "config") in srv.requests
             assert mids.index(X.MID.GO_TO_CONFIG) < mids.index(X.MID.REQ_DID) < mids.index(X.MID.GO_TO_MEASUREMENT)
-            assert stream_rows(imu) > 10
+            assert streams(imu, srv, 10)
         finally:
             imu.close()
 
@@ -98,7 +104,7 @@ def test_a_device_without_an_id_gives_empty_and_still_streams(reply, caplog):
             text = caplog.text
             assert ("error INVALID_MESSAGE" if reply == "error" else "no answer to ReqDID") in text
             assert "does not report its ID" in text
-            assert stream_rows(imu) > 10
+            assert streams(imu, srv, 10)
         finally:
             imu.close()
 
@@ -109,9 +115,10 @@ def test_reconnect_rereads_the_id_and_stops_on_another_unit(tmp_path):
         imu.connect()
         try:
             assert imu.identity["device_id"] == "03780001"
-            assert stream_rows(imu) > 0
+            assert streams(imu, hw.xsens, 0)
             hw.disconnect("imu", 0.1)                           # same unit back: streams on
-            wait_until(lambda: imu.configurations == 2 and stream_rows(imu, 0.1) > 0, 10, "the stream back")
+            wait_until(lambda: imu.configurations == 2, 10, "the reconfiguration")
+            assert streams(imu, hw.xsens, 0)                    # the stream back
             assert len(hw.xsens.measurement_starts) == 2
             hw.xsens.device_id = 0x0378BEEF                     # another unit on the same port
             hw.disconnect("imu", 0.1)
@@ -148,20 +155,22 @@ def test_wired_run_records_the_unit_stops_on_a_swap_and_resumes_only_on_it(tmp_p
         proc = load_procedure(proc_path, limits=cfg.limits)
         swapped = threading.Event()
 
-        def on_engine(engine):
-            if engine is None:
-                return
+        class SwapAtCapture(NullProgress):
+            """The unit is swapped as the capture step starts, in the engine's thread, before
+            it polls the step's first sample: the step cannot finish on the old unit's data.
+            (A thread that swapped once the warm-up segment was written had the capture's 3 s
+            of wall time at 20x to do it in.)"""
 
-            def swap():                                         # during the capture step
-                wait_until(lambda: engine.rec.n_segments >= 1, 30, "the warm-up segment")
-                hw.xsens.device_id = 0x0378BEEF
-                hw.disconnect("imu", 0.1)
-                swapped.set()
-            threading.Thread(target=swap, daemon=True).start()
+            def step_started(self, step) -> None:
+                super().step_started(step)
+                if step.kind == "capture" and not swapped.is_set():
+                    hw.xsens.device_id = 0x0378BEEF
+                    hw.disconnect("imu", 0.1)
+                    swapped.set()
 
         states = StateMachine()
         res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False,
-                            options=RunOptions(on_engine=on_engine, states=states))
+                            options=RunOptions(progress=SwapAtCapture(io.StringIO()), states=states))
         assert swapped.is_set()
         # a device fault (no traceback): the rig waits for an operator
         assert res.status == "failed" and res.message.startswith("imu: a different unit is now on"), res.message

@@ -12,6 +12,7 @@ created_utc, json; curves as datasets with ``units``).
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import math
 import os
@@ -37,6 +38,7 @@ from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import allan_drift as AD
+from . import allan_quiet as QS
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -584,7 +586,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             progress_stream: Any = None, outliers: str = "report",
             gaps: str = "skip", warmup: str = "report",
             temperature: str = "report",
-            when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
+            when_streaming: Callable[[], Any] | None = None,
+            quiet_stretch: bool = True) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -595,7 +598,11 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     (each axis' ``temperature``) are analysed once more with that term subtracted from their
     samples (:func:`_without_temperature`). ``when_streaming``: called once the first chunk
     of the record is done and the rest streams (the caller's Python work that holds the GIL,
-    e.g. an import, then runs beside compiled sums instead of before the first chunk)."""
+    e.g. an import, then runs beside compiled sums instead of before the first chunk).
+    Last, with ``quiet_stretch`` (the default), each axis whose self-check names a run of taus
+    not stationary gets ``quiet_stretch``: the terms fitted again on the quiet stretch the
+    stationarity test names, beside the whole record's (:mod:`rigctl.analysis.allan_quiet`;
+    the whole record's fit and self-check are left as they are)."""
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
@@ -606,6 +613,11 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     out["temperature"] = temperature
     if temperature == "remove":
         out = _without_temperature(out, path, axes, taus, exact, progress_stream, outliers, gaps)
+    if quiet_stretch:
+        corr = {a: r["temperature_removed"]["before"]["correction"] for a, r in out["axes"].items()
+                if (r.get("temperature_removed") or {}).get("before", {}).get("correction")}
+        QS.add_quiet_stretches(out, lambda ax, rng, c: compute_once(
+            path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c), corr)
     return out
 
 
@@ -819,10 +831,48 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
         return np.diff([s0] + b + [s1]) if b else None
 
-    with _switch_interval(SWITCH_INTERVAL_S):
+    with _switch_interval(SWITCH_INTERVAL_S), _gc_paused(PAUSE_GC):
         return _stream_and_analyse(path, fs, axes, streams, s0, s1, n, shown, readers, exclude,
                                    breaks, corrections, counter, found, streamed, gaps,
                                    gap_info, missing, outliers, when_streaming, stretches)
+
+
+#: the interpreter's cyclic garbage collector is paused while a record streams and its axes
+#: are analysed (re-enabled afterwards, if it was on; False: left alone). Its generation-2
+#: collections walk every object of the process -- ~130,000 after the imports of rigctl,
+#: numpy, scipy, numba and h5py, more once the results database's modules are imported
+#: beside the stream (0.07 s per walk on this machine) -- holding the GIL, and the younger
+#: generations' collections run every few hundred Python objects made (numba's dispatch, the
+#: fits). The pipeline's arrays are freed by reference counting (no cycles hold them), so
+#: nothing waits for the collector; cyclic garbage made meanwhile (none by the pipeline
+#: itself) is collected after. Measured on the 12 h x 6-axis file (`rigctl allan`, user
+#: CPU, load 14-22): 4.31-4.77 s with the collector, 4.05-4.26 s paused
+PAUSE_GC = True
+
+_GC = {"depth": 0, "was_enabled": False}
+_GC_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _gc_paused(pause: bool):
+    """gc.disable() inside the block (:data:`PAUSE_GC`), the collector re-enabled (if it was
+    enabled before the first) when the last of overlapping blocks (analyses on several
+    threads) ends; nothing with ``pause`` False."""
+    if not pause:
+        yield
+        return
+    with _GC_LOCK:
+        if _GC["depth"] == 0:
+            _GC["was_enabled"] = gc.isenabled()
+            gc.disable()
+        _GC["depth"] += 1
+    try:
+        yield
+    finally:
+        with _GC_LOCK:
+            _GC["depth"] -= 1
+            if _GC["depth"] == 0 and _GC["was_enabled"]:
+                gc.enable()
 
 
 _SWITCH = {"depth": 0, "saved": 0.0}
@@ -1364,6 +1414,12 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
                     "(counter gaps); the Allan terms touching a gap are skipped (Stable32)")
     for a, r in result["axes"].items():
         log("info", f"allan {a}: " + summary_line(r))
+        q = r.get("quiet_stretch") or {}
+        if q.get("fitted"):
+            log("info", f"allan {a}: quiet stretch t = {q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} s (the record "
+                        f"is not stationary at {q['run']['tau_tested_s']:.3g} s): " + summary_line(q))
+        elif q:
+            log("info", f"allan {a}: not stationary at {q['run']['tau_tested_s']:.3g} s; {q['reason']}")
         warns, notes = screening_notes(r)
         for w in warns + check_warnings(r):
             log("warning", f"allan {a}: {w}")
@@ -1622,10 +1678,16 @@ def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoeffi
             if (r.get("fit") or {}).get("coefficients")}
 
 
+#: an axis' curve arrays: stored as datasets, not in the JSON summary
+CURVE_KEYS = ("tau_s", "m", "stride", "n_terms", "alpha", "edf")
+
+
 def store(path: str, result: dict[str, Any]) -> None:
     """Write /results/allan (replacing an earlier one) through :func:`rigctl.recording.recorder.write_results`:
     the JSON summary (non-finite numbers kept: an unbounded interval end stays inf) and the curve
-    datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units."""
+    datasets, one group per axis (``/results/allan/gx/tau_s``, ...), each with its units; an
+    axis' ``quiet_stretch`` (:mod:`rigctl.analysis.allan_quiet`) in its JSON, its curve in
+    ``/results/allan/gx/quiet_stretch/tau_s``, ...)."""
     summary = {"file": result["file"], "sample_rate_hz": result["sample_rate_hz"],
                "n_samples": result["n_samples"],
                "first_sample": result.get("first_sample", 0),
@@ -1640,17 +1702,27 @@ def store(path: str, result: dict[str, Any]) -> None:
                                                               "quantization", "tones", "warmup",
                                                               "warmup_excluded", "temperature",
                                                               "temperature_removed")},
-                                       keep_nonfinite=True)}
+                                       keep_nonfinite=True),
+                            **({"quiet_stretch": jsonable(
+                                {k: v for k, v in r["quiet_stretch"].items() if k not in CURVE_KEYS
+                                 and not k.startswith(("adev_", "lo68_", "hi68_", "lo95_", "hi95_"))},
+                                keep_nonfinite=True)} if r.get("quiet_stretch") else {})}
                         for a, r in result["axes"].items()}}
     arrays = {}
     for a, r in result["axes"].items():
-        unit = r["_unit"]
-        for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
-                           (f"adev_{r['_si']}", r["_si"]), (f"adev_{unit}", unit),
-                           (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
-                           (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
-                           ("alpha", "1"), ("edf", "1")):
-            arrays[f"{a}/{key.replace('/', '_per_')}"] = (r[key], units)
+        # the whole record's curve in <axis>/, the quiet stretch's (when fitted) in
+        # <axis>/quiet_stretch/ (docs/data-format.md)
+        q = r.get("quiet_stretch") or {}
+        for prefix, c in ((f"{a}/", r), (f"{a}/quiet_stretch/", q if q.get("fitted") else None)):
+            if c is None:
+                continue
+            unit = c["_unit"]
+            for key, units in (("tau_s", "s"), ("m", "1"), ("stride", "1"), ("n_terms", "1"),
+                               (f"adev_{c['_si']}", c["_si"]), (f"adev_{unit}", unit),
+                               (f"lo68_{unit}", unit), (f"hi68_{unit}", unit),
+                               (f"lo95_{unit}", unit), (f"hi95_{unit}", unit),
+                               ("alpha", "1"), ("edf", "1")):
+                arrays[f"{prefix}{key.replace('/', '_per_')}"] = (c[key], units)
     write_results(path, "allan", summary, arrays, schema_version=SCHEMA_VERSION)
 
 

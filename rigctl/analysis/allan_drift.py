@@ -177,6 +177,10 @@ def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None
                            f"{st['windows']} windows of {st['window_s']:.0f} s beyond chance "
                            f"(Bartlett p = {st['p_value']:.2g}, alpha {st['alpha']:.2g}{many})")
             continue
+        if tau0:  # the quiet stretch in samples of the range analysed (for --segments, and
+            # for the quiet-stretch fit: rigctl.analysis.allan_quiet)
+            st["quiet_samples"] = [int(round(st["quiet"][0] / tau0)),
+                                   int(round(st["quiet"][1] / tau0))]
         # the bump is the excursions' only when the typical (median) window has none of it:
         # its deviation within the self-check's DEPARTURE_REL of the fitted total (with
         # thousands of averages per window a 2 % change of level is significant, and
@@ -193,9 +197,6 @@ def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None
                            f"the fit at {st['tau_s']:.3g} s)")
             continue
         o["likely_before"] = o["likely"]
-        if tau0:  # the quiet stretch in samples of the range analysed (for --segments)
-            st["quiet_samples"] = [int(round(st["quiet"][0] / tau0)),
-                                   int(round(st["quiet"][1] / tau0))]
         o["likely"] = bump_reason(st)
         o["cause"] = "nonstationary"
         renamed += 1

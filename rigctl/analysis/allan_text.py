@@ -26,6 +26,26 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
     lines.append("fitted terms (joint IEEE 952 fit over all taus"
                  + (" with a first-order Gauss-Markov term" if r["fit"].get("gm_term") else "")
                  + "; 95 % intervals or bounds):")
+    lines += term_lines(r)
+    pw = r["piecewise"]["terms"]
+    parts = []
+    for t in ("N", "B", "K"):
+        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
+        v = pw[t][f"value_{unit_f}"]
+        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
+    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
+    warns, notes = screening_notes(r)
+    lines += [f"note: {t}" for t in notes + check_notes(r)]
+    for w in warns + check_warnings(r):
+        lines.append(f"warning: {w}")
+    lines += quiet_lines(r)
+    return "\n".join(lines)
+
+
+def term_lines(r: dict[str, Any]) -> list[str]:
+    """The fitted terms of an axis (or of its quiet stretch) as the table's rows, with the
+    Gauss-Markov term and the goodness of fit."""
+    lines = []
     co = NC.as_coefficients(r["fit"]["coefficients"])
     for t, e in r["fit"]["terms"].items():
         c, unit_f = NC.in_field_units(co, t)
@@ -51,18 +71,56 @@ def format_table(axis: str, r: dict[str, Any]) -> str:
     fit_line = goodness_line(r["fit"].get("check") or {}, bool(r["fit"].get("gm_term")))
     if fit_line:
         lines.append(fit_line)
-    pw = r["piecewise"]["terms"]
-    parts = []
-    for t in ("N", "B", "K"):
-        unit_f = F.FIELD_UNITS[r["sensor"]][t][0]
-        v = pw[t][f"value_{unit_f}"]
-        parts.append(f"{t}={'n/a' if v is None else format(v, '.5g')} {unit_f}")
-    lines.append("piecewise read-offs (for comparison): " + ", ".join(parts))
-    warns, notes = screening_notes(r)
-    lines += [f"note: {t}" for t in notes + check_notes(r)]
-    for w in warns + check_warnings(r):
-        lines.append(f"warning: {w}")
-    return "\n".join(lines)
+    return lines
+
+
+def quiet_head(q: dict[str, Any]) -> str:
+    """What the quiet stretch is and why it was taken (one sentence, no trailing colon)."""
+    run = q["run"]
+    a, b = q["t_s"]
+    return (f"the record is not stationary at tau {run['tau_tested_s']:.3g} s (Bartlett p = "
+            f"{run['p_value']:.2g} over {run['windows']} windows of {run['window_s']:.0f} s; the "
+            f"self-check's run {run['tau_from_s']:.3g}-{run['tau_to_s']:.3g} s): quiet stretch t = "
+            f"{a:.0f}-{b:.0f} s (samples {q['samples'][0]}-{q['samples'][1]} of the range analysed, "
+            f"{100 * q['fraction']:.0f} % of it, {q['windows']} windows; its deviation there "
+            f"x{q['deviation_ratio_at_run']:.2g} the record's)")
+
+
+def quiet_check_text(check: dict[str, Any]) -> str:
+    """The quiet stretch's own self-check in one clause."""
+    if check.get("ok") and check.get("chi2_beyond_99"):
+        return (f"its self-check: every informative tau within the stretch's family-wise band, "
+                f"but the chi-square across taus is beyond its 99 % point ({check['chi2']:.4g} on "
+                f"{check['dof']} dof, p = {check['p_value']:.2g}): a finding, not a pass -- the "
+                "terms do not describe the stretch's curve within its statistics")
+    if check.get("ok"):
+        return "its self-check passed"
+    runs = check.get("outside") or []
+    spans = ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
+                      else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
+    causes = sorted({o.get("cause") or "" for o in runs} - {""})
+    return (f"its self-check failed: the total leaves the stretch's 95 % band at "
+            f"{check.get('n_outside', len(runs))} of {check.get('n_informative', '?')} informative taus"
+            + (f" (tau {spans} s" + (f"; named: {', '.join(causes)}" if causes else "") + ")"
+               if spans else ""))
+
+
+def quiet_lines(r: dict[str, Any]) -> list[str]:
+    """The quiet stretch's fit beside the whole record's (rigctl.analysis.allan_quiet): [] when
+    the self-check named no run not stationary; a note when no stretch qualifies."""
+    q = r.get("quiet_stretch")
+    if not q:
+        return []
+    if not q.get("fitted"):
+        run = q["run"]
+        return [f"note: the record is not stationary at tau {run['tau_tested_s']:.3g} s (Bartlett "
+                f"p = {run['p_value']:.2g}); {q.get('reason', 'no quiet stretch qualifies')}: the "
+                "whole record's terms above are the only ones"]
+    lines = [f"quiet stretch: {quiet_head(q)}. Fitted on its own, beside the whole record's "
+             "terms above (which stay the record's; docs/allan.md, 'Non-stationary records'); "
+             + quiet_check_text(q["fit"].get("check") or {}) + ":"]
+    lines += term_lines(q)
+    return lines
 
 
 def gm_term_line(fit: dict[str, Any]) -> str:

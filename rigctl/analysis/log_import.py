@@ -270,7 +270,7 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
                 pass
             exact = _epoch_seconds([r[j] if j < len(r) else "" for r in body])
             if exact is not None:  # seconds since 1970 with a decimal fraction, kept exact
-                out[key] = exact
+                out[key], out["time_origin"] = exact  # (the stamps = origin + these)
                 continue
             if j < len(body[0]) and not _is_number(body[0][j]) and _datetime_ns(body[0][j]) is not None:
                 ns = np.empty(len(body), dtype=np.int64)
@@ -320,12 +320,13 @@ def _is_number(s: str) -> bool:
 _DECIMAL_STAMP = re.compile(r"\s*(\d+)\.(\d*)\s*")
 
 
-def _epoch_seconds(values: list[str]) -> np.ndarray | None:
+def _epoch_seconds(values: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
     """Decimal time stamps of 1000 units and more (seconds since 1970 with a fraction, as loggers
-    and ROS CSV exports write them; a Stable32 file's MJD days) relative to the first, from
-    their integer and fraction parts: exact where float64 of the whole stamp is not (1.7e9 s
-    holds only ~0.2 us, MJD 53000 d only ~1 us: the steps, and the rate from their median,
-    came out wrong in the 7th digit). None for anything else."""
+    and ROS CSV exports write them; a Stable32 file's MJD days) relative to the first's integer
+    part, from their integer and fraction parts: exact where float64 of the whole stamp is not
+    (1.7e9 s holds only ~0.2 us, MJD 53000 d only ~1 us: the steps, and the rate from their
+    median, came out wrong in the 7th digit); with that integer part (int64: the stamps are
+    it plus the values). None for anything else."""
     first = _DECIMAL_STAMP.fullmatch(values[0]) if values else None
     if first is None or len(first.group(1).lstrip("0")) < 4:
         return None
@@ -337,7 +338,7 @@ def _epoch_seconds(values: list[str]) -> np.ndarray | None:
             return None
         ints[n] = int(m.group(1))
         fracs[n] = float("0." + (m.group(2) or "0"))
-    return (ints - ints[0]).astype(np.float64) + fracs
+    return (ints - ints[0]).astype(np.float64) + fracs, np.array(ints[0], dtype=np.int64)
 
 
 _ISO_DATETIME = re.compile(r"\s*(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2}(?::\d{2})?)(?:[.,](\d+))?"
@@ -422,6 +423,33 @@ def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] |
     return t0.strftime(iso), t1.strftime(iso)
 
 
+#: /meta capture_time: where started_utc / ended_utc of an imported recording come from
+CAPTURE_TIME_STAMPS = "the file's own time stamps (wall clock)"
+CAPTURE_TIME_UNKNOWN = ("unknown: the file has no wall-clock time stamps; started_utc and ended_utc "
+                        "are the import's own time")
+
+
+def csv_stamp_zero_ns(cols: dict[str, np.ndarray], factor_s: float) -> int | None:
+    """The first row's time stamp in ns since 1970 when the CSV's time column holds absolute
+    stamps (ISO 8601 date-times, integer or decimal counts of ``factor_s`` seconds since 1970),
+    else None (no time column). Whether it is a wall-clock time is _wall_clock_span's call."""
+    if "time" not in cols or not len(cols["time"]):
+        return None
+    if "time_is_datetime" in cols:  # int64 ns since 1970
+        return int(cols["time"][0])
+    first = cols["time"][0]
+    k = factor_s * 1e9  # ns per unit: whole for every unit --units names (s .. d, ns: 1)
+
+    def whole_ns(v: int) -> int:  # an integer count of units in ns, exactly where it can be
+        return int(v) * int(round(k)) if abs(k - round(k)) < 1e-6 else int(round(int(v) * k))
+
+    if "time_origin" in cols:  # decimal stamps: the integer part of the first + its fraction
+        return whole_ns(int(cols["time_origin"])) + int(round(float(first) * k))
+    if np.issubdtype(np.asarray(cols["time"]).dtype, np.integer):
+        return whole_ns(int(first))
+    return int(round(float(first) * k)) if math.isfinite(float(first)) else None
+
+
 def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, temp: np.ndarray,
                     rate: float, sections: list[dict[str, Any]], meta: dict[str, Any],
                     counter: np.ndarray | None = None, note: str = "",
@@ -429,8 +457,9 @@ def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, 
     """A complete recording (docs/data-format.md) through rigctl.recording.recorder.Recorder: the one
     writer of every import. ``counter`` (uint64; default 0..n-1) carries dropped samples as
     jumps; ``note`` is added to the import event's message. ``ended_utc`` (with ``meta``'s
-    ``started_utc``): the capture's own end, written over the recorder's closing time; the
-    import's own time is kept in ``import_utc``."""
+    ``started_utc``): the capture's own end, written over the recorder's closing time. Either
+    way the import's own time is kept in ``import_utc`` and ``capture_time`` says which the
+    recording's times are (CAPTURE_TIME_STAMPS with ``ended_utc``, else CAPTURE_TIME_UNKNOWN)."""
     from ..recording.recorder import Recorder, Segment
 
     n = len(t)
@@ -454,12 +483,13 @@ def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, 
         rec.close("failed")
         raise
     rec.close("complete")
-    if ended_utc is not None:
-        import h5py
+    import h5py
 
-        with h5py.File(out, "r+") as f:
-            f["meta"].attrs["import_utc"] = f["meta"].attrs["ended_utc"]
+    with h5py.File(out, "r+") as f:
+        f["meta"].attrs["import_utc"] = f["meta"].attrs["ended_utc"]
+        if ended_utc is not None:
             f["meta"].attrs["ended_utc"] = ended_utc
+        f["meta"].attrs["capture_time"] = CAPTURE_TIME_STAMPS if ended_utc is not None else CAPTURE_TIME_UNKNOWN
 
 
 def check_output(src: Path, out: Path, force: bool) -> None:
@@ -694,7 +724,22 @@ def import_csv(args: ImportOptions) -> Imported:
     meta = import_meta(args, src, rate, origin,
                        {"import_format": "csv", "import_columns_json": json.dumps(mapping),
                         "import_units_json": json.dumps(args.units), "import_axes": axes})
-    write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter)
+    # dated by the file's own stamps where they are wall-clock times (as a bag's), else the
+    # start is said to be unknown (/meta capture_time)
+    zero_ns = csv_stamp_zero_ns(cols, factors["time"])
+    if zero_ns is not None and args.integrated:  # the first row was differenced away
+        zero_ns += int(round(float(cols["time"][1] - cols["time"][0]) * factors["time"] * 1e9))
+    span = None if zero_ns is None else _wall_clock_span(zero_ns, float(t[-1]) if n else 0.0)
+    if span is not None:
+        meta["started_utc"] = span[0]
+        meta["import_stamp_zero_ns"] = np.int64(zero_ns)
+        meta["clock_zero_unix_s"] = zero_ns * 1e-9
+        lines.append(f"dated by the time column: {span[0]} to {span[1]} (UTC)")
+    else:
+        lines.append("no wall-clock time stamps in the file: the capture's start is unknown "
+                     "(/meta capture_time; started_utc is the import's own time)")
+    write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter,
+                    ended_utc=None if span is None else span[1])
     return Imported(out, n, rate, sections,
                     [f"imported {n} samples at {rate:g} Hz from {args.file}", *lines])
 

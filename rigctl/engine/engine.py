@@ -51,6 +51,22 @@ TIME_EPS = 1e-6
 WINDOW_WAIT_WALL_S = 1.5
 
 
+#: A scaled clock that an in-process emulator had to set back is measured over this much wall
+#: time before the run says it cannot keep up (Engine._watch_pace), s.
+PACE_WINDOW_WALL_S = 2.0
+
+
+def pace_message(speed: float, achieved: float) -> str:
+    """The one line saying the host cannot keep up with ``speed``, and what to do."""
+    m = 10 ** math.floor(math.log10(max(0.8 * achieved, 1e-9)))
+    suggest = max(x * m for x in (1, 2, 5) if x * m <= max(0.8 * achieved, m))
+    got = f"{achieved:.0f}" if achieved >= 10 else f"{achieved:.2g}"
+    return (f"the host cannot keep up with clock speed {speed:g}x: the emulator computes about "
+            f"{got}x here, so rig time runs at that speed and the run takes about "
+            f"{speed / max(achieved, 1e-9):.1f} times the wall time planned; set 'speed: {suggest:g}' "
+            "in the rig config, or 'clock: virtual' to run as fast as the host computes")
+
+
 class RunError(errors.RunFailure):
     """A failure at run time (settle timeout, device fault)."""
 
@@ -159,6 +175,11 @@ class Engine:
         #: warm-up step index -> seconds of warm-up already done in earlier attempts of that step
         #: with the IMU powered all along (see :meth:`suspend`)
         self.warmup_done: dict[int, float] = {}
+        #: wall time over which the speed rig time really runs at is measured (_watch_pace), s;
+        #: whether the run said it cannot keep up
+        self.pace_window_s = PACE_WINDOW_WALL_S
+        self.pace_warned = False
+        self._pace: tuple[float, float, float] | None = None
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
@@ -223,7 +244,8 @@ class Engine:
             self._flushed_once = True
             self.rec.flush()
         self.progress.update(obs.t, state, self.rec.n_imu, self.gaps.dropped)
-        if self.abort_requested:
+        self._watch_pace(state.time if state is not None else obs.t)
+        if self.abort_requested and not safe_state:  # a second signal: the safe state goes on
             raise Interrupted(self.abort_requested)
         tripped = self.suspenders.check(obs)
         if self.rec.holding:
@@ -237,6 +259,32 @@ class Engine:
             nan3 = np.full(3, np.nan)
             return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
         return state
+
+    def _watch_pace(self, t: float) -> None:
+        """Say once, early, when rig time runs slower than the clock's speed asks: a clock that
+        an in-process emulator sets back (``slipped``, rigctl.clock.ScaledClock) because the host
+        cannot compute that fast. Measured over :attr:`pace_window_s` of wall time, on the rig
+        time the devices report (``t``: the table's reading; the clock itself runs ahead of
+        them by the catch-up in progress, 0.1 s of wall time = 1000 s at 10000x)."""
+        clock = self.rig.clock
+        slipped = getattr(clock, "slipped", None)
+        if slipped is None or self.pace_warned:
+            return
+        wall = time.monotonic()
+        if self._pace is None:
+            self._pace = (wall, t, slipped)
+            return
+        w0, t0, s0 = self._pace
+        if wall - w0 < self.pace_window_s:
+            return
+        self._pace = (wall, t, slipped)
+        speed = float(clock.speed)
+        achieved = (t - t0) / (wall - w0)
+        if slipped > s0 and achieved < 0.9 * speed:
+            self.pace_warned = True
+            self.log("warning", pace_message(speed, achieved), speed=speed, achieved_speed=achieved)
+            self.rec.add_event(t, "clock", f"rig time runs slower than {speed:g}x wall time: "
+                                           f"the host computes about {achieved:.1f}x")
 
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""

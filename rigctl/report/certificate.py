@@ -114,7 +114,9 @@ def render(d: dict[str, Any]) -> str:
                                              ("device ID (reported)", m.get("imu_device_id") or "not reported")])]
     out += ["<h2>Procedure</h2>", _kv([("procedure", m.get("procedure_name")), ("procedure file", m.get("procedure_path")),
                                       ("parameters", m.get("parameters_json")), ("run", d["run"]),
-                                      ("recorded (UTC)", f"{m.get('started_utc', '?')} to {m.get('ended_utc', '?')}"),
+                                      ("recorded (UTC)", f"{m.get('started_utc', '?')} to {m.get('ended_utc', '?')}"
+                                       if not str(m.get("capture_time", "")).startswith("unknown") else
+                                       f"unknown (imported {m.get('import_utc', '?')}: no wall-clock time stamps in the file)"),
                                       ("procedure document", d["traceability"].get("procedure_document", "not stated"))])]
     tr = d["traceability"]
     out += ["<h2>Laboratory, rig and traceability</h2>",

@@ -30,7 +30,8 @@ def _ds(unit: str) -> str:
 
 
 def allan_curves(data: "RunData", log: Callable[..., None] | None = None) -> dict[str, dict[str, Any]]:
-    """{axis: {sensor, unit, factor, tau_s, adev, lo68, hi68, lo95, hi95, fit, quick}}
+    """{axis: {sensor, unit, factor, tau_s, adev, lo68, hi68, lo95, hi95, fit, quiet_stretch,
+    quick}}
     (computed once per RunData, then cached)."""
     if "allan_curves" not in data.cache:
         data.cache["allan_curves"] = _curves(data, log)
@@ -56,7 +57,8 @@ def _curves(data: "RunData", log: Callable[..., None] | None) -> dict[str, dict[
             continue
         cv = {"sensor": sensor, "unit": unit, "factor": fac, "tau_s": np.asarray(tau, float),
               "adev": np.asarray(dev, float), "fit": info.get("fit"),
-              "piecewise": info.get("piecewise"), "quick": False}
+              "piecewise": info.get("piecewise"), "quiet_stretch": info.get("quiet_stretch"),
+              "quick": False}
         for k in ("lo68", "hi68", "lo95", "hi95"):
             v = arrays.get(f"{axis}/{k}_{u}")
             cv[k] = None if v is None else np.asarray(v, float)
@@ -72,7 +74,8 @@ def _quick(data: "RunData", axes: list[str], summary: dict[str, Any],
 
     try:
         res = allan_pipeline.compute(str(data.recording), [a for a in axes if a in allan_pipeline.AXES],
-                                     taus=QUICK_TAUS, gaps="skip")  # a quick curve, marked so
+                                     taus=QUICK_TAUS, gaps="skip",  # a quick curve, marked so
+                                     quiet_stretch=False)
     except (InputError, OSError, ValueError) as exc:
         if log:
             log("warning", f"report: no Allan curve for {', '.join(axes)}: {exc}")

@@ -147,9 +147,13 @@ def s_summary(d: RunData) -> str:
     segs = d.segments or {}
     n_inc = int(sum(1 for s in segs.get("status", []) if s != "complete"))
     res = ", ".join(sorted(d.results)) or "none"
+    # an imported log without wall-clock stamps: its capture time is unknown (/meta capture_time)
+    unknown = str(m.get("capture_time", "")).startswith("unknown")
+    started = (f"unknown (imported {m.get('import_utc', '?')}: the file has no wall-clock time stamps)"
+               if unknown else m.get("started_utc", "?"))
     rows = [["status", f"{d.status}"], ["procedure", m.get("procedure_name", "?")],
-            ["recording", str(d.recording)], ["started (UTC)", m.get("started_utc", "?")],
-            ["ended (UTC)", m.get("ended_utc", "?")],
+            ["recording", str(d.recording)], ["started (UTC)", started],
+            ["ended (UTC)", "unknown" if unknown else m.get("ended_utc", "?")],
             ["recorded span [s]", None if t0 is None else round(t1 - t0, 3)],
             ["IMU samples", d.imu.get("n")], ["IMU rate [Hz]", d.imu.get("rate_hz")],
             ["dropped samples (counter gaps)", f"{d.imu.get('dropped', 0)} in {d.imu.get('gaps', 0)} gaps"],
@@ -453,6 +457,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
+    out += _quiet_stretch_html(curves)
     gm_rows = []
     for axis, cv in curves.items():
         gm = (cv.get("fit") or {}).get("gauss_markov") or {}
@@ -482,6 +487,48 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
         out.append("<p class=\"muted\">Curves marked 'quick' were computed for this report "
                    "(30 taus, fast mode): the results group lacked the curve arrays.</p>")
     return "\n".join(out)
+
+
+def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
+    """Non-stationary records: the terms fitted on the quiet stretch beside the whole
+    record's (rigctl.analysis.allan_quiet), and the axes where no stretch qualified."""
+    from ..solvers import noise_coefficients as NC
+
+    rows, notes = [], []
+    for axis, cv in curves.items():
+        q = cv.get("quiet_stretch") or {}
+        if not q:
+            continue
+        run = q["run"]
+        why = (f"not stationary at {run['tau_tested_s']:.3g} s (Bartlett p = {run['p_value']:.2g}, "
+               f"{run['windows']} windows of {run['window_s']:.0f} s)")
+        if not q.get("fitted") or not (q.get("fit") or {}).get("coefficients"):
+            notes.append(f"{axis}: {why}; {q.get('reason', 'no quiet stretch qualifies')}")
+            continue
+        whole = NC.as_coefficients(cv["fit"]["coefficients"])
+        quiet = NC.as_coefficients(q["fit"]["coefficients"])
+        stretch = (f"t = {q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} s ({100 * q['fraction']:.0f} %; "
+                   + ("self-check failed" if not q["fit"]["check"].get("ok") else
+                      "chi-square beyond its 99 % point" if q["fit"]["check"].get("chi2_beyond_99")
+                      else "self-check passed") + ")")
+        for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row
+            cw, unit = NC.in_field_units(whole, t)
+            cq, _ = NC.in_field_units(quiet, t)
+            rows.append([axis if not i else "", why if not i else "", stretch if not i else "",
+                         t, unit, _term_cell(cw), _term_cell(cq)])
+    if not rows and not notes:
+        return []
+    out = ["<h3>Non-stationary records: the quiet stretch's terms beside the whole record's</h3>"]
+    if rows:
+        out.append(table(["axis", "stationarity test", "quiet stretch", "term", "unit",
+                          "whole record", "quiet stretch"], rows))
+    out += [f"<p>{esc(n)}</p>" for n in notes]
+    out.append("<p class=\"muted\">Where the self-check's stationarity test finds the record's "
+               "Allan variance different across its windows, the terms are also fitted on the "
+               "longest stretch whose windows agree (at least 2 windows and a quarter of the "
+               "range); the whole record's terms and verdict stay as they are "
+               "(docs/allan.md, 'Non-stationary records: the quiet stretch').</p>")
+    return out
 
 
 def _g3(v: float | None) -> str:

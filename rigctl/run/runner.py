@@ -234,11 +234,46 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
     table stopped, the recording closed with a final status, the checkpoint saying the same.
     Whatever fails (a device, the disk, a bug) is one line on the console and its traceback in
     the run log; opening the rig or creating the recording may fail too (status ``failed``)."""
-    recording = run_dir / RECORDING
     log = _DiskSafeLog(log)  # type: ignore[assignment]
+    old_handlers: dict[int, Any] = {}
+    # SIGINT / SIGTERM: from before the rig opens until the recording and the rig are closed.
+    # The handler only asks the engine to abort (at its next poll; before the engine exists, as
+    # soon as it does); a second signal while the run winds down changes nothing: the table is
+    # put in its safe state and the recording closed either way.
+    signalled: list[str] = []
+    engines: list[Engine] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:  # minimal: a signal handler
+        signalled.append(signal.Signals(signum).name)
+        for e in engines:
+            if e.abort_requested is None and status_box[0] is None:
+                e.request_abort(signalled[0])
+
+    def release_signals() -> None:
+        """The previous handlers back (before the solvers run: a signal then ends the process)."""
+        while old_handlers:
+            sig, h = old_handlers.popitem()
+            signal.signal(sig, h)
+
+    status_box: list[str | None] = [None]  # set once the run's outcome is known (no more aborts)
+    if install_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old_handlers[sig] = signal.signal(sig, on_signal)
+    try:
+        return _drive_signalled(proc, cfg, run_dir, log, ckpt, make_recorder, opts, progress, resuming,
+                                install_signals, signalled, engines, status_box, release_signals)
+    finally:
+        release_signals()
+
+
+def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, ckpt: ckpt_mod.Checkpoint,
+                     make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
+                     progress: Progress, resuming: bool, install_signals: bool, signalled: list[str],
+                     engines: list[Engine], status_box: list[str | None],
+                     release_signals: Callable[[], None]) -> RunResult:
+    recording = run_dir / RECORDING
     states = opts.states or StateMachine()
     status, code, message = "failed", EXIT_FAILED, ""
-    old_handlers: dict[int, Any] = {}
     rec: Recorder | None = None
     sim_time = math.nan
     wall0 = time.monotonic()
@@ -276,9 +311,6 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
 
                 states.listeners.append(on_transition)
 
-                def on_signal(signum: int, _frame: Any) -> None:
-                    engine.request_abort(signal.Signals(signum).name)
-
                 def on_step(step: Step, seg: Segment) -> None:
                     note_hangups()
                     ckpt.last_step, ckpt.n_imu, ckpt.n_segments = step.index, rec.n_imu, rec.n_segments
@@ -288,9 +320,9 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                     except OSError as exc:  # resume falls back on the recording's complete segments
                         log("warning", f"checkpoint not written: {exc}")
 
-                if install_signals:
-                    for sig in (signal.SIGINT, signal.SIGTERM):
-                        old_handlers[sig] = signal.signal(sig, on_signal)
+                engines.append(engine)
+                if signalled:  # a signal came while the rig opened: stop at the first poll
+                    engine.request_abort(signalled[0])
                 if opts.on_engine:
                     opts.on_engine(engine)
                 try:
@@ -326,12 +358,11 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                     log("error", f"unexpected error: {message} (traceback in {run_dir / RUN_LOG})",
                         traceback=tb)
                 finally:
+                    status_box[0] = status
                     if not guarded("putting the table in its safe state", engine.safe_state):
                         if status == "complete":
                             status, code, message = "failed", EXIT_FAILED, "the table could not be stopped"
                     guarded("progress display", lambda: progress.finish(status))
-                    for sig, h in old_handlers.items():
-                        signal.signal(sig, h)
                     if states.state in ("running", "aborting"):
                         guarded("state change", lambda: states.to("idle", f"run {status}"))
                     if on_transition in states.listeners:
@@ -373,6 +404,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
                 ckpt_mod.save(run_dir, ckpt)
             except OSError as exc:
                 log("error", f"checkpoint not written: {exc}")
+        release_signals()
         note_hangups()
         wall = time.monotonic() - wall0
         if rec is not None:

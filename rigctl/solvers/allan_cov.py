@@ -108,6 +108,23 @@ def _kinks(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray
     return taps, s, k_lo, k_hi, np.concatenate([taps, lo - s * geo, hi + s * geo, wk], axis=1)
 
 
+def _q_tap_sums(ma: np.ndarray, mb: np.ndarray, big_a: np.ndarray, big_b: np.ndarray,
+                tau0: float) -> dict:
+    """sum_k R_Q(k) R_u(k) w(k) for u in Q, N, B, K over pairs (m_a, m_b) (columns): white PM's
+    R_ab(k) is nonzero only at the taps k = j m_a - l m_b, so the lag sum is exact over those
+    (each distinct tap once). Left out past DISCRETE_MAX, white PM made the covariance of a
+    white-PM-dominated curve (an OCXO's, Q up to tau ~100 s) indefinite: the diagonal without
+    Q's share, its cross terms with N, B, K cut at m_a + m_b = 64 (correlation eigenvalues down
+    to -0.064 on the OCXO's quiet half, chi-square 2.8e5 on 37 dof from the clipped
+    directions)."""
+    taps = np.concatenate([j * ma - l * mb for j in range(3) for l in range(3)], axis=1)
+    eq = taps[:, :, None] == taps[:, None, :]
+    first = ~np.any(np.tril(eq, -1), axis=2)  # a tap equal to an earlier one is not summed again
+    w = _weight(big_a, big_b, taps) * first
+    rq = _r_lags("Q", ma, mb, taps, tau0)
+    return {u: np.sum(rq * _r_lags(u, ma, mb, taps, tau0) * w, axis=1) for u in TERMS4}
+
+
 def term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float | None = None
                      ) -> dict:
     """{(t, u): matrix} with Cov(s2(a), s2(b)) = sum_{t<=u} f_tu p_t p_u C_tu[a, b],
@@ -146,7 +163,7 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
         r = {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}
         for t, u in PAIRS:
             out[(t, u)][da, db] = np.sum(r[t] * r[u] * w, axis=1)
-    # Gauss-Legendre between kinks for the rest (Q negligible there)
+    # Gauss-Legendre between kinks for the rest; the white-PM (Q) pairs exactly at its taps
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
         ma, mb = ms[ca][:, None], ms[cb][:, None]
@@ -165,6 +182,9 @@ def _term_covariances(tau0: float, ms: np.ndarray, n_phase: int) -> dict:
             if t == "Q" or u == "Q":
                 continue
             out[(t, u)][ca, cb] = np.sum(r[t] * r[u] * wq, axis=(1, 2))
+        # white PM's R_ab is zero except at the nine taps: its pairs are exact sums over them
+        for u, v in _q_tap_sums(ma, mb, big_m[ca][:, None], big_m[cb][:, None], tau0).items():
+            out[("Q", u)][ca, cb] = v
     norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_m, tau ** 2 * big_m))
     for p in PAIRS:
         c = out[p]
@@ -310,6 +330,12 @@ def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
             if t == "Q" or u == "Q":
                 continue
             out[(t, u)][a, b] = np.sum(r[t] * r[u] * wq)
+        # white PM exactly at its taps (as in _term_covariances: each distinct tap once)
+        kt = np.unique(taps)
+        wt = np.where((kt >= kn[0]) & (kt <= kn[-1]), np.interp(kt, kn, val), 0.0)
+        rq = _r_lags("Q", ma, mb, kt, tau0)
+        for u in TERMS4:
+            out[("Q", u)][a, b] = np.sum(rq * _r_lags(u, ma, mb, kt, tau0) * wt)
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
     norm[~np.isfinite(norm)] = 0.0
@@ -390,7 +416,14 @@ def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) ->
                       float(tc))
 
 
-@functools.lru_cache(maxsize=128)
+#: Gauss-Markov matrices kept (one dict of 5 matrices per (tau0, taus, record length, Tc), 64 KB
+#: at 40 taus): the candidate's lattice Tc (~80) stay in while the fit's profile grid (~70 Tc of
+#: its own taus per axis) passes through; at 128 one axis' candidate + fit (~150) cycled the
+#: lattice out before the next axis of the same sampling came back to it
+GM_CACHE_SIZE = 256
+
+
+@functools.lru_cache(maxsize=GM_CACHE_SIZE)
 def _gm_cached(tau0: float, ms_key: bytes, n_phase: int, tc: float) -> dict:
     out = _gm_contiguous(tau0, np.frombuffer(ms_key, dtype=float), n_phase, tc)
     for c in out.values():
@@ -450,8 +483,17 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
     if da.size:
         ma, mb = ms[da][:, None], ms[db][:, None]
         k0, span, k, w = _integer_lags(ma, mb, big_m[da][:, None], big_m[db][:, None])
+        # |j m_a - l m_b - k| of each tap (integers): R_G from a table of the kernel at the
+        # integer lags (its values there, so R_G is the same number for number as _r_lags')
+        # (integer factors, as the callers' round(tau / tau0); others: _r_lags itself)
+        lags = [np.abs(j * ma - l * mb - k) for j in range(3) for l in range(3)]
+        if all(np.array_equal(v, np.round(v)) for v in lags):
+            lags = [v.astype(np.intp) for v in lags]
+        else:
+            lags = None
         out["disc"] = {"a": da, "b": db, "ma": ma, "mb": mb, "k": k, "w": w,
-                       "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4},
+                       "r": {t: _r_lags(t, ma, mb, k, tau0) for t in TERMS4}, "lags": lags,
+                       "lag_max": None if lags is None else max(int(v.max()) for v in lags),
                        "left": (k0 - 0.5)[:, 0], "right": (2 * ma + span + 0.5)[:, 0]}
     ca, cb = ia[~disc], ib[~disc]
     if ca.size:
@@ -472,12 +514,16 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
             big_m[ca][:, None, None], big_m[cb][:, None, None], k)
         mab, mbb = ma[:, :, None], mb[:, :, None]
         left = taps[:, None, :] <= a_i[:, :, None]
+        d_left = np.maximum(a_i[:, :, None] - taps[:, None, :], 0.0)
+        d_right = np.maximum(taps[:, None, :] - b_i[:, :, None], 0.0)
+        # no tap inside an interval (they are breakpoints): one of the two distances is 0, so
+        # their sum is the other one exactly and one exponential per tap serves both sides
+        assert not np.any(np.minimum(d_left, d_right) > 0)
         out["gl"] = {"a": ca, "b": cb, "ma": ma[:, 0], "mb": mb[:, 0], "s": s[:, 0], "k": k,
                      "wq": wq, "r": {t: _r_lags(t, mab, mbb, k, tau0) for t in ("N", "B", "K")},
                      "x": k - a_i[:, :, None], "y": b_i[:, :, None] - k,
                      "c_left": np.where(left, coef, 0.0), "c_right": np.where(left, 0.0, coef),
-                     "d_left": np.maximum(a_i[:, :, None] - taps[:, None, :], 0.0),
-                     "d_right": np.maximum(taps[:, None, :] - b_i[:, :, None], 0.0),
+                     "d_tap": d_left + d_right,
                      "k_lo": k_lo[:, 0], "k_hi": k_hi[:, 0]}
     return out
 
@@ -507,7 +553,14 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
     d = nodes.get("disc")
     if d is not None:
         r = dict(d["r"])
-        r["G"] = _r_lags("G", d["ma"], d["mb"], d["k"], tau0, tc)
+        if d["lags"] is None:
+            r["G"] = _r_lags("G", d["ma"], d["mb"], d["k"], tau0, tc)
+        else:
+            table = _kernel("G", np.arange(d["lag_max"] + 1, dtype=float) * tau0, tc)
+            rg = np.zeros(d["k"].shape)
+            for (j, l), lag in zip(((j, l) for j in range(3) for l in range(3)), d["lags"]):
+                rg += _C[j] * _C[l] * table[lag]
+            r["G"] = rg
         for t, u in GPAIRS:
             out[(t, u)][d["a"], d["b"]] = np.sum(r[t] * r[u] * d["w"], axis=1)
         # the integer lags past them: the midpoint rule's integral from half a lag out
@@ -517,8 +570,9 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
         # R_G = 2 Tc R_N + R_E, R_E = -Tc^2 sum_taps c e^(-|k - tap| / h): on a mesh interval
         # [a_i, b_i] (no tap inside) the taps left of it give A_i e^(-(k - a_i) / h), those
         # right of it B_i e^(-(b_i - k) / h)
-        a_l = np.sum(g["c_left"] * np.exp(-g["d_left"] / h), axis=2)[:, :, None]
-        b_r = np.sum(g["c_right"] * np.exp(-g["d_right"] / h), axis=2)[:, :, None]
+        e_tap = np.exp(-g["d_tap"] / h)
+        a_l = np.sum(g["c_left"] * e_tap, axis=2)[:, :, None]
+        b_r = np.sum(g["c_right"] * e_tap, axis=2)[:, :, None]
         rg = 2.0 * tc * g["r"]["N"] - tc * tc * (a_l * np.exp(-g["x"] / h)
                                                  + b_r * np.exp(-g["y"] / h))
         direct = h > _GM_SPLIT_MAX * g["s"]

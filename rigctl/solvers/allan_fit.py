@@ -1006,6 +1006,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # outside: against the family-wise band (self_check), so that a pure-noise curve fails
     # at the design rate CHECK_ALPHA (at most) whether its taus are octave-spaced or dense
     check["ok"] = check["n_outside_familywise"] == 0 or p_value >= MODEL_ERROR_P
+    # ... but a chi-square beyond its 99 % point is a finding even when every tau is inside
+    # its family-wise band: named beside ``ok`` (which stays the per-tau verdict), so that no
+    # text calls such a fit passed (allan_text.quiet_check_text, the HTML report)
+    check["chi2_beyond_99"] = bool(p_value < MODEL_ERROR_P)
     model = "IEEE 952 model" + (" + a first-order Gauss-Markov term" if tc_fit is not None else "")
     out = {"method": f"joint generalized least squares ({model}, covariance of the "
                      "sigma^2 estimates across taus)" if cov_terms is not None else
