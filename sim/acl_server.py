@@ -243,10 +243,12 @@ class AclServerCore:
 
     Side-channel faults (not on the wire): ``drop_replies`` (swallow the next n replies),
     ``delay_s`` (sleep before replying), ``garble_replies`` (corrupt the next n replies).
-    ``answered`` counts the request lines done: reply written to the port (or swallowed).
+    ``answered`` counts the request lines done: reply written to the port (or swallowed);
+    ``answered_bytes`` the bytes of those replies.
     """
 
     answered = 0
+    answered_bytes = 0
 
     def __init__(self, table, serial: str = "SIM0001", version: str = "0.1") -> None:
         self.table = table
@@ -378,10 +380,12 @@ class _LineHandler:
             if not line.strip():
                 continue
             reply = self.core.handle_line(line)
-            if reply is not None:
-                write(reply.encode("ascii", "replace") + b"\n")
+            out = b"" if reply is None else reply.encode("ascii", "replace") + b"\n"
+            if out:
+                write(out)
             with self.core.lock:
                 self.core.answered += 1
+                self.core.answered_bytes += len(out)
 
 
 class AclServer:

@@ -31,10 +31,11 @@ The Xsens MTi answers ReqDID with ``imu_device_id`` (default 0x03780001, printed
 None: the device answers Error, as one without ReqDID would); a test swaps the unit under test by
 setting ``hw.xsens.device_id`` and pulling the cable (:meth:`Hardware.disconnect`).
 
-Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall`,
-:meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`, :meth:`trip_interlock`,
-:meth:`trip_following_error`, :meth:`clear_fault` (the operator at the table), :meth:`inject`,
-:meth:`pause_physics` (the hardware loop stands still, as when starved of CPU).
+Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth:`stall` and
+:meth:`release_stall`, :meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`,
+:meth:`trip_interlock`, :meth:`trip_following_error`, :meth:`clear_fault` (the operator at the
+table), :meth:`inject`, :meth:`pause_physics` (the hardware loop stands still, as when starved of
+CPU).
 Observation (side channel, for tests): ``acl.core.received`` (request lines with wall times),
 ``xsens.measurement_starts`` and, with ``imu_keep_sent=N``, ``xsens.sent`` (the last N batches of
 IMU frames put on the wire, with wall times and their float32 values).

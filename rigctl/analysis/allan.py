@@ -535,21 +535,27 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))
-    if not gapped:  # a bump the warm-up does not explain: stationary noise, or not?
+    # a bump the warm-up does not explain: stationary noise, or not? With gaps skipped the
+    # block means are those of the rows as recorded (a gap's missing samples have none: the
+    # stretches follow one another), so a window holding a gap splices two stretches; the
+    # quiet stretch's samples are rows, as --segments takes them
+    AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
+    # ... stationary: does a Gauss-Markov process fit it? (its likelihood-ratio test, with the
+    # pooled estimator's covariance where gaps are skipped)
+    st_gm = stretch_samples if gapped else None
+    gm = AD.gauss_markov(fit, res.tau_s, res.dev, edfs, res.tau0_s, res.n_phase, sensor,
+                         stretch_samples=st_gm)
+    if AD.gm_added(gm, fit):
+        # ... found, and its hump at a bump the check names: the term goes into the joint
+        # fit, whose terms, total and self-check are then those of the model with it
+        fit = AD.refit_with_gm(fit, gm, sensor, lambda g: F.fit_terms(
+            res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
+            tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]} for t in tones["tones"]],
+            stretch_samples=st_gm, gm=g))
+        if warm.get("trim_s") is not None:
+            AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm),
+                             "warmup", AD.warmup_reason_below(warm))
         AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
-        # ... stationary: does a Gauss-Markov process fit it? (its likelihood-ratio test)
-        gm = AD.gauss_markov(fit, res.tau_s, res.dev, edfs, res.tau0_s, res.n_phase, sensor)
-        if AD.gm_added(gm, fit):
-            # ... found, and its hump at a bump the check names: the term goes into the joint
-            # fit, whose terms, total and self-check are then those of the model with it
-            fit = AD.refit_with_gm(fit, gm, sensor, lambda g: F.fit_terms(
-                res.tau_s, res.dev, edfs, sensor, tau0=res.tau0_s, n_phase=res.n_phase,
-                tones=[{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]} for t in tones["tones"]],
-                gm=g))
-            if warm.get("trim_s") is not None:
-                AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm),
-                                 "warmup", AD.warmup_reason_below(warm))
-            AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,

@@ -435,7 +435,8 @@ def plot_extras(r: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
 
 
 def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, tau0: float,
-                 n_phase: int, sensor: str) -> dict | None:
+                 n_phase: int, sensor: str, stretch_samples: np.ndarray | None = None
+                 ) -> dict | None:
     """A first-order Gauss-Markov candidate for the stationary bumps of the self-check
     (:func:`rigctl.solvers.allan_gm.gm_candidate`: its likelihood-ratio test against the IEEE
     952 terms alone), run only when a run of taus the check calls a bump was tested stationary
@@ -453,7 +454,7 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
         return None
     tn = fit.get("tones") or {}
     gm = GM.gm_candidate(tau, dev, edf, tau0, n_phase,
-                         tones=tn.get("terms") or None)
+                         tones=tn.get("terms") or None, stretch_samples=stretch_samples)
     unit, fac = DU.NOISE_UNITS[sensor]["B"]
     if gm.get("tested"):
         gm["sigma_gm_unit"] = unit

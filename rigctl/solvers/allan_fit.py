@@ -276,16 +276,19 @@ def _unit_reduced_chi2_eps(reduced: Callable[[float], float]) -> float:
 
 
 def _model_whitener(ct: dict | None, q_nbk: np.ndarray, mod: np.ndarray, noisy: np.ndarray,
-                    e: np.ndarray, eps: float) -> np.ndarray:
+                    e: np.ndarray, eps: float, q_gm: float | None = None) -> np.ndarray:
     """Whitener of the sigma^2 estimates at a fitted model: the covariance of the N, B, K
     terms (allan_cov, ``ct``) at their fitted values ``q_nbk``, scaled per tau by the whole
     model ``mod`` over those terms' part ``noisy`` (the other terms: the same correlations,
     scaled); the diagonal 2 mod^2 / e where there is none or it is not positive; plus the
-    model error (eps mod)^2 on the diagonal."""
+    model error (eps mod)^2 on the diagonal. ``q_gm``: sigma_GM^2, a Gauss-Markov term whose
+    kernel ``ct`` carries (its pairs with N, B, K; then ``noisy`` includes it)."""
     cov = None
     if ct is not None:
-        cov = C.combine(ct, {"N": max(q_nbk[0], 0.0), "B": max(q_nbk[1], 0.0),
-                             "K": max(q_nbk[2], 0.0)})
+        p = {"N": max(q_nbk[0], 0.0), "B": max(q_nbk[1], 0.0), "K": max(q_nbk[2], 0.0)}
+        if q_gm is not None:
+            p["G"] = max(q_gm, 0.0)
+        cov = C.combine(ct, p)
         g = mod / noisy
         with np.errstate(over="ignore", invalid="ignore"):
             cov = cov * np.outer(g, g)
@@ -447,10 +450,17 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         r = bw - aw @ q
         return q, float(r @ r)
 
+    # the Gauss-Markov column's own covariance (allan_cov's kernel at the fit's Tc, its pairs
+    # with N, B, K) where the fit passed it in ``cov_terms``; else its correlations are the N,
+    # B, K ones scaled to the total, as the filter term's and the ramp's
+    gm_kernel = extra is not None and ct is not None and ("G", "G") in ct
+
     def whiten_at(q: np.ndarray, eps: float = 0.0) -> np.ndarray:
-        # the filter term and the ramp: the N, B, K correlations, scaled
-        noisy = np.maximum(a[:, 1:4] @ np.maximum(q[1:4], 0.0), 1e-300)
-        return _model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps)
+        # the filter term and the ramp: the N, B, K (and GM) correlations, scaled
+        cols = [1, 2, 3, 5] if gm_kernel else [1, 2, 3]
+        noisy = np.maximum(a[:, cols] @ np.maximum(q[cols], 0.0), 1e-300)
+        return _model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps,
+                               q_gm=float(q[5]) if gm_kernel else None)
 
     alt, null = [0, 1, 2, 3, 4], [0, 1, 3, 4]
     if extra is not None:

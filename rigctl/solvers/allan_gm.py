@@ -70,14 +70,15 @@ def _interval(p: float, sd: float, conf: float) -> tuple[float, float]:
 
 def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
                  n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
-                 iterations: int = 3) -> dict:
+                 iterations: int = 3, stretch_samples: np.ndarray | None = None) -> dict:
     """:func:`_gm_candidate` with BLAS single-threaded (40 x 40 systems: threads only cost).
     A curve no positive IEEE 952 term describes (a recording of a moving table: the deviation
     rises from 0.01 to 1 s and falls again) leaves the weighted least squares singular (every
     term 0, the model's variance underflows): then no test, said in ``skipped``."""
     with blas_single_thread():
         try:
-            return _gm_candidate(tau, adev, edf, tau0, n_phase, tones, max_taus, iterations)
+            return _gm_candidate(tau, adev, edf, tau0, n_phase, tones, max_taus, iterations,
+                                 stretch_samples)
         except np.linalg.LinAlgError as exc:
             return {"tested": False, "detected": False, "p_value": math.nan,
                     "alpha": GM_TEST_ALPHA,
@@ -87,9 +88,11 @@ def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float
 
 def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
                   n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
-                  iterations: int = 3) -> dict:
+                  iterations: int = 3, stretch_samples: np.ndarray | None = None) -> dict:
     """Does a first-order Gauss-Markov term fit the curve beyond the IEEE 952 terms? (see the
-    module docstring). ``tones``: the tones the fit subtracts (their Allan term is taken off
+    module docstring). ``stretch_samples``: the gap-free stretches' lengths when the deviations
+    pool them (gaps skipped): the covariance is then the pooled estimator's
+    (:func:`rigctl.solvers.allan_cov.gapped_term_covariances` with the Gauss-Markov kernel). ``tones``: the tones the fit subtracts (their Allan term is taken off
     here too). Returns {"tested", "detected", "p_value", "statistic", "alpha", "n_looks",
     "tc_s", "tc_ci95_s", "sigma_gm_si", "sigma_gm_ci95_si", "chi2_before", "chi2_after",
     "dof_before", "dof_after", "ratio_before", "ratio_after" (data / fitted total over the
@@ -125,6 +128,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     grid = 2.0 ** (np.arange(i_lo, i_hi + 1) / GM_GRID_PER_OCTAVE)
     n_looks = max(1.0, math.log(tc_hi / tc_lo) / math.log(GM_LOOK_SPAN))
     ms_t = np.round(t / tau0).astype(np.int64)
+    gapped = stretch_samples is not None and len(stretch_samples) > 1
     a0 = F.design_matrix(t)
     lower = np.array([-np.inf, 0.0, 0.0, 0.0, 0.0, 0.0])
 
@@ -158,7 +162,8 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
 
     def at(tc: float, eps: float) -> dict:
         a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
-        ct = C.term_covariances(tau0, ms_t, int(n_phase), tc)
+        ct = (C.gapped_term_covariances(tau0, ms_t, np.asarray(stretch_samples), tc)
+              if gapped else C.term_covariances(tau0, ms_t, int(n_phase), tc))
         lw = F._whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
         for _ in range(iterations):
             q, _, _ = solve(a, lw)
