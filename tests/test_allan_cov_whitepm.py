@@ -115,3 +115,30 @@ def test_white_pm_pairs_equal_the_integer_lag_sum_past_discrete_max():
             for u, got in (("Q", cov[("Q", "Q")]), ("N", cov[("Q", "N")]), ("G", gcov[("Q", "G")])):
                 want = norm * np.sum(r("Q", ma, mb, k) * r(u, ma, mb, k) * w)
                 assert got[i, j] == pytest.approx(want, rel=1e-9, abs=1e-12 * abs(norm)), (u, ma, mb)
+
+
+def test_fit_chi2_on_simulated_ocxo_like_records_is_near_its_dof():
+    # records of the OCXO quiet half's length and taus (9992 phase points, tau0 = 1 s, taus
+    # 1-2497 s) with its white PM, a white FM below it and its random-walk FM, written here;
+    # the curve in plain numpy; rigctl's joint fit. Before the white-PM taps: chi2/dof median
+    # ~7600, every p-value below 0.01 (60 records)
+    from rigctl.solvers import allan_fit as F
+    rng = np.random.default_rng(11)
+    n, q, wn, k = 9992, 4.38e-11, 2e-12, 1.9e-13
+    ms = np.unique(np.round(np.logspace(0, np.log10(2497), 76))).astype(int)
+    cov = C.combine(C.term_covariances(1.0, ms.astype(float), n), {"Q": q * q, "N": wn * wn, "K": k * k})
+    truth = 3 * q * q / ms ** 2 + wn * wn / ms + k * k * ms / 3
+    edf = 2 * truth ** 2 / np.diag(cov)
+    red, pv = [], []
+    for _ in range(30):
+        x = (q * rng.standard_normal(n) + np.cumsum(wn * rng.standard_normal(n))
+             + np.cumsum(np.cumsum(k * rng.standard_normal(n))))
+        s2 = np.array([np.mean((x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]) ** 2) / (2.0 * m * m) for m in ms])
+        c = F.fit_terms(ms * 1.0, np.sqrt(s2), edf, "gyro", tau0=1.0, n_phase=n)["check"]
+        red.append(c["chi2"] / c["dof"])
+        pv.append(c["p_value"])
+    red, pv = np.array(red), np.array(pv)
+    # 30 draws of chi2(37)/37 (sd 0.23 each): their mean within 0.7-1.3, p-values roughly uniform
+    assert 0.7 < red.mean() < 1.3, red
+    assert np.count_nonzero(pv < 0.01) <= 3, pv
+    assert 0.25 < np.mean(pv < 0.5) < 0.85, pv
