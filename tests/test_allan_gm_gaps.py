@@ -28,9 +28,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.optimize import least_squares
 from scipy.signal import lfilter
 from scipy.stats import chi2
+
+from allan_independent import agree, white_gm_fit
 
 TAU0 = 0.01
 RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
@@ -39,11 +40,6 @@ DROPS = [(200_000, 3)]
 #: the simulated records: 2^18 samples (0.73 h), 4 rows dropped in the middle
 N_SIM = 1 << 18
 SIM_DROPS = [(N_SIM // 2 - 2, 4)]
-
-
-def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
-    r = tau / tc
-    return var_gm * (2.0 * r - 3.0 + 4.0 * np.exp(-r) - np.exp(-2.0 * r)) / r ** 2
 
 
 def pooled_avar(stretches: list[np.ndarray], ms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -74,31 +70,7 @@ def independent_fit(stretches: list[np.ndarray]) -> dict:
     s2, edf = pooled_avar(stretches, ms)
     informative = np.sqrt(chi2.ppf(0.975, edf) / chi2.ppf(0.025, edf)) <= 2.0
     tau, s2, edf = (ms * TAU0)[informative], s2[informative], edf[informative]
-
-    def model(p: np.ndarray) -> np.ndarray:
-        return math.exp(p[0]) / tau + gm_avar(tau, math.exp(p[1]), math.exp(p[2]))
-
-    p = np.log([3e-7, 1e-7, 3.0])  # N^2, sigma_GM^2, Tc: starting values, not the answer
-    sd_s2 = s2 * np.sqrt(2.0 / edf)
-    for _ in range(10):
-        p = least_squares(lambda q: (model(q) - s2) / sd_s2, p).x
-        sd_s2 = model(p) * np.sqrt(2.0 / edf)
-    fit = least_squares(lambda q: (model(q) - s2) / sd_s2, p)
-    sd = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)))
-    tc, var = math.exp(fit.x[2]), math.exp(fit.x[1])
-    z = 1.959964
-    return {"tc": tc, "tc_ci95": (tc * math.exp(-z * sd[2]), tc * math.exp(z * sd[2])),
-            "sigma": math.sqrt(var),
-            "sigma_ci95": (math.sqrt(var) * math.exp(-z * sd[1] / 2),
-                           math.sqrt(var) * math.exp(z * sd[1] / 2)),
-            "chi2": float(np.sum(((model(fit.x) - s2) / sd_s2) ** 2)), "dof": int(tau.size - 3)}
-
-
-def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, float]) -> bool:
-    """a and b within their combined 95 % intervals, in log (test_allan_gm_real's rule)."""
-    ha = math.log(a_ci[1] / a) if b > a else math.log(a / a_ci[0])
-    hb = math.log(b / b_ci[0]) if b > a else math.log(b_ci[1] / b)
-    return abs(math.log(a / b)) <= math.hypot(ha, hb)
+    return white_gm_fit(tau, s2, edf)
 
 
 def _gapped_recording(path: Path, y: np.ndarray, drops: list[tuple[int, int]]) -> tuple[Path, list]:

@@ -29,8 +29,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy.optimize import least_squares
 from scipy.stats import chi2
+
+from allan_independent import agree, white_gm_fit
 
 TAU0 = 0.01
 RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
@@ -51,11 +52,6 @@ def _gm_fields(axis_result: dict, source: str) -> dict:
             "sigma_ci95": tuple(g["sigma_gm_ci95_si"]), "ok": g["tested"] and g["detected"]}
 
 
-def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
-    r = tau / tc
-    return var_gm * (2.0 * r - 3.0 + 4.0 * np.exp(-r) - np.exp(-2.0 * r)) / r ** 2
-
-
 def independent_fit(y: np.ndarray) -> dict:
     """White + GM on the overlapping Allan variance (module docstring)."""
     x = np.concatenate(([0.0], np.cumsum(y - y.mean()))) * TAU0
@@ -67,33 +63,7 @@ def independent_fit(y: np.ndarray) -> dict:
     edf = (3.0 * (n - 1) / (2 * ms) - 2.0 * (n - 2) / n) * 4.0 * ms ** 2 / (4.0 * ms ** 2 + 5.0)
     informative = np.sqrt(chi2.ppf(0.975, edf) / chi2.ppf(0.025, edf)) <= 2.0
     tau, s2, edf = (ms * TAU0)[informative], s2[informative], edf[informative]
-
-    def model(p: np.ndarray) -> np.ndarray:
-        return math.exp(p[0]) / tau + gm_avar(tau, math.exp(p[1]), math.exp(p[2]))
-
-    p = np.log([3e-7, 1e-7, 3.0])  # N^2, sigma_GM^2, Tc: starting values, not the answer
-    sd_s2 = s2 * np.sqrt(2.0 / edf)
-    for _ in range(10):
-        fit = least_squares(lambda q: (model(q) - s2) / sd_s2, p)
-        p = fit.x
-        sd_s2 = model(p) * np.sqrt(2.0 / edf)
-    fit = least_squares(lambda q: (model(q) - s2) / sd_s2, p)
-    cov = np.linalg.inv(fit.jac.T @ fit.jac)
-    sd = np.sqrt(np.diag(cov))
-    tc, var = math.exp(fit.x[2]), math.exp(fit.x[1])
-    z = 1.959964
-    return {"tc": tc, "tc_ci95": (tc * math.exp(-z * sd[2]), tc * math.exp(z * sd[2])),
-            "sigma": math.sqrt(var),
-            "sigma_ci95": (math.sqrt(var) * math.exp(-z * sd[1] / 2), math.sqrt(var) * math.exp(z * sd[1] / 2)),
-            "chi2": float(np.sum(((model(fit.x) - s2) / sd_s2) ** 2)), "dof": int(tau.size - 3),
-            "tau": tau, "s2": s2, "edf": edf}
-
-
-def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, float]) -> bool:
-    """a and b within their combined 95 % intervals, in log (module docstring)."""
-    ha = math.log(a_ci[1] / a) if b > a else math.log(a / a_ci[0])
-    hb = math.log(b / b_ci[0]) if b > a else math.log(b_ci[1] / b)
-    return abs(math.log(a / b)) <= math.hypot(ha, hb)
+    return white_gm_fit(tau, s2, edf)
 
 
 @pytest.fixture(scope="module")

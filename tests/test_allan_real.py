@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from allan_independent import floor_fit
 from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.analysis.allan import CHUNK_ROWS as CHUNK
@@ -465,7 +466,6 @@ def _np_b_fit(y: np.ndarray, ms: np.ndarray) -> tuple[float, float, float]:
     taus from 5 s on (var = 2 sigma^4 / EDF with the model's sigma^2, iterated, non-negative;
     EDF the smaller of flicker and white FM's NIST SP 1065 forms; B's interval from that fit's
     covariance, the correlation across taus neglected)."""
-    from scipy.optimize import nnls
     from scipy.stats import chi2
 
     dev, tau = oadev(y, ms), ms * TAU0
@@ -477,17 +477,7 @@ def _np_b_fit(y: np.ndarray, ms: np.ndarray) -> tuple[float, float, float]:
     sh, fl = ok & (tau >= 0.02) & (tau <= 0.2), ok & (tau >= 5.0)
     n_white = float(np.median(dev[sh] * np.sqrt(tau[sh])))
     off = n_white ** 2 / tau[fl]
-    a = np.column_stack([np.full(fl.sum(), B_FACTOR ** 2), tau[fl] / 3])
-    s2 = dev[fl] ** 2
-    for _ in range(100):
-        w = np.sqrt(nu[fl] / 2) / s2
-        c, _ = nnls(a * w[:, None], (dev[fl] ** 2 - off) * w)
-        new = np.maximum(a @ c + off, 1e-300)
-        if np.allclose(new, s2, rtol=1e-12):
-            break
-        s2 = new
-    sd = math.sqrt(np.linalg.inv((a * w[:, None]).T @ (a * w[:, None]))[0, 0])
-    return math.sqrt(c[0]), math.sqrt(max(c[0] - 1.96 * sd, 0.0)), math.sqrt(c[0] + 1.96 * sd)
+    return floor_fit(tau[fl], dev[fl], nu[fl], off)
 
 
 @pytest.mark.parametrize("axis", ["ax", "ay"])

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from allan_independent import floor_fit
 from rigctl import cli
 
 B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)  # 0.664: flicker FM's Allan deviation / B
@@ -248,17 +249,7 @@ def np_b_fit(y: np.ndarray, ms: np.ndarray, tau_split: float) -> tuple[float, fl
     sh, fl = ok & (tau <= tau_split), ok & (tau >= tau_split)
     qn, _ = nnls(np.column_stack([3 / tau[sh] ** 2, 1 / tau[sh]]) / dev[sh, None] ** 2, np.ones(sh.sum()))
     off = 3 * qn[0] / tau[fl] ** 2 + qn[1] / tau[fl]
-    a = np.column_stack([np.full(fl.sum(), B_FACTOR ** 2), tau[fl] / 3])
-    s2 = dev[fl] ** 2
-    for _ in range(100):
-        w = np.sqrt(nu[fl] / 2) / s2
-        c, _ = nnls(a * w[:, None], (dev[fl] ** 2 - off) * w)
-        new = np.maximum(a @ c + off, 1e-300)
-        if np.allclose(new, s2, rtol=1e-12):
-            break
-        s2 = new
-    sd = math.sqrt(np.linalg.inv((a * w[:, None]).T @ (a * w[:, None]))[0, 0])
-    return math.sqrt(c[0]), math.sqrt(max(c[0] - 1.96 * sd, 0.0)), math.sqrt(c[0] + 1.96 * sd)
+    return floor_fit(tau[fl], dev[fl], nu[fl], off)
 
 
 @pytest.mark.parametrize("taus", ["default", "octave"])

@@ -1,0 +1,75 @@
+"""Fits written for the real-data Allan tests with numpy/scipy only, independent of rigctl's
+solvers (one definition for every test that reads a real curve this way).
+
+* ``white_gm_fit``: white noise + a first-order Gauss-Markov (GM) term on the Allan variance
+  sigma^2(tau) = N^2/tau + sigma_GM^2 (Tc/tau)^2 (2 tau/Tc - 3 + 4 e^(-tau/Tc) - e^(-2 tau/Tc)),
+  by weighted least squares (scipy.optimize.least_squares in log parameters,
+  var(sigma^2) = 2 sigma^4 / EDF with the model's sigma^2, iterated); 95 % intervals from the
+  Jacobian, the correlation across taus neglected (narrower intervals: a stricter comparison).
+* ``floor_fit``: B and K above a given white-noise offset, sigma^2 - off = (0.664 B)^2 + K^2 tau/3,
+  by non-negative weighted least squares with the same iterated weights; B's 95 % interval from
+  that fit's covariance, the correlation across taus neglected.
+* ``agree``: two values within their combined 95 % intervals, in log: |ln(a/b)| <=
+  sqrt(h_a^2 + h_b^2), h the log half-width of each interval on the side facing the other value.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import least_squares, nnls
+
+#: flicker FM's Allan deviation per unit B: sqrt(2 ln 2 / pi) = 0.664
+B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
+Z95 = 1.959964
+
+
+def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
+    """Allan variance of a first-order Gauss-Markov process of variance ``var_gm`` and
+    correlation time ``tc`` (s) at ``tau`` (s)."""
+    r = tau / tc
+    return var_gm * (2.0 * r - 3.0 + 4.0 * np.exp(-r) - np.exp(-2.0 * r)) / r ** 2
+
+
+def white_gm_fit(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray) -> dict:
+    """White + GM on the Allan variances ``s2`` at ``tau`` with their EDFs (module docstring):
+    {"tc", "tc_ci95", "sigma", "sigma_ci95", "chi2", "dof", "tau", "s2", "edf"}, SI."""
+    def model(p: np.ndarray) -> np.ndarray:
+        return math.exp(p[0]) / tau + gm_avar(tau, math.exp(p[1]), math.exp(p[2]))
+
+    p = np.log([3e-7, 1e-7, 3.0])  # N^2, sigma_GM^2, Tc: starting values, not the answer
+    sd_s2 = s2 * np.sqrt(2.0 / edf)
+    for _ in range(10):
+        p = least_squares(lambda q: (model(q) - s2) / sd_s2, p).x
+        sd_s2 = model(p) * np.sqrt(2.0 / edf)
+    fit = least_squares(lambda q: (model(q) - s2) / sd_s2, p)
+    sd = np.sqrt(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)))
+    tc, var = math.exp(fit.x[2]), math.exp(fit.x[1])
+    return {"tc": tc, "tc_ci95": (tc * math.exp(-Z95 * sd[2]), tc * math.exp(Z95 * sd[2])),
+            "sigma": math.sqrt(var),
+            "sigma_ci95": (math.sqrt(var) * math.exp(-Z95 * sd[1] / 2), math.sqrt(var) * math.exp(Z95 * sd[1] / 2)),
+            "chi2": float(np.sum(((model(fit.x) - s2) / sd_s2) ** 2)), "dof": int(tau.size - 3),
+            "tau": tau, "s2": s2, "edf": edf}
+
+
+def floor_fit(tau: np.ndarray, dev: np.ndarray, nu: np.ndarray, off: np.ndarray) -> tuple[float, float, float]:
+    """B and its 95 % interval (lower, upper) from the deviations ``dev`` at ``tau`` with EDFs
+    ``nu``, above the white terms' variance ``off`` at the same taus (module docstring)."""
+    a = np.column_stack([np.full(tau.size, B_FACTOR ** 2), tau / 3])
+    s2 = dev ** 2
+    for _ in range(100):
+        w = np.sqrt(nu / 2) / s2
+        c, _ = nnls(a * w[:, None], (dev ** 2 - off) * w)
+        new = np.maximum(a @ c + off, 1e-300)
+        if np.allclose(new, s2, rtol=1e-12):
+            break
+        s2 = new
+    sd = math.sqrt(np.linalg.inv((a * w[:, None]).T @ (a * w[:, None]))[0, 0])
+    return math.sqrt(c[0]), math.sqrt(max(c[0] - 1.96 * sd, 0.0)), math.sqrt(c[0] + 1.96 * sd)
+
+
+def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, float]) -> bool:
+    """a and b within their combined 95 % intervals, in log (module docstring)."""
+    ha = math.log(a_ci[1] / a) if b > a else math.log(a / a_ci[0])
+    hb = math.log(b / b_ci[0]) if b > a else math.log(b_ci[1] / b)
+    return abs(math.log(a / b)) <= math.hypot(ha, hb)
