@@ -1006,8 +1006,8 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # outside: against the family-wise band (self_check), so that a pure-noise curve fails
     # at the design rate CHECK_ALPHA (at most) whether its taus are octave-spaced or dense
     # ... and a chi-square beyond its 99 % point is a finding, never a pass, even when every
-    # informative tau is inside its family-wise band (the whole OCXO record: every tau inside,
-    # chi-square 141.8 on 37 dof): ``ok`` is false, ``chi2_beyond_99`` says why and
+    # informative tau is inside its family-wise band (the OCXO record's quiet half, tests/data:
+    # every tau inside, chi-square 179.6 on 37 dof): ``ok`` is false, ``chi2_beyond_99`` says why and
     # ``chi2_carried_by`` names the run of taus that carries the chi-square
     beyond = bool(p_value < MODEL_ERROR_P)
     check["ok"] = bool((check["n_outside_familywise"] == 0 or p_value >= MODEL_ERROR_P)
