@@ -10,7 +10,7 @@ from typing import Any
 from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
-from .allan import check_notes, check_warnings, screening_notes
+from .allan import chi2_carrier_text, check_notes, check_warnings, screening_notes
 
 
 def format_table(axis: str, r: dict[str, Any]) -> str:
@@ -88,11 +88,14 @@ def quiet_head(q: dict[str, Any]) -> str:
 
 def quiet_check_text(check: dict[str, Any]) -> str:
     """The quiet stretch's own self-check in one clause."""
-    if check.get("ok") and check.get("chi2_beyond_99"):
-        return (f"its self-check: every informative tau within the stretch's family-wise band, "
-                f"but the chi-square across taus is beyond its 99 % point ({check['chi2']:.4g} on "
-                f"{check['dof']} dof, p = {check['p_value']:.2g}): a finding, not a pass -- the "
-                "terms do not describe the stretch's curve within its statistics")
+    if check.get("chi2_beyond_99"):  # never ok (rigctl.solvers.allan_fit): a finding
+        carrier = chi2_carrier_text(check)
+        fw = ("every informative tau within the stretch's family-wise band, but "
+              if check.get("n_outside_familywise", 1) == 0 else "")
+        return (f"its self-check failed: {fw}the chi-square across taus is beyond its 99 % point "
+                f"({check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}): a "
+                "finding, not a pass -- the terms do not describe the stretch's curve within its "
+                "statistics" + (f"; carried by {carrier}" if carrier else ""))
     if check.get("ok"):
         return "its self-check passed"
     runs = check.get("outside") or []
@@ -159,4 +162,8 @@ def goodness_line(check: dict[str, Any], with_gm: bool = False) -> str:
                  + " do not describe this curve within its statistics")
         if eps > 0:
             text += f" (a model error of {100 * eps:.2g} % of sigma^2 was added to the weights)"
+        text += ": a finding, not a pass"
+        carrier = chi2_carrier_text(check)
+        if carrier:
+            text += f"; carried by {carrier}"
     return text

@@ -457,6 +457,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "<p class=\"muted\">Capture for +-25 %: where this capture cannot determine a term "
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
+    out += _chi2_findings_html(curves)
     out += _quiet_stretch_html(curves)
     gm_rows = []
     for axis, cv in curves.items():
@@ -489,6 +490,27 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
     return "\n".join(out)
 
 
+def _chi2_findings_html(curves: dict[str, dict]) -> list[str]:
+    """The axes whose fit has a chi-square beyond its 99 % point: a finding, never a pass,
+    with the run of taus that carries it (rigctl.analysis.allan.chi2_finding)."""
+    from ..analysis.allan import chi2_finding
+
+    out = []
+    for axis, cv in curves.items():
+        for sentence in chi2_finding(((cv.get("fit") or {}).get("check")) or {}):
+            out.append(f"<p class=\"warn\">{esc(axis)}: {esc(sentence)}</p>")
+    return out
+
+
+def _chi2_cell(check: dict) -> str:
+    """A chi-square beyond its 99 % point in a table cell: a finding, with what carries it."""
+    from ..analysis.allan import chi2_carrier_text
+
+    carrier = chi2_carrier_text(check)
+    return ("self-check failed: chi-square beyond its 99 % point, a finding, not a pass"
+            + (f"; carried by {carrier}" if carrier else ""))
+
+
 def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
     """Non-stationary records: the terms fitted on the quiet stretch beside the whole
     record's (rigctl.analysis.allan_quiet), and the axes where no stretch qualified."""
@@ -508,8 +530,8 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
         whole = NC.as_coefficients(cv["fit"]["coefficients"])
         quiet = NC.as_coefficients(q["fit"]["coefficients"])
         stretch = (f"t = {q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} s ({100 * q['fraction']:.0f} %; "
-                   + ("self-check failed" if not q["fit"]["check"].get("ok") else
-                      "chi-square beyond its 99 % point" if q["fit"]["check"].get("chi2_beyond_99")
+                   + (_chi2_cell(q["fit"]["check"]) if q["fit"]["check"].get("chi2_beyond_99")
+                      else "self-check failed" if not q["fit"]["check"].get("ok")
                       else "self-check passed") + ")")
         for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row
             cw, unit = NC.in_field_units(whole, t)
