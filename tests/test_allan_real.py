@@ -555,3 +555,8 @@ def test_adis16405_ay_quiet_stretch_hump_is_two_excursions_and_said_unexplained(
     line = next(s for s in text.splitlines()
                 if s.startswith(f"warning: quiet stretch: tau {o['tau_from_s']:.3g}-"))
     assert "unexplained" in line, line
+    # ... and the HTML report's quiet-stretch section names it under its table
+    from rigctl.report.report_html import _quiet_stretch_html
+
+    html = "".join(_quiet_stretch_html({"ay": r}))
+    assert f"ay, quiet stretch: tau {o['tau_from_s']:.3g}-" in html and "unexplained" in html
