@@ -11,6 +11,8 @@ solvers (one definition for every test that reads a real curve this way).
   that fit's covariance, the correlation across taus neglected.
 * ``agree``: two values within their combined 95 % intervals, in log: |ln(a/b)| <=
   sqrt(h_a^2 + h_b^2), h the log half-width of each interval on the side facing the other value.
+* ``assert_gm_agrees``: rigctl's Tc and sigma_GM against ``white_gm_fit``'s by ``agree``, and the
+  same comparison rejecting either value 2x off (either way), so that it can fail.
 """
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ from scipy.optimize import least_squares, nnls
 #: flicker FM's Allan deviation per unit B: sqrt(2 ln 2 / pi) = 0.664
 B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
 Z95 = 1.959964
+#: rad/s to deg/h (the messages only)
+RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
 
 
 def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
@@ -73,3 +77,20 @@ def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, floa
     ha = math.log(a_ci[1] / a) if b > a else math.log(a / a_ci[0])
     hb = math.log(b / b_ci[0]) if b > a else math.log(b_ci[1] / b)
     return abs(math.log(a / b)) <= math.hypot(ha, hb)
+
+
+def assert_gm_agrees(gm: dict, ind: dict) -> None:
+    """rigctl's GM values ``gm`` ({"tc", "tc_ci95", "sigma", "sigma_ci95"}, SI) inside their own
+    intervals and agreeing with ``ind`` (:func:`white_gm_fit`'s) by :func:`agree`; the same
+    comparison rejects a Tc or a sigma_GM 2x off either way (so it has teeth)."""
+    assert gm["tc_ci95"][0] <= gm["tc"] <= gm["tc_ci95"][1]
+    msg = (f"rigctl Tc {gm['tc']:.3f} s {gm['tc_ci95']}, sigma_GM {gm['sigma'] * RAD_S_TO_DEG_H:.2f} "
+           f"deg/h; here Tc {ind['tc']:.3f} s {ind['tc_ci95']}, sigma_GM "
+           f"{ind['sigma'] * RAD_S_TO_DEG_H:.2f} deg/h")
+    assert agree(gm["tc"], gm["tc_ci95"], ind["tc"], ind["tc_ci95"]), msg
+    assert agree(gm["sigma"], gm["sigma_ci95"], ind["sigma"], ind["sigma_ci95"]), msg
+    for f in (2.0, 0.5):
+        tc_ci = tuple(v * f for v in gm["tc_ci95"])
+        assert not agree(gm["tc"] * f, tc_ci, ind["tc"], ind["tc_ci95"]), (f, msg)
+        s_ci = tuple(v * f for v in gm["sigma_ci95"])
+        assert not agree(gm["sigma"] * f, s_ci, ind["sigma"], ind["sigma_ci95"]), (f, msg)

@@ -556,6 +556,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
             AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm),
                              "warmup", AD.warmup_reason_below(warm))
         AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
+        AD.name_unexplained(fit["check"], AD.gm_left_reason(fit))
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,

@@ -166,6 +166,6 @@ def register(subparsers: Any) -> None:
     p.add_argument("--kalibr-topic", metavar="TOPIC",
                    help="rostopic in imu.yaml (default: the bag topic of an imported recording, else /imu0)")
     p.add_argument("--json", metavar="FILE", help="write the whole Allan result as JSON")
-    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, m, sigma, 68 % and 95 % bands, EDF, noise type; SI) as CSV")
+    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, m, sigma, 68 %% and 95 %% bands, EDF, noise type; SI) as CSV")
     add_production_options(p)
     p.set_defaults(func=run)
