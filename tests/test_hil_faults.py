@@ -104,7 +104,6 @@ def test_acl_stalled_reply_times_out_then_recovers(tmp_path):
             # every line of the connect answered (the driver can have a reply before the
             # emulator's thread has counted it)
             wait_until(lambda: core.answered == len(core.received), 30, "the connect's last reply")
-            done, done_bytes = core.answered, core.answered_bytes
             hw.stall("acl")                        # held until released
             with pytest.raises(ReplyTimeout, match=r"no reply to ':READ:ALL\? 1;ALL\? 2;ALL\? 3'.*within 2 s"):
                 table.read()
@@ -112,15 +111,10 @@ def test_acl_stalled_reply_times_out_then_recovers(tmp_path):
             # retry each waited one timeout, while the controller still held its reply
             assert core.stalls.held == 1 and table.counters.timeouts == 2
             hw.release_stall("acl")
-            # the late replies to both lines have reached the driver's port before the next request
-            # (the kernel passes what the emulator wrote on to the port asynchronously). A late
-            # *IDN? reply still in flight when the resync drains the port is taken for the
-            # resync's own answer, and the next request then reads that answer: a bad reply,
-            # counted and retried (1 of 13 runs at load 20-24 before this wait). A known limit of the
-            # resync, not what this part tests
-            wait_progress(lambda: core.answered >= done + 2, lambda: core.answered, "the late replies")
-            late = core.answered_bytes - done_bytes
-            wait_until(lambda: table.link.ser.in_waiting >= late, 30, f"{late} bytes of late replies at the port")
+            # the late replies to both lines may reach the driver's port before, during or after
+            # the next request's resync drains it (the kernel passes what the emulator wrote on
+            # asynchronously): the resync matches only the reply to its own identity query, so
+            # a late *IDN? reply is never taken for it (tests/test_wire_acl.py, which orders them)
             state = table.read()                   # resynchronised: the late reply is not misread
             assert len(state.status) == 3 and table.counters.resyncs >= 1
             hw.drop_replies(1)
