@@ -123,6 +123,10 @@ def quiet_lines(r: dict[str, Any]) -> list[str]:
              "terms above (which stay the record's; docs/allan.md, 'Non-stationary records'); "
              + quiet_check_text(q["fit"].get("check") or {}) + ":"]
     lines += term_lines(q)
+    # its self-check's runs, each with its reason, as the record's (the chi-square sentence is
+    # in the paragraph's head and the goodness-of-fit line above)
+    lines += [f"warning: quiet stretch: {w}" for w in check_warnings(q)
+              if not w.startswith("self-check failed:")]
     return lines
 
 

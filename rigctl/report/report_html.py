@@ -533,6 +533,11 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
                    + (_chi2_cell(q["fit"]["check"]) if q["fit"]["check"].get("chi2_beyond_99")
                       else "self-check failed" if not q["fit"]["check"].get("ok")
                       else "self-check passed") + ")")
+        # the stretch's own self-check runs that no term follows, named under the table
+        notes += [f"{axis}, quiet stretch: tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s: "
+                  f"{o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
+                  f"likely {o['likely']}"
+                  for o in q["fit"]["check"].get("outside") or [] if o.get("unexplained")]
         for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row
             cw, unit = NC.in_field_units(whole, t)
             cq, _ = NC.in_field_units(quiet, t)
