@@ -159,6 +159,9 @@ def write_h5(path: str, n: int) -> None:
 #: per-phase timing in the child: (module, attribute, phase). Thread CPU of every call (any
 #: thread; nested calls counted in each), and wall time of the main thread's top-level steps
 _PHASES = [("rigctl.recording.recording_reader", "RowReader.read", "read"),
+           ("rigctl.recording.recording_reader", "RowReader.view", "read"),  # (the mapped rows)
+           ("rigctl.recording.recording_reader", "RowPieces.dense", "read"),
+           ("rigctl.recording.recording_reader", "RowPieces.release", "read"),
            ("rigctl.analysis.allan", "counter_jumps_at", "gaps"),  # the scan (its reads: read)
            ("rigctl.solvers.allan_kernels", "phase_cols3", "one_pass_3_axes"),
            ("rigctl.analysis.allan", "_AxisStream.screen", "screen"),
