@@ -42,6 +42,7 @@ from rigctl.solvers import allan_edf as E  # noqa: E402
 from rigctl.solvers import allan_fit as F  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+from allan_independent import bound_ceiling  # noqa: E402 - shared with the tests
 from allan_synth import synth_rate  # noqa: E402 - shared with the tests
 
 D2R = math.pi / 180.0
@@ -363,7 +364,10 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
                 from scipy.stats import chi2 as _chi2
                 good = np.sqrt(_chi2.ppf(0.975, edf) / _chi2.ppf(0.025, edf)) <= 2.0
                 good = good if np.any(good) else np.ones(good.size, bool)
-                lim = F.curve_limits(r.tau_s[good], r.dev[good])
+                # where the fit needs no model error, what the curve permits at 95 %: its
+                # upper band, simultaneous over these taus (tests/allan_independent.py)
+                lim = F.curve_limits(r.tau_s[good], bound_ceiling(
+                    r.dev[good], edf[good], fit["check"]["model_error_rel"], F.MODEL_ERROR_HOLD))
                 over_limit.append(any(
                     not getattr(co, t).resolved and getattr(co, t).upper95 > lim[t] * (1 + 1e-9)
                     for t in fit["terms"]))
