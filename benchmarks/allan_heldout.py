@@ -45,6 +45,9 @@ simultaneous over the floor's taus (`familywise_band`: each tau's chi-square ban
 level that holds at all of them together with probability 95 % under the total judged, from the
 correlation of the estimates across taus; the 10 % rule kept) -- docs/allan.md, "Item 2
 (family-wise)".
+After a verdict that misses floor taus, how rigctl's own self-check names them, in brackets
+(`missed_named_by_rigctl`: "unexplained" -- a run rigctl marks so, no term it fits follows it
+--, its named cause such as "nonstationary", "named", or "not named"); printed, not judged.
 Beside both (`| quiet:` columns, `verdict_quiet`, `verdict_quiet_familywise`): where rigctl
 reports a quiet-stretch fit (`quiet_stretch` in its JSON: the record not stationary by its own
 test; docs/allan.md, "Non-stationary records: the quiet stretch"), the same verdicts for that
@@ -487,6 +490,20 @@ def item2_missed(dev: np.ndarray, lo: np.ndarray, hi: np.ndarray, tot: np.ndarra
     return ((tot < lo) & (dev > (1 + DEPARTURE_REL) * tot)) | ((tot > hi) & (dev < (1 - DEPARTURE_REL) * tot))
 
 
+def rigctl_named(r: dict, taus: np.ndarray) -> list[str]:
+    """How rigctl's own self-check speaks of each tau in ``taus`` (read from its JSON, not a
+    verdict): "unexplained" (a run it marks so: no term it fits follows it), the run's named
+    cause ("nonstationary", "warmup", ...), "named" (a run with a likely reason only), or
+    "not named" (no run of its check covers the tau)."""
+    out = []
+    for t in np.asarray(taus, float):
+        o = next((o for o in (r["fit"].get("check") or {}).get("outside") or []
+                  if o["tau_from_s"] * (1 - 1e-9) <= t <= o["tau_to_s"] * (1 + 1e-9)), None)
+        out.append("not named" if o is None else "unexplained" if o.get("unexplained")
+                   else (o.get("cause") or "named"))
+    return out
+
+
 def judge(r: dict, c: dict, tau0: float) -> dict:
     """B against the curve's floor. 'Near the floor' (docs/allan.md): where the curve shows a
     floor, B is an estimate, the fitted total (every resolved term, tones included) lies in
@@ -548,9 +565,18 @@ def judge(r: dict, c: dict, tau0: float) -> dict:
             "edf_worst_script": float(c["edf"][ft][worst]) if ft.size else float("nan"),
             "edf_worst_rigctl": float(np.asarray(r["edf"], float)[ft][worst]) if ft.size else float("nan"),
             "check_ok": r["fit"]["check"]["ok"], "verdict": verdict,
+            # how rigctl's self-check names each floor tau item 2 misses (printed, not judged)
+            "missed_taus_s": [float(v) for v in c["tau"][ft][~inside]],
+            "missed_named_by_rigctl": rigctl_named(r, c["tau"][ft][~inside]),
             "fw_level_per_tau": fwb["q"], "fw_m_equiv": fwb["m_equiv"],
             "floor_taus_total_missed_familywise": int((~inside_fw).sum()),
             "verdict_familywise": verdict_fw}
+
+
+def named(j: dict) -> str:
+    """' (rigctl: unexplained)' etc.: how rigctl's self-check names the missed floor taus."""
+    kinds = sorted(set(j.get("missed_named_by_rigctl") or []))
+    return f" (rigctl: {', '.join(kinds)})" if kinds else ""
 
 
 def main() -> None:
@@ -606,7 +632,7 @@ def main() -> None:
                           else f"< {jq['b_hi95']:.4g}")
                     qtext = (f"{q['t_s'][0]:.0f}-{q['t_s'][1]:.0f} {bq} {jq['b_over_limit']:.2f} "
                              f"{jq['floor_taus_total_missed']}/{jq['floor_taus']} {jq['verdict']} "
-                             f"{jq['verdict_familywise']}")
+                             f"{jq['verdict_familywise']}{named(jq)}")
                 elif q:
                     qtext = "not fitted: " + q.get("reason", "")[:60]
                 vq = jq["verdict"] if jq else j["verdict"]
@@ -625,7 +651,7 @@ def main() -> None:
                       f"{bt:>34s} {j['b_over_limit']:5.2f} {j['b_share_at_floor']:6.2f} {j['total_over_curve_at_floor']:5.3f} "
                       f"[{j['band95_at_floor'][0]:.3f}, {j['band95_at_floor'][1]:.3f}] "
                       f"{j['floor_taus_total_outside_band']}/{j['floor_taus_total_missed']}/{j['floor_taus']} "
-                      f"{j['worst_total_over_curve_on_floor']:5.3f} {j['verdict']} "
+                      f"{j['worst_total_over_curve_on_floor']:5.3f} {j['verdict']}{named(j)} "
                       f"| {j['fw_level_per_tau']:.4f} {j['fw_m_equiv']:4.1f} "
                       f"{j['floor_taus_total_missed_familywise']} {j['verdict_familywise']} "
                       f"| {qtext}",

@@ -19,8 +19,15 @@ Errors: ``ERR -221`` (interlock open / fault / wrong mode) raises :class:`rigctl
 ``ERR -222`` (out of range) raises ValueError; a reply timeout raises
 :class:`~rigctl.drivers.serial_link.ReplyTimeout` naming the request, a garbled reply
 :class:`~rigctl.drivers.serial_link.BadReply` (both counted in ``counters``). After either, input
-is drained and the next request is preceded by a ``*IDN?`` resynchronisation, so a late reply can
-never be taken for the answer to a later request. Read-only requests are retried once.
+is drained and the next request is preceded by a resynchronisation: ``*IDN?`` chained ``n`` times
+in one line (``*IDN?;*IDN?``), answered by the identity ``n`` times joined with ``;``. The
+controller answers in order, so a reply still in flight can only answer a line sent since the
+last answer the driver matched: ``n`` is one more than the chain of the last unanswered
+identity query, and only a reply of exactly ``n`` identities ends the resync. A late reply to an
+earlier ``*IDN?`` (a resync or an identify that timed out) is thus never taken for the resync's
+own, which would leave its own reply to be misread as the answer to the next request. After
+:data:`MAX_SYNC_CHAIN` unanswered resyncs the port is reopened. Read-only requests are retried
+once.
 """
 from __future__ import annotations
 
@@ -41,6 +48,21 @@ from .serial_link import BadReply, LineReader, ReplyTimeout, SerialLink
 
 log = logging.getLogger(__name__)
 DEG = math.pi / 180.0
+
+#: the longest identity query of a resync (``*IDN?`` chained this many times, 6 bytes each): after
+#: that many unanswered in a row the controller is silent, and the port is reopened (closed, its
+#: input is gone) instead of the chain growing on
+MAX_SYNC_CHAIN = 4
+
+
+def repeated(reply: str, n: int) -> str | None:
+    """The text ``x`` when ``reply`` is ``x`` repeated ``n`` times joined with ``;`` (the
+    reply to ``*IDN?`` chained ``n`` times), else None."""
+    parts = reply.split(";")
+    if not reply or len(parts) % n:
+        return None
+    x = ";".join(parts[:len(parts) // n])
+    return x if reply == ";".join([x] * n) else None
 
 
 @dataclass
@@ -67,21 +89,40 @@ class AclTable:
         self.idn = ""
         self.time_base = ProbeOffset(name)
         self._dirty = False
+        #: the chain length of the last identity query sent and not answered (0: all answered)
+        self._unanswered = 0
 
     # ------------------------------------------------------------------------- transport
     def _resync(self) -> None:
-        """Drain input, then ``*IDN?`` until its reply comes back (discarding late replies)."""
+        """Drain input, then the identity query (:meth:`_sync`) until its own reply comes back."""
         self.counters.resyncs += 1
+        self._drain()
+        self._sync()
+        self._dirty = False
+
+    def _drain(self) -> None:
         self.link.ensure()
         self.link.drain_input()
         self.reader.clear()
-        if self.idn:
-            self.link.write(b"*IDN?\n")
-            deadline = time.monotonic() + self.timeout_s
-            while self.reader.readline(max(1e-3, deadline - time.monotonic())).decode(
-                    "ascii", "replace").strip() != self.idn:
-                pass
-        self._dirty = False
+
+    def _sync(self) -> str:
+        """Send ``*IDN?`` chained ``n`` times (``n`` one more than the chain of the last identity
+        query left unanswered) and read lines until the reply of exactly ``n`` identities (equal
+        to :attr:`idn` once known); returns the identity. Lines before it are late replies to
+        earlier requests and are discarded. Raises ReplyTimeout (the query stays unanswered)."""
+        n = self._unanswered + 1
+        if n > MAX_SYNC_CHAIN:
+            self._unanswered = 0
+            raise self.link.lost(f"no reply to {MAX_SYNC_CHAIN} identity queries in a row; reopening the port")
+        self.link.write(";".join(["*IDN?"] * n).encode("ascii") + b"\n")
+        self._unanswered = n
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            line = self.reader.readline(max(1e-3, deadline - time.monotonic())).decode("ascii", "replace").strip()
+            idn = repeated(line, n) if line.isascii() and line.isprintable() else None
+            if idn is not None and (idn == self.idn or not self.idn):
+                self._unanswered = 0
+                return idn
 
     def request(self, line: str, *, retry: bool = False) -> str:
         """Send one line, return its reply line (ERR replies raise AclError)."""
@@ -140,9 +181,21 @@ class AclTable:
         """Open the link and ask the controller who it is (``*IDN?``, nothing else is sent);
         its reply. Raises LinkLost (the port, or no reply)."""
         self.link.open()
-        self.link.drain_input()
-        self.idn = self.request("*IDN?", retry=True)
-        return self.idn
+        self.idn = ""
+        for attempt in (0, 1):
+            try:
+                self._drain()
+                self.counters.requests += 1
+                self.idn = self._sync()
+            except ReplyTimeout as exc:
+                self.counters.timeouts += 1
+                if attempt:
+                    raise ReplyTimeout(self.name, f"no reply to '*IDN?' from {self.link.url} within "
+                                                  f"{self.timeout_s:g} s (controller stalled or link down)") from exc
+            else:
+                self._dirty = False
+                return self.idn
+        raise AssertionError("unreachable")
 
     def connect(self) -> None:
         """Open the link, identify the controller, close the interlocks, set the limits and

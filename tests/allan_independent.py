@@ -11,6 +11,10 @@ solvers (one definition for every test that reads a real curve this way).
   that fit's covariance, the correlation across taus neglected.
 * ``agree``: two values within their combined 95 % intervals, in log: |ln(a/b)| <=
   sqrt(h_a^2 + h_b^2), h the log half-width of each interval on the side facing the other value.
+* ``bound_ceiling``: the curve each term's reported bound is held under, read from the
+  deviations and their EDF with scipy's chi-square (curve_ceiling below).
+* ``assert_gm_agrees``: rigctl's Tc and sigma_GM against ``white_gm_fit``'s by ``agree``, and the
+  same comparison rejecting either value 2x off (either way), so that it can fail.
 """
 from __future__ import annotations
 
@@ -18,10 +22,30 @@ import math
 
 import numpy as np
 from scipy.optimize import least_squares, nnls
+from scipy.stats import chi2
 
 #: flicker FM's Allan deviation per unit B: sqrt(2 ln 2 / pi) = 0.664
 B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
 Z95 = 1.959964
+#: rad/s to deg/h (the messages only)
+RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
+
+
+def bound_ceiling(dev: np.ndarray, edf: np.ndarray, model_error_rel: float,
+                  hold: float, alpha: float = 0.025) -> np.ndarray:
+    """The curve a bound may not exceed, at each tau (its read-off per term: c^2 A(tau) <=
+    ceiling^2 at every tau). Where the fit needs a model error of at least ``hold`` (its
+    MODEL_ERROR_HOLD; the curve is not IEEE 952 and the fit holds its terms to the measured
+    curve) the measured deviations themselves. Else the curve is an estimate and a 95 % bound
+    can only be held to what it permits at 95 %: the upper end of each deviation's chi-square
+    band, sigma sqrt(nu / chi2_q(nu)), simultaneous over the n taus given (Sidak, q = 1 - (1 -
+    alpha)^(1/n), the most the fit's own family-wise band can reach: it counts the effective
+    number of independent taus, at most n)."""
+    dev, edf = np.asarray(dev, float), np.asarray(edf, float)
+    if model_error_rel >= hold:
+        return dev
+    q = -math.expm1(math.log1p(-alpha) / max(dev.size, 1))
+    return dev * np.sqrt(edf / chi2.ppf(q, edf))
 
 
 def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:
@@ -73,3 +97,20 @@ def agree(a: float, a_ci: tuple[float, float], b: float, b_ci: tuple[float, floa
     ha = math.log(a_ci[1] / a) if b > a else math.log(a / a_ci[0])
     hb = math.log(b / b_ci[0]) if b > a else math.log(b_ci[1] / b)
     return abs(math.log(a / b)) <= math.hypot(ha, hb)
+
+
+def assert_gm_agrees(gm: dict, ind: dict) -> None:
+    """rigctl's GM values ``gm`` ({"tc", "tc_ci95", "sigma", "sigma_ci95"}, SI) inside their own
+    intervals and agreeing with ``ind`` (:func:`white_gm_fit`'s) by :func:`agree`; the same
+    comparison rejects a Tc or a sigma_GM 2x off either way (so it has teeth)."""
+    assert gm["tc_ci95"][0] <= gm["tc"] <= gm["tc_ci95"][1]
+    msg = (f"rigctl Tc {gm['tc']:.3f} s {gm['tc_ci95']}, sigma_GM {gm['sigma'] * RAD_S_TO_DEG_H:.2f} "
+           f"deg/h; here Tc {ind['tc']:.3f} s {ind['tc_ci95']}, sigma_GM "
+           f"{ind['sigma'] * RAD_S_TO_DEG_H:.2f} deg/h")
+    assert agree(gm["tc"], gm["tc_ci95"], ind["tc"], ind["tc_ci95"]), msg
+    assert agree(gm["sigma"], gm["sigma_ci95"], ind["sigma"], ind["sigma_ci95"]), msg
+    for f in (2.0, 0.5):
+        tc_ci = tuple(v * f for v in gm["tc_ci95"])
+        assert not agree(gm["tc"] * f, tc_ci, ind["tc"], ind["tc_ci95"]), (f, msg)
+        s_ci = tuple(v * f for v in gm["sigma_ci95"])
+        assert not agree(gm["sigma"] * f, s_ci, ind["sigma"], ind["sigma_ci95"]), (f, msg)

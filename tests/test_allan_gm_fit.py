@@ -24,6 +24,8 @@ from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
 from rigctl.solvers import allan_gm as GM
 
+from allan_independent import agree
+
 
 def ar1(n: int, tc_samples: float, sd: float, rng: np.random.Generator) -> np.ndarray:
     """A stationary AR(1) of standard deviation ``sd``: a sampled Gauss-Markov process."""
@@ -196,10 +198,6 @@ def test_the_mtig_gyro_through_the_cli_has_the_gauss_markov_term_in_its_fit(
     here measured Tc 3.35 s [2.48, 5.15], 62.0 deg/h [54.4, 70.1])."""
     # the run (import + allan --json, in process) and the independent read are made once per
     # session by tests/conftest.py's mtig_gx_allan, which test_allan_gm_real checks too
-    import sys
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_allan_gm_real import agree
-
     y, text, res = mtig_gx_allan["y"], mtig_gx_allan["text"], mtig_gx_allan["res"]
     fit = res["fit"]
     t = fit["gm_term"]

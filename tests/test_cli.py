@@ -20,6 +20,19 @@ def test_version_and_help():
         assert r.returncode == 0 and "usage: rigctl" in r.stdout
 
 
+def test_every_subcommand_help_formats():
+    """`rigctl COMMAND --help` for every command (in-process: argparse's own formatting). A
+    help string with a bare '%' made `rigctl allan --help` an internal error."""
+    import argparse
+
+    from rigctl import cli
+
+    sub = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert {"allan", "import", "calibrate"} <= set(sub.choices)
+    for name, sp in sub.choices.items():
+        assert sp.format_help().startswith("usage: rigctl " + name), name
+
+
 def test_validate_full_calibration_prints_steps_total_and_volume():
     r = run_rigctl("validate", "procedures/full-calibration.yaml")
     assert r.returncode == 0, r.stderr

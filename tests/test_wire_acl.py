@@ -155,3 +155,103 @@ def test_ideal_table_rate_integrates_angle():
     r = table.read(1)
     assert r["angle"] == pytest.approx(math.radians(25.0))
     assert r["status"] & StatusBit.AT_RATE
+
+
+# -- the driver's resynchronisation against late replies (a scripted controller on a real pty) ----
+class _HeldReplies:
+    """The emulated controller's line handler (one reply line per request line) that holds back
+    its next ``hold`` replies: they go out together, just before the reply to the next request
+    line -- as a controller that stalled and then caught up sends them, and after the driver
+    drained its port for that request. ``lines``: the request lines received."""
+
+    def __init__(self, core: AclServerCore) -> None:
+        self.core, self.buf, self.hold = core, b"", 0
+        self.held: list[str] = []
+        self.lines: list[str] = []
+
+    def __call__(self, data: bytes, write) -> None:
+        self.buf += data
+        *lines, self.buf = self.buf.split(b"\n")
+        for line in lines:
+            self.lines.append(line.decode("ascii"))
+            reply = self.core.handle_line(line) + "\n"
+            if self.hold:
+                self.hold -= 1
+                self.held.append(reply)
+                continue
+            write(("".join(self.held) + reply).encode("ascii"))
+            self.held.clear()
+
+
+@pytest.fixture
+def scripted_pty():
+    from rigctl.sim.links import PtyEndpoint
+
+    handler = _HeldReplies(AclServerCore(IdealTable()))
+    ep = PtyEndpoint(handler, name="acl-scripted")
+    try:
+        yield handler, ep.path
+    finally:
+        ep.close()
+
+
+def _acl_table(path: str, timeout_s: float):
+    from rigctl.clock import ScaledClock
+    from rigctl.config.config import TableLimits
+    from rigctl.drivers.acl_table import AclTable
+
+    import numpy as np
+
+    limits = TableLimits(rate=np.radians([100.0] * 3), accel=np.radians([100.0] * 3),
+                         angle_min=np.full(3, -np.inf), angle_max=np.full(3, np.inf))
+    return AclTable(path, limits, ScaledClock(1.0), timeout_s=timeout_s)
+
+
+#: the reply timeout of the driver, wall s, where a reply must come (from the pty's thread, on a
+#: loaded host); where the controller holds its replies, the timeout passes whatever it is
+REPLY_S = 2.0
+HELD_S = 0.2
+
+
+def test_resync_does_not_take_a_late_idn_reply_for_its_own(scripted_pty):
+    """A read times out and so does the resync of its retry (the controller holds both replies);
+    the next read's resync then meets, after its drain, the late READ:ALL reply and the late
+    ``*IDN?`` reply ahead of the reply to its own query. It must match only its own: the resync
+    that took the late ``*IDN?`` reply left its own reply to be read as the READ:ALL answer (a
+    bad reply, counted, and a third resync)."""
+    from rigctl.drivers.serial_link import ReplyTimeout
+
+    handler, path = scripted_pty
+    table = _acl_table(path, REPLY_S)
+    table.connect()
+    try:
+        handler.hold, table.timeout_s = 2, HELD_S
+        with pytest.raises(ReplyTimeout):
+            table.read()
+        assert table.counters.timeouts == 2 and len(handler.held) == 2
+        assert handler.held[1] == handler.core.idn + "\n"        # the resync's *IDN? reply, late
+        table.timeout_s = REPLY_S
+        state = table.read()
+        assert not handler.held                                  # the late replies went out
+        assert len(state.status) == 3 and state.angle.shape == (3,)
+        assert table.counters.bad_replies == 0 and table.counters.resyncs == 2
+        table.read()                                             # nothing left over to misread
+        assert table.counters.bad_replies == 0 and table.counters.resyncs == 2
+    finally:
+        table.close()
+
+
+def test_identify_retry_does_not_leave_a_late_idn_reply(scripted_pty):
+    """The first ``*IDN?`` of the connect is answered late, just before the reply to the retry:
+    the retry must take its own reply, not the late one (which left the retry's reply to be read
+    as the answer to ``*CLS``: 'expected OK')."""
+    handler, path = scripted_pty
+    handler.hold = 1
+    table = _acl_table(path, REPLY_S)
+    try:
+        table.connect()
+        assert table.idn == handler.core.idn
+        assert table.counters.timeouts == 1 and table.counters.bad_replies == 0
+        assert len(table.read().status) == 3
+    finally:
+        table.close()

@@ -28,7 +28,8 @@ from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
 from ..recording.recorder import write_results
-from ..recording.recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
+from ..recording.recording_reader import (PLAUSIBLE, RowPieces, RowReader, as_array, check_finite,
+                                          open_recording, release, sample_rate)
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
@@ -556,6 +557,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
             AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm),
                              "warmup", AD.warmup_reason_below(warm))
         AD.name_bumps(fit["check"], ybar, block_s, res.tau0_s, fit)
+        AD.name_unexplained(fit["check"], AD.gm_left_reason(fit))
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
             **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
@@ -854,10 +856,14 @@ _GC_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def _gc_paused(pause: bool):
+def _gc_paused(pause: bool, promote: bool = False):
     """gc.disable() inside the block (:data:`PAUSE_GC`), the collector re-enabled (if it was
     enabled before the first) when the last of overlapping blocks (analyses on several
-    threads) ends; nothing with ``pause`` False."""
+    threads) ends; nothing with ``pause`` False. With ``promote`` (given to the outermost
+    block: :func:`collector_paused_for_command`), the objects made inside it go into the
+    collector's oldest generation when it ends, unexamined (gc.freeze, then gc.unfreeze;
+    not when something else holds objects frozen), instead of being walked by the young
+    generations' collections that the first allocations after gc.enable() start."""
     if not pause:
         yield
         return
@@ -871,8 +877,26 @@ def _gc_paused(pause: bool):
     finally:
         with _GC_LOCK:
             _GC["depth"] -= 1
-            if _GC["depth"] == 0 and _GC["was_enabled"]:
-                gc.enable()
+            if _GC["depth"] == 0:
+                if promote and gc.get_freeze_count() == 0:
+                    gc.freeze()  # every tracked object: to the permanent generation ...
+                    gc.unfreeze()  # ... and from there to the oldest (no collection runs)
+                if _GC["was_enabled"]:
+                    gc.enable()
+
+
+def collector_paused_for_command() -> contextlib.AbstractContextManager:
+    """For a command that analyses a recording once and then exits (``rigctl allan``): the
+    cyclic garbage collector paused (:data:`PAUSE_GC`) for the whole command -- the stream
+    and analyses (:func:`compute`, whose own pause then ends nothing), the store and the
+    results database -- and the objects made meanwhile moved into its oldest generation
+    unexamined when it ends (:func:`_gc_paused` with ``promote``). Without it the first
+    allocations after the analysis' pause start a young-generation collection that walks
+    every object made during it: ~120,000, most of them the results database's modules
+    imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
+    this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
+    meanwhile (none by the pipeline) waits for the next full collection instead."""
+    return _gc_paused(PAUSE_GC, promote=True)
 
 
 _SWITCH = {"depth": 0, "saved": 0.0}
@@ -999,13 +1023,17 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             return all_cuts
         a1 = min(s1, a0 + CHUNK_ROWS)
         # the row before the chunk too: a jump at a0 is a gap before the chunk's first row
-        new = counter_jumps_at(counter.read(max(s0, a0 - 1), a1, cbuf), max(s0, a0 - 1))
+        rows = counter.view(max(s0, a0 - 1), a1, cbuf)
+        new = counter_jumps_at(rows, max(s0, a0 - 1))
+        release(rows)
         found.extend(new)
         return np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
 
-    def read_rows(name: str, a0: int, k: int) -> np.ndarray:
-        """Chunk [a0, a1)'s rows of one dataset, into its buffer k."""
-        return readers[name].read(a0, min(s1, a0 + CHUNK_ROWS), bufs[k][name])
+    def read_rows(name: str, a0: int, k: int) -> np.ndarray | RowPieces:
+        """Chunk [a0, a1)'s rows of one dataset: where they lie in the mapped file
+        (:meth:`RowReader.view`: the one pass reads them there; :func:`as_array` copies
+        them into its buffer k for the rest), else read into that buffer."""
+        return readers[name].view(a0, min(s1, a0 + CHUNK_ROWS), bufs[k][name])
 
     def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
         """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
@@ -1039,9 +1067,12 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
 
-    def dataset(name: str, b: np.ndarray, a0: int, cuts: np.ndarray) -> list:
+    def dataset(name: str, b: np.ndarray | RowPieces, a0: int, cuts: np.ndarray) -> list:
         """Check, screen and queue the accumulation of one dataset's axes for this chunk
-        (``cuts``: the gap breaks, at least those in it); returns the queued tasks."""
+        (``cuts``: the gap breaks, at least those in it; ``b`` its rows, an array or the
+        pieces of the mapped file, copied into one array only where a step needs one: the
+        per-axis way, a failed check, a block the spike screen must look into); returns the
+        queued tasks."""
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
@@ -1049,6 +1080,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
+            b = as_array(b)
             check(name, b, a0)  # a bad block must not reach the accumulators
             return [pool.submit_at(rank[name], feed, a, b, AXES[a][1], first, cuts)
                     for a in group]
@@ -1059,18 +1091,30 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             c = AXES[a][1]
             outs[c] = streams[a].phase_target(n)
             x0[c], offs[c] = streams[a].acc.x_last, streams[a].acc.offset
-        bmin, bmax = KER.phase_cols3(b, offs, tau0, x0, outs, KER.extremes_block(CHK.SPIKE_WINDOW))
+        bs = KER.extremes_block(CHK.SPIKE_WINDOW)
+        if isinstance(b, RowPieces):  # the rows where they lie in the file
+            bmin, bmax = KER.phase_cols3(b.base, offs, tau0, x0, outs, bs,
+                                         (b.lanes, b.starts, b.rows))
+        else:
+            bmin, bmax = KER.phase_cols3(b, offs, tau0, x0, outs, bs)
         sel = fin_cols[name]
         hi, lo = float(np.max(bmax[sel])), float(np.min(bmin[sel]))
         limit = PLAUSIBLE.get(name.lstrip("/"), np.inf)
         # NaN and infinity propagate into the running sums (x0: each column's last point)
         if not (np.isfinite(x0[sel]).all() and np.isfinite(hi) and np.isfinite(lo)
                 and max(hi, -lo) <= limit):
-            check(name, b, a0)  # raises, naming the first bad row (nothing was summed yet)
+            check(name, as_array(b), a0)  # raises, naming the first bad row (nothing was summed)
+        # the spike screen looks at the samples of an axis only where a block may hold a
+        # spike (else it finds none: not called); for that, pieces are copied into one array
+        loud = {a: CHK.may_have_spikes((bmin[AXES[a][1]], bmax[AXES[a][1]]),
+                                       streams[a].spike_sigma) for a in group}
+        if isinstance(b, RowPieces) and any(loud.values()):
+            b = b.dense()
         tasks = []
         for a in group:
             c = AXES[a][1]
-            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c]))
+            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c])) \
+                if loud[a] else None
             if y is None:
                 tasks.append(pool.submit_at(rank[name], streams[a].add_written, n))
             else:  # spikes replaced: the per-axis running sum of the corrected samples
@@ -1097,6 +1141,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         for p in preps:
             for t in p.result():
                 t.result()
+        for b in blocks.values():
+            release(b)
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
         if i == 0 and when_streaming is not None:
@@ -1178,6 +1224,7 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
             fail(e)
             return
         if not tasks:
+            release(b)
             finished(name, j)
             return
         left = [len(tasks)]
@@ -1192,6 +1239,7 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
                 left[0] -= 1
                 end = left[0] == 0
             if end:
+                release(b)  # (its pieces' pages: nothing reads them any more)
                 finished(name, j)
 
         for t in tasks:
@@ -1257,9 +1305,14 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
     return max(0, (last - first + 1) - (s1 - s0))
 
 
-def counter_jumps_at(c: np.ndarray, a: int) -> list[tuple[int, int]]:
-    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter): (row after the gap,
-    samples missing) wherever the counter steps by more than 1."""
+def counter_jumps_at(c: np.ndarray | RowPieces, a: int) -> list[tuple[int, int]]:
+    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter; an array or the
+    pieces of the mapped file, :meth:`RowReader.view`): (row after the gap, samples missing)
+    wherever the counter steps by more than 1."""
+    if KER.HAVE_NUMBA and isinstance(c, RowPieces) and c.dtype in (np.uint64, np.int64):
+        idx, d = KER.counter_jumps(c.base.view(np.int64), pieces=(c.lanes, c.starts, c.rows))
+        return [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+    c = as_array(c)
     if c.dtype == np.uint64:
         c = c.view(np.int64)  # what the cast to int64 gives, without its pass
     if KER.HAVE_NUMBA:

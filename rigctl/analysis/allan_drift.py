@@ -445,11 +445,9 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
     :data:`rigctl.display_units.NOISE_UNITS`: B's); where the test finds the process and its
     hump (1.89 Tc) lies within a factor 4 of the run, the run's reason names it as a candidate
     with the error before and after. The fitted total and the self-check are those of the IEEE
-    952 terms: the candidate is not in them."""
-    runs = [o for o in (fit.get("check") or {}).get("outside") or []
-            if o.get("cause") is None and o.get("side") == "data above the fit"
-            and str(o.get("likely", "")).startswith("a bump")
-            and (o.get("stationarity") or {}).get("stationary")]
+    952 terms: the candidate is not in them. Every stationary bump the candidate does not
+    explain is said to be unexplained (:func:`name_unexplained`, :func:`gm_not_found_reason`)."""
+    runs = stationary_bumps(fit.get("check") or {})
     if not runs:
         return None
     tn = fit.get("tones") or {}
@@ -462,15 +460,64 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
         gm[f"sigma_gm_ci95_{DU.slug(unit)}"] = [v * fac for v in gm["sigma_gm_ci95_si"]]
     gm["runs_stationary"] = len(runs)
     fit["gauss_markov"] = gm
-    if not gm.get("detected"):
-        return gm
-    peak = GM.GM_PEAK * gm["tc_s"]
-    for o in runs:
-        if not (float(o["tau_from_s"]) / 4.0 <= peak <= 4.0 * float(o["tau_to_s"])):
-            continue
-        o["gauss_markov"] = True
-        o["likely"] = f"{o['likely']}; {gm_reason(gm)}"
+    if gm.get("detected"):
+        peak = GM.GM_PEAK * gm["tc_s"]
+        for o in runs:
+            if not (float(o["tau_from_s"]) / 4.0 <= peak <= 4.0 * float(o["tau_to_s"])):
+                continue
+            o["gauss_markov"] = True
+            o["likely"] = f"{o['likely']}; {gm_reason(gm)}"
+    name_unexplained(fit.get("check") or {}, gm_not_found_reason(gm))
     return gm
+
+
+def stationary_bumps(check: dict) -> list[dict]:
+    """The runs of taus the self-check calls a bump (data above the fit, no cause named) that
+    :func:`name_bumps` tested stationary."""
+    return [o for o in check.get("outside") or []
+            if o.get("cause") is None and o.get("side") == "data above the fit"
+            and str(o.get("likely", "")).startswith("a bump")
+            and (o.get("stationarity") or {}).get("stationary")]
+
+
+def name_unexplained(check: dict, why: str) -> int:
+    """Say of each stationary bump that no term of the fit follows (none marked
+    ``gauss_markov``) that it is unexplained: ``unexplained`` True and the sentence appended
+    to its reason, so that a failed self-check never reads as a named effect. Returns the
+    runs marked."""
+    n = 0
+    for o in stationary_bumps(check):
+        if o.get("gauss_markov") or o.get("unexplained"):
+            continue
+        o["unexplained"] = True
+        o["likely"] = f"{o['likely']}; unexplained: {why}"
+        n += 1
+    return n
+
+
+def gm_left_reason(fit: dict) -> str:
+    """Why a stationary bump left beside a fitted Gauss-Markov term is unexplained."""
+    t = fit.get("gm_term") or {}
+    tc = t.get("tc_s", math.nan)
+    return (f"the fit's Gauss-Markov term (Tc {tc:.3g} s, its hump at {GM.GM_PEAK * tc:.3g} s) "
+            "does not follow it, and no IEEE 952 term within the curve's limits does")
+
+
+def gm_not_found_reason(gm: dict) -> str:
+    """Why the Gauss-Markov candidate does not explain a stationary bump, in words: not
+    tested, not significant, or significant with its hump (1.89 Tc) elsewhere on the curve."""
+    if not gm.get("tested"):
+        return (f"no Gauss-Markov candidate could be tested ({gm.get('skipped', 'not tested')}), "
+                "and no IEEE 952 term within the curve's limits follows it")
+    where = (f"best Tc {gm['tc_s']:.3g} s, its hump at {GM.GM_PEAK * gm['tc_s']:.3g} s"
+             if math.isfinite(gm.get("tc_s", math.nan)) else "")
+    if not gm.get("detected"):
+        return (f"no first-order Gauss-Markov term is significant beside the IEEE 952 terms "
+                f"(likelihood ratio p = {gm['p_value']:.2g}, alpha {gm['alpha']:.3g}"
+                + (f"; {where}" if where else "") + "), and no IEEE 952 term within the "
+                "curve's limits follows it")
+    return (f"the Gauss-Markov process the candidate finds ({where}) is not at this run, and no "
+            "IEEE 952 term within the curve's limits follows it")
 
 
 def gm_added(gm: dict | None, fit: dict) -> bool:

@@ -62,7 +62,10 @@ def term_lines(r: dict[str, Any]) -> list[str]:
             if e.get("edf_below_estimate") is not None:  # held or kept, but with EDF < 1
                 more += (f"; the fit's EDF there {e['edf_below_estimate']:.2g} < "
                          f"{F.MIN_ESTIMATE_EDF:g}: no estimate")
-            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+            what = NC.BOUND_SOURCES.get(c.bound_from or "fit", NC.BOUND_SOURCES["fit"])
+            point = e.get(f"curve_limit_{unit_f}")
+            if c.bound_from == "band" and point is not None:  # the point read beside the 95 % one
+                what += f"; the curve's lowest point alone reads {point:.5g} {unit_f}"
             lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")
     gm_line = gm_term_line(r["fit"])
@@ -123,6 +126,10 @@ def quiet_lines(r: dict[str, Any]) -> list[str]:
              "terms above (which stay the record's; docs/allan.md, 'Non-stationary records'); "
              + quiet_check_text(q["fit"].get("check") or {}) + ":"]
     lines += term_lines(q)
+    # its self-check's runs, each with its reason, as the record's (the chi-square sentence is
+    # in the paragraph's head and the goodness-of-fit line above)
+    lines += [f"warning: quiet stretch: {w}" for w in check_warnings(q)
+              if not w.startswith("self-check failed:")]
     return lines
 
 

@@ -14,8 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.analysis import noise_export, production
-from rigctl.analysis.allan import (AXES, GAP_MODES, OUTLIER_MODES, choose_range, compute,
-                                   default_axes, gap_message, store)
+from rigctl.analysis.allan import (AXES, GAP_MODES, OUTLIER_MODES, choose_range,
+                                   collector_paused_for_command, compute, default_axes,
+                                   gap_message, store)
 from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
 from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
@@ -47,7 +48,14 @@ def _parse_axes(text: str) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl allan``: 0 ok; errors are raised (rigctl.errors, mapped to exit
-    codes by rigctl.cli.main)."""
+    codes by rigctl.cli.main). The cyclic garbage collector is paused for the whole command
+    (:func:`rigctl.analysis.allan.collector_paused_for_command`: no collection walks the
+    objects made beside the stream while the results are stored)."""
+    with collector_paused_for_command():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     axes = _parse_axes(args.axes) if args.axes is not None else default_axes(args.recording)
     taus = _parse_taus(str(args.taus))
     if args.plot:
@@ -158,6 +166,6 @@ def register(subparsers: Any) -> None:
     p.add_argument("--kalibr-topic", metavar="TOPIC",
                    help="rostopic in imu.yaml (default: the bag topic of an imported recording, else /imu0)")
     p.add_argument("--json", metavar="FILE", help="write the whole Allan result as JSON")
-    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, m, sigma, 68 % and 95 % bands, EDF, noise type; SI) as CSV")
+    p.add_argument("--csv", metavar="FILE", help="write the deviation table (tau, m, sigma, 68 %% and 95 %% bands, EDF, noise type; SI) as CSV")
     add_production_options(p)
     p.set_defaults(func=run)

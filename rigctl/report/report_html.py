@@ -402,7 +402,9 @@ def _term_cell(c: Any) -> str:
     if c.resolved:
         lo, hi = c.ci95 or (None, None)
         return f"{fmt(c.value)} [{fmt(lo)}, {fmt(hi)}]"
-    what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+    from ..solvers.noise_coefficients import BOUND_SOURCES
+
+    what = BOUND_SOURCES.get(c.bound_from or "fit", BOUND_SOURCES["fit"])
     return f"< {fmt(c.upper95)} ({what})"
 
 
@@ -533,6 +535,11 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
                    + (_chi2_cell(q["fit"]["check"]) if q["fit"]["check"].get("chi2_beyond_99")
                       else "self-check failed" if not q["fit"]["check"].get("ok")
                       else "self-check passed") + ")")
+        # the stretch's own self-check runs that no term follows, named under the table
+        notes += [f"{axis}, quiet stretch: tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s: "
+                  f"{o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
+                  f"likely {o['likely']}"
+                  for o in q["fit"]["check"].get("outside") or [] if o.get("unexplained")]
         for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row
             cw, unit = NC.in_field_units(whole, t)
             cq, _ = NC.in_field_units(quiet, t)

@@ -33,7 +33,8 @@ intervals of the deviations: p_j nu / chi2_{1-q}(nu) .. p_j nu / chi2_q(nu), squ
 
 Each Q/N/B/K entry also carries ``crb_rel_sd``: the Cramer-Rao bound of sd(c)/c for the
 capture (:mod:`rigctl.solvers.allan_crb`), i.e. how well any estimator could determine that
-term from these T seconds; this fit reaches it, so a wide bound means "capture longer".
+term from these T seconds (with the Gauss-Markov term's sigma_GM and Tc as nuisance parameters
+when the fit has one); this fit reaches it, so a wide bound means "capture longer".
 
 For comparison the classic piecewise read-offs (slope -1 below 0.5 s -> Q at tau = sqrt(3),
 slope -1/2 between 0.5 s and 2 s -> N at tau = 1 s, flat minimum above 20 s -> B = min/0.664,
@@ -898,6 +899,20 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     lim_sel = inf95_front if np.any(inf95_front) else np.ones(tau_front.size, dtype=bool)
     limits = curve_limits(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
     lim_tau = curve_limit_taus(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
+    # ... but the measured curve is itself an estimate: a term's 95 % upper bound may be cut
+    # only by what the curve permits at 95 %, the same read-off of the family-wise upper
+    # band (hi_fw's construction on these taus: at most LIMIT_ALPHA that the true curve is
+    # above it anywhere). Cut at the measured minimum, the bound excluded the truth whenever
+    # the curve's lowest well-determined point fell below the true curve there: 5-minute
+    # quickstart captures (configs/sim.yaml, B 5 deg/h, the curve 9 % above its floor at its
+    # last well-determined tau) had B bounds below 5 deg/h in 52 of 600 gyro fits, B's
+    # coverage 85 % (benchmarks/allan_quickstart_cov.py). Where the model needs its own error
+    # (model_err >= MODEL_ERROR_HOLD) the estimates are held to the measured curve
+    # (_point_limits) and so are the bounds, as before
+    limits95 = curve_limits(tau_front[lim_sel],
+                            _family_band(s2_front[lim_sel], e_front[lim_sel], m_eff))
+    bound_cap, cap_source = ((limits, "curve") if model_err >= MODEL_ERROR_HOLD
+                             else (limits95, "band"))
     out_terms: dict[str, dict] = {}
     coeff_sq: dict[str, float] = {}
     coefs: dict[str, NC.Coefficient] = {}
@@ -946,16 +961,16 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
             source = "fit"
-            if not ub <= lim:  # never above what the curve itself allows (also for nan)
-                ub, source = lim, "curve"
+            if not ub <= bound_cap[t]:  # never above what the curve allows (also for nan)
+                ub, source = bound_cap[t], cap_source
             est = min(math.sqrt(max(pj, 0.0)), ub)
             coefs[t] = NC.Coefficient(0.0 if math.isnan(est) else est, upper95=ub, bound_from=source)
         entry[f"curve_limit_{unit_si}"] = lim
         entry[f"curve_limit_{unit_f}"] = lim * fac
         entry["curve_limit_tau_s"] = lim_tau[t]  # the tau that sets it
+        entry[f"curve_limit95_{unit_si}"] = limits95[t]  # ... and read off the 95 % band
+        entry[f"curve_limit95_{unit_f}"] = limits95[t] * fac
         out_terms[t] = entry
-    if tau0 is not None and n_phase is not None:
-        _add_crb(out_terms, coefs, float(tau0), int(n_phase))
     gm_coefs: tuple = ()
     gm_term = None
     gm_s2_front = None
@@ -967,6 +982,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         gm_coefs = (gm_coef,)
         coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
         gm_s2_front = gm_column(tau_front, tc_fit) * coeff_sq["GM"]
+    if tau0 is not None and n_phase is not None:  # with the GM term's parameters when it is in
+        _add_crb(out_terms, coefs, float(tau0), int(n_phase),
+                 gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
+                     if gm_coefs and gm_coefs[0].sigma.resolved else None))
     check = self_check(tau_front, np.sqrt(s2_front), e_front,
                        {t: v for t, v in coeff_sq.items() if t in TERMS}, m_eff,
                        extra_avar=gm_s2_front)
@@ -1671,11 +1690,14 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
             "that averages out near these taus (not an IEEE 952 term)")
 
 
-def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int) -> None:
+def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
+             gm: tuple[float, float] | None = None) -> None:
     """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
     estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
-    :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms); for a
-    bounded term, with that term added at its 95 % upper bound. A bounded term with
+    :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms, and the
+    Gauss-Markov term ``gm`` = (sigma_GM, Tc) when the fit has one: its two parameters are then
+    nuisance parameters of every bound); for a bounded term, with that term added at its 95 %
+    upper bound. A bounded term with
     crb_rel_sd >~ 0.5 is not identifiable from a capture of this length even if it were as
     large as its bound: only a longer capture can resolve it. Where the bound is wider than
     ``TARGET_REL_SD`` (95 % of estimates within +-25 %), ``capture_h_for_25pct`` is the capture
@@ -1699,7 +1721,7 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int) -> None:
     length = (n_phase - 1) * tau0
     for coeffs, report in models:
         try:
-            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0)
+            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=gm)
         except (ValueError, np.linalg.LinAlgError):
             continue
         for t in report:
@@ -1708,7 +1730,7 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int) -> None:
             if t != "Q" and best[t] > TARGET_REL_SD:  # how long a capture would resolve it
                 try:
                     need = R.duration_for(coeffs, t, TARGET_REL_SD, 1.0 / tau0,
-                                          t_min_s=min(600.0, 0.5 * length))
+                                          t_min_s=min(600.0, 0.5 * length), gm=gm)
                 except (ValueError, np.linalg.LinAlgError):
                     continue
                 out_terms[t]["capture_h_for_25pct"] = need / 3600.0

@@ -1,0 +1,152 @@
+"""Cramer-Rao capture-length figures with a Gauss-Markov (GM) term in the model
+(rigctl.solvers.allan_crb with ``gm=``): its sigma_GM and Tc are nuisance parameters of every
+IEEE 952 term's bound.
+
+Expected values come from tests/allan_whittle.py (numpy only: the PSD written out, every Fourier
+frequency summed, numerical derivatives of ln S in log parameters), checked first against the
+process' definitions: the GM spectrum is the cosine transform of sigma_GM^2 e^(-|t|/Tc), and the
+spectrum integrates to the Allan variance model the fit uses (tests/allan_independent.py's
+gm_avar and the IEEE 952 terms). The case where GM and B overlap: N 1e-4 u sqrt(s), B 3e-5 u,
+K 1e-6 u/sqrt(s) (a floor from ~25 s to ~1200 s) and a GM term of Tc 60 s (its hump at 113 s)
+and sigma_GM 3.2e-5 u (the hump as high as the floor), 100 Hz.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from rigctl.solvers import allan_cov as C
+from rigctl.solvers import allan_crb as R
+from rigctl.solvers import allan_fit as F
+
+import allan_whittle as W
+from allan_independent import B_FACTOR, gm_avar
+
+FS = 100.0
+IEEE = {"N": 1e-4, "B": 3e-5, "K": 1e-6}
+GM = (3.2e-5, 60.0)
+TARGET = 0.25 / 1.959964  # 95 % of an efficient estimator's results within +-25 %
+
+
+def _ind(coeffs: dict, gm: tuple[float, float] | None, seconds: float) -> dict:
+    p = dict(coeffs)
+    if gm is not None:
+        p.update(sg=gm[0], tc=gm[1])
+    return W.rel_sd(p, seconds, FS)
+
+
+def test_the_gm_spectrum_is_the_allan_models_process() -> None:
+    """The test's spectrum is that of the model the fit uses: its GM part is the cosine
+    transform of sigma_GM^2 e^(-|t|/Tc) (quad, to 1e-8), and N + B + K + GM integrate to the
+    Allan variance N^2/tau + (0.664 B)^2 + K^2 tau/3 + gm_avar(tau) (sigma^2(tau) = 2 int S(f)
+    sin^4(pi f tau) / (pi f tau)^2 df, to 1e-3 from 0.1 to 1000 s); rigctl's psd() is the same."""
+    sg, tc = GM
+    for f in (1e-3, 1e-2, 0.1, 1.0):
+        ft = 4.0 * sg * sg * quad(lambda t: math.exp(-t / tc), 0, np.inf, weight="cos",
+                                  wvar=2.0 * math.pi * f)[0]  # at unit variance: quad's epsabs
+        assert W.psd(np.array([f]), {"sg": sg, "tc": tc}, 1 / FS)[0] == pytest.approx(ft, rel=1e-8)
+    p = {**IEEE, "sg": sg, "tc": tc}
+    pieces = 400  # x = pi f tau over [0, 400 pi] by its half-periods, then white noise's tail
+    for tau in (0.1, 1.0, 10.0, 100.0, 1000.0):
+        def g(x: float) -> float:
+            return W.psd(np.array([x / (math.pi * tau)]), p, 1 / FS)[0] * math.sin(x) ** 4 / x ** 2
+        body = sum(quad(g, k * math.pi, (k + 1) * math.pi)[0] for k in range(pieces))
+        tail = 2.0 * IEEE["N"] ** 2 * 3.0 / 8.0 / (pieces * math.pi)  # <sin^4> = 3/8
+        avar = 2.0 / (math.pi * tau) * (body + tail)
+        model = (IEEE["N"] ** 2 / tau + (B_FACTOR * IEEE["B"]) ** 2 + IEEE["K"] ** 2 * tau / 3.0
+                 + gm_avar(np.array([tau]), sg * sg, tc)[0])
+        assert avar == pytest.approx(model, rel=1e-3), tau
+    f = np.geomspace(1e-4, 50.0, 7)
+    np.testing.assert_allclose(R.psd(f, IEEE, 1 / FS, gm=GM), W.psd(f, p, 1 / FS), rtol=1e-12)
+
+
+@pytest.mark.parametrize("hours", [0.1, 2.0])  # 18000 bins (all exact), 360000 (quadrature)
+def test_bound_with_gm_matches_the_independent_fisher(hours: float) -> None:
+    """Every bound (Q, N, B, K and the GM term's own sigma_GM and Tc) against the independent
+    Whittle sum, with and without the GM term (measured: within 1e-9)."""
+    coeffs = {"Q": 3e-6, **IEEE}
+    t = hours * 3600.0
+    for gm in (GM, None):
+        got = R.crb_rel_sd(coeffs, t, FS, gm=gm)
+        ind = _ind(coeffs, gm, t)
+        ind = {{"sg": "GM_sigma", "tc": "GM_tc"}.get(k, k): v for k, v in ind.items()}
+        assert set(got) == set(ind)
+        for k, v in ind.items():
+            assert got[k] == pytest.approx(v, rel=1e-6), (gm, k, got[k], v)
+    # a term of zero size is no term: the figures without GM, to the bit
+    assert R.crb_rel_sd(coeffs, t, FS, gm=(0.0, 60.0)) == R.crb_rel_sd(coeffs, t, FS)
+
+
+def test_the_gm_term_makes_b_figure_longer_where_they_overlap() -> None:
+    """The GM hump on B's floor: B's capture length for +-25 % grows (measured 0.43 h -> 1.21
+    h); the independent bound says the same (at the length without GM it is still above the
+    target with GM; at the length with GM it is the target). No IEEE bound falls with the term.
+    Control: a GM term far below the floor (Tc 0.05 s, sigma_GM 1.1e-3 u) is a white noise at
+    B's frequencies, and B's figure is that of N^2 + 2 sigma_GM^2 Tc without the term within 5 %
+    (measured 7.75 h and 7.47 h): its parameters take nothing of B's where they do not overlap."""
+    no = R.duration_for(IEEE, "B", TARGET, FS)
+    yes = R.duration_for(IEEE, "B", TARGET, FS, gm=GM)
+    assert yes > 2.0 * no, (no / 3600, yes / 3600)
+    assert _ind(IEEE, None, no)["B"] == pytest.approx(TARGET, rel=1e-4)
+    assert _ind(IEEE, GM, no)["B"] > 1.5 * TARGET
+    assert _ind(IEEE, GM, yes)["B"] == pytest.approx(TARGET, rel=1e-4)
+    for hours in (0.5, 2.0, 12.0):
+        with_gm, without = R.crb_rel_sd(IEEE, hours * 3600, FS, gm=GM), R.crb_rel_sd(IEEE, hours * 3600, FS)
+        for k in IEEE:
+            assert with_gm[k] >= without[k], (hours, k)
+    sg, tc = 3.2e-5 * math.sqrt(60.0 / 0.05), 0.05
+    far = R.duration_for(IEEE, "B", TARGET, FS, gm=(sg, tc))
+    white = {**IEEE, "N": math.sqrt(IEEE["N"] ** 2 + 2.0 * sg * sg * tc)}
+    assert far == pytest.approx(R.duration_for(white, "B", TARGET, FS), rel=0.05)
+
+
+def test_gls_on_the_allan_curve_reaches_the_bound_with_gm() -> None:
+    """The Allan curve holds that information: the GLS bound on 40 overlapping Allan variances
+    of a 12 h capture, with their covariance (allan_cov, its GM kernel) and the model's
+    derivatives in (N^2, B^2, K^2, sigma_GM^2, Tc) by central differences, equals the spectral
+    bound within 2 % for every term and both GM parameters (measured 0.1-1.5 %)."""
+    tau0, seconds = 1.0 / FS, 12 * 3600.0
+    n_phase = int(seconds * FS) + 1
+    ms = np.unique(np.round(np.geomspace(1, (n_phase - 1) // 4, 40)).astype(np.int64))
+    tau = ms * tau0
+    sg, tc = GM
+    cov = C.combine(C.term_covariances(tau0, ms, n_phase, tc=tc),
+                    {**{k: v * v for k, v in IEEE.items()}, "G": sg * sg})
+    theta = np.array([IEEE["N"] ** 2, IEEE["B"] ** 2, IEEE["K"] ** 2, sg * sg, tc])
+
+    def avar(th: np.ndarray) -> np.ndarray:
+        return th[0] / tau + B_FACTOR ** 2 * th[1] + th[2] * tau / 3.0 + gm_avar(tau, th[3], th[4])
+
+    jac = []
+    for i in range(theta.size):
+        up, dn = theta.copy(), theta.copy()
+        up[i] *= 1 + 1e-5
+        dn[i] *= 1 - 1e-5
+        jac.append((avar(up) - avar(dn)) / (2e-5 * theta[i]))
+    a = np.array(jac).T
+    pc = np.linalg.inv(a.T @ np.linalg.solve(cov, a))
+    rel = np.sqrt(np.diag(pc)) / theta
+    gls = {"N": rel[0] / 2, "B": rel[1] / 2, "K": rel[2] / 2, "GM_sigma": rel[3] / 2, "GM_tc": rel[4]}
+    crb = R.crb_rel_sd(IEEE, seconds, FS, gm=GM)
+    for k, v in gls.items():
+        assert v == pytest.approx(crb[k], rel=0.02), (k, v, crb[k])
+
+
+def test_fit_terms_passes_its_gm_term_to_the_figures() -> None:
+    """_add_crb, the fit's step: with ``gm`` its figures are those of the bound with the term
+    (a bounded B at its upper bound), without it those of the IEEE terms alone, bit for bit."""
+    co = {"N": F.NC.Coefficient(1e-4, (0.99e-4, 1.01e-4), (0.98e-4, 1.02e-4)),
+          "B": F.NC.Coefficient(1e-5, upper95=3e-5, bound_from="fit")}
+    seconds = 900.0  # B at 3e-5 needs 0.43 h for +-25 % (1.21 h with the GM term)
+    n_phase = int(seconds * FS) + 1
+    for gm in (GM, None):
+        terms = {"N": {}, "B": {}}
+        F._add_crb(terms, co, 1 / FS, n_phase, gm=gm)
+        length = (n_phase - 1) / FS
+        assert terms["B"]["crb_rel_sd"] == R.crb_rel_sd({"N": 1e-4, "B": 3e-5}, length, FS, gm=gm)["B"]
+        assert terms["N"]["crb_rel_sd"] == R.crb_rel_sd({"N": 1e-4}, length, FS, gm=gm)["N"]
+        need = terms["B"]["capture_h_for_25pct"] * 3600.0
+        assert _ind({"N": 1e-4, "B": 3e-5}, gm, need)["B"] == pytest.approx(TARGET, rel=1e-4)
