@@ -169,6 +169,9 @@ _PHASES = [("rigctl.recording.recording_reader", "RowReader.read", "read"),
            ("rigctl.analysis.allan", "_AxisStream.add", "accumulate"),
            ("rigctl.analysis.allan", "_AxisStream.add_written", "accumulate"),
            ("rigctl.analysis.allan", "analyse_axis", "analysis"),
+           # the trailing axes' noise IDs on the decimated copy: tasks of their own since
+           # allan.SPLIT_NOISE_IDS, before it inside analyse_axis
+           ("rigctl.analysis.allan", "_AxisStream.dec_noise_ids", "analysis"),
            ("rigctl.analysis.allan", "_stream_chunks", "wall:stream"),
            ("rigctl.commands.allan_cmd", "compute", "wall:compute"),
            ("rigctl.commands.allan_cmd", "store", "wall:store"),

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import io
+import math
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -14,7 +16,8 @@ import yaml
 
 from rigctl.config.config import load_config
 from rigctl.engine.procedure import load_procedure
-from rigctl.run.runner import run_procedure
+from rigctl.progress import NullProgress
+from rigctl.run.runner import RunOptions, run_procedure
 from rigctl.sim.hardware import start_hardware
 from rigctl.sim.wire_config import write_wire_config
 
@@ -54,38 +57,120 @@ def hardware(tmp: Path, speed: float, **kw: Any):
         hw.close()
 
 
-def run(proc: str, cfg_path: Path, out: Path, params: dict[str, str]):
+def run(proc: str | Path, cfg_path: Path, out: Path, params: dict[str, str], options: RunOptions | None = None):
     cfg = load_config(cfg_path)
     p = load_procedure(ROOT / "procedures" / proc, params, cfg.limits)
-    res = run_procedure(p, cfg, out, console=io.StringIO(), install_signals=False)
+    res = run_procedure(p, cfg, out, console=io.StringIO(), install_signals=False, options=options)
     assert res.exit_code == 0, res.message
     return res, cfg
 
 
-def wired_run(tmp: Path, proc: str, params: dict[str, str], table: str, link: str, speed: float,
-              during=None, hw_kw: dict | None = None, suspenders: dict | None = None):
-    """Run ``proc`` over the wire against fresh emulated hardware (``hw_kw``: e.g.
-    imu_protocol="vectornav"; ``suspenders``: the config's section); returns (recording, truth,
-    hw info)."""
+#: a point of a run: a condition on (the engine, the :class:`RunPoints` watching it), checked at
+#: every poll of the engine and at the start of every step
+RunPoint = Callable[[Any, "RunPoints"], bool]
+
+
+def _finished(points: RunPoints, kind: str) -> int:
+    return sum(seg.kind == kind for seg in points.done)
+
+
+def sampling(kind: str, after_samples: int = 0, finished: int = 0) -> RunPoint:
+    """The poll at which a ``kind`` step (warmup, orientation, ...) has sampled ``after_samples``
+    IMU samples of its window, once ``finished`` segments of that kind have been finished."""
+    def at(engine, points: RunPoints) -> bool:
+        step = engine.current_step
+        return (points.starting is None and step is not None and step.kind == kind
+                and engine.sampling_from is not None and engine.rec.n_imu - engine.sampling_from >= after_samples
+                and _finished(points, kind) >= finished)
+    return at
+
+
+def starting(kind: str, finished: int = 0) -> RunPoint:
+    """The start of a ``kind`` step, before its command, once ``finished`` segments of that kind
+    have been finished."""
+    def at(engine, points: RunPoints) -> bool:
+        return points.starting is not None and points.starting.kind == kind and _finished(points, kind) >= finished
+    return at
+
+
+class RunPoints(NullProgress):
+    """A progress display that acts at defined points of a run instead of showing anything: each
+    ``(point, action)`` fires once, the first time its point holds, in the engine's thread
+    (``update`` runs at every poll, ``step_started`` before every step's command). ``fired``:
+    (index, the run's rig time s) of those that did; ``done``: the segments finished so far;
+    ``starting``: the step being started (None at a poll)."""
+
+    def __init__(self, actions: list[tuple[RunPoint, Callable[[], Any]]]) -> None:
+        super().__init__()
+        self.actions = actions
+        self.engine: Any = None
+        self.done: list = []
+        self.fired: list[tuple[int, float]] = []
+        self.starting: Any = None
+
+    def on_engine(self, engine: Any) -> None:
+        self.engine = engine if engine is not None else self.engine
+
+    def step_started(self, step: Any) -> None:
+        self.starting = step
+        try:
+            self._check(self.engine.rig.clock.now() if self.engine is not None else math.nan)
+        finally:
+            self.starting = None
+
+    def step_finished(self, step: Any, segment: Any = None) -> None:
+        if segment is not None:
+            self.done.append(segment)
+
+    def update(self, now_s: float, table_state: Any = None, n_imu_samples: int | None = None,
+               dropped: int | None = None) -> None:
+        self._check(now_s)
+
+    def _check(self, now_s: float) -> None:
+        if self.engine is None:
+            return
+        for i, (point, action) in enumerate(self.actions):
+            if i not in (f for f, _ in self.fired) and point(self.engine, self):
+                self.fired.append((i, now_s))
+                action()
+
+
+def pull(name: str, down_s: float = 0.05) -> Callable[[Any], threading.Thread]:
+    """An action for :func:`wired_run`: pull the cable of pty ``name`` for ``down_s`` wall s (then
+    a new pty at the same symlink), in a thread of its own so that the run goes on meanwhile."""
+    def act(hw) -> threading.Thread:
+        t = threading.Thread(target=hw.disconnect, args=(name, down_s), name=f"pull-{name}")
+        t.start()
+        return t
+    return act
+
+
+def wired_run(tmp: Path, proc: str | Path, params: dict[str, str], table: str, link: str, speed: float,
+              at: list[tuple[RunPoint, Callable[[Any], Any]]] | None = None, hw_kw: dict | None = None,
+              suspenders: dict | None = None):
+    """Run ``proc`` (in procedures/, or a path) over the wire against fresh emulated hardware
+    (``hw_kw``: e.g. imu_protocol="vectornav"; ``suspenders``: the config's section; ``at``:
+    (point of the run, action on the hardware) -- e.g. :func:`pull` -- done when the run reaches
+    that point, :class:`RunPoints`); returns (recording, truth, hw info; info["fired"]: the rig
+    times at which the actions were done, in the order of ``at``, None for those not done)."""
     with hardware(tmp, speed, **(hw_kw or {})) as (hw, raw):
         cfg_path = write_wire_config(tmp / "wired.yaml", raw, hw, table=table, link=link)
         if suspenders is not None:
             d = yaml.safe_load(cfg_path.read_text())
             d["suspenders"] = suspenders
             cfg_path.write_text(yaml.safe_dump(d, sort_keys=False))
-        timers = [threading.Timer(delay, fn) for delay, fn in (during or [])]
-        for t in timers:
-            t.start()
+        started: list = []
+        points = RunPoints([(point, lambda act=act: started.append(act(hw))) for point, act in (at or [])])
         t0 = time.perf_counter()
-        try:
-            res, cfg = run(proc, cfg_path, tmp / "runs", params)
-        finally:
-            for t in timers:
-                t.cancel()
-                t.join()
+        res, cfg = run(proc, cfg_path, tmp / "runs", params,
+                       RunOptions(progress=points, on_engine=points.on_engine) if at else None)
         info = {"wall_s": time.perf_counter() - t0, "truth": hw.truth(), "hw": hw,
                 "imu_overflow": hw.slots["imu"].endpoint.overflow_bytes, "imu_frames_sent": hw.imu_server.frames_sent,
-                "reconnects": {k: s.reconnects for k, s in hw.slots.items()}}
+                "fired": [dict(points.fired).get(i) for i in range(len(at or []))]}
+        for t in started:
+            if isinstance(t, threading.Thread):
+                t.join()                                # e.g. the pulled cables are plugged in again
+        info["reconnects"] = {k: s.reconnects for k, s in hw.slots.items()}
     return res.recording, cfg, info
 
 

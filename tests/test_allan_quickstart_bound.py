@@ -83,3 +83,8 @@ def test_an_unresolved_b_bound_holds_the_truth_where_the_curve_dips(tmp_path: Pa
     term = r["fit"]["terms"]["B"]
     assert math.isclose(term["curve_limit_rad/s"], point, rel_tol=1e-9)
     assert math.isclose(term["curve_limit95_rad/s"], b.upper95, rel_tol=1e-12)
+    # the text gives the 95 % bound and, beside it, what the lowest point alone reads
+    from rigctl.analysis.allan_text import term_lines
+    line = next(s for s in term_lines(r) if "bias_instability" in s)
+    assert f"< {b.upper95 * DEG_H:.5g} deg/h" in line, line
+    assert f"the curve's lowest point alone reads {point * DEG_H:.5g} deg/h" in line, line

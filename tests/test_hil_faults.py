@@ -18,7 +18,8 @@ from rigctl.drivers.xsens import RateDoesNotFitError
 from rigctl.drivers.xsens_imu import XsensConfigError, XsensImu
 from rigctl.sim.hardware import start_hardware
 
-from hil_support import affordable_speed, hardware, segments, sim_config, wait_progress, wait_until, wired_run
+from hil_support import (RunPoints, affordable_speed, hardware, pull, sampling, segments, sim_config, starting,
+                         wait_progress, wait_until, wired, wired_run)
 
 
 def test_imu_byte_errors_1e6_frames_through_the_driver(tmp_path):
@@ -174,16 +175,23 @@ def test_interlock_and_following_error_trips(tmp_path, protocol):
 
 def test_pty_disconnect_mid_run_is_reconnected(tmp_path):
     """Pull the IMU's and the table's pty in the middle of a run: the drivers reconnect (same
-    symlink, new pty), the engine pauses on the gap and re-runs the step, the run completes."""
+    symlink, new pty), the engine pauses on the gap and re-runs the step, the run completes.
+    The cables are pulled at defined points of the run (not after wall-clock delays, which on a
+    loaded host could fall before the run had started or between its steps): the IMU's 10 s
+    (1000 samples at 100 Hz) into the warm-up's window, the table's 1 s into the third
+    orientation's window; each cuts its step off."""
     params = {"warmup": "2 min", "sample": "3 s"}
     rec, cfg, info = wired_run(tmp_path, "24pos.yaml", params, "acl", "pty", 100.0,
-                               during=[(0.6, lambda: hw_disconnect(info_box, "imu")),
-                                       (1.2, lambda: hw_disconnect(info_box, "table-acl"))])
+                               at=[(sampling("warmup", after_samples=1000), pull("imu")),
+                                   (sampling("orientation", after_samples=100, finished=2), pull("table-acl"))])
+    assert None not in info["fired"]
     assert info["reconnects"]["imu"] == 1 and info["reconnects"]["table-acl"] == 1
     seg = segments(rec)
     done = seg["status"] == b"complete"
     assert done.sum() == 25 and list(seg["kind"][done]).count(b"orientation") == 24
-    assert (~done).sum() >= 1                  # the step cut off by the outage, then re-run
+    # the steps cut off by the outages, then re-run: the warm-up and the third orientation
+    cut = list(zip(seg["kind"][~done], seg["step"][~done]))
+    assert (b"warmup", seg["step"][done][0]) in cut and (b"orientation", seg["step"][done][3]) in cut, cut
     import h5py
     with h5py.File(rec, "r") as f:
         c = f["imu/counter"][()].astype(np.int64)
@@ -192,27 +200,71 @@ def test_pty_disconnect_mid_run_is_reconnected(tmp_path):
     assert kinds & {b"suspend", b"resume"}
 
 
-info_box: dict = {}
+#: three orientations with the settle of procedures/24pos.yaml (its 60 s timeout)
+STALL_PROC = """procedure: settle-through-a-stall
+description: three orientations; the emulator stalls while the second settles
+defaults:
+  settle: {position_window_deg: 0.01, rate_window_dps: 0.02, hold: 2 s, timeout: 60 s}
+  sample: 2 s
+  discard: 0.5 s
+steps:
+  - orientations: {angles_deg: [[0, 0, 0], [90, 0, 0], [90, 90, 0]]}
+"""
 
 
-def hw_disconnect(box: dict, name: str) -> None:
-    box["hw"].disconnect(name, down_s=0.05)
+def test_settle_is_timed_on_the_table_through_an_emulator_stall(tmp_path):
+    """The emulator's physics stands still for 1 s of wall time (100 s of rig time, as when the
+    host starves it or it waits for the IMU stream's client) from the start of the second
+    orientation, so the table gets its command and cannot move yet: the table has not had the time to settle, and the settle's 60 s timeout (on the
+    table's own time) must not fail it, though the run's clock passes it. Before, the timeout on
+    the run's clock failed the step ('did not settle within 60 s', the table's time frozen), as
+    the wired soaks and 24-position runs did at 100x under load. The IMU silence allowance is
+    raised beyond the stall, so that the stall does not pause the run instead."""
+    proc = tmp_path / "stall.yaml"
+    proc.write_text(STALL_PROC)
+    rec, cfg, info = wired_run(tmp_path, proc, {}, "acl", "pty", 100.0,
+                               at=[(starting("orientation", finished=1), lambda hw: hw.pause_physics(1.0))],
+                               suspenders={"imu_timeout_s": "10 min"})
+    assert info["fired"][0] is not None
+    seg = segments(rec)
+    assert list(seg["status"]) == [b"complete"] * 3 and list(seg["kind"]) == [b"orientation"] * 3
+    # the second settle spanned the stall: longer than the timeout on the run's clock
+    assert seg["settle_time"][1] > 60.0
+    np.testing.assert_allclose(np.degrees(seg["measured_angle"]), [[0, 0, 0], [90, 0, 0], [90, 90, 0]], atol=0.01)
 
 
-@pytest.fixture(autouse=True)
-def _capture_hardware(monkeypatch):
-    """Let hw_disconnect reach the hardware started inside wired_run."""
-    import hil_support
+@pytest.mark.parametrize("case", ["too slow", "clock stands still"])
+def test_settle_on_the_table_still_fails_a_table_that_does_not_settle(tmp_path, case):
+    """The settle measured on the table's time still fails: a table too slow for the timeout
+    (acceleration limited to 2 deg/s^2: 90 deg take 13.4 s, the timeout is 1 s of its own time,
+    counted from its first reading after the command); a table whose time
+    stands still (the emulator's physics stopped for 2 s of wall time, 200 s of rig time, from
+    the start of the step) once its time has not moved for ten timeouts (10 s) of the run's
+    clock."""
+    import io
 
-    real = hil_support.start_hardware
+    from rigctl.engine.procedure import load_procedure
+    from rigctl.run.runner import RunOptions, run_procedure
 
-    def capture(*a, **kw):
-        hw = real(*a, **kw)
-        info_box["hw"] = hw
-        return hw
-    monkeypatch.setattr(hil_support, "start_hardware", capture)
-    yield
-    info_box.clear()
+    proc = tmp_path / "stuck.yaml"
+    proc.write_text(STALL_PROC.replace("hold: 2 s, timeout: 60 s", "hold: 0.5 s, timeout: 1 s"))
+    with wired(tmp_path, 100.0, pulses="none", suspenders={"imu_timeout_s": "10 min"}) as (hw, cfg_path):
+        if case == "too slow":
+            import yaml
+            d = yaml.safe_load(cfg_path.read_text())
+            d["table"]["limits"]["accel_dps2"] = [2, 2, 4]
+            cfg_path.write_text(yaml.safe_dump(d, sort_keys=False))
+        cfg = load_config(cfg_path)
+        actions = [] if case == "too slow" else [(starting("orientation"), lambda: hw.pause_physics(2.0))]
+        points = RunPoints(actions)
+        res = run_procedure(load_procedure(proc, {}, cfg.limits), cfg, tmp_path / "runs", console=io.StringIO(),
+                            install_signals=False, options=RunOptions(progress=points, on_engine=points.on_engine))
+    if case == "too slow":
+        assert res.exit_code != 0 and "step 2 (angles [90, 0, 0] deg) did not settle within 1 s: axis 1" in res.message, \
+            res.message
+    else:
+        assert res.exit_code != 0 and points.fired, res.message
+        assert "the table's time stood still at" in res.message and "while it settled" in res.message, res.message
 
 
 def test_gnss_marks_with_crc_check_and_timeguard(tmp_path):

@@ -83,6 +83,11 @@ LEAD_DATASET = True
 #: the other dataset's chunks run alone for long (one dataset's chain keeps ~1.3 cores busy:
 #: its one pass, then its three sums on two workers)
 LEAD_CHUNKS = 32
+#: the axes that finish together (a dataset's, after its last chunk) get their noise IDs on
+#: the decimated copy as tasks of their own, queued before their analyses
+#: (:meth:`_AxisStream.dec_noise_ids`: compiled lag-1 sums without the GIL, beside the other
+#: axes' fits; False: inside each analysis; the same values)
+SPLIT_NOISE_IDS = True
 #: the interpreter's GIL switch interval (s) while a record streams and its axes are analysed
 #: (restored afterwards; None: left alone). A worker coming back from a compiled kernel (the
 #: sums, the one pass; they run without the GIL) needs the GIL for its few lines of Python
@@ -360,13 +365,34 @@ class _AxisStream:
         self.x_last = float(x[-1])
 
     def noise_id(self, m: int, n: int) -> int:
-        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
-        if m % self.dec == 0:
-            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count.
+        Taken early (:meth:`head_noise_ids`, :meth:`dec_noise_ids`) where it could be."""
         hit = self._nid.get((int(m), int(n)))
         if hit is not None:
             return hit
+        if m % self.dec == 0:
+            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+
+    def dec_noise_ids(self) -> None:
+        """The noise IDs that read the decimated copy (factors a multiple of ``dec``), once
+        the axis' last chunk is summed (the copy is complete), for the record's phase points
+        as :meth:`result` counts them: a task of their own, queued before the analyses of
+        the axes that finish together (:data:`SPLIT_NOISE_IDS`), so that the lag-1 sums
+        (compiled, without the GIL; ~17 ms per axis of a 12 h x 2 kHz record) of the
+        analysis the workers take last run beside the others' fits instead of inside it.
+        The same calls with the same arguments as :meth:`noise_id` makes, which then finds
+        them."""
+        n_phase = self.n_rate + 1
+        for m in self.ms.tolist():
+            if m % self.dec:
+                continue
+            n = NID.n_terms("oadev", n_phase, m)
+            try:
+                self._nid[(m, n)] = NID.noise_id(self._dec[: self.n_dec], m // self.dec,
+                                                 "oadev", n)
+            except (ValueError, ArithmeticError):
+                pass  # left to the analysis, which reports it as before
 
     def head_full(self) -> bool:
         """The full-resolution head is complete (it does not change any more)."""
@@ -895,7 +921,10 @@ def collector_paused_for_command() -> contextlib.AbstractContextManager:
     every object made during it: ~120,000, most of them the results database's modules
     imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
     this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
-    meanwhile (none by the pipeline) waits for the next full collection instead."""
+    meanwhile waits for the next full collection instead (for the command: the process'
+    exit): the stream's nested functions (:func:`_pipelined`'s callbacks refer to each
+    other) hold its chunk buffers, ~84 MB for a 12 h x 6-axis file, which are then freed at
+    the exit instead of after the analyses (the peak, during the stream, is the same)."""
     return _gc_paused(PAUSE_GC, promote=True)
 
 
@@ -933,14 +962,25 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                         when_streaming: Callable[[], Any] | None,
                         stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
     """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
+    ids: dict[str, Any] = {}  # axis -> its task of noise IDs on the decimated copy
+
     def analyse(a: str) -> dict[str, Any]:
+        if a in ids:  # queued before this task: started, so it cannot wait for a worker
+            ids[a].result()
         return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+
+    def queue(group: list[str], rank: int) -> dict[str, Any]:
+        """The analyses of axes whose last chunk is summed, at ``rank``; with
+        :data:`SPLIT_NOISE_IDS` their decimated noise IDs first, as tasks of their own."""
+        if SPLIT_NOISE_IDS and len(group) > 1:
+            ids.update({a: pool.submit_at(rank, streams[a].dec_noise_ids) for a in group})
+        return {a: pool.submit_at(rank, analyse, a) for a in group}
 
     early: dict[str, Any] = {}  # axis -> its analysis, queued when its dataset was done
 
     def dataset_done(group: list[str]) -> None:
-        for a in group:  # after every chunk task that is queued (the other dataset's)
-            early[a] = pool.submit_at(2, analyse, a)
+        # after every chunk task that is queued (the other dataset's)
+        early.update(queue(group, 2))
 
     with _PriorityPool(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
@@ -964,7 +1004,7 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                "gaps": gap_info, "outliers": outliers, "axes": {}}
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
-        futs = {a: early[a] if a in early else pool.submit(analyse, a) for a in axes}
+        futs = {**queue([a for a in axes if a not in early], 0), **early}
         done = [futs[a].result() for a in axes]
     for a, r in zip(axes, done):
         out["axes"][a] = r
