@@ -283,21 +283,25 @@ if HAVE_NUMBA:
         rows[p]], and i counts the pieces' values one after the other (one piece for one
         array)."""
         k = 0
-        i = 0
-        prev = 0
+        i = 0  # values before this piece
         for p in range(starts.size):
-            s = starts[p]
-            ln = lanes[p]
-            for j in range(s, s + rows[p]):
-                v = c[ln, j]
-                if i > 0:
-                    d = v - prev
-                    if d > 1:
-                        out_i[k] = i
-                        out_d[k] = d
-                        k += 1
-                prev = v
-                i += 1
+            m = rows[p]
+            if m == 0:
+                continue
+            x = c[lanes[p], starts[p]: starts[p] + m]
+            if i > 0:  # the step from the last value of the pieces before
+                d = x[0] - c[lanes[p - 1], starts[p - 1] + rows[p - 1] - 1]
+                if d > 1:
+                    out_i[k] = i
+                    out_d[k] = d
+                    k += 1
+            for j in range(1, m):  # (a loop the compiler vectorizes on one contiguous lane)
+                d = x[j] - x[j - 1]
+                if d > 1:
+                    out_i[k] = i + j
+                    out_d[k] = d
+                    k += 1
+            i += m
         return k
 
     @njit(cache=True, nogil=True)
@@ -831,6 +835,16 @@ def _one_piece(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n], np.int64)
 
 
+def _one_lane(base: np.ndarray, lanes: np.ndarray, starts: np.ndarray, rows: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pieces that all lie in one lane of ``base`` as pieces of that lane alone (a 1 x n
+    array, contiguous: the compiled loops run on it as on an array)."""
+    if base.shape[0] > 1 and lanes.size and bool(np.all(lanes == lanes[0])):
+        ln = int(lanes[0])
+        return base[ln: ln + 1], np.zeros_like(lanes), starts, rows
+    return base, lanes, starts, rows
+
+
 def phase_cols3(blk: np.ndarray, offsets: np.ndarray, tau0: float, x0: np.ndarray,
                 outs: list[np.ndarray], bs: int,
                 pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -847,7 +861,7 @@ def phase_cols3(blk: np.ndarray, offsets: np.ndarray, tau0: float, x0: np.ndarra
         base, pieces = blk.reshape(1, -1), _one_piece(blk.shape[0])
     else:
         base = blk
-    lanes, starts, rows = pieces
+    base, lanes, starts, rows = _one_lane(base, *pieces)
     nb = (int(np.sum(rows)) + bs - 1) // bs
     bmin = np.empty((3, nb))
     bmax = np.empty((3, nb))
@@ -867,7 +881,7 @@ def counter_jumps(c: np.ndarray,
     if pieces is None:
         c = np.ascontiguousarray(c, dtype=np.int64)
         c, pieces = c.reshape(1, -1), _one_piece(c.size)
-    lanes, starts, rows = pieces
+    c, lanes, starts, rows = _one_lane(c, *pieces)
     n = int(np.sum(rows))
     out_i = np.empty(max(n - 1, 0), dtype=np.int64)
     out_d = np.empty_like(out_i)
