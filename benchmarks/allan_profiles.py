@@ -257,13 +257,23 @@ def informative_taus(edf: np.ndarray) -> np.ndarray:
 
 
 def check_axis(r: dict) -> dict:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from allan_independent import bound_ceiling
+
+    from rigctl.solvers import allan_fit as F
+
     sensor, unit = r["sensor"], r["_unit"]
     tau = np.asarray(r["tau_s"], float)
     dev = np.asarray(r[f"adev_{r['_si']}"], float)
     fac = float(np.asarray(r[f"adev_{unit}"])[0] / dev[0])
     informative = informative_taus(r["edf"])
     sel = informative if informative.any() else np.ones(tau.size, bool)
-    lim = limits_from_curve(tau[sel], dev[sel])
+    # what a bound may reach: the curve where the fit needs its own model error (it holds its
+    # terms to the measured curve there), else what the curve permits at 95 %, its upper
+    # chi-square band simultaneous over these taus (tests/allan_independent.bound_ceiling)
+    lim = limits_from_curve(tau[sel], bound_ceiling(dev[sel], np.asarray(r["edf"], float)[sel],
+                                                    r["fit"]["check"]["model_error_rel"],
+                                                    F.MODEL_ERROR_HOLD))
     lim_all = limits_from_curve(tau, dev)
     over, over_all = [], []
     for t in r["fit"]["terms"]:

@@ -51,6 +51,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if result.exit_code == EXIT_OK:
         return EXIT_OK
     where = f"{result.run_dir / RUN_LOG}"
+    if result.exit_code == EXIT_INTERRUPTED and result.status == "complete":  # during the analysis:
+        raise Interrupted(result.message)                                       # it says it all
     if result.exit_code == EXIT_INTERRUPTED:
         raise Interrupted(f"{result.message}; recording {result.recording} closed as {result.status} "
                           f"(rigctl resume {result.run_dir} continues it)")

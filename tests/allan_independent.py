@@ -11,6 +11,8 @@ solvers (one definition for every test that reads a real curve this way).
   that fit's covariance, the correlation across taus neglected.
 * ``agree``: two values within their combined 95 % intervals, in log: |ln(a/b)| <=
   sqrt(h_a^2 + h_b^2), h the log half-width of each interval on the side facing the other value.
+* ``bound_ceiling``: the curve each term's reported bound is held under, read from the
+  deviations and their EDF with scipy's chi-square (curve_ceiling below).
 * ``assert_gm_agrees``: rigctl's Tc and sigma_GM against ``white_gm_fit``'s by ``agree``, and the
   same comparison rejecting either value 2x off (either way), so that it can fail.
 """
@@ -20,12 +22,30 @@ import math
 
 import numpy as np
 from scipy.optimize import least_squares, nnls
+from scipy.stats import chi2
 
 #: flicker FM's Allan deviation per unit B: sqrt(2 ln 2 / pi) = 0.664
 B_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
 Z95 = 1.959964
 #: rad/s to deg/h (the messages only)
 RAD_S_TO_DEG_H = 180.0 / math.pi * 3600.0
+
+
+def bound_ceiling(dev: np.ndarray, edf: np.ndarray, model_error_rel: float,
+                  hold: float, alpha: float = 0.025) -> np.ndarray:
+    """The curve a bound may not exceed, at each tau (its read-off per term: c^2 A(tau) <=
+    ceiling^2 at every tau). Where the fit needs a model error of at least ``hold`` (its
+    MODEL_ERROR_HOLD; the curve is not IEEE 952 and the fit holds its terms to the measured
+    curve) the measured deviations themselves. Else the curve is an estimate and a 95 % bound
+    can only be held to what it permits at 95 %: the upper end of each deviation's chi-square
+    band, sigma sqrt(nu / chi2_q(nu)), simultaneous over the n taus given (Sidak, q = 1 - (1 -
+    alpha)^(1/n), the most the fit's own family-wise band can reach: it counts the effective
+    number of independent taus, at most n)."""
+    dev, edf = np.asarray(dev, float), np.asarray(edf, float)
+    if model_error_rel >= hold:
+        return dev
+    q = -math.expm1(math.log1p(-alpha) / max(dev.size, 1))
+    return dev * np.sqrt(edf / chi2.ppf(q, edf))
 
 
 def gm_avar(tau: np.ndarray, var_gm: float, tc: float) -> np.ndarray:

@@ -18,11 +18,17 @@ from rigctl.analysis import allan as AA
 from rigctl.commands import allan_cmd
 
 
-def _recording(path: Path, n: int = 20_000, seed: int = 3) -> Path:
+def _recording(path: Path, n: int = 20_000, seed: int = 3, gaps: bool = False) -> Path:
     rng = np.random.default_rng(seed)
-    return write_recording(path, 100.0, angular_rate=rng.standard_normal((n, 3)) * 1e-3,
-                           specific_force=rng.standard_normal((n, 3)) * 1e-3 + [0, 0, 9.8],
-                           chunk_rows=4096)
+    walk = np.cumsum(rng.standard_normal((n, 6)), 0) * 1e-6
+    idx = np.arange(n, dtype=np.uint64)
+    if gaps:
+        idx[60_000:] += 5
+        idx[123_457:] += 1
+    return write_recording(path, 100.0, counter=idx,
+                           angular_rate=rng.standard_normal((n, 3)) * 1e-3 + walk[:, :3],
+                           specific_force=rng.standard_normal((n, 3)) * 1e-3 + walk[:, 3:]
+                           + [0, 0, 9.8], chunk_rows=4096)
 
 
 class _Cycle:
@@ -110,3 +116,49 @@ def test_preload_prepares_the_database_write(tmp_path: Path, target: str, expect
     assert p.returncode == 0, p.stderr
     assert p.stdout.split()[-5:] == expect.split(), p.stdout
     assert "Traceback" not in p.stderr
+
+
+def _values(r: dict) -> dict:
+    """An axis' result, every number of it (arrays, the fit's coefficients and check)."""
+    out = {k: np.asarray(v) for k, v in r.items() if isinstance(v, np.ndarray)}
+    out["fit"] = repr(r["fit"])
+    return out
+
+
+@pytest.mark.parametrize("lead,gaps", [(True, False), (True, True), (False, False)])
+def test_split_noise_ids_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                      lead: bool, gaps: bool) -> None:
+    """The noise IDs on the decimated copy taken as tasks of their own before the analyses of
+    the axes that finish together (AA.SPLIT_NOISE_IDS) are the ones each analysis took
+    itself, and the analyses find them (no lag-1 sums of their own): every number of every
+    axis the same, with the lead dataset analysed beside the other's last chunks or all six
+    after the stream, with gaps skipped."""
+    rec = _recording(tmp_path / "r.h5", 160_000, gaps=gaps)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    monkeypatch.setattr(AA, "LEAD_DATASET", lead)
+    found: list = []
+    orig = AA.analyse_axis
+
+    def spy(stream, *args):
+        assert stream.dec == 64
+        found.append((sum(1 for m, _ in stream._nid if m % stream.dec == 0),
+                      sum(1 for m in stream.ms.tolist() if m % stream.dec == 0)))
+        return orig(stream, *args)
+
+    monkeypatch.setattr(AA, "analyse_axis", spy)
+    got = {}
+    for split in (False, True):
+        monkeypatch.setattr(AA, "SPLIT_NOISE_IDS", split)
+        found.clear()
+        res = AA.compute(str(rec), list(AA.AXES), 95)
+        got[split] = {a: _values(r) for a, r in res["axes"].items()}
+        assert len(found) == 6 and min(f[1] for f in found) >= 1, found
+        assert all(f[0] == (f[1] if split else 0) for f in found), found
+    for a, r in got[False].items():
+        assert r.keys() == got[True][a].keys()
+        for k, v in r.items():
+            w = got[True][a][k]
+            assert (np.array_equal(v, w, equal_nan=v.dtype.kind == "f")
+                    if isinstance(v, np.ndarray) else v == w), (a, k)

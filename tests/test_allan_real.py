@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from allan_independent import floor_fit
+from allan_independent import bound_ceiling, floor_fit
 from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.analysis.allan import CHUNK_ROWS as CHUNK
@@ -107,6 +107,13 @@ def _independent(y: np.ndarray, r: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def _reported(r: dict) -> np.ndarray:
     return np.asarray(r[f"adev_{r['_si']}"], dtype=float)
+
+
+def _ceiling(r: dict, sel: np.ndarray) -> np.ndarray:
+    """The reported curve at the taus ``sel`` as a bound's ceiling (allan_independent.bound_ceiling:
+    the curve itself where the fit needs a model error, else its simultaneous upper 95 % band)."""
+    return bound_ceiling(_reported(r)[sel], np.asarray(r["edf"], float)[sel],
+                         r["fit"]["check"]["model_error_rel"], F.MODEL_ERROR_HOLD)
 
 
 def test_pipeline_curve_matches_plain_numpy(adis: dict, mtig: dict) -> None:
@@ -227,7 +234,7 @@ def test_no_bound_above_what_the_curve_allows(adis: dict, mtig: dict) -> None:
         tau = np.asarray(r["tau_s"], dtype=float)
         sel = well_determined(r["edf"])
         assert sel.sum() >= 20
-        lim = limits(tau[sel], _reported(r)[sel])
+        lim = limits(tau[sel], _ceiling(r, sel))
         for t in r["fit"]["terms"]:
             c = getattr(r["fit"]["coefficients"], t)
             if not c.resolved:
@@ -250,7 +257,7 @@ def test_mtig_no_floor_b_is_a_bound_and_the_bump_is_named(mtig: dict) -> None:
     b = fit["coefficients"].B
     assert not b.resolved
     sel = well_determined(r["edf"])
-    assert b.upper95 * DEG_H <= np.min(_reported(r)[sel]) / B_FACTOR * DEG_H * (1 + 1e-9)
+    assert b.upper95 * DEG_H <= np.min(_ceiling(r, sel)) / B_FACTOR * DEG_H * (1 + 1e-9)
     n_ind = white_level(tau, ind)
     assert abs(fit["coefficients"].N.value / n_ind - 1.0) < 0.10
     # the IEEE 952 terms alone (fit.ieee_only, kept since a Gauss-Markov term goes into the
@@ -447,7 +454,9 @@ def test_mtig_bag_with_dropped_messages_octave_and_all_agree(mtig: dict, tmp_pat
         np.testing.assert_allclose(_reported(r)[np.asarray(r["stride"]) == 1],
                                    ind[np.asarray(r["stride"]) == 1], rtol=1e-6)
         assert slope(tau, ind, 160.0, 820.0) < -0.35  # the data: still falling, no floor
-        lim = np.min(ind[well_determined(r["edf"])]) / B_FACTOR
+        sel = well_determined(r["edf"])
+        lim = np.min(bound_ceiling(ind[sel], np.asarray(r["edf"])[sel],
+                                   r["fit"]["check"]["model_error_rel"], F.MODEL_ERROR_HOLD)) / B_FACTOR
         b, nn = r["fit"]["coefficients"].B, r["fit"]["coefficients"].N
         assert not b.resolved, (taus, b.value * DEG_H, [v * DEG_H for v in b.ci95])
         assert b.upper95 <= lim * (1 + 1e-9), (taus, b.upper95 * DEG_H, lim * DEG_H)

@@ -16,7 +16,10 @@ import pytest
 from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
 from rigctl.errors import InputError
-from rigctl.recording.recording_reader import RowReader
+from rigctl.devices import ImuBlock
+from rigctl.recording import recording_reader as RR
+from rigctl.recording.recorder import Recorder
+from rigctl.recording.recording_reader import RowPieces, RowReader, as_array
 from rigctl.solvers import allan_kernels as K
 
 
@@ -52,6 +55,11 @@ def test_row_reader_equals_h5py(tmp_path: Path) -> None:
                 got = r.read(a0, a1, buf)
                 assert got.shape[0] == a1 - a0
                 assert np.array_equal(got, ds[a0:a1]), (name, a0, a1)
+                # the rows where they lie in the mapped file (or read, where it cannot map)
+                v = r.view(a0, a1, np.empty_like(buf))
+                assert isinstance(v, RowPieces) == (direct[name] and a1 > a0), name
+                assert v.shape == ds[a0:a1].shape and np.array_equal(as_array(v), ds[a0:a1])
+                RR.release(v)
             r.close()
     assert direct == {"contiguous": True, "chunked": True, "gzip": False, "partial_width": False,
                       "big_endian": False, "counter": True, "unwritten": False,
@@ -76,6 +84,36 @@ def test_phase_cols3_bit_identical() -> None:
         cols = np.concatenate((blk[:, c], pad)).reshape(-1, 32)
         assert np.array_equal(bmin[c], np.nanmin(cols, axis=1))
         assert np.array_equal(bmax[c], np.nanmax(cols, axis=1))
+    # the same rows as pieces of a byte buffer (ragged lengths, shuffled places, odd byte
+    # offsets: HDF5 does not align chunks), read through lanes: the same bits
+    n = blk.shape[0]
+    cuts = np.concatenate(([0], np.sort(rng.choice(np.arange(1, n), 12, replace=False)), [n]))
+    rows = np.diff(cuts)
+    raw, off = bytearray(8 * 3 * n + 400), np.empty(rows.size, np.int64)
+    cnt = np.arange(n, dtype=np.int64) + 7
+    cnt[cuts[3]:] += 4  # a gap at a piece's first row
+    cnt[5000:] += 1
+    craw, coff = bytearray(8 * n + 400), np.empty(rows.size, np.int64)
+    pos = cpos = 3
+    for p in rng.permutation(rows.size):
+        off[p], coff[p] = pos, cpos
+        b = blk[cuts[p]: cuts[p + 1]].tobytes()
+        raw[pos: pos + len(b)] = b
+        pos += len(b) + int(rng.integers(0, 20))
+        b = cnt[cuts[p]: cuts[p + 1]].tobytes()
+        craw[cpos: cpos + len(b)] = b
+        cpos += len(b) + int(rng.integers(0, 20))
+    base = np.ndarray((8, (len(raw) - 7) // 8), np.float64, buffer=bytes(raw), strides=(1, 8))
+    x1 = start.copy()
+    outs1 = [np.empty(n) for _ in range(3)]
+    bmin1, bmax1 = K.phase_cols3(base, offs, 1 / 2000, x1, outs1, 32, (off % 8, off // 8, rows))
+    assert all(np.array_equal(u, v) for u, v in zip(outs, outs1))
+    assert np.array_equal(x0, x1) and np.array_equal(bmin, bmin1) and np.array_equal(bmax, bmax1)
+    cb = np.ndarray((8, (len(craw) - 7) // 8), np.int64, buffer=bytes(craw), strides=(1, 8))
+    got = K.counter_jumps(cb, (coff % 8, coff // 8, rows))
+    d = np.diff(cnt)
+    assert np.array_equal(got[0], np.flatnonzero(d > 1) + 1) and np.array_equal(got[1], d[d > 1])
+    assert got[0].tolist() == [cuts[3], 5000]
 
 
 def _recording(path: Path, n: int, gaps: bool, seed: int = 4) -> None:
@@ -354,9 +392,9 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                         lambda st, sensor, *a: (events.append(("analyse", st)),
                                                 orig_an(st, sensor, *a))[1])
     reads: list = []
-    orig_read = AA.RowReader.read
-    monkeypatch.setattr(AA.RowReader, "read", lambda self, a, b, out: (
-        reads.append(self.ds.name), orig_read(self, a, b, out))[1])
+    orig_view = AA.RowReader.view  # (how the stream reads a chunk)
+    monkeypatch.setattr(AA.RowReader, "view", lambda self, a, b, out: (
+        reads.append(self.ds.name), orig_view(self, a, b, out))[1])
     got = {}
     for pipelined in (False, True):
         monkeypatch.setattr(AA, "PIPELINED", pipelined)
@@ -454,3 +492,68 @@ def test_gc_paused_while_streaming(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             gc.enable()
         else:
             gc.disable()
+
+
+def _recorder_file(path: Path, n: int, fs: float = 200.0) -> None:
+    """A recording written by rigctl's Recorder, 1000 rows per flush: its 8192-row chunks of
+    the /imu datasets alternate in the file, at byte offsets that are not multiples of 8;
+    with spikes and two gaps in the counter."""
+    rng = np.random.default_rng(11)
+    g = rng.standard_normal((n, 3)) * 1e-3 + np.cumsum(rng.standard_normal((n, 3)), 0) * 1e-7
+    a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
+    for k in (1_000, 45_000, 70_123, 100_000, 140_000):
+        g[k, k % 3] += 0.2
+        a[k, (k + 1) % 3] -= 0.5
+    idx = np.arange(n, dtype=np.uint64)
+    idx[60_000:] += 5
+    idx[123_457:] += 1
+    rec = Recorder(path, {"procedure_name": "mapped rows"}, None, imu_rate_hz=fs,
+                   flush_interval_s=0.0)
+    for s in range(0, n, 1000):
+        e = min(n, s + 1000)
+        rec.append_imu(ImuBlock(time=idx[s:e] / fs, counter=idx[s:e], specific_force=a[s:e],
+                                angular_rate=g[s:e], temperature=np.full(e - s, 25.0)))
+    rec.close("complete")
+
+
+def test_mapped_rows_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stream reading the chunks where they lie in the mapped file (RowReader.view: the
+    one pass and the gap scan over the pieces of a recorder-written file, whose datasets'
+    chunks alternate at odd byte offsets) gives the numbers of the copied reads (MAP_ROWS
+    False), bit for bit, with spikes and gaps skipped; a chunk whose
+    blocks may hold a spike is copied for the screen, and every piece is released."""
+    if not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    rec = tmp_path / "rec.h5"
+    _recorder_file(rec, 160_000)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
+    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    seen: list = []
+    orig_view, orig_dense, orig_rel = RowReader.view, RowPieces.dense, RowPieces.release
+    monkeypatch.setattr(RowReader, "view", lambda self, a, b, out: (
+        lambda v: (seen.append(["view", v]), v)[1])(orig_view(self, a, b, out)))
+    monkeypatch.setattr(RowPieces, "dense", lambda self: (seen.append(["dense", self]),
+                                                          orig_dense(self))[1])
+    monkeypatch.setattr(RowPieces, "release", lambda self: (seen.append(["release", self]),
+                                                            orig_rel(self))[1])
+    got = {}
+    for mapped in (False, True):
+        monkeypatch.setattr(RR, "MAP_ROWS", mapped)
+        seen.clear()
+        res = AA.compute(str(rec), list(AA.AXES), 95, gaps="skip")
+        got[mapped] = {a: _flat(r) for a, r in res["axes"].items()}
+        assert res["gaps"]["count"] == 2
+        assert sum(r["spikes"]["count"] for r in res["axes"].values()) >= 6
+        views = [v for k, v in seen if k == "view"]
+        assert all(isinstance(v, RowPieces) == mapped for v in views)
+    pieces = [v for k, v in seen if k == "view"]
+    assert max(len(v.starts) for v in pieces) >= 3 and any(v.lanes.any() for v in pieces)
+    # the first chunk (the per-axis way) and each chunk with a spike were copied, not others
+    dense = {id(v) for k, v in seen if k == "dense"}
+    assert 0 < len(dense) < len(pieces)
+    assert {id(v) for k, v in seen if k == "release"} == {id(v) for v in pieces}
+    for a in AA.AXES:
+        for k, v in got[False][a].items():
+            w = got[True][a][k]
+            assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)

@@ -28,7 +28,8 @@ from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
 from ..recording.recorder import write_results
-from ..recording.recording_reader import PLAUSIBLE, RowReader, check_finite, open_recording, sample_rate
+from ..recording.recording_reader import (PLAUSIBLE, RowPieces, RowReader, as_array, check_finite,
+                                          open_recording, release, sample_rate)
 from ..solvers import allan as A
 from ..solvers import allan_edf as E
 from ..solvers import allan_fit as F
@@ -82,6 +83,11 @@ LEAD_DATASET = True
 #: the other dataset's chunks run alone for long (one dataset's chain keeps ~1.3 cores busy:
 #: its one pass, then its three sums on two workers)
 LEAD_CHUNKS = 32
+#: the axes that finish together (a dataset's, after its last chunk) get their noise IDs on
+#: the decimated copy as tasks of their own, queued before their analyses
+#: (:meth:`_AxisStream.dec_noise_ids`: compiled lag-1 sums without the GIL, beside the other
+#: axes' fits; False: inside each analysis; the same values)
+SPLIT_NOISE_IDS = True
 #: the interpreter's GIL switch interval (s) while a record streams and its axes are analysed
 #: (restored afterwards; None: left alone). A worker coming back from a compiled kernel (the
 #: sums, the one pass; they run without the GIL) needs the GIL for its few lines of Python
@@ -359,13 +365,34 @@ class _AxisStream:
         self.x_last = float(x[-1])
 
     def noise_id(self, m: int, n: int) -> int:
-        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count."""
-        if m % self.dec == 0:
-            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        """Stable32's noise ID at factor m (no hold); ``n``: the full record's term count.
+        Taken early (:meth:`head_noise_ids`, :meth:`dec_noise_ids`) where it could be."""
         hit = self._nid.get((int(m), int(n)))
         if hit is not None:
             return hit
+        if m % self.dec == 0:
+            return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
+
+    def dec_noise_ids(self) -> None:
+        """The noise IDs that read the decimated copy (factors a multiple of ``dec``), once
+        the axis' last chunk is summed (the copy is complete), for the record's phase points
+        as :meth:`result` counts them: a task of their own, queued before the analyses of
+        the axes that finish together (:data:`SPLIT_NOISE_IDS`), so that the lag-1 sums
+        (compiled, without the GIL; ~17 ms per axis of a 12 h x 2 kHz record) of the
+        analysis the workers take last run beside the others' fits instead of inside it.
+        The same calls with the same arguments as :meth:`noise_id` makes, which then finds
+        them."""
+        n_phase = self.n_rate + 1
+        for m in self.ms.tolist():
+            if m % self.dec:
+                continue
+            n = NID.n_terms("oadev", n_phase, m)
+            try:
+                self._nid[(m, n)] = NID.noise_id(self._dec[: self.n_dec], m // self.dec,
+                                                 "oadev", n)
+            except (ValueError, ArithmeticError):
+                pass  # left to the analysis, which reports it as before
 
     def head_full(self) -> bool:
         """The full-resolution head is complete (it does not change any more)."""
@@ -894,7 +921,10 @@ def collector_paused_for_command() -> contextlib.AbstractContextManager:
     every object made during it: ~120,000, most of them the results database's modules
     imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
     this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
-    meanwhile (none by the pipeline) waits for the next full collection instead."""
+    meanwhile waits for the next full collection instead (for the command: the process'
+    exit): the stream's nested functions (:func:`_pipelined`'s callbacks refer to each
+    other) hold its chunk buffers, ~84 MB for a 12 h x 6-axis file, which are then freed at
+    the exit instead of after the analyses (the peak, during the stream, is the same)."""
     return _gc_paused(PAUSE_GC, promote=True)
 
 
@@ -932,14 +962,25 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                         when_streaming: Callable[[], Any] | None,
                         stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
     """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
+    ids: dict[str, Any] = {}  # axis -> its task of noise IDs on the decimated copy
+
     def analyse(a: str) -> dict[str, Any]:
+        if a in ids:  # queued before this task: started, so it cannot wait for a worker
+            ids[a].result()
         return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+
+    def queue(group: list[str], rank: int) -> dict[str, Any]:
+        """The analyses of axes whose last chunk is summed, at ``rank``; with
+        :data:`SPLIT_NOISE_IDS` their decimated noise IDs first, as tasks of their own."""
+        if SPLIT_NOISE_IDS and len(group) > 1:
+            ids.update({a: pool.submit_at(rank, streams[a].dec_noise_ids) for a in group})
+        return {a: pool.submit_at(rank, analyse, a) for a in group}
 
     early: dict[str, Any] = {}  # axis -> its analysis, queued when its dataset was done
 
     def dataset_done(group: list[str]) -> None:
-        for a in group:  # after every chunk task that is queued (the other dataset's)
-            early[a] = pool.submit_at(2, analyse, a)
+        # after every chunk task that is queued (the other dataset's)
+        early.update(queue(group, 2))
 
     with _PriorityPool(WORKERS) as pool:
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
@@ -963,7 +1004,7 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                "gaps": gap_info, "outliers": outliers, "axes": {}}
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
-        futs = {a: early[a] if a in early else pool.submit(analyse, a) for a in axes}
+        futs = {**queue([a for a in axes if a not in early], 0), **early}
         done = [futs[a].result() for a in axes]
     for a, r in zip(axes, done):
         out["axes"][a] = r
@@ -1022,13 +1063,17 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             return all_cuts
         a1 = min(s1, a0 + CHUNK_ROWS)
         # the row before the chunk too: a jump at a0 is a gap before the chunk's first row
-        new = counter_jumps_at(counter.read(max(s0, a0 - 1), a1, cbuf), max(s0, a0 - 1))
+        rows = counter.view(max(s0, a0 - 1), a1, cbuf)
+        new = counter_jumps_at(rows, max(s0, a0 - 1))
+        release(rows)
         found.extend(new)
         return np.asarray([g for g, _ in new] if skip else (), dtype=np.int64)
 
-    def read_rows(name: str, a0: int, k: int) -> np.ndarray:
-        """Chunk [a0, a1)'s rows of one dataset, into its buffer k."""
-        return readers[name].read(a0, min(s1, a0 + CHUNK_ROWS), bufs[k][name])
+    def read_rows(name: str, a0: int, k: int) -> np.ndarray | RowPieces:
+        """Chunk [a0, a1)'s rows of one dataset: where they lie in the mapped file
+        (:meth:`RowReader.view`: the one pass reads them there; :func:`as_array` copies
+        them into its buffer k for the rest), else read into that buffer."""
+        return readers[name].view(a0, min(s1, a0 + CHUNK_ROWS), bufs[k][name])
 
     def read(a0: int, k: int) -> tuple[dict, np.ndarray]:
         """Chunk [a0, a1)'s rows of every dataset, and the gap breaks in it."""
@@ -1062,9 +1107,12 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
 
-    def dataset(name: str, b: np.ndarray, a0: int, cuts: np.ndarray) -> list:
+    def dataset(name: str, b: np.ndarray | RowPieces, a0: int, cuts: np.ndarray) -> list:
         """Check, screen and queue the accumulation of one dataset's axes for this chunk
-        (``cuts``: the gap breaks, at least those in it); returns the queued tasks."""
+        (``cuts``: the gap breaks, at least those in it; ``b`` its rows, an array or the
+        pieces of the mapped file, copied into one array only where a step needs one: the
+        per-axis way, a failed check, a block the spike screen must look into); returns the
+        queued tasks."""
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
@@ -1072,6 +1120,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
+            b = as_array(b)
             check(name, b, a0)  # a bad block must not reach the accumulators
             return [pool.submit_at(rank[name], feed, a, b, AXES[a][1], first, cuts)
                     for a in group]
@@ -1082,18 +1131,30 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             c = AXES[a][1]
             outs[c] = streams[a].phase_target(n)
             x0[c], offs[c] = streams[a].acc.x_last, streams[a].acc.offset
-        bmin, bmax = KER.phase_cols3(b, offs, tau0, x0, outs, KER.extremes_block(CHK.SPIKE_WINDOW))
+        bs = KER.extremes_block(CHK.SPIKE_WINDOW)
+        if isinstance(b, RowPieces):  # the rows where they lie in the file
+            bmin, bmax = KER.phase_cols3(b.base, offs, tau0, x0, outs, bs,
+                                         (b.lanes, b.starts, b.rows))
+        else:
+            bmin, bmax = KER.phase_cols3(b, offs, tau0, x0, outs, bs)
         sel = fin_cols[name]
         hi, lo = float(np.max(bmax[sel])), float(np.min(bmin[sel]))
         limit = PLAUSIBLE.get(name.lstrip("/"), np.inf)
         # NaN and infinity propagate into the running sums (x0: each column's last point)
         if not (np.isfinite(x0[sel]).all() and np.isfinite(hi) and np.isfinite(lo)
                 and max(hi, -lo) <= limit):
-            check(name, b, a0)  # raises, naming the first bad row (nothing was summed yet)
+            check(name, as_array(b), a0)  # raises, naming the first bad row (nothing was summed)
+        # the spike screen looks at the samples of an axis only where a block may hold a
+        # spike (else it finds none: not called); for that, pieces are copied into one array
+        loud = {a: CHK.may_have_spikes((bmin[AXES[a][1]], bmax[AXES[a][1]]),
+                                       streams[a].spike_sigma) for a in group}
+        if isinstance(b, RowPieces) and any(loud.values()):
+            b = b.dense()
         tasks = []
         for a in group:
             c = AXES[a][1]
-            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c]))
+            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c])) \
+                if loud[a] else None
             if y is None:
                 tasks.append(pool.submit_at(rank[name], streams[a].add_written, n))
             else:  # spikes replaced: the per-axis running sum of the corrected samples
@@ -1120,6 +1181,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         for p in preps:
             for t in p.result():
                 t.result()
+        for b in blocks.values():
+            release(b)
         del blocks
         shown.update(min(s1, a0 + CHUNK_ROWS) - s0)
         if i == 0 and when_streaming is not None:
@@ -1201,6 +1264,7 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
             fail(e)
             return
         if not tasks:
+            release(b)
             finished(name, j)
             return
         left = [len(tasks)]
@@ -1215,6 +1279,7 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
                 left[0] -= 1
                 end = left[0] == 0
             if end:
+                release(b)  # (its pieces' pages: nothing reads them any more)
                 finished(name, j)
 
         for t in tasks:
@@ -1280,9 +1345,14 @@ def _counter_gaps(f: Any, s0: int, s1: int) -> int:
     return max(0, (last - first + 1) - (s1 - s0))
 
 
-def counter_jumps_at(c: np.ndarray, a: int) -> list[tuple[int, int]]:
-    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter): (row after the gap,
-    samples missing) wherever the counter steps by more than 1."""
+def counter_jumps_at(c: np.ndarray | RowPieces, a: int) -> list[tuple[int, int]]:
+    """Gaps in counter rows ``c`` (rows a, a + 1, ... of /imu/counter; an array or the
+    pieces of the mapped file, :meth:`RowReader.view`): (row after the gap, samples missing)
+    wherever the counter steps by more than 1."""
+    if KER.HAVE_NUMBA and isinstance(c, RowPieces) and c.dtype in (np.uint64, np.int64):
+        idx, d = KER.counter_jumps(c.base.view(np.int64), pieces=(c.lanes, c.starts, c.rows))
+        return [(int(a + i), int(v - 1)) for i, v in zip(idx, d)]
+    c = as_array(c)
     if c.dtype == np.uint64:
         c = c.view(np.int64)  # what the cast to int64 gives, without its pass
     if KER.HAVE_NUMBA:

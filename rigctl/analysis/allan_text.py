@@ -62,7 +62,10 @@ def term_lines(r: dict[str, Any]) -> list[str]:
             if e.get("edf_below_estimate") is not None:  # held or kept, but with EDF < 1
                 more += (f"; the fit's EDF there {e['edf_below_estimate']:.2g} < "
                          f"{F.MIN_ESTIMATE_EDF:g}: no estimate")
-            what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+            what = NC.BOUND_SOURCES.get(c.bound_from or "fit", NC.BOUND_SOURCES["fit"])
+            point = e.get(f"curve_limit_{unit_f}")
+            if c.bound_from == "band" and point is not None:  # the point read beside the 95 % one
+                what += f"; the curve's lowest point alone reads {point:.5g} {unit_f}"
             lines.append(f"  {e['name']:>26}: < {c.upper95:.5g} {unit_f} "
                          f"({what}; not supported by the data{more})")
     gm_line = gm_term_line(r["fit"])

@@ -39,6 +39,7 @@ import numpy as np
 from . import production
 from .verdicts import format_verdicts
 from .calibration_text import noise_summary, param_table
+from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
 from ..recording.segment_builder import build_segment_table, open_recording, store_calibration_results
 from ..jsonable import jsonable
@@ -290,7 +291,7 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
         if not_stored:
             text += "\n" + not_stored
         jp = Path(json_path) if json_path else p.with_name(p.stem + ".calibration.json")
-        jp.write_text(json.dumps(payload, indent=1))
+        write_atomic(jp, json.dumps(payload, indent=1).encode())  # whole or not at all
         text += f"\nresults: {p}:/results/calibration and {jp}"
     return payload, text, explain
 

@@ -29,6 +29,7 @@ from ..recording import recording_reader
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..frames import body_references
+from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
 from ..recording.recording_reader import check_finite
 from ..recording.segment_builder import _angles_at, _site, open_recording, store_calibration_results
@@ -566,7 +567,7 @@ def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | P
         if not_stored:
             text += "\n" + not_stored
         jp = Path(json_path) if json_path else p.with_name(p.stem + ".thermal.json")
-        jp.write_text(json.dumps(payload, indent=1, default=float))
+        write_atomic(jp, json.dumps(payload, indent=1, default=float).encode())  # whole or not at all
         text += f"\nresults: {p}:/results/thermal and {jp}"
     return payload, text
 

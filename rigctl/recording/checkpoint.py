@@ -24,6 +24,7 @@ from typing import Any
 
 from ..clock import utc_now
 from ..errors import InputError
+from .shield import shielded
 
 CHECKPOINT_NAME = "checkpoint.json"
 CHECKPOINT_SCHEMA = 1
@@ -45,6 +46,12 @@ class Checkpoint:
     t_file: float = 0.0          # file time at the checkpoint, s
     sessions: int = 1            # 1 + number of resumes
     status: str = "running"      # running | complete | interrupted | failed
+    #: the solvers of the procedure's solve steps, in order (run once the recording is complete)
+    solvers: list[str] = field(default_factory=list)
+    #: their state once the recording is complete: running | done | interrupted | failed;
+    #: "" before (or in a checkpoint written before rigctl kept it). ``rigctl resume`` of a
+    #: complete run whose analysis is not done runs the analysis only
+    analysis: str = ""
     updated_utc: str = ""
     schema: int = CHECKPOINT_SCHEMA
     extra: dict[str, Any] = field(default_factory=dict)
@@ -55,20 +62,22 @@ def sha256_text(text: str) -> str:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Replace ``path`` by ``data`` atomically and durably (temp + fsync + os.replace)."""
+    """Replace ``path`` by ``data`` atomically and durably (temp + fsync + os.replace), whole
+    even when an interruption arrives meanwhile (:func:`rigctl.recording.shield.shielded`)."""
     tmp = path.with_name(f".{path.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        os.write(fd, data)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    dfd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
+    with shielded():
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            os.write(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
 
 
 def save(run_dir: Path, ckpt: Checkpoint) -> None:

@@ -38,6 +38,7 @@ import numpy as np
 
 from .. import __version__
 from .checkpoint import clear_status_flags
+from .shield import shielded
 from ..clock import utc_now  # noqa: F401  (re-exported: the recorder's time stamps)
 from ..devices import ImuBlock, Pulses, TableState
 
@@ -452,8 +453,10 @@ def write_results(path: str | Path, name: str, payload: dict[str, Any],
     Args:
         payload: JSON-serialisable summary (units in the key names), stored as attribute ``json``.
         arrays: datasets as ``{name: (data, units)}``; every dataset gets its ``units`` attribute.
+
+    Written whole even when an interruption arrives meanwhile (:func:`rigctl.recording.shield.shielded`).
     """
-    with h5py.File(path, "r+", libver="latest") as f:
+    with shielded(), h5py.File(path, "r+", libver="latest") as f:
         res = f.require_group("results")
         if name in res:
             del res[name]

@@ -28,6 +28,8 @@ from sqlalchemy import (Engine, Float, ForeignKey, Integer, String, Text, create
                         event, inspect, select, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
+from .shield import shielded
+
 if TYPE_CHECKING:  # annotations only: the application layer imports this module, not the reverse
     from alembic.config import Config
 
@@ -182,10 +184,11 @@ def _f(x: float | None) -> float | None:
 def write(engine: Engine, info: RunInfo, measured: list[Measured],
           verdicts: dict[str, Any] | None = None) -> int:
     """Store one analysed recording (replacing an earlier analysis of the same recording and
-    kind); returns the analysis id."""
+    kind); returns the analysis id. One transaction, whole even when an interruption arrives
+    meanwhile (:func:`rigctl.recording.shield.shielded`)."""
     by_param = {r["parameter"]: r for r in (verdicts or {}).get("parameters", [])}
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    with Session(engine) as s, s.begin():
+    with shielded(), Session(engine) as s, s.begin():
         s.execute(delete(Analysis).where(Analysis.recording == info.recording, Analysis.kind == info.kind))
         a = Analysis(unit_id=info.unit_id, kind=info.kind, run=info.run, recording=info.recording,
                      recorded_utc=info.recorded_utc, analysed_utc=now, procedure=info.procedure,

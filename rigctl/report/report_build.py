@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from ..recording.shield import shielded
 from . import report_html, report_plots
 from .report import REPORT_HTML, ReportDependencyError, load_run, require_matplotlib, resolve_run
 
@@ -25,8 +26,9 @@ def build_report(run: str | Path, out_dir: str | Path | None = None,
     html = report_html.render(data, plots)
     target = out / REPORT_HTML
     tmp = target.with_suffix(".html.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(target)
+    with shielded():  # whole or not at all, also when interrupted (rigctl.recording.shield)
+        tmp.write_text(html, encoding="utf-8")
+        tmp.replace(target)
     return target
 
 

@@ -402,7 +402,9 @@ def _term_cell(c: Any) -> str:
     if c.resolved:
         lo, hi = c.ci95 or (None, None)
         return f"{fmt(c.value)} [{fmt(lo)}, {fmt(hi)}]"
-    what = "the curve's own limit" if c.bound_from == "curve" else "95 % upper bound"
+    from ..solvers.noise_coefficients import BOUND_SOURCES
+
+    what = BOUND_SOURCES.get(c.bound_from or "fit", BOUND_SOURCES["fit"])
     return f"< {fmt(c.upper95)} ({what})"
 
 

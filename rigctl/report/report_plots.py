@@ -18,6 +18,7 @@ from ..analysis.allan import DEV_UNITS
 from ..analysis.allan_drift import plot_extras
 from ..analysis.production import measured
 from ..jsonable import jsonable
+from ..recording.shield import shielded
 from .report import RunData, find_session
 from .report_allan import allan_curves
 
@@ -40,9 +41,22 @@ def _plt():
 def _save(fig: Any, path: Path) -> Path:
     plt = _plt()
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+    save_whole(fig, path, DPI)
     plt.close(fig)
     return path
+
+
+def save_whole(fig: Any, path: Path, dpi: int) -> None:
+    """``fig`` in ``path`` (the format its suffix names; PNG without one), whole or not at all:
+    through a temporary file renamed once written, with an interruption held until then
+    (rigctl.recording.shield)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with shielded():
+        try:
+            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower() or "png")
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)
 
 
 def _shade_segments(ax: Any, segments: dict[str, np.ndarray] | None) -> None:
@@ -397,7 +411,7 @@ def plot_allan_result(result: dict[str, Any], out_path: str | Path) -> None:
                         f"{name} ({r['sensor']})", r[f"lo68_{unit}"], r[f"hi68_{unit}"],
                         r[f"lo95_{unit}"], r[f"hi95_{unit}"], extras=plot_extras(r))
     fig.tight_layout()
-    fig.savefig(out_path, dpi=120)
+    save_whole(fig, Path(out_path), 120)
     plt.close(fig)
 
 
@@ -448,7 +462,7 @@ def plot_batch_summary(results: list[dict[str, Any]], lots: dict[str, str], out:
     fig.suptitle("Parameters across units (95 % intervals; dashed: spec limits)", fontsize=10)
     fig.tight_layout()
     path = out / "batch.png"
-    fig.savefig(path, dpi=90)
+    save_whole(fig, path, 90)
     plt.close(fig)
     return path
 

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ..recording.recorder import utc_now
+from ..recording.shield import shielded
 
 
 class RunLog:
@@ -18,15 +19,17 @@ class RunLog:
 
     def __call__(self, kind: str, message: str, echo: bool = True, **fields: Any) -> None:
         """Append one JSON line; also print it on the console unless ``echo`` is False (lines
-        the progress display already shows)."""
-        if self._file:
-            rec = {"utc": utc_now(), "kind": kind, "message": message, **fields}
-            self._file.write(json.dumps(rec) + "\n")
-            self._file.flush()
-        if not echo:
-            return
-        prefix = {"error": "error: ", "warning": "warning: ", "prompt": ">>> "}.get(kind, "")
-        print(f"{prefix}{message}", file=self.console, flush=True)
+        the progress display already shows). Each line whole, also when an interruption arrives
+        meanwhile (rigctl.recording.shield)."""
+        with shielded():
+            if self._file:
+                rec = {"utc": utc_now(), "kind": kind, "message": message, **fields}
+                self._file.write(json.dumps(rec) + "\n")
+                self._file.flush()
+            if not echo:
+                return
+            prefix = {"error": "error: ", "warning": "warning: ", "prompt": ">>> "}.get(kind, "")
+            print(f"{prefix}{message}", file=self.console, flush=True)
 
     def close(self) -> None:
         if self._file:

@@ -25,6 +25,7 @@ import h5py
 import numpy as np
 
 from ..recording import checkpoint as ckpt_mod
+from ..recording import shield
 from . import console as console_mod
 from .console import ConsoleStream
 from ..config.config import RigConfig, load_config
@@ -38,7 +39,7 @@ from ..progress import Progress, make_progress
 from ..recording.recorder import Recorder, Segment, library_versions, utc_now
 from ..engine.rig import open_rig
 from .runlog import RunLog
-from .solve import run_solvers
+from .solve import run_solvers, solver_names
 from ..engine.states import StateMachine
 from ..config.suspenders import SuspenderSet, SuspenderSettings
 from ..units import format_duration
@@ -174,7 +175,92 @@ def _with_settings(options: RunOptions | None, cfg: RigConfig) -> RunOptions:
 def _checkpoint_for(proc: Procedure, overrides: dict[str, Any]) -> ckpt_mod.Checkpoint:
     return ckpt_mod.Checkpoint(procedure_path=str(Path(proc.path).resolve()), overrides=overrides,
                                source_sha256={str(Path(p).resolve()): ckpt_mod.sha256_text(t)
-                                              for p, t in proc.sources.items()})
+                                              for p, t in proc.sources.items()},
+                               solvers=solver_names(proc))
+
+
+class AnalysisInterrupted(BaseException):
+    """SIGINT or SIGTERM (its name is the message) while the solvers analyse a complete recording:
+    raised by the signal handler where the analysis is, or once the results write in progress is
+    whole (rigctl.recording.shield). A BaseException, so that no solver's ``except Exception``
+    takes it for a failure of its own."""
+
+
+@dataclass
+class _Signals:
+    """What SIGINT / SIGTERM did during a run: ``names`` of those received; while ``analysing``,
+    the handler stops the analysis (:class:`AnalysisInterrupted`)."""
+
+    names: list[str]
+    analysing: bool = False
+
+    def received(self, signum: int) -> None:  # minimal: called from a signal handler
+        self.names.append(signal.Signals(signum).name)
+        if self.analysing:  # once: a second signal while the first is handled changes nothing
+            self.analysing = False
+            shield.interrupt(AnalysisInterrupted(self.names[0]))
+
+
+@contextmanager
+def _signal_handlers(install: bool, handler: Callable[[int, Any], None]) -> Iterator[None]:
+    """``handler`` for SIGINT and SIGTERM while the block runs (``install``), the previous ones after."""
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)} if install else {}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def redo_command(run_dir: Path) -> str:
+    """The command that does again the analysis of the complete run ``run_dir``: ``rigctl resume
+    RUN`` (with ``--runs`` unless RUN is in ``runs/`` of the working directory, its default)."""
+    cmd = f"rigctl resume {run_dir}"
+    return cmd if run_dir.parent.resolve() == Path("runs").resolve() else f"{cmd} --runs {run_dir.parent}"
+
+
+def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any,
+             signals: _Signals) -> tuple[int, str]:
+    """Run the checkpoint's solvers on the complete, closed ``recording``: (exit code, message).
+
+    The checkpoint's ``analysis`` says ``running`` while they run, then ``done``, ``failed`` or
+    ``interrupted``. A signal (one already received too) stops them: every result is either
+    written whole or not at all (rigctl.recording.shield), the recording stays as it was closed,
+    and the message names the command that redoes the analysis (:func:`redo_command`)."""
+    def save(state: str) -> None:
+        ckpt.analysis = state
+        try:
+            ckpt_mod.save(run_dir, ckpt)
+        except OSError as exc:
+            log("warning", f"checkpoint not written: {exc}")
+
+    if not ckpt.solvers:
+        return EXIT_OK, ""
+    code, message = EXIT_OK, ""
+    try:
+        signals.analysing = True
+        if signals.names:  # received as the run ended: no analysis starts
+            raise AnalysisInterrupted(signals.names[0])
+        save("running")
+        log("info", f"analysis: {', '.join(dict.fromkeys(ckpt.solvers))} on {recording} (the recording "
+                    "is complete and closed; an interruption now stops the analysis only)")
+        run_solvers(ckpt.solvers, recording, log)
+        signals.analysing = False
+        save("done")
+    except AnalysisInterrupted as exc:
+        signals.analysing = False
+        code = EXIT_INTERRUPTED
+        message = (f"analysis interrupted by {exc}: the recording {recording} is complete and closed, "
+                   f"no result is half-written ({redo_command(run_dir)} redoes the analysis)")
+        save("interrupted")
+        log("error", message, echo=False)  # the caller prints it (one line on stderr)
+    except Exception as exc:  # noqa: BLE001 - the recording is complete; the solver failed
+        signals.analysing = False
+        code, message = EXIT_FAILED, f"solver failed: {type(exc).__name__}: {exc}"
+        save("failed")
+        log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
+                     f"{redo_command(run_dir)} runs the analysis again", traceback=traceback.format_exc())
+    return code, message
 
 
 class _LogHandler(logging.Handler):
@@ -235,42 +321,32 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
     Whatever fails (a device, the disk, a bug) is one line on the console and its traceback in
     the run log; opening the rig or creating the recording may fail too (status ``failed``)."""
     log = _DiskSafeLog(log)  # type: ignore[assignment]
-    old_handlers: dict[int, Any] = {}
-    # SIGINT / SIGTERM: from before the rig opens until the recording and the rig are closed.
-    # The handler only asks the engine to abort (at its next poll; before the engine exists, as
-    # soon as it does); a second signal while the run winds down changes nothing: the table is
-    # put in its safe state and the recording closed either way.
-    signalled: list[str] = []
+    # SIGINT / SIGTERM: from before the rig opens until the analysis of the closed recording ends.
+    # During the run the handler only asks the engine to abort (at its next poll; before the
+    # engine exists, as soon as it does); a second signal while the run winds down changes
+    # nothing: the table is put in its safe state and the recording closed either way. During
+    # the analysis of a complete run it stops the analysis (_analyse).
+    signals = _Signals([])
+    signalled = signals.names
     engines: list[Engine] = []
 
     def on_signal(signum: int, _frame: Any) -> None:  # minimal: a signal handler
-        signalled.append(signal.Signals(signum).name)
+        signals.received(signum)
         for e in engines:
             if e.abort_requested is None and status_box[0] is None:
                 e.request_abort(signalled[0])
 
-    def release_signals() -> None:
-        """The previous handlers back (before the solvers run: a signal then ends the process)."""
-        while old_handlers:
-            sig, h = old_handlers.popitem()
-            signal.signal(sig, h)
-
     status_box: list[str | None] = [None]  # set once the run's outcome is known (no more aborts)
-    if install_signals:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old_handlers[sig] = signal.signal(sig, on_signal)
-    try:
+    with _signal_handlers(install_signals, on_signal):
         return _drive_signalled(proc, cfg, run_dir, log, ckpt, make_recorder, opts, progress, resuming,
-                                install_signals, signalled, engines, status_box, release_signals)
-    finally:
-        release_signals()
+                                install_signals, signals, engines, status_box)
 
 
 def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, ckpt: ckpt_mod.Checkpoint,
                      make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-                     progress: Progress, resuming: bool, install_signals: bool, signalled: list[str],
-                     engines: list[Engine], status_box: list[str | None],
-                     release_signals: Callable[[], None]) -> RunResult:
+                     progress: Progress, resuming: bool, install_signals: bool, signals: _Signals,
+                     engines: list[Engine], status_box: list[str | None]) -> RunResult:
+    signalled = signals.names
     recording = run_dir / RECORDING
     states = opts.states or StateMachine()
     status, code, message = "failed", EXIT_FAILED, ""
@@ -404,19 +480,15 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
                 ckpt_mod.save(run_dir, ckpt)
             except OSError as exc:
                 log("error", f"checkpoint not written: {exc}")
-        release_signals()
         note_hangups()
         wall = time.monotonic() - wall0
         if rec is not None:
             log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
                         f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
         if status == "complete":
-            try:
-                run_solvers(proc, recording, log)
-            except Exception as exc:  # noqa: BLE001 - the recording is complete; the solver failed
-                code, message = EXIT_FAILED, f"solver failed: {type(exc).__name__}: {exc}"
-                log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
-                             f"run the analysis again on {recording}", traceback=traceback.format_exc())
+            a_code, a_message = _analyse(run_dir, recording, ckpt, log, signals)
+            if a_code != EXIT_OK:
+                code, message = a_code, a_message
         if rec is not None:
             log("info", f"recording: {recording}")
         log.close()
@@ -460,6 +532,22 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
     return _drive(proc, cfg, run_dir, log, ckpt, make_recorder, opts, install_signals, progress)
 
 
+def _analyse_again(run_dir: Path, ckpt: ckpt_mod.Checkpoint, console: Any, install_signals: bool,
+                   opts: RunOptions) -> RunResult:
+    """``rigctl resume`` of a complete run whose analysis did not end (interrupted, failed, or
+    cut off by a crash): the analysis only, on the closed recording; the rig is not opened."""
+    recording = run_dir / ckpt.recording
+    progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
+    log = _DiskSafeLog(RunLog(run_dir / RUN_LOG, progress.console))
+    log("info", f"resuming {run_dir.name}: the run is complete, its analysis {ckpt.analysis}: "
+                "running the analysis again")
+    signals = _Signals([])
+    with _signal_handlers(install_signals, lambda signum, _frame: signals.received(signum)):
+        code, message = _analyse(run_dir, recording, ckpt, log, signals)
+        log.close()
+    return RunResult(code, run_dir, recording, "complete", message)
+
+
 def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
                install_signals: bool = True, options: RunOptions | None = None) -> RunResult:
     """Continue a cut-off (crashed, interrupted or failed) run from the step after its last
@@ -468,11 +556,16 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
     The procedure is loaded again from its original path and must be unchanged (its files'
     SHA-256 are in the checkpoint); the rig config comes from the run's snapshot. Rows recorded
     while the step in flight ran are written as an ``incomplete`` segment plus a ``resume`` event
-    naming their range, so solvers never use them."""
+    naming their range, so solvers never use them.
+
+    A complete run whose analysis did not end (an interruption while the solvers ran) gets the
+    analysis only."""
     opts = options or RunOptions()
     d = check_run_dir(run_dir, runs_root)
     ck = ckpt_mod.load(d)  # CheckpointError is an InputError
     if ck.status == "complete":
+        if ck.analysis in ("running", "interrupted", "failed"):
+            return _analyse_again(d, ck, console, install_signals, opts)
         raise InputError(f"{d}: the run is already complete; nothing to resume")
     cfg = load_config(d / ck.config_file)
     opts = _with_settings(opts, cfg)

@@ -45,7 +45,11 @@ SOLVER_HOOKS: dict[str, Hook] = {
 }
 
 
-def run_solvers(proc: Procedure, recording: Path, log: Log) -> None:
-    for step in proc.steps:
-        for name in step.solvers:
-            SOLVER_HOOKS[name](recording, log)
+def solver_names(proc: Procedure) -> list[str]:
+    """The solvers ``proc``'s solve steps name, in order."""
+    return [name for step in proc.steps for name in step.solvers]
+
+
+def run_solvers(names: list[str], recording: Path, log: Log) -> None:
+    for name in names:
+        SOLVER_HOOKS[name](recording, log)

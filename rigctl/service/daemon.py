@@ -584,6 +584,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
         return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}), "resume", args)
     from ..run.runner import resume_run
     res = resume_run(args.run, args.runs)
+    if res.exit_code == EXIT_INTERRUPTED and res.status == "complete":  # during the analysis: the
+        raise Interrupted(res.message)                                   # message says it all
     if res.exit_code != EXIT_OK:
         raise (Interrupted if res.exit_code == EXIT_INTERRUPTED else RunFailure)(
             f"{res.message} (recording {res.status}; details in {res.run_dir / 'run.log.jsonl'})")

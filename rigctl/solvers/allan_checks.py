@@ -186,6 +186,16 @@ def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPI
     return np.flatnonzero(np.abs(r) > k * sigma), med, sigma, basis
 
 
+def may_have_spikes(extremes: tuple[np.ndarray, np.ndarray], sigma: float,
+                    k: float = SPIKE_SIGMA) -> bool:
+    """Whether :func:`spikes_beyond` with these block extremes (compiled path) would look at
+    any sample: False when every block's neighbourhood spans at most k sigma, so it finds no
+    spike (nor with sigma not > 0) -- the samples themselves are not needed then."""
+    if not sigma > 0:
+        return False
+    return K.any_block_examined(extremes[0], extremes[1], k * sigma)
+
+
 def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
                   window: int = SPIKE_WINDOW,
                   extremes: tuple[np.ndarray, np.ndarray] | None = None

@@ -899,6 +899,20 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     lim_sel = inf95_front if np.any(inf95_front) else np.ones(tau_front.size, dtype=bool)
     limits = curve_limits(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
     lim_tau = curve_limit_taus(tau_front[lim_sel], np.sqrt(s2_front[lim_sel]))
+    # ... but the measured curve is itself an estimate: a term's 95 % upper bound may be cut
+    # only by what the curve permits at 95 %, the same read-off of the family-wise upper
+    # band (hi_fw's construction on these taus: at most LIMIT_ALPHA that the true curve is
+    # above it anywhere). Cut at the measured minimum, the bound excluded the truth whenever
+    # the curve's lowest well-determined point fell below the true curve there: 5-minute
+    # quickstart captures (configs/sim.yaml, B 5 deg/h, the curve 9 % above its floor at its
+    # last well-determined tau) had B bounds below 5 deg/h in 52 of 600 gyro fits, B's
+    # coverage 85 % (benchmarks/allan_quickstart_cov.py). Where the model needs its own error
+    # (model_err >= MODEL_ERROR_HOLD) the estimates are held to the measured curve
+    # (_point_limits) and so are the bounds, as before
+    limits95 = curve_limits(tau_front[lim_sel],
+                            _family_band(s2_front[lim_sel], e_front[lim_sel], m_eff))
+    bound_cap, cap_source = ((limits, "curve") if model_err >= MODEL_ERROR_HOLD
+                             else (limits95, "band"))
     out_terms: dict[str, dict] = {}
     coeff_sq: dict[str, float] = {}
     coefs: dict[str, NC.Coefficient] = {}
@@ -947,13 +961,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)
             source = "fit"
-            if not ub <= lim:  # never above what the curve itself allows (also for nan)
-                ub, source = lim, "curve"
+            if not ub <= bound_cap[t]:  # never above what the curve allows (also for nan)
+                ub, source = bound_cap[t], cap_source
             est = min(math.sqrt(max(pj, 0.0)), ub)
             coefs[t] = NC.Coefficient(0.0 if math.isnan(est) else est, upper95=ub, bound_from=source)
         entry[f"curve_limit_{unit_si}"] = lim
         entry[f"curve_limit_{unit_f}"] = lim * fac
         entry["curve_limit_tau_s"] = lim_tau[t]  # the tau that sets it
+        entry[f"curve_limit95_{unit_si}"] = limits95[t]  # ... and read off the 95 % band
+        entry[f"curve_limit95_{unit_f}"] = limits95[t] * fac
         out_terms[t] = entry
     gm_coefs: tuple = ()
     gm_term = None

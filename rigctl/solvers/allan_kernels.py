@@ -277,15 +277,27 @@ if HAVE_NUMBA:
                             keep, block)
 
     @njit(cache=True, nogil=True)
-    def _jumps(c, out_i, out_d):  # pragma: no cover - compiled
-        """Indices i >= 1 (and the step) where c[i] - c[i-1] > 1 (int64): a counter's gaps."""
+    def _jumps(c, lanes, starts, rows, out_i, out_d):  # pragma: no cover - compiled
+        """Indices i >= 1 (and the step) where c[i] - c[i-1] > 1 (int64): a counter's gaps.
+        The values are pieces of the 2-D ``c``: piece p is c[lanes[p], starts[p]: starts[p] +
+        rows[p]], and i counts the pieces' values one after the other (one piece for one
+        array)."""
         k = 0
-        for i in range(1, c.size):
-            d = c[i] - c[i - 1]
-            if d > 1:
-                out_i[k] = i
-                out_d[k] = d
-                k += 1
+        i = 0
+        prev = 0
+        for p in range(starts.size):
+            s = starts[p]
+            ln = lanes[p]
+            for j in range(s, s + rows[p]):
+                v = c[ln, j]
+                if i > 0:
+                    d = v - prev
+                    if d > 1:
+                        out_i[k] = i
+                        out_d[k] = d
+                        k += 1
+                prev = v
+                i += 1
         return k
 
     @njit(cache=True, nogil=True)
@@ -364,6 +376,27 @@ if HAVE_NUMBA:
             bmax[b] = z
 
     @njit(cache=True, nogil=True)
+    def _quiet_block(bmin, bmax, b, nb, thr):  # pragma: no cover - compiled
+        """Blocks b - 1, b, b + 1 span at most thr: no sample of block b can be flagged."""
+        mn = bmin[b]
+        mx = bmax[b]
+        if b > 0:
+            mn = min(mn, bmin[b - 1])
+            mx = max(mx, bmax[b - 1])
+        if b + 1 < nb:
+            mn = min(mn, bmin[b + 1])
+            mx = max(mx, bmax[b + 1])
+        return mx - mn <= thr
+
+    @njit(cache=True, nogil=True)
+    def _any_loud_block(bmin, bmax, thr):  # pragma: no cover - compiled
+        nb = bmin.size
+        for b in range(nb):
+            if not _quiet_block(bmin, bmax, b, nb, thr):
+                return True
+        return False
+
+    @njit(cache=True, nogil=True)
     def _far_from_range_pre(y, w, thr, bs, bmin, bmax, out):  # pragma: no cover - compiled
         """The second step of :func:`_far_from_range_blocks`, given the blocks' extremes."""
         n = y.size
@@ -371,15 +404,7 @@ if HAVE_NUMBA:
         lo = w // 2
         c = 0
         for b in range(nb):
-            mn = bmin[b]
-            mx = bmax[b]
-            if b > 0:
-                mn = min(mn, bmin[b - 1])
-                mx = max(mx, bmax[b - 1])
-            if b + 1 < nb:
-                mn = min(mn, bmin[b + 1])
-                mx = max(mx, bmax[b + 1])
-            if mx - mn <= thr:
+            if _quiet_block(bmin, bmax, b, nb, thr):
                 continue
             for i in range(b * bs, min(n, b * bs + bs)):
                 a = y[min(max(i - lo, 0), n - 1)]
@@ -409,14 +434,20 @@ if HAVE_NUMBA:
         return _far_from_range_pre(y, w, thr, bs, bmin, bmax, out)
 
     @njit(cache=True, nogil=True)  # no fastmath: the same roundings as _phase_chunk
-    def _phase_cols3(blk, offs, tau0, x0, o0, o1, o2, bs, bmin, bmax):  # pragma: no cover
-        """For each column c of blk (n x 3): o_c[i] = x0[c] + tau0 * sum_{j<=i} (blk[j, c] -
-        offs[c]), the same operations in the same order as _phase_chunk (bit-identical), and
-        the extremes of each block of ``bs`` rows per column (bmin/bmax, 3 x blocks), in one
-        pass over the rows: the three running sums are independent chains, so the pass costs
-        about what one column's running sum alone costs (its add latency). x0 is set to the
-        last phase point of each column."""
-        n = blk.shape[0]
+    def _phase_cols3(base, lanes, starts, rows, offs, tau0, x0, o0, o1, o2, bs, bmin,
+                     bmax):  # pragma: no cover - compiled
+        """For each column c of the rows (n x 3): o_c[i] = x0[c] + tau0 * sum_{j<=i} (row j's
+        value c - offs[c]), the same operations in the same order as _phase_chunk
+        (bit-identical), and the extremes of each block of ``bs`` rows per column (bmin/bmax,
+        3 x blocks), in one pass over the rows: the three running sums are independent
+        chains, so the pass costs about what one column's running sum alone costs (its add
+        latency). x0 is set to the last phase point of each column. The rows are pieces of
+        the 2-D ``base``: piece p holds rows[p] rows, row k of it at base[lanes[p],
+        starts[p] + 3 k .. + 2]; row i counts the pieces' rows one after the other (one
+        piece for one block of rows); the sums and the blocks run on across the pieces."""
+        n = 0
+        for p in range(starts.size):
+            n += rows[p]
         c0 = offs[0]
         c1 = offs[1]
         c2 = offs[2]
@@ -426,37 +457,50 @@ if HAVE_NUMBA:
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
-        for b in range((n + bs - 1) // bs):
-            lo = b * bs
-            hi = min(n, lo + bs)
-            mn0 = blk[lo, 0]
-            mx0 = mn0
-            mn1 = blk[lo, 1]
-            mx1 = mn1
-            mn2 = blk[lo, 2]
-            mx2 = mn2
-            for i in range(lo, hi):
-                v0 = blk[i, 0]
-                v1 = blk[i, 1]
-                v2 = blk[i, 2]
-                a0 += v0 - c0
-                a1 += v1 - c1
-                a2 += v2 - c2
-                o0[i] = a0 * tau0 + b0
-                o1[i] = a1 * tau0 + b1
-                o2[i] = a2 * tau0 + b2
-                mn0 = v0 if v0 < mn0 else mn0
-                mx0 = v0 if v0 > mx0 else mx0
-                mn1 = v1 if v1 < mn1 else mn1
-                mx1 = v1 if v1 > mx1 else mx1
-                mn2 = v2 if v2 < mn2 else mn2
-                mx2 = v2 if v2 > mx2 else mx2
-            bmin[0, b] = mn0
-            bmax[0, b] = mx0
-            bmin[1, b] = mn1
-            bmax[1, b] = mx1
-            bmin[2, b] = mn2
-            bmax[2, b] = mx2
+        mn0 = mx0 = mn1 = mx1 = mn2 = mx2 = 0.0
+        g = 0  # rows done (the output index of the next row)
+        for p in range(starts.size):
+            s = starts[p]
+            m = rows[p]
+            ln = lanes[p]
+            i = 0
+            while i < m:
+                q = s + 3 * i
+                if g % bs == 0:  # a block starts
+                    mn0 = base[ln, q]
+                    mx0 = mn0
+                    mn1 = base[ln, q + 1]
+                    mx1 = mn1
+                    mn2 = base[ln, q + 2]
+                    mx2 = mn2
+                e = min(m, i + bs - g % bs)  # the block's end, or the piece's
+                for k in range(e - i):
+                    v0 = base[ln, q]
+                    v1 = base[ln, q + 1]
+                    v2 = base[ln, q + 2]
+                    q += 3
+                    a0 += v0 - c0
+                    a1 += v1 - c1
+                    a2 += v2 - c2
+                    o0[g + k] = a0 * tau0 + b0
+                    o1[g + k] = a1 * tau0 + b1
+                    o2[g + k] = a2 * tau0 + b2
+                    mn0 = v0 if v0 < mn0 else mn0
+                    mx0 = v0 if v0 > mx0 else mx0
+                    mn1 = v1 if v1 < mn1 else mn1
+                    mx1 = v1 if v1 > mx1 else mx1
+                    mn2 = v2 if v2 < mn2 else mn2
+                    mx2 = v2 if v2 > mx2 else mx2
+                g += e - i
+                i = e
+                if g % bs == 0 or g == n:  # the block is complete
+                    b = (g - 1) // bs
+                    bmin[0, b] = mn0
+                    bmax[0, b] = mx0
+                    bmin[1, b] = mn1
+                    bmax[1, b] = mx1
+                    bmin[2, b] = mn2
+                    bmax[2, b] = mx2
         if n:
             x0[0] = o0[n - 1]
             x0[1] = o1[n - 1]
@@ -757,6 +801,12 @@ def extremes_block(w: int) -> int:
     return max(32, int(w))
 
 
+def any_block_examined(bmin: np.ndarray, bmax: np.ndarray, thr: float) -> bool:
+    """Whether :func:`far_from_window_range` with these block extremes would look at any
+    sample (a block whose neighbourhood spans more than ``thr``); False: it finds nothing."""
+    return bool(_any_loud_block(bmin, bmax, float(thr))) if bmin.size else False
+
+
 def far_from_window_range(y: np.ndarray, w: int, thr: float,
                           extremes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Indices i where y[i] is more than ``thr`` above the minimum or below the maximum of its
@@ -776,27 +826,52 @@ def far_from_window_range(y: np.ndarray, w: int, thr: float,
     return out[:c].copy()
 
 
+def _one_piece(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pieces (lanes, starts, rows) of one array of n rows."""
+    return np.zeros(1, np.int64), np.zeros(1, np.int64), np.array([n], np.int64)
+
+
 def phase_cols3(blk: np.ndarray, offsets: np.ndarray, tau0: float, x0: np.ndarray,
-                outs: list[np.ndarray], bs: int) -> tuple[np.ndarray, np.ndarray]:
+                outs: list[np.ndarray], bs: int,
+                pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """The running-sum phase of each column of ``blk`` (rows x 3, float64) into outs[c] (each
     of at least len(blk) points; see :func:`phase_into`), bit-identical to it, in one pass for
     the three columns; ``x0`` (3) is updated to each column's last phase point. Returns the
-    minimum and maximum of every block of ``bs`` rows per column (3 x blocks)."""
-    nb = (blk.shape[0] + bs - 1) // bs
+    minimum and maximum of every block of ``bs`` rows per column (3 x blocks).
+    ``pieces`` = (lanes, starts, rows): the rows are pieces of ``blk`` (then 2-D float64:
+    piece p is blk[lanes[p], starts[p]: starts[p] + 3 rows[p]], rows of 3), one after the
+    other -- the same results as for their concatenation, without it (the rows of an HDF5
+    dataset's chunks where they lie in a mapped file; a lane per byte offset modulo 8)."""
+    if pieces is None:
+        base, pieces = blk.reshape(1, -1), _one_piece(blk.shape[0])
+    else:
+        base = blk
+    lanes, starts, rows = pieces
+    nb = (int(np.sum(rows)) + bs - 1) // bs
     bmin = np.empty((3, nb))
     bmax = np.empty((3, nb))
-    _phase_cols3(blk, np.asarray(offsets, dtype=np.float64), float(tau0), x0, outs[0], outs[1],
-                 outs[2], int(bs), bmin, bmax)
+    _phase_cols3(base, lanes, starts, rows, np.asarray(offsets, dtype=np.float64), float(tau0), x0,
+                 outs[0], outs[1], outs[2], int(bs), bmin, bmax)
     return bmin, bmax
 
 
-def counter_jumps(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def counter_jumps(c: np.ndarray,
+                  pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """(i, c[i] - c[i-1]) for every i where the int64 counter c steps by more than 1, in one
-    pass without the difference array (a day's counter at 2 kHz is 0.7 GB)."""
-    c = np.ascontiguousarray(c, dtype=np.int64)
-    out_i = np.empty(max(c.size - 1, 0), dtype=np.int64)
+    pass without the difference array (a day's counter at 2 kHz is 0.7 GB). ``pieces`` =
+    (lanes, starts, rows): the counter is the pieces c[lanes[p], starts[p]: starts[p] +
+    rows[p]] of the 2-D c, one after the other (i counts their values), without their
+    concatenation."""
+    if pieces is None:
+        c = np.ascontiguousarray(c, dtype=np.int64)
+        c, pieces = c.reshape(1, -1), _one_piece(c.size)
+    lanes, starts, rows = pieces
+    n = int(np.sum(rows))
+    out_i = np.empty(max(n - 1, 0), dtype=np.int64)
     out_d = np.empty_like(out_i)
-    k = _jumps(c, out_i, out_d) if c.size > 1 else 0
+    k = _jumps(c, lanes, starts, rows, out_i, out_d) if n > 1 else 0
     return out_i[:k].copy(), out_d[:k].copy()
 
 

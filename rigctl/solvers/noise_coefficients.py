@@ -102,6 +102,13 @@ GM_KEY = "gm"
 GM_SIGMA_KEYS = {"gyro": "sigma_rad_per_s", "accel": "sigma_m_per_s2"}
 
 
+#: what set a bound (Coefficient.bound_from), as reports print it: the fit's one-sided 95 %
+#: bound; the curve's own limit (its measured minimum, where the IEEE 952 model needs its own
+#: error); the same limit read off the curve's family-wise upper 95 % band
+BOUND_SOURCES = {"fit": "95 % upper bound", "curve": "the curve's own limit",
+                 "band": "the curve's 95 % limit"}
+
+
 @dataclass(frozen=True)
 class Coefficient:
     """One noise coefficient, SI: an estimate and what is known of its uncertainty.
@@ -110,7 +117,7 @@ class Coefficient:
     ci68, ci95: two-sided intervals (lo, hi) of a resolved term; upper95: the one-sided 95 %
     upper bound of a term the data do not resolve (None: resolved or given);
     edf: Satterthwaite degrees of freedom of the estimate; bound_from: what set the bound
-    ("fit" or "curve": the curve's own limit).
+    (a key of :data:`BOUND_SOURCES`).
     """
 
     value: float = 0.0
