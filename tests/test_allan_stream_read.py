@@ -23,7 +23,7 @@ from rigctl.recording.recording_reader import RowPieces, RowReader, as_array
 from rigctl.solvers import allan_kernels as K
 
 
-def test_row_reader_equals_h5py(tmp_path: Path) -> None:
+def test_row_reader_equals_h5py(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(0)
     data = rng.standard_normal((10_000, 3))
     p = tmp_path / "layouts.h5"
@@ -44,6 +44,7 @@ def test_row_reader_equals_h5py(tmp_path: Path) -> None:
             a[s:e] = data[s:e]
             b[s:e] = -data[s:e]
     direct = {}
+    monkeypatch.setattr(RR, "MAP_MIN_RUN_BYTES", 0)  # (short runs: copied by default)
     with h5py.File(p, "r") as f:
         for name in f:
             ds = f[name]
@@ -56,7 +57,7 @@ def test_row_reader_equals_h5py(tmp_path: Path) -> None:
                 assert got.shape[0] == a1 - a0
                 assert np.array_equal(got, ds[a0:a1]), (name, a0, a1)
                 # the rows where they lie in the mapped file (or read, where it cannot map)
-                v = r.view(a0, a1, np.empty_like(buf))
+                v = r.view(a0, a1, np.empty_like(buf))  # (MAP_MIN_RUN_BYTES 0 below)
                 assert isinstance(v, RowPieces) == (direct[name] and a1 > a0), name
                 assert v.shape == ds[a0:a1].shape and np.array_equal(as_array(v), ds[a0:a1])
                 RR.release(v)
@@ -529,6 +530,7 @@ def test_mapped_rows_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
     monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
     monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    monkeypatch.setattr(RR, "MAP_MIN_RUN_BYTES", 0)  # (its 8192-row runs: copied by default)
     seen: list = []
     orig_view, orig_dense, orig_rel = RowReader.view, RowPieces.dense, RowPieces.release
     monkeypatch.setattr(RowReader, "view", lambda self, a, b, out: (

@@ -248,6 +248,11 @@ _POPULATE = [True]  # cleared when the kernel does not know MADV_POPULATE_READ
 MAP_ROWS = True
 #: bytes around a page fault the kernel maps with it (Linux's fault_around_bytes, by default)
 FAULT_AROUND = 1 << 16
+#: a dataset is mapped only where its runs of adjacent chunks are this long (median, bytes):
+#: the recorder's interleaved 8192-row chunks (196 kB runs of a 3-axis dataset) cost more
+#: mapped than copied -- each run's edges map the other datasets' pages around them
+#: (FAULT_AROUND) and drop them again -- so they are copied (docs/allan.md)
+MAP_MIN_RUN_BYTES = 1 << 20
 
 
 class RowPieces:
@@ -419,13 +424,14 @@ class RowReader:
 
     def _map(self) -> np.ndarray | None:
         """The whole file mapped read-only as the dataset's dtype (once; :class:`RowPieces`'
-        lanes), or None where the rows cannot be viewed there (not Linux, h5py's layouts, a
-        chunk that would reach beyond the lanes: in the file's last bytes, or beyond its
-        end)."""
+        lanes), or None where the rows are not viewed there (not Linux, h5py's layouts, runs
+        of adjacent chunks shorter than :data:`MAP_MIN_RUN_BYTES`, a chunk that would reach
+        beyond the lanes: in the file's last bytes, or beyond its end)."""
         if self._mapped:
             return self._base
         self._mapped = True
-        if not MAP_ROWS or _MADVISE is None or self.direct is None or not len(self._runs):
+        if not MAP_ROWS or _MADVISE is None or self.direct is None or not len(self._runs) \
+                or np.median(self._runs[:, 1]) * self.row_bytes < MAP_MIN_RUN_BYTES:
             return None
         item = self.ds.dtype.itemsize
         try:
