@@ -179,7 +179,8 @@ def test_pty_disconnect_mid_run_is_reconnected(tmp_path):
     The cables are pulled at defined points of the run (not after wall-clock delays, which on a
     loaded host could fall before the run had started or between its steps): the IMU's 10 s
     (1000 samples at 100 Hz) into the warm-up's window, the table's 1 s into the third
-    orientation's window; each cuts its step off."""
+    orientation's window, in the engine's thread (the port is gone at its next poll); each
+    cuts its step off."""
     params = {"warmup": "2 min", "sample": "3 s"}
     rec, cfg, info = wired_run(tmp_path, "24pos.yaml", params, "acl", "pty", 100.0,
                                at=[(sampling("warmup", after_samples=1000), pull("imu")),
@@ -240,7 +241,7 @@ def test_settle_on_the_table_still_fails_a_table_that_does_not_settle(tmp_path, 
     counted from its first reading after the command); a table whose time
     stands still (the emulator's physics stopped for 2 s of wall time, 200 s of rig time, from
     the start of the step) once its time has not moved for ten timeouts (10 s) of the run's
-    clock."""
+    clock and the wall-time floor of that check (60 s, made 0.5 s here)."""
     import io
 
     from rigctl.engine.procedure import load_procedure
@@ -255,8 +256,10 @@ def test_settle_on_the_table_still_fails_a_table_that_does_not_settle(tmp_path, 
             d["table"]["limits"]["accel_dps2"] = [2, 2, 4]
             cfg_path.write_text(yaml.safe_dump(d, sort_keys=False))
         cfg = load_config(cfg_path)
-        actions = [] if case == "too slow" else [(starting("orientation"), lambda: hw.pause_physics(2.0))]
-        points = RunPoints(actions)
+        def stand_still() -> None:      # the wall-time floor of the check (60 s) made 0.5 s
+            points.engine.still_wall_s = 0.5
+            hw.pause_physics(2.0)
+        points = RunPoints([] if case == "too slow" else [(starting("orientation"), stand_still)])
         res = run_procedure(load_procedure(proc, {}, cfg.limits), cfg, tmp_path / "runs", console=io.StringIO(),
                             install_signals=False, options=RunOptions(progress=points, on_engine=points.on_engine))
     if case == "too slow":

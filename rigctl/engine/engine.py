@@ -101,9 +101,13 @@ class Rig:
     chamber_band: tuple[float, float] = (-70.0, 180.0)
 
 
-#: a table whose time stands still for this many settle timeouts of the run's clock fails the
-#: step (Engine.settle measures its hold and timeout on the table's time)
+#: a table whose time stands still for this many settle timeouts of the run's clock, and at
+#: least Engine.still_wall_s of wall time, fails the step (Engine.settle measures its hold and
+#: timeout on the table's time). The wall-time floor: on a clock faster than the wall an emulated
+#: table stands still while its host holds the physics back (7.5 s of wall time, 753 s of rig
+#: time at 100x, at load 16-18 on 2 cores: a wired 24-position run failed on it)
 SETTLE_STILL_TIMEOUTS = 10
+SETTLE_STILL_WALL_S = 60.0
 
 
 def angle_error(measured: np.ndarray, commanded: np.ndarray) -> np.ndarray:
@@ -185,6 +189,8 @@ class Engine:
         self.pace_window_s = PACE_WINDOW_WALL_S
         self.pace_warned = False
         self._pace: tuple[float, float, float] | None = None
+        #: wall time a table's time must stand still for, at least, to fail a settle, s
+        self.still_wall_s = SETTLE_STILL_WALL_S
 
     def request_abort(self, reason: str = "interrupted") -> None:
         """Ask the run to stop at the next poll (safe to call from a signal handler)."""
@@ -348,20 +354,21 @@ class Engine:
         host stall across the timeout -- one poll 0.24 s of wall time late on a clock at 500x is
         120 s of rig time -- failed a table that was in position ('hold time not reached'; seen
         at load 10 on 2 cores, a resumed warm-up at 500x). A table whose time does not advance
-        at all for :data:`SETTLE_STILL_TIMEOUTS` timeouts of the run's clock fails the step too
-        (a controller that answers with a clock that stands still could never time out)."""
+        at all for :data:`SETTLE_STILL_TIMEOUTS` timeouts of the run's clock (and at least
+        :attr:`still_wall_s` of wall time) fails the step too (a controller that answers with a
+        clock that stands still could never time out)."""
         clock = self.rig.clock
         t0 = clock.now()
         first: float | None = None          # the table's time at its first reading, s
         inside_since: float | None = None   # the table's time since which it is inside, s
-        advanced = (-math.inf, t0)          # (the table's latest time, the run's clock then)
+        advanced = (-math.inf, t0, time.monotonic())  # (the table's latest time, the run's clock, wall)
         timeout = step.settle.timeout_s
         while True:
             state = self.poll()
             now, t_table = clock.now(), float(state.time)
             first = t_table if first is None else first
             if t_table > advanced[0] + 1e-6:    # moved (not a rounding of its time base's offset)
-                advanced = (t_table, now)
+                advanced = (t_table, now, time.monotonic())
             reason = settle_check(state, step)
             if reason is None:
                 inside_since = t_table if inside_since is None else inside_since
@@ -375,7 +382,8 @@ class Engine:
                 raise RunError(
                     f"step {step.index + 1} ({step.label}) did not settle within {timeout:g} s: {reason} "
                     f"[{step.file}:{step.line}] -- check the table, or widen 'settle' windows / timeout")
-            if now - advanced[1] > SETTLE_STILL_TIMEOUTS * timeout:
+            if now - advanced[1] > SETTLE_STILL_TIMEOUTS * timeout and \
+                    time.monotonic() - advanced[2] > self.still_wall_s:
                 raise RunError(
                     f"step {step.index + 1} ({step.label}): the table's time stood still at "
                     f"{advanced[0]:.3f} s for {now - advanced[1]:.0f} s while it settled ({reason or 'inside'}) "
