@@ -44,7 +44,7 @@ def _load(args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .run.runner import RUN_LOG, run_procedure  # the solvers (scipy): only for a run, not for client verbs
+    from .run.runner import RUN_LOG, resume_command, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
@@ -55,7 +55,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise Interrupted(result.message)                                       # it says it all
     if result.exit_code == EXIT_INTERRUPTED:
         raise Interrupted(f"{result.message}; recording {result.recording} closed as {result.status} "
-                          f"(rigctl resume {result.run_dir} continues it)")
+                          f"({resume_command(result.run_dir)} continues it)")
     if result.exit_code == EXIT_INVALID:  # e.g. a driver setting the device refused when the rig opened
         raise InputError(f"{result.message} (recording {result.status}; details in {where})")
     raise RunFailure(f"{result.message} (recording {result.status}; details in {where})")

@@ -109,14 +109,17 @@ def test_sigterm_stops_a_run_that_the_host_cannot_keep_up_with(tmp_path):
     assert len(err_lines) == 1 and err_lines[0].startswith("rigctl run: interrupted: interrupted by SIGTERM; "
                                                            "recording "), err
     (run_dir,) = runs.iterdir()
-    assert f"rigctl resume {run_dir} continues it" in err_lines[0]
+    # the command the line names, exactly (the run is outside ./runs: with --runs)
+    assert f"(rigctl resume {run_dir} --runs {runs} continues it)" in err_lines[0], err_lines[0]
     warn = [ln for ln in lines if "cannot keep up" in ln]
     assert len(warn) == 1 and warn[0].startswith(f"warning: the host cannot keep up with clock speed {SPEED:g}x")
     assert json.loads((run_dir / "checkpoint.json").read_text())["status"] == "interrupted"
     _check_interrupted(run_dir / "recording.h5", 0)
 
     # resumable: the resume starts, and a SIGTERM ends it the same way
-    proc = _start(["resume", str(run_dir), "--runs", str(runs)], tmp_path)
+    named = err_lines[0].split("(rigctl ", 1)[1].split(" continues it)")[0].split()
+    assert named == ["resume", str(run_dir), "--runs", str(runs)], named
+    proc = _start(named, tmp_path)
     out = _Lines(proc)
     try:
         out.wait_for("resuming")

@@ -212,9 +212,10 @@ def _signal_handlers(install: bool, handler: Callable[[int, Any], None]) -> Iter
             signal.signal(s, h)
 
 
-def redo_command(run_dir: Path) -> str:
-    """The command that does again the analysis of the complete run ``run_dir``: ``rigctl resume
-    RUN`` (with ``--runs`` unless RUN is in ``runs/`` of the working directory, its default)."""
+def resume_command(run_dir: Path) -> str:
+    """The command that takes up the run ``run_dir`` again (an interrupted run continues; a
+    complete run whose analysis did not finish redoes the analysis): ``rigctl resume RUN`` (with
+    ``--runs`` unless RUN is in ``runs/`` of the working directory, its default)."""
     cmd = f"rigctl resume {run_dir}"
     return cmd if run_dir.parent.resolve() == Path("runs").resolve() else f"{cmd} --runs {run_dir.parent}"
 
@@ -226,7 +227,7 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
     The checkpoint's ``analysis`` says ``running`` while they run, then ``done``, ``failed`` or
     ``interrupted``. A signal (one already received too) stops them: every result is either
     written whole or not at all (rigctl.recording.shield), the recording stays as it was closed,
-    and the message names the command that redoes the analysis (:func:`redo_command`)."""
+    and the message names the command that redoes the analysis (:func:`resume_command`)."""
     def save(state: str) -> None:
         ckpt.analysis = state
         try:
@@ -251,7 +252,7 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         signals.analysing = False
         code = EXIT_INTERRUPTED
         message = (f"analysis interrupted by {exc}: the recording {recording} is complete and closed, "
-                   f"no result is half-written ({redo_command(run_dir)} redoes the analysis)")
+                   f"no result is half-written ({resume_command(run_dir)} redoes the analysis)")
         save("interrupted")
         log("error", message, echo=False)  # the caller prints it (one line on stderr)
     except Exception as exc:  # noqa: BLE001 - the recording is complete; the solver failed
@@ -259,7 +260,7 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         code, message = EXIT_FAILED, f"solver failed: {type(exc).__name__}: {exc}"
         save("failed")
         log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
-                     f"{redo_command(run_dir)} runs the analysis again", traceback=traceback.format_exc())
+                     f"{resume_command(run_dir)} runs the analysis again", traceback=traceback.format_exc())
     return code, message
 
 
