@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from ..recording.shield import shielded
+from ..recording.checkpoint import write_atomic
 from . import report_html, report_plots
 from .report import REPORT_HTML, ReportDependencyError, load_run, require_matplotlib, resolve_run
 
@@ -25,10 +25,7 @@ def build_report(run: str | Path, out_dir: str | Path | None = None,
     plots = report_plots.make_plots(data, out, log)
     html = report_html.render(data, plots)
     target = out / REPORT_HTML
-    tmp = target.with_suffix(".html.tmp")
-    with shielded():  # whole or not at all, also when interrupted (rigctl.recording.shield)
-        tmp.write_text(html, encoding="utf-8")
-        tmp.replace(target)
+    write_atomic(target, html.encode("utf-8"))  # whole or not at all, also when interrupted
     return target
 
 

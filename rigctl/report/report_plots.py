@@ -7,6 +7,7 @@ cal_rms, allan, sync_hist, sync_residual).
 """
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +19,7 @@ from ..analysis.allan import DEV_UNITS
 from ..analysis.allan_drift import plot_extras
 from ..analysis.production import measured
 from ..jsonable import jsonable
-from ..recording.shield import shielded
+from ..recording.checkpoint import write_atomic
 from .report import RunData, find_session
 from .report_allan import allan_curves
 
@@ -48,15 +49,10 @@ def _save(fig: Any, path: Path) -> Path:
 
 def save_whole(fig: Any, path: Path, dpi: int) -> None:
     """``fig`` in ``path`` (the format its suffix names; PNG without one), whole or not at all:
-    through a temporary file renamed once written, with an interruption held until then
-    (rigctl.recording.shield)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with shielded():
-        try:
-            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower() or "png")
-            tmp.replace(path)
-        finally:
-            tmp.unlink(missing_ok=True)
+    rendered in memory, then written by :func:`rigctl.recording.checkpoint.write_atomic`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format=path.suffix[1:].lower() or "png")
+    write_atomic(path, buf.getvalue())
 
 
 def _shade_segments(ax: Any, segments: dict[str, np.ndarray] | None) -> None:
