@@ -77,6 +77,8 @@ def one_capture(path: Path, noise: dict, fs: float, n: int, seed: int) -> dict:
                       "upper95": None if c.resolved else float(c.upper95),
                       "bound_from": c.bound_from, "unit": unit}
         row["gm"] = bool(r["fit"].get("gm"))
+        row["R_resolved"] = bool(co.R.resolved)  # a ramp the emulator does not have (R = 0)
+        row["check_ok"] = bool(r["fit"]["check"]["ok"])
         out[ax] = row
     return out
 
@@ -141,6 +143,11 @@ def report(tv: dict, rows: list[dict]) -> dict:
                   f"{100 * lo:6.1f}-{100 * hi:5.1f} {low:>8} {high:>9}")
             summary[f"{ax}_{t}"] = {"n": n, "covered": cov, "resolved": res, "miss_low": low,
                                     "miss_high": high, "cp95": [lo, hi]}
+    for ax in AXES:  # spurious ramps (truth R = 0) and failed self-checks
+        summary[f"{ax}_R_resolved"] = sum(bool(r[ax].get("R_resolved")) for r in rows)
+        summary[f"{ax}_check_failed"] = sum(not r[ax].get("check_ok", True) for r in rows)
+    print("R resolved (truth 0) / self-check failed per axis: " + ", ".join(
+        f"{ax} {summary[f'{ax}_R_resolved']}/{summary[f'{ax}_check_failed']}" for ax in AXES))
     for t in "NBK":
         k = sum(summary[f"{ax}_{t}"]["covered"] for ax in AXES)
         n = sum(summary[f"{ax}_{t}"]["n"] for ax in AXES)
