@@ -268,13 +268,15 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
         elif te <= max_d:
             exc.append((0, te, "to the start", float("nan"), e["z"]))
         else:
-            exc.append((te, te, "level shift", e["z"], float("nan")))
+            exc.append((te, te, "level shift", e["z"], e["step"]))
     exc.sort()
     windows = [(a, b) for a, b, kind, _, _ in exc if b > a]
     items = []
     for a, b, kind, za, zb in exc:
-        size = (window_size(y, a, b, [w for w in windows if w != (a, b)]) if b > a
-                else float(np.mean(y[a:min(n, a + max_d)]) - np.mean(y[max(0, a - max_d):a])))
+        # a level shift: its step (the adjacent window means' difference at the scale found)
+        size = window_size(y, a, b, [w for w in windows if w != (a, b)]) if b > a else zb
+        if b == a:
+            zb = float("nan")
         items.append({"start_s": a * block_s, "end_s": b * block_s,
                       "duration_s": (b - a) * block_s, "size_si": size, "kind": kind,
                       "z_start": za, "z_end": zb, "blocks": [int(a), int(b)]})
