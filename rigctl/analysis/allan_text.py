@@ -10,6 +10,7 @@ from typing import Any
 from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
+from . import allan_excursions as EXA
 from .allan import chi2_carrier_text, check_notes, check_warnings, screening_notes
 
 
@@ -128,6 +129,7 @@ def quiet_lines(r: dict[str, Any]) -> list[str]:
     # in the paragraph's head and the goodness-of-fit line above)
     lines += [f"warning: quiet stretch: {w}" for w in check_warnings(q)
               if not w.startswith("self-check failed:")]
+    lines += [f"warning: {w}" for w in EXA.quiet_sentence(q, (r.get("excursions") or {}).get("unit", ""))]
     return lines
 
 

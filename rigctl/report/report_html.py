@@ -465,6 +465,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
     out += _chi2_findings_html(curves)
+    out += _excursions_html(curves)
     out += _quiet_stretch_html(curves)
     gm_rows = []
     for axis, cv in curves.items():
@@ -516,6 +517,28 @@ def _chi2_cell(check: dict) -> str:
     carrier = chi2_carrier_text(check)
     return ("self-check failed: chi-square beyond its 99 % point, a finding, not a pass"
             + (f"; carried by {carrier}" if carrier else ""))
+
+
+def _excursions_html(curves: dict[str, dict]) -> list[str]:
+    """The short excursions found before the fit (rigctl.analysis.allan_excursions), one row
+    each, in the field's units; [] when none."""
+    rows = []
+    for axis, cv in curves.items():
+        x = cv.get("excursions") or {}
+        unit = x.get("unit", "")
+        for e in x.get("excursions") or []:
+            rows.append([axis, e["kind"], f"{e['start_s']:.0f}", f"{e['end_s']:.0f}",
+                         f"{e[f'size_{unit}']:+.3g} {unit}", ", ".join(e.get("moving_with") or [])])
+    if not rows:
+        return []
+    return ["<h3>Short excursions of the level, found before the fit</h3>",
+            table(["axis", "kind", "start (s)", "end (s)", "size", "moving with"], rows),
+            "<p class=\"muted\">Adjacent window means (30 s to 1/32 of the record) that differ "
+            "beyond the record's own robust Allan deviation at that window (family-wise "
+            "false-alarm probability 0.01 per axis); times from the start of the range analysed. "
+            "They are in the samples the fit sees (the whole record's and the quiet stretch's): "
+            "not the sensor's stationary noise (docs/allan.md, 'Short excursions before the "
+            "fit').</p>"]
 
 
 def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
