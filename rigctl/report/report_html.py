@@ -445,13 +445,18 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             c, unit = NC.in_field_units(co, t)
             p = (pw.get(t) or {}).get(f"value_{unit}")
             rows.append([axis, e.get("name", t), unit, _term_cell(c), p, _need_cell(e, c.resolved)])
-        for g in co.gm:  # the fit's Gauss-Markov term: sigma_GM in B's unit, and Tc in s
+        # the fit's Gauss-Markov term: sigma_GM in B's unit, and Tc in s, each with its own
+        # capture figure (the term's ``crb``, allan_fit._add_crb)
+        crb = ((cv["fit"].get("gm_term") or {}).get("crb")) or {}
+        for g in co.gm:
             unit, fac = NC.FIELD_UNITS[co.sensor]["B"]
+            sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
             rows.append([axis, "Gauss-Markov sigma_GM", unit, _term_cell(g.sigma.scaled(fac)),
-                         None, ""])
+                         None, _need_cell(sig_e, not sig_e.get("bounded"))])
             tc = (f"{g.tau_c_s:.4g}" if g.tau_c_ci95 is None else
                   f"{g.tau_c_s:.4g} [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]")
-            rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None, ""])
+            rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None,
+                         _need_cell(tc_e, not tc_e.get("bounded"))])
     if rows:
         out += ["<h3>Fitted noise terms (joint IEEE 952 fit; value [95 % interval] or bound)</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",
