@@ -46,7 +46,9 @@ edge without a return is reported as a level shift (within a quarter of the reco
 start or end, an excursion that runs to it).
 
 **Size.** The mean over the excursion less the mean of its flanks -- the stretches of its own
-length before and after it, clipped to the record, without other excursions -- in units of y.
+length before and after it, clipped to the record, without other excursions -- in units of y
+(NaN when other excursions cover both flanks); a level shift's size is its step, D at the
+scale it was found.
 """
 from __future__ import annotations
 
