@@ -66,7 +66,8 @@ def detect(y: np.ndarray, tau0: float) -> dict:
     from rigctl.solvers import allan_excursions as EX
 
     yb, bs = block_means(np.asarray(y, dtype=float), tau0)
-    return EX.find_excursions(yb, bs)
+    # as rigctl.analysis.allan_excursions.axis_excursions: windows of >= 16 samples
+    return EX.find_excursions(yb, bs, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
 
 
 def coefficients(case: str):
