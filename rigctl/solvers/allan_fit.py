@@ -983,9 +983,13 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
         gm_s2_front = gm_column(tau_front, tc_fit) * coeff_sq["GM"]
     if tau0 is not None and n_phase is not None:  # with the GM term's parameters when it is in
-        _add_crb(out_terms, coefs, float(tau0), int(n_phase),
-                 gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
-                     if gm_coefs and gm_coefs[0].sigma.resolved else None))
+        gm_crb = _add_crb(out_terms, coefs, float(tau0), int(n_phase),
+                          gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
+                              if gm_coefs and gm_coefs[0].sigma.resolved else None),
+                          gm_bound=((gm_coefs[0].sigma.upper95, gm_coefs[0].tau_c_s)
+                                    if gm_coefs and not gm_coefs[0].sigma.resolved else None))
+        if gm_term is not None and gm_crb:  # the term's own figures
+            gm_term["crb"] = gm_crb
     check = self_check(tau_front, np.sqrt(s2_front), e_front,
                        {t: v for t, v in coeff_sq.items() if t in TERMS}, m_eff,
                        extra_avar=gm_s2_front)
@@ -1131,9 +1135,19 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
                point_limit: float) -> tuple[dict, "NC.GaussMarkov"]:
     """The fitted Gauss-Markov term: Tc's 95 % interval from the profile (the Tc whose
     chi-square is within chi2_0.95(1) of the least, scaled by the overdispersion, bracketed by
-    the next evaluated Tc either side), sigma_GM's 95 % interval the union over that set of
-    each Tc's Satterthwaite interval (the final terms refitted at that Tc, as the selection
-    fits them), the curve's limit and whether the fit was held at it."""
+    the next evaluated Tc either side); sigma_GM's intervals Satterthwaite's with the marginal
+    sd of p = sigma_GM^2 (Tc estimated too, not known)::
+
+        sd(p)^2 = sd(p | Tc)^2 + (dp/d ln Tc)^2 sd(ln Tc)^2
+
+    sd(p | Tc) the GLS sd at the fitted Tc, dp/d ln Tc the slope of p refitted at each Tc of
+    that set (the final terms, as the selection fits them; least squares over the set), sd(ln
+    Tc) = ln(hi / lo) / (2 x 1.96) from Tc's interval (the linear-Gaussian marginal: p's
+    estimate given Tc moves along that slope). It was the union of each Tc's conditional
+    interval, which adds the two parts linearly instead of in quadrature: on simulated
+    captures of the MTi-G's fitted model (benchmarks/allan_gm_crb.py) 1.40x wider than the
+    scatter of sigma_GM, which is the Cramer-Rao bound's. Also the curve's limit and whether
+    the fit was held at it."""
     tcs, c = prof["tc_s"], prof["chi2"]
     over = max(1.0, float(c.min()) / prof["dof"])
     inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
@@ -1145,9 +1159,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             return None
         return _chi2_ci(pj, 2.0 * pj * pj / (sdj * sdj), conf)
 
-    ci95 = interval(p_gm, sd_gm, 0.95)
-    ci68 = interval(p_gm, sd_gm, 0.683)
-    ends = [ci95] if ci95 else []
+    along = [(math.log(tc), p_gm)]  # (ln Tc, p refitted there) over Tc's interval
     for k in inside:
         if math.isclose(float(tcs[k]), tc, rel_tol=1e-12):
             continue
@@ -1158,20 +1170,21 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         up = upper_all[active]
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
         try:
-            p, aw, rw = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
+            p, _, _ = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
                              model_err, up, inflate)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        pos = p > 0
-        if not pos[ig]:
-            continue
-        red = float(rw @ rw) / max(1, tau.size - int(np.count_nonzero(pos)))
-        cov = _param_cov(aw[:, pos]) * max(1.0, red)
-        sdk = math.sqrt(max(cov[int(np.count_nonzero(pos[:ig])), int(np.count_nonzero(pos[:ig]))],
-                            0.0))
-        ck = interval(float(p[ig]), sdk, 0.95)
-        if ck:
-            ends.append(ck)
+        if p[ig] > 0:
+            along.append((math.log(float(tcs[k])), float(p[ig])))
+    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
+    sd_marg = sd_gm
+    x = np.array([a for a, _ in along])
+    if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
+        slope = float(np.polyfit(x, np.array([b for _, b in along]), 1)[0])
+        sd_ln_tc = math.log(tc_ci[1] / tc_ci[0]) / (2.0 * 1.959964)
+        sd_marg = math.sqrt(sd_gm * sd_gm + (slope * sd_ln_tc) ** 2)
+    ci95 = interval(p_gm, sd_marg, 0.95)
+    ci68 = interval(p_gm, sd_marg, 0.683)
     g_front = np.maximum(gm_column(tau_front, tc), 1e-300)
     inf_front = (np.sqrt(e_front / chi2.ppf(0.025, e_front))
                  <= INFORMATIVE_RATIO * np.sqrt(e_front / chi2.ppf(0.975, e_front)))
@@ -1179,14 +1192,12 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
     lim = math.sqrt(float(np.min(s2_front[sel] / g_front[sel])))
     held = bool(math.isfinite(point_limit) and p_gm >= point_limit * (1.0 - 1e-6) and p_gm > 0)
     if ci95:
-        sig = NC.Coefficient(math.sqrt(p_gm), ci68,
-                             (min(x[0] for x in ends), max(x[1] for x in ends)),
-                             edf=2.0 * p_gm * p_gm / (sd_gm * sd_gm))
+        sig = NC.Coefficient(math.sqrt(p_gm), ci68, ci95,
+                             edf=2.0 * p_gm * p_gm / (sd_marg * sd_marg))
     else:  # the joint fit put no Gauss-Markov term where the candidate saw one: a bound
         ub = min(math.sqrt(max(p_gm, 0.0) + _Z95_ONE * max(sd_gm, 0.0)), lim)
         sig = NC.Coefficient(min(math.sqrt(max(p_gm, 0.0)), ub), upper95=ub,
                              bound_from="curve" if ub >= lim else "fit")
-    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
     coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
     term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
             "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),
@@ -1691,7 +1702,8 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
 
 
 def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
-             gm: tuple[float, float] | None = None) -> None:
+             gm: tuple[float, float] | None = None,
+             gm_bound: tuple[float, float] | None = None) -> dict[str, dict]:
     """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
     estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
     :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms, and the
@@ -1705,9 +1717,17 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
     bounded term at its upper bound, so a lower limit: a smaller term needs longer). For a
     bounded term that lower limit can come out at or below this capture's own length
     (``capture_h``): the term is then smaller than its bound, and the honest statement is
-    only "longer than this capture" (see :func:`rigctl.display_units.need_text`)."""
+    only "longer than this capture" (see :func:`rigctl.display_units.need_text`).
+
+    Returns the Gauss-Markov term's own figures, {"sigma": entry, "tc": entry} with entries
+    like the terms' (``crb_rel_sd``: sd(sigma_GM)/sigma_GM and sd(Tc)/Tc; ``capture_h``; and
+    ``capture_h_for_25pct`` where the bound is wider than the target), at the fitted model with
+    ``gm``; for a bounded sigma_GM (``gm_bound`` = (its 95 % upper bound, Tc)) with the term at
+    its bound, so lower limits as for a bounded IEEE term (``bounded``: True). {} without a
+    Gauss-Markov term."""
+    gm_out: dict[str, dict] = {}
     if n_phase < 3:
-        return
+        return gm_out
     base, bounded = {}, {}
     for t in R.TERMS4:
         c = coefs.get(t)
@@ -1717,23 +1737,34 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
             base[t] = c.value
         elif c.upper95 > 0 and math.isfinite(c.upper95):
             bounded[t] = c.upper95
-    models = [(base, tuple(base))] + [({**base, t: v}, (t,)) for t, v in bounded.items()]
     length = (n_phase - 1) * tau0
-    for coeffs, report in models:
+    # (coefficients, the IEEE terms read off it, the GM model, the GM entries read off it)
+    models = [(base, tuple(base), gm, gm is not None)]
+    models += [({**base, t: v}, (t,), gm, False) for t, v in bounded.items()]
+    if gm_bound is not None and base:
+        models.append((base, (), gm_bound, True))
+    gm_keys = {"sigma": "GM_sigma", "tc": "GM_tc"}
+    for coeffs, report, g, with_gm in models:
         try:
-            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=gm)
+            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=g)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        for t in report:
-            out_terms[t]["crb_rel_sd"] = best[t]
-            out_terms[t]["capture_h"] = length / 3600.0
-            if t != "Q" and best[t] > TARGET_REL_SD:  # how long a capture would resolve it
+        entries = [(out_terms[t], t) for t in report]
+        if with_gm and gm_keys["tc"] in best:
+            for k, key in gm_keys.items():
+                gm_out[k] = {"bounded": g is gm_bound}
+                entries.append((gm_out[k], key))
+        for entry, key in entries:
+            entry["crb_rel_sd"] = best[key]
+            entry["capture_h"] = length / 3600.0
+            if key != "Q" and best[key] > TARGET_REL_SD:  # how long a capture would resolve it
                 try:
-                    need = R.duration_for(coeffs, t, TARGET_REL_SD, 1.0 / tau0,
-                                          t_min_s=min(600.0, 0.5 * length), gm=gm)
+                    need = R.duration_for(coeffs, key, TARGET_REL_SD, 1.0 / tau0,
+                                          t_min_s=min(600.0, 0.5 * length), gm=g)
                 except (ValueError, np.linalg.LinAlgError):
                     continue
-                out_terms[t]["capture_h_for_25pct"] = need / 3600.0
+                entry["capture_h_for_25pct"] = need / 3600.0
+    return gm_out
 
 
 def term_value_si(fit: dict, term: str) -> float:
