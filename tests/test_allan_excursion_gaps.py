@@ -100,3 +100,12 @@ def test_quiet_stretch_without_its_excursion(tmp_path: Path) -> None:
         _pooled_oadev([y[slice(*qr["samples"])]], int(qr["m"][len(qr["m"]) // 2])), rel=1e-9)
     # the record's own fit is the same either way (beside, never instead)
     np.testing.assert_array_equal(out["report"]["axes"]["gx"]["adev_rad/s"], r["adev_rad/s"])
+    # the text says what was found (in deg/h), and whether the stretch's fit has it
+    from rigctl.analysis.allan_text import format_table
+
+    span = f"t = {found[0]['start_s']:.0f}-{found[0]['end_s']:.0f} s"
+    size = f"{found[0]['size_deg/h']:+.3g} deg/h"
+    t_ex, t_rep = (format_table("gx", out[m]["axes"]["gx"]) for m in ("exclude", "report"))
+    assert f"{span} ({found[0]['duration_s']:.0f} s), {size}" in t_ex
+    assert "left out of its fit (--excursions exclude" in t_ex
+    assert "they are in its fit: to leave them out, --excursions exclude" in t_rep

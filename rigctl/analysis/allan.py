@@ -989,9 +989,8 @@ def collector_paused_for_command() -> contextlib.AbstractContextManager:
     imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
     this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
     meanwhile waits for the next full collection instead (for the command: the process'
-    exit): the stream's nested functions (:func:`_pipelined`'s callbacks refer to each
-    other) hold its chunk buffers, ~84 MB for a 12 h x 6-axis file, which are then freed at
-    the exit instead of after the analyses (the peak, during the stream, is the same)."""
+    exit), so the stream makes none that holds its buffers (:class:`_Chains`; the test
+    test_pipelined_stream_frees_its_buffers_without_the_collector)."""
     return _gc_paused(PAUSE_GC, promote=True)
 
 
@@ -1306,6 +1305,89 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         e.result()
 
 
+class _Chains:
+    """The state of :func:`_pipelined`'s chains and the callbacks that run them. Methods, not
+    functions nested in :func:`_pipelined`: those referred to each other through their
+    closures (``launch`` queued ``run``, whose tasks' callback called ``finished``, which
+    called ``launch``), a reference cycle that held everything they reached -- the stream's
+    read and column buffers, ~84 MB for a 12 h x 6-axis file -- until the cyclic collector ran,
+    which ``rigctl allan`` keeps paused to its exit (:func:`collector_paused_for_command`).
+    Here the queued tasks and the callbacks refer to the object, and nothing in it to them:
+    it and the buffers go when the last task is done."""
+
+    def __init__(self, pool: _PriorityPool, starts: list[int], names: list[str],
+                 dataset: Callable, streams: dict, groups: dict, rank: dict, s0: int, s1: int,
+                 early: list, dataset_done: Callable[[list[str]], Any] | None):
+        self.pool, self.starts, self.names, self.dataset = pool, starts, names, dataset
+        self.streams, self.groups, self.rank, self.s0, self.s1 = streams, groups, rank, s0, s1
+        self.early, self.dataset_done = early, dataset_done
+        self.cond = threading.Condition()
+        self.ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
+        self.done = {name: -1 for name in names}  # the last chunk each dataset has finished
+        self.busy = {name: False for name in names}
+        self.errors: list[BaseException] = []
+        self.last = len(starts) - 1
+        self.queued_ids = {name: False for name in names}
+
+    def fail(self, e: BaseException) -> None:
+        with self.cond:
+            self.errors.append(e)
+            self.cond.notify_all()
+
+    def launch(self, name: str) -> None:  # under cond
+        j = self.done[name] + 1
+        if not self.errors and not self.busy[name] and j in self.ready[name]:
+            self.busy[name] = True
+            b, c = self.ready[name].pop(j)
+            self.pool.submit_at(self.rank[name], self.run, name, j, b, c)
+
+    def finished(self, name: str, j: int) -> None:
+        if j == self.last and self.dataset_done is not None:  # before the stream is done
+            try:
+                self.dataset_done(self.groups[name])
+            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+                self.fail(e)
+        with self.cond:
+            self.done[name] = j
+            self.busy[name] = False
+            sts = [self.streams[a] for a in self.groups[name]]
+            if EARLY_NOISE_ID and not self.queued_ids[name] and j < self.last and all(
+                    st.head_full() for st in sts):  # (before its next chunk's task)
+                self.queued_ids[name] = True
+                self.early.extend(self.pool.submit_at(self.rank[name], st.head_noise_ids,
+                                                      self.s1 - self.s0 + 1) for st in sts)
+            self.launch(name)
+            self.cond.notify_all()
+
+    def run(self, name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
+        try:
+            tasks = self.dataset(name, b, self.starts[j], c)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            self.fail(e)
+            return
+        if not tasks:
+            release(b)
+            self.finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                self.fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                end = left[0] == 0
+            if end:
+                release(b)  # (its pieces' pages: nothing reads them any more)
+                self.finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
+
+
 def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_rows: Callable,
                cuts_at: Callable, dataset: Callable, streams: dict, groups: dict, rank: dict,
                s0: int, s1: int, shown: WorkProgress, early: list,
@@ -1328,74 +1410,12 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     has finished the first chunk; a dataset's early noise IDs of the head
     (:data:`EARLY_NOISE_ID`) are queued (at its rank, before its next chunk's task) by the
     first of its chunks after which its heads are complete, if another chunk follows."""
-    cond = threading.Condition()
-    ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
-    done = {name: -1 for name in names}  # the last chunk each dataset has finished
-    busy = {name: False for name in names}
-    errors: list[BaseException] = []
+    ch = _Chains(pool, starts, names, dataset, streams, groups, rank, s0, s1, early,
+                 dataset_done)
+    cond, done, last, errors = ch.cond, ch.done, ch.last, ch.errors
     hook = [when_streaming]
-    last = len(starts) - 1
     cuts: dict[int, np.ndarray] = {}  # chunk -> its gap breaks (scanned with its first read)
     nxt = {name: 0 for name in names}  # the next chunk to read, per dataset
-    queued_ids = {name: False for name in names}
-
-    def fail(e: BaseException) -> None:
-        with cond:
-            errors.append(e)
-            cond.notify_all()
-
-    def launch(name: str) -> None:  # under cond
-        j = done[name] + 1
-        if not errors and not busy[name] and j in ready[name]:
-            busy[name] = True
-            b, c = ready[name].pop(j)
-            pool.submit_at(rank[name], run, name, j, b, c)
-
-    def finished(name: str, j: int) -> None:
-        if j == last and dataset_done is not None:  # before the stream can be seen as done
-            try:
-                dataset_done(groups[name])
-            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-                fail(e)
-        with cond:
-            done[name] = j
-            busy[name] = False
-            sts = [streams[a] for a in groups[name]]
-            if EARLY_NOISE_ID and not queued_ids[name] and j < last and all(
-                    st.head_full() for st in sts):  # (before its next chunk's task)
-                queued_ids[name] = True
-                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
-                             for st in sts)
-            launch(name)
-            cond.notify_all()
-
-    def run(name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
-        try:
-            tasks = dataset(name, b, starts[j], c)
-        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-            fail(e)
-            return
-        if not tasks:
-            release(b)
-            finished(name, j)
-            return
-        left = [len(tasks)]
-        lock = threading.Lock()
-
-        def one(t: Any) -> None:
-            e = t.exception()
-            if e is not None:
-                fail(e)
-                return
-            with lock:
-                left[0] -= 1
-                end = left[0] == 0
-            if end:
-                release(b)  # (its pieces' pages: nothing reads them any more)
-                finished(name, j)
-
-        for t in tasks:
-            t.add_done_callback(one)
 
     def progress() -> None:  # this thread: the bar, and the hook after the first chunk
         with cond:
@@ -1430,10 +1450,10 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         got = read_rows(name, starts[j], j % 2)
         with cond:
             nxt[name] = j + 1
-            ready[name][j] = (got, cuts[j])
+            ch.ready[name][j] = (got, cuts[j])
             if all(nxt[nm] > j for nm in names):
                 cuts.pop(j, None)
-            launch(name)
+            ch.launch(name)
         progress()
     while True:
         with cond:
@@ -1442,7 +1462,11 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
             cond.wait(0.05)
         progress()
     if errors:
-        raise errors[0]
+        # (the error's traceback holds the frame of the task that raised it, and so the
+        # object: the list is emptied, not left to hold the error)
+        first = errors[0]
+        errors.clear()
+        raise first
     progress()
 
 

@@ -27,7 +27,7 @@ from .allan_drift import LEVEL_UNITS
 def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) -> dict[str, Any]:
     """The detector's result for one axis, with each excursion's size in the field unit
     (``size_<unit>``) and its rows of the range analysed (``samples``: [first, end))."""
-    r = EX.find_excursions(ybar, block_s)
+    r = EX.find_excursions(ybar, block_s, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
     unit, fac = LEVEL_UNITS[sensor]
     r["unit"] = unit
     for e in r.get("excursions", []):
@@ -107,7 +107,7 @@ def sentences(r: dict[str, Any]) -> list[str]:
             text += f", moving with {', '.join(e['moving_with'])}"
         parts.append(text)
     head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
-            f"{x['min_s']:g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
+            f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
             f"record's own robust Allan deviation there; family-wise false-alarm probability "
             f"{x['alpha']:g} per axis): ")
     return [head + "; ".join(parts) + ". Not the sensor's stationary noise: they are in the "
