@@ -16,7 +16,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -54,6 +54,9 @@ class RunResult:
     recording: Path
     status: str
     message: str = ""
+    #: the analysis of a complete run (the checkpoint's ``analysis``): "" (no solvers, or the
+    #: run did not complete), ``done``, ``failed`` or ``interrupted``
+    analysis: str = ""
 
 
 @dataclass
@@ -71,6 +74,10 @@ class RunOptions:
     #: open each configured port and ask each device who it is before creating anything
     #: (rigctl.engine.device_check); a failure is a DeviceError and no run directory is made
     check_devices: bool = True
+    #: SIGINT / SIGTERM record of this run, for a caller that owns the process's signal handlers
+    #: and does not let the run install its own (``install_signals=False``: the daemon, which
+    #: calls ``signals.received`` from its handlers); None: the run's own
+    signals: RunSignals | None = None
 
 
 def make_run_dir(parent: Path, procedure_name: str) -> Path:
@@ -187,11 +194,13 @@ class AnalysisInterrupted(BaseException):
 
 
 @dataclass
-class _Signals:
+class RunSignals:
     """What SIGINT / SIGTERM did during a run: ``names`` of those received; while ``analysing``,
-    the handler stops the analysis (:class:`AnalysisInterrupted`)."""
+    the handler stops the analysis (:class:`AnalysisInterrupted`). :meth:`received` is called
+    from a signal handler, so in the main thread: the thread the run must run in for its
+    analysis to be interruptible."""
 
-    names: list[str]
+    names: list[str] = field(default_factory=list)
     analysing: bool = False
 
     def received(self, signum: int) -> None:  # minimal: called from a signal handler
@@ -221,7 +230,7 @@ def resume_command(run_dir: Path) -> str:
 
 
 def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any,
-             signals: _Signals) -> tuple[int, str]:
+             signals: RunSignals) -> tuple[int, str]:
     """Run the checkpoint's solvers on the complete, closed ``recording``: (exit code, message).
 
     The checkpoint's ``analysis`` says ``running`` while they run, then ``done``, ``failed`` or
@@ -262,6 +271,11 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
                      f"{resume_command(run_dir)} runs the analysis again", traceback=traceback.format_exc())
     return code, message
+
+
+def _analysis_outcome(ckpt: ckpt_mod.Checkpoint) -> str:
+    """The analysis' end as :attr:`RunResult.analysis` gives it: "" when none ran."""
+    return ckpt.analysis if ckpt.solvers and ckpt.status == "complete" else ""
 
 
 class _LogHandler(logging.Handler):
@@ -327,7 +341,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
     # engine exists, as soon as it does); a second signal while the run winds down changes
     # nothing: the table is put in its safe state and the recording closed either way. During
     # the analysis of a complete run it stops the analysis (_analyse).
-    signals = _Signals([])
+    signals = opts.signals if opts.signals is not None else RunSignals()
     signalled = signals.names
     engines: list[Engine] = []
 
@@ -345,7 +359,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
 
 def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, ckpt: ckpt_mod.Checkpoint,
                      make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-                     progress: Progress, resuming: bool, install_signals: bool, signals: _Signals,
+                     progress: Progress, resuming: bool, install_signals: bool, signals: RunSignals,
                      engines: list[Engine], status_box: list[str | None]) -> RunResult:
     signalled = signals.names
     recording = run_dir / RECORDING
@@ -493,7 +507,7 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
         if rec is not None:
             log("info", f"recording: {recording}")
         log.close()
-    return RunResult(code, run_dir, recording, status, message)
+    return RunResult(code, run_dir, recording, status, message, analysis=_analysis_outcome(ckpt))
 
 
 def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
@@ -542,11 +556,11 @@ def _analyse_again(run_dir: Path, ckpt: ckpt_mod.Checkpoint, console: Any, insta
     log = _DiskSafeLog(RunLog(run_dir / RUN_LOG, progress.console))
     log("info", f"resuming {run_dir.name}: the run is complete, its analysis {ckpt.analysis}: "
                 "running the analysis again")
-    signals = _Signals([])
+    signals = opts.signals if opts.signals is not None else RunSignals()
     with _signal_handlers(install_signals, lambda signum, _frame: signals.received(signum)):
         code, message = _analyse(run_dir, recording, ckpt, log, signals)
         log.close()
-    return RunResult(code, run_dir, recording, "complete", message)
+    return RunResult(code, run_dir, recording, "complete", message, analysis=_analysis_outcome(ckpt))
 
 
 def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
