@@ -37,7 +37,8 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
     """The real MTi-G gyro's x axis (tests/data/mtig-static-contaminated, 1.39 h at 100 Hz)
     through `rigctl import` + `rigctl allan --db none --json` in process, once per session:
     {"y": the rates, "text": allan's stdout, "res": the JSON's axes.gx, "ind": the independent
-    white + GM read (test_allan_gm_real.independent_fit)}. test_allan_gm_real and
+    white + GM read (test_allan_gm_real.independent_fit), "rec": the recording (with allan's
+    /results/allan)}. test_allan_gm_real and
     test_allan_gm_fit both check this run (SHARED_FIXTURE_FILES: one worker makes it once)."""
     import io
     import json
@@ -68,7 +69,7 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
            "--units", "gyr=rad/s")
     text = rigctl("allan", str(rec), "--db", "none", "--json", str(js))
     return {"y": y, "text": text, "res": json.loads(js.read_text())["axes"]["gx"],
-            "ind": independent_fit(y)}
+            "ind": independent_fit(y), "rec": rec}
 
 
 @pytest.fixture

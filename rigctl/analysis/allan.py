@@ -40,6 +40,7 @@ from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import allan_drift as AD
 from . import allan_quiet as QS
+from . import allan_excursions as EXA
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -572,6 +573,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
               "rows_per_block": int(round(block_s / stream.tau0))}  # for the temperature check
     warm = AD.start_transient(ybar, block_s, res.tau_s, res.dev, (res.n_phase - 1) * res.tau0_s,
                               sensor)
+    # short excursions of the level (30 s .. a quarter of the record), before the fit: reported
+    excursions = EXA.axis_excursions(ybar, block_s, res.tau0_s, sensor)
     if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))
@@ -599,7 +602,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
         AD.name_unexplained(fit["check"], AD.gm_left_reason(fit))
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
+            **screening, "excursions": excursions, "tones": tones, "warmup": warm,
+            "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -659,6 +663,11 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
                 if (r.get("temperature_removed") or {}).get("before", {}).get("correction")}
         QS.add_quiet_stretches(out, lambda ax, rng, c: compute_once(
             path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c), corr)
+    # the axes' excursions, grouped where they overlap (the axes that moved together), and
+    # those inside each quiet stretch
+    out["excursions"] = EXA.group(out["axes"])
+    for r in out["axes"].values():
+        EXA.mark_quiet(r, 1.0 / float(out["sample_rate_hz"]))
     return out
 
 
@@ -1708,7 +1717,7 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     unless excluded) and the output quantization (a note; a warning when the noise per sample
     is below half a step, so the rounding is not random)."""
     t_warns, notes = AD.temperature_sentences(r)
-    warns = list(AD.warmup_sentences(r)) + t_warns
+    warns = list(AD.warmup_sentences(r)) + t_warns + EXA.sentences(r)
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
     basis = {"samples": ", the samples' own spread: the running-median residual's MAD "
@@ -1833,9 +1842,10 @@ def store(path: str, result: dict[str, Any]) -> None:
                "outliers": result.get("outliers", "report"),
                "warmup": result.get("warmup", "report"),
                "temperature": result.get("temperature", "report"),
+               "excursions": jsonable(result.get("excursions") or [], keep_nonfinite=True),
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
-                            **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
+                            **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes", "excursions",
                                                               "quantization", "tones", "warmup",
                                                               "warmup_excluded", "temperature",
                                                               "temperature_removed")},

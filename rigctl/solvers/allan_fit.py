@@ -983,9 +983,13 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
         gm_s2_front = gm_column(tau_front, tc_fit) * coeff_sq["GM"]
     if tau0 is not None and n_phase is not None:  # with the GM term's parameters when it is in
-        _add_crb(out_terms, coefs, float(tau0), int(n_phase),
-                 gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
-                     if gm_coefs and gm_coefs[0].sigma.resolved else None))
+        gm_crb = _add_crb(out_terms, coefs, float(tau0), int(n_phase),
+                          gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
+                              if gm_coefs and gm_coefs[0].sigma.resolved else None),
+                          gm_bound=((gm_coefs[0].sigma.upper95, gm_coefs[0].tau_c_s)
+                                    if gm_coefs and not gm_coefs[0].sigma.resolved else None))
+        if gm_term is not None and gm_crb:  # the term's own figures
+            gm_term["crb"] = gm_crb
     check = self_check(tau_front, np.sqrt(s2_front), e_front,
                        {t: v for t, v in coeff_sq.items() if t in TERMS}, m_eff,
                        extra_avar=gm_s2_front)
@@ -1691,7 +1695,8 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
 
 
 def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
-             gm: tuple[float, float] | None = None) -> None:
+             gm: tuple[float, float] | None = None,
+             gm_bound: tuple[float, float] | None = None) -> dict[str, dict]:
     """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
     estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
     :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms, and the
@@ -1705,9 +1710,17 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
     bounded term at its upper bound, so a lower limit: a smaller term needs longer). For a
     bounded term that lower limit can come out at or below this capture's own length
     (``capture_h``): the term is then smaller than its bound, and the honest statement is
-    only "longer than this capture" (see :func:`rigctl.display_units.need_text`)."""
+    only "longer than this capture" (see :func:`rigctl.display_units.need_text`).
+
+    Returns the Gauss-Markov term's own figures, {"sigma": entry, "tc": entry} with entries
+    like the terms' (``crb_rel_sd``: sd(sigma_GM)/sigma_GM and sd(Tc)/Tc; ``capture_h``; and
+    ``capture_h_for_25pct`` where the bound is wider than the target), at the fitted model with
+    ``gm``; for a bounded sigma_GM (``gm_bound`` = (its 95 % upper bound, Tc)) with the term at
+    its bound, so lower limits as for a bounded IEEE term (``bounded``: True). {} without a
+    Gauss-Markov term."""
+    gm_out: dict[str, dict] = {}
     if n_phase < 3:
-        return
+        return gm_out
     base, bounded = {}, {}
     for t in R.TERMS4:
         c = coefs.get(t)
@@ -1717,23 +1730,34 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
             base[t] = c.value
         elif c.upper95 > 0 and math.isfinite(c.upper95):
             bounded[t] = c.upper95
-    models = [(base, tuple(base))] + [({**base, t: v}, (t,)) for t, v in bounded.items()]
     length = (n_phase - 1) * tau0
-    for coeffs, report in models:
+    # (coefficients, the IEEE terms read off it, the GM model, the GM entries read off it)
+    models = [(base, tuple(base), gm, gm is not None)]
+    models += [({**base, t: v}, (t,), gm, False) for t, v in bounded.items()]
+    if gm_bound is not None and base:
+        models.append((base, (), gm_bound, True))
+    gm_keys = {"sigma": "GM_sigma", "tc": "GM_tc"}
+    for coeffs, report, g, with_gm in models:
         try:
-            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=gm)
+            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=g)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        for t in report:
-            out_terms[t]["crb_rel_sd"] = best[t]
-            out_terms[t]["capture_h"] = length / 3600.0
-            if t != "Q" and best[t] > TARGET_REL_SD:  # how long a capture would resolve it
+        entries = [(out_terms[t], t) for t in report]
+        if with_gm and gm_keys["tc"] in best:
+            for k, key in gm_keys.items():
+                gm_out[k] = {"bounded": g is gm_bound}
+                entries.append((gm_out[k], key))
+        for entry, key in entries:
+            entry["crb_rel_sd"] = best[key]
+            entry["capture_h"] = length / 3600.0
+            if key != "Q" and best[key] > TARGET_REL_SD:  # how long a capture would resolve it
                 try:
-                    need = R.duration_for(coeffs, t, TARGET_REL_SD, 1.0 / tau0,
-                                          t_min_s=min(600.0, 0.5 * length), gm=gm)
+                    need = R.duration_for(coeffs, key, TARGET_REL_SD, 1.0 / tau0,
+                                          t_min_s=min(600.0, 0.5 * length), gm=g)
                 except (ValueError, np.linalg.LinAlgError):
                     continue
-                out_terms[t]["capture_h_for_25pct"] = need / 3600.0
+                entry["capture_h_for_25pct"] = need / 3600.0
+    return gm_out
 
 
 def term_value_si(fit: dict, term: str) -> float:
