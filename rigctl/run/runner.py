@@ -10,8 +10,10 @@ import json
 import logging
 import math
 import re
+import _thread
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -193,21 +195,57 @@ class AnalysisInterrupted(BaseException):
     takes it for a failure of its own."""
 
 
+#: wall time after which a signal that should have stopped the analysis, while the analysis
+#: still runs, is delivered to the main thread again (RunSignals), s
+REDELIVER_S = 1.0
+
+
+def _unraisable(info: Any) -> None:
+    """sys.unraisablehook: an :class:`AnalysisInterrupted` that Python dropped (raised by the
+    signal handler inside a finalizer or weakref callback) is delivered again by
+    :class:`RunSignals`, silently; anything else as Python's own hook prints it."""
+    if not isinstance(info.exc_value, AnalysisInterrupted):
+        sys.__unraisablehook__(info)
+
+
 @dataclass
 class RunSignals:
     """What SIGINT / SIGTERM did during a run: ``names`` of those received; while ``analysing``,
     the handler stops the analysis (:class:`AnalysisInterrupted`). :meth:`received` is called
     from a signal handler, so in the main thread: the thread the run must run in for its
-    analysis to be interruptible."""
+    analysis to be interruptible.
+
+    Python prints and drops an exception that a signal handler raises while the main thread
+    runs a finalizer or a weakref callback ("Exception ignored in: <function
+    WeakValueDictionary.__init__.<locals>.remove ...>": seen in 1 of 6 SIGINTs to ``rigctl serve``
+    during allan, at load 18, whose analysis then ran to its end and the job said ``complete``).
+    So until the analysis has taken the interruption (``pending`` cleared by :func:`_analyse`),
+    a thread delivers the signal to the main thread again every :data:`REDELIVER_S`."""
 
     names: list[str] = field(default_factory=list)
     analysing: bool = False
+    #: an interruption of the analysis is on its way (set by the handler, cleared by _analyse)
+    pending: bool = False
+    _again: bool = False  # the next call is a re-delivery
 
     def received(self, signum: int) -> None:  # minimal: called from a signal handler
         self.names.append(signal.Signals(signum).name)
-        if self.analysing:  # once: a second signal while the first is handled changes nothing
-            self.analysing = False
-            shield.interrupt(AnalysisInterrupted(self.names[0]))
+        if not self.analysing or (self.pending and not self._again):
+            return  # a second signal while the first is handled changes nothing
+        self._again = False
+        if not self.pending:
+            self.pending = True
+            sys.unraisablehook = _unraisable  # a dropped interruption: no traceback on the console
+            threading.Thread(target=self._redeliver, args=(signum,), name="rigctl-interrupt", daemon=True).start()
+        shield.interrupt(AnalysisInterrupted(self.names[0]))
+
+    def _redeliver(self, signum: int) -> None:
+        while True:
+            time.sleep(REDELIVER_S)
+            if not (self.analysing and self.pending):
+                return
+            self._again = True
+            _thread.interrupt_main(signum)  # the main thread runs the handler again
 
 
 @contextmanager
@@ -258,7 +296,7 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         signals.analysing = False
         save("done")
     except AnalysisInterrupted as exc:
-        signals.analysing = False
+        signals.analysing = signals.pending = False
         code = EXIT_INTERRUPTED
         message = (f"analysis interrupted by {exc}: the recording {recording} is complete and closed, "
                    f"no result is half-written ({resume_command(run_dir)} redoes the analysis)")
