@@ -66,7 +66,8 @@ def detect(y: np.ndarray, tau0: float) -> dict:
     from rigctl.solvers import allan_excursions as EX
 
     yb, bs = block_means(np.asarray(y, dtype=float), tau0)
-    return EX.find_excursions(yb, bs)
+    # as rigctl.analysis.allan_excursions.axis_excursions: windows of >= 16 samples
+    return EX.find_excursions(yb, bs, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
 
 
 def coefficients(case: str):
@@ -92,8 +93,11 @@ def noise_capture(case: str, hours: float, seed: int) -> dict[str, np.ndarray]:
     g, a, fg, fa = coefficients(case)
     n = int(round(hours * 3600 * NOISE_RATE_HZ))
     out = {}
+    # each case draws its own numbers (the same seed in two cases would repeat one path:
+    # a chance step in one would be counted once per case)
     for name, co, fd, tag in (("g", g, fg, 1), ("a", a, fa, 2)):
-        gen = NoiseGenerator(co, NOISE_RATE_HZ, np.random.SeedSequence([seed, tag, 77]), fd)
+        gen = NoiseGenerator(co, NOISE_RATE_HZ,
+                             np.random.SeedSequence([seed, tag, 77, PROFILES.index(case)]), fd)
         y = gen.next(n)
         out.update({f"{name}{c}": y[:, i] for i, c in enumerate("xyz")})
     return out
@@ -158,8 +162,10 @@ def main() -> None:
               "detection", flush=True)
     known: dict[str, list[str]] = {}
     if not args.no_real:
+        import allan_heldout
         from allan_heldout import captures
 
+        allan_heldout.REUSE = bool(args.keep)  # recordings already in --keep: not imported again
         tmpd = None if args.keep else tempfile.TemporaryDirectory()
         tmp = Path(args.keep or tmpd.name)
         tmp.mkdir(parents=True, exist_ok=True)

@@ -655,7 +655,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             gaps: str = "skip", warmup: str = "report",
             temperature: str = "report",
             when_streaming: Callable[[], Any] | None = None,
-            quiet_stretch: bool = True) -> dict[str, Any]:
+            quiet_stretch: bool = True, excursions: str = "report") -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -670,7 +670,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     Last, with ``quiet_stretch`` (the default), each axis whose self-check names a run of taus
     not stationary gets ``quiet_stretch``: the terms fitted again on the quiet stretch the
     stationarity test names, beside the whole record's (:mod:`rigctl.analysis.allan_quiet`;
-    the whole record's fit and self-check are left as they are)."""
+    the whole record's fit and self-check are left as they are). Each axis' short
+    excursions (:mod:`rigctl.analysis.allan_excursions`) are reported; with
+    ``excursions="exclude"`` those inside a quiet stretch are left out of its fit, as gaps
+    handled by ``gaps`` (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
+    if excursions not in QS.EXCURSION_MODES:
+        raise InputError(f"excursions={excursions!r}: choose from {', '.join(QS.EXCURSION_MODES)}")
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
@@ -684,8 +689,10 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     if quiet_stretch:
         corr = {a: r["temperature_removed"]["before"]["correction"] for a, r in out["axes"].items()
                 if (r.get("temperature_removed") or {}).get("before", {}).get("correction")}
-        QS.add_quiet_stretches(out, lambda ax, rng, c: compute_once(
-            path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c), corr)
+        QS.add_quiet_stretches(out, lambda ax, rng, c, d=None: compute_once(
+            path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c, drop=d),
+            corr, excursions, gaps)
+    out["excursions_mode"] = excursions
     # the axes' excursions, grouped where they overlap (the axes that moved together), and
     # those inside each quiet stretch
     out["excursions"] = EXA.group(out["axes"])
@@ -763,7 +770,8 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                  sample_range: tuple[int, int] | None = None,
                  progress_stream: Any = None, outliers: str = "report",
                  gaps: str = "skip", corrections: dict | None = None,
-                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
+                 when_streaming: Callable[[], Any] | None = None,
+                 drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -775,7 +783,11 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
     stretch is summed on its own and the sums and term counts added: exact, nothing is
     bridged); ``"refuse"`` raises InputError saying where they are and what to do,
     ``"longest"`` analyses the longest gap-free stretch, ``"bridge"`` treats the samples as
-    contiguous; the result's ``gaps`` records which."""
+    contiguous; the result's ``gaps`` records which. ``drop``: rows [a, b) of the recording
+    left out (excursions, :mod:`rigctl.analysis.allan_excursions`): each is a gap made on
+    purpose, skipped as the record's gaps are with ``gaps="skip"`` and bridged (said in
+    ``gaps.excluded``) with ``"bridge"``; ``"refuse"`` and ``"longest"`` are the caller's
+    (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
     if outliers not in OUTLIER_MODES:
         raise InputError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     if gaps not in GAP_MODES:
@@ -810,7 +822,7 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
                                      progress_stream, outliers, gaps, corrections, counter,
-                                     when_streaming)
+                                     when_streaming, _clip_drop(drop, s0, s1))
         finally:
             for r in readers.values():
                 r.close()
@@ -841,12 +853,50 @@ def _streamed_counter(f: Any, s0: int, s1: int, gaps: str) -> RowReader | None:
     return rd
 
 
+def _clip_drop(drop: list[tuple[int, int]] | None, s0: int, s1: int) -> list[tuple[int, int]]:
+    """The rows to leave out, clipped to [s0, s1), sorted and merged where they touch."""
+    out: list[list[int]] = []
+    for a, b in sorted((max(s0, int(a)), min(s1, int(b))) for a, b in (drop or ())):
+        if b <= a:
+            continue
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return [(a, b) for a, b in out]
+
+
+def kept_stretches(s0: int, s1: int, breaks: list[int] | None, drop: list[tuple[int, int]],
+                   split_at_drop: bool = True) -> np.ndarray:
+    """Lengths of the stretches of rows [s0, s1) the Allan sums run over: cut at the gap
+    ``breaks`` (rows after a gap, gaps skipped) and, with ``split_at_drop``, at each left-out
+    window ``drop`` (rows [a, b), not counted); without it the rows on either side of a
+    window join (bridged)."""
+    cuts = {s0, s1, *(breaks or ())}
+    for a, b in drop:
+        cuts.update((a, b))
+    edges = sorted(c for c in cuts if s0 <= c <= s1)
+    out: list[int] = []
+    join = False
+    for a, b in zip(edges[:-1], edges[1:]):
+        if any(da <= a and b <= db for da, db in drop):
+            join = not split_at_drop
+            continue
+        if join and out and a not in (breaks or ()):
+            out[-1] += b - a
+        else:
+            out.append(b - a)
+        join = False
+    return np.asarray(out, dtype=np.int64)
+
+
 def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
                       corrections: dict | None = None,
                       counter: RowReader | None = None,
-                      when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
+                      when_streaming: Callable[[], Any] | None = None,
+                      drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
     the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
     from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
@@ -882,6 +932,12 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                              f"need at least {MIN_SAMPLES}")
         missing = 0
     breaks = [g for g, _ in found] if gaps == "skip" else None
+    drop = _clip_drop(drop, s0, s1) if gaps in ("skip", "bridge") else []
+    n_drop = sum(b - a for a, b in drop)
+    if drop and n - n_drop < MIN_SAMPLES:
+        raise InputError(f"{path}: only {n - n_drop} IMU samples left once the excluded windows "
+                         f"are left out; need at least {MIN_SAMPLES}")
+    n -= n_drop  # the samples the sums run over
     ms = A.tau_factors(n + 1, taus, "oadev")
     # below A.FAST_MIN_POINTS the sums are exact, as in A.oadev: there they cost milliseconds,
     # while the strides would throw away most of the EDF of phase-noise-dominated taus
@@ -900,14 +956,16 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     def stretches() -> np.ndarray | None:
         """The gap-free stretches' lengths when gaps are skipped (every gap known: after the
         stream, or once a dataset has had its last chunk, whose read scanned the last of the
-        counter), else None."""
+        counter), else None; with windows left out (``drop``), the stretches between them."""
         b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
+        if drop:
+            return kept_stretches(s0, s1, b, drop, gaps == "skip")
         return np.diff([s0] + b + [s1]) if b else None
 
     with _switch_interval(SWITCH_INTERVAL_S), _gc_paused(PAUSE_GC):
         return _stream_and_analyse(path, fs, axes, streams, s0, s1, n, shown, readers, exclude,
                                    breaks, corrections, counter, found, streamed, gaps,
-                                   gap_info, missing, outliers, when_streaming, stretches)
+                                   gap_info, missing, outliers, when_streaming, stretches, drop)
 
 
 #: the interpreter's cyclic garbage collector is paused while a record streams and its axes
@@ -967,9 +1025,8 @@ def collector_paused_for_command() -> contextlib.AbstractContextManager:
     imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
     this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
     meanwhile waits for the next full collection instead (for the command: the process'
-    exit): the stream's nested functions (:func:`_pipelined`'s callbacks refer to each
-    other) hold its chunk buffers, ~84 MB for a 12 h x 6-axis file, which are then freed at
-    the exit instead of after the analyses (the peak, during the stream, is the same)."""
+    exit), so the stream makes none that holds its buffers (:class:`_Chains`; the test
+    test_pipelined_stream_frees_its_buffers_without_the_collector)."""
     return _gc_paused(PAUSE_GC, promote=True)
 
 
@@ -1005,7 +1062,8 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                         counter: RowReader | None, found: list, streamed: bool, gaps: str,
                         gap_info: dict, missing: int, outliers: str,
                         when_streaming: Callable[[], Any] | None,
-                        stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
+                        stretches: Callable[[], np.ndarray | None],
+                        drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
     ids: dict[str, Any] = {}  # axis -> its task of noise IDs on the decimated copy
 
@@ -1031,7 +1089,7 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
                        exclude, breaks, corrections,
                        (counter, found, gaps == "skip") if streamed else None, when_streaming,
-                       dataset_done if LEAD_DATASET else None)
+                       dataset_done if LEAD_DATASET else None, drop or None, gaps == "skip")
         shown.finish()
         if streamed:
             missing = sum(m for _, m in found)
@@ -1041,9 +1099,13 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
             breaks = [g for g, _ in found] if gaps == "skip" else None
         gaps_bridged = int(missing) if gaps == "bridge" else 0
         stretch_samples = stretches()
-        if breaks:
+        if breaks or (drop and gaps == "skip"):
             gap_info["stretches"] = len(stretch_samples)
             gap_info["longest_stretch_samples"] = int(np.max(stretch_samples))
+        if drop:  # windows left out on purpose: gaps of their own, said so
+            gap_info["excluded"] = {"windows": len(drop), "samples": int(sum(b - a for a, b in drop)),
+                                    "rows": [[int(a), int(b)] for a, b in drop],
+                                    "handled": "skipped" if gaps == "skip" else "bridged"}
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
                "gaps": gap_info, "outliers": outliers, "axes": {}}
@@ -1054,6 +1116,11 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
+    if drop:  # the block means skip the windows left out: no longer the rows' temperature's
+        for r in out["axes"].values():
+            r.pop("_blocks", None)
+            r["temperature"] = {"found": False, "skipped": "windows left out of the samples: "
+                                                         "the block means do not follow the rows"}
     AD.temperature_step(path, int(s0), out["axes"])  # each axis' "temperature" (if recorded)
     return out
 
@@ -1064,7 +1131,9 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                    corrections: dict | None = None,
                    scan: tuple[RowReader, list, bool] | None = None,
                    when_streaming: Callable[[], Any] | None = None,
-                   dataset_done: Callable[[list[str]], Any] | None = None) -> None:
+                   dataset_done: Callable[[list[str]], Any] | None = None,
+                   drop: list[tuple[int, int]] | None = None,
+                   drop_breaks: bool = True) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -1082,6 +1151,10 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     (``breaks`` is then None): each chunk's /imu/counter rows are read and scanned with its
     samples, the gaps appended to ``found``, and with ``skip`` the rows after them break the
     stretches as ``breaks`` would.
+
+    ``drop``: rows [a, b) left out (not added to the sums; the chunks touching one go the
+    per-axis way); with ``drop_breaks`` the samples after each start a new stretch, as after
+    a gap, else they follow the samples before it (bridged).
 
     ``dataset_done``: with :data:`PIPELINED`, the chunks of the first axis' dataset go first
     (:func:`_pipelined`) and this is called with a dataset's axes as soon as its last chunk
@@ -1131,14 +1204,25 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
     groups = {name: [a for a in axes if AXES[a][0] == name] for name in dsets}
 
+    drops = list(drop or ())
+
+    def dropped_in(a0: int, a1: int) -> list[tuple[int, int]]:
+        """The left-out windows overlapping rows [a0, a1), relative to a0, clipped."""
+        return [(max(a, a0) - a0, min(b, a1) - a0) for a, b in drops if a < a1 and b > a0]
+
     def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         if corrections and a in corrections:  # rows relative to s0
             y -= AD.correction_at(corrections[a], first, y.size)
         y = streams[a].screen(y, first, exclude)
-        # rows after a gap (gaps="skip") start a new gap-free stretch
         a0 = s0 + first
+        gone = dropped_in(a0, a0 + y.size)
+        ends_here = any(b == a0 for _, b in drops)  # a window left out just before the chunk
+        if gone or ends_here:
+            feed_kept(a, y, a0, cuts, gone, ends_here)
+            return
+        # rows after a gap (gaps="skip") start a new gap-free stretch
         inside = cuts[(cuts > a0) & (cuts < a0 + y.size)] - a0 if cuts.size else cuts
         if a0 > s0 and cuts.size and bool(np.any(cuts == a0)):
             streams[a].break_stretch()
@@ -1148,6 +1232,23 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             streams[a].break_stretch()
             prev = c
         streams[a].add(y[prev:] if prev else y)
+
+    def feed_kept(a: str, y: np.ndarray, a0: int, cuts: np.ndarray,
+                  gone: list[tuple[int, int]], after_drop: bool) -> None:
+        """:func:`feed` for a chunk that holds left-out rows ``gone`` (relative to a0) or
+        follows one (``after_drop``): the pieces between them added, each after a break where
+        a gap (``cuts``) or, with ``drop_breaks``, a left-out window ends before it."""
+        st = streams[a]
+        cut_rel = set((cuts[(cuts >= a0) & (cuts < a0 + y.size)] - a0).tolist()) if cuts.size else set()
+        edges = sorted({0, y.size, *cut_rel, *(v for g in gone for v in g)})
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            if any(g0 <= lo and hi <= g1 for g0, g1 in gone):
+                after_drop = True
+                continue
+            if (lo in cut_rel and (lo > 0 or a0 > s0)) or (after_drop and drop_breaks):
+                st.break_stretch()
+            after_drop = False
+            st.add(y[lo:hi])
 
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
@@ -1161,7 +1262,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
-        touched = cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))
+        touched = (cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))) \
+            or bool(dropped_in(a0, a0 + n)) or any(b == a0 for _, b in drops)
         if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
@@ -1239,6 +1341,89 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         _result(e)
 
 
+class _Chains:
+    """The state of :func:`_pipelined`'s chains and the callbacks that run them. Methods, not
+    functions nested in :func:`_pipelined`: those referred to each other through their
+    closures (``launch`` queued ``run``, whose tasks' callback called ``finished``, which
+    called ``launch``), a reference cycle that held everything they reached -- the stream's
+    read and column buffers, ~84 MB for a 12 h x 6-axis file -- until the cyclic collector ran,
+    which ``rigctl allan`` keeps paused to its exit (:func:`collector_paused_for_command`).
+    Here the queued tasks and the callbacks refer to the object, and nothing in it to them:
+    it and the buffers go when the last task is done."""
+
+    def __init__(self, pool: _PriorityPool, starts: list[int], names: list[str],
+                 dataset: Callable, streams: dict, groups: dict, rank: dict, s0: int, s1: int,
+                 early: list, dataset_done: Callable[[list[str]], Any] | None):
+        self.pool, self.starts, self.names, self.dataset = pool, starts, names, dataset
+        self.streams, self.groups, self.rank, self.s0, self.s1 = streams, groups, rank, s0, s1
+        self.early, self.dataset_done = early, dataset_done
+        self.cond = threading.Condition()
+        self.ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
+        self.done = {name: -1 for name in names}  # the last chunk each dataset has finished
+        self.busy = {name: False for name in names}
+        self.errors: list[BaseException] = []
+        self.last = len(starts) - 1
+        self.queued_ids = {name: False for name in names}
+
+    def fail(self, e: BaseException) -> None:
+        with self.cond:
+            self.errors.append(e)
+            self.cond.notify_all()
+
+    def launch(self, name: str) -> None:  # under cond
+        j = self.done[name] + 1
+        if not self.errors and not self.busy[name] and j in self.ready[name]:
+            self.busy[name] = True
+            b, c = self.ready[name].pop(j)
+            self.pool.submit_at(self.rank[name], self.run, name, j, b, c)
+
+    def finished(self, name: str, j: int) -> None:
+        if j == self.last and self.dataset_done is not None:  # before the stream is done
+            try:
+                self.dataset_done(self.groups[name])
+            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+                self.fail(e)
+        with self.cond:
+            self.done[name] = j
+            self.busy[name] = False
+            sts = [self.streams[a] for a in self.groups[name]]
+            if EARLY_NOISE_ID and not self.queued_ids[name] and j < self.last and all(
+                    st.head_full() for st in sts):  # (before its next chunk's task)
+                self.queued_ids[name] = True
+                self.early.extend(self.pool.submit_at(self.rank[name], st.head_noise_ids,
+                                                      self.s1 - self.s0 + 1) for st in sts)
+            self.launch(name)
+            self.cond.notify_all()
+
+    def run(self, name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
+        try:
+            tasks = self.dataset(name, b, self.starts[j], c)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            self.fail(e)
+            return
+        if not tasks:
+            release(b)
+            self.finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                self.fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                end = left[0] == 0
+            if end:
+                release(b)  # (its pieces' pages: nothing reads them any more)
+                self.finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
+
+
 def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_rows: Callable,
                cuts_at: Callable, dataset: Callable, streams: dict, groups: dict, rank: dict,
                s0: int, s1: int, shown: WorkProgress, early: list,
@@ -1261,74 +1446,12 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     has finished the first chunk; a dataset's early noise IDs of the head
     (:data:`EARLY_NOISE_ID`) are queued (at its rank, before its next chunk's task) by the
     first of its chunks after which its heads are complete, if another chunk follows."""
-    cond = threading.Condition()
-    ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
-    done = {name: -1 for name in names}  # the last chunk each dataset has finished
-    busy = {name: False for name in names}
-    errors: list[BaseException] = []
+    ch = _Chains(pool, starts, names, dataset, streams, groups, rank, s0, s1, early,
+                 dataset_done)
+    cond, done, last, errors = ch.cond, ch.done, ch.last, ch.errors
     hook = [when_streaming]
-    last = len(starts) - 1
     cuts: dict[int, np.ndarray] = {}  # chunk -> its gap breaks (scanned with its first read)
     nxt = {name: 0 for name in names}  # the next chunk to read, per dataset
-    queued_ids = {name: False for name in names}
-
-    def fail(e: BaseException) -> None:
-        with cond:
-            errors.append(e)
-            cond.notify_all()
-
-    def launch(name: str) -> None:  # under cond
-        j = done[name] + 1
-        if not errors and not busy[name] and j in ready[name]:
-            busy[name] = True
-            b, c = ready[name].pop(j)
-            pool.submit_at(rank[name], run, name, j, b, c)
-
-    def finished(name: str, j: int) -> None:
-        if j == last and dataset_done is not None:  # before the stream can be seen as done
-            try:
-                dataset_done(groups[name])
-            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-                fail(e)
-        with cond:
-            done[name] = j
-            busy[name] = False
-            sts = [streams[a] for a in groups[name]]
-            if EARLY_NOISE_ID and not queued_ids[name] and j < last and all(
-                    st.head_full() for st in sts):  # (before its next chunk's task)
-                queued_ids[name] = True
-                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
-                             for st in sts)
-            launch(name)
-            cond.notify_all()
-
-    def run(name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
-        try:
-            tasks = dataset(name, b, starts[j], c)
-        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-            fail(e)
-            return
-        if not tasks:
-            release(b)
-            finished(name, j)
-            return
-        left = [len(tasks)]
-        lock = threading.Lock()
-
-        def one(t: Any) -> None:
-            e = t.exception()
-            if e is not None:
-                fail(e)
-                return
-            with lock:
-                left[0] -= 1
-                end = left[0] == 0
-            if end:
-                release(b)  # (its pieces' pages: nothing reads them any more)
-                finished(name, j)
-
-        for t in tasks:
-            t.add_done_callback(one)
 
     def progress() -> None:  # this thread: the bar, and the hook after the first chunk
         with cond:
@@ -1363,10 +1486,10 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         got = read_rows(name, starts[j], j % 2)
         with cond:
             nxt[name] = j + 1
-            ready[name][j] = (got, cuts[j])
+            ch.ready[name][j] = (got, cuts[j])
             if all(nxt[nm] > j for nm in names):
                 cuts.pop(j, None)
-            launch(name)
+            ch.launch(name)
         progress()
     while True:
         with cond:
@@ -1375,7 +1498,11 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
             cond.wait(0.05)
         progress()
     if errors:
-        raise errors[0]
+        # (the error's traceback holds the frame of the task that raised it, and so the
+        # object: the list is emptied, not left to hold the error)
+        first = errors[0]
+        errors.clear()
+        raise first
     progress()
 
 
@@ -1866,6 +1993,7 @@ def store(path: str, result: dict[str, Any]) -> None:
                "warmup": result.get("warmup", "report"),
                "temperature": result.get("temperature", "report"),
                "excursions": jsonable(result.get("excursions") or [], keep_nonfinite=True),
+               "excursions_mode": result.get("excursions_mode", "report"),
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
                             **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes", "excursions",

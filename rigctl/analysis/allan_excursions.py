@@ -8,10 +8,11 @@ range analysed, rows of the range in ``samples``, sizes in the deviation's field
 deg/h), groups the axes' excursions that overlap in time into the record's ``excursions``
 (the axes that move together), marks those inside an axis' quiet stretch, and words them.
 
-Like the spikes, excursions are reported and never folded silently into the noise: the
-fit sees them (they are part of the record), and the text says so, axis by axis. Taking
-them out of the analysis (their windows left out as gaps, handled as the record's gaps are)
-is not implemented yet: the report says what was found and that it is in the fit.
+Like the spikes, excursions are reported and never folded silently into the noise: by
+default the fits see them (they are part of the record), and the text says so, axis by axis;
+with ``--excursions exclude`` those inside an axis' quiet stretch are left out of its fit,
+their windows gaps handled as the record's own gaps are
+(:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from .allan_drift import LEVEL_UNITS
 def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) -> dict[str, Any]:
     """The detector's result for one axis, with each excursion's size in the field unit
     (``size_<unit>``) and its rows of the range analysed (``samples``: [first, end))."""
-    r = EX.find_excursions(ybar, block_s)
+    r = EX.find_excursions(ybar, block_s, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
     unit, fac = LEVEL_UNITS[sensor]
     r["unit"] = unit
     for e in r.get("excursions", []):
@@ -106,20 +107,26 @@ def sentences(r: dict[str, Any]) -> list[str]:
             text += f", moving with {', '.join(e['moving_with'])}"
         parts.append(text)
     head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
-            f"{x['min_s']:g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
+            f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
             f"record's own robust Allan deviation there; family-wise false-alarm probability "
             f"{x['alpha']:g} per axis): ")
-    return [head + "; ".join(parts) + ". They are in the samples the fit sees (the whole "
-            "record's curve, and the quiet stretch's where they lie in it): not the sensor's "
-            "stationary noise"]
+    return [head + "; ".join(parts) + ". Not the sensor's stationary noise: they are in the "
+            "whole record's samples and fit; inside a quiet stretch they are left out of its fit "
+            "only with --excursions exclude"]
 
 
 def quiet_sentence(q: dict[str, Any], unit: str) -> list[str]:
-    """The excursions inside the quiet stretch, named ([] if none)."""
+    """The excursions inside the quiet stretch, named, and whether they were left out of its
+    fit ([] if none)."""
     inside = q.get("excursions_inside") or []
     if not inside:
         return []
-    return [f"the quiet stretch holds {len(inside)} of the excursions found: "
+    head = (f"the quiet stretch holds {len(inside)} of the excursions found: "
             + "; ".join(describe(e, unit) for e in inside)
-            + " (the stationarity test's windows are too long to see them; they are in its fit)"]
+            + " (the stationarity test's windows are too long to see them)")
+    ex = q.get("excursions_excluded")
+    if ex:
+        return [f"{head}; left out of its fit (--excursions exclude, {ex['n_samples']} samples "
+                f"in {len(ex['samples'])} window(s)): {ex['handled']}"]
+    return [f"{head}; they are in its fit: to leave them out, --excursions exclude"]
 

@@ -129,7 +129,9 @@ def quiet_lines(r: dict[str, Any]) -> list[str]:
     # in the paragraph's head and the goodness-of-fit line above)
     lines += [f"warning: quiet stretch: {w}" for w in check_warnings(q)
               if not w.startswith("self-check failed:")]
-    lines += [f"warning: {w}" for w in EXA.quiet_sentence(q, (r.get("excursions") or {}).get("unit", ""))]
+    # its excursions: a warning while they are in its fit, a note once left out
+    kind = "note" if q.get("excursions_excluded") else "warning"
+    lines += [f"{kind}: {w}" for w in EXA.quiet_sentence(q, (r.get("excursions") or {}).get("unit", ""))]
     return lines
 
 

@@ -563,6 +563,11 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
                    + (_chi2_cell(q["fit"]["check"]) if q["fit"]["check"].get("chi2_beyond_99")
                       else "self-check failed" if not q["fit"]["check"].get("ok")
                       else "self-check passed") + ")")
+        ex = q.get("excursions_excluded")
+        if ex:  # the excursions inside it, left out of its fit (--excursions exclude)
+            stretch += (f"; without {len(ex['samples'])} excursion window(s) (t = "
+                        + ", ".join(f"{a:.0f}-{b:.0f}" for a, b in ex["windows_s"])
+                        + f" s, {ex['n_samples']} samples), {ex['handled']}")
         # the stretch's own self-check runs that no term follows, named under the table
         notes += [f"{axis}, quiet stretch: tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s: "
                   f"{o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "

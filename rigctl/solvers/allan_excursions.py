@@ -46,7 +46,9 @@ edge without a return is reported as a level shift (within a quarter of the reco
 start or end, an excursion that runs to it).
 
 **Size.** The mean over the excursion less the mean of its flanks -- the stretches of its own
-length before and after it, clipped to the record, without other excursions -- in units of y.
+length before and after it, clipped to the record, without other excursions -- in units of y
+(NaN when other excursions cover both flanks); a level shift's size is its step, D at the
+scale it was found.
 """
 from __future__ import annotations
 
@@ -57,8 +59,11 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.stats import chi2, norm
 
-#: shortest window length tested (s)
+#: shortest window length tested (s) ...
 MIN_S = 30.0
+#: ... and at least this many of the sensor's samples (a window of a few samples is one
+#: outlier's: spikes are the spike screen's, rigctl.solvers.allan_checks)
+MIN_SAMPLES = 16
 #: longest window length tested: this share of the record (at least 32 windows of it)
 MAX_FRACTION = 1.0 / 32.0
 #: an excursion lasts at most this share of the record
@@ -154,8 +159,11 @@ def window_size(ybar: np.ndarray, a: int, b: int, others: list[tuple[int, int]] 
     keep = np.zeros(n, dtype=bool)
     keep[max(0, a - d):a] = True
     keep[b:min(n, b + d)] = True
+    flanks = keep.copy()
     for oa, ob in others:
         keep[max(0, oa):min(n, ob)] = False
+    if not keep.any():  # other excursions cover both flanks: against them, as they are
+        keep = flanks
     if not keep.any():
         return float("nan")
     return float(np.mean(y[a:b]) - np.mean(y[keep]))
@@ -265,11 +273,17 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
                     used[j] = True
         elif te >= n - max_d:
             exc.append((te, n, "to the end", e["z"], float("nan")))
+            for j in range(i + 1, len(kept)):  # the steps after it are its own shape
+                used[j] = True
         elif te <= max_d:
             exc.append((0, te, "to the start", float("nan"), e["z"]))
         else:
             exc.append((te, te, "level shift", e["z"], e["step"]))
     exc.sort()
+    # an excursion inside another (a step before the edge of one that runs to the start)
+    # is part of the outer one's shape
+    exc = [x for x in exc if not any(o is not x and o[0] <= x[0] and x[1] <= o[1]
+                                     and (o[1] - o[0]) > (x[1] - x[0]) for o in exc)]
     windows = [(a, b) for a, b, kind, _, _ in exc if b > a]
     items = []
     for a, b, kind, za, zb in exc:

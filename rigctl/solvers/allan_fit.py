@@ -1135,9 +1135,19 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
                point_limit: float) -> tuple[dict, "NC.GaussMarkov"]:
     """The fitted Gauss-Markov term: Tc's 95 % interval from the profile (the Tc whose
     chi-square is within chi2_0.95(1) of the least, scaled by the overdispersion, bracketed by
-    the next evaluated Tc either side), sigma_GM's 95 % interval the union over that set of
-    each Tc's Satterthwaite interval (the final terms refitted at that Tc, as the selection
-    fits them), the curve's limit and whether the fit was held at it."""
+    the next evaluated Tc either side); sigma_GM's intervals Satterthwaite's with the marginal
+    sd of p = sigma_GM^2 (Tc estimated too, not known)::
+
+        sd(p)^2 = sd(p | Tc)^2 + (dp/d ln Tc)^2 sd(ln Tc)^2
+
+    sd(p | Tc) the GLS sd at the fitted Tc, dp/d ln Tc the slope of p refitted at each Tc of
+    that set (the final terms, as the selection fits them; least squares over the set), sd(ln
+    Tc) = ln(hi / lo) / (2 x 1.96) from Tc's interval (the linear-Gaussian marginal: p's
+    estimate given Tc moves along that slope). It was the union of each Tc's conditional
+    interval, which adds the two parts linearly instead of in quadrature: on simulated
+    captures of the MTi-G's fitted model (benchmarks/allan_gm_crb.py) 1.40x wider than the
+    scatter of sigma_GM, which is the Cramer-Rao bound's. Also the curve's limit and whether
+    the fit was held at it."""
     tcs, c = prof["tc_s"], prof["chi2"]
     over = max(1.0, float(c.min()) / prof["dof"])
     inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
@@ -1149,9 +1159,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             return None
         return _chi2_ci(pj, 2.0 * pj * pj / (sdj * sdj), conf)
 
-    ci95 = interval(p_gm, sd_gm, 0.95)
-    ci68 = interval(p_gm, sd_gm, 0.683)
-    ends = [ci95] if ci95 else []
+    along = [(math.log(tc), p_gm)]  # (ln Tc, p refitted there) over Tc's interval
     for k in inside:
         if math.isclose(float(tcs[k]), tc, rel_tol=1e-12):
             continue
@@ -1162,20 +1170,21 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         up = upper_all[active]
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
         try:
-            p, aw, rw = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
+            p, _, _ = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
                              model_err, up, inflate)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        pos = p > 0
-        if not pos[ig]:
-            continue
-        red = float(rw @ rw) / max(1, tau.size - int(np.count_nonzero(pos)))
-        cov = _param_cov(aw[:, pos]) * max(1.0, red)
-        sdk = math.sqrt(max(cov[int(np.count_nonzero(pos[:ig])), int(np.count_nonzero(pos[:ig]))],
-                            0.0))
-        ck = interval(float(p[ig]), sdk, 0.95)
-        if ck:
-            ends.append(ck)
+        if p[ig] > 0:
+            along.append((math.log(float(tcs[k])), float(p[ig])))
+    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
+    sd_marg = sd_gm
+    x = np.array([a for a, _ in along])
+    if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
+        slope = float(np.polyfit(x, np.array([b for _, b in along]), 1)[0])
+        sd_ln_tc = math.log(tc_ci[1] / tc_ci[0]) / (2.0 * 1.959964)
+        sd_marg = math.sqrt(sd_gm * sd_gm + (slope * sd_ln_tc) ** 2)
+    ci95 = interval(p_gm, sd_marg, 0.95)
+    ci68 = interval(p_gm, sd_marg, 0.683)
     g_front = np.maximum(gm_column(tau_front, tc), 1e-300)
     inf_front = (np.sqrt(e_front / chi2.ppf(0.025, e_front))
                  <= INFORMATIVE_RATIO * np.sqrt(e_front / chi2.ppf(0.975, e_front)))
@@ -1183,14 +1192,12 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
     lim = math.sqrt(float(np.min(s2_front[sel] / g_front[sel])))
     held = bool(math.isfinite(point_limit) and p_gm >= point_limit * (1.0 - 1e-6) and p_gm > 0)
     if ci95:
-        sig = NC.Coefficient(math.sqrt(p_gm), ci68,
-                             (min(x[0] for x in ends), max(x[1] for x in ends)),
-                             edf=2.0 * p_gm * p_gm / (sd_gm * sd_gm))
+        sig = NC.Coefficient(math.sqrt(p_gm), ci68, ci95,
+                             edf=2.0 * p_gm * p_gm / (sd_marg * sd_marg))
     else:  # the joint fit put no Gauss-Markov term where the candidate saw one: a bound
         ub = min(math.sqrt(max(p_gm, 0.0) + _Z95_ONE * max(sd_gm, 0.0)), lim)
         sig = NC.Coefficient(min(math.sqrt(max(p_gm, 0.0)), ub), upper95=ub,
                              bound_from="curve" if ub >= lim else "fit")
-    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
     coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
     term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
             "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),
