@@ -13,8 +13,7 @@ import pytest
 
 from rigctl.frames import body_references
 
-from cal_band import (assert_detects_injected_errors, calibration_of, no_library_effects, same_calibration,
-                      truth_parameters)
+from cal_band import Calibration, calibration_of, check_calibration, no_library_effects, truth_parameters
 from hil_support import repeated_samples, run, segments, white_noise_only, white_sim, window_means, wired_run
 
 SPEED = 200.0        # rates
@@ -35,23 +34,22 @@ def reference(tmp_path_factory):
     return out
 
 
-def _calibration(recording) -> tuple[dict[str, tuple[float, float]], dict[str, str]]:
-    """The closed loop's calibration of ``recording``: ({parameter: (value, 1-sigma)},
-    {parameter: effect} of the effects it added)."""
+def _calibration(recording) -> Calibration:
+    """The closed loop's calibration of ``recording`` (tests/cal_band.py)."""
     from rigctl.analysis.calibration import calibrate
     payload, _, _ = calibrate(recording, store=False)
     assert payload["status"] == "ok", payload["reasons"]
-    return calibration_of(payload)
+    return calibration_of(payload["results"]["closed_loop"])
 
 
-def check_calibration(recording, truth: dict) -> None:
-    """The run's calibration against the emulator's whole /truth ``truth``: every declared
-    parameter, and any effect the closed loop added against 0, in the family-wise band, and the
-    band's power on this run (tests/cal_band.py)."""
+def check_run_calibration(recording, truth: dict) -> None:
+    """The run's calibration against the emulator's whole /truth ``truth``: the declared
+    parameters in the family-wise band with its power on this run, and any effect the closed loop
+    added 0 within its uncertainty (tests/cal_band.py: the loop adds one in ~1 % of the runs by
+    design; the CI failure at c5cf9c7 was such a table_levelling on the frame run)."""
+    from rigctl.solvers.effect_library import LIBRARY
     no_library_effects(truth)
-    (cal, added), declared = _calibration(recording), truth_parameters(truth["imu"])
-    same_calibration(cal, declared, added)
-    assert_detects_injected_errors(cal, declared, added)
+    check_calibration(_calibration(recording), truth_parameters(truth["imu"]), len(LIBRARY))
 
 
 def same_segments(wired: dict, ref: dict) -> None:
@@ -132,7 +130,7 @@ def test_24pos_with_warmup_over_acl_pty(tmp_path, reference):
     rec, cfg, info = wired_run(tmp_path, "24pos.yaml", P24, "acl", "pty", SPEED_24)
     check_24pos(rec, cfg, info, reference["24pos.yaml"][1])
     assert info["truth"] == _inprocess_truth(reference["24pos.yaml"][0])
-    check_calibration(rec, info["truth"])
+    check_run_calibration(rec, info["truth"])
 
 
 @pytest.mark.parametrize("protocol", ["vectornav", "frame"])
@@ -159,14 +157,14 @@ def test_24pos_over_each_imu_protocol(tmp_path, reference, protocol):
                          "protocol": "VectorNav binary"}
     else:
         assert ident["protocol"] == "declarative frame (binary, AA 55)"
-    check_calibration(rec, info["truth"])
+    check_run_calibration(rec, info["truth"])
 
 
 def test_inprocess_calibration_finds_the_truth(reference):
     """The in-process run (virtual clock, seed 1: deterministic) meets the band the wired runs
     are held to, so wired and in-process calibrations agree through the truth (its largest
     deviation: accel_M_zz_ratio -2.18 sigma; the closed loop adds no effect on it)."""
-    check_calibration(reference["24pos.yaml"][0], _inprocess_truth(reference["24pos.yaml"][0]))
+    check_run_calibration(reference["24pos.yaml"][0], _inprocess_truth(reference["24pos.yaml"][0]))
 
 
 def test_24pos_with_warmup_over_modbus_tcp(tmp_path, reference):
