@@ -1070,7 +1070,13 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
     def analyse(a: str) -> dict[str, Any]:
         if a in ids:  # queued before this task: started, so it cannot wait for a worker
             _result(ids[a])
-        return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+        try:
+            return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+        finally:
+            # its phase copies (head and decimated: ~45 MB per axis of a 12 h x 2 kHz record)
+            # go as soon as its analysis is done, not after the slowest axis' (a Gauss-Markov
+            # candidate's: minutes, its covariance meshes beside them)
+            streams[a] = None
 
     def queue(group: list[str], rank: int) -> dict[str, Any]:
         """The analyses of axes whose last chunk is summed, at ``rank``; with
