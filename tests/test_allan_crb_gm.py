@@ -211,3 +211,32 @@ def test_a_capture_of_the_named_length_gives_the_gm_term_to_25_percent() -> None
         half = int(np.count_nonzero(~ok | (rel <= 0.25 / math.sqrt(2.0))))
         assert within >= low, (key, n, within, half)
         assert half < low, (key, n, within, half)
+
+
+def test_the_gm_figures_in_the_text() -> None:
+    """The term row prints the GM term's own figures in the IEEE terms' words
+    (rigctl.display_units.need_text): an estimate's "(this capture: +-X % at best (Cramer-Rao);
+    +-25 % needs about Y)" after its interval, nothing where this capture suffices; a bounded
+    sigma_GM's "+-25 % would need at least Y of capture" inside its bound's parenthesis and Tc's
+    "..., with sigma_GM at its bound"; "a longer capture than this one" where the lower limit is
+    not longer than the capture."""
+    from rigctl.analysis.allan_text import gm_term_line
+
+    def row(resolved: bool, crb: dict) -> str:
+        return gm_term_line({"gm_term": {
+            "sigma_unit": "deg/h", "sigma_deg_per_h": 10.0, "sigma_ci95_deg_per_h": [8.0, 12.5],
+            "tc_s": 3.0, "tc_ci95_s": [2.0, 5.0], "resolved": resolved, "crb": crb}})
+
+    est = {"sigma": {"bounded": False, "crb_rel_sd": 0.3, "capture_h": 1.0, "capture_h_for_25pct": 3.0},
+           "tc": {"bounded": False, "crb_rel_sd": 0.05, "capture_h": 1.0}}
+    assert row(True, est).endswith(
+        "10 deg/h [8, 12.5] (this capture: +-30 % at best (Cramer-Rao); +-25 % needs about 3.0 h), "
+        "Tc 3 s [2, 5]")
+    bound = {"sigma": {"bounded": True, "crb_rel_sd": 0.3, "capture_h": 1.0, "capture_h_for_25pct": 3.0},
+             "tc": {"bounded": True, "crb_rel_sd": 0.5, "capture_h": 1.0, "capture_h_for_25pct": 8.0}}
+    assert row(False, bound).endswith(
+        "< 12.5 deg/h (not resolved by the joint fit; +-25 % would need at least 3.0 h of capture), "
+        "Tc 3 s [2, 5] (+-25 % would need at least 8.0 h of capture, with sigma_GM at its bound)")
+    bound["sigma"]["capture_h_for_25pct"] = 0.9
+    assert "+-25 % needs a longer capture than this one (1.0 h)" in row(False, bound)
+    assert "Cramer-Rao" not in row(True, {}) and "capture" not in row(True, {})
