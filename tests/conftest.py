@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -71,6 +73,17 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
 
 
 @pytest.fixture
+def sock_dir():
+    """A fresh directory under /tmp, removed afterwards: short enough for the AF_UNIX socket
+    paths of a daemon (<= 107 bytes; pytest's tmp_path can be longer)."""
+    base = Path(tempfile.mkdtemp(prefix="rigctl-wire-", dir="/tmp"))
+    try:
+        yield base
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.fixture
 def small_fs(tmp_path):
     """A 6 MiB tmpfs (a disk that fills up); skips unless this process may mount one (root)."""
     mnt = tmp_path / "small"
@@ -111,7 +124,7 @@ SHARED_FIXTURE_FILES = {
 #: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
-    "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
+    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
     "daemon_notify", "daemon_wire", "daemon_wire_config", "daemon_wire_disk", "daemon_wire_memory",
     "daemon_wire_serve",
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
@@ -123,7 +136,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets
     # the clock back (sim/world.py ADVANCE_BUDGET_WALL_S), and the file asserts none at 5x, a
     # SIGTERM answered within 10 s and no poll longer than 2 s, all in wall time
-    "run_fast_clock",
+    "run_fast_clock", "sim_speed",
 ))
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())

@@ -68,17 +68,24 @@ def _pooled_oadev(parts: list[np.ndarray], m: int) -> float:
     return math.sqrt(0.5 * d2 / n)
 
 
-def test_quiet_stretch_without_its_excursion(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def bump_record(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray]:
     """A record whose first fifth has rate dips (the quiet stretch test's record, seed 3:
     quiet stretch t = 10000-40000 s) and one more 300 s bump of 8 B at t = 25000 s inside
-    the quiet stretch: found, and with --excursions exclude left out of the stretch's fit --
-    whose deviations are then those of the stretch's two pieces, read here in numpy."""
+    the quiet stretch."""
     import test_allan_quiet_stretch as QT
 
     y = QT.stationary(QT.SEED) + QT.excursions(QT.SEED)[0]
     y[25_000:25_300] += 8.0 * QT.B_TRUE
-    rec = tmp_path / "bump.h5"
+    rec = tmp_path_factory.mktemp("bump") / "bump.h5"
     write_recording(rec, QT.FS, angular_rate=np.column_stack([y, y, y]))
+    return rec, y
+
+
+def test_quiet_stretch_without_its_excursion(bump_record: tuple[Path, np.ndarray]) -> None:
+    """The bump found, and with --excursions exclude left out of the stretch's fit -- whose
+    deviations are then those of the stretch's two pieces, read here in numpy."""
+    rec, y = bump_record
     out = {mode: AA.compute(str(rec), ["gx"], "octave", excursions=mode)
            for mode in ("report", "exclude")}
     r = out["exclude"]["axes"]["gx"]
@@ -109,3 +116,34 @@ def test_quiet_stretch_without_its_excursion(tmp_path: Path) -> None:
     assert f"{span} ({found[0]['duration_s']:.0f} s), {size}" in t_ex
     assert "left out of its fit (--excursions exclude" in t_ex
     assert "they are in its fit: to leave them out, --excursions exclude" in t_rep
+
+
+@pytest.mark.parametrize("gaps", ["longest", "refuse"])
+def test_quiet_stretch_excursion_gaps_longest_or_refused(bump_record: tuple[Path, np.ndarray],
+                                                         gaps: str) -> None:
+    """--gaps longest: the stretch's fit runs over its longest piece without the excursion
+    (its deviations those of that piece, numpy); --gaps refuse: no fit, the reason saying
+    what to do -- as the record's own gaps."""
+    rec, y = bump_record
+    axes = ["gx", "gy"] if gaps == "refuse" else ["gx"]  # (gy: the same samples)
+    out = AA.compute(str(rec), axes, "octave", excursions="exclude", gaps=gaps)
+    r = out["axes"]["gx"]
+    q = r["quiet_stretch"]
+    a, b = q["excursions_excluded"]["samples"][0]
+    if gaps == "refuse":
+        assert not q["fitted"] and "--gaps refuse refuses gaps" in q["reason"]
+        assert "--gaps skip" in q["reason"] and "adev_rad/s" not in q
+        # the record's excursions: the bump on both axes, grouped as moving together
+        g = [g for g in out["excursions"] if g["start_s"] < 25_300 and g["end_s"] > 25_000]
+        assert len(g) == 1 and g[0]["axes"] == ["gx", "gy"]
+        assert [m["axis"] for m in g[0]["members"]] == ["gx", "gy"]
+        assert all(m["unit"] == "deg/h" and m["size"] > 0 for m in g[0]["members"])
+        e = [e for e in r["excursions"]["excursions"] if e["start_s"] < 25_300 and e["end_s"] > 25_000]
+        assert e[0]["moving_with"] == ["gy"]
+        return
+    qa, qb = q["samples"]
+    piece = max([(qa, a), (b, qb)], key=lambda p: p[1] - p[0])
+    assert q["fitted"] and q["pieces"] == [list(piece)]
+    k = len(q["m"]) // 2
+    assert q["adev_rad/s"][k] == pytest.approx(_pooled_oadev([y[piece[0]:piece[1]]], int(q["m"][k])),
+                                               rel=1e-9)

@@ -99,6 +99,29 @@ SPLIT_NOISE_IDS = True
 SWITCH_INTERVAL_S: float | None = 5e-4
 
 
+#: a wait for a result or a thread in the analysis gives the main thread back to Python this often, s
+WAIT_SLICE_S = 0.1
+
+
+def _result(fut: Any) -> Any:
+    """``fut.result()``, waited for in slices of :data:`WAIT_SLICE_S`. A wait without a timeout
+    was not woken by SIGINT / SIGTERM: the handler (which stops the analysis, rigctl.run.runner)
+    ran only once the result came -- a SIGINT to ``rigctl serve`` 1 s into allan on a 2-minute
+    capture ended the job 23-27 s later, 3 times in 3 at load 16-19, the main thread waiting in
+    Future.result for an axis' Gauss-Markov fits. Between slices the handler runs."""
+    while True:
+        try:
+            return fut.result(timeout=WAIT_SLICE_S)
+        except TimeoutError:
+            continue
+
+
+def _join(thread: threading.Thread) -> None:
+    """``thread.join()`` in slices of :data:`WAIT_SLICE_S` (as :func:`_result`)."""
+    while thread.is_alive():
+        thread.join(WAIT_SLICE_S)
+
+
 class _PriorityPool:
     """A fixed set of worker threads taking tasks by rank, then in the order queued (a
     :class:`concurrent.futures.ThreadPoolExecutor` takes them in the order queued only):
@@ -135,7 +158,7 @@ class _PriorityPool:
 
     def map(self, fn: Callable, items: Any) -> Any:
         futs = [self.submit(fn, x) for x in items]
-        return (f.result() for f in futs)
+        return (_result(f) for f in futs)
 
     def _work(self) -> None:
         while True:
@@ -155,18 +178,31 @@ class _PriorityPool:
                 fut.set_result(res)
             del fut, fn, args
 
-    def shutdown(self) -> None:
+    def shutdown(self, abandon: bool = False) -> None:
+        """Take no more tasks and wait until the workers have run every queued one; ``abandon``:
+        cancel the tasks not started yet and wait for none (the workers end once the tasks in
+        flight end, in the background; their results are dropped)."""
         with self._cond:
             self._closed = True
+            if abandon:
+                for _, _, fut, _, _ in self._heap:
+                    fut.cancel()
+                self._heap.clear()
             self._cond.notify_all()
-        for t in self._threads:
-            t.join()
+        if not abandon:
+            for t in self._threads:
+                _join(t)
 
     def __enter__(self) -> "_PriorityPool":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.shutdown()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        # leaving on an exception -- an interrupted analysis (SIGINT / SIGTERM), a failed task --
+        # abandons the rest: nobody reads those results, and waiting for them held the
+        # interruption back by the rest of the analysis (a pure computation writing nothing:
+        # one axis' Gauss-Markov fits alone took ~10 s at load 12; SIGTERM 2 s into allan on a
+        # 2-minute capture ended the process 12.6 s later)
+        self.shutdown(abandon=exc_type is not None)
 
 
 class _AxisStream:
@@ -779,10 +815,10 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                 try:
                     found = find_gaps(f, s0, s1, fs)
                 except BaseException:
-                    for r in made.result().values():
+                    for r in _result(made).values():
                         r.close()
                     raise
-                readers = made.result()
+                readers = _result(made)
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
                                      progress_stream, outliers, gaps, corrections, counter,
@@ -1033,8 +1069,14 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
 
     def analyse(a: str) -> dict[str, Any]:
         if a in ids:  # queued before this task: started, so it cannot wait for a worker
-            ids[a].result()
-        return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+            _result(ids[a])
+        try:
+            return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+        finally:
+            # its phase copies (head and decimated: ~45 MB per axis of a 12 h x 2 kHz record)
+            # go as soon as its analysis is done, not after the slowest axis' (a Gauss-Markov
+            # candidate's: minutes, its covariance meshes beside them)
+            streams[a] = None
 
     def queue(group: list[str], rank: int) -> dict[str, Any]:
         """The analyses of axes whose last chunk is summed, at ``rank``; with
@@ -1076,7 +1118,7 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
         futs = {**queue([a for a in axes if a not in early], 0), **early}
-        done = [futs[a].result() for a in axes]
+        done = [_result(futs[a]) for a in axes]
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
@@ -1282,7 +1324,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         _pipelined(pool, starts, order, read_rows, cuts_at, dataset, streams, groups, rank,
                    s0, s1, shown, early, when_streaming, dataset_done)
         for e in early:
-            e.result()
+            _result(e)
         return
     nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
@@ -1290,8 +1332,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
         nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for p in preps:
-            for t in p.result():
-                t.result()
+            for t in _result(p):
+                _result(t)
         for b in blocks.values():
             release(b)
         del blocks
@@ -1302,7 +1344,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                 st.head_full() for st in streams.values()):
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
     for e in early:
-        e.result()
+        _result(e)
 
 
 class _Chains:
@@ -1523,7 +1565,7 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
                 # halves of the record on the two cores
                 half = (len(starts) + 1) // 2
                 with ThreadPoolExecutor(2) as pool:
-                    parts = list(pool.map(scan, [starts[:half], starts[half:]]))
+                    parts = [_result(f) for f in [pool.submit(scan, x) for x in (starts[:half], starts[half:])]]
                 return parts[0] + parts[1]
             return scan(starts)
         finally:
