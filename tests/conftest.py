@@ -136,7 +136,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets
     # the clock back (sim/world.py ADVANCE_BUDGET_WALL_S), and the file asserts none at 5x, a
     # SIGTERM answered within 10 s and no poll longer than 2 s, all in wall time
-    "run_fast_clock",
+    "run_fast_clock", "sim_speed",
 ))
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())

@@ -125,12 +125,21 @@ def test_quiet_stretch_excursion_gaps_longest_or_refused(bump_record: tuple[Path
     (its deviations those of that piece, numpy); --gaps refuse: no fit, the reason saying
     what to do -- as the record's own gaps."""
     rec, y = bump_record
-    r = AA.compute(str(rec), ["gx"], "octave", excursions="exclude", gaps=gaps)["axes"]["gx"]
+    axes = ["gx", "gy"] if gaps == "refuse" else ["gx"]  # (gy: the same samples)
+    out = AA.compute(str(rec), axes, "octave", excursions="exclude", gaps=gaps)
+    r = out["axes"]["gx"]
     q = r["quiet_stretch"]
     a, b = q["excursions_excluded"]["samples"][0]
     if gaps == "refuse":
         assert not q["fitted"] and "--gaps refuse refuses gaps" in q["reason"]
         assert "--gaps skip" in q["reason"] and "adev_rad/s" not in q
+        # the record's excursions: the bump on both axes, grouped as moving together
+        g = [g for g in out["excursions"] if g["start_s"] < 25_300 and g["end_s"] > 25_000]
+        assert len(g) == 1 and g[0]["axes"] == ["gx", "gy"]
+        assert [m["axis"] for m in g[0]["members"]] == ["gx", "gy"]
+        assert all(m["unit"] == "deg/h" and m["size"] > 0 for m in g[0]["members"])
+        e = [e for e in r["excursions"]["excursions"] if e["start_s"] < 25_300 and e["end_s"] > 25_000]
+        assert e[0]["moving_with"] == ["gy"]
         return
     qa, qb = q["samples"]
     piece = max([(qa, a), (b, qb)], key=lambda p: p[1] - p[0])

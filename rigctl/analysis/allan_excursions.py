@@ -40,8 +40,9 @@ def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) 
 
 def group(axes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """The axes' excursions merged where their windows overlap (a level shift counts as its
-    instant): [{"start_s", "end_s", "axes": [...], "sizes": {axis: "size unit"}, "kind"}],
-    in time order -- the axes listed moved together."""
+    instant): [{"start_s", "end_s", "axes": [...], "members": [{"axis", "start_s", "end_s",
+    "kind", "size", "unit"}, ...]}], in time order -- the axes listed moved together (an axis
+    may have more than one member when others' excursions join them)."""
     items = []
     for a, r in axes.items():
         ex = (r.get("excursions") or {}).get("excursions") or []
@@ -56,13 +57,12 @@ def group(axes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
             g["end_s"] = max(g["end_s"], t)
             g["start_s"] = min(g["start_s"], s)
         else:
-            g = {"start_s": s, "end_s": t, "axes": [], "sizes": {}, "kinds": {}}
+            g = {"start_s": s, "end_s": t, "axes": [], "members": []}
             out.append(g)
         if a not in g["axes"]:
             g["axes"].append(a)
-        g["sizes"][a] = {"value": e[f"size_{unit}"], "unit": unit,
-                         "start_s": e["start_s"], "end_s": e["end_s"]}
-        g["kinds"][a] = e["kind"]
+        g["members"].append({"axis": a, "start_s": e["start_s"], "end_s": e["end_s"],
+                             "kind": e["kind"], "size": e[f"size_{unit}"], "unit": unit})
     for g in out:  # each axis' excursions: the axes that moved with it
         for a in g["axes"]:
             for e in (axes[a].get("excursions") or {}).get("excursions") or []:

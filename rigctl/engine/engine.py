@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from .. import errors
-from ..clock import VirtualClock
+from ..clock import VirtualClock, suggested_speed
 from ..devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
 from .procedure import CHAMBER_KINDS, Step
 from ..progress import CounterGaps, NullProgress, Progress
@@ -58,8 +58,7 @@ PACE_WINDOW_WALL_S = 2.0
 
 def pace_message(speed: float, achieved: float) -> str:
     """The one line saying the host cannot keep up with ``speed``, and what to do."""
-    m = 10 ** math.floor(math.log10(max(0.8 * achieved, 1e-9)))
-    suggest = max(x * m for x in (1, 2, 5) if x * m <= max(0.8 * achieved, m))
+    suggest = suggested_speed(achieved)
     got = f"{achieved:.0f}" if achieved >= 10 else f"{achieved:.2g}"
     return (f"the host cannot keep up with clock speed {speed:g}x: the emulator computes about "
             f"{got}x here, so rig time runs at that speed and the run takes about "
