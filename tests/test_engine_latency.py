@@ -22,7 +22,7 @@ from rigctl.devices import ImuBlock
 from rigctl.engine.engine import WINDOW_WAIT_WALL_S
 from rigctl.engine.procedure import load_procedure
 from rigctl.engine.rig import open_rig
-from rigctl.run.runner import RunOptions, run_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
 from rigctl.config.suspenders import SuspenderSettings
 
 from helpers import WHITE_NOISE_ONLY, derived_config
@@ -233,3 +233,13 @@ def test_a_window_that_stays_short_stops_the_run_with_one_line(tmp_path):
     # nothing recorded as complete; every attempt's rows are named as an incomplete segment
     assert not np.any(seg["status"] == b"complete")
     assert [s.decode() for s in seg["status"]] == ["incomplete"] * 3
+    # resumable as any cut-off run: with the stream back, both steps complete, whole, in the same
+    # recording, and the three cut-off attempts stay out of every solver as incomplete rows
+    again = resume_run(res.run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False)
+    assert again.status == "complete", again.message
+    with h5py.File(again.recording, "r") as f:
+        status = f["segments/status"][()]
+        ok = status == b"complete"
+        steps, a, z = (f["segments"][k][()][ok] for k in ("step", "first_sample", "last_sample"))
+    assert (status == b"incomplete").sum() >= 3 and sorted(steps.tolist()) == [0, 1]
+    assert np.all(np.abs((z - a) - 500) <= 1)
