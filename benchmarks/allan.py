@@ -13,6 +13,11 @@ Parts (select with --parts, default all):
          phase the thread CPU (read, gaps, the one pass over 3 axes, screen, accumulate,
          analysis) and the main thread's wall time of its steps (stream, compute, store,
          database).
+  rec    a 6-axis 12 h x 2 kHz recording written by rigctl's own Recorder (write_recorder_h5:
+         its datasets' 8192-row chunks interleaved in the file, 2 s per flush; 12 spikes
+         and 1 gap of 1-2000 samples per hour, a slowly varying temperature; 6.2 GB, in a
+         temp dir in /tmp, or --rec-file) analysed by `rigctl allan` in a subprocess, as
+         the h5 part: wall, CPU, peak RSS (issue 21: at most 1000 MB), per-phase thread CPU.
   fit    the IMU emulator's noise (rigctl.sim.noise.NoiseGenerator) for every profile of
          configs/imu-profiles.yaml, gyro and accelerometer, 3 axes x --seeds seeds, 12 h at
          --fit-rate-hz: joint fit vs piecewise read-offs (table), accuracy and 95 % coverage
@@ -156,6 +161,59 @@ def write_h5(path: str, n: int) -> None:
             a[s: s + m] = w[:, 3:] * 1e-3 + steps[:, 3:] + [0.0, 0.0, 9.80665]
 
 
+def write_recorder_h5(path: str, n: int, spikes_per_hour: float = 12.0,
+                      gaps_per_hour: float = 1.0, rows_per_flush: int = 1000,
+                      seed: int = 7) -> dict:
+    """A 6-axis recording of ``n`` rows at :data:`FS` written by rigctl's own
+    :class:`rigctl.recording.recorder.Recorder` the way a run writes it (``rows_per_flush`` rows
+    per flush: 0.5 s at 2 kHz, its default flush interval), so that its datasets' 8192-row
+    chunks alternate in the file (time, counter, specific force, angular rate, temperature),
+    with spikes (``spikes_per_hour``, each on one axis of each dataset, 100 to 300 noise sigma)
+    and gaps (``gaps_per_hour``: the counter and the time jump by 1 to 2000 missing samples).
+    Returns what was put in: {"spikes": [...rows], "gaps": [(row after, missing), ...]}."""
+    from rigctl.devices import ImuBlock
+    from rigctl.recording.recorder import Recorder
+
+    rng = np.random.default_rng(seed)
+    hours = n / FS / 3600.0
+    spike_rows = np.sort(rng.choice(n, size=max(1, int(round(spikes_per_hour * hours))),
+                                    replace=False))
+    gap_rows = np.sort(rng.choice(np.arange(1, n), size=max(1, int(round(gaps_per_hour * hours))),
+                                  replace=False))
+    gap_sizes = rng.integers(1, 2001, size=gap_rows.size)
+    rec = Recorder(path, {"procedure_name": "allan benchmark (recorder-written)"}, None,
+                   imu_rate_hz=FS, flush_interval_s=0.0)
+    chunk = 1 << 18  # rows generated at a time (appended rows_per_flush at a time)
+    rw = np.zeros(6)
+    try:
+        for s in range(0, n, chunk):
+            m = min(chunk, n - s)
+            w = rng.standard_normal((m, 6))
+            steps = np.cumsum(rng.standard_normal((m, 6)), axis=0) * 1e-7 + rw
+            rw = steps[-1]
+            g = w[:, :3] * 2e-3 + steps[:, :3]
+            a = w[:, 3:] * 1e-3 + steps[:, 3:] + [0.0, 0.0, 9.80665]
+            for k in spike_rows[(spike_rows >= s) & (spike_rows < s + m)].tolist():
+                g[k - s, k % 3] += 2e-3 * (100 + k % 200)
+                a[k - s, (k + 1) % 3] -= 1e-3 * (100 + k % 200)
+            idx = np.arange(s, s + m, dtype=np.uint64)
+            idx += np.concatenate([[0], np.cumsum(gap_sizes)])[
+                np.searchsorted(gap_rows, np.arange(s, s + m), side="right")].astype(np.uint64)
+            t = idx / FS
+            # a slowly varying temperature (0.01 K steps), as a real IMU's: the analysis then
+            # reads it (its drift check), which a constant one spares
+            temp = np.round(25.0 + 0.5 * np.sin(2 * np.pi * np.arange(s, s + m) / (FS * 7200.0)),
+                            2)
+            for r in range(0, m, rows_per_flush):
+                e = min(m, r + rows_per_flush)
+                rec.append_imu(ImuBlock(time=t[r:e], counter=idx[r:e], specific_force=a[r:e],
+                                        angular_rate=g[r:e], temperature=temp[r:e]))
+    finally:
+        rec.close("complete")
+    return {"spikes": spike_rows.tolist(), "gaps": list(zip(gap_rows.tolist(),
+                                                            gap_sizes.tolist()))}
+
+
 #: per-phase timing in the child: (module, attribute, phase). Thread CPU of every call (any
 #: thread; nested calls counted in each), and wall time of the main thread's top-level steps
 _PHASES = [("rigctl.recording.recording_reader", "RowReader.read", "read"),
@@ -231,6 +289,26 @@ def _run_allan_cmd(path: str) -> tuple[int, float, float, float, str, dict]:
     return int(out["rc"] or 0), out["wall"], out["cpu"], out["hwm_kb"], load, out["phases"]
 
 
+def _allan_runs(path: str, repeats: int, what: str, key: str) -> dict:
+    """`rigctl allan PATH` ``repeats`` times (:func:`_run_allan_cmd`; each run printed with
+    the load before and after it); the figures under keys ``key``_...: best and median wall
+    s, best CPU s, the largest peak RSS, the loads, the best run's per-phase times."""
+    runs = []
+    for _ in range(repeats):
+        rc, dt, dc, rss_kb, load, ph = _run_allan_cmd(path)
+        runs.append((dt, dc, rss_kb, ph, load))
+        print(f"rigctl allan ({what}): exit {rc}, {dt:.2f} s wall, {dc:.2f} s CPU, peak RSS "
+              f"{rss_kb / 1024:.0f} MB (load before {load}, after {_load()})", flush=True)
+        print("  per phase (thread CPU s; wall: main thread's wall s): " + ", ".join(
+            f"{k} {v:.2f}" for k, v in sorted(ph.items())), flush=True)
+    best = min(runs, key=lambda r: r[0])
+    return {f"{key}_6axis_s": best[0], f"{key}_6axis_cpu_s": min(r[1] for r in runs),
+            f"{key}_6axis_median_s": float(np.median([r[0] for r in runs])),
+            f"{key}_peak_rss_MB": max(r[2] for r in runs) / 1024.0, f"{key}_exit": rc,
+            f"{key}_load_avg": [r[4] for r in runs],
+            f"{key}_best_run_phase_s": {k: round(v, 3) for k, v in sorted(best[3].items())}}
+
+
 def part_h5(h5_file: str | None, repeats: int) -> dict:
     """`rigctl allan` on a 6-axis 12 h recording, ``repeats`` times (best and every run printed
     with the load). ``h5_file``: keep the recording there (written if missing) instead of a
@@ -242,21 +320,24 @@ def part_h5(h5_file: str | None, repeats: int) -> dict:
             write_h5(path, N12H)
             print(f"wrote 6-axis 12 h recording ({os.path.getsize(path) / 1e9:.2f} GB) in "
                   f"{time.perf_counter() - t:.1f} s")
-        runs = []
-        for _ in range(repeats):
-            rc, dt, dc, rss_kb, load, ph = _run_allan_cmd(path)
-            runs.append((dt, dc, rss_kb, ph))
-            print(f"rigctl allan (all 6 axes, 95 taus, fast mode, noise ID, EDF, fits, stored) on "
-                  f"6 x 8.64e7 samples (12 h at 2 kHz, float64): exit {rc}, {dt:.2f} s wall, "
-                  f"{dc:.2f} s CPU, peak RSS {rss_kb / 1024:.0f} MB (load {load})", flush=True)
-            print("  per phase (thread CPU s; wall: main thread's wall s): " + ", ".join(
-                f"{k} {v:.2f}" for k, v in sorted(ph.items())), flush=True)
-    best = min(runs, key=lambda r: r[0])
-    return {"h5_6axis_s": best[0], "h5_6axis_cpu_s": min(r[1] for r in runs),
-            "h5_6axis_median_s": float(np.median([r[0] for r in runs])),
-            "h5_peak_rss_MB": max(r[2] for r in runs) / 1024.0, "h5_exit": rc,
-            "h5_load_avg": load,
-            "h5_best_run_phase_s": {k: round(v, 3) for k, v in sorted(best[3].items())}}
+        return _allan_runs(path, repeats, "all 6 axes, 95 taus, fast mode, noise ID, EDF, fits, "
+                           "stored; 6 x 8.64e7 samples, 12 h at 2 kHz, float64", "h5")
+
+
+def part_rec(rec_file: str | None, repeats: int) -> dict:
+    """`rigctl allan` on a 6-axis 12 h recording written by rigctl's Recorder with spikes and
+    gaps (:func:`write_recorder_h5`), ``repeats`` times; ``rec_file``: kept there (written if
+    missing) instead of a temporary directory."""
+    with tempfile.TemporaryDirectory(dir="/tmp") as d:
+        path = rec_file or os.path.join(d, "rec12h_recorder.h5")
+        if not os.path.exists(path):
+            t = time.perf_counter()
+            info = write_recorder_h5(path, N12H, rows_per_flush=4000)
+            print(f"wrote a 6-axis 12 h recording with rigctl's Recorder "
+                  f"({os.path.getsize(path) / 1e9:.2f} GB, {len(info['spikes'])} spikes, "
+                  f"{len(info['gaps'])} gaps) in {time.perf_counter() - t:.1f} s", flush=True)
+        return _allan_runs(path, repeats, "the Recorder-written 12 h file: 6 axes, spikes, "
+                           "gaps skipped", "rec")
 
 
 def _emulator_cases() -> list[tuple[str, str, tuple]]:
@@ -437,11 +518,14 @@ def part_fit(seeds: int, fs: float, hours: float = 12.0) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--parts", default="axis,h5,fit")
+    ap.add_argument("--parts", default="axis,h5,rec,fit")
     ap.add_argument("--allantools-slice", type=int, default=None,
                     help="run allantools on this many samples and scale (default: full)")
     ap.add_argument("--h5-file", default=None,
                     help="keep the 12 h recording here (written if missing; default a temp dir)")
+    ap.add_argument("--rec-file", default=None,
+                    help="keep the Recorder-written 12 h recording (part rec) here (written if "
+                         "missing; default a temp dir)")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=3, help="exact and fast timings (best, median)")
     ap.add_argument("--fit-rate-hz", type=float, default=100.0)
@@ -452,6 +536,8 @@ def main() -> None:
         res.update(part_axis(a.allantools_slice, a.repeats))
     if "h5" in parts:
         res.update(part_h5(a.h5_file, a.repeats))
+    if "rec" in parts:
+        res.update(part_rec(a.rec_file, a.repeats))
     if "fit" in parts:
         res.update(part_fit(a.seeds, a.fit_rate_hz))
     print(json.dumps({k: v for k, v in res.items() if k != "fit_errors_pct"}))

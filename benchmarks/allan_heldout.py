@@ -583,6 +583,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", help="write the files and recordings here (default: a temporary dir)")
     ap.add_argument("--only", help="comma-separated capture names")
+    ap.add_argument("--excursions", choices=("report", "exclude"), default="report",
+                    help="rigctl allan --excursions (exclude: the excursions inside a quiet "
+                         "stretch left out of its fit; the stretch read here over its pieces)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: judge the `rigctl allan --json` results already in DIR "
                          "(and the recordings there, not imported again)")
@@ -611,7 +614,8 @@ def main() -> None:
             js = tmp / f"{cap['rec'].stem}_{taus}.json"
             if not (args.reuse and js.is_file()):
                 rigctl("allan", str(cap["rec"]), "--db", "none", "--json", str(js),
-                       *(["--taus", "octave"] if taus == "octave" else []))
+                       *(["--taus", "octave"] if taus == "octave" else []),
+                       *(["--excursions", args.excursions] if args.excursions != "report" else []))
             res = json.loads(js.read_text())["axes"]
             for ax, y in cap["si"].items():
                 r = res[ax]
@@ -624,8 +628,10 @@ def main() -> None:
                 jq, qtext = None, "-"
                 if q.get("fitted") and not isinstance(y, list):
                     # the quiet stretch's fit against the stretch's own curve (read here)
-                    a, b = q["samples"]
-                    cq = read_curve(np.asarray(y, float)[a:b], cap["tau0"], np.asarray(q["m"], int))
+                    # its pieces: the stretch without the excursions left out (gaps skipped)
+                    parts = [np.asarray(y, float)[a:b] for a, b in (q.get("pieces") or [q["samples"]])]
+                    cq = read_curve(parts[0] if len(parts) == 1 else parts, cap["tau0"],
+                                    np.asarray(q["m"], int))
                     jq = judge(q, cq, cap["tau0"])
                     n_quiet += 1
                     bq = (f"{jq['b']:.4g} [{jq['b_lo95']:.4g}, {jq['b_hi95']:.4g}]" if jq["b_is_estimate"]
@@ -658,7 +664,7 @@ def main() -> None:
                       flush=True)
     if args.keep:
         (tmp / "allan_heldout.json").write_text(json.dumps(rows, indent=1, default=float))
-    print(json.dumps({"axes_x_tau_sets": len(rows), **{f"n_{k.replace('-', '_')}": v for k, v in
+    print(json.dumps({"excursions": args.excursions, "axes_x_tau_sets": len(rows), **{f"n_{k.replace('-', '_')}": v for k, v in
                                                        sorted(counts.items())},
                       # the verdicts with item 2 read on the family-wise band (FW_ALPHA over
                       # the floor's taus); n_FAIL_total above is item 2 on the pointwise band

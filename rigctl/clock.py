@@ -1,6 +1,7 @@
 """Clocks for the engine: virtual (as fast as the emulator computes), real, or scaled."""
 from __future__ import annotations
 
+import math
 import time
 from datetime import datetime, timezone
 
@@ -86,3 +87,10 @@ def make_clock(kind: str, speed: float = 1.0) -> VirtualClock | ScaledClock:
     if kind == "scaled":
         return ScaledClock(speed)
     raise ValueError(f"unknown clock {kind!r}")
+
+
+def suggested_speed(achieved: float) -> float:
+    """A round clock speed (1, 2 or 5 x a power of ten) at or below 80 % of ``achieved``, the
+    speed a host was measured to keep up with: what to ask for instead."""
+    m = 10 ** math.floor(math.log10(max(0.8 * achieved, 1e-9)))
+    return max(x * m for x in (1, 2, 5) if x * m <= max(0.8 * achieved, m))

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -35,7 +37,8 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
     """The real MTi-G gyro's x axis (tests/data/mtig-static-contaminated, 1.39 h at 100 Hz)
     through `rigctl import` + `rigctl allan --db none --json` in process, once per session:
     {"y": the rates, "text": allan's stdout, "res": the JSON's axes.gx, "ind": the independent
-    white + GM read (test_allan_gm_real.independent_fit)}. test_allan_gm_real and
+    white + GM read (test_allan_gm_real.independent_fit), "rec": the recording (with allan's
+    /results/allan)}. test_allan_gm_real and
     test_allan_gm_fit both check this run (SHARED_FIXTURE_FILES: one worker makes it once)."""
     import io
     import json
@@ -66,7 +69,18 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
            "--units", "gyr=rad/s")
     text = rigctl("allan", str(rec), "--db", "none", "--json", str(js))
     return {"y": y, "text": text, "res": json.loads(js.read_text())["axes"]["gx"],
-            "ind": independent_fit(y)}
+            "ind": independent_fit(y), "rec": rec}
+
+
+@pytest.fixture
+def sock_dir():
+    """A fresh directory under /tmp, removed afterwards: short enough for the AF_UNIX socket
+    paths of a daemon (<= 107 bytes; pytest's tmp_path can be longer)."""
+    base = Path(tempfile.mkdtemp(prefix="rigctl-wire-", dir="/tmp"))
+    try:
+        yield base
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
 
 
 @pytest.fixture
@@ -110,7 +124,7 @@ SHARED_FIXTURE_FILES = {
 #: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
-    "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
+    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
     "daemon_notify", "daemon_wire", "daemon_wire_config", "daemon_wire_disk", "daemon_wire_memory",
     "daemon_wire_serve",
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
@@ -122,7 +136,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets
     # the clock back (sim/world.py ADVANCE_BUDGET_WALL_S), and the file asserts none at 5x, a
     # SIGTERM answered within 10 s and no poll longer than 2 s, all in wall time
-    "run_fast_clock",
+    "run_fast_clock", "sim_speed",
 ))
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())

@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -125,3 +128,61 @@ def make_cut_off(run_dir: Path, recording: Path) -> None:
         f["run/status"][0] = b"running"
         for k in f["segments"]:
             f["segments"][k].resize(1, axis=0)
+
+
+def start_process(cmd: list[str], log: Path, ready: str, timeout: float = 60.0,
+                  cwd: Path = ROOT) -> tuple[subprocess.Popen, str]:
+    """Start ``cmd`` (stdout and stderr to ``log``, a session of its own) and wait until its
+    output matches the regex ``ready``: (the process, its output so far)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    out = log.open("w")
+    p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        text = log.read_text()
+        if re.search(ready, text):
+            return p, text
+        if p.poll() is not None:
+            break
+        time.sleep(0.05)
+    p.kill()
+    raise AssertionError(f"{cmd[:3]} did not get ready:\n{log.read_text()[-3000:]}")
+
+
+def stop_process(p: subprocess.Popen) -> None:
+    """SIGTERM, then after 20 s SIGKILL, a process of :func:`start_process` still running."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+#: warm-up, a 2-minute capture, then the Allan analysis and the report (allan-overnight's
+#: solvers): a run whose analysis lasts seconds, for the tests that interrupt it
+SHORT_ALLAN_PROCEDURE = """procedure: short-allan
+steps:
+  - warmup:
+      duration: 2 s
+  - capture:
+      duration: 2 min
+      label: static
+  - solve:
+      solvers: [allan, report]
+"""
+
+
+def allan_whole_or_absent(rec: Path) -> bool:
+    """True when /results/allan is there and whole (its JSON parses, every axis it names has
+    its curve datasets), False when absent; an assertion error when half-written."""
+    with h5py.File(rec, "r") as f:
+        if "results" not in f or "allan" not in f["results"]:
+            return False
+        g = f["results/allan"]
+        summary = json.loads(g.attrs["json"])
+        assert summary["axes"], summary
+        for axis in summary["axes"]:
+            assert {"tau_s", "m", "edf"} <= set(g[axis]), (axis, list(g[axis]))
+        return True

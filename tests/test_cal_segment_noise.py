@@ -163,3 +163,26 @@ def test_within_window_contrasts_are_immune_to_rotation_synchronous_signals():
     assert sn.window_revolutions("rate", [0.0, 0.0, np.radians(40.0)], 18.0) == 2.0
     assert sn.window_revolutions("rate", [0.0, 0.0, np.radians(40.0)], 10.0) is None
     assert sn.window_revolutions("orientation", [0.0, 0.0, 0.0], 30.0) == 0.0
+
+
+def test_fewer_segments_than_protected_columns():
+    """A session with fewer segments than the protected design has columns -- a wired 24-position
+    run at load 10 whose two windows came out empty gave 22 segments for 23 columns -- made
+    _full_rank index its pivots with R's min(rows, columns) diagonal (IndexError in `rigctl
+    calibrate`). The columns kept span X (rank from numpy), and the session's noise is estimated
+    from the windows (no residual dof between them): N within 0.7-1.4 of the truth (20 windows x
+    7 contrasts: 6 % sd)."""
+    rng = np.random.default_rng(5)
+    X = rng.standard_normal((22, 23))
+    X[:, 7] = X[:, 2] - 2 * X[:, 9]
+    Xr = sn._full_rank(X)
+    assert Xr.shape == (22, np.linalg.matrix_rank(X)) == (22, 22)
+    assert np.linalg.matrix_rank(np.hstack([Xr, X])) == 22
+    st, _ = correlated_session(21)
+    keep = np.flatnonzero(st.kind == "orientation")[:20]
+    sub = st.subset(np.isin(np.arange(len(st)), keep))
+    assert max(sn.protected_design(sub, c).shape[1] for c in range(6)) > len(sub) == 20
+    models = sn.apply_session_noise(sub)
+    assert len(models) == 6 and sub.cov.shape == (6, 20, 20)
+    for m, truth in zip(models, [ACC] * 3 + [GYR] * 3):
+        assert 0.7 < m.N.value / truth["N"] < 1.4, (m.N.value, truth["N"])

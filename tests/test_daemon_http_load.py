@@ -8,12 +8,9 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import re
 import shutil
-import signal
 import socket
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -27,39 +24,13 @@ pytest.importorskip("starlette")
 
 from rigctl.service import control  # noqa: E402
 
-from helpers import ROOT, rigctl_cmd  # noqa: E402
+from helpers import ROOT, rigctl_cmd, start_process, stop_process  # noqa: E402
 
 LOAD_S = 30.0
 N_HTTP, N_STREAMS, N_SOCK = 90, 10, 100
 THINK_S = 0.2          # each polling client waits this long between requests
 IMU_HZ = 200
 CAPTURE_S = 36         # rig seconds (real time): the load runs inside it
-
-
-def _start(cmd: list[str], log: Path, ready: str, timeout: float = 60.0) -> tuple[subprocess.Popen, str]:
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    out = log.open("w")
-    p = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        text = log.read_text()
-        if re.search(ready, text):
-            return p, text
-        if p.poll() is not None:
-            break
-        time.sleep(0.05)
-    p.kill()
-    raise AssertionError(f"{cmd[:3]} did not get ready:\n{log.read_text()[-3000:]}")
-
-
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 async def _http_get(reader, writer, path: str, token: str) -> tuple[int, bytes]:
@@ -148,10 +119,10 @@ def test_200_clients_for_30s_while_capturing_lose_no_sample(tmp_path):
     sim = serve = None
     silent_tcp = silent_unix = None
     try:
-        sim, _ = _start([*rigctl_cmd(), "sim", "up", "--config", str(tmp_path / "physics.yaml"), "--speed", "1",
+        sim, _ = start_process([*rigctl_cmd(), "sim", "up", "--config", str(tmp_path / "physics.yaml"), "--speed", "1",
                          "--wire-config", str(wired), "--link-dir", str(base / "ports")],
                         tmp_path / "sim.log", r"(?m)^ready$")
-        serve, text = _start([*rigctl_cmd(), "serve", "--config", str(wired), "--runs", str(runs),
+        serve, text = start_process([*rigctl_cmd(), "serve", "--config", str(wired), "--runs", str(runs),
                               "--socket", str(sock), "--http", "127.0.0.1:0"],
                              tmp_path / "serve.log", r"API at http://127\.0\.0\.1:\d+/")
         port = int(re.search(r"API at http://127\.0\.0\.1:(\d+)/", text).group(1))
@@ -208,5 +179,5 @@ def test_200_clients_for_30s_while_capturing_lose_no_sample(tmp_path):
                 s.close()
         for p in (serve, sim):
             if p is not None:
-                _stop(p)
+                stop_process(p)
         shutil.rmtree(base, ignore_errors=True)

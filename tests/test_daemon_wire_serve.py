@@ -9,16 +9,13 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
-import pytest
 
 from rigctl.service import control
 from rigctl.devices import AxisStatus
@@ -40,15 +37,6 @@ steps:
       discard: 0.5 s
       settle: {hold: 1 s, timeout: 60 s}
 """
-
-
-@pytest.fixture
-def sock_dir():
-    base = Path(tempfile.mkdtemp(prefix="rigctl-wire-", dir="/tmp"))  # short: AF_UNIX paths <= 107 bytes
-    try:
-        yield base
-    finally:
-        shutil.rmtree(base, ignore_errors=True)
 
 
 @contextmanager

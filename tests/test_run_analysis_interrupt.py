@@ -20,19 +20,9 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import ROOT, rigctl_cmd
+from helpers import ROOT, SHORT_ALLAN_PROCEDURE, allan_whole_or_absent, rigctl_cmd
 
-#: warm-up, a 2-minute capture, then the Allan analysis and the report (allan-overnight's solvers)
-PROCEDURE = """procedure: short-allan
-steps:
-  - warmup:
-      duration: 2 s
-  - capture:
-      duration: 2 min
-      label: static
-  - solve:
-      solvers: [allan, report]
-"""
+PROCEDURE = SHORT_ALLAN_PROCEDURE
 CAPTURE_SAMPLES = 120 * 100  # 2 min at configs/sim.yaml's 100 Hz
 
 
@@ -66,20 +56,6 @@ def _terminate_at(proc: subprocess.Popen, prefix: str) -> tuple[list[str], str, 
     return lines, proc.stderr.read(), sent.is_set()
 
 
-def _allan_whole_or_absent(rec: Path) -> bool:
-    """True when /results/allan is there and whole (its JSON parses, every axis it names has
-    its curve datasets), False when absent; an assertion error when half-written."""
-    with h5py.File(rec, "r") as f:
-        if "results" not in f or "allan" not in f["results"]:
-            return False
-        g = f["results/allan"]
-        summary = json.loads(g.attrs["json"])
-        assert summary["axes"], summary
-        for axis in summary["axes"]:
-            assert {"tau_s", "m", "edf"} <= set(g[axis]), (axis, list(g[axis]))
-        return True
-
-
 def test_sigterm_during_the_analysis_keeps_the_recording_and_says_how_to_redo_it(tmp_path):
     (tmp_path / "proc.yaml").write_text(PROCEDURE)
     runs = tmp_path / "runs"
@@ -109,7 +85,7 @@ def test_sigterm_during_the_analysis_keeps_the_recording_and_says_how_to_redo_it
     # nothing half-written: no temporary file left, the Allan results whole or absent, the
     # report whole or absent, the results database without a row for an absent result
     assert not [p for p in runs.rglob("*") if ".tmp" in p.name]
-    stored = _allan_whole_or_absent(rec)
+    stored = allan_whole_or_absent(rec)
     if (run_dir / "report.html").exists():
         assert (run_dir / "report.html").read_text().rstrip().endswith("</html>")
     if not stored and (runs / "results.sqlite").exists():
@@ -128,7 +104,7 @@ def test_sigterm_during_the_analysis_keeps_the_recording_and_says_how_to_redo_it
                        timeout=180, env=dict(os.environ, RIGCTL_SOCKET=str(tmp_path / "no-daemon.sock")))
     assert r.returncode == 0, r.stdout + r.stderr
     assert "Traceback" not in r.stdout + r.stderr and "started:" not in r.stdout
-    assert _allan_whole_or_absent(rec)
+    assert allan_whole_or_absent(rec)
     assert (run_dir / "report.html").read_text().rstrip().endswith("</html>")
     with h5py.File(rec, "r") as f:
         assert f["run/status"][0] == b"complete" and f["imu/time"].shape[0] == len(f["imu/counter"])

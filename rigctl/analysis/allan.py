@@ -40,6 +40,7 @@ from ..solvers import allan_tones as TN
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import allan_drift as AD
 from . import allan_quiet as QS
+from . import allan_excursions as EXA
 from . import production
 
 AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
@@ -98,6 +99,29 @@ SPLIT_NOISE_IDS = True
 SWITCH_INTERVAL_S: float | None = 5e-4
 
 
+#: a wait for a result or a thread in the analysis gives the main thread back to Python this often, s
+WAIT_SLICE_S = 0.1
+
+
+def _result(fut: Any) -> Any:
+    """``fut.result()``, waited for in slices of :data:`WAIT_SLICE_S`. A wait without a timeout
+    was not woken by SIGINT / SIGTERM: the handler (which stops the analysis, rigctl.run.runner)
+    ran only once the result came -- a SIGINT to ``rigctl serve`` 1 s into allan on a 2-minute
+    capture ended the job 23-27 s later, 3 times in 3 at load 16-19, the main thread waiting in
+    Future.result for an axis' Gauss-Markov fits. Between slices the handler runs."""
+    while True:
+        try:
+            return fut.result(timeout=WAIT_SLICE_S)
+        except TimeoutError:
+            continue
+
+
+def _join(thread: threading.Thread) -> None:
+    """``thread.join()`` in slices of :data:`WAIT_SLICE_S` (as :func:`_result`)."""
+    while thread.is_alive():
+        thread.join(WAIT_SLICE_S)
+
+
 class _PriorityPool:
     """A fixed set of worker threads taking tasks by rank, then in the order queued (a
     :class:`concurrent.futures.ThreadPoolExecutor` takes them in the order queued only):
@@ -134,7 +158,7 @@ class _PriorityPool:
 
     def map(self, fn: Callable, items: Any) -> Any:
         futs = [self.submit(fn, x) for x in items]
-        return (f.result() for f in futs)
+        return (_result(f) for f in futs)
 
     def _work(self) -> None:
         while True:
@@ -154,18 +178,31 @@ class _PriorityPool:
                 fut.set_result(res)
             del fut, fn, args
 
-    def shutdown(self) -> None:
+    def shutdown(self, abandon: bool = False) -> None:
+        """Take no more tasks and wait until the workers have run every queued one; ``abandon``:
+        cancel the tasks not started yet and wait for none (the workers end once the tasks in
+        flight end, in the background; their results are dropped)."""
         with self._cond:
             self._closed = True
+            if abandon:
+                for _, _, fut, _, _ in self._heap:
+                    fut.cancel()
+                self._heap.clear()
             self._cond.notify_all()
-        for t in self._threads:
-            t.join()
+        if not abandon:
+            for t in self._threads:
+                _join(t)
 
     def __enter__(self) -> "_PriorityPool":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.shutdown()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        # leaving on an exception -- an interrupted analysis (SIGINT / SIGTERM), a failed task --
+        # abandons the rest: nobody reads those results, and waiting for them held the
+        # interruption back by the rest of the analysis (a pure computation writing nothing:
+        # one axis' Gauss-Markov fits alone took ~10 s at load 12; SIGTERM 2 s into allan on a
+        # 2-minute capture ended the process 12.6 s later)
+        self.shutdown(abandon=exc_type is not None)
 
 
 class _AxisStream:
@@ -559,6 +596,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
               "rows_per_block": int(round(block_s / stream.tau0))}  # for the temperature check
     warm = AD.start_transient(ybar, block_s, res.tau_s, res.dev, (res.n_phase - 1) * res.tau0_s,
                               sensor)
+    # short excursions of the level (30 s .. a quarter of the record), before the fit: reported
+    excursions = EXA.axis_excursions(ybar, block_s, res.tau0_s, sensor)
     if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))
@@ -586,7 +625,8 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
         AD.name_unexplained(fit["check"], AD.gm_left_reason(fit))
     screening = _screening(stream, sensor, fit, dev0, res.tau0_s, excluded)
     return {"sensor": sensor, "n_samples": int(res.n_phase - 1), "mode": stream.acc.mode,
-            **screening, "tones": tones, "warmup": warm, "_blocks": blocks,
+            **screening, "excursions": excursions, "tones": tones, "warmup": warm,
+            "_blocks": blocks,
             "tau_s": res.tau_s, "m": res.m, "stride": res.stride, "n_terms": res.n_terms,
             f"adev_{si}": res.dev, f"adev_{unit}": res.dev * fac,
             f"lo68_{unit}": lo68 * fac, f"hi68_{unit}": hi68 * fac,
@@ -615,7 +655,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             gaps: str = "skip", warmup: str = "report",
             temperature: str = "report",
             when_streaming: Callable[[], Any] | None = None,
-            quiet_stretch: bool = True) -> dict[str, Any]:
+            quiet_stretch: bool = True, excursions: str = "report") -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -630,7 +670,12 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     Last, with ``quiet_stretch`` (the default), each axis whose self-check names a run of taus
     not stationary gets ``quiet_stretch``: the terms fitted again on the quiet stretch the
     stationarity test names, beside the whole record's (:mod:`rigctl.analysis.allan_quiet`;
-    the whole record's fit and self-check are left as they are)."""
+    the whole record's fit and self-check are left as they are). Each axis' short
+    excursions (:mod:`rigctl.analysis.allan_excursions`) are reported; with
+    ``excursions="exclude"`` those inside a quiet stretch are left out of its fit, as gaps
+    handled by ``gaps`` (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
+    if excursions not in QS.EXCURSION_MODES:
+        raise InputError(f"excursions={excursions!r}: choose from {', '.join(QS.EXCURSION_MODES)}")
     if warmup not in AD.WARMUP_MODES:
         raise InputError(f"warmup={warmup!r}: choose from {', '.join(AD.WARMUP_MODES)}")
     if temperature not in AD.TEMPERATURE_MODES:
@@ -644,8 +689,15 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     if quiet_stretch:
         corr = {a: r["temperature_removed"]["before"]["correction"] for a, r in out["axes"].items()
                 if (r.get("temperature_removed") or {}).get("before", {}).get("correction")}
-        QS.add_quiet_stretches(out, lambda ax, rng, c: compute_once(
-            path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c), corr)
+        QS.add_quiet_stretches(out, lambda ax, rng, c, d=None: compute_once(
+            path, ax, taus, exact, rng, progress_stream, outliers, gaps, corrections=c, drop=d),
+            corr, excursions, gaps)
+    out["excursions_mode"] = excursions
+    # the axes' excursions, grouped where they overlap (the axes that moved together), and
+    # those inside each quiet stretch
+    out["excursions"] = EXA.group(out["axes"])
+    for r in out["axes"].values():
+        EXA.mark_quiet(r, 1.0 / float(out["sample_rate_hz"]))
     return out
 
 
@@ -718,7 +770,8 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                  sample_range: tuple[int, int] | None = None,
                  progress_stream: Any = None, outliers: str = "report",
                  gaps: str = "skip", corrections: dict | None = None,
-                 when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
+                 when_streaming: Callable[[], Any] | None = None,
+                 drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """Stream the recording and analyse ``axes`` (IMU samples ``sample_range`` = [first,
     last) if given, else all); raises InputError on invalid input. With ``progress_stream``
     (a console), progress is shown there (a bar on a terminal, a line per 10 s otherwise).
@@ -730,7 +783,11 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
     stretch is summed on its own and the sums and term counts added: exact, nothing is
     bridged); ``"refuse"`` raises InputError saying where they are and what to do,
     ``"longest"`` analyses the longest gap-free stretch, ``"bridge"`` treats the samples as
-    contiguous; the result's ``gaps`` records which."""
+    contiguous; the result's ``gaps`` records which. ``drop``: rows [a, b) of the recording
+    left out (excursions, :mod:`rigctl.analysis.allan_excursions`): each is a gap made on
+    purpose, skipped as the record's gaps are with ``gaps="skip"`` and bridged (said in
+    ``gaps.excluded``) with ``"bridge"``; ``"refuse"`` and ``"longest"`` are the caller's
+    (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
     if outliers not in OUTLIER_MODES:
         raise InputError(f"outliers={outliers!r}: choose from {', '.join(OUTLIER_MODES)}")
     if gaps not in GAP_MODES:
@@ -758,14 +815,14 @@ def compute_once(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool =
                 try:
                     found = find_gaps(f, s0, s1, fs)
                 except BaseException:
-                    for r in made.result().values():
+                    for r in _result(made).values():
                         r.close()
                     raise
-                readers = made.result()
+                readers = _result(made)
         try:
             return _compute_streamed(path, fs, axes, taus, exact, s0, s1, n, found, readers,
                                      progress_stream, outliers, gaps, corrections, counter,
-                                     when_streaming)
+                                     when_streaming, _clip_drop(drop, s0, s1))
         finally:
             for r in readers.values():
                 r.close()
@@ -796,12 +853,50 @@ def _streamed_counter(f: Any, s0: int, s1: int, gaps: str) -> RowReader | None:
     return rd
 
 
+def _clip_drop(drop: list[tuple[int, int]] | None, s0: int, s1: int) -> list[tuple[int, int]]:
+    """The rows to leave out, clipped to [s0, s1), sorted and merged where they touch."""
+    out: list[list[int]] = []
+    for a, b in sorted((max(s0, int(a)), min(s1, int(b))) for a, b in (drop or ())):
+        if b <= a:
+            continue
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return [(a, b) for a, b in out]
+
+
+def kept_stretches(s0: int, s1: int, breaks: list[int] | None, drop: list[tuple[int, int]],
+                   split_at_drop: bool = True) -> np.ndarray:
+    """Lengths of the stretches of rows [s0, s1) the Allan sums run over: cut at the gap
+    ``breaks`` (rows after a gap, gaps skipped) and, with ``split_at_drop``, at each left-out
+    window ``drop`` (rows [a, b), not counted); without it the rows on either side of a
+    window join (bridged)."""
+    cuts = {s0, s1, *(breaks or ())}
+    for a, b in drop:
+        cuts.update((a, b))
+    edges = sorted(c for c in cuts if s0 <= c <= s1)
+    out: list[int] = []
+    join = False
+    for a, b in zip(edges[:-1], edges[1:]):
+        if any(da <= a and b <= db for da, db in drop):
+            join = not split_at_drop
+            continue
+        if join and out and a not in (breaks or ()):
+            out[-1] += b - a
+        else:
+            out.append(b - a)
+        join = False
+    return np.asarray(out, dtype=np.int64)
+
+
 def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, exact: bool,
                       s0: int, s1: int, n: int, found: list, readers: dict,
                       progress_stream: Any, outliers: str, gaps: str,
                       corrections: dict | None = None,
                       counter: RowReader | None = None,
-                      when_streaming: Callable[[], Any] | None = None) -> dict[str, Any]:
+                      when_streaming: Callable[[], Any] | None = None,
+                      drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """:func:`compute` once the gaps are known (``found``) and the readers are open (closed by
     the caller); with ``counter`` (``found`` None; gaps skipped or bridged) the gaps are found
     from its rows chunk by chunk while the samples stream. ``corrections``: per axis, a term
@@ -837,6 +932,12 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
                              f"need at least {MIN_SAMPLES}")
         missing = 0
     breaks = [g for g, _ in found] if gaps == "skip" else None
+    drop = _clip_drop(drop, s0, s1) if gaps in ("skip", "bridge") else []
+    n_drop = sum(b - a for a, b in drop)
+    if drop and n - n_drop < MIN_SAMPLES:
+        raise InputError(f"{path}: only {n - n_drop} IMU samples left once the excluded windows "
+                         f"are left out; need at least {MIN_SAMPLES}")
+    n -= n_drop  # the samples the sums run over
     ms = A.tau_factors(n + 1, taus, "oadev")
     # below A.FAST_MIN_POINTS the sums are exact, as in A.oadev: there they cost milliseconds,
     # while the strides would throw away most of the EDF of phase-noise-dominated taus
@@ -855,14 +956,16 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
     def stretches() -> np.ndarray | None:
         """The gap-free stretches' lengths when gaps are skipped (every gap known: after the
         stream, or once a dataset has had its last chunk, whose read scanned the last of the
-        counter), else None."""
+        counter), else None; with windows left out (``drop``), the stretches between them."""
         b = ([g for g, _ in found] if gaps == "skip" else None) if streamed else breaks
+        if drop:
+            return kept_stretches(s0, s1, b, drop, gaps == "skip")
         return np.diff([s0] + b + [s1]) if b else None
 
     with _switch_interval(SWITCH_INTERVAL_S), _gc_paused(PAUSE_GC):
         return _stream_and_analyse(path, fs, axes, streams, s0, s1, n, shown, readers, exclude,
                                    breaks, corrections, counter, found, streamed, gaps,
-                                   gap_info, missing, outliers, when_streaming, stretches)
+                                   gap_info, missing, outliers, when_streaming, stretches, drop)
 
 
 #: the interpreter's cyclic garbage collector is paused while a record streams and its axes
@@ -922,9 +1025,8 @@ def collector_paused_for_command() -> contextlib.AbstractContextManager:
     imported beside the stream (``when_streaming``), 0.04 s of CPU holding the GIL on
     this machine, and a second one (0.03 s) follows during the store. Cyclic garbage made
     meanwhile waits for the next full collection instead (for the command: the process'
-    exit): the stream's nested functions (:func:`_pipelined`'s callbacks refer to each
-    other) hold its chunk buffers, ~84 MB for a 12 h x 6-axis file, which are then freed at
-    the exit instead of after the analyses (the peak, during the stream, is the same)."""
+    exit), so the stream makes none that holds its buffers (:class:`_Chains`; the test
+    test_pipelined_stream_frees_its_buffers_without_the_collector)."""
     return _gc_paused(PAUSE_GC, promote=True)
 
 
@@ -960,14 +1062,21 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                         counter: RowReader | None, found: list, streamed: bool, gaps: str,
                         gap_info: dict, missing: int, outliers: str,
                         when_streaming: Callable[[], Any] | None,
-                        stretches: Callable[[], np.ndarray | None]) -> dict[str, Any]:
+                        stretches: Callable[[], np.ndarray | None],
+                        drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
     ids: dict[str, Any] = {}  # axis -> its task of noise IDs on the decimated copy
 
     def analyse(a: str) -> dict[str, Any]:
         if a in ids:  # queued before this task: started, so it cannot wait for a worker
-            ids[a].result()
-        return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+            _result(ids[a])
+        try:
+            return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
+        finally:
+            # its phase copies (head and decimated: ~45 MB per axis of a 12 h x 2 kHz record)
+            # go as soon as its analysis is done, not after the slowest axis' (a Gauss-Markov
+            # candidate's: minutes, its covariance meshes beside them)
+            streams[a] = None
 
     def queue(group: list[str], rank: int) -> dict[str, Any]:
         """The analyses of axes whose last chunk is summed, at ``rank``; with
@@ -986,7 +1095,7 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
         _stream_chunks(pool, path, readers, axes, streams, s0, s1, shown,
                        exclude, breaks, corrections,
                        (counter, found, gaps == "skip") if streamed else None, when_streaming,
-                       dataset_done if LEAD_DATASET else None)
+                       dataset_done if LEAD_DATASET else None, drop or None, gaps == "skip")
         shown.finish()
         if streamed:
             missing = sum(m for _, m in found)
@@ -996,19 +1105,28 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
             breaks = [g for g, _ in found] if gaps == "skip" else None
         gaps_bridged = int(missing) if gaps == "bridge" else 0
         stretch_samples = stretches()
-        if breaks:
+        if breaks or (drop and gaps == "skip"):
             gap_info["stretches"] = len(stretch_samples)
             gap_info["longest_stretch_samples"] = int(np.max(stretch_samples))
+        if drop:  # windows left out on purpose: gaps of their own, said so
+            gap_info["excluded"] = {"windows": len(drop), "samples": int(sum(b - a for a, b in drop)),
+                                    "rows": [[int(a), int(b)] for a, b in drop],
+                                    "handled": "skipped" if gaps == "skip" else "bridged"}
         out = {"file": Path(path).name, "sample_rate_hz": fs, "n_samples": int(n),
                "first_sample": int(s0), "dropped_samples": gaps_bridged,
                "gaps": gap_info, "outliers": outliers, "axes": {}}
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
         futs = {**queue([a for a in axes if a not in early], 0), **early}
-        done = [futs[a].result() for a in axes]
+        done = [_result(futs[a]) for a in axes]
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers
+    if drop:  # the block means skip the windows left out: no longer the rows' temperature's
+        for r in out["axes"].values():
+            r.pop("_blocks", None)
+            r["temperature"] = {"found": False, "skipped": "windows left out of the samples: "
+                                                         "the block means do not follow the rows"}
     AD.temperature_step(path, int(s0), out["axes"])  # each axis' "temperature" (if recorded)
     return out
 
@@ -1019,7 +1137,9 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                    corrections: dict | None = None,
                    scan: tuple[RowReader, list, bool] | None = None,
                    when_streaming: Callable[[], Any] | None = None,
-                   dataset_done: Callable[[list[str]], Any] | None = None) -> None:
+                   dataset_done: Callable[[list[str]], Any] | None = None,
+                   drop: list[tuple[int, int]] | None = None,
+                   drop_breaks: bool = True) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
     screen (quantization, spikes; with ``exclude`` spikes replaced) and accumulate chunk i,
     this thread reads chunk i + 1 (:class:`rigctl.recording.recording_reader.RowReader`: os.preadv
@@ -1037,6 +1157,10 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     (``breaks`` is then None): each chunk's /imu/counter rows are read and scanned with its
     samples, the gaps appended to ``found``, and with ``skip`` the rows after them break the
     stretches as ``breaks`` would.
+
+    ``drop``: rows [a, b) left out (not added to the sums; the chunks touching one go the
+    per-axis way); with ``drop_breaks`` the samples after each start a new stretch, as after
+    a gap, else they follow the samples before it (bridged).
 
     ``dataset_done``: with :data:`PIPELINED`, the chunks of the first axis' dataset go first
     (:func:`_pipelined`) and this is called with a dataset's axes as soon as its last chunk
@@ -1086,14 +1210,25 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     fin_cols = {name: sorted({AXES[a][1] for a in axes if AXES[a][0] == name}) for name in dsets}
     groups = {name: [a for a in axes if AXES[a][0] == name] for name in dsets}
 
+    drops = list(drop or ())
+
+    def dropped_in(a0: int, a1: int) -> list[tuple[int, int]]:
+        """The left-out windows overlapping rows [a0, a1), relative to a0, clipped."""
+        return [(max(a, a0) - a0, min(b, a1) - a0) for a, b in drops if a < a1 and b > a0]
+
     def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         if corrections and a in corrections:  # rows relative to s0
             y -= AD.correction_at(corrections[a], first, y.size)
         y = streams[a].screen(y, first, exclude)
-        # rows after a gap (gaps="skip") start a new gap-free stretch
         a0 = s0 + first
+        gone = dropped_in(a0, a0 + y.size)
+        ends_here = any(b == a0 for _, b in drops)  # a window left out just before the chunk
+        if gone or ends_here:
+            feed_kept(a, y, a0, cuts, gone, ends_here)
+            return
+        # rows after a gap (gaps="skip") start a new gap-free stretch
         inside = cuts[(cuts > a0) & (cuts < a0 + y.size)] - a0 if cuts.size else cuts
         if a0 > s0 and cuts.size and bool(np.any(cuts == a0)):
             streams[a].break_stretch()
@@ -1103,6 +1238,23 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             streams[a].break_stretch()
             prev = c
         streams[a].add(y[prev:] if prev else y)
+
+    def feed_kept(a: str, y: np.ndarray, a0: int, cuts: np.ndarray,
+                  gone: list[tuple[int, int]], after_drop: bool) -> None:
+        """:func:`feed` for a chunk that holds left-out rows ``gone`` (relative to a0) or
+        follows one (``after_drop``): the pieces between them added, each after a break where
+        a gap (``cuts``) or, with ``drop_breaks``, a left-out window ends before it."""
+        st = streams[a]
+        cut_rel = set((cuts[(cuts >= a0) & (cuts < a0 + y.size)] - a0).tolist()) if cuts.size else set()
+        edges = sorted({0, y.size, *cut_rel, *(v for g in gone for v in g)})
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            if any(g0 <= lo and hi <= g1 for g0, g1 in gone):
+                after_drop = True
+                continue
+            if (lo in cut_rel and (lo > 0 or a0 > s0)) or (after_drop and drop_breaks):
+                st.break_stretch()
+            after_drop = False
+            st.add(y[lo:hi])
 
     def check(name: str, b: np.ndarray, a0: int) -> None:
         check_finite(path, name, b if fin_cols[name] == [0, 1, 2] else b[:, fin_cols[name]], a0)
@@ -1116,7 +1268,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         first = a0 - s0
         group = groups[name]
         n = b.shape[0]
-        touched = cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))
+        touched = (cuts.size and bool(np.any((cuts >= a0) & (cuts < a0 + n)))) \
+            or bool(dropped_in(a0, a0 + n)) or any(b == a0 for _, b in drops)
         if not (FUSED and KER.HAVE_NUMBA and b.ndim == 2 and b.shape[1] == 3 and not touched
                 and not (corrections and any(a in corrections for a in group))
                 and all(streams[a].takes_phase() for a in group)):
@@ -1171,7 +1324,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         _pipelined(pool, starts, order, read_rows, cuts_at, dataset, streams, groups, rank,
                    s0, s1, shown, early, when_streaming, dataset_done)
         for e in early:
-            e.result()
+            _result(e)
         return
     nxt = read(starts[0], 0) if starts else None
     for i, a0 in enumerate(starts):
@@ -1179,8 +1332,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         preps = [pool.submit(dataset, name, b, a0, cuts) for name, b in blocks.items()]
         nxt = read(starts[i + 1], (i + 1) % 2) if i + 1 < len(starts) else None
         for p in preps:
-            for t in p.result():
-                t.result()
+            for t in _result(p):
+                _result(t)
         for b in blocks.values():
             release(b)
         del blocks
@@ -1191,7 +1344,90 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                 st.head_full() for st in streams.values()):
             early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
     for e in early:
-        e.result()
+        _result(e)
+
+
+class _Chains:
+    """The state of :func:`_pipelined`'s chains and the callbacks that run them. Methods, not
+    functions nested in :func:`_pipelined`: those referred to each other through their
+    closures (``launch`` queued ``run``, whose tasks' callback called ``finished``, which
+    called ``launch``), a reference cycle that held everything they reached -- the stream's
+    read and column buffers, ~84 MB for a 12 h x 6-axis file -- until the cyclic collector ran,
+    which ``rigctl allan`` keeps paused to its exit (:func:`collector_paused_for_command`).
+    Here the queued tasks and the callbacks refer to the object, and nothing in it to them:
+    it and the buffers go when the last task is done."""
+
+    def __init__(self, pool: _PriorityPool, starts: list[int], names: list[str],
+                 dataset: Callable, streams: dict, groups: dict, rank: dict, s0: int, s1: int,
+                 early: list, dataset_done: Callable[[list[str]], Any] | None):
+        self.pool, self.starts, self.names, self.dataset = pool, starts, names, dataset
+        self.streams, self.groups, self.rank, self.s0, self.s1 = streams, groups, rank, s0, s1
+        self.early, self.dataset_done = early, dataset_done
+        self.cond = threading.Condition()
+        self.ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
+        self.done = {name: -1 for name in names}  # the last chunk each dataset has finished
+        self.busy = {name: False for name in names}
+        self.errors: list[BaseException] = []
+        self.last = len(starts) - 1
+        self.queued_ids = {name: False for name in names}
+
+    def fail(self, e: BaseException) -> None:
+        with self.cond:
+            self.errors.append(e)
+            self.cond.notify_all()
+
+    def launch(self, name: str) -> None:  # under cond
+        j = self.done[name] + 1
+        if not self.errors and not self.busy[name] and j in self.ready[name]:
+            self.busy[name] = True
+            b, c = self.ready[name].pop(j)
+            self.pool.submit_at(self.rank[name], self.run, name, j, b, c)
+
+    def finished(self, name: str, j: int) -> None:
+        if j == self.last and self.dataset_done is not None:  # before the stream is done
+            try:
+                self.dataset_done(self.groups[name])
+            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+                self.fail(e)
+        with self.cond:
+            self.done[name] = j
+            self.busy[name] = False
+            sts = [self.streams[a] for a in self.groups[name]]
+            if EARLY_NOISE_ID and not self.queued_ids[name] and j < self.last and all(
+                    st.head_full() for st in sts):  # (before its next chunk's task)
+                self.queued_ids[name] = True
+                self.early.extend(self.pool.submit_at(self.rank[name], st.head_noise_ids,
+                                                      self.s1 - self.s0 + 1) for st in sts)
+            self.launch(name)
+            self.cond.notify_all()
+
+    def run(self, name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
+        try:
+            tasks = self.dataset(name, b, self.starts[j], c)
+        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
+            self.fail(e)
+            return
+        if not tasks:
+            release(b)
+            self.finished(name, j)
+            return
+        left = [len(tasks)]
+        lock = threading.Lock()
+
+        def one(t: Any) -> None:
+            e = t.exception()
+            if e is not None:
+                self.fail(e)
+                return
+            with lock:
+                left[0] -= 1
+                end = left[0] == 0
+            if end:
+                release(b)  # (its pieces' pages: nothing reads them any more)
+                self.finished(name, j)
+
+        for t in tasks:
+            t.add_done_callback(one)
 
 
 def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_rows: Callable,
@@ -1216,74 +1452,12 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     has finished the first chunk; a dataset's early noise IDs of the head
     (:data:`EARLY_NOISE_ID`) are queued (at its rank, before its next chunk's task) by the
     first of its chunks after which its heads are complete, if another chunk follows."""
-    cond = threading.Condition()
-    ready: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {nm: {} for nm in names}
-    done = {name: -1 for name in names}  # the last chunk each dataset has finished
-    busy = {name: False for name in names}
-    errors: list[BaseException] = []
+    ch = _Chains(pool, starts, names, dataset, streams, groups, rank, s0, s1, early,
+                 dataset_done)
+    cond, done, last, errors = ch.cond, ch.done, ch.last, ch.errors
     hook = [when_streaming]
-    last = len(starts) - 1
     cuts: dict[int, np.ndarray] = {}  # chunk -> its gap breaks (scanned with its first read)
     nxt = {name: 0 for name in names}  # the next chunk to read, per dataset
-    queued_ids = {name: False for name in names}
-
-    def fail(e: BaseException) -> None:
-        with cond:
-            errors.append(e)
-            cond.notify_all()
-
-    def launch(name: str) -> None:  # under cond
-        j = done[name] + 1
-        if not errors and not busy[name] and j in ready[name]:
-            busy[name] = True
-            b, c = ready[name].pop(j)
-            pool.submit_at(rank[name], run, name, j, b, c)
-
-    def finished(name: str, j: int) -> None:
-        if j == last and dataset_done is not None:  # before the stream can be seen as done
-            try:
-                dataset_done(groups[name])
-            except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-                fail(e)
-        with cond:
-            done[name] = j
-            busy[name] = False
-            sts = [streams[a] for a in groups[name]]
-            if EARLY_NOISE_ID and not queued_ids[name] and j < last and all(
-                    st.head_full() for st in sts):  # (before its next chunk's task)
-                queued_ids[name] = True
-                early.extend(pool.submit_at(rank[name], st.head_noise_ids, s1 - s0 + 1)
-                             for st in sts)
-            launch(name)
-            cond.notify_all()
-
-    def run(name: str, j: int, b: np.ndarray, c: np.ndarray) -> None:
-        try:
-            tasks = dataset(name, b, starts[j], c)
-        except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
-            fail(e)
-            return
-        if not tasks:
-            release(b)
-            finished(name, j)
-            return
-        left = [len(tasks)]
-        lock = threading.Lock()
-
-        def one(t: Any) -> None:
-            e = t.exception()
-            if e is not None:
-                fail(e)
-                return
-            with lock:
-                left[0] -= 1
-                end = left[0] == 0
-            if end:
-                release(b)  # (its pieces' pages: nothing reads them any more)
-                finished(name, j)
-
-        for t in tasks:
-            t.add_done_callback(one)
 
     def progress() -> None:  # this thread: the bar, and the hook after the first chunk
         with cond:
@@ -1318,10 +1492,10 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
         got = read_rows(name, starts[j], j % 2)
         with cond:
             nxt[name] = j + 1
-            ready[name][j] = (got, cuts[j])
+            ch.ready[name][j] = (got, cuts[j])
             if all(nxt[nm] > j for nm in names):
                 cuts.pop(j, None)
-            launch(name)
+            ch.launch(name)
         progress()
     while True:
         with cond:
@@ -1330,7 +1504,11 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
             cond.wait(0.05)
         progress()
     if errors:
-        raise errors[0]
+        # (the error's traceback holds the frame of the task that raised it, and so the
+        # object: the list is emptied, not left to hold the error)
+        first = errors[0]
+        errors.clear()
+        raise first
     progress()
 
 
@@ -1387,7 +1565,7 @@ def find_gaps(f: Any, s0: int, s1: int, fs: float) -> list[tuple[int, int]]:
                 # halves of the record on the two cores
                 half = (len(starts) + 1) // 2
                 with ThreadPoolExecutor(2) as pool:
-                    parts = list(pool.map(scan, [starts[:half], starts[half:]]))
+                    parts = [_result(f) for f in [pool.submit(scan, x) for x in (starts[:half], starts[half:])]]
                 return parts[0] + parts[1]
             return scan(starts)
         finally:
@@ -1695,7 +1873,7 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     unless excluded) and the output quantization (a note; a warning when the noise per sample
     is below half a step, so the rounding is not random)."""
     t_warns, notes = AD.temperature_sentences(r)
-    warns = list(AD.warmup_sentences(r)) + t_warns
+    warns = list(AD.warmup_sentences(r)) + t_warns + EXA.sentences(r)
     unit, fac = DEV_UNITS[r["sensor"]]
     sp = r.get("spikes") or {}
     basis = {"samples": ", the samples' own spread: the running-median residual's MAD "
@@ -1820,9 +1998,11 @@ def store(path: str, result: dict[str, Any]) -> None:
                "outliers": result.get("outliers", "report"),
                "warmup": result.get("warmup", "report"),
                "temperature": result.get("temperature", "report"),
+               "excursions": jsonable(result.get("excursions") or [], keep_nonfinite=True),
+               "excursions_mode": result.get("excursions_mode", "report"),
                **({"verdicts": result["verdicts"]} if result.get("verdicts") else {}),
                "axes": {a: {"sensor": r["sensor"], "mode": r["mode"],
-                            **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes",
+                            **jsonable({k: r.get(k) for k in ("fit", "piecewise", "spikes", "excursions",
                                                               "quantization", "tones", "warmup",
                                                               "warmup_excluded", "temperature",
                                                               "temperature_removed")},

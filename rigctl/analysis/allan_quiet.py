@@ -121,16 +121,56 @@ KEPT = ("sensor", "n_samples", "mode", "spikes", "quantization", "tones", "warmu
         "stride", "n_terms", "alpha", "edf", "fit", "piecewise", "temperature", "_si", "_unit")
 
 
+#: what to do with the short excursions found before the fit
+#: (:mod:`rigctl.analysis.allan_excursions`): report them only, or also leave those inside
+#: an axis' quiet stretch out of its fit (their windows gaps, handled as ``--gaps`` says)
+EXCURSION_MODES = ("report", "exclude")
+
+
+def _excluded(r: dict[str, Any], qa: int, qb: int) -> list[tuple[int, int]]:
+    """The axis' excursion windows inside samples [qa, qb) of the range, clipped (level
+    shifts, which have no window, are not among them)."""
+    ex = (r.get("excursions") or {}).get("excursions") or []
+    out = []
+    for e in ex:
+        a, b = (int(v) for v in e["samples"])
+        a, b = max(a, qa), min(b, qb)
+        if b > a:
+            out.append((a, b))
+    return sorted(out)
+
+
+def _pieces(qa: int, qb: int, drop: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """[qa, qb) without the windows ``drop`` (sorted, inside it)."""
+    out, at = [], qa
+    for a, b in drop:
+        if a > at:
+            out.append((at, a))
+        at = max(at, b)
+    if qb > at:
+        out.append((at, qb))
+    return out
+
+
 def add_quiet_stretches(result: dict[str, Any],
-                        analyse: Callable[[list[str], tuple[int, int], dict | None], dict[str, Any]],
-                        corrections: dict[str, dict] | None = None) -> int:
+                        analyse: Callable[..., dict[str, Any]],
+                        corrections: dict[str, dict] | None = None,
+                        excursions: str = "report", gaps: str = "skip") -> int:
     """Each axis of ``result`` (:func:`rigctl.analysis.allan.compute`'s) whose self-check
     names a run not stationary gets ``quiet_stretch`` (:func:`choose`); where it qualifies,
     the stretch analysed by ``analyse(axes, (first, last) rows of the recording, corrections)``
     (:func:`rigctl.analysis.allan.compute_once`) is merged in (its curve, fit, self-check,
     screening: the keys :data:`KEPT`). ``corrections``: per axis, the temperature term the
     whole record had subtracted (rows relative to the range's start; shifted to the
-    stretch's). Returns the number of axes fitted on a quiet stretch."""
+    stretch's). Returns the number of axes fitted on a quiet stretch.
+
+    With ``excursions="exclude"`` the axis' excursions inside the stretch
+    (``excursions_excluded``: their windows, samples and how they were handled) are left
+    out of its fit as gaps made on purpose, handled as the record's gaps are (``gaps``):
+    skipped (Allan terms touching one left out, Stable32's), bridged (said so), the longest
+    piece without one analysed, or refused (no fit, the reason saying what to do);
+    ``analyse`` then takes a fourth argument, the rows [a, b) of the recording to leave out.
+    The stretch's ``pieces``: the samples [a, b) of the range its fit ran over."""
     tau0 = 1.0 / float(result["sample_rate_hz"])
     s0 = int(result.get("first_sample", 0))
     done = 0
@@ -142,12 +182,41 @@ def add_quiet_stretches(result: dict[str, Any],
         if not q["fitted"]:
             continue
         qa, qb = q["samples"]
+        drop = _excluded(r, qa, qb) if excursions == "exclude" else []
+        q["pieces"] = [[qa, qb]]
+        if drop:
+            unit = (r.get("excursions") or {}).get("unit", "")
+            q["excursions_excluded"] = {
+                "windows_s": [[a * tau0, b * tau0] for a, b in drop],
+                "samples": [[a, b] for a, b in drop],
+                "n_samples": int(sum(b - a for a, b in drop)), "gaps": gaps,
+                "handled": {"skip": "skipped (Allan terms touching a window left out, as the "
+                                    "record's gaps are: Stable32)",
+                            "bridge": "bridged on request (--gaps bridge): the samples on either "
+                                      "side joined, taus spanning a window biased",
+                            "longest": "the longest piece of the stretch without one analysed "
+                                       "(--gaps longest)",
+                            "refuse": "refused (--gaps refuse)"}[gaps], "unit": unit}
+            if gaps == "refuse":
+                q["fitted"] = False
+                q["reason"] = (f"{len(drop)} excursion(s) inside the quiet stretch would leave gaps "
+                               "(--excursions exclude) and --gaps refuse refuses gaps: --gaps skip "
+                               "leaves out every Allan term that touches one (Stable32), --gaps "
+                               "longest fits the longest piece without one")
+                continue
+            if gaps == "longest":
+                qa, qb = max(_pieces(qa, qb, drop), key=lambda p: p[1] - p[0])
+                q["pieces"] = [[qa, qb]]
+                drop = []
+            else:
+                q["pieces"] = [list(p) for p in _pieces(qa, qb, drop)]
         corr = None
         if corrections and a in corrections:
             c = corrections[a]
             corr = {a: {**c, "rows": (np.asarray(c["rows"], dtype=float) - qa).tolist()}}
         try:
-            got = analyse([a], (s0 + qa, s0 + qb), corr)
+            got = (analyse([a], (s0 + qa, s0 + qb), corr, [(s0 + x, s0 + y) for x, y in drop])
+                   if drop else analyse([a], (s0 + qa, s0 + qb), corr))
         except InputError as exc:  # too short for its own analysis, or a gap found there
             q["fitted"] = False
             q["reason"] = f"the quiet stretch could not be analysed on its own: {exc}"

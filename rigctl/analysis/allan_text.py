@@ -10,6 +10,7 @@ from typing import Any
 from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
+from . import allan_excursions as EXA
 from .allan import chi2_carrier_text, check_notes, check_warnings, screening_notes
 
 
@@ -49,16 +50,14 @@ def term_lines(r: dict[str, Any]) -> list[str]:
     co = NC.as_coefficients(r["fit"]["coefficients"])
     for t, e in r["fit"]["terms"].items():
         c, unit_f = NC.in_field_units(co, t)
-        need = need_text(e, c.resolved)
         if c.resolved:
             lo, hi = c.ci95
-            more = ("" if not need else f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best "
-                    f"(Cramer-Rao); {need})")
+            more = capture_note(e, True)
             if e.get("held_at_curve_limit"):  # the fit wanted more than the curve allows
                 more += " (held at the curve's own limit: the fit wanted more)"
             lines.append(f"  {e['name']:>26}: {c.value:.5g} {unit_f} [{lo:.5g}, {hi:.5g}]{more}")
         else:
-            more = "" if not need else f"; {need}"
+            more = capture_note(e, False)
             if e.get("edf_below_estimate") is not None:  # held or kept, but with EDF < 1
                 more += (f"; the fit's EDF there {e['edf_below_estimate']:.2g} < "
                          f"{F.MIN_ESTIMATE_EDF:g}: no estimate")
@@ -130,26 +129,49 @@ def quiet_lines(r: dict[str, Any]) -> list[str]:
     # in the paragraph's head and the goodness-of-fit line above)
     lines += [f"warning: quiet stretch: {w}" for w in check_warnings(q)
               if not w.startswith("self-check failed:")]
+    # its excursions: a warning while they are in its fit, a note once left out
+    kind = "note" if q.get("excursions_excluded") else "warning"
+    lines += [f"{kind}: {w}" for w in EXA.quiet_sentence(q, (r.get("excursions") or {}).get("unit", ""))]
     return lines
+
+
+def capture_note(e: dict[str, Any], resolved: bool) -> str:
+    """A term's Cramer-Rao capture figure as the table prints it after the value ('' when this
+    capture determines it to +-25 %): for an estimate "(this capture: +-X % at best
+    (Cramer-Rao); +-25 % needs about Y)", X the bound's sd; for a bound "; +-25 % would need at
+    least Y of capture" inside the bound's parenthesis (:func:`rigctl.display_units.need_text`)."""
+    need = need_text(e, resolved)
+    if not need:
+        return ""
+    if resolved:
+        return f" (this capture: +-{100 * e['crb_rel_sd']:.0f} % at best (Cramer-Rao); {need})"
+    return f"; {need}"
 
 
 def gm_term_line(fit: dict[str, Any]) -> str:
     """The fitted Gauss-Markov term as a row of the term table ('' when the fit has none):
-    sigma_GM in the deviation's field unit (B's) and Tc in s, each with its 95 % interval."""
+    sigma_GM in the deviation's field unit (B's) and Tc in s, each with its 95 % interval and,
+    where this capture cannot give it to +-25 %, its own Cramer-Rao capture figure (``crb``:
+    :func:`rigctl.solvers.allan_fit._add_crb`) in the IEEE terms' words (:func:`capture_note`)."""
     t = fit.get("gm_term")
     if not t:
         return ""
     unit = t["sigma_unit"]
     s, (lo, hi) = t[f"sigma_{slug(unit)}"], t[f"sigma_ci95_{slug(unit)}"]
     tc, (tlo, thi) = t["tc_s"], t["tc_ci95_s"]
+    crb = t.get("crb") or {}
     name = "Gauss-Markov sigma_GM, Tc"
+    sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
     if t.get("resolved"):
-        val = f"{s:.5g} {unit} [{lo:.5g}, {hi:.5g}]"
+        val = f"{s:.5g} {unit} [{lo:.5g}, {hi:.5g}]{capture_note(sig_e, True)}"
     else:
-        val = f"< {hi:.5g} {unit} (not resolved by the joint fit)"
+        val = f"< {hi:.5g} {unit} (not resolved by the joint fit{capture_note(sig_e, False)})"
+    tc_more = capture_note(tc_e, not tc_e.get("bounded"))
+    if tc_e.get("bounded") and tc_more:  # Tc's lower limit, with sigma_GM at its bound
+        tc_more = f" ({tc_more[2:]}, with sigma_GM at its bound)"
     more = " (held at the curve's own limit: the fit wanted more)" if t.get(
         "held_at_curve_limit") else ""
-    return f"  {name:>26}: {val}, Tc {tc:.4g} s [{tlo:.4g}, {thi:.4g}]{more}"
+    return f"  {name:>26}: {val}, Tc {tc:.4g} s [{tlo:.4g}, {thi:.4g}]{tc_more}{more}"
 
 
 def goodness_line(check: dict[str, Any], with_gm: bool = False) -> str:

@@ -18,6 +18,7 @@ from rigctl.analysis.allan import (AXES, GAP_MODES, OUTLIER_MODES, choose_range,
                                    collector_paused_for_command, compute, default_axes,
                                    gap_message, store)
 from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
+from rigctl.analysis.allan_quiet import EXCURSION_MODES
 from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.commands.cli_options import add_production_options
@@ -88,7 +89,7 @@ def _run(args: argparse.Namespace) -> int:
     # chunk, where the command's own start-up holds the GIL (docs/allan.md)
     result = compute(args.recording, axes, taus, args.exact, rng, progress_stream=sys.stderr,
                      outliers=args.outliers, gaps=args.gaps, warmup=args.warmup,
-                     temperature=args.temperature,
+                     temperature=args.temperature, excursions=args.excursions,
                      when_streaming=lambda: production.preload_database(args.db))
     gap_line = gap_message(result.get("gaps") or {})
     if gap_line:
@@ -149,6 +150,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
+    p.add_argument("--excursions", choices=EXCURSION_MODES, default="report",
+                   help="short excursions of the level (30 s .. a quarter of the record, tested "
+                        "before the fit): report them (default), or also leave those inside a "
+                        "quiet stretch out of its fit (exclude; their windows are gaps, handled "
+                        "as --gaps says)")
     p.add_argument("--warmup", choices=WARMUP_MODES, default="report",
                    help="a start transient (tested before the fit): report it, or cut it (exclude)")
     p.add_argument("--temperature", choices=TEMPERATURE_MODES, default="report",

@@ -8,25 +8,29 @@ directory removed on exit); a simulated disconnect re-points the same symlink to
 from __future__ import annotations
 
 import argparse
+import math
+import time
 from pathlib import Path
+from typing import Any
 
 import yaml
 
 from ..config.config import PROJECT_ROOT, load_config, resolve_config_path
 from ..run.stop_signals import stop_on_signals
+from ..clock import suggested_speed
 from ..errors import InputError
 
 TEMPLATE = PROJECT_ROOT / "configs" / "sim-wire.yaml"
 
 
 def cmd_sim_up(args: argparse.Namespace) -> int:
+    speed = parse_speed(args.speed)  # before the emulator is imported (a few seconds)
     from ..sim.hardware import start_hardware
     from ..sim.wire_config import write_wire_config
 
     cfg_path = resolve_config_path(args.config)
     cfg = load_config(cfg_path)
-    if not 0.01 <= args.speed <= 1000:
-        raise InputError(f"--speed {args.speed:g} is outside 0.01..1000")
+    args.speed = speed
     with stop_on_signals() as stop:
         with start_hardware(cfg, args.speed, link_dir=args.link_dir, acl_tcp_port=args.acl_port,
                             modbus_tcp_port=args.modbus_port, imu_baudrate=args.imu_baudrate,
@@ -46,12 +50,60 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
                                         chamber=args.chamber)
                 print(f"  wired rig config   {out}", flush=True)
             print("ready", flush=True)
+            pace = PaceWatch(hw)
             while not stop.wait(1.0):
-                if hw.lag_s > max(5.0, 50 * hw.tick_s * hw.speed):
-                    print(f"warning: the emulator is {hw.lag_s:.1f} s of rig time behind the clock; "
-                          "lower --speed", flush=True)
+                line = pace.check()
+                if line:
+                    print(line, flush=True)
     print("stopped", flush=True)
     return 0
+
+
+SPEED_RANGE = (0.01, 1000.0)
+
+
+def parse_speed(text: str) -> float:
+    """``--speed``: a number of times real time within :data:`SPEED_RANGE`; else one line (an
+    InputError) saying what was asked, what the emulator takes and what to do."""
+    lo, hi = SPEED_RANGE
+    try:
+        speed = float(text)
+    except ValueError:
+        speed = math.nan
+    if not lo <= speed <= hi:  # also NaN and inf
+        raise InputError(f"--speed {text!r}: the emulated rig's clock runs {lo:g} to {hi:g} times real time",
+                         hint="give a number in that range, 1 = real time; above what this machine "
+                              "computes, the clock runs slower and 'rigctl sim up' says how fast")
+    return speed
+
+
+class PaceWatch:
+    """Says how fast the emulated rig's time really runs when it runs slower than ``--speed``
+    asks (this machine cannot compute the physics and the IMU stream that fast: the devices'
+    time falls behind the clock), once, measured over PACE_WINDOW_WALL_S of wall time on the
+    table controller's time; then how far behind it is, at most every REPEAT_S."""
+
+    REPEAT_S = 60.0
+
+    def __init__(self, hw: Any) -> None:
+        self.hw, self.said = hw, -math.inf
+        self.mark = (time.monotonic(), hw.table.time())
+
+    def check(self) -> str:
+        from ..engine.engine import PACE_WINDOW_WALL_S
+
+        (w0, t0), wall, t = self.mark, time.monotonic(), self.hw.table.time()
+        if wall - w0 < PACE_WINDOW_WALL_S or wall - self.said < self.REPEAT_S:
+            return ""
+        self.mark = (wall, t)
+        speed, achieved = self.hw.speed, (t - t0) / (wall - w0)
+        if achieved >= 0.9 * speed:
+            return ""
+        first, self.said = self.said == -math.inf, wall
+        return (f"warning: --speed {speed:g} asked, but this machine computes the emulated rig at about "
+                f"{achieved:.0f}x: its devices' time runs at that speed and is "
+                f"{self.hw.lag_s:.0f} s of rig time behind the clock{', growing' if first else ''}; "
+                f"use --speed {suggested_speed(achieved):g} or less")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,7 +112,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ssub.required = True
     up = ssub.add_parser("up", help="start the emulated table/IMU/GNSS servers and print their endpoints")
     up.add_argument("--config", help="rig config whose emulator sections set the physics (default configs/sim.yaml)")
-    up.add_argument("--speed", type=float, default=1.0, help="rig time per wall time (1 = real time; up to 1000)")
+    up.add_argument("--speed", default="1", help="rig time per wall time (1 = real time; 0.01 to 1000)")
     up.add_argument("--wire-config", metavar="OUT.yaml", help="write a wired rig config for these endpoints")
     up.add_argument("--chamber", choices=("watlow-rtu", "watlow-tcp", "scpi"),
                     help="put the emulated climatic chamber in the --wire-config, over this link")

@@ -58,7 +58,7 @@ def _curves(data: "RunData", log: Callable[..., None] | None) -> dict[str, dict[
         cv = {"sensor": sensor, "unit": unit, "factor": fac, "tau_s": np.asarray(tau, float),
               "adev": np.asarray(dev, float), "fit": info.get("fit"),
               "piecewise": info.get("piecewise"), "quiet_stretch": info.get("quiet_stretch"),
-              "quick": False}
+              "excursions": info.get("excursions"), "quick": False}
         for k in ("lo68", "hi68", "lo95", "hi95"):
             v = arrays.get(f"{axis}/{k}_{u}")
             cv[k] = None if v is None else np.asarray(v, float)

@@ -445,13 +445,18 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             c, unit = NC.in_field_units(co, t)
             p = (pw.get(t) or {}).get(f"value_{unit}")
             rows.append([axis, e.get("name", t), unit, _term_cell(c), p, _need_cell(e, c.resolved)])
-        for g in co.gm:  # the fit's Gauss-Markov term: sigma_GM in B's unit, and Tc in s
+        # the fit's Gauss-Markov term: sigma_GM in B's unit, and Tc in s, each with its own
+        # capture figure (the term's ``crb``, allan_fit._add_crb)
+        crb = ((cv["fit"].get("gm_term") or {}).get("crb")) or {}
+        for g in co.gm:
             unit, fac = NC.FIELD_UNITS[co.sensor]["B"]
+            sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
             rows.append([axis, "Gauss-Markov sigma_GM", unit, _term_cell(g.sigma.scaled(fac)),
-                         None, ""])
+                         None, _need_cell(sig_e, not sig_e.get("bounded"))])
             tc = (f"{g.tau_c_s:.4g}" if g.tau_c_ci95 is None else
                   f"{g.tau_c_s:.4g} [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]")
-            rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None, ""])
+            rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None,
+                         _need_cell(tc_e, not tc_e.get("bounded"))])
     if rows:
         out += ["<h3>Fitted noise terms (joint IEEE 952 fit; value [95 % interval] or bound)</h3>",
                 table(["axis", "term", "unit", "joint fit", "piecewise read-off",
@@ -460,6 +465,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
     out += _chi2_findings_html(curves)
+    out += _excursions_html(curves)
     out += _quiet_stretch_html(curves)
     gm_rows = []
     for axis, cv in curves.items():
@@ -513,6 +519,28 @@ def _chi2_cell(check: dict) -> str:
             + (f"; carried by {carrier}" if carrier else ""))
 
 
+def _excursions_html(curves: dict[str, dict]) -> list[str]:
+    """The short excursions found before the fit (rigctl.analysis.allan_excursions), one row
+    each, in the field's units; [] when none."""
+    rows = []
+    for axis, cv in curves.items():
+        x = cv.get("excursions") or {}
+        unit = x.get("unit", "")
+        for e in x.get("excursions") or []:
+            rows.append([axis, e["kind"], f"{e['start_s']:.0f}", f"{e['end_s']:.0f}",
+                         f"{e[f'size_{unit}']:+.3g} {unit}", ", ".join(e.get("moving_with") or [])])
+    if not rows:
+        return []
+    return ["<h3>Short excursions of the level, found before the fit</h3>",
+            table(["axis", "kind", "start (s)", "end (s)", "size", "moving with"], rows),
+            "<p class=\"muted\">Adjacent window means (30 s to 1/32 of the record) that differ "
+            "beyond the record's own robust Allan deviation at that window (family-wise "
+            "false-alarm probability 0.01 per axis); times from the start of the range analysed. "
+            "They are in the samples the fit sees (the whole record's and the quiet stretch's): "
+            "not the sensor's stationary noise (docs/allan.md, 'Short excursions before the "
+            "fit').</p>"]
+
+
 def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
     """Non-stationary records: the terms fitted on the quiet stretch beside the whole
     record's (rigctl.analysis.allan_quiet), and the axes where no stretch qualified."""
@@ -535,6 +563,11 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
                    + (_chi2_cell(q["fit"]["check"]) if q["fit"]["check"].get("chi2_beyond_99")
                       else "self-check failed" if not q["fit"]["check"].get("ok")
                       else "self-check passed") + ")")
+        ex = q.get("excursions_excluded")
+        if ex:  # the excursions inside it, left out of its fit (--excursions exclude)
+            stretch += (f"; without {len(ex['samples'])} excursion window(s) (t = "
+                        + ", ".join(f"{a:.0f}-{b:.0f}" for a, b in ex["windows_s"])
+                        + f" s, {ex['n_samples']} samples), {ex['handled']}")
         # the stretch's own self-check runs that no term follows, named under the table
         notes += [f"{axis}, quiet stretch: tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s: "
                   f"{o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "

@@ -10,13 +10,15 @@ import json
 import logging
 import math
 import re
+import _thread
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -54,6 +56,9 @@ class RunResult:
     recording: Path
     status: str
     message: str = ""
+    #: the analysis of a complete run (the checkpoint's ``analysis``): "" (no solvers, or the
+    #: run did not complete), ``done``, ``failed`` or ``interrupted``
+    analysis: str = ""
 
 
 @dataclass
@@ -71,6 +76,10 @@ class RunOptions:
     #: open each configured port and ask each device who it is before creating anything
     #: (rigctl.engine.device_check); a failure is a DeviceError and no run directory is made
     check_devices: bool = True
+    #: SIGINT / SIGTERM record of this run, for a caller that owns the process's signal handlers
+    #: and does not let the run install its own (``install_signals=False``: the daemon, which
+    #: calls ``signals.received`` from its handlers); None: the run's own
+    signals: RunSignals | None = None
 
 
 def make_run_dir(parent: Path, procedure_name: str) -> Path:
@@ -186,19 +195,57 @@ class AnalysisInterrupted(BaseException):
     takes it for a failure of its own."""
 
 
-@dataclass
-class _Signals:
-    """What SIGINT / SIGTERM did during a run: ``names`` of those received; while ``analysing``,
-    the handler stops the analysis (:class:`AnalysisInterrupted`)."""
+#: wall time after which a signal that should have stopped the analysis, while the analysis
+#: still runs, is delivered to the main thread again (RunSignals), s
+REDELIVER_S = 1.0
 
-    names: list[str]
+
+def _unraisable(info: Any) -> None:
+    """sys.unraisablehook: an :class:`AnalysisInterrupted` that Python dropped (raised by the
+    signal handler inside a finalizer or weakref callback) is delivered again by
+    :class:`RunSignals`, silently; anything else as Python's own hook prints it."""
+    if not isinstance(info.exc_value, AnalysisInterrupted):
+        sys.__unraisablehook__(info)
+
+
+@dataclass
+class RunSignals:
+    """What SIGINT / SIGTERM did during a run: ``names`` of those received; while ``analysing``,
+    the handler stops the analysis (:class:`AnalysisInterrupted`). :meth:`received` is called
+    from a signal handler, so in the main thread: the thread the run must run in for its
+    analysis to be interruptible.
+
+    Python prints and drops an exception that a signal handler raises while the main thread
+    runs a finalizer or a weakref callback ("Exception ignored in: <function
+    WeakValueDictionary.__init__.<locals>.remove ...>": seen in 1 of 6 SIGINTs to ``rigctl serve``
+    during allan, at load 18, whose analysis then ran to its end and the job said ``complete``).
+    So until the analysis has taken the interruption (``pending`` cleared by :func:`_analyse`),
+    a thread delivers the signal to the main thread again every :data:`REDELIVER_S`."""
+
+    names: list[str] = field(default_factory=list)
     analysing: bool = False
+    #: an interruption of the analysis is on its way (set by the handler, cleared by _analyse)
+    pending: bool = False
+    _again: bool = False  # the next call is a re-delivery
 
     def received(self, signum: int) -> None:  # minimal: called from a signal handler
         self.names.append(signal.Signals(signum).name)
-        if self.analysing:  # once: a second signal while the first is handled changes nothing
-            self.analysing = False
-            shield.interrupt(AnalysisInterrupted(self.names[0]))
+        if not self.analysing or (self.pending and not self._again):
+            return  # a second signal while the first is handled changes nothing
+        self._again = False
+        if not self.pending:
+            self.pending = True
+            sys.unraisablehook = _unraisable  # a dropped interruption: no traceback on the console
+            threading.Thread(target=self._redeliver, args=(signum,), name="rigctl-interrupt", daemon=True).start()
+        shield.interrupt(AnalysisInterrupted(self.names[0]))
+
+    def _redeliver(self, signum: int) -> None:
+        while True:
+            time.sleep(REDELIVER_S)
+            if not (self.analysing and self.pending):
+                return
+            self._again = True
+            _thread.interrupt_main(signum)  # the main thread runs the handler again
 
 
 @contextmanager
@@ -221,7 +268,7 @@ def resume_command(run_dir: Path) -> str:
 
 
 def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any,
-             signals: _Signals) -> tuple[int, str]:
+             signals: RunSignals) -> tuple[int, str]:
     """Run the checkpoint's solvers on the complete, closed ``recording``: (exit code, message).
 
     The checkpoint's ``analysis`` says ``running`` while they run, then ``done``, ``failed`` or
@@ -249,7 +296,7 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         signals.analysing = False
         save("done")
     except AnalysisInterrupted as exc:
-        signals.analysing = False
+        signals.analysing = signals.pending = False
         code = EXIT_INTERRUPTED
         message = (f"analysis interrupted by {exc}: the recording {recording} is complete and closed, "
                    f"no result is half-written ({resume_command(run_dir)} redoes the analysis)")
@@ -262,6 +309,11 @@ def _analyse(run_dir: Path, recording: Path, ckpt: ckpt_mod.Checkpoint, log: Any
         log("error", f"{message} (traceback in {run_dir / RUN_LOG}); the recording is complete: "
                      f"{resume_command(run_dir)} runs the analysis again", traceback=traceback.format_exc())
     return code, message
+
+
+def _analysis_outcome(ckpt: ckpt_mod.Checkpoint) -> str:
+    """The analysis' end as :attr:`RunResult.analysis` gives it: "" when none ran."""
+    return ckpt.analysis if ckpt.solvers and ckpt.status == "complete" else ""
 
 
 class _LogHandler(logging.Handler):
@@ -327,7 +379,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
     # engine exists, as soon as it does); a second signal while the run winds down changes
     # nothing: the table is put in its safe state and the recording closed either way. During
     # the analysis of a complete run it stops the analysis (_analyse).
-    signals = _Signals([])
+    signals = opts.signals if opts.signals is not None else RunSignals()
     signalled = signals.names
     engines: list[Engine] = []
 
@@ -345,7 +397,7 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
 
 def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, ckpt: ckpt_mod.Checkpoint,
                      make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-                     progress: Progress, resuming: bool, install_signals: bool, signals: _Signals,
+                     progress: Progress, resuming: bool, install_signals: bool, signals: RunSignals,
                      engines: list[Engine], status_box: list[str | None]) -> RunResult:
     signalled = signals.names
     recording = run_dir / RECORDING
@@ -379,7 +431,7 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
                 engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
                                 sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
                                 open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
-                                progress=progress)
+                                progress=progress, imu_rate_hz=cfg.imu_rate_hz)
 
                 def on_transition(old: str, new: str, reason: str) -> None:
                     log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
@@ -493,7 +545,7 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
         if rec is not None:
             log("info", f"recording: {recording}")
         log.close()
-    return RunResult(code, run_dir, recording, status, message)
+    return RunResult(code, run_dir, recording, status, message, analysis=_analysis_outcome(ckpt))
 
 
 def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
@@ -542,11 +594,11 @@ def _analyse_again(run_dir: Path, ckpt: ckpt_mod.Checkpoint, console: Any, insta
     log = _DiskSafeLog(RunLog(run_dir / RUN_LOG, progress.console))
     log("info", f"resuming {run_dir.name}: the run is complete, its analysis {ckpt.analysis}: "
                 "running the analysis again")
-    signals = _Signals([])
+    signals = opts.signals if opts.signals is not None else RunSignals()
     with _signal_handlers(install_signals, lambda signum, _frame: signals.received(signum)):
         code, message = _analyse(run_dir, recording, ckpt, log, signals)
         log.close()
-    return RunResult(code, run_dir, recording, "complete", message)
+    return RunResult(code, run_dir, recording, "complete", message, analysis=_analysis_outcome(ckpt))
 
 
 def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,

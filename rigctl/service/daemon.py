@@ -36,7 +36,7 @@ from ..run.stop_signals import stop_on_signals
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the runner pulls in the solvers (scipy, ~1 s): client verbs must not pay it
-    from ..run.runner import RunOptions
+    from ..run.runner import RunOptions, RunSignals
 from ..engine.states import StateMachine
 
 
@@ -52,6 +52,10 @@ class Job:
     submitted_utc: str = ""
     started_utc: str = ""
     ended_utc: str = ""
+    #: the analysis of the job's complete recording (its procedure's solve steps): "" (none ran),
+    #: done, failed (the job is failed) or interrupted (the job is interrupted; ``rigctl resume
+    #: RUN`` runs the analysis only)
+    analysis: str = ""
 
 
 class Daemon:
@@ -74,6 +78,7 @@ class Daemon:
         self.cv = threading.Condition()
         self.engine: Any = None  # the running job's rigctl.engine.engine.Engine
         self.current: Job | None = None
+        self.job_signals: RunSignals | None = None  # the running job's SIGINT / SIGTERM record
         self.progress: Progress = NullProgress()
         self.stopping: str | None = None
         self.queue_running = True   # False after queue_stop: the running job ends, no new one starts
@@ -161,7 +166,11 @@ class Daemon:
     def _cmd_status(self, _args: dict) -> dict:
         eng = self.engine
         state, reason = self.states.state, self.states.reason
-        if self.current is not None and state == "idle":  # between taking the job and the first step
+        sig = self.job_signals
+        if self.current is not None and state == "idle" and sig is not None and sig.analysing:
+            state, reason = "analysing", (f"job {self.current.id}: analysing its complete, closed recording "
+                                          "(the procedure's solve steps)")
+        elif self.current is not None and state == "idle":  # between taking the job and the first step
             state, reason = "starting", f"job {self.current.id}: opening the rig and checking its devices"
         out: dict[str, Any] = {"ok": True, "state": state, "reason": reason,
                                "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
@@ -343,10 +352,13 @@ class Daemon:
                 self._save_jobs()
 
     def _work(self) -> None:
+        """Run queued jobs one at a time until :attr:`stopping` is set (checked at least every
+        0.2 s: a signal handler sets it without notifying)."""
         while True:
             with self.cv:
-                self.cv.wait_for(lambda: self.stopping or (self.queue and self.queue_running
-                                                            and self.states.state == "idle"))
+                while not self.cv.wait_for(lambda: self.stopping or (self.queue and self.queue_running
+                                                                      and self.states.state == "idle"), 0.2):
+                    pass
                 if self.stopping:
                     return
                 job = self.job(self.queue.popleft())
@@ -355,11 +367,14 @@ class Daemon:
             self.log("info", f"job {job.id}: {job.kind} {job.procedure or job.run_dir}")
             # plain progress lines once a minute on the daemon's console; `status` reads it too
             self.progress = Progress(self.log.console, tty=False, interval_s=60.0)
-            from ..run.runner import RunOptions, resume_run, run_procedure
+            from ..run.runner import RunOptions, RunSignals, resume_run, run_procedure
+            self.job_signals = RunSignals()
             opts = RunOptions(suspenders=self.base_options.suspenders, states=self.states,
                               rig_opener=self.base_options.rig_opener, on_engine=self._set_engine,
                               max_pause_s=self.base_options.max_pause_s,
-                              sample_poll_s=self.base_options.sample_poll_s, progress=self.progress)
+                              sample_poll_s=self.base_options.sample_poll_s, progress=self.progress,
+                              signals=self.job_signals)
+            analysis = ""
             try:
                 if job.kind == "run":
                     proc = load_procedure(job.procedure, job.params or {}, self.cfg.limits)
@@ -368,7 +383,9 @@ class Daemon:
                 else:
                     res = resume_run(job.run_dir, self.runs_dir, console=self.log.console,
                                      install_signals=False, options=opts)
-                state, message, run_dir = res.status, res.message, str(res.run_dir)
+                state, message, run_dir, analysis = res.status, res.message, str(res.run_dir), res.analysis
+                if state == "complete" and analysis in ("failed", "interrupted"):  # the recording is
+                    state = analysis  # complete, the job is not: its results are missing
             except RigctlError as exc:
                 state, message, run_dir = "failed", str(exc), job.run_dir
             except Exception as exc:  # noqa: BLE001 - a bug; the daemon survives a broken job
@@ -378,15 +395,20 @@ class Daemon:
                     self.states.to("faulted", message)
             with self.cv:
                 job.state, job.message, job.run_dir, job.ended_utc = state, message, run_dir, utc_now()
-                self.current, self.engine = None, None
+                job.analysis = analysis
+                self.current, self.engine, self.job_signals = None, None, None
                 self._save_jobs()
                 self.cv.notify_all()
             self.log("info", f"job {job.id} {state}" + (f": {message}" if message else ""))
             self.notifier.notify(state, message, asdict(job))
 
-    def start(self) -> None:
+    def start(self, worker: bool = True) -> None:
+        """Serve the control socket (and notices); with ``worker`` run the jobs in a thread of
+        their own (in-process use: the jobs' analyses cannot be interrupted by a signal there;
+        ``rigctl serve`` runs them in the main thread instead, :meth:`serve`)."""
         self.server.start()
-        self.worker.start()
+        if worker:
+            self.worker.start()
         if self.cfg.notifications.enabled:
             self.notifier.start()
             threading.Thread(target=self._watch, name="rigctl-watch", daemon=True).start()
@@ -418,11 +440,43 @@ class Daemon:
                 self.engine.request_abort(reason)
             self.cv.notify_all()
         self.worker.join(timeout=30)
+        self._close(reason)
+
+    def _close(self, reason: str) -> None:
         if self.web is not None:
             self.web.close()
         self.server.close()
         self.notifier.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
+
+    def serve(self) -> None:
+        """``rigctl serve``: serve and run the queued jobs in this thread -- the main one, where
+        Python runs signal handlers -- until SIGINT or SIGTERM, then close.
+
+        A signal while a job runs its procedure aborts it (the table to its safe state, the
+        recording closed as ``interrupted``); while it analyses its complete recording it stops
+        the analysis (rigctl.run.runner: every result written whole or not at all, the
+        checkpoint's analysis ``interrupted``; the job ends ``interrupted`` with ``analysis``
+        ``interrupted``, and ``rigctl resume RUN`` runs the analysis only); between jobs the
+        daemon stops at once. No new job starts after it."""
+        def on_signal(signum: int, _frame: Any) -> None:  # minimal: a signal handler
+            if self.stopping is None:
+                self.stopping = f"daemon stopped by {signal.Signals(signum).name}"
+            eng = self.engine
+            if eng is not None and eng.abort_requested is None:
+                eng.request_abort(self.stopping)
+            sig = self.job_signals
+            if sig is not None:
+                sig.received(signum)  # during the job's analysis: stops it (raises in this thread)
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            self.start(worker=False)
+            self._work()
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+        self._close(self.stopping or "stopped")
 
 
 # -- CLI -------------------------------------------------------------------------------------------
@@ -441,21 +495,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         except OSError as exc:
             d.server.close()
             raise RunFailure(f"--http {args.http}: {exc.strerror or exc}") from None
-    stop = threading.Event()
-    reason: list[str] = []
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        reason.append(signal.Signals(signum).name)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
     # a hang-up (the terminal or SSH session closed) detaches the console; the daemon goes on
     signal.signal(signal.SIGHUP, lambda *_: detach_all("hang-up (SIGHUP)", notify=False))
-    d.start()
-    while not stop.wait(0.2):
-        pass
-    d.stop(f"daemon stopped by {reason[0]}")
+    d.serve()  # until SIGINT or SIGTERM
     return 0
 
 

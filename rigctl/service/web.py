@@ -323,11 +323,12 @@ class WebApi:
             ck = d / "checkpoint.json"
             if not ck.exists() and not (d / "recording.h5").exists():
                 continue
-            info: dict[str, Any] = {"id": d.name, "status": None, "procedure": None, "updated_utc": None}
+            info: dict[str, Any] = {"id": d.name, "status": None, "procedure": None, "updated_utc": None,
+                                    "analysis": None}
             try:
                 c = json.loads(ck.read_text())
                 info.update(status=c.get("status"), procedure=Path(str(c.get("procedure_path", ""))).name,
-                            updated_utc=c.get("updated_utc"))
+                            updated_utc=c.get("updated_utc"), analysis=c.get("analysis") or None)
             except (OSError, ValueError):
                 pass
             j = jobs.get(d.name)
@@ -377,7 +378,7 @@ class WebApi:
         with self.d.cv:
             busy = self.d.current is not None and Path(self.d.current.run_dir or "/").name == d.name
         if busy and not (d / "report.html").exists():
-            return _error(409, "the run is still recording; its report is made when it ends")
+            return _error(409, "the run is still recording or analysing; its report is made when it ends")
         try:
             path = await run_in_threadpool(self._build_report, d)
         except RigctlError as exc:  # a recording the report cannot read: its one line

@@ -1028,9 +1028,13 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
         coeff_sq["GM"] = gm_coef.sigma.value ** 2 if gm_coef.sigma.resolved else 0.0
         gm_s2_front = gm_column(tau_front, tc_fit) * coeff_sq["GM"]
     if tau0 is not None and n_phase is not None:  # with the GM term's parameters when it is in
-        _add_crb(out_terms, coefs, float(tau0), int(n_phase),
-                 gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
-                     if gm_coefs and gm_coefs[0].sigma.resolved else None))
+        gm_crb = _add_crb(out_terms, coefs, float(tau0), int(n_phase),
+                          gm=((gm_coefs[0].sigma.value, gm_coefs[0].tau_c_s)
+                              if gm_coefs and gm_coefs[0].sigma.resolved else None),
+                          gm_bound=((gm_coefs[0].sigma.upper95, gm_coefs[0].tau_c_s)
+                                    if gm_coefs and not gm_coefs[0].sigma.resolved else None))
+        if gm_term is not None and gm_crb:  # the term's own figures
+            gm_term["crb"] = gm_crb
     check = self_check(tau_front, np.sqrt(s2_front), e_front,
                        {t: v for t, v in coeff_sq.items() if t in TERMS}, m_eff,
                        extra_avar=gm_s2_front)
@@ -1127,44 +1131,54 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
     candidate's range ``gm["tc_grid_s"]``, first with the statistical covariance alone, then,
     where that leaves the model's own error (the fit's _model_error at the best Tc), with it;
     refined with GM_FINE_POINTS between the grid points two steps either side of the best.
-    Returns (Tc, the profile {"tc_s", "chi2", "dof", "model_error_rel"}, the model error at
-    Tc, the statistical goodness of fit at Tc (chi2, dof, p))."""
+    Tc is the least -2 ln L = chi-square + ln det C over the Tc tried (``at``). Returns (Tc,
+    the profile {"tc_s", "chi2", "neg2lnl", "dof", "model_error_rel"}, the model error at Tc,
+    the statistical goodness of fit at Tc (chi2, dof, p))."""
     lo, hi = (float(v) for v in gm["tc_grid_s"])
     n = max(2, int(math.ceil(math.log2(hi / lo) * GM_GRID_PER_OCTAVE)) + 1)
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), n))
     w = e / (2.0 * s2 ** 2)
 
-    def at(tc: float, eps: float) -> float:
+    def at(tc: float, eps: float) -> tuple[float, float]:
+        """(chi-square, chi-square + ln det C) of the fit at ``tc``: C, the covariance of the
+        estimates, depends on Tc (the Gauss-Markov kernel) and on the fitted terms, so Tc is
+        chosen by the Gaussian likelihood's -2 ln L, not by the chi-square alone, which
+        favours the Tc whose C is larger. On 100 simulated captures of the MTi-G's fitted
+        model (1.39 h, benchmarks/allan_gm_crb.py) Tc's scatter (sd of estimate/truth) went
+        0.181 +- 0.013, mean +6 %, -> 0.145 +- 0.010, mean -3 %: the Cramer-Rao bound's 0.141."""
         a = np.column_stack((full_a[:, active], gm_column(tau, tc)))
         cols = active + [GM_IDX]
         up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, eps))
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
-        _, _, rw = _gls(a, s2, e, cols, cov_at(tc), p0, iterations, eps, up)
-        return float(rw @ rw)
+        cov = cov_at(tc)
+        p, _, rw = _gls(a, s2, e, cols, cov, p0, iterations, eps, up)
+        lw = _whiten(_model_cov(cov, p, cols, a, e, eps, None))
+        chi = float(rw @ rw)
+        return chi, chi + 2.0 * float(np.sum(np.log(np.abs(np.diag(lw)))))
 
     def err_at(tc: float) -> tuple[float, tuple]:
         a = np.column_stack((full_a[:, active], gm_column(tau, tc)))
         up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, 0.0))
         return _model_error(a, s2, e, active + [GM_IDX], cov_at(tc), iterations, up)
 
-    c = np.array([at(tc, 0.0) for tc in grid])
-    eps, stat = err_at(float(grid[int(np.argmin(c))]))
+    c = np.array([at(tc, 0.0) for tc in grid])  # columns: chi-square, -2 ln L
+    eps, stat = err_at(float(grid[int(np.argmin(c[:, 1]))]))
     if eps > 0:  # the profile with the model's own error (its weights decide the fit)
         c = np.array([at(tc, eps) for tc in grid])
-    i = int(np.argmin(c))
+    i = int(np.argmin(c[:, 1]))
     fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]),
                               math.log(grid[min(i + 2, grid.size - 1)]), GM_FINE_POINTS))
     fine = fine[~np.any(np.isclose(fine[:, None], grid[None, :], rtol=1e-9), axis=1)]
     tcs = np.concatenate((grid, fine))
-    c = np.concatenate((c, [at(tc, eps) for tc in fine]))
+    c = np.concatenate((c, np.array([at(tc, eps) for tc in fine]).reshape(-1, 2)))
     o = np.argsort(tcs)
     tcs, c = tcs[o], c[o]
-    tc = float(tcs[int(np.argmin(c))])
+    tc = float(tcs[int(np.argmin(c[:, 1]))])
     if eps > 0:  # the model error at the refined Tc (the one the fit then uses)
         eps, stat = err_at(tc)
     dof = max(1, tau.size - len(active) - 1)
-    return tc, {"tc_s": tcs, "chi2": c, "dof": dof, "model_error_rel": eps,
-                "kernel": cov_at(tc) is not None}, eps, stat
+    return tc, {"tc_s": tcs, "chi2": c[:, 0], "neg2lnl": c[:, 1], "dof": dof,
+                "model_error_rel": eps, "kernel": cov_at(tc) is not None}, eps, stat
 
 
 def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
@@ -1174,13 +1188,24 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
                iterations: int, model_err: float, inflate: np.ndarray | None,
                tau_front: np.ndarray, s2_front: np.ndarray, e_front: np.ndarray,
                point_limit: float) -> tuple[dict, "NC.GaussMarkov"]:
-    """The fitted Gauss-Markov term: Tc's 95 % interval from the profile (the Tc whose
-    chi-square is within chi2_0.95(1) of the least, scaled by the overdispersion, bracketed by
-    the next evaluated Tc either side), sigma_GM's 95 % interval the union over that set of
-    each Tc's Satterthwaite interval (the final terms refitted at that Tc, as the selection
-    fits them), the curve's limit and whether the fit was held at it."""
-    tcs, c = prof["tc_s"], prof["chi2"]
-    over = max(1.0, float(c.min()) / prof["dof"])
+    """The fitted Gauss-Markov term: Tc's 95 % interval from the profile (the Tc whose -2 ln L
+    is within chi2_0.95(1) of the least, scaled by the overdispersion -- the chi-square at the
+    best Tc over its dof, at least 1 -- bracketed by the next evaluated Tc either side); sigma_GM's intervals Satterthwaite's with the marginal
+    sd of p = sigma_GM^2 (Tc estimated too, not known)::
+
+        sd(p)^2 = sd(p | Tc)^2 + (dp/d ln Tc)^2 sd(ln Tc)^2
+
+    sd(p | Tc) the GLS sd at the fitted Tc, dp/d ln Tc the slope of p refitted at each Tc of
+    that set (the final terms, as the selection fits them; least squares over the set), sd(ln
+    Tc) = ln(hi / lo) / (2 x 1.96) from Tc's interval (the linear-Gaussian marginal: p's
+    estimate given Tc moves along that slope). It was the union of each Tc's conditional
+    interval, which adds the two parts linearly instead of in quadrature: on simulated
+    captures of the MTi-G's fitted model (benchmarks/allan_gm_crb.py) 1.40x wider than the
+    scatter of sigma_GM, which is the Cramer-Rao bound's. Also the curve's limit and whether
+    the fit was held at it."""
+    tcs, c = prof["tc_s"], prof.get("neg2lnl", prof["chi2"])
+    best = int(np.argmin(c))
+    over = max(1.0, float(prof["chi2"][best]) / prof["dof"])
     inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
     inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
     ig = active.index(GM_IDX)
@@ -1190,9 +1215,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             return None
         return _chi2_ci(pj, 2.0 * pj * pj / (sdj * sdj), conf)
 
-    ci95 = interval(p_gm, sd_gm, 0.95)
-    ci68 = interval(p_gm, sd_gm, 0.683)
-    ends = [ci95] if ci95 else []
+    along = [(math.log(tc), p_gm)]  # (ln Tc, p refitted there) over Tc's interval
     for k in inside:
         if math.isclose(float(tcs[k]), tc, rel_tol=1e-12):
             continue
@@ -1203,20 +1226,21 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         up = upper_all[active]
         p0 = _nnls_cols(a * np.sqrt(w)[:, None], s2 * np.sqrt(w), up)
         try:
-            p, aw, rw = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
+            p, _, _ = _gls(a, s2, e, active, cov_at(float(tcs[k])), p0, iterations,
                              model_err, up, inflate)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        pos = p > 0
-        if not pos[ig]:
-            continue
-        red = float(rw @ rw) / max(1, tau.size - int(np.count_nonzero(pos)))
-        cov = _param_cov(aw[:, pos]) * max(1.0, red)
-        sdk = math.sqrt(max(cov[int(np.count_nonzero(pos[:ig])), int(np.count_nonzero(pos[:ig]))],
-                            0.0))
-        ck = interval(float(p[ig]), sdk, 0.95)
-        if ck:
-            ends.append(ck)
+        if p[ig] > 0:
+            along.append((math.log(float(tcs[k])), float(p[ig])))
+    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
+    sd_marg = sd_gm
+    x = np.array([a for a, _ in along])
+    if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
+        slope = float(np.polyfit(x, np.array([b for _, b in along]), 1)[0])
+        sd_ln_tc = math.log(tc_ci[1] / tc_ci[0]) / (2.0 * 1.959964)
+        sd_marg = math.sqrt(sd_gm * sd_gm + (slope * sd_ln_tc) ** 2)
+    ci95 = interval(p_gm, sd_marg, 0.95)
+    ci68 = interval(p_gm, sd_marg, 0.683)
     g_front = np.maximum(gm_column(tau_front, tc), 1e-300)
     inf_front = (np.sqrt(e_front / chi2.ppf(0.025, e_front))
                  <= INFORMATIVE_RATIO * np.sqrt(e_front / chi2.ppf(0.975, e_front)))
@@ -1224,14 +1248,12 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
     lim = math.sqrt(float(np.min(s2_front[sel] / g_front[sel])))
     held = bool(math.isfinite(point_limit) and p_gm >= point_limit * (1.0 - 1e-6) and p_gm > 0)
     if ci95:
-        sig = NC.Coefficient(math.sqrt(p_gm), ci68,
-                             (min(x[0] for x in ends), max(x[1] for x in ends)),
-                             edf=2.0 * p_gm * p_gm / (sd_gm * sd_gm))
+        sig = NC.Coefficient(math.sqrt(p_gm), ci68, ci95,
+                             edf=2.0 * p_gm * p_gm / (sd_marg * sd_marg))
     else:  # the joint fit put no Gauss-Markov term where the candidate saw one: a bound
         ub = min(math.sqrt(max(p_gm, 0.0) + _Z95_ONE * max(sd_gm, 0.0)), lim)
         sig = NC.Coefficient(min(math.sqrt(max(p_gm, 0.0)), ub), upper95=ub,
                              bound_from="curve" if ub >= lim else "fit")
-    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
     coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
     term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
             "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),
@@ -1736,7 +1758,8 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
 
 
 def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
-             gm: tuple[float, float] | None = None) -> None:
+             gm: tuple[float, float] | None = None,
+             gm_bound: tuple[float, float] | None = None) -> dict[str, dict]:
     """Add ``crb_rel_sd`` to each Q/N/B/K entry: the best relative standard deviation any
     estimator could reach for that coefficient from this capture (Cramer-Rao, Whittle; see
     :mod:`rigctl.solvers.allan_crb`), at the fitted model (the supported terms, and the
@@ -1750,9 +1773,17 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
     bounded term at its upper bound, so a lower limit: a smaller term needs longer). For a
     bounded term that lower limit can come out at or below this capture's own length
     (``capture_h``): the term is then smaller than its bound, and the honest statement is
-    only "longer than this capture" (see :func:`rigctl.display_units.need_text`)."""
+    only "longer than this capture" (see :func:`rigctl.display_units.need_text`).
+
+    Returns the Gauss-Markov term's own figures, {"sigma": entry, "tc": entry} with entries
+    like the terms' (``crb_rel_sd``: sd(sigma_GM)/sigma_GM and sd(Tc)/Tc; ``capture_h``; and
+    ``capture_h_for_25pct`` where the bound is wider than the target), at the fitted model with
+    ``gm``; for a bounded sigma_GM (``gm_bound`` = (its 95 % upper bound, Tc)) with the term at
+    its bound, so lower limits as for a bounded IEEE term (``bounded``: True). {} without a
+    Gauss-Markov term."""
+    gm_out: dict[str, dict] = {}
     if n_phase < 3:
-        return
+        return gm_out
     base, bounded = {}, {}
     for t in R.TERMS4:
         c = coefs.get(t)
@@ -1762,23 +1793,34 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
             base[t] = c.value
         elif c.upper95 > 0 and math.isfinite(c.upper95):
             bounded[t] = c.upper95
-    models = [(base, tuple(base))] + [({**base, t: v}, (t,)) for t, v in bounded.items()]
     length = (n_phase - 1) * tau0
-    for coeffs, report in models:
+    # (coefficients, the IEEE terms read off it, the GM model, the GM entries read off it)
+    models = [(base, tuple(base), gm, gm is not None)]
+    models += [({**base, t: v}, (t,), gm, False) for t, v in bounded.items()]
+    if gm_bound is not None and base:
+        models.append((base, (), gm_bound, True))
+    gm_keys = {"sigma": "GM_sigma", "tc": "GM_tc"}
+    for coeffs, report, g, with_gm in models:
         try:
-            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=gm)
+            best = R.crb_rel_sd(coeffs, length, 1.0 / tau0, gm=g)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        for t in report:
-            out_terms[t]["crb_rel_sd"] = best[t]
-            out_terms[t]["capture_h"] = length / 3600.0
-            if t != "Q" and best[t] > TARGET_REL_SD:  # how long a capture would resolve it
+        entries = [(out_terms[t], t) for t in report]
+        if with_gm and gm_keys["tc"] in best:
+            for k, key in gm_keys.items():
+                gm_out[k] = {"bounded": g is gm_bound}
+                entries.append((gm_out[k], key))
+        for entry, key in entries:
+            entry["crb_rel_sd"] = best[key]
+            entry["capture_h"] = length / 3600.0
+            if key != "Q" and best[key] > TARGET_REL_SD:  # how long a capture would resolve it
                 try:
-                    need = R.duration_for(coeffs, t, TARGET_REL_SD, 1.0 / tau0,
-                                          t_min_s=min(600.0, 0.5 * length), gm=gm)
+                    need = R.duration_for(coeffs, key, TARGET_REL_SD, 1.0 / tau0,
+                                          t_min_s=min(600.0, 0.5 * length), gm=g)
                 except (ValueError, np.linalg.LinAlgError):
                     continue
-                out_terms[t]["capture_h_for_25pct"] = need / 3600.0
+                entry["capture_h_for_25pct"] = need / 3600.0
+    return gm_out
 
 
 def term_value_si(fit: dict, term: str) -> float:

@@ -43,9 +43,47 @@ def available() -> bool:
     return HAVE_NUMBA
 
 
-if HAVE_NUMBA:
+def _probe() -> None:  # pragma: no cover - never compiled: decorated to find a cache place
+    pass
 
-    @njit(fastmath=True, cache=True, nogil=True)
+
+def _cache_place() -> bool:
+    """Whether numba can keep this module's compiled kernels on disk (``cache=True``: the
+    first run on a machine compiles them, ~14 s of CPU, later runs load them). numba keeps
+    them beside the source (``__pycache__``) where that is writable, else in the user's cache
+    directory (~/.cache/numba); where neither is (a read-only install run by a user without
+    a writable home: a service account, a read-only container), decorating a function with
+    ``cache=True`` raises RuntimeError ("no locator available") and the import failed. Then
+    this user's own directory under the system's temporary directory is used
+    (``rigctl-numba-<uid>``, made 0700 and used only if it is this user's and no one else
+    can write it: numba's index files are pickles), and failing that, no cache (compiled
+    in every process)."""
+    try:
+        njit(cache=True)(_probe)  # finds numba's cache place, or raises; compiles nothing
+        return True
+    except RuntimeError:
+        pass
+    import os
+    import stat
+    import tempfile
+
+    try:
+        path = os.path.join(tempfile.gettempdir(), f"rigctl-numba-{os.getuid()}")
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        st = os.lstat(path)
+        if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o022:
+            return False
+        numba.config.CACHE_DIR = path  # (numba's NUMBA_CACHE_DIR, set for this process)
+        njit(cache=True)(_probe)
+        return True
+    except (OSError, RuntimeError, AttributeError):
+        return False
+
+
+if HAVE_NUMBA:
+    _CACHE = _cache_place()
+
+    @njit(fastmath=True, cache=_CACHE, nogil=True)
     def _d2_block(p, q, r, n):  # pragma: no cover - compiled
         s = 0.0
         for j in range(n):
@@ -53,7 +91,7 @@ if HAVE_NUMBA:
             s += d * d
         return s
 
-    @njit(fastmath=True, cache=True, nogil=True)
+    @njit(fastmath=True, cache=_CACHE, nogil=True)
     def _d3_block(p, q, r, t, n):  # pragma: no cover - compiled
         s = 0.0
         for j in range(n):
@@ -61,7 +99,7 @@ if HAVE_NUMBA:
             s += d * d
         return s
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _part_sums(x, ms, order, lo, hi, block, tot, comp):  # pragma: no cover - compiled
         """Sums of the blocks [lo, hi) of i for every factor (ms ascending); order 2 = Allan
         second differences, 3 = Hadamard third differences. Neumaier-compensated."""
@@ -86,7 +124,7 @@ if HAVE_NUMBA:
                     comp[k] += (v - t) + tot[k]
                 tot[k] = t
 
-    @njit(fastmath=True, cache=True, nogil=True)
+    @njit(fastmath=True, cache=_CACHE, nogil=True)
     def _d2_block2(r, p0, q0, p1, q1, n):  # pragma: no cover - compiled
         s0 = 0.0
         s1 = 0.0
@@ -98,7 +136,7 @@ if HAVE_NUMBA:
             s1 += d1 * d1
         return s0, s1
 
-    @njit(fastmath=True, cache=True, nogil=True)
+    @njit(fastmath=True, cache=_CACHE, nogil=True)
     def _d2_block4(r, p0, q0, p1, q1, p2, q2, p3, q3, n):  # pragma: no cover - compiled
         """Four lags' sums over the same terms i: x[i] is loaded once for the four, and the
         four reductions are independent chains (0.126 ns per term against 0.176 one lag at a
@@ -119,7 +157,7 @@ if HAVE_NUMBA:
             s3 += d3 * d3
         return s0, s1, s2, s3
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _add_comp(out, k, v):  # pragma: no cover - compiled
         t = out[k, 0] + v
         if abs(out[k, 0]) >= abs(v):
@@ -128,7 +166,7 @@ if HAVE_NUMBA:
             out[k, 1] += (v - t) + out[k, 0]
         out[k, 0] = t
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _range_sums(x, ks, los, his, block, out):  # pragma: no cover - compiled
         """out[k] += sum_{i=los[k]}^{his[k]-1} (x[i+2ks[k]] - 2x[i+ks[k]] + x[i])^2, blocks of
         i outside (x[a:a+block] read once for all lags), compensated; out is (K, 2). Within a
@@ -185,7 +223,7 @@ if HAVE_NUMBA:
                                                         x[e0 + m: e1 + m], x[e0:e1], e1 - e0))
                 g += w
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _casc_pass(lv, arr, tl, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts,
                    block):  # pragma: no cover - compiled
         """Level lv of a cascade, its points arr (arr[0] is its point b0[lv], arr[tl:] not
@@ -213,7 +251,7 @@ if HAVE_NUMBA:
                 bufs[lv + 1, dst: dst + src.size] = src
                 pend[lv + 1] += src.size
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _casc_level(lv, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts, keep,
                     block):  # pragma: no cover - compiled
         """A deeper level (lv >= 1, points in bufs[lv]): its pass, then only the last keep[lv]
@@ -231,7 +269,7 @@ if HAVE_NUMBA:
         tlen[lv] = size - cut
         pend[lv] = 0
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _casc_chunk(x0, k0, n, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts,
                     keep, sub, batch, block, n_before, tap, tap_step):  # pragma: no cover
         """Level 0's new points are x0[k0:k0 + n], its kept points the tlen[0] before them:
@@ -268,7 +306,7 @@ if HAVE_NUMBA:
         tlen[0] = kept
         return tpos
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _casc_flush(strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts, keep,
                     block):  # pragma: no cover - compiled
         for lv in range(1, strides.size):
@@ -276,7 +314,7 @@ if HAVE_NUMBA:
                 _casc_level(lv, strides, ks, nks, bufs, tlen, pend, b0, nstart, sums, counts,
                             keep, block)
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _jumps(c, lanes, starts, rows, out_i, out_d):  # pragma: no cover - compiled
         """Indices i >= 1 (and the step) where c[i] - c[i-1] > 1 (int64): a counter's gaps.
         The values are pieces of the 2-D ``c``: piece p is c[lanes[p], starts[p]: starts[p] +
@@ -304,14 +342,14 @@ if HAVE_NUMBA:
             i += m
         return k
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _phase_chunk(y, c, tau0, x0, x):  # pragma: no cover - compiled
         acc = 0.0
         for i in range(y.size):
             acc += y[i] - c
             x[i] = acc * tau0 + x0
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _gather(tail, x, start, s, out):  # pragma: no cover - compiled
         nt = tail.size
         for i in range(nt):
@@ -321,7 +359,7 @@ if HAVE_NUMBA:
             out[j] = x[i]
             j += 1
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _far_from_range(y, w, thr, out):  # pragma: no cover - compiled
         """Indices i (into out; returns their count) where y[i] - min > thr or max - y[i] > thr
         over the window y[i - w//2 .. i + (w-1)//2], indices clipped to the ends: running
@@ -366,7 +404,7 @@ if HAVE_NUMBA:
                     c += 1
         return c
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _block_extremes(y, bs, bmin, bmax):  # pragma: no cover - compiled
         n = y.size
         for b in range((n + bs - 1) // bs):
@@ -379,7 +417,7 @@ if HAVE_NUMBA:
             bmin[b] = a
             bmax[b] = z
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _quiet_block(bmin, bmax, b, nb, thr):  # pragma: no cover - compiled
         """Blocks b - 1, b, b + 1 span at most thr: no sample of block b can be flagged."""
         mn = bmin[b]
@@ -392,7 +430,7 @@ if HAVE_NUMBA:
             mx = max(mx, bmax[b + 1])
         return mx - mn <= thr
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _any_loud_block(bmin, bmax, thr):  # pragma: no cover - compiled
         nb = bmin.size
         for b in range(nb):
@@ -400,7 +438,7 @@ if HAVE_NUMBA:
                 return True
         return False
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _far_from_range_pre(y, w, thr, bs, bmin, bmax, out):  # pragma: no cover - compiled
         """The second step of :func:`_far_from_range_blocks`, given the blocks' extremes."""
         n = y.size
@@ -423,7 +461,7 @@ if HAVE_NUMBA:
                     c += 1
         return c
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _far_from_range_blocks(y, w, thr, bs, out):  # pragma: no cover - compiled
         """As :func:`_far_from_range` (same indices), with a prefilter: the extremes of blocks
         of ``bs`` >= w samples (one SIMD-friendly pass); the window of every sample of block b
@@ -437,7 +475,7 @@ if HAVE_NUMBA:
         _block_extremes(y, bs, bmin, bmax)
         return _far_from_range_pre(y, w, thr, bs, bmin, bmax, out)
 
-    @njit(cache=True, nogil=True)  # no fastmath: the same roundings as _phase_chunk
+    @njit(cache=_CACHE, nogil=True)  # no fastmath: the same roundings as _phase_chunk
     def _phase_cols3(base, lanes, starts, rows, offs, tau0, x0, o0, o1, o2, bs, bmin,
                      bmax):  # pragma: no cover - compiled
         """For each column c of the rows (n x 3): o_c[i] = x0[c] + tau0 * sum_{j<=i} (row j's
@@ -510,7 +548,7 @@ if HAVE_NUMBA:
             x0[1] = o1[n - 1]
             x0[2] = o2[n - 1]
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _running_median(y, w, out):  # pragma: no cover - compiled
         """out[i] = the median of y[i - w//2 .. i + w//2] (odd w; indices clipped to the
         ends: scipy.ndimage's mode "nearest"), from a sorted copy of the window: each step
@@ -550,7 +588,7 @@ if HAVE_NUMBA:
             out[i] = buf[h]
         return True
 
-    @njit(cache=True, nogil=True)
+    @njit(cache=_CACHE, nogil=True)
     def _lag1_alpha(x, m, dmax):  # pragma: no cover - compiled
         """Riley & Greenhall's lag-1 noise identification on x[::m]: the same steps as
         allan_noise_id.noise_id_lag1 (mean removed, r1, delta = r1 / (1 + r1), differenced
@@ -696,12 +734,12 @@ if HAVE_NUMBA:
                 return 2 - int(np.rint(2.0 * delta)) - 2 * d
             d += 1
 
-    @njit(parallel=True, cache=True)
+    @njit(parallel=True, cache=_CACHE)
     def _par_sums(x, ms, order, bounds, block, tot, comp):  # pragma: no cover - compiled
         for p in prange(bounds.size - 1):
             _part_sums(x, ms, order, bounds[p], bounds[p + 1], block, tot[p], comp[p])
 
-    @njit(cache=True, nogil=True)  # no fastmath: (y - c) must be rounded before the sum
+    @njit(cache=_CACHE, nogil=True)  # no fastmath: (y - c) must be rounded before the sum
     def _phase(y, c, tau0, x):  # pragma: no cover - compiled
         acc = 0.0
         x[0] = 0.0

@@ -89,7 +89,9 @@ def channel_covs(models: Sequence[NoiseCoefficients], a: ArrayLike, b: ArrayLike
 
 
 def _full_rank(X: NDArray[np.float64], rtol: float = 1e-9) -> NDArray[np.float64]:
-    """Columns of X spanning its column space (pivoted QR on unit-norm columns)."""
+    """Columns of X spanning its column space (pivoted QR on unit-norm columns). X may have more
+    columns than rows (a session with fewer segments than the protected design has columns): R
+    then has min(rows, columns) diagonal entries, one for each of the first pivots."""
     nrm = np.linalg.norm(X, axis=0)
     X = X[:, nrm > 0]
     if X.shape[1] == 0:
@@ -97,7 +99,7 @@ def _full_rank(X: NDArray[np.float64], rtol: float = 1e-9) -> NDArray[np.float64
     Xs = X / np.linalg.norm(X, axis=0)
     _, r, piv = scipy.linalg.qr(Xs, mode="economic", pivoting=True)
     d = np.abs(np.diag(r))
-    return X[:, np.sort(piv[d > rtol * d[0]])]
+    return X[:, np.sort(piv[:d.size][d > rtol * d[0]])]
 
 
 def within_basis(n_batches: int, revolutions: float | None, trend: bool = False) -> NDArray[np.float64]:

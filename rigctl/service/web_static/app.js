@@ -228,7 +228,9 @@ async function refreshHistory() {
     body.textContent = "";
     for (const run of r.runs.slice(0, 30)) {
       const tr = document.createElement("tr");
-      cell(tr, run.id); cell(tr, run.procedure || ""); cell(tr, run.status || "");
+      // a complete recording whose analysis did not end: say so ("complete, analysis interrupted")
+      const analysis = run.analysis && run.analysis !== "done" ? ", analysis " + run.analysis : "";
+      cell(tr, run.id); cell(tr, run.procedure || ""); cell(tr, (run.status || "") + analysis);
       const td = cell(tr, "");
       if (run.status && run.status !== "running") td.appendChild(button("open report", () => openReport(run.id)));
       body.appendChild(tr);

@@ -1,0 +1,132 @@
+"""Short excursions of a static capture, found before the fit and reported in the field's
+units (docs/allan.md, "Short excursions before the fit").
+
+The test is :func:`rigctl.solvers.allan_excursions.find_excursions` on each axis' block means
+(the streamed record's decimated phase, :func:`rigctl.analysis.allan_drift.block_means`);
+this module puts its result in the axis' ``excursions`` (times in s from the start of the
+range analysed, rows of the range in ``samples``, sizes in the deviation's field unit: mg,
+deg/h), groups the axes' excursions that overlap in time into the record's ``excursions``
+(the axes that move together), marks those inside an axis' quiet stretch, and words them.
+
+Like the spikes, excursions are reported and never folded silently into the noise: by
+default the fits see them (they are part of the record), and the text says so, axis by axis;
+with ``--excursions exclude`` those inside an axis' quiet stretch are left out of its fit,
+their windows gaps handled as the record's own gaps are
+(:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..solvers import allan_excursions as EX
+from .allan_drift import LEVEL_UNITS
+
+
+def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) -> dict[str, Any]:
+    """The detector's result for one axis, with each excursion's size in the field unit
+    (``size_<unit>``) and its rows of the range analysed (``samples``: [first, end))."""
+    r = EX.find_excursions(ybar, block_s, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
+    unit, fac = LEVEL_UNITS[sensor]
+    r["unit"] = unit
+    for e in r.get("excursions", []):
+        e[f"size_{unit}"] = e["size_si"] * fac
+        e["samples"] = [int(round(e["start_s"] / tau0)), int(round(e["end_s"] / tau0))]
+    if r.get("tested"):
+        r[f"robust_adev_{unit}"] = [v * fac for v in r["robust_adev_si"]]
+    return r
+
+
+def group(axes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The axes' excursions merged where their windows overlap (a level shift counts as its
+    instant): [{"start_s", "end_s", "axes": [...], "members": [{"axis", "start_s", "end_s",
+    "kind", "size", "unit"}, ...]}], in time order -- the axes listed moved together (an axis
+    may have more than one member when others' excursions join them)."""
+    items = []
+    for a, r in axes.items():
+        ex = (r.get("excursions") or {}).get("excursions") or []
+        unit = (r.get("excursions") or {}).get("unit", "")
+        for e in ex:
+            items.append((e["start_s"], e["end_s"], a, e, unit))
+    items.sort(key=lambda t: (t[0], t[1]))
+    out: list[dict[str, Any]] = []
+    for s, t, a, e, unit in items:
+        if out and s <= out[-1]["end_s"] and t >= out[-1]["start_s"]:
+            g = out[-1]
+            g["end_s"] = max(g["end_s"], t)
+            g["start_s"] = min(g["start_s"], s)
+        else:
+            g = {"start_s": s, "end_s": t, "axes": [], "members": []}
+            out.append(g)
+        if a not in g["axes"]:
+            g["axes"].append(a)
+        g["members"].append({"axis": a, "start_s": e["start_s"], "end_s": e["end_s"],
+                             "kind": e["kind"], "size": e[f"size_{unit}"], "unit": unit})
+    for g in out:  # each axis' excursions: the axes that moved with it
+        for a in g["axes"]:
+            for e in (axes[a].get("excursions") or {}).get("excursions") or []:
+                if g["start_s"] <= e["start_s"] <= g["end_s"]:
+                    e["moving_with"] = [b for b in g["axes"] if b != a]
+    return out
+
+
+def mark_quiet(r: dict[str, Any], tau0: float) -> None:
+    """In the axis' ``quiet_stretch`` (when there is one), the axis' excursions that lie in
+    it (``excursions_inside``): times from the range's start."""
+    q = r.get("quiet_stretch")
+    ex = (r.get("excursions") or {}).get("excursions") or []
+    if not q or not ex:
+        return
+    a, b = q["t_s"]
+    q["excursions_inside"] = [e for e in ex if e["end_s"] > a and e["start_s"] < b]
+
+
+def describe(e: dict[str, Any], unit: str) -> str:
+    """One excursion in words: 't = 2150-2478 s (328 s), +1.26 mg'."""
+    size = f"{e[f'size_{unit}']:+.3g} {unit}"
+    if e["kind"] == "level shift":
+        return f"a level shift at t = {e['start_s']:.0f} s ({size}, the step found)"
+    what = {"to the start": ", from the start of the range",
+            "to the end": ", to the end of the range"}.get(e["kind"], "")
+    return f"t = {e['start_s']:.0f}-{e['end_s']:.0f} s ({e['duration_s']:.0f} s{what}), {size}"
+
+
+def sentences(r: dict[str, Any]) -> list[str]:
+    """The axis' excursions as warnings (what, where, how large, with which axes it moved;
+    that the fit sees them); [] when none was found or the test did not run."""
+    x = r.get("excursions") or {}
+    ex = x.get("excursions") or []
+    if not ex:
+        return []
+    unit = x["unit"]
+    parts = []
+    for e in ex:
+        text = describe(e, unit)
+        if e.get("moving_with"):
+            text += f", moving with {', '.join(e['moving_with'])}"
+        parts.append(text)
+    head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
+            f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
+            f"record's own robust Allan deviation there; family-wise false-alarm probability "
+            f"{x['alpha']:g} per axis): ")
+    return [head + "; ".join(parts) + ". Not the sensor's stationary noise: they are in the "
+            "whole record's samples and fit; inside a quiet stretch they are left out of its fit "
+            "only with --excursions exclude"]
+
+
+def quiet_sentence(q: dict[str, Any], unit: str) -> list[str]:
+    """The excursions inside the quiet stretch, named, and whether they were left out of its
+    fit ([] if none)."""
+    inside = q.get("excursions_inside") or []
+    if not inside:
+        return []
+    head = (f"the quiet stretch holds {len(inside)} of the excursions found: "
+            + "; ".join(describe(e, unit) for e in inside)
+            + " (the stationarity test's windows are too long to see them)")
+    ex = q.get("excursions_excluded")
+    if ex:
+        return [f"{head}; left out of its fit (--excursions exclude, {ex['n_samples']} samples "
+                f"in {len(ex['samples'])} window(s)): {ex['handled']}"]
+    return [f"{head}; they are in its fit: to leave them out, --excursions exclude"]
+
