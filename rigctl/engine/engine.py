@@ -50,6 +50,17 @@ TIME_EPS = 1e-6
 #: samples are really missing.
 WINDOW_WAIT_WALL_S = 1.5
 
+#: A sampling window whose samples cover less than the window asked for (their own time span,
+#: first to last sample plus one sample period) by more than this many sample periods is short:
+#: one period because the window's edges fall between samples, one for the jitter of the
+#: samples' time stamps (a link's latency that varies from sample to sample). A short window is
+#: never recorded as a segment: the step is sampled again through the suspension path
+#: (:meth:`Engine.suspend`), at most :data:`SHORT_WINDOW_TRIES` times in all before the run stops.
+SHORT_WINDOW_TOL_PERIODS = 2.0
+
+#: sampling attempts of one step whose window came out short before the run stops (resumable)
+SHORT_WINDOW_TRIES = 3
+
 
 #: A scaled clock that an in-process emulator had to set back is measured over this much wall
 #: time before the run says it cannot keep up (Engine._watch_pace), s.
@@ -147,8 +158,13 @@ class Engine:
                  sample_poll_s: float = 0.5, log: Callable[..., None] | None = None,
                  suspenders: SuspenderSet | None = None, states: StateMachine | None = None,
                  pause_poll_s: float = 0.25, max_pause_s: float | None = None,
-                 open_interlocks: bool = False, progress: Progress | None = None) -> None:
+                 open_interlocks: bool = False, progress: Progress | None = None,
+                 imu_rate_hz: float = 0.0) -> None:
         self.rig, self.rec = rig, recorder
+        #: the IMU's output rate (the rig config's), Hz; 0: taken from the window's own samples
+        self.imu_rate_hz = float(imu_rate_hz)
+        #: step index -> sampling attempts whose window came out short (see :meth:`_check_window`)
+        self.short_windows: dict[int, int] = {}
         self.progress = progress if progress is not None else NullProgress()
         self.gaps = CounterGaps()  # dropped IMU samples (counter gaps) for the progress display
         self.settle_poll_s, self.sample_poll_s = settle_poll_s, sample_poll_s
@@ -163,6 +179,7 @@ class Engine:
         self._track: deque | None = None
         self._win_start: float | None = None
         self._first_row: int | None = None
+        self._first_time: float | None = None  # IMU time of the window's first sample, s
         self.last_state: TableState | None = None
         self.current_step: Step | None = None
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
@@ -486,7 +503,7 @@ class Engine:
         for row0, times in self._track:
             i = int(np.searchsorted(times, t_start - TIME_EPS))
             if i < len(times):
-                self._first_row = row0 + i
+                self._first_row, self._first_time = row0 + i, float(times[i])
                 break
         self.sampling_from = self.rec.n_imu
         if step.prompt and self.rig.operator is not None:
@@ -504,7 +521,8 @@ class Engine:
         # ``end`` by their wall time x speed (20 ms of a loaded host = 2 s of rig time at 100x);
         # the samples after ``end`` belong to no window, as under the virtual clock
         t_end = min(clock.now(), end)
-        first, last = self._window_rows(t_start, t_end)
+        first, last, t_last = self._window_rows(t_start, t_end)
+        self._check_window(step, t_start, t_end, first, last, t_last)
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
@@ -521,10 +539,11 @@ class Engine:
         if self._win_start is not None and self._first_row is None:
             i = int(np.searchsorted(times, self._win_start - TIME_EPS))
             if i < len(times):
-                self._first_row = row0 + i
+                self._first_row, self._first_time = row0 + i, float(times[i])
 
-    def _window_rows(self, t_start: float, t_end: float) -> tuple[int, int]:
-        """Rows [first, last) of the recorded IMU samples whose IMU time lies in [t_start, t_end).
+    def _window_rows(self, t_start: float, t_end: float) -> tuple[int, int, float]:
+        """Rows [first, last) of the recorded IMU samples whose IMU time lies in [t_start, t_end),
+        and the IMU time of the last of them (nan when there is none), s.
 
         Samples reach the engine with some latency (a serial link, a decoder batch), so the
         window is cut by the samples' own times, not by which poll delivered them; the engine
@@ -539,14 +558,51 @@ class Engine:
         track, first = self._track, self._first_row
         self._track, self._win_start, self._first_row = None, None, None
         if first is None:  # no sample inside the window arrived
-            return self.rec.n_imu, self.rec.n_imu
+            return self.rec.n_imu, self.rec.n_imu, math.nan
         last = self.rec.n_imu
         for row0, times in track:
             i = int(np.searchsorted(times, t_end - TIME_EPS))
             if i < len(times):
                 last = row0 + i
                 break
-        return first, max(first, last)
+        last = max(first, last)
+        t_last = math.nan
+        for row0, times in reversed(track):   # the block holding row last - 1 (recent: kept)
+            if row0 <= last - 1 < row0 + len(times):
+                t_last = float(times[last - 1 - row0])
+                break
+        return first, last, t_last
+
+    def _check_window(self, step: Step, t_start: float, t_end: float, first: int, last: int,
+                      t_last: float) -> None:
+        """Refuse a window whose samples cover less than it: raise Suspend (the step is sampled
+        again, :meth:`run`) or, after :data:`SHORT_WINDOW_TRIES` short attempts of the step,
+        RunError (the run stops; resumable as any interrupted run).
+
+        Covered time: ``t_last - t_first + T`` (T = 1 / the IMU rate: each sample stands for one
+        period); short when ``covered < (t_end - t_start) - SHORT_WINDOW_TOL_PERIODS * T``, or
+        when no sample arrived at all. Samples dropped inside the window (counter gaps) do not
+        shorten it: they are recorded as gaps, and a long one trips the 'imu-gap' suspender."""
+        want = t_end - t_start
+        n = last - first
+        rate = self.imu_rate_hz
+        if rate <= 0.0:    # no configured rate: the window's own mean sample spacing
+            rate = (n - 1) / (t_last - self._first_time) if n > 1 and t_last > self._first_time else 0.0
+        period = 1.0 / rate if rate > 0.0 else 0.0
+        covered = 0.0 if n == 0 or math.isnan(t_last) else t_last - self._first_time + period
+        self._first_time = None
+        if n > 0 and covered >= want - SHORT_WINDOW_TOL_PERIODS * period - TIME_EPS:
+            return
+        tries = self.short_windows[step.index] = self.short_windows.get(step.index, 0) + 1
+        expected = f" of {want * rate:.0f}" if rate > 0.0 else ""
+        what = (f"step {step.index + 1} ({step.label}): the IMU samples cover {covered:.1f} s of "
+                f"the {want:g} s window ({n}{expected} samples) -- the IMU stream lags or stopped")
+        self.rec.add_event(self.rig.clock.now(), "short-window", f"{what} (attempt {tries})")
+        if tries >= SHORT_WINDOW_TRIES:
+            self._cut_off(step)
+            raise RunError(f"{what}; still short after {tries} attempts, run stopped "
+                           f"[{step.file}:{step.line}] -- check the IMU link, then 'rigctl resume' the run")
+        raise Suspend({"imu-window": f"{what}; sampling it again"})
 
     def run(self, steps: list[Step], start: int = 0,
             on_step: Callable[[Step, Segment], None] | None = None,
@@ -595,7 +651,7 @@ class Engine:
 
     # -- suspension ------------------------------------------------------------------------------
     #: suspenders after which the IMU may have been without power: a warm-up starts over
-    POWER_SUSPENDERS = ("imu-link", "imu-gap")
+    POWER_SUSPENDERS = ("imu-link", "imu-gap", "imu-window")
 
     def _warmup_left(self, step: Step) -> Step:
         """A warm-up interrupted before with the IMU powered all along runs only what is left."""
@@ -634,11 +690,11 @@ class Engine:
         (:data:`POWER_SUSPENDERS`): then the whole warm-up runs again. Time spent paused does
         not count."""
         clock, rec = self.rig.clock, self.rec
-        if step.kind == "warmup" and self.sampling_from is not None and self._win_start is not None:
+        if step.kind == "warmup" and self.sampling_from is not None:
             if set(sus.reasons) & set(self.POWER_SUSPENDERS):
                 if self.warmup_done.pop(step.index, None):
                     self.log("info", "warm-up starts over: the IMU may have lost power")
-            else:
+            elif self._win_start is not None:
                 self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + clock.now() - self._win_start
         self.n_suspensions += 1
         names = ", ".join(sus.reasons)
@@ -646,23 +702,8 @@ class Engine:
         self.states.to("pausing", message)
         self.log("warning", f"suspended ({names}): {message}", suspenders=sus.reasons)
         rec.add_event(clock.now(), "suspend", f"{names}: {message}")
-        if between_steps:
-            pass
-        elif self.sampling_from is not None:
-            first, last = self.sampling_from, rec.n_imu
-            s = self.last_state
-            rec.add_segment(Segment(
-                kind=step.kind, label=step.label, step=step.index, first_sample=first,
-                last_sample=last, t_start=clock.now(), t_end=clock.now(), settle_time=math.nan,
-                commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
-                measured_angle=s.angle if s is not None else np.full(3, np.nan),
-                measured_rate=s.rate if s is not None else np.full(3, np.nan), status="incomplete"))
-            rec.add_event(clock.now(), "incomplete",
-                          f"step {step.index + 1} ({step.label}) cut off: IMU rows [{first}, {last}) "
-                          "excluded; the step re-runs")
-        else:
-            rec.add_event(clock.now(), "incomplete",
-                          f"step {step.index + 1} ({step.label}) cut off before sampling; re-runs")
+        if not between_steps:
+            self._cut_off(step)
         self.sampling_from = None
         self._stop_table()
         self.states.to("paused", message)
@@ -689,6 +730,27 @@ class Engine:
         rec.add_event(now, "resume", text)
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)
+
+    def _cut_off(self, step: Step) -> None:
+        """Write the step in flight as an ``incomplete`` segment (when it had started sampling)
+        and name it in an event with its IMU sample range: its rows belong to no segment."""
+        clock, rec = self.rig.clock, self.rec
+        if self.sampling_from is not None:
+            first, last = self.sampling_from, rec.n_imu
+            s = self.last_state
+            rec.add_segment(Segment(
+                kind=step.kind, label=step.label, step=step.index, first_sample=first,
+                last_sample=last, t_start=clock.now(), t_end=clock.now(), settle_time=math.nan,
+                commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
+                measured_angle=s.angle if s is not None else np.full(3, np.nan),
+                measured_rate=s.rate if s is not None else np.full(3, np.nan), status="incomplete"))
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off: IMU rows [{first}, {last}) "
+                          "excluded; the step re-runs")
+        else:
+            rec.add_event(clock.now(), "incomplete",
+                          f"step {step.index + 1} ({step.label}) cut off before sampling; re-runs")
+        self.sampling_from = None
 
     def stop_first(self, why: str, wait_s: float = 30.0) -> None:
         """Before the first motion of a resumed run: record how the cut-off left the table (a

@@ -431,7 +431,7 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
                 engine = Engine(rig, rec, log=log, suspenders=suspenders, states=states,
                                 sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
                                 open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
-                                progress=progress)
+                                progress=progress, imu_rate_hz=cfg.imu_rate_hz)
 
                 def on_transition(old: str, new: str, reason: str) -> None:
                     log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
