@@ -617,3 +617,39 @@ def test_pipelined_stream_frees_its_buffers_without_the_collector(
         for k, v in got[False][a].items():
             w = got[True][a][k]
             assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
+
+
+def test_pieces_outlive_their_reader(tmp_path: Path) -> None:
+    """Rows viewed in the mapped file stay readable after the reader is closed: an analysis
+    abandoned on an error (the task pool cancels what is queued and leaves the tasks in flight
+    to end in the background) closed the reader while a task still copied a chunk's pieces, and
+    ``mmap.close()`` unmapped the file under them -- a segfault of the whole process (a
+    clean-clone CI, test_fused_pass_refuses_nan_like_the_plain_path). Run in a child process,
+    so that the old code's crash fails this test instead of killing the test worker."""
+    import subprocess
+    import sys
+    import textwrap
+
+    p = tmp_path / "rows.h5"
+    data = np.random.default_rng(7).standard_normal((300_000, 3))
+    with h5py.File(p, "w") as f:
+        f.create_dataset("rows", data=data)
+        f.create_dataset("after", data=np.zeros(4096))  # (the rows not in the file's last bytes)
+    code = textwrap.dedent(f"""
+        import gc, h5py, numpy as np
+        from rigctl.recording import recording_reader as RR
+        RR.MAP_MIN_RUN_BYTES = 0
+        with h5py.File({str(p)!r}, "r") as f:
+            want = f["rows"][1000:250000]
+            r = RR.RowReader(f, "rows")
+            v = r.view(1000, 250000, np.empty((300000, 3)))
+            assert isinstance(v, RR.RowPieces), "not mapped: nothing to check"
+            r.close()
+            del r
+            gc.collect()
+            assert np.array_equal(RR.as_array(v), want)
+            RR.release(v)
+        print("ok")
+        """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])

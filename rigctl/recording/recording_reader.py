@@ -489,14 +489,14 @@ class RowReader:
         return [(self._addr + s, e - s) for s, e in out]
 
     def close(self) -> None:
+        """Close the file. The mapping is not closed here: numpy's arrays over it (``_base``,
+        the lanes every :class:`RowPieces` reads) hold the mmap object but no buffer export, so
+        ``mmap.close()`` would unmap it under pieces still read -- a task of an abandoned
+        analysis still copying a chunk segfaulted the process. Dropping this reader's
+        references leaves the mapping to the last array over it: it is unmapped when that one
+        goes."""
         self._base = None
-        mm = getattr(self, "_mm", None)
-        if mm is not None:
-            try:
-                mm.close()
-            except BufferError:  # pieces still held: unmapped when the last one goes
-                pass
-            self._mm = None
+        self._mm = None
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
