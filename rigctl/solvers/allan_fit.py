@@ -504,12 +504,21 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         # (iterated at the null's fit), the same for both models. At the alternative's fit a
         # K that runs 2x above the long taus inflates their variance 16x and so hides its
         # own misfit there (the quickstart's spurious K of issue 15)
-        for _ in range(iterations):
-            q0, _ = solve(null, lw)
-            full0 = np.zeros(a.shape[1])
-            full0[null] = q0
-            lw = whiten_at(full0, eps)
-        q1, c1 = solve(alt, lw)
+        lw_alt = lw
+        try:
+            for _ in range(iterations):
+                q0, _ = solve(null, lw)
+                full0 = np.zeros(a.shape[1])
+                full0[null] = q0
+                lw = whiten_at(full0, eps)
+            q1, c1 = solve(alt, lw)
+        except np.linalg.LinAlgError:
+            # the null's covariance is singular (its fit has no noise term left: a record of a
+            # moving table, not a static capture, crashed `rigctl allan` here): the test is
+            # read under the alternative's covariance, as B's is, and says so
+            lw = lw_alt
+            q1, c1 = solve(alt, lw)
+            out["covariance_at"] = "alternative (the null's covariance is singular)"
     _, c0 = solve(null, lw)
     stat = max(c0 - c1, 0.0) / over
     # each term left out is on the boundary of its range: chi-bar-square, the weights of a
