@@ -77,6 +77,37 @@ def pace_message(speed: float, achieved: float) -> str:
             "in the rig config, or 'clock: virtual' to run as fast as the host computes")
 
 
+#: Devices whose time runs at less than this fraction of the run's clock speed keep time too
+#: slowly (Engine._watch_pace, slow_rig_speed)
+PACE_SLOW_FRACTION = 0.9
+
+
+def slow_rig_message(speed: float, achieved: float) -> str:
+    """The one line saying a rig on the wire keeps time slower than the run's clock asks.
+
+    A run at ``speed`` x real time (``clock: scaled``) talks to an emulator (``rigctl sim up
+    --speed``); its devices' time -- table controller time, IMU sample times -- advancing at
+    ``achieved`` x real time < ``speed`` means the emulator cannot compute the rig that fast on
+    this machine (a real device's clock does not lag the host's by percents). Its samples then
+    fall further behind the clock every second: an IMU stream that starts only when the physics
+    reaches the clock ('no stream'), windows that come out short."""
+    got = f"{achieved:.0f}" if achieved >= 10 else f"{achieved:.2g}"
+    return (f"the rig's devices keep time at about {got}x real time, slower than the {speed:g}x of the "
+            f"run's clock: the emulator ('rigctl sim up --speed {speed:g}') cannot compute the rig that fast "
+            f"on this machine, so its devices fall ever further behind the clock; restart it with "
+            f"--speed {suggested_speed(achieved):g} or less and run with the wired config it writes")
+
+
+def slow_rig_speed(speed: float, wall_s: float, device_s: float) -> float | None:
+    """The speed the rig's devices keep time at (``device_s`` of their time in ``wall_s`` of wall
+    time), when a clock at ``speed`` x real time (> 1: an emulated rig) runs faster than that by
+    more than :data:`PACE_SLOW_FRACTION`; else None."""
+    if speed <= 1.0 or wall_s <= 0.0:
+        return None
+    achieved = device_s / wall_s
+    return achieved if achieved < PACE_SLOW_FRACTION * speed else None
+
+
 class RunError(errors.RunFailure):
     """A failure at run time (settle timeout, device fault)."""
 
@@ -205,6 +236,9 @@ class Engine:
         self.pace_window_s = PACE_WINDOW_WALL_S
         self.pace_warned = False
         self._pace: tuple[float, float, float] | None = None
+        self._pace_slow: float | None = None  # the devices' speed in the last pace window, if slow
+        #: the line saying the rig's devices keep time slower than the clock (slow_rig_message), once seen
+        self.slow_rig: str | None = None
         #: wall time a table's time must stand still for, at least, to fail a settle, s
         self.still_wall_s = SETTLE_STILL_WALL_S
 
@@ -292,7 +326,12 @@ class Engine:
         an in-process emulator sets back (``slipped``, rigctl.clock.ScaledClock) because the host
         cannot compute that fast. Measured over :attr:`pace_window_s` of wall time, on the rig
         time the devices report (``t``: the table's reading; the clock itself runs ahead of
-        them by the catch-up in progress, 0.1 s of wall time = 1000 s at 10000x)."""
+        them by the catch-up in progress, 0.1 s of wall time = 1000 s at 10000x).
+
+        On a clock nobody sets back (a rig on the wire, clock ``scaled``), the devices' time
+        itself: when it runs slower than the clock (:func:`slow_rig_speed`) over two windows in a
+        row, :func:`slow_rig_message` (kept in :attr:`slow_rig`; a window that then comes out
+        short for good stops the run with it)."""
         clock = self.rig.clock
         slipped = getattr(clock, "slipped", None)
         if slipped is None or self.pace_warned:
@@ -307,11 +346,35 @@ class Engine:
         self._pace = (wall, t, slipped)
         speed = float(clock.speed)
         achieved = (t - t0) / (wall - w0)
-        if slipped > s0 and achieved < 0.9 * speed:
+        if slipped > s0 and achieved < PACE_SLOW_FRACTION * speed:
             self.pace_warned = True
             self.log("warning", pace_message(speed, achieved), speed=speed, achieved_speed=achieved)
             self.rec.add_event(t, "clock", f"rig time runs slower than {speed:g}x wall time: "
                                            f"the host computes about {achieved:.1f}x")
+            return
+        # a clock nobody sets back (a rig on the wire): the devices' time itself runs slower than
+        # the clock -- an emulator this machine cannot compute at that speed. Two windows in a
+        # row: one stall of the emulator's host (caught up at once after) is not a pace
+        slow = slow_rig_speed(speed, wall - w0, t - t0) if slipped == 0.0 else None
+        if slow is not None and self._pace_slow is not None:
+            self.pace_warned = True
+            self.slow_rig = slow_rig_message(speed, max(slow, self._pace_slow))
+            self.log("warning", self.slow_rig, speed=speed, achieved_speed=slow)
+            self.rec.add_event(t, "clock", f"the rig's devices keep time at about {slow:.1f}x wall time, "
+                                           f"slower than the run's clock at {speed:g}x")
+        self._pace_slow = slow
+
+    def _slow_rig_now(self) -> str | None:
+        """:func:`slow_rig_message` when the devices' time ran slower than an unslipped clock over
+        the pace window in progress (at least half of :attr:`pace_window_s` long), else None."""
+        clock, state = self.rig.clock, self.last_state
+        if self._pace is None or state is None or getattr(clock, "slipped", None) != 0.0:
+            return None
+        w0, t0, _ = self._pace
+        wall = time.monotonic() - w0
+        speed = float(clock.speed)
+        slow = slow_rig_speed(speed, wall, float(state.time) - t0) if wall >= 0.5 * self.pace_window_s else None
+        return slow_rig_message(speed, slow) if slow is not None else None
 
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
@@ -600,8 +663,9 @@ class Engine:
         self.rec.add_event(self.rig.clock.now(), "short-window", f"{what} (attempt {tries})")
         if tries >= SHORT_WINDOW_TRIES:
             self._cut_off(step)
+            todo = self.slow_rig or self._slow_rig_now() or "check the IMU link, then 'rigctl resume' the run"
             raise RunError(f"{what}; still short after {tries} attempts, run stopped "
-                           f"[{step.file}:{step.line}] -- check the IMU link, then 'rigctl resume' the run")
+                           f"[{step.file}:{step.line}] -- {todo}")
         raise Suspend({"imu-window": f"{what}; sampling it again"})
 
     def run(self, steps: list[Step], start: int = 0,
