@@ -354,14 +354,23 @@ class _Slot:
         os.replace(tmp, self.link)
 
     def disconnect(self, down_s: float) -> str:
-        old = self.endpoint
+        self.unplug()
+        time.sleep(down_s)
+        return self.replug()
+
+    def unplug(self) -> None:
+        """Pull the cable: the symlink and the pty go (:meth:`replug` puts a new one in)."""
+        self._old = self.endpoint
         # a pulled cable takes its device node with it (a USB serial adapter's /dev/ttyUSB0): the
         # symlink goes too, or a reconnect during the outage could open the old pty's number
         # already handed to another process's new pty (seen with two test runs at once)
         if self.link.is_symlink():
             self.link.unlink()
-        old.close()
-        time.sleep(down_s)
+        self._old.close()
+
+    def replug(self) -> str:
+        """Plug a new pty in at the same symlink; returns its path."""
+        old = self._old
         self.endpoint = self.make()
         self.attach(self.endpoint)
         self._point()
@@ -681,11 +690,17 @@ class Hardware:
     def disconnect(self, name: str, down_s: float = 0.2, block: bool = True) -> str | None:
         """Pull the cable of pty ``name`` (``table-acl`` | ``imu`` | ``gnss``) for ``down_s`` wall
         seconds, then plug a new pty in at the same symlink. Returns the new pty path (None if
-        ``block`` is False: it happens in a background thread)."""
+        ``block`` is False: the cable is pulled at once, the outage and the new pty follow in a
+        background thread)."""
         slot = self.slots[name]
         if block:
             return slot.disconnect(down_s)
-        t = threading.Thread(target=slot.disconnect, args=(down_s,), name=f"disconnect-{name}", daemon=True)
+        slot.unplug()
+
+        def replug() -> None:
+            if not self._stop.wait(down_s):
+                slot.replug()
+        t = threading.Thread(target=replug, name=f"disconnect-{name}", daemon=True)
         t.start()
         self._threads.append(t)
         return None

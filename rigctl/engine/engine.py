@@ -12,7 +12,9 @@ Unattended operation: every poll is handed to the :mod:`rigctl.config.suspenders
 low, operator pause) the engine goes ``running -> pausing -> paused`` (:mod:`rigctl.engine.states`),
 stops the table, writes the step in flight as an ``incomplete`` segment (with its sample range),
 keeps polling until every suspender has been clear for the hold time, then goes back to
-``running`` and re-runs the interrupted step from its start: segments are all-or-nothing.
+``running`` and re-runs the interrupted step from its start: segments are all-or-nothing. One
+that trips after a sampling window, while its last samples are awaited, lets the samples decide:
+a window they cover is a complete step and the pause comes before the next one (:meth:`execute`).
 Memory stays flat over any step length: a sample window keeps running sums, not per-poll lists.
 """
 from __future__ import annotations
@@ -121,6 +123,10 @@ class Suspend(Exception):
 
     def __init__(self, reasons: dict[str, str]) -> None:
         self.reasons = dict(reasons)
+        #: the step's segment, recorded complete, when the suspension tripped after its window
+        #: while its last samples were awaited and they cover it (Engine.execute): the pause
+        #: then comes between this step and the next, nothing is cut off
+        self.segment: Segment | None = None
         super().__init__("; ".join(reasons.values()))
 
 
@@ -211,6 +217,10 @@ class Engine:
         self._win_start: float | None = None
         self._first_row: int | None = None
         self._first_time: float | None = None  # IMU time of the window's first sample, s
+        #: a suspension that tripped while a window's last samples were awaited (_window_rows), and
+        #: the time its samples covered when they did not cover the window, s
+        self._tail_sus: Suspend | None = None
+        self._tail_covered: float | None = None
         self.last_state: TableState | None = None
         self.current_step: Step | None = None
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
@@ -584,8 +594,20 @@ class Engine:
         # ``end`` by their wall time x speed (20 ms of a loaded host = 2 s of rig time at 100x);
         # the samples after ``end`` belong to no window, as under the virtual clock
         t_end = min(clock.now(), end)
+        self._tail_sus = None
         first, last, t_last = self._window_rows(t_start, t_end)
-        self._check_window(step, t_start, t_end, first, last, t_last)
+        tail, self._tail_sus = self._tail_sus, None
+        if tail is None:
+            self._check_window(step, t_start, t_end, first, last, t_last)
+        else:   # tripped while the window's last samples were awaited: they decide
+            want, n, _, covered, short = self._window_cover(t_start, t_end, first, last, t_last)
+            if not self._tail_whole(tail, want, n, short):   # they stopped inside it: as
+                self._tail_covered = covered                        # a trip while sampling
+                raise tail
+            self.rec.add_event(clock.now(), "info",
+                               f"step {step.index + 1} ({step.label}): {', '.join(tail.reasons)} tripped "
+                               f"after its window, whose {n} samples cover it ({covered:.1f} s of {want:g} s): "
+                               "the step is complete; the run pauses before the next step")
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
@@ -595,6 +617,9 @@ class Engine:
         self.rec.add_segment(seg)
         self.current_step = None
         self.sampling_from = None
+        if tail is not None:
+            tail.segment = seg
+            raise tail
         return seg
 
     def _track_block(self, row0: int, times: np.ndarray) -> None:
@@ -611,13 +636,17 @@ class Engine:
         Samples reach the engine with some latency (a serial link, a decoder batch), so the
         window is cut by the samples' own times, not by which poll delivered them; the engine
         keeps polling until a sample at or after ``t_end`` has arrived (bounded wait: 2 s of rig
-        time, at least :data:`WINDOW_WAIT_WALL_S` of wall time)."""
+        time, at least :data:`WINDOW_WAIT_WALL_S` of wall time). A suspender that trips meanwhile
+        is kept in ``_tail_sus`` and the wait goes on (:meth:`execute` decides with the samples)."""
         clock = self.rig.clock
         speed = float(getattr(clock, "speed", 1.0))
         wait_until = clock.now() + max(2.0, 4 * self.sample_poll_s, WINDOW_WAIT_WALL_S * speed)
         while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
             clock.sleep(self.settle_poll_s)
-            self.poll()
+            try:
+                self.poll(check=self._tail_sus is None)
+            except Suspend as sus:  # the window is over: its samples decide (execute), so the
+                self._tail_sus = sus  # wait goes on for those still in flight
         track, first = self._track, self._first_row
         self._track, self._win_start, self._first_row = None, None, None
         if first is None:  # no sample inside the window arrived
@@ -636,6 +665,32 @@ class Engine:
                 break
         return first, last, t_last
 
+    def _window_cover(self, t_start: float, t_end: float, first: int, last: int,
+                      t_last: float) -> tuple[float, int, float, float, bool]:
+        """(window asked for s, samples n, rate Hz (0: unknown), time covered s, short) of the
+        window's rows [first, last) (see :meth:`_check_window`); forgets the window's first time."""
+        want = t_end - t_start
+        n = last - first
+        rate = self.imu_rate_hz
+        if rate <= 0.0:    # no configured rate: the window's own mean sample spacing
+            rate = (n - 1) / (t_last - self._first_time) if n > 1 and t_last > self._first_time else 0.0
+        period = 1.0 / rate if rate > 0.0 else 0.0
+        covered = 0.0 if n == 0 or math.isnan(t_last) else t_last - self._first_time + period
+        self._first_time = None
+        short = not (n > 0 and covered >= want - SHORT_WINDOW_TOL_PERIODS * period - TIME_EPS)
+        return want, n, rate, covered, short
+
+    def _tail_whole(self, tail: Suspend, want: float, n: int, short: bool) -> bool:
+        """Whether a window whose last samples were awaited when ``tail`` tripped is whole: its
+        samples cover it (:meth:`_window_cover`) and, when ``imu-gap`` tripped (a counter gap may
+        lie inside it), it holds the samples its length takes at the configured rate (no rate
+        configured: it cannot tell, and is not)."""
+        if short:
+            return False
+        if "imu-gap" not in tail.reasons:
+            return True
+        return self.imu_rate_hz > 0.0 and n >= want * self.imu_rate_hz - SHORT_WINDOW_TOL_PERIODS
+
     def _check_window(self, step: Step, t_start: float, t_end: float, first: int, last: int,
                       t_last: float) -> None:
         """Refuse a window whose samples cover less than it: raise Suspend (the step is sampled
@@ -646,15 +701,8 @@ class Engine:
         period); short when ``covered < (t_end - t_start) - SHORT_WINDOW_TOL_PERIODS * T``, or
         when no sample arrived at all. Samples dropped inside the window (counter gaps) do not
         shorten it: they are recorded as gaps, and a long one trips the 'imu-gap' suspender."""
-        want = t_end - t_start
-        n = last - first
-        rate = self.imu_rate_hz
-        if rate <= 0.0:    # no configured rate: the window's own mean sample spacing
-            rate = (n - 1) / (t_last - self._first_time) if n > 1 and t_last > self._first_time else 0.0
-        period = 1.0 / rate if rate > 0.0 else 0.0
-        covered = 0.0 if n == 0 or math.isnan(t_last) else t_last - self._first_time + period
-        self._first_time = None
-        if n > 0 and covered >= want - SHORT_WINDOW_TOL_PERIODS * period - TIME_EPS:
+        want, n, rate, covered, short = self._window_cover(t_start, t_end, first, last, t_last)
+        if not short:
             return
         tries = self.short_windows[step.index] = self.short_windows.get(step.index, 0) + 1
         expected = f" of {want * rate:.0f}" if rate > 0.0 else ""
@@ -701,16 +749,24 @@ class Engine:
                     continue
             self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
             self.progress.step_started(step)
+            after: Suspend | None = None
             try:
                 seg = self.execute(self._warmup_left(step))
             except Suspend as sus:
-                self.suspend(step, sus)
-                continue
+                if sus.segment is None:
+                    self.suspend(step, sus)
+                    continue
+                seg, after = sus.segment, sus     # the step is complete; the pause comes next
             self.progress.step_finished(step, seg)
             segments.append(seg)
             if on_step:
                 on_step(step, seg)
             n += 1
+            if after is not None and n < len(motion):
+                self.suspend(motion[n], after, between_steps=True)
+            elif after is not None:
+                self.log("warning", f"{', '.join(after.reasons)} after the last window: {after}; "
+                                    "every step is complete")
         return segments
 
     # -- suspension ------------------------------------------------------------------------------
@@ -758,8 +814,11 @@ class Engine:
             if set(sus.reasons) & set(self.POWER_SUSPENDERS):
                 if self.warmup_done.pop(step.index, None):
                     self.log("info", "warm-up starts over: the IMU may have lost power")
-            elif self._win_start is not None:
-                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + clock.now() - self._win_start
+            elif self._tail_covered is not None or self._win_start is not None:
+                # the time sampled; cut off while its last samples were awaited: the time they cover
+                done = self._tail_covered if self._tail_covered is not None else clock.now() - self._win_start
+                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + done
+        self._tail_covered = None
         self.n_suspensions += 1
         names = ", ".join(sus.reasons)
         message = str(sus)
