@@ -18,6 +18,9 @@ the warm-up's window.
 from __future__ import annotations
 
 import io
+import multiprocessing
+import os
+import signal
 from contextlib import contextmanager
 
 import h5py
@@ -50,10 +53,11 @@ FIELDS = ("time", "counter", "specific_force", "angular_rate", "temperature")
 class LinkWithLatency:
     """The emulated IMU behind a link delivering each sample ``lag_s`` of rig time after its
     stamp; a link loss (the emulator's ``imu_link`` fault) loses the samples in flight. At the
-    first read after the warm-up's window has ended, ``act(engine, world, now)`` runs once."""
+    first read after the warm-up's window has ended, ``act(engine, world, now)`` runs once;
+    ``on_read(engine)`` at every read."""
 
-    def __init__(self, inner, clock, lag_s: float, act) -> None:
-        self.inner, self.clock, self.lag_s, self.act = inner, clock, lag_s, act
+    def __init__(self, inner, clock, lag_s: float, act, on_read=None) -> None:
+        self.inner, self.clock, self.lag_s, self.act, self.on_read = inner, clock, lag_s, act, on_read
         self.identity = getattr(inner, "identity", {})
         self.engine = None
         self.acted_at: float | None = None
@@ -61,6 +65,8 @@ class LinkWithLatency:
 
     def read(self) -> ImuBlock:
         e, now = self.engine, self.clock.now()
+        if self.on_read is not None and e is not None:
+            self.on_read(e)
         step = e.current_step if e is not None else None
         if (self.acted_at is None and step is not None and step.kind == "warmup" and e._win_start is not None
                 and now > e._win_start + step.sample_s + 1e-6):
@@ -93,7 +99,7 @@ def operator_pause(engine, world, now):
     world.faults.call_at(now + 3.0, engine.request_resume)
 
 
-def _run(tmp_path, lag_s: float, act, max_pause_s: float | None = None):
+def _run(tmp_path, lag_s: float, act, on_read=None):
     cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))     # virtual clock, 100 Hz
     assert cfg.imu_rate_hz == RATE_HZ
     (tmp_path / "proc.yaml").write_text(PROC)
@@ -103,7 +109,7 @@ def _run(tmp_path, lag_s: float, act, max_pause_s: float | None = None):
     @contextmanager
     def opener(c):
         with open_rig(c) as (rig, truth):
-            rig.imu = LinkWithLatency(rig.imu, rig.clock, lag_s, act)
+            rig.imu = LinkWithLatency(rig.imu, rig.clock, lag_s, act, on_read)
             links.append(rig.imu)
             yield rig, truth
 
@@ -112,7 +118,7 @@ def _run(tmp_path, lag_s: float, act, max_pause_s: float | None = None):
             links[-1].engine = engine
 
     opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), rig_opener=opener,
-                      on_engine=on_engine, max_pause_s=max_pause_s)
+                      on_engine=on_engine)
     res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
     assert links[0].acted_at is not None, "the warm-up's window never ended"
     return res, links[0].acted_at
@@ -199,15 +205,29 @@ def test_an_operator_pause_after_the_window_keeps_the_warmup(tmp_path):
     assert not any(k == "short-window" for _, k, m in events)
 
 
-def test_a_run_cut_off_while_paused_there_resumes_after_the_warmup(tmp_path):
-    """The link stays down after the whole warm-up: the run, paused before the first orientation,
-    is cut off (max_pause_s); 'rigctl resume' goes on with the orientations -- the warm-up is
-    complete in the recording and does not run again."""
-    res, _ = _run(tmp_path, 0.015, link_loss(np.inf), max_pause_s=10.0)
-    assert res.status == "failed" and "paused for more than 10 s" in res.message, res.message
-    seg, t, c, _ = _read(res.recording)
-    assert [(k, s) for k, s in zip(seg["kind"], seg["status"])] == [(b"warmup", b"complete")]
-    again = resume_run(res.run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False)
+def _crash_when_paused(tmp_path):
+    """Child process: the run of the first test with a link that stays down; SIGKILL at the
+    first poll once the run is paused."""
+    def act(engine, world, now):
+        world.faults.schedule("imu_link", now, np.inf)
+
+    def crash(engine):
+        if engine.states.state == "paused":
+            os.kill(os.getpid(), signal.SIGKILL)
+    _run(tmp_path, 0.015, act, on_read=crash)
+    os._exit(3)     # not reached: the run never resumes
+
+
+def test_a_run_killed_while_paused_there_resumes_after_the_warmup(tmp_path):
+    """The link stays down after the whole warm-up and the process is killed (SIGKILL) while the
+    run is paused before the first orientation: 'rigctl resume' goes on with the orientations --
+    the warm-up is complete in the recording and does not run again."""
+    child = multiprocessing.get_context("fork").Process(target=_crash_when_paused, args=(tmp_path,))
+    child.start()
+    child.join(60)
+    assert child.exitcode == -signal.SIGKILL, child.exitcode
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    again = resume_run(run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False)
     assert again.status == "complete", again.message
     seg, t, c, events = _read(again.recording)
     pairs = [(k.decode(), s.decode()) for k, s in zip(seg["kind"], seg["status"])]
