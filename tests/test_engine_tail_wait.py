@@ -99,10 +99,10 @@ def operator_pause(engine, world, now):
     world.faults.call_at(now + 3.0, engine.request_resume)
 
 
-def _run(tmp_path, lag_s: float, act, on_read=None):
+def _run(tmp_path, lag_s: float, act, on_read=None, proc_text: str = PROC):
     cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))     # virtual clock, 100 Hz
     assert cfg.imu_rate_hz == RATE_HZ
-    (tmp_path / "proc.yaml").write_text(PROC)
+    (tmp_path / "proc.yaml").write_text(proc_text)
     proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
     links: list[LinkWithLatency] = []
 
@@ -233,3 +233,16 @@ def test_a_run_killed_while_paused_there_resumes_after_the_warmup(tmp_path):
     pairs = [(k.decode(), s.decode()) for k, s in zip(seg["kind"], seg["status"])]
     assert pairs == [("warmup", "complete"), ("orientation", "complete"), ("orientation", "complete")], pairs
     _whole(seg, t, c, 0, WARMUP_S)
+
+
+def test_a_link_loss_after_the_last_window_completes_the_run(tmp_path):
+    """The same link loss after the window of a run's last step: nothing is left to pause for;
+    the run completes with the step, and its log says what tripped."""
+    res, _ = _run(tmp_path, 0.015, link_loss(3.0), proc_text=PROC.split("  - orientations:")[0])
+    assert res.exit_code == 0 and res.status == "complete", res.message
+    seg, t, c, events = _read(res.recording)
+    assert [(k, s) for k, s in zip(seg["kind"], seg["status"])] == [(b"warmup", b"complete")]
+    _whole(seg, t, c, 0, WARMUP_S)
+    assert not any(k in ("suspend", "incomplete") for _, k, _ in events), events
+    log = (res.run_dir / "run.log.jsonl").read_text()
+    assert "imu-link after the last window: IMU link lost" in log and "every step is complete" in log
