@@ -150,7 +150,10 @@ def test_a_rig_that_falls_behind_mid_run_stops_with_the_cause(tmp_path):
     m = re.search(r"-- the rig's devices keep time at about (\d+)x real time, slower than the 100x of the run's "
                   r"clock: .* restart it with --speed ([\d.]+) or less", res.message)
     assert m, res.message
-    assert float(m.group(1)) <= 48 and float(m.group(2)) <= 0.8 * float(m.group(1)), res.message
+    # the devices' speed over a pace window (one may span the limit's start: 40x to 100x), below
+    # the 90 % that makes it slow; the speed to ask for below 80 % of it
+    said, suggest = float(m.group(1)), float(m.group(2))
+    assert 1 <= said < 90 and suggest <= 0.8 * said, res.message
     logged = [ln for ln in (res.run_dir / "run.log.jsonl").read_text().splitlines()
               if '"warning"' in ln and "keep time at about" in ln]
     assert len(logged) <= 1, logged     # said once (if before the run stopped on it)

@@ -368,7 +368,7 @@ class Engine:
         slow = slow_rig_speed(speed, wall - w0, t - t0) if slipped == 0.0 else None
         if slow is not None and self._pace_slow is not None:
             self.pace_warned = True
-            self.slow_rig = slow_rig_message(speed, max(slow, self._pace_slow))
+            self.slow_rig = slow_rig_message(speed, slow)   # the latest window: the pace now
             self.log("warning", self.slow_rig, speed=speed, achieved_speed=slow)
             self.rec.add_event(t, "clock", f"the rig's devices keep time at about {slow:.1f}x wall time, "
                                            f"slower than the run's clock at {speed:g}x")
