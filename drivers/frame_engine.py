@@ -10,7 +10,8 @@ byte buffer ``b`` (numpy uint8), with no Python loop per frame:
 1. candidates: every ``i`` where each fixed byte matches (``b[i + o] == v`` for all (o, v));
 2. complete candidates (``i + L <= len(b)``) are checked in bulk on their (k, L) rows (a
    zero-copy view when they are back to back);
-3. overlapping valid candidates are resolved greedily, earliest first;
+3. which valid candidates are frames: :func:`resolve` (a byte-wise parser's resynchronisation,
+   independent of the read boundaries, that does not take a false frame over a good one);
 4. bytes between accepted frames form garbage regions; a region of ``g`` bytes counts
    ``max(1, round(g / L))`` bad frames, or one truncated frame when it starts with the fixed
    header and ``g < L``. With byte substitution errors this equals the number of frames hit,

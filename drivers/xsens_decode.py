@@ -9,8 +9,10 @@ Algorithm over one byte buffer ``b`` (numpy uint8), with no Python loop per fram
 4. MTData2 payloads are checked for structure (items must tile the payload exactly) once per
    distinct layout, then every frame of that length is compared against the layout's item
    headers in one vector comparison; frames that differ fall back to a per-frame parse;
-5. overlapping valid candidates (a false preamble inside a frame) are resolved greedily,
-   earliest first;
+5. which candidates are frames is decided by :func:`rigctl.drivers.frame_engine.resolve`: as a
+   byte-wise parser resynchronising from the byte after a rejected preamble, whatever the read
+   boundaries, and never taking a false frame in a payload (it passed the 8-bit checksum by
+   chance) over the good frame it overlaps;
 6. bytes between accepted frames form garbage regions. A region of ``g`` bytes next to frames of
    ``L`` bytes counts ``max(1, round(g / L))`` bad frames, or one truncated frame when it starts
    with a preamble and ``g < L``. With byte substitution errors this equals the number of frames
