@@ -202,12 +202,14 @@ class MTData2Stream:
         self._stf_cand: tuple[int, int] | None = None  # (raw, counter) of the last rejected stamp
         self._abs = 0                # stream offset of the first byte of the retained tail
         self._at_frame_end = False   # the retained tail starts right after an accepted frame
+        self._lengths: set[int] = set()     # lengths of the MTData2 frames accepted so far
 
     def reset_counters(self) -> None:
         """Forget counter/time history (call after the device re-enters measurement)."""
         self._prev_counter = None
         self._prev_stf = None
         self._stf_cand = None
+        self._lengths.clear()       # a new measurement may bring a new output layout
 
     # ------------------------------------------------------------------ region accounting
     def _account_region(self, g: int, starts_with_header: bool, ref_len: int, synced: bool = True) -> None:
@@ -241,8 +243,10 @@ class MTData2Stream:
         ends = np.where(total > 0, p + total, total)      # -1: header incomplete, -2: impossible
         valid_all = np.zeros(p.size, dtype=bool)
         valid_all[complete] = valid
+        layout = np.full(p.size, -1, dtype=np.int64)        # MTData2 frames: their length
+        layout[complete] = np.where(is_d2 & valid, tc, -1)
         acc_all, hold = resolve(p, ends, valid_all, n, final=final, header_len=2,
-                                anchored=self._at_frame_end)
+                                anchored=self._at_frame_end, layout=layout, seen=self._lengths)
         acc = np.searchsorted(pc, p[acc_all])           # accepted frames among the complete ones
         a_start, a_end = pc[acc], pc[acc] + tc[acc]
         a_d2 = mids[acc] == MID.MTDATA2

@@ -309,3 +309,29 @@ def test_a_false_frame_in_a_good_frame_costs_nothing(proto: str, variant: str) -
     for chunks in feeds:
         ids, lost, messages = p.decode(chunks)
         assert (ids, lost, messages) == (want, 0, 0), f"{proto} cut at {len(chunks[0])}: {ids} lost {lost}"
+
+
+def test_a_length_hit_to_an_item_boundary_costs_its_frame_only() -> None:
+    """Xsens: the host's length byte hit to 49, the end of its Temperature item, and its data
+    such that the shortened frame (FA FF 36 31 .. Temperature, the StatusWord header's 0xE0 as
+    checksum) adds up: a valid MTData2 frame of a layout the stream never had, followed by the
+    rest of the host, not by a frame. It is the head of the corrupted host, so the host is one
+    lost frame and one counter gap, and no partial sample of it comes out."""
+    rows = stream_rows("xsens", "plain").copy()
+    host = rows[HOST]
+    short = 49
+    host[40] = (int(host[40]) - (sum(host[1:4 + short + 1].tolist()) - int(host[3]) + short)) % 256
+    _xs_reseal(host)
+    assert sum(host[1:].tolist()) % 256 == 0                       # the host is a good frame
+    bad = rows.copy()
+    bad[HOST, 3] = short
+    assert sum(bad[HOST, 1:short + 5].tolist()) % 256 == 0         # and its head now one too
+    want = [ID0 + i for i in range(N_FRAMES) if i != HOST]
+    data = bad.tobytes()
+    feeds = [[data[:k], data[k:]] for k in range(1, len(data))] + [[data[i:i + 1] for i in range(len(data))]]
+    for chunks in feeds:
+        st = MTData2Stream()
+        ids = [v for c in chunks for v in st.feed(c).counter.tolist()] + st.flush().counter.tolist()
+        c = st.counters
+        assert (ids, c.bad_frames + c.truncated_frames, c.dropped_samples, c.messages) == (want, 1, 1, 0), \
+            f"cut at {len(chunks[0])}: {ids}, {c}"
