@@ -28,7 +28,13 @@ time that passed the checksum would otherwise make the next true one read as a w
 every later sample 2^32 ticks (4.97 days) late. The frame is kept without a time
 (``sample_time_fine`` -1, ``time_s`` NaN) and counted in ``time_outliers``; two such stamps in a
 row that continue each other are a new time base (a restarted MTi, or a link loss longer than the
-counter resolves), taken as the old decoder took it and counted in ``time_restarts``.
+counter resolves), taken as the old decoder took it and counted in ``time_restarts``. One that
+begins behind the last accepted stamp (within half the wrap) is a device restart (its
+SampleTimeFine began again from 0: the MTi lost power), also counted in ``device_restarts`` --
+the count rigctl's engine re-warms the IMU on (docs/daemon.md). A time base ahead of the last
+stamp is not: a measurement paused longer than the counter steps account for (a slow
+reconfiguration after a reconnect: SampleTimeFine runs on in config mode, PacketCounter does
+not), or an outage longer than the counter resolves.
 Unknown data IDs are counted per ID in ``unknown_xdi`` (the known items of such a frame are kept).
 """
 from __future__ import annotations
@@ -68,6 +74,7 @@ class DecodeCounters:
     frames_without_counter: int = 0
     time_outliers: int = 0      # SampleTimeFine not continuing the last accepted one: frame kept without a time
     time_restarts: int = 0      # SampleTimeFine took a new time base (two stamps in a row continuing each other)
+    device_restarts: int = 0    # ... one that began behind the last accepted stamp: the MTi restarted
     unknown_xdi: dict[int, int] = field(default_factory=dict)
 
 
@@ -460,6 +467,9 @@ class MTData2Stream:
                 log.warning("SampleTimeFine restarted at %d; a new time base", v)
                 c.time_restarts += 1
                 c.time_outliers -= 1
+                behind = (self._prev_stf_raw - self._stf_cand[0]) % self.wrap_ticks
+                if 0 < behind <= self.wrap_ticks // 2:      # began again: the device restarted
+                    c.device_restarts += 1
             self._prev_stf = v if self._prev_stf is None else \
                 self._prev_stf + (v - self._prev_stf_raw) % self.wrap_ticks
             self._prev_stf_raw, self._prev_stf_counter, self._stf_cand = v, k, None
