@@ -132,8 +132,10 @@ def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, 
     hold = int(starts[und[0]]) if und.size else n
     new_layouts: set[int] = set()
     if layout is not None:
-        lv = layout[vi][layout[vi] >= 0]
-        new_layouts = set(np.unique(lv).tolist())
+        lv = layout[vi]
+        lv = lv[lv >= 0]
+        if lv.size:             # one layout (the usual stream) without a sort
+            new_layouts = {int(lv[0])} if bool((lv == lv[0]).all()) else set(np.unique(lv).tolist())
         if not new_layouts <= (seen if seen else set(lv[:1].tolist())):
             return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout, seen)
     if vi.size < 2 or bool(np.all(vs[1:] >= ve[:-1])):
