@@ -141,3 +141,48 @@ def test_a_run_killed_after_a_restart_warms_the_imu_again_on_resume(tmp_path):
     i = [j for j, p in enumerate(pairs) if p[0] == "warmup"][1]
     assert seg["t_start"][i] > restart and abs(seg["t_end"][i] - seg["t_start"][i] - WARMUP_S) < 1e-6
     assert "resuming after a device restart" in (run_dir / "run.log.jsonl").read_text()
+
+
+#: the bias the emulated unit comes back with after its power loss, on x (2 mg): a new turn-on bias
+STEP_M_S2 = 2e-3 * 9.80665
+
+
+def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_path):
+    """procedures/24pos.yaml (3 s windows, 10 s warm-up) with the power lost 1 s into the 13th orientation,
+    the unit back 3 s later with a 2 mg higher x bias: the run re-warms, and 'rigctl calibrate'
+    says NOT TRUSTWORTHY, naming the 12 positions measured before the restart and the 12 after
+    (from the segments' own times here): one fit over both has no term for the bias step."""
+    from rigctl.analysis.calibration import calibrate
+    from hil_support import ROOT
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s", "discard": "0.5 s"},
+                          cfg.limits)
+    points: RunPoints
+
+    def power_loss() -> None:
+        world = points.engine.rig.imu.world
+        world.faults.schedule("imu_power", world.t, 3.0)
+        model = world.imu_model
+
+        def back() -> None:
+            model.accel_bias = model.accel_bias + np.array([STEP_M_S2, 0.0, 0.0])
+        world.faults.call_at(world.t + 3.0, back)
+
+    points = RunPoints([(sampling("orientation", after_samples=100, finished=12), power_loss)])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    done = (seg["kind"] == b"orientation") & (seg["status"] == b"complete")
+    before = sorted(int(s) + 1 for s in seg["step"][done & (seg["t_end"] <= restart)])
+    after = sorted(int(s) + 1 for s in seg["step"][done & (seg["t_start"] >= restart)])
+    assert before == list(range(2, 14)) and after == list(range(14, 26)), (before, after)
+    payload, text, _ = calibrate(res.recording, store=False)
+    assert payload["trustworthy"] is False and payload["loop_status"] == "NOT TRUSTWORTHY"
+    (note,) = payload["device_restarts"]
+    assert [int(s.split(" ")[1]) for s in note["before"]] == before
+    assert [int(s.split(" ")[1]) for s in note["after"]] == after
+    assert "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
+    assert "step 2 (" in text and "step 25 (" in text and "(12 positions)" in text

@@ -1,8 +1,9 @@
 """A power cycle of the IMU over the wire (the emulator's ``Hardware.power_cycle``: the pty goes,
 and the unit comes back with its device time begun again) against a cable pull
 (``Hardware.disconnect``: the device time goes on), both 1 s into the second orientation's
-window of a short procedure at 100x, through the real drivers (Xsens: SampleTimeFine restarts,
-``time_restarts``; VectorNav: TimeStartup restarts, ``device_restarts``).
+window of a short procedure at 100x, through the real drivers (Xsens: SampleTimeFine begins again
+behind its last stamp; VectorNav: TimeStartup, declarative frames: device time and counter begin
+again -- each counted in the driver's ``device_restarts``).
 
 The power cycle: a ``device-restart`` event, the warm-up run again (whole) before the cut-off
 orientation is sampled again, and ``rigctl calibrate``'s analysis names the positions on each
@@ -61,7 +62,7 @@ def _check_rewarmed(seg, restart_t: float) -> int:
     return warm[1]
 
 
-@pytest.mark.parametrize("protocol", ["xsens", "vectornav"])
+@pytest.mark.parametrize("protocol", ["xsens", "vectornav", "frame"])
 def test_a_power_cycle_over_the_wire_warms_the_imu_again(tmp_path, protocol):
     """One ``device-restart`` event; the whole warm-up again before any measurement after it;
     every orientation complete; the analysis names the positions on each side of the restart
