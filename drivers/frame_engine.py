@@ -10,7 +10,8 @@ byte buffer ``b`` (numpy uint8), with no Python loop per frame:
 1. candidates: every ``i`` where each fixed byte matches (``b[i + o] == v`` for all (o, v));
 2. complete candidates (``i + L <= len(b)``) are checked in bulk on their (k, L) rows (a
    zero-copy view when they are back to back);
-3. overlapping valid candidates are resolved greedily, earliest first;
+3. which valid candidates are frames: :func:`resolve` (a byte-wise parser's resynchronisation,
+   independent of the read boundaries, that does not take a false frame over a good one);
 4. bytes between accepted frames form garbage regions; a region of ``g`` bytes counts
    ``max(1, round(g / L))`` bad frames, or one truncated frame when it starts with the fixed
    header and ``g < L``. With byte substitution errors this equals the number of frames hit,
@@ -90,7 +91,8 @@ MAX_LINKS = 8
 
 
 def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, final: bool,
-            header_len: int, anchored: bool) -> tuple[np.ndarray, int]:
+            header_len: int, anchored: bool, layout: np.ndarray | None = None,
+            seen: set[int] | None = None) -> tuple[np.ndarray, int]:
     """Which frame candidates of a buffer of ``n`` bytes are frames, as a byte-wise parser that
     resynchronises on the byte after a rejected preamble would take them -- whatever the read
     boundaries -- and without losing a good frame to a false one whose check passed by chance.
@@ -111,7 +113,11 @@ def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, 
        false frame in its data); a good frame inside the claim means the length was corrupted;
     2. else the next valid candidate is taken, unless it overlaps a later valid candidate, is not
        anchored, and one of those is: then it is the false one (it would cost a good frame);
-    3. a decision that needs bytes not yet there (an undecided candidate first or in the way, an
+    3. a data frame of a layout not seen before (``layout`` >= 0 not in ``seen``, when ``seen``
+       holds any) is taken only when anchored at both ends: a length byte hit to a shorter length
+       at an item boundary whose checksum passes by chance is the head of a corrupted frame, not
+       a frame of a new layout (``seen`` gets the layouts of the frames taken);
+    4. a decision that needs bytes not yet there (an undecided candidate first or in the way, an
        anchor not yet known) waits: nothing from there on is taken before them.
 
     Returns (indices of the accepted candidates, ``hold``: the first byte any decision still
@@ -124,12 +130,22 @@ def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, 
     vs, ve = starts[vi], ends[vi]
     und = np.flatnonzero(undecided)
     hold = int(starts[und[0]]) if und.size else n
+    new_layouts: set[int] = set()
+    if layout is not None:
+        lv = layout[vi]
+        lv = lv[lv >= 0]
+        if lv.size:             # one layout (the usual stream) without a sort
+            new_layouts = {int(lv[0])} if bool((lv == lv[0]).all()) else set(np.unique(lv).tolist())
+        if not new_layouts <= (seen if seen else set(lv[:1].tolist())):
+            return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout, seen)
     if vi.size < 2 or bool(np.all(vs[1:] >= ve[:-1])):
         if not vi.size:
             return vi, hold
         if hold >= ve[-1]:
             inv = np.flatnonzero(~valid & ~undecided & (ends > 0))
             if not inv.size:
+                if seen is not None:
+                    seen.update(new_layouts)
                 return vi, hold
             sh, eh = starts[inv], ends[inv]
             k = np.searchsorted(vs, sh, side="right")
@@ -137,13 +153,18 @@ def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, 
             nxt = vs[np.minimum(k, vi.size - 1)]
             in_frame = (k > 0) & (sh < ve[np.maximum(k - 1, 0)])
             if not np.any(has & (nxt < eh) & ~in_frame):
+                if seen is not None:
+                    seen.update(new_layouts)
                 return vi, hold
-    return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored)
+    return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout, seen)
 
 
-def _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored) -> tuple[np.ndarray, int]:
+def _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout=None,
+                  seen=None) -> tuple[np.ndarray, int]:
     """:func:`resolve` candidate by candidate."""
     s, e = starts.tolist(), ends.tolist()
+    lay = layout.tolist() if layout is not None else [-1] * len(s)
+    seen = seen if seen is not None else set()
     ok, und = valid.tolist(), undecided.tolist()
     m = len(s)
     at = {x: i for i, x in enumerate(s)}
@@ -214,7 +235,16 @@ def _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored
                 if any(theirs):
                     i = c + 1               # the false one: rescan from the byte after its header
                     continue
+        if lay[c] >= 0 and seen and lay[c] not in seen:
+            fwd = header_at(e[c])
+            if fwd is None:
+                return np.asarray(acc, np.int64), s[c]
+            if not (fwd and anch and s[c] == last):
+                i = c + 1                   # a new layout next to garbage: a corrupted length
+                continue
         acc.append(c)
+        if lay[c] >= 0:
+            seen.add(lay[c])
         last, anch, new_last = e[c], True, True
         i = c + 1
 

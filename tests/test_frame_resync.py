@@ -35,7 +35,7 @@ from rigctl.drivers import vectornav as V
 from rigctl.drivers import xsens as X
 from rigctl.drivers.vectornav_imu import LAYOUT as VN_LAYOUT
 from rigctl.drivers.xsens_decode import MTData2Stream
-from rigctl.sim.frame_server import EXAMPLE
+from rigctl.sim.frame_server import EXAMPLE, EXAMPLE_CSV
 from rigctl.yamlio import LocDict
 
 N_FRAMES = 5      # frames 0..4; the host is frame 1: one good frame before it, three after
@@ -309,3 +309,63 @@ def test_a_false_frame_in_a_good_frame_costs_nothing(proto: str, variant: str) -
     for chunks in feeds:
         ids, lost, messages = p.decode(chunks)
         assert (ids, lost, messages) == (want, 0, 0), f"{proto} cut at {len(chunks[0])}: {ids} lost {lost}"
+
+
+def test_a_length_hit_to_an_item_boundary_costs_its_frame_only() -> None:
+    """Xsens: the host's length byte hit to 49, the end of its Temperature item, and its data
+    such that the shortened frame (FA FF 36 31 .. Temperature, the StatusWord header's 0xE0 as
+    checksum) adds up: a valid MTData2 frame of a layout the stream never had, followed by the
+    rest of the host, not by a frame. It is the head of the corrupted host, so the host is one
+    lost frame and one counter gap, and no partial sample of it comes out."""
+    rows = stream_rows("xsens", "plain").copy()
+    host = rows[HOST]
+    short = 49
+    host[40] = (int(host[40]) - (sum(host[1:4 + short + 1].tolist()) - int(host[3]) + short)) % 256
+    _xs_reseal(host)
+    assert sum(host[1:].tolist()) % 256 == 0                       # the host is a good frame
+    bad = rows.copy()
+    bad[HOST, 3] = short
+    assert sum(bad[HOST, 1:short + 5].tolist()) % 256 == 0         # and its head now one too
+    want = [ID0 + i for i in range(N_FRAMES) if i != HOST]
+    data = bad.tobytes()
+    feeds = [[data[:k], data[k:]] for k in range(1, len(data))] + [[data[i:i + 1] for i in range(len(data))]]
+    for chunks in feeds:
+        st = MTData2Stream()
+        ids = [v for c in chunks for v in st.feed(c).counter.tolist()] + st.flush().counter.tolist()
+        c = st.counters
+        assert (ids, c.bad_frames + c.truncated_frames, c.dropped_samples, c.messages) == (want, 1, 1, 0), \
+            f"cut at {len(chunks[0])}: {ids}, {c}"
+
+
+def test_csv_one_corrupted_byte_costs_its_line_only() -> None:
+    """The declarative CSV lines (NMEA checksum; EXAMPLE_CSV): one byte of line 1 XORed at every
+    position, to 0x01-different, a line end, a '$', a carriage return, a comma, a '*': the
+    damaged sentence ('$' .. the two checksum digits) is the only one lost and counted, and a hit
+    '\\r' or '\\n' after it costs nothing (the sentence is whole; with the '\\n' gone the next line
+    is cut off at its '$'), fed whole and in random pieces (byte by byte at the sentence's ends)."""
+    spec = parse_frame_spec(LocDict({"frame": LocDict(EXAMPLE_CSV)}))
+    v = {"counter": ID0 + np.arange(N_FRAMES)}
+    rng = np.random.default_rng(9)
+    for ax in "xyz":
+        v[f"gyro_{ax}"], v[f"accel_{ax}"] = rng.normal(0, 1, N_FRAMES), rng.normal(0, 9.8, N_FRAMES)
+    v["temperature"] = rng.normal(25, 1, N_FRAMES)
+    lines = frame_decl.encode_csv(spec, v).split(b"\r\n")[:-1]
+    lines = [ln + b"\r\n" for ln in lines]
+    assert all(ln.startswith(b"$IMU,") for ln in lines)
+    head = b"".join(lines[:HOST])
+    host = lines[HOST]
+    for pos in range(len(host)):
+        for x in sorted({0x01, host[pos] ^ 0x0A, host[pos] ^ ord("$"), host[pos] ^ 0x0D, host[pos] ^ ord(","),
+                         host[pos] ^ ord("*")} - {0}):
+            bad = bytearray(host)
+            bad[pos] ^= x
+            data = head + bytes(bad) + b"".join(lines[HOST + 1:])
+            whole = pos >= len(host) - 2                   # the line end: the sentence is intact
+            want = [ID0 + i for i in range(N_FRAMES) if whole or i != HOST]
+            slow = pos < 2 or pos >= len(host) - 5             # '$I', the checksum, '\r\n': byte by byte too
+            names = ("whole", "bytes", "random") if slow else ("whole", "random")
+            for name, chunks in _feeds(data, pos * 256 + x, names).items():
+                st = frame_decl.CsvStream(spec)
+                ids = [c for ch in chunks for c in st.feed(ch)["counter"].tolist()] + st.flush()["counter"].tolist()
+                assert (ids, st.counters.bad_frames) == (want, 0 if whole else 1), \
+                    f"byte {pos} ^ 0x{x:02X} fed {name}: {ids}, {st.counters}"
