@@ -35,7 +35,7 @@ from rigctl.drivers import vectornav as V
 from rigctl.drivers import xsens as X
 from rigctl.drivers.vectornav_imu import LAYOUT as VN_LAYOUT
 from rigctl.drivers.xsens_decode import MTData2Stream
-from rigctl.sim.frame_server import EXAMPLE
+from rigctl.sim.frame_server import EXAMPLE, EXAMPLE_CSV
 from rigctl.yamlio import LocDict
 
 N_FRAMES = 5      # frames 0..4; the host is frame 1: one good frame before it, three after
@@ -335,3 +335,37 @@ def test_a_length_hit_to_an_item_boundary_costs_its_frame_only() -> None:
         c = st.counters
         assert (ids, c.bad_frames + c.truncated_frames, c.dropped_samples, c.messages) == (want, 1, 1, 0), \
             f"cut at {len(chunks[0])}: {ids}, {c}"
+
+
+def test_csv_one_corrupted_byte_costs_its_line_only() -> None:
+    """The declarative CSV lines (NMEA checksum; EXAMPLE_CSV): one byte of line 1 XORed at every
+    position, to 0x01-different, a line end, a '$', a carriage return, a comma, a '*': the
+    damaged sentence ('$' .. the two checksum digits) is the only one lost and counted, and a hit
+    '\\r' or '\\n' after it costs nothing (the sentence is whole; with the '\\n' gone the next line
+    is cut off at its '$'), fed whole and in random pieces (byte by byte at the sentence's ends)."""
+    spec = parse_frame_spec(LocDict({"frame": LocDict(EXAMPLE_CSV)}))
+    v = {"counter": ID0 + np.arange(N_FRAMES)}
+    rng = np.random.default_rng(9)
+    for ax in "xyz":
+        v[f"gyro_{ax}"], v[f"accel_{ax}"] = rng.normal(0, 1, N_FRAMES), rng.normal(0, 9.8, N_FRAMES)
+    v["temperature"] = rng.normal(25, 1, N_FRAMES)
+    lines = frame_decl.encode_csv(spec, v).split(b"\r\n")[:-1]
+    lines = [ln + b"\r\n" for ln in lines]
+    assert all(ln.startswith(b"$IMU,") for ln in lines)
+    head = b"".join(lines[:HOST])
+    host = lines[HOST]
+    for pos in range(len(host)):
+        for x in sorted({0x01, host[pos] ^ 0x0A, host[pos] ^ ord("$"), host[pos] ^ 0x0D, host[pos] ^ ord(","),
+                         host[pos] ^ ord("*")} - {0}):
+            bad = bytearray(host)
+            bad[pos] ^= x
+            data = head + bytes(bad) + b"".join(lines[HOST + 1:])
+            whole = pos >= len(host) - 2                   # the line end: the sentence is intact
+            want = [ID0 + i for i in range(N_FRAMES) if whole or i != HOST]
+            slow = pos < 2 or pos >= len(host) - 5             # '$I', the checksum, '\r\n': byte by byte too
+            names = ("whole", "bytes", "random") if slow else ("whole", "random")
+            for name, chunks in _feeds(data, pos * 256 + x, names).items():
+                st = frame_decl.CsvStream(spec)
+                ids = [c for ch in chunks for c in st.feed(ch)["counter"].tolist()] + st.flush()["counter"].tolist()
+                assert (ids, st.counters.bad_frames) == (want, 0 if whole else 1), \
+                    f"byte {pos} ^ 0x{x:02X} fed {name}: {ids}, {st.counters}"
