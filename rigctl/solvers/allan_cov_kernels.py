@@ -93,6 +93,25 @@ if HAVE_NUMBA:
         return slope * (x - xp[lo]) + fp[lo]
 
     @njit(cache=_CACHE, nogil=True)
+    def _interp_walk(x, xp, fp, j):  # pragma: no cover - compiled
+        """_interp for x that move a little from one call to the next (the lags of a pair in
+        order): the interval found by walking from the last one, ``j`` (0 <= j <= n - 2).
+        Returns (value, j)."""
+        n = xp.size
+        if x > xp[n - 1] or x == xp[n - 1]:
+            return fp[n - 1], j
+        if x < xp[0]:
+            return fp[0], j
+        while xp[j + 1] <= x:  # to xp[j] <= x < xp[j + 1], as numpy's search finds it
+            j += 1
+        while xp[j] > x:
+            j -= 1
+        if xp[j] == x:
+            return fp[j], j
+        slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+        return slope * (x - xp[j]) + fp[j], j
+
+    @njit(cache=_CACHE, nogil=True)
     def _kern_g(t, tc, series):  # pragma: no cover - compiled
         return tc * tc * _phi(abs(t) / tc, series)
 
@@ -125,13 +144,18 @@ if HAVE_NUMBA:
         d.sort()
         s = np.zeros(1)
         c = np.zeros(1)
+        jw = 0 if sign > 0 else kn.size - 2
         for i in range(nd - 1):
+            if d[i] > 400.0 * h:  # e^(-2 x / h) underflows to 0 from here on: adds nothing
+                break
             half = 0.5 * (d[i + 1] - d[i])
+            if half == 0.0:  # (kinks clipped to an end) adds 0
+                continue
             mid = 0.5 * (d[i + 1] + d[i])
             for g in range(glx.size):
                 x = mid + half * glx[g]
-                k = start + sign * x
-                _add(s, c, 0, math.exp(-2.0 * x / h) * _interp(k, kn, val) * (half * glw[g]))
+                w, jw = _interp_walk(start + sign * x, kn, val, jw)
+                _add(s, c, 0, math.exp(-2.0 * x / h) * w * (half * glw[g]))
         return amp * amp * (s[0] + c[0])
 
     @njit(cache=_CACHE, nogil=True)
@@ -158,9 +182,10 @@ if HAVE_NUMBA:
             if disc_all[p]:
                 k0 = math.ceil(k_lo)
                 k1 = math.floor(k_hi)
+                jw = 0
                 for ki in range(k0, k1 + 1):
                     k = float(ki)
-                    w = _interp(k, kn, val)
+                    w, jw = _interp_walk(k, kn, val, jw)
                     rq = 0.0
                     rn = 0.0
                     rb = 0.0
@@ -218,12 +243,14 @@ if HAVE_NUMBA:
                     if u[i] != u[m - 1]:
                         u[m] = u[i]
                         m += 1
+                jw = 0
                 for i in range(m - 1):
                     half = 0.5 * (u[i + 1] - u[i])
                     mid = 0.5 * (u[i + 1] + u[i])
                     for g in range(glx.size):
                         k = mid + half * glx[g]
-                        wq = (half * glw[g]) * _interp(k, kn, val)
+                        w, jw = _interp_walk(k, kn, val, jw)
+                        wq = (half * glw[g]) * w
                         rn = 0.0
                         rb = 0.0
                         rk = 0.0
