@@ -88,7 +88,9 @@ def adis(ref_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     gyro = np.loadtxt(d / "gyro_counts.txt.gz") * 0.05 * D2R
     accel = np.loadtxt(d / "accel_counts.txt.gz") * 0.00333 * G0
     rec = _write(tmp_path_factory.mktemp("adis") / "adis16405.h5", gyro, accel)
-    res = AA.compute(str(rec), list(AA.AXES))
+    # the excursions kept in the quiet stretches' fits (the ay stretch's hump is read below
+    # with them in; the default leaves them out: benchmarks/allan_heldout.py judges that)
+    res = AA.compute(str(rec), list(AA.AXES), excursions="report")
     return {"gyro": gyro, "accel": accel, "rec": rec, "res": res}
 
 

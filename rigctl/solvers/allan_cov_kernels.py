@@ -1,7 +1,8 @@
 """Compiled kernel for the gapped Gauss-Markov covariance pairs (numba, optional).
 
 :func:`gm_pair_sums` is the pair loop of :func:`rigctl.solvers.allan_cov._gm_gapped_loop_numpy`
-compiled: the same lags, mesh and quadrature, the kernels in the same order of operations.
+compiled: the same lags, mesh and quadrature, the kernels in the same order of operations
+(libm's log and exp where numpy has its own vectorized code: see _phi, _cube).
 For every pair of factors (m_a, m_b) and one correlation time Tc (h = Tc / tau0 samples) it
 returns the lag sums::
 
@@ -39,14 +40,16 @@ if HAVE_NUMBA:
     @njit(cache=_CACHE, nogil=True)
     def _phi(u, series):  # pragma: no cover - compiled
         """allan_cov._gm_phi at one u >= 0: the series below u = 0.5 (Horner, the same
-        coefficients), else -expm1(-u) - u + u^2 / 2 in the same steps."""
+        coefficients), else -expm1(-u) - u + u^2 / 2 in the same steps, -expm1(-u) as
+        1 - e^-u (within 1 ulp for u >= 0.5, where 1 - e^-u >= 0.39; libm's exp is twice as
+        fast as its expm1, and numpy's expm1 is not libm's either) and as 1 past u = 40
+        (where both round to 1)."""
         if u < 0.5:
             acc = series[series.size - 1]
             for i in range(series.size - 2, -1, -1):
                 acc = acc * u + series[i]
-            return acc * (u * u * u)
-        # e^-u < 2^-54 past u = 40: expm1(-u) rounds to -1 (skipped: the same number)
-        out = 1.0 if u > 40.0 else -math.expm1(-u)
+            return acc * _cube(u)
+        out = 1.0 if u > 40.0 else 1.0 - math.exp(-u)
         out -= u
         out += 0.5 * u * u
         return out
