@@ -124,6 +124,39 @@ def test_a_power_loss_during_the_warmup_runs_it_once_more_only(tmp_path):
     assert seg["t_start"][1] >= restart[0] and abs(seg["t_end"][1] - seg["t_start"][1] - WARMUP_S) < 1e-6
 
 
+def test_warmup_time_kept_before_a_restart_does_not_shorten_the_rewarm(tmp_path):
+    """An IMU temperature excursion 5 s into the warm-up pauses it and keeps its 5 s (the
+    warm-up then samples the 15 s left); a power loss later, in the second orientation: the
+    re-warm is the whole 20 s, not 20 s less the time kept before the restart."""
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    points: RunPoints
+
+    def fault(kind: str, **kw):
+        def act() -> None:
+            world = points.engine.rig.imu.world
+            world.faults.schedule(kind, world.t, 3.0, **kw)
+        return act
+
+    points = RunPoints([(sampling("warmup", after_samples=500), fault("temperature", offset_c=200.0)),
+                        (sampling("orientation", after_samples=100, finished=1), fault("imu_power"))])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0, res.message
+    assert len(points.fired) == 2
+    seg, t, events = _read(res.recording)
+    pairs = _pairs(seg)
+    warm = [i for i, p in enumerate(pairs) if p[0] == "warmup" and p[2] == "complete"]
+    assert [p[0] for p in pairs[:2]] == ["warmup", "warmup"] and len(warm) == 2, pairs
+    kept = seg["t_end"][warm[0]] - seg["t_start"][warm[0]]
+    assert 14.0 < kept < 16.0, kept                        # the first warm-up kept its first 5 s
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    assert seg["t_start"][warm[1]] >= restart
+    assert abs(seg["t_end"][warm[1]] - seg["t_start"][warm[1]] - WARMUP_S) < 1e-6
+
+
 def _crash_after_restart(tmp_path):
     """Child process: the power-loss run, SIGKILLed at the first poll after the engine saw the
     restart (paused, the re-warm not yet begun)."""
