@@ -41,7 +41,7 @@ steps:
 """
 
 
-def _run(tmp_path, fault: str, down_s: float = 3.0, on_poll=None):
+def _run(tmp_path, fault: str, down_s: float = 3.0, on_poll=None, at=None):
     cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))     # virtual clock, 100 Hz
     (tmp_path / "proc.yaml").write_text(PROC)
     proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
@@ -51,7 +51,7 @@ def _run(tmp_path, fault: str, down_s: float = 3.0, on_poll=None):
         world = points.engine.rig.imu.world
         world.faults.schedule(fault, world.t, down_s)
 
-    points = RunPoints([(sampling("orientation", after_samples=100, finished=1), inject)])
+    points = RunPoints([(at or sampling("orientation", after_samples=100, finished=1), inject)])
     if on_poll is not None:
         points.actions.append((lambda engine, pts: on_poll(engine), lambda: None))
     opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
@@ -109,6 +109,52 @@ def test_a_link_drop_does_not_warm_the_imu_again(tmp_path):
                            ("orientation", 2, "incomplete"), ("orientation", 2, "complete"),
                            ("orientation", 3, "complete")], _pairs(seg)
     assert not any(k == "device-restart" for _, k, _ in events)
+
+
+def test_a_power_loss_during_the_warmup_runs_it_once_more_only(tmp_path):
+    """Power lost 5 s into the warm-up: the warm-up starts over (whole), once -- it is the
+    re-warm -- and the event is recorded; no second warm-up before the orientations."""
+    res = _run(tmp_path, "imu_power", at=sampling("warmup", after_samples=500))
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg) == [("warmup", 0, "incomplete"), ("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    (restart,) = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    assert "in step 1 (" in restart[1] and "no step complete yet" in restart[1], restart
+    assert seg["t_start"][1] >= restart[0] and abs(seg["t_end"][1] - seg["t_start"][1] - WARMUP_S) < 1e-6
+
+
+def test_warmup_time_kept_before_a_restart_does_not_shorten_the_rewarm(tmp_path):
+    """An IMU temperature excursion 5 s into the warm-up pauses it and keeps its 5 s (the
+    warm-up then samples the 15 s left); a power loss later, in the second orientation: the
+    re-warm is the whole 20 s, not 20 s less the time kept before the restart."""
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    points: RunPoints
+
+    def fault(kind: str, **kw):
+        def act() -> None:
+            world = points.engine.rig.imu.world
+            world.faults.schedule(kind, world.t, 3.0, **kw)
+        return act
+
+    points = RunPoints([(sampling("warmup", after_samples=500), fault("temperature", offset_c=200.0)),
+                        (sampling("orientation", after_samples=100, finished=1), fault("imu_power"))])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0, res.message
+    assert len(points.fired) == 2
+    seg, t, events = _read(res.recording)
+    pairs = _pairs(seg)
+    warm = [i for i, p in enumerate(pairs) if p[0] == "warmup" and p[2] == "complete"]
+    assert [p[0] for p in pairs[:2]] == ["warmup", "warmup"] and len(warm) == 2, pairs
+    kept = seg["t_end"][warm[0]] - seg["t_start"][warm[0]]
+    assert 14.0 < kept < 16.0, kept                        # the first warm-up kept its first 5 s
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    assert seg["t_start"][warm[1]] >= restart
+    assert abs(seg["t_end"][warm[1]] - seg["t_start"][warm[1]] - WARMUP_S) < 1e-6
 
 
 def _crash_after_restart(tmp_path):

@@ -376,11 +376,11 @@ class Engine:
             self._restarts = n          # the first poll, or a driver whose counters began again
             return None
         self._restarts = n
+        self.warmup_done.clear()    # warm-up time kept from before the restart counts no more
         step, done, warm = self.current_step, self._last_done, self._warmup
         where = f"in step {step.index + 1} ({step.label})" if step is not None else "between steps"
         last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
-        plan = (f"warm-up re-runs ({warm.sample_s:g} s) before the next measurement" if warm is not None
-                else "the procedure has no warm-up to re-run")
+        plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
         self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
                                                 f"{last}; {plan}")
         nxt = f"step {step.index + 1} is sampled again" if step is not None else "the run goes on with the next step"
@@ -837,6 +837,8 @@ class Engine:
                 seg, after = sus.segment, sus     # the step is complete; the pause comes next
             self.progress.step_finished(step, seg)
             self._last_done = step
+            if step.kind == "warmup":     # done: time kept from its cut-off attempts is spent
+                self.warmup_done.pop(step.index, None)
             segments.append(seg)
             if on_step:
                 on_step(step, seg)

@@ -1,7 +1,8 @@
 """Compiled kernel for the gapped Gauss-Markov covariance pairs (numba, optional).
 
 :func:`gm_pair_sums` is the pair loop of :func:`rigctl.solvers.allan_cov._gm_gapped_loop_numpy`
-compiled: the same lags, mesh and quadrature, the kernels in the same order of operations.
+compiled: the same lags, mesh and quadrature, the kernels in the same order of operations
+(libm's log and exp where numpy has its own vectorized code: see _phi, _cube).
 For every pair of factors (m_a, m_b) and one correlation time Tc (h = Tc / tau0 samples) it
 returns the lag sums::
 
@@ -39,14 +40,16 @@ if HAVE_NUMBA:
     @njit(cache=_CACHE, nogil=True)
     def _phi(u, series):  # pragma: no cover - compiled
         """allan_cov._gm_phi at one u >= 0: the series below u = 0.5 (Horner, the same
-        coefficients), else -expm1(-u) - u + u^2 / 2 in the same steps."""
+        coefficients), else -expm1(-u) - u + u^2 / 2 in the same steps, -expm1(-u) as
+        1 - e^-u (within 1 ulp for u >= 0.5, where 1 - e^-u >= 0.39; libm's exp is twice as
+        fast as its expm1, and numpy's expm1 is not libm's either) and as 1 past u = 40
+        (where both round to 1)."""
         if u < 0.5:
             acc = series[series.size - 1]
             for i in range(series.size - 2, -1, -1):
                 acc = acc * u + series[i]
-            return acc * (u * u * u)
-        # e^-u < 2^-54 past u = 40: expm1(-u) rounds to -1 (skipped: the same number)
-        out = 1.0 if u > 40.0 else -math.expm1(-u)
+            return acc * _cube(u)
+        out = 1.0 if u > 40.0 else 1.0 - math.exp(-u)
         out -= u
         out += 0.5 * u * u
         return out
@@ -90,6 +93,25 @@ if HAVE_NUMBA:
         return slope * (x - xp[lo]) + fp[lo]
 
     @njit(cache=_CACHE, nogil=True)
+    def _interp_walk(x, xp, fp, j):  # pragma: no cover - compiled
+        """_interp for x that move a little from one call to the next (the lags of a pair in
+        order): the interval found by walking from the last one, ``j`` (0 <= j <= n - 2).
+        Returns (value, j)."""
+        n = xp.size
+        if x > xp[n - 1] or x == xp[n - 1]:
+            return fp[n - 1], j
+        if x < xp[0]:
+            return fp[0], j
+        while xp[j + 1] <= x:  # to xp[j] <= x < xp[j + 1], as numpy's search finds it
+            j += 1
+        while xp[j] > x:
+            j -= 1
+        if xp[j] == x:
+            return fp[j], j
+        slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+        return slope * (x - xp[j]) + fp[j], j
+
+    @njit(cache=_CACHE, nogil=True)
     def _kern_g(t, tc, series):  # pragma: no cover - compiled
         return tc * tc * _phi(abs(t) / tc, series)
 
@@ -122,13 +144,18 @@ if HAVE_NUMBA:
         d.sort()
         s = np.zeros(1)
         c = np.zeros(1)
+        jw = 0 if sign > 0 else kn.size - 2
         for i in range(nd - 1):
+            if d[i] > 400.0 * h:  # e^(-2 x / h) underflows to 0 from here on: adds nothing
+                break
             half = 0.5 * (d[i + 1] - d[i])
+            if half == 0.0:  # (kinks clipped to an end) adds 0
+                continue
             mid = 0.5 * (d[i + 1] + d[i])
             for g in range(glx.size):
                 x = mid + half * glx[g]
-                k = start + sign * x
-                _add(s, c, 0, math.exp(-2.0 * x / h) * _interp(k, kn, val) * (half * glw[g]))
+                w, jw = _interp_walk(start + sign * x, kn, val, jw)
+                _add(s, c, 0, math.exp(-2.0 * x / h) * w * (half * glw[g]))
         return amp * amp * (s[0] + c[0])
 
     @njit(cache=_CACHE, nogil=True)
@@ -155,9 +182,10 @@ if HAVE_NUMBA:
             if disc_all[p]:
                 k0 = math.ceil(k_lo)
                 k1 = math.floor(k_hi)
+                jw = 0
                 for ki in range(k0, k1 + 1):
                     k = float(ki)
-                    w = _interp(k, kn, val)
+                    w, jw = _interp_walk(k, kn, val, jw)
                     rq = 0.0
                     rn = 0.0
                     rb = 0.0
@@ -215,12 +243,14 @@ if HAVE_NUMBA:
                     if u[i] != u[m - 1]:
                         u[m] = u[i]
                         m += 1
+                jw = 0
                 for i in range(m - 1):
                     half = 0.5 * (u[i + 1] - u[i])
                     mid = 0.5 * (u[i + 1] + u[i])
                     for g in range(glx.size):
                         k = mid + half * glx[g]
-                        wq = (half * glw[g]) * _interp(k, kn, val)
+                        w, jw = _interp_walk(k, kn, val, jw)
+                        wq = (half * glw[g]) * w
                         rn = 0.0
                         rb = 0.0
                         rk = 0.0
