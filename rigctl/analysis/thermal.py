@@ -416,6 +416,32 @@ def _before_after(w: th.ThermalWindows, fit: th.ThermalFit) -> tuple[dict[str, A
              "unit": th.UNIT[w.sensor]}, before, after)
 
 
+#: what a bias step across a restart does to a thermal fit, and what to do
+THERMAL_RESTART = ("the model has one bias polynomial in temperature per axis, so the bias step between them is "
+                   "fitted as a temperature dependence (bias, scale and misalignment coefficients) -- run the "
+                   "soaks / ramps of one side again after a warm-up, or calibrate one side only")
+
+
+def restart_lines(path: Path, w: th.ThermalWindows) -> tuple[list[dict[str, Any]], list[str]]:
+    """The IMU restarts with thermal windows on both sides
+    (:func:`rigctl.analysis.calibration.restart_notes`, naming the chamber steps -- soaks and
+    ramps -- in effect on each side and the IMU temperature span of its windows ``w``, degC) and
+    one line per restart for the text and the reasons; no restart: ([], [])."""
+    from ..engine.procedure import CHAMBER_KINDS
+    from .calibration import _restart_lines, restart_notes
+
+    notes = restart_notes(path, within=tuple(k.encode() for k in CHAMBER_KINDS))
+    for n in notes:
+        for key, sel in (("before", w.t_end <= n["time_s"]), ("after", w.t_start >= n["time_s"])):
+            T = w.temperature[sel]
+            n[f"temperature_{key}_c"] = [float(T.min()), float(T.max())] if T.size else None
+
+    def context(n: dict[str, Any], key: str) -> str:
+        steps, T = n[f"within_{key}"], n[f"temperature_{key}_c"]
+        return (f"; in {', '.join(steps)}" if steps else "") + (f"; IMU {T[0]:.1f} .. {T[1]:.1f} degC" if T else "")
+    return notes, _restart_lines(notes, "windows", THERMAL_RESTART, context)
+
+
 def parse_degrees(spec: str | int | dict[str, int] | None) -> dict[str, int] | str:
     """Polynomial degrees from ``--thermal-degree``: None (the default 2, 2, 1), 'auto', N (every
     group), or 'B,S,M' (bias, scale, misalignment); each 0..MAX_DEGREE."""
@@ -538,17 +564,22 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                     misses.append(q["name"])
                 tv = f"   {d.value(truth[q['name']]):.5g}" + ("" if inside else " (outside)")
             lines.append(f"  {d.base:<34} {v:>14} {u:>10} {ci:>26}  {d.unit}{tv}")
+    restarts, mixed = restart_lines(p, wins["gyro"])
     payload: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
         "mode": "thermal", "reference_c": reference_c, "hysteresis_width_K": HYSTERESIS_WIDTH_K,
         "model": "y_i = sum_j dT^j b_ij + sum_k sum_j dT^j u_k M_ikj [+ k2_i u_i^2] + effects; dT = T - reference_c",
         "sensors": sensors, "truth_available": truth is not None,
-        "noise_model": {"text": noise_txt, "channels": noise_rows}}
+        "noise_model": {"text": noise_txt, "channels": noise_rows},
+        "trustworthy": not mixed and all(d["status"] == "ok" for d in sensors.values()),
+        "device_restarts": restarts, "reasons": mixed}
     if truth is not None:
         payload["truth_coverage"] = {"inside": n_in, "total": n_all, "fraction": n_in / n_all if n_all else None,
                                      "outside": misses}
         lines.append(f"\nagainst the emulator's truth: {n_in} of {n_all} 95 % intervals cover it"
                      + (f" (outside: {', '.join(misses)})" if misses else ""))
+    if mixed:
+        lines += ["", *(f"warning: {line}" for line in mixed), f"STATUS: NOT TRUSTWORTHY: {mixed[0]}"]
     return payload, "\n".join(lines), arrays
 
 
@@ -588,7 +619,8 @@ def thermal_info(data: dict[str, Any], where: Any) -> dict[str, Any]:
         raise InputError("the thermal calibration holds non-finite values", where)
     return {"thermal": sensors, "accepted": accepted, "reference_c": ref, "hysteresis_width_K": width,
             "schema_version": data.get("schema_version"), "status": "thermal",
-            "trustworthy": all(d.get("status") == "ok" for d in data["sensors"].values()),
+            "trustworthy": data.get("trustworthy", True) is not False
+            and all(d.get("status") == "ok" for d in data["sensors"].values()),
             "model": {"thermal": True, "reference_c": ref, "accepted": accepted}}
 
 
