@@ -21,6 +21,7 @@ import h5py
 import numpy as np
 
 from rigctl.analysis.calibration import calibrate
+from rigctl.analysis.thermal import thermal_info
 from rigctl.config.config import load_config
 from rigctl.config.suspenders import SuspenderSettings
 from rigctl.engine.procedure import load_procedure
@@ -108,6 +109,7 @@ def test_a_thermal_calibration_across_a_restart_is_not_trustworthy(tmp_path):
     assert "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
     assert "in step 2 (soak 10 degC); IMU" in text and "in step 15 (soak 40 degC), step 28 (soak 25 degC)" in text
     assert payload["reasons"] and "temperature dependence" in payload["reasons"][0]
+    assert thermal_info(payload, rec)["trustworthy"] is False  # rigctl apply-cal warns
 
 
 def test_a_thermal_calibration_without_a_restart_is_unchanged(tmp_path):
@@ -117,3 +119,4 @@ def test_a_thermal_calibration_without_a_restart_is_unchanged(tmp_path):
     assert payload["mode"] == "thermal" and payload["device_restarts"] == [] and payload["reasons"] == []
     assert payload["trustworthy"] is True, {s: d["status"] for s, d in payload["sensors"].items()}
     assert "NOT TRUSTWORTHY" not in text and "STATUS" not in text and "restarted" not in text
+    assert thermal_info(payload, rec)["trustworthy"] is True

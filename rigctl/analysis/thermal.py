@@ -34,6 +34,7 @@ from ..recording.recorder import utc_now
 from ..recording.recording_reader import check_finite
 from ..recording.segment_builder import _angles_at, _site, open_recording, store_calibration_results
 from ..solvers import thermal as th
+from . import restarts
 from ..solvers.segment_noise import window_revolutions
 from ..solvers.segment_stats import N_BATCHES, batch_means, batch_var
 from ..solvers.segments import about_reference
@@ -422,15 +423,14 @@ THERMAL_RESTART = ("the model has one bias polynomial in temperature per axis, s
                    "soaks / ramps of one side again after a warm-up, or calibrate one side only")
 
 
-def restart_lines(path: Path, w: th.ThermalWindows) -> tuple[list[dict[str, Any]], list[str]]:
+def restart_report(path: Path, w: th.ThermalWindows) -> tuple[list[dict[str, Any]], list[str]]:
     """The IMU restarts with thermal windows on both sides
-    (:func:`rigctl.analysis.calibration.restart_notes`, naming the chamber steps -- soaks and
+    (:func:`rigctl.analysis.restarts.restart_notes`, naming the chamber steps -- soaks and
     ramps -- in effect on each side and the IMU temperature span of its windows ``w``, degC) and
     one line per restart for the text and the reasons; no restart: ([], [])."""
     from ..engine.procedure import CHAMBER_KINDS
-    from .calibration import _restart_lines, restart_notes
 
-    notes = restart_notes(path, within=tuple(k.encode() for k in CHAMBER_KINDS))
+    notes = restarts.restart_notes(path, within=tuple(k.encode() for k in CHAMBER_KINDS))
     for n in notes:
         for key, sel in (("before", w.t_end <= n["time_s"]), ("after", w.t_start >= n["time_s"])):
             T = w.temperature[sel]
@@ -439,7 +439,7 @@ def restart_lines(path: Path, w: th.ThermalWindows) -> tuple[list[dict[str, Any]
     def context(n: dict[str, Any], key: str) -> str:
         steps, T = n[f"within_{key}"], n[f"temperature_{key}_c"]
         return (f"; in {', '.join(steps)}" if steps else "") + (f"; IMU {T[0]:.1f} .. {T[1]:.1f} degC" if T else "")
-    return notes, _restart_lines(notes, "windows", THERMAL_RESTART, context)
+    return notes, restarts.restart_lines(notes, "windows", THERMAL_RESTART, context)
 
 
 def parse_degrees(spec: str | int | dict[str, int] | None) -> dict[str, int] | str:
@@ -564,7 +564,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                     misses.append(q["name"])
                 tv = f"   {d.value(truth[q['name']]):.5g}" + ("" if inside else " (outside)")
             lines.append(f"  {d.base:<34} {v:>14} {u:>10} {ci:>26}  {d.unit}{tv}")
-    restarts, mixed = restart_lines(p, wins["gyro"])
+    notes, mixed = restart_report(p, wins["gyro"])
     payload: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
         "mode": "thermal", "reference_c": reference_c, "hysteresis_width_K": HYSTERESIS_WIDTH_K,
@@ -572,7 +572,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         "sensors": sensors, "truth_available": truth is not None,
         "noise_model": {"text": noise_txt, "channels": noise_rows},
         "trustworthy": not mixed and all(d["status"] == "ok" for d in sensors.values()),
-        "device_restarts": restarts, "reasons": mixed}
+        "device_restarts": notes, "reasons": mixed}
     if truth is not None:
         payload["truth_coverage"] = {"inside": n_in, "total": n_all, "fraction": n_in / n_all if n_all else None,
                                      "outside": misses}

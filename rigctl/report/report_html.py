@@ -631,6 +631,7 @@ def s_thermal(d: RunData, plots: dict[str, Path]) -> str:
     out = [f"<p>Reference temperature {fmt(p.get('reference_c'))} degC. "
            + (f"Against the emulator's truth: {p['truth_coverage']['inside']} of {p['truth_coverage']['total']} "
               "95 % intervals cover it." if p.get("truth_coverage") else "") + "</p>",
+           *[f"<p class=\"warn\">NOT TRUSTWORTHY: {esc(r)}</p>" for r in (p.get("reasons") or [])],
            img(plots, "thermal_parameters", "thermal parameters against temperature"),
            img(plots, "thermal_residuals", "residuals before and after against temperature")]
     for sensor, s in (p.get("sensors") or {}).items():
