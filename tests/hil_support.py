@@ -134,6 +134,29 @@ class RunPoints(NullProgress):
                 action()
 
 
+def power_loss(points: RunPoints, accel_bias_step_m_s2: np.ndarray, down_s: float = 3.0) -> Callable[[], None]:
+    """An action for :class:`RunPoints` on the in-process emulator: the IMU loses power now
+    (its ``imu_power`` fault) for ``down_s`` virtual s and comes back with its accelerometer bias
+    moved by ``accel_bias_step_m_s2`` (3,), m/s^2: a new turn-on bias."""
+    def act() -> None:
+        world = points.engine.rig.imu.world
+        world.faults.schedule("imu_power", world.t, down_s)
+        model = world.imu_model
+
+        def back() -> None:
+            model.accel_bias = model.accel_bias + np.asarray(accel_bias_step_m_s2, float)
+        world.faults.call_at(world.t + down_s, back)
+    return act
+
+
+def point_options(points: RunPoints) -> RunOptions:
+    """Run options of an in-process run watched by ``points``: 1 s hold of the suspenders, no
+    free-space floor."""
+    from rigctl.config.suspenders import SuspenderSettings
+    return RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+
+
 def pull(name: str, down_s: float = 0.05) -> Callable[[Any], None]:
     """An action for :func:`wired_run`: pull the cable of pty ``name`` for ``down_s`` wall s, then
     plug a new pty in at the same symlink. The cable is pulled in the engine's thread, so that the

@@ -203,21 +203,12 @@ def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_pat
     cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
     proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s", "discard": "0.5 s"},
                           cfg.limits)
-    points: RunPoints
-
-    def power_loss() -> None:
-        world = points.engine.rig.imu.world
-        world.faults.schedule("imu_power", world.t, 3.0)
-        model = world.imu_model
-
-        def back() -> None:
-            model.accel_bias = model.accel_bias + np.array([STEP_M_S2, 0.0, 0.0])
-        world.faults.call_at(world.t + 3.0, back)
-
-    points = RunPoints([(sampling("orientation", after_samples=100, finished=12), power_loss)])
-    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
-                      on_engine=points.on_engine)
-    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    from hil_support import point_options, power_loss
+    points = RunPoints([])
+    points.actions.append((sampling("orientation", after_samples=100, finished=12),
+                           power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]))))
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False,
+                        options=point_options(points))
     assert res.exit_code == 0, res.message
     seg, t, events = _read(res.recording)
     (restart,) = [tt for tt, k, m in events if k == "device-restart"]

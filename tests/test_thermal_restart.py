@@ -15,20 +15,15 @@ at 0.118 +- 0.002 mg/K (truth 0.05) and no warning.
 """
 from __future__ import annotations
 
-import io
-
 import h5py
 import numpy as np
 
 from rigctl.analysis.calibration import calibrate
 from rigctl.analysis.thermal import thermal_info
-from rigctl.config.config import load_config
-from rigctl.config.suspenders import SuspenderSettings
-from rigctl.engine.procedure import load_procedure
-from rigctl.run.runner import RunOptions, run_procedure
 
 from helpers import derived_config
-from hil_support import RunPoints, sampling
+from hil_support import RunPoints, point_options, run, sampling
+from hil_support import power_loss as unit_power_loss
 from test_thermal import SIM_THERMAL
 
 CYCLE = """  - orientations:
@@ -45,29 +40,15 @@ STEP_M_S2 = 2e-3 * 9.80665
 
 
 def _run(tmp_path, power_loss: bool):
-    cfg = load_config(derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal=SIM_THERMAL,
-                                     chamber__sim={"heat_max_c_per_min": 20, "cool_max_c_per_min": 20,
-                                                   "product_tau_s": 20}))
+    cfg = derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal=SIM_THERMAL,
+                         chamber__sim={"heat_max_c_per_min": 20, "cool_max_c_per_min": 20, "product_tau_s": 20})
     (tmp_path / "proc.yaml").write_text(PROC)
-    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
-    points: RunPoints
-
-    def cut() -> None:
-        world = points.engine.rig.imu.world
-        world.faults.schedule("imu_power", world.t, 3.0)
-        model = world.imu_model
-
-        def back() -> None:
-            model.accel_bias = model.accel_bias + np.array([STEP_M_S2, 0.0, 0.0])
-        world.faults.call_at(world.t + 3.0, back)
-
-    # the 7th orientation is the first position of the 40-degC soak
-    points = RunPoints([(sampling("orientation", after_samples=50, finished=6), cut)] if power_loss else [])
-    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
-                      on_engine=points.on_engine)
-    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
-    assert res.exit_code == 0, res.message
-    assert points.fired or not power_loss
+    points = RunPoints([])
+    if power_loss:  # the 7th orientation is the first position of the 40-degC soak
+        points.actions.append((sampling("orientation", after_samples=50, finished=6),
+                               unit_power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]))))
+    res, _ = run(tmp_path / "proc.yaml", cfg, tmp_path / "runs", {}, point_options(points))
+    assert bool(points.fired) == power_loss
     return res.recording
 
 
