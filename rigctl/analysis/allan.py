@@ -37,6 +37,7 @@ from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
+from ..solvers import noise_coefficients as NC
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import allan_drift as AD
 from . import allan_quiet as QS
@@ -1741,7 +1742,7 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
         return head
     what = ("the fitted total (IEEE 952 terms and the Gauss-Markov term)" if added
             else "the fitted IEEE 952 total")
-    out = head + chi2_finding(check)
+    out = head + chi2_finding(check) + bounds_sentence(check, r.get("sensor", "gyro"))
     if runs and check.get("n_outside_familywise", 1) == 0:  # failed on the chi-square alone
         out += _check_sentences(check, "the fitted total is outside the 95 % band, at every "
                                 "tau within the simultaneous (family-wise) band or 10 % of "
@@ -1834,8 +1835,45 @@ def check_notes(r: dict[str, Any]) -> list[str]:
         return []
     head = ("the fitted total is outside the 95 % band, as chance allows for a fit consistent "
             "with the curve,")
-    out = [] if not runs else _check_sentences(check, head, reasons=False)
+    out = bounds_sentence(check, r.get("sensor", "gyro"))
+    out += [] if not runs else _check_sentences(check, head, reasons=False)
     return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+
+
+def bounds_sentence(check: dict, sensor: str) -> list[str]:
+    """The terms reported only as bounds, as the self-check took them (allan_fit.
+    _admissible_completion: each in [0, its 95 % upper bound], the one point that follows the
+    curve best), in one sentence: where the check passes only thanks to them (``passes_on_bounds``),
+    which term at what fraction of its bound follows the curve at which taus; where it fails,
+    that the judged total already holds them. [] when no bounded term adds to the total."""
+    taken = {t: v for t, v in (check.get("bounded_terms") or {}).items()
+             if v.get("fraction_of_bound", 0.0) > 0}
+    if not taken:
+        return []
+    names, units = NC.TERM_NAMES[sensor], NC.FIELD_UNITS[sensor]
+
+    def term(t: str) -> str:
+        v = taken[t]
+        unit, fac = units["B" if t == "GM" else t]
+        name = "Gauss-Markov sigma_GM" if t == "GM" else names[t]
+        return (f"{name} {v['value_si'] * fac:.3g} {unit}, {v['fraction_of_bound']:.2f} of its "
+                f"bound < {v['upper95_si'] * fac:.3g} {unit}")
+
+    order = sorted(taken, key=lambda t: -taken[t]["fraction_of_bound"])
+    within = ("the terms known only as bounds taken within them (the point of [0, bound] "
+              "that follows the curve best): " + "; ".join(term(t) for t in order))
+    if check.get("passes_on_bounds"):
+        where = ", ".join(
+            f"tau {_spans([o])} s (the curve x{o['data_over_fit']:.2f} the resolved terms' total "
+            f"at {o['worst_tau_s']:.3g} s; carried by {names.get(o['term'], 'Gauss-Markov sigma_GM') if o.get('term') else 'the bounds'})"
+            for o in check.get("needs_bounds") or [])
+        return [f"self-check passed only with {within}"
+                + (f" -- they follow the curve at {where}" if where else "")
+                + "; the resolved terms alone would fail it (a term present but not resolved: "
+                "capture longer to resolve it)"]
+    if not check.get("ok"):
+        return [f"the total judged includes {within}"]
+    return []
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
