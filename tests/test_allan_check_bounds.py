@@ -10,6 +10,8 @@ smaller), the 95 % chi-square band, and the same band for the resolved terms' to
 """
 from __future__ import annotations
 
+from html import escape as html_escape
+
 import numpy as np
 from scipy.stats import chi2
 
@@ -193,3 +195,30 @@ def test_the_box_lower_ends_are_zero_and_upper_ends_the_bounds() -> None:
         assert not c.resolved
         assert 0.0 <= v["value_si"] <= c.upper95 * (1 + 1e-12)
         assert 0.0 <= v["fraction_of_bound"] <= 1.0 + 1e-12
+
+
+def test_text_and_report_say_it_in_one_spelling() -> None:
+    """A check that passes only thanks to a bounded B: the CLI's note and the report's line are
+    the same sentence, with B in deg/h at its fraction of the bound and the taus it follows
+    (values worked out here: 1.8e-5 rad/s = 3.713 deg/h, bound 4.8e-5 rad/s = 9.901 deg/h)."""
+    from rigctl.report.report_html import _bounds_html
+
+    check = {"ok": True, "passes_on_bounds": True, "outside": [],
+             "bounded_terms": {"B": {"value_si": 1.8e-5, "upper95_si": 4.8e-5,
+                                     "fraction_of_bound": 0.375},
+                               "K": {"value_si": 0.0, "upper95_si": 1e-5, "fraction_of_bound": 0.0}},
+             "needs_bounds": [{"tau_from_s": 3.95, "tau_to_s": 21.83, "worst_tau_s": 21.83,
+                               "data_over_fit": 1.58, "term": "B"}]}
+    fit = {"sensor": "gyro", "check": check}
+    notes = check_notes({"sensor": "gyro", "fit": fit})
+    assert len(notes) == 1
+    s = notes[0]
+    assert "bias_instability 3.71 deg/h, 0.38 of its bound < 9.9 deg/h" in s
+    assert "rate_random_walk" not in s  # taken at 0: not named
+    assert "tau 3.95-21.8 s" in s and "x1.58" in s and "carried by bias_instability" in s
+    html = "".join(_bounds_html({"gz": {"fit": fit}}))
+    assert html.count("<p>") == 1 and "gz: " in html
+    assert html_escape(s, quote=True) in html
+    # a check that passes on the resolved terms alone says nothing about the bounds
+    quiet = dict(check, passes_on_bounds=False)
+    assert check_notes({"sensor": "gyro", "fit": {"check": quiet}}) == []
