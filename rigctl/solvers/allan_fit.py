@@ -1050,9 +1050,9 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # to be at most its bound. Without it, the check judged the resolved terms alone and called
     # a B present but unresolved a misfit (5-minute quickstart captures, configs/sim.yaml: the
     # total below the curve at the last taus, 250 of 600 gyro checks failed). The statistic is
-    # never that of the fit with a term *beyond* its bound (seen before the bounds were capped:
-    # a B pinned at the curve's limit and dropped, the total 4x below the curve at 80 s, while
-    # the fit with B had p = 0.83 and the departure was called chance)
+    # still never that of the fit with the term unconstrained, only within its reported bound
+    # (seen: a B pinned at the curve's limit and dropped, the total 4x below the curve at 80 s,
+    # while the fit with B had p = 0.83 and the departure was called chance)
     cols_rep = [TERMS.index(t) for t in terms]
     p_rep = np.array([coeff_sq[t] for t in terms])
     ub_rep = np.array([coefs[t].upper95 ** 2 if not coefs[t].resolved else 0.0 for t in terms])
