@@ -35,7 +35,8 @@ Fault injection (side channel, not the wire): :meth:`set_imu_byte_errors`, :meth
 :meth:`release_stall`, :meth:`drop_replies`, :meth:`garble_replies`, :meth:`disconnect`,
 :meth:`trip_interlock`, :meth:`trip_following_error`, :meth:`clear_fault` (the operator at the
 table), :meth:`inject`, :meth:`pause_physics` (the hardware loop stands still, as when starved of
-CPU).
+CPU), :meth:`limit_compute` (``compute_limit=``, ``rigctl sim up --compute-limit``: the physics
+runs no faster than a given speed, as on a host too slow for ``speed``).
 Observation (side channel, for tests): ``acl.core.received`` (request lines with wall times),
 ``xsens.measurement_starts`` and, with ``imu_keep_sent=N``, ``xsens.sent`` (the last N batches of
 IMU frames put on the wire, with wall times and their float32 values).
@@ -353,14 +354,23 @@ class _Slot:
         os.replace(tmp, self.link)
 
     def disconnect(self, down_s: float) -> str:
-        old = self.endpoint
+        self.unplug()
+        time.sleep(down_s)
+        return self.replug()
+
+    def unplug(self) -> None:
+        """Pull the cable: the symlink and the pty go (:meth:`replug` puts a new one in)."""
+        self._old = self.endpoint
         # a pulled cable takes its device node with it (a USB serial adapter's /dev/ttyUSB0): the
         # symlink goes too, or a reconnect during the outage could open the old pty's number
         # already handed to another process's new pty (seen with two test runs at once)
         if self.link.is_symlink():
             self.link.unlink()
-        old.close()
-        time.sleep(down_s)
+        self._old.close()
+
+    def replug(self) -> str:
+        """Plug a new pty in at the same symlink; returns its path."""
+        old = self._old
         self.endpoint = self.make()
         self.attach(self.endpoint)
         self._point()
@@ -397,7 +407,14 @@ class Hardware:
                  acl_tcp_port: int = 0, modbus_tcp_port: int = 0, modbus_word_order: str = "big",
                  modbus_unit_id: int = 1, tick_s: float = 0.002, pulse_period_s: float | None = None,
                  seed: int = 0, imu_keep_sent: int = 0, imu_device_id: int | None = 0x03780001,
-                 imu_protocol: str = "xsens", imu_frame: dict | None = None) -> None:
+                 imu_protocol: str = "xsens", imu_frame: dict | None = None,
+                 compute_limit: float | None = None) -> None:
+        if compute_limit is not None and not compute_limit > 0:
+            raise ValueError(f"compute_limit must be positive, not {compute_limit!r}")
+        #: the physics advances at most this many times real time (None: as fast as the host
+        #: computes): a host too slow for ``speed``, on any machine (tests, docs/emulator.md)
+        self.compute_limit = compute_limit
+        self._limit: tuple[float, float, float] | None = None   # (wall, rig time, x real time)
         if imu_protocol not in IMU_PROTOCOLS:
             raise ValueError(f"imu_protocol must be one of {IMU_PROTOCOLS}, not {imu_protocol!r}")
         self.imu_protocol = imu_protocol
@@ -439,6 +456,8 @@ class Hardware:
         self.world.advance()
         self.world_clock.cap = math.inf
         self.clock = self.world_clock.clock = ScaledClock(self.speed)
+        if self.compute_limit is not None:
+            self.limit_compute(self.compute_limit)
         # turntable, ASCII
         self.acl = AclServer(self.table)
         self.acl.core = HwAclCore(self.table)
@@ -553,7 +572,11 @@ class Hardware:
                 if nt is not None and self.world.k - int(round(nt * self.world.rate_hz)) > backlog:
                     continue                                    # the stream is far behind: wait
                 with self.lock:
-                    self.world_clock.cap = self.table._t() + chunk_s
+                    cap = self.table._t() + chunk_s
+                    if self._limit is not None:             # a host slower than speed asks
+                        w0, t0, x = self._limit
+                        cap = min(cap, t0 + (time.monotonic() - w0) * x)
+                    self.world_clock.cap = cap
                     self.world.advance()
                     self.tap.pull()
                     t = self.table._t()
@@ -641,6 +664,13 @@ class Hardware:
     def _stalls(self, device: str) -> _Stall:
         return {"acl": self.acl.core, "modbus": self.modbus}[device].stalls
 
+    def limit_compute(self, speed: float | None) -> None:
+        """From now on the physics advances at most ``speed`` times real time (None: no limit),
+        as on a host that computes the rig no faster: its devices' time (table controller time,
+        IMU sample times) then falls behind the clock when ``speed`` < :attr:`speed`."""
+        self.compute_limit = speed
+        self._limit = None if speed is None else (time.monotonic(), self.table._t(), float(speed))
+
     def pause_physics(self, wall_s: float) -> None:
         """The hardware loop stops for ``wall_s`` of wall time (``wall_s * speed`` of rig time), as
         when it is starved of CPU: the world, the table's controller time and the IMU stream
@@ -660,11 +690,17 @@ class Hardware:
     def disconnect(self, name: str, down_s: float = 0.2, block: bool = True) -> str | None:
         """Pull the cable of pty ``name`` (``table-acl`` | ``imu`` | ``gnss``) for ``down_s`` wall
         seconds, then plug a new pty in at the same symlink. Returns the new pty path (None if
-        ``block`` is False: it happens in a background thread)."""
+        ``block`` is False: the cable is pulled at once, the outage and the new pty follow in a
+        background thread)."""
         slot = self.slots[name]
         if block:
             return slot.disconnect(down_s)
-        t = threading.Thread(target=slot.disconnect, args=(down_s,), name=f"disconnect-{name}", daemon=True)
+        slot.unplug()
+
+        def replug() -> None:
+            if not self._stop.wait(down_s):
+                slot.replug()
+        t = threading.Thread(target=replug, name=f"disconnect-{name}", daemon=True)
         t.start()
         self._threads.append(t)
         return None

@@ -136,11 +136,13 @@ class RunPoints(NullProgress):
 
 def pull(name: str, down_s: float = 0.05) -> Callable[[Any], None]:
     """An action for :func:`wired_run`: pull the cable of pty ``name`` for ``down_s`` wall s, then
-    plug a new pty in at the same symlink. Done in the engine's thread, so that the port is gone
-    before the engine's next poll, whatever the host's scheduling (the run's clock goes on
-    meanwhile: 0.05 s of wall time is 5 s of rig time at 100x)."""
+    plug a new pty in at the same symlink. The cable is pulled in the engine's thread, so that the
+    port is gone before the engine's next poll, whatever the host's scheduling; the outage runs
+    in the background. (Held in the engine's thread, the outage put the next poll 5 s of rig
+    time later at 100x: past the end of a 3 s window pulled 1 s into it, where a trip no longer
+    cuts off a window its samples cover, rigctl.engine.engine.Engine.execute.)"""
     def act(hw) -> None:
-        hw.disconnect(name, down_s)
+        hw.disconnect(name, down_s, block=False)
     return act
 
 

@@ -9,6 +9,7 @@ second, with no word of the speed it really ran at or what to ask for instead.
 """
 from __future__ import annotations
 
+import math
 import re
 import socket
 import subprocess
@@ -16,7 +17,7 @@ import time
 
 import yaml
 
-from helpers import ROOT, rigctl_cmd, start_process, stop_process
+from helpers import ROOT, rigctl_cmd, run_rigctl, start_process, stop_process
 
 
 def test_bad_speeds_are_one_line_each(tmp_path):
@@ -73,3 +74,86 @@ def test_a_speed_beyond_the_host_says_the_speed_run(tmp_path):
     assert 0.5 * measured <= said <= 2 * measured, (said, measured)
     assert behind > 0 and suggest <= said, (behind, suggest, said)
     assert "Traceback" not in log.read_text()
+
+
+#: a speed the emulator is held below (``--compute-limit``), on any machine: a host too slow for
+#: the 1000x asked, made deterministic
+LIMIT = 50.0
+
+SHORT_PROC = """procedure: short
+steps:
+  - orientations: {angles_deg: [[0, 0, 0], [90, 0, 0]], sample: 2 s, discard: 0.5 s,
+                   settle: {hold: 1 s, timeout: 60 s}}
+"""
+
+
+def _round_speed(x: float) -> bool:
+    """1, 2 or 5 times a power of ten."""
+    e = math.floor(math.log10(x))
+    return any(abs(x - m * 10.0 ** e) < 1e-9 * x for m in (1, 2, 5))
+
+
+def test_a_run_against_an_emulator_too_slow_for_its_speed_names_the_cause(tmp_path):
+    """``rigctl sim up --speed 1000`` on a machine that computes the rig at 50x (held there by
+    --compute-limit), and a ``rigctl run`` against its wired config: the run's one line says that
+    the rig's devices keep time at about 50x, slower than the clock's 1000x, and which --speed to
+    ask for -- before, 'imu: no stream from .../imu', a cabling fault to hunt for (the emulated
+    MTi starts its stream at the clock's time, which its physics never reaches)."""
+    proc = tmp_path / "short.yaml"
+    proc.write_text(SHORT_PROC)
+    wired = tmp_path / "wired.yaml"
+    log = tmp_path / "sim.log"
+    p, _ = start_process([*rigctl_cmd(), "sim", "up", "--speed", "1000", "--compute-limit", f"{LIMIT:g}",
+                          "--wire-config", str(wired)], log, r"(?m)^ready$")
+    try:
+        r = run_rigctl("run", str(proc), "--config", str(wired), "--out", str(tmp_path / "runs"), timeout=120)
+    finally:
+        stop_process(p)
+    out = r.stdout + r.stderr
+    assert r.returncode == 1 and "Traceback" not in out, out
+    line = [ln for ln in r.stderr.splitlines() if ln.startswith("rigctl run: failed:")]
+    assert len(line) == 1, out
+    m = re.search(r"the run did not start: the rig's devices keep time at about (\d+)x real time, slower than "
+                  r"the 1000x of the run's clock: the emulator \('rigctl sim up --speed 1000'\) cannot compute the "
+                  r"rig that fast on this machine, so its devices fall ever further behind the clock; restart it "
+                  r"with --speed ([\d.]+) or less and run with the wired config it writes \(imu: no stream from ",
+                  line[0])
+    assert m, line[0]
+    said, suggest = float(m.group(1)), float(m.group(2))
+    assert said <= 1.2 * LIMIT, said     # the table's pace: at most the limit (a loaded host: less)
+    assert suggest <= 0.8 * said and _round_speed(suggest), (suggest, said)
+    # the emulator said it as well, in its own words
+    assert "warning: --speed 1000 asked, but this machine computes the emulated rig at about" in log.read_text()
+
+
+def test_a_rig_that_falls_behind_mid_run_stops_with_the_cause(tmp_path):
+    """The emulated rig (in this process, on ptys at 100x) computes no faster than 40x from 1 s
+    into the warm-up on: the run warns once that the devices keep time slower than its clock, and
+    the window that then stays short stops it with that cause and what to do (before: '-- check
+    the IMU link, then rigctl resume the run')."""
+    from hil_support import RunPoints, hardware, sampling
+    import io
+    from rigctl.config.config import load_config
+    from rigctl.engine.procedure import load_procedure
+    from rigctl.run.runner import RunOptions, run_procedure
+    from rigctl.sim.wire_config import write_wire_config
+
+    with hardware(tmp_path, 100.0) as (hw, raw):
+        cfg = load_config(write_wire_config(tmp_path / "wired.yaml", raw, hw, table="acl", link="pty"))
+        points = RunPoints([(sampling("warmup", after_samples=100), lambda: hw.limit_compute(40.0))])
+        proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s"}, cfg.limits)
+        res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False,
+                            options=RunOptions(progress=points, on_engine=points.on_engine))
+    assert points.fired, "the limit was never applied"
+    assert res.exit_code == 1 and res.status == "failed", res.message
+    assert "still short after 3 attempts" in res.message, res.message
+    m = re.search(r"-- the rig's devices keep time at about (\d+)x real time, slower than the 100x of the run's "
+                  r"clock: .* restart it with --speed ([\d.]+) or less", res.message)
+    assert m, res.message
+    # the devices' speed over a pace window (one may span the limit's start: 40x to 100x), below
+    # the 90 % that makes it slow; the speed to ask for below 80 % of it
+    said, suggest = float(m.group(1)), float(m.group(2))
+    assert 1 <= said < 90 and suggest <= 0.8 * said, res.message
+    logged = [ln for ln in (res.run_dir / "run.log.jsonl").read_text().splitlines()
+              if '"warning"' in ln and "keep time at about" in ln]
+    assert len(logged) <= 1, logged     # said once (if before the run stopped on it)

@@ -25,6 +25,7 @@ TEMPLATE = PROJECT_ROOT / "configs" / "sim-wire.yaml"
 
 def cmd_sim_up(args: argparse.Namespace) -> int:
     speed = parse_speed(args.speed)  # before the emulator is imported (a few seconds)
+    limit = None if args.compute_limit is None else parse_compute_limit(args.compute_limit)
     from ..sim.hardware import start_hardware
     from ..sim.wire_config import write_wire_config
 
@@ -34,7 +35,8 @@ def cmd_sim_up(args: argparse.Namespace) -> int:
     with stop_on_signals() as stop:
         with start_hardware(cfg, args.speed, link_dir=args.link_dir, acl_tcp_port=args.acl_port,
                             modbus_tcp_port=args.modbus_port, imu_baudrate=args.imu_baudrate,
-                            pulse_period_s=args.pulse_period, imu_protocol=args.imu) as hw:
+                            pulse_period_s=args.pulse_period, imu_protocol=args.imu,
+                            compute_limit=limit) as hw:
             print(f"rigctl sim up: physics of {cfg_path} at {args.speed:g}x real time", flush=True)
             for name, where in hw.endpoints.items():
                 print(f"  {name:<18s} {where}", flush=True)
@@ -75,6 +77,18 @@ def parse_speed(text: str) -> float:
                          hint="give a number in that range, 1 = real time; above what this machine "
                               "computes, the clock runs slower and 'rigctl sim up' says how fast")
     return speed
+
+
+def parse_compute_limit(text: str) -> float:
+    """``--compute-limit``: a positive number of times real time; else one line (InputError)."""
+    try:
+        limit = float(text)
+    except ValueError:
+        limit = math.nan
+    if not 0.0 < limit < math.inf:
+        raise InputError(f"--compute-limit {text!r}: the most the emulated rig is computed at, in times real time",
+                         hint="give a positive number, e.g. 50; without it the rig is computed as fast as this machine can")
+    return limit
 
 
 class PaceWatch:
@@ -126,5 +140,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="IMU protocol on the pty 'imu': Xsens MT, VectorNav binary, or the declarative frame "
                          "of docs/hardware.md (example 1)")
     up.add_argument("--imu-baudrate", type=int, default=921_600, help="nominal IMU baud rate (bandwidth check)")
+    up.add_argument("--compute-limit", metavar="X", default=None,
+                    help="compute the rig at no more than X times real time, as a machine too slow for --speed "
+                         "would (to see what a run does then)")
     up.add_argument("--pulse-period", type=float, default=None, help="mark pulse every N s of rig time")
     up.set_defaults(func=cmd_sim_up)

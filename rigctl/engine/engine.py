@@ -12,7 +12,9 @@ Unattended operation: every poll is handed to the :mod:`rigctl.config.suspenders
 low, operator pause) the engine goes ``running -> pausing -> paused`` (:mod:`rigctl.engine.states`),
 stops the table, writes the step in flight as an ``incomplete`` segment (with its sample range),
 keeps polling until every suspender has been clear for the hold time, then goes back to
-``running`` and re-runs the interrupted step from its start: segments are all-or-nothing.
+``running`` and re-runs the interrupted step from its start: segments are all-or-nothing. One
+that trips after a sampling window, while its last samples are awaited, lets the samples decide:
+a window they cover is a complete step and the pause comes before the next one (:meth:`execute`).
 Memory stays flat over any step length: a sample window keeps running sums, not per-poll lists.
 """
 from __future__ import annotations
@@ -77,6 +79,37 @@ def pace_message(speed: float, achieved: float) -> str:
             "in the rig config, or 'clock: virtual' to run as fast as the host computes")
 
 
+#: Devices whose time runs at less than this fraction of the run's clock speed keep time too
+#: slowly (Engine._watch_pace, slow_rig_speed)
+PACE_SLOW_FRACTION = 0.9
+
+
+def slow_rig_message(speed: float, achieved: float) -> str:
+    """The one line saying a rig on the wire keeps time slower than the run's clock asks.
+
+    A run at ``speed`` x real time (``clock: scaled``) talks to an emulator (``rigctl sim up
+    --speed``); its devices' time -- table controller time, IMU sample times -- advancing at
+    ``achieved`` x real time < ``speed`` means the emulator cannot compute the rig that fast on
+    this machine (a real device's clock does not lag the host's by percents). Its samples then
+    fall further behind the clock every second: an IMU stream that starts only when the physics
+    reaches the clock ('no stream'), windows that come out short."""
+    got = f"{achieved:.0f}" if achieved >= 10 else f"{achieved:.2g}"
+    return (f"the rig's devices keep time at about {got}x real time, slower than the {speed:g}x of the "
+            f"run's clock: the emulator ('rigctl sim up --speed {speed:g}') cannot compute the rig that fast "
+            f"on this machine, so its devices fall ever further behind the clock; restart it with "
+            f"--speed {suggested_speed(achieved):g} or less and run with the wired config it writes")
+
+
+def slow_rig_speed(speed: float, wall_s: float, device_s: float) -> float | None:
+    """The speed the rig's devices keep time at (``device_s`` of their time in ``wall_s`` of wall
+    time), when a clock at ``speed`` x real time (> 1: an emulated rig) runs faster than that by
+    more than :data:`PACE_SLOW_FRACTION`; else None."""
+    if speed <= 1.0 or wall_s <= 0.0:
+        return None
+    achieved = device_s / wall_s
+    return achieved if achieved < PACE_SLOW_FRACTION * speed else None
+
+
 class RunError(errors.RunFailure):
     """A failure at run time (settle timeout, device fault)."""
 
@@ -90,6 +123,10 @@ class Suspend(Exception):
 
     def __init__(self, reasons: dict[str, str]) -> None:
         self.reasons = dict(reasons)
+        #: the step's segment, recorded complete, when the suspension tripped after its window
+        #: while its last samples were awaited and they cover it (Engine.execute): the pause
+        #: then comes between this step and the next, nothing is cut off
+        self.segment: Segment | None = None
         super().__init__("; ".join(reasons.values()))
 
 
@@ -180,6 +217,10 @@ class Engine:
         self._win_start: float | None = None
         self._first_row: int | None = None
         self._first_time: float | None = None  # IMU time of the window's first sample, s
+        #: a suspension that tripped while a window's last samples were awaited (_window_rows), and
+        #: the time its samples covered when they did not cover the window, s
+        self._tail_sus: Suspend | None = None
+        self._tail_covered: float | None = None
         self.last_state: TableState | None = None
         self.current_step: Step | None = None
         self.sampling_from: int | None = None  # first IMU row of the window being sampled
@@ -205,6 +246,9 @@ class Engine:
         self.pace_window_s = PACE_WINDOW_WALL_S
         self.pace_warned = False
         self._pace: tuple[float, float, float] | None = None
+        self._pace_slow: float | None = None  # the devices' speed in the last pace window, if slow
+        #: the line saying the rig's devices keep time slower than the clock (slow_rig_message), once seen
+        self.slow_rig: str | None = None
         #: wall time a table's time must stand still for, at least, to fail a settle, s
         self.still_wall_s = SETTLE_STILL_WALL_S
 
@@ -292,7 +336,12 @@ class Engine:
         an in-process emulator sets back (``slipped``, rigctl.clock.ScaledClock) because the host
         cannot compute that fast. Measured over :attr:`pace_window_s` of wall time, on the rig
         time the devices report (``t``: the table's reading; the clock itself runs ahead of
-        them by the catch-up in progress, 0.1 s of wall time = 1000 s at 10000x)."""
+        them by the catch-up in progress, 0.1 s of wall time = 1000 s at 10000x).
+
+        On a clock nobody sets back (a rig on the wire, clock ``scaled``), the devices' time
+        itself: when it runs slower than the clock (:func:`slow_rig_speed`) over two windows in a
+        row, :func:`slow_rig_message` (kept in :attr:`slow_rig`; a window that then comes out
+        short for good stops the run with it)."""
         clock = self.rig.clock
         slipped = getattr(clock, "slipped", None)
         if slipped is None or self.pace_warned:
@@ -307,11 +356,35 @@ class Engine:
         self._pace = (wall, t, slipped)
         speed = float(clock.speed)
         achieved = (t - t0) / (wall - w0)
-        if slipped > s0 and achieved < 0.9 * speed:
+        if slipped > s0 and achieved < PACE_SLOW_FRACTION * speed:
             self.pace_warned = True
             self.log("warning", pace_message(speed, achieved), speed=speed, achieved_speed=achieved)
             self.rec.add_event(t, "clock", f"rig time runs slower than {speed:g}x wall time: "
                                            f"the host computes about {achieved:.1f}x")
+            return
+        # a clock nobody sets back (a rig on the wire): the devices' time itself runs slower than
+        # the clock -- an emulator this machine cannot compute at that speed. Two windows in a
+        # row: one stall of the emulator's host (caught up at once after) is not a pace
+        slow = slow_rig_speed(speed, wall - w0, t - t0) if slipped == 0.0 else None
+        if slow is not None and self._pace_slow is not None:
+            self.pace_warned = True
+            self.slow_rig = slow_rig_message(speed, slow)   # the latest window: the pace now
+            self.log("warning", self.slow_rig, speed=speed, achieved_speed=slow)
+            self.rec.add_event(t, "clock", f"the rig's devices keep time at about {slow:.1f}x wall time, "
+                                           f"slower than the run's clock at {speed:g}x")
+        self._pace_slow = slow
+
+    def _slow_rig_now(self) -> str | None:
+        """:func:`slow_rig_message` when the devices' time ran slower than an unslipped clock over
+        the pace window in progress (at least half of :attr:`pace_window_s` long), else None."""
+        clock, state = self.rig.clock, self.last_state
+        if self._pace is None or state is None or getattr(clock, "slipped", None) != 0.0:
+            return None
+        w0, t0, _ = self._pace
+        wall = time.monotonic() - w0
+        speed = float(clock.speed)
+        slow = slow_rig_speed(speed, wall, float(state.time) - t0) if wall >= 0.5 * self.pace_window_s else None
+        return slow_rig_message(speed, slow) if slow is not None else None
 
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""
@@ -521,8 +594,20 @@ class Engine:
         # ``end`` by their wall time x speed (20 ms of a loaded host = 2 s of rig time at 100x);
         # the samples after ``end`` belong to no window, as under the virtual clock
         t_end = min(clock.now(), end)
+        self._tail_sus = None
         first, last, t_last = self._window_rows(t_start, t_end)
-        self._check_window(step, t_start, t_end, first, last, t_last)
+        tail, self._tail_sus = self._tail_sus, None
+        if tail is None:
+            self._check_window(step, t_start, t_end, first, last, t_last)
+        else:   # tripped while the window's last samples were awaited: they decide
+            want, n, _, covered, short = self._window_cover(t_start, t_end, first, last, t_last)
+            if not self._tail_whole(tail, want, n, short):   # they stopped inside it: as
+                self._tail_covered = covered                        # a trip while sampling
+                raise tail
+            self.rec.add_event(clock.now(), "info",
+                               f"step {step.index + 1} ({step.label}): {', '.join(tail.reasons)} tripped "
+                               f"after its window, whose {n} samples cover it ({covered:.1f} s of {want:g} s): "
+                               "the step is complete; the run pauses before the next step")
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
@@ -532,6 +617,9 @@ class Engine:
         self.rec.add_segment(seg)
         self.current_step = None
         self.sampling_from = None
+        if tail is not None:
+            tail.segment = seg
+            raise tail
         return seg
 
     def _track_block(self, row0: int, times: np.ndarray) -> None:
@@ -548,13 +636,17 @@ class Engine:
         Samples reach the engine with some latency (a serial link, a decoder batch), so the
         window is cut by the samples' own times, not by which poll delivered them; the engine
         keeps polling until a sample at or after ``t_end`` has arrived (bounded wait: 2 s of rig
-        time, at least :data:`WINDOW_WAIT_WALL_S` of wall time)."""
+        time, at least :data:`WINDOW_WAIT_WALL_S` of wall time). A suspender that trips meanwhile
+        is kept in ``_tail_sus`` and the wait goes on (:meth:`execute` decides with the samples)."""
         clock = self.rig.clock
         speed = float(getattr(clock, "speed", 1.0))
         wait_until = clock.now() + max(2.0, 4 * self.sample_poll_s, WINDOW_WAIT_WALL_S * speed)
         while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
             clock.sleep(self.settle_poll_s)
-            self.poll()
+            try:
+                self.poll(check=self._tail_sus is None)
+            except Suspend as sus:  # the window is over: its samples decide (execute), so the
+                self._tail_sus = sus  # wait goes on for those still in flight
         track, first = self._track, self._first_row
         self._track, self._win_start, self._first_row = None, None, None
         if first is None:  # no sample inside the window arrived
@@ -573,6 +665,32 @@ class Engine:
                 break
         return first, last, t_last
 
+    def _window_cover(self, t_start: float, t_end: float, first: int, last: int,
+                      t_last: float) -> tuple[float, int, float, float, bool]:
+        """(window asked for s, samples n, rate Hz (0: unknown), time covered s, short) of the
+        window's rows [first, last) (see :meth:`_check_window`); forgets the window's first time."""
+        want = t_end - t_start
+        n = last - first
+        rate = self.imu_rate_hz
+        if rate <= 0.0:    # no configured rate: the window's own mean sample spacing
+            rate = (n - 1) / (t_last - self._first_time) if n > 1 and t_last > self._first_time else 0.0
+        period = 1.0 / rate if rate > 0.0 else 0.0
+        covered = 0.0 if n == 0 or math.isnan(t_last) else t_last - self._first_time + period
+        self._first_time = None
+        short = not (n > 0 and covered >= want - SHORT_WINDOW_TOL_PERIODS * period - TIME_EPS)
+        return want, n, rate, covered, short
+
+    def _tail_whole(self, tail: Suspend, want: float, n: int, short: bool) -> bool:
+        """Whether a window whose last samples were awaited when ``tail`` tripped is whole: its
+        samples cover it (:meth:`_window_cover`) and, when ``imu-gap`` tripped (a counter gap may
+        lie inside it), it holds the samples its length takes at the configured rate (no rate
+        configured: it cannot tell, and is not)."""
+        if short:
+            return False
+        if "imu-gap" not in tail.reasons:
+            return True
+        return self.imu_rate_hz > 0.0 and n >= want * self.imu_rate_hz - SHORT_WINDOW_TOL_PERIODS
+
     def _check_window(self, step: Step, t_start: float, t_end: float, first: int, last: int,
                       t_last: float) -> None:
         """Refuse a window whose samples cover less than it: raise Suspend (the step is sampled
@@ -583,15 +701,8 @@ class Engine:
         period); short when ``covered < (t_end - t_start) - SHORT_WINDOW_TOL_PERIODS * T``, or
         when no sample arrived at all. Samples dropped inside the window (counter gaps) do not
         shorten it: they are recorded as gaps, and a long one trips the 'imu-gap' suspender."""
-        want = t_end - t_start
-        n = last - first
-        rate = self.imu_rate_hz
-        if rate <= 0.0:    # no configured rate: the window's own mean sample spacing
-            rate = (n - 1) / (t_last - self._first_time) if n > 1 and t_last > self._first_time else 0.0
-        period = 1.0 / rate if rate > 0.0 else 0.0
-        covered = 0.0 if n == 0 or math.isnan(t_last) else t_last - self._first_time + period
-        self._first_time = None
-        if n > 0 and covered >= want - SHORT_WINDOW_TOL_PERIODS * period - TIME_EPS:
+        want, n, rate, covered, short = self._window_cover(t_start, t_end, first, last, t_last)
+        if not short:
             return
         tries = self.short_windows[step.index] = self.short_windows.get(step.index, 0) + 1
         expected = f" of {want * rate:.0f}" if rate > 0.0 else ""
@@ -600,8 +711,9 @@ class Engine:
         self.rec.add_event(self.rig.clock.now(), "short-window", f"{what} (attempt {tries})")
         if tries >= SHORT_WINDOW_TRIES:
             self._cut_off(step)
+            todo = self.slow_rig or self._slow_rig_now() or "check the IMU link, then 'rigctl resume' the run"
             raise RunError(f"{what}; still short after {tries} attempts, run stopped "
-                           f"[{step.file}:{step.line}] -- check the IMU link, then 'rigctl resume' the run")
+                           f"[{step.file}:{step.line}] -- {todo}")
         raise Suspend({"imu-window": f"{what}; sampling it again"})
 
     def run(self, steps: list[Step], start: int = 0,
@@ -637,16 +749,24 @@ class Engine:
                     continue
             self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
             self.progress.step_started(step)
+            after: Suspend | None = None
             try:
                 seg = self.execute(self._warmup_left(step))
             except Suspend as sus:
-                self.suspend(step, sus)
-                continue
+                if sus.segment is None:
+                    self.suspend(step, sus)
+                    continue
+                seg, after = sus.segment, sus     # the step is complete; the pause comes next
             self.progress.step_finished(step, seg)
             segments.append(seg)
             if on_step:
                 on_step(step, seg)
             n += 1
+            if after is not None and n < len(motion):
+                self.suspend(motion[n], after, between_steps=True)
+            elif after is not None:
+                self.log("warning", f"{', '.join(after.reasons)} after the last window: {after}; "
+                                    "every step is complete")
         return segments
 
     # -- suspension ------------------------------------------------------------------------------
@@ -694,8 +814,11 @@ class Engine:
             if set(sus.reasons) & set(self.POWER_SUSPENDERS):
                 if self.warmup_done.pop(step.index, None):
                     self.log("info", "warm-up starts over: the IMU may have lost power")
-            elif self._win_start is not None:
-                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + clock.now() - self._win_start
+            elif self._tail_covered is not None or self._win_start is not None:
+                # the time sampled; cut off while its last samples were awaited: the time they cover
+                done = self._tail_covered if self._tail_covered is not None else clock.now() - self._win_start
+                self.warmup_done[step.index] = self.warmup_done.get(step.index, 0.0) + done
+        self._tail_covered = None
         self.n_suspensions += 1
         names = ", ".join(sus.reasons)
         message = str(sus)

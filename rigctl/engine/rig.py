@@ -22,6 +22,7 @@ every reader thread joined -- also when a connect fails half-way.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from typing import Any
@@ -29,8 +30,8 @@ from typing import Any
 from ..clock import make_clock
 from ..config.config import RigConfig
 from ..devices import Clock, LinkLost, NoPulses
-from .engine import Rig
-from ..errors import InputError
+from .engine import Rig, slow_rig_message, slow_rig_speed
+from ..errors import DeviceError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -101,18 +102,50 @@ def build_chamber(cfg: RigConfig, clock: Clock):
     return None
 
 
+def _table_mark(table: Any) -> tuple[float, float] | None:
+    """(wall time, the table's time) now; None when the table cannot be read."""
+    try:
+        return time.monotonic(), float(table.read().time)
+    except (LinkLost, OSError, RuntimeError, ValueError):
+        return None
+
+
+def _raise_if_slow(cfg: RigConfig, clock: Clock, devices: list[Any], mark: tuple[float, float] | None,
+                   exc: LinkLost) -> None:
+    """A device that did not come up (the IMU's 'no stream') on a clock faster than real time:
+    when the table's time ran slower than the clock meanwhile, the cause is an emulator this
+    machine cannot compute that fast, not the link -- raise DeviceError saying so and what to do
+    (:func:`rigctl.engine.engine.slow_rig_message`)."""
+    speed = float(getattr(clock, "speed", 1.0))
+    if mark is None or not devices or speed <= 1.0:
+        return
+    now = _table_mark(devices[0])
+    if now is None:
+        return
+    achieved = slow_rig_speed(speed, now[0] - mark[0], now[1] - mark[1])
+    if achieved is not None:
+        raise DeviceError(f"{slow_rig_message(speed, achieved)} ({exc})") from exc
+
+
 @contextmanager
 def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
     clock = make_clock(cfg.clock, cfg.speed)
     with ExitStack() as stack:
-        devices = []
+        devices: list[Any] = []
+        pace: tuple[float, float] | None = None    # (wall, table time) once the table answers
         for build in (build_table, build_imu, build_pulses):
             dev = build(cfg, clock, devices[1]) if build is build_pulses else build(cfg, clock)
             if hasattr(dev, "close"):
                 stack.callback(dev.close)
             if hasattr(dev, "connect"):
-                dev.connect()
+                try:
+                    dev.connect()
+                except LinkLost as exc:
+                    _raise_if_slow(cfg, clock, devices, pace, exc)
+                    raise
             devices.append(dev)
+            if build is build_table:
+                pace = _table_mark(dev)
         table, imu, pulses = devices
         chamber = build_chamber(cfg, clock)
         if chamber is not None:

@@ -232,6 +232,11 @@ class RunSignals:
         self.names.append(signal.Signals(signum).name)
         if not self.analysing or (self.pending and not self._again):
             return  # a second signal while the first is handled changes nothing
+        if self._again and isinstance(sys.exc_info()[1], AnalysisInterrupted):
+            # a re-delivery that lands while the interruption is being handled (between its
+            # raise and _analyse clearing ``pending``): taken already, not raised again
+            self._again = False
+            return
         self._again = False
         if not self.pending:
             self.pending = True
