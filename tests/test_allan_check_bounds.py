@@ -219,6 +219,16 @@ def test_text_and_report_say_it_in_one_spelling() -> None:
     html = "".join(_bounds_html({"gz": {"fit": fit}}))
     assert html.count("<p>") == 1 and "gz: " in html
     assert html_escape(s, quote=True) in html
-    # a check that passes on the resolved terms alone says nothing about the bounds
-    quiet = dict(check, passes_on_bounds=False)
+    # a check that passes on the resolved terms alone still names the taus the bounds follow
+    alone = dict(check, passes_on_bounds=False)
+    note = check_notes({"sensor": "gyro", "fit": {"check": alone}})
+    assert len(note) == 1 and note[0].startswith("the resolved terms alone leave the band at "
+                                                 "tau 3.95-21.8 s")
+    # ... and with no such taus says nothing about the bounds
+    quiet = dict(alone, needs_bounds=[])
     assert check_notes({"sensor": "gyro", "fit": {"check": quiet}}) == []
+    # a failed check says that the total it judged already held them
+    failed = dict(check, ok=False, passes_on_bounds=False, chi2_beyond_99=True, chi2=90.0,
+                  dof=30, p_value=1e-8)
+    w = " ".join(check_warnings({"sensor": "gyro", "fit": {"check": failed}}))
+    assert "the total judged includes the terms known only as bounds" in w

@@ -1862,17 +1862,22 @@ def bounds_sentence(check: dict, sensor: str) -> list[str]:
     order = sorted(taken, key=lambda t: -taken[t]["fraction_of_bound"])
     within = ("the terms known only as bounds taken within them (the point of [0, bound] "
               "that follows the curve best): " + "; ".join(term(t) for t in order))
+    carried = {t: "Gauss-Markov sigma_GM" if t == "GM" else names[t] for t in taken}
+    where = ", ".join(f"tau {_spans([o])} s (the curve x{o['data_over_fit']:.2f} the resolved "
+                      f"terms' total at {o['worst_tau_s']:.3g} s; carried by "
+                      f"{carried.get(o.get('term'), 'the bounds')})"
+                      for o in check.get("needs_bounds") or [])
     if check.get("passes_on_bounds"):
-        where = ", ".join(
-            f"tau {_spans([o])} s (the curve x{o['data_over_fit']:.2f} the resolved terms' total "
-            f"at {o['worst_tau_s']:.3g} s; carried by {names.get(o['term'], 'Gauss-Markov sigma_GM') if o.get('term') else 'the bounds'})"
-            for o in check.get("needs_bounds") or [])
         return [f"self-check passed only with {within}"
                 + (f" -- they follow the curve at {where}" if where else "")
                 + "; the resolved terms alone would fail it (a term present but not resolved: "
                 "capture longer to resolve it)"]
     if not check.get("ok"):
-        return [f"the total judged includes {within}"]
+        return [f"the total judged includes {within}"
+                + (f"; they follow the curve at {where}, where the resolved terms alone leave "
+                   "the band" if where else "")]
+    if where:
+        return [f"the resolved terms alone leave the band at {where}; the check took {within}"]
     return []
 
 
