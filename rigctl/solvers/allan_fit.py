@@ -1044,8 +1044,8 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                                     if gm_coefs and not gm_coefs[0].sigma.resolved else None))
         if gm_term is not None and gm_crb:  # the term's own figures
             gm_term["crb"] = gm_crb
-    # the goodness of fit of the model as reported (the supported terms, statistical
-    # covariance) -- completed by the terms reported only as bounds, each within its bound
+    # the decision is taken on the model as reported (the supported terms, statistical
+    # covariance) completed by the terms reported only as bounds, each within its bound
     # (_admissible_completion): a bounded term's part of the total is not known to be 0, only
     # to be at most its bound. Without it, the check judged the resolved terms alone and called
     # a B present but unresolved a misfit (5-minute quickstart captures, configs/sim.yaml: the
@@ -1082,17 +1082,16 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     check["front_excluded"] = ({"n_taus": int(front), "tau_from_s": float(tau_front[0]),
                                 "tau_to_s": float(tau_front[front - 1]),
                                 "top_tau_s": float(tau_front[front])} if front else None)
-    r_rep = _whitened_residual(full_a, s2, e, cov_terms, cols_rep, p_all)[0]
-    dof_rep = max(1, tau.size - int(np.count_nonzero(p_all > 0)))
+    # the statistic of the model as reported (the resolved terms), as before ...
+    r_rep = _whitened_residual(full_a, s2, e, cov_terms, cols_rep, p_rep)[0]
+    dof_rep = max(1, tau.size - int(np.count_nonzero(p_rep > 0)))
     chi_rep = float(r_rep @ r_rep)
     p_value = float(chi2.sf(chi_rep, dof_rep))
-    # the resolved terms alone (the statistic before the completion), for the record: a check
-    # that passes only because a bounded term may contribute says so (``passes_on_bounds``)
-    r_res = _whitened_residual(full_a, s2, e, cov_terms, cols_rep, p_rep)[0]
-    dof_res = max(1, tau.size - int(np.count_nonzero(p_rep > 0)))
-    p_res = float(chi2.sf(float(r_res @ r_res), dof_res))
-    check["resolved_only"].update({"chi2": float(r_res @ r_res), "dof": dof_res,
-                                   "p_value": p_res, "ok": bool(p_res >= MODEL_ERROR_P)})
+    # ... and of the completed total, which decides (``completed``)
+    r_c = _whitened_residual(full_a, s2, e, cov_terms, cols_rep, p_all)[0]
+    dof_c = max(1, tau.size - int(np.count_nonzero(p_all > 0)))
+    p_c = float(chi2.sf(float(r_c @ r_c), dof_c))
+    check["completed"].update({"chi2": float(r_c @ r_c), "dof": dof_c, "p_value": p_c})
     check.update({"chi2": chi_rep, "dof": dof_rep, "p_value": p_value,
                   "chi2_before_selection": list(chi2_stat), "model_error_rel": model_err})
     # the fit passes when no informative tau is off, or when the reported model describes the
@@ -1104,13 +1103,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # informative tau is inside its family-wise band (the OCXO record's quiet half, tests/data:
     # every tau inside, chi-square 179.6 on 37 dof): ``ok`` is false, ``chi2_beyond_99`` says why and
     # ``chi2_carried_by`` names the run of taus that carries the chi-square
-    beyond = bool(p_value < MODEL_ERROR_P)
-    check["ok"] = bool((check["n_outside_familywise"] == 0 or p_value >= MODEL_ERROR_P)
+    # ... all of it on the completed total (the resolved terms and the bounded ones within
+    # their bounds, _admissible_completion); ``passes_on_bounds``: the resolved terms alone
+    # would have failed it
+    beyond = bool(p_c < MODEL_ERROR_P)
+    check["ok"] = bool((check["completed"]["n_outside_familywise"] == 0 or p_c >= MODEL_ERROR_P)
                        and not beyond)
     check["chi2_beyond_99"] = beyond
-    check["chi2_carried_by"] = (chi2_carrier(tau, s2, a_rep @ p_all, r_rep)
-                                if beyond else None)
-    check["passes_on_bounds"] = bool(check["ok"] and not check["resolved_only"]["ok"])
+    check["chi2_carried_by"] = (chi2_carrier(tau, s2, a_rep @ p_all, r_c) if beyond else None)
+    check["passes_on_bounds"] = bool(check["ok"] and (p_value < MODEL_ERROR_P))
     model = "IEEE 952 model" + (" + a first-order Gauss-Markov term" if tc_fit is not None else "")
     out = {"method": f"joint generalized least squares ({model}, covariance of the "
                      "sigma^2 estimates across taus)" if cov_terms is not None else
@@ -1742,13 +1743,16 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
 
         sigma^2_fit(tau) = sum_resolved p_j A_j(tau) [+ GM] + sum_bounded p_j* A_j(tau)
 
-    Everything above is judged on that completed total. ``resolved_only`` records the same
-    counts for the resolved terms alone (the total before the completion), and
-    ``needs_bounds`` the runs of informative taus where the resolved terms alone leave the
-    band (by more than DEPARTURE_REL) and the completed total does not: each with the bounded
-    term that carries most of the completion at its worst tau (``term``) and the data over the
-    resolved total there. A tau is called outside only where the completed total leaves the
-    band, i.e. where the admissible completion does not bring it in."""
+    The runs and counts above stay those of the resolved total (the total reported, plotted
+    and exported, whose bumps and dips the pipeline reads: Gauss-Markov candidate,
+    stationarity, quiet stretch); ``completed`` holds the counts of the completed total, which
+    decide (:func:`_fit_terms`: a tau is outside only where the admissible completion does not
+    bring the total into the band). A run of the resolved total that the completed total
+    follows names the bounded term that carries most of the completion at its worst tau
+    (``followed_by_bound``, else None); ``needs_bounds`` lists the runs of informative taus
+    where the resolved total leaves the band (by more than DEPARTURE_REL, or the family-wise
+    band) and the completed total does not, each with that term (``term``) and the data over
+    the resolved total at its worst tau."""
     tau = np.asarray(tau, dtype=float)
     dev = np.asarray(adev, dtype=float)
     e = np.asarray(edf, dtype=float)
@@ -1785,8 +1789,19 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
                                  | ((f > hi_fw) & (dev < (1.0 - DEPARTURE_REL) * f)))}
 
     mc = misses(fit)
-    above, below = mc["above"], mc["below"]
-    strict_above, strict_below = mc["strict_above"], mc["strict_below"]
+    # the runs, counts and sentences are those of the resolved total (the one reported, plotted
+    # and exported, and the one the pipeline reads the bumps and dips of); the decision's counts
+    # are the completed total's (``completed``), and a run the completion brings into the band
+    # says which bounded term follows it (``followed_by_bound``)
+    mr = misses(fit_res) if parts.shape[1] else mc
+    above, below = mr["above"], mr["below"]
+    strict_above, strict_below = mr["strict_above"], mr["strict_below"]
+    inside_c = ~(mc["above"] | mc["below"] | mc["fw"])
+    names = list(bounded_names or [])
+
+    def carrier(k: int) -> str | None:
+        return names[int(np.argmax(parts[k]))] if names and parts.shape[1] else None
+
     runs = []
     i = 0
     while i < n:
@@ -1795,39 +1810,36 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
             j = i
             while j + 1 < n and (above[j + 1] if side else below[j + 1]):
                 j += 1
-            ratio = dev[i:j + 1] / np.maximum(fit[i:j + 1], 1e-300)
+            ratio = dev[i:j + 1] / np.maximum(fit_res[i:j + 1], 1e-300)
             k = i + int(np.argmax(np.abs(np.log(ratio))))
             runs.append({"tau_from_s": float(tau[i]), "tau_to_s": float(tau[j]),
                          "side": "data above the fit" if side else "data below the fit",
                          "worst_tau_s": float(tau[k]), "data_over_fit": float(ratio[k - i]),
-                         "likely": _likely_reason(tau, dev, i, j, bool(side))})
+                         "likely": _likely_reason(tau, dev, i, j, bool(side)),
+                         "followed_by_bound": (carrier(k) if parts.shape[1]
+                                               and np.all(inside_c[i:j + 1]) else None)})
             i = j + 1
         else:
             i += 1
     # the taus outside the band by less than DEPARTURE_REL: named too (as runs, in one
     # sentence), so that every informative tau where the total leaves the band is named
     small = (strict_above | strict_below) & ~(above | below)
-    small_runs = _mask_runs(small, tau, dev, fit)
+    small_runs = _mask_runs(small, tau, dev, fit_res)
     # past the well-determined taus: a band informative again (its EDF from a noise ID that
     # changed on a handful of averages) is not judged, but a tau whose fitted total leaves it
     # is named (consumer_mems 12 h ax, --taus all: EDF 15.9 at 2621 s, 17.5 at 2949 s, the
     # total x1.75 above the curve there, in the tail of a chance dip the check names)
-    past = (hi <= INFORMATIVE_RATIO * lo) & ~informative & ((fit < lo) | (fit > hi))
-    past_runs = _mask_runs(past, tau, dev, fit)
+    past = (hi <= INFORMATIVE_RATIO * lo) & ~informative & ((fit_res < lo) | (fit_res > hi))
+    past_runs = _mask_runs(past, tau, dev, fit_res)
     first_uninf = np.flatnonzero(~informative)
     n_out = int(np.count_nonzero(above | below))
-    # the resolved terms alone, and the taus where only the bounded terms' part brings the
-    # total into the band
-    mr = misses(fit_res) if parts.shape[1] else mc
     needs = []
-    names = list(bounded_names or [])
-    for o in _mask_runs((mr["above"] | mr["fw"]) & ~(above | mc["fw"]), tau, dev, fit_res):
-        k = int(np.flatnonzero(tau == o["worst_tau_s"])[0])
-        o["term"] = names[int(np.argmax(parts[k]))] if names and parts.shape[1] else None
+    for o in _mask_runs((mr["above"] | mr["fw"]) & inside_c, tau, dev, fit_res):
+        o["term"] = carrier(int(np.flatnonzero(tau == o["worst_tau_s"])[0]))
         needs.append(o)
     return {"ok": n_out == 0, "n_informative": n_inf,
-            "n_outside_familywise": int(np.count_nonzero(mc["fw"])),
-            "n_outside_familywise_band": int(np.count_nonzero(mc["fw_band"])),
+            "n_outside_familywise": int(np.count_nonzero(mr["fw"])),
+            "n_outside_familywise_band": int(np.count_nonzero(mr["fw_band"])),
             "familywise_alpha": CHECK_ALPHA,
             "m_eff": m,
             "n_outside": n_out, "outside": runs, "outside_small": small_runs,
@@ -1836,8 +1848,9 @@ def self_check(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, coeff_sq: dic
             "band": "95 % chi-square (EDF)",
             "n_outside_band": int(np.count_nonzero(strict_above | strict_below)),
             "informative_ratio": INFORMATIVE_RATIO, "departure_rel": DEPARTURE_REL,
-            "resolved_only": {"n_outside": int(np.count_nonzero(mr["above"] | mr["below"])),
-                              "n_outside_familywise": int(np.count_nonzero(mr["fw"]))},
+            "completed": {"n_outside": int(np.count_nonzero(mc["above"] | mc["below"])),
+                          "n_outside_familywise": int(np.count_nonzero(mc["fw"])),
+                          "n_outside_familywise_band": int(np.count_nonzero(mc["fw_band"]))},
             "needs_bounds": needs}
 
 
