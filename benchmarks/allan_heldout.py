@@ -593,9 +593,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", help="write the files and recordings here (default: a temporary dir)")
     ap.add_argument("--only", help="comma-separated capture names")
-    ap.add_argument("--excursions", choices=("report", "exclude"), default="report",
-                    help="rigctl allan --excursions (exclude: the excursions inside a quiet "
-                         "stretch left out of its fit; the stretch read here over its pieces)")
+    from rigctl.analysis.allan_quiet import DEFAULT_EXCURSIONS, EXCURSION_MODES
+
+    ap.add_argument("--excursions", choices=EXCURSION_MODES, default=DEFAULT_EXCURSIONS,
+                    help="rigctl allan --excursions, passed explicitly (default: rigctl's, "
+                         f"{DEFAULT_EXCURSIONS}; exclude: the excursions inside a quiet stretch "
+                         "left out of its fit, the stretch read here over its pieces)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: judge the `rigctl allan --json` results already in DIR "
                          "(and the recordings there, not imported again)")
@@ -625,7 +628,7 @@ def main() -> None:
             if not (args.reuse and js.is_file()):
                 rigctl("allan", str(cap["rec"]), "--db", "none", "--json", str(js),
                        *(["--taus", "octave"] if taus == "octave" else []),
-                       *(["--excursions", args.excursions] if args.excursions != "report" else []))
+                       "--excursions", args.excursions)
             res = json.loads(js.read_text())["axes"]
             for ax, y in cap["si"].items():
                 r = res[ax]

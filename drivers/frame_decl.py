@@ -161,7 +161,9 @@ def nmea_checksum(body: bytes) -> int:
 
 class CsvStream:
     """Streaming decoder of CSV lines: ``feed(bytes) -> dict`` as the binary decoder's; counts
-    lines that fail (wrong column count, not a number, checksum) as bad frames."""
+    lines that fail (wrong column count, not a number, checksum) as bad frames, by the bytes
+    between good lines (:meth:`_count_gap`), counted when the next good line comes. With an
+    NMEA checksum a line is also cut before each ``$`` (:meth:`_pieces`)."""
 
     def __init__(self, spec: FrameSpec) -> None:
         self.spec = spec
@@ -169,6 +171,8 @@ class CsvStream:
         self._buf = b""
         self._synced = False
         self._abs = 0
+        self._gap = 0       # bytes since the last good line that belong to none
+        self._ref = 0       # bytes of the last good line (its line end included)
         self.cols = [f for f in spec.fields]
 
     def _line(self, line: bytes) -> list[float] | None:
@@ -176,9 +180,9 @@ class CsvStream:
         if s.checksum == "nmea":
             if b"*" not in line or not line.startswith(b"$"):
                 return None
-            body, ck = line[1:].rsplit(b"*", 1)
-            try:
-                if int(ck[:2], 16) != nmea_checksum(body) or len(ck) != 2:
+            body, ck = line[1:].split(b"*", 1)
+            try:            # the sentence ends with the two hex digits (bytes after them: a hit line end)
+                if len(ck) < 2 or int(ck[:2], 16) != nmea_checksum(body):
                     return None
             except ValueError:
                 return None
@@ -195,6 +199,27 @@ class CsvStream:
         except ValueError:
             return None
 
+    def _pieces(self, raw: bytes) -> list[bytes]:
+        """A line cut before every ``$`` after its first byte: NMEA sentences start with ``$``,
+        so a line end lost to a byte error merges two lines, and the second is still whole."""
+        if self.spec.checksum != "nmea" or raw.find(b"$", 1) < 0:
+            return [raw]
+        out, i = [], 0
+        while (j := raw.find(b"$", i + 1)) >= 0:
+            out.append(raw[i:j])
+            i = j
+        return out + [raw[i:]]
+
+    def _count_gap(self) -> None:
+        """Bytes between good lines count as lines lost by their length, ``round(g / last
+        line)``: a damaged sentence leaves all its bytes, whatever the error made (a line end, a
+        ``$``), and bytes after a whole sentence's checksum (a hit line end) are no line."""
+        if self._gap:
+            c = self.counters
+            c.garbage_bytes += self._gap
+            c.bad_frames += int(round(self._gap / self._ref)) if self._ref else 1
+            self._gap = 0
+
     def feed(self, data: bytes, final: bool = False) -> dict[str, np.ndarray]:
         buf = self._buf + bytes(data)
         lines = buf.split(b"\n")
@@ -203,20 +228,25 @@ class CsvStream:
         for raw in lines:
             start = pos
             pos += len(raw) + 1
-            line = raw.rstrip(b"\r")
-            if not line:
+            if not raw.rstrip(b"\r"):
                 continue
-            vals = self._line(line)
-            if vals is None:
-                if self._synced:
-                    self.counters.bad_frames += 1
-                    self.counters.garbage_bytes += len(raw) + 1
+            pieces = self._pieces(raw)
+            for k, piece in enumerate(pieces):
+                size = len(piece) + (k == len(pieces) - 1)          # the line end with the last
+                vals = self._line(piece.rstrip(b"\r"))
+                if vals is None:
+                    if self._synced:
+                        self._gap += size
+                    else:
+                        self.counters.presync_bytes += size
                 else:
-                    self.counters.presync_bytes += len(raw) + 1
-                continue
-            self._synced = True
-            rows.append(vals)
-            offsets.append(start)
+                    self._count_gap()
+                    self._synced, self._ref = True, size
+                    rows.append(vals)
+                    offsets.append(start)
+                start += len(piece)
+        if final:
+            self._count_gap()
         self._abs = pos
         arr = np.asarray(rows, dtype=np.float64).reshape(len(rows), len(self.cols))
         out: dict[str, np.ndarray] = {"offset": np.asarray(offsets, dtype=np.int64)}

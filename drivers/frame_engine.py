@@ -10,7 +10,8 @@ byte buffer ``b`` (numpy uint8), with no Python loop per frame:
 1. candidates: every ``i`` where each fixed byte matches (``b[i + o] == v`` for all (o, v));
 2. complete candidates (``i + L <= len(b)``) are checked in bulk on their (k, L) rows (a
    zero-copy view when they are back to back);
-3. overlapping valid candidates are resolved greedily, earliest first;
+3. which valid candidates are frames: :func:`resolve` (a byte-wise parser's resynchronisation,
+   independent of the read boundaries, that does not take a false frame over a good one);
 4. bytes between accepted frames form garbage regions; a region of ``g`` bytes counts
    ``max(1, round(g / L))`` bad frames, or one truncated frame when it starts with the fixed
    header and ``g < L``. With byte substitution errors this equals the number of frames hit,
@@ -85,16 +86,167 @@ def rows_of(b: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
     return sliding_window_view(b, length)[starts]
 
 
-def greedy(starts: np.ndarray, length: int) -> np.ndarray:
-    """Indices of non-overlapping frames (all ``length`` long), earliest first."""
-    if starts.size < 2 or np.all(np.diff(starts) >= length):
-        return np.arange(starts.size)
-    keep, last_end = [], -1
-    for i, s in enumerate(starts.tolist()):
-        if s >= last_end:
-            keep.append(i)
-            last_end = s + length
-    return np.asarray(keep, dtype=np.int64)
+#: how many rejected frames in a row a claimed length may be followed through (:func:`resolve`)
+MAX_LINKS = 8
+
+
+def resolve(starts: np.ndarray, ends: np.ndarray, valid: np.ndarray, n: int, *, final: bool,
+            header_len: int, anchored: bool, layout: np.ndarray | None = None,
+            seen: set[int] | None = None) -> tuple[np.ndarray, int]:
+    """Which frame candidates of a buffer of ``n`` bytes are frames, as a byte-wise parser that
+    resynchronises on the byte after a rejected preamble would take them -- whatever the read
+    boundaries -- and without losing a good frame to a false one whose check passed by chance.
+
+    ``starts`` (sorted): every position where a frame header begins (``header_len`` bytes
+    matched); ``ends``: the end each one claims (-1: not known yet, the header is incomplete;
+    -2: an impossible length); ``valid``: complete and passing the check (and structure).
+    ``anchored``: byte 0 follows an accepted frame. A candidate not complete (and not
+    ``final``) is undecided. A frame is *anchored* when it starts where the previous accepted
+    frame ended or a header begins where it ends (a good frame in a stream is both; a false one,
+    data that happen to hold a header and pass an 8- or 16-bit check, neither, but by chance).
+
+    From the end of the last accepted frame:
+
+    1. a rejected frame there whose claimed end (followed through at most :data:`MAX_LINKS`
+       rejected frames) is an anchored valid frame, with no anchored valid frame inside the
+       claim, had a corrupted payload: it is one lost frame, and nothing inside it is taken (a
+       false frame in its data); a good frame inside the claim means the length was corrupted;
+    2. else the next valid candidate is taken, unless it overlaps a later valid candidate, is not
+       anchored, and one of those is: then it is the false one (it would cost a good frame);
+    3. a data frame of a layout not seen before (``layout`` >= 0 not in ``seen``, when ``seen``
+       holds any) is taken only when anchored at both ends: a length byte hit to a shorter length
+       at an item boundary whose checksum passes by chance is the head of a corrupted frame, not
+       a frame of a new layout (``seen`` gets the layouts of the frames taken);
+    4. a decision that needs bytes not yet there (an undecided candidate first or in the way, an
+       anchor not yet known) waits: nothing from there on is taken before them.
+
+    Returns (indices of the accepted candidates, ``hold``: the first byte any decision still
+    waits for, ``n`` if none; bytes before it that are in no frame may be discarded).
+    The common case (valid candidates that do not overlap, nothing undecided before the last
+    of them, no valid candidate inside a rejected frame's claim) is answered without a loop."""
+    m = starts.size
+    undecided = ~valid & ((ends == -1) | (ends > n)) if not final else np.zeros(m, bool)
+    vi = np.flatnonzero(valid)
+    vs, ve = starts[vi], ends[vi]
+    und = np.flatnonzero(undecided)
+    hold = int(starts[und[0]]) if und.size else n
+    new_layouts: set[int] = set()
+    if layout is not None:
+        lv = layout[vi]
+        lv = lv[lv >= 0]
+        if lv.size:             # one layout (the usual stream) without a sort
+            new_layouts = {int(lv[0])} if bool((lv == lv[0]).all()) else set(np.unique(lv).tolist())
+        if not new_layouts <= (seen if seen else set(lv[:1].tolist())):
+            return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout, seen)
+    if vi.size < 2 or bool(np.all(vs[1:] >= ve[:-1])):
+        if not vi.size:
+            return vi, hold
+        if hold >= ve[-1]:
+            inv = np.flatnonzero(~valid & ~undecided & (ends > 0))
+            if not inv.size:
+                if seen is not None:
+                    seen.update(new_layouts)
+                return vi, hold
+            sh, eh = starts[inv], ends[inv]
+            k = np.searchsorted(vs, sh, side="right")
+            has = k < vi.size
+            nxt = vs[np.minimum(k, vi.size - 1)]
+            in_frame = (k > 0) & (sh < ve[np.maximum(k - 1, 0)])
+            if not np.any(has & (nxt < eh) & ~in_frame):
+                if seen is not None:
+                    seen.update(new_layouts)
+                return vi, hold
+    return _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout, seen)
+
+
+def _resolve_slow(starts, ends, valid, undecided, n, final, header_len, anchored, layout=None,
+                  seen=None) -> tuple[np.ndarray, int]:
+    """:func:`resolve` candidate by candidate."""
+    s, e = starts.tolist(), ends.tolist()
+    lay = layout.tolist() if layout is not None else [-1] * len(s)
+    seen = seen if seen is not None else set()
+    ok, und = valid.tolist(), undecided.tolist()
+    m = len(s)
+    at = {x: i for i, x in enumerate(s)}
+
+    def header_at(x: int) -> bool | None:
+        """Does a frame header begin at ``x`` (None: not known yet)?"""
+        if x in at:
+            return True
+        if x + header_len > n:
+            return x == n if final else None
+        return False
+
+    acc: list[int] = []
+    last, anch, i = 0, anchored, 0
+    new_last = True
+    while True:
+        if new_last and anch and last in at and not ok[at[last]]:
+            h = at[last]
+            if und[h]:
+                return np.asarray(acc, np.int64), last
+            x, target, links = e[h], None, 0
+            while x > 0 and links <= MAX_LINKS:
+                j = at.get(x)
+                if j is None:
+                    target = "wait" if header_at(x) is None else None
+                    break
+                if und[j]:
+                    target = "wait"
+                    break
+                if ok[j]:
+                    f = header_at(e[j])
+                    target = "wait" if f is None else (x if f else None)
+                    break
+                x, links = e[j], links + 1
+            if target not in (None, "wait"):   # a good frame inside the claim: the length was hit
+                inner = [header_at(e[j]) for j in range(h + 1, at[target]) if ok[j]]
+                target = "wait" if None in inner else (None if any(inner) else target)
+            if target == "wait":
+                return np.asarray(acc, np.int64), last
+            if target is not None:
+                last = target
+                i = at[target]
+                continue
+        new_last = False
+        while i < m and (s[i] < last or not (ok[i] or und[i])):
+            i += 1
+        if i >= m:
+            return np.asarray(acc, np.int64), n
+        if und[i]:
+            return np.asarray(acc, np.int64), s[i]
+        c = i
+        rivals = []
+        j = c + 1
+        while j < m and s[j] < e[c]:
+            if ok[j] or und[j]:
+                rivals.append(j)
+            j += 1
+        if rivals and not (anch and s[c] == last):
+            mine = header_at(e[c])
+            if mine is None:
+                return np.asarray(acc, np.int64), s[c]
+            if not mine:
+                if any(und[j] for j in rivals):
+                    return np.asarray(acc, np.int64), s[c]
+                theirs = [header_at(e[j]) for j in rivals]
+                if any(t is None for t in theirs):
+                    return np.asarray(acc, np.int64), s[c]
+                if any(theirs):
+                    i = c + 1               # the false one: rescan from the byte after its header
+                    continue
+        if lay[c] >= 0 and seen and lay[c] not in seen:
+            fwd = header_at(e[c])
+            if fwd is None:
+                return np.asarray(acc, np.int64), s[c]
+            if not (fwd and anch and s[c] == last):
+                i = c + 1                   # a new layout next to garbage: a corrupted length
+                continue
+        acc.append(c)
+        if lay[c] >= 0:
+            seen.add(lay[c])
+        last, anch, new_last = e[c], True, True
+        i = c + 1
 
 
 class FixedFrameStream:
@@ -116,11 +268,13 @@ class FixedFrameStream:
         self._synced = False
         self._abs = 0
         self._header_len = max(o for o, _ in self.fixed) + 1
+        self._at_frame_end = False      # the retained tail starts right after an accepted frame
 
     def _candidates(self, b: np.ndarray) -> np.ndarray:
+        """Every position where the whole fixed header matches (complete frame or not)."""
         n = b.size
         _, v0 = self.fixed[0]
-        p = np.flatnonzero(b[:max(n - self.length + 1, 0)] == v0)   # complete frames only
+        p = np.flatnonzero(b[:max(n - self._header_len + 1, 0)] == v0)
         if len(self.fixed) > 1 and p.size:
             ok = np.ones(p.size, dtype=bool)
             for o, v in self.fixed[1:]:
@@ -150,11 +304,16 @@ class FixedFrameStream:
         new = data if isinstance(data, np.ndarray) else np.frombuffer(data, dtype=np.uint8)
         b = np.concatenate((self._tail, new)) if self._tail.size else new
         n, L = b.size, self.length
-        p = self._candidates(b)
+        p_all = self._candidates(b)
+        ends = p_all + L
+        complete = ends <= n
+        p = p_all[complete]
         rows = rows_of(b, p, L)
-        ok = self.check(rows) if p.size else np.zeros(0, bool)
-        vi = np.flatnonzero(ok)
-        acc = vi[greedy(p[vi], L)]
+        valid = np.zeros(p_all.size, dtype=bool)
+        valid[complete] = self.check(rows) if p.size else False
+        acc_all, hold = resolve(p_all, ends, valid, n, final=final, header_len=self._header_len,
+                                anchored=self._at_frame_end)
+        acc = np.searchsorted(p, p_all[acc_all])        # accepted frames among the complete ones
         a_start = p[acc]
         a_end = a_start + L
         prev_end = np.concatenate(([0], a_end[:-1]))
@@ -179,12 +338,14 @@ class FixedFrameStream:
                 hd = self._pending_header if self._pending else self._starts_header(b, consumed)
                 self._account(rest + self._pending, hd, self._synced)
             self._pending, consumed = 0, n
-        elif rest >= L:                         # no frame can start this early any more
-            drop = rest - (L - 1)
+        elif rest >= L and hold > consumed:     # no frame can start this early any more
+            drop = min(rest - (L - 1), hold - consumed)
             if not self._pending:
                 self._pending_header = self._starts_header(b, consumed)
             self._pending += drop
             consumed += drop
+        self._at_frame_end = bool(acc.size and consumed == int(a_end[-1])) or (
+            not acc.size and self._at_frame_end and consumed == 0)
         self._tail = b[consumed:].copy()
         if acc.size == rows.shape[0]:
             good = rows
@@ -200,4 +361,5 @@ class FixedFrameStream:
         return self.feed(np.empty(0, np.uint8), final=True)
 
 
-__all__ = ["FixedFrameStream", "FrameCounters", "affine_tables", "greedy", "rows_of", "xor_reduce_lookup"]
+__all__ = ["FixedFrameStream", "FrameCounters", "MAX_LINKS", "affine_tables", "resolve", "rows_of",
+           "xor_reduce_lookup"]

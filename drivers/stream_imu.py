@@ -9,7 +9,8 @@ unknown), ``_inertial(out) -> (acc (n,3) m/s^2, gyro (n,3) rad/s, temperature (n
 ``_configure_device()`` (commands, identity; called with the link open, on every (re)connect).
 
 After a reconnect, a device whose time went back (it restarted: a USB sensor power-cycles with
-its cable) is rebased (``device_restarts``): its new timeline is shifted onto the old one, the
+its cable) -- or jumped ahead of the clock (a restart that a wrapping time field reads as a wrap:
+its first sample would be stamped after its arrival) -- is rebased (``device_restarts``): its new timeline is shifted onto the old one, the
 shift learnt like the offset (the minimum over the chunks arriving within ``learn_s``, in rig
 time, of arrival - offset - newest device time; the new samples are held until then), so the
 outage is a counted gap, not a stream of rejected frames, and the time base goes on as before.
@@ -329,7 +330,9 @@ class StreamImu(StreamReader):
         last = self._last_t
         if self._rebase_pending and t_raw.size and arrival is not None:
             self._rebase_pending = False
-            if last is not None and self.offset is not None and float(t_raw[0]) + self._shift <= last:
+            if last is not None and self.offset is not None and (
+                    float(t_raw[0]) + self._shift <= last
+                    or float(t_raw[0]) + self._shift + self.offset > arrival + self._ahead_tolerance()):
                 self._start_rebase(t_raw, arrival, last)
         elif self._held is not None and arrival is not None and t_raw.size and np.isfinite(t_raw[-1]):
             self._lower_shift(arrival - self.offset - float(t_raw[-1]))
@@ -388,6 +391,15 @@ class StreamImu(StreamReader):
         self._held = []
         self._held_until = arrival + self.learn_s * float(getattr(self.clock, "speed", 1.0))
         self.device_restarts += 1
+
+    #: a device time after a reconnect that would stamp its first sample more than this after its
+    #: arrival (rig time; and more than REBASE_AHEAD_WALL_S of wall time at the clock's speed) did
+    #: not continue: it restarted, and a wrapping time field read its new start as a wrap (a
+    #: declared u32 microsecond time from 0 again is 'ahead' by up to 71 minutes)
+    REBASE_AHEAD_S, REBASE_AHEAD_WALL_S = 1.0, 0.05
+
+    def _ahead_tolerance(self) -> float:
+        return max(self.REBASE_AHEAD_S, self.REBASE_AHEAD_WALL_S * float(getattr(self.clock, "speed", 1.0)))
 
     def _lower_shift(self, est: float) -> None:
         new = max(est, self._shift_floor)

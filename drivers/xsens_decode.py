@@ -9,8 +9,10 @@ Algorithm over one byte buffer ``b`` (numpy uint8), with no Python loop per fram
 4. MTData2 payloads are checked for structure (items must tile the payload exactly) once per
    distinct layout, then every frame of that length is compared against the layout's item
    headers in one vector comparison; frames that differ fall back to a per-frame parse;
-5. overlapping valid candidates (a false preamble inside a frame) are resolved greedily,
-   earliest first;
+5. which candidates are frames is decided by :func:`rigctl.drivers.frame_engine.resolve`: as a
+   byte-wise parser resynchronising from the byte after a rejected preamble, whatever the read
+   boundaries, and never taking a false frame in a payload (it passed the 8-bit checksum by
+   chance) over the good frame it overlaps;
 6. bytes between accepted frames form garbage regions. A region of ``g`` bytes next to frames of
    ``L`` bytes counts ``max(1, round(g / L))`` bad frames, or one truncated frame when it starts
    with a preamble and ``g < L``. With byte substitution errors this equals the number of frames
@@ -26,7 +28,13 @@ time that passed the checksum would otherwise make the next true one read as a w
 every later sample 2^32 ticks (4.97 days) late. The frame is kept without a time
 (``sample_time_fine`` -1, ``time_s`` NaN) and counted in ``time_outliers``; two such stamps in a
 row that continue each other are a new time base (a restarted MTi, or a link loss longer than the
-counter resolves), taken as the old decoder took it and counted in ``time_restarts``.
+counter resolves), taken as the old decoder took it and counted in ``time_restarts``. One that
+begins behind the last accepted stamp (within half the wrap) is a device restart (its
+SampleTimeFine began again from 0: the MTi lost power), also counted in ``device_restarts`` --
+the count rigctl's engine re-warms the IMU on (docs/daemon.md). A time base ahead of the last
+stamp is not: a measurement paused longer than the counter steps account for (a slow
+reconfiguration after a reconnect: SampleTimeFine runs on in config mode, PacketCounter does
+not), or an outage longer than the counter resolves.
 Unknown data IDs are counted per ID in ``unknown_xdi`` (the known items of such a frame are kept).
 """
 from __future__ import annotations
@@ -37,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .frame_engine import resolve
 from .xsens import (MAX_EXT_LEN, MAX_FRAME_BYTES, MID, PRECISION_BYTES, SAMPLE_TIME_FINE_HZ,
                     SAMPLE_TIME_FINE_WRAP, XDI_COMPONENTS, XDI_FIELD, XDI_INT_SIZE, Message,
                     Precision, item_size, split_xdi)
@@ -65,6 +74,7 @@ class DecodeCounters:
     frames_without_counter: int = 0
     time_outliers: int = 0      # SampleTimeFine not continuing the last accepted one: frame kept without a time
     time_restarts: int = 0      # SampleTimeFine took a new time base (two stamps in a row continuing each other)
+    device_restarts: int = 0    # ... one that began behind the last accepted stamp: the MTi restarted
     unknown_xdi: dict[int, int] = field(default_factory=dict)
 
 
@@ -178,18 +188,6 @@ def _rows(b: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
     return sliding_window_view(b, length)[starts]
 
 
-def _greedy(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Indices of non-overlapping frames, accepting the earliest first (fast path if none overlap)."""
-    if starts.size < 2 or np.all(starts[1:] >= ends[:-1]):
-        return np.arange(starts.size)
-    keep, last_end = [], -1
-    for i, (s, e) in enumerate(zip(starts.tolist(), ends.tolist())):
-        if s >= last_end:
-            keep.append(i)
-            last_end = e
-    return np.asarray(keep, dtype=np.int64)
-
-
 class MTData2Stream:
     """Streaming decoder: ``feed(bytes) -> MTData2Batch``; ``flush()`` at end of stream."""
 
@@ -210,12 +208,15 @@ class MTData2Stream:
         self._prev_stf_counter = -1          # its unwrapped PacketCounter (-1: none)
         self._stf_cand: tuple[int, int] | None = None  # (raw, counter) of the last rejected stamp
         self._abs = 0                # stream offset of the first byte of the retained tail
+        self._at_frame_end = False   # the retained tail starts right after an accepted frame
+        self._lengths: set[int] = set()     # lengths of the MTData2 frames accepted so far
 
     def reset_counters(self) -> None:
         """Forget counter/time history (call after the device re-enters measurement)."""
         self._prev_counter = None
         self._prev_stf = None
         self._stf_cand = None
+        self._lengths.clear()       # a new measurement may bring a new output layout
 
     # ------------------------------------------------------------------ region accounting
     def _account_region(self, g: int, starts_with_header: bool, ref_len: int, synced: bool = True) -> None:
@@ -246,8 +247,14 @@ class MTData2Stream:
         valid, is_d2, groups = self._check_groups(b, pc, tc, hc, mids, layout_id, layouts)
         malformed = is_d2 & (layout_id < 0)
         valid &= ~malformed
-        vi = np.flatnonzero(valid)
-        acc = vi[_greedy(pc[vi], pc[vi] + tc[vi])]
+        ends = np.where(total > 0, p + total, total)      # -1: header incomplete, -2: impossible
+        valid_all = np.zeros(p.size, dtype=bool)
+        valid_all[complete] = valid
+        layout = np.full(p.size, -1, dtype=np.int64)        # MTData2 frames: their length
+        layout[complete] = np.where(is_d2 & valid, tc, -1)
+        acc_all, hold = resolve(p, ends, valid_all, n, final=final, header_len=2,
+                                anchored=self._at_frame_end, layout=layout, seen=self._lengths)
+        acc = np.searchsorted(pc, p[acc_all])           # accepted frames among the complete ones
         a_start, a_end = pc[acc], pc[acc] + tc[acc]
         a_d2 = mids[acc] == MID.MTDATA2
         # ---- regions between accepted frames
@@ -283,12 +290,14 @@ class MTData2Stream:
                     hd = self._pending_header
                 self._account_region(rest + self._pending, hd, self._ref_len, self._synced)
             self._pending, consumed = 0, n
-        elif rest > MAX_FRAME_BYTES:            # no frame can start this early any more
-            drop = rest - MAX_FRAME_BYTES
+        elif rest > MAX_FRAME_BYTES and hold > consumed:    # no frame can start this early any more
+            drop = min(rest - MAX_FRAME_BYTES, hold - consumed)
             if not self._pending:
                 self._pending_header = bool(b[consumed] == 0xFA and b[consumed + 1] == 0xFF)
             self._pending += drop
             consumed += drop
+        self._at_frame_end = bool(acc.size and consumed == int(a_end[-1])) or (
+            not acc.size and self._at_frame_end and consumed == 0)
         self._tail = b[consumed:].copy()
         # malformed frames outside accepted frames and inside the consumed part are real events
         self.counters.malformed_frames += self._count_free(pc, tc, malformed & (pc < consumed), acc)
@@ -458,6 +467,9 @@ class MTData2Stream:
                 log.warning("SampleTimeFine restarted at %d; a new time base", v)
                 c.time_restarts += 1
                 c.time_outliers -= 1
+                behind = (self._prev_stf_raw - self._stf_cand[0]) % self.wrap_ticks
+                if 0 < behind <= self.wrap_ticks // 2:      # began again: the device restarted
+                    c.device_restarts += 1
             self._prev_stf = v if self._prev_stf is None else \
                 self._prev_stf + (v - self._prev_stf_raw) % self.wrap_ticks
             self._prev_stf_raw, self._prev_stf_counter, self._stf_cand = v, k, None

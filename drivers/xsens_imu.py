@@ -318,6 +318,13 @@ class XsensImu(StreamReader):
 
     # --------------------------------------------------------------------------- status
     @property
+    def device_restarts(self) -> int:
+        """Restarts of the MTi itself (a SampleTimeFine time base that began behind the last
+        stamp, drivers/xsens_decode.py), as ``counters["device_restarts"]``: read on every
+        engine poll (rigctl.devices.imu_restarts)."""
+        return self.stream.counters.device_restarts
+
+    @property
     def counters(self) -> dict:
         """Decoder and link diagnostics (totals since connect): one consistent snapshot, in which
         every frame counted as decoded is already returned by ``read`` or waiting for it."""

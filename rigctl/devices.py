@@ -174,6 +174,18 @@ def imu_identity(imu: object) -> dict[str, str]:
     return out
 
 
+def imu_restarts(imu: object) -> int:
+    """How many times the IMU itself restarted (its device time began again: it lost power) since
+    it was connected, as opposed to link losses after which its time continues: its
+    ``device_restarts`` attribute (optional, duck-typed; an int read on every engine poll, so no
+    lock or copy: the ``counters`` snapshot carries the same number): StreamImu's rebased
+    timelines (drivers/stream_imu.py), the Xsens decoder's SampleTimeFine time bases that began
+    behind the last stamp (drivers/xsens_decode.py), the in-process emulator's ``imu_power``
+    fault; 0 for a device without it."""
+    n = getattr(imu, "device_restarts", 0)
+    return int(n) if isinstance(n, (int, float)) else 0
+
+
 @runtime_checkable
 class PulseSource(Protocol):
     def read(self) -> Pulses:

@@ -5,6 +5,10 @@ and command, so the engine sees injected faults exactly as it would see real one
 
 * ``imu_link`` -- the IMU link is down: ``SimImuDevice.read`` raises
   :class:`rigctl.devices.LinkLost`; the samples produced meanwhile are lost (a counter gap).
+* ``imu_power`` -- the IMU is without power (a power cycle, not a cable pull): the link is down
+  as for ``imu_link``, and when the window ends the unit restarts -- its device time begins
+  again, counted in ``SimImuDevice.counters["device_restarts"]`` as a streaming driver counts it
+  (drivers/stream_imu.py).
 * ``table_fault`` -- every axis reports ``AxisStatus.FAULT`` and the table stops (mode off);
   motion commands are refused with :class:`rigctl.devices.DeviceFault` until the fault clears.
 * ``interlock`` -- the interlock is open: ``AxisStatus.INTERLOCK_OPEN`` and the table stops.
@@ -26,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-KINDS = ("imu_link", "table_fault", "interlock", "temperature", "chamber_fault")
+KINDS = ("imu_link", "table_fault", "interlock", "temperature", "chamber_fault", "imu_power")
 
 
 @dataclass

@@ -62,6 +62,13 @@ class FrameServer(StreamTwin):
         self.sample = 0
         super().__init__(source, clock, rate_hz, seed=seed, streaming=True, name="frame-pty")
 
+    def power_cycle(self) -> None:
+        """The sensor restarts (its power lost and back): its time since power-up and its sample
+        counter begin again from 0 now, and it streams at once (it takes no commands)."""
+        with self._lock:
+            self._enter_measurement()
+            self.t_origin, self.time_offset_s, self.sample = self._t0, 0.0, 0
+
     def _frames(self, k: np.ndarray, t: np.ndarray, src: dict) -> np.ndarray:
         n = len(k)
         v: dict[str, np.ndarray] = {"counter": self.sample + np.arange(n)}

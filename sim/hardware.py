@@ -705,6 +705,35 @@ class Hardware:
         self._threads.append(t)
         return None
 
+    def power_cycle(self, down_s: float = 0.2, block: bool = True) -> str | None:
+        """The IMU loses power for ``down_s`` wall seconds (not just its cable): its pty goes as
+        in :meth:`disconnect`, and when power is back the unit restarts -- its device time
+        (Xsens SampleTimeFine and PacketCounter, VectorNav TimeStartup) begins again from 0 and
+        it waits to be configured -- before the new pty is plugged in. A driver sees a link loss
+        whose device time does not continue (``time_restarts`` / ``device_restarts``); after
+        :meth:`disconnect` it continues. Returns the new pty path (None if not ``block``)."""
+        restart = getattr(self.imu_server, "power_cycle", None)
+        if restart is None:
+            raise ValueError(f"a power cycle is not emulated for the {self.imu_protocol!r} IMU protocol; "
+                             "use disconnect('imu') for a cable pull")
+        slot = self.slots["imu"]
+        slot.unplug()
+
+        def back() -> str:
+            restart()
+            return slot.replug()
+        if block:
+            time.sleep(down_s)
+            return back()
+
+        def later() -> None:
+            if not self._stop.wait(down_s):
+                back()
+        t = threading.Thread(target=later, name="power-cycle-imu", daemon=True)
+        t.start()
+        self._threads.append(t)
+        return None
+
     def clear_fault(self, close_interlocks: bool = True) -> None:
         """The operator at the table: reset every tripped axis (fault bits cleared, interlock
         open) and, by default, close the interlocks again so the controller accepts motion."""

@@ -437,12 +437,27 @@ class SimImuDevice:
     def __init__(self, world: SimWorld) -> None:
         self.world = world
         self.identity = dict(world.imu_identity)
+        #: the unit restarted after an ``imu_power`` fault (its device time began again), as a
+        #: streaming driver counts it (``counters["device_restarts"]``)
+        self.device_restarts = 0
+        self._unpowered = False
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {"device_restarts": self.device_restarts}
 
     def read(self) -> ImuBlock:
         block = self.world.take_imu()
         t = self.world.t
-        self.world.faults.tick(t)
-        if self.world.faults.active("imu_link", t):
+        faults = self.world.faults
+        faults.tick(t)
+        if faults.active("imu_power", t):
+            self._unpowered = True
+            raise LinkLost("imu", "no data (IMU without power, injected)")
+        if self._unpowered:             # powered again: a new device timeline
+            self._unpowered = False
+            self.device_restarts += 1
+        if faults.active("imu_link", t):
             raise LinkLost("imu", "no data (link down, injected)")  # samples meanwhile are lost
         return block
 

@@ -147,6 +147,16 @@ class XsensServer:
             self.last_error = f"message 0x{mid:02X} not accepted in {self.state} state"
             return error_message(ErrorCode.INVALID_MESSAGE)
 
+    def power_cycle(self) -> None:
+        """The MTi restarts (its power lost and back, not a cable pull): SampleTimeFine and
+        PacketCounter start again from 0 now (``stf_offset`` moves its time base), and it waits
+        in config state for its client to configure it again (an MTi powers up streaming its
+        stored configuration; a driver reconfigures on every reconnect either way)."""
+        with self._lock:
+            self.stf_offset = -int(round((self.clock() - self.t_origin) * SAMPLE_TIME_FINE_HZ))
+            self.counter = 0
+            self.state = "config"
+
     # ------------------------------------------------------------------------ streaming
     def _stream(self) -> None:
         while not self._stop.wait(0.002):

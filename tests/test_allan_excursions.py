@@ -15,6 +15,7 @@ from rigctl.solvers import allan_excursions as EX
 DATA = Path(__file__).parent / "data"
 ADIS = DATA / "adis16405-static" / "accel_counts.txt.gz"
 MTIG = DATA / "mtig-static-contaminated" / "gyro_x_rad_s.txt.gz"
+PHONE = DATA / "galaxy-s5-static" / "gyro_measured_rad_s.csv.gz"
 G0 = 9.80665
 
 
@@ -83,6 +84,28 @@ def test_real_capture_without_excursions_none_found():
     y = np.loadtxt(MTIG)  # XSens MTi-G gyro x, 1.4 h at 100 Hz: spikes, but no excursion
     got = EX.find_excursions(_blocks(y, 4), 0.04)
     assert got["tested"] and got["excursions"] == []
+
+
+@pytest.mark.skipif(not PHONE.is_file(), reason="tests/data/galaxy-s5-static not shipped")
+def test_unreturned_short_dip_near_the_start_is_not_a_window_to_the_start():
+    """The Galaxy S5 gyro y drops by ~290 deg/h at t = 4060 s (with x and z: a ~30 s dip)
+    and comes back within a minute, too gradually for the return to be found as a step. The
+    first 4060 s are not an excursion: read here in numpy, they stand off their flank (4060 -
+    8120 s) by less than half that step. The detector reports the step at its time, and no
+    window from the start (it did: 0-4060 s, which --excursions exclude then cut out of the
+    quiet stretch)."""
+    gy = np.loadtxt(PHONE, delimiter=",", skiprows=1, usecols=1)  # rad/s, 10 Hz
+    i, w = 40600, 420  # t = 4060 s; 42 s windows
+    step = gy[i:i + w].mean() - gy[i - w:i].mean()
+    window = gy[:i].mean() - gy[i:2 * i].mean()
+    back = gy[i + 400:i + 1400].mean() - gy[i - 1000:i].mean()  # 4100-4200 s less 3960-4060 s
+    assert step < -1.2e-3 and abs(window) < 0.5 * abs(step) and abs(back) < 0.25 * abs(step)
+    got = EX.find_excursions(_blocks(gy, 2), 0.2)  # rigctl's block means (<= 2^17)
+    assert got["tested"]
+    assert not any(e["start_s"] < 100.0 and e["end_s"] > 1000.0 for e in got["excursions"]), \
+        got["excursions"]
+    near = [e for e in got["excursions"] if abs(e["start_s"] - 4060.0) <= 30.0]
+    assert len(near) == 1 and near[0]["size_si"] < 0, got["excursions"]
 
 
 def _emulated(seed: int, hours: float = 6.0, rate: float = 10.0) -> tuple[np.ndarray, float]:

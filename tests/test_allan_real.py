@@ -88,7 +88,9 @@ def adis(ref_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     gyro = np.loadtxt(d / "gyro_counts.txt.gz") * 0.05 * D2R
     accel = np.loadtxt(d / "accel_counts.txt.gz") * 0.00333 * G0
     rec = _write(tmp_path_factory.mktemp("adis") / "adis16405.h5", gyro, accel)
-    res = AA.compute(str(rec), list(AA.AXES))
+    # the excursions kept in the quiet stretches' fits (the ay stretch's hump is read below
+    # with them in; the default leaves them out: benchmarks/allan_heldout.py judges that)
+    res = AA.compute(str(rec), list(AA.AXES), excursions="report")
     return {"gyro": gyro, "accel": accel, "rec": rec, "res": res}
 
 
@@ -363,20 +365,34 @@ def test_adis16405_gz_octave_floor_gives_an_estimate(adis: dict) -> None:
     here, the flatness the benchmark's floor read uses), came out as a bound (< 38.0 deg/h): B failed the 1.96 sd test once the model error
     (16-20 %) was added, and the floor exception covered only a B pressed against its limit.
     The curve needs B (N and K cannot make a flat octave), so B must be an estimate: within
-    what the curve allows (min sigma / 0.664 over the well-determined taus, numpy), with that
-    limit inside its 95 % interval (the floor is B's level), and the datasheet's bias
-    stability (25.2 deg/h) within 0.5-2x. Measured: 26.5 [17.8, 52.0] deg/h, limit 43.8; the
-    exact deviations give 26.6 [17.9, 51.8]."""
+    what the curve allows (min sigma / 0.664 over the well-determined taus, numpy), its 95 %
+    interval reaching below that limit and holding B read by the floor fit written here
+    (_np_b_fit: white noise read at 0.5-2 s, then B and K above it), and the datasheet's bias
+    stability (25.2 deg/h) within 0.5-2x.
+
+    The limit is an upper limit for B, not B's level: white noise alone (read here) is 28 % of
+    sigma^2 at the floor's tau and K takes more, so a right interval need not reach it. It
+    did before the intervals were built by Neyman's construction (26.5 [17.8, 52.0] deg/h,
+    limit 43.8); now 28.3 [9.8, 39.5]. Simulated (the fitted N, B, K, 1e6 samples at 100 Hz,
+    --taus octave, 76 seeds x 3 axes; /tmp scripts quoted in the commit of this change) the
+    floor limit lies inside B's 95 % interval in 13 of 228 fits with nu read at the estimate
+    and 9 of 228 with Neyman's, while the truth is inside in 202 and 203 of 228 (above it 26
+    and 19, below 0 and 6). Measured: the floor fit here 23.8 [18.9, 27.9] deg/h."""
     res = AA.compute(str(adis["rec"]), ["gz"], taus="octave")
     r = res["axes"]["gz"]
     tau, ind = _independent(adis["gyro"][:, 2], r)
     assert _flat_octave_numpy(tau, ind, 40.0, 330.0) < 0.25  # the data: a flat floor
     sel = well_determined(r["edf"])
     lim = np.min(ind[sel]) / B_FACTOR
+    t_floor = tau[sel][np.argmin(ind[sel])]
+    # the data: the floor is not B alone -- white noise is a fifth or more of it there
+    assert white_level(tau, ind) ** 2 / t_floor > 0.2 * np.min(ind[sel]) ** 2
     b = r["fit"]["coefficients"].B
     assert b.resolved, b
     assert b.value <= lim * (1 + 1e-6)
-    assert b.ci95[0] <= lim <= b.ci95[1], (b.ci95, lim)
+    assert b.ci95[0] <= lim, (b.ci95, lim)
+    nb, nlo, nhi = _np_b_fit(adis["gyro"][:, 2], np.asarray(r["m"]), white=(0.5, 2.0))
+    assert b.ci95[0] <= nb <= b.ci95[1], (b.ci95, (nb, nlo, nhi))
     assert 0.5 < B_FACTOR * b.value * DEG_H / ADIS_BIAS_STAB_DEG_H < 2.0
 
 
@@ -468,13 +484,14 @@ def test_mtig_bag_with_dropped_messages_octave_and_all_agree(mtig: dict, tmp_pat
     assert na.ci95[0] <= no.ci95[1] and no.ci95[0] <= na.ci95[1], (na.ci95, no.ci95)
 
 
-def _np_b_fit(y: np.ndarray, ms: np.ndarray) -> tuple[float, float, float]:
-    """B (with a 95 % interval) of the accelerometer by a fit written here: N read where white
-    noise rules, the median of sigma sqrt(tau) over the informative taus 0.02-0.2 s (below the
-    0.564 Hz tone's taus); then B and K by weighted least squares on sigma^2 over the informative
-    taus from 5 s on (var = 2 sigma^4 / EDF with the model's sigma^2, iterated, non-negative;
-    EDF the smaller of flicker and white FM's NIST SP 1065 forms; B's interval from that fit's
-    covariance, the correlation across taus neglected)."""
+def _np_b_fit(y: np.ndarray, ms: np.ndarray,
+              white: tuple[float, float] = (0.02, 0.2)) -> tuple[float, float, float]:
+    """B (with a 95 % interval) by a fit written here: N read where white noise rules, the
+    median of sigma sqrt(tau) over the informative taus in ``white`` (s; the accelerometers'
+    0.02-0.2 s lies below their 0.564 Hz tone's taus); then B and K by weighted least squares
+    on sigma^2 over the informative taus from 5 s on (var = 2 sigma^4 / EDF with the model's
+    sigma^2, iterated, non-negative; EDF the smaller of flicker and white FM's NIST SP 1065
+    forms; B's interval from that fit's covariance, the correlation across taus neglected)."""
     from scipy.stats import chi2
 
     dev, tau = oadev(y, ms), ms * TAU0
@@ -483,7 +500,7 @@ def _np_b_fit(y: np.ndarray, ms: np.ndarray) -> tuple[float, float, float]:
     wfm = np.array([(3 * (n - 1) / (2 * m) - 2 * (n - 2) / n) * 4 * m * m / (4 * m * m + 5) for m in ms])
     nu = np.minimum(ffm, wfm)
     ok = np.sqrt(chi2.ppf(0.975, nu) / chi2.ppf(0.025, nu)) <= 2.0
-    sh, fl = ok & (tau >= 0.02) & (tau <= 0.2), ok & (tau >= 5.0)
+    sh, fl = ok & (tau >= white[0]) & (tau <= white[1]), ok & (tau >= 5.0)
     n_white = float(np.median(dev[sh] * np.sqrt(tau[sh])))
     off = n_white ** 2 / tau[fl]
     return floor_fit(tau[fl], dev[fl], nu[fl], off)

@@ -361,3 +361,23 @@ def test_fuzz_random_bytes_never_crash_never_bad_checksum(pieces, chunk, flip):
         assert np.all(np.diff(b.counter) > 0)
     c = s.counters
     assert c.garbage_bytes + c.presync_bytes <= len(data)
+
+
+def test_a_time_base_that_jumps_ahead_is_no_device_restart():
+    """A device restart (``device_restarts``, on which a run warms the IMU up again) is a new
+    time base that began behind the last stamp (the restart above: SampleTimeFine from 0); one
+    that jumped ahead -- 5 s of SampleTimeFine over a single PacketCounter step, as after a slow
+    reconfiguration (the MTi's time runs on in config mode, its counter does not) -- is a new
+    time base too (``time_restarts``), not a restart of the unit."""
+    f, ticks = _real_session(50_000_000)
+    k = 2000
+    f["sample_time_fine"][k:] = ticks[k:] + 50_000
+    data, _ = frames_bytes(BASE, {key: v[:4000] for key, v in f.items()})
+    _, c = decode_buffer(data)
+    assert c.time_restarts == 1 and c.device_restarts == 0
+    f, ticks = _real_session(50_000_000)
+    f["packet_counter"][k:] -= k
+    f["sample_time_fine"][k:] = ticks[k:] - ticks[k]
+    data, _ = frames_bytes(BASE, {key: v[:4000] for key, v in f.items()})
+    _, c = decode_buffer(data)
+    assert c.time_restarts == 1 and c.device_restarts == 1

@@ -656,7 +656,7 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
             gaps: str = "skip", warmup: str = "report",
             temperature: str = "report",
             when_streaming: Callable[[], Any] | None = None,
-            quiet_stretch: bool = True, excursions: str = "report") -> dict[str, Any]:
+            quiet_stretch: bool = True, excursions: str = QS.DEFAULT_EXCURSIONS) -> dict[str, Any]:
     """:func:`compute_once`, and with ``warmup="exclude"``, when a start transient was found
     on any axis (:mod:`rigctl.analysis.allan_drift`), once more without the record's start:
     the longest of the axes' cuts (``trim_s``, each leaving less than a tenth of the curve's
@@ -673,8 +673,8 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     stationarity test names, beside the whole record's (:mod:`rigctl.analysis.allan_quiet`;
     the whole record's fit and self-check are left as they are). Each axis' short
     excursions (:mod:`rigctl.analysis.allan_excursions`) are reported; with
-    ``excursions="exclude"`` those inside a quiet stretch are left out of its fit, as gaps
-    handled by ``gaps`` (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
+    ``excursions="exclude"`` (the default) those inside a quiet stretch are left out of its
+    fit, as gaps handled by ``gaps`` (``"report"``: kept in it) (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
     if excursions not in QS.EXCURSION_MODES:
         raise InputError(f"excursions={excursions!r}: choose from {', '.join(QS.EXCURSION_MODES)}")
     if warmup not in AD.WARMUP_MODES:

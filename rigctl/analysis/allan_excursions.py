@@ -8,11 +8,12 @@ range analysed, rows of the range in ``samples``, sizes in the deviation's field
 deg/h), groups the axes' excursions that overlap in time into the record's ``excursions``
 (the axes that move together), marks those inside an axis' quiet stretch, and words them.
 
-Like the spikes, excursions are reported and never folded silently into the noise: by
-default the fits see them (they are part of the record), and the text says so, axis by axis;
-with ``--excursions exclude`` those inside an axis' quiet stretch are left out of its fit,
-their windows gaps handled as the record's own gaps are
-(:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`).
+Like the spikes, excursions are reported and never folded silently into the noise: the
+whole record's fit sees them (they are part of the record), and the text says so, axis by
+axis; by default (``--excursions exclude``) those inside an axis' quiet stretch are left out
+of its fit, their windows gaps handled as the record's own gaps are
+(:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`); ``--excursions report`` keeps them
+in it.
 """
 from __future__ import annotations
 
@@ -112,7 +113,7 @@ def sentences(r: dict[str, Any]) -> list[str]:
             f"{x['alpha']:g} per axis): ")
     return [head + "; ".join(parts) + ". Not the sensor's stationary noise: they are in the "
             "whole record's samples and fit; inside a quiet stretch they are left out of its fit "
-            "only with --excursions exclude"]
+            "(--excursions exclude, the default; --excursions report keeps them)"]
 
 
 def quiet_sentence(q: dict[str, Any], unit: str) -> list[str]:
@@ -128,5 +129,6 @@ def quiet_sentence(q: dict[str, Any], unit: str) -> list[str]:
     if ex:
         return [f"{head}; left out of its fit (--excursions exclude, {ex['n_samples']} samples "
                 f"in {len(ex['samples'])} window(s)): {ex['handled']}"]
-    return [f"{head}; they are in its fit: to leave them out, --excursions exclude"]
+    return [f"{head}; they are in its fit (--excursions report): to leave them out, "
+            "--excursions exclude (the default)"]
 

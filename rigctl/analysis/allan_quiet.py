@@ -125,6 +125,11 @@ KEPT = ("sensor", "n_samples", "mode", "spikes", "quantization", "tones", "warmu
 #: (:mod:`rigctl.analysis.allan_excursions`): report them only, or also leave those inside
 #: an axis' quiet stretch out of its fit (their windows gaps, handled as ``--gaps`` says)
 EXCURSION_MODES = ("report", "exclude")
+#: the default: leave them out of the quiet stretch's fit (the stretch is the record without
+#: its disturbances; the whole record's fit keeps them either way). On the real captures in
+#: tests/data every window it leaves out is an event the other axes show too (docs/allan.md,
+#: "Short excursions before the fit")
+DEFAULT_EXCURSIONS = "exclude"
 
 
 def _excluded(r: dict[str, Any], qa: int, qb: int) -> list[tuple[int, int]]:
@@ -155,7 +160,7 @@ def _pieces(qa: int, qb: int, drop: list[tuple[int, int]]) -> list[tuple[int, in
 def add_quiet_stretches(result: dict[str, Any],
                         analyse: Callable[..., dict[str, Any]],
                         corrections: dict[str, dict] | None = None,
-                        excursions: str = "report", gaps: str = "skip") -> int:
+                        excursions: str = DEFAULT_EXCURSIONS, gaps: str = "skip") -> int:
     """Each axis of ``result`` (:func:`rigctl.analysis.allan.compute`'s) whose self-check
     names a run not stationary gets ``quiet_stretch`` (:func:`choose`); where it qualifies,
     the stretch analysed by ``analyse(axes, (first, last) rows of the recording, corrections)``

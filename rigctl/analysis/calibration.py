@@ -41,7 +41,7 @@ from .verdicts import format_verdicts
 from .calibration_text import noise_summary, param_table
 from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
-from ..recording.segment_builder import build_segment_table, open_recording, store_calibration_results
+from ..recording.segment_builder import CAL_KINDS, build_segment_table, open_recording, store_calibration_results
 from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
@@ -163,6 +163,45 @@ def _model_from_final(final: CalibrationResult) -> dict[str, Any]:
             "equations": "A = b_a + M_a a + k2 o a^2 (m/s^2); W = b_g + M_g w + G f (rad/s)"}
 
 
+# ------------------------------------------------------------------------------ device restarts
+def restart_notes(path: str | Path) -> list[dict[str, Any]]:
+    """The IMU restarts (``device-restart`` events: it lost power) with calibration positions on
+    both sides: ``{"time_s", "event", "before", "after"}``, ``before`` / ``after`` naming the
+    complete orientation / rate segments (``step N (label)``) that ended before / started after it.
+
+    A restart gives the unit a new turn-on bias: the model b + M a fitted over positions with two
+    biases has no term for the step between them, so it goes into the scale factors and
+    misalignments (and the residuals) -- the result is not a calibration of either state."""
+    with open_recording(path) as f:
+        if "events" not in f:
+            return []
+        ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
+        seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "label", "t_start", "t_end",
+                                                  "first_sample", "last_sample")}
+    used = np.isin(seg["kind"], CAL_KINDS) & (seg["status"] == b"complete") & \
+        (seg["last_sample"] - seg["first_sample"] >= 2)
+    names = [f"step {int(seg['step'][i]) + 1} ({seg['label'][i].decode()})" for i in range(len(used))]
+    out = []
+    for t, k, m in zip(ev_t, ev_k, ev_m):
+        if k != b"device-restart":
+            continue
+        before = [names[i] for i in np.flatnonzero(used & (seg["t_end"] <= t))]
+        after = [names[i] for i in np.flatnonzero(used & (seg["t_start"] >= t))]
+        if before and after:
+            out.append({"time_s": float(t), "event": m.decode("utf-8", "replace"), "before": before, "after": after})
+    return out
+
+
+def _restart_lines(notes: list[dict[str, Any]]) -> list[str]:
+    """One line per restart of :func:`restart_notes`, naming the positions on each side."""
+    def span(names: list[str]) -> str:
+        return ", ".join(names) if len(names) <= 4 else f"{names[0]} ... {names[-1]} ({len(names)} positions)"
+    return [f"IMU restarted at t = {n['time_s']:.1f} s (device-restart: power lost): positions measured before it "
+            f"({span(n['before'])}) and after it ({span(n['after'])}) have different turn-on biases; a bias step "
+            "between them is absorbed into scale factor / misalignment -- measure the positions of one side again "
+            "after a warm-up, or calibrate one side only" for n in notes]
+
+
 def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
     """Returns (payload, report text, explain text) for a turntable recording."""
     from ..solvers.closed_loop import calibrate_session, format_report, session_to_dict
@@ -192,14 +231,20 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
     explain = "\n".join(["explain (step | residual pattern | candidate | statistic | decision):"]
                         + [f"  [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | "
                            f"{x['decision']}" for x in cl.explain])
-    trust = cl.final.status in ("ok", "poor_fit")
+    restarts = restart_notes(path)
+    mixed = _restart_lines(restarts)
+    trust = cl.final.status in ("ok", "poor_fit") and not mixed
     loop_status, why = table_status(cl, trust)
+    if mixed:
+        text += "\n" + "\n".join(f"warning: {line}" for line in mixed)
+        why = mixed[0]
     text += f"\nSTATUS: {loop_status}" + (f": {why}" if why else "")
     payload = {"mode": "turntable", "noise_model": noise_txt, "noise_model_channels": noise_rows,
                "results": session_to_dict(out),
                "model": _model_from_final(cl.final), "truth_available": truth is not None,
                "trustworthy": trust, "status": cl.final.status, "loop_status": loop_status,
-               "reasons": list(cl.final.warnings) + ([why] if why else []),
+               "reasons": list(cl.final.warnings) + ([why] if why else []) + mixed[1:],
+               "device_restarts": restarts,
                "notes": [n.strip().removeprefix("note: ") for n in notes]}
     return payload, text, explain
 

@@ -18,7 +18,7 @@ from rigctl.analysis.allan import (AXES, GAP_MODES, OUTLIER_MODES, choose_range,
                                    collector_paused_for_command, compute, default_axes,
                                    gap_message, store)
 from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
-from rigctl.analysis.allan_quiet import EXCURSION_MODES
+from rigctl.analysis.allan_quiet import DEFAULT_EXCURSIONS, EXCURSION_MODES
 from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
 from rigctl.commands.cli_options import add_production_options
@@ -150,11 +150,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--outliers", choices=OUTLIER_MODES, default="report",
                    help="spikes (samples > 10 robust sd from their neighbours): report them "
                         "(default) or also exclude them (replaced by the running median)")
-    p.add_argument("--excursions", choices=EXCURSION_MODES, default="report",
+    p.add_argument("--excursions", choices=EXCURSION_MODES, default=DEFAULT_EXCURSIONS,
                    help="short excursions of the level (30 s .. a quarter of the record, tested "
-                        "before the fit): report them (default), or also leave those inside a "
-                        "quiet stretch out of its fit (exclude; their windows are gaps, handled "
-                        "as --gaps says)")
+                        "before the fit), always reported: those inside a quiet stretch left out "
+                        "of its fit (exclude, the default; their windows are gaps, handled as "
+                        "--gaps says), or kept in it (report). The whole record's fit keeps them")
     p.add_argument("--warmup", choices=WARMUP_MODES, default="report",
                    help="a start transient (tested before the fit): report it, or cut it (exclude)")
     p.add_argument("--temperature", choices=TEMPERATURE_MODES, default="report",

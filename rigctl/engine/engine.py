@@ -30,7 +30,8 @@ import numpy as np
 
 from .. import errors
 from ..clock import VirtualClock, suggested_speed
-from ..devices import AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable
+from ..devices import (AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable,
+                       imu_restarts)
 from .procedure import CHAMBER_KINDS, Step
 from ..progress import CounterGaps, NullProgress, Progress
 from ..recording.recorder import Recorder, Segment
@@ -108,6 +109,24 @@ def slow_rig_speed(speed: float, wall_s: float, device_s: float) -> float | None
         return None
     achieved = device_s / wall_s
     return achieved if achieved < PACE_SLOW_FRACTION * speed else None
+
+
+def rewarm_due(event_time: np.ndarray, event_kind: np.ndarray, event_message: np.ndarray,
+               seg_kind: np.ndarray, seg_status: np.ndarray, seg_t_start: np.ndarray) -> str | None:
+    """Whether a recording cut off after a ``device-restart`` event still owes the IMU its warm-up
+    (for ``rigctl resume``, :attr:`Engine.rewarm`): the latest such event's message when no
+    complete ``warmup`` segment started at or after it, else None. Times on the file's time
+    base, s; kinds and statuses as the recording's bytes."""
+    restarts = np.flatnonzero(np.asarray(event_kind) == b"device-restart")
+    if not restarts.size:
+        return None
+    i = restarts[np.argmax(np.asarray(event_time, float)[restarts])]
+    t = float(event_time[i])
+    warm = (np.asarray(seg_kind) == b"warmup") & (np.asarray(seg_status) == b"complete")
+    if np.any(np.asarray(seg_t_start, float)[warm] >= t):
+        return None
+    msg = event_message[i]
+    return msg.decode("utf-8", "replace") if isinstance(msg, bytes) else str(msg)
 
 
 class RunError(errors.RunFailure):
@@ -241,6 +260,14 @@ class Engine:
         #: warm-up step index -> seconds of warm-up already done in earlier attempts of that step
         #: with the IMU powered all along (see :meth:`suspend`)
         self.warmup_done: dict[int, float] = {}
+        #: why the IMU must be warmed up again before the next measurement: it restarted (lost
+        #: power: its device time began again, :func:`rigctl.devices.imu_restarts`) and no whole
+        #: warm-up ran since (the ``device-restart`` event; a resumed run sets it from the
+        #: recording, :func:`rewarm_due`); None when it is warm
+        self.rewarm: str | None = None
+        self._restarts: int | None = None      # the IMU's restart count at the last poll
+        self._warmup: Step | None = None       # the procedure's warm-up step (run)
+        self._last_done: Step | None = None    # the last step recorded complete
         #: wall time over which the speed rig time really runs at is measured (_watch_pace), s;
         #: whether the run said it cannot keep up
         self.pace_window_s = PACE_WINDOW_WALL_S
@@ -291,6 +318,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
+        restarted = self._watch_restarts(obs.t)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
         except LinkLost as exc:
@@ -322,6 +350,8 @@ class Engine:
         if self.rec.holding:
             tripped["disk"] = tripped.get("disk") or self.rec.holding
             self.suspenders.active, self.suspenders.clear_since = tripped, None
+        if restarted is not None:   # an event, not a state: it trips this poll only
+            tripped = {**tripped, "imu-restart": restarted}
         if tripped and check:
             raise Suspend(tripped)
         if state is None:
@@ -330,6 +360,37 @@ class Engine:
             nan3 = np.full(3, np.nan)
             return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
         return state
+
+    def _watch_restarts(self, t: float) -> str | None:
+        """The reason to pause when the IMU restarted since the last poll (its driver's restart
+        count rose, :func:`rigctl.devices.imu_restarts`), else None.
+
+        A restart is a power loss of the unit, not a link drop (after which its device time
+        continues): a new turn-on bias, and the unit is thermally cold. It is recorded as a
+        ``device-restart`` event naming the step in flight and the last complete one (the
+        calibration reports the positions on each side, rigctl.analysis.calibration), said in
+        one run-log line, and sets :attr:`rewarm`: the procedure's warm-up runs again before
+        the next measurement (:meth:`run`); the step in flight is sampled again."""
+        n = imu_restarts(self.rig.imu)
+        if self._restarts is None or n <= self._restarts:
+            self._restarts = n          # the first poll, or a driver whose counters began again
+            return None
+        self._restarts = n
+        self.warmup_done.clear()    # warm-up time kept from before the restart counts no more
+        step, done, warm = self.current_step, self._last_done, self._warmup
+        where = f"in step {step.index + 1} ({step.label})" if step is not None else "between steps"
+        last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
+        self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
+                                                f"{last}; {plan}")
+        nxt = f"step {step.index + 1} is sampled again" if step is not None else "the run goes on with the next step"
+        what = (f"the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again first, then {nxt}"
+                if warm is not None else f"the procedure has no warm-up to run again; {nxt}")
+        self.log("warning", f"the IMU restarted {where} (its device time began again: it lost power, so its "
+                            f"turn-on bias is new and it is cold): {what}")
+        if warm is not None:
+            self.rewarm = f"the IMU restarted {where}"
+        return f"IMU restarted {where} (device time began again)"
 
     def _watch_pace(self, t: float) -> None:
         """Say once, early, when rig time runs slower than the clock's speed asks: a clock that
@@ -736,6 +797,7 @@ class Engine:
             # set point; the last set point commanded before the resume point holds again
             self.log("info", f"resuming: chamber set point of step {before[-1].index + 1} again")
             self.command_chamber(before[-1])
+        self._warmup = next((s for s in steps if s.kind == "warmup"), None)
         n = 0
         while n < len(motion):
             step = motion[n]
@@ -746,6 +808,22 @@ class Engine:
                     self.poll()
                 except Suspend as sus:
                     self.suspend(step, sus, between_steps=True)
+                    continue
+            if self.rewarm is not None and step.kind not in CHAMBER_KINDS:
+                if step.kind == "warmup":          # the warm-up itself: whole, from its start
+                    self.warmup_done.pop(step.index, None)
+                    self.rewarm = None
+                elif self._warmup is None:
+                    self.rewarm = None
+                else:
+                    try:
+                        self._rewarm(self._warmup, step)
+                    except Suspend as sus:
+                        if sus.segment is None:     # cut off: it runs again
+                            self.suspend(self._warmup, sus)
+                        else:                       # complete; the pause comes before the step
+                            self.rewarm = None
+                            self.suspend(step, sus, between_steps=True)
                     continue
             self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
             self.progress.step_started(step)
@@ -758,6 +836,9 @@ class Engine:
                     continue
                 seg, after = sus.segment, sus     # the step is complete; the pause comes next
             self.progress.step_finished(step, seg)
+            self._last_done = step
+            if step.kind == "warmup":     # done: time kept from its cut-off attempts is spent
+                self.warmup_done.pop(step.index, None)
             segments.append(seg)
             if on_step:
                 on_step(step, seg)
@@ -769,9 +850,21 @@ class Engine:
                                     "every step is complete")
         return segments
 
+    def _rewarm(self, warm: Step, before: Step) -> None:
+        """Run the procedure's warm-up ``warm`` again (after :attr:`rewarm`: the IMU restarted),
+        recorded as a complete ``warmup`` segment of its step index, then clear :attr:`rewarm`;
+        ``before``: the step that follows it. Raises Suspend as :meth:`execute` does."""
+        self.log("step", f"re-warm before step {before.index + 1} ({before.label}): {warm.describe()}", echo=False)
+        self.rec.add_event(self.rig.clock.now(), "info",
+                           f"re-warm: step {warm.index + 1} ({warm.label}, {warm.sample_s:g} s) again, "
+                           f"{self.rewarm}; then step {before.index + 1} ({before.label})")
+        self.execute(self._warmup_left(warm))
+        self.warmup_done.pop(warm.index, None)
+        self.rewarm = None
+
     # -- suspension ------------------------------------------------------------------------------
     #: suspenders after which the IMU may have been without power: a warm-up starts over
-    POWER_SUSPENDERS = ("imu-link", "imu-gap", "imu-window")
+    POWER_SUSPENDERS = ("imu-link", "imu-gap", "imu-window", "imu-restart")
 
     def _warmup_left(self, step: Step) -> Step:
         """A warm-up interrupted before with the IMU powered all along runs only what is left."""

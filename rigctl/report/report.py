@@ -28,7 +28,7 @@ CAL_KINDS = ("orientation", "rate")
 #: Event kinds shown as faults / suspender events (the rest, e.g. state transitions and the
 #: end-of-run safe-state, are listed under "All events").
 FAULT_KINDS = ("suspend", "resume", "incomplete", "interrupted", "failed", "data-lost",
-               "fault", "error")
+               "fault", "error", "device-restart")
 COUNTER_CHUNK = 1 << 20
 MAX_TABLE_POINTS = 20000
 

@@ -33,7 +33,7 @@ from .console import ConsoleStream
 from ..config.config import RigConfig, load_config
 from ..engine.device_check import check_devices
 from ..devices import DeviceFault, imu_identity
-from ..engine.engine import Engine, Interrupted, Rig, RunError
+from ..engine.engine import Engine, Interrupted, Rig, RunError, rewarm_due
 from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError, RigctlError
 from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
@@ -373,11 +373,13 @@ def _run_context(log: Callable[..., None], install_signals: bool, console_stream
 
 def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ckpt_mod.Checkpoint,
            make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
-           install_signals: bool, progress: Progress, resuming: bool = False) -> RunResult:
+           install_signals: bool, progress: Progress, resuming: bool = False,
+           rewarm: str | None = None) -> RunResult:
     """Open the rig, run ``proc`` from the step ``make_recorder`` says, and always end safe: the
     table stopped, the recording closed with a final status, the checkpoint saying the same.
     Whatever fails (a device, the disk, a bug) is one line on the console and its traceback in
-    the run log; opening the rig or creating the recording may fail too (status ``failed``)."""
+    the run log; opening the rig or creating the recording may fail too (status ``failed``).
+    ``rewarm``: the IMU restarted before the cut-off and owes its warm-up (rewarm_due)."""
     log = _DiskSafeLog(log)  # type: ignore[assignment]
     # SIGINT / SIGTERM: from before the rig opens until the analysis of the closed recording ends.
     # During the run the handler only asks the engine to abort (at its next poll; before the
@@ -397,13 +399,14 @@ def _drive(proc: Procedure, cfg: RigConfig, run_dir: Path, log: RunLog, ckpt: ck
     status_box: list[str | None] = [None]  # set once the run's outcome is known (no more aborts)
     with _signal_handlers(install_signals, on_signal):
         return _drive_signalled(proc, cfg, run_dir, log, ckpt, make_recorder, opts, progress, resuming,
-                                install_signals, signals, engines, status_box)
+                                install_signals, signals, engines, status_box, rewarm)
 
 
 def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, ckpt: ckpt_mod.Checkpoint,
                      make_recorder: Callable[[Rig, Any], tuple[Recorder, int]], opts: RunOptions,
                      progress: Progress, resuming: bool, install_signals: bool, signals: RunSignals,
-                     engines: list[Engine], status_box: list[str | None]) -> RunResult:
+                     engines: list[Engine], status_box: list[str | None],
+                     rewarm: str | None = None) -> RunResult:
     signalled = signals.names
     recording = run_dir / RECORDING
     states = opts.states or StateMachine()
@@ -437,6 +440,10 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
                                 sample_poll_s=opts.sample_poll_s, max_pause_s=opts.max_pause_s,
                                 open_interlocks=bool(cfg.table.options.get("open_interlocks_on_stop", False)),
                                 progress=progress, imu_rate_hz=cfg.imu_rate_hz)
+                if rewarm is not None:
+                    engine.rewarm = rewarm
+                    log("warning", f"resuming after a device restart that no warm-up followed ({rewarm}): "
+                                   "the warm-up runs again before the next measurement")
 
                 def on_transition(old: str, new: str, reason: str) -> None:
                     log("state", f"{old} -> {new}" + (f": {reason}" if reason else ""), state=new)
@@ -637,7 +644,8 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         raise InputError(f"{d}: the run was cut off before its recording was created",
                          hint="start the procedure again")
     with _open_cut_off(recording) as f:
-        seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample")}
+        seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample", "kind", "t_start")}
+        ev = {k: f["events"][k][()] for k in ("time", "kind", "message")}
         file_status = f["run/status"][0].decode()
         recorded_id = f["meta"].attrs.get("imu_device_id", "")  # absent: recorded before rigctl knew
     recorded_id = recorded_id.decode() if isinstance(recorded_id, bytes) else str(recorded_id)
@@ -689,7 +697,9 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         return rec, start
 
     try:
-        return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True)
+        return _drive(proc, cfg, d, log, ck, make_recorder, opts, install_signals, progress, resuming=True,
+                      rewarm=rewarm_due(ev["time"], ev["kind"], ev["message"], seg["kind"], seg["status"],
+                                        seg["t_start"]))
     except InputError as exc:  # e.g. another IMU: nothing was changed, say so in the run's log too
         log("error", f"resume refused: {exc}", echo=False)  # the caller reports it
         log.close()

@@ -34,6 +34,8 @@ import math
 
 import numpy as np
 
+from . import allan_cov_kernels as KC
+
 TERMS4 = ("Q", "N", "B", "K")
 PAIRS = [(t, u) for i, t in enumerate(TERMS4) for u in TERMS4[i:]]
 _C = np.array([1.0, -2.0, 1.0])
@@ -336,14 +338,7 @@ def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
         rq = _r_lags("Q", ma, mb, kt, tau0)
         for u in TERMS4:
             out[("Q", u)][a, b] = np.sum(rq * _r_lags(u, ma, mb, kt, tau0) * wt)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
-    norm[~np.isfinite(norm)] = 0.0
-    for p in PAIRS:
-        c = out[p]
-        c = c + np.triu(c, 1).T
-        out[p] = c * norm
-    return out
+    return _symmetric_normed(out, tau, big_n)
 
 
 # --- a first-order Gauss-Markov rate ------------------------------------------------------
@@ -658,6 +653,83 @@ def _gm_gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndar
 
 def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray,
                     tc: float) -> dict:
+    """The gapped Gauss-Markov pairs of the stretches ``lengths`` (``counts`` of each) from
+    their lag sums pair by pair (normalized by their own N(a) N(b)): compiled
+    (:mod:`rigctl.solvers.allan_cov_kernels`) where numba is there and the factors are
+    integers, else :func:`_gm_gapped_loop_numpy` (the same sums; ~1 s per Tc for 40 factors
+    of two stretches of 1.3e4 and 1.6e4 samples, compiled 0.06-0.09 s)."""
+    ms = np.asarray(ms, dtype=float)
+    if not KC.HAVE_NUMBA or not np.array_equal(ms, np.round(ms)):
+        return _gm_gapped_loop_numpy(tau0, ms, lengths, counts, tc)
+    pr = _gm_gapped_pairs(float(tau0), ms.tobytes(), np.asarray(lengths, np.int64).tobytes(),
+                          np.asarray(counts, np.int64).tobytes())
+    # R_G at the integer lags, where the tails start and at the taps with numpy, as the
+    # numpy loop has them (R_G there is a small difference of large terms)
+    tab_g = _kernel("G", pr["t_int"], tc)
+    ma, mb = pr["ma"][:, None], pr["mb"][:, None]
+    r_g = (_r_lags("G", pr["ma"], pr["mb"], pr["right"], tau0, tc),
+           _r_lags("G", pr["ma"], pr["mb"], pr["left"], tau0, tc),
+           _r_lags("G", ma, mb, np.concatenate([j * ma - l * mb for j in range(3)
+                                                 for l in range(3)], axis=1), tau0, tc))
+    sums = KC.gm_pair_sums(tau0, tc, pr["ma"], pr["mb"], pr["k_lo"], pr["k_hi"], pr["disc"],
+                           pr["kn"], pr["val"], pr["kn_off"], (*pr["tables"], tab_g), r_g,
+                           _GM_CONSTS)
+    out = {p: np.zeros((ms.size, ms.size)) for p in GPAIRS}
+    for i, p in enumerate(GPAIRS):
+        out[p][pr["a"], pr["b"]] = sums[:, i]
+    return _symmetric_normed(out, ms * tau0, pr["big_n"])
+
+
+#: the constants the compiled pair loop reads, as the numpy loop has them
+_GM_CONSTS = (_C, np.array(_PHI_SERIES), _GL_X, _GL_W, np.array([1.0, 2.0, 4.0, 8.0, 16.0]),
+              _GM_NEAR, _GM_TAIL)
+
+
+@functools.lru_cache(maxsize=8)
+def _gm_gapped_pairs(tau0: float, ms_key: bytes, len_key: bytes, cnt_key: bytes) -> dict:
+    """What the compiled pair loop needs that does not depend on Tc (_gapped_pairs as flat
+    arrays: each pair's factors, lag range, whether it is summed over integer lags, W's knots
+    and values one pair after another with their offsets) and the N, B, K kernels at the
+    integer lags those pairs reach (t_int = lag tau0, s)."""
+    ms = np.frombuffer(ms_key, dtype=float)
+    lengths = np.frombuffer(len_key, dtype=np.int64)
+    counts = np.frombuffer(cnt_key, dtype=np.int64)
+    rows = list(_gapped_pairs(ms, lengths, counts))
+    col = {name: np.array([r[i] for r in rows], dtype=dt) for name, i, dt in (
+        ("a", 0, np.intp), ("b", 1, np.intp), ("ma", 4, float), ("mb", 5, float),
+        ("s", 6, float), ("k_lo", 9, float), ("k_hi", 10, float))}
+    col["disc"] = (col["s"] <= DISCRETE_MAX) | (col["k_hi"] - col["k_lo"] <= GAPPED_DISCRETE_LAGS)
+    col["kn"] = np.concatenate([r[2] for r in rows]) if rows else np.zeros(0)
+    col["val"] = np.concatenate([r[3] for r in rows]) if rows else np.zeros(0)
+    col["kn_off"] = np.concatenate([[0], np.cumsum([r[2].size for r in rows])]).astype(np.int64)
+    d = col["disc"]
+    # where the (G, G) tails start: half a lag past the integer lags, or the lag range's ends
+    col["right"] = np.where(d, np.floor(col["k_hi"]) + 0.5, col["k_hi"])
+    col["left"] = np.where(d, np.ceil(col["k_lo"]) - 0.5, col["k_lo"])
+    # the integer lags j m_a - l m_b - k of the exactly summed pairs: -2 m_b - k .. 2 m_a - k
+    lag_max = int(max(np.max(2.0 * col["ma"][d] - np.ceil(col["k_lo"][d]), initial=0.0),
+                      np.max(np.floor(col["k_hi"][d]) + 2.0 * col["mb"][d], initial=0.0)))
+    col["t_int"] = np.arange(lag_max + 1, dtype=float) * tau0
+    col["tables"] = tuple(_kernel(t, col["t_int"]) for t in ("N", "B", "K"))
+    col["big_n"] = _stretch_terms(ms, lengths, counts)[1]
+    return col
+
+
+def _symmetric_normed(out: dict, tau: np.ndarray, big_n: np.ndarray) -> dict:
+    """The upper triangles of lag sums made symmetric and normalized,
+    2 / (4 tau_a^2 tau_b^2 N(a) N(b)) (0 where a factor has no terms)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
+    norm[~np.isfinite(norm)] = 0.0
+    for p in out:
+        c = out[p]
+        c = c + np.triu(c, 1).T
+        out[p] = c * norm
+    return out
+
+
+def _gm_gapped_loop_numpy(tau0: float, ms: np.ndarray, lengths: np.ndarray,
+                          counts: np.ndarray, tc: float) -> dict:
     ms = np.asarray(ms, dtype=float)
     n = ms.size
     big_n = _stretch_terms(ms, lengths, counts)[1]
@@ -704,11 +776,4 @@ def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np
             amp = _r_lags("G", ma, mb, np.array([start]), tau0, tc)
             out[("G", "G")][a, b] += float(_gm_tail(np.array([start]), np.array([end]),
                                                     sign, amp, h, kinks, weight)[0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_n, tau ** 2 * big_n))
-    norm[~np.isfinite(norm)] = 0.0
-    for p in GPAIRS:
-        c = out[p]
-        c = c + np.triu(c, 1).T
-        out[p] = c * norm
-    return out
+    return _symmetric_normed(out, tau, big_n)

@@ -42,8 +42,11 @@ opposite sign at most a quarter of the record apart make an excursion. An edge l
 looked for its return: the opposite step within a quarter of the record after it (and before
 it), at the threshold of that smaller family of positions, one-sided -- a second stage that
 runs only after a first-stage edge, so the family-wise false-alarm probability stays ALPHA. An
-edge without a return is reported as a level shift (within a quarter of the record of its
-start or end, an excursion that runs to it).
+edge without a return is reported as a level shift; within a quarter of the record of its
+start or end, as an excursion that runs to it where that window departs from its flank as a
+bump must (in the step's direction, by at least half the step) -- else the step was a short
+event whose return is too gradual to be found (the Galaxy S5 gyro's 30 s dip at 4060 s), and
+not the whole window before it.
 
 **Size.** The mean over the excursion less the mean of its flanks -- the stretches of its own
 length before and after it, clipped to the record, without other excursions -- in units of y
@@ -271,11 +274,11 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
             for j, k in enumerate(kept):  # steps inside it are its own shape
                 if a < k["t_fine"] < b:
                     used[j] = True
-        elif te >= n - max_d:
+        elif te >= n - max_d and _runs_to_edge(y, te, n, sg, e["step"]):
             exc.append((te, n, "to the end", e["z"], float("nan")))
             for j in range(i + 1, len(kept)):  # the steps after it are its own shape
                 used[j] = True
-        elif te <= max_d:
+        elif te <= max_d and _runs_to_edge(y, 0, te, -sg, e["step"]):
             exc.append((0, te, "to the start", float("nan"), e["z"]))
         else:
             exc.append((te, te, "level shift", e["z"], e["step"]))
@@ -302,6 +305,15 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
                            "threshold_z": e["thr"], "stage": e["stage"]} for e in edges],
                 "excursions": items})
     return out
+
+
+def _runs_to_edge(y: np.ndarray, a: int, b: int, sign: float, step: float) -> bool:
+    """Whether the window [a, b) between an unreturned step and the record's start or end
+    departs from its flank as a bump must (in the step's direction, ``sign``, by at least
+    half the step): else the step was a short event whose return is too gradual to be
+    found, and the window is no excursion (the step is reported as a level shift)."""
+    size = window_size(y, a, b)
+    return bool(np.sign(size) == sign and abs(size) >= 0.5 * abs(step))
 
 
 def _opposite_steps(scans: list[dict], e: dict, lo: int, hi: int, a_scale: float) -> list[dict]:

@@ -30,8 +30,9 @@ one they go first. A dropped term is reported as a one-sided 95 % upper
 bound, sqrt(max(p_j, 0) +
 1.645 sd_j) from the fit with it restored (unconstrained). Parameter covariance:
 (A^T Sigma^-1 A)^-1, inflated by the reduced chi-square when > 1. Intervals of a kept term:
-chi-square with nu = 2 p_j^2 / sd_j^2 degrees of freedom (Satterthwaite), the same form as the
-intervals of the deviations: p_j nu / chi2_{1-q}(nu) .. p_j nu / chi2_q(nu), square-rooted.
+chi-square with nu = 2 p^2 / sd(p)^2 degrees of freedom (Satterthwaite), the same form as the
+intervals of the deviations, each end p solving p_j = p chi2_{q'}(nu(p)) / nu(p) with sd(p) from
+the covariance at the model with the term at p (Neyman; :func:`_neyman_chi2_ci`), square-rooted.
 
 Each Q/N/B/K entry also carries ``crb_rel_sd``: the Cramer-Rao bound of sd(c)/c for the
 capture (:mod:`rigctl.solvers.allan_crb`), i.e. how well any estimator could determine that
@@ -302,6 +303,53 @@ def _model_whitener(ct: dict | None, q_nbk: np.ndarray, mod: np.ndarray, noisy: 
     if eps > 0:
         cov = cov + np.diag((eps * mod) ** 2)
     return _whiten(cov)
+
+
+def _sd_at(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
+           cov_terms: dict | None, p: np.ndarray, i: int, value: float, chi2_red: float,
+           model_err: float = 0.0, inflate: np.ndarray | None = None) -> float:
+    """sd of the GLS estimate of column i's coefficient when that coefficient is ``value``
+    (the others at ``p``): the covariance of the sigma^2 estimates at that model, the
+    parameter covariance (A^T Sigma^-1 A)^-1 of the columns with a positive coefficient,
+    inflated by the reduced chi-square when > 1 (as the fit's own sd)."""
+    model = np.maximum(np.array(p, dtype=float), 0.0)
+    model[i] = max(float(value), 0.0)
+    pos = model > 0
+    if not pos[i]:
+        return 0.0
+    lw = _whiten(_model_cov(cov_terms, model, cols, a, edf, model_err, inflate))
+    aw = solve_triangular(lw, a[:, pos], lower=True)
+    k = int(np.count_nonzero(pos[:i]))
+    return float(np.sqrt(max(_param_cov(aw)[k, k], 0.0) * max(1.0, chi2_red)))
+
+
+def _neyman_chi2_ci(p_hat: float, sd_at: Callable[[float], float], conf: float,
+                    steps: int = 8) -> tuple[float, float]:
+    """Two-sided interval (confidence ``conf``) of a coefficient sqrt(p) from its estimate
+    ``p_hat`` whose spread depends on p (Neyman's construction): p_hat is taken as
+    p chi2(nu) / nu with Satterthwaite's nu(p) = 2 p^2 / sd(p)^2 at the *candidate* p, not at
+    p_hat, so the ends solve p_hat = p_lo chi2_{1-q}(nu(p_lo)) / nu(p_lo) and
+    p_hat = p_hi chi2_q(nu(p_hi)) / nu(p_hi), q = (1 - conf) / 2 (fixed-point iteration from
+    the ends at nu(p_hat), ``steps`` steps). With nu from p_hat a chance high p_hat, whose
+    relative sd the model at p_hat makes small, got a narrow interval above the truth (the
+    quickstart's B, issue 15)."""
+    q = (1.0 - conf) / 2.0
+
+    def nu(p: float) -> float:
+        sd = sd_at(p)
+        return 2.0 * p * p / max(sd * sd, 1e-300)
+
+    ends = []
+    for quant in (1.0 - q, q):
+        v = p_hat
+        for _ in range(steps):
+            r = _chi2_over_nu(quant, nu(v)) if v > 0 else 0.0
+            if not r > 0:
+                v = math.inf
+                break
+            v = p_hat / r
+        ends.append(v)
+    return math.sqrt(ends[0]), math.sqrt(ends[1])
 
 
 def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
@@ -1009,8 +1057,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             kept = False
         if kept:
             coeff_sq[t] = pj
-            coefs[t] = NC.Coefficient(math.sqrt(pj), _chi2_ci(pj, nu, 0.683),
-                                      _chi2_ci(pj, nu, 0.95), edf=nu)
+            # the interval: nu read at each candidate value, not at p_j (_neyman_chi2_ci)
+            ij, a_act = active.index(j), full_a[:, active]
+
+            def sd_at(v: float, ij: int = ij, a_act: np.ndarray = a_act) -> float:
+                return _sd_at(a_act, s2, e, active, cov_terms, p, ij, v, chi2_red,
+                              model_err, inflate)
+
+            coefs[t] = NC.Coefficient(math.sqrt(pj), _neyman_chi2_ci(pj, sd_at, 0.683),
+                                      _neyman_chi2_ci(pj, sd_at, 0.95), edf=nu)
         else:
             coeff_sq[t] = 0.0
             ub = math.sqrt(max(pj, 0.0) + _Z95_ONE * sdj)

@@ -1,0 +1,234 @@
+"""An IMU that restarts mid-procedure (it lost power: its device time began again) is warmed up
+again before the next measurement; a plain link drop (device time continuous) is not.
+
+The in-process emulator on the virtual clock (deterministic, seconds): its ``imu_power`` fault
+takes the link down and, when it ends, restarts the unit (``counters["device_restarts"]``, as
+drivers/stream_imu.py counts a rebased timeline); ``imu_link`` is the cable pull. The faults are
+injected 1 s into the second orientation's window. The wire path (pty, Xsens driver, emulated
+power cycle) is tests/test_hil_power_cycle.py.
+
+Before: a restart after the warm-up never re-warmed the IMU (only a warm-up in flight started
+over), and the recording did not say where it happened.
+"""
+from __future__ import annotations
+
+import io
+import multiprocessing
+import os
+import signal
+
+import h5py
+import numpy as np
+
+from rigctl.config.config import load_config
+from rigctl.config.suspenders import SuspenderSettings
+from rigctl.engine.procedure import load_procedure
+from rigctl.run.runner import RunOptions, resume_run, run_procedure
+
+from helpers import WHITE_NOISE_ONLY, derived_config
+from hil_support import RunPoints, sampling
+
+WARMUP_S = 20.0
+PROC = """procedure: rewarm
+steps:
+  - warmup:
+      duration: 20 s
+  - orientations:
+      angles_deg: [[0, 0, 0], [90, 0, 0], [180, 0, 0]]
+      sample: 5 s
+      discard: 1 s
+      settle: {hold: 1 s, timeout: 60 s}
+"""
+
+
+def _run(tmp_path, fault: str, down_s: float = 3.0, on_poll=None, at=None):
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))     # virtual clock, 100 Hz
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    points: RunPoints
+
+    def inject() -> None:
+        world = points.engine.rig.imu.world
+        world.faults.schedule(fault, world.t, down_s)
+
+    points = RunPoints([(at or sampling("orientation", after_samples=100, finished=1), inject)])
+    if on_poll is not None:
+        points.actions.append((lambda engine, pts: on_poll(engine), lambda: None))
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert points.fired, "the fault was never injected"
+    return res
+
+
+def _read(path):
+    with h5py.File(path, "r") as f:
+        seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "first_sample", "last_sample",
+                                                  "t_start", "t_end")}
+        t = f["imu/time"][()]
+        events = [(float(tt), k.decode(), m.decode()) for tt, k, m in
+                  zip(f["events/time"][()], f["events/kind"][()], f["events/message"][()])]
+    return seg, t, events
+
+
+def _pairs(seg):
+    return [(k.decode(), int(i), s.decode()) for k, i, s in zip(seg["kind"], seg["step"], seg["status"])]
+
+
+def test_a_power_loss_after_the_warmup_warms_the_imu_again(tmp_path):
+    """Power lost for 3 s during the second orientation: a ``device-restart`` event naming the
+    step and the last complete one; the orientation is cut off; the whole 20 s warm-up runs
+    again (a complete warm-up segment, after the restart) before the orientation is sampled
+    again; the run log says so in one line."""
+    res = _run(tmp_path, "imu_power")
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "incomplete"), ("warmup", 0, "complete"),
+                           ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    (restart,) = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    assert "in step 3 (" in restart[1] and "last complete step 2 (" in restart[1], restart
+    # the re-warm starts after the restart, lasts the procedure's warm-up, and its samples cover it
+    a, z = int(seg["first_sample"][3]), int(seg["last_sample"][3])
+    assert seg["t_start"][3] >= restart[0]
+    assert abs(seg["t_end"][3] - seg["t_start"][3] - WARMUP_S) < 1e-6
+    assert abs((t[z - 1] - t[a] + 0.01) - WARMUP_S) <= 0.02 + 1e-9
+    assert seg["t_end"][3] <= seg["t_start"][4]
+    log = (res.run_dir / "run.log.jsonl").read_text().splitlines()
+    said = [line for line in log if "the IMU restarted in step 3" in line]
+    assert len(said) == 1 and "warm-up (20 s, step 1) runs again first, then step 3 is sampled again" in said[0], said
+
+
+def test_a_link_drop_does_not_warm_the_imu_again(tmp_path):
+    """The same 3 s outage as a cable pull (device time continuous): the orientation is sampled
+    again, and no warm-up runs again."""
+    res = _run(tmp_path, "imu_link")
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "incomplete"), ("orientation", 2, "complete"),
+                           ("orientation", 3, "complete")], _pairs(seg)
+    assert not any(k == "device-restart" for _, k, _ in events)
+
+
+def test_a_power_loss_during_the_warmup_runs_it_once_more_only(tmp_path):
+    """Power lost 5 s into the warm-up: the warm-up starts over (whole), once -- it is the
+    re-warm -- and the event is recorded; no second warm-up before the orientations."""
+    res = _run(tmp_path, "imu_power", at=sampling("warmup", after_samples=500))
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg) == [("warmup", 0, "incomplete"), ("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    (restart,) = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    assert "in step 1 (" in restart[1] and "no step complete yet" in restart[1], restart
+    assert seg["t_start"][1] >= restart[0] and abs(seg["t_end"][1] - seg["t_start"][1] - WARMUP_S) < 1e-6
+
+
+def test_warmup_time_kept_before_a_restart_does_not_shorten_the_rewarm(tmp_path):
+    """An IMU temperature excursion 5 s into the warm-up pauses it and keeps its 5 s (the
+    warm-up then samples the 15 s left); a power loss later, in the second orientation: the
+    re-warm is the whole 20 s, not 20 s less the time kept before the restart."""
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    points: RunPoints
+
+    def fault(kind: str, **kw):
+        def act() -> None:
+            world = points.engine.rig.imu.world
+            world.faults.schedule(kind, world.t, 3.0, **kw)
+        return act
+
+    points = RunPoints([(sampling("warmup", after_samples=500), fault("temperature", offset_c=200.0)),
+                        (sampling("orientation", after_samples=100, finished=1), fault("imu_power"))])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0, res.message
+    assert len(points.fired) == 2
+    seg, t, events = _read(res.recording)
+    pairs = _pairs(seg)
+    warm = [i for i, p in enumerate(pairs) if p[0] == "warmup" and p[2] == "complete"]
+    assert [p[0] for p in pairs[:2]] == ["warmup", "warmup"] and len(warm) == 2, pairs
+    kept = seg["t_end"][warm[0]] - seg["t_start"][warm[0]]
+    assert 14.0 < kept < 16.0, kept                        # the first warm-up kept its first 5 s
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    assert seg["t_start"][warm[1]] >= restart
+    assert abs(seg["t_end"][warm[1]] - seg["t_start"][warm[1]] - WARMUP_S) < 1e-6
+
+
+def _crash_after_restart(tmp_path):
+    """Child process: the power-loss run, SIGKILLed at the first poll after the engine saw the
+    restart (paused, the re-warm not yet begun)."""
+    def crash(engine):
+        if getattr(engine, "rewarm", None) is not None:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return False
+    _run(tmp_path, "imu_power", on_poll=crash)
+    os._exit(3)     # not reached
+
+
+def test_a_run_killed_after_a_restart_warms_the_imu_again_on_resume(tmp_path):
+    """Killed (SIGKILL) after the restart was recorded and before the re-warm: 'rigctl resume'
+    runs the warm-up first (the recording says it is owed), then the orientations left."""
+    child = multiprocessing.get_context("fork").Process(target=_crash_after_restart, args=(tmp_path,))
+    child.start()
+    child.join(60)
+    assert child.exitcode == -signal.SIGKILL, child.exitcode
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    again = resume_run(run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False)
+    assert again.status == "complete", again.message
+    seg, t, events = _read(again.recording)
+    pairs = _pairs(seg)
+    done = [p for p in pairs if p[2] == "complete"]
+    assert done == [("warmup", 0, "complete"), ("orientation", 1, "complete"), ("warmup", 0, "complete"),
+                    ("orientation", 2, "complete"), ("orientation", 3, "complete")], pairs
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    i = [j for j, p in enumerate(pairs) if p[0] == "warmup"][1]
+    assert seg["t_start"][i] > restart and abs(seg["t_end"][i] - seg["t_start"][i] - WARMUP_S) < 1e-6
+    assert "resuming after a device restart" in (run_dir / "run.log.jsonl").read_text()
+
+
+#: the bias the emulated unit comes back with after its power loss, on x (2 mg): a new turn-on bias
+STEP_M_S2 = 2e-3 * 9.80665
+
+
+def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_path):
+    """procedures/24pos.yaml (3 s windows, 10 s warm-up) with the power lost 1 s into the 13th orientation,
+    the unit back 3 s later with a 2 mg higher x bias: the run re-warms, and 'rigctl calibrate'
+    says NOT TRUSTWORTHY, naming the 12 positions measured before the restart and the 12 after
+    (from the segments' own times here): one fit over both has no term for the bias step."""
+    from rigctl.analysis.calibration import calibrate
+    from hil_support import ROOT
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s", "discard": "0.5 s"},
+                          cfg.limits)
+    points: RunPoints
+
+    def power_loss() -> None:
+        world = points.engine.rig.imu.world
+        world.faults.schedule("imu_power", world.t, 3.0)
+        model = world.imu_model
+
+        def back() -> None:
+            model.accel_bias = model.accel_bias + np.array([STEP_M_S2, 0.0, 0.0])
+        world.faults.call_at(world.t + 3.0, back)
+
+    points = RunPoints([(sampling("orientation", after_samples=100, finished=12), power_loss)])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0, res.message
+    seg, t, events = _read(res.recording)
+    (restart,) = [tt for tt, k, m in events if k == "device-restart"]
+    done = (seg["kind"] == b"orientation") & (seg["status"] == b"complete")
+    before = sorted(int(s) + 1 for s in seg["step"][done & (seg["t_end"] <= restart)])
+    after = sorted(int(s) + 1 for s in seg["step"][done & (seg["t_start"] >= restart)])
+    assert before == list(range(2, 14)) and after == list(range(14, 26)), (before, after)
+    payload, text, _ = calibrate(res.recording, store=False)
+    assert payload["trustworthy"] is False and payload["loop_status"] == "NOT TRUSTWORTHY"
+    (note,) = payload["device_restarts"]
+    assert [int(s.split(" ")[1]) for s in note["before"]] == before
+    assert [int(s.split(" ")[1]) for s in note["after"]] == after
+    assert "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
+    assert "step 2 (" in text and "step 25 (" in text and "(12 positions)" in text
