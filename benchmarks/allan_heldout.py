@@ -47,7 +47,9 @@ correlation of the estimates across taus; the 10 % rule kept) -- docs/allan.md, 
 (family-wise)".
 After a verdict that misses floor taus, how rigctl's own self-check names them, in brackets
 (`missed_named_by_rigctl`: "unexplained" -- a run rigctl marks so, no term it fits follows it
---, its named cause such as "nonstationary", "named", or "not named"); printed, not judged.
+--, its named cause such as "nonstationary", "named", "bound B" -- a run where rigctl's check
+finds the resolved terms alone outside the band and B, reported only as a bound, within it
+follows the curve (`needs_bounds`) --, or "not named"); printed, not judged.
 Beside both (`| quiet:` columns, `verdict_quiet`, `verdict_quiet_familywise`): where rigctl
 reports a quiet-stretch fit (`quiet_stretch` in its JSON: the record not stationary by its own
 test; docs/allan.md, "Non-stationary records: the quiet stretch"), the same verdicts for that
@@ -493,14 +495,22 @@ def item2_missed(dev: np.ndarray, lo: np.ndarray, hi: np.ndarray, tot: np.ndarra
 def rigctl_named(r: dict, taus: np.ndarray) -> list[str]:
     """How rigctl's own self-check speaks of each tau in ``taus`` (read from its JSON, not a
     verdict): "unexplained" (a run it marks so: no term it fits follows it), the run's named
-    cause ("nonstationary", "warmup", ...), "named" (a run with a likely reason only), or
-    "not named" (no run of its check covers the tau)."""
+    cause ("nonstationary", "warmup", ...), "named" (a run with a likely reason only),
+    "bound B" (a run of ``needs_bounds``: the resolved terms alone leave the band there and a
+    term reported only as a bound, here B, within that bound follows the curve -- the total this
+    script judges is the resolved one), or "not named" (no run of its check covers the tau)."""
     out = []
+    check = r["fit"].get("check") or {}
+
+    def cover(runs: list) -> dict | None:
+        return next((o for o in runs or []
+                     if o["tau_from_s"] * (1 - 1e-9) <= t <= o["tau_to_s"] * (1 + 1e-9)), None)
+
     for t in np.asarray(taus, float):
-        o = next((o for o in (r["fit"].get("check") or {}).get("outside") or []
-                  if o["tau_from_s"] * (1 - 1e-9) <= t <= o["tau_to_s"] * (1 + 1e-9)), None)
-        out.append("not named" if o is None else "unexplained" if o.get("unexplained")
-                   else (o.get("cause") or "named"))
+        o = cover(check.get("outside"))
+        nb = cover(check.get("needs_bounds")) if o is None else None
+        out.append(f"bound {nb.get('term')}" if nb is not None else "not named" if o is None
+                   else "unexplained" if o.get("unexplained") else (o.get("cause") or "named"))
     return out
 
 

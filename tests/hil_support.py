@@ -75,11 +75,15 @@ def _finished(points: RunPoints, kind: str) -> int:
 
 def sampling(kind: str, after_samples: int = 0, finished: int = 0) -> RunPoint:
     """The poll at which a ``kind`` step (warmup, orientation, ...) has sampled ``after_samples``
-    IMU samples of its window, once ``finished`` segments of that kind have been finished."""
+    IMU samples of its window, once ``finished`` segments of that kind have been finished -- a
+    poll inside the window on the run's clock: samples arrive with latency, and one that brings
+    the count only while the engine awaits the window's last samples is past the window (a cable
+    pulled there no longer cuts the step off: rigctl.engine.engine.Engine.execute)."""
     def at(engine, points: RunPoints) -> bool:
         step = engine.current_step
         return (points.starting is None and step is not None and step.kind == kind
                 and engine.sampling_from is not None and engine.rec.n_imu - engine.sampling_from >= after_samples
+                and engine._win_start is not None and engine.rig.clock.now() < engine._win_start + step.sample_s
                 and _finished(points, kind) >= finished)
     return at
 

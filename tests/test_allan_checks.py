@@ -1,6 +1,6 @@
 """The spike screen's scale (rigctl.solvers.allan_checks.spike_scale) on outputs that dwell on
 their levels, and on plain Gaussian noise. Every expected value is computed here in numpy: the
-running median of 25 (edge-padded), the MAD of the residual, its 90 % point, the samples' own
+running median of 25 (windows cut at the ends, not padded), the MAD of the residual, its 90 % point, the samples' own
 spread and the injected spikes' indices."""
 from __future__ import annotations
 
@@ -13,10 +13,21 @@ from rigctl.solvers import allan_checks as C
 W = 25
 
 
+def _window_median(y: np.ndarray, w: int = W) -> np.ndarray:
+    """Median of y[i - w//2 .. i + w//2] (odd w) over the samples that exist: inside, numpy's
+    median of the full window; within w//2 of an end, the middle of the cut window (upper
+    middle for an even count), sorted here sample by sample."""
+    h = w // 2
+    med = np.empty(y.size)
+    med[h: y.size - h] = np.median(np.lib.stride_tricks.sliding_window_view(y, w), axis=1)
+    for i in [*range(min(h, y.size)), *range(max(y.size - h, 0), y.size)]:
+        seg = np.sort(y[max(i - h, 0): i + h + 1])
+        med[i] = seg[seg.size // 2]
+    return med
+
+
 def _residual(y: np.ndarray) -> np.ndarray:
-    h = W // 2
-    pad = np.concatenate((np.full(h, y[0]), y, np.full(h, y[-1])))
-    return y - np.median(np.lib.stride_tricks.sliding_window_view(pad, W), axis=1)
+    return y - _window_median(y)
 
 
 def _mad(v: np.ndarray) -> float:
@@ -97,3 +108,82 @@ def test_step_source_tells_file_digits_from_an_output_step() -> None:
     assert C.step_source(0.05 * d2r, "gyro") == {"kind": "output_step"}
     assert C.step_source(3.33e-3 * 9.80665, "accel") == {"kind": "output_step"}
     assert C.step_source(0.0, "gyro") == {"kind": "output_step"}
+
+
+def test_spikes_at_the_ends_are_judged_by_their_neighbours() -> None:
+    """A spike on sample 0, 1, N-2 or N-1 is flagged (the old screen padded the window with
+    the end value, so an end sample was its own median and never flagged), by the screen with
+    its own scale and by the given-sigma fast path (compiled and scipy paths alike), on white
+    noise; on a small array the flags equal an independent numpy screen's."""
+    from rigctl.solvers import allan_kernels as K
+
+    rng = np.random.default_rng(3)
+    for n in (2000, 20_001):
+        y = rng.normal(0.0, 1.0, n)
+        ends = np.array([0, 1, n - 2, n - 1])
+        y[ends] += np.array([25.0, -25.0, 25.0, -25.0])
+        found, med, sd, basis = C.find_spikes_scaled(y)
+        assert basis == "residual" and np.array_equal(found, ends), (n, found)
+        assert np.array_equal(med[ends], _window_median(y)[ends])
+        got, got_med = C.spikes_beyond(y, sd)
+        assert np.array_equal(got, ends) and np.array_equal(got_med, med[ends])
+    # compiled and scipy paths: the same flags and medians
+    y = rng.normal(0.0, 1.0, 3000)
+    y[[0, 2999]] += 20.0
+    ref = C.find_spikes(y, 1.0)
+    orig = K.running_median
+    try:
+        K.running_median = lambda *_: None  # the scipy fallback
+        alt = C.find_spikes(y, 1.0)
+    finally:
+        K.running_median = orig
+    assert np.array_equal(ref[0], [0, 2999]) and np.array_equal(ref[0], alt[0])
+    assert np.array_equal(ref[1], alt[1])
+    # small arrays, spikes anywhere (the ends included), k = 4 so that noise is flagged too:
+    # the same flags as numpy's screen with the same sigma
+    for seed in range(30):
+        r = np.random.default_rng(100 + seed)
+        y = r.normal(0.0, 1.0, int(r.integers(W, 200)))
+        hit = r.integers(0, y.size, 4)
+        y[hit] += r.choice([-1.0, 1.0], 4) * r.uniform(3.0, 15.0, 4)
+        want = np.flatnonzero(np.abs(_residual(y)) > 4.0 * 1.1)
+        assert np.array_equal(C.find_spikes(y, 1.1, k=4.0)[0], want), seed
+        assert np.array_equal(C.spikes_beyond(y, 1.1, k=4.0)[0], want), seed
+
+
+def test_false_alarms_on_white_noise() -> None:
+    """Clean Gaussian noise: no sample beyond 10 sd; at 4.5 sd the count matches what the
+    residual's spread predicts (two-sided Gaussian tail of |r| / sd_r, with the residual's own
+    sd, 1.03 x the noise for a median of 25), ends included."""
+    from scipy.stats import norm
+
+    count, expect = 0, 0.0
+    for seed in range(6):
+        y = np.random.default_rng(seed).normal(0.0, 1.0, 50_000)
+        found, _, sd, _ = C.find_spikes_scaled(y)
+        assert C.find_spikes(y)[0].size == 0
+        r = _residual(y)
+        count += C.find_spikes(y, sd, k=4.5)[0].size
+        expect += y.size * 2 * norm.sf(4.5 * sd / np.std(r))
+    assert abs(count - expect) < 4 * math.sqrt(expect) + 2, (count, expect)
+
+
+def test_cs5071a_first_phase_point_is_a_spike() -> None:
+    """The Stable32 Cs5071A set (tests/data): its first phase point is ~20 ns off the next ones.
+    In the frequency samples y = diff(x) / tau0 that is y[0], > 60 robust sd from the median
+    of its neighbours y[0..12] (numpy), and the screen reports it (before: 0 spikes)."""
+    import gzip
+    import itertools
+    from pathlib import Path
+
+    path = Path(__file__).parent / "data" / "stable32-reference" / "Cs5071A" / "5071A_phase.txt.gz"
+    with gzip.open(path, "rt") as f:
+        x = np.loadtxt(itertools.islice(f, 100_000))
+    y = np.diff(x)  # tau0 = 1 s
+    sd_np = _mad(_residual(y))
+    size_np = abs(y[0] - np.median(y[:13])) / sd_np
+    assert size_np > 60
+    found, med, sd, basis = C.find_spikes_scaled(y)
+    assert basis == "residual" and math.isclose(sd, sd_np, rel_tol=1e-12)
+    assert found.size and found[0] == 0
+    assert math.isclose(abs(y[0] - med[0]) / sd, size_np, rel_tol=1e-12)

@@ -653,3 +653,36 @@ def test_pieces_outlive_their_reader(tmp_path: Path) -> None:
         """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", (out.returncode, out.stderr[-2000:])
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_spikes_at_record_and_chunk_ends(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                         fused: bool) -> None:
+    """Spikes on the first two and last two samples of the record and on both sides of a
+    chunk boundary are all reported by the streamed screen (chunks of 20 000 rows, both
+    pipelines), exactly the flags of one pass of a numpy screen over the whole column with
+    the stream's sigma (the median of the window of samples that exist); with the old
+    end-padded windows none of them was."""
+    if fused and not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    n, w = 60_000, 25
+    rng = np.random.default_rng(21)
+    g = rng.standard_normal((n, 3)) * 1e-3
+    a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
+    hit = np.array([0, 1, 19_999, 20_000, 40_001, n - 2, n - 1])
+    g[hit, 0] += np.where(np.arange(hit.size) % 2, 0.05, -0.05)  # 50 sd
+    rec = tmp_path / "r.h5"
+    write_recording(rec, 200.0, angular_rate=g, specific_force=a, chunk_rows=8192)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    monkeypatch.setattr(AA, "FUSED", fused)
+    sp = AA.compute(str(rec), ["gx"], "octave")["axes"]["gx"]["spikes"]
+    y, h = g[:, 0], w // 2
+    med = np.empty(n)
+    med[h: n - h] = np.median(np.lib.stride_tricks.sliding_window_view(y, w), axis=1)
+    for i in [*range(h), *range(n - h, n)]:
+        seg = np.sort(y[max(i - h, 0): i + h + 1])
+        med[i] = seg[seg.size // 2]
+    want = np.flatnonzero(np.abs(y - med) > 10.0 * sp["sd_si"])
+    assert np.array_equal(want, hit)
+    assert sp["count"] == hit.size
+    assert np.allclose(sp["first_times_s"], hit / 200.0, rtol=0, atol=1e-9)

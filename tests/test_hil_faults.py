@@ -185,8 +185,11 @@ def test_pty_disconnect_mid_run_is_reconnected(tmp_path):
     loaded host could fall before the run had started or between its steps): the IMU's 10 s
     (1000 samples at 100 Hz) into the warm-up's window, the table's 1 s into the third
     orientation's window, in the engine's thread (the port is gone at its next poll); each
-    cuts its step off."""
-    params = {"warmup": "2 min", "sample": "3 s"}
+    cuts its step off. The windows are 10 s: the 100th sample of one must arrive while the
+    window is still open on the run's clock (sampling()), and at 100x a 3 s window left 20 ms
+    of wall time for the samples' latency and the host's scheduling -- 2 of 18 runs at load 9-11
+    fired only in the next orientation's window or not at all in the third's."""
+    params = {"warmup": "2 min", "sample": "10 s"}
     rec, cfg, info = wired_run(tmp_path, "24pos.yaml", params, "acl", "pty", 100.0,
                                at=[(sampling("warmup", after_samples=1000), pull("imu")),
                                    (sampling("orientation", after_samples=100, finished=2), pull("table-acl"))])

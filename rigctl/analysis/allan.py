@@ -37,6 +37,7 @@ from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
 from ..solvers import allan_tones as TN
+from ..solvers import noise_coefficients as NC
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
 from . import allan_drift as AD
 from . import allan_quiet as QS
@@ -1741,8 +1742,8 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
         return head
     what = ("the fitted total (IEEE 952 terms and the Gauss-Markov term)" if added
             else "the fitted IEEE 952 total")
-    out = head + chi2_finding(check)
-    if runs and check.get("n_outside_familywise", 1) == 0:  # failed on the chi-square alone
+    out = head + chi2_finding(check) + bounds_sentence(check, r.get("sensor", "gyro"))
+    if runs and judged(check).get("n_outside_familywise", 1) == 0:  # on the chi-square alone
         out += _check_sentences(check, "the fitted total is outside the 95 % band, at every "
                                 "tau within the simultaneous (family-wise) band or 10 % of "
                                 "the deviation,", reasons=False)
@@ -1767,16 +1768,24 @@ def chi2_carrier_text(check: dict) -> str:
             f"{100 * c['chi2_share']:.0f} %)")
 
 
+def judged(check: dict) -> dict:
+    """The statistic the self-check decides on: that of the completed total (the resolved
+    terms plus the bounded ones within their bounds, ``completed``) where the check has one,
+    else the check's own (chi2, dof, p_value, n_outside_familywise)."""
+    return check.get("completed") or check
+
+
 def chi2_finding(check: dict) -> list[str]:
     """A chi-square beyond its 99 % point as one sentence: a finding, never a pass, with the
     run of taus that carries it; [] when the chi-square is within its 99 % point."""
     if not check.get("chi2_beyond_99"):
         return []
     carrier = chi2_carrier_text(check)
+    st = judged(check)
     fw = ("every informative tau is within its family-wise band, but "
-          if check.get("n_outside_familywise", 1) == 0 else "")
+          if st.get("n_outside_familywise", 1) == 0 else "")
     return [f"self-check failed: {fw}the chi-square across taus is beyond its 99 % point "
-            f"({check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}): a finding, "
+            f"({st['chi2']:.4g} on {st['dof']} dof, p = {st['p_value']:.2g}): a finding, "
             "not a pass -- the terms do not describe the curve within its statistics"
             + (f"; carried by {carrier}" if carrier else "")]
 
@@ -1834,8 +1843,50 @@ def check_notes(r: dict[str, Any]) -> list[str]:
         return []
     head = ("the fitted total is outside the 95 % band, as chance allows for a fit consistent "
             "with the curve,")
-    out = [] if not runs else _check_sentences(check, head, reasons=False)
+    out = bounds_sentence(check, r.get("sensor", "gyro"))
+    out += [] if not runs else _check_sentences(check, head, reasons=False)
     return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+
+
+def bounds_sentence(check: dict, sensor: str) -> list[str]:
+    """The terms reported only as bounds, as the self-check took them (allan_fit.
+    _admissible_completion: each in [0, its 95 % upper bound], the one point that follows the
+    curve best), in one sentence: where the check passes only thanks to them (``passes_on_bounds``),
+    which term at what fraction of its bound follows the curve at which taus; where it fails,
+    that the judged total already holds them. [] when no bounded term adds to the total."""
+    taken = {t: v for t, v in (check.get("bounded_terms") or {}).items()
+             if v.get("fraction_of_bound", 0.0) > 0}
+    if not taken:
+        return []
+    names, units = NC.TERM_NAMES[sensor], NC.FIELD_UNITS[sensor]
+
+    def term(t: str) -> str:
+        v = taken[t]
+        unit, fac = units["B" if t == "GM" else t]
+        name = "Gauss-Markov sigma_GM" if t == "GM" else names[t]
+        return (f"{name} {v['value_si'] * fac:.3g} {unit}, {v['fraction_of_bound']:.2f} of its "
+                f"bound < {v['upper95_si'] * fac:.3g} {unit}")
+
+    order = sorted(taken, key=lambda t: -taken[t]["fraction_of_bound"])
+    within = ("the terms known only as bounds taken within them (the point of [0, bound] "
+              "that follows the curve best): " + "; ".join(term(t) for t in order))
+    carried = {t: "Gauss-Markov sigma_GM" if t == "GM" else names[t] for t in taken}
+    where = ", ".join(f"tau {_spans([o])} s (the curve x{o['data_over_fit']:.2f} the resolved "
+                      f"terms' total at {o['worst_tau_s']:.3g} s; carried by "
+                      f"{carried.get(o.get('term'), 'the bounds')})"
+                      for o in check.get("needs_bounds") or [])
+    if check.get("passes_on_bounds"):
+        return [f"self-check passed only with {within}"
+                + (f" -- they follow the curve at {where}" if where else "")
+                + "; the resolved terms alone would fail it (a term present but not resolved: "
+                "capture longer to resolve it)"]
+    if not check.get("ok"):
+        return [f"the total judged includes {within}"
+                + (f"; they follow the curve at {where}, where the resolved terms alone leave "
+                   "the band" if where else "")]
+    if where:
+        return [f"the resolved terms alone leave the band at {where}; the check took {within}"]
+    return []
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
@@ -1855,7 +1906,10 @@ def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
         r = o["data_over_fit"]
         how = (f"x{r:.2f} at {o['worst_tau_s']:.3g} s" if r is not None and r < NO_TOTAL_RATIO
                else "no fitted total there: every term is a bound")
-        out.append(f"{span}: {o['side']} ({how}); likely {o['likely']}")
+        fb = o.get("followed_by_bound")
+        out.append(f"{span}: {o['side']} ({how}); likely {o['likely']}"
+                   + (f"; followed by {fb} within its bound (the completed total is inside "
+                      "the band there)" if fb else ""))
     return out
 
 

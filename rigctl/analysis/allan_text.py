@@ -11,7 +11,7 @@ from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
 from . import allan_excursions as EXA
-from .allan import chi2_carrier_text, check_notes, check_warnings, screening_notes
+from .allan import chi2_carrier_text, check_notes, check_warnings, judged, screening_notes
 
 
 def format_table(axis: str, r: dict[str, Any]) -> str:
@@ -92,10 +92,11 @@ def quiet_check_text(check: dict[str, Any]) -> str:
     """The quiet stretch's own self-check in one clause."""
     if check.get("chi2_beyond_99"):  # never ok (rigctl.solvers.allan_fit): a finding
         carrier = chi2_carrier_text(check)
+        st = judged(check)
         fw = ("every informative tau within the stretch's family-wise band, but "
-              if check.get("n_outside_familywise", 1) == 0 else "")
+              if st.get("n_outside_familywise", 1) == 0 else "")
         return (f"its self-check failed: {fw}the chi-square across taus is beyond its 99 % point "
-                f"({check['chi2']:.4g} on {check['dof']} dof, p = {check['p_value']:.2g}): a "
+                f"({st['chi2']:.4g} on {st['dof']} dof, p = {st['p_value']:.2g}): a "
                 "finding, not a pass -- the terms do not describe the stretch's curve within its "
                 "statistics" + (f"; carried by {carrier}" if carrier else ""))
     if check.get("ok"):
@@ -185,6 +186,11 @@ def goodness_line(check: dict[str, Any], with_gm: bool = False) -> str:
     p = check["p_value"]
     text = f"goodness of fit: chi-square {check['chi2']:.4g} on {check['dof']} dof (p = {p:.2g})"
     eps = check.get("model_error_rel", 0.0)
+    if p < F.MODEL_ERROR_P and check.get("passes_on_bounds"):
+        c = judged(check)
+        return (text + "; beyond its 99 % point for the resolved terms alone; with the terms "
+                f"known only as bounds taken within them, chi-square {c['chi2']:.4g} on "
+                f"{c['dof']} dof (p = {c['p_value']:.2g}): the self-check passed on them (note)")
     if p < F.MODEL_ERROR_P:
         text += ("; beyond its 99 % point: the IEEE 952 terms"
                  + (" and the Gauss-Markov term" if with_gm else "")

@@ -465,6 +465,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "to +-25 % (95 %), the capture length that could (Cramer-Rao bound; for an upper "
                 "bound, computed at the bound: at least that long).</p>"]
     out += _chi2_findings_html(curves)
+    out += _bounds_html(curves)
     out += _excursions_html(curves)
     out += _quiet_stretch_html(curves)
     gm_rows = []
@@ -507,6 +508,19 @@ def _chi2_findings_html(curves: dict[str, dict]) -> list[str]:
     for axis, cv in curves.items():
         for sentence in chi2_finding(((cv.get("fit") or {}).get("check")) or {}):
             out.append(f"<p class=\"warn\">{esc(axis)}: {esc(sentence)}</p>")
+    return out
+
+
+def _bounds_html(curves: dict[str, dict]) -> list[str]:
+    """The axes whose self-check took terms known only as bounds into the total, within their
+    bounds (rigctl.analysis.allan.bounds_sentence: the CLI's and the results' spelling)."""
+    from ..analysis.allan import bounds_sentence
+
+    out = []
+    for axis, cv in curves.items():
+        fit = cv.get("fit") or {}
+        for sentence in bounds_sentence(fit.get("check") or {}, fit.get("sensor", "gyro")):
+            out.append(f"<p>{esc(axis)}: {esc(sentence)}</p>")
     return out
 
 

@@ -177,6 +177,12 @@ def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPI
     med = K.running_median(y, window)  # compiled, without the GIL
     if med is None:
         med = median_filter(y, size=window, mode="nearest")
+    # both paths repeat the end values into the windows of the first window // 2 and the last
+    # (window - 1) // 2 samples (an end sample would be up to 13 of 25 values of its own
+    # window, its own median: never flagged); those windows are taken as they are instead
+    lo, hi = window // 2, (window - 1) // 2
+    ends = np.union1d(np.arange(min(lo, y.size)), np.arange(max(y.size - hi, 0), y.size))
+    med[ends] = window_medians(y, ends, window)
     r = y - med
     basis = "given"
     if sigma is None:
@@ -222,8 +228,31 @@ def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
         cand = np.union1d(cand, np.flatnonzero(mx - y > thr))
     if cand.size == 0:
         return none, np.zeros(0)
-    lo, hi = window // 2, (window - 1) // 2
-    rows = np.clip(cand[:, None] + np.arange(-lo, hi + 1)[None, :], 0, y.size - 1)
-    med = np.partition(y[rows], window // 2, axis=1)[:, window // 2]
+    med = window_medians(y, cand, window)
     keep = np.abs(y[cand] - med) > thr
     return cand[keep], med[keep]
+
+
+def window_medians(y: np.ndarray, idx: np.ndarray, window: int = SPIKE_WINDOW) -> np.ndarray:
+    """The median of the window of each sample y[i], i in ``idx``: the samples
+    y[i - window // 2 .. i + (window - 1) // 2] that exist (scipy.ndimage's alignment), the
+    value of rank m // 2 of the m samples in it (the middle one for odd m, the upper of the
+    two middle ones for even m). Inside the record m = window; near its ends the window is
+    cut, not padded: sample 0 is judged against its own value and the next window // 2
+    samples (13 of them for 25), as any other sample against its neighbours. (A window
+    padded by repeating y[0] holds y[0] 13 times of 25, so y[0] is its own median and a
+    spike there is never flagged.) The median lies between the window's minimum and maximum,
+    so spikes_beyond's prefilter stands."""
+    y = np.asarray(y, dtype=float)
+    idx = np.asarray(idx, dtype=np.int64)
+    n = y.size
+    lo, hi = window // 2, (window - 1) // 2
+    med = np.empty(idx.size)
+    inner = (idx >= lo) & (idx < n - hi)
+    if inner.any():
+        rows = idx[inner][:, None] + np.arange(-lo, hi + 1)[None, :]
+        med[inner] = np.partition(y[rows], lo, axis=1)[:, lo]
+    for j in np.flatnonzero(~inner):  # at most window - 1 of them
+        seg = y[max(int(idx[j]) - lo, 0): int(idx[j]) + hi + 1]
+        med[j] = np.partition(seg, seg.size // 2)[seg.size // 2]
+    return med
