@@ -686,3 +686,137 @@ def test_spikes_at_record_and_chunk_ends(tmp_path: Path, monkeypatch: pytest.Mon
     assert np.array_equal(want, hit)
     assert sp["count"] == hit.size
     assert np.allclose(sp["first_times_s"], hit / 200.0, rtol=0, atol=1e-9)
+
+
+def _one_pass_medians(y: np.ndarray, w: int = 25) -> np.ndarray:
+    """The running median of one pass over the whole column: the window i - w // 2 .. i + w // 2,
+    cut at the record's ends (the value of rank m // 2 of the m samples there)."""
+    n, h = y.size, w // 2
+    med = np.empty(n)
+    med[h: n - h] = np.median(np.lib.stride_tricks.sliding_window_view(y, w), axis=1)
+    for i in [*range(h), *range(n - h, n)]:
+        seg = np.sort(y[max(i - h, 0): i + h + 1])
+        med[i] = seg[seg.size // 2]
+    return med
+
+
+def _cut_median(y: np.ndarray, i: int, c0: int, c1: int, h: int = 12) -> float:
+    """The median of sample i's window cut at its chunk [c0, c1) (the old streamed screen)."""
+    seg = np.sort(y[max(i - h, c0): min(i + h + 1, c1)])
+    return float(seg[seg.size // 2])
+
+
+def _oadev(y: np.ndarray, tau0: float, ms: np.ndarray) -> np.ndarray:
+    """Fully overlapping Allan deviation of rate samples y at factors ms (numpy, the textbook
+    sum: sigma^2 = sum (x[k+2m] - 2 x[k+m] + x[k])^2 / (2 m^2 tau0^2 (N - 2m)), x the phase)."""
+    x = np.concatenate(([0.0], np.cumsum(y - y.mean()) * tau0))
+    out = []
+    for m in ms.tolist():
+        d = x[2 * m:] - 2.0 * x[m:-m] + x[: x.size - 2 * m]
+        out.append(np.sqrt(np.sum(d * d) / (2.0 * m * m * tau0 * tau0 * d.size)))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("outliers", ["report", "exclude"])
+@pytest.mark.parametrize("fused,pipelined", [(False, False), (True, True), (True, False),
+                                             (False, True)])
+def test_borderline_spikes_at_every_chunk_boundary_offset(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fused: bool, pipelined: bool,
+        outliers: str) -> None:
+    """A sample within 12 rows of a chunk boundary is judged against its whole 25-sample
+    window, as in one pass over the record: borderline spikes at every offset -12 .. +12 from
+    a boundary (one per boundary, chunks of 512 rows), each placed halfway between the
+    thresholds of its window cut at the chunk and of its whole window (the rows across the
+    boundary set 4 sd below or above the spike's side, its own side spaced 0.25 sd apart, so
+    the two medians differ by at least 0.25 sd), are flagged exactly where a numpy one-pass
+    screen flags them, and with --outliers exclude replaced by the one-pass median (the
+    deviations equal the numpy overlapping ADEV of the column so cleaned). A second row of
+    boundaries carries clear spikes (both windows flag them) whose cut and whole medians
+    differ: their replacements must be the whole window's. Plain and fused paths, chained
+    (PIPELINED) or not, the fused chain reading the mapped file's rows. On the old code (each chunk
+    screened on its own) the flags of 24 of the 25 borderline offsets differ."""
+    if fused and not K.HAVE_NUMBA:
+        pytest.skip("numba (the fast extra) not installed")
+    C, w, h, fs = 512, 25, 12, 200.0
+    offs = np.arange(-h, h + 1)
+    bounds = C * np.arange(2, 2 + 2 * offs.size)  # chunk 0 (sigma) and 1 left alone
+    n = int(bounds[-1]) + 2 * C + 300  # a short last chunk
+    rng = np.random.default_rng(5)
+    sd0 = 1e-3
+    g = rng.standard_normal((n, 3)) * sd0
+    a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
+    y = g[:, 0]
+    # the stream's sigma: 1.4826 x the MAD of chunk 0's residuals about the whole windows
+    r0 = (y - _one_pass_medians(y, w))[:C]
+    sigma = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
+    thr = 10.0 * sigma
+    spikes, clear = [], []
+    for j, B in enumerate(bounds.tolist()):
+        k = int(offs[j % offs.size])
+        i = B + k
+        own = np.arange(B - 2 * h, B) if k < 0 else np.arange(B, B + 2 * h + 1)
+        other = np.arange(B, B + h) if k < 0 else np.arange(B - h, B)
+        own = own[own != i]
+        y[own] = sigma * 0.25 * (rng.permutation(own.size) - (own.size - 1) / 2.0)
+        # (offsets -12 and 11: the one row across has to be below, else it is the window's
+        # 25th value, above its median, and leaves it where it was)
+        y[other] = (-4.0 if j % 2 or k in (-h, h - 1) else 4.0) * sigma
+        y[i] = 1.0  # above everything: its windows' medians do not depend on its value
+        c0 = (i // C) * C
+        m_cut = _cut_median(y, i, c0, c0 + C)
+        m_all = float(np.sort(y[i - h: i + h + 1])[h])
+        if k < h:
+            assert abs(m_cut - m_all) >= 0.24 * sigma  # the two windows disagree
+        if j < offs.size:  # borderline: halfway between the two thresholds (the control
+            y[i] = thr + 0.5 * (m_cut + m_all) if k < h else m_all + 1.01 * thr  # k = 12)
+        else:  # clear: both flag it, their medians (its replacement) differ
+            y[i] = max(m_cut, m_all) + 1.5 * thr
+            clear.append(i)
+        spikes.append(i)
+    med = _one_pass_medians(y, w)
+    want = np.flatnonzero(np.abs(y - med) > thr)
+    # the construction: every borderline spike at offsets -12 .. 11 is judged differently by
+    # the cut window, and nothing else in the column is a spike
+    cut_flags = []
+    for i in spikes[: offs.size]:
+        c0 = (i // C) * C
+        cut_flags.append(abs(y[i] - _cut_median(y, i, c0, c0 + C)) > thr)
+    one_flags = [i in want for i in spikes[: offs.size]]
+    assert [a != b for a, b in zip(cut_flags, one_flags)] == [True] * (offs.size - 1) + [False]
+    assert set(want) <= set(spikes) and set(clear) <= set(want)
+    rec = tmp_path / "r.h5"
+    write_recording(rec, fs, angular_rate=g, specific_force=a, chunk_rows=8192)
+    monkeypatch.setattr(AA, "CHUNK_ROWS", C)
+    monkeypatch.setattr(AA, "FUSED", fused)
+    monkeypatch.setattr(AA, "PIPELINED", pipelined)
+    seen: dict = {}
+    screening = AA._screening
+
+    def spy(stream, *args):
+        seen["idx"] = np.concatenate(stream.spikes) if stream.spikes else np.zeros(0, int)
+        seen["size"] = np.concatenate(stream.spike_size) if stream.spike_size else np.zeros(0)
+        return screening(stream, *args)
+
+    monkeypatch.setattr(AA, "_screening", spy)
+    # the fused chain reads the rows where they lie in the mapped file (RowPieces)
+    mapped = fused and pipelined
+    monkeypatch.setattr(RR, "MAP_MIN_RUN_BYTES", 0 if mapped else RR.MAP_MIN_RUN_BYTES)
+    views: list = []
+    orig_view = RowReader.view
+    monkeypatch.setattr(RowReader, "view", lambda self, a, b, out: (
+        lambda v: (views.append(isinstance(v, RowPieces)), v)[1])(orig_view(self, a, b, out)))
+    r = AA.compute(str(rec), ["gx"], "octave", outliers=outliers)["axes"]["gx"]
+    assert views and all(v == (mapped and RR.MAP_ROWS and RR._MADVISE is not None)
+                         for v in views)
+    sp = r["spikes"]
+    assert sp["sd_si"] == pytest.approx(sigma, rel=1e-12)
+    order = np.argsort(seen["idx"])
+    assert np.array_equal(seen["idx"][order], want)
+    assert np.allclose(seen["size"][order], np.abs(y - med)[want] / sp["sd_si"], rtol=1e-12)
+    assert sp["count"] == want.size
+    clean = y.copy()
+    if outliers == "exclude":
+        clean[want] = med[want]
+    ms = np.asarray(r["m"])
+    assert np.allclose(np.asarray(r["adev_rad/s"]), _oadev(clean, 1.0 / fs, ms), rtol=1e-9,
+                       atol=0)

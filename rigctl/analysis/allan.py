@@ -244,19 +244,23 @@ class _AxisStream:
         self.spikes: list[np.ndarray] = []  # indices (within the analysed range)
         self.spike_size: list[np.ndarray] = []  # |residual| / sd of each
 
-    def screen(self, y: np.ndarray, first: int, exclude: bool) -> np.ndarray:
+    def screen(self, y: np.ndarray, first: int, exclude: bool,
+               before: np.ndarray | None = None, after: np.ndarray | None = None) -> np.ndarray:
         """Quantization step (first block) and spikes (every block) of these samples, ``first``
         their index in the analysed range; with ``exclude`` the spikes are replaced by the
-        running median of their neighbours (the returned samples)."""
+        running median of their neighbours (the returned samples). ``before`` / ``after``:
+        the record's samples just before and after the block (CHK.window_medians), so that
+        the windows of its first and last samples are those of one pass over the record."""
         if self.n_rate == 0 and not self.spikes:
             self.quant_step = CHK.quantization_step(y)
         if self.spike_sigma is None:  # the first block sets sigma (running median of all)
-            idx, med, sd, self.spike_basis = CHK.find_spikes_scaled(y, None, step=self.quant_step)
+            idx, med, sd, self.spike_basis = CHK.find_spikes_scaled(
+                y, None, step=self.quant_step, before=before, after=after)
             med = med[idx]
             self.spike_sigma = sd
         else:  # the same spikes, the median only where one can be (CHK.spikes_beyond)
             sd = self.spike_sigma
-            idx, med = CHK.spikes_beyond(y, sd)
+            idx, med = CHK.spikes_beyond(y, sd, before=before, after=after)
         if idx.size:
             self.spikes.append(idx + first)
             self.spike_size.append(np.abs(y[idx] - med) / max(sd, 1e-300))
@@ -275,12 +279,15 @@ class _AxisStream:
         return self.acc.rate_target(n)
 
     def screen_block(self, y: np.ndarray, first: int, exclude: bool,
-                     extremes: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+                     extremes: tuple[np.ndarray, np.ndarray],
+                     before: np.ndarray | None = None, after: np.ndarray | None = None
+                     ) -> np.ndarray | None:
         """As :meth:`screen` for a later chunk, starting from the block extremes the running-
         sum pass took (``y`` may be a column view of the read block). Returns the samples with
         the spikes replaced when ``exclude`` finds any (they must then be added with
         :meth:`add`), else None (the phase written into :meth:`phase_target` stands)."""
-        idx, med = CHK.spikes_beyond(y, self.spike_sigma, extremes=extremes)
+        idx, med = CHK.spikes_beyond(y, self.spike_sigma, extremes=extremes, before=before,
+                                     after=after)
         if not idx.size:
             return None
         sd = self.spike_sigma
@@ -1217,12 +1224,36 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         """The left-out windows overlapping rows [a0, a1), relative to a0, clipped."""
         return [(max(a, a0) - a0, min(b, a1) - a0) for a, b in drops if a < a1 and b > a0]
 
-    def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray) -> None:
+    def edges(name: str, a0: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The rows of dataset ``name`` just before and just after chunk [a0, a0 + n) that
+        the spike screen's windows of its first and last samples reach into (up to
+        CHK.SPIKE_WINDOW // 2 each, within [s0, s1)): read here, so that a sample near a
+        chunk boundary is judged against the same window as in one pass over the record."""
+        lo, hi = CHK.SPIKE_WINDOW // 2, (CHK.SPIKE_WINDOW - 1) // 2
+        shape = dsets[name].shape[1:]
+        b0, b1 = max(s0, a0 - lo), min(s1, a0 + n + hi)
+        pre = readers[name].read(b0, a0, np.empty((a0 - b0, *shape)))
+        post = readers[name].read(a0 + n, b1, np.empty((b1 - a0 - n, *shape)))
+        return pre, post
+
+    def edge_cols(a: str, ctx: tuple[np.ndarray, np.ndarray], first: int, n: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Axis a's samples of :func:`edges`' rows (``first``: the chunk's first row relative
+        to s0, ``n`` its rows), with the same correction as the chunk's samples."""
+        c = AXES[a][1]
+        pre, post = ctx[0][:, c].astype(np.float64), ctx[1][:, c].astype(np.float64)
+        if corrections and a in corrections:
+            pre -= AD.correction_at(corrections[a], first - pre.size, pre.size)
+            post -= AD.correction_at(corrections[a], first + n, post.size)
+        return pre, post
+
+    def feed(a: str, block: np.ndarray, col: int, first: int, cuts: np.ndarray,
+             ctx: tuple[np.ndarray, np.ndarray]) -> None:
         y = cols[a][: block.shape[0]]
         np.copyto(y, block[:, col])
         if corrections and a in corrections:  # rows relative to s0
             y -= AD.correction_at(corrections[a], first, y.size)
-        y = streams[a].screen(y, first, exclude)
+        y = streams[a].screen(y, first, exclude, *edge_cols(a, ctx, first, y.size))
         a0 = s0 + first
         gone = dropped_in(a0, a0 + y.size)
         ends_here = any(b == a0 for _, b in drops)  # a window left out just before the chunk
@@ -1276,7 +1307,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                 and all(streams[a].takes_phase() for a in group)):
             b = as_array(b)
             check(name, b, a0)  # a bad block must not reach the accumulators
-            return [pool.submit_at(rank[name], feed, a, b, AXES[a][1], first, cuts)
+            ctx = edges(name, a0, n)
+            return [pool.submit_at(rank[name], feed, a, b, AXES[a][1], first, cuts, ctx)
                     for a in group]
         outs = [scratch[name][:n]] * 3
         x0 = np.zeros(3)
@@ -1304,11 +1336,12 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                                        streams[a].spike_sigma) for a in group}
         if isinstance(b, RowPieces) and any(loud.values()):
             b = b.dense()
+        ctx = edges(name, a0, n) if any(loud.values()) else None
         tasks = []
         for a in group:
             c = AXES[a][1]
-            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c])) \
-                if loud[a] else None
+            y = streams[a].screen_block(b[:, c], first, exclude, (bmin[c], bmax[c]),
+                                        *edge_cols(a, ctx, first, n)) if loud[a] else None
             if y is None:
                 tasks.append(pool.submit_at(rank[name], streams[a].add_written, n))
             else:  # spikes replaced: the per-axis running sum of the corrected samples

@@ -167,10 +167,14 @@ def find_spikes(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGM
 
 
 def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPIKE_SIGMA,
-                       window: int = SPIKE_WINDOW, step: float | None = None
+                       window: int = SPIKE_WINDOW, step: float | None = None,
+                       before: np.ndarray | None = None, after: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray, float, str]:
     """:func:`find_spikes` and what its scale was read from (:func:`spike_scale`'s basis,
-    ``"given"`` for a given ``sigma``)."""
+    ``"given"`` for a given ``sigma``). ``before`` / ``after``: the samples just before y[0]
+    and just after y[-1] where y is a piece of a longer record (a streamed chunk): the windows
+    of y's first and last samples reach into them (:func:`window_medians`), as in one pass
+    over the record."""
     y = np.asarray(y, dtype=float)
     if y.size < window:
         return np.zeros(0, dtype=np.int64), y.copy(), 0.0, "too few samples"
@@ -182,7 +186,7 @@ def find_spikes_scaled(y: np.ndarray, sigma: float | None = None, k: float = SPI
     # window, its own median: never flagged); those windows are taken as they are instead
     lo, hi = window // 2, (window - 1) // 2
     ends = np.union1d(np.arange(min(lo, y.size)), np.arange(max(y.size - hi, 0), y.size))
-    med[ends] = window_medians(y, ends, window)
+    med[ends] = window_medians(y, ends, window, before, after)
     r = y - med
     basis = "given"
     if sigma is None:
@@ -204,7 +208,8 @@ def may_have_spikes(extremes: tuple[np.ndarray, np.ndarray], sigma: float,
 
 def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
                   window: int = SPIKE_WINDOW,
-                  extremes: tuple[np.ndarray, np.ndarray] | None = None
+                  extremes: tuple[np.ndarray, np.ndarray] | None = None,
+                  before: np.ndarray | None = None, after: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The spikes :func:`find_spikes` finds with a given ``sigma`` (the same indices) and the
     running median at them, without the running median of every sample: the median of a
@@ -213,7 +218,12 @@ def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
     median is taken only at the others (the same order statistic of the same window).
     ``extremes``: the minimum and maximum of y's blocks of ``K.extremes_block(window)``
     samples, when the caller has them (the streamed pipeline takes them in its running-sum
-    pass); the compiled path then starts from them."""
+    pass); the compiled path then starts from them. ``before`` / ``after``: the record's
+    samples just before and after y (a streamed chunk), as in :func:`find_spikes_scaled`. The
+    prefilter looks at y alone: a window cut at y's ends still holds at least
+    window // 2 + 1 of the full window's samples (13 of 25), so a sample within k sigma of
+    all of them has at most (window - 1) // 2 of the full window's beyond k sigma, too few
+    to move the median there: it is no spike of the full window either."""
     y = np.asarray(y, dtype=float)
     none = np.zeros(0, dtype=np.int64)
     if y.size < window or not sigma > 0:
@@ -228,12 +238,14 @@ def spikes_beyond(y: np.ndarray, sigma: float, k: float = SPIKE_SIGMA,
         cand = np.union1d(cand, np.flatnonzero(mx - y > thr))
     if cand.size == 0:
         return none, np.zeros(0)
-    med = window_medians(y, cand, window)
+    med = window_medians(y, cand, window, before, after)
     keep = np.abs(y[cand] - med) > thr
     return cand[keep], med[keep]
 
 
-def window_medians(y: np.ndarray, idx: np.ndarray, window: int = SPIKE_WINDOW) -> np.ndarray:
+def window_medians(y: np.ndarray, idx: np.ndarray, window: int = SPIKE_WINDOW,
+                   before: np.ndarray | None = None, after: np.ndarray | None = None
+                   ) -> np.ndarray:
     """The median of the window of each sample y[i], i in ``idx``: the samples
     y[i - window // 2 .. i + (window - 1) // 2] that exist (scipy.ndimage's alignment), the
     value of rank m // 2 of the m samples in it (the middle one for odd m, the upper of the
@@ -242,7 +254,11 @@ def window_medians(y: np.ndarray, idx: np.ndarray, window: int = SPIKE_WINDOW) -
     samples (13 of them for 25), as any other sample against its neighbours. (A window
     padded by repeating y[0] holds y[0] 13 times of 25, so y[0] is its own median and a
     spike there is never flagged.) The median lies between the window's minimum and maximum,
-    so spikes_beyond's prefilter stands."""
+    so spikes_beyond's prefilter stands. Where y is a piece of a longer record (a streamed
+    chunk), ``before`` and ``after`` are the record's samples just before y[0] and just
+    after y[-1] (up to window // 2 and (window - 1) // 2 of them; fewer or none at the
+    record's ends): the windows of y's first and last samples take them, the same window as
+    in one pass over the record."""
     y = np.asarray(y, dtype=float)
     idx = np.asarray(idx, dtype=np.int64)
     n = y.size
@@ -252,7 +268,14 @@ def window_medians(y: np.ndarray, idx: np.ndarray, window: int = SPIKE_WINDOW) -
     if inner.any():
         rows = idx[inner][:, None] + np.arange(-lo, hi + 1)[None, :]
         med[inner] = np.partition(y[rows], lo, axis=1)[:, lo]
+    pre = np.asarray(before if before is not None else (), dtype=float)
+    pre = pre[pre.size - min(lo, pre.size):]
+    post = np.asarray(after if after is not None else (), dtype=float)[:hi]
     for j in np.flatnonzero(~inner):  # at most window - 1 of them
-        seg = y[max(int(idx[j]) - lo, 0): int(idx[j]) + hi + 1]
+        a, b = int(idx[j]) - lo, int(idx[j]) + hi + 1
+        seg = y[max(a, 0): b]
+        if (a < 0 and pre.size) or (b > n and post.size):
+            seg = np.concatenate((pre[max(pre.size + a, 0):] if a < 0 else pre[:0], seg,
+                                  post[: max(b - n, 0)]))
         med[j] = np.partition(seg, seg.size // 2)[seg.size // 2]
     return med
