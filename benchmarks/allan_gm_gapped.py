@@ -2,8 +2,8 @@
 left out by --excursions exclude): rigctl.solvers.allan_gm.gm_candidate on the pooled
 estimator's covariance (allan_cov.gapped_term_covariances with the GM kernel, one per Tc of
 its grid, ~75-115 Tc), with the compiled pair loop (allan_cov_kernels) and with the numpy
-loop it replaced (kept as the fallback without numba: allan_cov_kernels.HAVE_NUMBA False),
-in the same run.
+loop it replaced (kept as the fallback without numba: allan_cov_kernels.HAVE_NUMBA False,
+with the contiguous kernel for long stretches), in the same run.
 
     python benchmarks/allan_gm_gapped.py [--hours 4] [--rec-file PATH] [--skip-long]
 
@@ -15,8 +15,10 @@ Cases (thread CPU seconds of gm_candidate, every covariance cache cleared before
   pair loop.
 * long_gapped: one axis (gx) of a --hours x 2 kHz file written by rigctl's Recorder
   (benchmarks/allan.py write_recorder_h5, 3 gaps per hour of 1-2000 samples: 13 stretches at
-  4 h, as the 12 gaps of the 12 h `rec` part), read by rigctl.analysis.allan; the 4 longest
-  stretches go through the contiguous kernel (GM_LONG_LENGTHS), the rest through the loop.
+  4 h, as the 12 gaps of the 12 h `rec` part), read by rigctl.analysis.allan; compiled,
+  every stretch goes through the pair loop (6.9 s thread CPU for 76 Tc at load 3-4; 16.2 s
+  while the 4 longest went through the contiguous kernel); without numba the 4 longest go
+  through the contiguous kernel (GM_LONG_LENGTHS), the rest through the numpy loop.
   The file is written to a temporary directory (2 GB at 4 h; ~110 s) unless --rec-file names
   one (kept; written there if missing).
 

@@ -152,52 +152,132 @@ def parse_mark(line: bytes) -> MarkTime:
 
 @dataclass
 class MarkReaderCounters:
-    """Diagnostics of a :class:`MarkLogReader`."""
+    """Diagnostics of a :class:`MarkLogReader`: ``bad_crc`` counts the logs lost to byte errors
+    (a CRC mismatch or broken framing), ``malformed`` logs with a good CRC that do not parse,
+    ``garbage_bytes`` the bytes between logs that belong to no whole log."""
 
     marks: int = 0
     bad_crc: int = 0
     malformed: int = 0
     other_lines: int = 0
     overlong: int = 0
+    garbage_bytes: int = 0
+
+
+#: a log from its ``#`` up to the first ``#``, ``*``, CR or LF (``*`` then ends a whole log)
+_HEAD = re.compile(rb"#[^#*\r\n]*")
+_HEXDIGITS = frozenset(b"0123456789ABCDEFabcdef")
 
 
 @dataclass
 class MarkLogReader:
-    """Line-oriented stream parser: ``feed(bytes) -> list[MarkTime]``; keeps partial lines.
+    """Stream parser: ``feed(bytes) -> list[MarkTime]``; keeps partial logs across feeds.
 
-    Bad-CRC and malformed sentences are counted, logged and dropped; other lines (command
-    replies such as ``<OK``) are collected in ``responses``.
+    A log runs from its ``#`` to the 8 hex digits after its ``*`` (bytes after them up to the
+    line end are a hit line end, not a log), and a log is also cut before each ``#``: a byte
+    error that destroys a line end (or makes a ``#``) costs only the damaged log, never the
+    intact one after it. Logs lost to byte errors are counted (``counters.bad_crc``) by the
+    bytes since the last whole log, ``round(g / r)`` with ``r`` the last whole log's length +
+    CR LF, so a damaged log cut in pieces counts once; a whole-framed ``#...*crc`` with a wrong
+    CRC counts at least ``floor(start / r) + 1`` (its own log). Counting is eager (no flush) and
+    the same whatever the read chunking. Logs with a good CRC that do not parse are counted
+    ``malformed``; lines starting with ``<`` (command replies such as ``<OK``) are collected in
+    ``responses``. Bad logs are logged and dropped.
     """
 
     max_line: int = 1024
     counters: MarkReaderCounters = field(default_factory=MarkReaderCounters)
     responses: list[str] = field(default_factory=list)
     _buf: bytes = b""
+    _gap: int = 0        # bytes since the end of the last whole log
+    _lost: int = 0       # logs counted lost in this gap
+    _ref: int = 0        # bytes of the last whole log, CR LF included (0: none yet -> nominal)
 
-    def feed(self, data: bytes) -> list[MarkTime]:
-        self._buf += data
-        *lines, self._buf = re.split(rb"\r?\n", self._buf)
-        if len(self._buf) > self.max_line:
-            self.counters.overlong += 1
-            self._buf = b""
-        out: list[MarkTime] = []
-        for raw in lines:
-            line = raw.strip()
-            if not line:
-                continue
-            if not line.startswith(b"#"):
+    def _reference(self) -> int:
+        """Bytes of one log for counting (before the first whole log: a formatted mark's)."""
+        if not self._ref:
+            self._ref = len(format_mark(MarkTime(week=0, seconds=0.0)))
+        return self._ref
+
+    def _lose(self, n: int) -> None:
+        """At least ``n`` logs lost in this gap (counted once)."""
+        if n > self._lost:
+            log.warning("NovAtel log lost to a byte error (CRC mismatch or broken framing)")
+            self.counters.bad_crc += n - self._lost
+            self._lost = n
+
+    def _garbage(self, size: int, whole: bool = False) -> None:
+        """``size`` bytes that belong to no good log; ``whole``: a whole-framed bad log."""
+        ref = self._reference()
+        if whole:
+            self._lose(self._gap // ref + 1)
+        self._gap += size
+        self.counters.garbage_bytes += size
+        self._lose(int(round(self._gap / ref)))
+
+    def _whole(self, sentence: bytes) -> MarkTime | None:
+        """A whole-framed ``#...*crc`` log: its mark, or None (counted)."""
+        try:
+            m = parse_mark(sentence)
+        except NovatelError as exc:
+            if "CRC" in str(exc):
+                self._garbage(len(sentence), whole=True)
+            else:
+                log.warning("rejected NovAtel sentence: %s", exc)
+                self.counters.malformed += 1
+                self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+            return None
+        self.counters.marks += 1
+        self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+        return m
+
+    def _text(self, text: bytes) -> None:
+        """Bytes outside logs: command replies (lines starting with ``<``), line ends, garbage."""
+        parts = text.split(b"\n")
+        for k, part in enumerate(parts):
+            size = len(part) + (k < len(parts) - 1)                    # its LF with it
+            line = part.strip()
+            if line.startswith(b"<"):
                 self.counters.other_lines += 1
                 self.responses.append(line.decode("ascii", "replace"))
+            elif size:
+                self._garbage(size)
+
+    def feed(self, data: bytes) -> list[MarkTime]:
+        buf = self._buf + bytes(data)
+        n, pos = len(buf), 0
+        out: list[MarkTime] = []
+        while pos < n:
+            if buf[pos] != 0x23:                                # text up to the next '#'
+                h = buf.find(b"#", pos)
+                if h < 0:
+                    h = buf.rfind(b"\n", pos) + 1              # complete lines only
+                    if h <= pos:
+                        if n - pos > self.max_line:
+                            self.counters.overlong += 1
+                            self._garbage(n - pos)
+                            pos = n
+                        break
+                self._text(buf[pos:h])
+                pos = h
                 continue
-            try:
-                out.append(parse_mark(line))
-                self.counters.marks += 1
-            except NovatelError as exc:
-                if "CRC" in str(exc):
-                    self.counters.bad_crc += 1
-                else:
-                    self.counters.malformed += 1
-                log.warning("rejected NovAtel sentence: %s", exc)
+            e = _HEAD.match(buf, pos).end()
+            if e == n or (buf[e] == 0x2A and e + 9 > n and all(b in _HEXDIGITS for b in buf[e + 1:])):
+                if n - pos > self.max_line:                     # wait for the rest of the log
+                    self.counters.overlong += 1
+                    self._garbage(n - pos)
+                    pos = n
+                break
+            if buf[e] == 0x2A and all(b in _HEXDIGITS for b in buf[e + 1:e + 9]):
+                m = self._whole(buf[pos:e + 9])
+                if m is not None:
+                    out.append(m)
+                pos = e + 9
+            else:                                               # cut by '#', CR, LF or a bad CRC
+                stop = e + (buf[e] == 0x2A)
+                self._garbage(stop - pos)
+                pos = stop
+        self._buf = buf[pos:]
         return out
 
 

@@ -226,13 +226,16 @@ def test_gapped_covariance_matches_the_brute_force() -> None:
 
 def test_gapped_long_stretches_through_the_contiguous_kernel(monkeypatch: pytest.MonkeyPatch
                                                               ) -> None:
-    """Long stretches (C.GM_LONG_MIN samples and more) enter the gapped Gauss-Markov pairs
-    through the contiguous kernel of their own length; here the threshold is lowered so that
-    two of the three stretches (520 and 300 samples) go that way and the third (180) through
+    """Without the compiled pair loop, long stretches (C.GM_LONG_MIN samples and more) enter the
+    gapped Gauss-Markov pairs through the contiguous kernel of their own length; here the
+    threshold is lowered so that two of the three stretches (520 and 300 samples) go that way
+    and the third (180) through
     the pair loop. Against the brute force on the whole time axis (gaps of 60 Tc): the
     contiguous kernel's own accuracy (test_covariance_matches_the_exact_brute_force: exact sums
     where m_a + m_b <= 64, every entry within 8e-3, the diagonal within 2e-3)."""
     monkeypatch.setattr(C, "GM_LONG_MIN", 250)
+    # the contiguous kernel serves long stretches where the pair loop is not compiled
+    monkeypatch.setattr(C.KC, "HAVE_NUMBA", False)
     C._gm_gapped_cached.cache_clear()
     try:
         tc, var, n2, lengths, ms, want = _three_stretches()

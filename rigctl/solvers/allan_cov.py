@@ -607,26 +607,38 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
     return out
 
 
-#: stretches of at least this many samples (at most GM_LONG_LENGTHS distinct lengths of them,
-#: the longest) enter the gapped Gauss-Markov pairs through the contiguous kernel of their own
-#: length (one vectorized call per length, its mesh cached), weighted n_s(a) n_s(b): the same
-#: sum the pair loop computes, 10-20x faster where lag ranges are long (two stretches of 2e5
-#: and 3e5 samples, 40 factors: 0.7-1.1 s per Tc in the loop, 0.05-0.1 s so). The rest
-#: (short stretches, many distinct lengths) go through the pair loop with their W only.
+#: without the compiled pair loop (no numba, or factors that are not integers), stretches of
+#: at least this many samples (at most GM_LONG_LENGTHS distinct lengths of them, the longest)
+#: enter the gapped Gauss-Markov pairs through the contiguous kernel of their own length (one
+#: vectorized call per length, its mesh cached), weighted n_s(a) n_s(b): the same sum the numpy
+#: pair loop computes, 10-20x faster than it where lag ranges are long (two stretches of 2e5
+#: and 3e5 samples, 40 factors: 0.7-1.1 s per Tc in the loop, 0.05-0.1 s so). With the
+#: compiled loop every stretch goes through it: faster (one axis of a 4 h x 2 kHz record, 13
+#: stretches, 76 Tc: 6.9 s instead of 16.2 s thread CPU) and closer to the exact integer-lag
+#: sums on long stretches (its 8-point mesh with breakpoints at h, 4 h, 16 h from the taps
+#: against the contiguous kernel's fixed 4-point mesh; one stretch of 2e6 samples at 2 kHz,
+#: Tc 0.01-100 s: (G, G) within 2e-9 instead of up to 5.2e-6, (K, G) within 1.1e-9 instead of
+#: 1.2e-6; (B, G) the other way, up to 1.3e-4 against 5e-6: see docs/allan.md).
 GM_LONG_MIN = 20000
 GM_LONG_LENGTHS = 4
+
+
+def _loop_compiled(ms: np.ndarray) -> bool:
+    """Whether :func:`_gm_gapped_loop` runs compiled for these factors."""
+    return bool(KC.HAVE_NUMBA) and np.array_equal(ms, np.round(ms))
 
 
 def _gm_gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray,
                tc: float) -> dict:
     """The gapped Gauss-Markov pairs: sum_s n_s(a) n_s(b) Cov_s(a, b) / (N(a) N(b)) over the
-    stretches (see gapped_term_covariances), the long ones (GM_LONG_MIN, GM_LONG_LENGTHS)
-    from the contiguous kernel of their length, the others from the pair loop."""
+    stretches (see gapped_term_covariances): all from the pair loop where it runs compiled,
+    else the long ones (GM_LONG_MIN, GM_LONG_LENGTHS) from the contiguous kernel of their
+    length and the others from the numpy pair loop."""
     ms = np.asarray(ms, dtype=float)
     n = ms.size
     n_s, big_n = _stretch_terms(ms, lengths, counts)
     long_ = np.zeros(lengths.size, dtype=bool)
-    cand = np.flatnonzero(lengths >= GM_LONG_MIN)
+    cand = np.flatnonzero((lengths >= GM_LONG_MIN) & (not _loop_compiled(ms)))
     long_[cand[np.argsort(lengths[cand])[::-1][:GM_LONG_LENGTHS]]] = True
     sums = {p: np.zeros((n, n)) for p in GPAIRS}
     for j in np.flatnonzero(long_):
@@ -659,7 +671,7 @@ def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np
     integers, else :func:`_gm_gapped_loop_numpy` (the same sums; ~1 s per Tc for 40 factors
     of two stretches of 1.3e4 and 1.6e4 samples, compiled 0.06-0.09 s)."""
     ms = np.asarray(ms, dtype=float)
-    if not KC.HAVE_NUMBA or not np.array_equal(ms, np.round(ms)):
+    if not _loop_compiled(ms):
         return _gm_gapped_loop_numpy(tau0, ms, lengths, counts, tc)
     pr = _gm_gapped_pairs(float(tau0), ms.tobytes(), np.asarray(lengths, np.int64).tobytes(),
                           np.asarray(counts, np.int64).tobytes())
