@@ -16,6 +16,7 @@ import pytest
 
 from recording_helpers import write_recording
 from rigctl.analysis import allan as AA
+from rigctl.analysis import allan_drift as AD
 from rigctl.errors import InputError
 from rigctl.devices import ImuBlock
 from rigctl.recording import recording_reader as RR
@@ -718,11 +719,12 @@ def _oadev(y: np.ndarray, tau0: float, ms: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("outliers", ["report", "exclude"])
-@pytest.mark.parametrize("fused,pipelined", [(False, False), (True, True), (True, False),
-                                             (False, True)])
+@pytest.mark.parametrize("fused,pipelined,corrected", [
+    (False, False, False), (True, True, False), (True, False, False), (False, True, False),
+    (False, True, True)])
 def test_borderline_spikes_at_every_chunk_boundary_offset(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fused: bool, pipelined: bool,
-        outliers: str) -> None:
+        corrected: bool, outliers: str) -> None:
     """A sample within 12 rows of a chunk boundary is judged against its whole 25-sample
     window, as in one pass over the record: borderline spikes at every offset -12 .. +12 from
     a boundary (one per boundary, chunks of 512 rows), each placed halfway between the
@@ -733,7 +735,10 @@ def test_borderline_spikes_at_every_chunk_boundary_offset(
     deviations equal the numpy overlapping ADEV of the column so cleaned). A second row of
     boundaries carries clear spikes (both windows flag them) whose cut and whole medians
     differ: their replacements must be the whole window's. Plain and fused paths, chained
-    (PIPELINED) or not, the fused chain reading the mapped file's rows. On the old code (each chunk
+    (PIPELINED) or not, the fused chain reading the mapped file's rows; and with a term
+    subtracted from the samples (--temperature remove's correction: here +-20 sd zigzagging
+    every 8 rows, added to the file's samples), which the rows read across a boundary must
+    get too. On the old code (each chunk
     screened on its own) the flags of 24 of the 25 borderline offsets differ."""
     if fused and not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
@@ -785,6 +790,23 @@ def test_borderline_spikes_at_every_chunk_boundary_offset(
     assert [a != b for a, b in zip(cut_flags, one_flags)] == [True] * (offs.size - 1) + [False]
     assert set(want) <= set(spikes) and set(clear) <= set(want)
     rec = tmp_path / "r.h5"
+    if corrected:  # the file holds y + the term; the stream subtracts it (as the code does)
+        corr = {"rows": np.arange(0, n, 8).tolist(),
+                "values": (20.0 * sigma * (-1.0) ** np.arange(0, n, 8)).tolist()}
+        term = AD.correction_at(corr, 0, n)
+        g = g.copy()
+        g[:, 0] = y + term
+        y = g[:, 0] - term  # what the screen sees (y to rounding)
+        med = _one_pass_medians(y, w)
+        assert np.array_equal(np.flatnonzero(np.abs(y - med) > thr), want)  # (rounding)
+        stream = AA._compute_streamed
+
+        def with_term(*args, **kw):  # (called with corrections positional, None here)
+            args = list(args)
+            args[13] = {"gx": corr}
+            return stream(*args, **kw)
+
+        monkeypatch.setattr(AA, "_compute_streamed", with_term)
     write_recording(rec, fs, angular_rate=g, specific_force=a, chunk_rows=8192)
     monkeypatch.setattr(AA, "CHUNK_ROWS", C)
     monkeypatch.setattr(AA, "FUSED", fused)
