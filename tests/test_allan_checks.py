@@ -194,7 +194,8 @@ def test_a_piece_with_its_neighbours_is_screened_as_the_whole() -> None:
     (``before`` / ``after``: a streamed chunk) gives the whole record's medians and flags at
     every index of the piece, the first and last 12 included (k = 3 so that noise is flagged
     too: the windows' medians decide), by the screen with a given sigma, the fast path and
-    the medians themselves; without them the piece's end windows are cut and differ."""
+    the medians themselves (a piece shorter than the window too: a short last chunk); without
+    them the piece's end windows are cut and differ."""
     r = np.random.default_rng(8)
     y = r.normal(0.0, 1.0, 3000)
     med_all = _window_median(y)
@@ -205,11 +206,12 @@ def test_a_piece_with_its_neighbours_is_screened_as_the_whole() -> None:
         idx = np.arange(piece.size)
         assert np.array_equal(C.window_medians(piece, idx, before=pre, after=post),
                               med_all[a:b]), (a, b)
+        sel = want[(want >= a) & (want < b)]
         if piece.size >= W:
             got, med, _, _ = C.find_spikes_scaled(piece, 1.0, k=3.0, before=pre, after=post)
-            sel = want[(want >= a) & (want < b)]
             assert np.array_equal(got + a, sel) and np.array_equal(med, med_all[a:b]), (a, b)
-            fast, fmed = C.spikes_beyond(piece, 1.0, k=3.0, before=pre, after=post)
-            assert np.array_equal(fast + a, sel) and np.array_equal(fmed, med_all[sel]), (a, b)
+        # (a piece shorter than the window, too: every sample examined)
+        fast, fmed = C.spikes_beyond(piece, 1.0, k=3.0, before=pre, after=post)
+        assert np.array_equal(fast + a, sel) and np.array_equal(fmed, med_all[sel]), (a, b)
     cut = C.window_medians(y[700:1400], np.arange(700))
     assert not np.array_equal(cut, med_all[700:1400])

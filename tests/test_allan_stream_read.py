@@ -745,7 +745,7 @@ def test_borderline_spikes_at_every_chunk_boundary_offset(
     C, w, h, fs = 512, 25, 12, 200.0
     offs = np.arange(-h, h + 1)
     bounds = C * np.arange(2, 2 + 2 * offs.size)  # chunk 0 (sigma) and 1 left alone
-    n = int(bounds[-1]) + 2 * C + 300  # a short last chunk
+    n = int(bounds[-1]) + 2 * C + 10  # a last chunk shorter than the window
     rng = np.random.default_rng(5)
     sd0 = 1e-3
     g = rng.standard_normal((n, 3)) * sd0
@@ -778,6 +778,9 @@ def test_borderline_spikes_at_every_chunk_boundary_offset(
             y[i] = max(m_cut, m_all) + 1.5 * thr
             clear.append(i)
         spikes.append(i)
+    y[n - 4] = y[n - 4] + 1.5 * thr  # clear, in the 10-row last chunk
+    spikes.append(n - 4)
+    clear.append(n - 4)
     med = _one_pass_medians(y, w)
     want = np.flatnonzero(np.abs(y - med) > thr)
     # the construction: every borderline spike at offsets -12 .. 11 is judged differently by

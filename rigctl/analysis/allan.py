@@ -1332,8 +1332,9 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             check(name, as_array(b), a0)  # raises, naming the first bad row (nothing was summed)
         # the spike screen looks at the samples of an axis only where a block may hold a
         # spike (else it finds none: not called); for that, pieces are copied into one array
-        loud = {a: CHK.may_have_spikes((bmin[AXES[a][1]], bmax[AXES[a][1]]),
-                                       streams[a].spike_sigma) for a in group}
+        # (a chunk shorter than the window: every sample, see CHK.spikes_beyond)
+        loud = {a: n < CHK.SPIKE_WINDOW or CHK.may_have_spikes(
+            (bmin[AXES[a][1]], bmax[AXES[a][1]]), streams[a].spike_sigma) for a in group}
         if isinstance(b, RowPieces) and any(loud.values()):
             b = b.dense()
         ctx = edges(name, a0, n) if any(loud.values()) else None
