@@ -28,8 +28,9 @@ def restart_notes(path: str | Path, within: tuple[bytes, ...] = ()) -> list[dict
     biases has no term for the step between them, so it goes into the scale factors and
     misalignments (and the residuals) -- the result is not a calibration of either state."""
     with open_recording(path) as f:
-        if "events" not in f:
+        if "events" not in f:  # (a recording imported from a log has none)
             return []
+    with open_recording(path, also=("events",)) as f:  # its datasets checked: InputError, not KeyError
         ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
         seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "label", "t_start", "t_end",
                                                   "first_sample", "last_sample")}

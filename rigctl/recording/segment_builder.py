@@ -37,10 +37,11 @@ REST_KINDS = (b"warmup",)
 CAL_NEED = ("imu/time", "imu/specific_force", "imu/angular_rate", "segments")
 
 
-def open_recording(path: str | Path) -> h5py.File:
+def open_recording(path: str | Path, also: tuple[str, ...] = ()) -> h5py.File:
     """Open a rigctl recording read-only for a calibration (SWMR-capable), checked by
-    :func:`rigctl.recording.recording_reader.open_recording`; InputError if it cannot be used."""
-    return recording_reader.open_recording(path, CAL_NEED)
+    :func:`rigctl.recording.recording_reader.open_recording` for what a calibration reads and
+    ``also`` (groups or "group/name" the caller reads too); InputError if it cannot be used."""
+    return recording_reader.open_recording(path, CAL_NEED + also)
 
 
 def store_calibration_results(path: Path, name: str, payload: dict[str, Any],
