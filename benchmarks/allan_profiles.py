@@ -279,12 +279,14 @@ def check_axis(r: dict) -> dict:
     lim_pt = limits_from_curve(tau[sel], dev[sel])
     lim_all = limits_from_curve(tau, dev)
     over, over_pt, over_all = [], [], []
+    pt_ratio: dict[str, float] = {}  # bound / point limit, where above it
     for t in r["fit"]["terms"]:
         c = getattr(r["fit"]["coefficients"], t)
         if not c.resolved and c.upper95 > lim[t] * (1 + 1e-9):
             over.append(t)
         if not c.resolved and c.upper95 > lim_pt[t] * (1 + 1e-9):
             over_pt.append(t)
+            pt_ratio[t] = float(c.upper95 / lim_pt[t])
         if not c.resolved and c.upper95 > lim_all[t] * (1 + 1e-9):
             over_all.append(t)
     lo = np.asarray(r[f"lo95_{unit}"]) / fac
@@ -297,7 +299,7 @@ def check_axis(r: dict) -> dict:
               + (check.get("outside_past_prefix") or [])):
         named |= (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
     unnamed = outside & ~named
-    return {"over": over, "over_pt": over_pt, "over_all": over_all, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),
+    return {"over": over, "over_pt": over_pt, "pt_ratio": pt_ratio, "over_all": over_all, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),
             "n_unnamed": int(unnamed.sum()),
             "unnamed_taus": [float(x) for x in tau[unnamed][:6]],
             "worst_unnamed": float(np.max(np.abs(np.log(dev[unnamed] / fit[unnamed]))))
@@ -371,8 +373,11 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
             totals["over_point"] += bool(c["over_pt"])
             for term in c["over_pt"]:
                 totals["over_point_terms"][term] = totals["over_point_terms"].get(term, 0) + 1
+                totals["over_point_max_ratio"][term] = round(max(
+                    totals["over_point_max_ratio"].get(term, 0.0), c["pt_ratio"][term]), 3)
             if c["over_pt"]:
-                totals["over_point_where"].append(f"{name}:{a}:{taus}:{''.join(c['over_pt'])}")
+                totals["over_point_where"].append(f"{name.split(' (')[0]}:{a}:{taus}:" + ",".join(
+                    f"{t}x{c['pt_ratio'][t]:.2f}" for t in c["over_pt"]))
             for term in c["over_all"]:
                 totals["over_all_terms"][term] = totals["over_all_terms"].get(term, 0) + 1
             if c["over_all"]:
@@ -412,6 +417,7 @@ def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = N
     """Write and analyse every case of ``wanted``; the counts of the three checks."""
     totals = {"fits": 0, "over_limit": 0, "over_where": [], "over_all_taus": 0,
               "over_point": 0, "over_point_where": [], "over_point_terms": {},
+              "over_point_max_ratio": {},
               "over_all_where": [], "over_all_terms": {}, "informative": 0, "outside": 0,
               "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
               "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
@@ -461,7 +467,8 @@ def main() -> None:
     wall = time.perf_counter() - t0
     print(f"\n{totals['fits']} fits (case x axis x tau set {sets}): bounds above the curve's "
           f"limit: {totals['over_limit']} (the literal point limit, min sigma / 0.664 etc. over the "
-          f"informative taus: {totals['over_point']} fits, per term {totals['over_point_terms']}; "
+          f"informative taus: {totals['over_point']} fits, per term {totals['over_point_terms']}, "
+          f"largest bound / limit {totals['over_point_max_ratio']}; "
           f"the limit over every tau, incl. EDF < 16.95: "
           f"{totals['over_all_taus']} fits, per term {totals['over_all_terms']}); fitted total outside the 95 % band at "
           f"{totals['outside']} of {totals['informative']} informative taus, of them not named "
@@ -474,12 +481,13 @@ def main() -> None:
     for k in ("over_where", "over_point_where", "over_all_where", "unnamed_where", "disagree_where", "tones",
               "gm_terms"):
         if totals[k]:
-            print(f"{k}: {'; '.join(totals[k][:30])}")
+            print(f"{k}: {'; '.join(totals[k][:30 if k != 'over_point_where' else 200])}")
     print(json.dumps({"hours_emulated": a.hours, "warmup_s": a.warmup_s, "cases": wanted,
                       "fits": totals["fits"],
                       "bounds_above_curve_limit": totals["over_limit"],
                       "bounds_above_point_limit_informative_taus": totals["over_point"],
                       "bounds_above_point_limit_per_term": totals["over_point_terms"],
+                      "bounds_above_point_limit_max_ratio": totals["over_point_max_ratio"],
                       "bounds_above_limit_over_every_tau": totals["over_all_taus"],
                       "bounds_above_limit_over_every_tau_per_term": totals["over_all_terms"],
                       "informative_taus": totals["informative"],
