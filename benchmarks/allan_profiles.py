@@ -11,7 +11,11 @@ with numbers read here from the curve and not from the fit's own bookkeeping:
           minimum taken over the informative taus (95 % band hi95 <= 2 lo95, i.e. EDF >= 16.95:
           the true sigma within 0.75 .. 1.50 x the measured one; a tau of a handful of averages,
           EDF 3: 0.57 .. 3.6 x, limits nothing). Also counted: bounds above the same limits
-          taken over every tau (``over_all_taus``), i.e. where such a tau is lower.
+          taken over every tau (``over_all_taus``), i.e. where such a tau is lower, and, as
+          Done-when item 1 words it, bounds above the measured point limits over the
+          informative taus (column over_pt, ``bounds_above_point_limit_*``, with the largest
+          bound / limit per term): the limit the first count applies where the fit needs a
+          model error of 5 % or more, without the curve's chi-square allowance elsewhere.
   band    the fitted total (sigma^2 = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 +
           R^2 tau^2/2, from the fitted values) lies inside the curve's 95 % band at every
           informative tau (hi95 <= 2 lo95), or the tau is named by the self-check (a warning
