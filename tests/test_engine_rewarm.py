@@ -25,7 +25,7 @@ from rigctl.config.suspenders import SuspenderSettings
 from rigctl.engine.procedure import load_procedure
 from rigctl.run.runner import RunOptions, resume_run, run_procedure
 
-from helpers import WHITE_NOISE_ONLY, derived_config
+from helpers import NO_TURN_ON_DRAW, WHITE_NOISE_ONLY, derived_config
 from hil_support import RunPoints, sampling
 
 WARMUP_S = 20.0
@@ -200,7 +200,7 @@ def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_pat
     (from the segments' own times here): one fit over both has no term for the bias step."""
     from rigctl.analysis.calibration import calibrate
     from hil_support import ROOT
-    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY, **NO_TURN_ON_DRAW))
     proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s", "discard": "0.5 s"},
                           cfg.limits)
     from hil_support import point_options, power_loss
@@ -223,3 +223,4 @@ def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_pat
     assert [int(s.split(" ")[1]) for s in note["after"]] == after
     assert "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
     assert "step 2 (" in text and "step 25 (" in text and "(12 positions)" in text
+
