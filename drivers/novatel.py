@@ -166,6 +166,8 @@ class MarkReaderCounters:
 
 #: a log from its ``#`` up to the first ``#``, ``*``, CR or LF (``*`` then ends a whole log)
 _HEAD = re.compile(rb"#[^#*\r\n]*")
+#: text outside logs, up to the next ``#`` or LF
+_TEXT = re.compile(rb"[^#\n]*")
 _HEXDIGITS = frozenset(b"0123456789ABCDEFabcdef")
 
 
@@ -182,7 +184,10 @@ class MarkLogReader:
     CRC counts at least ``floor(start / r) + 1`` (its own log). Counting is eager (no flush) and
     the same whatever the read chunking. Logs with a good CRC that do not parse are counted
     ``malformed``; lines starting with ``<`` (command replies such as ``<OK``) are collected in
-    ``responses``. Bad logs are logged and dropped.
+    ``responses``. Bad logs are logged and dropped. A log whose ``#`` .. first ``#``, ``*``, CR
+    or LF, or a line outside logs up to its LF or ``#``, longer than ``max_line`` bytes is
+    ``overlong``: counted once and dropped up to the next ``#`` or LF (as garbage bytes), decided
+    on its first ``max_line + 1`` bytes, so also the same whatever the read chunking.
     """
 
     max_line: int = 1024
@@ -192,6 +197,7 @@ class MarkLogReader:
     _gap: int = 0        # bytes since the end of the last whole log
     _lost: int = 0       # logs counted lost in this gap
     _ref: int = 0        # bytes of the last whole log, CR LF included (0: none yet -> nominal)
+    _skip: bool = False  # in an overlong log or line: bytes up to the next '#' or LF dropped
 
     def _reference(self) -> int:
         """Bytes of one log for counting (before the first whole log: a formatted mark's)."""
@@ -243,31 +249,44 @@ class MarkLogReader:
             elif size:
                 self._garbage(size)
 
+    def _overlong(self, pos: int) -> int:
+        """The ``max_line + 1`` bytes from ``pos`` hold no end of their log or line: counted
+        ``overlong`` once and dropped, with the rest of it up to the next ``#`` or LF
+        (:attr:`_skip`). Returns the position after them."""
+        self.counters.overlong += 1
+        self._garbage(self.max_line + 1)
+        self._skip = True
+        return pos + self.max_line + 1
+
     def feed(self, data: bytes) -> list[MarkTime]:
         buf = self._buf + bytes(data)
         n, pos = len(buf), 0
         out: list[MarkTime] = []
         while pos < n:
-            if buf[pos] != 0x23:                                # text up to the next '#'
-                h = buf.find(b"#", pos)
-                if h < 0:
-                    h = buf.rfind(b"\n", pos) + 1              # complete lines only
-                    if h <= pos:
-                        if n - pos > self.max_line:
-                            self.counters.overlong += 1
-                            self._garbage(n - pos)
-                            pos = n
-                        break
-                self._text(buf[pos:h])
-                pos = h
+            if self._skip:                                      # the rest of an overlong one
+                e = _TEXT.match(buf, pos).end()
+                stop = e + (e < n and buf[e] == 0x0A)
+                if stop > pos:
+                    self._garbage(stop - pos)
+                self._skip, pos = e == n, stop
+                continue
+            if buf[pos] != 0x23:                                # text: a line, up to its LF or '#'
+                e = _TEXT.match(buf, pos).end()
+                if e - pos > self.max_line:
+                    pos = self._overlong(pos)
+                    continue
+                if e == n:                                      # wait for its end
+                    break
+                stop = e + (buf[e] == 0x0A)
+                self._text(buf[pos:stop])
+                pos = stop
                 continue
             e = _HEAD.match(buf, pos).end()
+            if e - pos > self.max_line:
+                pos = self._overlong(pos)
+                continue
             if e == n or (buf[e] == 0x2A and e + 9 > n and all(b in _HEXDIGITS for b in buf[e + 1:])):
-                if n - pos > self.max_line:                     # wait for the rest of the log
-                    self.counters.overlong += 1
-                    self._garbage(n - pos)
-                    pos = n
-                break
+                break                                           # wait for the rest of the log
             if buf[e] == 0x2A and all(b in _HEXDIGITS for b in buf[e + 1:e + 9]):
                 m = self._whole(buf[pos:e + 9])
                 if m is not None:
