@@ -11,7 +11,8 @@ Extra effects (each switchable in :mod:`rigctl.sim.error_model`):
 
 * warm-up:            T(t) = T0 + dT (1 - exp(-t/tau));  bias += c_b (T - T_ref), scale += c_s (T - T_ref),
                       T_ref = T0 + dT (the settled temperature, so the declared values hold after warm-up)
-* turn-on bias:       a constant drawn at power-on (run-to-run repeatability)
+* turn-on bias:       a constant drawn at every power-on (run-to-run repeatability), b_on ~ N(0, sigma^2)
+                      per axis: the unit's first turn-on and every power cycle after it (:func:`turn_on_bias`)
 * g-sensitivity:      W += G a + A_ae a**2           (G in rad/s per m/s^2, A_ae in rad/s per (m/s^2)^2)
 * scale asymmetry:    A += 0.5 u |a|                 (scale S + u/2 for a > 0, S - u/2 for a < 0)
 * gyro nonlinearity:  W += k2 w**2 + k3 w**3
@@ -51,6 +52,16 @@ def accel_declared(f: np.ndarray, bias: np.ndarray, M: np.ndarray, k2: np.ndarra
 def gyro_declared(w: np.ndarray, bias: np.ndarray, M: np.ndarray) -> np.ndarray:
     """W = b + M w (rad/s); M (3,3) dimensionless."""
     return matvec(w, M) + bias
+
+
+def turn_on_bias(rng: np.random.Generator, gyro_sigma_rad_s: float,
+                 accel_sigma_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """A turn-on bias of each sensor, b_on ~ N(0, sigma^2) per axis: the bias repeatability
+    from turn-on to turn-on (run-to-run; a datasheet's "bias repeatability"). Returns (gyro (3,)
+    rad/s, accel (3,) m/s^2), drawn in that order from ``rng`` (one seeded stream per unit, so a
+    unit's sequence of turn-ons is reproducible)."""
+    g = rng.standard_normal(3) * float(gyro_sigma_rad_s)
+    return g, rng.standard_normal(3) * float(accel_sigma_m_s2)
 
 
 # ---------------------------------------------------------------------------- thermal

@@ -148,10 +148,10 @@ class ImuErrorModel:
         self.time_delay_s = float(self.delay.delay_s) if self.delay else 0.0
         self.turn_on_gyro = np.zeros(3)
         self.turn_on_accel = np.zeros(3)
-        if self.turn_on:
-            rng = np.random.default_rng(s_on)
-            self.turn_on_gyro = rng.standard_normal(3) * float(_or(self.turn_on.gyro_sigma_rad_per_s, 0.0))
-            self.turn_on_accel = rng.standard_normal(3) * float(_or(self.turn_on.accel_sigma_m_per_s2, 0.0))
+        #: the turn-on biases' own stream: the first at construction, one more per power cycle
+        self._turn_on_rng = np.random.default_rng(s_on)
+        self.power_cycles = 0
+        self._draw_turn_on()
         if self.vib:
             k = len(_or(self.vib.freqs_hz, []))
             self.vib_phase = np.random.default_rng(s_vib).uniform(0, 2 * np.pi, (k, 3))
@@ -162,6 +162,24 @@ class ImuErrorModel:
         self._temp_rng = np.random.default_rng(s_temp)
         self._dw = fx.AngularAcceleration()
         self._t_last_out = -1.0 / self.output_rate_hz
+
+    def _draw_turn_on(self) -> None:
+        """A new turn-on bias (b_on ~ N(0, sigma^2) per axis, :func:`rigctl.sim.effects.turn_on_bias`)
+        when the ``turn_on_bias`` effect is on; else it stays zero."""
+        if self.turn_on:
+            self.turn_on_gyro, self.turn_on_accel = fx.turn_on_bias(
+                self._turn_on_rng, float(_or(self.turn_on.gyro_sigma_rad_per_s, 0.0)),
+                float(_or(self.turn_on.accel_sigma_m_per_s2, 0.0)))
+            self._fp = None     # the compiled path's constant biases are built again
+
+    def power_cycle(self) -> tuple[np.ndarray, np.ndarray]:
+        """The unit lost power and is back: a new turn-on bias, drawn from the unit's seeded
+        stream (the ``turn_on_bias`` effect's sigmas; none when it is off), replaces the last one.
+        Returns the new turn-on biases (gyro (3,) rad/s, accel (3,) m/s^2). The warm-up, noise and
+        clock go on as before (only the bias is modelled as restarting)."""
+        self.power_cycles += 1
+        self._draw_turn_on()
+        return self.turn_on_gyro.copy(), self.turn_on_accel.copy()
 
     def _noise_offset(self, params: Mapping[str, Any], rng: np.random.Generator) -> np.ndarray:
         """Value of the K random walk plus the R ramp at run start, power_on_time_s after power-on."""

@@ -708,8 +708,9 @@ class Hardware:
     def power_cycle(self, down_s: float = 0.2, block: bool = True) -> str | None:
         """The IMU loses power for ``down_s`` wall seconds (not just its cable): its pty goes as
         in :meth:`disconnect`, and when power is back the unit restarts -- its device time
-        (Xsens SampleTimeFine and PacketCounter, VectorNav TimeStartup) begins again from 0 and
-        it waits to be configured -- before the new pty is plugged in. A driver sees a link loss
+        (Xsens SampleTimeFine and PacketCounter, VectorNav TimeStartup) begins again from 0, it
+        has a new turn-on bias (:meth:`rigctl.sim.world.SimWorld.power_cycle_imu`: drawn from the
+        model's bias repeatability) and it waits to be configured -- before the new pty is plugged in. A driver sees a link loss
         whose device time does not continue (``time_restarts`` / ``device_restarts``); after
         :meth:`disconnect` it continues. Returns the new pty path (None if not ``block``)."""
         restart = getattr(self.imu_server, "power_cycle", None)
@@ -721,6 +722,8 @@ class Hardware:
 
         def back() -> str:
             restart()
+            with self.lock:             # the physics computes on with the new turn-on bias
+                self.world.power_cycle_imu()
             return slot.replug()
         if block:
             time.sleep(down_s)

@@ -35,6 +35,7 @@ from rigctl.yamlio import LocDict
 from rigctl.settings import Settings, items, matrix3, number, numbers, parse, setting, subsection, text
 from rigctl.solvers.noise_coefficients import GaussMarkov, Triad, terms_of, to_json, triad
 
+from .effects import turn_on_bias
 from .noise import NoiseGenerator
 from .thermal_imu import ThermalErrors, ThermalSettings
 
@@ -60,9 +61,17 @@ class DeclaredImuModel:
     seed: int = 0
     #: temperature-dependent errors (sim/thermal_imu.py), None = none
     thermal: Any = None
+    #: turn-on-to-turn-on bias repeatability, 1 sigma per axis (gyro rad/s, accel m/s^2): each
+    #: power cycle (:meth:`power_cycle`) draws a new turn-on bias; the first turn-on's is zero
+    #: (the declared bias is the bias of the unit as it was turned on for the run)
+    gyro_turn_on_sigma: float = 0.0
+    accel_turn_on_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A0]))
+        self._turn_on_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1A3]))
+        self.turn_on_gyro, self.turn_on_accel = np.zeros(3), np.zeros(3)
+        self.power_cycles = 0
         self._temp_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x7E]))
         self._slow = {}
         for name, axes, tag in (("gyro", self.gyro_noise, 0x1A1), ("accel", self.accel_noise, 0x1A2)):
@@ -79,8 +88,8 @@ class DeclaredImuModel:
         ``temperature`` (n,) degC: the IMU's temperature (a chamber), else ``temperature_c``;
         with ``thermal`` errors, ``hysteresis`` (n,) and ``temperature_rate`` (n,) K/s too."""
         n = f_true.shape[0]
-        f = self.accel_bias + f_true @ self.accel_matrix.T + self.accel_quadratic * f_true**2
-        w = self.gyro_bias + w_true @ self.gyro_matrix.T
+        f = self.accel_bias + self.turn_on_accel + f_true @ self.accel_matrix.T + self.accel_quadratic * f_true**2
+        w = self.gyro_bias + self.turn_on_gyro + w_true @ self.gyro_matrix.T
         T = np.full(n, self.temperature_c) if temperature is None else np.asarray(temperature, float)
         if self.thermal is not None and self.thermal.active:
             H = np.zeros(n) if hysteresis is None else hysteresis
@@ -100,6 +109,17 @@ class DeclaredImuModel:
             T = T + self._temp_rng.standard_normal(n) * self.thermal.temperature_noise_c
         return f, w, T
 
+    def power_cycle(self) -> tuple[NDArray, NDArray]:
+        """The unit lost power and is back: a new turn-on bias b_on ~ N(0, sigma^2) per axis
+        (:func:`rigctl.sim.effects.turn_on_bias`, the repeatability sigmas above, from the unit's
+        own seeded stream: reproducible, and the noise streams are untouched) replaces the last
+        one; the bias is now b + b_on. Returns the new turn-on biases (gyro (3,) rad/s, accel
+        (3,) m/s^2)."""
+        self.power_cycles += 1
+        self.turn_on_gyro, self.turn_on_accel = turn_on_bias(self._turn_on_rng, self.gyro_turn_on_sigma,
+                                                             self.accel_turn_on_sigma)
+        return self.turn_on_gyro.copy(), self.turn_on_accel.copy()
+
     def truth(self) -> dict[str, Any]:
         extra = {"thermal": self.thermal.truth()} if self.thermal is not None else {}
         return {**extra,
@@ -110,6 +130,11 @@ class DeclaredImuModel:
             "accel_quadratic_per_m_s2": self.accel_quadratic.tolist(),
             "gyro_bias_rad_s": self.gyro_bias.tolist(),
             "gyro_matrix": self.gyro_matrix.tolist(),
+            # the turn-on bias now (zero until a power cycle) and its repeatability (1 sigma)
+            "accel_turn_on_bias_m_s2": self.turn_on_accel.tolist(),
+            "gyro_turn_on_bias_rad_s": self.turn_on_gyro.tolist(),
+            "accel_turn_on_repeatability_m_s2": self.accel_turn_on_sigma,
+            "gyro_turn_on_repeatability_rad_s": self.gyro_turn_on_sigma,
             # three axes each, rigctl.solvers.noise_coefficients.to_json (as the profile model's)
             "accel_noise": [to_json(m) for m in self.accel_noise],
             "gyro_noise": [to_json(m) for m in self.gyro_noise],
@@ -175,6 +200,9 @@ class DeclaredImuSettings(Settings):
     gyro_rrw_deg_h_rth: float = number(0.0, minimum=0)
     accel_gm: tuple[AccelGaussMarkov, ...] = items(AccelGaussMarkov, "'imu.sim.accel_gm'")
     gyro_gm: tuple[GyroGaussMarkov, ...] = items(GyroGaussMarkov, "'imu.sim.gyro_gm'")
+    #: turn-on-to-turn-on bias repeatability, 1 sigma per axis: a new turn-on bias at each power cycle
+    accel_turn_on_repeatability_mg: float = number(0.0, minimum=0)
+    gyro_turn_on_repeatability_deg_h: float = number(0.0, minimum=0)
     temperature_c: float = number(25.0)
     #: None: the config's seed
     seed: int | None = number(None, minimum=0, integer=True)
@@ -222,6 +250,8 @@ def build_declared_imu(o: LocDict, rate_hz: float, seed: int) -> DeclaredImuMode
         temperature_c=c.temperature_c,
         seed=int(seed if c.seed is None else c.seed),
         thermal=None if c.thermal is None else ThermalErrors(c.thermal),
+        gyro_turn_on_sigma=c.gyro_turn_on_repeatability_deg_h * DEG / 3600.0,
+        accel_turn_on_sigma=c.accel_turn_on_repeatability_mg * 1e-3 * G0,
     )
 
 

@@ -152,6 +152,8 @@ class SimWorld:
         self._pending: SampleGrid | None = None  # IMU samples drawn from its clock, not yet due
         self._blocks: list[tuple[ImuBlock, NDArray]] = []  # (block, true times of its samples)
         self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
+        #: the IMU's power cycles so far (:meth:`power_cycle_imu`): time and new turn-on biases
+        self.imu_power_cycles: list[dict[str, Any]] = []
         # the climatic chamber (sim/chamber.py) and the IMU's thermal state along it: the
         # declared IMU's temperature is the chamber's product temperature (idle at the IMU's
         # temperature_c unless chamber.sim says otherwise); a profile IMU keeps its own
@@ -343,12 +345,20 @@ class SimWorld:
             tt = np.concatenate([x for _, x in blocks])
         return (out, tt) if true_time else out
 
+    def power_cycle_imu(self) -> None:
+        """The IMU lost power and is back (now, run time :attr:`t`): its model draws a new
+        turn-on bias (``power_cycle``: the repeatability of the declared model or of the profile's
+        ``turn_on_bias`` effect), listed with its time in :attr:`imu_power_cycles` (``truth()``)."""
+        g, a = self.imu_model.power_cycle()
+        self.imu_power_cycles.append({"t_s": self.t, "gyro_turn_on_bias_rad_s": g.tolist(),
+                                      "accel_turn_on_bias_m_s2": a.tolist()})
+
     def truth(self) -> dict[str, Any]:
         """Every true parameter (a dict, JSON-serialisable). With the tap operator it also
         carries the taps drawn during the run (:class:`RunTruth`: the recorder writes them to
         /truth/taps and /truth/edges)."""
         out = {"imu": self.imu_model.truth(), "table": self.table.truth(), "seed": self.cfg.seed,
-               "chamber": self.chamber.truth(),
+               "chamber": self.chamber.truth(), "imu_power_cycles": list(self.imu_power_cycles),
                "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
                         "gravity_m_s2": self.cfg.gravity}}
         if self.operator is not None:
@@ -446,6 +456,12 @@ class SimImuDevice:
     def counters(self) -> dict[str, int]:
         return {"device_restarts": self.device_restarts}
 
+    def power_cycle(self) -> None:
+        """The unit loses power and has it back before the next :meth:`read` (an outage shorter
+        than a poll; the ``imu_power`` fault is one of a given length): that read finds it
+        restarted, as after the fault."""
+        self._unpowered = True
+
     def read(self) -> ImuBlock:
         block = self.world.take_imu()
         t = self.world.t
@@ -454,9 +470,10 @@ class SimImuDevice:
         if faults.active("imu_power", t):
             self._unpowered = True
             raise LinkLost("imu", "no data (IMU without power, injected)")
-        if self._unpowered:             # powered again: a new device timeline
+        if self._unpowered:             # powered again: a new device timeline, a new turn-on bias
             self._unpowered = False
             self.device_restarts += 1
+            self.world.power_cycle_imu()
         if faults.active("imu_link", t):
             raise LinkLost("imu", "no data (link down, injected)")  # samples meanwhile are lost
         return block

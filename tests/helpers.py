@@ -31,6 +31,9 @@ DURATION_EPS = 1e-9
 SLOW_NOISE_KEYS = ("gyro_bias_instability_deg_h", "gyro_rrw_deg_h_rth",
                    "accel_bias_instability_mg", "accel_rrw_m_s_h_rth")
 WHITE_NOISE_ONLY = {f"imu__sim__{k}": 0.0 for k in SLOW_NOISE_KEYS}
+#: derived_config changes: a power cycle draws no new turn-on bias (a test that sets the bias
+#: step itself, tests/hil_support.power_loss, then knows it exactly)
+NO_TURN_ON_DRAW = {"imu__sim__gyro_turn_on_repeatability_deg_h": 0.0, "imu__sim__accel_turn_on_repeatability_mg": 0.0}
 
 
 def white_noise_only(truth_imu: dict) -> None:

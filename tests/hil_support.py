@@ -141,7 +141,9 @@ class RunPoints(NullProgress):
 def power_loss(points: RunPoints, accel_bias_step_m_s2: np.ndarray, down_s: float = 3.0) -> Callable[[], None]:
     """An action for :class:`RunPoints` on the in-process emulator: the IMU loses power now
     (its ``imu_power`` fault) for ``down_s`` virtual s and comes back with its accelerometer bias
-    moved by ``accel_bias_step_m_s2`` (3,), m/s^2: a new turn-on bias."""
+    moved by ``accel_bias_step_m_s2`` (3,), m/s^2: a new turn-on bias. The emulator draws one of
+    its own too (the config's turn-on repeatability), added to this step: a config with
+    ``helpers.NO_TURN_ON_DRAW`` makes the step exactly this one."""
     def act() -> None:
         world = points.engine.rig.imu.world
         world.faults.schedule("imu_power", world.t, down_s)

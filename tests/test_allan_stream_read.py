@@ -8,6 +8,7 @@ the same message."""
 from __future__ import annotations
 
 import sys
+import threading
 from pathlib import Path
 
 import h5py
@@ -314,6 +315,46 @@ def test_early_tones_same_as_after_the_last_chunk(tmp_path: Path,
         monkeypatch.setattr(AA, "EARLY_TONES", early)
         got[early] = AA.compute(str(rec), ["gx", "gy", "az"], 95)["axes"]
     assert cached == [False] * 3 + [True] * 3
+    # the analysis of an axis whose dataset finished first (queued while the other dataset
+    # still streams) waits for the axis' early task: gx's is held until gx's analysis has
+    # been started on the other worker (it then finds the tones taken early, not None)
+    made: list = []
+    entered, analysed = threading.Event(), threading.Event()
+    init, heads, submit_at, spy = (AA._AxisStream.__init__, AA._AxisStream.head_noise_ids,
+                                   AA._PriorityPool.submit_at, AA.analyse_axis)
+
+    def making(self, *args):
+        made.append(self)
+        init(self, *args)
+
+    def held(self, *args):
+        if self is made[0]:  # gx (the streams are made in axis order)
+            assert entered.wait(60), "gx's analysis never started"
+            analysed.wait(0.5)  # (set at once when the analysis does not wait for this)
+        heads(self, *args)
+
+    def queued(pool, rank, fn, *args):
+        if getattr(fn, "__name__", "") == "analyse" and args == ("gx",):
+            def starting(*a):
+                entered.set()
+                return fn(*a)
+            return submit_at(pool, rank, starting, *args)
+        return submit_at(pool, rank, fn, *args)
+
+    def looking(stream, *args):
+        try:
+            return spy(stream, *args)
+        finally:
+            if stream is made[0]:
+                analysed.set()
+
+    monkeypatch.setattr(AA._AxisStream, "__init__", making)
+    monkeypatch.setattr(AA._AxisStream, "head_noise_ids", held)
+    monkeypatch.setattr(AA._PriorityPool, "submit_at", queued)
+    monkeypatch.setattr(AA, "analyse_axis", looking)
+    held_back = AA.compute(str(rec), ["gx", "gy", "az"], 95)["axes"]
+    assert entered.is_set() and cached[6:] == [True] * 3
+    assert held_back["gx"]["tones"] == got[True]["gx"]["tones"]
     tones = got[True]["gx"]["tones"]["tones"]
     assert tones and abs(tones[0]["freq_hz"] - 13.7) < 0.2  # the injected tone was looked for
     assert got[True]["gx"]["tones"]["samples_used"] == 50_000 - 1  # the head: x[0] = 0 + 49999

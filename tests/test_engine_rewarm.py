@@ -25,7 +25,7 @@ from rigctl.config.suspenders import SuspenderSettings
 from rigctl.engine.procedure import load_procedure
 from rigctl.run.runner import RunOptions, resume_run, run_procedure
 
-from helpers import WHITE_NOISE_ONLY, derived_config
+from helpers import NO_TURN_ON_DRAW, WHITE_NOISE_ONLY, derived_config
 from hil_support import RunPoints, sampling
 
 WARMUP_S = 20.0
@@ -200,7 +200,7 @@ def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_pat
     (from the segments' own times here): one fit over both has no term for the bias step."""
     from rigctl.analysis.calibration import calibrate
     from hil_support import ROOT
-    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY, **NO_TURN_ON_DRAW))
     proc = load_procedure(ROOT / "procedures" / "24pos.yaml", {"warmup": "10 s", "sample": "3 s", "discard": "0.5 s"},
                           cfg.limits)
     from hil_support import point_options, power_loss
@@ -223,3 +223,37 @@ def test_a_calibration_across_a_restart_names_the_positions_on_each_side(tmp_pat
     assert [int(s.split(" ")[1]) for s in note["after"]] == after
     assert "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
     assert "step 2 (" in text and "step 25 (" in text and "(12 positions)" in text
+
+
+def test_a_restart_in_the_end_of_run_safe_state_is_logged_without_a_rewarm(tmp_path):
+    """The unit restarts after the last step, noticed by the end-of-run safe state's poll: the
+    ``device-restart`` event and one run-log line say so, and neither promises a warm-up that
+    will never run (before: 'the warm-up (20 s, step 1) runs again first, then ...' although the
+    run was over). Nothing is re-measured; the run completes."""
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY))
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    last = max(s.index for s in proc.steps if s.is_motion)
+
+    class AtTheEnd(RunPoints):
+        def step_finished(self, step, segment=None):
+            super().step_finished(step, segment)
+            if step.index == last:       # the power is lost and back before the safe state's poll
+                self.engine.rig.imu.power_cycle()
+    points = AtTheEnd([])
+    opts = RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0), progress=points,
+                      on_engine=points.on_engine)
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert res.exit_code == 0 and res.status == "complete", res.message
+    assert points.engine.rig.imu.device_restarts == 1
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    (restart,) = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    assert restart[0] >= seg["t_end"][-1] and "end-of-run safe state" in restart[1], restart
+    assert "re-run" not in restart[1] and "warm-up" not in restart[1], restart
+    log = (res.run_dir / "run.log.jsonl").read_text().splitlines()
+    said = [line for line in log if "the IMU restarted" in line]
+    assert len(said) == 1 and "end-of-run safe state" in said[0], said
+    assert not any("runs again" in line for line in log), [x for x in log if "runs again" in x]
+    assert points.engine.rewarm is None

@@ -21,7 +21,7 @@ import numpy as np
 from rigctl.analysis.calibration import calibrate
 from rigctl.analysis.thermal import thermal_info
 
-from helpers import derived_config
+from helpers import NO_TURN_ON_DRAW, derived_config
 from hil_support import RunPoints, point_options, run, sampling
 from hil_support import power_loss as unit_power_loss
 from test_thermal import SIM_THERMAL
@@ -40,7 +40,7 @@ STEP_M_S2 = 2e-3 * 9.80665
 
 
 def _run(tmp_path, power_loss: bool):
-    cfg = derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal=SIM_THERMAL,
+    cfg = derived_config(tmp_path, imu__rate_hz=50, imu__sim__thermal=SIM_THERMAL, **NO_TURN_ON_DRAW,
                          chamber__sim={"heat_max_c_per_min": 20, "cool_max_c_per_min": 20, "product_tau_s": 20})
     (tmp_path / "proc.yaml").write_text(PROC)
     points = RunPoints([])

@@ -1074,10 +1074,16 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
                         drop: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """:func:`_compute_streamed`'s stream (:func:`_stream_chunks`) and the axes' analyses."""
     ids: dict[str, Any] = {}  # axis -> its task of noise IDs on the decimated copy
+    heads: dict[str, Any] = {}  # axis -> its early task (head_noise_ids), if one was queued
 
     def analyse(a: str) -> dict[str, Any]:
-        if a in ids:  # queued before this task: started, so it cannot wait for a worker
-            _result(ids[a])
+        # both queued before this task at a rank no worse (the early one at its dataset's,
+        # 0 or 1, the decimated one at this task's): started, so they cannot wait for a
+        # worker. Without the early one's wait, an analysis queued by dataset_done could
+        # start beside it on the other worker and take the tones and noise IDs again.
+        for t in (heads.get(a), ids.get(a)):
+            if t is not None:
+                _result(t)
         try:
             return analyse_axis(streams[a], AXES[a][2], exclude, stretches(), a)
         finally:
@@ -1095,8 +1101,9 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
 
     early: dict[str, Any] = {}  # axis -> its analysis, queued when its dataset was done
 
-    def dataset_done(group: list[str]) -> None:
+    def dataset_done(group: list[str], head_tasks: dict[str, Any]) -> None:
         # after every chunk task that is queued (the other dataset's)
+        heads.update(head_tasks)
         early.update(queue(group, 2))
 
     with _PriorityPool(WORKERS) as pool:
@@ -1145,7 +1152,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
                    corrections: dict | None = None,
                    scan: tuple[RowReader, list, bool] | None = None,
                    when_streaming: Callable[[], Any] | None = None,
-                   dataset_done: Callable[[list[str]], Any] | None = None,
+                   dataset_done: Callable[[list[str], dict[str, Any]], Any] | None = None,
                    drop: list[tuple[int, int]] | None = None,
                    drop_breaks: bool = True) -> None:
     """Read [s0, s1) in chunks of CHUNK_ROWS and feed every axis: while the workers check,
@@ -1171,8 +1178,9 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
     a gap, else they follow the samples before it (bridged).
 
     ``dataset_done``: with :data:`PIPELINED`, the chunks of the first axis' dataset go first
-    (:func:`_pipelined`) and this is called with a dataset's axes as soon as its last chunk
-    is summed (from a worker; every gap is known by then)."""
+    (:func:`_pipelined`) and this is called with a dataset's axes and their early tasks
+    (:meth:`_AxisStream.head_noise_ids`, axis -> future, those queued) as soon as its last
+    chunk is summed (from a worker; every gap is known by then)."""
     # two read buffers per dataset (chunk i is being fed while chunk i + 1 is read) and one
     # column buffer per axis, reused: no fresh pages (page faults) per chunk
     rows = min(CHUNK_ROWS, max(0, s1 - s0))
@@ -1350,7 +1358,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
         return tasks
 
     starts = list(range(s0, s1, CHUNK_ROWS))
-    early: list = []  # the head's noise IDs, once every head is complete
+    early: dict[str, Any] = {}  # axis -> the head's noise IDs, once every head is complete
     if PIPELINED and len(starts) > 1:
         # the first axis' dataset first (LEAD_DATASET: its tasks go first on the workers)
         order = sorted(dsets, key=lambda nm: min(axes.index(a) for a in groups[nm]))
@@ -1358,7 +1366,7 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             rank.update({nm: i for i, nm in enumerate(order)})
         _pipelined(pool, starts, order, read_rows, cuts_at, dataset, streams, groups, rank,
                    s0, s1, shown, early, when_streaming, dataset_done)
-        for e in early:
+        for e in early.values():
             _result(e)
         return
     nxt = read(starts[0], 0) if starts else None
@@ -1377,8 +1385,8 @@ def _stream_chunks(pool: _PriorityPool, path: str, readers: dict, axes: list[str
             when_streaming()
         if EARLY_NOISE_ID and not early and i + 1 < len(starts) and all(
                 st.head_full() for st in streams.values()):
-            early = [pool.submit(st.head_noise_ids, s1 - s0 + 1) for st in streams.values()]
-    for e in early:
+            early = {a: pool.submit(st.head_noise_ids, s1 - s0 + 1) for a, st in streams.items()}
+    for e in early.values():
         _result(e)
 
 
@@ -1394,7 +1402,8 @@ class _Chains:
 
     def __init__(self, pool: _PriorityPool, starts: list[int], names: list[str],
                  dataset: Callable, streams: dict, groups: dict, rank: dict, s0: int, s1: int,
-                 early: list, dataset_done: Callable[[list[str]], Any] | None):
+                 early: dict[str, Any],
+                 dataset_done: Callable[[list[str], dict[str, Any]], Any] | None):
         self.pool, self.starts, self.names, self.dataset = pool, starts, names, dataset
         self.streams, self.groups, self.rank, self.s0, self.s1 = streams, groups, rank, s0, s1
         self.early, self.dataset_done = early, dataset_done
@@ -1421,18 +1430,22 @@ class _Chains:
     def finished(self, name: str, j: int) -> None:
         if j == self.last and self.dataset_done is not None:  # before the stream is done
             try:
-                self.dataset_done(self.groups[name])
+                group = self.groups[name]
+                with self.cond:
+                    heads = {a: self.early[a] for a in group if a in self.early}
+                self.dataset_done(group, heads)
             except BaseException as e:  # noqa: BLE001 - raised again by the reading thread
                 self.fail(e)
         with self.cond:
             self.done[name] = j
             self.busy[name] = False
-            sts = [self.streams[a] for a in self.groups[name]]
+            group = self.groups[name]
             if EARLY_NOISE_ID and not self.queued_ids[name] and j < self.last and all(
-                    st.head_full() for st in sts):  # (before its next chunk's task)
+                    self.streams[a].head_full() for a in group):  # (before its next chunk's task)
                 self.queued_ids[name] = True
-                self.early.extend(self.pool.submit_at(self.rank[name], st.head_noise_ids,
-                                                      self.s1 - self.s0 + 1) for st in sts)
+                self.early.update({a: self.pool.submit_at(
+                    self.rank[name], self.streams[a].head_noise_ids, self.s1 - self.s0 + 1)
+                    for a in group})
             self.launch(name)
             self.cond.notify_all()
 
@@ -1467,9 +1480,9 @@ class _Chains:
 
 def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_rows: Callable,
                cuts_at: Callable, dataset: Callable, streams: dict, groups: dict, rank: dict,
-               s0: int, s1: int, shown: WorkProgress, early: list,
+               s0: int, s1: int, shown: WorkProgress, early: dict[str, Any],
                when_streaming: Callable[[], Any] | None = None,
-               dataset_done: Callable[[list[str]], Any] | None = None) -> None:
+               dataset_done: Callable[[list[str], dict[str, Any]], Any] | None = None) -> None:
     """:func:`_stream_chunks`' loop without a barrier between chunks (:data:`PIPELINED`):
     each dataset's chunks are a chain -- chunk j + 1's task (its one pass, which writes
     after the phase chunk j left in the accumulators) is queued by the callback of the last
@@ -1481,7 +1494,8 @@ def _pipelined(pool: _PriorityPool, starts: list[int], names: list[str], read_ro
     With ``dataset_done`` (:data:`LEAD_DATASET`) the datasets' tasks have the ranks
     ``rank`` on the workers (``names[0]``'s first), so that dataset runs ahead (by at most
     :data:`LEAD_CHUNKS` chunks: it reads no further until the others catch up), and
-    ``dataset_done(axes)`` is called as soon as a dataset's last chunk is summed. The same
+    ``dataset_done(axes, heads)`` is called as soon as a dataset's last chunk is summed
+    (``heads``: its axes' early tasks below, axis -> future, where queued). The same
     tasks on the same data in the same order per axis: the same numbers. The first error
     raised by a task is raised here. ``when_streaming`` is called (here) once every dataset
     has finished the first chunk; a dataset's early noise IDs of the head

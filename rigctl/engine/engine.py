@@ -318,7 +318,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
-        restarted = self._watch_restarts(obs.t)
+        restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
         except LinkLost as exc:
@@ -361,7 +361,7 @@ class Engine:
             return TableState(time=obs.t, angle=nan3, rate=nan3, status=(0, 0, 0))
         return state
 
-    def _watch_restarts(self, t: float) -> str | None:
+    def _watch_restarts(self, t: float, closing: bool = False) -> str | None:
         """The reason to pause when the IMU restarted since the last poll (its driver's restart
         count rose, :func:`rigctl.devices.imu_restarts`), else None.
 
@@ -370,7 +370,11 @@ class Engine:
         ``device-restart`` event naming the step in flight and the last complete one (the
         calibration reports the positions on each side, rigctl.analysis.calibration), said in
         one run-log line, and sets :attr:`rewarm`: the procedure's warm-up runs again before
-        the next measurement (:meth:`run`); the step in flight is sampled again."""
+        the next measurement (:meth:`run`); the step in flight is sampled again.
+
+        ``closing``: noticed in the end-of-run safe state (:meth:`safe_state`): recorded and said
+        as such, but nothing more runs in this session, so no re-warm is planned or promised
+        (a resumed run still warms up first: :func:`rewarm_due` reads the event)."""
         n = imu_restarts(self.rig.imu)
         if self._restarts is None or n <= self._restarts:
             self._restarts = n          # the first poll, or a driver whose counters began again
@@ -378,8 +382,14 @@ class Engine:
         self._restarts = n
         self.warmup_done.clear()    # warm-up time kept from before the restart counts no more
         step, done, warm = self.current_step, self._last_done, self._warmup
-        where = f"in step {step.index + 1} ({step.label})" if step is not None else "between steps"
         last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        if closing:
+            self.rec.add_event(t, "device-restart", "IMU restarted (device time began again: power lost) in the "
+                                                    f"end-of-run safe state; {last}; no step runs after it")
+            self.log("warning", "the IMU restarted in the end-of-run safe state (its device time began again: it "
+                                f"lost power); {last}; no step runs after it")
+            return None
+        where = f"in step {step.index + 1} ({step.label})" if step is not None else "between steps"
         plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
         self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
                                                 f"{last}; {plan}")

@@ -139,6 +139,38 @@ def _check_segments(f: h5py.File, p: Path, n_imu: int) -> None:
                          hint="the segment table does not match the data; re-import or re-record")
 
 
+def check_layout(f: h5py.File, p: Path, need: Iterable[str], check_present: bool = True,
+                 groups: Iterable[str] = ()) -> dict[str, dict[str, int]]:
+    """Check the open file ``f`` (the recording ``p``): its root attribute ``format``, the
+    datasets ``need`` (as :func:`open_recording` takes them) and with ``check_present`` every
+    dataset of the layout the file has -- present, each row of the layout's shape and kind of
+    dtype -- and the ``groups`` (e.g. "meta", read for its attributes) present. InputError naming
+    ``p`` and the first thing wrong. Returns the rows of each dataset checked, by group
+    ({"imu": {"imu/time": N, ...}}); their lengths are not compared here."""
+    try:
+        fmt = f.attrs.get("format")
+    except (OSError, RuntimeError) as exc:
+        raise InputError(f"cannot be read as HDF5 ({exc})", p, hint="the file is damaged") from None
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode("utf-8", "replace")
+    if fmt != FORMAT_NAME:
+        raise InputError(f"not a rigctl recording (root attribute format != {FORMAT_NAME!r})", p,
+                         hint="see docs/data-format.md, or convert a CSV log with rigctl import")
+    for g in groups:
+        if not isinstance(f.get(g), h5py.Group):
+            raise InputError(f"the recording has no group /{g}", p, hint=LAYOUT_DOC)
+    names: list[str] = []
+    for n in need:
+        names += [f"{n}/{d}" for d in LAYOUT[n]] if n in LAYOUT else [n]
+    if check_present:
+        names += [f"{g}/{d}" for g, ds in LAYOUT.items() if g in f for d in ds if d in f[g]]
+    lengths: dict[str, dict[str, int]] = {}
+    for name in dict.fromkeys(names):
+        ds = _check_dataset(f, p, name)
+        lengths.setdefault(name.partition("/")[0], {})[name] = int(ds.shape[0])
+    return lengths
+
+
 def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
                    check_present: bool = True) -> h5py.File:
     """Open the rigctl recording ``path`` read-only and check it (see the module docstring).
@@ -157,24 +189,7 @@ def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
     _check_path(p)
     f = _open_h5(p)
     try:
-        try:
-            fmt = f.attrs.get("format")
-        except (OSError, RuntimeError) as exc:
-            raise InputError(f"cannot be read as HDF5 ({exc})", p, hint="the file is damaged") from None
-        if isinstance(fmt, bytes):
-            fmt = fmt.decode("utf-8", "replace")
-        if fmt != FORMAT_NAME:
-            raise InputError(f"not a rigctl recording (root attribute format != {FORMAT_NAME!r})", p,
-                             hint="see docs/data-format.md, or convert a CSV log with rigctl import")
-        names: list[str] = []
-        for n in need:
-            names += [f"{n}/{d}" for d in LAYOUT[n]] if n in LAYOUT else [n]
-        if check_present:
-            names += [f"{g}/{d}" for g, ds in LAYOUT.items() if g in f for d in ds if d in f[g]]
-        lengths: dict[str, dict[str, int]] = {}
-        for name in dict.fromkeys(names):
-            ds = _check_dataset(f, p, name)
-            lengths.setdefault(name.partition("/")[0], {})[name] = int(ds.shape[0])
+        lengths = check_layout(f, p, need, check_present)
         for group, lens in lengths.items():
             if len(set(lens.values())) > 1:
                 what = ", ".join(f"/{k}: {v}" for k, v in lens.items())

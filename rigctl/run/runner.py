@@ -38,7 +38,8 @@ from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError, RigctlE
 from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
 from ..progress import Progress, make_progress
-from ..recording.recorder import Recorder, Segment, library_versions, utc_now
+from ..recording.recorder import LAYOUT, Recorder, Segment, library_versions, utc_now
+from ..recording.recording_reader import check_layout
 from ..engine.rig import open_rig
 from .runlog import RunLog
 from .solve import run_solvers, solver_names
@@ -154,6 +155,36 @@ def _open_cut_off(recording: Path) -> h5py.File:
             raise
     ckpt_mod.clear_status_flags(recording)
     return h5py.File(recording, "r", libver="latest")
+
+
+#: what a resume reads of the recording and appends to: groups of the layout (every dataset;
+#: the layout's other groups too where the file has them: :meth:`Recorder.reopen` trims and
+#: appends to each), datasets
+RESUME_NEED = ("imu", "table", "segments", "events", "run/status")
+
+
+def _check_resumable(f: h5py.File, recording: Path) -> None:
+    """InputError (the file, what is missing or wrong, what to do) unless the cut-off recording
+    has what a resume reads and appends to: :data:`RESUME_NEED`, every dataset of the layout's
+    groups it has, and /meta; each dataset of the layout's row shape and dtype kind
+    (:func:`rigctl.recording.recording_reader.check_layout`); /run/status not empty. Lengths
+    may differ within a group (a crash mid-flush): :func:`_rows` and the reopen trim them."""
+    try:
+        rows = check_layout(f, recording, (*RESUME_NEED, *(g for g in LAYOUT if g in f)),
+                            groups=("meta",))
+        if rows["run"]["run/status"] < 1:
+            raise InputError("/run/status is empty", recording)
+    except InputError as exc:
+        raise InputError(exc.message, recording,
+                         hint="a damaged or hand-edited recording cannot be resumed: restore it from "
+                              "a copy, or start the procedure again") from None
+
+
+def _rows(f: h5py.File, group: str, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Datasets ``names`` of ``group``, each cut to the rows all the group's datasets have (as
+    :meth:`Recorder.reopen` trims them: a crash mid-flush can leave them uneven)."""
+    n = min(f[group][d].shape[0] for d in LAYOUT[group])
+    return {k: f[group][k][:n] for k in names}
 
 
 def imu_meta(rig: Rig, cfg: RigConfig) -> dict[str, str]:
@@ -644,8 +675,9 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
         raise InputError(f"{d}: the run was cut off before its recording was created",
                          hint="start the procedure again")
     with _open_cut_off(recording) as f:
-        seg = {k: f["segments"][k][()] for k in ("status", "step", "last_sample", "kind", "t_start")}
-        ev = {k: f["events"][k][()] for k in ("time", "kind", "message")}
+        _check_resumable(f, recording)
+        seg = _rows(f, "segments", ("status", "step", "last_sample", "kind", "t_start"))
+        ev = _rows(f, "events", ("time", "kind", "message"))
         file_status = f["run/status"][0].decode()
         recorded_id = f["meta"].attrs.get("imu_device_id", "")  # absent: recorded before rigctl knew
     recorded_id = recorded_id.decode() if isinstance(recorded_id, bytes) else str(recorded_id)

@@ -2,7 +2,7 @@
 
 Each hook imports its pipeline (rigctl.analysis, the report) when the step runs, not when the
 CLI starts: commands that never solve (status, submit, ...) do not load scipy or matplotlib
-(tests/test_cli.py checks this).
+(tests/test_cli_virtual.py checks this).
 """
 from __future__ import annotations
 
