@@ -15,7 +15,14 @@ Configurations (``--config``):
   rigctl.analysis.allan.compute(taus="octave"). Also counted: how often the curve's floor limit
   min sigma / 0.664 (over the well-determined taus) lies inside B's interval.
 * ``gm``: tests/test_allan_gm_fit.py's white noise + Gauss-Markov process + rate random walk,
-  4 h at 20 Hz, through the candidate and the joint fit as that test runs them.
+  4 h at 20 Hz, through the candidate and the joint fit as that test runs them: N, K and
+  sigma_GM (whose interval is Satterthwaite's with its marginal sd over Tc, so its two columns
+  are the same) and how often Tc's interval holds the truth. ``--tc-truth``: the same fits with
+  Tc held at the truth (the profile's range [Tc, Tc]), i.e. Tc known: what Tc's own uncertainty
+  does to the other terms' coverage (issue 15: none measurable, docs/allan.md).
+  Also counted: how often the exact interval of N from the seed's white draws themselves (their
+  sample variance, chi-square with n dof) holds the truth -- the seed set's own luck for N.
+  ``--keep FILE``: every fit's row (value, EDF, both intervals; Tc and its interval) as JSON.
 
 The last line is one JSON object.
 """
@@ -79,7 +86,10 @@ def adis_fits(seed: int, d: Path) -> list[dict]:
     return out
 
 
-def gm_fits(seed: int, d: Path) -> list[dict]:
+def gm_fits(seed: int, d: Path, tc_truth: bool = False) -> list[dict]:
+    """One fit of the gm configuration: N, K and sigma_GM against the truth (sigma_GM's interval
+    is Satterthwaite's with its marginal sd, so its two columns agree), Tc and its interval.
+    ``tc_truth``: Tc held at the truth (the profile's range [Tc, Tc]), the fit with Tc known."""
     from test_allan_gm_fit import TAU0_SIM, TRUTH, _simulated
 
     from rigctl.solvers import allan_edf as E
@@ -90,9 +100,20 @@ def gm_fits(seed: int, d: Path) -> list[dict]:
     cand = GM.gm_candidate(tau, dev, edf, TAU0_SIM, n + 1)
     if not cand["detected"]:
         return []
+    grid = [TRUTH["tc"], TRUTH["tc"]] if tc_truth else cand["tc_grid_s"]
     co = F.fit_terms(tau, dev, edf, tau0=TAU0_SIM, n_phase=n + 1,
-                     gm={"tc_grid_s": cand["tc_grid_s"]})["coefficients"]
-    return [{t: _entry(getattr(co, t), TRUTH[t]) for t in "NK"}]
+                     gm={"tc_grid_s": grid})["coefficients"]
+    row = {t: _entry(getattr(co, t), TRUTH[t]) for t in "NK"}
+    g = co.gm[0]
+    row["sigma"] = _entry(g.sigma, TRUTH["sigma"])
+    row["seed"], row["tc"], row["tc_ci95"] = seed, g.tau_c_s, list(g.tau_c_ci95)
+    # what the seed's white draws allow: the exact 95 % interval of N^2 from their own sample
+    # variance (n draws, chi-square with n dof; _simulated draws them first), the most any
+    # estimate of N can know -- does it hold the truth?
+    w = np.random.default_rng(seed).standard_normal(n)
+    q_lo, q_hi = chi2.ppf([0.025, 0.975], n) / n
+    row["N_white_draws_cover"] = bool(q_lo <= float(np.mean(w * w)) <= q_hi)
+    return [row]
 
 
 def report(rows: list[dict], truth: dict) -> dict:
@@ -124,13 +145,18 @@ def main() -> None:
     ap.add_argument("--config", choices=("adis", "gm"), default="adis")
     ap.add_argument("--seeds", type=int, default=100)
     ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--tc-truth", action="store_true",
+                    help="gm: Tc held at the truth (the fit with Tc known)")
+    ap.add_argument("--keep", help="write every fit's row to this JSON file")
     a = ap.parse_args()
-    fits = adis_fits if a.config == "adis" else gm_fits
     if a.config == "adis":
-        truth = ADIS_TRUTH
+        fits, truth = adis_fits, ADIS_TRUTH
     else:
         from test_allan_gm_fit import TRUTH
-        truth = {t: TRUTH[t] for t in "NK"}
+        truth = {t: TRUTH[t] for t in ("N", "K", "sigma")}
+
+        def fits(s: int, d: Path) -> list[dict]:
+            return gm_fits(s, d, a.tc_truth)
     rows: list[dict] = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as d:
@@ -138,8 +164,17 @@ def main() -> None:
             rows += fits(s, Path(d))
             if (i + 1) % 25 == 0:
                 print(f"{i + 1} seeds, {time.perf_counter() - t0:.0f} s", flush=True)
+    if a.keep:
+        Path(a.keep).write_text(json.dumps(rows))
+    if a.config == "gm" and not a.tc_truth:
+        tc_in = sum(r["tc_ci95"][0] <= TRUTH["tc"] <= r["tc_ci95"][1] for r in rows)
+        print(f"Tc: truth inside its interval {tc_in}/{len(rows)}")
+    if a.config == "gm":
+        wd = sum(r["N_white_draws_cover"] for r in rows)
+        print(f"N: the white draws' own sample variance's exact interval holds the truth in "
+              f"{wd}/{len(rows)}")
     print(json.dumps({"config": a.config, "seeds": a.seeds, "first_seed": a.first_seed,
-                      "summary": report(rows, truth)}))
+                      "tc_truth": bool(a.tc_truth), "summary": report(rows, truth)}))
 
 
 if __name__ == "__main__":

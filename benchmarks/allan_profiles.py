@@ -11,7 +11,11 @@ with numbers read here from the curve and not from the fit's own bookkeeping:
           minimum taken over the informative taus (95 % band hi95 <= 2 lo95, i.e. EDF >= 16.95:
           the true sigma within 0.75 .. 1.50 x the measured one; a tau of a handful of averages,
           EDF 3: 0.57 .. 3.6 x, limits nothing). Also counted: bounds above the same limits
-          taken over every tau (``over_all_taus``), i.e. where such a tau is lower.
+          taken over every tau (``over_all_taus``), i.e. where such a tau is lower, and, as
+          Done-when item 1 words it, bounds above the measured point limits over the
+          informative taus (column over_pt, ``bounds_above_point_limit_*``, with the largest
+          bound / limit per term): the limit the first count applies where the fit needs a
+          model error of 5 % or more, without the curve's chi-square allowance elsewhere.
   band    the fitted total (sigma^2 = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 +
           R^2 tau^2/2, from the fitted values) lies inside the curve's 95 % band at every
           informative tau (hi95 <= 2 lo95), or the tau is named by the self-check (a warning
@@ -274,12 +278,19 @@ def check_axis(r: dict) -> dict:
     lim = limits_from_curve(tau[sel], bound_ceiling(dev[sel], np.asarray(r["edf"], float)[sel],
                                                     r["fit"]["check"]["model_error_rel"],
                                                     F.MODEL_ERROR_HOLD))
+    # Done-when item 1's literal wording: the measured point, min sigma / 0.664 etc., over the
+    # informative taus (no allowance for the curve's own chi-square scatter)
+    lim_pt = limits_from_curve(tau[sel], dev[sel])
     lim_all = limits_from_curve(tau, dev)
-    over, over_all = [], []
+    over, over_pt, over_all = [], [], []
+    pt_ratio: dict[str, float] = {}  # bound / point limit, where above it
     for t in r["fit"]["terms"]:
         c = getattr(r["fit"]["coefficients"], t)
         if not c.resolved and c.upper95 > lim[t] * (1 + 1e-9):
             over.append(t)
+        if not c.resolved and c.upper95 > lim_pt[t] * (1 + 1e-9):
+            over_pt.append(t)
+            pt_ratio[t] = float(c.upper95 / lim_pt[t])
         if not c.resolved and c.upper95 > lim_all[t] * (1 + 1e-9):
             over_all.append(t)
     lo = np.asarray(r[f"lo95_{unit}"]) / fac
@@ -292,7 +303,7 @@ def check_axis(r: dict) -> dict:
               + (check.get("outside_past_prefix") or [])):
         named |= (tau >= o["tau_from_s"] * (1 - 1e-12)) & (tau <= o["tau_to_s"] * (1 + 1e-12))
     unnamed = outside & ~named
-    return {"over": over, "over_all": over_all, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),
+    return {"over": over, "over_pt": over_pt, "pt_ratio": pt_ratio, "over_all": over_all, "n_inf": int(informative.sum()), "n_out": int(outside.sum()),
             "n_unnamed": int(unnamed.sum()),
             "unnamed_taus": [float(x) for x in tau[unnamed][:6]],
             "worst_unnamed": float(np.max(np.abs(np.log(dev[unnamed] / fit[unnamed]))))
@@ -340,7 +351,7 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
           f"({first['n_samples'] / first['sample_rate_hz'] / 3600:.2f} h); gaps: "
           f"{g['count']} ({g['missing_samples']} samples, skipped){'; ' + info['datasheet'] if info.get('datasheet') else ''}")
     print(f"{'axis':>4} {'taus':>6} {'N':>10} {'B':>10} {'K':>10} {'B_floor':>9} "
-          f"{'over_lim':>8} {'inf':>4} {'out':>4} {'named':>5} {'unnamed':>7} {'check':>5} "
+          f"{'over_lim':>8} {'over_pt':>7} {'inf':>4} {'out':>4} {'named':>5} {'unnamed':>7} {'check':>5} "
           f"{'oct~all':>8}")
     for a in info["axes"]:
         sensor = first["axes"][a]["sensor"]
@@ -363,6 +374,14 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
             totals["fits"] += 1
             totals["over_limit"] += bool(c["over"])
             totals["over_all_taus"] += bool(c["over_all"])
+            totals["over_point"] += bool(c["over_pt"])
+            for term in c["over_pt"]:
+                totals["over_point_terms"][term] = totals["over_point_terms"].get(term, 0) + 1
+                totals["over_point_max_ratio"][term] = round(max(
+                    totals["over_point_max_ratio"].get(term, 0.0), c["pt_ratio"][term]), 3)
+            if c["over_pt"]:
+                totals["over_point_where"].append(f"{name.split(' (')[0]}:{a}:{taus}:" + ",".join(
+                    f"{t}x{c['pt_ratio'][t]:.2f}" for t in c["over_pt"]))
             for term in c["over_all"]:
                 totals["over_all_terms"][term] = totals["over_all_terms"].get(term, 0) + 1
             if c["over_all"]:
@@ -387,7 +406,7 @@ def analyse(name: str, rec: Path, info: dict, totals: dict,
             floor = float(dev[inf].min() if inf.any() else dev.min()) / B_FACTOR
             print(f"{a:>4} {str(taus):>6} {term_text(r['fit'], 'N'):>10} "
                   f"{term_text(r['fit'], 'B'):>10} {term_text(r['fit'], 'K'):>10} "
-                  f"{floor:9.3g} {','.join(c['over']) or '-':>8} {c['n_inf']:4d} {c['n_out']:4d} "
+                  f"{floor:9.3g} {','.join(c['over']) or '-':>8} {','.join(c['over_pt']) or '-':>7} {c['n_inf']:4d} {c['n_out']:4d} "
                   f"{c['n_named']:5d} {c['n_unnamed']:7d} {'ok' if c['check_ok'] else 'FAIL':>5} "
                   f"{('-' if not bad else ','.join(bad)) if taus == 'octave' else '':>8}",
                   flush=True)
@@ -401,6 +420,8 @@ def run_cases(wanted: list[str], hours: float, sets: tuple, keep: str | None = N
               warmup_s: float = WARMUP_S) -> dict:
     """Write and analyse every case of ``wanted``; the counts of the three checks."""
     totals = {"fits": 0, "over_limit": 0, "over_where": [], "over_all_taus": 0,
+              "over_point": 0, "over_point_where": [], "over_point_terms": {},
+              "over_point_max_ratio": {},
               "over_all_where": [], "over_all_terms": {}, "informative": 0, "outside": 0,
               "unnamed": 0, "fits_with_unnamed": 0, "unnamed_where": [], "check_failed": 0,
               "pairs": 0, "disagree": 0, "disagree_checks_ok": 0, "disagree_where": [],
@@ -449,7 +470,10 @@ def main() -> None:
     totals = run_cases(wanted, a.hours, sets, a.keep, a.warmup_s)
     wall = time.perf_counter() - t0
     print(f"\n{totals['fits']} fits (case x axis x tau set {sets}): bounds above the curve's "
-          f"limit: {totals['over_limit']} (the limit over every tau, incl. EDF < 16.95: "
+          f"limit: {totals['over_limit']} (the literal point limit, min sigma / 0.664 etc. over the "
+          f"informative taus: {totals['over_point']} fits, per term {totals['over_point_terms']}, "
+          f"largest bound / limit {totals['over_point_max_ratio']}; "
+          f"the limit over every tau, incl. EDF < 16.95: "
           f"{totals['over_all_taus']} fits, per term {totals['over_all_terms']}); fitted total outside the 95 % band at "
           f"{totals['outside']} of {totals['informative']} informative taus, of them not named "
           f"by the self-check: {totals['unnamed']} (in {totals['fits_with_unnamed']} fits); "
@@ -458,13 +482,16 @@ def main() -> None:
           f"({totals['disagree_checks_ok']} of them with both self-checks passed). "
           f"{wall:.0f} s (load {load0} -> {_load()})")
     print(f"Gauss-Markov terms in the fit: {len(totals['gm_terms'])} of {totals['fits']} fits")
-    for k in ("over_where", "over_all_where", "unnamed_where", "disagree_where", "tones",
+    for k in ("over_where", "over_point_where", "over_all_where", "unnamed_where", "disagree_where", "tones",
               "gm_terms"):
         if totals[k]:
-            print(f"{k}: {'; '.join(totals[k][:30])}")
+            print(f"{k}: {'; '.join(totals[k][:30 if k != 'over_point_where' else 200])}")
     print(json.dumps({"hours_emulated": a.hours, "warmup_s": a.warmup_s, "cases": wanted,
                       "fits": totals["fits"],
                       "bounds_above_curve_limit": totals["over_limit"],
+                      "bounds_above_point_limit_informative_taus": totals["over_point"],
+                      "bounds_above_point_limit_per_term": totals["over_point_terms"],
+                      "bounds_above_point_limit_max_ratio": totals["over_point_max_ratio"],
                       "bounds_above_limit_over_every_tau": totals["over_all_taus"],
                       "bounds_above_limit_over_every_tau_per_term": totals["over_all_terms"],
                       "informative_taus": totals["informative"],

@@ -25,6 +25,8 @@ from datetime import datetime, timedelta, timezone
 
 from rigctl.errors import DeviceError
 
+from .lost_lines import LostLines
+
 log = logging.getLogger(__name__)
 
 SECONDS_PER_WEEK = 604_800
@@ -166,6 +168,8 @@ class MarkReaderCounters:
 
 #: a log from its ``#`` up to the first ``#``, ``*``, CR or LF (``*`` then ends a whole log)
 _HEAD = re.compile(rb"#[^#*\r\n]*")
+#: text outside logs, up to the next ``#`` or LF
+_TEXT = re.compile(rb"[^#\n]*")
 _HEXDIGITS = frozenset(b"0123456789ABCDEFabcdef")
 
 
@@ -182,38 +186,28 @@ class MarkLogReader:
     CRC counts at least ``floor(start / r) + 1`` (its own log). Counting is eager (no flush) and
     the same whatever the read chunking. Logs with a good CRC that do not parse are counted
     ``malformed``; lines starting with ``<`` (command replies such as ``<OK``) are collected in
-    ``responses``. Bad logs are logged and dropped.
+    ``responses``. Bad logs are logged and dropped. A log whose ``#`` .. first ``#``, ``*``, CR
+    or LF, or a line outside logs up to its LF or ``#``, longer than ``max_line`` bytes is
+    ``overlong``: counted once and dropped up to the next ``#`` or LF (as garbage bytes), decided
+    on its first ``max_line + 1`` bytes, so also the same whatever the read chunking.
     """
 
     max_line: int = 1024
     counters: MarkReaderCounters = field(default_factory=MarkReaderCounters)
     responses: list[str] = field(default_factory=list)
     _buf: bytes = b""
-    _gap: int = 0        # bytes since the end of the last whole log
-    _lost: int = 0       # logs counted lost in this gap
-    _ref: int = 0        # bytes of the last whole log, CR LF included (0: none yet -> nominal)
-
-    def _reference(self) -> int:
-        """Bytes of one log for counting (before the first whole log: a formatted mark's)."""
-        if not self._ref:
-            self._ref = len(format_mark(MarkTime(week=0, seconds=0.0)))
-        return self._ref
-
-    def _lose(self, n: int) -> None:
-        """At least ``n`` logs lost in this gap (counted once)."""
-        if n > self._lost:
-            log.warning("NovAtel log lost to a byte error (CRC mismatch or broken framing)")
-            self.counters.bad_crc += n - self._lost
-            self._lost = n
+    #: logs lost between whole logs (before the first whole log a formatted mark's length)
+    _lost: LostLines = field(default_factory=lambda: LostLines(
+        nominal=len(format_mark(MarkTime(week=0, seconds=0.0)))))
+    _skip: bool = False  # in an overlong log or line: bytes up to the next '#' or LF dropped
 
     def _garbage(self, size: int, whole: bool = False) -> None:
         """``size`` bytes that belong to no good log; ``whole``: a whole-framed bad log."""
-        ref = self._reference()
-        if whole:
-            self._lose(self._gap // ref + 1)
-        self._gap += size
         self.counters.garbage_bytes += size
-        self._lose(int(round(self._gap / ref)))
+        more = self._lost.garbage(size, whole)
+        if more:
+            log.warning("NovAtel log lost to a byte error (CRC mismatch or broken framing)")
+            self.counters.bad_crc += more
 
     def _whole(self, sentence: bytes) -> MarkTime | None:
         """A whole-framed ``#...*crc`` log: its mark, or None (counted)."""
@@ -225,10 +219,10 @@ class MarkLogReader:
             else:
                 log.warning("rejected NovAtel sentence: %s", exc)
                 self.counters.malformed += 1
-                self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+                self._lost.good(len(sentence) + 2)
             return None
         self.counters.marks += 1
-        self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+        self._lost.good(len(sentence) + 2)
         return m
 
     def _text(self, text: bytes) -> None:
@@ -243,31 +237,44 @@ class MarkLogReader:
             elif size:
                 self._garbage(size)
 
+    def _overlong(self, pos: int) -> int:
+        """The ``max_line + 1`` bytes from ``pos`` hold no end of their log or line: counted
+        ``overlong`` once and dropped, with the rest of it up to the next ``#`` or LF
+        (:attr:`_skip`). Returns the position after them."""
+        self.counters.overlong += 1
+        self._garbage(self.max_line + 1)
+        self._skip = True
+        return pos + self.max_line + 1
+
     def feed(self, data: bytes) -> list[MarkTime]:
         buf = self._buf + bytes(data)
         n, pos = len(buf), 0
         out: list[MarkTime] = []
         while pos < n:
-            if buf[pos] != 0x23:                                # text up to the next '#'
-                h = buf.find(b"#", pos)
-                if h < 0:
-                    h = buf.rfind(b"\n", pos) + 1              # complete lines only
-                    if h <= pos:
-                        if n - pos > self.max_line:
-                            self.counters.overlong += 1
-                            self._garbage(n - pos)
-                            pos = n
-                        break
-                self._text(buf[pos:h])
-                pos = h
+            if self._skip:                                      # the rest of an overlong one
+                e = _TEXT.match(buf, pos).end()
+                stop = e + (e < n and buf[e] == 0x0A)
+                if stop > pos:
+                    self._garbage(stop - pos)
+                self._skip, pos = e == n, stop
+                continue
+            if buf[pos] != 0x23:                                # text: a line, up to its LF or '#'
+                e = _TEXT.match(buf, pos).end()
+                if e - pos > self.max_line:
+                    pos = self._overlong(pos)
+                    continue
+                if e == n:                                      # wait for its end
+                    break
+                stop = e + (buf[e] == 0x0A)
+                self._text(buf[pos:stop])
+                pos = stop
                 continue
             e = _HEAD.match(buf, pos).end()
+            if e - pos > self.max_line:
+                pos = self._overlong(pos)
+                continue
             if e == n or (buf[e] == 0x2A and e + 9 > n and all(b in _HEXDIGITS for b in buf[e + 1:])):
-                if n - pos > self.max_line:                     # wait for the rest of the log
-                    self.counters.overlong += 1
-                    self._garbage(n - pos)
-                    pos = n
-                break
+                break                                           # wait for the rest of the log
             if buf[e] == 0x2A and all(b in _HEXDIGITS for b in buf[e + 1:e + 9]):
                 m = self._whole(buf[pos:e + 9])
                 if m is not None:

@@ -247,3 +247,44 @@ def test_byte_errors_cost_the_damaged_logs_only():
         got, r = _feed(pieces)
         assert got == sorted(set(range(3000)) - lost)
         assert (r.counters.bad_crc, r.counters.malformed) == (len(lost), 0)
+
+
+def test_overlong_counted_the_same_whatever_the_chunking():
+    """Lines and logs longer than max_line (1024 bytes) before their end -- a 3000-byte line, a
+    2000-byte log body, a 1025-byte line, 1500 bytes and a 1500-byte log head running straight
+    into the next log's '#' -- are each counted overlong once and cost no intact log; a
+    1024-byte line is not overlong. Fed whole, byte by byte and in 40 random cuttings: the same
+    logs, counters and responses (before, a long stretch was counted overlong only where a read
+    ended inside it: 0 fed whole or in 4000-byte reads, 3 in 1000-byte reads, 5 in 7-500-byte
+    reads, 6 byte by byte). Expected here from the bytes: every
+    gap between whole logs (their CR LF, the junk) costs round(bytes / the last log's length)."""
+    rng = np.random.default_rng(3)
+    alphabet = np.frombuffer(b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789,.;", np.uint8)
+
+    def junk(k: int) -> bytes:
+        return rng.choice(alphabet, k).tobytes()
+
+    logs = [_log_line(i, 604_000.0 + 0.5 * i) for i in range(8)]
+    # (log, what follows it up to the next log, overlong stretches in it, response lines in it)
+    parts = [(logs[0], junk(3000) + b"\r\n", 1, b""),
+             (logs[1], b"#" + junk(2000) + b"*12345678\r\n", 1, b""),
+             (logs[2], junk(1024) + b"\n", 0, b""),
+             (logs[3], junk(1025) + b"\n", 1, b""),
+             (logs[4], b"<OK\r\n" + junk(1500), 1, b"<OK\r\n"),
+             (logs[5], b"#" + junk(1500), 1, b""),
+             (logs[6], b"", 0, b""),
+             (logs[7], b"", 0, b"")]
+    stream = b"".join(log + after for log, after, _, _ in parts)
+    want_lost = sum(round((2 + len(after) - len(resp)) / len(log)) for log, after, _, resp in parts[:-1])
+    want = (list(range(8)), N.MarkReaderCounters(
+        marks=8, bad_crc=want_lost, malformed=0, other_lines=1, overlong=sum(p[2] for p in parts),
+        garbage_bytes=sum(2 + len(after) - len(resp) for _, after, _, resp in parts)), ["<OK"])
+    assert want[1].overlong == 5 and want_lost > 50
+    cuttings = [[stream], [stream[k:k + 1] for k in range(len(stream))]]
+    for _ in range(40):
+        cuts = np.r_[0, np.sort(rng.choice(np.arange(1, len(stream)), rng.integers(2, 200),
+                                           replace=False)), len(stream)]
+        cuttings.append([stream[a:b] for a, b in zip(cuts[:-1], cuts[1:])])
+    for pieces in cuttings:
+        got, r = _feed(pieces)
+        assert (got, r.counters, r.responses) == want, len(pieces)

@@ -16,6 +16,66 @@ import numpy as np
 from ..recording.segment_builder import CAL_KINDS, open_recording
 
 
+def device_restart_events(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """The recording's ``device-restart`` events (the engine saw the IMU's driver count a restart:
+    docs/daemon.md): their times (s, /imu/time's axis) and messages; none in a recording without
+    /events (an import)."""
+    with open_recording(path) as f:
+        if "events" not in f:  # (a recording imported from a log has none)
+            return np.empty(0), []
+    with open_recording(path, also=("events",)) as f:  # its datasets checked: InputError, not KeyError
+        ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
+    sel = np.asarray(ev_k) == b"device-restart"
+    return np.asarray(ev_t, float)[sel], [m.decode("utf-8", "replace") for m in np.asarray(ev_m)[sel]]
+
+
+def time_base_restarts(t: np.ndarray) -> np.ndarray:
+    """The rows at which a record's time base began again behind its last stamp, t[k] < t[k-1]:
+    the device time restarted, so the unit lost power (as drivers/xsens_decode.py counts
+    ``device_restarts``). A jump forward is not one -- a gap, or a reconnect's reconfiguration
+    (the decoder's ``time_restarts`` counts those too, and a power loss is not what they are)."""
+    t = np.asarray(t, float)
+    return np.flatnonzero(np.diff(t) < 0) + 1
+
+
+def restarts_by_row(path: str | Path, t: np.ndarray) -> list[dict[str, Any]]:
+    """Every IMU restart of a recording whose /imu/time is ``t``, as a row of /imu (the first
+    sample of the new turn-on), sorted: its ``device-restart`` events (:func:`device_restart_events`;
+    the row is the first sample at or after the event's time) and the rows where the time base began
+    again behind its last stamp (:func:`time_base_restarts`). Each ``{"row", "time_s", "event",
+    "seen"}`` (and ``at`` where ``time_s`` alone does not place it): ``time_s`` the first sample's
+    time after it, ``seen`` how it shows in the record."""
+    t = np.asarray(t, float)
+    ev_t, ev_m = device_restart_events(path)
+    out = [{"row": int(np.searchsorted(t, x)), "time_s": float(x), "event": m, "seen": "device-restart"}
+           for x, m in zip(ev_t, ev_m)]
+    for k in time_base_restarts(t):
+        at = f"row {int(k)} of /imu (/imu/time {t[k - 1]:.6g} s -> {t[k]:.6g} s)"
+        out.append({"row": int(k), "time_s": float(t[k]), "at": at, "seen": "time base began again",
+                    "event": f"/imu/time began again behind its last stamp at {at}"})
+    return sorted(out, key=lambda n: n["row"])
+
+
+def window_sides(found: list[dict[str, Any]], rows: np.ndarray, group: np.ndarray) -> list[dict[str, Any]]:
+    """The restarts of :func:`restarts_by_row` with windows on both sides, for :func:`restart_lines`:
+    ``rows`` (n, 2) each window's first and end (exclusive) row of /imu, ``group`` (n,) the name of
+    each window's group (a pose). ``before`` / ``after``: each group once, in order, with its count
+    of windows on that side (``pose 'z up' (12 windows)``); ``windows_before`` / ``windows_after``:
+    the windows' indices. A window that straddles a restart is on neither side."""
+    rows = np.asarray(rows, int).reshape(-1, 2)
+
+    def names(sel: np.ndarray) -> list[str]:
+        g = [str(x) for x in np.asarray(group)[sel]]
+        return [f"{x} ({g.count(x)} window{'s' if g.count(x) > 1 else ''})" for x in dict.fromkeys(g)]
+    out = []
+    for n in found:
+        rb, ra = np.flatnonzero(rows[:, 1] <= n["row"]), np.flatnonzero(rows[:, 0] >= n["row"])
+        if rb.size and ra.size:
+            out.append({**n, "before": names(rb), "after": names(ra),
+                        "windows_before": rb.tolist(), "windows_after": ra.tolist()})
+    return out
+
+
 def restart_notes(path: str | Path, within: tuple[bytes, ...] = ()) -> list[dict[str, Any]]:
     """The IMU restarts (``device-restart`` events: it lost power) with calibration positions on
     both sides: ``{"time_s", "event", "before", "after"}``, ``before`` / ``after`` naming the
@@ -27,11 +87,10 @@ def restart_notes(path: str | Path, within: tuple[bytes, ...] = ()) -> list[dict
     A restart gives the unit a new turn-on bias: the model b + M a fitted over positions with two
     biases has no term for the step between them, so it goes into the scale factors and
     misalignments (and the residuals) -- the result is not a calibration of either state."""
+    ev_t, ev_m = device_restart_events(path)
+    if not ev_t.size:
+        return []
     with open_recording(path) as f:
-        if "events" not in f:  # (a recording imported from a log has none)
-            return []
-    with open_recording(path, also=("events",)) as f:  # its datasets checked: InputError, not KeyError
-        ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
         seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "label", "t_start", "t_end",
                                                   "first_sample", "last_sample")}
     used = np.isin(seg["kind"], CAL_KINDS) & (seg["status"] == b"complete") & \
@@ -45,12 +104,10 @@ def restart_notes(path: str | Path, within: tuple[bytes, ...] = ()) -> list[dict
         return list(dict.fromkeys(names[int(o[np.argmax(seg["t_start"][o])])] for o in idx if o.size))
 
     out = []
-    for t, k, m in zip(ev_t, ev_k, ev_m):
-        if k != b"device-restart":
-            continue
+    for t, m in zip(ev_t, ev_m):
         rb, ra = np.flatnonzero(used & (seg["t_end"] <= t)), np.flatnonzero(used & (seg["t_start"] >= t))
         if rb.size and ra.size:
-            out.append({"time_s": float(t), "event": m.decode("utf-8", "replace"),
+            out.append({"time_s": float(t), "event": m,
                         "before": [names[i] for i in rb], "after": [names[i] for i in ra]})
             if within:
                 out[-1].update(within_before=in_effect(rb), within_after=in_effect(ra))
@@ -64,7 +121,7 @@ TABLE_RESTART = ("a bias step between them is absorbed into scale factor / misal
 
 def restart_lines(notes: list[dict[str, Any]], what: str = "positions", consequence: str = TABLE_RESTART,
                    context: Callable[[dict[str, Any], str], str] | None = None) -> list[str]:
-    """One line per restart of :func:`restart_notes`, naming the ``what`` (positions, windows) on
+    """One line per restart of :func:`restart_notes` (or :func:`window_sides`), naming the ``what`` (positions, windows) on
     each side; ``context(note, 'before' | 'after')`` adds to a side's list (the thermal run's
     chamber steps and temperatures); ``consequence``: what the step does to the fit, and the remedy."""
     def span(names: list[str]) -> str:
@@ -72,6 +129,15 @@ def restart_lines(notes: list[dict[str, Any]], what: str = "positions", conseque
 
     def side(n: dict[str, Any], key: str) -> str:
         return span(n[key]) + (context(n, key) if context else "")
-    return [f"IMU restarted at t = {n['time_s']:.1f} s (device-restart: power lost): {what} measured before it "
+
+    def at(n: dict[str, Any]) -> str:
+        return n.get("at") or f"t = {n['time_s']:.1f} s"
+    return [f"IMU restarted at {at(n)} ({n.get('seen', 'device-restart')}: power lost): {what} measured before it "
             f"({side(n, 'before')}) and after it ({side(n, 'after')}) have different turn-on biases; {consequence}"
             for n in notes]
+
+
+def untrusted_lines(reasons: list[str]) -> list[str]:
+    """The end of a thermal result's text when it is not trusted for ``reasons`` (the lines of
+    :func:`restart_lines`): a blank line, each as a warning, and the STATUS line; none without."""
+    return ["", *(f"warning: {line}" for line in reasons), f"STATUS: NOT TRUSTWORTHY: {reasons[0]}"] if reasons else []

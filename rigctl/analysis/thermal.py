@@ -266,6 +266,12 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
         sections, labels = bounds_of, [lab for lab, _, _ in given]
     if not sections:
         sections, labels = [(0, t_all.size)], ["whole record"]
+    # no window across an IMU restart (a new turn-on bias; a time base begun again does not run
+    # forward): a section is cut there, its pieces keep its label (static_restart_report names them)
+    cuts = sorted({n["row"] for n in restarts.restarts_by_row(path, t_all)})
+    pieces = [(lab, [a, *(k for k in cuts if a < k < z), z]) for (a, z), lab in zip(sections, labels)]
+    sections = [(e0, e1) for _, e in pieces for e0, e1 in zip(e[:-1], e[1:])]
+    labels = [lab for lab, e in pieces for _ in e[1:]]
     downs = [acc_all[a:z].mean(axis=0) for a, z in sections]
     poses = group_poses(downs, labels)
     # the reference of a pose: gravity along the mean specific force of all its sections
@@ -320,7 +326,7 @@ def static_windows(path: str | Path, window_s: float = STATIC_WINDOW_S, referenc
             heating=np.where(R != 0, R > 0, H > 0), reference_c=reference_c,
             regressors={"hysteresis": H, "temperature_rate": R},
             t_start=np.asarray(cols["ta"]), t_end=np.asarray(cols["tb"]), kind=np.array(["orientation"] * n),
-            revolutions=[0.0] * n, batch=np.asarray(cols[bm]), t0=float(t_all[0]))
+            revolutions=[0.0] * n, batch=np.asarray(cols[bm]), t0=float(t_all[0]), rows=np.asarray(bounds))
     return out
 
 
@@ -424,20 +430,33 @@ THERMAL_RESTART = ("the model has one bias polynomial in temperature per axis, s
 
 
 def restart_report(path: Path, w: th.ThermalWindows) -> tuple[list[dict[str, Any]], list[str]]:
-    """The IMU restarts with thermal windows on both sides
-    (:func:`rigctl.analysis.restarts.restart_notes`, naming the chamber steps -- soaks and
-    ramps -- in effect on each side and the IMU temperature span of its windows ``w``, degC) and
-    one line per restart for the text and the reasons; no restart: ([], [])."""
+    """The IMU restarts with thermal windows on both sides and one line per restart for the text
+    and the reasons (no restart: ([], [])). A chamber run (``w.rows`` None):
+    :func:`rigctl.analysis.restarts.restart_notes`, naming the windows and the chamber steps --
+    soaks and ramps -- in effect on each side. A static record (``w.rows``: its windows' sample
+    rows): :func:`rigctl.analysis.restarts.restarts_by_row` -- its ``device-restart`` events and
+    a time base begun again behind its last stamp -- naming the poses and their windows on each
+    side (:func:`rigctl.analysis.restarts.window_sides`). Either way with the IMU temperature span
+    of the windows ``w`` on each side, degC."""
     from ..engine.procedure import CHAMBER_KINDS
 
-    notes = restarts.restart_notes(path, within=tuple(k.encode() for k in CHAMBER_KINDS))
-    for n in notes:
-        for key, sel in (("before", w.t_end <= n["time_s"]), ("after", w.t_start >= n["time_s"])):
+    if w.rows is None:
+        notes = restarts.restart_notes(path, within=tuple(k.encode() for k in CHAMBER_KINDS))
+        sides = [(w.t_end <= n["time_s"], w.t_start >= n["time_s"]) for n in notes]
+    else:
+        with open_recording(path) as f:
+            t = f["imu/time"][()]
+        group = w.pose if w.pose is not None else np.array(["whole record"] * len(w))
+        notes = restarts.window_sides(restarts.restarts_by_row(path, t), w.rows, group)
+        idx = np.arange(len(w))
+        sides = [(np.isin(idx, n.pop("windows_before")), np.isin(idx, n.pop("windows_after"))) for n in notes]
+    for n, (before, after) in zip(notes, sides):
+        for key, sel in (("before", before), ("after", after)):
             T = w.temperature[sel]
             n[f"temperature_{key}_c"] = [float(T.min()), float(T.max())] if T.size else None
 
     def context(n: dict[str, Any], key: str) -> str:
-        steps, T = n[f"within_{key}"], n[f"temperature_{key}_c"]
+        steps, T = n.get(f"within_{key}"), n[f"temperature_{key}_c"]
         return (f"; in {', '.join(steps)}" if steps else "") + (f"; IMU {T[0]:.1f} .. {T[1]:.1f} degC" if T else "")
     return notes, restarts.restart_lines(notes, "windows", THERMAL_RESTART, context)
 
@@ -578,8 +597,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                                      "outside": misses}
         lines.append(f"\nagainst the emulator's truth: {n_in} of {n_all} 95 % intervals cover it"
                      + (f" (outside: {', '.join(misses)})" if misses else ""))
-    if mixed:
-        lines += ["", *(f"warning: {line}" for line in mixed), f"STATUS: NOT TRUSTWORTHY: {mixed[0]}"]
+    lines += restarts.untrusted_lines(mixed)
     return payload, "\n".join(lines), arrays
 
 

@@ -5,6 +5,11 @@ a board turned by hand between soaks), read into windows by
 :func:`rigctl.analysis.thermal.fit_static_windows`, and turned into a result (SI and field
 units, JSON-ready), its text and its CSV.
 
+An IMU restart in the record (a ``device-restart`` event, or a time base begun again behind its
+last stamp: the unit lost power) gives it a new turn-on bias that one pose offset cannot hold: no
+window spans it, and the result is NOT TRUSTWORTHY naming the poses and windows on each side
+(:func:`rigctl.analysis.thermal.restart_report`, the same lines as ``rigctl calibrate``'s).
+
 The checks, each one line (:class:`rigctl.errors.InputError`, exit code 2): a recording without
 a temperature column; one pose only (scale per K cannot then be told from bias per K, unless
 ``one_pose`` asks for the apparent bias only); an IMU temperature span over the windows below
@@ -34,6 +39,7 @@ from ..solvers import thermal as th
 from ..yamlio import load_file
 from . import thermal as AT
 from .calibration_text import noise_summary
+from .restarts import untrusted_lines
 
 SCHEMA_VERSION = 1
 BAND_LEVEL = 0.99
@@ -160,6 +166,7 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                           "direction": (ref / np.linalg.norm(ref)).tolist()})
     fits = AT.fit_static_windows(wins, bias_degree, loop)
     sensors = {s: _sensor(w, f) for s, (w, f) in fits.items()}
+    notes, mixed = AT.restart_report(p, wa)     # IMU restarts: as rigctl calibrate's thermal path
     noise_lines, noise_rows = noise_summary(fits["accel"][0].noise + fits["gyro"][0].noise, wa.t0)
     return jsonable({
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
@@ -169,6 +176,8 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                      "poses_from": str(poses_file) if poses_file else "the recording's segments"},
         "temperature_c": {"min": float(T.min()), "max": float(T.max()), "span_K": span, "of": "window means"},
         "poses": pose_rows, "sensors": sensors,
+        "trustworthy": not mixed and all(d["status"] == "ok" for d in sensors.values()),
+        "device_restarts": notes, "reasons": mixed,
         "noise_model": {"text": "estimated from the record (REML: white, bias instability, random walk)",
                         "channels": noise_rows, "lines": noise_lines},
         "findings": [f"{s} chi2/dof {d['chi2_per_dof']:.3g} {d['finding']}" for s, d in sensors.items()
@@ -232,6 +241,7 @@ def format_text(r: dict[str, Any]) -> str:
                   "along gravity, the scale factor's per K times g"]
     lines += ["", "findings: " + ("; ".join(r["findings"]) if r["findings"] else
                                    "none (every chi-square inside its 99 % band)")]
+    lines += untrusted_lines(r.get("reasons") or [])
     return "\n".join(lines)
 
 

@@ -125,6 +125,9 @@ class ThermalWindows:
     noise: list[Any] | None = None
     #: (n,) a pose label per window (several static poses without a table, module docstring)
     pose: np.ndarray | None = None
+    #: (n, 2) each window's first and end (exclusive) sample index in the record, where the
+    #: windows were cut from one series of samples (a static record), else None
+    rows: np.ndarray | None = None
     _white: dict[int, Whitener] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
