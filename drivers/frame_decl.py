@@ -19,6 +19,7 @@ import numpy as np
 from rigctl.config.frame_spec import CHECKSUM_BYTES, FrameSpec
 
 from .frame_engine import FixedFrameStream, FrameCounters, affine_tables, xor_reduce_lookup
+from .lost_lines import LostLines
 
 
 def crc16_ccitt(data: bytes, init: int = 0xFFFF) -> int:
@@ -162,7 +163,9 @@ def nmea_checksum(body: bytes) -> int:
 class CsvStream:
     """Streaming decoder of CSV lines: ``feed(bytes) -> dict`` as the binary decoder's; counts
     lines that fail (wrong column count, not a number, checksum) as bad frames, by the bytes
-    between good lines (:meth:`_count_gap`), counted when the next good line comes. With an
+    between good lines (:class:`rigctl.drivers.lost_lines.LostLines`: a damaged sentence leaves
+    all its bytes, whatever the error made of them, a line end or a ``$``, and bytes after a
+    whole sentence's checksum, a hit line end, are no line), counted as they come. With an
     NMEA checksum a line is also cut before each ``$`` (:meth:`_pieces`)."""
 
     def __init__(self, spec: FrameSpec) -> None:
@@ -171,8 +174,7 @@ class CsvStream:
         self._buf = b""
         self._synced = False
         self._abs = 0
-        self._gap = 0       # bytes since the last good line that belong to none
-        self._ref = 0       # bytes of the last good line (its line end included)
+        self._lost = LostLines()  # lines lost between good lines (by their bytes)
         self.cols = [f for f in spec.fields]
 
     def _line(self, line: bytes) -> list[float] | None:
@@ -210,16 +212,6 @@ class CsvStream:
             i = j
         return out + [raw[i:]]
 
-    def _count_gap(self) -> None:
-        """Bytes between good lines count as lines lost by their length, ``round(g / last
-        line)``: a damaged sentence leaves all its bytes, whatever the error made (a line end, a
-        ``$``), and bytes after a whole sentence's checksum (a hit line end) are no line."""
-        if self._gap:
-            c = self.counters
-            c.garbage_bytes += self._gap
-            c.bad_frames += int(round(self._gap / self._ref)) if self._ref else 1
-            self._gap = 0
-
     def feed(self, data: bytes, final: bool = False) -> dict[str, np.ndarray]:
         buf = self._buf + bytes(data)
         lines = buf.split(b"\n")
@@ -236,17 +228,18 @@ class CsvStream:
                 vals = self._line(piece.rstrip(b"\r"))
                 if vals is None:
                     if self._synced:
-                        self._gap += size
+                        self.counters.garbage_bytes += size
+                        self.counters.bad_frames += self._lost.garbage(size)
                     else:
                         self.counters.presync_bytes += size
                 else:
-                    self._count_gap()
-                    self._synced, self._ref = True, size
+                    self._synced = True
+                    self._lost.good(size)
                     rows.append(vals)
                     offsets.append(start)
                 start += len(piece)
         if final:
-            self._count_gap()
+            self._lost.end()
         self._abs = pos
         arr = np.asarray(rows, dtype=np.float64).reshape(len(rows), len(self.cols))
         out: dict[str, np.ndarray] = {"offset": np.asarray(offsets, dtype=np.int64)}

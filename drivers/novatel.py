@@ -25,6 +25,8 @@ from datetime import datetime, timedelta, timezone
 
 from rigctl.errors import DeviceError
 
+from .lost_lines import LostLines
+
 log = logging.getLogger(__name__)
 
 SECONDS_PER_WEEK = 604_800
@@ -194,32 +196,18 @@ class MarkLogReader:
     counters: MarkReaderCounters = field(default_factory=MarkReaderCounters)
     responses: list[str] = field(default_factory=list)
     _buf: bytes = b""
-    _gap: int = 0        # bytes since the end of the last whole log
-    _lost: int = 0       # logs counted lost in this gap
-    _ref: int = 0        # bytes of the last whole log, CR LF included (0: none yet -> nominal)
+    #: logs lost between whole logs (before the first whole log a formatted mark's length)
+    _lost: LostLines = field(default_factory=lambda: LostLines(
+        nominal=len(format_mark(MarkTime(week=0, seconds=0.0)))))
     _skip: bool = False  # in an overlong log or line: bytes up to the next '#' or LF dropped
-
-    def _reference(self) -> int:
-        """Bytes of one log for counting (before the first whole log: a formatted mark's)."""
-        if not self._ref:
-            self._ref = len(format_mark(MarkTime(week=0, seconds=0.0)))
-        return self._ref
-
-    def _lose(self, n: int) -> None:
-        """At least ``n`` logs lost in this gap (counted once)."""
-        if n > self._lost:
-            log.warning("NovAtel log lost to a byte error (CRC mismatch or broken framing)")
-            self.counters.bad_crc += n - self._lost
-            self._lost = n
 
     def _garbage(self, size: int, whole: bool = False) -> None:
         """``size`` bytes that belong to no good log; ``whole``: a whole-framed bad log."""
-        ref = self._reference()
-        if whole:
-            self._lose(self._gap // ref + 1)
-        self._gap += size
         self.counters.garbage_bytes += size
-        self._lose(int(round(self._gap / ref)))
+        more = self._lost.garbage(size, whole)
+        if more:
+            log.warning("NovAtel log lost to a byte error (CRC mismatch or broken framing)")
+            self.counters.bad_crc += more
 
     def _whole(self, sentence: bytes) -> MarkTime | None:
         """A whole-framed ``#...*crc`` log: its mark, or None (counted)."""
@@ -231,10 +219,10 @@ class MarkLogReader:
             else:
                 log.warning("rejected NovAtel sentence: %s", exc)
                 self.counters.malformed += 1
-                self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+                self._lost.good(len(sentence) + 2)
             return None
         self.counters.marks += 1
-        self._gap, self._lost, self._ref = 0, 0, len(sentence) + 2
+        self._lost.good(len(sentence) + 2)
         return m
 
     def _text(self, text: bytes) -> None:
