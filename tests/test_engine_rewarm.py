@@ -271,9 +271,12 @@ def after_window(kind: str, finished: int = 0):
     return at
 
 
-def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0):
+def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=()):
     """PROC with the IMU's power lost for ``down_s`` at point ``at`` (hil_support.power_loss, a
-    2 mg x bias step, no turn-on draw of the emulator's own); ``lag_s`` > 0: the IMU behind a
+    2 mg x bias step, no turn-on draw of the emulator's own) and at the points of ``more``,
+    ((point, down_s), ...); returns the result, the points, the segments, the IMU times, the
+    ``device-restart`` events (time, message) and the run-log lines saying a restart (one per
+    restart; a single restart: that one event and line); ``lag_s`` > 0: the IMU behind a
     link delivering each sample that long after its stamp (test_engine_tail_wait.LinkWithLatency,
     its restart count passed through), so the engine awaits a window's last samples after it."""
     from contextlib import contextmanager
@@ -295,7 +298,8 @@ def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0):
     (tmp_path / "proc.yaml").write_text(PROC)
     proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
     points = RunPoints([])
-    points.actions.append((at, power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]), down_s=down_s)))
+    for point, down in ((at, down_s), *more):
+        points.actions.append((point, power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]), down_s=down)))
     opts = point_options(points)
     if lag_s > 0.0:
         @contextmanager
@@ -305,15 +309,17 @@ def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0):
                 yield rig, truth
         opts.rig_opener = opener
     res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
-    assert points.fired, "the power loss was never injected"
+    assert len(points.fired) == 1 + len(more), "a power loss was never injected"
     imu = points.engine.rig.imu
-    assert getattr(imu, "inner", imu).device_restarts == 1
+    assert getattr(imu, "inner", imu).device_restarts == 1 + len(more)
     assert res.exit_code == 0 and res.status == "complete", res.message
     seg, t, events = _read(res.recording)
-    (restart,) = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    restarts = [(tt, m) for tt, k, m in events if k == "device-restart"]
     said = [line for line in (res.run_dir / "run.log.jsonl").read_text().splitlines() if "the IMU restarted" in line]
-    assert len(said) == 1, said
-    return res, points, seg, t, restart, said[0]
+    assert len(restarts) == len(said) == 1 + len(more), (restarts, said)
+    if more:
+        return res, points, seg, t, restarts, said
+    return res, points, seg, t, restarts[0], said[0]
 
 
 def test_a_restart_after_a_complete_window_rewarms_before_the_next_step_and_says_so(tmp_path):
@@ -364,3 +370,30 @@ def test_a_restart_during_the_move_to_the_next_orientation_rewarms_then_runs_it(
     assert abs(seg["t_end"][2] - seg["t_start"][2] - WARMUP_S) < 1e-6
     assert "last complete step 2 (" in restart[1] and "warm-up re-runs (20 s)" in restart[1], restart
     assert "sampled again" not in said and "the warm-up (20 s, step 1) runs again first, then step 3 runs" in said, said
+
+
+def test_a_restart_after_a_rewarms_window_warms_the_imu_again(tmp_path):
+    """Power lost for 3 s in the second orientation (step 3): the re-warm runs; the power lost
+    again for 0.5 s as that re-warm's window ends, noticed while its last samples are awaited
+    (15 ms link latency). The re-warm is complete (its samples cover it), and the second restart
+    lies after it, before step 3: a second whole re-warm runs before step 3 is sampled. Before,
+    run() cleared the re-warm it asked for once the first re-warm's segment was recorded, and
+    step 3 was measured on the unit just powered up again."""
+    from hil_support import sampling
+    res, points, seg, t, restarts, said = _power_loss_run(
+        tmp_path, sampling("orientation", after_samples=100, finished=1), 3.0, lag_s=0.015,
+        more=[(after_window("warmup", finished=1), 0.5)])
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "incomplete"), ("warmup", 0, "complete"),
+                           ("warmup", 0, "complete"), ("orientation", 2, "complete"),
+                           ("orientation", 3, "complete")], _pairs(seg)
+    (t1, first), (t2, second) = restarts
+    assert "in step 3 (" in first
+    assert "after step 1's window, before step 3;" in second and "last complete step 1 (" in second, second
+    assert "warm-up re-runs (20 s)" in second
+    assert "runs again first, then step 3 runs" in said[1], said[1]
+    assert seg["t_end"][3] <= t2 <= seg["t_start"][4]       # between the two re-warms
+    for i in (3, 4):
+        assert abs(seg["t_end"][i] - seg["t_start"][i] - WARMUP_S) < 1e-6
+    assert seg["t_end"][4] <= seg["t_start"][5]
+    assert points.engine.rewarm is None
