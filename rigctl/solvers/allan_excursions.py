@@ -236,6 +236,17 @@ def trimmed_spread(d: np.ndarray, centre: float) -> float:
     return float(np.mean(a[:k])) / _TRIM_GAUSS
 
 
+def white_pm_variance(ybar: np.ndarray) -> float:
+    """sigma_p^2 of :func:`white_pm_law`: the lag-2 autocovariance of the first differences
+    of ybar, clipped at 0 (0 for fewer than 4 blocks)."""
+    y = np.asarray(ybar, dtype=float)
+    if y.size < 4:
+        return 0.0
+    dy = np.diff(y)
+    dy = dy - dy.mean()
+    return max(0.0, float(np.mean(dy[2:] * dy[:-2])))
+
+
 def white_pm_law(ybar: np.ndarray,
                  bins_per_sd: int = 50) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
     """The record's white phase noise: its variance sigma_p^2 in units of the block phase
@@ -250,11 +261,9 @@ def white_pm_law(ybar: np.ndarray,
     takes out the record's slower noise and a linear trend), their empirical law binned at
     sd / bins_per_sd, combined three times by FFT convolution."""
     y = np.asarray(ybar, dtype=float)
+    var_p = white_pm_variance(y)
     if y.size < 4 * PM_WINDOW:
-        return 0.0, (np.zeros(1), np.ones(1))
-    dy = np.diff(y)
-    dy = dy - dy.mean()
-    var_p = max(0.0, float(np.mean(dy[2:] * dy[:-2])))
+        return var_p, (np.zeros(1), np.ones(1))
     x = np.concatenate(([0.0], np.cumsum(y - np.median(y))))
     half = PM_WINDOW // 2
     # the median of the reading's neighbours, not of itself too (which pulls the median
@@ -383,7 +392,8 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
         return out
     scans = [step_scan(y, L) for L in Ls]
     a_scale = alpha / len(Ls)
-    var_p, law = white_pm_law(y)
+    var_p = white_pm_variance(y)
+    law = None  # the readings' law: only where some scale needs it
     tails: dict[float, PhaseTail] = {}
     for sc in scans:
         share = min(1.0, 6.0 * var_p / (sc["L"] ** 2 * sc["spread"] ** 2)) \
@@ -393,6 +403,8 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
         if share >= MIN_PM_SHARE:
             a = round(math.sqrt(share), 3)  # the same share at several scales: one table
             if a not in tails:
+                if law is None:
+                    law = white_pm_law(y)[1]
                 tails[a] = PhaseTail(a, law)
             sc["tail"] = tails[a]
             sc["spread"] = trimmed_spread(sc["d"], sc["centre"])
