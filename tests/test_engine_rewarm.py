@@ -271,14 +271,18 @@ def after_window(kind: str, finished: int = 0):
     return at
 
 
-def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=()):
+def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=(), proc_text: str = PROC,
+                    cfg_extra=None, also=(), complete: bool = True):
     """PROC with the IMU's power lost for ``down_s`` at point ``at`` (hil_support.power_loss, a
     2 mg x bias step, no turn-on draw of the emulator's own) and at the points of ``more``,
     ((point, down_s), ...); returns the result, the points, the segments, the IMU times, the
     ``device-restart`` events (time, message) and the run-log lines saying a restart (one per
     restart; a single restart: that one event and line); ``lag_s`` > 0: the IMU behind a
     link delivering each sample that long after its stamp (test_engine_tail_wait.LinkWithLatency,
-    its restart count passed through), so the engine awaits a window's last samples after it."""
+    its restart count passed through), so the engine awaits a window's last samples after it.
+    ``proc_text`` instead of PROC, ``cfg_extra`` more config (a chamber), ``also`` more
+    (point, make) pairs (the action: make(points)); ``complete`` False: the run need not
+    complete."""
     from contextlib import contextmanager
 
     from hil_support import point_options, power_loss
@@ -294,12 +298,13 @@ def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=()):
         def device_restarts(self) -> int:
             return self.inner.device_restarts
 
-    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY, **NO_TURN_ON_DRAW))
-    (tmp_path / "proc.yaml").write_text(PROC)
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY, **NO_TURN_ON_DRAW, **(cfg_extra or {})))
+    (tmp_path / "proc.yaml").write_text(proc_text)
     proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
     points = RunPoints([])
     for point, down in ((at, down_s), *more):
         points.actions.append((point, power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]), down_s=down)))
+    points.actions.extend((point, make(points)) for point, make in also)
     opts = point_options(points)
     if lag_s > 0.0:
         @contextmanager
@@ -309,10 +314,10 @@ def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=()):
                 yield rig, truth
         opts.rig_opener = opener
     res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
-    assert len(points.fired) == 1 + len(more), "a power loss was never injected"
+    assert len(points.fired) == 1 + len(more) + len(also), "a power loss (or an action) never fired"
     imu = points.engine.rig.imu
     assert getattr(imu, "inner", imu).device_restarts == 1 + len(more)
-    assert res.exit_code == 0 and res.status == "complete", res.message
+    assert not complete or (res.exit_code == 0 and res.status == "complete"), res.message
     seg, t, events = _read(res.recording)
     restarts = [(tt, m) for tt, k, m in events if k == "device-restart"]
     said = [line for line in (res.run_dir / "run.log.jsonl").read_text().splitlines() if "the IMU restarted" in line]
@@ -397,3 +402,63 @@ def test_a_restart_after_a_rewarms_window_warms_the_imu_again(tmp_path):
         assert abs(seg["t_end"][i] - seg["t_start"][i] - WARMUP_S) < 1e-6
     assert seg["t_end"][4] <= seg["t_start"][5]
     assert points.engine.rewarm is None
+
+
+#: PROC with a chamber-set between its second and third orientations (steps 4 and 5)
+CHAMBER_PROC = PROC.replace(", [180, 0, 0]]", "]") + "  - chamber-set: {setpoint_c: 25, label: set 25 degC}\n" + \
+    PROC[PROC.index("  - orientations:"):].replace("[[0, 0, 0], [90, 0, 0], [180, 0, 0]]", "[[180, 0, 0]]")
+#: the emulated chamber of tests/test_thermal_restart.py
+CHAMBER_SIM = {"chamber__sim": {"heat_max_c_per_min": 20, "cool_max_c_per_min": 20, "product_tau_s": 20}}
+
+
+def test_a_restart_before_a_chamber_step_says_the_rewarm_comes_after_it(tmp_path):
+    """The power lost for 0.5 s as step 3's window ends (the last orientation before a
+    chamber-set, step 4; 15 ms link latency): step 3 is complete, and run() runs the chamber
+    step first -- re-warms are for the steps that measure -- then the warm-up, then step 5. The
+    event and the run log say exactly that order (before: 'then step 4 runs' after the warm-up,
+    and 'warm-up re-runs (20 s)' as if it preceded step 4)."""
+    res, points, seg, t, restart, said = _power_loss_run(
+        tmp_path, after_window("orientation", finished=1), 0.5, lag_s=0.015, proc_text=CHAMBER_PROC,
+        cfg_extra=CHAMBER_SIM)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("chamber-set", 3, "complete"),
+                           ("warmup", 0, "complete"), ("orientation", 4, "complete")], _pairs(seg)
+    assert seg["t_end"][2] <= restart[0] <= seg["t_start"][3], restart
+    assert abs(seg["t_end"][4] - seg["t_start"][4] - WARMUP_S) < 1e-6
+    assert "after step 3's window, before step 4;" in restart[1], restart
+    assert "warm-up re-runs (20 s) before step 5" in restart[1], restart
+    assert ("step 4 (chamber-set) runs, then the warm-up (20 s, step 1) runs again, then step 5 runs"
+            in said), said
+    assert points.engine.rewarm is None
+
+
+def test_a_restart_when_the_run_is_aborted_awaiting_a_windows_tail_says_the_run_stops(tmp_path):
+    """The power lost for 0.5 s as step 3's window ends (15 ms link latency: the engine awaits
+    the window's last samples), and an abort (``rigctl abort``: Engine.request_abort) in the very
+    poll that notices the restart: the run stops there, step 3 not recorded complete. The event
+    and the run log say the run stops and that a resumed run warms up first, then runs step 3
+    again (before: 'in step 3; ...; the warm-up runs again first, then step 3 is sampled again',
+    as if this run went on). ``rigctl resume`` then does what they said: the whole 20 s warm-up,
+    then steps 3 and 4; the rows step 3 had are marked incomplete."""
+    def noticed(engine, pts) -> bool:         # the poll that notices the restart, in the tail wait
+        return engine._awaiting_tail and engine._tail_restart is not None
+    also = [(noticed, lambda points: lambda: points.engine.request_abort("operator abort"))]
+    res, points, seg, t, restart, said = _power_loss_run(
+        tmp_path, after_window("orientation", finished=1), 0.5, lag_s=0.015, also=also, complete=False)
+    assert res.status == "interrupted", (res.status, res.message)
+    assert len(points.fired) == 2, points.fired
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete")], _pairs(seg)
+    assert "in step 3 (" in restart[1] and "last complete step 2 (" in restart[1], restart
+    assert "warm-up re-runs" not in restart[1] and "sampled again" not in said, (restart, said)
+    assert ("the run stops before step 3 is recorded complete; a resumed run ('rigctl resume') re-runs the "
+            "warm-up (20 s, step 1) first, then runs step 3 again") in said, said
+    assert points.engine.rewarm is None       # nothing more runs in this session
+    cut = len(seg["kind"])
+
+    again = resume_run(res.run_dir, tmp_path / "runs", console=io.StringIO(), install_signals=False,
+                       options=RunOptions(suspenders=SuspenderSettings(hold_s=1.0, min_free_bytes=0)))
+    assert again.exit_code == 0 and again.status == "complete", again.message
+    seg, t, events = _read(res.recording)
+    assert _pairs(seg)[cut:] == [("orientation", 2, "incomplete"), ("warmup", 0, "complete"),
+                                 ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    assert abs(seg["t_end"][cut + 1] - seg["t_start"][cut + 1] - WARMUP_S) < 1e-6

@@ -420,15 +420,19 @@ class Engine:
             return motion[0] if motion else None
         return next((s for s in motion if s.index > step.index), None)
 
-    def _tail_restart_said(self, step: Step, complete: bool) -> None:
+    def _tail_restart_said(self, step: Step, complete: bool, stopping: bool = False) -> None:
         """Say the restart noticed while ``step``'s last samples were awaited (if any), now that
         they decided: ``complete`` -- the step is done and the restart lies before the step that
-        follows it (or after the last); else the step is sampled again."""
+        follows it (or after the last); else the step is sampled again. ``stopping``: the wait
+        was cut by what ends the run (an abort, a device fault) before they decided: the step is
+        not recorded complete, and only a resumed run runs it again (:meth:`_restart_said`)."""
         t, self._tail_restart = self._tail_restart, None
         if t is None:
             return
         if not complete:
-            self._restart_said(t, f"in step {step.index + 1} ({step.label})", step, "is sampled again")
+            self._restart_said(t, f"in step {step.index + 1} ({step.label})" +
+                               (" while its window's last samples were awaited" if stopping else ""),
+                               step, "is sampled again", stopping=stopping)
             return
         then = self._step_after(step)
         self._restart_said(t, f"after step {step.index + 1}'s window, " +
@@ -436,7 +440,7 @@ class Engine:
                            then, "runs", done=step)
 
     def _restart_said(self, t: float, where: str, then: Step | None, how: str | None,
-                      done: Step | None = None) -> None:
+                      done: Step | None = None, stopping: bool = False) -> None:
         """The one decision for a restart of the IMU noticed at rig time ``t``, s, ``where`` (in a
         step, after its window, between steps, in the end-of-run safe state): the
         ``device-restart`` event and its one run-log line say what the engine then does, and
@@ -444,17 +448,44 @@ class Engine:
         sampled again' -- the step the restart cut off); None: no step runs after it (the last
         window is done), so no warm-up is promised or planned (a resumed run still warms up
         first: :func:`rewarm_due` reads the event). ``done``: the last complete step, when the
-        engine has not recorded it yet (:attr:`_last_done` otherwise)."""
+        engine has not recorded it yet (:attr:`_last_done` otherwise).
+
+        The re-warm runs before the first step from ``then`` on that is not a chamber step
+        (:meth:`run`: chamber steps run without it); the chamber steps before that one are said
+        first, and when only chamber steps are left no warm-up is planned. ``stopping``: the run
+        ends here (an abort, a device fault): no step runs in this session, and a resumed run
+        (``rigctl resume``, :func:`rewarm_due`) warms up first, then runs ``then`` again."""
         done, warm = done or self._last_done, self._warmup
         last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        ahead = [s for s in self._motion or [] if then is not None and s.index >= then.index] or \
+            ([then] if then is not None else [])       # the steps run() executes from ``then`` on
+        measured = next((s for s in ahead if s.kind not in CHAMBER_KINDS), None)  # the re-warm's
+        chambers = [s for s in ahead if measured is None or s.index < measured.index]
         if then is None:
             plan = what = "no step runs after it"
+        elif stopping:
+            plan = what = (f"the run stops before step {then.index + 1} is recorded complete; a resumed run "
+                           "('rigctl resume') " + (f"re-runs the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) "
+                                                   "first, then " if warm is not None else "") +
+                           f"runs step {then.index + 1} again")
         else:
-            plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
-            nxt = f"step {then.index + 1} {how}"
-            what = (f"the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again first, then {nxt}"
-                    if warm is not None else f"the procedure has no warm-up to run again; {nxt}")
-            if warm is not None:
+            first = ""
+            if chambers:        # they run before the re-warm: it precedes the next measurement
+                names = ", ".join(str(s.index + 1) for s in chambers)
+                first = (f"step {names} ({chambers[0].kind}) {how}" if len(chambers) == 1 else
+                         f"steps {names} (chamber) run") + ", then "
+            if measured is None:
+                plan = "no warm-up re-runs: only chamber steps follow"
+                what = f"{first}no step that measures follows, so the warm-up does not run again"
+            elif warm is None:
+                plan = "no warm-up to re-run"
+                what = f"the procedure has no warm-up to run again; {first}step {measured.index + 1} " + \
+                    (how if measured is then else "runs")
+            else:
+                plan = f"warm-up re-runs ({warm.sample_s:g} s) before step {measured.index + 1}"
+                what = (f"{first}the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again"
+                        + (" first" if not chambers else "") +
+                        f", then step {measured.index + 1} {how if measured is then else 'runs'}")
                 self.rewarm = f"the IMU restarted {where}"
         self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
                                                 f"{last}; {plan}")
@@ -784,8 +815,8 @@ class Engine:
                     self.poll(check=self._tail_sus is None)
                 except Suspend as sus:  # the window is over: its samples decide (execute), so the
                     self._tail_sus = sus  # wait goes on for those still in flight
-        except BaseException:       # interrupted: the step is cut off (a restart: in it)
-            self._tail_restart_said(self.current_step, complete=False)
+        except BaseException:       # the run ends (abort, fault: only a Suspend is caught above)
+            self._tail_restart_said(self.current_step, complete=False, stopping=True)
             raise
         finally:
             self._awaiting_tail = False
