@@ -246,6 +246,29 @@ if LoadScopeScheduling is not None:
         return _TwoPhaseScheduling(config, log) if config.getoption("dist") == "loadfile" else None
 
 
+#: the source trees of the installed package (pyproject's package-dir: rigctl, rigctl.drivers,
+#: rigctl.sim); an editable install leaves them uncompiled
+PACKAGE_SOURCES = ("rigctl", "drivers", "sim")
+
+
+def pytest_configure(config):
+    """Compile the package's modules to ``__pycache__`` once, before the workers start.
+
+    With PYTHONDONTWRITEBYTECODE set (this machine's environment, and so CI's) no process keeps
+    the bytecode it compiles: every xdist worker and every ``rigctl`` subprocess the tests start
+    (several hundred) compiled the ~48,000 lines of rigctl/, sim/ and drivers/ it imports again,
+    ~0.2 s of CPU per ``rigctl run`` / ``calibrate`` (1.60 -> 1.38 s user for their imports,
+    measured). The variable only stops the writing: a valid .pyc beside the source is read.
+    compileall checks each source's mtime and size as the import system does, so an edited file
+    is compiled again here (or, if this fails, e.g. a read-only tree, in each process as before)."""
+    if hasattr(config, "workerinput"):  # an xdist worker: the controller did it
+        return
+    import compileall
+
+    for name in PACKAGE_SOURCES:
+        compileall.compile_dir(str(ROOT / name), quiet=2)
+
+
 _SUMMARY: list[str] = []
 
 

@@ -257,3 +257,143 @@ def test_a_restart_in_the_end_of_run_safe_state_is_logged_without_a_rewarm(tmp_p
     assert len(said) == 1 and "end-of-run safe state" in said[0], said
     assert not any("runs again" in line for line in log), [x for x in log if "runs again" in x]
     assert points.engine.rewarm is None
+
+
+def after_window(kind: str, finished: int = 0):
+    """The poll that ends a ``kind`` step's sampling window (the clock at its end), once
+    ``finished`` segments of that kind have been finished: the engine then awaits the window's
+    last samples (Engine._window_rows), the step not yet recorded."""
+    def at(engine, points) -> bool:
+        step = engine.current_step
+        return (points.starting is None and step is not None and step.kind == kind
+                and engine._win_start is not None and engine.rig.clock.now() >= engine._win_start + step.sample_s - 1e-9
+                and sum(1 for s in points.done if s.kind == kind) >= finished)
+    return at
+
+
+def _power_loss_run(tmp_path, at, down_s: float, lag_s: float = 0.0, more=()):
+    """PROC with the IMU's power lost for ``down_s`` at point ``at`` (hil_support.power_loss, a
+    2 mg x bias step, no turn-on draw of the emulator's own) and at the points of ``more``,
+    ((point, down_s), ...); returns the result, the points, the segments, the IMU times, the
+    ``device-restart`` events (time, message) and the run-log lines saying a restart (one per
+    restart; a single restart: that one event and line); ``lag_s`` > 0: the IMU behind a
+    link delivering each sample that long after its stamp (test_engine_tail_wait.LinkWithLatency,
+    its restart count passed through), so the engine awaits a window's last samples after it."""
+    from contextlib import contextmanager
+
+    from hil_support import point_options, power_loss
+    from rigctl.engine.rig import open_rig
+    from test_engine_tail_wait import LinkWithLatency
+
+    class Lagging(LinkWithLatency):
+        @property
+        def world(self):
+            return self.inner.world
+
+        @property
+        def device_restarts(self) -> int:
+            return self.inner.device_restarts
+
+    cfg = load_config(derived_config(tmp_path, **WHITE_NOISE_ONLY, **NO_TURN_ON_DRAW))
+    (tmp_path / "proc.yaml").write_text(PROC)
+    proc = load_procedure(tmp_path / "proc.yaml", limits=cfg.limits)
+    points = RunPoints([])
+    for point, down in ((at, down_s), *more):
+        points.actions.append((point, power_loss(points, np.array([STEP_M_S2, 0.0, 0.0]), down_s=down)))
+    opts = point_options(points)
+    if lag_s > 0.0:
+        @contextmanager
+        def opener(c):
+            with open_rig(c) as (rig, truth):
+                rig.imu = Lagging(rig.imu, rig.clock, lag_s, act=lambda *a: None)
+                yield rig, truth
+        opts.rig_opener = opener
+    res = run_procedure(proc, cfg, tmp_path / "runs", console=io.StringIO(), install_signals=False, options=opts)
+    assert len(points.fired) == 1 + len(more), "a power loss was never injected"
+    imu = points.engine.rig.imu
+    assert getattr(imu, "inner", imu).device_restarts == 1 + len(more)
+    assert res.exit_code == 0 and res.status == "complete", res.message
+    seg, t, events = _read(res.recording)
+    restarts = [(tt, m) for tt, k, m in events if k == "device-restart"]
+    said = [line for line in (res.run_dir / "run.log.jsonl").read_text().splitlines() if "the IMU restarted" in line]
+    assert len(restarts) == len(said) == 1 + len(more), (restarts, said)
+    if more:
+        return res, points, seg, t, restarts, said
+    return res, points, seg, t, restarts[0], said[0]
+
+
+def test_a_restart_after_a_complete_window_rewarms_before_the_next_step_and_says_so(tmp_path):
+    """The power lost for 0.5 s as the second orientation's window ends: the restart is noticed
+    while the engine awaits the window's last samples, which cover it (those before the loss).
+    Step 3 is complete and not sampled again: the event and the run log say the restart came
+    after its window, before step 4, and that the warm-up runs again first, then step 4 (before:
+    'in step 3 ...', 'then step 3 is sampled again'). The re-warm (20 s) starts after the restart
+    and precedes step 4."""
+    res, points, seg, t, restart, said = _power_loss_run(tmp_path, after_window("orientation", finished=1), 0.5, lag_s=0.015)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("warmup", 0, "complete"),
+                           ("orientation", 3, "complete")], _pairs(seg)
+    assert seg["t_end"][2] <= restart[0] <= seg["t_start"][3], (restart, seg["t_end"][2], seg["t_start"][3])
+    assert abs(seg["t_end"][3] - seg["t_start"][3] - WARMUP_S) < 1e-6
+    assert "after step 3's window, before step 4;" in restart[1], restart
+    assert "last complete step 3 (" in restart[1] and "warm-up re-runs (20 s)" in restart[1], restart
+    assert "sampled again" not in said and "the warm-up (20 s, step 1) runs again first, then step 4 runs" in said, said
+    assert points.engine.rewarm is None
+
+
+def test_a_restart_after_the_last_window_promises_no_rewarm(tmp_path):
+    """The same 0.5 s power loss as the last orientation's window ends: every step is complete and
+    nothing more is sampled. The event and the run log say no step runs after it (as in the
+    end-of-run safe state), no warm-up is promised or run (before: 'warm-up re-runs (20 s)', 'the
+    warm-up (20 s, step 1) runs again first, then step 4 is sampled again')."""
+    res, points, seg, t, restart, said = _power_loss_run(tmp_path, after_window("orientation", finished=2), 0.5, lag_s=0.015)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
+    assert restart[0] >= seg["t_end"][-1], restart
+    assert "after step 4's window, the last;" in restart[1] and "last complete step 4 (" in restart[1], restart
+    assert "no step runs after it" in restart[1] and "warm-up" not in restart[1], restart
+    assert "no step runs after it" in said and "runs again" not in said and "sampled again" not in said, said
+    assert points.engine.rewarm is None
+
+
+def test_a_restart_during_the_move_to_the_next_orientation_rewarms_then_runs_it(tmp_path):
+    """The power lost for 3 s as the third step starts (before its command): the link drop pauses
+    the run during the table's move, before step 3 sampled anything; the restart is noticed in
+    the pause. The event and the run log say it came before step 3's window and that the warm-up
+    runs again first, then step 3 -- not that step 3 is 'sampled again' (it never was)."""
+    from hil_support import starting
+    res, points, seg, t, restart, said = _power_loss_run(tmp_path, starting("orientation", finished=1), 3.0)
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("warmup", 0, "complete"), ("orientation", 2, "complete"),
+                           ("orientation", 3, "complete")], _pairs(seg)
+    assert seg["t_end"][1] <= restart[0] <= seg["t_start"][2]
+    assert abs(seg["t_end"][2] - seg["t_start"][2] - WARMUP_S) < 1e-6
+    assert "last complete step 2 (" in restart[1] and "warm-up re-runs (20 s)" in restart[1], restart
+    assert "sampled again" not in said and "the warm-up (20 s, step 1) runs again first, then step 3 runs" in said, said
+
+
+def test_a_restart_after_a_rewarms_window_warms_the_imu_again(tmp_path):
+    """Power lost for 3 s in the second orientation (step 3): the re-warm runs; the power lost
+    again for 0.5 s as that re-warm's window ends, noticed while its last samples are awaited
+    (15 ms link latency). The re-warm is complete (its samples cover it), and the second restart
+    lies after it, before step 3: a second whole re-warm runs before step 3 is sampled. Before,
+    run() cleared the re-warm it asked for once the first re-warm's segment was recorded, and
+    step 3 was measured on the unit just powered up again."""
+    from hil_support import sampling
+    res, points, seg, t, restarts, said = _power_loss_run(
+        tmp_path, sampling("orientation", after_samples=100, finished=1), 3.0, lag_s=0.015,
+        more=[(after_window("warmup", finished=1), 0.5)])
+    assert _pairs(seg) == [("warmup", 0, "complete"), ("orientation", 1, "complete"),
+                           ("orientation", 2, "incomplete"), ("warmup", 0, "complete"),
+                           ("warmup", 0, "complete"), ("orientation", 2, "complete"),
+                           ("orientation", 3, "complete")], _pairs(seg)
+    (t1, first), (t2, second) = restarts
+    assert "in step 3 (" in first
+    assert "after step 1's window, before step 3;" in second and "last complete step 1 (" in second, second
+    assert "warm-up re-runs (20 s)" in second
+    assert "runs again first, then step 3 runs" in said[1], said[1]
+    assert seg["t_end"][3] <= t2 <= seg["t_start"][4]       # between the two re-warms
+    for i in (3, 4):
+        assert abs(seg["t_end"][i] - seg["t_start"][i] - WARMUP_S) < 1e-6
+    assert seg["t_end"][4] <= seg["t_start"][5]
+    assert points.engine.rewarm is None

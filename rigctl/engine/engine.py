@@ -268,6 +268,13 @@ class Engine:
         self._restarts: int | None = None      # the IMU's restart count at the last poll
         self._warmup: Step | None = None       # the procedure's warm-up step (run)
         self._last_done: Step | None = None    # the last step recorded complete
+        self._motion: list[Step] | None = None  # the steps run() executes (run)
+        self._rewarm_before: Step | None = None  # the step a re-warm in flight precedes (_rewarm)
+        self._sampled = False                  # the step in flight began its window (this attempt)
+        #: whether a window's last samples are awaited (_window_rows); the rig time of a restart
+        #: noticed meanwhile, s, said once those samples decide (_tail_restart_said)
+        self._awaiting_tail = False
+        self._tail_restart: float | None = None
         #: wall time over which the speed rig time really runs at is measured (_watch_pace), s;
         #: whether the run said it cannot keep up
         self.pace_window_s = PACE_WINDOW_WALL_S
@@ -367,40 +374,92 @@ class Engine:
 
         A restart is a power loss of the unit, not a link drop (after which its device time
         continues): a new turn-on bias, and the unit is thermally cold. It is recorded as a
-        ``device-restart`` event naming the step in flight and the last complete one (the
+        ``device-restart`` event naming where it was noticed and the last complete step (the
         calibration reports the positions on each side, rigctl.analysis.calibration), said in
-        one run-log line, and sets :attr:`rewarm`: the procedure's warm-up runs again before
-        the next measurement (:meth:`run`); the step in flight is sampled again.
+        one run-log line, and sets :attr:`rewarm` when a step still runs: the procedure's
+        warm-up runs again before it (:meth:`run`). All through :meth:`_restart_said`:
 
-        ``closing``: noticed in the end-of-run safe state (:meth:`safe_state`): recorded and said
-        as such, but nothing more runs in this session, so no re-warm is planned or promised
-        (a resumed run still warms up first: :func:`rewarm_due` reads the event)."""
+        * in a step, before or in its window: the step is cut off and runs (is sampled) again;
+        * while the window's last samples are awaited (:meth:`_window_rows`): said once they
+          decide (:meth:`_tail_restart_said`) -- they cover it: the step is complete and the
+          restart lies before the next step, or after the last window (no step runs after it,
+          no re-warm); they stop inside it: as in the step;
+        * between steps: before the step after the last complete one;
+        * ``closing``: noticed in the end-of-run safe state (:meth:`safe_state`): no step runs
+          after it, no re-warm is planned or promised (a resumed run still warms up first:
+          :func:`rewarm_due` reads the event)."""
         n = imu_restarts(self.rig.imu)
         if self._restarts is None or n <= self._restarts:
             self._restarts = n          # the first poll, or a driver whose counters began again
             return None
         self._restarts = n
         self.warmup_done.clear()    # warm-up time kept from before the restart counts no more
-        step, done, warm = self.current_step, self._last_done, self._warmup
-        last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        step = self.current_step
         if closing:
-            self.rec.add_event(t, "device-restart", "IMU restarted (device time began again: power lost) in the "
-                                                    f"end-of-run safe state; {last}; no step runs after it")
-            self.log("warning", "the IMU restarted in the end-of-run safe state (its device time began again: it "
-                                f"lost power); {last}; no step runs after it")
+            self._restart_said(t, "in the end-of-run safe state", None, None)
             return None
-        where = f"in step {step.index + 1} ({step.label})" if step is not None else "between steps"
-        plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
+        if self._awaiting_tail:     # after the window: its samples decide what it means (execute)
+            self._tail_restart = t
+        elif step is not None:
+            self._restart_said(t, f"in step {step.index + 1} ({step.label})" + ("" if self._sampled else
+                               " before its window"), step, "is sampled again" if self._sampled else "runs")
+        else:
+            then = self._step_after(self._last_done)
+            self._restart_said(t, "between steps", then, "runs")
+        at = (f"after step {step.index + 1}'s window" if self._awaiting_tail else
+              f"in step {step.index + 1} ({step.label})" if step is not None else "between steps")
+        return f"IMU restarted {at} (device time began again)"
+
+    def _step_after(self, step: Step | None) -> Step | None:
+        """The step run() executes after ``step`` (None: the first) completes, or None when no
+        step follows it: the re-warm's is the step it precedes (:meth:`_rewarm`)."""
+        if step is not None and self._rewarm_before is not None and step.kind == "warmup":
+            return self._rewarm_before
+        motion = self._motion or []
+        if step is None:
+            return motion[0] if motion else None
+        return next((s for s in motion if s.index > step.index), None)
+
+    def _tail_restart_said(self, step: Step, complete: bool) -> None:
+        """Say the restart noticed while ``step``'s last samples were awaited (if any), now that
+        they decided: ``complete`` -- the step is done and the restart lies before the step that
+        follows it (or after the last); else the step is sampled again."""
+        t, self._tail_restart = self._tail_restart, None
+        if t is None:
+            return
+        if not complete:
+            self._restart_said(t, f"in step {step.index + 1} ({step.label})", step, "is sampled again")
+            return
+        then = self._step_after(step)
+        self._restart_said(t, f"after step {step.index + 1}'s window, " +
+                           (f"before step {then.index + 1}" if then is not None else "the last"),
+                           then, "runs", done=step)
+
+    def _restart_said(self, t: float, where: str, then: Step | None, how: str | None,
+                      done: Step | None = None) -> None:
+        """The one decision for a restart of the IMU noticed at rig time ``t``, s, ``where`` (in a
+        step, after its window, between steps, in the end-of-run safe state): the
+        ``device-restart`` event and its one run-log line say what the engine then does, and
+        :attr:`rewarm` is set to do it. ``then``: the step that runs next (``how``: 'runs' or 'is
+        sampled again' -- the step the restart cut off); None: no step runs after it (the last
+        window is done), so no warm-up is promised or planned (a resumed run still warms up
+        first: :func:`rewarm_due` reads the event). ``done``: the last complete step, when the
+        engine has not recorded it yet (:attr:`_last_done` otherwise)."""
+        done, warm = done or self._last_done, self._warmup
+        last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        if then is None:
+            plan = what = "no step runs after it"
+        else:
+            plan = f"warm-up re-runs ({warm.sample_s:g} s)" if warm is not None else "no warm-up to re-run"
+            nxt = f"step {then.index + 1} {how}"
+            what = (f"the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again first, then {nxt}"
+                    if warm is not None else f"the procedure has no warm-up to run again; {nxt}")
+            if warm is not None:
+                self.rewarm = f"the IMU restarted {where}"
         self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
                                                 f"{last}; {plan}")
-        nxt = f"step {step.index + 1} is sampled again" if step is not None else "the run goes on with the next step"
-        what = (f"the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again first, then {nxt}"
-                if warm is not None else f"the procedure has no warm-up to run again; {nxt}")
         self.log("warning", f"the IMU restarted {where} (its device time began again: it lost power, so its "
-                            f"turn-on bias is new and it is cold): {what}")
-        if warm is not None:
-            self.rewarm = f"the IMU restarted {where}"
-        return f"IMU restarted {where} (device time began again)"
+                            f"turn-on bias is new and it is cold): {last}; {what}")
 
     def _watch_pace(self, t: float) -> None:
         """Say once, early, when rig time runs slower than the clock's speed asks: a clock that
@@ -589,6 +648,7 @@ class Engine:
             self._temps = deque()
             first = self.rec.n_imu
             self.sampling_from = first
+            self._sampled = True
             t_wait = clock.now()
             try:
                 while True:
@@ -626,13 +686,14 @@ class Engine:
     def execute(self, step: Step) -> Segment:
         """Command, settle, discard the transient, sample, and record the segment."""
         if step.kind in CHAMBER_KINDS:
-            self.current_step = step
+            self.current_step, self._sampled = step, False
             try:
                 return self.chamber_step(step)
             finally:
                 self.current_step = None
         self.current_step = step
         self.sampling_from = None
+        self._sampled = False
         # recent blocks as (row of the block's first sample, its IMU times): flat memory
         self._track, self._win_start, self._first_row = deque(maxlen=256), None, None
         clock = self.rig.clock
@@ -650,6 +711,7 @@ class Engine:
                 self._first_row, self._first_time = row0 + i, float(times[i])
                 break
         self.sampling_from = self.rec.n_imu
+        self._sampled = True
         if step.prompt and self.rig.operator is not None:
             self.rig.operator.prompt(step, t_start, step.sample_s)
         n_polls, sum_angle, sum_rate = 0, np.zeros(3), np.zeros(3)  # running sums: flat memory
@@ -672,8 +734,10 @@ class Engine:
             self._check_window(step, t_start, t_end, first, last, t_last)
         else:   # tripped while the window's last samples were awaited: they decide
             want, n, _, covered, short = self._window_cover(t_start, t_end, first, last, t_last)
-            if not self._tail_whole(tail, want, n, short):   # they stopped inside it: as
-                self._tail_covered = covered                        # a trip while sampling
+            whole = self._tail_whole(tail, want, n, short)
+            self._tail_restart_said(step, complete=whole)
+            if not whole:   # they stopped inside it: as a trip while sampling
+                self._tail_covered = covered
                 raise tail
             self.rec.add_event(clock.now(), "info",
                                f"step {step.index + 1} ({step.label}): {', '.join(tail.reasons)} tripped "
@@ -712,12 +776,19 @@ class Engine:
         clock = self.rig.clock
         speed = float(getattr(clock, "speed", 1.0))
         wait_until = clock.now() + max(2.0, 4 * self.sample_poll_s, WINDOW_WAIT_WALL_S * speed)
-        while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
-            clock.sleep(self.settle_poll_s)
-            try:
-                self.poll(check=self._tail_sus is None)
-            except Suspend as sus:  # the window is over: its samples decide (execute), so the
-                self._tail_sus = sus  # wait goes on for those still in flight
+        self._awaiting_tail, self._tail_restart = True, None
+        try:
+            while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
+                clock.sleep(self.settle_poll_s)
+                try:
+                    self.poll(check=self._tail_sus is None)
+                except Suspend as sus:  # the window is over: its samples decide (execute), so the
+                    self._tail_sus = sus  # wait goes on for those still in flight
+        except BaseException:       # interrupted: the step is cut off (a restart: in it)
+            self._tail_restart_said(self.current_step, complete=False)
+            raise
+        finally:
+            self._awaiting_tail = False
         track, first = self._track, self._first_row
         self._track, self._win_start, self._first_row = None, None, None
         if first is None:  # no sample inside the window arrived
@@ -796,7 +867,7 @@ class Engine:
         again from its start. ``stop_first`` (a resumed run): stop the table before any motion,
         see :meth:`stop_first`."""
         segments = []
-        motion = [s for s in steps[start:] if s.is_motion]
+        motion = self._motion = [s for s in steps[start:] if s.is_motion]
         if self.states.state == "idle":
             self.states.to("running", f"{len(motion)} steps to run")
         if stop_first is not None:
@@ -832,7 +903,6 @@ class Engine:
                         if sus.segment is None:     # cut off: it runs again
                             self.suspend(self._warmup, sus)
                         else:                       # complete; the pause comes before the step
-                            self.rewarm = None
                             self.suspend(step, sus, between_steps=True)
                     continue
             self.log("step", f"[{n + 1}/{len(motion)}] {step.describe()}", echo=False)
@@ -868,9 +938,16 @@ class Engine:
         self.rec.add_event(self.rig.clock.now(), "info",
                            f"re-warm: step {warm.index + 1} ({warm.label}, {warm.sample_s:g} s) again, "
                            f"{self.rewarm}; then step {before.index + 1} ({before.label})")
-        self.execute(self._warmup_left(warm))
+        why, self.rewarm, self._rewarm_before = self.rewarm, None, before  # a restart from here on
+        try:                                                                 # sets it anew
+            self.execute(self._warmup_left(warm))
+        except Suspend as sus:
+            if sus.segment is None and self.rewarm is None:    # cut off: it runs again
+                self.rewarm = why
+            raise
+        finally:
+            self._rewarm_before = None
         self.warmup_done.pop(warm.index, None)
-        self.rewarm = None
 
     # -- suspension ------------------------------------------------------------------------------
     #: suspenders after which the IMU may have been without power: a warm-up starts over

@@ -33,7 +33,37 @@ positions, conservative: neighbouring positions overlap) at that share, *allowin
 scale's own estimation error*: s(L)^2 / (2 sigma_A^2) is taken as chi2(nu)/nu with nu =
 :data:`MAD_EFFICIENCY` x the number of independent windows (T / L - 2), and z* solves
 
-    E_r[ min(1, 2 M Phi(-z* r)) ] = ALPHA / n_scales,   r^2 ~ chi2(nu) / nu.
+    E_r[ min(1, 2 M Phi(-z* r)) ] = ALPHA / n_scales,   r^2 ~ chi2(nu) / nu
+
+(for Gaussian D; below for white phase noise).
+
+**Non-Gaussian white PM.** Where the record's noise at L is white phase noise (a counter's
+time-interval readings, an IMU's angle quantization), D is no average: with the phase X (the
+running sum of the rate), D(t, L) = (X[t + L] - 2 X[t] + X[t - L]) / L combines three
+readings, and is as non-Gaussian as they are. The Keysight 53230A's readings (skewed,
+quantized to ~5 ps) put 24 times the Gaussian probability beyond z = 5.3 in one tail of D,
+and the Gaussian threshold raised a false step on 6 of 100 shuffles of them. So the tail of
+z is taken from the record's own readings wherever their white PM is a share a^2 >=
+:data:`MIN_PM_SHARE` of Var D:
+
+    z = a U + b G,   U = (p1 - 2 p2 + p3) / (sqrt 6 sd p),   a^2 = 6 sigma_p^2 / (L^2 s^2),
+
+p1, p2, p3 independent draws from the readings' empirical law (the exact law of D under the
+readings shuffled, which keeps their distribution and takes out any time structure: the null
+of white PM; computed by FFT convolution of their histogram, not by drawing), G standard
+normal for the rest of D (an average of many terms; b^2 = 1 - a^2, at least
+:data:`MIN_GAUSS_SHARE`). sigma_p^2 is the lag-2 autocovariance of the rate's first
+differences (sigma_p^2 for white PM, 0 for white FM, little for slower noise), the readings
+the phase less the running median of its :data:`PM_WINDOW` - 1 neighbours (the slower noise
+and a trend taken out, and a glitch kept to its own reading), without those beyond
+:data:`PM_OUTLIER_SD` robust sd (one glitch is the spike screen's). The threshold then solves
+E_r[min(1, M T(z* r))] = alpha / n_scales with T(z) = 2 max(P(z > z), P(z < -z)) of that
+law (never below the Gaussian 2 Phi(-z): the empirical law does not see the tail beyond its
+most extreme reading), and z at such a scale is judged against the mean absolute deviation
+of the half of the D's nearest their median (:func:`trimmed_spread`; a quantized reading's
+lattice holds a median absolute deviation on a few values), the same spread taken of the
+model law. Where white PM carries less than :data:`MIN_PM_SHARE` of Var D (white FM, flicker, random
+walk and Gauss-Markov noise, which D averages over many samples) nothing changes.
 
 **Edges, then excursions.** The positions beyond z* at each scale form runs of one sign; the
 largest |z| of a run is an edge (a step up or down at t). Edges of one sign closer than the
@@ -59,6 +89,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.optimize import brentq
 from scipy.stats import chi2, norm
 
@@ -82,6 +113,26 @@ ALPHA = 0.01
 MAD_EFFICIENCY = 0.37
 #: quantile points of r for the threshold's expectation over the scale's error
 _R_POINTS = 400
+#: the readings of the white phase noise: the block phase less the running median of its
+#: neighbours in a centred window of this many blocks (short: a slower process or an
+#: excursion, a kink of the phase, stays out of the readings -- with a 65-block moving average
+#: the OCXO's excursions raised the 30 s threshold 5.4 -> 6.3 and two were lost; a median: the
+#: Cs5071A's first-point glitch, in a moving average, shifted 16 readings and raised its 30 s
+#: threshold 5.9 -> 7.6)
+PM_WINDOW = 17
+#: below this share of Var D the white PM is not modelled (D taken as Gaussian)
+MIN_PM_SHARE = 0.01
+#: the Gaussian share of z is at least this (it smooths a quantized reading's lattice)
+MIN_GAUSS_SHARE = 0.01
+#: readings farther than this many robust sd from their median are not in the white PM's
+#: law (a glitch of one reading is the spike screen's, and would set the tail by itself)
+PM_OUTLIER_SD = 8.0
+#: the spread used where the white PM is modelled: the mean absolute deviation of the D's
+#: about their median over the TRIM share nearest it (half: as robust as their median absolute
+#: deviation, which the OCXO's excursions need -- with 0.95 two of its excursions were lost) ...
+TRIM = 0.5
+#: ... divided by its value for a standard normal, E[|Z| ; |Z| <= z_(1+TRIM)/2] / TRIM
+_TRIM_GAUSS = float(2.0 * (norm.pdf(0.0) - norm.pdf(norm.isf((1.0 - TRIM) / 2.0))) / TRIM)
 
 
 @lru_cache(maxsize=4096)
@@ -90,11 +141,25 @@ def threshold(m: int, nu: float, alpha: float) -> float:
     nu = inf: the plain Bonferroni threshold Phi^-1(1 - alpha / (2 m))."""
     if not math.isfinite(nu) or nu > 1e6:
         return float(norm.isf(alpha / (2.0 * m)))
-    q = (np.arange(_R_POINTS) + 0.5) / _R_POINTS
-    r = np.sqrt(chi2.ppf(q, nu) / nu)
+    return _solve(m, nu, alpha, lambda z: 2.0 * norm.sf(z))
+
+
+def tail_threshold(m: int, nu: float, alpha: float, tail: "PhaseTail | None") -> float:
+    """z* with E_r[min(1, m T(z* r))] = alpha, r^2 ~ chi2(nu)/nu, T(z) the probability of
+    |z| > z at one position where white PM is part of D (:class:`PhaseTail`, module
+    docstring "Non-Gaussian white PM"); :func:`threshold` when ``tail`` is None."""
+    if tail is None:
+        return threshold(m, nu, alpha)
+    return _solve(m, nu, alpha, tail.sf)
+
+
+def _solve(m: int, nu: float, alpha: float, sf) -> float:
+    """The threshold's equation E_r[min(1, m sf(z* r))] = alpha solved for z*."""
+    r = np.ones(1) if not math.isfinite(nu) or nu > 1e6 else \
+        np.sqrt(chi2.ppf((np.arange(_R_POINTS) + 0.5) / _R_POINTS, nu) / nu)
 
     def excess(z: float) -> float:
-        return float(np.mean(np.minimum(1.0, 2.0 * m * norm.sf(z * r)))) - alpha
+        return float(np.mean(np.minimum(1.0, m * sf(z * r)))) - alpha
 
     lo = float(norm.isf(alpha / (2.0 * m)))
     hi = lo
@@ -103,6 +168,132 @@ def threshold(m: int, nu: float, alpha: float) -> float:
         if hi > 1e6:
             return math.inf
     return float(brentq(excess, lo * 0.5, hi, xtol=1e-4))
+
+
+class PhaseTail:
+    """The tail of z at one position where part of D is the record's white PM (docstring,
+    "Non-Gaussian white PM"): z = a U + b G, U the white-PM combination (p_1 - 2 p_2 + p_3) /
+    (sqrt 6 sd p) of three independent phase readings drawn from the record's own readings
+    (:func:`white_pm_law`; the exact law of the shuffled readings), G standard normal (the
+    rest of D, an average of many terms), a^2 the white PM's share of Var D, a^2 + b^2 = 1
+    (b at least :data:`MIN_GAUSS_SHARE` ** 0.5). :meth:`sf` is T(z) = 2 max(P(z > z0),
+    P(z < -z0)), the two-sided probability a symmetric law with the heavier of the two tails
+    would have (one-sided tests use it as 2 x their tail), tabulated on a grid."""
+
+    __slots__ = ("a", "_z", "_logt")
+    _STEP = 0.005  # grid step (z units)
+
+    def __init__(self, a: float, law: tuple[np.ndarray, np.ndarray]) -> None:
+        u, g = law
+        self.a = float(a)
+        b = math.sqrt(max(1.0 - self.a ** 2, MIN_GAUSS_SHARE))
+        h = self._STEP
+        zmax = max(30.0, self.a * float(np.max(np.abs(u))) + 12.0 * b)
+        n = int(math.ceil(2.0 * zmax / h)) + 1
+        mass = np.bincount(np.clip(np.round((self.a * u + zmax) / h).astype(np.int64), 0, n - 1),
+                           weights=g, minlength=n)
+        k = int(math.ceil(12.0 * b / h))
+        ker = norm.pdf(np.arange(-k, k + 1) * h / b)
+        ker /= ker.sum()
+        size = 1 << int(math.ceil(math.log2(n + ker.size)))
+        conv = np.fft.irfft(np.fft.rfft(mass, size) * np.fft.rfft(ker, size), size)[k:k + n]
+        conv = np.clip(conv, 0.0, None)
+        conv /= conv.sum()
+        grid = -zmax + np.arange(n) * h
+        # z is judged in units of the D's spread about their median (:func:`trimmed_spread`):
+        # the same of this law, so that T is in z's own units
+        cdf = np.cumsum(conv)
+        med = float(np.interp(0.5, cdf, grid))
+        q = np.arange(0.0, zmax - abs(med), h)  # P(|Z - med| <= q), and its TRIM quantile
+        inside = np.interp(med + q, grid, cdf) - np.interp(med - q, grid, cdf, left=0.0)
+        qt = float(np.interp(TRIM, inside, q))
+        sel = q <= qt
+        # E[|Z - med| ; |Z - med| <= qt] / TRIM, from the increments of P(|Z - med| <= q)
+        qs = q[sel]
+        spread = float(np.sum(0.5 * (qs[1:] + qs[:-1]) * np.diff(inside[sel]))) / TRIM / _TRIM_GAUSS
+        upper = np.cumsum(conv[::-1])[::-1]  # P(Z >= grid)
+        zs = np.arange(0.0, 0.999 * (zmax - abs(med)) / spread, h)
+        up = np.interp(med + zs * spread, grid, upper)
+        low = np.interp(med - zs * spread, grid, cdf)
+        self._z = zs
+        self._logt = np.log(np.maximum(2.0 * np.maximum(up, low), 1e-300))
+
+    def sf(self, z: np.ndarray) -> np.ndarray:
+        """T(z) (class docstring), never below the Gaussian 2 Phi(-z): the readings' law is
+        empirical, and its tail beyond the most extreme reading is not seen."""
+        z = np.abs(z)
+        return np.maximum(np.exp(np.interp(z, self._z, self._logt)), 2.0 * norm.sf(z))
+
+
+def trimmed_spread(d: np.ndarray, centre: float) -> float:
+    """The D's spread where the white PM is modelled: mean |d - centre| over the :data:`TRIM`
+    share of them nearest the centre, over its standard-normal value (as robust as the median
+    absolute deviation, but an average of half the D's: a quantized reading's lattice of D
+    values holds the median absolute deviation itself on a few values, +-5 % on the Keysight
+    53230A's)."""
+    a = np.sort(np.abs(np.asarray(d, dtype=float) - centre))
+    k = max(1, int(TRIM * a.size))
+    return float(np.mean(a[:k])) / _TRIM_GAUSS
+
+
+def white_pm_variance(ybar: np.ndarray) -> float:
+    """sigma_p^2 of :func:`white_pm_law`: the lag-2 autocovariance of the first differences
+    of ybar, clipped at 0 (0 for fewer than 4 blocks)."""
+    y = np.asarray(ybar, dtype=float)
+    if y.size < 4:
+        return 0.0
+    dy = np.diff(y)
+    dy = dy - dy.mean()
+    return max(0.0, float(np.mean(dy[2:] * dy[:-2])))
+
+
+def white_pm_law(ybar: np.ndarray,
+                 bins_per_sd: int = 50) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+    """The record's white phase noise: its variance sigma_p^2 in units of the block phase
+    X = cumsum(ybar) (blocks x units of ybar) and the law of U = (p_1 - 2 p_2 + p_3) /
+    (sqrt 6 sd p) for three independent readings drawn from its own readings p
+    (values, probabilities; module docstring, "Non-Gaussian white PM").
+
+    sigma_p^2 is the lag-2 autocovariance of the first differences of ybar (X's second
+    differences at lag 1): p_{i+1} - 2 p_i + p_{i-1} for white PM, whose lag-2 autocovariance
+    is sigma_p^2, while white FM's y_{i+1} - y_i has none (and slower noise little); clipped
+    at 0. The readings: X less the median of its neighbours in :data:`PM_WINDOW` blocks (which
+    takes out the record's slower noise and a linear trend), their empirical law binned at
+    sd / bins_per_sd, combined three times by FFT convolution."""
+    y = np.asarray(ybar, dtype=float)
+    var_p = white_pm_variance(y)
+    if y.size < 4 * PM_WINDOW:
+        return var_p, (np.zeros(1), np.ones(1))
+    x = np.concatenate(([0.0], np.cumsum(y - np.median(y))))
+    half = PM_WINDOW // 2
+    # the median of the reading's neighbours, not of itself too (which pulls the median
+    # towards it and makes Gaussian readings' residuals heavy-tailed: kurtosis 3.25)
+    around = np.delete(sliding_window_view(x, PM_WINDOW), half, axis=1)
+    p = x[half:x.size - half] - np.median(around, axis=1)
+    centre = float(np.median(p))
+    rsd = 1.4826 * float(np.median(np.abs(p - centre)))
+    if rsd > 0:
+        p = p[np.abs(p - centre) <= PM_OUTLIER_SD * rsd]
+    sd = float(np.std(p))
+    if not sd > 0:
+        return var_p, (np.zeros(1), np.ones(1))
+    h = sd / bins_per_sd
+    lo = float(p.min())
+    idx = np.round((p - lo) / h).astype(np.int64)
+    f = np.bincount(idx) / p.size
+    nb = f.size
+    f2 = np.zeros(2 * nb - 1)
+    f2[::2] = f[::-1]  # -2 p on the same grid
+    size = 1 << int(math.ceil(math.log2(4 * nb)))
+    g = np.fft.irfft(np.fft.rfft(f, size) ** 2 * np.fft.rfft(f2, size), size)[:4 * nb - 3]
+    g = np.clip(g, 0.0, None)
+    g /= g.sum()
+    # grid value of index k: 2 lo - 2 (lo + (nb - 1) h) + k h
+    vals = -2.0 * (nb - 1) * h + np.arange(g.size) * h
+    keep = g > 1e-18
+    vals, g = vals[keep], g[keep] / g[keep].sum()
+    mu = float(np.sum(g * vals))
+    return var_p, ((vals - mu) / (math.sqrt(6.0) * sd), g)
 
 
 def scales(n_blocks: int, block_s: float, min_s: float = MIN_S,
@@ -176,9 +367,10 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
                     min_s: float = MIN_S, max_fraction: float = MAX_FRACTION) -> dict:
     """The excursions of the rate's block means ``ybar`` (``block_s`` s each), by the test of
     the module docstring. Returns {"tested", "alpha", "method", "scales_s", "thresholds_z",
-    "robust_adev_si" (s(L)/sqrt(2) per scale), "edges" [{"t_s", "z", "L_s", "threshold_z",
-    "stage"}], "excursions" [{"start_s", "end_s", "duration_s", "size_si", "kind" ("bump",
-    "to the start", "to the end", "level shift"), "z_start", "z_end"}]} in s from the first
+    "robust_adev_si" (s(L)/sqrt(2) per scale), "white_pm_share" (a^2 per scale), "edges"
+    [{"t_s", "z", "L_s", "threshold_z", "stage"}], "excursions" [{"start_s", "end_s",
+    "duration_s", "size_si", "kind" ("bump", "to the start", "to the end", "level shift"),
+    "z_start", "z_end"}]} in s from the first
     block and the units of ybar; tested False (with "skipped") when the record is shorter
     than min_s / max_fraction."""
     y = np.asarray(ybar, dtype=float)
@@ -191,7 +383,8 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
                            f"{min_s:g} s to 1/{1 / max_fraction:g} of the record, judged against "
                            "their robust spread (the robust Allan deviation at that window "
                            "times sqrt 2), family-wise Bonferroni over positions and scales "
-                           "allowing for the spread's estimation error"}
+                           "allowing for the spread's estimation error; where white phase noise "
+                           "is part of them, the tail of the record's own phase readings"}
     Ls = scales(n, block_s, min_s, max_fraction)
     if not Ls:
         out["skipped"] = (f"the record ({t_rec:.0f} s) is shorter than {min_s / max_fraction:.0f} s "
@@ -199,8 +392,24 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
         return out
     scans = [step_scan(y, L) for L in Ls]
     a_scale = alpha / len(Ls)
+    var_p = white_pm_variance(y)
+    law = None  # the readings' law: only where some scale needs it
+    tails: dict[float, PhaseTail] = {}
     for sc in scans:
-        sc["thr"] = threshold(int(sc["t"].size), round(sc["nu"], 3), a_scale) \
+        share = min(1.0, 6.0 * var_p / (sc["L"] ** 2 * sc["spread"] ** 2)) \
+            if sc["spread"] > 0 else 0.0
+        sc["pm_share"] = share
+        sc["tail"] = None
+        if share >= MIN_PM_SHARE:
+            a = round(math.sqrt(share), 3)  # the same share at several scales: one table
+            if a not in tails:
+                if law is None:
+                    law = white_pm_law(y)[1]
+                tails[a] = PhaseTail(a, law)
+            sc["tail"] = tails[a]
+            sc["spread"] = trimmed_spread(sc["d"], sc["centre"])
+            sc["z"] = (sc["d"] - sc["centre"]) / sc["spread"]
+        sc["thr"] = tail_threshold(int(sc["t"].size), round(sc["nu"], 3), a_scale, sc["tail"]) \
             if sc["spread"] > 0 else math.inf
     edges = []
     for sc in scans:
@@ -300,6 +509,7 @@ def find_excursions(ybar: np.ndarray, block_s: float, alpha: float = ALPHA,
     out.update({"tested": True, "block_s": block_s, "record_s": t_rec,
                 "scales_s": [L * block_s for L in Ls],
                 "thresholds_z": [sc["thr"] for sc in scans],
+                "white_pm_share": [sc["pm_share"] for sc in scans],
                 "robust_adev_si": [sc["spread"] / math.sqrt(2.0) for sc in scans],
                 "edges": [{"t_s": e["t"] * block_s, "z": e["z"], "L_s": e["L"] * block_s,
                            "threshold_z": e["thr"], "stage": e["stage"]} for e in edges],
@@ -330,7 +540,7 @@ def _opposite_steps(scans: list[dict], e: dict, lo: int, hi: int, a_scale: float
         m = int(sel.sum())
         if m == 0:
             continue
-        thr = threshold(m, round(sc["nu"], 3), 2.0 * a_scale)  # one-sided: alpha, not alpha/2
+        thr = tail_threshold(m, round(sc["nu"], 3), 2.0 * a_scale, sc.get("tail"))  # one-sided
         zz = np.where(sel, sign * z, 0.0)
         for t, v in _runs(zz, thr, ts, sc["L"]):
             if v > 0 and not any(abs(f["t"] - t) <= max(f["L"], sc["L"]) for f in found):
