@@ -78,9 +78,20 @@ def one_capture(path: Path, noise: dict, fs: float, n: int, seed: int) -> dict:
                       "bound_from": c.bound_from, "unit": unit}
         row["gm"] = bool(r["fit"].get("gm"))
         row["R_resolved"] = bool(co.R.resolved)  # a ramp the emulator does not have (R = 0)
-        row["check_ok"] = bool(r["fit"]["check"]["ok"])
+        chk = r["fit"]["check"]
+        row["check_ok"] = bool(chk["ok"])
+        row["check_completed"] = completed_check(chk)
         out[ax] = row
     return out
+
+
+def completed_check(check: dict) -> dict:
+    """The self-check's completed chi-square, its dof, the resolved total's dof and the
+    bounded terms' fractions of their bounds (benchmarks/allan_completed_dof.py)."""
+    return {"chi2": float(check["completed"]["chi2"]), "dof": int(check["completed"]["dof"]),
+            "dof_rep": int(check["dof"]), "p_value": float(check["completed"]["p_value"]),
+            "fraction_of_bound": {k: float(v["fraction_of_bound"])
+                                  for k, v in check["bounded_terms"].items()}}
 
 
 def truths(noise: dict) -> dict:
