@@ -2,11 +2,14 @@
 list of CLI modules they protect, and the size of those CLI modules.
 
 drivers/ and sim/ are installed as rigctl.drivers and rigctl.sim (package-dir in pyproject.toml),
-so lint-imports, which reads the package's folder, would not see them under rigctl/. The test
-builds a tree with rigctl/* linked in and each mapped sub-package linked at its installed place,
-and runs lint-imports there with the repository's pyproject.toml. A second tree with planted
-violations checks that every contract can fail, that drivers, sim and solvers are seen, and
-that a module of rigctl/ in no layer is reported.
+so lint-imports, which reads the package's folder, would not see them under rigctl/ (under the
+editable install they exist only in setuptools' finder hook: tests/lint_layers.py says why).
+tests/lint_layers.py -- the command docs/architecture.md gives developers -- builds a tree with
+rigctl/* linked in and each mapped sub-package linked at its installed place, and runs
+lint-imports there with the repository's pyproject.toml; these tests use it. A second tree with
+planted violations checks that every contract can fail, that drivers, sim and solvers are seen,
+and that a module of rigctl/ in no layer is reported; the command itself is run as documented,
+on this checkout and on one with a broken import.
 """
 from __future__ import annotations
 
@@ -18,6 +21,8 @@ from pathlib import Path
 
 import pytest
 
+from lint_layers import link_tree, lint
+
 ROOT = Path(__file__).resolve().parent.parent
 PYPROJECT = ROOT / "pyproject.toml"
 CONFIG = tomllib.loads(PYPROJECT.read_text())
@@ -27,49 +32,8 @@ CMD_MODULES = sorted(p.stem for p in (ROOT / "rigctl" / "commands").glob("*_cmd.
 MOVING: set[str] = set()  # (allan_cmd: its pipeline is in rigctl/analysis/allan.py)
 
 
-def _link_tree(dest: Path, planted: dict[str, str] | None = None) -> Path:
-    """dest/rigctl as installed: rigctl/* linked, plus every package-dir mapping outside rigctl/
-    (rigctl.drivers -> drivers, rigctl.sim -> sim). ``planted``: {"sub/name.py": source} adds
-    files (the sub-package's entries are then linked one by one); {"name.py": source} for a
-    module of rigctl/ appends ``source`` to a copy of it."""
-    pkg = dest / "rigctl"
-    pkg.mkdir(parents=True)
-    mapping = CONFIG["tool"]["setuptools"]["package-dir"]
-    subs = {name.split(".", 1)[1]: ROOT / src for name, src in mapping.items()
-            if name.count(".") == 1 and Path(src).parts[0] != "rigctl"}
-    assert {"drivers", "sim"} <= set(subs), mapping
-    entries = {p.name: p for p in (ROOT / "rigctl").iterdir() if p.name != "__pycache__"}
-    entries.update(subs)
-    planted = planted or {}
-    planted_dirs = {k.split("/")[0] for k in planted}
-    for name, src in entries.items():
-        if name in planted and src.is_file():
-            (pkg / name).write_text(src.read_text() + "\n" + planted.pop(name))
-        elif name in planted_dirs:
-            (pkg / name).mkdir()
-            for p in src.iterdir():
-                rel = f"{name}/{p.name}"
-                if rel in planted and p.is_file():  # a copy: never write through a link
-                    (pkg / rel).write_text(p.read_text() + "\n" + planted.pop(rel))
-                elif p.name != "__pycache__":
-                    (pkg / name / p.name).symlink_to(p)
-        else:
-            (pkg / name).symlink_to(src)
-    for rel, text in planted.items():
-        (pkg / rel).write_text(text)
-    return dest
-
-
-def _lint(tree: Path) -> subprocess.CompletedProcess:
-    exe = Path(sys.executable).parent / "lint-imports"
-    assert exe.exists(), "import-linter is part of the test extra: pip install -e '.[test]'"
-    env = dict(os.environ, PYTHONPATH=str(tree), COLUMNS="400")  # no wrapped lines
-    return subprocess.run([str(exe), "--no-cache", str(PYPROJECT)], cwd=tree, env=env,
-                          capture_output=True, text=True, timeout=300)
-
-
 def test_the_contracts_hold(tmp_path: Path) -> None:
-    r = _lint(_link_tree(tmp_path))
+    r = lint(link_tree(tmp_path))
     assert r.returncode == 0, r.stdout[-6000:] + r.stderr[-3000:]
     assert f"{len(CONTRACTS)} kept, 0 broken" in r.stdout, r.stdout[-3000:]
 
@@ -86,7 +50,7 @@ def test_the_contracts_can_fail(tmp_path: Path) -> None:
         "analysis/_planted.py": "from rigctl.report import report\n",
         "engine/engine.py": "from rigctl.analysis import sync as _planted\n",
     }
-    r = _lint(_link_tree(tmp_path, planted))
+    r = lint(link_tree(tmp_path, planted))
     assert r.returncode != 0, r.stdout[-3000:]
     out = r.stdout
     for c in CONTRACTS.values():
@@ -114,3 +78,32 @@ def test_cli_modules_stay_thin(name: str) -> None:
     """A *_cmd module parses, calls the application layer and prints: at most 200 lines."""
     n = len((ROOT / "rigctl" / "commands" / f"{name}.py").read_text().splitlines())
     assert n <= 200, f"rigctl/commands/{name}.py has {n} lines; move its logic into rigctl/analysis/"
+
+
+def _command(*args: str) -> subprocess.CompletedProcess:
+    """The developers' command of docs/architecture.md, run from the repository root."""
+    return subprocess.run([sys.executable, "tests/lint_layers.py", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300, env=dict(os.environ, COLUMNS="400"))
+
+
+def test_the_documented_command_keeps_the_contracts() -> None:
+    r = _command()
+    assert r.returncode == 0, r.stdout[-6000:] + r.stderr[-3000:]
+    assert f"{len(CONTRACTS)} kept, 0 broken" in r.stdout, r.stdout[-3000:]
+
+
+def test_the_documented_command_fails_on_a_broken_import(tmp_path: Path) -> None:
+    """A checkout whose drivers/ imports the application layer (and whose rigctl/ is this one):
+    the command exits non-zero and prints the chain, so it sees drivers/ as rigctl.drivers."""
+    repo = tmp_path / "repo"
+    (repo / "drivers").mkdir(parents=True)
+    for name in ("pyproject.toml", "rigctl", "sim"):
+        (repo / name).symlink_to(ROOT / name)
+    for p in (ROOT / "drivers").iterdir():
+        if p.name != "__pycache__":
+            (repo / "drivers" / p.name).symlink_to(p)
+    (repo / "drivers" / "_planted.py").write_text("from rigctl.analysis import results\n")
+    r = _command("--root", str(repo))
+    assert r.returncode != 0, r.stdout[-3000:]
+    assert f"{CONTRACTS['layers']['name']} BROKEN" in r.stdout, r.stdout[-4000:]
+    assert "rigctl.drivers._planted -> rigctl.analysis.results" in r.stdout, r.stdout[-4000:]
