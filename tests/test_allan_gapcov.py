@@ -128,15 +128,8 @@ def test_identical_stretches_average_and_one_stretch_is_todays() -> None:
 def test_long_stretches_pool_the_one_record_covariances() -> None:
     """Two long stretches (the Gauss-Legendre path, kinks of W inside the lag ranges): the
     summed pair count gives sum_s n_s(a) n_s(b) Cov_s(a, b) / (N(a) N(b)) with Cov_s the
-    one-record covariance of each stretch (Gauss-Legendre on both: GAPPED_DISCRETE_LAGS = 0).
-    White and random-walk FM (piecewise polynomial kernels, integrated exactly on either mesh)
-    to rounding: (N, N) to 1e-9, the K pairs to 1e-8 of the Cauchy-Schwarz bound
-    sqrt(C_tt(a, a) C_uu(b, b)) (measured 1.5e-9; R_K at m_a = 1 is a second difference at
-    step 1 of |t|^3 ~ m_b^3 and keeps ~9 digits, so the entries move by up to 3.6e-7 of
-    themselves where the nodes differ). Flicker: the gapped mesh is graded toward the taps (within
-    ~1e-7 of the exact lag sums: test_allan_gm_gapped_fast), the one-record mesh is not; they
-    differ by up to 6.8e-2 of the smallest (B, B) entries (m_a = 1, m_b = 9e4), within 1e-3 of
-    the bound (measured 5.2e-4)."""
+    one-record covariance of each stretch (the same quadrature: GAPPED_DISCRETE_LAGS = 0).
+    White and random-walk FM to 1e-9; flicker's log kernel to 1 % (the breakpoints differ)."""
     ms = np.unique(np.round(np.logspace(0, np.log10(90_000), 24)))
     st = np.array([200_000, 299_997])
     n_s = np.maximum(0.0, st[None, :] + 1 - 2 * ms[:, None])
@@ -157,13 +150,8 @@ def test_long_stretches_pool_the_one_record_covariances() -> None:
     for p in C.PAIRS:
         if "Q" in p:  # the one-record code leaves Q out of the quadrature
             continue
-        if p == ("N", "N"):
-            np.testing.assert_allclose(got[p], want[p], rtol=1e-9, atol=0.0, err_msg=str(p))
-            continue
-        t, u = p
-        bound = np.sqrt(np.outer(np.diag(want[(t, t)]), np.diag(want[(u, u)])))
-        tol = 1e-3 if "B" in p else 1e-8
-        assert np.max(np.abs(got[p] - want[p]) / bound) < tol, p
+        tol = 1e-2 if "B" in p else 1e-9
+        np.testing.assert_allclose(got[p], want[p], rtol=tol, atol=0.0, err_msg=str(p))
 
 
 # --- the real Astro Pi record --------------------------------------------------------------

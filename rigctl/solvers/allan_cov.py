@@ -231,9 +231,7 @@ def gapped_term_covariances(tau0: float, ms: np.ndarray, stretch_samples: np.nda
     lag range. W is piecewise linear with 4 kinks per distinct length, evaluated exactly
     (np.interp on its values at the kinks). A pair is summed over integer lags where
     m_a + m_b <= DISCRETE_MAX or its lag range holds at most GAPPED_DISCRETE_LAGS lags, else
-    integrated with Gauss-Legendre between the kinks of R and W and breakpoints graded toward
-    the taps (:func:`_graded`; flicker's pairs within ~1e-7 of the exact lag sums where the
-    lag range covers the stretches). One stretch: identical to
+    integrated with Gauss-Legendre between the kinks of R and W. One stretch: identical to
     :func:`term_covariances` (it is called). ``tc``: as there (the Gauss-Markov pairs; a GM
     rate is correlated across a gap as e^(-gap / Tc), which is neglected like flicker's)."""
     st = np.asarray(stretch_samples, dtype=np.int64)
@@ -307,26 +305,6 @@ def _gapped_pairs(ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray):
                 yield a, b, kn, val, ma, mb, s, lo, hi, k_lo, k_hi
 
 
-#: breakpoints graded by 4 toward every tap of a Gauss-Legendre pair (gapped paths): at
-#: tap +- (m_a + m_b) 4^-j, j = 1, 2, ... while (m_a + m_b) 4^-j >= min(m_a, m_b) / 16
-_B_LEVELS = 4.0 ** -np.arange(1.0, 41.0)
-_B_FLOOR = 1.0 / 16.0
-
-
-def _graded(taps: np.ndarray, s: float, ma: float, mb: float) -> np.ndarray:
-    """Breakpoints graded toward the nine taps of a pair (m_a, m_b), s = m_a + m_b (samples):
-    tap +- s 4^-j down to min(m_a, m_b) / 16. Flicker's R_ab has t^2 ln|t| at every tap and
-    falls off as 1/(k - tap)^2 between them, on the scale of the smaller factor where the
-    factors differ (the taps come in clusters m_a apart, m_b between clusters): 8-point
-    Gauss-Legendre between the kinks alone missed the exact lag sums by up to 2.6e-2 (B, B) and
-    6e-3 (B, G) (m_a = 200, m_b = 6e4); on intervals [d, 4 d] from a tap the integrand's
-    nearest singularity is d away (error ~3^-16 per interval)."""
-    off = s * _B_LEVELS
-    off = off[off >= min(ma, mb) * _B_FLOOR]
-    return np.concatenate([(taps[:, None] + off[None, :]).ravel(),
-                           (taps[:, None] - off[None, :]).ravel()])
-
-
 def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray) -> dict:
     ms = np.asarray(ms, dtype=float)
     n = ms.size
@@ -343,8 +321,7 @@ def _gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray
             continue
         taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
         geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
-        bp = np.concatenate([[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn,
-                             _graded(taps, s, ma, mb)])
+        bp = np.concatenate([[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn])
         bp = np.unique(bp[(bp >= k_lo) & (bp <= k_hi)])
         half = 0.5 * np.diff(bp)
         mid = 0.5 * (bp[1:] + bp[:-1])
@@ -420,17 +397,16 @@ def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) ->
     -Tc^2 sum_taps c e^(-|t - tap| / Tc) (the kernel directly where h > 1e3 (m_a + m_b));
     R_G R_G is followed past the other terms' lag range (16 (m_a + m_b)) to 64 h by its
     exponential tail (R_G times flicker's R there is neglected: both are small). The gapped
-    path does the same per pair with 8-point Gauss-Legendre, breakpoints graded toward the taps
-    (:func:`_graded`) and at h, 4 h, 16 h either side of them where h < (m_a + m_b) / 4. The
-    kernel is not a polynomial, so the quadrature is not exact: against the exact integer-lag
-    sums (4e5 phase points, m from 5 to 3000, h from 1 to 1e4 samples) the diagonal was
-    within 1.3e-4 and the largest entries within 7.9e-3, both from the white-FM-like part's
-    sum-vs-integral difference, which N's own kernel has too (2.6e-4 and 2e-2 there); against
-    a brute force from the exact phase covariance see tests/test_allan_gmcov.py. (Q, G) is
-    summed exactly at white PM's taps past DISCRETE_MAX, as Q's other pairs
-    (:func:`_q_tap_sums`). Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s
-    for the first (the mesh, kept per (tau0, ms, n_phase)); the matrices are kept per Tc too
-    (the fits try one Tc after another and come back to them)."""
+    path does the same per pair with 8-point Gauss-Legendre and breakpoints at h, 4 h, 16 h
+    either side of the taps where h < (m_a + m_b) / 4. The kernel is not a polynomial, so the
+    quadrature is not exact: against the exact integer-lag sums (4e5 phase points, m from 5
+    to 3000, h from 1 to 1e4 samples) the diagonal was within 1.3e-4 and the largest entries
+    within 7.9e-3, both from the white-FM-like part's sum-vs-integral difference, which N's
+    own kernel has too (2.6e-4 and 2e-2 there); against a brute force from the exact phase
+    covariance see tests/test_allan_gmcov.py. (Q, G) is summed exactly at white PM's taps
+    past DISCRETE_MAX, as Q's other pairs (:func:`_q_tap_sums`). Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s for the first
+    (the mesh, kept per (tau0, ms, n_phase)); the matrices are kept per Tc too (the fits try
+    one Tc after another and come back to them)."""
     return _gm_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase),
                       float(tc))
 
@@ -642,9 +618,7 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
 #: sums on long stretches (its 8-point mesh with breakpoints at h, 4 h, 16 h from the taps
 #: against the contiguous kernel's fixed 4-point mesh; one stretch of 2e6 samples at 2 kHz,
 #: Tc 0.01-100 s: (G, G) within 2e-9 instead of up to 5.2e-6, (K, G) within 1.1e-9 instead of
-#: 1.2e-6; (B, G) the other way, up to 1.3e-4 against 5e-6, the quadrature's part of which the
-#: breakpoints graded toward the taps (_graded) removed; flicker x GM past 16 (m_a + m_b) is
-#: not followed (up to 1.1e-4 at Tc 100 s): see docs/allan.md).
+#: 1.2e-6; (B, G) the other way, up to 1.3e-4 against 5e-6: see docs/allan.md).
 GM_LONG_MIN = 20000
 GM_LONG_LENGTHS = 4
 
@@ -720,7 +694,7 @@ def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np
 
 #: the constants the compiled pair loop reads, as the numpy loop has them
 _GM_CONSTS = (_C, np.array(_PHI_SERIES), _GL_X, _GL_W, np.array([1.0, 2.0, 4.0, 8.0, 16.0]),
-              _GM_NEAR, _GM_TAIL, _B_LEVELS, _B_FLOOR)
+              _GM_NEAR, _GM_TAIL)
 
 
 @functools.lru_cache(maxsize=8)
@@ -788,8 +762,7 @@ def _gm_gapped_loop_numpy(tau0: float, ms: np.ndarray, lengths: np.ndarray,
         else:
             taps = np.array([j * ma - l * mb for j in range(3) for l in range(3)])
             geo = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
-            parts = [[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn,
-                     _graded(taps, s, ma, mb)]
+            parts = [[k_lo, k_hi], taps, lo - s * geo, hi + s * geo, kn]
             if h < s / 4.0:
                 off = h * _GM_NEAR
                 parts += [(taps[:, None] + off[None, :]).ravel(),

@@ -10,9 +10,8 @@ returns the lag sums::
 
 (for t = G plus R_G^2 W followed past the lag range by its exponential tail,
 e^(-2 |k - k_end| / h), to the end of W), over the integer lags where the pair is summed
-exactly, else by 8-point Gauss-Legendre between the kinks of R and W, breakpoints graded by 4
-toward the nine taps (allan_cov._graded), and at h, 4 h, 16 h either side of them where
-h < (m_a + m_b) / 4; Q exactly at its taps there. At
+exactly, else by 8-point Gauss-Legendre between the kinks of R and W (and at h, 4 h, 16 h
+either side of the nine taps where h < (m_a + m_b) / 4); Q exactly at its taps there. At
 integer lags R_t is read from tables of the kernels at the integer lags that the caller
 makes with numpy (the same numbers as evaluating the kernels there); elsewhere the kernels
 are evaluated here. The lag sums are Neumaier-compensated: they differ from numpy's
@@ -162,13 +161,12 @@ if HAVE_NUMBA:
     @njit(cache=_CACHE, nogil=True)
     def _pair_sums(tau0, tc, ma_all, mb_all, klo_all, khi_all, disc_all, kn_all, val_all,
                    kn_off, tab_n, tab_b, tab_k, tab_g, amp_r, amp_l, rg_taps, c3, series, glx,
-                   glw, geo, near, tail, levels, floor, out):  # pragma: no cover - compiled
+                   glw, geo, near, tail, out):  # pragma: no cover - compiled
         h = tc / tau0
         s = np.zeros(N_SUMS)
         c = np.zeros(N_SUMS)
         taps = np.empty(9)
-        nb_max = (2 + 9 + 2 * geo.size + 2 * 9 * near.size + 2 * 9 * levels.size
-                  + (kn_off[1:] - kn_off[:-1]).max())
+        nb_max = 2 + 9 + 2 * geo.size + 2 * 9 * near.size + (kn_off[1:] - kn_off[:-1]).max()
         bp = np.empty(nb_max)
         cand = np.empty(2 + 9 + 2 * geo.size)
         for p in range(ma_all.size):
@@ -231,18 +229,6 @@ if HAVE_NUMBA:
                     if v >= k_lo and v <= k_hi:
                         bp[nb] = v
                         nb += 1
-                # graded toward every tap (allan_cov._graded: the same products)
-                mmin = min(ma, mb) * floor
-                for sg in (1.0, -1.0):
-                    for i in range(9):
-                        for q in range(levels.size):
-                            off = sm * levels[q]
-                            if not off >= mmin:
-                                break
-                            v = taps[i] + sg * off
-                            if v >= k_lo and v <= k_hi:
-                                bp[nb] = v
-                                nb += 1
                 if h < sm / 4.0:
                     for sg in (1.0, -1.0):
                         for i in range(9):
@@ -311,8 +297,8 @@ def gm_pair_sums(tau0: float, tc: float, ma: np.ndarray, mb: np.ndarray, k_lo: n
     integer lags), W's knots and values kn[kn_off[p]:kn_off[p + 1]], val[...] per pair;
     ``r_g``: R_G where the tails start (right and left end of the lag sum, per pair) and at
     the nine taps j m_a - l m_b (pairs x 9, j major); ``consts``: (c, phi series, GL nodes,
-    GL weights, kink multiples, near multiples of h, tail multiples of h, the graded
-    breakpoints' levels and floor) as allan_cov has them. tau0, tc in s."""
+    GL weights, kink multiples, near multiples of h, tail multiples of h) as allan_cov has
+    them. tau0, tc in s."""
     out = np.zeros((ma.size, N_SUMS))
     if ma.size:
         _pair_sums(float(tau0), float(tc), ma, mb, k_lo, k_hi, disc, kn, val, kn_off,
