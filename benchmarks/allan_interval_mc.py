@@ -31,21 +31,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+import _common  # noqa: F401  first: one BLAS thread before numpy loads; tests/, benchmarks/ importable
 
 import numpy as np  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 from allan_quickstart_cov import clopper_pearson  # noqa: E402
 from recording_helpers import write_recording  # noqa: E402
 

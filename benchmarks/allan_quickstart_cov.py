@@ -17,20 +17,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+from _common import ROOT  # first: one BLAS thread before numpy loads; tests/, benchmarks/ importable
 
 import numpy as np  # noqa: E402
 from scipy.stats import beta  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
 from recording_helpers import write_recording  # noqa: E402
 
 from rigctl.analysis import allan as AA  # noqa: E402

@@ -29,7 +29,8 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
-from scipy import signal
+
+from .iir import lfilter
 
 
 # ---------------------------------------------------------------------------- declared errors
@@ -193,7 +194,7 @@ class ClockModel:
         """(t_true (n,), keep (n,) bool, period error e (n,) ppm) for the next n output samples."""
         if self.wander_ppm > 0:
             w = self._rng_w.standard_normal(n) * (self.wander_ppm * np.sqrt(1 - self._phi**2))
-            g, zf = signal.lfilter([1.0], [1.0, -self._phi], w, zi=self._phi * self._g)
+            g, zf = lfilter([1.0], [1.0, -self._phi], w, self._phi * self._g)
             self._g = g[-1:].copy()
             del zf
         else:

@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
-from scipy import signal
 
 from . import effects as fx
 from . import fused as _fused
@@ -328,7 +327,7 @@ class ImuErrorModel:
                              prev.copy(), *p, *dummy, *dummy, 1, f1, w1)
             for fe, x0 in zip(fes, (f1[0], w1[0])):
                 if fe._sos is not None and fe._zi is None:
-                    fe._zi = signal.sosfilt_zi(fe._sos)[:, None, :] * x0[None, :, None]
+                    fe._zi = fe.steady_state(x0)
         filt = [(fe._sos, fe._zi) if fe._sos is not None else (np.zeros((1, 6)), np.zeros((1, 3, 2)))
                 for fe in fes]
         flags = np.array(eff + [fes[0]._sos is not None, fes[1]._sos is not None])

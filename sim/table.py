@@ -7,9 +7,11 @@ acceleration) and a servo whose tracking error ``e`` obeys
 
 (a position loop with velocity feed-forward: no error at constant rate, a lag under
 acceleration, overshoot and ringing after each acceleration change). The actual motion is
-``profile + e``. The error filter is discretised exactly for a zero-order-hold input with
-scipy.signal and run with ``lfilter`` over whole blocks, carrying its state between blocks, so
-a virtual-time run costs a few vectorised calls per block rather than a Python loop per tick.
+``profile + e``. The error filter is discretised exactly for a zero-order-hold input
+(scipy.signal's ``cont2discrete``) and run with ``lfilter`` over whole blocks, carrying its state
+between blocks, so a virtual-time run costs a few compiled calls per block rather than a Python
+loop per tick (both from :mod:`rigctl.sim.iir`: scipy's arithmetic, without importing
+scipy.signal).
 
 Optional imperfections (all off by default, SI in :class:`ServoParams`):
 
@@ -36,9 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
-
 from rigctl.devices import AxisStatus
+
+from .iir import cont2discrete_zoh, lfilter
 
 OFF, POSITION, RATE = 0, 1, 2
 
@@ -221,8 +223,8 @@ class TableAxis:
         wn, z = 2 * math.pi * servo.natural_hz, servo.damping
         den = [1.0, 2 * z * wn, wn * wn]
         self._wn2, self._2zwn = wn * wn, 2 * z * wn
-        self._b_e, self._a_e, _ = signal.cont2discrete(([-1.0], den), dt, method="zoh")
-        self._b_de, self._a_de, _ = signal.cont2discrete(([-1.0, 0.0], den), dt, method="zoh")
+        self._b_e, self._a_e = cont2discrete_zoh([-1.0], den, dt)
+        self._b_de, self._a_de = cont2discrete_zoh([-1.0, 0.0], den, dt)
         self._b_e, self._b_de = np.ravel(self._b_e), np.ravel(self._b_de)
         self._zi_e = np.zeros(2)
         self._zi_de = np.zeros(2)
@@ -281,8 +283,8 @@ class TableAxis:
             p, v, a = self.profile.smoothed(t, self.t_jerk)
         else:
             p, v, a = self.profile.evaluate(t)
-        e, self._zi_e = signal.lfilter(self._b_e, self._a_e, a, zi=self._zi_e)
-        de, self._zi_de = signal.lfilter(self._b_de, self._a_de, a, zi=self._zi_de)
+        e, self._zi_e = lfilter(self._b_e, self._a_e, a, self._zi_e)
+        de, self._zi_de = lfilter(self._b_de, self._a_de, a, self._zi_de)
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e
         sv = self.servo

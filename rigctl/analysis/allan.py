@@ -957,8 +957,11 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         ms = A.snap_fast(ms)
         ms = ms[ms <= A.max_factor(n + 1, "oadev")]
     streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
-    shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
-                         stream=progress_stream, enabled=progress_stream is not None)
+    # the progress counts the rows read (s1 - s0), the windows left out (``drop``) included:
+    # the stream reports the row it has reached, so a total of n (the rows summed) would end
+    # above 100 % with a negative time left
+    shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} {'axis' if len(axes) == 1 else 'axes'}",
+                         s1 - s0, stream=progress_stream, enabled=progress_stream is not None)
     exclude = outliers == "exclude"
 
     def stretches() -> np.ndarray | None:

@@ -11,8 +11,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
+from ..recording.recording_reader import check_need
 from ..recording.segment_builder import CAL_KINDS, open_recording
 
 
@@ -21,10 +23,16 @@ def device_restart_events(path: str | Path) -> tuple[np.ndarray, list[str]]:
     docs/daemon.md): their times (s, /imu/time's axis) and messages; none in a recording without
     /events (an import)."""
     with open_recording(path) as f:
-        if "events" not in f:  # (a recording imported from a log has none)
-            return np.empty(0), []
-    with open_recording(path, also=("events",)) as f:  # its datasets checked: InputError, not KeyError
-        ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
+        return _device_restarts(f, Path(path))
+
+
+def _device_restarts(f: h5py.File, p: Path) -> tuple[np.ndarray, list[str]]:
+    """:func:`device_restart_events` of the open recording ``f`` (the file ``p``); its /events
+    checked as a reader's (InputError, not KeyError) when it has them."""
+    if "events" not in f:  # (a recording imported from a log has none)
+        return np.empty(0), []
+    check_need(f, p, ("events",))
+    ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
     sel = np.asarray(ev_k) == b"device-restart"
     return np.asarray(ev_t, float)[sel], [m.decode("utf-8", "replace") for m in np.asarray(ev_m)[sel]]
 
@@ -87,10 +95,10 @@ def restart_notes(path: str | Path, within: tuple[bytes, ...] = ()) -> list[dict
     A restart gives the unit a new turn-on bias: the model b + M a fitted over positions with two
     biases has no term for the step between them, so it goes into the scale factors and
     misalignments (and the residuals) -- the result is not a calibration of either state."""
-    ev_t, ev_m = device_restart_events(path)
-    if not ev_t.size:
-        return []
-    with open_recording(path) as f:
+    with open_recording(path) as f:  # once: the events and the segments of one state of the file
+        ev_t, ev_m = _device_restarts(f, Path(path))
+        if not ev_t.size:
+            return []
         seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "label", "t_start", "t_end",
                                                   "first_sample", "last_sample")}
     used = np.isin(seg["kind"], CAL_KINDS) & (seg["status"] == b"complete") & \

@@ -171,6 +171,20 @@ def check_layout(f: h5py.File, p: Path, need: Iterable[str], check_present: bool
     return lengths
 
 
+def check_need(f: h5py.File, p: Path, need: Iterable[str], check_present: bool = True) -> dict[str, dict[str, int]]:
+    """Check on the open file ``f`` (the recording ``p``) the datasets ``need`` as
+    :func:`open_recording` does (:func:`check_layout`, and the datasets of each group checked of
+    one length): also for a reader that learns only from the open file what more it reads (its
+    /events when it has them). InputError naming ``p``; returns :func:`check_layout`'s lengths."""
+    lengths = check_layout(f, p, need, check_present)
+    for group, lens in lengths.items():
+        if len(set(lens.values())) > 1:
+            what = ", ".join(f"/{k}: {v}" for k, v in lens.items())
+            raise InputError(f"the datasets of /{group} differ in length ({what})", p,
+                             hint="a damaged or hand-edited file; re-record or re-import it")
+    return lengths
+
+
 def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
                    check_present: bool = True) -> h5py.File:
     """Open the rigctl recording ``path`` read-only and check it (see the module docstring).
@@ -189,12 +203,7 @@ def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
     _check_path(p)
     f = _open_h5(p)
     try:
-        lengths = check_layout(f, p, need, check_present)
-        for group, lens in lengths.items():
-            if len(set(lens.values())) > 1:
-                what = ", ".join(f"/{k}: {v}" for k, v in lens.items())
-                raise InputError(f"the datasets of /{group} differ in length ({what})", p,
-                                 hint="a damaged or hand-edited file; re-record or re-import it")
+        lengths = check_need(f, p, need, check_present)
         if "imu" in lengths:
             n_imu = next(iter(lengths["imu"].values()))
             if n_imu == 0 and need:

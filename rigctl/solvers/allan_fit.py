@@ -132,16 +132,18 @@ def fitted_avar(fit_or_coeffs: Any, tau: np.ndarray) -> np.ndarray:
 
 def _nnls_cols(a: np.ndarray, b: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
     """Non-negative least squares with column scaling; with ``upper``, also p <= upper
-    (bounded-variable least squares)."""
+    (bounded-variable least squares): 0 <= p_j <= upper_j exactly, in the caller's units (the
+    solver's answer clipped once, after the scaling is undone; an upper of 0 is solved as
+    1e-300 on the scaled column, lsq_linear needs lower < upper)."""
     scale = np.linalg.norm(a, axis=0)
     scale[scale == 0] = 1.0
     if upper is None or not np.any(np.isfinite(upper)):
         p, _ = nnls(a / scale, b)
         return p / scale
-    ub = np.where(np.isfinite(upper), np.asarray(upper, dtype=float) * scale, np.inf)
-    ub = np.maximum(ub, 1e-300)
+    upper = np.asarray(upper, dtype=float)
+    ub = np.maximum(np.where(np.isfinite(upper), upper * scale, np.inf), 1e-300)
     res = lsq_linear(a / scale, b, bounds=(np.zeros_like(ub), ub), method="bvls")
-    return np.clip(res.x, 0.0, ub) / scale
+    return np.clip(res.x / scale, 0.0, np.where(np.isfinite(upper), np.maximum(upper, 1e-300 / scale), np.inf))
 
 
 def _whiten(cov: np.ndarray) -> np.ndarray:
@@ -1760,7 +1762,7 @@ def _admissible_completion(full_a: np.ndarray, s2: np.ndarray, e: np.ndarray,
         aw = solve_triangular(lw, a_u, lower=True)
         bw = solve_triangular(lw, base, lower=True)
         new = np.zeros_like(p_u)
-        new[free] = np.clip(_nnls_cols(aw, bw, ub[free]), 0.0, ub[free])
+        new[free] = _nnls_cols(aw, bw, ub[free])  # within [0, ub] (clipped there)
         done = np.allclose(new, p_u, rtol=1e-6, atol=0.0)
         p_u = new
         if done:
