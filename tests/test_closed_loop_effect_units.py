@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+from rigctl.analysis.calibration_text import effect_parameter_line
 from rigctl.solvers.closed_loop import ClosedLoopResult, format_report
 
 DEG_H_H = 180.0 / math.pi * 3600.0 * 3600.0  # (deg/h/h) per (rad/s^2), written out here
@@ -18,7 +19,9 @@ def test_effect_parameters_are_printed_in_field_units() -> None:
               "parameters": [{"name": "gyro_drift_rate_x_rad_s2", "value": v, "sigma": s, "ci95": [lo, hi]}]}
     res = ClosedLoopResult(declared=None, final=None, effects=[effect], explain=[], rms_table=[],  # type: ignore[arg-type]
                            unexplained=[], not_available={})
-    line = next(ln for ln in format_report(res).splitlines() if "gyro_drift_rate_x" in ln)
+    # as rigctl calibrate calls it (rigctl.analysis.calibration.calibrate_table)
+    line = next(ln for ln in format_report(res, effect_line=effect_parameter_line).splitlines()
+                if "gyro_drift_rate_x" in ln)
     assert "rad_s2" not in line and "e-0" not in line, line
     # sigma 66.8 deg/h/h -> two significant digits, no decimals; the value and the interval alike
     want = [f"{v * DEG_H_H:.0f}", f"{s * DEG_H_H:.0f}", f"{lo * DEG_H_H:.0f}", f"{hi * DEG_H_H:.0f}"]
