@@ -36,7 +36,8 @@ best test's numbers are then indicative, the detector's are the point).
 
 **The self-check** (5-minute records at 100 Hz, ``--fit-seeds``): the benchmark's own records
 (tests/test_allan_check_bounds.py's generator, benchmarks/allan_completed_dof.py's ``stepF``),
-fit_terms' check failing (``ok`` False).
+fit_terms' check failing (``ok`` False); and the step test a short record could run, the
+best test's statistic with the levels from that fit (:func:`check_table`).
 
 The last line is one JSON object.
 """
@@ -49,6 +50,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
@@ -105,35 +107,37 @@ def emulated(seed: int, t_s: float, rate_hz: float = 10.0) -> np.ndarray:
     return y.reshape(-1, k).mean(axis=1)
 
 
-def flicker_acov(nb: int) -> np.ndarray:
-    """Autocovariance of :func:`record`'s flicker at block lags 0..CIRCLE nb - 1 (the
-    circle's; the record's lags are its first nb)."""
+def flicker_acov(nb: int, b_si: float = B_SI, block_s: float = BLOCK_S) -> np.ndarray:
+    """Autocovariance of :func:`record`'s flicker (level ``b_si``) at block lags 0..CIRCLE nb - 1
+    (the circle's; the record's lags are its first nb)."""
     nc = CIRCLE * nb
-    f = np.fft.rfftfreq(nc, BLOCK_S)
+    f = np.fft.rfftfreq(nc, block_s)
     s = np.zeros(f.size)
-    s[1:] = B_SI ** 2 / (2.0 * math.pi * f[1:])
-    p = s * nc / (2.0 * BLOCK_S)  # E|X_f|^2
+    s[1:] = b_si ** 2 / (2.0 * math.pi * f[1:])
+    p = s * nc / (2.0 * block_s)  # E|X_f|^2
     if nc % 2 == 0:
         p[-1] /= 2.0  # Nyquist: the real part only
     return np.fft.irfft(p, nc) / nc
 
 
-def coarse_sigma(nb: int, n_coarse: int = N_COARSE, k_si: float = K_SI) -> np.ndarray:
-    """Covariance of the means of n_coarse equal groups of :func:`record`'s nb blocks."""
+def coarse_sigma(nb: int, n_coarse: int = N_COARSE, k_si: float = K_SI, n_si: float = N_SI,
+                 b_si: float = B_SI, block_s: float = BLOCK_S) -> np.ndarray:
+    """Covariance of the means of n_coarse equal groups of nb blocks (block_s each) of white
+    (n_si) + flicker (b_si) + random walk (k_si) rate noise, as :func:`record` draws them."""
     m = nb // n_coarse
-    c = flicker_acov(nb)
+    c = flicker_acov(nb, b_si, block_s)
     lags = np.arange(-(m - 1), m)
     w = (m - np.abs(lags)) / m ** 2
     cb = (c[np.abs(np.arange(n_coarse)[:, None] * m + lags[None, :])] * w).sum(axis=1)
     i = np.arange(n_coarse)
     sig = cb[np.abs(i[:, None] - i[None, :])]
-    sig = sig + np.eye(n_coarse) * N_SI ** 2 / (BLOCK_S * m)
+    sig = sig + np.eye(n_coarse) * n_si ** 2 / (block_s * m)
     # the random walk cumsum_j e_j (Var e = K^2 dt): Cov(r_a, r_b) = K^2 dt (min(a, b) + 1);
     # group means: K^2 dt (I m + (m + 1) / 2) across groups I < J, (m + 1)(2m + 1)/(6m) within
     base = i * m + (m + 1) / 2.0
     rw = np.minimum(base[:, None], base[None, :])
     rw[i, i] = i * m + (m + 1) * (2 * m + 1) / (6.0 * m)
-    return sig + k_si ** 2 * BLOCK_S * rw
+    return sig + k_si ** 2 * block_s * rw
 
 
 class StepGLR:
@@ -214,22 +218,39 @@ def step_table(lengths: list[float], sizes: list[float], seeds: int, n_null: int
     return out
 
 
+def _upper(c: Any) -> float:
+    """A term's 95 % upper end: its interval's when resolved, else its bound (SI)."""
+    return float(c.ci95[1]) if c.resolved else float(c.upper95)
+
+
 def check_table(sizes: list[float], seeds: int) -> dict:
-    """The self-check (fit_terms' ``ok``) on the 5-minute benchmark records with a step."""
+    """The self-check (fit_terms' ``ok``) on the 5-minute benchmark records with a step, and
+    the step test with the levels taken from that fit (``plugin``): the likelihood ratio of
+    :class:`StepGLR` with Sigma from the fit's 95 % upper ends of N, B and K (a bound where
+    the term is one; conservative, so that levels estimated low do not raise false steps) on
+    150 group means of 0.5 s blocks, against its own 99 % point (2000 draws)."""
     WF = _wf()
     from rigctl.solvers import allan_fit as F  # noqa: E402
     out = {}
+    n_c, tb = 150, 0.5
+    k = int(round(tb * WF.FS))
     for f in [0.0] + sizes:
-        failed = 0
+        failed = plug = 0
         for s in range(seeds):
             y = WF._noise(s)
             y[y.size // 2:] += f * WF.B_TRUE
             tau, dev, edf, n_phase = WF._curve(y)
             fit = F.fit_terms(tau, dev, edf, "gyro", tau0=1.0 / WF.FS, n_phase=n_phase)
             failed += not fit["check"]["ok"]
-        out[f] = failed
-        print(f"self-check, 5 min at 100 Hz, step {f:4.1f} B: failed {failed} of {seeds}",
-              flush=True)
+            co = fit["coefficients"]
+            yb = y[: y.size // k * k].reshape(-1, k).mean(axis=1)
+            glr = StepGLR(coarse_sigma(yb.size, n_c, _upper(co.K), _upper(co.N), _upper(co.B),
+                                       tb))
+            null = glr.stat((glr.chol @ np.random.default_rng(1).standard_normal((n_c, 2000))).T)
+            plug += glr.stat(coarsen(yb, n_c)[None, :])[0] > np.quantile(null, 0.99)
+        out[f] = {"check_failed": failed, "plugin": int(plug)}
+        print(f"5 min at 100 Hz, step {f:4.1f} B: self-check failed {failed}, step test with "
+              f"the fit's levels {plug} of {seeds}", flush=True)
     return out
 
 
@@ -379,7 +400,8 @@ def main() -> None:
     ap.add_argument("--emulator", action="store_true",
                     help="records from the emulator's generator (the best test's Sigma is then "
                          "that of the numpy model, not exact)")
-    ap.add_argument("--fit-seeds", type=int, default=0, help="self-check on 5-min records")
+    ap.add_argument("--fit-seeds", type=int, default=0,
+                    help="self-check and the step test with the fit's levels, 5-min records")
     ap.add_argument("--gm-sizes", default="", help="Gauss-Markov sigma (x B), Tc 2 s")
     ap.add_argument("--gm-seeds", type=int, default=100)
     ap.add_argument("--gm-null", type=int, default=1000)

@@ -228,6 +228,9 @@ class TableAxis:
         self._b_e, self._b_de = np.ravel(self._b_e), np.ravel(self._b_de)
         self._zi_e = np.zeros(2)
         self._zi_de = np.zeros(2)
+        # load the compiled filter now, while the world is built before the run clock starts
+        # (rigctl.engine.rig.open_rig), not at the first block (numba's set-up: ~0.1-0.3 s)
+        lfilter(self._b_e, self._a_e, np.zeros(0), self._zi_e)
         self.last = (0.0, 0.0, 0.0)  # actual angle, rate, accel at the last grid point
         self.last_t = t0
         self.in_window_since: float | None = None
