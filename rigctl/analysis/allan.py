@@ -957,8 +957,11 @@ def _compute_streamed(path: str, fs: float, axes: list[str], taus: A.TauSpec, ex
         ms = A.snap_fast(ms)
         ms = ms[ms <= A.max_factor(n + 1, "oadev")]
     streams = {a: _AxisStream(tau0, ms, mode, n) for a in axes}
-    shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} axes", n,
-                         stream=progress_stream, enabled=progress_stream is not None)
+    # the progress counts the rows read (s1 - s0), the windows left out (``drop``) included:
+    # the stream reports the row it has reached, so a total of n (the rows summed) would end
+    # above 100 % with a negative time left
+    shown = WorkProgress(f"allan {Path(path).name}, {len(axes)} {'axis' if len(axes) == 1 else 'axes'}",
+                         s1 - s0, stream=progress_stream, enabled=progress_stream is not None)
     exclude = outliers == "exclude"
 
     def stretches() -> np.ndarray | None:
@@ -1133,7 +1136,15 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
         futs = {**queue([a for a in axes if a not in early], 0), **early}
-        done = [_result(futs[a]) for a in axes]
+        # the fits take longer than the stream on a long record (tens of seconds, minutes with
+        # a Gauss-Markov candidate): their own progress, one step per axis
+        fits = WorkProgress(f"allan {Path(path).name}, fits", len(axes), unit="axis" if len(axes) == 1 else "axes",
+                            stream=shown.stream if shown.enabled else None, enabled=shown.enabled)
+        done = []
+        for a in axes:
+            done.append(_result(futs[a]))
+            fits.update(len(done))
+        fits.finish()
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers

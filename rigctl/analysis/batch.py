@@ -10,7 +10,7 @@ serial runs would have written.
 
 :func:`summarise` gives per lot the yield (PASS / FAIL / INDETERMINATE counts of the overall
 verdicts) and each parameter's distribution across units (n, mean, standard deviation, min,
-max in the display unit).
+max in the display unit, and the smallest and largest of the units' own 1-sigma uncertainties).
 """
 from __future__ import annotations
 
@@ -30,8 +30,13 @@ from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..config.spec import load_spec
 from . import production
 from ..display_units import format_value
+from ..errors import RigctlError
 
 ANALYSES = ("calibrate", "allan")
+
+#: a parameter whose largest unit uncertainty is more than this many times the smallest is
+#: named under the lot summary: its mean and sd mix well and poorly determined units
+UNEVEN_U = 10.0
 
 
 def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec_path: str | None = None,
@@ -54,7 +59,9 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
             out["results"]["allan"] = jsonable(res, keep_nonfinite=True)
         out["ok"] = True
     except Exception as exc:  # noqa: BLE001 - reported per recording; the batch goes on
-        out["error"] = f"{type(exc).__name__}: {exc}"
+        # rigctl's own errors are the one line the command would print; anything else is a
+        # fault, named by its type (the traceback is kept beside it)
+        out["error"] = str(exc) if isinstance(exc, RigctlError) else f"{type(exc).__name__}: {exc}"
         out["traceback"] = traceback.format_exc()
     return out
 
@@ -125,7 +132,9 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
             params[base] = {"unit": unit, "n": int(v.size), "mean": float(v.mean()),
                             "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan,
                             "min": float(v.min()), "max": float(v.max()),
-                            "median_u": float(np.median([u for _, u in vals]))}
+                            "median_u": float(np.median([u for _, u in vals])),
+                            "min_u": float(np.min([u for _, u in vals])),
+                            "max_u": float(np.max([u for _, u in vals]))}
         out[lot] = {"recordings": L["recordings"], "analysed": L["recordings"] - len(L["failed"]),
                     "failed": L["failed"], "verdicts": L["verdicts"],
                     "yield": L["verdicts"][PASS] / decided if decided else None, "parameters": params}
@@ -170,12 +179,24 @@ def summary_text(summary: dict[str, Any]) -> str:
         y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} %"
         lines.append(f"lot {lot}: {s['recordings']} recordings, {s['analysed']} analysed, {len(s['failed'])} failed; "
                      f"yield {y} (PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']})")
-        lines.append(f"  {'parameter':<32} {'unit':<14} {'n':>3} {'mean':>12} {'sd':>10} {'min':>12} {'max':>12}")
+        lines.append(f"  {'parameter':<32} {'unit':<14} {'n':>3} {'mean':>12} {'sd':>10} {'min':>12} {'max':>12}"
+                     f" {'u min':>10} {'u max':>10}")
+        uneven = []
         for name, p in s["parameters"].items():
             ref = p["median_u"]  # digits from the units' typical uncertainty
             f = [format_value(p[k], ref)[0] for k in ("mean", "min", "max")]
             sd = format_value(p["sd"], ref)[0] if p["sd"] == p["sd"] else "n/a"
-            lines.append(f"  {name:<32} {p['unit']:<14} {p['n']:>3} {f[0]:>12} {sd:>10} {f[1]:>12} {f[2]:>12}")
+            u = [format_value(p[k], p[k])[1] for k in ("min_u", "max_u")]
+            lines.append(f"  {name:<32} {p['unit']:<14} {p['n']:>3} {f[0]:>12} {sd:>10} {f[1]:>12} {f[2]:>12}"
+                         f" {u[0]:>10} {u[1]:>10}")
+            if p["n"] > 1 and p["max_u"] > UNEVEN_U * p["min_u"]:
+                uneven.append(name)
+        lines.append("  (u min, u max: the smallest and largest of the units' own 1-sigma uncertainties)")
+        if uneven:
+            lines.append(f"  warning: {len(uneven)} parameter(s) with one unit's 1-sigma more than {UNEVEN_U:g}x "
+                         f"another's ({', '.join(uneven)}): a unit whose analysis could not determine them "
+                         "(e.g. gyro scale from a recording with no rate segments) is in the mean and sd; "
+                         "look at those units before using the lot's distribution")
         for fl in s["failed"]:
             lines.append(f"  FAILED {fl['recording']}: {fl['error']}")
     return "\n".join(lines)

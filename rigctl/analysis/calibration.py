@@ -38,7 +38,7 @@ import numpy as np
 
 from . import production
 from .verdicts import format_verdicts
-from .calibration_text import noise_summary, param_table
+from .calibration_text import effect_parameter_line, noise_summary, param_table
 from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
 from ..recording.segment_builder import CAL_KINDS, build_segment_table, open_recording, store_calibration_results
@@ -189,7 +189,7 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
             head.append(f"{title}: status {r.status}, dof {r.dof}, chi2/dof {r.chi2_per_dof:.3g}")
     notes = _observability_notes(kinds, cl.final)
     text = "\n".join(head + [param_table(cl.final, "Calibration (closed-loop model, all segments)"),
-                             *notes, format_report(cl, explain=False)])
+                             *notes, format_report(cl, explain=False, effect_line=effect_parameter_line)])
     explain = "\n".join(["explain (step | residual pattern | candidate | statistic | decision):"]
                         + [f"  [{x['step']}] {x['residual_pattern']} | {x['candidate']} | {x['statistic']} | "
                            f"{x['decision']}" for x in cl.explain])

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..display_units import NOISE_UNITS, display, format_value, slug
+from ..display_units import NOISE_UNITS, display, format_number, format_value, slug
 from ..solvers.calibration_result import CalibrationResult
 
 
@@ -53,3 +53,13 @@ def noise_summary(models: list[Any], t0: float = 0.0) -> tuple[list[str], list[d
         extra = f"; REML on {info['residual_dof']} residual dof" if "residual_dof" in info else ""
         lines.append(f"  {ch:<8} N {ntxt} {nu}, B {m.B.value * bf:.4g} {bu}, K {m.K.value * kf:.4g} {ku}{extra}")
     return lines, rows
+
+
+def effect_parameter_line(p: dict[str, Any]) -> str:
+    """One parameter of an effect the closed loop found ({name, value, sigma, ci95}, SI) in the
+    field's units, as :func:`param_table` shows it: name, unit, value +- 1-sigma, 95 % interval."""
+    d = display(p["name"])
+    u = d.sigma(p["sigma"])
+    v, us = format_value(d.value(p["value"]), u)
+    lo, hi = (format_number(d.value(x), u) for x in p["ci95"])
+    return f"{d.base:<32} {d.unit:<14} {v:>10} +- {us:<8} 95% [{lo}, {hi}]"

@@ -35,6 +35,7 @@ import numpy as np
 
 from .checkpoint import HDF5_SIGNATURE, superblock_eof
 from ..errors import InputError
+from .foreign import import_hint
 from .recorder import FORMAT_NAME, LAYOUT
 
 #: highest sample rate a recording may declare, Hz
@@ -50,9 +51,13 @@ _KINDS = {np.dtype(np.float64).kind: "f", np.dtype(np.int32).kind: "iu", np.dtyp
 
 
 def check_path(p: Path) -> None:
-    """InputError naming ``p`` when it cannot be a recording before HDF5 opens it: a directory,
-    missing, unreadable, empty, not HDF5, or cut off (shorter than its superblock records; a
-    SWMR reader would skip HDF5's own check and read garbage or hang)."""
+    """InputError naming ``p`` when it cannot be a recording before HDF5 opens it: a foreign log
+    given where a recording goes (:func:`import_hint`), a directory, missing, unreadable, empty,
+    not HDF5, or cut off (shorter than its superblock records; a SWMR reader would skip HDF5's
+    own check and read garbage or hang)."""
+    bag = import_hint(p)
+    if bag is not None:
+        raise InputError(bag, p)
     if p.is_dir():
         inside = p / "recording.h5"
         hint = f"give the recording inside it: {inside}" if inside.is_file() else \

@@ -618,6 +618,16 @@ def cmd_simple(args: argparse.Namespace) -> int:
     return _print_reply(_client(args, args.command, payload), args.command, args)
 
 
+def resume_runs_dir(run: str, runs: str | None) -> str:
+    """The runs directory of a local ``rigctl resume RUN``: ``--runs`` when given, else the
+    folder holding RUN (a run directory is always a direct child of the ``--out`` it was made
+    in), else ``runs`` (RUN is not a directory: the refusal names it)."""
+    if runs is not None:
+        return runs
+    d = Path(run)
+    return str(d.resolve().parent) if d.is_dir() else "runs"
+
+
 def cmd_resume(args: argparse.Namespace) -> int:
     if args.run is None:
         return _run_client(lambda a: _print_reply(_client(a, "resume"), "resume", a))(args)
@@ -625,7 +635,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
     if control.ping(path):  # the daemon owns the rig: let it run the resume
         return _print_reply(control.request(path, "resume", {"run": str(Path(args.run).resolve())}), "resume", args)
     from ..run.runner import resume_run
-    res = resume_run(args.run, args.runs)
+    res = resume_run(args.run, resume_runs_dir(args.run, args.runs))
     if res.exit_code == EXIT_INTERRUPTED and res.status == "complete":  # during the analysis: the
         raise Interrupted(res.message)                                   # message says it all
     if res.exit_code != EXIT_OK:
@@ -688,5 +698,7 @@ def register(sub: Any) -> None:
     p = sub.add_parser("resume", help="resume the paused job, or with RUN continue a cut-off run")
     sock(p)
     p.add_argument("run", nargs="?", help="a run directory cut off by a crash or power loss")
-    p.add_argument("--runs", default="runs", help="the directory RUN must be in (default: runs)")
+    p.add_argument("--runs", default=None,
+                   help="the directory RUN must be in (default: the folder holding RUN, as "
+                        "`rigctl run --out DIR` made it; runs when RUN is not a directory)")
     p.set_defaults(func=cmd_resume)

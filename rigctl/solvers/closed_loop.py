@@ -40,7 +40,7 @@ Loop (every decision is recorded in ``explain``):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import scipy.stats
@@ -375,15 +375,19 @@ def _unexplained(seg: SegmentTable, prob: _Problem, fit: CalibrationResult, alph
     return out
 
 
-def format_report(res: ClosedLoopResult, explain: bool = False) -> str:
-    """Human text: effects found, before/after RMS table, truth errors, and the explain chain."""
+def format_report(res: ClosedLoopResult, explain: bool = False,
+                  effect_line: Callable[[dict[str, Any]], str] | None = None) -> str:
+    """Human text: effects found, before/after RMS table, truth errors, and the explain chain.
+    ``effect_line``: the text of one effect parameter ({name, value, sigma, ci95}, SI), e.g.
+    in the field's units (rigctl.analysis.calibration_text.effect_parameter_line); default SI."""
     lines = ["Closed loop: effects found" if res.effects else "Closed loop: no undeclared effect found"]
     for e in res.effects:
         lines.append(f"  {e['name']}: {e['description']} (p_adj = {e['p_adj']:.2g}, dBIC = {e['dBIC']:.3g}, "
                      f"{100 * e['excess_chi2_explained']:.0f} % of excess chi2, {e['attribution']})")
         for p in e["parameters"]:
-            lines.append(f"      {p['name']:<40} {p['value']:+.4g} +- {p['sigma']:.2g}  "
-                         f"95% [{p['ci95'][0]:+.4g}, {p['ci95'][1]:+.4g}]")
+            lines.append("      " + (effect_line(p) if effect_line else
+                                     f"{p['name']:<40} {p['value']:+.4g} +- {p['sigma']:.2g}  "
+                                     f"95% [{p['ci95'][0]:+.4g}, {p['ci95'][1]:+.4g}]"))
     lines.append(f"  {'channel':<10} {'noise floor':>14} {'raw':>14} {'declared':>14} {'final':>14}")
     for r in res.rms_table:
         if r["channel"] == "all":

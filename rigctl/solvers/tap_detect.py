@@ -22,8 +22,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.sparse import lil_matrix
-from scipy.optimize import least_squares, minimize_scalar
 
 Template = Callable[[np.ndarray], np.ndarray]
 
@@ -142,6 +140,8 @@ def _profile(t: np.ndarray, y: np.ndarray, g: Template, t0: np.ndarray
 def _fit_one(t: np.ndarray, y: np.ndarray, g: Template, t_lo: float, t_hi: float,
              period: float) -> tuple[float, float, float, float, float]:
     """Variable-projection fit of y = b + A g(t - t0); returns t0, sigma, A, b, rms."""
+    from scipy.optimize import minimize_scalar  # here: the emulator imports this module (~0.17 s)
+
     grid = np.linspace(t_lo, t_hi, 41)
     j = int(np.argmin(_profile(t, y, g, grid)[0]))
     res = minimize_scalar(lambda x: float(_profile(t, y, g, np.array([x]))[0][0]),
@@ -237,6 +237,9 @@ def _joint_fit(time_s: np.ndarray, a: np.ndarray, sat: np.ndarray, sel: np.ndarr
                t0: np.ndarray, amp0: np.ndarray, b0: np.ndarray, fn0: float, z0: float,
                pre: int, post: int, period: float) -> tuple[float, float, bool]:
     """Joint least squares of (fn, zeta) and every tap's (t0, A, b); returns fn, zeta, converged."""
+    from scipy.optimize import least_squares  # here: the emulator imports this module (~0.17 s)
+    from scipy.sparse import lil_matrix
+
     m = sel.size
     ws = [w[~sat[w]] for w in _windows(a.size, sel, pre, post)]
     tcat = np.concatenate([time_s[w] for w in ws])
