@@ -62,17 +62,20 @@ def lfilter(b: NDArray[np.float64] | list[float], a: NDArray[np.float64] | list[
     (len(a) >= 2): (y, zf), y[k] = sum b[i] x[k-i] - sum_{i>=1} a[i] y[k-i] (a[0] = 1 after
     normalisation), zi and zf the max(len(a), len(b)) - 1 delay states. Same values, bit for
     bit, as scipy's."""
-    b = np.asarray(b, dtype=np.float64)
-    a = np.asarray(a, dtype=np.float64)
+    # writeable C-contiguous float64 arrays: the one signature the cache holds (a read-only or
+    # strided argument would make numba compile another, while the run clock runs)
+    b = np.array(b, dtype=np.float64)
+    a = np.array(a, dtype=np.float64)
     if not HAVE_NUMBA:  # pragma: no cover - exercised only without the extra
         from scipy import signal
         return signal.lfilter(b, a, x, zi=zi)
     if a.ndim != 1 or b.ndim != 1 or a.size < 2 or a[0] == 0.0:
         raise ValueError("lfilter: b and a must be 1-D, a of length >= 2 with a[0] != 0")
     n = max(a.size, b.size)
-    b = np.concatenate([b, np.zeros(n - b.size)]) / a[0]
-    a = np.concatenate([a, np.zeros(n - a.size)]) / a[0]
-    x = np.ascontiguousarray(x, dtype=np.float64)
+    if b.size != a.size or a[0] != 1.0:  # (dividing by 1 changes no bit: skipped)
+        b = np.concatenate([b, np.zeros(n - b.size)]) / a[0]
+        a = np.concatenate([a, np.zeros(n - a.size)]) / a[0]
+    x = np.require(x, np.float64, ["C", "A", "W"])
     if x.ndim != 1:
         raise ValueError("lfilter: x must be 1-D")
     z = np.array(zi, dtype=np.float64).reshape(n - 1)

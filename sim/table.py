@@ -82,9 +82,18 @@ class Profile:
         self.a = [0.0]
         self.end = t0
         self.prev: Profile | None = None  # the profile this one replaced (for times < t0)
+        self._pieces: NDArray[np.float64] | None = None  # (t, p, v, a) as one (4, n) array
+
+    def _arrays(self) -> NDArray[np.float64]:
+        """The pieces as one (4, n) array, made at the first evaluation (the lists are final
+        by then: only the constructors change them)."""
+        if self._pieces is None:
+            self._pieces = np.array([self.t, self.p, self.v, self.a], dtype=float)
+        return self._pieces
 
     def _append(self, dt: float, a: float) -> None:
         t0, p0, v0, a0 = self.t[-1], self.p[-1], self.v[-1], self.a[-1]
+        self._pieces = None
         self.a[-1] = a
         if dt <= 0:
             return
@@ -190,14 +199,14 @@ class Profile:
         profile's start t0 is the replaced profile's (``prev``); without one the axis was at
         (p0, v0) moving uniformly. A piece is never run backwards from its start."""
         t = np.asarray(t, dtype=float)
-        idx = np.searchsorted(np.asarray(self.t), t, side="right") - 1
-        idx = np.clip(idx, 0, len(self.t) - 1)
-        tp = np.asarray(self.t)[idx]
-        pp, vp, ap = (np.asarray(x)[idx] for x in (self.p, self.v, self.a))
+        pieces = self._arrays()
+        idx = np.searchsorted(pieces[0], t, side="right") - 1  # <= n - 1
+        idx = np.maximum(idx, 0)
+        tp, pp, vp, ap = pieces[:, idx]
         dt = t - tp
         pos, vel, acc = pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, ap
         early = t < self.t[0]
-        if np.any(early):
+        if early.any():
             if self.prev is not None:
                 p2, v2, a2 = self.prev.evaluate(t[early])
             else:
@@ -228,6 +237,9 @@ class TableAxis:
         self._b_e, self._b_de = np.ravel(self._b_e), np.ravel(self._b_de)
         self._zi_e = np.zeros(2)
         self._zi_de = np.zeros(2)
+        # load the compiled filter now, while the world is built before the run clock starts
+        # (rigctl.engine.rig.open_rig), not at the first block (numba's set-up: ~0.1-0.3 s)
+        lfilter(self._b_e, self._a_e, np.zeros(0), self._zi_e)
         self.last = (0.0, 0.0, 0.0)  # actual angle, rate, accel at the last grid point
         self.last_t = t0
         self.in_window_since: float | None = None
@@ -329,7 +341,8 @@ class TableAxis:
         if t.size and h[0, 0] > self._t_first and t.min() < h[0, 0] - 1e-9 * self.dt:
             raise RuntimeError(f"table state asked for t = {t.min():.6f} s, before the kept "
                                f"history ({h[0, 0]:.6f} s): forget_before() was called too late")
-        j = np.clip(np.searchsorted(h[0], t + 1e-9 * self.dt, side="right") - 1, 0, h.shape[1] - 1)
+        j = np.searchsorted(h[0], t + 1e-9 * self.dt, side="right") - 1  # <= h.shape[1] - 1
+        j = np.maximum(j, 0)
         tj, e0, de0, u, xr0 = h[:, j]
         d = t - tj
         e, de = e0, de0
@@ -340,7 +353,7 @@ class TableAxis:
             e, de = e0.copy(), de0.copy()
             e[live], de[live] = self._propagate(e0[live], de0[live], u[live], d[live])
         before = t < self._t_first - 1e-9 * self.dt
-        if np.any(before):
+        if before.any():
             e, de = np.where(before, 0.0, e), np.where(before, 0.0, de)
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e

@@ -15,12 +15,14 @@ from rigctl.analysis import allan as AA
 
 
 class Seen(AA.WorkProgress):
-    """The real progress display, and every (done, total) it was given."""
+    """The real progress display, and every (done, total) it was given (the stream's; the
+    fits' in ``fits``)."""
     updates: list[tuple[float, float]] = []
+    fits: list[tuple[float, float]] = []
 
     def update(self, done: float) -> None:
         super().update(done)
-        Seen.updates.append((self.done, self.total))
+        (Seen.fits if self.label.endswith(", fits") else Seen.updates).append((self.done, self.total))
 
 
 def test_progress_with_windows_left_out_stays_within_the_rows(tmp_path: Path,
@@ -39,3 +41,17 @@ def test_progress_with_windows_left_out_stays_within_the_rows(tmp_path: Path,
     assert Seen.updates[-1] == (n, n)  # ends at 100 %: the rows read, the window included
     assert all(done <= total for done, total in Seen.updates)
     assert "allan r.h5, 1 axis: 60,000 samples in" in out.getvalue()
+
+
+def test_the_fits_have_progress_of_their_own(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After the stream, the axes' fits (silent for ~40 s on the 2.8 h ADIS16405 record) show
+    their progress: one step per axis, and a closing line."""
+    rng = np.random.default_rng(4)
+    n = 20_000
+    rec = write_recording(tmp_path / "r.h5", 100.0, angular_rate=rng.standard_normal((n, 3)) * 1e-3)
+    monkeypatch.setattr(AA, "WorkProgress", Seen)
+    Seen.fits = []
+    out = io.StringIO()
+    AA.compute_once(str(rec), ["gx", "gy", "gz"], 40, True, progress_stream=out)
+    assert Seen.fits == [(1, 3), (2, 3), (3, 3)]
+    assert "allan r.h5, fits: 3 axes in" in out.getvalue(), out.getvalue()

@@ -239,6 +239,115 @@ def test_kill9_chain_over_the_wire_loses_under_1s_and_resume_completes(tmp_path)
     assert not window_hits
 
 
+def _pauses(ev_t: np.ndarray, kinds: np.ndarray, msgs: np.ndarray) -> list[dict]:
+    """The recording's pauses in event order: each from the suspend that began it to ITS OWN
+    resume (the suspend events between them are suspenders that tripped while it was paused).
+    Per pause: first_event (the index of its first suspend among the events), t0, t1 (rig
+    time, s; t_last: its last suspend's), names (all suspenders of the pause), the step it
+    re-ran (0-based), cut ("sampling": the step's window was cut off, "before sampling", None),
+    rows (the IMU rows [first, last) of the window it cut off, else None) and the resume
+    message. A resume names exactly the suspenders of its pause; a suspend outside a pause or a
+    resume without one fails."""
+    def names(m: bytes, sep: bytes) -> set[str]:
+        return set(m.split(sep, 1)[0].decode().split(", "))
+
+    out: list[dict] = []
+    cur: dict | None = None
+    for j, (t, k, m) in enumerate(zip(ev_t, kinds, msgs)):
+        if k == b"suspend":
+            if cur is None:
+                cur = {"first_event": j, "t0": float(t), "names": set(), "cut": None, "rows": None}
+            cur["names"] |= names(m, b": ")
+            cur["t_last"] = float(t)
+        elif k == b"incomplete" and cur is not None:
+            cur["cut"] = "before sampling" if b"cut off before sampling" in m else "sampling"
+            if b"IMU rows [" in m:
+                cur["rows"] = tuple(int(x) for x in m.split(b"IMU rows [", 1)[1].split(b")", 1)[0].split(b", "))
+        elif k == b"resume":
+            assert cur is not None, f"a resume outside any pause: {m!r}"
+            assert names(m, b" clear for ") == cur["names"], (m, cur)
+            assert b"re-running step " in m, m
+            cur.update(t1=float(t), resume=m, step=int(m.split(b"re-running step ", 1)[1].split()[0]) - 1)
+            out.append(cur)
+            cur = None
+    assert cur is None, f"a pause without its resume: {cur}"
+    return out
+
+
+def _show(pauses: list[dict]) -> list[str]:
+    """The pauses, one line each (assertion messages)."""
+    return [f"{p['t0']:.1f}-{p['t1']:.1f} step {p['step'] + 1} {sorted(p['names'])} cut {p['cut']}"
+            for p in pauses]
+
+
+def _check_drops_recorded(recording: Path, dropped: list[int]) -> np.ndarray:
+    """The recording of the link-drop run below (``dropped``: the steps whose window lost its
+    link, 0-based): its pauses, segments and data gaps (see the comments); returns the gaps
+    (missing samples after each row)."""
+    with h5py.File(recording, "r") as f:
+        kinds, msgs = f["events/kind"][()], f["events/message"][()]
+        seg = {k: f["segments"][k][()] for k in f["segments"]}
+        counter = f["imu/counter"][()].astype(np.int64)
+        imu_t, ev_t = f["imu/time"][()], f["events/time"][()]
+    pauses = _pauses(ev_t, kinds, msgs)
+    # each drop: one imu-link pause that cut the step off while it sampled, with its own resume,
+    # one per dropped step (on a loaded host the engine may see the samples missing before it
+    # sees the link down: the pause then begins with imu-gap and imu-link joins it)
+    drops = [p for p in pauses if "imu-link" in p["names"] and p["cut"] == "sampling"]
+    assert sorted(p["step"] for p in drops) == sorted(dropped), _show(pauses)
+    # ... and every pause held until all was clear for the config's hold_s (2 s of rig time)
+    assert all(b" clear for 2 s after " in p["resume"] and p["t1"] - p["t_last"] >= 2.0 - 1e-6
+               for p in pauses), _show(pauses)
+    # any other pause is the run's own account of a host too slow for the clock, never a pause
+    # for something else: (a) the same drop's outage seen again right after its resume -- hold_s
+    # is 2 s of rig time, 20 ms of wall at 100x, less than a loaded host takes to reconnect and
+    # reconfigure the device (no frames between GoToConfig and GoToMeasurement) -- so it cuts
+    # the step's re-run off before it sampled, on imu-link or imu-gap only; or (b) a window the
+    # lagging IMU stream left without its samples, which the run said in a 'short-window' event
+    # just before ('the IMU stream lags or stopped': the emulator, in this process, computed its
+    # samples more than 1.5 s of wall time behind the clock) and samples again; or (c) after the
+    # run recorded that the rig's devices keep time slower than its clock (a 'clock' event), an
+    # IMU pause (imu-gap, imu-link, imu-window)
+    # (in event order: a 'clock' event carries the devices' time, which lags the run's clock)
+    slow_from = int(np.flatnonzero(kinds == b"clock")[0]) if np.any(kinds == b"clock") else len(kinds)
+    for prev, p in zip([None, *pauses], pauses):
+        if p in drops:
+            continue
+        seen_again = (prev is not None and p["step"] == prev["step"] and p["cut"] == "before sampling"
+                      and p["names"] <= {"imu-link", "imu-gap"})
+        j = max(i for i in range(p["first_event"]) if kinds[i] != b"state")   # (state changes between)
+        lagged = (p["names"] == {"imu-window"} and kinds[j] == b"short-window"
+                  and msgs[j].startswith(f"step {p['step'] + 1} (".encode()) and b"the IMU stream lags" in msgs[j])
+        too_slow = p["first_event"] > slow_from and p["names"] <= {"imu-link", "imu-gap", "imu-window"}
+        assert seen_again or lagged or too_slow, (p, _show(pauses))
+    done_ = seg["status"] == b"complete"
+    assert sorted(seg["step"][done_].tolist()) == list(range(10))        # one complete per step
+    assert set(seg["step"][~done_].tolist()) <= set(dropped)             # the cut-off windows
+    cut = [m for k, m in zip(kinds, msgs) if k == b"incomplete"]
+    assert sorted({int(m.split()[1]) - 1 for m in cut}) == sorted(dropped)  # each drop cut its step off
+    for a, z in zip(seg["first_sample"][done_], seg["last_sample"][done_]):
+        assert z - a >= 0.9 * 10 * 100 and np.all(np.diff(counter[a:z]) == 1)
+    # the samples missing (the outage, then the device reconfiguration after the reconnect:
+    # no frames between GoToConfig and GoToMeasurement) all end in time the run set aside: the
+    # first sample after a gap lies between the first sample of the window a pause cut off (its
+    # 'incomplete' event's rows; the pause's start for one that cut nothing) and that pause's
+    # resume -- or the run paused on the gap itself (an imu-gap suspend names that counter
+    # jump). Not from the suspend event's time: the engine pauses on a link lost in the wait for
+    # a window's last samples once that wait ends (up to engine.WINDOW_WAIT_WALL_S = 1.5 s of
+    # wall time, 150 s of rig time), and on a loaded host a sample reaches the engine well after
+    # its IMU time (so a pull also loses the samples still in flight from before the window)
+    gaps = np.diff(counter) - 1
+    named = {m.split(b"(counter ", 1)[1] for k, m in zip(kinds, msgs) if k == b"suspend" and b"(counter " in m}
+    in_read = [int(m.split(b"IMU data gap: ", 1)[1].split()[0]) for k, m in zip(kinds, msgs)
+               if k == b"suspend" and b"samples missing inside a read" in m]
+    for i in np.flatnonzero(gaps > 0):
+        set_aside = any((imu_t[p["rows"][0]] if p["rows"] else p["t0"]) <= imu_t[i + 1] <= p["t1"]
+                        for p in pauses)
+        reported = f"{counter[i]} -> {counter[i + 1]})".encode() in named or int(gaps[i]) in in_read
+        assert set_aside or reported, (i, gaps[i], imu_t[i], imu_t[i + 1], _show(pauses))
+    return gaps
+
+
 ORIENT = """procedure: link-drops
 steps:
   - orientations:
@@ -254,7 +363,9 @@ def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp
     """The emulator pulls the IMU's pty (closes it, opens a new one at the same symlink 0.2 s
     later) in the middle of each of 10 sampling windows: the Xsens driver reconnects and
     reconfigures every time, each drop is an `imu-link` suspender event, the interrupted step
-    re-runs and the procedure completes with one complete, gap-free segment per step."""
+    re-runs and the procedure completes with one complete, gap-free segment per step. Each pause
+    is read with its own resume (_pauses); a loaded host adds pauses, each of which the run's own
+    record explains (_check_drops_recorded), and every sample missing is in time it set aside."""
     proc_path = tmp_path / "drops.yaml"
     proc_path.write_text(ORIENT)
     box: dict = {}
@@ -296,30 +407,12 @@ def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp
     assert sorted(dropped) == list(range(10))
     assert reconnects_emulator == 10
     c = box["imu"].counters
-    assert c["reconnects"] == 10 and c["link_losses"] == 10 and c["configurations"] == 11
-    with h5py.File(res.recording, "r") as f:
-        kinds, msgs = f["events/kind"][()], f["events/message"][()]
-        seg = {k: f["segments"][k][()] for k in f["segments"]}
-        counter = f["imu/counter"][()].astype(np.int64)
-        imu_t, ev_t = f["imu/time"][()], f["events/time"][()]
-    link = [m for k, m in zip(kinds, msgs) if k == b"suspend" and m.startswith(b"imu-link: IMU link lost")]
-    assert len(link) == 10, [m for k, m in zip(kinds, msgs) if k == b"suspend"]
-    resumed = [m for k, m in zip(kinds, msgs) if k == b"resume" and b"re-running step" in m]
-    assert len(resumed) == 10 and all(b" clear for 2 s after " in m for m in resumed)  # config's hold_s
-    done_ = seg["status"] == b"complete"
-    assert sorted(seg["step"][done_].tolist()) == list(range(10))        # one complete per step
-    assert set(seg["step"][~done_].tolist()) <= set(dropped)             # the cut-off windows
-    cut = [m for k, m in zip(kinds, msgs) if k == b"incomplete"]
-    assert sorted(int(m.split()[1]) - 1 for m in cut) == sorted(dropped)  # each drop cut its step off
-    for a, z in zip(seg["first_sample"][done_], seg["last_sample"][done_]):
-        assert z - a >= 0.9 * 10 * 100 and np.all(np.diff(counter[a:z]) == 1)
-    # the samples missing (the outage, then the device reconfiguration after the reconnect:
-    # no frames between GoToConfig and GoToMeasurement) all fall while the run was paused
-    gaps = np.diff(counter) - 1
-    pauses = list(zip(ev_t[(kinds == b"suspend") & np.char.startswith(msgs, b"imu-link")],
-                      ev_t[(kinds == b"resume")]))
-    for i in np.flatnonzero(gaps > 0):
-        assert any(a <= imu_t[i + 1] <= b for a, b in pauses), (i, gaps[i], imu_t[i + 1], pauses)
+    # every loss reconnected, and the device configured once per pull (and at the start): no
+    # configured link was lost but by a pull. A loaded host can lose a reconnect's link again
+    # before its configuration completes (the emulator answers GoToConfig too late: 'Write
+    # timeout', seen at load 8-10): a loss and a reconnect more, not a configuration more
+    assert c["link_losses"] == c["reconnects"] >= 10 and c["configurations"] == 11, c
+    gaps = _check_drops_recorded(res.recording, dropped)
     assert "IMU link lost" in console.getvalue()
     print(f"\n10 IMU link drops: {int(gaps[gaps > 0].sum())} samples missing over the outages "
           f"({c['bad_frames'] + c['truncated_frames']} frames cut by the pulls), all 10 steps complete")

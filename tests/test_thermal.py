@@ -365,6 +365,14 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
     cov = payload["truth_coverage"]
     assert cov["total"] == 63 + 6 and cov["fraction"] >= 0.85, cov
     assert "thermal hysteresis" in text
+    # the printed table names each coefficient once per sensor: the value at the reference
+    # temperature and its per-K terms were all shown as 'accel_bias_x' (units mg, mg/K, mg/K^2)
+    for s in ("accel", "gyro"):
+        block = text.split(f"\n{s}: degrees")[1].split("\n\n")[0]
+        rows = block[block.index("  parameter "):].splitlines()[1:]
+        shown = [ln.split()[0] for ln in rows if ln.startswith(f"  {s}_")]
+        assert len(shown) == len(payload["sensors"][s]["parameters"]) == len(set(shown)), shown
+        assert f"{s}_bias_x_per_K" in shown and f"{s}_bias_x_per_K2" in shown, shown
     # apply-cal with the thermal model, at the recording's own temperatures: the static windows'
     # means then match gravity (from the table angles, numpy) to within their noise: the white
     # part s^2 / n from the samples plus the slow part, at most about 2 B^2 (the flicker's variance

@@ -1136,7 +1136,15 @@ def _stream_and_analyse(path: str, fs: float, axes: list[str], streams: dict, s0
         # the axes' analyses (noise ID, EDF, fits) in parallel too, in axis order (those of
         # a dataset that finished first are queued already)
         futs = {**queue([a for a in axes if a not in early], 0), **early}
-        done = [_result(futs[a]) for a in axes]
+        # the fits take longer than the stream on a long record (tens of seconds, minutes with
+        # a Gauss-Markov candidate): their own progress, one step per axis
+        fits = WorkProgress(f"allan {Path(path).name}, fits", len(axes), unit="axis" if len(axes) == 1 else "axes",
+                            stream=shown.stream if shown.enabled else None, enabled=shown.enabled)
+        done = []
+        for a in axes:
+            done.append(_result(futs[a]))
+            fits.update(len(done))
+        fits.finish()
     for a, r in zip(axes, done):
         out["axes"][a] = r
         streams[a] = None  # free the per-axis buffers

@@ -48,10 +48,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..errors import InputError
+from ..recording.foreign import MCAP_MAGIC, ROSBAG1_MAGIC, SQLITE_MAGIC, bag_kind  # noqa: F401 - bag_kind: the import command asks here
 
-ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-SQLITE_MAGIC = b"SQLite format 3\x00"
 #: the message type, in rosbags' normalised (ROS 2) spelling; ROS 1's sensor_msgs/Imu maps to it
 IMU_TYPE = "sensor_msgs/msg/Imu"
 #: messages decoded per block (bounded memory: the raw bytes of one block at a time)
@@ -105,25 +103,6 @@ class BagImu:
     topics: list[TopicInfo]
     truncated: str = ""
     notes: list[str] = field(default_factory=list)
-
-
-def bag_kind(path: Path) -> str | None:
-    """``rosbag1``, ``rosbag2`` (directory with metadata.yaml, or a sqlite3 .db3 file),
-    ``mcap``, or None when the path is none of these (first bytes, not the file name)."""
-    if path.is_dir():
-        return "rosbag2" if (path / "metadata.yaml").is_file() else None
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(16)
-    except OSError:
-        return None
-    if head.startswith(ROSBAG1_MAGIC):
-        return "rosbag1"
-    if head.startswith(MCAP_MAGIC):
-        return "mcap"
-    if head.startswith(SQLITE_MAGIC):
-        return "rosbag2"
-    return None
 
 
 def topics_text(topics: list[TopicInfo]) -> str:

@@ -30,6 +30,7 @@ from ..solvers.conformity import FAIL, INDETERMINATE, PASS, overall
 from ..config.spec import load_spec
 from . import production
 from ..display_units import format_value
+from ..errors import RigctlError
 
 ANALYSES = ("calibrate", "allan")
 
@@ -58,7 +59,9 @@ def analyse_one(recording: str, analyses: tuple[str, ...] = ("calibrate",), spec
             out["results"]["allan"] = jsonable(res, keep_nonfinite=True)
         out["ok"] = True
     except Exception as exc:  # noqa: BLE001 - reported per recording; the batch goes on
-        out["error"] = f"{type(exc).__name__}: {exc}"
+        # rigctl's own errors are the one line the command would print; anything else is a
+        # fault, named by its type (the traceback is kept beside it)
+        out["error"] = str(exc) if isinstance(exc, RigctlError) else f"{type(exc).__name__}: {exc}"
         out["traceback"] = traceback.format_exc()
     return out
 

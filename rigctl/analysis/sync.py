@@ -280,7 +280,7 @@ def sync_recording(path: str | Path, opts: SyncOptions | None = None, *, axis: s
 def summary_lines(s: dict[str, Any]) -> list[str]:
     """The summary as the CLI and the run log print it (one line each)."""
     lines = [
-        f"offset      {s['offset_s']:.6f} s  (1-sigma {s['offset_sigma_s'] * 1e3:.3f} ms, "
+        f"offset      {s['offset_s'] * 1e3:.3f} ms  (1-sigma {s['offset_sigma_s'] * 1e3:.3f} ms, "
         f"95% +-{s['offset_ci95_s'] * 1e3:.3f} ms)",
         f"drift       {s['drift_ppm']:.3f} ppm  (1-sigma {s['drift_sigma_ppm']:.3f} ppm, "
         f"95% +-{s['drift_ci95_ppm']:.3f} ppm)",

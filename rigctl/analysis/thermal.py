@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,15 @@ DEFAULT_DEGREES = {"bias": 2, "scale": 2, "misalignment": 1}
 MAX_DEGREE = 4
 MAX_FIT_DEGREE = 3
 
+
+def quantity_name(name: str) -> str:
+    """The shown name of a thermal coefficient (SI ``name``): the display base name
+    (rigctl.display_units) with the power of temperature kept, ``accel_bias_x_m_s2_per_K2`` ->
+    ``accel_bias_x_per_K2`` (the display base alone, ``accel_bias_x``, is the same for the value
+    at the reference temperature and each of its coefficients per K)."""
+    m = re.search(r"_per_K(\d?)$", name)
+    base = display(name).base
+    return f"{base}_per_K{m.group(1)}" if m and not base.endswith("_per_K" + m.group(1)) else base
 
 def _cal_rows(f: Any) -> list[int]:
     seg = f["segments"]
@@ -582,7 +592,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                 if not inside:
                     misses.append(q["name"])
                 tv = f"   {d.value(truth[q['name']]):.5g}" + ("" if inside else " (outside)")
-            lines.append(f"  {d.base:<34} {v:>14} {u:>10} {ci:>26}  {d.unit}{tv}")
+            lines.append(f"  {quantity_name(q['name']):<34} {v:>14} {u:>10} {ci:>26}  {d.unit}{tv}")
     notes, mixed = restart_report(p, wins["gyro"])
     payload: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),

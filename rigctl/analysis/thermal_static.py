@@ -95,9 +95,8 @@ FINDING = {
 
 def _param(q: dict[str, Any]) -> dict[str, Any]:
     d = display(q["name"])
-    m = _COEF.match(q["name"])  # the per-K coefficients: their power in the name, not only in the unit
-    quantity = f"{m.group(1)}_{m.group(2)}_{m.group(3)}_per_K{m.group(4)}" if m else d.base
-    return {"name": q["name"], "quantity": quantity, "unit": d.unit, "value": d.value(q["value"]),
+    # the per-K coefficients: their power in the name, not only in the unit
+    return {"name": q["name"], "quantity": AT.quantity_name(q["name"]), "unit": d.unit, "value": d.value(q["value"]),
             "sigma": d.sigma(q["sigma"]), "ci95": [d.value(q["ci95"][0]), d.value(q["ci95"][1])],
             "si": {"value": q["value"], "sigma": q["sigma"], "ci95": list(q["ci95"]), "unit": d.si_unit}}
 

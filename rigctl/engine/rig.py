@@ -171,7 +171,7 @@ def _wired_rig(cfg: RigConfig) -> Iterator[Rig]:
 def open_rig(cfg: RigConfig) -> Iterator[tuple[Rig, dict[str, Any] | None]]:
     """Yield (rig, truth); truth is the emulator's true parameters (None for a wired rig)."""
     if cfg.is_simulated:
-        # import the emulator (scipy.signal, ~1 s) BEFORE the run clock starts, so that second
+        # import the emulator (numba, scipy.linalg: ~0.5 s) BEFORE the run clock starts, so that time
         # is not spent with data accruing and nothing on disk
         from ..sim.world import SimChamberDevice, SimImuDevice, SimTableDevice, SimWorld
         clock = make_clock(cfg.clock, cfg.speed)

@@ -35,6 +35,7 @@ import numpy as np
 
 from .checkpoint import HDF5_SIGNATURE, superblock_eof
 from ..errors import InputError
+from .foreign import import_hint
 from .recorder import FORMAT_NAME, LAYOUT
 
 #: highest sample rate a recording may declare, Hz
@@ -50,6 +51,9 @@ _KINDS = {np.dtype(np.float64).kind: "f", np.dtype(np.int32).kind: "iu", np.dtyp
 
 
 def _check_path(p: Path) -> None:
+    bag = import_hint(p)
+    if bag is not None:
+        raise InputError(bag, p)
     if p.is_dir():
         inside = p / "recording.h5"
         hint = f"give the recording inside it: {inside}" if inside.is_file() else \

@@ -38,7 +38,6 @@ import math
 
 import numpy as np
 from scipy.ndimage import median_filter
-from scipy.signal import welch
 from scipy.stats import chi2, f as fdist
 
 #: family-wise false-detection probability per axis under a smooth spectrum
@@ -88,6 +87,9 @@ def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     if y.size < 16 * nper or nper < 4 * LEVEL_BINS:
         out["skipped"] = "too few samples for a periodogram"
         return out
+    from scipy.signal import welch  # here: every process that imports the Allan fit (calibrate,
+    # report, batch, ...) paid ~0.12 s of CPU for it at import, most never asking for tones
+
     f, p = welch(y, fs=fs, window="hann", nperseg=nper, noverlap=0,
                  detrend="constant", scaling="density")
     k = y.size // nper
