@@ -36,8 +36,9 @@ best test's numbers are then indicative, the detector's are the point).
 
 **The self-check** (5-minute records at 100 Hz, ``--fit-seeds``): the benchmark's own records
 (tests/test_allan_check_bounds.py's generator, benchmarks/allan_completed_dof.py's ``stepF``),
-fit_terms' check failing (``ok`` False); and the step test a short record could run, the
-best test's statistic with the levels from that fit (:func:`check_table`).
+fit_terms' check failing (``ok`` False); and rigctl's step test for records too short for
+the detector (:func:`rigctl.solvers.allan_step.step_test`), with the levels from that fit
+(:func:`check_table`).
 
 The last line is one JSON object.
 """
@@ -61,6 +62,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 
 from rigctl.solvers import allan_excursions as EX  # noqa: E402
+from rigctl.solvers import allan_step as AS  # noqa: E402
 
 DEG = math.pi / 180.0
 #: the default emulated gyro (configs/sim.yaml), SI
@@ -73,8 +75,6 @@ BLOCK_S = 0.5
 CIRCLE = 8
 #: the best test works on this many block means (a step's information is at low frequencies)
 N_COARSE = 300
-#: the step time is scanned over this share of the record (each end left out)
-EDGE = 0.05
 
 
 def record(seed: int, t_s: float, k_si: float = K_SI) -> np.ndarray:
@@ -107,73 +107,18 @@ def emulated(seed: int, t_s: float, rate_hz: float = 10.0) -> np.ndarray:
     return y.reshape(-1, k).mean(axis=1)
 
 
-def flicker_acov(nb: int, b_si: float = B_SI, block_s: float = BLOCK_S) -> np.ndarray:
-    """Autocovariance of :func:`record`'s flicker (level ``b_si``) at block lags 0..CIRCLE nb - 1
-    (the circle's; the record's lags are its first nb)."""
-    nc = CIRCLE * nb
-    f = np.fft.rfftfreq(nc, block_s)
-    s = np.zeros(f.size)
-    s[1:] = b_si ** 2 / (2.0 * math.pi * f[1:])
-    p = s * nc / (2.0 * block_s)  # E|X_f|^2
-    if nc % 2 == 0:
-        p[-1] /= 2.0  # Nyquist: the real part only
-    return np.fft.irfft(p, nc) / nc
-
-
 def coarse_sigma(nb: int, n_coarse: int = N_COARSE, k_si: float = K_SI, n_si: float = N_SI,
                  b_si: float = B_SI, block_s: float = BLOCK_S) -> np.ndarray:
-    """Covariance of the means of n_coarse equal groups of nb blocks (block_s each) of white
-    (n_si) + flicker (b_si) + random walk (k_si) rate noise, as :func:`record` draws them."""
-    m = nb // n_coarse
-    c = flicker_acov(nb, b_si, block_s)
-    lags = np.arange(-(m - 1), m)
-    w = (m - np.abs(lags)) / m ** 2
-    cb = (c[np.abs(np.arange(n_coarse)[:, None] * m + lags[None, :])] * w).sum(axis=1)
-    i = np.arange(n_coarse)
-    sig = cb[np.abs(i[:, None] - i[None, :])]
-    sig = sig + np.eye(n_coarse) * n_si ** 2 / (block_s * m)
-    # the random walk cumsum_j e_j (Var e = K^2 dt): Cov(r_a, r_b) = K^2 dt (min(a, b) + 1);
-    # group means: K^2 dt (I m + (m + 1) / 2) across groups I < J, (m + 1)(2m + 1)/(6m) within
-    base = i * m + (m + 1) / 2.0
-    rw = np.minimum(base[:, None], base[None, :])
-    rw[i, i] = i * m + (m + 1) * (2 * m + 1) / (6.0 * m)
-    return sig + k_si ** 2 * block_s * rw
+    """Covariance of the means of n_coarse equal groups of :func:`record`'s nb blocks
+    (rigctl.solvers.allan_step.group_sigma: the same model, the same circle)."""
+    return AS.group_sigma(nb, block_s, n_si, b_si, k_si, 0.0, n_coarse, CIRCLE)
 
 
-class StepGLR:
-    """The generalized likelihood ratio for a step at an unknown time (module docstring)."""
-
-    def __init__(self, sigma: np.ndarray, trend: bool = True):
-        n = sigma.shape[0]
-        self.n = n
-        self.chol = np.linalg.cholesky(sigma)
-        x = [np.ones(n)] + ([np.linspace(-1.0, 1.0, n)] if trend else [])
-        xw = solve_triangular(self.chol, np.column_stack(x), lower=True)
-        self.q = np.linalg.qr(xw)[0]
-        self.ks = np.arange(int(EDGE * n), n - int(EDGE * n) + 1)
-        s = (np.arange(n)[:, None] >= self.ks[None, :]).astype(float)
-        w = solve_triangular(self.chol, s, lower=True)
-        w -= self.q @ (self.q.T @ w)
-        self.info = np.sum(w * w, axis=0)  # s' P s
-        self.w = w / np.sqrt(self.info)
-
-    def z(self, y: np.ndarray) -> np.ndarray:
-        """z_k for the coarse means ``y`` (rows: records)."""
-        yw = solve_triangular(self.chol, np.atleast_2d(y).T, lower=True)
-        yw -= self.q @ (self.q.T @ yw)
-        return (self.w.T @ yw).T
-
-    def stat(self, y: np.ndarray) -> np.ndarray:
-        return np.max(np.abs(self.z(y)), axis=1)
-
-    def sd_mid(self) -> float:
-        """sd of the step's estimate at half the record, known time (rad/s)."""
-        return float(1.0 / math.sqrt(self.info[np.searchsorted(self.ks, self.n // 2)]))
+StepGLR = AS.StepGLR
 
 
 def coarsen(y: np.ndarray, n_coarse: int = N_COARSE) -> np.ndarray:
-    m = y.size // n_coarse
-    return y[: m * n_coarse].reshape(n_coarse, m).mean(axis=1)
+    return AS.group_means(y, n_coarse)
 
 
 def found_at(r: dict, t_step: float, tol: float) -> bool:
@@ -196,7 +141,7 @@ def step_table(lengths: list[float], sizes: list[float], seeds: int, n_null: int
         ys = [record(1000 + s, t_s) if source == "model" else emulated(1000 + s, t_s)
               for s in range(seeds)]
         fa_ex = sum(bool(EX.find_excursions(y, BLOCK_S).get("excursions")) for y in ys)
-        row = {"sd_mid_B": glr.sd_mid() / B_SI, "threshold_z": thr,
+        row = {"sd_mid_B": glr.sd_at(N_COARSE // 2) / B_SI, "threshold_z": thr,
                "oracle_null": int(np.sum(glr.stat(np.array([coarsen(y) for y in ys])) > thr)),
                "excursions_null": fa_ex, "tested": bool(EX.find_excursions(ys[0], BLOCK_S)["tested"]),
                "sizes": {}}
@@ -225,14 +170,13 @@ def _upper(c: Any) -> float:
 
 def check_table(sizes: list[float], seeds: int) -> dict:
     """The self-check (fit_terms' ``ok``) on the 5-minute benchmark records with a step, and
-    the step test with the levels taken from that fit (``plugin``): the likelihood ratio of
-    :class:`StepGLR` with Sigma from the fit's 95 % upper ends of N, B and K (a bound where
-    the term is one; conservative, so that levels estimated low do not raise false steps) on
-    150 group means of 0.5 s blocks, against its own 99 % point (2000 draws)."""
+    rigctl's step test for short records with the levels from that fit
+    (:func:`rigctl.solvers.allan_step.step_test`: the 95 % upper ends of Q, N, B and K) on
+    0.5 s block means (``plugin``)."""
     WF = _wf()
     from rigctl.solvers import allan_fit as F  # noqa: E402
     out = {}
-    n_c, tb = 150, 0.5
+    tb = 0.5
     k = int(round(tb * WF.FS))
     for f in [0.0] + sizes:
         failed = plug = 0
@@ -244,10 +188,7 @@ def check_table(sizes: list[float], seeds: int) -> dict:
             failed += not fit["check"]["ok"]
             co = fit["coefficients"]
             yb = y[: y.size // k * k].reshape(-1, k).mean(axis=1)
-            glr = StepGLR(coarse_sigma(yb.size, n_c, _upper(co.K), _upper(co.N), _upper(co.B),
-                                       tb))
-            null = glr.stat((glr.chol @ np.random.default_rng(1).standard_normal((n_c, 2000))).T)
-            plug += glr.stat(coarsen(yb, n_c)[None, :])[0] > np.quantile(null, 0.99)
+            plug += AS.step_test(yb, tb, {t: _upper(getattr(co, t)) for t in "QNBK"})["found"]
         out[f] = {"check_failed": failed, "plugin": int(plug)}
         print(f"5 min at 100 Hz, step {f:4.1f} B: self-check failed {failed}, step test with "
               f"the fit's levels {plug} of {seeds}", flush=True)

@@ -605,7 +605,7 @@ def analyse_axis(stream: _AxisStream, sensor: str, excluded: bool = False,
     warm = AD.start_transient(ybar, block_s, res.tau_s, res.dev, (res.n_phase - 1) * res.tau0_s,
                               sensor)
     # short excursions of the level (30 s .. a quarter of the record), before the fit: reported
-    excursions = EXA.axis_excursions(ybar, block_s, res.tau0_s, sensor)
+    excursions = EXA.axis_excursions(ybar, block_s, res.tau0_s, sensor, fit)
     if warm.get("trim_s") is not None:  # the self-check names it where it explains the taus
         AD.name_in_check(fit["check"], res.tau_s, warm["share"], AD.warmup_reason(warm), "warmup",
                          AD.warmup_reason_below(warm))

@@ -22,13 +22,28 @@ from typing import Any
 import numpy as np
 
 from ..solvers import allan_excursions as EX
+from ..solvers import allan_step as ST
+from ..solvers.noise_coefficients import as_coefficients
 from .allan_drift import LEVEL_UNITS
 
 
-def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) -> dict[str, Any]:
+def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str,
+                    fit: dict[str, Any] | None = None) -> dict[str, Any]:
     """The detector's result for one axis, with each excursion's size in the field unit
-    (``size_<unit>``) and its rows of the range analysed (``samples``: [first, end))."""
+    (``size_<unit>``) and its rows of the range analysed (``samples``: [first, end)).
+
+    A record too short for it (960 s) gets the step test against the fit's noise levels
+    instead (:func:`short_record_step`, in ``step_test``), when ``fit`` is given: a step it
+    finds is reported as a level shift, as the detector's are."""
     r = EX.find_excursions(ybar, block_s, min_s=max(EX.MIN_S, EX.MIN_SAMPLES * tau0))
+    if not r.get("tested") and fit is not None:
+        r["step_test"] = st = short_record_step(ybar, block_s, fit)
+        if st.get("found"):
+            k = int(round(st["t_s"] / block_s))
+            r["excursions"] = [{"start_s": st["t_s"], "end_s": st["t_s"], "duration_s": 0.0,
+                                "size_si": st["size_si"], "kind": "level shift",
+                                "z_start": st["z"], "z_end": float("nan"), "blocks": [k, k],
+                                "found_by": "step test"}]
     unit, fac = LEVEL_UNITS[sensor]
     r["unit"] = unit
     for e in r.get("excursions", []):
@@ -37,6 +52,23 @@ def axis_excursions(ybar: np.ndarray, block_s: float, tau0: float, sensor: str) 
     if r.get("tested"):
         r[f"robust_adev_{unit}"] = [v * fac for v in r["robust_adev_si"]]
     return r
+
+
+def short_record_step(ybar: np.ndarray, block_s: float, fit: dict[str, Any]) -> dict[str, Any]:
+    """:func:`rigctl.solvers.allan_step.step_test` with the fit's 95 % upper ends of Q, N, B
+    and K (a term's bound where it is one); not run beside a Gauss-Markov term (the test's
+    covariance has none: said in ``skipped``)."""
+    if fit.get("gm_term"):
+        return {"tested": False, "found": False,
+                "skipped": "the fit has a Gauss-Markov term, which the step test's noise "
+                           "model does not hold"}
+    co = as_coefficients(fit["coefficients"])
+    levels = {}
+    for t in ("Q", "N", "B", "K"):
+        c = getattr(co, t)
+        hi = c.ci95[1] if c.resolved and c.ci95 is not None else c.upper95
+        levels[t] = float(hi) if hi is not None and np.isfinite(hi) else 0.0
+    return ST.step_test(ybar, block_s, levels)
 
 
 def group(axes: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
@@ -107,10 +139,17 @@ def sentences(r: dict[str, Any]) -> list[str]:
         if e.get("moving_with"):
             text += f", moving with {', '.join(e['moving_with'])}"
         parts.append(text)
-    head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
-            f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged against the "
-            f"record's own robust Allan deviation there; family-wise false-alarm probability "
-            f"{x['alpha']:g} per axis): ")
+    st = x.get("step_test") or {}
+    if st.get("found"):
+        head = (f"a step of the level found before the fit (the record is too short for the "
+                f"window test, so a step was looked for against the fit's noise levels: "
+                f"z {st['z']:+.2f} beyond {st['threshold_z']:.2f}, false-alarm probability "
+                f"{st['alpha']:g} per axis; the fit's terms have absorbed it): ")
+    else:
+        head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
+                f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged "
+                f"against the record's own robust Allan deviation there; family-wise "
+                f"false-alarm probability {x['alpha']:g} per axis): ")
     return [head + "; ".join(parts) + ". Not the sensor's stationary noise: they are in the "
             "whole record's samples and fit; inside a quiet stretch they are left out of its fit "
             "(--excursions exclude, the default; --excursions report keeps them)"]

@@ -549,7 +549,10 @@ def _excursions_html(curves: dict[str, dict]) -> list[str]:
             table(["axis", "kind", "start (s)", "end (s)", "size", "moving with"], rows),
             "<p class=\"muted\">Adjacent window means (30 s to 1/32 of the record) that differ "
             "beyond the record's own robust Allan deviation at that window (family-wise "
-            "false-alarm probability 0.01 per axis); times from the start of the range analysed. "
+            "false-alarm probability 0.01 per axis); on a record shorter than 960 s, a step "
+            "looked for against the fit's noise levels instead (false-alarm probability 0.01 "
+            "per axis; docs/allan.md, 'Detection limits'); times from the start of the range "
+            "analysed. "
             "They are in the samples the fit sees (the whole record's and the quiet stretch's): "
             "not the sensor's stationary noise (docs/allan.md, 'Short excursions before the "
             "fit').</p>"]
