@@ -56,3 +56,26 @@ def test_a_counter_gap_trips_on_any_clock():
 def test_the_engine_gives_its_clock_speed_to_the_suspenders(clock, speed):
     engine = Engine(SimpleNamespace(clock=clock), None, suspenders=SuspenderSet())
     assert engine.suspenders.clock_speed == speed
+
+
+def test_imu_link_holds_until_reads_after_the_driver_is_configured_again():
+    """'imu-link' after a LinkLost, with a driver that reports its reconnect
+    (Observation.imu_reconnecting, asked before each read): frames read while it reconfigures,
+    and those of the first read after it reports configured (queued before), keep it tripped;
+    the second read's samples, received after, clear it. A device that never reports a
+    reconnect (the in-process emulator) clears on its first samples, as before."""
+    def link_trips(seq: list[tuple[bool, list[int]]]) -> list[bool]:
+        sus = SuspenderSet(SuspenderSettings(min_free_bytes=0))
+        assert sus.check(Observation(t=0.0, imu=block(0.0, [0, 1, 2]))) == {}
+        assert "imu-link" in sus.check(Observation(t=0.5, imu_error="no data for 0.1 s (reconnecting)"))
+        return ["imu-link" in sus.check(Observation(t=1.0 + i, imu=block(1.0 + i, c), imu_reconnecting=r))
+                for i, (r, c) in enumerate(seq)]
+
+    # reconnecting (frames still streamed before GoToConfig), then configured: the first read
+    # after holds what was queued, the second clears (with the counter gap: imu-gap trips then)
+    assert link_trips([(True, [3, 4]), (True, []), (False, [5]), (False, [50, 51]), (False, [52])]) == \
+        [True, True, True, False, False]
+    # configured, but the first two reads after: nothing, then samples -- both after the report
+    assert link_trips([(True, []), (False, []), (False, [], ), (False, [60])]) == [True, True, True, False]
+    # no reconnect reported: the first samples clear it
+    assert link_trips([(False, []), (False, [30, 31])]) == [True, False]

@@ -10,8 +10,10 @@ Suspenders (names as written to the recording's ``/events``):
 
 * ``imu-link``    -- the IMU driver raised :class:`rigctl.devices.LinkLost`; it stays tripped
   while the driver reports the device not configured again (:func:`rigctl.devices.imu_reconnecting`)
-  and until a read brings samples after that: frames a reconnecting driver hands out before its
-  reconfiguration do not clear it, so a pause does not end before the stream is back.
+  and until a read brings samples received after that (the second read after it reports
+  configured; a device without that report: its first samples): frames a reconnecting driver
+  hands out before its reconfiguration do not clear it, so a pause does not end before the
+  stream is back.
 * ``imu-gap``     -- samples missing: a sample-counter gap larger than ``max_counter_gap``, or no
   sample for ``imu_timeout_s`` s of rig time -- on a clock faster than the wall (an emulated rig
   at 100x), for at least :data:`IMU_SILENCE_WALL_S` of wall time (:attr:`SuspenderSet.clock_speed`).
@@ -113,8 +115,9 @@ class Observation:
     table_error: str | None = None
     #: why the chamber trips (fault, link lost, out of band), None when fine or absent
     chamber_reason: str | None = None
-    #: the IMU's driver reports its link lost and the device not configured again yet
-    #: (:func:`rigctl.devices.imu_reconnecting`)
+    #: the IMU's driver reported its link lost and the device not configured again yet
+    #: (:func:`rigctl.devices.imu_reconnecting`), asked just BEFORE the read: a read after a
+    #: poll that found it configured again holds only frames received since
     imu_reconnecting: bool = False
 
 
@@ -147,6 +150,7 @@ class SuspenderSet:
         self.clear_since: float | None = None
         #: the reason 'imu-link' tripped, kept until the stream is back (see :meth:`_imu`)
         self.link_lost: str | None = None
+        self._reconfigured_reads = -1   # reads since the driver reported configured again (_imu)
 
     def rebase(self) -> None:
         """Forget counter/time history (after a reconnect, a resume or a new session)."""
@@ -165,10 +169,19 @@ class SuspenderSet:
         out: dict[str, str] = {}
         if obs.imu_error is not None:
             out["imu-link"] = self.link_lost = f"IMU link lost: {obs.imu_error}"
+            self._reconfigured_reads = -1   # (-1: the driver has not reported reconnecting)
             return out
         block = obs.imu
         if self.link_lost is not None:      # tripped: clear once reconfigured and streaming
-            if obs.imu_reconnecting or block is None or not len(block):
+            if obs.imu_reconnecting:
+                self._reconfigured_reads = 0
+            elif self._reconfigured_reads >= 0:
+                self._reconfigured_reads += 1
+            # a driver that reported reconnecting: the first read after it reported configured
+            # may still hold frames received before (queued while it configured); the next holds
+            # only frames received after (see Observation.imu_reconnecting)
+            stale = 0 <= self._reconfigured_reads < 2
+            if obs.imu_reconnecting or stale or block is None or not len(block):
                 out["imu-link"] = self.link_lost
                 if block is None or not len(block):
                     return out

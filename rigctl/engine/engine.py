@@ -316,7 +316,7 @@ class Engine:
         Interrupted on an abort request and (if ``check``) Suspend when a suspender trips.
         ``safe_state``: an IMU fault is noted, not raised (the table must still be read)."""
         clock = self.rig.clock
-        obs = Observation(t=clock.now())
+        obs = Observation(t=clock.now(), imu_reconnecting=imu_reconnecting(self.rig.imu))  # before the read
         try:
             block = self.rig.imu.read()
             obs.imu = block
@@ -332,7 +332,6 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
-        obs.imu_reconnecting = imu_reconnecting(self.rig.imu)
         restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
