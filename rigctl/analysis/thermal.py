@@ -360,14 +360,21 @@ def fit_static(path: str | Path, bias_degree: int = 2, window_s: float = STATIC_
 
 
 def fit_static_windows(wins: dict[str, th.ThermalWindows], bias_degree: int = 2, loop: bool = True,
-                       noise: tuple[Any, Any] | None = None) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
-    """:func:`fit_static` of windows :func:`static_windows` made."""
+                       noise: tuple[Any, Any] | None = None,
+                       progress: Callable[[str], None] | None = None
+                       ) -> dict[str, tuple[th.ThermalWindows, th.ThermalFit]]:
+    """:func:`fit_static` of windows :func:`static_windows` made. ``progress``: called with a
+    line as each stage starts (the noise estimate and the fit take minutes on a long record)."""
     out = {}
+    say = progress or (lambda _line: None)
     for sensor, model in zip(("accel", "gyro"), noise or (None, None)):
         w = wins[sensor]
+        if model is None:
+            say(f"{sensor}: noise of the {len(w)} window means by REML (white, bias instability, random walk) ...")
         th.estimate_noise(w, model)
         deg = ({"bias": bias_degree, **th.BIAS_ONLY} if th.one_orientation(w.ref)
                else {"bias": bias_degree, "scale": bias_degree, "misalignment": th.HELD})
+        say(f"{sensor}: generalised least-squares fit" + (" and its closed loop" if loop else "") + " ...")
         out[sensor] = (w, th.fit_thermal(w, deg, loop=loop))
     return out
 

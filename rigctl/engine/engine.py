@@ -31,7 +31,7 @@ import numpy as np
 from .. import errors
 from ..clock import VirtualClock, suggested_speed
 from ..devices import (AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable,
-                       imu_restarts)
+                       imu_reconnecting, imu_restarts)
 from .procedure import CHAMBER_KINDS, Step
 from ..progress import CounterGaps, NullProgress, Progress
 from ..recording.recorder import Elide, Recorder, Segment, event_text
@@ -332,6 +332,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
+        obs.imu_reconnecting = imu_reconnecting(self.rig.imu)
         restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
