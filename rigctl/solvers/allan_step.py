@@ -22,9 +22,10 @@ averaged) and white phase noise (Q^2: 2 Q^2 / T_g^2 on the diagonal, -Q^2 / T_g^
 **The levels** are the fit's 95 % upper ends of Q, N, B and K (a term's bound where it is
 one): levels estimated low would make noise look like a step; too high only costs power.
 The step itself moves them (the fit's B and K grow with it), which is the test's main cost
-against one that knows the noise: measured on 5-minute records of the default emulated gyro,
-found in 94 of 100 at 12 B (B its bias instability), 28 at 8 B, none without a step; the test
-that knows N, B and K finds 6 B in 199 of 200 (benchmarks/allan_step_limit.py).
+against one that knows the noise: measured on 5-minute records with the default emulated
+gyro's N and B, found in 94 of 100 at 12 B (B its bias instability), 28 at 8 B, none without
+a step (the emulator's own records: 49 of 60 at 12 B, none of 60 without); the test that
+knows N, B and K finds 6 B in 199 of 200 (benchmarks/allan_step_limit.py).
 
 **Calibration.** The threshold is the 99 % point (``ALPHA``) of max_k |z_k| under no step,
 from ``N_DRAWS`` draws of N(0, Sigma) with a fixed seed (the statistic's law depends on the
