@@ -473,6 +473,11 @@ def build_cases(tmp: Path) -> tuple[list[Case], dict[str, Path]]:
                            "--units", "acc=g,gyr=deg/s", "--rate", "100", "--gravity", gval], {2}, ["--gravity"]))
     cases.append(Case(["import", str(d / "missing.csv"), "-o", str(out / "imp.h5"), "--force", "--columns", cols,
                        "--units", "acc=g,gyr=deg/s", "--rate", "100"], {2}, ["missing.csv"]))
+    # -o a directory, even with --force: refused before any work (was exit 1 after the import,
+    # 'Is a directory' from the rename of the finished file)
+    cases.append(Case(["import", str(csv_ok), "-o", str(out), "--force", "--columns", cols,
+                       "--units", "acc=g,gyr=deg/s", "--rate", "100"], {2}, [str(out)]))
+    cases.append(Case(["apply-cal", g, "-o", str(out), "--force"], {2}, [str(out)]))
 
     # run / validate: hostile procedures, parameters and configs (nothing may be left behind)
     runs = tmp / "hostile-runs"

@@ -246,3 +246,61 @@ def test_a_link_loss_after_the_last_window_completes_the_run(tmp_path):
     assert not any(k in ("suspend", "incomplete") for _, k, _ in events), events
     log = (res.run_dir / "run.log.jsonl").read_text()
     assert "imu-link after the last window: IMU link lost" in log and "every step is complete" in log
+
+
+def _pause_names(events) -> list[set[str]]:
+    """Per pause (a suspend to its resume), the suspenders its suspend events name, with the
+    names its resume says are clear: (suspend names, resume names)."""
+    out, cur = [], None
+    for _, k, m in events:
+        if k == "suspend":
+            cur = set() if cur is None else cur
+            cur |= set(m.split(": ", 1)[0].split(", "))
+        elif k == "resume":
+            assert cur is not None, m
+            out.append((cur, set(m.split(" clear for ", 1)[0].split(", "))))
+            cur = None
+    return out
+
+
+def test_a_trip_later_in_the_tail_wait_is_recorded_in_the_pause(tmp_path):
+    """The link drops for 0.3 s right after the warm-up's window (latency 15 ms): 'imu-link'
+    trips in the wait for its last samples, and the samples that follow the reconnect carry a
+    counter gap: 'imu-gap' trips in a later poll of the same wait. The pause names both (in its
+    suspend events and its resume). Before, polls after the first trip of the wait did not check
+    the suspenders: the gap was in no event."""
+    res, acted = _run(tmp_path, 0.015, link_loss(0.3))
+    assert res.exit_code == 0, res.message
+    seg, t, c, events = _read(res.recording)
+    gap = np.flatnonzero(np.diff(c) > 1)
+    assert len(gap) == 1 and 20 <= c[gap[0] + 1] - c[gap[0]] - 1 <= 40       # the 0.3 s outage
+    assert acted <= t[gap[0] + 1] <= acted + 2.0                              # inside the tail wait
+    pauses = _pause_names(events)
+    assert len(pauses) == 1 and pauses[0][0] == pauses[0][1] == {"imu-link", "imu-gap"}, events
+    named = [m for _, k, m in events if k == "suspend" and f"(counter {c[gap[0]]} -> {c[gap[0] + 1]})" in m]
+    assert len(named) == 1 and "imu-gap" in named[0], events
+
+
+def test_a_trip_while_the_table_stops_is_recorded_in_the_pause(tmp_path):
+    """An operator pause right after the warm-up's window; at the poll that stops the table
+    (the run 'pausing') the link drops for 0.1 s, shorter than a pause poll, so 'imu-link' is
+    clear again at the pause's first poll. The pause names it (a suspend event, and its resume).
+    Before, the table-stop polls did not record trips: the pause named 'operator' and the
+    'imu-gap' of the reconnect only, not the link loss."""
+    dropped: list[float] = []
+
+    def drop_while_stopping(engine):
+        if engine.states.state == "pausing" and not dropped:
+            now = engine.rig.clock.now()
+            dropped.append(now)
+            engine.rig.imu.inner.world.faults.schedule("imu_link", now, 0.1)
+
+    res, _ = _run(tmp_path, 0.015, operator_pause, on_read=drop_while_stopping)
+    assert res.exit_code == 0, res.message
+    assert dropped
+    seg, t, c, events = _read(res.recording)
+    pauses = _pause_names(events)
+    assert len(pauses) == 1 and pauses[0][0] == pauses[0][1], events
+    assert {"operator", "imu-link"} <= pauses[0][0], events
+    link = [(tt, m) for tt, k, m in events if k == "suspend" and m.startswith("imu-link")]
+    assert len(link) == 1 and "link down, injected" in link[0][1] and link[0][0] >= dropped[0], events

@@ -78,6 +78,17 @@ def runs(ref_data, tmp_path_factory):
     return rows, out, plain, poses
 
 
+def test_each_stage_of_the_fit_is_said_on_stderr(runs):
+    """The fit of the 74.5 h record takes minutes (~1.5 min at load 5 on 2 cores): each stage
+    is said as it starts, with the time since the command began; the command ran silent."""
+    _, out, plain, _ = runs
+    lines = out["poses"]["stderr"].strip().splitlines()
+    stages = [re.match(rf"^thermal {plain.name}, [^:]+: (accel|gyro): (noise|generalised)", ln) for ln in lines]
+    assert [(m.group(1), m.group(2)) for m in stages if m] == [
+        ("accel", "noise"), ("accel", "generalised"), ("gyro", "noise"), ("gyro", "generalised")], lines
+    assert "closed loop" not in out["poses"]["stderr"]  # --no-loop
+
+
 def _differenced(ref: dict[str, np.ndarray], y: np.ndarray, u: np.ndarray | None):
     """numpy's least squares of the differences of consecutive window means within a pose on the
     differences of <dT>, <dT^2> (and u times them: the scale terms, u the pose's reference

@@ -493,8 +493,10 @@ def write_recording(out: Path, t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, 
 
 
 def check_output(src: Path, out: Path, force: bool) -> None:
-    """Refuse to overwrite (without ``force``), to replace the input, or to write into a
-    directory that does not exist."""
+    """Refuse to overwrite (without ``force``), to replace a directory or the input, or to
+    write into a directory that does not exist."""
+    if out.is_dir():
+        raise InputError("-o is a directory", out, hint="give -o the path of the file to write (.h5)")
     if out.exists() and not force:
         raise InputError("output exists", out, hint="choose another -o or pass --force to replace it")
     if out.resolve() == src.resolve():

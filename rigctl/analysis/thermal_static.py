@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -123,9 +124,10 @@ def _sensor(w: th.ThermalWindows, fit: th.ThermalFit) -> dict[str, Any]:
 
 def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STATIC_WINDOW_S,
                bias_degree: int = 2, loop: bool = True, poses_file: str | Path | None = None,
-               one_pose: bool = False, force_static: bool = False, reference_c: float = 25.0) -> dict[str, Any]:
+               one_pose: bool = False, force_static: bool = False, reference_c: float = 25.0,
+               progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The result of ``rigctl thermal`` (module docstring): JSON-ready, values in field units with
-    their SI originals."""
+    their SI originals. ``progress``: called with a line as each stage of the fit starts."""
     p = Path(path)
     if not 1 <= bias_degree <= AT.MAX_FIT_DEGREE:
         raise InputError(f"--bias-degree {bias_degree}: give 1 .. {AT.MAX_FIT_DEGREE} (the temperature "
@@ -163,7 +165,7 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                           "temperature_c": [float(T[m].min()), float(T[m].max())],
                           "gravity_reference_m_s2": ref.tolist(),
                           "direction": (ref / np.linalg.norm(ref)).tolist()})
-    fits = AT.fit_static_windows(wins, bias_degree, loop)
+    fits = AT.fit_static_windows(wins, bias_degree, loop, progress=progress)
     sensors = {s: _sensor(w, f) for s, (w, f) in fits.items()}
     notes, mixed = AT.restart_report(p, wa)     # IMU restarts: as rigctl calibrate's thermal path
     noise_lines, noise_rows = noise_summary(fits["accel"][0].noise + fits["gyro"][0].noise, wa.t0)

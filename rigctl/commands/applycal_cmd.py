@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..analysis.apply_cal import apply_calibration, load_model
+from ..analysis.log_import import check_output
 from ..errors import InputError, RunFailure
 
 
@@ -39,10 +40,7 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and out.resolve() == src.resolve():
         raise InputError("-o names the input recording; apply-cal never modifies its input", out,
                          hint="choose another output file")
-    if out.exists() and not args.force:
-        raise InputError("output exists", out, hint="choose another -o or pass --force to replace it")
-    if not out.parent.is_dir():
-        raise InputError("output directory does not exist", out.parent)
+    check_output(src, out, args.force)  # exists, a directory, no such directory: one piece with import
     if args.calibration and args.from_results:
         raise InputError("give either --calibration JSON or --from-results, not both")
     info, origin = load_model(src, args.calibration)

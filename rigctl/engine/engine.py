@@ -31,7 +31,7 @@ import numpy as np
 from .. import errors
 from ..clock import VirtualClock, suggested_speed
 from ..devices import (AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSource, TableState, Turntable,
-                       imu_restarts)
+                       imu_reconnecting, imu_restarts)
 from .procedure import CHAMBER_KINDS, Step
 from ..progress import CounterGaps, NullProgress, Progress
 from ..recording.recorder import Recorder, Segment
@@ -147,6 +147,13 @@ class Suspend(Exception):
         #: then comes between this step and the next, nothing is cut off
         self.segment: Segment | None = None
         super().__init__("; ".join(reasons.values()))
+
+    def merge(self, other: "Suspend") -> None:
+        """Add the suspenders of ``other`` not already named (a trip seen later in the same wait:
+        :meth:`Engine._window_rows`); the message names them all."""
+        for name, reason in other.reasons.items():
+            self.reasons.setdefault(name, reason)
+        self.args = ("; ".join(self.reasons.values()),)
 
 
 @dataclass
@@ -325,6 +332,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
+        obs.imu_reconnecting = imu_reconnecting(self.rig.imu)
         restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
@@ -812,9 +820,12 @@ class Engine:
             while (not self._track or self._track[-1][1][-1] < t_end - TIME_EPS) and clock.now() < wait_until:
                 clock.sleep(self.settle_poll_s)
                 try:
-                    self.poll(check=self._tail_sus is None)
+                    self.poll()
                 except Suspend as sus:  # the window is over: its samples decide (execute), so the
-                    self._tail_sus = sus  # wait goes on for those still in flight
+                    if self._tail_sus is None:  # wait goes on for those still in flight; a trip
+                        self._tail_sus = sus    # seen later in it joins the first (the pause names it)
+                    else:
+                        self._tail_sus.merge(sus)
         except BaseException:       # the run ends (abort, fault: only a Suspend is caught above)
             self._tail_restart_said(self.current_step, complete=False, stopping=True)
             raise
@@ -995,8 +1006,10 @@ class Engine:
                            f"step {step.index + 1} ({step.label}): {done:.1f} s of warm-up kept, {left:.1f} s left")
         return replace(step, sample_s=left)
 
-    def _stop_table(self, wait_s: float = 5.0) -> None:
-        """Stop the table (rate zero, mode off) and record it until still or ``wait_s``."""
+    def _stop_table(self, wait_s: float = 5.0, seen: set[str] | None = None) -> None:
+        """Stop the table (rate zero, mode off) and record it until still or ``wait_s``. In a
+        pause (``seen``: the suspenders it names so far) a suspender that trips meanwhile is
+        recorded and named as in the pause's own polls (:meth:`_note_trips`)."""
         clock = self.rig.clock
         try:
             self.rig.table.stop()
@@ -1005,6 +1018,8 @@ class Engine:
         t0 = clock.now()
         while clock.now() - t0 < wait_s:
             state = self.poll(check=False)
+            if seen is not None:
+                self._note_trips(seen)
             if not state.any_has(AxisStatus.MOVING):
                 return
             clock.sleep(self.settle_poll_s)
@@ -1039,21 +1054,16 @@ class Engine:
         if not between_steps:
             self._cut_off(step)
         self.sampling_from = None
-        self._stop_table()
+        seen = set(sus.reasons)
+        self._stop_table(seen=seen)
         self.states.to("paused", message)
         hold = self.suspenders.s.hold_s
         t0 = clock.now()
-        seen = set(sus.reasons)
         while True:
             clock.sleep(self.pause_poll_s)
             self.poll(check=False)
             now = clock.now()
-            new = set(self.suspenders.active) - seen
-            if new:
-                seen |= new
-                text = "; ".join(self.suspenders.active[k] for k in new)
-                self.log("warning", f"also: {text}")
-                rec.add_event(now, "suspend", f"{', '.join(sorted(new))}: {text}")
+            self._note_trips(seen)
             if not self.suspenders.active and self.suspenders.clear_for(now) >= hold - 1e-9:
                 break
             if self.max_pause_s is not None and now - t0 > self.max_pause_s:
@@ -1064,6 +1074,16 @@ class Engine:
         rec.add_event(now, "resume", text)
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)
+
+    def _note_trips(self, seen: set[str]) -> None:
+        """After a poll in a pause: record each suspender tripped now that the pause does not
+        name yet (``seen``, updated) as a ``suspend`` event, as the trip that began it."""
+        new = set(self.suspenders.active) - seen
+        if new:
+            seen |= new
+            text = "; ".join(self.suspenders.active[k] for k in sorted(new))
+            self.log("warning", f"also: {text}")
+            self.rec.add_event(self.rig.clock.now(), "suspend", f"{', '.join(sorted(new))}: {text}")
 
     def _cut_off(self, step: Step) -> None:
         """Write the step in flight as an ``incomplete`` segment (when it had started sampling)

@@ -50,7 +50,11 @@ _KINDS = {np.dtype(np.float64).kind: "f", np.dtype(np.int32).kind: "iu", np.dtyp
           "S": "S"}
 
 
-def _check_path(p: Path) -> None:
+def check_path(p: Path) -> None:
+    """InputError naming ``p`` when it cannot be a recording before HDF5 opens it: a foreign log
+    given where a recording goes (:func:`import_hint`), a directory, missing, unreadable, empty,
+    not HDF5, or cut off (shorter than its superblock records; a SWMR reader would skip HDF5's
+    own check and read garbage or hang)."""
     bag = import_hint(p)
     if bag is not None:
         raise InputError(bag, p)
@@ -204,7 +208,7 @@ def open_recording(path: str | Path, need: Iterable[str] = ("imu/time",),
 
     Returns the open file (a context manager); raises InputError naming the file."""
     p = Path(path)
-    _check_path(p)
+    check_path(p)
     f = _open_h5(p)
     try:
         lengths = check_need(f, p, need, check_present)

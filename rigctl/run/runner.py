@@ -39,7 +39,7 @@ from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
 from ..progress import Progress, make_progress
 from ..recording.recorder import LAYOUT, Recorder, Segment, library_versions, utc_now
-from ..recording.recording_reader import check_layout
+from ..recording.recording_reader import check_layout, check_path
 from ..engine.rig import open_rig
 from .runlog import RunLog
 from .solve import run_solvers, solver_names
@@ -143,18 +143,33 @@ def _clock_zero_unix(rig: Rig, cfg: RigConfig) -> float:
     return time.time() - rig.clock.now() / speed
 
 
+#: what to do with a recording a resume cannot read or append to
+RESUME_HINT = ("a damaged or hand-edited recording cannot be resumed: restore it from a copy, or start "
+               "the procedure again")
+
+
 def _open_cut_off(recording: Path) -> h5py.File:
     """A cut-off recording, for reading. A crash leaves HDF5's write flags set, which SWMR
     readers accept when the SWMR flag is set too; a crash of a resume between its plain 'r+'
     open and the switch to SWMR leaves the write flag alone, which every reader refuses: then
-    the flags are cleared first (the resume clears them anyway before reopening)."""
+    the flags are cleared first (the resume clears them anyway before reopening).
+
+    A file that cannot be one (a directory, unreadable, empty, not HDF5, cut off short of the
+    end its superblock records -- which a SWMR reader would hang on -- or refused by HDF5) is
+    an InputError naming it and what to do (:data:`RESUME_HINT`), before anything is touched."""
     try:
-        return h5py.File(recording, "r", libver="latest", swmr=True)
-    except OSError:
-        if ckpt_mod.status_flags(recording) != 1:
-            raise
-    ckpt_mod.clear_status_flags(recording)
-    return h5py.File(recording, "r", libver="latest")
+        check_path(recording)
+        try:
+            return h5py.File(recording, "r", libver="latest", swmr=True)
+        except OSError:
+            if ckpt_mod.status_flags(recording) != 1:
+                raise
+        ckpt_mod.clear_status_flags(recording)
+        return h5py.File(recording, "r", libver="latest")
+    except InputError as exc:
+        raise InputError(exc.message, recording, hint=RESUME_HINT) from None
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise InputError(f"cannot be read as HDF5 ({exc})", recording, hint=RESUME_HINT) from None
 
 
 #: what a resume reads of the recording and appends to: groups of the layout (every dataset;
@@ -175,9 +190,7 @@ def _check_resumable(f: h5py.File, recording: Path) -> None:
         if rows["run"]["run/status"] < 1:
             raise InputError("/run/status is empty", recording)
     except InputError as exc:
-        raise InputError(exc.message, recording,
-                         hint="a damaged or hand-edited recording cannot be resumed: restore it from "
-                              "a copy, or start the procedure again") from None
+        raise InputError(exc.message, recording, hint=RESUME_HINT) from None
 
 
 def _rows(f: h5py.File, group: str, names: tuple[str, ...]) -> dict[str, np.ndarray]:
