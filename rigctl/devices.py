@@ -186,6 +186,16 @@ def imu_restarts(imu: object) -> int:
     return int(n) if isinstance(n, (int, float)) else 0
 
 
+def imu_reconnecting(imu: object) -> bool:
+    """Whether the IMU's driver reports its link lost and the device not configured again yet:
+    its optional ``link_down_s()`` (wall seconds since the link was lost, None once the link is
+    back and the device configured again: drivers/reader_thread.py, ReconnectingReader; duck-typed)
+    is not None. Meanwhile ``read`` may still hand out frames received before the
+    reconfiguration (an Xsens streams until GoToConfig takes effect). False for a device without it."""
+    down = getattr(imu, "link_down_s", None)
+    return callable(down) and down() is not None
+
+
 @runtime_checkable
 class PulseSource(Protocol):
     def read(self) -> Pulses:

@@ -154,6 +154,7 @@ class SimWorld:
         self.faults = FaultInjector()  # sim/faults.py: injected faults the devices obey
         #: the IMU's power cycles so far (:meth:`power_cycle_imu`): time and new turn-on biases
         self.imu_power_cycles: list[dict[str, Any]] = []
+        self._cycles_drained = 0  # of them, how many the recorder has taken (drain_power_cycles)
         # the climatic chamber (sim/chamber.py) and the IMU's thermal state along it: the
         # declared IMU's temperature is the chamber's product temperature (idle at the IMU's
         # temperature_c unless chamber.sim says otherwise); a profile IMU keeps its own
@@ -353,35 +354,60 @@ class SimWorld:
         self.imu_power_cycles.append({"t_s": self.t, "gyro_turn_on_bias_rad_s": g.tolist(),
                                       "accel_turn_on_bias_m_s2": a.tolist()})
 
+    def drain_power_cycles(self) -> dict[str, dict[str, NDArray]]:
+        """The power cycles since the last call as rows of :data:`POWER_CYCLE_TABLE`
+        ({"imu_power_cycles": {column: array}}; {} when none): the recorder's
+        /truth/imu_power_cycles."""
+        new = self.imu_power_cycles[self._cycles_drained:]
+        self._cycles_drained += len(new)
+        if not new:
+            return {}
+        return {"imu_power_cycles": {
+            "time_s": np.array([c["t_s"] for c in new], float),
+            "gyro_turn_on_bias_rad_s": np.array([c["gyro_turn_on_bias_rad_s"] for c in new], float),
+            "accel_turn_on_bias_m_s2": np.array([c["accel_turn_on_bias_m_s2"] for c in new], float)}}
+
     def truth(self) -> dict[str, Any]:
-        """Every true parameter (a dict, JSON-serialisable). With the tap operator it also
-        carries the taps drawn during the run (:class:`RunTruth`: the recorder writes them to
-        /truth/taps and /truth/edges)."""
+        """Every true parameter (a dict, JSON-serialisable), with what is drawn during the run
+        (:class:`RunTruth`): the IMU's power cycles (/truth/imu_power_cycles: each new turn-on
+        bias and when it takes effect) and, with the tap operator, the taps (/truth/taps and
+        /truth/edges). ``imu_power_cycles`` here: the cycles so far (none when the recording is
+        created, so its params_json holds the first turn-on's bias only)."""
         out = {"imu": self.imu_model.truth(), "table": self.table.truth(), "seed": self.cfg.seed,
                "chamber": self.chamber.truth(), "imu_power_cycles": list(self.imu_power_cycles),
                "site": {"latitude_rad": self.cfg.latitude, "height_m": self.cfg.height_m,
                         "gravity_m_s2": self.cfg.gravity}}
         if self.operator is not None:
             out["pulses"] = self.operator.truth()
-            return RunTruth(out, self.operator)
-        return out
+        return RunTruth(out, self, self.operator)
 
     def pulses(self) -> Any:
         """The rig's pulse source: the emulated receiver's input, or one that never fires."""
         return NoPulses() if self.operator is None else SimPulses(self.operator, self.clock)
 
 
+#: the IMU's power cycles as a /truth table (docs/data-format.md): one row per cycle, the run
+#: time of the draw (every IMU sample after it carries the new turn-on bias) and the new
+#: turn-on biases (the profile model's replace the last; the declared model's add to its bias)
+POWER_CYCLE_TABLE: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {"imu_power_cycles": {
+    "time_s": ((), np.float64, "s"),
+    "gyro_turn_on_bias_rad_s": ((3,), np.float64, "rad/s"),
+    "accel_turn_on_bias_m_s2": ((3,), np.float64, "m/s^2")}}
+
+
 class RunTruth(dict):
     """The truth dict plus the tables of truth drawn during the run, for the recorder
-    (rigctl.recording.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new rows)."""
+    (rigctl.recording.recorder: ``truth_tables`` is the layout, ``drain_truth_rows()`` the new
+    rows): the world's IMU power cycles, and the tap operator's taps and edges when there is one."""
 
-    def __init__(self, params: dict[str, Any], operator: SimTapOperator) -> None:
+    def __init__(self, params: dict[str, Any], world: SimWorld, operator: SimTapOperator | None) -> None:
         super().__init__(params)
-        self.operator = operator
-        self.truth_tables = TRUTH_TABLES
+        self.world, self.operator = world, operator
+        self.truth_tables = {**POWER_CYCLE_TABLE, **(TRUTH_TABLES if operator is not None else {})}
 
     def drain_truth_rows(self) -> dict[str, dict[str, NDArray]]:
-        return self.operator.drain_truth_rows()
+        rows = self.operator.drain_truth_rows() if self.operator is not None else {}
+        return {**rows, **self.world.drain_power_cycles()}
 
 
 class SimTableDevice:

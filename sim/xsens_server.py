@@ -16,7 +16,8 @@ is taken at t0 + k / rate; PacketCounter counts every emitted packet (u16, wraps
 SampleTimeFine = stf_offset + round((t - t_origin) * 10 kHz) (u32, wraps).
 
 Fault injection (side channel): ``byte_error_rate`` XORs random non-zero values into outgoing
-bytes (seeded); ``frames_hit`` counts the MTData2 frames that received at least one error.
+bytes (seeded); ``frames_hit`` counts the MTData2 frames that received at least one error;
+``go_to_config_delay_s`` holds a GoToConfig back (the stream goes on) for that many wall seconds.
 """
 from __future__ import annotations
 
@@ -88,6 +89,9 @@ class XsensServer:
         self.t_origin = self.clock()
         self.device_id, self.stf_offset = device_id, stf_offset
         self.byte_error_rate, self._rng = byte_error_rate, np.random.default_rng(seed)
+        #: wall seconds a GoToConfig received in measurement mode takes to take effect (and be
+        #: acknowledged), the unit streaming on meanwhile: a unit slow to leave measurement mode
+        self.go_to_config_delay_s = 0.0
         self.config = list(DEFAULT_CONFIG)
         self.rate_hz = check_output_fits(self.config, max_rate_hz, baudrate)
         self.state = "config"
@@ -116,6 +120,8 @@ class XsensServer:
         msgs, used, _bad = split_messages(self._buf)
         self._buf = self._buf[used:]
         for m in msgs:
+            if m.mid == MID.GO_TO_CONFIG and self.go_to_config_delay_s > 0 and self.state == "measurement":
+                time.sleep(self.go_to_config_delay_s)     # streaming on meanwhile (_stream)
             write(self._handle(m.mid, m.data))
 
     def _enter_measurement(self) -> None:

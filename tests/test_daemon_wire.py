@@ -359,27 +359,30 @@ steps:
 """
 
 
-def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp_path):
-    """The emulator pulls the IMU's pty (closes it, opens a new one at the same symlink 0.2 s
-    later) in the middle of each of 10 sampling windows: the Xsens driver reconnects and
-    reconfigures every time, each drop is an `imu-link` suspender event, the interrupted step
-    re-runs and the procedure completes with one complete, gap-free segment per step. Each pause
-    is read with its own resume (_pauses); a loaded host adds pauses, each of which the run's own
-    record explains (_check_drops_recorded), and every sample missing is in time it set aside."""
+def _pull_imu_in_windows(tmp_path: Path, proc_text: str, speed: float, hold: str, steps, into_window_s: float,
+                         go_to_config_delay_s: float = 0.0):
+    """Run ``proc_text`` over the wire at ``speed`` x (the IMU's link_timeout_s 0.05 s, the
+    suspenders' hold_s ``hold``) and pull the IMU's pty for 0.2 s ``into_window_s`` of wall time
+    into the sampling window of each step in ``steps`` (0-based; once each, while running);
+    ``go_to_config_delay_s``: the emulated MTi's GoToConfig delay from the first pull on.
+    Returns (the run's result, the steps pulled, the IMU driver, the emulator's reconnects, the
+    console)."""
     proc_path = tmp_path / "drops.yaml"
-    proc_path.write_text(ORIENT)
+    proc_path.write_text(proc_text)
     box: dict = {}
     done = threading.Event()
     dropped: list[int] = []
+    todo = set(steps)
 
     def watch(hw) -> None:
-        while not done.is_set() and len(dropped) < 10:
+        while not done.is_set() and len(dropped) < len(todo):
             e = box.get("engine")
             step = e.current_step if e is not None else None
-            if step is not None and e.sampling_from is not None and step.index not in dropped \
-                    and e.states.state == "running":
-                time.sleep(0.02)                      # ~2 s of rig time into the 10 s window
+            if step is not None and e.sampling_from is not None and step.index in todo \
+                    and step.index not in dropped and e.states.state == "running":
+                time.sleep(into_window_s)
                 dropped.append(step.index)
+                hw.imu_server.go_to_config_delay_s = go_to_config_delay_s
                 hw.disconnect("imu", down_s=0.2)     # closes the pty now; new pty after 0.2 s
             time.sleep(0.001)
 
@@ -388,10 +391,10 @@ def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp
         if e is not None:
             box["imu"] = e.rig.imu
 
-    with wired(tmp_path, 100.0, imu={"link_timeout_s": 0.05},
-               suspenders={"hold_s": "2 s", "imu_timeout_s": 20}) as (hw, cfg_path):
+    with wired(tmp_path, speed, imu={"link_timeout_s": 0.05},
+               suspenders={"hold_s": hold, "imu_timeout_s": 20}) as (hw, cfg_path):
         cfg = load_config(cfg_path)
-        assert cfg.suspenders.hold_s == 2.0 and cfg.suspenders.imu_timeout_s == 20.0
+        assert cfg.suspenders.imu_timeout_s == 20.0
         proc = load_procedure(proc_path, limits=cfg.limits)
         t = threading.Thread(target=watch, args=(hw,), daemon=True)
         t.start()
@@ -403,10 +406,22 @@ def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp
             done.set()
             t.join()
         reconnects_emulator = hw.slots["imu"].reconnects
+    return res, dropped, box["imu"], reconnects_emulator, console
+
+
+def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp_path):
+    """The emulator pulls the IMU's pty (closes it, opens a new one at the same symlink 0.2 s
+    later) in the middle of each of 10 sampling windows: the Xsens driver reconnects and
+    reconfigures every time, each drop is an `imu-link` suspender event, the interrupted step
+    re-runs and the procedure completes with one complete, gap-free segment per step. Each pause
+    is read with its own resume (_pauses); a loaded host adds pauses, each of which the run's own
+    record explains (_check_drops_recorded), and every sample missing is in time it set aside."""
+    res, dropped, imu, reconnects_emulator, console = _pull_imu_in_windows(
+        tmp_path, ORIENT, 100.0, "2 s", steps=range(10), into_window_s=0.02)   # ~2 s of rig time in
     assert res.exit_code == 0 and res.status == "complete", res.message
     assert sorted(dropped) == list(range(10))
     assert reconnects_emulator == 10
-    c = box["imu"].counters
+    c = imu.counters
     # every loss reconnected, and the device configured once per pull (and at the start): no
     # configured link was lost but by a pull. A loaded host can lose a reconnect's link again
     # before its configuration completes (the emulator answers GoToConfig too late: 'Write
@@ -450,3 +465,42 @@ def test_resume_after_a_kill_inside_the_reopen_window(tmp_path):
         assert f["run/status"][0] == b"complete"
         done = f["segments/status"][()] == b"complete"
         assert sorted(f["segments/kind"][()][done].tolist()) == [b"capture", b"warmup"]
+
+
+#: the first orientation of ORIENT
+ORIENT_ONE = ORIENT.replace(ORIENT.split("angles_deg: ", 1)[1].split("\n      sample", 1)[0], "[[0, 0, 0]]")
+
+
+def test_a_link_drop_with_a_slow_reconfiguration_resumes_once_when_the_stream_is_back(tmp_path):
+    """The IMU's pty is pulled for 0.2 s, 1 s into a 10 s window (10x), and the emulated MTi
+    takes 0.3 s of wall time to leave measurement mode on the reconnect's GoToConfig, streaming
+    on meanwhile: the reconnecting driver hands out those frames, received before its
+    reconfiguration. The pause ends only once the device is configured again and streams
+    (imu-link kept tripped till then): one pause, with one resume, and the re-run samples its
+    whole window. Before, the frames cleared 'imu-link' and the pause ended after hold_s (0.5 s
+    of rig time, 50 ms of wall) while the driver was still reconfiguring: the re-run paused
+    again on the same outage before it sampled (two resumes)."""
+    # 1 s of rig time into the 10 s window; the delay below the driver's 0.5 s reply timeout
+    res, dropped, imu, _, _ = _pull_imu_in_windows(tmp_path, ORIENT_ONE, 10.0, "0.5 s", steps=[0],
+                                                   into_window_s=0.1, go_to_config_delay_s=0.3)
+    assert res.exit_code == 0 and res.status == "complete", res.message
+    assert dropped == [0]
+    c = imu.counters
+    assert c["link_losses"] == c["reconnects"] == 1 and c["configurations"] == 2, c
+    with h5py.File(res.recording, "r") as f:
+        kinds, msgs, ev_t = f["events/kind"][()], f["events/message"][()], f["events/time"][()]
+        seg = {k: f["segments"][k][()] for k in f["segments"]}
+        counter = f["imu/counter"][()].astype(np.int64)
+        imu_t = f["imu/time"][()]
+    pauses = _pauses(ev_t, kinds, msgs)
+    assert len(pauses) == 1, _show(pauses)
+    # the stream was back before the run resumed: the first sample after each counter gap (the
+    # outage; then the reconfiguration, no frames from GoToConfig to GoToMeasurement) came first
+    gaps = np.flatnonzero(np.diff(counter) > 1)
+    assert gaps.size and np.all(imu_t[gaps + 1] < pauses[0]["t1"]), (imu_t[gaps + 1], _show(pauses))
+    (p,) = pauses
+    assert "imu-link" in p["names"] and p["cut"] == "sampling" and p["step"] == 0, _show(pauses)
+    done_ = seg["status"] == b"complete"
+    assert seg["step"][done_].tolist() == [0] and seg["step"][~done_].tolist() == [0]
+    for a, z in zip(seg["first_sample"][done_], seg["last_sample"][done_]):
+        assert z - a >= 0.9 * 10 * 100 and np.all(np.diff(counter[a:z]) == 1)

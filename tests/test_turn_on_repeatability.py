@@ -102,14 +102,26 @@ def test_a_24_position_run_across_a_power_cycle_measures_the_drawn_turn_on_bias_
     assert res.exit_code == 0, res.message
     world = points.engine.rig.imu.world
     (cycle,) = world.imu_power_cycles
-    drawn = np.concatenate([cycle["accel_turn_on_bias_m_s2"], cycle["gyro_turn_on_bias_rad_s"]])
     with h5py.File(res.recording, "r") as f:
         seg = {k: f["segments"][k][()] for k in ("kind", "status", "step", "first_sample", "last_sample")}
         x = np.hstack([f["imu/specific_force"][()], f["imu/angular_rate"][()]])
+        t_imu = f["imu/time"][()]
+        # the draw is in the recording's /truth, where a user checking against the truth looks
+        # (before: only in the emulator's truth(), the recording's params_json written before it)
+        pc = f["truth/imu_power_cycles"]
+        (t_cycle,), (g_on,), (a_on,) = (pc[k][()] for k in ("time_s", "gyro_turn_on_bias_rad_s",
+                                                             "accel_turn_on_bias_m_s2"))
+        units = {k: pc[k].attrs["units"] for k in pc}
+    assert units == {"time_s": "s", "gyro_turn_on_bias_rad_s": "rad/s", "accel_turn_on_bias_m_s2": "m/s^2"}
+    assert (t_cycle, g_on.tolist(), a_on.tolist()) == (cycle["t_s"], cycle["gyro_turn_on_bias_rad_s"],
+                                                       cycle["accel_turn_on_bias_m_s2"])
+    drawn = np.concatenate([a_on, g_on])
     rows = [i for i in range(len(seg["kind"])) if seg["kind"][i] == b"orientation" and seg["step"][i] == 13]
     assert [seg["status"][i] for i in rows] == [b"incomplete", b"complete"], rows
     (a0, z0), (a1, z1) = ((int(seg["first_sample"][i]), int(seg["last_sample"][i])) for i in rows)
     before, after = x[a0:z0], x[a1:z1]
+    # it takes effect between the two windows: after the cut-off one, before the one sampled again
+    assert t_imu[z0 - 1] < t_cycle < t_imu[a1], (t_imu[z0 - 1], t_cycle, t_imu[a1])
     assert len(before) >= 750 and len(after) >= 950, (len(before), len(after))
     measured = after.mean(axis=0) - before.mean(axis=0)
     sigma = np.sqrt(before.var(axis=0, ddof=1) / len(before) + after.var(axis=0, ddof=1) / len(after))
@@ -119,4 +131,41 @@ def test_a_24_position_run_across_a_power_cycle_measures_the_drawn_turn_on_bias_
     assert np.max(np.abs(drawn[:3] / sigma[:3])) > 5, drawn / sigma
     payload, text, _ = calibrate(res.recording, store=False)
     assert payload["trustworthy"] is False and payload["loop_status"] == "NOT TRUSTWORTHY"
+    # the truth comparison knows the bias was not one value: the biases are left out, and said so
+    compared = [e["name"] for e in payload["results"]["closed_loop"]["truth_errors"]]
+    assert compared and not [n for n in compared if "_bias_" in n], compared
+    assert "accel_M_xx_ratio" in compared
+    assert f"power-cycled at t = {t_cycle:.1f} s" in payload["truth_note"], payload["truth_note"]
+    assert f"note: {payload['truth_note']}" in text
     assert len(payload["device_restarts"]) == 1 and "STATUS: NOT TRUSTWORTHY: IMU restarted at t = " in text
+
+
+def test_the_truth_readers_leave_out_the_bias_only_when_a_cycle_changed_it(tmp_path):
+    """/truth/imu_power_cycles written by hand (tests/recording_helpers.py): a cycle that drew the
+    same turn-on bias again (a repeatability of 0) changes nothing; one that drew another makes
+    the constant biases (calibration's and the thermal fit's names) no single truth, and only
+    them: a temperature coefficient of the bias is still compared."""
+    from recording_helpers import write_recording
+    from rigctl.analysis.restarts import truth_across_power_cycles, truth_power_cycles
+    from rigctl.sim.world import POWER_CYCLE_TABLE
+    path = write_recording(tmp_path / "r.h5", 100.0, angular_rate=np.zeros((10, 3)),
+                           truth_json='{"imu": {"model": "declared", "gyro_turn_on_bias_rad_s": [0, 0, 0], '
+                                      '"accel_turn_on_bias_m_s2": [0, 0, 0]}}')
+    rows = {"time_s": [1.0, 2.5], "gyro_turn_on_bias_rad_s": [[0, 0, 0], [1e-5, 0, -2e-5]],
+            "accel_turn_on_bias_m_s2": [[0, 0, 0], [3e-3, 0, 0]]}
+    truth = {"accel_bias_x_m_s2": 0.01, "gyro_bias_z_rad_s": 1e-4, "accel_bias_x_m_s2_per_K": 1e-5,
+             "accel_M_xx_ratio": 1.001}
+    with h5py.File(path, "r+") as f:
+        for k, (shape, dtype, units) in POWER_CYCLE_TABLE["imu_power_cycles"].items():
+            f.create_dataset(f"truth/imu_power_cycles/{k}", data=np.asarray(rows[k][:1], dtype)).attrs["units"] = units
+    with h5py.File(path, "r") as f:
+        assert truth_power_cycles(f).size == 0 and truth_across_power_cycles(f, truth) == (truth, "")
+    with h5py.File(path, "r+") as f:
+        for k in rows:
+            del f[f"truth/imu_power_cycles/{k}"]
+            f.create_dataset(f"truth/imu_power_cycles/{k}", data=np.asarray(rows[k], float))
+    with h5py.File(path, "r") as f:
+        assert truth_power_cycles(f).tolist() == [2.5]
+        kept, note = truth_across_power_cycles(f, truth)
+    assert kept == {"accel_bias_x_m_s2_per_K": 1e-5, "accel_M_xx_ratio": 1.001}
+    assert "power-cycled at t = 2.5 s" in note

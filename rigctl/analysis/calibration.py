@@ -46,7 +46,7 @@ from ..jsonable import jsonable
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
 from .allan import load_noise
-from .restarts import restart_lines, restart_notes
+from .restarts import restart_lines, restart_notes, truth_across_power_cycles
 from ..errors import InputError
 from ..config.spec import Spec
 
@@ -172,7 +172,7 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
 
     with open_recording(path) as f:
         nf, nw, noise_txt = _noise(f, noise, path)
-        truth = _truth(f)
+        truth, truth_note = truth_across_power_cycles(f, _truth(f))
     seg = build_segment_table(path, noise_f=nf, noise_w=nw)
     models = apply_session_noise(seg, nf, nw)
     noise_lines, noise_rows = noise_summary(models) if models else ([], [])
@@ -200,10 +200,13 @@ def calibrate_table(path: Path, noise: str) -> tuple[dict[str, Any], str, str]:
     if mixed:
         text += "\n" + "\n".join(f"warning: {line}" for line in mixed)
         why = mixed[0]
+    if truth_note:
+        text += f"\nnote: {truth_note}"
     text += f"\nSTATUS: {loop_status}" + (f": {why}" if why else "")
     payload = {"mode": "turntable", "noise_model": noise_txt, "noise_model_channels": noise_rows,
                "results": session_to_dict(out),
                "model": _model_from_final(cl.final), "truth_available": truth is not None,
+               "truth_note": truth_note,
                "trustworthy": trust, "status": cl.final.status, "loop_status": loop_status,
                "reasons": list(cl.final.warnings) + ([why] if why else []) + mixed[1:],
                "device_restarts": restarts,

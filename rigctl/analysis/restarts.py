@@ -7,6 +7,8 @@ which neither model has a term for.
 """
 from __future__ import annotations
 
+import json
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,6 +37,48 @@ def _device_restarts(f: h5py.File, p: Path) -> tuple[np.ndarray, list[str]]:
     ev_t, ev_k, ev_m = (f["events"][k][()] for k in ("time", "kind", "message"))
     sel = np.asarray(ev_k) == b"device-restart"
     return np.asarray(ev_t, float)[sel], [m.decode("utf-8", "replace") for m in np.asarray(ev_m)[sel]]
+
+
+#: a constant bias under the solvers' names (rigctl.solvers.segments.truth_from_emulator, the
+#: thermal fit's truth_coefficients): one value that a power cycle of the unit does not keep
+_CONSTANT_BIAS = re.compile(r"^(accel|gyro)_bias_[xyz]_(m_s2|rad_s)$")
+
+
+def truth_power_cycles(f: h5py.File) -> np.ndarray:
+    """The run times (s, /imu/time's axis) at which the emulated IMU was power-cycled and came
+    back with another turn-on bias: the rows of /truth/imu_power_cycles (docs/data-format.md) whose
+    drawn biases differ from the ones before (the first row: from the turn-on bias /truth's
+    params_json holds; a repeatability of 0 draws the same bias again). None in a recording
+    without that table (a real rig, an import, an older emulated recording)."""
+    g = f.get("truth/imu_power_cycles")
+    if not isinstance(g, h5py.Group) or "time_s" not in g:
+        return np.empty(0)
+    t = np.asarray(g["time_s"][()], float)
+    drawn = np.hstack([np.asarray(g[k][()], float).reshape(t.size, 3)
+                       for k in ("gyro_turn_on_bias_rad_s", "accel_turn_on_bias_m_s2")])
+    imu = json.loads(f["truth"].attrs.get("params_json", "{}")).get("imu", {})
+    first = [imu.get(k, imu.get(alt)) for k, alt in (("gyro_turn_on_bias_rad_s", "gyro_turn_on_bias_rad_per_s"),
+                                                      ("accel_turn_on_bias_m_s2", "accel_turn_on_bias_m_per_s2"))]
+    before = np.vstack([np.hstack([np.zeros(3) if b is None else np.asarray(b, float).reshape(3) for b in first]),
+                        drawn[:-1]])
+    return t[np.any(drawn != before, axis=1)]
+
+
+def truth_across_power_cycles(f: h5py.File, truth: dict[str, float] | None) -> tuple[dict[str, float] | None, str]:
+    """``truth`` (solver names -> true value, from /truth's params_json: the unit as it was turned
+    on for the run) without the constant biases when the emulated IMU was power-cycled during the
+    recording (:func:`truth_power_cycles`): each cycle drew a new turn-on bias
+    (/truth/imu_power_cycles), so the bias was not one value -- compared with the first turn-on's
+    it would call the fit wrong by the drawn step. Returns (the truth to compare with, a line saying
+    why the biases are left out; "" when nothing is)."""
+    cycles = truth_power_cycles(f)
+    if truth is None or not cycles.size:
+        return truth, ""
+    kept = {k: v for k, v in truth.items() if not _CONSTANT_BIAS.match(k)}
+    at = ", ".join(f"{x:.1f}" for x in cycles[:4]) + (" ..." if cycles.size > 4 else "")
+    return kept, (f"biases not compared with the emulator's truth: the IMU was power-cycled at t = {at} s "
+                  "and drew a new turn-on bias each time (/truth/imu_power_cycles); the other parameters "
+                  "are compared")
 
 
 def time_base_restarts(t: np.ndarray) -> np.ndarray:

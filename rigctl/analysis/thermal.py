@@ -522,7 +522,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     wins = read_windows(p, reference_c, max(MAX_FIT_DEGREE, *(degrees.values() if isinstance(degrees, dict)
                                                               else [0])))
     with open_recording(p) as f:
-        truth = truth_coefficients(f)
+        truth, truth_note = restarts.truth_across_power_cycles(f, truth_coefficients(f))
     nf, nw, noise_txt = noise or (None, None, "")
     if nf is None and nw is None:
         noise_txt = ("estimated from the session (no /results/allan): white level per window kind from the "
@@ -616,7 +616,7 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
         "schema_version": SCHEMA_VERSION, "created_utc": utc_now(), "recording": str(p.resolve()),
         "mode": "thermal", "reference_c": reference_c, "hysteresis_width_K": HYSTERESIS_WIDTH_K,
         "model": "y_i = sum_j dT^j b_ij + sum_k sum_j dT^j u_k M_ikj [+ k2_i u_i^2] + effects; dT = T - reference_c",
-        "sensors": sensors, "truth_available": truth is not None,
+        "sensors": sensors, "truth_available": truth is not None, "truth_note": truth_note,
         "noise_model": {"text": noise_txt, "channels": noise_rows},
         "trustworthy": not mixed and all(d["status"] == "ok" for d in sensors.values()),
         "device_restarts": notes, "reasons": mixed}
@@ -625,6 +625,8 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                                      "outside": misses}
         lines.append(f"\nagainst the emulator's truth: {n_in} of {n_all} 95 % intervals cover it"
                      + (f" (outside: {', '.join(misses)})" if misses else ""))
+        if truth_note:
+            lines.append(f"note: {truth_note}")
     lines += restarts.untrusted_lines(mixed)
     return payload, "\n".join(lines), arrays
 

@@ -8,7 +8,10 @@ all-or-nothing).
 
 Suspenders (names as written to the recording's ``/events``):
 
-* ``imu-link``    -- the IMU driver raised :class:`rigctl.devices.LinkLost`.
+* ``imu-link``    -- the IMU driver raised :class:`rigctl.devices.LinkLost`; it stays tripped
+  while the driver reports the device not configured again (:func:`rigctl.devices.imu_reconnecting`)
+  and until a read brings samples after that: frames a reconnecting driver hands out before its
+  reconfiguration do not clear it, so a pause does not end before the stream is back.
 * ``imu-gap``     -- samples missing: a sample-counter gap larger than ``max_counter_gap``, or no
   sample for ``imu_timeout_s`` s of rig time -- on a clock faster than the wall (an emulated rig
   at 100x), for at least :data:`IMU_SILENCE_WALL_S` of wall time (:attr:`SuspenderSet.clock_speed`).
@@ -110,6 +113,9 @@ class Observation:
     table_error: str | None = None
     #: why the chamber trips (fault, link lost, out of band), None when fine or absent
     chamber_reason: str | None = None
+    #: the IMU's driver reports its link lost and the device not configured again yet
+    #: (:func:`rigctl.devices.imu_reconnecting`)
+    imu_reconnecting: bool = False
 
 
 def describe_table_trip(state: TableState) -> str | None:
@@ -139,6 +145,8 @@ class SuspenderSet:
         self._disk_reason: str | None = None
         self.active: dict[str, str] = {}
         self.clear_since: float | None = None
+        #: the reason 'imu-link' tripped, kept until the stream is back (see :meth:`_imu`)
+        self.link_lost: str | None = None
 
     def rebase(self) -> None:
         """Forget counter/time history (after a reconnect, a resume or a new session)."""
@@ -156,9 +164,16 @@ class SuspenderSet:
     def _imu(self, obs: Observation) -> dict[str, str]:
         out: dict[str, str] = {}
         if obs.imu_error is not None:
-            out["imu-link"] = f"IMU link lost: {obs.imu_error}"
+            out["imu-link"] = self.link_lost = f"IMU link lost: {obs.imu_error}"
             return out
         block = obs.imu
+        if self.link_lost is not None:      # tripped: clear once reconfigured and streaming
+            if obs.imu_reconnecting or block is None or not len(block):
+                out["imu-link"] = self.link_lost
+                if block is None or not len(block):
+                    return out
+            else:
+                self.link_lost = None
         if block is not None and len(block):
             c0 = int(block.counter[0])
             if self.last_counter is not None and c0 - self.last_counter - 1 > self.s.max_counter_gap:
