@@ -22,9 +22,10 @@ averaged) and white phase noise (Q^2: 2 Q^2 / T_g^2 on the diagonal, -Q^2 / T_g^
 **The levels** are the fit's 95 % upper ends of Q, N, B and K (a term's bound where it is
 one): levels estimated low would make noise look like a step; too high only costs power.
 The step itself moves them (the fit's B and K grow with it), which is the test's main cost
-against one that knows the noise: measured on 5-minute records of the default emulated gyro,
-found in 94 of 100 at 12 B (B its bias instability), 28 at 8 B, none without a step; the test
-that knows N, B and K finds 6 B in 199 of 200 (benchmarks/allan_step_limit.py).
+against one that knows the noise: measured on 5-minute records with the default emulated
+gyro's N and B, found in 94 of 100 at 12 B (B its bias instability), 28 at 8 B, none without
+a step (the emulator's own records: 49 of 60 at 12 B, none of 60 without); the test that
+knows N, B and K finds 6 B in 199 of 200 (benchmarks/allan_step_limit.py).
 
 **Calibration.** The threshold is the 99 % point (``ALPHA``) of max_k |z_k| under no step,
 from ``N_DRAWS`` draws of N(0, Sigma) with a fixed seed (the statistic's law depends on the
@@ -47,8 +48,8 @@ CIRCLE = 8
 ALPHA = 0.01
 #: draws of the statistic under no step for its 1 - ALPHA point (fixed seed)
 N_DRAWS = 2000
-#: the blocks are averaged to at most this many per group first
-SUB_PER_GROUP = 16
+#: each group's blocks are averaged into sub-blocks, at least this many per group
+SUB_PER_GROUP = 8
 #: fewer blocks than this: no test (a group must hold at least one block)
 MIN_BLOCKS = N_COARSE
 
@@ -160,19 +161,22 @@ def step_test(ybar: np.ndarray, block_s: float, levels: dict[str, float],
         out["skipped"] = f"{y.size} blocks: fewer than {MIN_BLOCKS}"
         return out
     lv = out["levels_si"]
-    # blocks of SUB_PER_GROUP per group at most: the flicker's autocovariance on a circle of
-    # CIRCLE x that many, not of every sample (what it leaves out is the flicker above 8 / T_g
-    # inside a group, under 1 % of a group mean's variance)
-    k = max(1, y.size // (SUB_PER_GROUP * N_COARSE))
-    y = y[: y.size // k * k].reshape(-1, k).mean(axis=1)
-    block_s = block_s * k
-    glr = StepGLR(group_sigma(y.size, block_s, lv["N"], lv["B"], lv["K"], lv["Q"]))
+    # N_COARSE groups of m blocks (fewer than N_COARSE blocks left out at the end), each
+    # averaged into sub-blocks of k blocks, k the largest divisor of m that leaves at least
+    # SUB_PER_GROUP of them: the flicker's autocovariance on a circle of CIRCLE x the
+    # sub-blocks, not of every sample (what that leaves out, the flicker inside a sub-block,
+    # is about 0.1 % of a group mean's variance)
+    m = y.size // N_COARSE
+    y = y[: m * N_COARSE]
+    k = next(d for d in range(max(1, m // SUB_PER_GROUP), 0, -1) if m % d == 0)
+    sub = y.reshape(-1, k).mean(axis=1)
+    glr = StepGLR(group_sigma(sub.size, block_s * k, lv["N"], lv["B"], lv["K"], lv["Q"]))
     thr = glr.null_point(alpha)
-    z = glr.z(group_means(y))[0]
+    z = glr.z(group_means(sub))[0]
     i = int(np.argmax(np.abs(z)))
     k = int(glr.ks[i])
     sd = 1.0 / math.sqrt(glr.info[i])
-    tg = (y.size // N_COARSE) * block_s
+    tg = m * block_s
     out.update({"tested": True, "found": bool(abs(z[i]) > thr), "z": float(z[i]),
                 "threshold_z": thr, "t_s": k * tg, "size_si": float(z[i]) * sd, "sd_si": sd})
     return out
