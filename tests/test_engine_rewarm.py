@@ -452,6 +452,11 @@ def test_a_restart_when_the_run_is_aborted_awaiting_a_windows_tail_says_the_run_
     assert "warm-up re-runs" not in restart[1] and "sampled again" not in said, (restart, said)
     assert ("the run stops before step 3 is recorded complete; a resumed run ('rigctl resume') re-runs the "
             "warm-up (20 s, step 1) first, then runs step 3 again") in said, said
+    # the event says it too, whole, within the 200 bytes of /events/message (before: cut at byte
+    # 200, '... a resumed run ('rigctl resume') re-runs the warm-u', the what-to-do lost)
+    assert restart[1].endswith("; the run stops; 'rigctl resume' re-runs the warm-up (20 s, step 1) first, "
+                               "then step 3"), restart
+    assert len(restart[1].encode()) <= 200
     assert points.engine.rewarm is None       # nothing more runs in this session
     cut = len(seg["kind"])
 
@@ -462,3 +467,33 @@ def test_a_restart_when_the_run_is_aborted_awaiting_a_windows_tail_says_the_run_
     assert _pairs(seg)[cut:] == [("orientation", 2, "incomplete"), ("warmup", 0, "complete"),
                                  ("orientation", 2, "complete"), ("orientation", 3, "complete")], _pairs(seg)
     assert abs(seg["t_end"][cut + 1] - seg["t_start"][cut + 1] - WARMUP_S) < 1e-6
+
+
+#: PROC with a long warm-up label (non-ASCII: 2 bytes a character)
+LONG_LABEL = "warm-up of the unit under test at 25 \u00b0C, bench 3, fixture B (" + "\u00e9" * 120 + ")"
+LONG_PROC = PROC.replace("      duration: 20 s\n", f"      duration: 20 s\n      label: '{LONG_LABEL}'\n", 1)
+
+
+def test_long_step_labels_are_shortened_in_the_events_never_what_to_do(tmp_path):
+    """A 185-character warm-up label, the power lost during the second orientation: the re-warm
+    event ('re-warm: step 1 (LABEL, 20 s) again, WHY; then step 3 (LABEL)') is over the 200 bytes
+    of /events/message. Its labels are shortened with an ellipsis, the step that runs next named
+    whole; every event fits and is whole UTF-8. Before: the message was cut at byte 200, inside
+    the warm-up label ('then step 3' lost, a 2-byte character cut in two)."""
+    res, points, seg, t, restart, said = _power_loss_run(
+        tmp_path, sampling("orientation", after_samples=100, finished=1), 3.0, proc_text=LONG_PROC)
+    with h5py.File(res.recording, "r") as f:
+        raw = [bytes(m) for m in f["events/message"][()]]
+        labels = f["segments/label"][()]
+    assert all(len(m) <= 200 for m in raw)
+    msgs = [m.decode("utf-8") for m in raw]            # strict: no character cut in two
+    label3 = labels[list(seg["step"]).index(2)].decode()   # step 3's label, as recorded
+    (rewarm,) = [m for m in msgs if m.startswith("re-warm: ")]
+    assert rewarm.endswith(f"; then step 3 ({label3})"), rewarm
+    head = "re-warm: step 1 ("
+    assert rewarm.startswith(head + LONG_LABEL[:20]) and "\u2026" in rewarm, rewarm
+    # a label shortened keeps its beginning: what is left of it is the label's start
+    kept = rewarm[len(head):rewarm.index("\u2026")]
+    assert kept and LONG_LABEL.startswith(kept), kept
+    # the restart event: whole (short labels here), what the engine then does at its end
+    assert restart[1].endswith("warm-up re-runs (20 s) before step 3"), restart

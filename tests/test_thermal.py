@@ -347,8 +347,16 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
         T = f["imu/temperature"][()]
         assert T.max() > 38 and T.min() < 10
         assert b"chamber at its safe set point" in b"".join(f["events/message"][()])
-    code, text = _cli(capsys, "calibrate", str(rec), "--db", "none")
+    from rigctl.cli import main
+    capsys.readouterr()
+    code = main(["calibrate", str(rec), "--db", "none"])
+    text, err = (lambda c: (c.out, c.err))(capsys.readouterr())
     assert code == 0, text[-2000:]
+    # each long stage said on stderr as it starts (the command ran ~50 s silent on the full ramp)
+    stages = [re.match(rf"^calibrate {rec.name}, [^:]+: (accel|gyro): (noise|generalised)", ln)
+              for ln in err.splitlines()]
+    assert [(m.group(1), m.group(2)) for m in stages if m] == [
+        ("accel", "noise"), ("gyro", "noise"), ("accel", "generalised"), ("gyro", "generalised")], err
     with h5py.File(rec, "r") as f:
         payload = json.loads(f["results/thermal"].attrs["json"])
     for s in ("accel", "gyro"):
@@ -415,7 +423,6 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
         assert d1[s]["degrees"] == {"bias": 1, "scale": 1, "misalignment": 1}
         poly = [n for n in names if re.search(r"_(bias|scale|misalignment)_.*_per_K\d*$", n)]
         assert len(poly) == 3 * 4 and all(n.endswith("_per_K") for n in poly), poly  # b1, s1, 2 m1 per axis
-    from rigctl.cli import main
     assert main(["calibrate", str(rec), "--db", "none", "--thermal-degree", "two"]) == 2
 
 

@@ -2073,7 +2073,7 @@ def summary_line(r: dict[str, Any]) -> str:
             parts.append(f"{t} {c.value:.4g} {unit} [{lo:.4g}, {hi:.4g}]")
         else:
             parts.append(f"{t} < {c.upper95:.4g} {unit}")
-    return "; ".join(parts)
+    return "; ".join(parts) + " (95 % intervals and upper bounds)"  # the level, said once
 
 
 def load_noise(f: Any, where: str | Path | None = None) -> dict[str, NoiseCoefficients]:

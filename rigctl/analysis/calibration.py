@@ -275,10 +275,12 @@ def is_orientation_free(path: Path) -> bool:
 
 
 def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_path: str | Path | None = None,
-              spec: Spec | None = None, thermal_degree: str | None = None) -> tuple[dict[str, Any], str, str]:
+              spec: Spec | None = None, thermal_degree: str | None = None,
+              progress: Callable[[str], None] | None = None) -> tuple[dict[str, Any], str, str]:
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
     With ``spec`` the verdicts are computed, printed and stored with the results. ``thermal_degree``:
-    the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto')."""
+    the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto').
+    ``progress``: called with a line as each long stage starts (a thermal calibration's)."""
     p = Path(path)
     # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
@@ -286,7 +288,8 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
     if thermal.is_thermal(p):
         with open_recording(p) as f:
             noise_models = _noise(f, noise, p)
-        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models)
+        payload, text = thermal.calibrate_and_store(p, store, json_path, thermal_degree, noise_models,
+                                                    progress=progress)
         return payload, text, ""
     # -- end of the thermal hook
     free = is_orientation_free(p)

@@ -500,7 +500,8 @@ def parse_degrees(spec: str | int | dict[str, int] | None) -> dict[str, int] | s
 
 
 def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = None,
-                      reference_c: float = 25.0, noise: tuple[Any, Any, str] | None = None
+                      reference_c: float = 25.0, noise: tuple[Any, Any, str] | None = None,
+                      progress: Callable[[str], None] | None = None
                       ) -> tuple[dict[str, Any], str, dict[str, tuple[Any, str]]]:
     """(payload, text, arrays) of the thermal calibration of a recording; ``arrays`` are the
     datasets of /results/thermal (per sensor: the windows' temperatures, heating flags, residuals
@@ -510,8 +511,11 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     (accel, gyro: three axes' NoiseCoefficients each, description) as ``rigctl calibrate --noise`` resolved it
     (IEEE 952 coefficients of /results/allan or of another recording of the unit); a None model,
     or no ``noise``, estimates that sensor's noise from the session
-    (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows."""
+    (:func:`rigctl.solvers.thermal.estimate_noise`). The covariance of the window means follows.
+    ``progress``: called with a line as each stage starts (minutes on a long chamber run)."""
     from .calibration_text import noise_summary
+
+    say = progress or (lambda _line: None)
 
     p = Path(path)
     degrees = parse_degrees(degrees)
@@ -525,7 +529,12 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                      "batch means within each window (contrasts free of a linear drift), bias instability B "
                      "and rate random walk K by REML of the window means about the protected design "
                      "(cubic in temperature, every thermal candidate, an offset per window kind)")
-    models = th.estimate_noise(wins["accel"], nf) + th.estimate_noise(wins["gyro"], nw)
+    models = []
+    for sensor, model in (("accel", nf), ("gyro", nw)):
+        if model is None:
+            say(f"{sensor}: noise of the {len(wins[sensor])} window means by REML (white, bias instability, "
+                "random walk) ...")
+        models += th.estimate_noise(wins[sensor], model)
     noise_lines, noise_rows = noise_summary(models, wins["accel"].t0) if len(models) == 6 else ([], [])
     if len(models) != 6:
         noise_txt += " (window times unknown: means treated as independent)"
@@ -537,6 +546,8 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
     misses: list[str] = []
     arrays: dict[str, tuple[Any, str]] = {}
     for sensor, w in wins.items():
+        say(f"{sensor}: " + ("degrees, then " if degrees == "auto" else "")
+            + "generalised least-squares fit and its closed loop ...")
         deg = th.select_degrees(w) if degrees == "auto" else dict(degrees)
         try:
             fit = th.fit_thermal(w, deg)
@@ -621,11 +632,12 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
 
 
 def calibrate_and_store(path: str | Path, store: bool = True, json_path: str | Path | None = None,
-                        degrees: dict[str, int] | str | None = None, noise: tuple[Any, Any, str] | None = None
-                        ) -> tuple[dict[str, Any], str]:
-    """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``)."""
+                        degrees: dict[str, int] | str | None = None, noise: tuple[Any, Any, str] | None = None,
+                        progress: Callable[[str], None] | None = None) -> tuple[dict[str, Any], str]:
+    """Thermal calibration stored in /results/thermal and RECORDING.thermal.json (or ``json_path``);
+    ``progress`` as :func:`calibrate_thermal`'s."""
     p = Path(path)
-    payload, text, arrays = calibrate_thermal(p, degrees, noise=noise)
+    payload, text, arrays = calibrate_thermal(p, degrees, noise=noise, progress=progress)
     if store:
         for s, d in payload["sensors"].items():
             arrays[f"{s}_names"] = (np.array([q["name"].encode() for q in d["parameters"]]), "")

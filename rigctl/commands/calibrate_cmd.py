@@ -12,7 +12,7 @@ import numpy as np
 
 from ..analysis import production
 from ..analysis.calibration import calibrate
-from .cli_options import add_production_options
+from .cli_options import add_production_options, stage_printer
 from ..errors import InputError, RunFailure
 from ..config.spec import load_spec
 
@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     try:
         payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec,
-                                         args.thermal_degree)
+                                         args.thermal_degree, progress=stage_printer("calibrate", args.recording))
         text += "\n" + production.to_database(args.recording, "calibration", payload, args.db)
     except InputError:
         raise

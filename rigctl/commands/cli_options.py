@@ -2,8 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
 
 from ..solvers.conformity import RULES
+from ..units import format_duration
 
 
 def add_production_options(p: argparse.ArgumentParser) -> None:
@@ -16,3 +21,14 @@ def add_production_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="URL|FILE", default=None,
                    help="results database: a SQLite file or a URL (postgresql+psycopg://...); default "
                         "results.sqlite beside the run directories; 'none' to skip")
+
+
+def stage_printer(command: str, recording: str) -> Callable[[str], None]:
+    """For an analysis that runs long between its outputs: each stage as it starts, with the
+    time since the command began, one line on stderr ('thermal tag.h5, 41.9 s: gyro: ...')."""
+    t0 = time.monotonic()
+    name = Path(recording).name
+
+    def say(line: str) -> None:
+        print(f"{command} {name}, {format_duration(time.monotonic() - t0)}: {line}", file=sys.stderr, flush=True)
+    return say

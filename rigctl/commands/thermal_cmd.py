@@ -26,9 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,17 +34,7 @@ import numpy as np
 from ..analysis.thermal import MAX_FIT_DEGREE, STATIC_WINDOW_S
 from ..analysis.thermal_static import format_text, static_fit, write_csv
 from ..errors import InputError, RunFailure
-from ..units import format_duration
-
-
-def _progress(recording: str) -> Callable[[str], None]:
-    """Each stage of the fit as it starts, with the time since the command began, on stderr."""
-    t0 = time.monotonic()
-    name = Path(recording).name
-
-    def say(line: str) -> None:
-        print(f"thermal {name}, {format_duration(time.monotonic() - t0)}: {line}", file=sys.stderr, flush=True)
-    return say
+from .cli_options import stage_printer
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = static_fit(args.recording, settle_s=args.settle_s, window_s=args.window_s,
                             bias_degree=args.bias_degree, loop=not args.no_loop, poses_file=args.poses,
-                            one_pose=args.one_pose, force_static=args.static, progress=_progress(args.recording))
+                            one_pose=args.one_pose, force_static=args.static, progress=stage_printer("thermal", args.recording))
     except InputError:
         raise
     except (ValueError, np.linalg.LinAlgError) as exc:

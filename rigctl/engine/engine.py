@@ -34,7 +34,7 @@ from ..devices import (AxisStatus, Clock, DeviceFault, Imu, LinkLost, PulseSourc
                        imu_reconnecting, imu_restarts)
 from .procedure import CHAMBER_KINDS, Step
 from ..progress import CounterGaps, NullProgress, Progress
-from ..recording.recorder import Recorder, Segment
+from ..recording.recorder import Elide, Recorder, Segment, event_text
 from .states import StateMachine
 from ..config.suspenders import Observation, SuspenderSet
 
@@ -404,16 +404,16 @@ class Engine:
         self.warmup_done.clear()    # warm-up time kept from before the restart counts no more
         step = self.current_step
         if closing:
-            self._restart_said(t, "in the end-of-run safe state", None, None)
+            self._restart_said(t, ("in the end-of-run safe state",), None, None)
             return None
         if self._awaiting_tail:     # after the window: its samples decide what it means (execute)
             self._tail_restart = t
         elif step is not None:
-            self._restart_said(t, f"in step {step.index + 1} ({step.label})" + ("" if self._sampled else
-                               " before its window"), step, "is sampled again" if self._sampled else "runs")
+            self._restart_said(t, (f"in step {step.index + 1} (", Elide(step.label), ")" + (
+                "" if self._sampled else " before its window")), step, "is sampled again" if self._sampled else "runs")
         else:
             then = self._step_after(self._last_done)
-            self._restart_said(t, "between steps", then, "runs")
+            self._restart_said(t, ("between steps",), then, "runs")
         at = (f"after step {step.index + 1}'s window" if self._awaiting_tail else
               f"in step {step.index + 1} ({step.label})" if step is not None else "between steps")
         return f"IMU restarted {at} (device time began again)"
@@ -438,16 +438,15 @@ class Engine:
         if t is None:
             return
         if not complete:
-            self._restart_said(t, f"in step {step.index + 1} ({step.label})" +
-                               (" while its window's last samples were awaited" if stopping else ""),
+            self._restart_said(t, (f"in step {step.index + 1} (", Elide(step.label), ")"),
                                step, "is sampled again", stopping=stopping)
             return
         then = self._step_after(step)
-        self._restart_said(t, f"after step {step.index + 1}'s window, " +
-                           (f"before step {then.index + 1}" if then is not None else "the last"),
+        self._restart_said(t, (f"after step {step.index + 1}'s window, " +
+                               (f"before step {then.index + 1}" if then is not None else "the last"),),
                            then, "runs", done=step)
 
-    def _restart_said(self, t: float, where: str, then: Step | None, how: str | None,
+    def _restart_said(self, t: float, where: tuple[str, ...], then: Step | None, how: str | None,
                       done: Step | None = None, stopping: bool = False) -> None:
         """The one decision for a restart of the IMU noticed at rig time ``t``, s, ``where`` (in a
         step, after its window, between steps, in the end-of-run safe state): the
@@ -462,9 +461,16 @@ class Engine:
         (:meth:`run`: chamber steps run without it); the chamber steps before that one are said
         first, and when only chamber steps are left no warm-up is planned. ``stopping``: the run
         ends here (an abort, a device fault): no step runs in this session, and a resumed run
-        (``rigctl resume``, :func:`rewarm_due`) warms up first, then runs ``then`` again."""
+        (``rigctl resume``, :func:`rewarm_due`) warms up first, then runs ``then`` again (the
+        run log adds that the window's last samples were awaited).
+
+        ``where``: the parts of the place (step labels as :class:`Elide`); the event
+        (:func:`rigctl.recording.recorder.event_text`, 200 bytes) shortens the labels, never what
+        the engine then does."""
         done, warm = done or self._last_done, self._warmup
-        last = f"last complete step {done.index + 1} ({done.label})" if done is not None else "no step complete yet"
+        last = ((f"last complete step {done.index + 1} (", Elide(done.label), ")") if done is not None
+                else ("no step complete yet",))
+        said = "".join(where) + (" while its window's last samples were awaited" if stopping else "")
         ahead = [s for s in self._motion or [] if then is not None and s.index >= then.index] or \
             ([then] if then is not None else [])       # the steps run() executes from ``then`` on
         measured = next((s for s in ahead if s.kind not in CHAMBER_KINDS), None)  # the re-warm's
@@ -472,10 +478,13 @@ class Engine:
         if then is None:
             plan = what = "no step runs after it"
         elif stopping:
-            plan = what = (f"the run stops before step {then.index + 1} is recorded complete; a resumed run "
-                           "('rigctl resume') " + (f"re-runs the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) "
-                                                   "first, then " if warm is not None else "") +
-                           f"runs step {then.index + 1} again")
+            what = (f"the run stops before step {then.index + 1} is recorded complete; a resumed run "
+                    "('rigctl resume') " + (f"re-runs the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) "
+                                            "first, then " if warm is not None else "") +
+                    f"runs step {then.index + 1} again")
+            plan = ("the run stops; 'rigctl resume' " + (f"re-runs the warm-up ({warm.sample_s:g} s, step "
+                                                         f"{warm.index + 1}) first, then step {then.index + 1}"
+                                                         if warm is not None else f"runs step {then.index + 1} again"))
         else:
             first = ""
             if chambers:        # they run before the re-warm: it precedes the next measurement
@@ -494,11 +503,11 @@ class Engine:
                 what = (f"{first}the warm-up ({warm.sample_s:g} s, step {warm.index + 1}) runs again"
                         + (" first" if not chambers else "") +
                         f", then step {measured.index + 1} {how if measured is then else 'runs'}")
-                self.rewarm = f"the IMU restarted {where}"
-        self.rec.add_event(t, "device-restart", f"IMU restarted (device time began again: power lost) {where}; "
-                                                f"{last}; {plan}")
-        self.log("warning", f"the IMU restarted {where} (its device time began again: it lost power, so its "
-                            f"turn-on bias is new and it is cold): {last}; {what}")
+                self.rewarm = f"the IMU restarted {said}"
+        self.rec.add_event(t, "device-restart", event_text("IMU restarted (device time began again: power lost) ",
+                                                           *where, "; ", *last, f"; {plan}"))
+        self.log("warning", f"the IMU restarted {said} (its device time began again: it lost power, so its "
+                            f"turn-on bias is new and it is cold): {''.join(last)}; {what}")
 
     def _watch_pace(self, t: float) -> None:
         """Say once, early, when rig time runs slower than the clock's speed asks: a clock that
@@ -778,10 +787,10 @@ class Engine:
             if not whole:   # they stopped inside it: as a trip while sampling
                 self._tail_covered = covered
                 raise tail
-            self.rec.add_event(clock.now(), "info",
-                               f"step {step.index + 1} ({step.label}): {', '.join(tail.reasons)} tripped "
-                               f"after its window, whose {n} samples cover it ({covered:.1f} s of {want:g} s): "
-                               "the step is complete; the run pauses before the next step")
+            self.rec.add_event(clock.now(), "info", event_text(
+                f"step {step.index + 1} (", Elide(step.label), f"): {', '.join(tail.reasons)} tripped "
+                f"after its window, whose {n} samples cover it ({covered:.1f} s of {want:g} s): "
+                "the step is complete; the run pauses before the next step"))
         ang = sum_angle / n_polls if n_polls else self.last_state.angle
         rate = sum_rate / n_polls if n_polls else self.last_state.rate
         seg = Segment(kind=step.kind, label=step.label, step=step.index, first_sample=first,
@@ -977,9 +986,9 @@ class Engine:
         recorded as a complete ``warmup`` segment of its step index, then clear :attr:`rewarm`;
         ``before``: the step that follows it. Raises Suspend as :meth:`execute` does."""
         self.log("step", f"re-warm before step {before.index + 1} ({before.label}): {warm.describe()}", echo=False)
-        self.rec.add_event(self.rig.clock.now(), "info",
-                           f"re-warm: step {warm.index + 1} ({warm.label}, {warm.sample_s:g} s) again, "
-                           f"{self.rewarm}; then step {before.index + 1} ({before.label})")
+        self.rec.add_event(self.rig.clock.now(), "info", event_text(
+            f"re-warm: step {warm.index + 1} (", Elide(warm.label), f", {warm.sample_s:g} s) again, ",
+            Elide(str(self.rewarm)), f"; then step {before.index + 1} (", Elide(before.label), ")"))
         why, self.rewarm, self._rewarm_before = self.rewarm, None, before  # a restart from here on
         try:                                                                 # sets it anew
             self.execute(self._warmup_left(warm))
@@ -1002,8 +1011,8 @@ class Engine:
             return step
         left = max(0.0, step.sample_s - done)
         self.log("info", f"warm-up: {done:.1f} s already done with the IMU powered; {left:.1f} s left")
-        self.rec.add_event(self.rig.clock.now(), "info",
-                           f"step {step.index + 1} ({step.label}): {done:.1f} s of warm-up kept, {left:.1f} s left")
+        self.rec.add_event(self.rig.clock.now(), "info", event_text(
+            f"step {step.index + 1} (", Elide(step.label), f"): {done:.1f} s of warm-up kept, {left:.1f} s left"))
         return replace(step, sample_s=left)
 
     def _stop_table(self, wait_s: float = 5.0, seen: set[str] | None = None) -> None:
@@ -1069,9 +1078,10 @@ class Engine:
             if self.max_pause_s is not None and now - t0 > self.max_pause_s:
                 raise RunError(f"paused for more than {self.max_pause_s:g} s: "
                                f"{'; '.join(self.suspenders.active.values()) or message}")
-        text = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
-                f"{'starting' if between_steps else 're-running'} step {step.index + 1} ({step.label})")
-        rec.add_event(now, "resume", text)
+        parts = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
+                 f"{'starting' if between_steps else 're-running'} step {step.index + 1} (", Elide(step.label), ")")
+        text = "".join(parts)
+        rec.add_event(now, "resume", event_text(*parts))
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)
 
@@ -1098,12 +1108,12 @@ class Engine:
                 commanded_angle=step.angles, commanded_rate=np.nan_to_num(step.rates, nan=0.0),
                 measured_angle=s.angle if s is not None else np.full(3, np.nan),
                 measured_rate=s.rate if s is not None else np.full(3, np.nan), status="incomplete"))
-            rec.add_event(clock.now(), "incomplete",
-                          f"step {step.index + 1} ({step.label}) cut off: IMU rows [{first}, {last}) "
-                          "excluded; the step re-runs")
+            rec.add_event(clock.now(), "incomplete", event_text(
+                f"step {step.index + 1} (", Elide(step.label), f") cut off: IMU rows [{first}, {last}) "
+                "excluded; the step re-runs"))
         else:
-            rec.add_event(clock.now(), "incomplete",
-                          f"step {step.index + 1} ({step.label}) cut off before sampling; re-runs")
+            rec.add_event(clock.now(), "incomplete", event_text(
+                f"step {step.index + 1} (", Elide(step.label), ") cut off before sampling; re-runs"))
         self.sampling_from = None
 
     def stop_first(self, why: str, wait_s: float = 30.0) -> None:

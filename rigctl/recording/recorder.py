@@ -102,6 +102,52 @@ LAYOUT: dict[str, dict[str, tuple[tuple[int, ...], Any, str]]] = {
 _CHUNK_ROWS = {"imu": 8192, "table": 1024, "pulses": 256, "segments": 64, "events": 64, "chamber": 1024}
 
 
+#: the longest /events message, bytes of UTF-8 (the dataset's dtype, S200)
+EVENT_MESSAGE_BYTES = int(np.dtype(_STR["message"]).itemsize)
+#: what ends a shortened part of an event message
+ELLIPSIS = "\u2026"
+
+
+class Elide(str):
+    """A part of an event message that :func:`event_text` may shorten (its beginning kept, an
+    ellipsis after it) to keep the message within :data:`EVENT_MESSAGE_BYTES`: a step label, a
+    reason quoted from another message -- never what happened or what to do."""
+
+
+def _utf8(text: str) -> bytes:
+    return text.encode("utf-8", "replace")
+
+
+def shorten(text: str, limit: int) -> str:
+    """``text`` within ``limit`` bytes of UTF-8: whole when it fits, else its beginning and
+    :data:`ELLIPSIS` (no character cut in two; "" when not even the ellipsis fits)."""
+    b = _utf8(text)
+    if len(b) <= limit:
+        return text
+    keep = limit - len(_utf8(ELLIPSIS))
+    return b[:keep].decode("utf-8", "ignore") + ELLIPSIS if keep >= 0 else ""
+
+
+def event_text(*parts: str, limit: int = EVENT_MESSAGE_BYTES) -> str:
+    """The event message of ``parts`` joined, within ``limit`` bytes of UTF-8: when it is longer,
+    the :class:`Elide` parts are shortened (:func:`shorten`), the longest first, to one common
+    length c -- the largest with sum_i min(n_i, c) <= the bytes the other parts leave -- so the
+    other parts (what happened, what to do) stay whole. Only when those alone exceed ``limit`` is
+    the end cut (with an ellipsis, as :meth:`Recorder.add_event` cuts any message)."""
+    sizes = [len(_utf8(p)) for p in parts]
+    if sum(sizes) <= limit:
+        return "".join(parts)
+    cut = [i for i, p in enumerate(parts) if isinstance(p, Elide)]
+    left = limit - sum(n for i, n in enumerate(sizes) if i not in cut)
+    cap, ns = max(0, left), sorted(sizes[i] for i in cut)
+    for k, n in enumerate(ns):   # water-filling: the parts shorter than the cap keep their length
+        if n * (len(ns) - k) > left:
+            cap = max(0, left) // (len(ns) - k)
+            break
+        left -= n
+    return shorten("".join(shorten(p, cap) if i in cut else p for i, p in enumerate(parts)), limit)
+
+
 @dataclass
 class Segment:
     """One row of /segments (see docs/data-format.md)."""
@@ -335,10 +381,12 @@ class Recorder:
             self.flush()
 
     def add_event(self, t: float, kind: str, message: str, file_time: bool = False) -> None:
-        """Append an event at session time ``t`` (file time if ``file_time``), s."""
+        """Append an event at session time ``t`` (file time if ``file_time``), s. A message longer
+        than :data:`EVENT_MESSAGE_BYTES` is cut at its end with an ellipsis (:func:`shorten`);
+        one built by :func:`event_text` fits already."""
         t = t if file_time else t + self.time_offset
         self._put("events", {"time": [t], "kind": [kind.encode()[:16]],
-                             "message": [message.encode("utf-8", "replace")[:200]]}, 1)
+                             "message": [_utf8(shorten(message, EVENT_MESSAGE_BYTES))]}, 1)
         self.flush()
 
     # -- writing -----------------------------------------------------------------------------

@@ -1,7 +1,8 @@
-"""`rigctl allan`'s progress while the windows left out (`drop`: excursions, a quiet stretch)
-are skipped: it counts the rows read, so it ends at 100 % with no negative time left (it
-went to 113 % with "left ~-0.0143 s" on the ADIS16405's quiet stretch: the total was the rows
-summed, the count the rows reached)."""
+"""What `rigctl allan` says on the console while and after it works: the stream's progress
+with windows left out (`drop`: excursions, a quiet stretch) counts the rows read, so it ends at
+100 % with no negative time left (it went to 113 % with "left ~-0.0143 s" on the ADIS16405's
+quiet stretch: the total was the rows summed, the count the rows reached); the fits' own
+progress; the per-axis summary line's coverage."""
 from __future__ import annotations
 
 import io
@@ -55,3 +56,14 @@ def test_the_fits_have_progress_of_their_own(tmp_path: Path, monkeypatch: pytest
     AA.compute_once(str(rec), ["gx", "gy", "gz"], 40, True, progress_stream=out)
     assert Seen.fits == [(1, 3), (2, 3), (3, 3)]
     assert "allan r.h5, fits: 3 axes in" in out.getvalue(), out.getvalue()
+
+
+def test_the_summary_line_says_its_coverage(tmp_path: Path) -> None:
+    """The per-axis line a run's analysis prints ('allan gz: N 0.1996 deg/sqrt(h) [0.198,
+    0.2013]; B ...; K < 134 ...') said neither what the brackets hold nor what the bounds are."""
+    rng = np.random.default_rng(5)
+    rec = write_recording(tmp_path / "r.h5", 100.0, angular_rate=rng.standard_normal((20_000, 3)) * 1e-3)
+    r = AA.compute_once(str(rec), ["gx"], 40, True)["axes"]["gx"]
+    line = AA.summary_line(r)
+    assert line.startswith("N ") and "[" in line and "K < " in line, line
+    assert line.endswith(" (95 % intervals and upper bounds)"), line
