@@ -304,6 +304,21 @@ def gm_table(sizes: list[float], seeds: int, n_null: int, product: bool) -> dict
     return out
 
 
+def gm_free_table(sizes: list[float], seeds: int, n_null: int) -> dict:
+    """:class:`FreeGaussMarkovGLR` (N and B fitted) on the same 5-minute records: its 99 %
+    point from ``n_null`` records without a bump (seeds 50000 +), its power per sigma."""
+    WF = _wf()
+    glr = FreeGaussMarkovGLR(WF.N_SAMPLES, WF.FS, WF.N_TRUE, WF.B_TRUE)
+    thr = float(np.quantile([glr.stat(WF._noise(50000 + s)) for s in range(n_null)], 0.99))
+    out: dict = {"threshold": thr, "sizes": {}}
+    for f in sizes:
+        out["sizes"][f] = int(sum(glr.stat(WF._noise(s, gm=(f * WF.B_TRUE, 2.0))) > thr
+                                  for s in range(seeds)))
+        print(f"Gauss-Markov sigma {f:3.1f} B, N and B fitted: found {out['sizes'][f]} of "
+              f"{seeds} (99 % point {thr:.2f} from {n_null} records)", flush=True)
+    return out
+
+
 def gm_product(f: float, seeds: int) -> dict:
     """``rigctl allan``'s own outcome (rigctl.analysis.allan.compute of a recording) on the
     same records, as the x gyro: a Gauss-Markov term in the fit, its check failed, or neither
@@ -347,6 +362,9 @@ def main() -> None:
     ap.add_argument("--gm-seeds", type=int, default=100)
     ap.add_argument("--gm-null", type=int, default=1000)
     ap.add_argument("--product", action="store_true", help="also rigctl allan on recordings")
+    ap.add_argument("--gm-free", action="store_true",
+                    help="only the Gauss-Markov test with N and B fitted (--gm-sizes, "
+                         "--gm-seeds, --gm-null)")
     a = ap.parse_args()
     t0 = time.perf_counter()
     sizes = [float(v) for v in a.sizes.split(",")]
@@ -354,7 +372,10 @@ def main() -> None:
                                a.null, not a.no_trend, "emulator" if a.emulator else "model")}
     if a.fit_seeds:
         res["self_check"] = check_table(sizes, a.fit_seeds)
-    if a.gm_sizes:
+    if a.gm_sizes and a.gm_free:
+        res["gauss_markov_free"] = gm_free_table([float(v) for v in a.gm_sizes.split(",")],
+                                                 a.gm_seeds, a.gm_null)
+    elif a.gm_sizes:
         res["gauss_markov"] = gm_table([float(v) for v in a.gm_sizes.split(",")], a.gm_seeds,
                                        a.gm_null, a.product)
     print(f"{time.perf_counter() - t0:.0f} s")
