@@ -6,6 +6,12 @@ loop it replaced (kept as the fallback without numba: allan_cov_kernels.HAVE_NUM
 with the contiguous kernel for long stretches), in the same run.
 
     python benchmarks/allan_gm_gapped.py [--hours 4] [--rec-file PATH] [--skip-long]
+                                         [--cases two_piece,long_gapped] [--compiled-only]
+
+``--compiled-only`` times the compiled loop alone (the numpy loop takes ~60-75 s a case);
+``--cases`` picks the cases (--skip-long: two_piece alone). Comparing two versions of the
+code on a shared machine: run each with NUMBA_NUM_THREADS=1, interleaved, several times, and
+compare the CPU seconds (wall time follows the load; the thread CPU here does not).
 
 Cases (thread CPU seconds of gm_candidate, every covariance cache cleared before each run):
 
@@ -126,11 +132,17 @@ def long_gapped(d: str, hours: float, rec_file: str | None) -> dict:
     return candidate_inputs(path, "gx")
 
 
-def measure(name: str, inp: dict) -> dict:
+def measure(name: str, inp: dict, compiled_only: bool = False) -> dict:
     st = np.asarray(inp["stretch_samples"])
     print(f"{name}: {st.size} stretches ({st.min()}..{st.max()} samples), tau0 {inp['tau0']} s, "
           f"{len(inp['tau'])} taus", flush=True)
     new, n_tc, r_new = timed_check(inp, compiled=True)
+    if compiled_only:
+        print(f"  compiled pair loop: {new:.2f} s ({n_tc} Tc); result "
+              f"{ {k: r_new.get(k) for k in ('tested', 'detected', 'tc_s', 'p_value')} }",
+              flush=True)
+        return {f"{name}_gm_check_s": round(new, 3), f"{name}_tc_count": n_tc,
+                f"{name}_stretches": int(st.size)}
     old, n_tc_old, r_old = timed_check(inp, compiled=False)
     print(f"  compiled pair loop: {new:.2f} s ({n_tc} Tc); numpy loop: {old:.2f} s "
           f"({n_tc_old} Tc); {old / new:.1f}x", flush=True)
@@ -148,16 +160,28 @@ def main() -> None:
     ap.add_argument("--hours", type=float, default=4.0)
     ap.add_argument("--rec-file", default=None)
     ap.add_argument("--skip-long", action="store_true")
+    ap.add_argument("--cases", default="two_piece,long_gapped",
+                    help="comma-separated, of two_piece, long_gapped")
+    ap.add_argument("--compiled-only", action="store_true",
+                    help="time the compiled pair loop only, not the numpy loop")
     args = ap.parse_args()
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    bad = sorted(set(cases) - {"two_piece", "long_gapped"})
+    if bad:
+        raise SystemExit(f"--cases: unknown case {', '.join(bad)} (two_piece, long_gapped)")
+    if args.skip_long and "long_gapped" in cases:
+        cases.remove("long_gapped")
     if not KC.HAVE_NUMBA:
         raise SystemExit("numba is not installed (the `fast` extra): nothing to compare")
     C._gm_gapped_loop(0.01, np.array([4.0, 6.0]), np.array([50, 60]), np.array([1, 1]), 0.05)
     out: dict = {"load_avg_before": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory(dir="/tmp") as d:
-        out.update(measure("two_piece", two_piece(d)))
-        if not args.skip_long:
+        if "two_piece" in cases:
+            out.update(measure("two_piece", two_piece(d), args.compiled_only))
+        if "long_gapped" in cases:
             out["long_gapped_hours"] = args.hours
-            out.update(measure("long_gapped", long_gapped(d, args.hours, args.rec_file)))
+            out.update(measure("long_gapped", long_gapped(d, args.hours, args.rec_file),
+                               args.compiled_only))
     out["load_avg_after"] = os.getloadavg()[0]
     print(json.dumps(out))
 

@@ -11,7 +11,8 @@ from .errors import InputError
 from .yamlio import LocDict, LocList
 
 
-def _where(obj: Any, key: Any = None) -> tuple[str | None, int | None]:
+def where(obj: Any, key: Any = None) -> tuple[str | None, int | None]:
+    """The (file, line) of ``obj[key]`` (of ``obj`` itself when key is None); (None, None) if unknown."""
     if isinstance(obj, LocDict):
         return obj.file, obj.line_of(key) if key is not None else obj.line
     if isinstance(obj, LocList):
@@ -21,15 +22,15 @@ def _where(obj: Any, key: Any = None) -> tuple[str | None, int | None]:
 
 def error(obj: Any, key: Any, message: str, hint: str | None = None) -> InputError:
     """An InputError located at ``obj[key]`` (or at ``obj`` when key is None)."""
-    file, line = _where(obj, key)
+    file, line = where(obj, key)
     return InputError(message, file, line, hint)
 
 
 def item_error(m: LocDict, key: Any, items: list, i: int, message: str, hint: str | None = None) -> InputError:
     """An InputError at entry ``i`` of the list ``m[key]`` (at the key's line for a list without
     lines of its own, such as one from a ``-p`` value)."""
-    line = items.line_of(i) if isinstance(items, LocList) else _where(m, key)[1]
-    return InputError(message, _where(m)[0], line, hint)
+    line = items.line_of(i) if isinstance(items, LocList) else where(m, key)[1]
+    return InputError(message, where(m)[0], line, hint)
 
 
 def require_mapping(obj: Any, what: str, parent: Any = None, key: Any = None) -> LocDict:

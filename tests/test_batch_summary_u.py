@@ -17,7 +17,7 @@ def _summary() -> dict:
                 "min": min(vals), "max": max(vals), "median_u": sorted(us)[len(us) // 2],
                 "min_u": min(us), "max_u": max(us)}
     return {"runs": {"recordings": 2, "analysed": 2, "failed": [],
-                     "verdicts": {"PASS": 0, "FAIL": 0, "INDETERMINATE": 0}, "yield": None,
+                     "verdicts": {"PASS": 0, "FAIL": 0, "INDETERMINATE": 0}, "no_verdict": [], "yield": None,
                      "parameters": {"accel_bias_x": p("mg", [2.088, 1.996], [0.069, 0.13]),
                                     "gyro_scale_error_x": p("ppm", [-190000.0, 1000.3], [220000.0, 7.4])}}}
 
@@ -32,3 +32,29 @@ def test_summary_shows_unit_uncertainties_and_names_the_uneven_parameter() -> No
     assert row.split()[-2:] == ["0.069", "0.13"]
     warn = [ln for ln in text.splitlines() if "warning:" in ln]
     assert len(warn) == 1 and "(gyro_scale_error_x)" in warn[0] and "accel_bias_x" not in warn[0]
+
+
+def test_summary_counts_and_names_analysed_runs_with_no_verdict() -> None:
+    """The audit's batch: 4 recordings, 1 failed, 3 analysed: PASS, INDETERMINATE and a thermal
+    run the spec measured nothing in. The old line said 'yield 50 % (PASS 1, FAIL 0,
+    INDETERMINATE 1)' with nothing about the third analysed run."""
+    def cal(overall: str | None) -> dict:
+        payload = {"mode": "turntable", "results": {}}
+        if overall is not None:
+            payload["verdicts"] = {"overall": overall}
+        return {"calibration": payload}
+    recs = ["runs/L/a/recording.h5", "runs/L/b/recording.h5", "runs/L/thermal/recording.h5",
+            "runs/L/broken/recording.h5"]
+    results = [{"recording": recs[0], "ok": True, "results": cal("PASS"), "error": None},
+               {"recording": recs[1], "ok": True, "results": cal("INDETERMINATE"), "error": None},
+               {"recording": recs[2], "ok": True, "results": cal(None), "error": None},
+               {"recording": recs[3], "ok": False, "results": {}, "error": "no data"}]
+    summary = B.summarise(results, {r: "L" for r in recs})
+    assert summary["L"]["no_verdict"] == [recs[2]]
+    assert summary["L"]["yield"] == 0.5  # 1 PASS of the 2 with a verdict
+    text = B.summary_text(summary)
+    head = text.splitlines()[0]
+    assert "3 analysed, 1 failed" in head and "yield 50 % of 2 with a verdict" in head, head
+    assert "no verdict 1" in head, head
+    named = [ln for ln in text.splitlines() if ln.strip().startswith("NO VERDICT")]
+    assert len(named) == 1 and recs[2] in named[0], text

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import yaml
 
-from helpers import ROOT, WHITE_NOISE_ONLY, derived_config, run_rigctl
+from helpers import ROOT, WHITE_NOISE_ONLY, assert_k_lines_cover_truth, derived_config, run_rigctl
 
 SHORT = ["-p", "warmup=1 min", "-p", "sample=10 s"]
 BASE = {
@@ -124,6 +124,15 @@ def test_run_prints_calibration_and_before_after_table(clean_run):
             u = row["unit"]
             assert row[f"rms_raw_{u}"] > 3 * row[f"rms_after_{u}"], row
     assert (rec.parent / "recording.calibration.json").is_file()
+
+
+def test_noise_lines_give_k_as_bound_or_interval_holding_truth(clean_run):
+    """A 40-minute session cannot resolve the rate random walk (here K = 0 on both sensors):
+    each printed K is a 95 % bound or interval, and it holds the emulator's truth."""
+    out, rec = clean_run
+    with h5py.File(rec, "r") as f:
+        p = json.loads(f["truth"].attrs["params_json"])
+    assert_k_lines_cover_truth(out[out.index("rigctl calibrate:"):], p.get("imu", p))
 
 
 def test_clean_run_no_false_flag_and_truth_covered(clean_run):

@@ -299,10 +299,12 @@ def _check_drops_recorded(recording: Path, dropped: list[int]) -> np.ndarray:
     assert all(b" clear for 2 s after " in p["resume"] and p["t1"] - p["t_last"] >= 2.0 - 1e-6
                for p in pauses), _show(pauses)
     # any other pause is the run's own account of a host too slow for the clock, never a pause
-    # for something else: (a) the same drop's outage seen again right after its resume -- hold_s
-    # is 2 s of rig time, 20 ms of wall at 100x, less than a loaded host takes to reconnect and
-    # reconfigure the device (no frames between GoToConfig and GoToMeasurement) -- so it cuts
-    # the step's re-run off before it sampled, on imu-link or imu-gap only; or (b) a window the
+    # for something else: (a) the same drop's outage seen again right after its resume, which
+    # cuts the step's re-run off before it sampled, on imu-link or imu-gap only (imu-link now
+    # holds until the driver is configured again and streams, so a resume no longer comes before
+    # the reconfiguration, whose GoToConfig..GoToMeasurement gap is the pause's; seen since, at
+    # load ~8: an imu-gap of 26333 samples 'inside a read', IMU time 1454 -> 1718 s, reaching the
+    # engine 60 s of rig time after, the pause having resumed at 1441 s); or (b) a window the
     # lagging IMU stream left without its samples, which the run said in a 'short-window' event
     # just before ('the IMU stream lags or stopped': the emulator, in this process, computed its
     # samples more than 1.5 s of wall time behind the clock) and samples again; or (c) after the

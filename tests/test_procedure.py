@@ -10,6 +10,8 @@ from rigctl.engine.estimate import estimate
 from rigctl.engine.procedure import load_procedure, parse_overrides
 from rigctl.yamlio import InputError
 
+from helpers import run_rigctl
+
 ROOT = Path(__file__).resolve().parent.parent
 PROC = ROOT / "procedures"
 
@@ -257,14 +259,32 @@ def test_error_in_an_included_file_names_that_file_and_line(tmp_path):
                                "(did you mean 'wait'?)")
 
 
-def test_a_parameter_given_a_wrong_value_is_reported_where_it_is_used(tmp_path):
-    """-p values are checked by the model of the key they land in, at that key's line."""
+def test_a_parameter_given_a_wrong_value_names_the_option_typed(tmp_path):
+    """-p values are checked by the model of the key they land in; the error names the -p option
+    the user typed (the key's file and line only as where it is used)."""
     path = tmp_path / "p.yaml"
     path.write_text("parameters:\n  n: 3\nsteps:\n  - taps:\n      count: ${n}\n")
     assert load_procedure(path, {"n": 5}).steps[0].expected_taps == 5
     with pytest.raises(InputError) as info:
         load_procedure(path, {"n": "lots"})
+    assert str(info.value) == (f"-p n='lots': 'count' must be a number, got str 'lots' "
+                               f"(parameter 'n' is used at {path}:5)")
+    # a wrong default written in the file itself is still the file's line
+    path.write_text("parameters:\n  n: lots\nsteps:\n  - taps:\n      count: ${n}\n")
+    with pytest.raises(InputError) as info:
+        load_procedure(path)
     assert str(info.value) == f"{path}:5: 'count' must be a number, got str 'lots'"
+
+
+def test_a_bad_duration_option_on_the_command_line_is_one_line_naming_it():
+    """`rigctl run procedures/24pos.yaml -p warmup=banana`: the value lands in the included
+    warmup.yaml; the one console line names the option, exit 2, no traceback."""
+    r = run_rigctl("run", "procedures/24pos.yaml", "-p", "warmup=banana", timeout=60)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("rigctl run: error: -p warmup='banana': cannot read 'banana' as a duration"), lines[0]
+    assert "warmup.yaml:9" in lines[0] and "Traceback" not in r.stderr
 
 
 def test_an_included_file_inherits_the_defaults_it_does_not_set(tmp_path):

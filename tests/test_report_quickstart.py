@@ -7,6 +7,7 @@ project into it (about 25 s with pip's cache warm, as it is after `.ci/run`'s ow
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -14,9 +15,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 import pytest
 
-from helpers import ROOT
+from helpers import ROOT, assert_k_lines_cover_truth
 
 pytest.importorskip("matplotlib")
 QUICKSTART = ROOT / "docs" / "quickstart.md"
@@ -74,3 +76,8 @@ def test_quickstart_commands_work_in_order(tmp_path: Path) -> None:
     b_est = re.findall(r"allan [ga][xyz]: N [^;]+; B [0-9.e+-]+ (?:deg/h|mg) \[", r.stdout)
     k_bound = re.findall(r"allan [ga][xyz]: .*; K < [0-9.e+-]+ ", r.stdout)
     assert len(b_est) >= 4 and len(k_bound) == 6, r.stdout[-3000:]
+    # calibrate's noise-model lines (the run's own, from the session, and with --noise NIGHT.h5):
+    # K (0.05 m/s/h/sqrt(h), 3 deg/h/sqrt(h) on the emulator) as a bound or interval holding it
+    with h5py.File(runs[0] / "recording.h5", "r") as f:
+        p = json.loads(f["truth"].attrs["params_json"])
+    assert_k_lines_cover_truth(r.stdout, p.get("imu", p), blocks=2)

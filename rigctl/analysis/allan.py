@@ -1735,7 +1735,9 @@ def solve_recording(path: Path, log: Callable[[str, str], Any]) -> None:
         return
     result["segment"] = where
     store(path, result)
-    log("info", "allan: " + production.to_database(path, "allan", result, None))
+    db_line = production.to_database(path, "allan", result, None)
+    if db_line:
+        log("info", "allan: " + db_line)
     n, fs = result["n_samples"], result["sample_rate_hz"]
     log("info", f"allan: {where}, {n} samples at {fs:g} Hz ({n / fs / 3600:.2f} h); "
                 f"results in {path}:/results/allan")

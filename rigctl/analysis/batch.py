@@ -106,12 +106,16 @@ def lot_of(recording: str | Path) -> str:
 
 
 def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, Any]:
-    """Yield and parameter distributions per lot (display units)."""
+    """Yield and parameter distributions per lot (display units).
+
+    The yield is PASS / (PASS + FAIL + INDETERMINATE) over the recordings that have a verdict;
+    an analysed recording with no verdict (no spec, or nothing the spec names measured in it,
+    e.g. a thermal run) is listed under ``no_verdict`` and is not in the yield."""
     per_lot: dict[str, dict[str, Any]] = {}
     for r in results:
         lot = lots[r["recording"]]
         L = per_lot.setdefault(lot, {"recordings": 0, "failed": [], "verdicts": {PASS: 0, FAIL: 0, INDETERMINATE: 0},
-                                     "params": {}})
+                                     "no_verdict": [], "params": {}})
         L["recordings"] += 1
         if not r["ok"]:
             L["failed"].append({"recording": r["recording"], "error": r["error"]})
@@ -119,6 +123,8 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
         vs = [p["verdicts"]["overall"] for p in r["results"].values() if p.get("verdicts")]
         if vs:
             L["verdicts"][overall(vs)] += 1
+        else:
+            L["no_verdict"].append(r["recording"])
         for kind, payload in r["results"].items():
             for m in production.measured(kind, payload):
                 d = m.display
@@ -136,7 +142,7 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
                             "min_u": float(np.min([u for _, u in vals])),
                             "max_u": float(np.max([u for _, u in vals]))}
         out[lot] = {"recordings": L["recordings"], "analysed": L["recordings"] - len(L["failed"]),
-                    "failed": L["failed"], "verdicts": L["verdicts"],
+                    "failed": L["failed"], "verdicts": L["verdicts"], "no_verdict": L["no_verdict"],
                     "yield": L["verdicts"][PASS] / decided if decided else None, "parameters": params}
     return out
 
@@ -176,9 +182,13 @@ def summary_text(summary: dict[str, Any]) -> str:
     lines = []
     for lot, s in summary.items():
         v = s["verdicts"]
-        y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} %"
+        decided = v["PASS"] + v["FAIL"] + v["INDETERMINATE"]
+        y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} % of {decided} with a verdict"
+        counts = f"PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']}"
+        if decided:
+            counts += f", no verdict {len(s['no_verdict'])}"
         lines.append(f"lot {lot}: {s['recordings']} recordings, {s['analysed']} analysed, {len(s['failed'])} failed; "
-                     f"yield {y} (PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']})")
+                     f"yield {y} ({counts})")
         lines.append(f"  {'parameter':<32} {'unit':<14} {'n':>3} {'mean':>12} {'sd':>10} {'min':>12} {'max':>12}"
                      f" {'u min':>10} {'u max':>10}")
         uneven = []
@@ -197,6 +207,9 @@ def summary_text(summary: dict[str, Any]) -> str:
                          f"another's ({', '.join(uneven)}): a unit whose analysis could not determine them "
                          "(e.g. gyro scale from a recording with no rate segments) is in the mean and sd; "
                          "look at those units before using the lot's distribution")
+        if decided:  # with a spec: name the analysed recordings it gave no verdict on
+            for rec in s["no_verdict"]:
+                lines.append(f"  NO VERDICT {rec}: nothing the spec names was measured in it (not in the yield)")
         for fl in s["failed"]:
             lines.append(f"  FAILED {fl['recording']}: {fl['error']}")
     return "\n".join(lines)

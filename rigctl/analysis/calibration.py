@@ -324,7 +324,8 @@ def solve_hook(recording: str | Path, log: Callable[..., None]) -> None:
     _DONE.add(key)
     try:
         payload, text, _ = calibrate(recording)
-        text += "\n" + production.to_database(recording, "calibration", payload, None)
+        db_line = production.to_database(recording, "calibration", payload, None)
+        text += "\n" + db_line if db_line else ""
     except InputError as exc:
         log("warning", f"calibration: {exc}")
         return

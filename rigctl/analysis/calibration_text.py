@@ -11,6 +11,7 @@ import numpy as np
 
 from ..display_units import NOISE_UNITS, display, format_number, format_value, slug
 from ..solvers.calibration_result import CalibrationResult
+from ..solvers.noise_coefficients import Coefficient, coefficient_from
 
 
 
@@ -32,26 +33,59 @@ def param_table(res: CalibrationResult, title: str) -> str:
     return "\n".join(lines)
 
 
+def coefficient_text(c: Coefficient, factor: float, unit: str) -> str:
+    """One noise coefficient (SI; ``factor`` to the field ``unit``) as a noise-model line prints it:
+    ``value [lo, hi] unit`` (95 %) for a resolved term; for one the data support only as a bound,
+    ``< bound unit (95 %; covariance uses the estimate v)``: the covariance of the segment means
+    takes the unconstrained estimate below the bound (docs/calibration.md section 10); a given
+    value without an interval says so."""
+    if not c.resolved:
+        return (f"< {c.upper95 * factor:.4g} {unit} (95 %; covariance uses the estimate "
+                f"{c.value * factor:.4g})")
+    if c.ci95 is None:
+        return f"{c.value * factor:.4g} {unit} (no interval)"
+    lo, hi = c.ci95
+    return f"{c.value * factor:.4g} [{lo * factor:.4g}, {hi * factor:.4g}] {unit}"
+
+
+def _coefficient_row(c: Coefficient, factor: float) -> dict[str, Any]:
+    """JSON form of :func:`coefficient_text` (field units)."""
+    if not c.resolved:
+        return {"upper95": c.upper95 * factor, "covariance_uses": c.value * factor}
+    return {} if c.ci95 is None else {"ci95": [c.ci95[0] * factor, c.ci95[1] * factor]}
+
+
 def noise_summary(models: list[Any], t0: float = 0.0) -> tuple[list[str], list[dict[str, Any]]]:
     """Text lines and JSON rows of the six channels' noise models (NoiseCoefficients; field units
-    of rigctl.display_units.NOISE_UNITS, slugged into the keys: N_deg_per_sqrt_h, B_mg, ...);
-    t0: the random walk's origin the covariance used, s."""
+    of rigctl.display_units.NOISE_UNITS, slugged into the keys: N_deg_per_sqrt_h, B_mg, ...),
+    each term with its 95 % interval or, where the data support only that, its 95 % upper bound
+    (:func:`coefficient_text`); t0: the random walk's origin the covariance used, s."""
     from ..solvers.segments import CHANNELS
 
     lines, rows = [], []
     for ch, m in zip(CHANNELS, models):
         U = NOISE_UNITS[ch.split("_")[0]]
         (nu, nf), (bu, bf), (ku, kf) = U["N"], U["B"], U["K"]
-        nper = {g: v * nf for g, v in (m.white_by_group or {"*": m.N.value}).items()}
         info = m.details
+        ngroup = {g: coefficient_from(c) for g, c in info.get("N_by_group", {}).items()}
+        if m.white_by_group is None:
+            ntxt = coefficient_text(m.N, nf, nu)
+        else:
+            ntxt = ", ".join(coefficient_text(ngroup.get(g, Coefficient(v)), nf, "").replace("  ", " ").rstrip()
+                             + f" ({g})"
+                             for g, v in m.white_by_group.items()) + f" {nu}"
+        nper = {g: v * nf for g, v in (m.white_by_group or {"*": m.N.value}).items()}
         row = {"channel": ch, "source": m.source, f"N_{slug(nu)}": nper, f"B_{slug(bu)}": m.B.value * bf,
-               f"K_{slug(ku)}": m.K.value * kf, "flicker_tau_min_s": m.flicker_tau_min_s,
+               f"K_{slug(ku)}": m.K.value * kf, f"B_{slug(bu)}_interval": _coefficient_row(m.B, bf),
+               f"K_{slug(ku)}_interval": _coefficient_row(m.K, kf),
+               f"N_{slug(nu)}_interval": {g: _coefficient_row(c, nf) for g, c in ngroup.items()},
+               "flicker_tau_min_s": m.flicker_tau_min_s,
                "flicker_tau_max_s": m.flicker_tau_max_s, "rw_origin_s": t0,
                **{k: v for k, v in info.items() if k in ("residual_dof", "converged", "note")}}
         rows.append(row)
-        ntxt = ", ".join(f"{v:.4g}" + ("" if g == "*" else f" ({g})") for g, v in nper.items())
         extra = f"; REML on {info['residual_dof']} residual dof" if "residual_dof" in info else ""
-        lines.append(f"  {ch:<8} N {ntxt} {nu}, B {m.B.value * bf:.4g} {bu}, K {m.K.value * kf:.4g} {ku}{extra}")
+        lines.append(f"  {ch:<8} N {ntxt}, B {coefficient_text(m.B, bf, bu)}, "
+                     f"K {coefficient_text(m.K, kf, ku)}{extra}")
     return lines, rows
 
 

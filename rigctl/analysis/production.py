@@ -118,13 +118,18 @@ def to_database(recording: str | Path, kind: str, results: dict[str, Any], targe
 
     ``target``: a URL or SQLite path; None = the default (rigctl.recording.results_db.default_path);
     "none" = do not write. ``engine``: an open engine (batch: one for all recordings).
+    Without the ``db`` extra the default writes nothing and says nothing (the user asked for
+    no database); an explicit ``target`` says what to install.
     """
     if target == "none":
         return ""
     try:
         from ..recording import results_db as db  # optional dependency (rigctl[db])
     except ImportError:
-        return "results database not written: install rigctl[db] (SQLAlchemy, Alembic)"
+        if target is None:
+            return ""
+        return (f"results database {target} not written: --db needs the db extra "
+                "(pip install -e '.[db]': SQLAlchemy, Alembic)")
     where = target or str(db.default_path(recording))
     eng = engine or db.open_db(where)
     try:

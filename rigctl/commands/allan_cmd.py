@@ -102,7 +102,9 @@ def _run(args: argparse.Namespace) -> int:
         print(format_verdicts(result["verdicts"]))
     store(args.recording, result)
     print(f"results written to {args.recording}:/results/allan")
-    print(production.to_database(args.recording, "allan", result, args.db))
+    db_line = production.to_database(args.recording, "allan", result, args.db)
+    if db_line:
+        print(db_line)
     if args.plot:
         from rigctl.report.report_plots import plot_allan_result  # matplotlib: only with --plot
 

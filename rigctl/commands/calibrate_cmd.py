@@ -23,7 +23,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec,
                                          args.thermal_degree, progress=stage_printer("calibrate", args.recording))
-        text += "\n" + production.to_database(args.recording, "calibration", payload, args.db)
+        db_line = production.to_database(args.recording, "calibration", payload, args.db)
+        text += "\n" + db_line if db_line else ""
     except InputError:
         raise
     except (OSError, ValueError, np.linalg.LinAlgError) as exc:

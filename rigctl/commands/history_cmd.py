@@ -6,6 +6,10 @@ the drift: the weighted least-squares line value = a + d (t - t_mean), weights 1
 years (:func:`rigctl.solvers.calibration_result.fit_linear`; when the scatter exceeds the
 uncertainties, chi2/dof > 1 with p < 0.001, the slope's uncertainty is scaled by the Birge ratio
 and stated so). Two calibrations give a slope with no check of the scatter (dof 0).
+A drift is stated as a number per year only when it is resolved: the calibrations span at least
+:data:`MIN_DRIFT_SPAN_S` (one day; minutes apart, a slope per year extrapolates the noise of
+two readings by 10^5) and the slope's 95 % interval excludes zero. Otherwise the line says
+"not resolved" and why (with the slope +- u when only the interval is the reason).
 Exit codes: 0 done, 2 invalid input (no such unit or database).
 """
 from __future__ import annotations
@@ -20,8 +24,11 @@ import numpy as np
 from ..display_units import format_value
 from ..solvers.calibration_result import fit_linear
 from ..errors import InputError
+from ..units import format_duration
 
 YEAR_S = 365.25 * 86400.0
+#: shortest span of calibration times (first to last) over which a drift per year is stated, s
+MIN_DRIFT_SPAN_S = 86400.0
 
 
 def _t(s: str) -> float:
@@ -37,8 +44,22 @@ def drift(t_s: np.ndarray, v: np.ndarray, u: np.ndarray) -> dict[str, Any] | Non
     ty = (t_s - t_s.mean()) / YEAR_S
     r = fit_linear(np.column_stack([np.ones_like(ty), ty]), v, u, ["offset", "slope_per_year"],
                    method="drift")
+    lo, hi = r.ci95[1]
     return {"slope_per_year": float(r.values[1]), "u_slope_per_year": float(r.sigma[1]), "dof": int(r.dof),
-            "chi2_per_dof": float(r.chi2_per_dof) if r.dof > 0 else None, "scaled": r.interval == "t"}
+            "chi2_per_dof": float(r.chi2_per_dof) if r.dof > 0 else None, "scaled": r.interval == "t",
+            "ci95_per_year": (float(lo), float(hi)), "span_s": float(np.ptp(t_s))}
+
+
+def unresolved_reason(d: dict[str, Any]) -> str | None:
+    """Why the drift ``d`` (from :func:`drift`) is not resolved, or None when it is: the
+    calibrations span less than MIN_DRIFT_SPAN_S, or the slope's 95 % interval contains zero."""
+    if d["span_s"] < MIN_DRIFT_SPAN_S:
+        return (f"the calibrations span only {format_duration(d['span_s'])}; a drift per year needs "
+                f"them at least {format_duration(MIN_DRIFT_SPAN_S)} apart")
+    lo, hi = d["ci95_per_year"]
+    if lo <= 0.0 <= hi:
+        return "its 95 % interval includes zero"
+    return None
 
 
 def history_text(unit: str, analyses: list[Any]) -> str:
@@ -60,12 +81,19 @@ def history_text(unit: str, analyses: list[Any]) -> str:
         if d is None:
             lines.append("  drift: n/a (fewer than two calibrations at different times)")
             continue
+        why = unresolved_reason(d)
+        if why is not None and d["span_s"] < MIN_DRIFT_SPAN_S:
+            lines.append(f"  drift: not resolved yet: {why}")
+            continue
         s, us = format_value(d["slope_per_year"], d["u_slope_per_year"])
         note = (f"dof {d['dof']}, chi2/dof {d['chi2_per_dof']:.3g}" if d["chi2_per_dof"] is not None
                 else "2 points: the scatter is not checked")
         if d["scaled"]:
             note += ": scatter above the uncertainties, slope uncertainty scaled by sqrt(chi2/dof)"
-        lines.append(f"  drift: {s} +- {us} {unit_d}/year ({note})")
+        if why is not None:
+            lines.append(f"  drift: not resolved: {s} +- {us} {unit_d}/year, {why} ({note})")
+        else:
+            lines.append(f"  drift: {s} +- {us} {unit_d}/year ({note})")
     return "\n".join(lines)
 
 

@@ -409,6 +409,8 @@ class _Compiler:
         self.limits = limits
         self.params: dict[str, Any] = {}
         self.param_lines: dict[str, tuple[str, int]] = {}
+        #: (file, line) of each value a ``-p`` override replaced -> the parameter's name
+        self.override_sites: dict[tuple[str | None, int | None], str] = {}
         self.sources: dict[str, str] = {}
         self.steps: list[Step] = []
         self.errors: list[InputError] = []
@@ -461,6 +463,16 @@ class _Compiler:
     def value_of(self, name: str) -> Any:
         return self.overrides[name] if name in self.overrides else self.params[name]
 
+    def blame_override(self, exc: InputError) -> InputError:
+        """``exc`` about a value a ``-p NAME=VALUE`` option put there, reworded to name the option
+        the user typed rather than the procedure line that uses it; any other error unchanged."""
+        name = self.override_sites.get((exc.file, exc.line))
+        if name is None:
+            return exc
+        message = re.sub(r"^'[^']*':\s*", "", exc.message)  # "'duration': cannot read ..." -> "cannot read ..."
+        return InputError(f"-p {name}={self.overrides[name]!r}: {message}",
+                          hint=f"parameter {name!r} is used at {exc.file}:{exc.line}")
+
     def subst(self, value: Any, where: Any, key: Any) -> Any:
         """Replace ``${name}`` values by the parameter's value, recursively."""
         if isinstance(value, str):
@@ -469,6 +481,8 @@ class _Compiler:
                 if m.group(1) not in self.params:
                     raise S.error(where, key, f"unknown parameter ${{{m.group(1)}}}",
                                   "declare it under 'parameters:'")
+                if m.group(1) in self.overrides:
+                    self.override_sites[S.where(where, key)] = m.group(1)
                 return self.value_of(m.group(1))
             if "${" in value:
                 raise S.error(where, key, f"{value!r}: a parameter must be the whole value, as '${{name}}'")
@@ -637,10 +651,14 @@ def load_procedure(path: str | Path, overrides: dict[str, Any] | None = None,
     """
     p = Path(path)
     c = _Compiler(overrides or {}, limits)
-    m_name = c.compile_file(p)
+    try:
+        m_name = c.compile_file(p)
+    except InputError as exc:
+        raise c.blame_override(exc) from None
     c.check_overrides()
     if c.errors:
-        raise InputErrors(c.errors) if len(c.errors) > 1 else c.errors[0]
+        errors = [c.blame_override(e) for e in c.errors]
+        raise InputErrors(errors) if len(errors) > 1 else errors[0]
     if not c.steps:
         raise InputError("the procedure has no steps", p, c.steps_line, "list at least one step")
     return Procedure(name=m_name, path=str(p), description=c.description,

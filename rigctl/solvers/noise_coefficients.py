@@ -351,12 +351,14 @@ def to_config(axes: Sequence[NoiseCoefficients], sensor: str) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------ JSON (results)
-def _coef_json(c: Coefficient) -> dict[str, Any]:
+def coefficient_json(c: Coefficient) -> dict[str, Any]:
+    """JSON form of one Coefficient (SI; what /results stores; inverse :func:`coefficient_from`)."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in
             ((f.name, getattr(c, f.name)) for f in fields(c)) if v is not None}
 
 
-def _coef_from(d: Mapping[str, Any]) -> Coefficient:
+def coefficient_from(d: Mapping[str, Any]) -> Coefficient:
+    """Inverse of :func:`coefficient_json`."""
     def pair(x: Any) -> tuple[float, float] | None:
         return None if x is None else (float(x[0]), float(x[1]))
     return Coefficient(float(d.get("value", 0.0)), pair(d.get("ci68")), pair(d.get("ci95")),
@@ -368,9 +370,9 @@ def to_json(m: NoiseCoefficients) -> dict[str, Any]:
     """JSON-able form (SI; the units are :data:`SI_UNITS` of ``sensor``): what /results stores."""
     out: dict[str, Any] = {"sensor": m.sensor, "source": m.source, "units": dict(SI_UNITS.get(m.sensor, {})),
                            "flicker_tau_min_s": m.flicker_tau_min_s, "flicker_tau_max_s": m.flicker_tau_max_s,
-                           **{t: _coef_json(getattr(m, t)) for t in TERMS}}
+                           **{t: coefficient_json(getattr(m, t)) for t in TERMS}}
     if m.gm:
-        out["gm"] = [{"sigma": _coef_json(g.sigma), "tau_c_s": g.tau_c_s,
+        out["gm"] = [{"sigma": coefficient_json(g.sigma), "tau_c_s": g.tau_c_s,
                       **({} if g.tau_c_ci95 is None else {"tau_c_ci95_s": list(g.tau_c_ci95)})}
                      for g in m.gm]
     if m.white_by_group is not None:
@@ -380,8 +382,8 @@ def to_json(m: NoiseCoefficients) -> dict[str, Any]:
 
 def from_json(d: Mapping[str, Any]) -> NoiseCoefficients:
     """Inverse of :func:`to_json`."""
-    return NoiseCoefficients(**{t: _coef_from(d.get(t) or {}) for t in TERMS},
-                             gm=tuple(GaussMarkov(_coef_from(g["sigma"]), float(g["tau_c_s"]),
+    return NoiseCoefficients(**{t: coefficient_from(d.get(t) or {}) for t in TERMS},
+                             gm=tuple(GaussMarkov(coefficient_from(g["sigma"]), float(g["tau_c_s"]),
                                                   None if g.get("tau_c_ci95_s") is None else
                                                   (float(g["tau_c_ci95_s"][0]),
                                                    float(g["tau_c_ci95_s"][1])))

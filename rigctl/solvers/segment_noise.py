@@ -60,10 +60,11 @@ from typing import Any, Sequence
 
 import numpy as np
 import scipy.linalg
+import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
 from . import segment_cov as sc
-from .noise_coefficients import NoiseCoefficients
+from .noise_coefficients import Coefficient, NoiseCoefficients, coefficient_json
 from .segment_stats import N_BATCHES
 
 
@@ -349,13 +350,45 @@ def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: Ar
         info["note"] = (f"only {dof} residual dof after the protected design: terms from the windows "
                         "alone")
     theta_cov = np.linalg.pinv(H) if H is not None and np.all(np.isfinite(H)) else None
+    var_th = (np.full(th.size, np.nan) if theta_cov is None else np.diag(theta_cov))
+    coefs = [component_coefficient(t, v) for t, v in zip(th, var_th)]
     wv = {lab: float(w) for lab, w in zip(terms.labels, th[:nl])}
     info["white_level_shared"] = {k: v for k, v in terms.group_of.items() if k != v}
+    # each group's N (u sqrt(s)) with its interval, as /results stores a Coefficient
+    info["N_by_group"] = {k: coefficient_json(coefs[terms.labels.index(v)]) for k, v in terms.group_of.items()}
     by_group = {k: float(np.sqrt(wv[v])) for k, v in terms.group_of.items()}
-    return NoiseCoefficients(N=max(by_group.values()), B=float(np.sqrt(th[nl])), K=float(np.sqrt(th[nl + 1])),
+    top = terms.labels.index(terms.group_of[max(by_group, key=lambda k: by_group[k])])
+    return NoiseCoefficients(N=coefs[top], B=coefs[nl], K=coefs[nl + 1],
                              flicker_tau_min_s=terms.bank.tau_min_s, flicker_tau_max_s=terms.bank.tau_max_s,
                              source="session (REML)", white_by_group=by_group, theta_cov=theta_cov,
                              details=info)
+
+
+def component_coefficient(theta: float, var_theta: float) -> Coefficient:
+    """A noise coefficient c = sqrt(theta) from a REML variance component theta = c^2 (SI^2) and
+    the variance of its estimate (``var_theta``: the inverse expected information, SI^4).
+
+    With s = sqrt(var_theta): the term is resolved when the two-sided Wald interval of theta
+    excludes zero (theta > 1.96 s); its intervals are then the Satterthwaite chi-square ones,
+    nu = 2 theta^2 / s^2, theta nu / chi2_{nu}(1 -+ p/2) (always positive), square-rooted.
+    Otherwise only the one-sided 95 % upper bound c < sqrt(theta + 1.645 s) is supported
+    (``upper95``; ``value`` stays the estimate sqrt(theta), which the covariance uses:
+    docs/calibration.md section 10). Without a finite variance: a bare value (no interval).
+    """
+    theta = max(float(theta), 0.0)
+    v = float(var_theta)
+    if not (np.isfinite(v) and v > 0.0):
+        return Coefficient(float(np.sqrt(theta)))
+    s = float(np.sqrt(v))
+    if theta > 1.959963984540054 * s:
+        nu = 2.0 * theta**2 / v
+
+        def ci(p: float) -> tuple[float, float]:
+            return (float(np.sqrt(theta * nu / scipy.stats.chi2.ppf(1.0 - p / 2.0, nu))),
+                    float(np.sqrt(theta * nu / scipy.stats.chi2.ppf(p / 2.0, nu))))
+        return Coefficient(float(np.sqrt(theta)), ci(0.3173105078629141), ci(0.05), edf=float(nu))
+    return Coefficient(float(np.sqrt(theta)), upper95=float(np.sqrt(theta + 1.6448536269514722 * s)),
+                       bound_from="fit")
 
 
 # ------------------------------------------------------------------------------ session level
