@@ -231,7 +231,13 @@ def _gls(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
         lw = _whiten(_model_cov(cov_terms, p, cols, a, edf, model_err, inflate))
         aw = solve_triangular(lw, a, lower=True)
         bw = solve_triangular(lw, s2, lower=True)
-        p = _nnls_cols(aw, bw, upper)
+        p_next = _nnls_cols(aw, bw, upper)
+        if not np.all(a @ p_next > 0):
+            # the whitened NNLS zeroed every term (seen on a real phone gyro's 5-minute window,
+            # Galaxy S5 gx rows 27000-30000, in the Gauss-Markov profile): a zero total has no
+            # covariance (2 sigma^4 / edf = 0, a singular factor), so keep the last iterate
+            break
+        p = p_next
     lw = _whiten(_model_cov(cov_terms, p, cols, a, edf, model_err, inflate))
     aw = solve_triangular(lw, a, lower=True)
     bw = solve_triangular(lw, s2, lower=True)
