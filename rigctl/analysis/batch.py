@@ -150,7 +150,7 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
 def database_home(recordings: Iterable[str]) -> Path:
     """The folder that holds all the run directories: the common folder of each recording's
     default results database (rigctl.recording.results_db.default_path)."""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
+    db = production.results_db_module("rigctl batch")
 
     return Path(os.path.commonpath([str(db.default_path(r).parent) for r in recordings]))
 
@@ -162,8 +162,7 @@ def store_in_database(results: list[dict[str, Any]], lots: dict[str, str], targe
     line to print ("" when nothing was written)."""
     if target == "none":
         return ""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
-
+    db = production.results_db_module("rigctl batch")
     target = target or str(home / db.DEFAULT_NAME)
     line = ""
     engine = db.open_db(target)
