@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     lots = {r: (args.lot or B.lot_of(r)) for r in recs}
     db_line = B.store_in_database(results, lots, args.db, home)
-    summary = B.summarise(results, lots)
+    summary = B.summarise(results, lots, with_spec=spec is not None)
     out = Path(args.out) if args.out else home / f"batch-{utc_now()[:19].replace(':', '')}"
     out.mkdir(parents=True, exist_ok=True)
     text = B.summary_text(summary)
