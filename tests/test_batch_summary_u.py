@@ -17,7 +17,7 @@ def _summary() -> dict:
                 "min": min(vals), "max": max(vals), "median_u": sorted(us)[len(us) // 2],
                 "min_u": min(us), "max_u": max(us)}
     return {"runs": {"recordings": 2, "analysed": 2, "failed": [],
-                     "verdicts": {"PASS": 0, "FAIL": 0, "INDETERMINATE": 0}, "no_verdict": [], "yield": None,
+                     "verdicts": {"PASS": 0, "FAIL": 0, "INDETERMINATE": 0}, "no_verdict": [], "spec": False, "yield": None,
                      "parameters": {"accel_bias_x": p("mg", [2.088, 1.996], [0.069, 0.13]),
                                     "gyro_scale_error_x": p("ppm", [-190000.0, 1000.3], [220000.0, 7.4])}}}
 
@@ -58,3 +58,16 @@ def test_summary_counts_and_names_analysed_runs_with_no_verdict() -> None:
     assert "no verdict 1" in head, head
     named = [ln for ln in text.splitlines() if ln.strip().startswith("NO VERDICT")]
     assert len(named) == 1 and recs[2] in named[0], text
+
+
+def test_a_spec_that_decided_nothing_is_not_called_no_spec() -> None:
+    """With a spec and only recordings it measured nothing in, the yield is n/a for that reason
+    (the line said 'n/a (no spec)'), and each is named; without a spec none is listed."""
+    recs = ["runs/L/thermal1/recording.h5", "runs/L/thermal2/recording.h5"]
+    results = [{"recording": r, "ok": True, "results": {"calibration": {"mode": "turntable", "results": {}}},
+                "error": None} for r in recs]
+    text = B.summary_text(B.summarise(results, {r: "L" for r in recs}, with_spec=True))
+    assert "yield n/a (no recording with a verdict)" in text and "no verdict 2" in text, text
+    assert sum(ln.strip().startswith("NO VERDICT") for ln in text.splitlines()) == 2, text
+    text = B.summary_text(B.summarise(results, {r: "L" for r in recs}, with_spec=False))
+    assert "yield n/a (no spec)" in text and "NO VERDICT" not in text and "no verdict" not in text, text

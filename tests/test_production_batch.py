@@ -216,7 +216,8 @@ def test_history_drift_against_numpy(lot_runs, serial, tmp_path):
     r = run_rigctl("history", unit[0][0], "--db", str(db))
     assert r.returncode == 0, r.stderr
     block = r.stdout.split("accel_bias_x [mg]")[1].split("\n\n")[0]
-    m = re.search(r"drift: (\S+) \+- (\S+) mg/year \(dof 1, chi2/dof ([0-9.e+-]+)", block)
+    m = re.search(r"drift: (?:not resolved: )?(\S+) \+- (\S+) mg/year(, its 95 % interval includes zero)? "
+                  r"\(dof 1, chi2/dof ([0-9.e+-]+)", block)
     assert m, block
     import datetime as dt
 
@@ -225,11 +226,16 @@ def test_history_drift_against_numpy(lot_runs, serial, tmp_path):
     coef, cov = np.polyfit(t - t.mean(), v, 1, w=1 / u, cov="unscaled")
     chi2 = float(np.sum(((v - np.polyval(coef, t - t.mean())) / u) ** 2))
     assert float(m.group(1)) == pytest.approx(coef[0], abs=float(m.group(2)) * 0.06)
-    assert float(m.group(3)) == pytest.approx(chi2, rel=2e-3)
+    assert float(m.group(4)) == pytest.approx(chi2, rel=2e-3)
     # the slope's standard uncertainty; scaled by sqrt(chi2/dof) when chi2 is improbable (p < 0.001)
     scale = np.sqrt(chi2) if chi2 > 10.828 else 1.0
     assert ("scaled by sqrt(chi2/dof)" in block) == (scale > 1.0)
     assert float(m.group(2)) == pytest.approx(np.sqrt(cov[0, 0]) * scale, rel=0.06)
+    # "not resolved" exactly when the 95 % interval (Student t on 1 dof when scaled) holds zero
+    from scipy.stats import t as student_t
+    k95 = student_t.ppf(0.975, 1) if scale > 1.0 else Z95
+    assert (m.group(3) is not None) == (abs(coef[0]) <= k95 * np.sqrt(cov[0, 0]) * scale)
+    assert block.split("drift:")[1].startswith(" not resolved: ") == (m.group(3) is not None)
     r = run_rigctl("history", "no-such-unit", "--db", str(db))
     assert r.returncode == 2 and "no results for unit" in r.stderr and unit[0][0] in r.stderr
 

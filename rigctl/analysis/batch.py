@@ -105,11 +105,12 @@ def lot_of(recording: str | Path) -> str:
     return (p.parent.parent if p.name == "recording.h5" else p.parent).name
 
 
-def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, Any]:
-    """Yield and parameter distributions per lot (display units).
+def summarise(results: list[dict[str, Any]], lots: dict[str, str], with_spec: bool = True) -> dict[str, Any]:
+    """Yield and parameter distributions per lot (display units); ``with_spec``: the batch was
+    given a spec (without one no recording has a verdict and none is listed for lacking one).
 
     The yield is PASS / (PASS + FAIL + INDETERMINATE) over the recordings that have a verdict;
-    an analysed recording with no verdict (no spec, or nothing the spec names measured in it,
+    with a spec, an analysed recording it gave no verdict (nothing the spec names measured in it,
     e.g. a thermal run) is listed under ``no_verdict`` and is not in the yield."""
     per_lot: dict[str, dict[str, Any]] = {}
     for r in results:
@@ -123,7 +124,7 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
         vs = [p["verdicts"]["overall"] for p in r["results"].values() if p.get("verdicts")]
         if vs:
             L["verdicts"][overall(vs)] += 1
-        else:
+        elif with_spec:
             L["no_verdict"].append(r["recording"])
         for kind, payload in r["results"].items():
             for m in production.measured(kind, payload):
@@ -143,6 +144,7 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
                             "max_u": float(np.max([u for _, u in vals]))}
         out[lot] = {"recordings": L["recordings"], "analysed": L["recordings"] - len(L["failed"]),
                     "failed": L["failed"], "verdicts": L["verdicts"], "no_verdict": L["no_verdict"],
+                    "spec": with_spec,
                     "yield": L["verdicts"][PASS] / decided if decided else None, "parameters": params}
     return out
 
@@ -150,7 +152,7 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str]) -> dict[str, 
 def database_home(recordings: Iterable[str]) -> Path:
     """The folder that holds all the run directories: the common folder of each recording's
     default results database (rigctl.recording.results_db.default_path)."""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
+    db = production.results_db_module("rigctl batch")
 
     return Path(os.path.commonpath([str(db.default_path(r).parent) for r in recordings]))
 
@@ -162,8 +164,7 @@ def store_in_database(results: list[dict[str, Any]], lots: dict[str, str], targe
     line to print ("" when nothing was written)."""
     if target == "none":
         return ""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
-
+    db = production.results_db_module("rigctl batch")
     target = target or str(home / db.DEFAULT_NAME)
     line = ""
     engine = db.open_db(target)
@@ -183,9 +184,14 @@ def summary_text(summary: dict[str, Any]) -> str:
     for lot, s in summary.items():
         v = s["verdicts"]
         decided = v["PASS"] + v["FAIL"] + v["INDETERMINATE"]
-        y = "n/a (no spec)" if s["yield"] is None else f"{100 * s['yield']:.0f} % of {decided} with a verdict"
+        if not s["spec"]:
+            y = "n/a (no spec)"
+        elif s["yield"] is None:
+            y = "n/a (no recording with a verdict)"
+        else:
+            y = f"{100 * s['yield']:.0f} % of {decided} with a verdict"
         counts = f"PASS {v['PASS']}, FAIL {v['FAIL']}, INDETERMINATE {v['INDETERMINATE']}"
-        if decided:
+        if s["spec"]:
             counts += f", no verdict {len(s['no_verdict'])}"
         lines.append(f"lot {lot}: {s['recordings']} recordings, {s['analysed']} analysed, {len(s['failed'])} failed; "
                      f"yield {y} ({counts})")
@@ -207,9 +213,8 @@ def summary_text(summary: dict[str, Any]) -> str:
                          f"another's ({', '.join(uneven)}): a unit whose analysis could not determine them "
                          "(e.g. gyro scale from a recording with no rate segments) is in the mean and sd; "
                          "look at those units before using the lot's distribution")
-        if decided:  # with a spec: name the analysed recordings it gave no verdict on
-            for rec in s["no_verdict"]:
-                lines.append(f"  NO VERDICT {rec}: nothing the spec names was measured in it (not in the yield)")
+        for rec in s["no_verdict"]:  # with a spec: the analysed recordings it gave no verdict on
+            lines.append(f"  NO VERDICT {rec}: nothing the spec names was measured in it (not in the yield)")
         for fl in s["failed"]:
             lines.append(f"  FAILED {fl['recording']}: {fl['error']}")
     return "\n".join(lines)

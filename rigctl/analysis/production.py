@@ -20,6 +20,7 @@ from ..recording.recording_reader import open_recording
 from ..config.spec import Spec
 from . import results as R
 from .verdicts import evaluate
+from ..errors import InputError
 
 KINDS = ("calibration", "allan")
 
@@ -110,6 +111,17 @@ def preload_database(target: str | None) -> threading.Thread | None:
     thread = threading.Thread(target=load, name="preload-results-db", daemon=True)
     thread.start()
     return thread
+
+
+def results_db_module(command: str) -> Any:
+    """The results database module (rigctl.recording.results_db) for ``command``, which needs
+    it; without the ``db`` extra an InputError saying what to install (one line, exit 2)."""
+    try:
+        from ..recording import results_db as db  # optional dependency (rigctl[db])
+    except ImportError as exc:
+        raise InputError(f"{command} needs the results database: {exc}",
+                         hint="install the db extra: pip install -e '.[db]'") from None
+    return db
 
 
 def to_database(recording: str | Path, kind: str, results: dict[str, Any], target: str | None,

@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers must be at least 1")
+    home = B.database_home(recs)  # needs the db extra: say so before the analyses, not after
     where = f"dask.distributed at {args.scheduler}" if args.scheduler else \
         f"Dask local scheduler, {args.workers or 'all'} worker processes"
     print(f"rigctl batch: {len(recs)} recordings ({', '.join(analyses)}) on {where}", flush=True)
@@ -66,9 +67,8 @@ def run(args: argparse.Namespace) -> int:
         raise RunFailure(f"cannot reach the scheduler ({exc})") from exc
     wall = time.perf_counter() - t0
     lots = {r: (args.lot or B.lot_of(r)) for r in recs}
-    home = B.database_home(recs)
     db_line = B.store_in_database(results, lots, args.db, home)
-    summary = B.summarise(results, lots)
+    summary = B.summarise(results, lots, with_spec=spec is not None)
     out = Path(args.out) if args.out else home / f"batch-{utc_now()[:19].replace(':', '')}"
     out.mkdir(parents=True, exist_ok=True)
     text = B.summary_text(summary)

@@ -99,7 +99,9 @@ def history_text(unit: str, analyses: list[Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl history``."""
-    from ..recording import results_db as db  # optional dependency: rigctl[db]
+    from ..analysis.production import results_db_module
+
+    db = results_db_module("rigctl history")
 
     target = args.db or str(Path(args.runs) / db.DEFAULT_NAME)
     if "://" not in target and not Path(target).is_file():
