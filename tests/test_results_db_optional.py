@@ -17,7 +17,12 @@ from rigctl.analysis import production
 
 @pytest.fixture
 def without_db_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    import rigctl.recording
+
     monkeypatch.setitem(sys.modules, "rigctl.recording.results_db", None)
+    # ``from rigctl.recording import results_db`` takes the package's attribute before
+    # sys.modules: once another test in this process imported the module, it must go too
+    monkeypatch.delattr(rigctl.recording, "results_db", raising=False)
     with pytest.raises(ImportError):
         from rigctl.recording import results_db  # noqa: F401
 
