@@ -93,3 +93,6 @@ def test_a_12_b_step_in_a_5_minute_capture_is_reported_through_rigctl_allan(tmp_
     assert abs(e["size_deg/h"] - 60.0) <= 3.0 * sd, (e["size_deg/h"], sd)
     text = " ".join(EXA.sentences(axes["gx"]))
     assert "too short for the window test" in text and "level shift at t =" in text, text
+    # the warning carries what it was calibrated on and the real false-alarm rate measured
+    # (tests/test_allan_short_step_real.py, docs/allan.md "Detection limits")
+    assert "dwells on its levels" in text and "21 of 201" in text, text
