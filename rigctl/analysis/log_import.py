@@ -29,6 +29,7 @@ from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
 from ..recording.recording_reader import MAX_RATE_HZ, PLAUSIBLE
+from ..units import format_rate
 from . import bag_import as B
 
 #: progress(done, total) while a bag is read (messages)
@@ -652,15 +653,15 @@ def cadence_warnings(dt: np.ndarray, rate: float, given: bool) -> list[str]:
     fix = (f"median step {np.median(dt):.6g} s, mean {np.mean(dt):.6g} s; if the instrument's "
            "samples are equally spaced in its own time base (a counter's gate, a clock "
            "comparison's cycle, a Stable32 data file's Tau), import without time= in --columns "
-           f"and give --rate (1 / mean step = {1.0 / float(np.mean(dt)):.6g} Hz)")
+           f"and give --rate (1 / mean step = {format_rate(1.0 / float(np.mean(dt)))})")
     if gaps > GAP_STEP_SHARE * dt.size:
         out.append(f"warning: {gaps} of {dt.size} steps of the time column "
                    f"({100.0 * gaps / dt.size:.0f} %) are longer than 1.5 intervals of "
-                   f"{rate:.6g} Hz and were taken as gaps: not one interval with occasional drops "
+                   f"{format_rate(rate)} and were taken as gaps: not one interval with occasional drops "
                    f"but an irregular cadence ({fix})")
     if short:
         out.append(f"warning: {short} of {dt.size} steps of the time column are shorter than "
-                   f"half the interval of --rate {rate:g} Hz (two samples in one interval, "
+                   f"half the interval of --rate {format_rate(rate)} (two samples in one interval, "
                    f"counted as consecutive) ({fix})")
     return out
 
@@ -721,13 +722,14 @@ def import_csv(args: ImportOptions) -> Imported:
         # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
         counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
         missing = int(counter[-1]) + 1 - n
-        lines.append(f"sample rate {rate:.8g} Hz ({'given' if args.rate is not None else 'median step of the time column'}); "
+        lines.append(f"sample rate {format_rate(rate)} ({'given' if args.rate is not None else 'median step of the time column'}); "
                      + (f"{int((np.rint(dt * rate) > 1).sum())} gaps, {missing} samples missing "
                         "(/imu/counter jumps)" if missing else "no gaps"))
         lines.extend(cadence_warnings(dt, rate, args.rate is not None))
     else:
         rate = float(args.rate)
         t = np.arange(n) / rate
+        lines.append(f"sample rate {format_rate(rate)} (given; no time column: sample k at t = k / rate)")
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
     incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
     if args.integrated and not incr:
@@ -755,7 +757,7 @@ def import_csv(args: ImportOptions) -> Imported:
             else:
                 gyr = gyr * (rate / steps)[:, None]
         lines.append(f"{' and '.join(incr)}: {'running integrals, differenced' if args.integrated else 'increments per sample'} "
-                     f"and divided by the sample interval (1/{rate:g} s) into rates")
+                     f"and divided by the sample interval (1 / {format_rate(rate)}) into rates")
     absent = [k for k in REQUIRED if k not in mapping]
     if absent:
         axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
@@ -798,7 +800,7 @@ def import_csv(args: ImportOptions) -> Imported:
     write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter,
                     ended_utc=None if span is None else span[1])
     return Imported(out, n, rate, sections,
-                    [f"imported {n} samples at {rate:g} Hz from {args.file}", *lines])
+                    [f"imported {n} samples from {args.file}", *lines])
 
 
 def import_bag(args: ImportOptions, progress: Progress | None = None) -> Imported:
@@ -853,7 +855,7 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
         "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s), "import_axes": axes})
-    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
+    note = f"topic {b.topic}, {b.time_source}, rate {format_rate(b.rate_hz)}, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
     span = _wall_clock_span(b.stamp_zero_ns, float(b.time_s[-1]) if n else 0.0)
