@@ -183,3 +183,58 @@ def test_stable32_phase_files_through_import_and_allan(ref_data: Path, tmp_path:
             assert abs(dev[k[0]] / sigma - 1) < 1e-4, (src, af, dev[k[0]], sigma)
             assert n_terms[k[0]] == int(count), (src, af)
         assert hits >= min(len(ref), 8), (src, hits, len(ref))
+
+
+def _cycle_file(path: Path, t0_s: float, n: int) -> np.ndarray:
+    """A clock comparison's two-column file as a Stable32 data file holds it: `#` header lines,
+    then time tag (s) and fractional frequency; the instrument reports in a cycle of three
+    1.31-s readings and a 6.57-s pause (the real Sr87 record of tests/data/sr87-stable32-frequency)."""
+    rng = np.random.default_rng(11)
+    steps = np.tile([1.31, 1.31, 1.31, 6.57], n)[: n - 1]
+    t = t0_s + np.concatenate(([0.0], np.cumsum(steps)))
+    y = rng.normal(0.0, 1e-16, n)
+    with open(path, "w") as fh:
+        fh.write("# Type: Freq\n# Tau: 2.500000e+00\n# Header End\n")
+        for a, b in zip(t, y):
+            fh.write(f"{a:.15e} {b:.15e}\n")
+    return t
+
+
+def test_a_cycling_cadence_is_said_and_not_taken_for_gaps_silently(tmp_path: Path, capsys) -> None:
+    """Stamps in a 3 + 1 cycle: read with the median step as the interval, a quarter of the
+    steps become 'gaps' (Allan stretches of 4 samples, a curve of 2 taus). The import says so
+    in one warning with the mean step and the way to read the samples as equally spaced; a
+    record with one real gap gets no such warning."""
+    src = tmp_path / "clock.txt"
+    t = _cycle_file(src, 1000.0, 800)
+    _ok(str(src), "-o", str(tmp_path / "c.h5"), "--columns", "time=0,gyr_x=1", "--units", "gyr=rad/s")
+    out = capsys.readouterr().out
+    mean = float(np.mean(np.diff(t)))
+    warn = [ln for ln in out.splitlines() if ln.startswith("warning:")]
+    assert len(warn) == 1, out
+    assert "199 of 799 steps of the time column (25 %) are longer than 1.5 intervals" in warn[0]
+    assert f"1 / mean step = {1.0 / mean:.8g} Hz" in warn[0], warn[0]  # the one rate form (units.format_rate)
+    # one dropped sample in a regular record: a gap, no warning
+    reg = tmp_path / "regular.txt"
+    stamps = np.delete(np.arange(1000) * 0.01, 500)
+    reg.write_text("".join(f"{s:.2f},{v:.6g}\n" for s, v in zip(stamps, np.ones(999) * 1e-3)))
+    _ok(str(reg), "-o", str(tmp_path / "r.h5"), "--columns", "time=0,gyr_x=1", "--units", "gyr=rad/s")
+    out = capsys.readouterr().out
+    assert "1 gaps, 1 samples missing" in out and "warning:" not in out, out
+
+
+def test_stamps_from_another_epoch_do_not_date_the_capture_in_the_future(tmp_path: Path,
+                                                                          capsys) -> None:
+    """Time tags in seconds since 1900 (NTP, a Stable32 file's tags: 3.66e9 s in 2016) read
+    as Unix seconds are a date in 2086: the recording is not dated by them (it was), and the
+    line says why."""
+    src = tmp_path / "clock.txt"
+    _cycle_file(src, 3_661_957_841.37, 400)
+    rec = tmp_path / "c.h5"
+    _ok(str(src), "-o", str(rec), "--columns", "time=0,gyr_x=1", "--units", "gyr=rad/s")
+    out = capsys.readouterr().out
+    assert "not dated by the time column" in out and "2086" not in out, out
+    with h5py.File(rec, "r") as f:
+        meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f["meta"].attrs.items()}
+    assert not str(meta.get("started_utc", "")).startswith("2086"), meta.get("started_utc")
+    assert "import_stamp_zero_ns" not in meta

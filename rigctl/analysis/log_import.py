@@ -29,6 +29,7 @@ from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
 from ..recording.recording_reader import MAX_RATE_HZ, PLAUSIBLE
+from ..units import format_rate
 from . import bag_import as B
 
 #: progress(done, total) while a bag is read (messages)
@@ -408,10 +409,17 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
 _WALL_CLOCK_NS = (631_152_000 * 10**9, 4_102_444_800 * 10**9)
 
 
+#: a capture read as ending later than this after the import is not dated by its stamps, s
+FUTURE_SLACK_S = 86400.0
+
+
 def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] | None:
     """(started_utc, ended_utc) of a capture whose first stamp is ``stamp_zero_ns`` (ns since
     the Unix epoch) and which lasts ``duration_s``, as the recorder writes times; None when the
-    stamp is not a wall-clock time (see _WALL_CLOCK_NS)."""
+    stamp is not a wall-clock time (see _WALL_CLOCK_NS) or the capture would end after the
+    import (more than FUTURE_SLACK_S later: a clock-zone slip is allowed, a future is not).
+    The second rule catches seconds counted from another epoch: a Stable32 or NTP time tag of
+    2016 (seconds since 1900, 3.66e9) read as Unix seconds is a date in 2086."""
     import datetime as _dt
 
     if not _WALL_CLOCK_NS[0] <= int(stamp_zero_ns) < _WALL_CLOCK_NS[1]:
@@ -419,6 +427,9 @@ def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] |
     t0 = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc) + _dt.timedelta(
         microseconds=int(stamp_zero_ns) // 1000)
     t1 = t0 + _dt.timedelta(seconds=float(duration_s))
+    now = _dt.datetime.now(_dt.timezone.utc)
+    if (t1 - now).total_seconds() > FUTURE_SLACK_S:
+        return None
     iso = "%Y-%m-%dT%H:%M:%S.%fZ"
     return t0.strftime(iso), t1.strftime(iso)
 
@@ -616,6 +627,45 @@ def _binary(src: Path) -> bool:
     return b"\x00" in head and not head.startswith(b"\x1f\x8b")
 
 
+#: a time column whose steps are gaps (longer than 1.5 intervals) more often than this is not
+#: "one interval with occasional drops", and the import says so (cadence_warnings)
+GAP_STEP_SHARE = 0.05
+
+
+def cadence_warnings(dt: np.ndarray, rate: float, given: bool) -> list[str]:
+    """Warnings on a time column that the gap rule (a step of k intervals = k - 1 dropped
+    samples, k = rint(step * rate)) would misread. ``dt``: the steps, s; ``rate``: the sample
+    rate the import uses, Hz (``given``: by --rate, else 1 / median step).
+
+    Two cases: (1) more than GAP_STEP_SHARE of the steps are gaps -- an instrument reporting
+    in a cycle (a clock comparison's three 1.3-s readings then a 6.6-s pause, a Stable32
+    data file whose Tau is the cycle's mean), whose "gaps" would leave Allan stretches of a few
+    samples and a curve of two taus; (2) with --rate, steps shorter than half its interval
+    (rint gives 0: two samples in one interval, counted as consecutive). Each: one line naming
+    the counts, the median and mean step, and the way to import the samples as equally spaced
+    (no time column, --rate 1 / mean step) when the instrument's own time base is regular."""
+    if dt.size == 0:
+        return []
+    k = np.rint(dt * rate)
+    gaps = int(np.count_nonzero(k > 1))
+    short = int(np.count_nonzero(k < 1)) if given else 0
+    out = []
+    fix = (f"median step {np.median(dt):.6g} s, mean {np.mean(dt):.6g} s; if the instrument's "
+           "samples are equally spaced in its own time base (a counter's gate, a clock "
+           "comparison's cycle, a Stable32 data file's Tau), import without time= in --columns "
+           f"and give --rate (1 / mean step = {format_rate(1.0 / float(np.mean(dt)))})")
+    if gaps > GAP_STEP_SHARE * dt.size:
+        out.append(f"warning: {gaps} of {dt.size} steps of the time column "
+                   f"({100.0 * gaps / dt.size:.0f} %) are longer than 1.5 intervals of "
+                   f"{format_rate(rate)} and were taken as gaps: not one interval with occasional drops "
+                   f"but an irregular cadence ({fix})")
+    if short:
+        out.append(f"warning: {short} of {dt.size} steps of the time column are shorter than "
+                   f"half the interval of --rate {format_rate(rate)} (two samples in one interval, "
+                   f"counted as consecutive) ({fix})")
+    return out
+
+
 def import_csv(args: ImportOptions) -> Imported:
     """Read, convert and write a CSV log."""
     src = Path(args.file)
@@ -672,12 +722,14 @@ def import_csv(args: ImportOptions) -> Imported:
         # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
         counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
         missing = int(counter[-1]) + 1 - n
-        lines.append(f"sample rate {rate:.8g} Hz ({'given' if args.rate is not None else 'median step of the time column'}); "
+        lines.append(f"sample rate {format_rate(rate)} ({'given' if args.rate is not None else 'median step of the time column'}); "
                      + (f"{int((np.rint(dt * rate) > 1).sum())} gaps, {missing} samples missing "
                         "(/imu/counter jumps)" if missing else "no gaps"))
+        lines.extend(cadence_warnings(dt, rate, args.rate is not None))
     else:
         rate = float(args.rate)
         t = np.arange(n) / rate
+        lines.append(f"sample rate {format_rate(rate)} (given; no time column: sample k at t = k / rate)")
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
     incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
     if args.integrated and not incr:
@@ -705,7 +757,7 @@ def import_csv(args: ImportOptions) -> Imported:
             else:
                 gyr = gyr * (rate / steps)[:, None]
         lines.append(f"{' and '.join(incr)}: {'running integrals, differenced' if args.integrated else 'increments per sample'} "
-                     f"and divided by the sample interval (1/{rate:g} s) into rates")
+                     f"and divided by the sample interval (1 / {format_rate(rate)}) into rates")
     absent = [k for k in REQUIRED if k not in mapping]
     if absent:
         axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
@@ -737,13 +789,18 @@ def import_csv(args: ImportOptions) -> Imported:
         meta["import_stamp_zero_ns"] = np.int64(zero_ns)
         meta["clock_zero_unix_s"] = zero_ns * 1e-9
         lines.append(f"dated by the time column: {span[0]} to {span[1]} (UTC)")
+    elif zero_ns is not None and _WALL_CLOCK_NS[0] <= zero_ns < _WALL_CLOCK_NS[1]:
+        lines.append("not dated by the time column: read as seconds since 1970 its stamps lie "
+                     "after this import (another epoch? NTP and Stable32 time tags count from "
+                     "1900); the capture's start is unknown (/meta capture_time; started_utc is "
+                     "the import's own time)")
     else:
         lines.append("no wall-clock time stamps in the file: the capture's start is unknown "
                      "(/meta capture_time; started_utc is the import's own time)")
     write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter,
                     ended_utc=None if span is None else span[1])
     return Imported(out, n, rate, sections,
-                    [f"imported {n} samples at {rate:g} Hz from {args.file}", *lines])
+                    [f"imported {n} samples from {args.file}", *lines])
 
 
 def import_bag(args: ImportOptions, progress: Progress | None = None) -> Imported:
@@ -798,7 +855,7 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
         "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s), "import_axes": axes})
-    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
+    note = f"topic {b.topic}, {b.time_source}, rate {format_rate(b.rate_hz)}, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
     span = _wall_clock_span(b.stamp_zero_ns, float(b.time_s[-1]) if n else 0.0)

@@ -79,11 +79,12 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"{opt} without --kalibr: no imu.yaml is written",
                          hint="add --kalibr imu.yaml")
     _check_outputs(args)
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
+    production.check_database_option(args.db, "rigctl allan")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
-    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     # the results database's modules are imported (Python holding the GIL) on a thread
     # started once the first chunk is done, beside the compiled sums, not before the first
     # chunk, where the command's own start-up holds the GIL (docs/allan.md)
