@@ -114,3 +114,19 @@ def test_client_verbs_start_without_the_solvers() -> None:
             "print(sorted(m for m in ('scipy', 'matplotlib', 'rigctl.solvers.allan') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_solver_commands_import_without_numba() -> None:
+    """numba (~0.25 s of CPU) is imported where a compiled kernel runs, not with the commands:
+    a `rigctl calibrate`, `batch`, `report` or `allan` that runs no kernel does not pay for it
+    (rigctl.solvers.allan_kernels imports allan_kernels_jit at first use). Asking for
+    HAVE_NUMBA then imports it: the kernels are still there."""
+    code = ("import sys\n"
+            "import rigctl.commands.calibrate_cmd, rigctl.commands.batch_cmd, rigctl.commands.report_cmd\n"
+            "import rigctl.commands.allan_cmd, rigctl.commands.history_cmd\n"
+            "print('numba' in sys.modules)\n"
+            "from rigctl.solvers import allan_kernels as K\n"
+            "print(K.HAVE_NUMBA, 'numba' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split("\n")[:2] == ["False", "True True"], r.stdout

@@ -1954,6 +1954,16 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
     if first and above and slope < -0.5:
         return (f"quantization or white phase noise at the shortest taus (local slope "
                 f"{slope:+.2f}, steeper than -1/2)")
+    # a hump whose top is on the curve: from the first taus it rises by more than
+    # DEPARTURE_REL, then falls as much again within the run -- a correlated (Gauss-Markov)
+    # process whose rise lies below the first tau (a servo-locked Sr optical clock at tau0 =
+    # 2.5 s: up 18 % to 12.5 s, then down 2x by 190 s), read as the bump it is (its
+    # stationarity and a Gauss-Markov term are then tested), not as a monotone fall
+    top = int(np.argmax(dev[:j + 1]))
+    if (first and above and 0 < top < j and dev[top] > (1.0 + DEPARTURE_REL) * dev[0]
+            and dev[j] < dev[top] / (1.0 + DEPARTURE_REL)):
+        return ("a bump: a correlated (Gauss-Markov) process or a periodic disturbance "
+                "between these taus (not an IEEE 952 term)")
     if first and above:  # shallower than white noise from the start (the Astro Pi gyros)
         return (f"a correlated process above the white noise from the shortest taus on (local "
                 f"slope {slope:+.2f}, shallower than -1/2: e.g. a flicker floor or a "
