@@ -107,7 +107,7 @@ def test_a_frequency_counter_file_needs_its_scale(tmp_path: Path) -> None:
     p = run_rigctl("import", str(src), "-o", str(out), "--columns", "gyr_x=0", "--units", "gyr=rad/s",
                    "--rate", "1")
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
-    assert "column '0' (gyr_x) reads 1e+07 rad/s" in p.stderr and "counts:1e-7 rad/s" in p.stderr, p.stderr
+    assert "column '0' (gx) reads 1e+07 rad/s" in p.stderr and "counts:1e-7 rad/s" in p.stderr, p.stderr
     assert not out.exists()
     assert cli.main(["import", str(src), "-o", str(out), "--columns", "gyr_x=0",
                      "--units", "gyr=counts:1e-7 rad/s", "--rate", "1"]) == 0
@@ -217,8 +217,8 @@ def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:
     _gyro_only_bag(bag, gx, 100.0)
     rec = tmp_path / "bag.h5"
     assert cli.main(["import", str(bag), "-o", str(rec)]) == 0
-    assert ("not filled in any message (the same value throughout), stored as NaN: acc_x, acc_y, acc_z, "
-            "gyr_y, gyr_z; rigctl allan analyses the others (gx)") in capsys.readouterr().out
+    assert ("not filled in any message (the same value throughout), stored as NaN: ax, ay, az, "
+            "gy, gz; rigctl allan analyses the others (gx)") in capsys.readouterr().out
     with h5py.File(rec, "r") as f:
         assert f["meta"].attrs["import_axes"] == "gx"
         w = f["imu/angular_rate"][()]

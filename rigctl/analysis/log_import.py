@@ -29,6 +29,7 @@ from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
 from ..recording.recording_reader import MAX_RATE_HZ, PLAUSIBLE
+from ..sensor_axes import ACCEL_AXES, AXES, GYRO_AXES, SENSOR, axis_name, canonical
 from ..units import format_rate
 from . import bag_import as B
 
@@ -42,7 +43,7 @@ class ImportOptions:
 
     file: str | Path
     output: str | Path
-    columns: str | None = None      # CSV: acc_x=COL,... or a YAML/JSON mapping file
+    columns: str | None = None      # CSV: ax=COL,...,gz=COL or a YAML/JSON mapping file
     units: str | None = None        # CSV: acc=g,gyr=deg/s, counts:SCALE UNIT, time=s|ms|us
     rate: float | None = None       # CSV: nominal sample rate, Hz
     skip_rows: int = 0              # CSV: lines before the header
@@ -58,7 +59,9 @@ class ImportOptions:
 
 G0 = 9.80665
 DEG = math.pi / 180.0
-REQUIRED = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
+#: the sensor columns, by their one spelling (rigctl.sensor_axes; acc_x, gyr_x, accel_x, gyro_x
+#: ... are read as these)
+REQUIRED = AXES
 OPTIONAL = ("time", "temp", "section")
 UNIT_FACTORS = {
     "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
@@ -85,7 +88,7 @@ def parse_columns(text: str) -> dict[str, str]:
             line = getattr(getattr(exc, "problem_mark", None), "line", None)
             raise InputError(f"not valid YAML/JSON ({exc})", p, None if line is None else line + 1) from None
         if not isinstance(data, dict):
-            raise InputError("the column map must be a mapping like acc_x: ax", p, 1)
+            raise InputError("the column map must be a mapping like ax: AccX", p, 1)
         mapping = {str(k): str(v) for k, v in data.items()}
         src: Any = p
     else:
@@ -93,10 +96,13 @@ def parse_columns(text: str) -> dict[str, str]:
         for part in filter(None, (s.strip() for s in text.split(","))):
             if "=" not in part:
                 raise InputError(f"--columns: {part!r} is not KEY=COLUMN",
-                                 hint="e.g. acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz")
+                                 hint="e.g. ax=AccX,ay=AccY,az=AccZ,gx=GyrX,gy=GyrY,gz=GyrZ")
             k, v = part.split("=", 1)
+            if k.strip() in mapping:
+                raise InputError(f"--columns: {k.strip()!r} given twice")
             mapping[k.strip()] = v.strip()
         src = None
+    mapping = _canonical_keys(mapping, src)
     bad = [k for k in mapping if k not in REQUIRED + OPTIONAL]
     if bad or not any(k in mapping for k in REQUIRED):
         raise InputError(f"--columns: unknown keys {bad}" if bad else "--columns: no sensor column", src,
@@ -104,6 +110,18 @@ def parse_columns(text: str) -> dict[str, str]:
                               "a sensor column left out is stored as NaN, e.g. a gyro-only capture "
                               "for rigctl allan)")
     return mapping
+
+
+def _canonical_keys(mapping: dict[str, str], src: Any) -> dict[str, str]:
+    """The column map with each sensor key in its one spelling (acc_x, gyr_x, accel_x, gyro_x
+    -> ax, gx: rigctl.sensor_axes.canonical); an axis given under two spellings is refused."""
+    out: dict[str, str] = {}
+    for k, v in mapping.items():
+        key = canonical(k) or k
+        if key in out:
+            raise InputError(f"--columns: axis {key} given twice ({k!r} is another spelling of it)", src)
+        out[key] = v
+    return out
 
 
 def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str, float]:
@@ -225,7 +243,7 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     if any(_STABLE32_RESULT.match(ln) for ln in lines[:first]):
         raise InputError("a Stable32 result table (averaging factor, tau, deviation per line), not samples",
                          path, hint="rigctl import takes the phase or frequency data the table was computed "
-                                    "from (e.g. --columns gyr_x=0 --units gyr=rad --integrated --rate 1 for "
+                                    "from (e.g. --columns gx=0 --units gyr=rad --integrated --rate 1 for "
                                     "phase in s); rigctl allan then computes the deviations")
     probe = lines[first: first + 2]
     # semicolons on every probed line first: a European export separates with ';' because its
@@ -582,7 +600,7 @@ def check_plausible(src: Path, mapping: dict[str, str], acc: np.ndarray, gyr: np
         if not big.any():
             continue
         row, c = (int(v[0]) for v in np.nonzero(big))
-        name = f"{sensor}_{'xyz'[c]}"
+        name = axis_name("gyro" if sensor == "gyr" else "accel", c)
         share = float(big[:, c].mean())
         raise InputError(
             f"column {mapping.get(name, name)!r} ({name}) reads {data[row, c]:.6g} {unit} at data row "
@@ -750,10 +768,10 @@ def import_csv(args: ImportOptions) -> Imported:
     for opt in ("columns", "units"):
         if not getattr(args, opt):
             raise InputError(f"--{opt} is required for a CSV file", src,
-                             hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
+                             hint="e.g. --columns ax=AccX,...,gz=GyrZ --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
     check_output(src, out, args.force)
     mapping = parse_columns(args.columns)
-    present = tuple(k for k in ("acc", "gyr") if any(f"{k}_{c}" in mapping for c in "xyz"))
+    present = tuple(k for k, names in (("acc", ACCEL_AXES), ("gyr", GYRO_AXES)) if any(a in mapping for a in names))
     factors = parse_units(args.units, present)
     if args.rate is not None and not 0 < args.rate <= MAX_RATE_HZ:
         raise InputError(f"--rate {args.rate:g} is outside (0, {MAX_RATE_HZ:g}] Hz", src)
@@ -836,8 +854,7 @@ def import_csv(args: ImportOptions) -> Imported:
                      f"and divided by the sample interval (1 / {format_rate(rate)}) into rates")
     absent = [k for k in REQUIRED if k not in mapping]
     if absent:
-        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
-                         "gyr_z": "gz"}[k] for k in REQUIRED if k in mapping)
+        axes = ",".join(k for k in REQUIRED if k in mapping)
         if args.segments:  # the user's sections (a capture each unless it says otherwise)
             sections = [{**s, "kind": s["kind"] or "capture"}
                         for s in sections_from_json(Path(args.segments), n)]
@@ -898,20 +915,19 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
     # a field the sender did not fill (every message the same value, e.g. 0 from a gyro-only
     # driver) is no measurement: stored as NaN and left out of the axes rigctl allan analyses
     acc, gyr = b.specific_force, b.angular_rate
-    unfilled = [f"{k}_{'xyz'[c]}" for k, d in (("acc", acc), ("gyr", gyr)) for c in range(3)
+    unfilled = [axis_name(k, c) for k, d in (("accel", acc), ("gyro", gyr)) for c in range(3)
                 if n >= 64 and np.ptp(d[:, c]) == 0.0]
     extra: list[str] = []
     axes = ""
     if unfilled:
         acc, gyr = acc.copy(), gyr.copy()
         for name in unfilled:
-            (acc if name.startswith("acc") else gyr)[:, "xyz".index(name[-1])] = np.nan
+            (acc if SENSOR[name] == "accel" else gyr)[:, "xyz".index(name[-1])] = np.nan
         present = [k for k in REQUIRED if k not in unfilled]
         if not present:
             raise InputError(f"topic {b.topic}: every field of every message is constant: no measurement",
                              src, hint="check the topic (--topic) and the sender")
-        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
-                         "gyr_z": "gz"}[k] for k in present)
+        axes = ",".join(present)
         sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
         origin = "the whole record (fields not filled: no static-interval detection)"
         extra.append(f"not filled in any message (the same value throughout), stored as NaN: "
