@@ -24,6 +24,7 @@ from rigctl.analysis.verdicts import format_verdicts
 from rigctl.commands.cli_options import add_production_options
 from rigctl.config.spec import load_spec
 from rigctl.errors import InputError
+from rigctl.sensor_axes import canonical
 from rigctl.solvers import allan as A
 
 
@@ -40,11 +41,13 @@ def _parse_taus(text: str) -> A.TauSpec:
 
 
 def _parse_axes(text: str) -> list[str]:
-    axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
-    bad = [a for a in axes if a not in AXES]
-    if not axes or bad:
+    """--axes: canonical names (gx, ..., az); the old spellings (gyro_x, gyr_x, accel_x, acc_x)
+    are read as their canonical axis (rigctl.sensor_axes.canonical)."""
+    given = [a.strip() for a in text.split(",") if a.strip()]
+    bad = [a for a in given if canonical(a) not in AXES]
+    if not given or bad:
         raise InputError(f"--axes {text!r}: choose from {','.join(AXES)}")
-    return axes
+    return list(dict.fromkeys(str(canonical(a)) for a in given))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,8 +146,8 @@ def register(subparsers: Any) -> None:
                               description=__doc__.splitlines()[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
     p.add_argument("--axes", default=None,
-                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all, or those an "
-                        "import found in the file)")
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (the older gyro_x, gyr_x, accel_x, "
+                        "acc_x, ... are read as these; default: all, or those an import found in the file)")
     p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
     p.add_argument("--taus", default="95",
                    help="octave, decade, all, or N log-spaced taus (default 95)")
