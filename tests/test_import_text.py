@@ -266,3 +266,31 @@ def test_stamps_rounded_to_whole_milliseconds_give_the_rate(tmp_path: Path, caps
     assert abs(rate - fs) <= fs * 1e-3 / span_s * 1.01, (rate, fs)
     assert np.array_equal(counter, np.flatnonzero(keep)), np.flatnonzero(np.diff(counter) != 1)
     assert ("no gaps" in out) if not drop else ("1 gaps, 2 samples missing" in out), out
+
+
+def test_a_stable32_header_is_read_for_what_the_options_miss(tmp_path: Path, capsys) -> None:
+    """A Stable32 data file says its own Type and Tau in its `#` header (the Sr-87 file of
+    tests/data/sr87-stable32-frequency). Without --rate the error names the header's rate; a
+    phase file imported as rates, a frequency file differenced as phase, or a --rate other
+    than 1 / Tau each get one warning; the right options none."""
+    rng = np.random.default_rng(12)
+    phase = np.cumsum(rng.normal(0.0, 1e-16, 600)) * 2.5
+    src = tmp_path / "phase.dat"
+    src.write_text("# File: phase.dat\n# Type: Phase\n# Points: 600\n# Tau: 2.500000e+00\n"
+                   "# Header End\n" + "".join(f"{v:.12e}\n" for v in phase))
+    out_h5 = str(tmp_path / "p.h5")
+    assert cli.main(["import", str(src), "-o", out_h5, "--columns", "gyr_x=0", "--units", "gyr=rad"]) == 2
+    err = capsys.readouterr().err
+    assert "--rate HZ is required" in err and "Tau: 2.5 s: --rate 0.4" in err, err
+    cases = [(["--units", "gyr=rad/s", "--rate", "0.4"], "Type: Phase"),
+             (["--units", "gyr=rad", "--integrated", "--rate", "1"], "Tau: 2.5 s (--rate 0.4); --rate 1 was given"),
+             (["--units", "gyr=rad", "--integrated", "--rate", "0.4"], None)]
+    for opts, said in cases:
+        _ok(str(src), "-o", out_h5, "--force", "--columns", "gyr_x=0", *opts)
+        warn = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("warning:")]
+        assert (warn == []) if said is None else (len(warn) == 1 and said in warn[0]), (opts, warn)
+    freq = tmp_path / "freq.dat"
+    freq.write_text("# Type: Freq\n# Tau: 1\n" + "".join(f"{v:.6e}\n" for v in rng.normal(0, 1e-12, 600)))
+    _ok(str(freq), "-o", out_h5, "--force", "--columns", "gyr_x=0", "--units", "gyr=rad", "--integrated",
+        "--rate", "1")
+    assert "header says Type: Freq" in capsys.readouterr().out

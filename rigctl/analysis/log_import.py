@@ -159,6 +159,56 @@ def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str
 
 #: the column header of a Stable32 result file ("#  AF   Tau   #   Alpha  Min Sigma ...")
 _STABLE32_RESULT = re.compile(r"\s*#\s*AF\s+Tau\s+#\s+Alpha\b")
+#: a Stable32 data file's header lines (``# Type: Phase``, ``# Tau: 2.500000e+00``)
+_STABLE32_HEADER = re.compile(r"\s*#\s*(Type|Tau)\s*:\s*(\S+)", re.IGNORECASE)
+
+
+def stable32_header(path: Path) -> dict[str, str]:
+    """``{"type": "phase"|"freq"|..., "tau": "2.5e+00"}`` from the ``#`` header of a Stable32
+    data file (its first 4 kB; gzip read decompressed), lower-case keys; {} for any other file
+    or one that cannot be read (read_table then says why)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+        if head[:2] == b"\x1f\x8b":
+            with gzip.open(path, "rb") as fh:
+                head = fh.read(4096)
+        text = head.decode("utf-8-sig", errors="replace")
+    except (OSError, EOFError, zlib.error):
+        return {}
+    out: dict[str, str] = {}
+    for line in text.splitlines()[:40]:
+        m = _STABLE32_HEADER.match(line)
+        if m:
+            out.setdefault(m.group(1).lower(), m.group(2))
+    return out
+
+
+def stable32_notes(header: dict[str, str], rate: float | None, integrated: bool,
+                   time_column: bool) -> list[str]:
+    """Warnings where the options disagree with a Stable32 data file's own header: ``Type:
+    Phase`` without --integrated (the time error would be taken for a rate), ``Type: Freq``
+    with it, and --rate other than 1 / ``Tau`` (without a time column). Empty otherwise."""
+    out = []
+    kind = header.get("type", "").lower()
+    if kind.startswith("phase") and not integrated:
+        out.append("warning: the file's header says Type: Phase (time error, s): without "
+                   "--integrated and --units gyr=rad its values were taken as rates; phase data: "
+                   "--units gyr=rad --integrated")
+    if kind.startswith("freq") and integrated:
+        out.append("warning: the file's header says Type: Freq (fractional frequency, a rate): "
+                   "--integrated differenced it as if it were phase; frequency data: --units "
+                   "gyr=rad/s without --integrated")
+    try:
+        tau = float(header["tau"])
+    except (KeyError, ValueError):
+        tau = math.nan
+    if rate is not None and not time_column and tau > 0 and abs(rate * tau - 1.0) > 1e-6:
+        out.append(f"warning: the file's header says Tau: {tau:g} s (--rate {1.0 / tau:.8g}); "
+                   f"--rate {rate:g} was given")
+    return out
+
+
 #: separators tried in this order on the first data line (else runs of whitespace)
 DELIMITERS = (",", "\t", ";")
 
@@ -725,9 +775,15 @@ def import_csv(args: ImportOptions) -> Imported:
     factors = parse_units(args.units, present)
     if args.rate is not None and not 0 < args.rate <= MAX_RATE_HZ:
         raise InputError(f"--rate {args.rate:g} is outside (0, {MAX_RATE_HZ:g}] Hz", src)
+    header = stable32_header(src)
     if args.rate is None and "time" not in mapping:
+        try:
+            tau = float(header["tau"])
+        except (KeyError, ValueError):
+            tau = math.nan
         raise InputError("--rate HZ is required without a time column (time= in --columns)", src,
-                         hint="give the nominal sample rate, e.g. --rate 100")
+                         hint=(f"the file's Stable32 header says Tau: {tau:g} s: --rate {1.0 / tau:.8g}"
+                               if tau > 0 else "give the nominal sample rate, e.g. --rate 100"))
     check_ranges(args)
     lines: list[str] = []
     cols, first_line = read_table(src, mapping, args.skip_rows, lines)
@@ -767,6 +823,7 @@ def import_csv(args: ImportOptions) -> Imported:
         rate = float(args.rate)
         t = np.arange(n) / rate
         lines.append(f"sample rate {format_rate(rate)} (given; no time column: sample k at t = k / rate)")
+    lines.extend(stable32_notes(header, args.rate, bool(args.integrated), "time" in cols))
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
     incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
     if args.integrated and not incr:
