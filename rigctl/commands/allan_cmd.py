@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 from rigctl.analysis import noise_export, production
@@ -21,7 +20,7 @@ from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
 from rigctl.analysis.allan_quiet import DEFAULT_EXCURSIONS, EXCURSION_MODES
 from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
-from rigctl.commands.cli_options import add_production_options
+from rigctl.commands.cli_options import add_production_options, check_output_files
 from rigctl.config.spec import load_spec
 from rigctl.errors import InputError
 from rigctl.sensor_axes import canonical
@@ -81,7 +80,8 @@ def _run(args: argparse.Namespace) -> int:
         opt = "--kalibr-inflate" if args.kalibr_inflate != 1.0 else "--kalibr-topic"
         raise InputError(f"{opt} without --kalibr: no imu.yaml is written",
                          hint="add --kalibr imu.yaml")
-    _check_outputs(args)
+    check_output_files(("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
+                       ("--csv", args.csv))
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
     production.check_database_option(args.db, "rigctl allan")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
@@ -116,21 +116,6 @@ def _run(args: argparse.Namespace) -> int:
         print(f"plot written to {args.plot}")
     export(args, result)
     return 0
-
-
-def _check_outputs(args: argparse.Namespace) -> None:
-    """Refuse, before the analysis (minutes on a long capture), a --plot, --kalibr, --json or
-    --csv file whose directory does not exist or that is a directory."""
-    for opt, name in (("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
-                      ("--csv", args.csv)):
-        if not name:
-            continue
-        out = Path(name)
-        if out.is_dir():
-            raise InputError(f"{opt}: is a directory", out, hint=f"give a file name, e.g. {out / 'x'}")
-        if not out.resolve().parent.is_dir():
-            raise InputError(f"{opt}: output directory does not exist", out.parent,
-                             hint="create it, or give a file in an existing directory")
 
 
 def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
