@@ -34,3 +34,17 @@ def test_noise_missing_file_still_says_no_such_file(recording: Path, tmp_path: P
     assert main(["calibrate", str(recording), "--noise", str(tmp_path / "nope.h5")]) == 2
     err = capfd.readouterr().err.strip()
     assert "nope.h5: no such file" in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("command,opt", [("calibrate", "--json"), ("thermal", "--json"), ("thermal", "--csv")])
+def test_an_output_file_that_cannot_be_written_is_refused_first(recording: Path, tmp_path: Path, capfd,
+                                                                command, opt) -> None:
+    """`rigctl calibrate REC --json /no/such/dir/x.json` analysed (and stored its results) and only
+    then failed with '[Errno 2] No such file or directory: '/no/such/dir/.x.json.tmp'', exit 1;
+    now one line before any work, exit 2 (as rigctl allan's --json, --csv, --plot, --kalibr)."""
+    target = tmp_path / "no-such-dir" / "x.out"
+    assert main([command, str(recording), opt, str(target)] + (["--db", "none"] if command == "calibrate" else [])) == 2
+    out, err = capfd.readouterr()
+    lines = err.strip().splitlines()
+    assert out == "" and len(lines) == 1, (out, err)
+    assert f"{target.parent}: {opt}: output directory does not exist" in lines[0], lines[0]

@@ -43,6 +43,7 @@ from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
 from ..recording.segment_builder import CAL_KINDS, build_segment_table, open_recording, store_calibration_results
 from ..jsonable import jsonable
+from ..sensor_axes import ACCEL_AXES, GYRO_AXES
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
 from .allan import load_noise
@@ -66,7 +67,7 @@ def noise_from_allan(f: h5py.File, where: Path | None = None) -> tuple[Triad, Tr
     intervals too narrow (docs/calibration.md, section 10)."""
     axes = load_noise(f, where)
     out = []
-    for names in (("ax", "ay", "az"), ("gx", "gy", "gz")):
+    for names in (ACCEL_AXES, GYRO_AXES):
         if not all(a in axes for a in names):
             return None
         out.append(tuple(axes[a] for a in names))

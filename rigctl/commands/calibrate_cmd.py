@@ -12,7 +12,7 @@ import numpy as np
 
 from ..analysis import production
 from ..analysis.calibration import calibrate, check_noise_choice
-from .cli_options import add_production_options, stage_printer
+from .cli_options import add_production_options, check_output_files, stage_printer
 from ..errors import InputError, RunFailure
 from ..config.spec import load_spec
 
@@ -20,6 +20,7 @@ from ..config.spec import load_spec
 def run(args: argparse.Namespace) -> int:
     """``rigctl calibrate``: 0 done, 2 invalid input, 1 failure."""
     check_noise_choice(args.noise)  # before the analysis: its error line comes first
+    check_output_files(("--json", args.json))
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     production.check_database_option(args.db, "rigctl calibrate")
     try:

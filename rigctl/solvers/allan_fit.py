@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
 from scipy.optimize import lsq_linear, nnls
-from scipy.stats import chi2, norm
+from .distributions import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
