@@ -161,3 +161,11 @@ def test_its_time_column_draws_the_cadence_warning(sr87, capsys) -> None:
     out = capsys.readouterr().out
     assert "warning: 313 of 1251 steps of the time column (25 %)" in out, out
     assert "not dated by the time column" in out and "2086" not in out, out
+    # analysed so, the gap-free stretches are 4 samples long and the curve has 2 taus: no more
+    # terms resolved than leave the fit a degree of freedom (all five were, chi-square ~1e-29)
+    js = sr87["tmp"] / "t.json"
+    assert cli.main(["allan", str(sr87["tmp"] / "t.h5"), "--json", str(js)]) == 0
+    r = json.loads(js.read_text())["axes"]["gx"]
+    co = r["fit"]["coefficients"]
+    resolved = [k for k in "QNBKR" if "ci95" in co[k]]
+    assert len(r["tau_s"]) == 2 and len(resolved) <= len(r["tau_s"]) - 1, (r["tau_s"], resolved)

@@ -981,6 +981,14 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                 needed_terms.add(K_IDX)
             else:
                 needed_terms.discard(K_IDX)
+        # no more resolved terms than the taus leave a degree of freedom for: with as many
+        # positive terms as taus the covariance of the estimates is singular and its
+        # pseudo-inverse gave every term a narrow interval -- a record whose gaps left
+        # stretches of 4 samples (a clock's 3 + 1 reporting cycle read as gaps) had Q, N, B,
+        # K and R all "resolved" from 2 taus, chi-square 0 on "1 dof". The weakest goes first
+        if select and len(active) > 1 and int(np.count_nonzero(p > 0)) >= tau.size:
+            i_min = min(range(len(active)), key=lambda i: score[i])
+            score[i_min] = min(score[i_min], 0.0)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
             break
