@@ -336,6 +336,9 @@ class Engine:
         self._imu_t = math.nan                  # the latest IMU sample's time, s
         self._still_reads = 0                   # table reads in a row that found its time unchanged
         self._stream_slower = False             # the IMU stream kept time slower in the last pace window
+        #: the IMU link was lost or reconnecting in the pace window in progress: its stream's time
+        #: then measures the outage, not the rig's pace (the table's alone does)
+        self._imu_down = False
         self._pace_slow: float | None = None  # the devices' speed in the last pace window, if slow
         #: the line saying the rig's devices keep time slower than the clock (slow_rig_message), once seen
         self.slow_rig: str | None = None
@@ -383,6 +386,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
+        self._imu_down |= bool(obs.imu_error or obs.imu_reconnecting)
         restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
@@ -598,7 +602,7 @@ class Engine:
         # the clock -- an emulator this machine cannot compute at that speed. Two windows in a
         # row: one stall of the emulator's host (caught up at once after) is not a pace
         slow = self._rig_pace(speed, wall, t) if slipped == 0.0 else None
-        self._pace = (wall, t, slipped, imu_t)
+        self._pace, self._imu_down = (wall, t, slipped, imu_t), False
         if slow is not None and self._pace_slow is not None:
             self.pace_warned = True
             self.slow_rig = self._slow_rig_line(speed, slow, wall)   # the latest window: the pace now
@@ -614,11 +618,13 @@ class Engine:
         while the table keeps time -- or the reverse -- is the rig's pace all the same). Notes in
         ``self._stream_slower`` whether the stream was the slower."""
         w0, t0, _, imu_t0 = self._pace
-        device_s = t - t0
+        device_s, imu_s = t - t0, self._imu_t - imu_t0
         self._stream_slower = False
-        if not math.isnan(imu_t0) and not math.isnan(self._imu_t):
-            self._stream_slower = self._imu_t - imu_t0 < device_s
-            device_s = min(device_s, self._imu_t - imu_t0)
+        # not across a lost link or a stream whose time began again (an IMU restart): the
+        # table's time alone
+        if not self._imu_down and imu_s >= 0.0:     # False when either time is unknown (NaN)
+            self._stream_slower = imu_s < device_s
+            device_s = min(device_s, imu_s)
         return slow_rig_speed(speed, wall - w0, device_s)
 
     def _slow_rig_line(self, speed: float, achieved: float, wall: float) -> str:
