@@ -18,7 +18,8 @@ deg/sqrt(h) + flicker B 5 deg/h, FFT-shaped) plus a first-order Gauss-Markov rat
     record (the pipeline runs it only where the check lists a stationary bump): the generalized
     chi-square of the IEEE terms alone minus that with the term, its p-value (Bonferroni over Tc)
     against alpha 0.025;
-* the Cramer-Rao (Fisher) figure of the deviations for sigma_GM^2 with Q, N, B, K, R free, at
+* the Cramer-Rao (Fisher) figure of the deviations for sigma_GM^2 with Q, N, B, K, R free (and
+  with K and R known at the truth's 0: the fit's bounds K, R >= 0 are active there), at
   the truth, from the deviations' exact covariance (allan_cov with the Gauss-Markov kernel) on
   the candidate's 40 taus and on all of the curve's taus past the filter (m >= 4): the expected
   generalized-chi-square gain (sigma_GM^2 / sd)^2 and the expected power at the candidate's
@@ -61,12 +62,14 @@ from rigctl.solvers import allan_fit as F  # noqa: E402
 from rigctl.solvers import allan_gm as GM  # noqa: E402
 
 
-def fisher_adev(tau0: float, ms: np.ndarray, n_phase: int, sig: float, tc: float) -> float:
-    """sd of sigma_GM^2 estimated from the Allan variances at factors ``ms`` with Q, N, B, K,
-    R and sigma_GM^2 free (Tc known), generalized least squares with the exact covariance at
-    the truth (N_TRUE, B_TRUE, sigma, Tc)."""
+def fisher_adev(tau0: float, ms: np.ndarray, n_phase: int, sig: float, tc: float,
+                free: tuple[int, ...] = (0, 1, 2, 3, 4)) -> float:
+    """sd of sigma_GM^2 estimated from the Allan variances at factors ``ms`` with the IEEE
+    terms ``free`` (indices into Q, N, B, K, R; the others known, at the truth's 0) and
+    sigma_GM^2 free (Tc known), generalized least squares with the exact covariance at the
+    truth (N_TRUE, B_TRUE, sigma, Tc)."""
     tau = ms * tau0
-    a = np.column_stack((F.design_matrix(tau), F.gm_column(tau, tc)))
+    a = np.column_stack((F.design_matrix(tau)[:, list(free)], F.gm_column(tau, tc)))
     ct = C.term_covariances(tau0, ms.astype(float), n_phase, tc)
     cov = C.combine(ct, {"N": WF.N_TRUE ** 2, "B": WF.B_TRUE ** 2, "G": sig ** 2})
     # the deviations of many close taus are nearly collinear: the information through the
@@ -159,6 +162,13 @@ def main() -> None:
             gm = GM.gm_candidate(tau, dev, edf, 1.0 / WF.FS, n_phase)
             row = {"seed": s, "outcome": "gm" if has_gm else ("failed" if failed else "silent"),
                    "unprompted": unprompted,
+                   "gm_tc_s": (fit.get("gm_term") or {}).get("tc_s"),
+                   "gm_tc_covered": bool(has_gm and fit["gm_term"]["tc_ci95_s"][0] <= a.tc
+                                         <= fit["gm_term"]["tc_ci95_s"][1]),
+                   "gm_sigma_b": ((fit.get("gm_term") or {}).get("sigma_si", math.nan)
+                                  / WF.B_TRUE),
+                   "gm_sigma_covered": bool(has_gm and fit["gm_term"]["sigma_ci95_si"][0] <= sig
+                                            <= fit["gm_term"]["sigma_ci95_si"][1]),
                    "b_over_truth": float(b_rep.value / WF.B_TRUE),
                    "b_resolved": bool(b_rep.resolved),
                    "b_ieee_over_truth": float(fit0.B.value / WF.B_TRUE),
@@ -178,11 +188,15 @@ def main() -> None:
                     sd_all = fisher_adev(1.0 / WF.FS, ms[sel], n_phase, sig, a.tc)
                 except np.linalg.LinAlgError:
                     sd_all = math.nan
+                sd_qnb = fisher_adev(1.0 / WF.FS, ms[sel[F._thin(sel.size, 40)]], n_phase, sig,
+                                     a.tc, free=(0, 1, 2))
                 sd_w = fisher_whittle(WF.N_SAMPLES, WF.FS, sig, a.tc)
                 thr = float(chi2.isf(2.0 * GM.GM_TEST_ALPHA / row["cand_n_looks"], 1))
                 fisher = {"sd_var_adev40": sd40, "sd_var_adev_all": sd_all,
+                          "sd_var_adev40_qnb": sd_qnb,
                           "sd_var_whittle": sd_w, "cand_threshold_stat": thr}
-                for k, sd in (("adev40", sd40), ("adev_all", sd_all), ("whittle", sd_w)):
+                for k, sd in (("adev40", sd40), ("adev_all", sd_all), ("adev40_qnb", sd_qnb),
+                              ("whittle", sd_w)):
                     lam = (sig ** 2 / sd) ** 2
                     fisher[f"expected_gain_{k}"] = lam
                     fisher[f"power_{k}"] = float(ncx2.sf(thr, 1, lam)) if np.isfinite(lam) else None
@@ -201,6 +215,12 @@ def main() -> None:
            "failed": sum(r["outcome"] == "failed" for r in rows),
            "silent": len(silent), "silent_seeds": [r["seed"] for r in silent],
            "silent_cand_detected": sum(r["cand_detected"] for r in silent),
+           "gm_tc_range_s": [min((r["gm_tc_s"] for r in rows if r["gm_tc_s"]), default=None),
+                             max((r["gm_tc_s"] for r in rows if r["gm_tc_s"]), default=None)],
+           "gm_sigma_range_b": [min((r["gm_sigma_b"] for r in rows if r["gm_tc_s"]), default=None),
+                                max((r["gm_sigma_b"] for r in rows if r["gm_tc_s"]), default=None)],
+           "gm_tc_covered": sum(r["gm_tc_covered"] for r in rows),
+           "gm_sigma_covered": sum(r["gm_sigma_covered"] for r in rows),
            "fisher": fisher, "rows": rows, "wall_s": round(time.perf_counter() - t0, 1)}
     print(json.dumps(out))
 
