@@ -455,13 +455,19 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
     does not compare the nested models; the candidate's likelihood ratio does. Such a result
     is kept (``unprompted`` True) only when the process is found and no run of taus the check
     lists lies within a factor 4 of its hump (a warm-up, a non-stationary bump or an excursion
-    there is not a stationary process); else it is dropped and the result is None, as before."""
+    there is not a stationary process); else it is dropped and the result is None, as before.
+    There the test runs only after its cheap screen (``gm_candidate(screen=True)``) gives
+    p < GM_SCREEN_P: its cost is the Gauss-Markov kernel's, per Tc and sampling."""
     runs = stationary_bumps(fit.get("check") or {})
     b = (fit.get("coefficients") or {}) and getattr(fit["coefficients"], "B", None)
     unprompted = not runs and bool(b is not None and b.resolved)
     if not runs and not unprompted:
         return None
     tn = fit.get("tones") or {}
+    if unprompted and not (GM.gm_candidate(
+            tau, dev, edf, tau0, n_phase, tones=tn.get("terms") or None,
+            stretch_samples=stretch_samples, screen=True).get("p_value", 1.0) < GM.GM_SCREEN_P):
+        return None  # the cheap screen first (no Gauss-Markov kernel, the coarse Tc grid)
     gm = GM.gm_candidate(tau, dev, edf, tau0, n_phase,
                          tones=tn.get("terms") or None, stretch_samples=stretch_samples)
     if unprompted:
