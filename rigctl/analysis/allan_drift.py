@@ -459,7 +459,7 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
     There the test runs only after its cheap screen (``gm_candidate(screen=True)``) gives
     p < GM_SCREEN_P: its cost is the Gauss-Markov kernel's, per Tc and sampling."""
     runs = stationary_bumps(fit.get("check") or {})
-    b = (fit.get("coefficients") or {}) and getattr(fit["coefficients"], "B", None)
+    b = getattr(fit.get("coefficients"), "B", None)
     unprompted = not runs and bool(b is not None and b.resolved)
     if not runs and not unprompted:
         return None
