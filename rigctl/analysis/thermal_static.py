@@ -30,12 +30,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from ..clock import utc_now
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..jsonable import jsonable
+from ..solvers import distributions as stats
 from ..solvers import thermal as th
 from ..yamlio import load_file
 from . import thermal as AT
