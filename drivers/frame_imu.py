@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from rigctl.config.frame_spec import FrameSpec
+from rigctl.sensor_axes import ACCEL_AXES, GYRO_AXES
 
 from . import frame_decl
 from .stream_imu import StreamImu
@@ -64,8 +65,8 @@ class FrameImu(StreamImu):
 
     def _inertial(self, out: dict):
         n = len(out["offset"])
-        acc = np.stack([out["accel_x"], out["accel_y"], out["accel_z"]], axis=1)
-        gyr = np.stack([out["gyro_x"], out["gyro_y"], out["gyro_z"]], axis=1)
+        acc = np.stack([out[a] for a in ACCEL_AXES], axis=1)  # fields decoded under the axes' one spelling
+        gyr = np.stack([out[g] for g in GYRO_AXES], axis=1)
         temp = out["temperature"] if "temperature" in out else np.full(n, np.nan)
         return acc, gyr, temp
 

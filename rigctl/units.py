@@ -53,6 +53,12 @@ def format_duration(seconds: float) -> str:
     return f"{h} h {rem // 60:02d} min"
 
 
+def format_rate(hz: float) -> str:
+    """A sample rate as every command prints it: 8 significant digits and Hz ('99.990001 Hz',
+    '200 Hz'); enough for the rate a time column's median step gives, one form everywhere."""
+    return f"{hz:.8g} Hz"
+
+
 def format_bytes(n: float) -> str:
     """Human form of a byte count (SI prefixes)."""
     for unit in ("B", "kB", "MB", "GB", "TB"):

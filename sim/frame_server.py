@@ -17,6 +17,7 @@ import numpy as np
 
 from rigctl.drivers import frame_decl
 from rigctl.config.frame_spec import FrameSpec
+from rigctl.sensor_axes import ACCEL_AXES, GYRO_AXES
 
 from .stream_twin import StreamTwin
 
@@ -28,12 +29,12 @@ EXAMPLE = {
         {"name": "length", "type": "B"},
         {"name": "counter", "type": "H"},
         {"name": "time", "type": "I", "scale": 1.0e-6, "unit": "s"},
-        {"name": "gyro_x", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
-        {"name": "gyro_y", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
-        {"name": "gyro_z", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
-        {"name": "accel_x", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
-        {"name": "accel_y", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
-        {"name": "accel_z", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
+        {"name": "gx", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
+        {"name": "gy", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
+        {"name": "gz", "type": "i", "scale": 1.0e-8, "unit": "rad/s"},
+        {"name": "ax", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
+        {"name": "ay", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
+        {"name": "az", "type": "i", "scale": 1.0e-7, "unit": "m/s^2"},
         {"name": "temperature", "type": "h", "scale": 0.01, "unit": "degC"},
         {"name": "status", "type": "B"},
     ],
@@ -45,9 +46,9 @@ EXAMPLE_CSV = {
     "prefix": "$IMU",
     "fields": [
         {"name": "counter"},
-        {"name": "gyro_x", "unit": "deg/s"}, {"name": "gyro_y", "unit": "deg/s"},
-        {"name": "gyro_z", "unit": "deg/s"},
-        {"name": "accel_x", "unit": "g"}, {"name": "accel_y", "unit": "g"}, {"name": "accel_z", "unit": "g"},
+        {"name": "gx", "unit": "deg/s"}, {"name": "gy", "unit": "deg/s"},
+        {"name": "gz", "unit": "deg/s"},
+        {"name": "ax", "unit": "g"}, {"name": "ay", "unit": "g"}, {"name": "az", "unit": "g"},
         {"name": "temperature", "unit": "degC"},
     ],
     "checksum": "nmea",
@@ -78,8 +79,8 @@ class FrameServer(StreamTwin):
             dev = t - self.t_origin + self.time_offset_s
             v["time"] = np.rint(dev / tf.factor).astype(np.int64) if tf.wrap else dev
         acc, gyr = np.asarray(src["acceleration"]), np.asarray(src["rate_of_turn"])
-        for j, ax in enumerate("xyz"):
-            v[f"accel_{ax}"], v[f"gyro_{ax}"] = acc[:, j], gyr[:, j]
+        for j, (a, g) in enumerate(zip(ACCEL_AXES, GYRO_AXES)):
+            v[a], v[g] = acc[:, j], gyr[:, j]
         v["temperature"] = np.asarray(src["temperature"])
         if self.spec.format == "binary":
             return frame_decl.encode_binary(self.spec, v)

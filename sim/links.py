@@ -19,10 +19,13 @@ from a reader thread and are torn down by ``close()`` (idempotent; joins the thr
 from __future__ import annotations
 
 import errno
+import fcntl
 import logging
 import os
 import select
 import socket
+import struct
+import termios
 import threading
 import time
 import tty
@@ -130,6 +133,18 @@ class FlowPtyEndpoint(PtyEndpoint):
     frames at 50x, at load 15) was cut although the client read all along (its longest pause
     22 ms), and test_wire_imu_errors / test_hil_faults / test_hil_runs found bytes lost.
 
+    "The client took bytes" is read on the client's side of the pty, not only from the writes:
+    the slave's input queue (``FIONREAD`` on the slave this endpoint keeps open) shrank, or is
+    empty -- the client has read everything the kernel delivered and waits for more. A loaded
+    host can leave the master without room while the client's queue stays empty (the kernel's
+    pty buffer work not scheduled, or this writer thread not run, for over 1.5 s at load 17-23
+    on 2 cores); counting that as the client's silence dropped bytes its driver was waiting
+    for, in select(), with nothing to read (stack samples of tests/test_daemon_wire.py's ten
+    link drops): a counter gap in the middle of a read, which paused the run on 'imu-gap' with
+    nothing in the record to explain it. Such waits are counted in ``host_waits``; a write still
+    gives up after ``host_wait_max_s`` without a byte written, so a jammed port cannot stall
+    the emulator for ever.
+
     Flow control starts once the client has written to the port (``received_bytes``; a
     commanded device's driver always speaks first: GoToConfig, a register read): until then
     nobody may have the port open -- the new pty after a pulled cable, into which the device
@@ -143,8 +158,22 @@ class FlowPtyEndpoint(PtyEndpoint):
     #: reader thread of a loaded host is held up (0.5 s was not, at load 15-18 on 2 cores: the
     #: wired 24-position runs at 100x lost 4,000-24,000 samples at a time, test_hil_runs)
     write_timeout_s = 1.5
+    #: the longest a write waits without writing a byte while its client has taken everything
+    #: the port delivered (the host slow, not the client), wall s
+    host_wait_max_s = 10.0
+    #: writes that waited past ``write_timeout_s`` because the client had taken all the port
+    #: delivered: each one dropped bytes before (see the class docstring)
+    host_waits = 0
     flow_before_client_speaks = False
     _aborted = False
+
+    def client_queue(self) -> int:
+        """Bytes the port has delivered to the client's side and it has not read yet (the slave's
+        input queue, ``FIONREAD``); -1 when the port is closed."""
+        try:
+            return struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except OSError:
+            return -1
 
     def abort_writes(self) -> None:
         """A write waiting for the client gives up now (the emulator is shutting down)."""
@@ -167,14 +196,25 @@ class FlowPtyEndpoint(PtyEndpoint):
                 return 0
             view, sent = memoryview(data), 0
             flowing = getattr(self, "_flowing", True) and (self.received_bytes > 0 or self.flow_before_client_speaks)
-            deadline = time.monotonic() + (self.write_timeout_s if flowing else 0.0)
+            now = time.monotonic()
+            deadline = now + (self.write_timeout_s if flowing else 0.0)
+            last_byte, queued, waited_on_host = now, -1, False
             while sent < len(view):
                 try:
                     sent += os.write(self.master, view[sent:])
                     if flowing:                 # the client took bytes: it is there, wait on
-                        deadline = time.monotonic() + self.write_timeout_s
+                        last_byte = time.monotonic()
+                        deadline = last_byte + self.write_timeout_s
                 except BlockingIOError:
-                    left = deadline - time.monotonic()
+                    now = time.monotonic()
+                    if flowing:
+                        q = self.client_queue()
+                        if q == 0 or 0 <= q < queued:   # the client reads: the host is slow
+                            waited_on_host |= now - last_byte >= self.write_timeout_s
+                            deadline = max(deadline, min(now + self.write_timeout_s,
+                                                         last_byte + self.host_wait_max_s))
+                        queued = q
+                    left = deadline - now
                     if left <= 0 or self._aborted:
                         break
                     select.select([], [self.master], [], min(left, 0.01))
@@ -184,6 +224,7 @@ class FlowPtyEndpoint(PtyEndpoint):
                     raise
             self._flowing = sent == len(view)
             self.overflow_bytes += len(view) - sent
+            self.host_waits += waited_on_host
             return sent
 
 

@@ -55,7 +55,7 @@ def white_noise_only(truth_imu: dict) -> None:
 #: rate random walk K from SI (u/s/sqrt(s)) to the unit calibrate's noise lines print, written
 #: out here (not taken from rigctl): m/s/h/sqrt(h) and deg/h/sqrt(h)
 K_FIELD = {"accel": 3600.0 * 60.0, "gyro": 180.0 / 3.141592653589793 * 3600.0 * 60.0}
-_K_TEXT = re.compile(r"^  (accel|gyro)_([xyz]) +N .*, K (?:< ([0-9.e+-]+)|([0-9.e+-]+) \[([0-9.e+-]+), ([0-9.e+-]+)\])"
+_K_TEXT = re.compile(r"^  ([ag])([xyz]) +N .*, K (?:< ([0-9.e+-]+)|([0-9.e+-]+) \[([0-9.e+-]+), ([0-9.e+-]+)\])"
                      r" (?:m/s/h/sqrt\(h\)|deg/h/sqrt\(h\))")
 
 
@@ -63,12 +63,12 @@ def assert_k_lines_cover_truth(text: str, truth_imu: dict, blocks: int = 1) -> N
     """Every noise-model line `rigctl calibrate` printed in ``text`` (``blocks`` calibrations of
     six channels) gives the rate random walk K as a 95 % upper bound or a 95 % interval, and that
     bound or interval holds the emulator's true K (``/truth`` imu, SI)."""
-    lines = [ln for ln in text.splitlines() if re.match(r"^  (accel|gyro)_[xyz] +N ", ln)]
+    lines = [ln for ln in text.splitlines() if re.match(r"^  [ag][xyz] +N ", ln)]  # ax ... gz
     assert len(lines) == 6 * blocks, lines
     for ln in lines:
         m = _K_TEXT.match(ln)
         assert m, f"K is neither a bound nor an interval: {ln}"
-        sensor, axis = m.group(1), "xyz".index(m.group(2))
+        sensor, axis = {"a": "accel", "g": "gyro"}[m.group(1)], "xyz".index(m.group(2))
         k = truth_imu[f"{sensor}_noise"][axis]["K"]["value"] * K_FIELD[sensor]
         if m.group(3) is not None:
             assert k < float(m.group(3)), (k, ln)

@@ -235,7 +235,7 @@ def test_gapped_long_stretches_through_the_contiguous_kernel(monkeypatch: pytest
     where m_a + m_b <= 64, every entry within 8e-3, the diagonal within 2e-3)."""
     monkeypatch.setattr(C, "GM_LONG_MIN", 250)
     # the contiguous kernel serves long stretches where the pair loop is not compiled
-    monkeypatch.setattr(C.KC, "HAVE_NUMBA", False)
+    monkeypatch.setattr(C._kc(), "HAVE_NUMBA", False)
     C._gm_gapped_cached.cache_clear()
     try:
         tc, var, n2, lengths, ms, want = _three_stretches()

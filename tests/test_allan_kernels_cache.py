@@ -1,4 +1,4 @@
-"""numba's on-disk cache of the Allan kernels (rigctl.solvers.allan_kernels, cache=True) from a
+"""numba's on-disk cache of the Allan kernels (rigctl.solvers.allan_kernels_jit, cache=True) from a
 read-only install: where neither the source's __pycache__ nor the user's cache directory can
 be written, the import used to fail (numba: "cannot cache function ...: no locator
 available"); it now keeps the kernels in the user's own directory under the temporary
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 _CHILD = """
 import json, os, sys
 import numpy as np
-import allan_kernels as K
+from rk import allan_kernels as K
 x = K.phase(np.arange(1000.0), 0.5, 0.0)  # compiles _phase (or loads it from the cache)
 st = K._phase.stats
 print(json.dumps({"cache": bool(K._CACHE), "sum": float(x.sum()),
@@ -45,8 +45,10 @@ def test_kernels_import_and_cache_from_a_readonly_install(tmp_path: Path) -> Non
             capture_output=True).returncode:
         pytest.skip("no mount namespace here (unshare -m, mount --bind): needs privileges")
     pkg = tmp_path / "site"
-    pkg.mkdir()
-    shutil.copy(ROOT / "rigctl" / "solvers" / "allan_kernels.py", pkg)  # (numpy and numba only)
+    (pkg / "rk").mkdir(parents=True)
+    (pkg / "rk" / "__init__.py").write_text("")
+    for name in ("allan_kernels.py", "allan_kernels_jit.py"):  # (numpy and numba only)
+        shutil.copy(ROOT / "rigctl" / "solvers" / name, pkg / "rk")
     home_cache = tmp_path / "site" / "no-cache"  # inside the read-only mount: not writable
     tmp = tmp_path / "tmp"
     tmp.mkdir()
@@ -64,7 +66,7 @@ def test_kernels_import_and_cache_from_a_readonly_install(tmp_path: Path) -> Non
     place = tmp / f"rigctl-numba-{os.getuid()}"
     assert place.is_dir() and (place.stat().st_mode & 0o777) == 0o700
     assert any(p.suffix == ".nbi" for p in place.rglob("*")), sorted(place.rglob("*"))
-    assert not (pkg / "__pycache__").exists()
+    assert not (pkg / "rk" / "__pycache__").exists()
     second = _readonly_run(pkg, env)
     assert second.returncode == 0, second.stderr[-2000:]
     b = json.loads(second.stdout.strip().splitlines()[-1])

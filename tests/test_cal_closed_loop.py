@@ -114,7 +114,7 @@ def test_unexplained_structure_is_reported():
     st, truth = make_session(3, Effects(bias_jump=np.array([0.0, 3e-3, 0.0])))
     res = closed_loop(st, truth=truth)
     assert res.unexplained, format_report(res, explain=True)
-    assert res.unexplained[0]["channel"] == "accel_y"
+    assert res.unexplained[0]["channel"] == "ay"
     assert "time" in res.unexplained[0]["variable"]
     assert any(x["decision"] == "unexplained" for x in res.explain)
 

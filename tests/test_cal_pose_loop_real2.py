@@ -130,7 +130,7 @@ def test_accel_ok_and_agrees_with_the_source_calibration(mpu):
         assert abs(M[i, j] - np.radians(deg)) < 3 * sm + np.radians(0.0005), ((i, j), M[i, j], deg)
     rows = {r["channel"]: r for r in cal["before_after"]}
     for ax in "xyz":
-        r = rows[f"accelerometer {ax}"]
+        r = rows[f"a{ax}"]
         assert r["unit"] == "mg" and r["raw"] > 50 * r["final"], r
 
 
@@ -169,7 +169,7 @@ def test_gyro_static_unexplained_motion_not_a_sensor_effect(mpu, ref_data):
     assert np.all(np.degrees(np.sqrt(shared["v_resid"])) < 0.15), shared["v_resid"]
     rows = {r["channel"]: r for r in cal["before_after"]}
     for ax in "xyz":
-        r = rows[f"gyro at rest {ax}"]
+        r = rows[f"g{ax} at rest"]
         assert r["unit"] == "deg/h" and r["final"] > 1.3 * r["noise_floor"], r
 
 

@@ -114,3 +114,24 @@ def test_client_verbs_start_without_the_solvers() -> None:
             "print(sorted(m for m in ('scipy', 'matplotlib', 'rigctl.solvers.allan') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_solver_commands_import_without_numba_or_scipy_stats() -> None:
+    """numba (~0.25 s of CPU) is imported where a compiled kernel runs, not with the commands:
+    a `rigctl calibrate`, `batch`, `report` or `allan` that runs no kernel does not pay for it
+    (rigctl.solvers.allan_kernels imports allan_kernels_jit at first use); asking for HAVE_NUMBA
+    then imports it: the kernels are still there. No command imports scipy.stats (~0.45 s):
+    the solvers' distribution functions are rigctl.solvers.distributions (tap_match imports
+    scipy.stats where it fits a line)."""
+    code = ("import sys\n"
+            "from rigctl import cli\n"
+            "for c in ('calibrate', 'allan', 'report', 'history', 'batch', 'sync', 'thermal', 'certificate',\n"
+            "          'apply-cal', 'import'):\n"
+            "    cli.build_parser([c], everything=False)\n"
+            "import rigctl.run.runner, rigctl.service.daemon\n"
+            "print('numba' in sys.modules, sorted(m for m in sys.modules if m.startswith('scipy.stats')))\n"
+            "from rigctl.solvers import allan_kernels as K\n"
+            "print(K.HAVE_NUMBA, 'numba' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split("\n")[:2] == ["False []", "True True"], r.stdout

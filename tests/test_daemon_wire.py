@@ -302,9 +302,11 @@ def _check_drops_recorded(recording: Path, dropped: list[int]) -> np.ndarray:
     # for something else: (a) the same drop's outage seen again right after its resume, which
     # cuts the step's re-run off before it sampled, on imu-link or imu-gap only (imu-link now
     # holds until the driver is configured again and streams, so a resume no longer comes before
-    # the reconfiguration, whose GoToConfig..GoToMeasurement gap is the pause's; seen since, at
-    # load ~8: an imu-gap of 26333 samples 'inside a read', IMU time 1454 -> 1718 s, reaching the
-    # engine 60 s of rig time after, the pause having resumed at 1441 s); or (b) a window the
+    # the reconfiguration, whose GoToConfig..GoToMeasurement gap is the pause's. An imu-gap
+    # 'inside a read' well after a resume -- seen at load 8-26: 26333 samples, IMU time 1454 ->
+    # 1718 s, the pause having resumed at 1441 s -- was the emulator's port dropping bytes while
+    # the driver waited for them (a master without room for 1.5 s, the client's queue empty: the
+    # host, not the client; sim/links.py, tests/test_pty_host_stall.py), no longer); or (b) a window the
     # lagging IMU stream left without its samples, which the run said in a 'short-window' event
     # just before ('the IMU stream lags or stopped': the emulator, in this process, computed its
     # samples more than 1.5 s of wall time behind the clock) and samples again; or (c) after the

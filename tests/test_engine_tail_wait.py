@@ -304,3 +304,33 @@ def test_a_trip_while_the_table_stops_is_recorded_in_the_pause(tmp_path):
     assert {"operator", "imu-link"} <= pauses[0][0], events
     link = [(tt, m) for tt, k, m in events if k == "suspend" and m.startswith("imu-link")]
     assert len(link) == 1 and "link down, injected" in link[0][1] and link[0][0] >= dropped[0], events
+
+
+def test_a_suspender_that_trips_again_in_a_pause_is_recorded_again(tmp_path):
+    """An operator pause right after the warm-up's window; once paused, the link drops twice for
+    0.3 s, 1 s apart: 'imu-link' trips, clears, trips again, and each reconnect leaves its own
+    counter gap ('imu-gap' twice). Each trip is a suspend event, each gap named by its counters.
+    Before, a suspender the pause already named got no event when it tripped again: the second
+    link loss and the second gap's counters were in no event."""
+    drops: list[float] = []
+
+    def drop_twice_when_paused(engine):
+        if engine.states.state == "paused" and not drops:
+            now = engine.rig.clock.now()
+            drops.extend([now + 0.2, now + 1.2])
+            for t in drops:
+                engine.rig.imu.inner.world.faults.schedule("imu_link", t, 0.3)
+
+    res, _ = _run(tmp_path, 0.015, operator_pause, on_read=drop_twice_when_paused)
+    assert res.exit_code == 0, res.message
+    assert drops
+    seg, t, c, events = _read(res.recording)
+    gaps = np.flatnonzero(np.diff(c) > 1)
+    assert len(gaps) == 2 and all(20 <= c[g + 1] - c[g] - 1 <= 40 for g in gaps), c[gaps]   # 0.3 s each
+    pauses = _pause_names(events)
+    assert len(pauses) == 1 and pauses[0][0] == pauses[0][1] == {"operator", "imu-link", "imu-gap"}, events
+    link = [tt for tt, k, m in events if k == "suspend" and m.startswith("imu-link")]
+    assert len(link) == 2 and drops[0] <= link[0] < drops[1] <= link[1], (drops, events)
+    for g in gaps:
+        named = [m for _, k, m in events if k == "suspend" and f"(counter {c[g]} -> {c[g + 1]})" in m]
+        assert len(named) == 1 and "imu-gap" in named[0], (c[g], c[g + 1], events)

@@ -73,7 +73,7 @@ BAD = [
     ('sync: "AA 55"\n' + GOOD_FIELDS.replace(", unit: rad/s}", "}", 1), 12, "has no 'unit'", "rad/s"),
     ('sync: "AA 55"\n' + GOOD_FIELDS.replace("unit: m/s^2}", "unit: m/s/s}", 1), 15, "not allowed", "m/s2"),
     ('sync: "AA 55"\n' + GOOD_FIELDS.replace("  - {name: accel_z, type: i, scale: 1.0e-7, unit: m/s^2}\n", ""),
-     10, "no accel_z", "add a field"),
+     10, "no az", "add a field for each of ax, ay, az, gx, gy, gz"),
     ('sync: "AA 55"\n' + GOOD_FIELDS.replace("name: counter, type: H", "name: status, type: H"), 10,
      "neither 'time' nor 'counter'", "add a counter"),
     ('sync: "AA 55"\n' + GOOD_FIELDS + "checksum: crc16\n", 18, "not allowed", "crc16-ccitt"),
@@ -85,6 +85,9 @@ BAD = [
      "unscaled integer", "type B, H"),
     ('sync: "AA 55"\n' + GOOD_FIELDS + "  - {name: gyro_x, type: h, scale: 1, unit: rad/s}\n", 18,
      "appears twice", "its own name"),
+    # the old field names (GOOD_FIELDS) are read as the axes' one spelling: gx and gyro_x are one axis
+    ('sync: "AA 55"\n' + GOOD_FIELDS + "  - {name: gx, type: h, scale: 1, unit: rad/s}\n", 18,
+     "field 'gx' appears twice ('gyro_x' and 'gx' name the same axis)", "its own name"),
     ('sync: "AA 55"\nendian: middle\n' + GOOD_FIELDS, 10, "not allowed", "little"),
     ('sync: "AA 55"\nfeilds: []\n' + GOOD_FIELDS, 10, "unknown key 'feilds'", "did you mean 'fields'"),
 ]
@@ -111,8 +114,8 @@ def test_a_frame_too_long_for_the_baud_rate_is_refused(tmp_path) -> None:
 def _example_values(n: int, seed: int = 2) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     return {"counter": np.arange(65530, 65530 + n), "time": 4_294_967_000 + 10_000 * np.arange(n),
-            **{f"gyro_{a}": rng.normal(0, 0.5, n) for a in "xyz"},
-            **{f"accel_{a}": rng.normal(0, 9.8, n) for a in "xyz"},
+            **{f"g{a}": rng.normal(0, 0.5, n) for a in "xyz"},   # decoded fields: the axes' one spelling
+            **{f"a{a}": rng.normal(0, 9.8, n) for a in "xyz"},
             "temperature": rng.normal(30, 5, n)}
 
 
@@ -124,13 +127,13 @@ def test_the_example_frame_is_the_bytes_packed_by_hand() -> None:
     out = dec.feed(rows.tobytes(), final=True)
     for i in range(4):
         body = struct.pack("<BHI3i3ihB", 38, v["counter"][i] % 65536, v["time"][i] % 2**32,
-                           *[round(v[f"gyro_{a}"][i] / 1e-8) for a in "xyz"],
-                           *[round(v[f"accel_{a}"][i] / 1e-7) for a in "xyz"],
+                           *[round(v[f"g{a}"][i] / 1e-8) for a in "xyz"],
+                           *[round(v[f"a{a}"][i] / 1e-7) for a in "xyz"],
                            round(v["temperature"][i] / 0.01), 0)
         crc = binascii.crc_hqx(body, 0xFFFF)            # CRC-16/CCITT-FALSE, from the stdlib
         assert rows[i].tobytes() == b"\xAA\x55" + body + struct.pack("<H", crc)
-    np.testing.assert_allclose(out["gyro_x"], v["gyro_x"], atol=0.5e-8)
-    np.testing.assert_allclose(out["accel_z"], v["accel_z"], atol=0.5e-7)
+    np.testing.assert_allclose(out["gx"], v["gx"], atol=0.5e-8)
+    np.testing.assert_allclose(out["az"], v["az"], atol=0.5e-7)
     np.testing.assert_allclose(out["temperature"], v["temperature"], atol=0.005)
     assert list(out["counter"]) == [65530, 65531, 65532, 65533]
     assert dec.counters.frames == 4 and dec.counters.bad_frames == 0
@@ -193,11 +196,11 @@ def test_csv_lines_decode_and_bad_lines_are_counted() -> None:
     out2 = dec.feed(stream[50:], final=True)
     counters = np.concatenate([out["counter"], out2["counter"]])
     assert list(counters) == [65530, 65531, 65533, 65534] and dec.counters.bad_frames == 1
-    gx = np.concatenate([out["gyro_x"], out2["gyro_x"]])
-    np.testing.assert_allclose(gx, v["gyro_x"][[0, 1, 3, 4]], rtol=1e-6)   # 7 digits in deg/s
-    az = np.concatenate([out["accel_z"], out2["accel_z"]])
-    np.testing.assert_allclose(az, v["accel_z"][[0, 1, 3, 4]], rtol=1e-6)
-    assert math.isclose(spec.field("gyro_x").factor, math.pi / 180)
+    gx = np.concatenate([out["gx"], out2["gx"]])
+    np.testing.assert_allclose(gx, v["gx"][[0, 1, 3, 4]], rtol=1e-6)   # 7 digits in deg/s
+    az = np.concatenate([out["az"], out2["az"]])
+    np.testing.assert_allclose(az, v["az"][[0, 1, 3, 4]], rtol=1e-6)
+    assert math.isclose(spec.field("gx").factor, math.pi / 180)
 
 
 def test_loader_keeps_lines_inside_the_field_list() -> None:

@@ -148,7 +148,7 @@ def _fd_rows(spec) -> np.ndarray:
     n = N_FRAMES
     v = {"counter": ID0 + np.arange(n), "time": (ID0 + np.arange(n)) * 10_000}
     for ax in "xyz":
-        v[f"gyro_{ax}"], v[f"accel_{ax}"] = rng.normal(0, 1, n), rng.normal(0, 9.8, n)
+        v[f"g{ax}"], v[f"a{ax}"] = rng.normal(0, 1, n), rng.normal(0, 9.8, n)
     v["temperature"] = rng.normal(25, 1, n)
     return frame_decl.encode_binary(spec, v).copy()
 
@@ -347,7 +347,7 @@ def test_csv_one_corrupted_byte_costs_its_line_only() -> None:
     v = {"counter": ID0 + np.arange(N_FRAMES)}
     rng = np.random.default_rng(9)
     for ax in "xyz":
-        v[f"gyro_{ax}"], v[f"accel_{ax}"] = rng.normal(0, 1, N_FRAMES), rng.normal(0, 9.8, N_FRAMES)
+        v[f"g{ax}"], v[f"a{ax}"] = rng.normal(0, 1, N_FRAMES), rng.normal(0, 9.8, N_FRAMES)
     v["temperature"] = rng.normal(25, 1, N_FRAMES)
     lines = frame_decl.encode_csv(spec, v).split(b"\r\n")[:-1]
     lines = [ln + b"\r\n" for ln in lines]

@@ -24,7 +24,7 @@ COLUMNS = FIELDS.replace(", type: H", "").replace(", type: i", "")
 CASES = [
     ("sync: AA\n" + FIELDS + "  - {name: pad, type: 0x}\n", "11: 'type' 0x pads nothing (remove the entry or give e.g. 2x)"),
     ("sync: AA\n" + FIELDS + "  - [name, st]\n", "11: 'fields' entry 8 must be a mapping (key: value lines), got "
-     "['name', 'st'] (e.g. {name: gyro_x, type: i, scale: 1.0e-7, unit: rad/s})"),
+     "['name', 'st'] (e.g. {name: gx, type: i, scale: 1.0e-7, unit: rad/s})"),
     ("sync: AA\n" + FIELDS + "  - {name: st, type: B, colur: red}\n",
      "11: unknown key 'colur' in 'fields' entry 8 (allowed: name, scale, unit, type, value)"),
     ("sync: AA\n" + FIELDS + "checksum: {type: crc32, from: 99}\n", "11: 'from' = 99 is above its maximum 26"),

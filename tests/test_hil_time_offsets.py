@@ -70,13 +70,19 @@ def test_a_physics_stall_at_connect_does_not_shift_the_table_times(tmp_path, kin
             table.close()
 
 
-#: the client's reading, s of wall time from its first read: it reads all along except in these
-#: (start, length) windows -- a short stop, within the emulator's flow-control wait
-#: (FlowPtyEndpoint.write_timeout_s, 1.5 s), and a long one beyond it -- and ends at READ_END_S;
-#: samples before WARM_S are not checked (the stream starting up)
+#: the client's reading, s of wall time from its first read: it reads all along except in a short
+#: stop (start, length), within the emulator's flow-control wait (FlowPtyEndpoint.write_timeout_s,
+#: 1.5 s), and a long one from LONG_STOP_AT: it lasts until bytes have waited unread in the
+#: client's port for LONG_UNREAD_S, past the wait (the port drops only what its client leaves
+#: unread, since 70254b9; a loaded host's kernel can take seconds to deliver any: then a fixed 2 s
+#: stop outlasted nothing, and 3 runs in 10 at load 15-21 saw no drop, or one that ended before
+#: the stop); it ends AFTER_S later; samples before WARM_S are not checked (the stream starting up)
 WARM_S = 0.2
-STOPS = ((0.4, 0.2), (1.1, 2.0))
-READ_END_S = 3.7
+SHORT_STOP = (0.4, 0.2)
+LONG_STOP_AT = 1.1
+LONG_UNREAD_S = FlowPtyEndpoint.write_timeout_s + 0.5
+LONG_STOP_MAX_S = 20.0
+AFTER_S = 0.6
 #: rig time: the physics may lag the clock by a loaded host's scheduling, but not by a write that
 #: waits for the client: half the port's flow-control wait (FlowPtyEndpoint.write_timeout_s,
 #: 1.5 s of wall time = 150 s of rig time at 100x, which a physics loop standing in that write
@@ -109,9 +115,10 @@ def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_p
 
     The stream the client gets is as before (the same checks pass on the old loop): across the
     short stop (shorter than the wait) not one sample is missing, the frames arrive late;
-    the long one drops the frames of the stop (as for a client that went away) and the stream
-    is live again once the client reads; sample times strictly increase throughout."""
-    bounds = sorted([WARM_S] + [x for a, n in STOPS for x in (a, a + n)])
+    the long one (bytes left unread past the wait) drops the frames of the stop (as for a client
+    that went away) and the stream is live again once the client reads; sample times strictly
+    increase throughout."""
+    bounds = [WARM_S, SHORT_STOP[0], sum(SHORT_STOP), LONG_STOP_AT]
     with hardware(tmp_path, SPEED, imu_protocol=protocol) as (hw, _raw):
         rate = hw.world.rate_hz
         wait_until(lambda: hw.lag_s < 5.0, 10.0, "the physics to catch up with the clock after start-up")
@@ -120,15 +127,32 @@ def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_p
             if protocol == "xsens":
                 port.write(go_to_measurement())
             data, lags, marks = bytearray(), [], []     # marks: (bytes received, rig time) at bounds
+            unread_since, go2 = None, None              # (wall s)
+            # the timeline starts at the first bytes (a loaded host's stream started 0.6 s after
+            # GoToMeasurement, past the short stop, 1 run in 4 at load 21)
+            end = time.monotonic() + 10.0
+            while not data and time.monotonic() < end:
+                data += port.read(1 << 16)
+                time.sleep(0.005)
+            assert data, "no stream"
             t0 = time.monotonic()
-            while (w := time.monotonic() - t0) < READ_END_S:
+            while go2 is None or time.monotonic() - t0 < go2 + AFTER_S:
+                w = time.monotonic() - t0
                 while len(marks) < len(bounds) and w >= bounds[len(marks)]:
                     marks.append((len(data), hw.clock.now()))
-                if not any(a <= w < a + n for a, n in STOPS):
+                long_stop = w >= LONG_STOP_AT and go2 is None
+                if long_stop:
+                    unread_since = (unread_since if unread_since is not None else w) if port.in_waiting else None
+                    if unread_since is not None and w - unread_since >= LONG_UNREAD_S:
+                        go2 = w
+                        marks.append((len(data), hw.clock.now()))
+                    assert w - LONG_STOP_AT < LONG_STOP_MAX_S, "the port never delivered a byte in the long stop"
+                if not long_stop and not SHORT_STOP[0] <= w < sum(SHORT_STOP):
                     data += port.read(1 << 16)
                 if w >= WARM_S:
                     lags.append(hw.lag_s)
                 time.sleep(0.005)
+            r_end = hw.clock.now()
         finally:
             port.close()
     worst = max(lags)
@@ -137,10 +161,15 @@ def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_p
     k = np.rint(t * rate).astype(np.int64)
     assert np.allclose(t * rate, k, atol=0.01)              # on the world's grid (STF: 0.1 ms ticks)
     assert (np.diff(k) > 0).all(), "sample times must strictly increase (no repeat, no reordering)"
-    (warm, _), _stop1, _go1, (stop2, r_stop2), (_go2, r_go2) = marks
-    # the short stop: from the warm-up mark until the long stop began, every sample arrived
-    short = k[(off >= warm) & (off < stop2)]
-    assert (short[-1] - short[0]) / rate > 0.3 * SPEED * (STOPS[1][0] - WARM_S), (short[0], short[-1])
+    (warm, _), (stop1, _), (go1, _), (stop2, r_stop2), (_go2, r_go2) = marks
+    # the short stop: from the warm-up mark until the long stop began, every sample arrived. The
+    # stretch checked holds frames received before the stop and after it (by the bytes received
+    # at the marks, not by how fast the stream went: a loaded host's client took 18.8 s of rig
+    # time in the 0.9 s of wall time that once had to hold 27 s, 1 run in 6 at load 22, while no
+    # sample was missing)
+    held = (off >= warm) & (off < stop2)
+    short = k[held]
+    assert (off[held] < stop1).any() and (off[held] >= go1).any(), (warm, stop1, go1, stop2)
     assert (np.diff(short) == 1).all(), f"{int((np.diff(short) - 1).sum())} samples lost around the short stop"
     # the long stop: it dropped samples, those due while the client did not read: none before
     # it began (above), and the frames of the stop up to about when the client read again (not
@@ -148,8 +177,14 @@ def test_a_client_that_stops_reading_holds_back_its_stream_not_the_physics(tmp_p
     # buffer still held frames from before the stop)
     gaps = np.flatnonzero(np.diff(k) > 1)
     assert gaps.size, "the long stop dropped nothing: it did not outlast the flow-control wait"
+    # ... and not for longer than a loaded host takes to give the port room again after the
+    # client's first read (the same allowance as the physics': at load 22 the last frame lost was
+    # due 7.6 s of rig time, 76 ms of wall, after that read; 1 run in 6 failed an allowance of 5 s)
     last_lost = (k[gaps[-1] + 1] - 1) / rate
-    assert r_go2 - LAG_MAX_S <= last_lost <= r_go2 + 5.0, (last_lost, r_stop2, r_go2)
+    assert r_go2 - LAG_MAX_S <= last_lost <= r_go2 + LAG_MAX_S, (last_lost, r_stop2, r_go2)
+    # the stream is live again: the newest frame received is no older than the physics may lag
+    # plus what the port held, not the long stop's (a port that dropped on to the end)
+    assert k[-1] / rate >= r_end - 2 * LAG_MAX_S, (k[-1] / rate, r_end)
 
 
 def test_after_a_pulled_cable_the_client_gets_no_stale_frames_ahead_of_its_reply(tmp_path):

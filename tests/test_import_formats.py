@@ -53,7 +53,7 @@ def test_semicolons_and_decimal_commas_with_and_without_a_header(tmp_path: Path,
 
 def test_iso_datetime_time_column_with_a_gap(tmp_path: Path, capsys) -> None:
     """Date-times with microseconds and a zone, one stretch of 7 samples missing: the rate from
-    the median step, the gap a counter jump, the stamps exact to the microsecond."""
+    its intervals over its span, the gap a counter jump, the stamps exact to the microsecond."""
     g, a = _data(1500, seed=5)
     fs = 50.0
     keep = np.ones(len(g), bool)
@@ -107,7 +107,7 @@ def test_a_frequency_counter_file_needs_its_scale(tmp_path: Path) -> None:
     p = run_rigctl("import", str(src), "-o", str(out), "--columns", "gyr_x=0", "--units", "gyr=rad/s",
                    "--rate", "1")
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
-    assert "column '0' (gyr_x) reads 1e+07 rad/s" in p.stderr and "counts:1e-7 rad/s" in p.stderr, p.stderr
+    assert "column '0' (gx) reads 1e+07 rad/s" in p.stderr and "counts:1e-7 rad/s" in p.stderr, p.stderr
     assert not out.exists()
     assert cli.main(["import", str(src), "-o", str(out), "--columns", "gyr_x=0",
                      "--units", "gyr=counts:1e-7 rad/s", "--rate", "1"]) == 0
@@ -130,7 +130,7 @@ def test_epoch_seconds_with_a_fraction_keep_their_steps(tmp_path: Path, capsys) 
             fh.write(f"{1_700_000_000 + k // 100}.{k % 100 * 10:03d}," + ",".join(f"{v:.7g}" for v in (*g[k], *a[k])) + "\n")
     rec = tmp_path / "epoch.h5"
     assert cli.main(["import", str(csv), "-o", str(rec), "--columns", COLS, "--units", "gyr=rad/s,acc=m/s^2"]) == 0
-    assert "sample rate 100 Hz (median step of the time column); no gaps" in capsys.readouterr().out
+    assert "sample rate 100 Hz (the time column: its intervals over its span); no gaps" in capsys.readouterr().out
     rate, t, counter, _, _ = _read(rec)
     assert abs(rate - 100.0) < 1e-9 and np.array_equal(counter, np.arange(len(g)))
     np.testing.assert_allclose(t, np.arange(len(g)) * 0.01, rtol=0, atol=1e-12)
@@ -152,9 +152,9 @@ def test_stable32_two_column_file_with_mjd_tags(tmp_path: Path, capsys) -> None:
     rec = tmp_path / "clock.h5"
     assert cli.main(["import", str(src), "-o", str(rec), "--columns", "time=0,gyr_x=1",
                      "--units", "gyr=rad/s,time=d"]) == 0
-    assert "sample rate 1 Hz (median step of the time column); 1 gaps, 1 samples missing" in capsys.readouterr().out
+    assert "sample rate 1 Hz (the time column: its intervals over its span); 1 gaps, 1 samples missing" in capsys.readouterr().out
     rate, t, counter, w, _ = _read(rec)
-    # the tags' 12 decimals of a day resolve 86 ns: the median step within 1e-7 of 1 s (as
+    # the tags' 12 decimals of a day resolve 86 ns: the rate within 1e-7 of 1 Hz (as
     # float64, MJD 57000 resolves only 0.6 us: 6e-7)
     assert abs(rate - 1.0) < 1e-7 and np.array_equal(counter, np.flatnonzero(keep))
     np.testing.assert_allclose(t, np.flatnonzero(keep).astype(float), rtol=0, atol=1e-7)
@@ -217,8 +217,8 @@ def test_bag_fields_nobody_filled_are_left_out(tmp_path: Path, capsys) -> None:
     _gyro_only_bag(bag, gx, 100.0)
     rec = tmp_path / "bag.h5"
     assert cli.main(["import", str(bag), "-o", str(rec)]) == 0
-    assert ("not filled in any message (the same value throughout), stored as NaN: acc_x, acc_y, acc_z, "
-            "gyr_y, gyr_z; rigctl allan analyses the others (gx)") in capsys.readouterr().out
+    assert ("not filled in any message (the same value throughout), stored as NaN: ax, ay, az, "
+            "gy, gz; rigctl allan analyses the others (gx)") in capsys.readouterr().out
     with h5py.File(rec, "r") as f:
         assert f["meta"].attrs["import_axes"] == "gx"
         w = f["imu/angular_rate"][()]

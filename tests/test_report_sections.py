@@ -163,6 +163,29 @@ def test_calibration_sections_show_the_fit_in_field_units(calibrated: Path) -> N
 RATE = 100.0
 
 
+def test_calibration_names_each_axis_one_way(full_calibration_run) -> None:
+    """The new-user audit: `rigctl calibrate` named the channels accel_x ... gyro_z while rigctl
+    allan and the recording format say ax ... gz. Text, JSON and the HTML report now use the
+    one spelling (rigctl.sensor_axes; docs/data-format.md, "Axis names")."""
+    import re
+
+    run_dir, stdout = full_calibration_run
+    axes = ["ax", "ay", "az", "gx", "gy", "gz"]
+    old = re.compile(r"\b(?:accel|gyro|acc|gyr)_[xyz]\b|\b(?:accelerometer|gyro) [xyz]\b")
+    assert not old.search(stdout), old.search(stdout)
+    assert [ln.split()[0] for ln in stdout.splitlines() if re.match(r"  [ag][xyz] +N ", ln)] == axes
+    with h5py.File(run_dir / "recording.h5", "r") as f:
+        text = f["results/calibration"].attrs["json"]
+    payload = json.loads(text)
+    assert not old.search(text), old.search(text)
+    cl = report.find_session(payload)["closed_loop"]
+    assert [t["channel"] for t in cl["rms_table"]] == [*axes, "all"]
+    page = (run_dir / "report.html").read_text()
+    assert not old.search(page), old.search(page)
+    rows = {row[0] for row in Page(page).rows["closed-loop"] if row}
+    assert set(axes) <= rows, rows
+
+
 @pytest.fixture(scope="module")
 def tap_recording(tmp_path_factory) -> Path:
     """A tap session (emulated), written as a minimal recording, synchronised by rigctl sync."""

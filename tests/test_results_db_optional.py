@@ -6,13 +6,17 @@ The extra's absence is made real for this process by making its module unimporta
 """
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from recording_helpers import write_recording
 from rigctl.analysis import production
+from rigctl.errors import InputError
 
 
 @pytest.fixture
@@ -33,10 +37,16 @@ def test_the_default_database_says_nothing_without_the_extra(without_db_extra, t
 
 
 def test_an_explicit_database_says_what_to_install(without_db_extra, tmp_path) -> None:
+    """An explicit --db without the extra is invalid input (exit 2), not a printed line after
+    which the command exited 0 (the audit)."""
     target = str(tmp_path / "lab.sqlite")
-    line = production.to_database(tmp_path / "recording.h5", "allan", {}, target)
+    with pytest.raises(InputError) as e:
+        production.to_database(tmp_path / "recording.h5", "allan", {}, target)
+    line = str(e.value)
     assert "\n" not in line and target in line and "pip install -e '.[db]'" in line, line
     assert production.to_database(tmp_path / "recording.h5", "allan", {}, "none") == ""
+    production.check_database_option(None, "rigctl allan")  # the default needs no extra
+    production.check_database_option("none", "rigctl allan")
 
 
 def _rigctl_without_db_extra(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -56,3 +66,43 @@ def test_history_without_the_extra_says_what_to_install(tmp_path) -> None:
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "pip install -e '.[db]'" in lines[0] and "internal error" not in lines[0], r.stderr
+
+
+def _white_recording(path: Path) -> Path:
+    """A 200 s, 100 Hz still record of white noise (no segments: Allan analysis only)."""
+    rng = np.random.default_rng(3)
+    path.parent.mkdir(parents=True)
+    return write_recording(path, 100.0, angular_rate=1e-3 * rng.standard_normal((20000, 3)),
+                           specific_force=np.array([0.0, 0.0, 9.81]) + 1e-3 * rng.standard_normal((20000, 3)))
+
+
+def test_batch_without_the_extra_runs(tmp_path) -> None:
+    """`rigctl batch` needs the database module only to find its output folder: without the
+    extra it stopped with 'rigctl batch needs the results database' (exit 2) before analysing
+    anything; now it analyses, writes its summary and says nothing of a database. (The
+    recording has no 24-position segments: its calibration fails at once, exit 1, which keeps
+    the test fast; the batch and its summary run as for any other.)"""
+    _white_recording(tmp_path / "runs" / "a" / "recording.h5")
+    r = _rigctl_without_db_extra("batch", "runs/*/recording.h5", "--workers", "1", "--out", "summary",
+                                 cwd=tmp_path)
+    out = r.stdout + r.stderr
+    assert r.returncode == 1 and "0 of 1 analysed" in r.stdout, out
+    assert "[db]" not in out and "database" not in out, out
+    summary = json.loads((tmp_path / "summary" / "summary.json").read_text())
+    assert summary["summary"][next(iter(summary["summary"]))]["recordings"] == 1
+    assert not list(tmp_path.rglob("*.sqlite"))
+
+
+@pytest.mark.parametrize("command", [("allan",), ("calibrate",), ("batch",)])
+def test_explicit_db_without_the_extra_exits_2_first(tmp_path, command) -> None:
+    """`--db URL` without the extra: the analysis ran, a line said what to install and the
+    command exited 0; now one line naming the extra, exit 2, before any analysis output."""
+    rec = _white_recording(tmp_path / "run" / "recording.h5")
+    r = _rigctl_without_db_extra(command[0], str(rec), *command[1:], "--db", "sqlite:///lab.sqlite",
+                                 cwd=tmp_path)
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "pip install -e '.[db]'" in lines[0] and "sqlite:///lab.sqlite" in lines[0], r.stderr
+    assert r.stdout == "", r.stdout  # nothing analysed, nothing printed before the error
+    with __import__("h5py").File(rec, "r") as f:
+        assert "results" not in f

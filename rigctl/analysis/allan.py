@@ -28,6 +28,7 @@ from ..errors import InputError
 from ..progress import WorkProgress
 from ..jsonable import jsonable
 from ..recording.recorder import write_results
+from ..sensor_axes import ACCEL_AXES, GYRO_AXES
 from ..recording.recording_reader import (PLAUSIBLE, RowPieces, RowReader, as_array, check_finite,
                                           open_recording, release, sample_rate)
 from ..solvers import allan as A
@@ -44,9 +45,10 @@ from . import allan_quiet as QS
 from . import allan_excursions as EXA
 from . import production
 
-AXES = {"gx": ("/imu/angular_rate", 0, "gyro"), "gy": ("/imu/angular_rate", 1, "gyro"),
-        "gz": ("/imu/angular_rate", 2, "gyro"), "ax": ("/imu/specific_force", 0, "accel"),
-        "ay": ("/imu/specific_force", 1, "accel"), "az": ("/imu/specific_force", 2, "accel")}
+#: axis (rigctl.sensor_axes: the one spelling) -> (dataset, column, sensor); gyros first, the
+#: order of the output
+AXES = {**{g: ("/imu/angular_rate", i, "gyro") for i, g in enumerate(GYRO_AXES)},
+        **{a: ("/imu/specific_force", i, "accel") for i, a in enumerate(ACCEL_AXES)}}
 #: display unit of the deviation per sensor: (label, factor from SI)
 DEV_UNITS = {"gyro": ("deg/h", 180.0 / math.pi * 3600.0), "accel": ("mg", 1000.0 / F.G0)}
 MIN_SAMPLES = 64

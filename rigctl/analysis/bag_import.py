@@ -48,6 +48,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..errors import InputError
+from ..units import format_rate
 from ..recording.foreign import MCAP_MAGIC, ROSBAG1_MAGIC, SQLITE_MAGIC, bag_kind  # noqa: F401 - bag_kind: the import command asks here
 
 #: the message type, in rosbags' normalised (ROS 2) spelling; ROS 1's sensor_msgs/Imu maps to it
@@ -581,7 +582,7 @@ def describe(b: BagImu) -> list[str]:
     dur = float(b.time_s[-1]) if b.time_s.size else 0.0
     lines = [f"{b.source_format}: topic {b.topic} ({b.msgtype}, frame_id '{b.frame_id}'), "
              f"{b.n_messages} messages over {dur:.3f} s, time = {b.time_source}",
-             f"sample rate {b.rate_hz:.8g} Hz (mean interval, gaps counted: "
+             f"sample rate {format_rate(b.rate_hz)} (mean interval, gaps counted: "
              f"{b.interval_ns / 1e6:.8g} ms; median interval {b.median_interval_ns / 1e6:.8g} ms)"]
     if b.gaps:
         lines.append(f"gaps: {b.gaps} ({b.missing_samples} samples missing, largest "

@@ -31,6 +31,7 @@ from ..config.spec import load_spec
 from . import production
 from ..display_units import format_value
 from ..errors import RigctlError
+from ..recording.results_place import DEFAULT_NAME, default_path
 
 ANALYSES = ("calibrate", "allan")
 
@@ -151,21 +152,26 @@ def summarise(results: list[dict[str, Any]], lots: dict[str, str], with_spec: bo
 
 def database_home(recordings: Iterable[str]) -> Path:
     """The folder that holds all the run directories: the common folder of each recording's
-    default results database (rigctl.recording.results_db.default_path)."""
-    db = production.results_db_module("rigctl batch")
-
-    return Path(os.path.commonpath([str(db.default_path(r).parent) for r in recordings]))
+    default results database (rigctl.recording.results_place.default_path: needs no db extra)."""
+    return Path(os.path.commonpath([str(default_path(r).parent) for r in recordings]))
 
 
 def store_in_database(results: list[dict[str, Any]], lots: dict[str, str], target: str | None,
                       home: Path) -> str:
     """Write every analysed recording of a batch to the results database through one engine
     (one writer); ``target`` None: results.sqlite in ``home``, "none": nothing. Returns the
-    line to print ("" when nothing was written)."""
+    line to print ("" when nothing was written: also for the default database without the db
+    extra, as for one analysis; an explicit ``target`` without it is refused before the batch,
+    rigctl.analysis.production.check_database_option)."""
     if target == "none":
         return ""
+    if target is None:
+        try:
+            from ..recording import results_db  # noqa: F401 - optional dependency (rigctl[db])
+        except ImportError:
+            return ""
     db = production.results_db_module("rigctl batch")
-    target = target or str(home / db.DEFAULT_NAME)
+    target = target or str(home / DEFAULT_NAME)
     line = ""
     engine = db.open_db(target)
     try:

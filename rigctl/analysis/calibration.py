@@ -43,6 +43,7 @@ from ..recording.checkpoint import write_atomic
 from ..recording.recorder import utc_now
 from ..recording.segment_builder import CAL_KINDS, build_segment_table, open_recording, store_calibration_results
 from ..jsonable import jsonable
+from ..sensor_axes import ACCEL_AXES, GYRO_AXES
 from ..solvers.calibration_result import CalibrationResult
 from ..solvers.noise_coefficients import Triad
 from .allan import load_noise
@@ -66,7 +67,7 @@ def noise_from_allan(f: h5py.File, where: Path | None = None) -> tuple[Triad, Tr
     intervals too narrow (docs/calibration.md, section 10)."""
     axes = load_noise(f, where)
     out = []
-    for names in (("ax", "ay", "az"), ("gx", "gy", "gz")):
+    for names in (ACCEL_AXES, GYRO_AXES):
         if not all(a in axes for a in names):
             return None
         out.append(tuple(axes[a] for a in names))
@@ -91,9 +92,7 @@ def _unit_ids(f: h5py.File) -> dict[str, str]:
 def _noise_from_file(f: h5py.File, path: Path, src: Path) -> tuple[Any, Any, str]:
     """The noise model of another recording of the same unit (an overnight static capture that
     ``rigctl allan`` analysed): its /results/allan, after checking the unit's identity."""
-    if not src.is_file():
-        raise InputError(f"--noise {src}: no such file", hint="give a recording that `rigctl allan` "
-                         "analysed (e.g. an overnight capture of procedures/allan-overnight.yaml), or auto/self")
+    check_noise_choice(str(src))
     with open_recording(src) as g:
         nm = noise_from_allan(g, src)
         ids_src, fs_src = _unit_ids(g), float(g["imu"].attrs.get("sample_rate_hz", 0.0))
@@ -114,6 +113,22 @@ def _noise_from_file(f: h5py.File, path: Path, src: Path) -> tuple[Any, Any, str
     return nm[0], nm[1], (f"from {src}:/results/allan (IEEE 952 terms fitted by rigctl allan on another "
                           f"recording{note}{rate}; segment covariance from N, Q, B (flicker band 1 s - 1e4 s) "
                           "and K)")
+
+
+def check_noise_choice(choice: str) -> None:
+    """Refuse a ``--noise`` that is neither auto/allan/self nor a recording file: one line saying
+    what was given (a directory, a missing file) and what to give. Cheap: the commands call it
+    before the analysis, so the error comes before any progress line."""
+    if choice in NOISE_CHOICES:
+        return
+    src = Path(choice)
+    what = ("is a directory, not a recording" if src.is_dir() else
+            "no such file" if not src.exists() else "" if src.is_file() else "is not a regular file")
+    if what:
+        raise InputError(f"--noise {src}: {what}",
+                         hint="give the recording.h5 of a capture that `rigctl allan` analysed (e.g. "
+                              f"{src / 'recording.h5' if src.is_dir() else 'runs/<run>/recording.h5'}"
+                              " of procedures/allan-overnight.yaml), or auto, allan or self")
 
 
 def _noise(f: h5py.File, choice: str, path: Path) -> tuple[Any, Any, str]:

@@ -60,11 +60,12 @@ def noise_summary(models: list[Any], t0: float = 0.0) -> tuple[list[str], list[d
     of rigctl.display_units.NOISE_UNITS, slugged into the keys: N_deg_per_sqrt_h, B_mg, ...),
     each term with its 95 % interval or, where the data support only that, its 95 % upper bound
     (:func:`coefficient_text`); t0: the random walk's origin the covariance used, s."""
+    from ..sensor_axes import SENSOR
     from ..solvers.segments import CHANNELS
 
     lines, rows = [], []
     for ch, m in zip(CHANNELS, models):
-        U = NOISE_UNITS[ch.split("_")[0]]
+        U = NOISE_UNITS[SENSOR[ch]]
         (nu, nf), (bu, bf), (ku, kf) = U["N"], U["B"], U["K"]
         info = m.details
         ngroup = {g: coefficient_from(c) for g, c in info.get("N_by_group", {}).items()}

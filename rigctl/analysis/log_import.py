@@ -29,6 +29,8 @@ from ..devices import ImuBlock
 from ..errors import InputError
 from ..frames import normal_gravity
 from ..recording.recording_reader import MAX_RATE_HZ, PLAUSIBLE
+from ..sensor_axes import ACCEL_AXES, AXES, GYRO_AXES, SENSOR, axis_name, canonical
+from ..units import format_rate
 from . import bag_import as B
 
 #: progress(done, total) while a bag is read (messages)
@@ -41,7 +43,7 @@ class ImportOptions:
 
     file: str | Path
     output: str | Path
-    columns: str | None = None      # CSV: acc_x=COL,... or a YAML/JSON mapping file
+    columns: str | None = None      # CSV: ax=COL,...,gz=COL or a YAML/JSON mapping file
     units: str | None = None        # CSV: acc=g,gyr=deg/s, counts:SCALE UNIT, time=s|ms|us
     rate: float | None = None       # CSV: nominal sample rate, Hz
     skip_rows: int = 0              # CSV: lines before the header
@@ -57,7 +59,9 @@ class ImportOptions:
 
 G0 = 9.80665
 DEG = math.pi / 180.0
-REQUIRED = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
+#: the sensor columns, by their one spelling (rigctl.sensor_axes; acc_x, gyr_x, accel_x, gyro_x
+#: ... are read as these)
+REQUIRED = AXES
 OPTIONAL = ("time", "temp", "section")
 UNIT_FACTORS = {
     "acc": {"g": G0, "mg": G0 * 1e-3, "m/s^2": 1.0, "m/s2": 1.0},
@@ -84,7 +88,7 @@ def parse_columns(text: str) -> dict[str, str]:
             line = getattr(getattr(exc, "problem_mark", None), "line", None)
             raise InputError(f"not valid YAML/JSON ({exc})", p, None if line is None else line + 1) from None
         if not isinstance(data, dict):
-            raise InputError("the column map must be a mapping like acc_x: ax", p, 1)
+            raise InputError("the column map must be a mapping like ax: AccX", p, 1)
         mapping = {str(k): str(v) for k, v in data.items()}
         src: Any = p
     else:
@@ -92,10 +96,13 @@ def parse_columns(text: str) -> dict[str, str]:
         for part in filter(None, (s.strip() for s in text.split(","))):
             if "=" not in part:
                 raise InputError(f"--columns: {part!r} is not KEY=COLUMN",
-                                 hint="e.g. acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz")
+                                 hint="e.g. ax=AccX,ay=AccY,az=AccZ,gx=GyrX,gy=GyrY,gz=GyrZ")
             k, v = part.split("=", 1)
+            if k.strip() in mapping:
+                raise InputError(f"--columns: {k.strip()!r} given twice")
             mapping[k.strip()] = v.strip()
         src = None
+    mapping = _canonical_keys(mapping, src)
     bad = [k for k in mapping if k not in REQUIRED + OPTIONAL]
     if bad or not any(k in mapping for k in REQUIRED):
         raise InputError(f"--columns: unknown keys {bad}" if bad else "--columns: no sensor column", src,
@@ -103,6 +110,18 @@ def parse_columns(text: str) -> dict[str, str]:
                               "a sensor column left out is stored as NaN, e.g. a gyro-only capture "
                               "for rigctl allan)")
     return mapping
+
+
+def _canonical_keys(mapping: dict[str, str], src: Any) -> dict[str, str]:
+    """The column map with each sensor key in its one spelling (acc_x, gyr_x, accel_x, gyro_x
+    -> ax, gx: rigctl.sensor_axes.canonical); an axis given under two spellings is refused."""
+    out: dict[str, str] = {}
+    for k, v in mapping.items():
+        key = canonical(k) or k
+        if key in out:
+            raise InputError(f"--columns: axis {key} given twice ({k!r} is another spelling of it)", src)
+        out[key] = v
+    return out
 
 
 def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str, float]:
@@ -140,6 +159,56 @@ def parse_units(text: str, needed: tuple[str, ...] = ("acc", "gyr")) -> dict[str
 
 #: the column header of a Stable32 result file ("#  AF   Tau   #   Alpha  Min Sigma ...")
 _STABLE32_RESULT = re.compile(r"\s*#\s*AF\s+Tau\s+#\s+Alpha\b")
+#: a Stable32 data file's header lines (``# Type: Phase``, ``# Tau: 2.500000e+00``)
+_STABLE32_HEADER = re.compile(r"\s*#\s*(Type|Tau)\s*:\s*(\S+)", re.IGNORECASE)
+
+
+def stable32_header(path: Path) -> dict[str, str]:
+    """``{"type": "phase"|"freq"|..., "tau": "2.5e+00"}`` from the ``#`` header of a Stable32
+    data file (its first 4 kB; gzip read decompressed), lower-case keys; {} for any other file
+    or one that cannot be read (read_table then says why)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+        if head[:2] == b"\x1f\x8b":
+            with gzip.open(path, "rb") as fh:
+                head = fh.read(4096)
+        text = head.decode("utf-8-sig", errors="replace")
+    except (OSError, EOFError, zlib.error):
+        return {}
+    out: dict[str, str] = {}
+    for line in text.splitlines()[:40]:
+        m = _STABLE32_HEADER.match(line)
+        if m:
+            out.setdefault(m.group(1).lower(), m.group(2))
+    return out
+
+
+def stable32_notes(header: dict[str, str], rate: float | None, integrated: bool,
+                   time_column: bool) -> list[str]:
+    """Warnings where the options disagree with a Stable32 data file's own header: ``Type:
+    Phase`` without --integrated (the time error would be taken for a rate), ``Type: Freq``
+    with it, and --rate other than 1 / ``Tau`` (without a time column). Empty otherwise."""
+    out = []
+    kind = header.get("type", "").lower()
+    if kind.startswith("phase") and not integrated:
+        out.append("warning: the file's header says Type: Phase (time error, s): without "
+                   "--integrated and --units gyr=rad its values were taken as rates; phase data: "
+                   "--units gyr=rad --integrated")
+    if kind.startswith("freq") and integrated:
+        out.append("warning: the file's header says Type: Freq (fractional frequency, a rate): "
+                   "--integrated differenced it as if it were phase; frequency data: --units "
+                   "gyr=rad/s without --integrated")
+    try:
+        tau = float(header["tau"])
+    except (KeyError, ValueError):
+        tau = math.nan
+    if rate is not None and not time_column and tau > 0 and abs(rate * tau - 1.0) > 1e-6:
+        out.append(f"warning: the file's header says Tau: {tau:g} s (--rate {1.0 / tau:.8g}); "
+                   f"--rate {rate:g} was given")
+    return out
+
+
 #: separators tried in this order on the first data line (else runs of whitespace)
 DELIMITERS = (",", "\t", ";")
 
@@ -174,7 +243,7 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     if any(_STABLE32_RESULT.match(ln) for ln in lines[:first]):
         raise InputError("a Stable32 result table (averaging factor, tau, deviation per line), not samples",
                          path, hint="rigctl import takes the phase or frequency data the table was computed "
-                                    "from (e.g. --columns gyr_x=0 --units gyr=rad --integrated --rate 1 for "
+                                    "from (e.g. --columns gx=0 --units gyr=rad --integrated --rate 1 for "
                                     "phase in s); rigctl allan then computes the deviations")
     probe = lines[first: first + 2]
     # semicolons on every probed line first: a European export separates with ';' because its
@@ -408,10 +477,17 @@ def _is_static(acc: np.ndarray, gyr: np.ndarray, ref_noise: float) -> bool:
 _WALL_CLOCK_NS = (631_152_000 * 10**9, 4_102_444_800 * 10**9)
 
 
+#: a capture read as ending later than this after the import is not dated by its stamps, s
+FUTURE_SLACK_S = 86400.0
+
+
 def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] | None:
     """(started_utc, ended_utc) of a capture whose first stamp is ``stamp_zero_ns`` (ns since
     the Unix epoch) and which lasts ``duration_s``, as the recorder writes times; None when the
-    stamp is not a wall-clock time (see _WALL_CLOCK_NS)."""
+    stamp is not a wall-clock time (see _WALL_CLOCK_NS) or the capture would end after the
+    import (more than FUTURE_SLACK_S later: a clock-zone slip is allowed, a future is not).
+    The second rule catches seconds counted from another epoch: a Stable32 or NTP time tag of
+    2016 (seconds since 1900, 3.66e9) read as Unix seconds is a date in 2086."""
     import datetime as _dt
 
     if not _WALL_CLOCK_NS[0] <= int(stamp_zero_ns) < _WALL_CLOCK_NS[1]:
@@ -419,6 +495,9 @@ def _wall_clock_span(stamp_zero_ns: int, duration_s: float) -> tuple[str, str] |
     t0 = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc) + _dt.timedelta(
         microseconds=int(stamp_zero_ns) // 1000)
     t1 = t0 + _dt.timedelta(seconds=float(duration_s))
+    now = _dt.datetime.now(_dt.timezone.utc)
+    if (t1 - now).total_seconds() > FUTURE_SLACK_S:
+        return None
     iso = "%Y-%m-%dT%H:%M:%S.%fZ"
     return t0.strftime(iso), t1.strftime(iso)
 
@@ -521,7 +600,7 @@ def check_plausible(src: Path, mapping: dict[str, str], acc: np.ndarray, gyr: np
         if not big.any():
             continue
         row, c = (int(v[0]) for v in np.nonzero(big))
-        name = f"{sensor}_{'xyz'[c]}"
+        name = axis_name("gyro" if sensor == "gyr" else "accel", c)
         share = float(big[:, c].mean())
         raise InputError(
             f"column {mapping.get(name, name)!r} ({name}) reads {data[row, c]:.6g} {unit} at data row "
@@ -616,6 +695,64 @@ def _binary(src: Path) -> bool:
     return b"\x00" in head and not head.startswith(b"\x1f\x8b")
 
 
+def stamp_rate(dt: np.ndarray) -> float:
+    """The sample rate a time column gives, Hz, from its steps ``dt`` (s, all > 0): the number
+    of sample intervals over the stamps' span, rate = sum(k) / sum(dt), where k = max(1,
+    rint(dt / d1)) counts each step's intervals (k - 1 dropped samples: the gap rule) and d1
+    is the mean of the steps that are not gaps (at most 1.75 x the median step).
+
+    Not the median step: stamps rounded to a clock's tick take only a few values, and the
+    median is one of them -- a 400 Hz IMU stamped in whole milliseconds steps 2, 3, 2, 3 ms,
+    whose median (2 ms) said 500 Hz, 25 % off, and every tau with it; 99.987 Hz stamped to
+    1 us gave 99.990001. The span of n stamps is read to one tick over (n - 1) intervals.
+    The 1.75 keeps the long steps of a rounded cadence (3 ms against a median of 2) in d1 and
+    a step of two intervals (a dropped sample) out of it."""
+    d_med = float(np.median(dt))
+    regular = dt <= 1.75 * d_med
+    d1 = float(np.mean(dt[regular]))
+    k = np.maximum(1.0, np.rint(dt / d1))
+    return float(k.sum() / dt.sum())
+
+
+#: a time column whose steps are gaps (longer than 1.5 intervals) more often than this is not
+#: "one interval with occasional drops", and the import says so (cadence_warnings)
+GAP_STEP_SHARE = 0.05
+
+
+def cadence_warnings(dt: np.ndarray, rate: float, given: bool) -> list[str]:
+    """Warnings on a time column that the gap rule (a step of k intervals = k - 1 dropped
+    samples, k = rint(step * rate)) would misread. ``dt``: the steps, s; ``rate``: the sample
+    rate the import uses, Hz (``given``: by --rate, else :func:`stamp_rate`).
+
+    Two cases: (1) more than GAP_STEP_SHARE of the steps are gaps -- an instrument reporting
+    in a cycle (a clock comparison's three 1.3-s readings then a 6.6-s pause, a Stable32
+    data file whose Tau is the cycle's mean), whose "gaps" would leave Allan stretches of a few
+    samples and a curve of two taus; (2) with --rate, steps shorter than half its interval
+    (rint gives 0: two samples in one interval, counted as consecutive). Each: one line naming
+    the counts, the median and mean step, and the way to import the samples as equally spaced
+    (no time column, --rate 1 / mean step) when the instrument's own time base is regular."""
+    if dt.size == 0:
+        return []
+    k = np.rint(dt * rate)
+    gaps = int(np.count_nonzero(k > 1))
+    short = int(np.count_nonzero(k < 1)) if given else 0
+    out = []
+    fix = (f"median step {np.median(dt):.6g} s, mean {np.mean(dt):.6g} s; if the instrument's "
+           "samples are equally spaced in its own time base (a counter's gate, a clock "
+           "comparison's cycle, a Stable32 data file's Tau), import without time= in --columns "
+           f"and give --rate (1 / mean step = {format_rate(1.0 / float(np.mean(dt)))})")
+    if gaps > GAP_STEP_SHARE * dt.size:
+        out.append(f"warning: {gaps} of {dt.size} steps of the time column "
+                   f"({100.0 * gaps / dt.size:.0f} %) are longer than 1.5 intervals of "
+                   f"{format_rate(rate)} and were taken as gaps: not one interval with occasional drops "
+                   f"but an irregular cadence ({fix})")
+    if short:
+        out.append(f"warning: {short} of {dt.size} steps of the time column are shorter than "
+                   f"half the interval of --rate {format_rate(rate)} (two samples in one interval, "
+                   f"counted as consecutive) ({fix})")
+    return out
+
+
 def import_csv(args: ImportOptions) -> Imported:
     """Read, convert and write a CSV log."""
     src = Path(args.file)
@@ -631,16 +768,22 @@ def import_csv(args: ImportOptions) -> Imported:
     for opt in ("columns", "units"):
         if not getattr(args, opt):
             raise InputError(f"--{opt} is required for a CSV file", src,
-                             hint="e.g. --columns acc_x=ax,...,gyr_z=gz --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
+                             hint="e.g. --columns ax=AccX,...,gz=GyrZ --units acc=g,gyr=deg/s; a ROS bag or MCAP file needs neither")
     check_output(src, out, args.force)
     mapping = parse_columns(args.columns)
-    present = tuple(k for k in ("acc", "gyr") if any(f"{k}_{c}" in mapping for c in "xyz"))
+    present = tuple(k for k, names in (("acc", ACCEL_AXES), ("gyr", GYRO_AXES)) if any(a in mapping for a in names))
     factors = parse_units(args.units, present)
     if args.rate is not None and not 0 < args.rate <= MAX_RATE_HZ:
         raise InputError(f"--rate {args.rate:g} is outside (0, {MAX_RATE_HZ:g}] Hz", src)
+    header = stable32_header(src)
     if args.rate is None and "time" not in mapping:
+        try:
+            tau = float(header["tau"])
+        except (KeyError, ValueError):
+            tau = math.nan
         raise InputError("--rate HZ is required without a time column (time= in --columns)", src,
-                         hint="give the nominal sample rate, e.g. --rate 100")
+                         hint=(f"the file's Stable32 header says Tau: {tau:g} s: --rate {1.0 / tau:.8g}"
+                               if tau > 0 else "give the nominal sample rate, e.g. --rate 100"))
     check_ranges(args)
     lines: list[str] = []
     cols, first_line = read_table(src, mapping, args.skip_rows, lines)
@@ -665,19 +808,22 @@ def import_csv(args: ImportOptions) -> Imported:
                              hint="fix the time column or drop time= from --columns (then --rate)")
         if n < 2:
             raise InputError("one data row: no sample rate", src)
-        rate = float(args.rate) if args.rate is not None else 1.0 / float(np.median(dt))
+        rate = float(args.rate) if args.rate is not None else stamp_rate(dt)
         if not 0 < rate <= MAX_RATE_HZ:
             raise InputError(f"the time column gives {rate:g} Hz, outside (0, {MAX_RATE_HZ:g}]", src,
                              hint="check the time unit (--units time=s|ms|us|ns|min|h|d)")
         # dropped samples: steps longer than 1.5 intervals become /imu/counter jumps
         counter = np.concatenate(([0], np.cumsum(np.maximum(1, np.rint(dt * rate))))).astype(np.uint64)
         missing = int(counter[-1]) + 1 - n
-        lines.append(f"sample rate {rate:.8g} Hz ({'given' if args.rate is not None else 'median step of the time column'}); "
+        lines.append(f"sample rate {format_rate(rate)} ({'given' if args.rate is not None else 'the time column: its intervals over its span'}); "
                      + (f"{int((np.rint(dt * rate) > 1).sum())} gaps, {missing} samples missing "
                         "(/imu/counter jumps)" if missing else "no gaps"))
+        lines.extend(cadence_warnings(dt, rate, args.rate is not None))
     else:
         rate = float(args.rate)
         t = np.arange(n) / rate
+        lines.append(f"sample rate {format_rate(rate)} (given; no time column: sample k at t = k / rate)")
+    lines.extend(stable32_notes(header, args.rate, bool(args.integrated), "time" in cols))
     temp = cols["temp"] if "temp" in cols else np.full(n, np.nan)
     incr = [k for k in ("acc", "gyr") if factors.get(f"{k}_increment")]
     if args.integrated and not incr:
@@ -705,11 +851,10 @@ def import_csv(args: ImportOptions) -> Imported:
             else:
                 gyr = gyr * (rate / steps)[:, None]
         lines.append(f"{' and '.join(incr)}: {'running integrals, differenced' if args.integrated else 'increments per sample'} "
-                     f"and divided by the sample interval (1/{rate:g} s) into rates")
+                     f"and divided by the sample interval (1 / {format_rate(rate)}) into rates")
     absent = [k for k in REQUIRED if k not in mapping]
     if absent:
-        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
-                         "gyr_z": "gz"}[k] for k in REQUIRED if k in mapping)
+        axes = ",".join(k for k in REQUIRED if k in mapping)
         if args.segments:  # the user's sections (a capture each unless it says otherwise)
             sections = [{**s, "kind": s["kind"] or "capture"}
                         for s in sections_from_json(Path(args.segments), n)]
@@ -737,13 +882,18 @@ def import_csv(args: ImportOptions) -> Imported:
         meta["import_stamp_zero_ns"] = np.int64(zero_ns)
         meta["clock_zero_unix_s"] = zero_ns * 1e-9
         lines.append(f"dated by the time column: {span[0]} to {span[1]} (UTC)")
+    elif zero_ns is not None and _WALL_CLOCK_NS[0] <= zero_ns < _WALL_CLOCK_NS[1]:
+        lines.append("not dated by the time column: read as seconds since 1970 its stamps lie "
+                     "after this import (another epoch? NTP and Stable32 time tags count from "
+                     "1900); the capture's start is unknown (/meta capture_time; started_utc is "
+                     "the import's own time)")
     else:
         lines.append("no wall-clock time stamps in the file: the capture's start is unknown "
                      "(/meta capture_time; started_utc is the import's own time)")
     write_recording(out, t, acc, gyr, temp, rate, sections, meta, counter=counter,
                     ended_utc=None if span is None else span[1])
     return Imported(out, n, rate, sections,
-                    [f"imported {n} samples at {rate:g} Hz from {args.file}", *lines])
+                    [f"imported {n} samples from {args.file}", *lines])
 
 
 def import_bag(args: ImportOptions, progress: Progress | None = None) -> Imported:
@@ -765,20 +915,19 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
     # a field the sender did not fill (every message the same value, e.g. 0 from a gyro-only
     # driver) is no measurement: stored as NaN and left out of the axes rigctl allan analyses
     acc, gyr = b.specific_force, b.angular_rate
-    unfilled = [f"{k}_{'xyz'[c]}" for k, d in (("acc", acc), ("gyr", gyr)) for c in range(3)
+    unfilled = [axis_name(k, c) for k, d in (("accel", acc), ("gyro", gyr)) for c in range(3)
                 if n >= 64 and np.ptp(d[:, c]) == 0.0]
     extra: list[str] = []
     axes = ""
     if unfilled:
         acc, gyr = acc.copy(), gyr.copy()
         for name in unfilled:
-            (acc if name.startswith("acc") else gyr)[:, "xyz".index(name[-1])] = np.nan
+            (acc if SENSOR[name] == "accel" else gyr)[:, "xyz".index(name[-1])] = np.nan
         present = [k for k in REQUIRED if k not in unfilled]
         if not present:
             raise InputError(f"topic {b.topic}: every field of every message is constant: no measurement",
                              src, hint="check the topic (--topic) and the sender")
-        axes = ",".join({"acc_x": "ax", "acc_y": "ay", "acc_z": "az", "gyr_x": "gx", "gyr_y": "gy",
-                         "gyr_z": "gz"}[k] for k in present)
+        axes = ",".join(present)
         sections = [{"label": "whole record", "start": 0, "end": n, "kind": "capture"}]
         origin = "the whole record (fields not filled: no static-interval detection)"
         extra.append(f"not filled in any message (the same value throughout), stored as NaN: "
@@ -798,7 +947,7 @@ def import_bag(args: ImportOptions, progress: Progress | None = None) -> Importe
         "import_gaps": b.gaps, "import_missing_samples": b.missing_samples,
         "import_duplicates_dropped": b.duplicates_dropped,
         "import_receive_minus_stamp_s_json": json.dumps(b.receive_minus_stamp_s), "import_axes": axes})
-    note = f"topic {b.topic}, {b.time_source}, rate {b.rate_hz:.8g} Hz, {gaps}"
+    note = f"topic {b.topic}, {b.time_source}, rate {format_rate(b.rate_hz)}, {gaps}"
     if b.truncated:
         note += f"; {b.truncated}"
     span = _wall_clock_span(b.stamp_zero_ns, float(b.time_s[-1]) if n else 0.0)

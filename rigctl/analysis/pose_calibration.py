@@ -25,6 +25,7 @@ import numpy as np
 from .calibration_text import param_table
 from ..errors import InputError
 from ..recording.segment_builder import open_recording
+from ..sensor_axes import axis_name
 from ..solvers import pose_loop as pl
 from ..solvers.calibration_result import STATUS_INSUFFICIENT, CalibrationResult
 
@@ -74,9 +75,15 @@ def _rms(x: np.ndarray) -> np.ndarray:
 
 def _row(channel: str, unit: str, raw: np.ndarray, decl: np.ndarray, fin: np.ndarray, floor: np.ndarray,
          f: float) -> list[dict[str, Any]]:
-    return [{"channel": f"{channel} {a}", "unit": unit, "raw": float(r * f), "declared": float(d * f),
+    """Before/after rows of x, y, z. ``channel``: a sensor ('accel', 'gyro'), named by its axes'
+    one spelling (rigctl.sensor_axes: 'ax', 'gx'), followed by what it is compared with (e.g.
+    'gyro at rest' -> 'gx at rest'); anything else keeps its name with the axis letter after it."""
+    sensor, _, what = channel.partition(" ")
+    names = ([f"{axis_name(sensor, i)} {what}".rstrip() for i in range(3)] if sensor in ("accel", "gyro")
+             else [f"{channel} {a}" for a in "xyz"])
+    return [{"channel": name, "unit": unit, "raw": float(r * f), "declared": float(d * f),
              "final": float(q * f), "noise_floor": float(n * f)}
-            for a, r, d, q, n in zip("xyz", raw, decl, fin, floor)]
+            for name, r, d, q, n in zip(names, raw, decl, fin, floor)]
 
 
 def read_session(path: Path) -> dict[str, Any]:
@@ -128,7 +135,7 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         results["faces_accel"] = _result("faces_accel", fin, loop, P, 2)
         accel_model = {"bias_m_s2": b.tolist(), "M": M.tolist(), "k2_s2_per_m": k2.tolist()}
         decl = np.linalg.solve(_m_of(loop.declared), (d.acc - _b_of(loop.declared)).T).T
-        acc_rows = _row("accelerometer", "mg", _rms(d.acc - ref), _rms(decl - ref), _rms(f_cal - ref),
+        acc_rows = _row("accel", "mg", _rms(d.acc - ref), _rms(decl - ref), _rms(f_cal - ref),
                         np.sqrt(d.var_acc.mean(axis=0)), MG)
         if loop.status == pl.STATUS_UNEXPLAINED:
             tilt = float(np.sqrt(np.mean((f_cal - ref) ** 2)) / g)
@@ -149,7 +156,7 @@ def calibrate_poses(path: Path, noise_note: str = "") -> tuple[dict[str, Any], s
         eff = pl._accel_split(p, loop.claimed)
         accel_model = {"bias_m_s2": p[6:9].tolist(), "M": np.linalg.inv(TK).tolist(),
                        "k2_s2_per_m": eff.get("accel_quadratic", np.zeros(3)).tolist()}
-        acc_rows = _row("accelerometer", "mg", _rms(d.acc - ref), _rms(f_decl - ref), _rms(f_cal - ref),
+        acc_rows = _row("accel", "mg", _rms(d.acc - ref), _rms(f_decl - ref), _rms(f_cal - ref),
                         np.sqrt(d.var_acc.mean(axis=0)), MG)
     loops[loop.name] = loop
     up = f_cal / np.linalg.norm(f_cal, axis=1)[:, None]

@@ -124,6 +124,14 @@ def results_db_module(command: str) -> Any:
     return db
 
 
+def check_database_option(target: str | None, command: str) -> None:
+    """Refuse, before any analysis, a ``--db`` given explicitly (not None, not 'none') without
+    the ``db`` extra installed: one line saying what to install, exit 2. The default database
+    (``target`` None) needs no extra: without it nothing is written and nothing said."""
+    if target is not None and target != "none":
+        results_db_module(f"{command} --db {target}")
+
+
 def to_database(recording: str | Path, kind: str, results: dict[str, Any], target: str | None,
                 lot: str | None = None, engine: Any = None) -> str:
     """Write one analysed recording to the results database; returns the line to print.
@@ -131,7 +139,8 @@ def to_database(recording: str | Path, kind: str, results: dict[str, Any], targe
     ``target``: a URL or SQLite path; None = the default (rigctl.recording.results_db.default_path);
     "none" = do not write. ``engine``: an open engine (batch: one for all recordings).
     Without the ``db`` extra the default writes nothing and says nothing (the user asked for
-    no database); an explicit ``target`` says what to install.
+    no database); an explicit ``target`` is an InputError saying what to install (the commands
+    check it first, :func:`check_database_option`, so that it comes before the analysis).
     """
     if target == "none":
         return ""
@@ -140,8 +149,7 @@ def to_database(recording: str | Path, kind: str, results: dict[str, Any], targe
     except ImportError:
         if target is None:
             return ""
-        return (f"results database {target} not written: --db needs the db extra "
-                "(pip install -e '.[db]': SQLAlchemy, Alembic)")
+        check_database_option(target, "rigctl")
     where = target or str(db.default_path(recording))
     eng = engine or db.open_db(where)
     try:

@@ -21,10 +21,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from scipy import stats
 from scipy.optimize import brentq
 
 from ..display_units import Display, display, noise_name
+from ..solvers import distributions as stats
 from ..solvers.conformity import Estimate
 from ..solvers.noise_coefficients import as_coefficients
 

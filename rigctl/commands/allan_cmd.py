@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 from rigctl.analysis import noise_export, production
@@ -21,9 +20,10 @@ from rigctl.analysis.allan_drift import TEMPERATURE_MODES, WARMUP_MODES
 from rigctl.analysis.allan_quiet import DEFAULT_EXCURSIONS, EXCURSION_MODES
 from rigctl.analysis.allan_text import format_table
 from rigctl.analysis.verdicts import format_verdicts
-from rigctl.commands.cli_options import add_production_options
+from rigctl.commands.cli_options import add_production_options, check_output_files
 from rigctl.config.spec import load_spec
 from rigctl.errors import InputError
+from rigctl.sensor_axes import canonical
 from rigctl.solvers import allan as A
 
 
@@ -40,11 +40,13 @@ def _parse_taus(text: str) -> A.TauSpec:
 
 
 def _parse_axes(text: str) -> list[str]:
-    axes = list(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
-    bad = [a for a in axes if a not in AXES]
-    if not axes or bad:
+    """--axes: canonical names (gx, ..., az); the old spellings (gyro_x, gyr_x, accel_x, acc_x)
+    are read as their canonical axis (rigctl.sensor_axes.canonical)."""
+    given = [a.strip() for a in text.split(",") if a.strip()]
+    bad = [a for a in given if canonical(a) not in AXES]
+    if not given or bad:
         raise InputError(f"--axes {text!r}: choose from {','.join(AXES)}")
-    return axes
+    return list(dict.fromkeys(str(canonical(a)) for a in given))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,12 +80,14 @@ def _run(args: argparse.Namespace) -> int:
         opt = "--kalibr-inflate" if args.kalibr_inflate != 1.0 else "--kalibr-topic"
         raise InputError(f"{opt} without --kalibr: no imu.yaml is written",
                          hint="add --kalibr imu.yaml")
-    _check_outputs(args)
+    check_output_files(("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
+                       ("--csv", args.csv))
+    spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
+    production.check_database_option(args.db, "rigctl allan")
     rng, where, warn = choose_range(args.recording, axes, args.whole)
     print(f"analysing the {where} of {args.recording}", flush=True)
     if warn:
         print(f"warning: {warn}", file=sys.stderr, flush=True)
-    spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     # the results database's modules are imported (Python holding the GIL) on a thread
     # started once the first chunk is done, beside the compiled sums, not before the first
     # chunk, where the command's own start-up holds the GIL (docs/allan.md)
@@ -114,21 +118,6 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_outputs(args: argparse.Namespace) -> None:
-    """Refuse, before the analysis (minutes on a long capture), a --plot, --kalibr, --json or
-    --csv file whose directory does not exist or that is a directory."""
-    for opt, name in (("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
-                      ("--csv", args.csv)):
-        if not name:
-            continue
-        out = Path(name)
-        if out.is_dir():
-            raise InputError(f"{opt}: is a directory", out, hint=f"give a file name, e.g. {out / 'x'}")
-        if not out.resolve().parent.is_dir():
-            raise InputError(f"{opt}: output directory does not exist", out.parent,
-                             hint="create it, or give a file in an existing directory")
-
-
 def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
     """--kalibr, --json, --csv (rigctl.analysis.noise_export.write_exports)."""
     for line in noise_export.write_exports(args.recording, result, args.kalibr, args.kalibr_inflate,
@@ -142,8 +131,8 @@ def register(subparsers: Any) -> None:
                               description=__doc__.splitlines()[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
     p.add_argument("--axes", default=None,
-                   help="comma-separated axes from gx,gy,gz,ax,ay,az (default: all, or those an "
-                        "import found in the file)")
+                   help="comma-separated axes from gx,gy,gz,ax,ay,az (the older gyro_x, gyr_x, accel_x, "
+                        "acc_x, ... are read as these; default: all, or those an import found in the file)")
     p.add_argument("--plot", metavar="FILE", help="write a log-log plot (needs matplotlib)")
     p.add_argument("--taus", default="95",
                    help="octave, decade, all, or N log-spaced taus (default 95)")

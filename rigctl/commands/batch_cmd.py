@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from ..analysis import batch as B
+from ..analysis import production
+from ..analysis.calibration import check_noise_choice
 from ..config.spec import load_spec
 from ..errors import InputError, RunFailure
 from ..recording.recorder import utc_now
@@ -48,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers must be at least 1")
-    home = B.database_home(recs)  # needs the db extra: say so before the analyses, not after
+    check_noise_choice(args.noise)
+    production.check_database_option(args.db, "rigctl batch")  # before the analyses, not after
+    home = B.database_home(recs)
     where = f"dask.distributed at {args.scheduler}" if args.scheduler else \
         f"Dask local scheduler, {args.workers or 'all'} worker processes"
     print(f"rigctl batch: {len(recs)} recordings ({', '.join(analyses)}) on {where}", flush=True)

@@ -11,15 +11,18 @@ from typing import Any
 import numpy as np
 
 from ..analysis import production
-from ..analysis.calibration import calibrate
-from .cli_options import add_production_options, stage_printer
+from ..analysis.calibration import calibrate, check_noise_choice
+from .cli_options import add_production_options, check_output_files, stage_printer
 from ..errors import InputError, RunFailure
 from ..config.spec import load_spec
 
 
 def run(args: argparse.Namespace) -> int:
     """``rigctl calibrate``: 0 done, 2 invalid input, 1 failure."""
+    check_noise_choice(args.noise)  # before the analysis: its error line comes first
+    check_output_files(("--json", args.json))
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
+    production.check_database_option(args.db, "rigctl calibrate")
     try:
         payload, text, explain = calibrate(args.recording, args.noise, True, args.json, spec,
                                          args.thermal_degree, progress=stage_printer("calibrate", args.recording))

@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from ..errors import InputError
 from ..solvers.conformity import RULES
 from ..units import format_duration
 
@@ -21,6 +22,21 @@ def add_production_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="URL|FILE", default=None,
                    help="results database: a SQLite file or a URL (postgresql+psycopg://...); default "
                         "results.sqlite beside the run directories; 'none' to skip")
+
+
+def check_output_files(*options: tuple[str, str | None]) -> None:
+    """Refuse, before the analysis (minutes on a long capture), an output file option
+    ((option, path) pairs; None: not given) whose directory does not exist or that is a
+    directory: one line, exit 2, instead of a failure after the work is done."""
+    for opt, name in options:
+        if not name:
+            continue
+        out = Path(name)
+        if out.is_dir():
+            raise InputError(f"{opt}: is a directory", out, hint=f"give a file name, e.g. {out / 'x'}")
+        if not out.resolve().parent.is_dir():
+            raise InputError(f"{opt}: output directory does not exist", out.parent,
+                             hint="create it, or give a file in an existing directory")
 
 
 def stage_printer(command: str, recording: str) -> Callable[[str], None]:

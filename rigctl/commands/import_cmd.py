@@ -5,7 +5,7 @@ Data from other tools (hand-held multi-position sessions, loggers, other calibra
 enter the same pipeline as rig recordings: ``rigctl calibrate``, ``rigctl allan`` and
 ``rigctl apply-cal`` read the file this writes (docs/data-format.md, status ``complete``).
 
-* ``--columns``: column map ``acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz`` (CSV
+* ``--columns``: column map ``ax=AccX,ay=AccY,az=AccZ,gx=GyrX,gy=GyrY,gz=GyrZ`` (CSV
   header names, or 0-based column numbers for files without a header), optional ``time=``,
   ``temp=`` (degC) and ``section=`` (a column naming each row's section, e.g. imucal's
   ``part``); or the path of a YAML/JSON file holding that mapping.
@@ -84,7 +84,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("file", help="CSV file (or .csv.gz), ROS 1 bag, rosbag2 directory (sqlite3 or mcap storage) or MCAP file")
     p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
     p.add_argument("--columns",
-                   help="CSV: acc_x=COL,...,gyr_z=COL[,time=COL][,temp=COL][,section=COL] or a YAML/JSON file")
+                   help="CSV: ax=COL,...,gz=COL[,time=COL][,temp=COL][,section=COL] (acc_x, gyr_x, ... also read) or a YAML/JSON file")
     p.add_argument("--units", help="CSV: e.g. acc=g,gyr=deg/s or acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s")
     p.add_argument("--rate", type=float, help="CSV: nominal sample rate, Hz (bags: estimated from the stamps)")
     p.add_argument("--integrated", action="store_true",

@@ -34,11 +34,12 @@ import numpy as np
 from ..analysis.thermal import MAX_FIT_DEGREE, STATIC_WINDOW_S
 from ..analysis.thermal_static import format_text, static_fit, write_csv
 from ..errors import InputError, RunFailure
-from .cli_options import stage_printer
+from .cli_options import check_output_files, stage_printer
 
 
 def run(args: argparse.Namespace) -> int:
     """``rigctl thermal``: 0 done, 2 invalid input, 1 failure."""
+    check_output_files(("--json", args.json), ("--csv", args.csv))  # before the fit
     try:
         result = static_fit(args.recording, settle_s=args.settle_s, window_s=args.window_s,
                             bias_degree=args.bias_degree, loop=not args.no_loop, poses_file=args.poses,

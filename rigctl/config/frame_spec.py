@@ -10,7 +10,7 @@ Binary frames (``format: binary``, the default)::
         - {name: length, type: B}                      # a length field (see 'length')
         - {name: counter, type: H}                     # sample counter (wraps at its type's range)
         - {name: time, type: I, scale: 1.0e-6, unit: s}
-        - {name: gyro_x, type: i, scale: 1.0e-7, unit: rad/s}
+        - {name: gx, type: i, scale: 1.0e-7, unit: rad/s}
         - ...
         - {name: temperature, type: h, scale: 0.01, unit: degC}
       length: {field: length, counts: frame}           # or a number; optional
@@ -18,8 +18,9 @@ Binary frames (``format: binary``, the default)::
 
 Field types are Python struct codes: b B h H i I q Q (integers), e f d (floats), ``Nx`` (N pad
 bytes). A field may carry ``value:`` (an integer every frame holds, e.g. a message ID: it also
-serves to find frames). Roles are by name: ``accel_x|y|z`` (unit m/s^2, g or mg), ``gyro_x|y|z``
-(rad/s, deg/s, mrad/s), ``temperature`` (degC), ``time`` (s, ms, us, ns; unwrapped at its
+serves to find frames). Roles are by name: ``ax|ay|az`` (unit m/s^2, g or mg), ``gx|gy|gz``
+(rad/s, deg/s, mrad/s) -- the axes' one spelling (:mod:`rigctl.sensor_axes`; the older names
+``accel_x`` ... ``gyro_z`` are read as these, and the decoded fields carry the one spelling), ``temperature`` (degC), ``time`` (s, ms, us, ns; unwrapped at its
 integer type's range), ``counter`` (wraps at its type's range); other names are decoded and
 ignored. A frame needs the six inertial fields and a ``time`` or ``counter``. ``length``: the
 whole frame's length in bytes (checked against the fields), or ``{field, counts: frame |
@@ -45,6 +46,7 @@ from typing import Any, ClassVar
 
 from .. import schema as S
 from ..settings import Settings, entry, items, number, parse, setting, text
+from ..sensor_axes import AXES, SENSOR, canonical
 from ..yamlio import LocDict
 
 INT_CODES = "bBhHiIqQ"
@@ -59,16 +61,22 @@ UNITS: dict[str, dict[str, float]] = {
     "temperature": {"degC": 1.0},
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
 }
-INERTIAL = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+INERTIAL = AXES
 NAME = re.compile(r"^[a-z_][a-z0-9_]{0,31}$")
 
 
 def role(name: str) -> str | None:
-    if name.startswith("accel_"):
-        return "accel"
-    if name.startswith("gyro_"):
-        return "gyro"
+    """'accel' or 'gyro' for an axis (ax ... gz, or an older spelling such as gyro_x), the name
+    itself for temperature, time and counter, else None (decoded and ignored)."""
+    axis = canonical(name)
+    if axis is not None:
+        return SENSOR[axis]
     return name if name in ("temperature", "time", "counter") else None
+
+
+def field_name(name: str) -> str:
+    """The name a field is decoded under: an axis in its one spelling, anything else as given."""
+    return canonical(name) or name
 
 
 @dataclass(frozen=True)
@@ -149,7 +157,7 @@ class ColumnSettings(Settings):
     EXTRA_KEYS: ClassVar[tuple[str, ...]] = ("type", "value")  # refused below, with the reason
     name: str = text()
     scale: float = number(1.0)
-    #: required for a role's field (accel_*, gyro_*, temperature, time), one of UNITS[role]
+    #: required for a role's field (ax ... gz, temperature, time), one of UNITS[role]
     unit: str | None = text(None)
 
     def check(self, d: LocDict) -> None:
@@ -165,7 +173,7 @@ class ColumnSettings(Settings):
         name, r = self.name, role(self.name)
         if not NAME.match(name):
             raise S.error(d, "name", f"field name {name!r} is not a plain lower-case name",
-                          "e.g. gyro_x, accel_y, temperature, counter, time, status")
+                          "e.g. gx, ay, temperature, counter, time, status")
         if self.scale == 0:
             raise S.error(d, "scale", "'scale' is 0: every value would read as 0", "give the LSB weight, e.g. 1.0e-7")
         if r in UNITS:
@@ -181,7 +189,7 @@ class ColumnSettings(Settings):
 
     def field(self, offset: int) -> Field:
         """The column at ``offset`` (its index)."""
-        return Field(self.name, "", 0, offset, self.scale, self.unit or "")
+        return Field(field_name(self.name), "", 0, offset, self.scale, self.unit or "")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -225,7 +233,7 @@ class BinaryFieldSettings(ColumnSettings):
         """The field at byte ``offset``."""
         if self.pad:
             return Field(self.name, "x", self.pad, offset, 1.0, "")
-        return Field(self.name, self.type, self.size, offset, self.scale, self.unit or "", self.value)
+        return Field(field_name(self.name), self.type, self.size, offset, self.scale, self.unit or "", self.value)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -266,7 +274,7 @@ def _length(m: LocDict, key: str, default: Any = None) -> int | LengthSettings:
     return parse(LengthSettings, S.require_mapping(v, f"'{key}'", m, key), f"'{key}'")
 
 
-FIELD_HINT = "e.g. {name: gyro_x, type: i, scale: 1.0e-7, unit: rad/s}"
+FIELD_HINT = "e.g. {name: gx, type: i, scale: 1.0e-7, unit: rad/s}"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -290,7 +298,7 @@ class CsvFrameSettings(Settings):
     format: str = text("binary", choices=("binary", "csv"))
     prefix: str = text("")
     fields: tuple[ColumnSettings, ...] = items(ColumnSettings, "'fields'", MISSING, min_length=1,
-                                               hint="e.g. {name: gyro_x, scale: 1.0e-7, unit: rad/s}")
+                                               hint="e.g. {name: gx, scale: 1.0e-7, unit: rad/s}")
     checksum: str = text("none", choices=("none", "nmea"))
 
     def check(self, d: LocDict) -> None:
@@ -303,18 +311,20 @@ class CsvFrameSettings(Settings):
 
 def _check_names(m: LocDict, cols: tuple[ColumnSettings, ...]) -> None:
     """Each name once; the six inertial fields and a time or a counter."""
-    seen: set[str] = set()
+    seen: dict[str, str] = {}  # name decoded under -> the name as given
     for i, c in enumerate(cols):
         if isinstance(c, BinaryFieldSettings) and c.pad:
             continue
-        if c.name in seen:
-            raise S.error(entry(m, "fields", i), "name", f"field {c.name!r} appears twice",
+        name = field_name(c.name)
+        if name in seen:
+            again = "" if seen[name] == c.name else f" ({seen[name]!r} and {c.name!r} name the same axis)"
+            raise S.error(entry(m, "fields", i), "name", f"field {name!r} appears twice{again}",
                           "give each field its own name")
-        seen.add(c.name)
+        seen[name] = c.name
     missing = [n for n in INERTIAL if n not in seen]
     if missing:
         raise S.error(m, "fields", f"the frame has no {', '.join(missing)}",
-                      "add a field for each of accel_x, accel_y, accel_z, gyro_x, gyro_y, gyro_z")
+                      f"add a field for each of {', '.join(INERTIAL)}")
     if "time" not in seen and "counter" not in seen:
         raise S.error(m, "fields", "the frame has neither 'time' nor 'counter'",
                       "add a counter (type H or I) or a time field: the run needs each sample's time")

@@ -156,6 +156,28 @@ class Suspend(Exception):
         self.args = ("; ".join(self.reasons.values()),)
 
 
+#: a suspender that trips again in one pause (after a poll that found it clear) gets a suspend
+#: event each time -- a second data gap names its own counters, a second link loss its time --
+#: up to this many times per pause; further trips of it are counted in one 'info' event at the
+#: resume (a condition flapping at its threshold through a long pause)
+PAUSE_RETRIP_EVENTS = 20
+
+
+@dataclass
+class PauseTrips:
+    """The suspenders of one pause, for its events: ``names``, every one that tripped in it (its
+    resume names them); ``active``, those tripped at its latest poll; ``again``, per name, the
+    trips after its first (a trip is a poll that finds it tripped after one that found it clear)."""
+
+    names: set[str]
+    active: set[str]
+    again: dict[str, int]
+
+    @classmethod
+    def begin(cls, reasons: dict[str, str]) -> "PauseTrips":
+        return cls(set(reasons), set(reasons), {})
+
+
 @dataclass
 class Rig:
     """The devices a run talks to, and the clock of their time base."""
@@ -1014,9 +1036,9 @@ class Engine:
             f"step {step.index + 1} (", Elide(step.label), f"): {done:.1f} s of warm-up kept, {left:.1f} s left"))
         return replace(step, sample_s=left)
 
-    def _stop_table(self, wait_s: float = 5.0, seen: set[str] | None = None) -> None:
+    def _stop_table(self, wait_s: float = 5.0, seen: PauseTrips | None = None) -> None:
         """Stop the table (rate zero, mode off) and record it until still or ``wait_s``. In a
-        pause (``seen``: the suspenders it names so far) a suspender that trips meanwhile is
+        pause (``seen``: its suspenders so far) a suspender that trips meanwhile is
         recorded and named as in the pause's own polls (:meth:`_note_trips`)."""
         clock = self.rig.clock
         try:
@@ -1062,7 +1084,7 @@ class Engine:
         if not between_steps:
             self._cut_off(step)
         self.sampling_from = None
-        seen = set(sus.reasons)
+        seen = PauseTrips.begin(sus.reasons)
         self._stop_table(seen=seen)
         self.states.to("paused", message)
         hold = self.suspenders.s.hold_s
@@ -1077,22 +1099,39 @@ class Engine:
             if self.max_pause_s is not None and now - t0 > self.max_pause_s:
                 raise RunError(f"paused for more than {self.max_pause_s:g} s: "
                                f"{'; '.join(self.suspenders.active.values()) or message}")
-        parts = (f"{', '.join(sorted(seen))} clear for {hold:g} s after {now - t0:.1f} s paused; "
+        for name, n in sorted(seen.again.items()):
+            if n > PAUSE_RETRIP_EVENTS:
+                rec.add_event(now, "info", f"{name} tripped {n - PAUSE_RETRIP_EVENTS} more times in this pause "
+                                           f"than the {PAUSE_RETRIP_EVENTS} recorded one by one")
+        parts = (f"{', '.join(sorted(seen.names))} clear for {hold:g} s after {now - t0:.1f} s paused; "
                  f"{'starting' if between_steps else 're-running'} step {step.index + 1} (", Elide(step.label), ")")
         text = "".join(parts)
         rec.add_event(now, "resume", event_text(*parts))
         self.log("info", f"resuming: {text}")
         self.states.to("running", text)
 
-    def _note_trips(self, seen: set[str]) -> None:
-        """After a poll in a pause: record each suspender tripped now that the pause does not
-        name yet (``seen``, updated) as a ``suspend`` event, as the trip that began it."""
-        new = set(self.suspenders.active) - seen
-        if new:
-            seen |= new
-            text = "; ".join(self.suspenders.active[k] for k in sorted(new))
+    def _note_trips(self, seen: PauseTrips) -> None:
+        """After a poll in a pause: record each suspender that trips now -- tripped at this poll,
+        clear at the one before -- as a ``suspend`` event, as the trip that began it: one the
+        pause does not name yet, and one that trips again (a second data gap names its own
+        counters; at most :data:`PAUSE_RETRIP_EVENTS` such events per suspender, the rest
+        counted at the resume). Before, a suspender the pause already named got no event when it
+        tripped again: a second gap's counters were in no event. ``seen`` is updated."""
+        active = self.suspenders.active
+        trips = sorted(set(active) - seen.active)
+        seen.active = set(active)
+        record = []
+        for k in trips:
+            if k in seen.names:
+                seen.again[k] = seen.again.get(k, 0) + 1
+                if seen.again[k] > PAUSE_RETRIP_EVENTS:
+                    continue
+            record.append(k)
+        seen.names |= set(trips)
+        if record:
+            text = "; ".join(active[k] for k in record)
             self.log("warning", f"also: {text}")
-            self.rec.add_event(self.rig.clock.now(), "suspend", f"{', '.join(sorted(new))}: {text}")
+            self.rec.add_event(self.rig.clock.now(), "suspend", f"{', '.join(record)}: {text}")
 
     def _cut_off(self, step: Step) -> None:
         """Write the step in flight as an ``incomplete`` segment (when it had started sampling)

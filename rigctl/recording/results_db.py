@@ -28,6 +28,7 @@ from sqlalchemy import (Engine, Float, ForeignKey, Integer, String, Text, create
                         event, inspect, select, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
+from .results_place import DEFAULT_NAME, default_path  # noqa: F401 - the database's place, re-exported
 from .shield import shielded
 
 if TYPE_CHECKING:  # annotations only: the application layer imports this module, not the reverse
@@ -37,7 +38,6 @@ if TYPE_CHECKING:  # annotations only: the application layer imports this module
     from ..analysis.results import Measured
 
 
-DEFAULT_NAME = "results.sqlite"
 #: the newest schema revision (rigctl/recording/db_migrations/versions; tests/test_results_db_concurrency.py
 #: checks it is Alembic's head): a database already there is used without loading Alembic
 HEAD = "0001"
@@ -90,17 +90,6 @@ def url_for(target: str | Path) -> str:
     """A database URL from what the user gave: a URL (contains '://') or a SQLite file path."""
     t = str(target)
     return t if "://" in t else f"sqlite:///{Path(t).resolve()}"
-
-
-def default_path(recording: str | Path) -> Path:
-    """``results.sqlite`` in the folder that holds the run directories: for
-    runs/<run>/recording.h5 that is runs/ (a run directory has the run's log or config);
-    for a recording elsewhere, its own folder."""
-    rec = Path(recording).resolve()
-    run_dir = rec.parent
-    if (run_dir / "run.log.jsonl").exists() or (run_dir / "config.yaml").exists():
-        return run_dir.parent / DEFAULT_NAME
-    return run_dir / DEFAULT_NAME
 
 
 def prepare(target: str | Path | None) -> None:

@@ -20,6 +20,7 @@ from ..analysis.allan_drift import plot_extras
 from ..analysis.production import measured
 from ..jsonable import jsonable
 from ..recording.checkpoint import write_atomic
+from ..sensor_axes import axis_name
 from .report import RunData, find_session
 from .report_allan import allan_curves
 
@@ -123,11 +124,11 @@ def plot_cal_residuals_orientation(data: RunData, out: Path) -> Path | None:
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
     x = np.arange(sel.size)
     cols = ("tab:blue", "tab:orange", "tab:green")
-    for i, ax_name in enumerate("xyz"):
+    for i in range(3):
         _mark_before_after(a1, x, rb[sel, i] * MG_PER_M_S2, ra[sel, i] * MG_PER_M_S2, cols[i],
-                           f"accel {ax_name}", 0.15)
+                           axis_name("accel", i), 0.15)
         _mark_before_after(a2, x, rb[sel, 3 + i] * DEG_H_PER_RAD_S,
-                           ra[sel, 3 + i] * DEG_H_PER_RAD_S, cols[i], f"gyro {ax_name}", 0.15)
+                           ra[sel, 3 + i] * DEG_H_PER_RAD_S, cols[i], axis_name("gyro", i), 0.15)
     a1.set_ylabel("accel residual [mg]")
     a2.set_ylabel("gyro residual [deg/h]")
     labels = [str(data.segments["label"][rows[j]]) for j in sel]
@@ -161,7 +162,7 @@ def plot_cal_residuals_rate(data: RunData, out: Path) -> Path | None:
     plt = _plt()
     fig, axes = plt.subplots(2, 3, figsize=(11, 6), sharex=True)
     cols = ("tab:blue", "tab:orange", "tab:green")
-    for i, ax_name in enumerate("xyz"):
+    for i in range(3):
         for r, (sensor, off, fac, unit) in enumerate((("gyro", 3, DEG_H_PER_RAD_S, "deg/h"),
                                                        ("accel", 0, MG_PER_M_S2, "mg"))):
             ax = axes[r, i]
@@ -173,8 +174,8 @@ def plot_cal_residuals_rate(data: RunData, out: Path) -> Path | None:
                                    ra[sel[m], off + i] * fac, cols[g], f"turning {'xyz'[g]}", 3.0)
             ax.axhline(0, color="k", lw=0.5)
             ax.grid(True, lw=0.3)
-            ax.set_title(f"{sensor} {ax_name}", fontsize=9)
-            ax.set_ylabel(f"{sensor} {ax_name} residual [{unit}]", fontsize=8)
+            ax.set_title(axis_name(sensor, i), fontsize=9)
+            ax.set_ylabel(f"{axis_name(sensor, i)} residual [{unit}]", fontsize=8)
             if r == 1:
                 ax.set_xlabel("commanded rate [deg/s]")
     axes[0, 0].legend(fontsize=6)
@@ -595,7 +596,7 @@ def plot_thermal_parameters(data: RunData, out: Path) -> Path | None:
                     ax.plot(T[heat], pts[heat], ".", color=_HEAT, ms=3, label="heating")
                     ax.plot(T[~heat], pts[~heat], ".", color=_COOL, ms=3, label="cooling")
                 unit = d.unit.replace("/K", "") if what == "bias" else "ppm"
-                ax.set_title(f"{sensor} {what} {a}", fontsize=9)
+                ax.set_title(f"{axis_name(sensor, i)} {what}", fontsize=9)
                 ax.set_ylabel(f"[{unit}]", fontsize=8)
                 ax.set_xlabel("IMU temperature [degC]", fontsize=8)
                 ax.grid(True, lw=0.3)
@@ -618,13 +619,13 @@ def plot_thermal_residuals(data: RunData, out: Path) -> Path | None:
         heat = np.asarray(arr[f"{sensor}_window_heating"]).astype(bool)
         before = np.asarray(arr[f"{sensor}_residual_before"], float) * fac
         after = np.asarray(arr[f"{sensor}_residual_after"], float) * fac
-        for i, a in enumerate("xyz"):
+        for i in range(3):
             ax = axes[r, i]
             for m, col, lab in ((heat, _HEAT, "heating"), (~heat, _COOL, "cooling")):
                 ax.plot(T[m], before[m, i], "x", color=col, ms=3, alpha=0.35, label=f"before, {lab}")
                 ax.plot(T[m], after[m, i], ".", color=col, ms=3, label=f"after, {lab}")
             ax.axhline(0, color="k", lw=0.5)
-            ax.set_title(f"{sensor} {a}: residuals", fontsize=9)
+            ax.set_title(f"{axis_name(sensor, i)}: residuals", fontsize=9)
             ax.set_ylabel(f"[{unit}]", fontsize=8)
             ax.set_xlabel("IMU temperature [degC]", fontsize=8)
             ax.grid(True, lw=0.3)

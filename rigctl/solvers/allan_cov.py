@@ -34,8 +34,6 @@ import math
 
 import numpy as np
 
-from . import allan_cov_kernels as KC
-
 TERMS4 = ("Q", "N", "B", "K")
 PAIRS = [(t, u) for i, t in enumerate(TERMS4) for u in TERMS4[i:]]
 _C = np.array([1.0, -2.0, 1.0])
@@ -623,9 +621,17 @@ GM_LONG_MIN = 20000
 GM_LONG_LENGTHS = 4
 
 
+def _kc():
+    """:mod:`rigctl.solvers.allan_cov_kernels`, imported where the pair loop is asked for (it
+    imports numba, ~0.25 s of CPU, which a process without a gapped Gauss-Markov fit need not pay)."""
+    from . import allan_cov_kernels
+
+    return allan_cov_kernels
+
+
 def _loop_compiled(ms: np.ndarray) -> bool:
     """Whether :func:`_gm_gapped_loop` runs compiled for these factors."""
-    return bool(KC.HAVE_NUMBA) and np.array_equal(ms, np.round(ms))
+    return bool(_kc().HAVE_NUMBA) and np.array_equal(ms, np.round(ms))
 
 
 def _gm_gapped(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np.ndarray,
@@ -683,7 +689,7 @@ def _gm_gapped_loop(tau0: float, ms: np.ndarray, lengths: np.ndarray, counts: np
            _r_lags("G", pr["ma"], pr["mb"], pr["left"], tau0, tc),
            _r_lags("G", ma, mb, np.concatenate([j * ma - l * mb for j in range(3)
                                                  for l in range(3)], axis=1), tau0, tc))
-    sums = KC.gm_pair_sums(tau0, tc, pr["ma"], pr["mb"], pr["k_lo"], pr["k_hi"], pr["disc"],
+    sums = _kc().gm_pair_sums(tau0, tc, pr["ma"], pr["mb"], pr["k_lo"], pr["k_hi"], pr["disc"],
                            pr["kn"], pr["val"], pr["kn_off"], (*pr["tables"], tab_g), r_g,
                            _GM_CONSTS)
     out = {p: np.zeros((ms.size, ms.size)) for p in GPAIRS}

@@ -42,7 +42,7 @@ import math
 from typing import Mapping
 
 import numpy as np
-from scipy.stats import norm
+from .distributions import norm
 
 TERMS4 = ("Q", "N", "B", "K")
 #: the GM term's parameters in :func:`fisher`'s names: sigma_GM (theta = sigma_GM^2, u^2) and Tc

@@ -33,7 +33,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
+
+from . import distributions as stats
 
 #: the start-transient test's false-alarm probability per axis (Bonferroni over the scales)
 ALPHA = 1e-3

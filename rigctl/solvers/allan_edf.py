@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 from scipy.special import comb
-from scipy.stats import chi2
+from .distributions import chi2
 
 from .allan_noise_id import (clamp_alpha, lag1_autocorrelation, noise_id, noise_id_b1,
                              noise_id_curve, noise_id_lag1)

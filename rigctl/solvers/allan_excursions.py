@@ -91,7 +91,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.optimize import brentq
-from scipy.stats import chi2, norm
+from .distributions import chi2, norm
 
 #: shortest window length tested (s) ...
 MIN_S = 30.0

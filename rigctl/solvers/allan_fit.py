@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
 from scipy.optimize import lsq_linear, nnls
-from scipy.stats import chi2, norm
+from .distributions import chi2, norm
 
 from . import allan_cov as C
 from . import allan_crb as R
@@ -981,6 +981,14 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
                 needed_terms.add(K_IDX)
             else:
                 needed_terms.discard(K_IDX)
+        # no more resolved terms than the taus leave a degree of freedom for: with as many
+        # positive terms as taus the covariance of the estimates is singular and its
+        # pseudo-inverse gave every term a narrow interval -- a record whose gaps left
+        # stretches of 4 samples (a clock's 3 + 1 reporting cycle read as gaps) had Q, N, B,
+        # K and R all "resolved" from 2 taus, chi-square 0 on "1 dof". The weakest goes first
+        if select and len(active) > 1 and int(np.count_nonzero(p > 0)) >= tau.size:
+            i_min = min(range(len(active)), key=lambda i: score[i])
+            score[i_min] = min(score[i_min], 0.0)
         weak = [i for i in range(len(active)) if score[i] < 1.0]
         if not select or not weak or len(active) == 1:
             break
@@ -1954,6 +1962,16 @@ def _likely_reason(tau: np.ndarray, dev: np.ndarray, i: int, j: int, above: bool
     if first and above and slope < -0.5:
         return (f"quantization or white phase noise at the shortest taus (local slope "
                 f"{slope:+.2f}, steeper than -1/2)")
+    # a hump whose top is on the curve: from the first taus it rises by more than
+    # DEPARTURE_REL, then falls as much again within the run -- a correlated (Gauss-Markov)
+    # process whose rise lies below the first tau (a servo-locked Sr optical clock at tau0 =
+    # 2.5 s: up 18 % to 12.5 s, then down 2x by 190 s), read as the bump it is (its
+    # stationarity and a Gauss-Markov term are then tested), not as a monotone fall
+    top = int(np.argmax(dev[:j + 1]))
+    if (first and above and 0 < top < j and dev[top] > (1.0 + DEPARTURE_REL) * dev[0]
+            and dev[j] < dev[top] / (1.0 + DEPARTURE_REL)):
+        return ("a bump: a correlated (Gauss-Markov) process or a periodic disturbance "
+                "between these taus (not an IEEE 952 term)")
     if first and above:  # shallower than white noise from the start (the Astro Pi gyros)
         return (f"a correlated process above the white noise from the shortest taus on (local "
                 f"slope {slope:+.2f}, shallower than -1/2: e.g. a flicker floor or a "

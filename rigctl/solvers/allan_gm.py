@@ -39,7 +39,7 @@ import math
 import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.optimize import lsq_linear
-from scipy.stats import chi2
+from .distributions import chi2
 
 from . import allan_cov as C
 from . import allan_fit as F

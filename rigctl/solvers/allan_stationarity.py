@@ -31,7 +31,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2
+from .distributions import chi2
 
 from . import allan as AL
 from . import allan_edf as E

@@ -38,7 +38,7 @@ import math
 
 import numpy as np
 from scipy.ndimage import median_filter
-from scipy.stats import chi2, f as fdist
+from .distributions import chi2, f as fdist
 
 #: family-wise false-detection probability per axis under a smooth spectrum
 ALPHA = 1e-3

@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
-import scipy.stats
 from numpy.typing import NDArray
 
+from . import distributions as _dist
 from ..jsonable import jsonable
 from .segment_cov import Whitener
 
@@ -97,15 +97,15 @@ class CalibrationResult:
     def coverage_factor(self) -> float:
         """Factor k of the 95 % interval beta +- k sigma (normal or Student t with dof)."""
         if self.interval == "t" and self.dof > 0:
-            return float(scipy.stats.t.ppf(0.975, self.dof))
-        return float(scipy.stats.norm.ppf(0.975))
+            return float(_dist.t.ppf(0.975, self.dof))
+        return float(_dist.norm.ppf(0.975))
 
     @property
     def coverage_factors(self) -> NDArray[np.float64]:
         """(p,) factors of the 95 % intervals (per-parameter dof when given)."""
         if self.interval == "t" and self.param_dof is not None:
             d = np.asarray(self.param_dof, dtype=np.float64)
-            return np.where(d > 0, scipy.stats.t.ppf(0.975, np.maximum(d, 1)), np.inf)
+            return np.where(d > 0, _dist.t.ppf(0.975, np.maximum(d, 1)), np.inf)
         return np.full(len(self.names), self.coverage_factor)
 
     @property
@@ -140,7 +140,7 @@ class CalibrationResult:
     @property
     def chi2_p_value(self) -> float:
         """Probability of a chi2 at least this large if model and noise model are right."""
-        return float(scipy.stats.chi2.sf(self.chi2, self.dof)) if self.dof > 0 else float("nan")
+        return float(_dist.chi2.sf(self.chi2, self.dof)) if self.dof > 0 else float("nan")
 
     def value(self, name: str) -> float:
         """Value of one parameter by name."""

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import t as student_t
+from .distributions import t as student_t
 
 from rigctl.solvers.tap_match import outlier_mask, robust_sigma
 

@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import scipy.stats
 from numpy.typing import NDArray
 
+from . import distributions as _dist
 from .accel24 import accel_columns
 from ..jsonable import jsonable
 from .calibration_result import CalibrationResult, fit_linear
@@ -127,11 +127,11 @@ def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult,
             order = np.argsort(seg.time[g], kind="stable")
             ro = r[order] - r.mean()
             r1 = float(ro[:-1] @ ro[1:] / (ro @ ro)) if ro @ ro > 0 else 0.0
-            p = float(scipy.stats.norm.sf(r1 * np.sqrt(nr)))  # one-sided: neighbours alike
+            p = float(_dist.norm.sf(r1 * np.sqrt(nr)))  # one-sided: neighbours alike
             rows.append({"channel": CHANNELS[c], "variable": "time (serial correlation)", "r": r1, "p": p})
     tr = [row for row in rows if "t" in row]
     if tr:
-        pv = 2.0 * scipy.stats.t.sf(np.array([row.pop("t") for row in tr]), np.array([row.pop("df") for row in tr]))
+        pv = 2.0 * _dist.t.sf(np.array([row.pop("t") for row in tr]), np.array([row.pop("df") for row in tr]))
         for row, p in zip(tr, pv):
             row["p"] = float(p)
     n_tests = max(1, len(rows))
@@ -256,7 +256,7 @@ def closed_loop(
             p_c = current.shape[1] + k
             chi2_c = max(fit.chi2 - _chi2_drop(Bp[:, keep], fit.normalized_residuals), 1e-300)
             F = ((fit.chi2 - chi2_c) / k) / (chi2_c / (n - p_c)) if n > p_c else 0.0
-            pv = float(scipy.stats.f.sf(F, k, n - p_c)) if n > p_c else 1.0
+            pv = float(_dist.f.sf(F, k, n - p_c)) if n > p_c else 1.0
             dbic = n * np.log(chi2_c / fit.chi2) + k * np.log(n)
             cands.append({"effect": eff, "X": np.hstack([current, Xc[:, keep]]),
                           "names": cur_names + [c for c, kk in zip(cn, keep) if kk],

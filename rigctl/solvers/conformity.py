@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from scipy import stats
+from . import distributions as stats
 
 PASS, FAIL, INDETERMINATE = "PASS", "FAIL", "INDETERMINATE"
 RULES = ("guarded", "simple")

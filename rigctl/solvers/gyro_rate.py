@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..sensor_axes import axis_name
 from .calibration_result import CalibrationResult, fit_linear
 from .segments import SegmentTable
 
@@ -137,7 +138,7 @@ def calibrate_gyro_rate(w_meas: ArrayLike, w_sigma: ArrayLike, w_ref: ArrayLike,
         dof += fit.dof
         if fit.status != "ok":
             status = fit.status
-            warnings.append(f"gyro {AXES[i]}: " + "; ".join(fit.warnings))
+            warnings.append(f"{axis_name('gyro', i)}: " + "; ".join(fit.warnings))
     res = CalibrationResult(method="gyro_rate", names=names, values=values, covariance=cov, dof=dof,
                             chi2=chi2, residuals=np.concatenate([d_res.ravel(), s_res.ravel()]),
                             normalized_residuals=np.concatenate([nres[:P].ravel(), nres[P:].ravel()]),

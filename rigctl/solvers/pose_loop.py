@@ -46,9 +46,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 import scipy.optimize
-import scipy.stats
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+
+from . import distributions as _dist
 
 OMEGA_EARTH = 7.292115e-5  # rad/s
 AX = "xyz"
@@ -232,8 +233,8 @@ def chi2_band(dof: int, noise_dof: float, level: float = 0.99) -> tuple[float, f
     if dof <= 0:
         return float("nan"), float("nan")
     if not np.isfinite(noise_dof) or noise_dof > 1e6:
-        return (float(scipy.stats.chi2.ppf(a, dof) / dof), float(scipy.stats.chi2.ppf(1 - a, dof) / dof))
-    return float(scipy.stats.f.ppf(a, dof, noise_dof)), float(scipy.stats.f.ppf(1 - a, dof, noise_dof))
+        return (float(_dist.chi2.ppf(a, dof) / dof), float(_dist.chi2.ppf(1 - a, dof) / dof))
+    return float(_dist.f.ppf(a, dof, noise_dof)), float(_dist.f.ppf(1 - a, dof, noise_dof))
 
 
 def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate], alpha: float = 0.01,
@@ -271,7 +272,7 @@ def select_effects(fit_fn: Callable[[list[str]], Fit], cands: Sequence[Candidate
                 tried.append((1.0, c, f, 0.0))
                 continue
             F = ((base.chi2 - f.chi2) / c.k) / (f.chi2 / f.dof)
-            tried.append((float(scipy.stats.f.sf(F, c.k, f.dof)), c, f, F))
+            tried.append((float(_dist.f.sf(F, c.k, f.dof)), c, f, F))
         if not tried:
             break
         tried.sort(key=lambda x: x[0])
@@ -329,7 +330,7 @@ def partial_correlations(fit: Fit, variables: dict[str, Arr], per_group: bool = 
             continue
         rr = float(x @ fit.r / (nx * max(np.linalg.norm(fit.r), 1e-300)))
         t = rr * np.sqrt(df / max(1 - rr * rr, 1e-12))
-        out.append({"variable": name, "r": rr, "t": float(t), "p": float(2 * scipy.stats.t.sf(abs(t), df))})
+        out.append({"variable": name, "r": rr, "t": float(t), "p": float(2 * _dist.t.sf(abs(t), df))})
     return sorted(out, key=lambda d: d["p"])
 
 
@@ -872,7 +873,7 @@ def stationarity(x: Arr, intervals: list[tuple[int, int]], white_var: Arr) -> tu
         z.append((x[s:m].mean(axis=0) - x[m:e].mean(axis=0)) / np.sqrt(white_var * (1 / (m - s) + 1 / (e - m))))
     c = np.sum(np.array(z) ** 2, axis=0)
     P = len(intervals)
-    return c / P, scipy.stats.chi2.sf(c, P)
+    return c / P, _dist.chi2.sf(c, P)
 
 
 def cross_split_up(fit: Fit, effects: list[str], u: Arr, data: Any) -> Callable[[Arr], Arr]:

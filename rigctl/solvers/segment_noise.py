@@ -60,9 +60,9 @@ from typing import Any, Sequence
 
 import numpy as np
 import scipy.linalg
-import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
+from . import distributions as _dist
 from . import segment_cov as sc
 from .noise_coefficients import Coefficient, NoiseCoefficients, coefficient_json
 from .segment_stats import N_BATCHES
@@ -384,8 +384,8 @@ def component_coefficient(theta: float, var_theta: float) -> Coefficient:
         nu = 2.0 * theta**2 / v
 
         def ci(p: float) -> tuple[float, float]:
-            return (float(np.sqrt(theta * nu / scipy.stats.chi2.ppf(1.0 - p / 2.0, nu))),
-                    float(np.sqrt(theta * nu / scipy.stats.chi2.ppf(p / 2.0, nu))))
+            return (float(np.sqrt(theta * nu / _dist.chi2.ppf(1.0 - p / 2.0, nu))),
+                    float(np.sqrt(theta * nu / _dist.chi2.ppf(p / 2.0, nu))))
         return Coefficient(float(np.sqrt(theta)), ci(0.3173105078629141), ci(0.05), edf=float(nu))
     return Coefficient(float(np.sqrt(theta)), upper95=float(np.sqrt(theta + 1.6448536269514722 * s)),
                        bound_from="fit")

@@ -69,10 +69,12 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from ..sensor_axes import AXES
 from .segment_stats import SensorNoise, batch_means, segment_mean
 
-#: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros.
-CHANNELS: tuple[str, ...] = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+#: Sensor channels in the order used by every solver: 3 accelerometers, then 3 gyros, named
+#: as every command names them (rigctl.sensor_axes: ax, ay, az, gx, gy, gz)
+CHANNELS: tuple[str, ...] = AXES
 
 
 @dataclass

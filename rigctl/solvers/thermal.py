@@ -69,8 +69,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
+from . import distributions as stats
 from . import segment_noise as sn
 from .segment_cov import Whitener
 from .sensor_model import invert_quadratic
