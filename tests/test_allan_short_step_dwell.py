@@ -27,8 +27,8 @@ DEG_H = 180.0 / math.pi * 3600.0  # rad/s -> deg/h
 PHONE = {"gx": (105000, 0), "gy": (135000, 2), "gz": (165000, 2)}
 N_PHONE = 3000  # 5 min at 10 Hz
 #: the step added to the MTi-G windows, in units of the whole record's B (13.3 deg/h). 12 B
-#: (160 deg/h) is below this sensor's 5-minute reach: its fit's B upper ends are 78-113 deg/h
-#: there (the curve cannot resolve B in 5 minutes), the step's sd 93-116 deg/h, and the test
+#: (160 deg/h) is below this sensor's 5-minute reach: its fit's B upper ends are 63-113 deg/h
+#: there (the curve cannot resolve B in 5 minutes), the step's sd 93-130 deg/h, and the test
 #: before the level-hold condition found 12 B in none of six windows (z 1.5-2.4 against 4.0),
 #: 40 B at its edge (z 3.7-4.3 against 4.0-4.1 on these three)
 STEP_B = 60.0
