@@ -95,4 +95,5 @@ def test_a_12_b_step_in_a_5_minute_capture_is_reported_through_rigctl_allan(tmp_
     assert "too short for the window test" in text and "level shift at t =" in text, text
     # the warning carries what it was calibrated on and the real false-alarm rate measured
     # (tests/test_allan_short_step_real.py, docs/allan.md "Detection limits")
-    assert "dwells on its levels" in text and "21 of 201" in text, text
+    assert "the level holds on both sides" in text and "0 of 207" in text, text
+    assert st["hold"]["holds"] and st["beyond"], st

@@ -51,6 +51,8 @@ def test_mtig_five_minute_windows_false_alarms_within_the_binomial_range(
             tested += 1
             if st["found"]:
                 found.append((j + i, st["z"], st["threshold_z"], st["t_s"]))
-    assert tested >= 12, tested  # measured: all 15 windows tested
+    # measured 27 Nov: 13 of 15 tested (windows 3 and 4 fit a Gauss-Markov term, the record's
+    # bump: window 4 since the candidate also runs beside a B estimate; 14 before)
+    assert tested >= 12, tested
     hi = binom.ppf(0.9995, tested, ALPHA)
     assert len(found) <= hi, (found, tested, hi)

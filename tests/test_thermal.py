@@ -410,6 +410,8 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
     sec = html[html.index('<section id="thermal">'):]
     sec = sec[:sec.index("</section>")]
     assert "thermal hysteresis" in sec and "accel_hysteresis_x" in sec and "mg/K^2" in sec
+    # the before/after columns name the axes' one spelling (rigctl.sensor_axes), not x, y, z
+    assert all(f"{ax}: RMS before" in sec for ax in ("ax", "ay", "az", "gx", "gy", "gz")), sec[-3000:]
     for png in ("thermal_parameters.png", "thermal_residuals.png"):
         assert png in sec and (rec.parent / png).stat().st_size > 10_000
     # last (it replaces /results/thermal): --thermal-degree, linear in temperature for every group

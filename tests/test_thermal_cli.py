@@ -156,7 +156,8 @@ def test_bias_and_scale_per_K_agree_with_numpy_in_field_units(runs):
                 f = FIELD[unit]
                 assert q["ci95"][0] <= b[j] * f <= q["ci95"][1], (sensor, ax["axis"], key, q, b[j] * f)
                 assert abs(q["value"] - b[j] * f) <= 1.96 * s[j] * f, (sensor, ax["axis"], key, q, b[j] * f, s[j] * f)
-            if sensor == "accel" or ax["axis"] == "y":  # a real bias slope: accelerometer 10 - 17 sigma, gyro y
+            assert ax["axis"] == ("ax", "ay", "az", "gx", "gy", "gz")[3 * (sensor == "gyro") + i]  # one spelling
+            if sensor == "accel" or ax["axis"] == "gy":  # a real bias slope: accelerometer 10 - 17 sigma, gyro y
                 assert abs(b[0]) > 7 * s[0]
     # the SI values behind the field units, with the constants written here
     for d in r["sensors"].values():

@@ -446,13 +446,38 @@ def gauss_markov(fit: dict, tau: np.ndarray, dev: np.ndarray, edf: np.ndarray, t
     hump (1.89 Tc) lies within a factor 4 of the run, the run's reason names it as a candidate
     with the error before and after. The fitted total and the self-check are those of the IEEE
     952 terms: the candidate is not in them. Every stationary bump the candidate does not
-    explain is said to be unexplained (:func:`name_unexplained`, :func:`gm_not_found_reason`)."""
+    explain is said to be unexplained (:func:`name_unexplained`, :func:`gm_not_found_reason`).
+
+    Also run when the check lists no stationary bump but the fit reports B as an estimate
+    (a floor): a hump of a Gauss-Markov process can pass the check taken as flicker, B then
+    inflated (5-minute records with a bump of 4 B at Tc 2 s: B 2.7-3.1x its truth, the check
+    passed; docs/allan.md, "Detection limits"). The self-check is a goodness-of-fit test and
+    does not compare the nested models; the candidate's likelihood ratio does. Such a result
+    is kept (``unprompted`` True) only when the process is found and no run of taus the check
+    lists lies within a factor 4 of its hump (a warm-up, a non-stationary bump or an excursion
+    there is not a stationary process); else it is dropped and the result is None, as before.
+    There the test runs only after its cheap screen (``gm_candidate(screen=True)``) gives
+    p < GM_SCREEN_P: its cost is the Gauss-Markov kernel's, per Tc and sampling."""
     runs = stationary_bumps(fit.get("check") or {})
-    if not runs:
+    b = getattr(fit.get("coefficients"), "B", None)
+    unprompted = not runs and bool(b is not None and b.resolved)
+    if not runs and not unprompted:
         return None
     tn = fit.get("tones") or {}
+    if unprompted and not (GM.gm_candidate(
+            tau, dev, edf, tau0, n_phase, tones=tn.get("terms") or None,
+            stretch_samples=stretch_samples, screen=True).get("p_value", 1.0) < GM.GM_SCREEN_P):
+        return None  # the cheap screen first (no Gauss-Markov kernel, the coarse Tc grid)
     gm = GM.gm_candidate(tau, dev, edf, tau0, n_phase,
                          tones=tn.get("terms") or None, stretch_samples=stretch_samples)
+    if unprompted:
+        peak = GM.GM_PEAK * gm.get("tc_s", math.nan)
+        near = [o for o in (fit.get("check") or {}).get("outside") or []
+                if float(o["tau_from_s"]) / 4.0 <= peak <= 4.0 * float(o["tau_to_s"])]
+        if not gm.get("detected") or near:
+            return None
+        gm["unprompted"] = True
+        gm["ieee_b_field"] = b.value * DU.NOISE_UNITS[sensor]["B"][1]
     unit, fac = DU.NOISE_UNITS[sensor]["B"]
     if gm.get("tested"):
         gm["sigma_gm_unit"] = unit
@@ -523,9 +548,10 @@ def gm_not_found_reason(gm: dict) -> str:
 def gm_added(gm: dict | None, fit: dict) -> bool:
     """Does the Gauss-Markov term go into the joint fit? When (and only when) the candidate's
     likelihood-ratio test found it (``detected``) and its hump lies at a stationary bump the
-    self-check names (:func:`gauss_markov` marked the run)."""
-    return bool(gm and gm.get("detected") and any(
-        o.get("gauss_markov") for o in (fit.get("check") or {}).get("outside") or []))
+    self-check names (:func:`gauss_markov` marked the run), or, where the check names none,
+    the candidate was run beside a B estimate and found it there (``unprompted``)."""
+    return bool(gm and gm.get("detected") and (gm.get("unprompted") or any(
+        o.get("gauss_markov") for o in (fit.get("check") or {}).get("outside") or [])))
 
 
 def refit_with_gm(fit: dict, gm: dict, sensor: str, refit: Any) -> dict:
@@ -576,9 +602,13 @@ def gm_added_sentence(fit: dict) -> str:
             else f"sigma_GM < {s_hi:.3g} {unit} (the joint fit does not resolve it)")
     return (f"a first-order Gauss-Markov term was added to the fit: Tc {t['tc_s']:.3g} s "
             f"{tc_interval(t)}, {what} (95 %), "
-            f"because the curve has a stationary bump the IEEE 952 terms cannot follow and the "
-            f"likelihood-ratio test against them finds the process (p = "
-            f"{test.get('p_value', math.nan):.2g}, alpha {test.get('alpha', math.nan):.3g}, "
+            + (f"because the likelihood-ratio test against the IEEE 952 terms alone finds the "
+               f"process, which their fit took as flicker (B {gm['ieee_b_field']:.3g} "
+               f"{gm['sigma_gm_unit']} without the term; its self-check passed) (p = "
+               if gm.get("unprompted") else
+               "because the curve has a stationary bump the IEEE 952 terms cannot follow and the "
+               "likelihood-ratio test against them finds the process (p = ")
+            + f"{test.get('p_value', math.nan):.2g}, alpha {test.get('alpha', math.nan):.3g}, "
             f"{test.get('n_looks', math.nan):.2g} looks over Tc; the candidate's Tc "
             f"{gm.get('tc_s', math.nan):.3g} s){before}; the terms, the fitted total and the "
             "self-check include it"

@@ -143,11 +143,13 @@ def sentences(r: dict[str, Any]) -> list[str]:
     if st.get("found"):
         head = (f"a step of the level found before the fit (the record is too short for the "
                 f"window test, so a step was looked for against the fit's noise levels: "
-                f"z {st['z']:+.2f} beyond {st['threshold_z']:.2f}, false-alarm probability "
-                f"{st['alpha']:g} per axis on Gaussian white, flicker and random-walk noise; "
-                f"an output that dwells on its levels or a short bump reads the same: a phone "
-                f"gyro's 5-minute windows alarmed in 21 of 201 (docs/allan.md, Detection "
-                f"limits); the fit's terms have absorbed it): ")
+                f"z {st['z']:+.2f} beyond {st['threshold_z']:.2f}, and the level holds on "
+                f"both sides: the sides' least-squares means differ by z "
+                f"{st['hold']['z']:+.2f} beyond {st['hold']['threshold_z']:.2f} against the "
+                f"noise without its random walk; false-alarm probability {st['alpha']:g} per "
+                f"axis on Gaussian white, flicker and random-walk noise; a phone gyro that "
+                f"dwells on its levels alarmed in 0 of 207 5-minute windows (docs/allan.md, "
+                f"Detection limits); the fit's terms have absorbed it): ")
     else:
         head = (f"{len(ex)} short excursion(s) of the level found before the fit (windows of "
                 f"{x['min_s']:.3g} s to 1/{round(1 / EX.MAX_FRACTION)} of the record, judged "

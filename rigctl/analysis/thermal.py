@@ -28,6 +28,7 @@ import numpy as np
 
 from ..recording import recording_reader
 from ..display_units import display, format_value
+from ..sensor_axes import axis_name
 from ..errors import InputError
 from ..frames import body_references
 from ..recording.checkpoint import write_atomic
@@ -592,8 +593,8 @@ def calibrate_thermal(path: str | Path, degrees: dict[str, int] | str | None = N
                          f"{e['decision']}")
         dsp = display(f"{sensor}_bias_x_{th.UNIT[sensor]}")
         lines.append("  residual RMS per axis, before (one calibration at the reference temperature) -> after: "
-                     + ", ".join(f"{a} {dsp.sigma(b):.4g} -> {dsp.sigma(x):.4g} {dsp.unit}"
-                                 for a, b, x in zip(th.AXES, ba["rms_before"], ba["rms_after"])))
+                     + ", ".join(f"{axis_name(sensor, i)} {dsp.sigma(b):.4g} -> {dsp.sigma(x):.4g} {dsp.unit}"
+                                 for i, (b, x) in enumerate(zip(ba["rms_before"], ba["rms_after"]))))
         lines.append(f"  {'parameter':<34} {'value':>14} {'+-':>10} {'95 % interval':>26}  unit"
                      + ("   truth" if truth else ""))
         for q in params:

@@ -35,6 +35,7 @@ from ..clock import utc_now
 from ..display_units import display, format_value
 from ..errors import InputError
 from ..jsonable import jsonable
+from ..sensor_axes import axis_name
 from ..solvers import distributions as stats
 from ..solvers import thermal as th
 from ..yamlio import load_file
@@ -112,9 +113,9 @@ def _sensor(w: th.ThermalWindows, fit: th.ThermalFit) -> dict[str, Any]:
             per_axis[m.group(3)][f"{m.group(2)}_per_K{m.group(4)}"] = {
                 k: p[k] for k in ("name", "unit", "value", "sigma", "ci95")}
     axes = []
-    for a, ax in zip(th.AXES, fit.axes):
+    for i, (a, ax) in enumerate(zip(th.AXES, fit.axes)):
         ac2, alo, ahi, ast = _band(ax.chi2, ax.dof)
-        axes.append({"axis": a, "chi2": ax.chi2, "dof": ax.dof, "chi2_per_dof": ac2, "chi2_band_99": [alo, ahi],
+        axes.append({"axis": axis_name(w.sensor, i), "chi2": ax.chi2, "dof": ax.dof, "chi2_per_dof": ac2, "chi2_band_99": [alo, ahi],
                      "status": ast, "coefficients": per_axis[a]})
     return {"degrees": fit.degrees, "windows": len(w), "accepted": fit.accepted,
             "effects_found": [th.CANDIDATE_TEXT[c] for c in fit.accepted], "explain": fit.explain,
@@ -183,7 +184,7 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                         "channels": noise_rows, "lines": noise_lines},
         "findings": [f"{s} chi2/dof {d['chi2_per_dof']:.3g} {d['finding']}" for s, d in sensors.items()
                      if d["status"] != "ok"] + [
-            f"{s} {a['axis']} chi2/dof {a['chi2_per_dof']:.3g} outside its 99 % band "
+            f"{a['axis']} chi2/dof {a['chi2_per_dof']:.3g} outside its 99 % band "
             f"{a['chi2_band_99'][0]:.3g} .. {a['chi2_band_99'][1]:.3g}"
             for s, d in sensors.items() for a in d["axes"] if a["status"] != "ok"],
         "model": "y_i - u_i = sum_j <dT^j> b_ij + sum_j>=1 <dT^j> u_i s_ij + pose offsets [+ effects]; "

@@ -17,6 +17,7 @@ from typing import Any
 from .report import FAULT_KINDS, RunData, find_session
 from ..analysis.allan_drift import tc_interval
 from ..display_units import display, format_value
+from ..sensor_axes import axis_name
 from .report_allan import allan_curves
 
 G0 = 9.80665
@@ -674,7 +675,7 @@ def s_thermal(d: RunData, plots: dict[str, Path]) -> str:
         brow = [[f"{b['from_c']:g} .. {b['to_c']:g} degC", b["windows"],
                  *[f"{dd.sigma(x):.4g} -> {dd.sigma(y):.4g}" for x, y in zip(b["rms_before"], b["rms_after"])]]
                 for b in ba.get("by_temperature") or []]
-        out.append(table(["temperature", "windows", *[f"{a}: RMS before -> after [{dd.unit}]" for a in "xyz"]],
+        out.append(table(["temperature", "windows", *[f"{axis_name(sensor, i)}: RMS before -> after [{dd.unit}]" for i in range(3)]],
                          brow))
     return "\n".join(out)
 

@@ -55,6 +55,10 @@ GM_LOOK_SPAN = 4.0
 GM_GRID_PER_OCTAVE = 4
 #: the hump's peak (1.89 Tc) must lie this factor inside the well-determined taus
 GM_PEAK = 1.89
+#: the screen's p-value (gm_candidate(screen=True)) below which the test is run where no bump
+#: prompts it: on 80 records with a bump (5 min, sigma 2 and 4 B, Tc 2 s) every one the test
+#: found had a screen p <= 0.023; 6 of 40 records without one pass the screen
+GM_SCREEN_P = 0.2
 
 
 #: the Allan variance of the process (defined in allan_fit, whose joint fit carries the term)
@@ -70,7 +74,8 @@ def _interval(p: float, sd: float, conf: float) -> tuple[float, float]:
 
 def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
                  n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
-                 iterations: int = 3, stretch_samples: np.ndarray | None = None) -> dict:
+                 iterations: int = 3, stretch_samples: np.ndarray | None = None,
+                 screen: bool = False) -> dict:
     """:func:`_gm_candidate` with BLAS single-threaded (40 x 40 systems: threads only cost).
     A curve no positive IEEE 952 term describes (a recording of a moving table: the deviation
     rises from 0.01 to 1 s and falls again) leaves the weighted least squares singular (every
@@ -78,7 +83,7 @@ def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float
     with blas_single_thread():
         try:
             return _gm_candidate(tau, adev, edf, tau0, n_phase, tones, max_taus, iterations,
-                                 stretch_samples)
+                                 stretch_samples, screen)
         except np.linalg.LinAlgError as exc:
             return {"tested": False, "detected": False, "p_value": math.nan,
                     "alpha": GM_TEST_ALPHA,
@@ -88,7 +93,8 @@ def gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float
 
 def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: float,
                   n_phase: int, tones: list[dict] | None = None, max_taus: int = 40,
-                  iterations: int = 3, stretch_samples: np.ndarray | None = None) -> dict:
+                  iterations: int = 3, stretch_samples: np.ndarray | None = None,
+                  screen: bool = False) -> dict:
     """Does a first-order Gauss-Markov term fit the curve beyond the IEEE 952 terms? (see the
     module docstring). ``stretch_samples``: the gap-free stretches' lengths when the deviations
     pool them (gaps skipped): the covariance is then the pooled estimator's
@@ -99,7 +105,12 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     well-determined taus tested: min, max), "n_informative", "n_outside95_before",
     "n_outside95_after" (of those taus, outside their pointwise 95 % band), "tau_range_s",
     "model_error_rel"}; "before" is the IEEE 952 terms alone refitted on the same taus with the
-    same covariance, not the main fit's reported total."""
+    same covariance, not the main fit's reported total.
+
+    ``screen``: a cheap first look (``screen`` True in the result): the covariance of the IEEE
+    terms alone scaled tau by tau to the whole model (no Gauss-Markov kernel: the IEEE terms'
+    matrices are cached per sampling, the kernel's are computed per Tc) and the coarse Tc grid
+    only; its p-value is for deciding whether to run the test, not a result."""
     out: dict = {"tested": False, "detected": False, "p_value": math.nan,
                  "alpha": GM_TEST_ALPHA}
     tau = np.asarray(tau, dtype=float)
@@ -148,7 +159,10 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
         terms), scaled per tau to the whole model; the diagonal 2 mod^2 / edf if it is not
         positive; plus the model error (eps mod)^2."""
         p = np.maximum(q, 0.0)
-        noisy = np.maximum(a[:, [1, 2, 3, 5]] @ p[[1, 2, 3, 5]], 1e-300)
+        # the terms the covariance holds (the screen's: the IEEE terms', whose correlations
+        # then stand for the Gauss-Markov term's too, scaled to the whole model)
+        held = [1, 2, 3] if screen else [1, 2, 3, 5]
+        noisy = np.maximum(a[:, held] @ p[held], 1e-300)
         mod = np.maximum(a @ q, 1e-300)
         cov = C.combine(ct, {"N": p[1], "B": p[2], "K": p[3], "G": p[5]})
         g = mod / noisy
@@ -162,8 +176,9 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
 
     def at(tc: float, eps: float) -> dict:
         a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
-        ct = (C.gapped_term_covariances(tau0, ms_t, np.asarray(stretch_samples), tc)
-              if gapped else C.term_covariances(tau0, ms_t, int(n_phase), tc))
+        tk = None if screen else tc
+        ct = (C.gapped_term_covariances(tau0, ms_t, np.asarray(stretch_samples), tk)
+              if gapped else C.term_covariances(tau0, ms_t, int(n_phase), tk))
         lw = F._whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
         for _ in range(iterations):
             q, _, _ = solve(a, lw)
@@ -189,7 +204,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     # ... refined 8x around the coarse grid's best (the profile is a few grid steps wide)
     j0 = 8 * (i_lo + max(i - 2, 0))
     j1 = 8 * (i_lo + min(i + 2, grid.size - 1))
-    fine = 2.0 ** (np.arange(j0, j1 + 1) / (8 * GM_GRID_PER_OCTAVE))
+    fine = 2.0 ** (np.arange(j0, j1 + 1) / (8 * GM_GRID_PER_OCTAVE)) if not screen else grid
     runs = sorted(runs + [at(tc, eps) for tc in fine if not np.any(np.isclose(tc, grid))],
                   key=lambda r: r["tc"])
     grid = np.array([r["tc"] for r in runs])
@@ -231,7 +246,8 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     dof0 = max(1, t.size - int(np.count_nonzero(top["q0"])))
     dof_a = max(1, t.size - int(np.count_nonzero(top["q1"])))
     out.update({
-        "tested": True, "detected": bool(p < GM_TEST_ALPHA and interior and top["q1"][-1] > 0),
+        "tested": True, "screen": screen,
+        "detected": bool(p < GM_TEST_ALPHA and interior and top["q1"][-1] > 0),
         "p_value": p, "statistic": stat, "n_looks": n_looks, "best_at_grid_end": not interior,
         "tc_s": float(top["tc"]),
         "tc_ci95_s": [float(grid[inside].min()), float(grid[inside].max())],
