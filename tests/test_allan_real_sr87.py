@@ -31,6 +31,7 @@ from scipy.stats import chi2
 from allan_independent import (B_FACTOR, assert_gm_agrees, bound_ceiling, white_gm_fit,
                                white_gm_profile)
 from rigctl import cli
+from rigctl.analysis.allan_drift import tc_interval
 from rigctl.solvers import allan_fit as F
 
 TAU0 = 2.5  # s, the file's Tau (Stable32's)
@@ -168,6 +169,27 @@ def test_the_tc_interval_is_the_datas_not_cut_by_the_search_range(sr87) -> None:
     assert lo < hi and (is_open[0] or lo > rng[0] * (1 + 1e-9)), msg
     assert is_open[1] or hi < rng[1] * (1 - 1e-9), msg
     assert lo <= t["tc_s"] <= hi and ind["tc_ci95"][0] <= hi, msg
+
+
+def test_a_range_that_cuts_the_interval_is_extended_below_or_said_open(sr87) -> None:
+    """The joint fit on rigctl's curve with a Tc range given: one wholly above the data's Tc
+    (20-64.8 s) is continued below until the interval closes (it agrees with the default
+    run's, lower end below 20 s); one wholly below (1-3 s; never extended upward) reports its
+    upper end open, and the text writes it "[lo, >3]"."""
+    r = sr87["default"]
+    tau, dev, e = (np.asarray(r[k], float) for k in ("tau_s", "adev_rad/s", "edf"))
+    ref = r["fit"]["gm_term"]
+    out = {}
+    for rng in ((20.0, 64.8), (1.0, 3.0)):
+        out[rng] = F.fit_terms(tau, dev, e, "gyro", tau0=TAU0, n_phase=sr87["y"].size + 1,
+                               gm={"tc_grid_s": list(rng)})["gm_term"]
+    t = out[(20.0, 64.8)]
+    assert t["tc_profile_s"][0] < 20.0 * (1 - 1e-6) and t["tc_ci95_open"] == [False, False], t
+    assert t["tc_profile_s"][0] < t["tc_ci95_s"][0] and t["tc_ci95_s"][1] < 20.0, t
+    assert t["tc_ci95_s"][0] <= ref["tc_s"] <= t["tc_ci95_s"][1], (t, ref["tc_s"])
+    t = out[(1.0, 3.0)]
+    assert t["tc_ci95_open"] == [False, True] and t["tc_ci95_s"][1] == pytest.approx(3.0), t
+    assert tc_interval(t).endswith(", >3]"), tc_interval(t)
 
 
 def test_octave_names_the_hump_it_cannot_fit(sr87) -> None:
