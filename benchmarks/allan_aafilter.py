@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import butter, lfilter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
@@ -34,7 +35,6 @@ import test_allan_check_bounds as WF  # noqa: E402
 from allan_gm_spectral import family  # noqa: E402
 
 from rigctl.solvers import allan_fit as F  # noqa: E402
-from scipy.signal import butter, lfilter  # noqa: E402
 
 
 def aliased_white() -> float:
