@@ -6,6 +6,8 @@ solvers (one definition for every test that reads a real curve this way).
   by weighted least squares (scipy.optimize.least_squares in log parameters,
   var(sigma^2) = 2 sigma^4 / EDF with the model's sigma^2, iterated); 95 % intervals from the
   Jacobian, the correlation across taus neglected (narrower intervals: a stricter comparison).
+* ``white_gm_profile``: the same model's profile chi-square over a grid of Tc (N^2 and
+  sigma_GM^2 linear at each Tc) and Tc's 95 % profile-likelihood interval.
 * ``floor_fit``: B and K above a given white-noise offset, sigma^2 - off = (0.664 B)^2 + K^2 tau/3,
   by non-negative weighted least squares with the same iterated weights; B's 95 % interval from
   that fit's covariance, the correlation across taus neglected.
@@ -76,18 +78,45 @@ def white_gm_fit(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray) -> dict:
             "tau": tau, "s2": s2, "edf": edf}
 
 
+def _nnls_iterated(a: np.ndarray, s2: np.ndarray, edf: np.ndarray,
+                   off: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Non-negative c with a c + off ~ s2, weighted by 1 / sd(s2), sd(s2) = model sqrt(2 / EDF)
+    with the model a c + off (iterated from the data): (c, the final weights)."""
+    mod = s2.copy()
+    for _ in range(100):
+        w = np.sqrt(edf / 2.0) / mod
+        c, _ = nnls(a * w[:, None], (s2 - off) * w)
+        new = np.maximum(a @ c + off, 1e-300)
+        if np.allclose(new, mod, rtol=1e-12):
+            break
+        mod = new
+    return c, w
+
+
+def white_gm_profile(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray,
+                     tcs: np.ndarray) -> dict:
+    """White + GM's profile over the correlation times ``tcs`` (s): at each Tc, N^2 and
+    sigma_GM^2 by non-negative weighted least squares (var(sigma^2) = 2 model^2 / EDF,
+    iterated), its chi-square; Tc's 95 % profile-likelihood interval the Tc whose chi-square is
+    within chi2_0.95(1) of the least (scaled by chi2/dof where that exceeds 1). Returns {"tc",
+    "tc_ci95", "chi2", "dof", "open" (the set reaches the first or last Tc given)}, SI."""
+    def chi2_at(tc: float) -> float:
+        a = np.column_stack([1.0 / tau, gm_avar(tau, 1.0, tc)])
+        c, w = _nnls_iterated(a, s2, edf)
+        return float(np.sum(((a @ c - s2) * w) ** 2))
+
+    c = np.array([chi2_at(float(t)) for t in tcs])
+    i, dof = int(np.argmin(c)), int(tau.size - 3)
+    inside = np.flatnonzero(c <= c[i] + max(1.0, c[i] / dof) * chi2.ppf(0.95, 1))
+    return {"tc": float(tcs[i]), "tc_ci95": (float(tcs[inside[0]]), float(tcs[inside[-1]])),
+            "chi2": float(c[i]), "dof": dof, "open": (inside[0] == 0, inside[-1] == tcs.size - 1)}
+
+
 def floor_fit(tau: np.ndarray, dev: np.ndarray, nu: np.ndarray, off: np.ndarray) -> tuple[float, float, float]:
     """B and its 95 % interval (lower, upper) from the deviations ``dev`` at ``tau`` with EDFs
     ``nu``, above the white terms' variance ``off`` at the same taus (module docstring)."""
     a = np.column_stack([np.full(tau.size, B_FACTOR ** 2), tau / 3])
-    s2 = dev ** 2
-    for _ in range(100):
-        w = np.sqrt(nu / 2) / s2
-        c, _ = nnls(a * w[:, None], (dev ** 2 - off) * w)
-        new = np.maximum(a @ c + off, 1e-300)
-        if np.allclose(new, s2, rtol=1e-12):
-            break
-        s2 = new
+    c, w = _nnls_iterated(a, dev ** 2, nu, off)
     sd = math.sqrt(np.linalg.inv((a * w[:, None]).T @ (a * w[:, None]))[0, 0])
     return math.sqrt(c[0]), math.sqrt(max(c[0] - 1.96 * sd, 0.0)), math.sqrt(c[0] + 1.96 * sd)
 

@@ -28,7 +28,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from allan_independent import B_FACTOR, assert_gm_agrees, bound_ceiling, white_gm_fit
+from allan_independent import (B_FACTOR, assert_gm_agrees, bound_ceiling, white_gm_fit,
+                               white_gm_profile)
 from rigctl import cli
 from rigctl.solvers import allan_fit as F
 
@@ -122,11 +123,7 @@ def test_the_hump_is_a_gauss_markov_term(sr87) -> None:
     r = sr87["default"]
     # the independent fit on octave taus (nearly independent estimates: its chi-square means
     # what it says), the informative ones: 2.5-160 s
-    ms = 2 ** np.arange(0, 9)
-    tau, dev = ms * TAU0, oadev(sr87["y"], ms)
-    nu = edf(sr87["y"].size + 1, ms)
-    inf = np.flatnonzero(np.sqrt(chi2.ppf(0.975, nu) / chi2.ppf(0.025, nu)) <= 2.0)
-    tau, s2, nu = tau[inf], dev[inf] ** 2, nu[inf]
+    tau, s2, nu = _octave_informative(sr87["y"])
     ind = white_gm_fit(tau, s2, nu)
     # its premise: white + GM describes the curve (measured 3.4 on 4 dof), white alone does
     # not (330 on 6 dof), and the hump lies inside the informative taus
@@ -141,6 +138,36 @@ def test_the_hump_is_a_gauss_markov_term(sr87) -> None:
     assert_gm_agrees({"tc": t["tc_s"], "tc_ci95": tuple(t["tc_ci95_s"]), "sigma": t["sigma_si"],
                       "sigma_ci95": tuple(t["sigma_ci95_si"])}, ind)
     assert fit["check"]["chi2"] < 2.0 * fit["check"]["dof"], (fit["check"]["chi2"], fit["check"]["dof"])
+
+
+def _octave_informative(y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The octave taus whose 95 % band is informative (2.5-160 s), their Allan variances and
+    EDFs, read here in numpy."""
+    ms = 2 ** np.arange(0, 9)
+    tau, dev = ms * TAU0, oadev(y, ms)
+    nu = edf(y.size + 1, ms)
+    inf = np.flatnonzero(np.sqrt(chi2.ppf(0.975, nu) / chi2.ppf(0.025, nu)) <= 2.0)
+    return tau[inf], dev[inf] ** 2, nu[inf]
+
+
+def test_the_tc_interval_is_the_datas_not_cut_by_the_search_range(sr87) -> None:
+    """Tc's profile-likelihood interval, white + GM in numpy on the octave taus over 0.5-200 s
+    (measured 10.0 s [7.97, 12.5]; the hump's Tc is below the candidate's range, which starts
+    at 2 x 10 s / 1.89 = 10.58 s): rigctl's reported interval reaches below the numpy one's
+    lower end, or says that end is open. Before, rigctl gave Tc 10.58 s [10.58, 11.37]: the
+    estimate and the interval's lower end on the range's edge, reported as the data's. And an
+    end of rigctl's interval on the end of the Tc range it profiled is always marked open."""
+    tau, s2, nu = _octave_informative(sr87["y"])
+    ind = white_gm_profile(tau, s2, nu, np.exp(np.linspace(math.log(0.5), math.log(200.0), 600)))
+    assert not any(ind["open"]) and tau[0] < ind["tc_ci95"][0], ind  # its premise
+    t = sr87["default"]["fit"]["gm_term"]
+    (lo, hi), rng = t["tc_ci95_s"], t["tc_profile_s"]
+    is_open = t.get("tc_ci95_open", [False, False])
+    msg = f"rigctl Tc {t['tc_s']:.3f} s [{lo:.3f}, {hi:.3f}] open {is_open} over {rng}; numpy {ind}"
+    assert lo <= ind["tc_ci95"][0] or is_open[0], msg
+    assert lo < hi and (is_open[0] or lo > rng[0] * (1 + 1e-9)), msg
+    assert is_open[1] or hi < rng[1] * (1 - 1e-9), msg
+    assert lo <= t["tc_s"] <= hi and ind["tc_ci95"][0] <= hi, msg
 
 
 def test_octave_names_the_hump_it_cannot_fit(sr87) -> None:

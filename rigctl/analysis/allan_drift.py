@@ -603,7 +603,7 @@ def gm_added_sentence(fit: dict) -> str:
     what = (f"sigma_GM {s:.3g} {unit} [{s_lo:.3g}, {s_hi:.3g}]" if t.get("resolved")
             else f"sigma_GM < {s_hi:.3g} {unit} (the joint fit does not resolve it)")
     return (f"a first-order Gauss-Markov term was added to the fit: Tc {t['tc_s']:.3g} s "
-            f"[{t['tc_ci95_s'][0]:.3g}, {t['tc_ci95_s'][1]:.3g}], {what} (95 %), "
+            f"{tc_interval(t)}, {what} (95 %), "
             + (f"because the likelihood-ratio test against the IEEE 952 terms alone finds the "
                f"process, which their fit took as flicker (B {gm['ieee_b_field']:.3g} "
                f"{gm['sigma_gm_unit']} without the term; its self-check passed) (p = "
@@ -615,6 +615,13 @@ def gm_added_sentence(fit: dict) -> str:
             f"{gm.get('tc_s', math.nan):.3g} s){before}; the terms, the fitted total and the "
             "self-check include it"
             + ("; held at the curve's own limit" if t.get("held_at_curve_limit") else ""))
+
+
+def tc_interval(t: dict[str, Any], digits: int = 3) -> str:
+    """Tc's 95 % interval as "[lo, hi]", an end whose profile set reaches the end of the Tc
+    range searched written open ("[<lo, hi]", "[lo, >hi]": the range's end, not the data's)."""
+    (lo, hi), (o_lo, o_hi) = t["tc_ci95_s"], t.get("tc_ci95_open") or (False, False)
+    return f"[{'<' if o_lo else ''}{lo:.{digits}g}, {'>' if o_hi else ''}{hi:.{digits}g}]"
 
 
 def gm_reason(gm: dict) -> str:

@@ -11,6 +11,7 @@ from ..display_units import need_text, slug
 from ..solvers import allan_fit as F
 from ..solvers import noise_coefficients as NC
 from . import allan_excursions as EXA
+from .allan_drift import tc_interval
 from .allan import chi2_carrier_text, check_notes, check_warnings, judged, screening_notes
 
 
@@ -159,7 +160,7 @@ def gm_term_line(fit: dict[str, Any]) -> str:
         return ""
     unit = t["sigma_unit"]
     s, (lo, hi) = t[f"sigma_{slug(unit)}"], t[f"sigma_ci95_{slug(unit)}"]
-    tc, (tlo, thi) = t["tc_s"], t["tc_ci95_s"]
+    tc = t["tc_s"]
     crb = t.get("crb") or {}
     name = "Gauss-Markov sigma_GM, Tc"
     sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
@@ -172,7 +173,7 @@ def gm_term_line(fit: dict[str, Any]) -> str:
         tc_more = f" ({tc_more[2:]}, with sigma_GM at its bound)"
     more = " (held at the curve's own limit: the fit wanted more)" if t.get(
         "held_at_curve_limit") else ""
-    return f"  {name:>26}: {val}, Tc {tc:.4g} s [{tlo:.4g}, {thi:.4g}]{tc_more}{more}"
+    return f"  {name:>26}: {val}, Tc {tc:.4g} s {tc_interval(t, 4)}{tc_more}{more}"
 
 
 def goodness_line(check: dict[str, Any], with_gm: bool = False) -> str:

@@ -85,20 +85,41 @@ def pace_message(speed: float, achieved: float) -> str:
 PACE_SLOW_FRACTION = 0.9
 
 
-def slow_rig_message(speed: float, achieved: float) -> str:
+#: Table reads in a row that find its time unchanged before a slow rig is said to have a frozen
+#: table clock (:func:`slow_rig_message`): an emulator's physics waiting for an IMU stream its
+#: client does not take (sim/links.py FlowPtyEndpoint) stands the table's time still.
+STILL_TABLE_READS = 20
+
+
+def slow_rig_message(speed: float, achieved: float, still: tuple[int, float] | None = None) -> str:
     """The one line saying a rig on the wire keeps time slower than the run's clock asks.
 
     A run at ``speed`` x real time (``clock: scaled``) talks to an emulator (``rigctl sim up
     --speed``); its devices' time -- table controller time, IMU sample times -- advancing at
-    ``achieved`` x real time < ``speed`` means the emulator cannot compute the rig that fast on
-    this machine (a real device's clock does not lag the host's by percents). Its samples then
-    fall further behind the clock every second: an IMU stream that starts only when the physics
-    reaches the clock ('no stream'), windows that come out short."""
+    ``achieved`` x real time < ``speed`` (end to end: the slower of the two) means the emulator
+    cannot run the rig that fast on this machine (a real device's clock does not lag the host's
+    by percents). Its samples then fall further behind the clock every second: an IMU stream that
+    starts only when the physics reaches the clock ('no stream'), windows that come out short.
+
+    ``still``: (table reads, IMU stream lag s of rig time) when the IMU stream, not the table,
+    fell behind: it lagged the run's clock by that much -- the emulator's physics waiting for an
+    IMU stream this host does not read as fast as it comes -- said as the cause, with the table
+    reads that found its time standing still meanwhile (0: it crept on). The speed advised is :func:`rigctl.clock.suggested_speed` of ``achieved``, never below
+    1; when even that is more than the rig kept, the host is too slow for real time."""
     got = f"{achieved:.0f}" if achieved >= 10 else f"{achieved:.2g}"
-    return (f"the rig's devices keep time at about {got}x real time, slower than the {speed:g}x of the "
-            f"run's clock: the emulator ('rigctl sim up --speed {speed:g}') cannot compute the rig that fast "
-            f"on this machine, so its devices fall ever further behind the clock; restart it with "
-            f"--speed {suggested_speed(achieved):g} or less and run with the wired config it writes")
+    cause = "cannot compute the rig that fast"
+    if still is not None:
+        frozen = f"the table's clock did not advance in {still[0]} reads while " if still[0] else ""
+        cause = (f"cannot run the rig that fast: {frozen}the IMU stream lagged {still[1]:.0f} s behind the "
+                 f"clock (the emulator waits for an IMU stream this host does not read as fast as it comes)")
+    head = (f"the rig's devices keep time at about {got}x real time, slower than the {speed:g}x "
+            f"of the run's clock: the emulator ('rigctl sim up --speed {speed:g}') {cause} on this machine, "
+            f"so its devices fall ever further behind the clock; ")
+    suggest = suggested_speed(achieved)
+    if suggest < 1.0:
+        return head + ("this host is too slow to run the emulated rig even at real time (--speed 1): "
+                       "run it on a faster or less loaded machine")
+    return head + f"restart it with --speed {suggest:g} or less and run with the wired config it writes"
 
 
 def slow_rig_speed(speed: float, wall_s: float, device_s: float) -> float | None:
@@ -308,7 +329,16 @@ class Engine:
         #: whether the run said it cannot keep up
         self.pace_window_s = PACE_WINDOW_WALL_S
         self.pace_warned = False
-        self._pace: tuple[float, float, float] | None = None
+        self._pace: tuple[float, float, float, float] | None = None  # (wall, table t, slipped, IMU t)
+        #: (wall, IMU stream time s) at the first IMU sample the pace watch saw: the rig's speed
+        #: end to end since (the stream's own time), when a window's table time stood still
+        self._pace_origin: tuple[float, float] | None = None
+        self._imu_t = math.nan                  # the latest IMU sample's time, s
+        self._still_reads = 0                   # table reads in a row that found its time unchanged
+        self._stream_slower = False             # the IMU stream kept time slower in the last pace window
+        #: the IMU link was lost or reconnecting in the pace window in progress: its stream's time
+        #: then measures the outage, not the rig's pace (the table's alone does)
+        self._imu_down = False
         self._pace_slow: float | None = None  # the devices' speed in the last pace window, if slow
         #: the line saying the rig's devices keep time slower than the clock (slow_rig_message), once seen
         self.slow_rig: str | None = None
@@ -346,6 +376,8 @@ class Engine:
                 self._track_block(self.rec.n_imu, block.time)
             self.rec.append_imu(block)
             self.gaps.add(block.counter)
+            if len(block):
+                self._imu_t = float(block.time[-1])
             if self.live is not None:
                 self.live.add_imu(block)
         except LinkLost as exc:
@@ -354,6 +386,7 @@ class Engine:
             if not safe_state:      # going to the safe state, which must still read the table
                 raise
             obs.imu_error = str(exc)
+        self._imu_down |= bool(obs.imu_error or obs.imu_reconnecting)
         restarted = self._watch_restarts(obs.t, closing=safe_state)
         try:
             self.rec.append_pulses(self.rig.pulses.read())
@@ -368,6 +401,8 @@ class Engine:
         try:
             state = self.rig.table.read()
             obs.table = state
+            same = self.last_state is not None and float(state.time) == float(self.last_state.time)
+            self._still_reads = self._still_reads + 1 if same else 0
             self.rec.append_table(state)
             self.last_state = state
             if self.live is not None:
@@ -546,13 +581,15 @@ class Engine:
         if slipped is None or self.pace_warned:
             return
         wall = time.monotonic()
+        imu_t = self._imu_t
+        if not math.isnan(imu_t) and (self._pace_origin is None or imu_t < self._pace_origin[1]):
+            self._pace_origin = (wall, imu_t)   # the first sample (or a stream whose time began again)
         if self._pace is None:
-            self._pace = (wall, t, slipped)
+            self._pace = (wall, t, slipped, imu_t)
             return
-        w0, t0, s0 = self._pace
+        w0, t0, s0, _ = self._pace
         if wall - w0 < self.pace_window_s:
             return
-        self._pace = (wall, t, slipped)
         speed = float(clock.speed)
         achieved = (t - t0) / (wall - w0)
         if slipped > s0 and achieved < PACE_SLOW_FRACTION * speed:
@@ -564,14 +601,47 @@ class Engine:
         # a clock nobody sets back (a rig on the wire): the devices' time itself runs slower than
         # the clock -- an emulator this machine cannot compute at that speed. Two windows in a
         # row: one stall of the emulator's host (caught up at once after) is not a pace
-        slow = slow_rig_speed(speed, wall - w0, t - t0) if slipped == 0.0 else None
+        slow = self._rig_pace(speed, wall, t) if slipped == 0.0 else None
+        self._pace, self._imu_down = (wall, t, slipped, imu_t), False
         if slow is not None and self._pace_slow is not None:
             self.pace_warned = True
-            self.slow_rig = slow_rig_message(speed, slow)   # the latest window: the pace now
+            self.slow_rig = self._slow_rig_line(speed, slow, wall)   # the latest window: the pace now
             self.log("warning", self.slow_rig, speed=speed, achieved_speed=slow)
             self.rec.add_event(t, "clock", f"the rig's devices keep time at about {slow:.1f}x wall time, "
                                            f"slower than the run's clock at {speed:g}x")
         self._pace_slow = slow
+
+    def _rig_pace(self, speed: float, wall: float, t: float) -> float | None:
+        """:func:`slow_rig_speed` over the pace window in progress (since ``self._pace``, to
+        ``wall`` and the table's time ``t``), end to end: on the table's time and on the IMU
+        stream's own (its latest sample's time), the slower of the two (a stream that falls behind
+        while the table keeps time -- or the reverse -- is the rig's pace all the same). Notes in
+        ``self._stream_slower`` whether the stream was the slower."""
+        w0, t0, _, imu_t0 = self._pace
+        device_s, imu_s = t - t0, self._imu_t - imu_t0
+        self._stream_slower = False
+        # not across a lost link or a stream whose time began again (an IMU restart): the
+        # table's time alone
+        if not self._imu_down and imu_s >= 0.0:     # False when either time is unknown (NaN)
+            self._stream_slower = imu_s < device_s
+            device_s = min(device_s, imu_s)
+        return slow_rig_speed(speed, wall - w0, device_s)
+
+    def _slow_rig_line(self, speed: float, achieved: float, wall: float) -> str:
+        """:func:`slow_rig_message` for the devices' speed ``achieved`` over a pace window (the
+        last :meth:`_rig_pace`). When the IMU stream was the slower, or the table's time stood
+        still for :data:`STILL_TABLE_READS` reads or more, the stream's lag is the cause said,
+        and the speed stated is the stream's own since its first sample, when higher: a window
+        in which the stream stood still (the emulator held back by a host that did not read it)
+        measures a stall, not the speed the rig can keep."""
+        frozen = self._still_reads >= STILL_TABLE_READS
+        if not (frozen or self._stream_slower) or math.isnan(self._imu_t) or self._pace_origin is None:
+            return slow_rig_message(speed, achieved)
+        w0, imu_t0 = self._pace_origin
+        if wall - w0 > 0.0:
+            achieved = max(achieved, (self._imu_t - imu_t0) / (wall - w0))
+        lag = float(self.rig.clock.now()) - self._imu_t
+        return slow_rig_message(speed, achieved, still=(self._still_reads if frozen else 0, lag))
 
     def _slow_rig_now(self) -> str | None:
         """:func:`slow_rig_message` when the devices' time ran slower than an unslipped clock over
@@ -579,11 +649,11 @@ class Engine:
         clock, state = self.rig.clock, self.last_state
         if self._pace is None or state is None or getattr(clock, "slipped", None) != 0.0:
             return None
-        w0, t0, _ = self._pace
-        wall = time.monotonic() - w0
+        wall = time.monotonic()
         speed = float(clock.speed)
-        slow = slow_rig_speed(speed, wall, float(state.time) - t0) if wall >= 0.5 * self.pace_window_s else None
-        return slow_rig_message(speed, slow) if slow is not None else None
+        slow = (self._rig_pace(speed, wall, float(state.time))
+                if wall - self._pace[0] >= 0.5 * self.pace_window_s else None)
+        return self._slow_rig_line(speed, slow, wall) if slow is not None else None
 
     def _poll_chamber(self, t: float) -> None:
         """Read the chamber (at most every ``chamber_poll_s``), record it, keep its trip reason."""

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .report import FAULT_KINDS, RunData, find_session
+from ..analysis.allan_drift import tc_interval
 from ..display_units import display, format_value
 from ..sensor_axes import axis_name
 from .report_allan import allan_curves
@@ -455,7 +456,9 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
             rows.append([axis, "Gauss-Markov sigma_GM", unit, _term_cell(g.sigma.scaled(fac)),
                          None, _need_cell(sig_e, not sig_e.get("bounded"))])
+            gt = cv["fit"].get("gm_term") or {}
             tc = (f"{g.tau_c_s:.4g}" if g.tau_c_ci95 is None else
+                  f"{g.tau_c_s:.4g} {tc_interval(gt, 4)}" if gt.get("tc_ci95_s") else
                   f"{g.tau_c_s:.4g} [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]")
             rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None,
                          _need_cell(tc_e, not tc_e.get("bounded"))])

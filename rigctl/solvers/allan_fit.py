@@ -1216,6 +1216,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
 #: then FINE_POINTS between the points two steps either side of the best
 GM_GRID_PER_OCTAVE = 4
 GM_FINE_POINTS = 33
+#: ... and, where the profile's 95 % set still reaches the range's lower end, continued below
+#: it down to the fit's first tau / this (a Tc below the first tau is identified only by the
+#: curve's slope there: sigma^2(tau) / (N^2 / tau) = 1 - 3 Tc / (2 tau) + ... for tau >> Tc)
+GM_BELOW_FIRST_TAU = 4.0
 
 
 def _gm_limit(tc: float, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
@@ -1273,10 +1277,32 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
         up = np.append(upper_all[active], _gm_limit(tc, tau_all, s2_all, inf95, hi_fw, 0.0))
         return _model_error(a, s2, e, active + [GM_IDX], cov_at(tc), iterations, up)
 
+    floor = min(lo, float(tau[0]) / GM_BELOW_FIRST_TAU)
+    dof = max(1, tau.size - len(active) - 1)
+
+    def extend(grid: np.ndarray, c: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+        """The profile continued below the range an octave at a time, down to ``floor``, while
+        its 95 % set (as _gm_result reads it) reaches the lowest Tc tried: an interval cut by
+        the range would be reported as the data's."""
+        step = math.log(grid[1] / grid[0]) if grid.size > 1 else math.log(2.0) / GM_GRID_PER_OCTAVE
+        while grid[0] > floor * (1.0 + 1e-9):
+            best = int(np.argmin(c[:, 1]))
+            over = max(1.0, float(c[best, 0]) / dof)
+            if c[0, 1] - c[best, 1] > over * float(chi2.ppf(0.95, 1)):
+                break
+            new = grid[0] * np.exp(-step * np.arange(GM_GRID_PER_OCTAVE, 0, -1))
+            if new[0] <= floor * (1.0 + 1e-9):  # the last octave: ends at the floor
+                new = np.append(floor, new[new > floor * (1.0 + 1e-9)])
+            grid = np.concatenate((new, grid))
+            c = np.concatenate((np.array([at(tc, eps) for tc in new]).reshape(-1, 2), c))
+        return grid, c
+
     c = np.array([at(tc, 0.0) for tc in grid])  # columns: chi-square, -2 ln L
+    grid, c = extend(grid, c, 0.0)
     eps, stat = err_at(float(grid[int(np.argmin(c[:, 1]))]))
     if eps > 0:  # the profile with the model's own error (its weights decide the fit)
         c = np.array([at(tc, eps) for tc in grid])
+        grid, c = extend(grid, c, eps)
     i = int(np.argmin(c[:, 1]))
     fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]),
                               math.log(grid[min(i + 2, grid.size - 1)]), GM_FINE_POINTS))
@@ -1288,7 +1314,6 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
     tc = float(tcs[int(np.argmin(c[:, 1]))])
     if eps > 0:  # the model error at the refined Tc (the one the fit then uses)
         eps, stat = err_at(tc)
-    dof = max(1, tau.size - len(active) - 1)
     return tc, {"tc_s": tcs, "chi2": c[:, 0], "neg2lnl": c[:, 1], "dof": dof,
                 "model_error_rel": eps, "kernel": cov_at(tc) is not None}, eps, stat
 
@@ -1345,6 +1370,9 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         if p[ig] > 0:
             along.append((math.log(float(tcs[k])), float(p[ig])))
     tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
+    # an end whose 95 % set reaches the last Tc tried is the range's, not the data's: open
+    crit = c.min() + over * float(chi2.ppf(0.95, 1))
+    tc_open = [bool(c[0] <= crit), bool(c[-1] <= crit)]
     sd_marg = sd_gm
     x = np.array([a for a, _ in along])
     if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
@@ -1368,6 +1396,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
                              bound_from="curve" if ub >= lim else "fit")
     coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
     term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
+            "tc_ci95_open": tc_open,
             "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),
             "sigma_si": sig.value, "sigma_ci95_si": list(sig.interval95),
             "resolved": sig.resolved, "curve_limit_si": lim, "held_at_curve_limit": held,
