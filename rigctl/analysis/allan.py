@@ -1826,6 +1826,10 @@ def chi2_carrier_text(check: dict) -> str:
     lo, hi = c["data_over_fit_min"], c["data_over_fit_max"]
     side = "above" if c["side"] == "data above" else "below"
     ratio = f"{lo:.3g}x" if f"{lo:.3g}" == f"{hi:.3g}" else f"{lo:.3g}-{hi:.3g}x"
+    if hi >= F.NO_TOTAL_RATIO:
+        return (f"{span}: the curve {side} the fit, which has no total there (every term is a "
+                f"bound) ({c['n_taus']} taus, chi-square {c['chi2']:.4g} of the whole, "
+                f"{100 * c['chi2_share']:.0f} %)")
     return (f"{span}: the curve {side} the fit, its deviation {ratio} the fitted total's "
             f"({c['n_taus']} taus, chi-square {c['chi2']:.4g} of the whole, "
             f"{100 * c['chi2_share']:.0f} %)")
@@ -1934,9 +1938,11 @@ def bounds_sentence(check: dict, sensor: str) -> list[str]:
     within = ("the terms known only as bounds taken within them (the point of [0, bound] "
               "that follows the curve best): " + "; ".join(term(t) for t in order))
     carried = {t: "Gauss-Markov sigma_GM" if t == "GM" else names[t] for t in taken}
-    where = ", ".join(f"tau {_spans([o])} s (the curve x{o['data_over_fit']:.2f} the resolved "
-                      f"terms' total at {o['worst_tau_s']:.3g} s; carried by "
-                      f"{carried.get(o.get('term'), 'the bounds')})"
+    where = ", ".join(f"tau {_spans([o])} s ("
+                      + (f"the curve x{o['data_over_fit']:.2f} the resolved terms' total"
+                         if o["data_over_fit"] < F.NO_TOTAL_RATIO
+                         else "the resolved terms have no total") + f" at {o['worst_tau_s']:.3g} s; "
+                      f"carried by {carried.get(o.get('term'), 'the bounds')})"
                       for o in check.get("needs_bounds") or [])
     if check.get("passes_on_bounds"):
         return [f"self-check passed only with {within}"
@@ -1950,6 +1956,14 @@ def bounds_sentence(check: dict, sensor: str) -> list[str]:
     if where:
         return [f"the resolved terms alone leave the band at {where}; the check took {within}"]
     return []
+
+
+def over_fit_text(ratio: float | None, tau_s: float) -> str:
+    """A self-check run's data over fitted total in words: "x1.47 at 2.56 s", or that there is
+    no total (every term a bound: the check floors it at 1e-300; F.NO_TOTAL_RATIO)."""
+    if ratio is not None and ratio < F.NO_TOTAL_RATIO:
+        return f"x{ratio:.2f} at {tau_s:.3g} s"
+    return "no fitted total there: every term is a bound"
 
 
 def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
@@ -1967,18 +1981,12 @@ def _check_sentences(check: dict, head: str, reasons: bool = True) -> list[str]:
         span = (f"tau {o['tau_from_s']:.3g} s" if o["tau_from_s"] == o["tau_to_s"]
                 else f"tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s")
         r = o["data_over_fit"]
-        how = (f"x{r:.2f} at {o['worst_tau_s']:.3g} s" if r is not None and r < NO_TOTAL_RATIO
-               else "no fitted total there: every term is a bound")
+        how = over_fit_text(r, o["worst_tau_s"])
         fb = o.get("followed_by_bound")
         out.append(f"{span}: {o['side']} ({how}); likely {o['likely']}"
                    + (f"; followed by {fb} within its bound (the completed total is inside "
                       "the band there)" if fb else ""))
     return out
-
-
-#: a data/fit ratio this large is a curve over a fitted total of 0 (every term a bound; the
-#: self-check floors the total at 1e-300): said in words, not as a 300-digit factor
-NO_TOTAL_RATIO = 1e12
 
 
 #: the output step is mentioned when its rounding noise is at least this share of N^2

@@ -193,8 +193,10 @@ def name_bumps(check: dict, ybar: np.ndarray, block_s: float, tau0: float | None
         if st["median_window_over_fit"] > 1.0 + F.DEPARTURE_REL:
             o["likely"] = (f"{o['likely']}; its level varies along the record (Bartlett p = "
                            f"{st['p_value']:.2g}, alpha {st['alpha']:.2g}{many}), but the median window of "
-                           f"{st['window_s']:.0f} s has it too (x{st['median_window_over_fit']:.2f} "
-                           f"the fit at {st['tau_s']:.3g} s)")
+                           f"{st['window_s']:.0f} s has it too ("
+                           + (f"x{st['median_window_over_fit']:.2f} the fit"
+                              if st["median_window_over_fit"] < F.NO_TOTAL_RATIO
+                              else "the fit has no total there") + f" at {st['tau_s']:.3g} s)")
             continue
         o["likely_before"] = o["likely"]
         o["likely"] = bump_reason(st)

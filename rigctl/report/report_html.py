@@ -19,6 +19,7 @@ from ..analysis.allan_drift import tc_interval
 from ..display_units import display, format_value
 from ..sensor_axes import axis_name
 from .report_allan import allan_curves
+from ..analysis.allan import over_fit_text
 
 G0 = 9.80665
 SECTIONS = (("verdicts", "Verdicts"), ("summary", "Summary"), ("table", "Table orientation and rate"),
@@ -591,7 +592,7 @@ def _quiet_stretch_html(curves: dict[str, dict]) -> list[str]:
                         + f" s, {ex['n_samples']} samples), {ex['handled']}")
         # the stretch's own self-check runs that no term follows, named under the table
         notes += [f"{axis}, quiet stretch: tau {o['tau_from_s']:.3g}-{o['tau_to_s']:.3g} s: "
-                  f"{o['side']} (x{o['data_over_fit']:.2f} at {o['worst_tau_s']:.3g} s); "
+                  f"{o['side']} ({over_fit_text(o['data_over_fit'], o['worst_tau_s'])}); "
                   f"likely {o['likely']}"
                   for o in q["fit"]["check"].get("outside") or [] if o.get("unexplained")]
         for i, t in enumerate(q["fit"]["terms"]):  # the stretch named on the axis' first row

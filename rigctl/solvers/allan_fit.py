@@ -523,11 +523,21 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
     # B, K ones scaled to the total, as the filter term's and the ramp's
     gm_kernel = extra is not None and ct is not None and ("G", "G") in ct
 
+    def data_whitener(eps: float) -> np.ndarray:
+        # the data's own diagonal, 2 s2^2 / edf, plus the model error
+        return _whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
+
     def whiten_at(q: np.ndarray, eps: float = 0.0) -> np.ndarray:
         # the filter term and the ramp: the N, B, K (and GM) correlations, scaled
+        total = a @ q
+        if not np.all(total > 0):
+            # a signed c / tau^2 term can take the total to 0 or below at the shortest taus
+            # (a moving table's rise in tau^2): no covariance there, so the data's own diagonal,
+            # as _whitened_residual does (a floor of 1e-300 made a singular factor)
+            return data_whitener(eps)
         cols = [1, 2, 3, 5] if gm_kernel else [1, 2, 3]
         noisy = np.maximum(a[:, cols] @ np.maximum(q[cols], 0.0), 1e-300)
-        return _model_whitener(ct, q[1:4], np.maximum(a @ q, 1e-300), noisy, ee, eps,
+        return _model_whitener(ct, q[1:4], total, noisy, ee, eps,
                                q_gm=float(q[5]) if gm_kernel else None)
 
     gone = [TERMS.index(t) for t in PRESENCE_NULL[term]]
@@ -537,7 +547,7 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
         alt, null = alt + [5], null + [5]
 
     def fit_alt(eps: float) -> tuple[np.ndarray, float, np.ndarray]:
-        lw = _whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
+        lw = data_whitener(eps)
         for _ in range(iterations):
             q, _ = solve(alt, lw)
             lw = whiten_at(q, eps)
@@ -1616,6 +1626,10 @@ def _flat_octave(lt: np.ndarray, ld: np.ndarray, rising: bool = False) -> bool:
 
 #: p-value below which the statistical covariance alone does not explain the residuals
 MODEL_ERROR_P = 0.01
+
+#: a data/fit deviation ratio this large is a curve over a fitted total of 0 (every term a
+#: bound; the check floors the total at 1e-300): said in words, not as a 300-digit factor
+NO_TOTAL_RATIO = 1e12
 
 
 def chi2_carrier(tau: np.ndarray, s2: np.ndarray, total: np.ndarray,
