@@ -53,7 +53,7 @@ import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.stats import norm
+from .distributions import norm
 
 #: the group means the test works on (a step's information is at low frequencies)
 N_COARSE = 150
