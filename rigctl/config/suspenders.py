@@ -151,6 +151,10 @@ class SuspenderSet:
         #: the reason 'imu-link' tripped, kept until the stream is back (see :meth:`_imu`)
         self.link_lost: str | None = None
         self._reconfigured_reads = -1   # reads since the driver reported configured again (_imu)
+        #: the temperature suspender's reason at the last read that held samples (None: in band);
+        #: a read without samples says nothing of the temperature and keeps it (see :meth:`check`)
+        self._temp_reason: str | None = None
+        self._temp_read = False
 
     def rebase(self) -> None:
         """Forget counter/time history (after a reconnect, a resume or a new session)."""
@@ -200,10 +204,11 @@ class SuspenderSet:
             self.last_sample_t = obs.t
             temp = block.temperature
             lo, hi = float(np.min(temp)), float(np.max(temp))
+            self._temp_read, self._temp_reason = True, None
             if lo < self.s.temperature_min_c or hi > self.s.temperature_max_c:
-                out["temperature"] = (f"IMU temperature {hi if hi > self.s.temperature_max_c else lo:.1f} "
-                                      f"degC outside [{self.s.temperature_min_c:g}, "
-                                      f"{self.s.temperature_max_c:g}] degC")
+                out["temperature"] = self._temp_reason = (
+                    f"IMU temperature {hi if hi > self.s.temperature_max_c else lo:.1f} "
+                    f"degC outside [{self.s.temperature_min_c:g}, {self.s.temperature_max_c:g}] degC")
         elif self.last_sample_t is None:
             self.last_sample_t = obs.t
         elif obs.t - self.last_sample_t > self.imu_silence_s():
@@ -242,7 +247,14 @@ class SuspenderSet:
         """Evaluate every suspender; returns {name: reason} of those tripped now (empty = clear).
         Also keeps :attr:`clear_since` (the rig time since which all have been clear)."""
         tripped: dict[str, str] = {}
+        self._temp_read = False
         tripped.update(self._imu(obs))
+        if not self._temp_read and self._temp_reason is not None:
+            # no samples in this read (a table-stop poll in a pause, a link down): the last
+            # temperature read still stands -- else one empty read cleared it, and the next
+            # read's samples 'tripped' it again: a second suspend event in one pause, and a
+            # pause could end on a read that saw no temperature at all
+            tripped["temperature"] = self._temp_reason
         tripped.update(self._table(obs))
         tripped.update(self._disk())
         if obs.chamber_reason:
