@@ -55,7 +55,7 @@ def format_duration(seconds: float) -> str:
 
 def format_rate(hz: float) -> str:
     """A sample rate as every command prints it: 8 significant digits and Hz ('99.990001 Hz',
-    '200 Hz'); enough for the rate a time column's median step gives, one form everywhere."""
+    '200 Hz'); enough for the rate a time column's stamps give, one form everywhere."""
     return f"{hz:.8g} Hz"
 
 

@@ -184,6 +184,14 @@ def stable32_header(path: Path) -> dict[str, str]:
     return out
 
 
+def stable32_tau(header: dict[str, str]) -> float:
+    """The sample interval a Stable32 header's ``Tau:`` line gives, s; NaN without one."""
+    try:
+        return float(header["tau"])
+    except (KeyError, ValueError):
+        return math.nan
+
+
 def stable32_notes(header: dict[str, str], rate: float | None, integrated: bool,
                    time_column: bool) -> list[str]:
     """Warnings where the options disagree with a Stable32 data file's own header: ``Type:
@@ -199,10 +207,7 @@ def stable32_notes(header: dict[str, str], rate: float | None, integrated: bool,
         out.append("warning: the file's header says Type: Freq (fractional frequency, a rate): "
                    "--integrated differenced it as if it were phase; frequency data: --units "
                    "gyr=rad/s without --integrated")
-    try:
-        tau = float(header["tau"])
-    except (KeyError, ValueError):
-        tau = math.nan
+    tau = stable32_tau(header)
     if rate is not None and not time_column and tau > 0 and abs(rate * tau - 1.0) > 1e-6:
         out.append(f"warning: the file's header says Tau: {tau:g} s (--rate {1.0 / tau:.8g}); "
                    f"--rate {rate:g} was given")
@@ -777,10 +782,7 @@ def import_csv(args: ImportOptions) -> Imported:
         raise InputError(f"--rate {args.rate:g} is outside (0, {MAX_RATE_HZ:g}] Hz", src)
     header = stable32_header(src)
     if args.rate is None and "time" not in mapping:
-        try:
-            tau = float(header["tau"])
-        except (KeyError, ValueError):
-            tau = math.nan
+        tau = stable32_tau(header)
         raise InputError("--rate HZ is required without a time column (time= in --columns)", src,
                          hint=(f"the file's Stable32 header says Tau: {tau:g} s: --rate {1.0 / tau:.8g}"
                                if tau > 0 else "give the nominal sample rate, e.g. --rate 100"))

@@ -154,7 +154,6 @@ class SuspenderSet:
         #: the temperature suspender's reason at the last read that held samples (None: in band);
         #: a read without samples says nothing of the temperature and keeps it (see :meth:`check`)
         self._temp_reason: str | None = None
-        self._temp_read = False
 
     def rebase(self) -> None:
         """Forget counter/time history (after a reconnect, a resume or a new session)."""
@@ -204,7 +203,7 @@ class SuspenderSet:
             self.last_sample_t = obs.t
             temp = block.temperature
             lo, hi = float(np.min(temp)), float(np.max(temp))
-            self._temp_read, self._temp_reason = True, None
+            self._temp_reason = None
             if lo < self.s.temperature_min_c or hi > self.s.temperature_max_c:
                 out["temperature"] = self._temp_reason = (
                     f"IMU temperature {hi if hi > self.s.temperature_max_c else lo:.1f} "
@@ -247,13 +246,12 @@ class SuspenderSet:
         """Evaluate every suspender; returns {name: reason} of those tripped now (empty = clear).
         Also keeps :attr:`clear_since` (the rig time since which all have been clear)."""
         tripped: dict[str, str] = {}
-        self._temp_read = False
         tripped.update(self._imu(obs))
-        if not self._temp_read and self._temp_reason is not None:
-            # no samples in this read (a table-stop poll in a pause, a link down): the last
-            # temperature read still stands -- else one empty read cleared it, and the next
-            # read's samples 'tripped' it again: a second suspend event in one pause, and a
-            # pause could end on a read that saw no temperature at all
+        if self._temp_reason is not None:
+            # the last read with samples (this one, or before a read without any: a table-stop
+            # poll in a pause, a link down) still stands -- else one empty read cleared it, and
+            # the next read's samples 'tripped' it again: a second suspend event in one pause,
+            # and a pause could end on a read that saw no temperature at all
             tripped["temperature"] = self._temp_reason
         tripped.update(self._table(obs))
         tripped.update(self._disk())

@@ -192,13 +192,13 @@ def step_test(ybar: np.ndarray, block_s: float, levels: dict[str, float],
     y = y[: m * N_COARSE]
     k = next(d for d in range(max(1, m // SUB_PER_GROUP), 0, -1) if m % d == 0)
     sub = y.reshape(-1, k).mean(axis=1)
-    glr = StepGLR(group_sigma(sub.size, block_s * k, lv["N"], lv["B"], lv["K"], lv["Q"]))
+    sub_s = block_s * k
+    glr = StepGLR(group_sigma(sub.size, sub_s, lv["N"], lv["B"], lv["K"], lv["Q"]))
     thr = glr.null_point(alpha)
     g = group_means(sub)
     z = glr.z(g)[0]
     i = int(np.argmax(np.abs(z)))
     beyond = bool(abs(z[i]) > thr)
-    sub_s = block_s * k
     k = int(glr.ks[i])
     sd = 1.0 / math.sqrt(glr.info[i])
     tg = m * block_s
