@@ -338,7 +338,7 @@ def _check_drops_recorded(recording: Path, dropped: list[int]) -> np.ndarray:
     # resume -- or the run paused on the gap itself (an imu-gap suspend names that counter
     # jump). Not from the suspend event's time: the engine pauses on a link lost in the wait for
     # a window's last samples once that wait ends (up to engine.WINDOW_WAIT_WALL_S = 1.5 s of
-    # wall time, 150 s of rig time), and on a loaded host a sample reaches the engine well after
+    # wall time, 30 s of rig time at DROPS_SPEED), and on a loaded host a sample reaches the engine well after
     # its IMU time (so a pull also loses the samples still in flight from before the window)
     gaps = np.diff(counter) - 1
     named = {m.split(b"(counter ", 1)[1] for k, m in zip(kinds, msgs) if k == b"suspend" and b"(counter " in m}
@@ -413,15 +413,28 @@ def _pull_imu_in_windows(tmp_path: Path, proc_text: str, speed: float, hold: str
     return res, dropped, box["imu"], reconnects_emulator, console
 
 
+#: the ten-drops run's clock, x real time. What it checks -- every drop detected, reconnected and
+#: recorded, nothing lost unaccounted, nothing counted twice -- holds at any pace; the pace is the
+#: host's. At 100x (a 100 Hz IMU: 10,000 frames per wall second through the emulator, the pty, the
+#: driver and the recorder, all in this process on 2 cores) a host at load 17-30 kept the devices
+#: at 46-56x: rigctl then stops the run, rightly, as an emulated rig slower than its clock ('the
+#: rig's devices keep time at about 56x real time, slower than the 100x of the run's clock ...
+#: restart it with --speed 20 or less'; 8 failures in 9 runs), which measured the host, not the
+#: drops. 20x is what that message advises there, and takes less wall time on an idle host too
+#: (16.5 s against 47 s at 100x, load 5: the outages' wall-time waits, not the rig time, set it).
+DROPS_SPEED = 20.0
+
+
 def test_ten_imu_link_drops_over_the_wire_reconnected_recorded_and_completed(tmp_path):
     """The emulator pulls the IMU's pty (closes it, opens a new one at the same symlink 0.2 s
     later) in the middle of each of 10 sampling windows: the Xsens driver reconnects and
     reconfigures every time, each drop is an `imu-link` suspender event, the interrupted step
     re-runs and the procedure completes with one complete, gap-free segment per step. Each pause
     is read with its own resume (_pauses); a loaded host adds pauses, each of which the run's own
-    record explains (_check_drops_recorded), and every sample missing is in time it set aside."""
+    record explains (_check_drops_recorded), and every sample missing is in time it set aside.
+    At DROPS_SPEED, a pace a loaded host keeps (see there)."""
     res, dropped, imu, reconnects_emulator, console = _pull_imu_in_windows(
-        tmp_path, ORIENT, 100.0, "2 s", steps=range(10), into_window_s=0.02)   # ~2 s of rig time in
+        tmp_path, ORIENT, DROPS_SPEED, "2 s", steps=range(10), into_window_s=0.02)   # 0.4 s of rig time in
     assert res.exit_code == 0 and res.status == "complete", res.message
     assert sorted(dropped) == list(range(10))
     assert reconnects_emulator == 10
