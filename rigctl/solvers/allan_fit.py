@@ -1237,6 +1237,52 @@ def _gm_limit(tc: float, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndar
     return lim
 
 
+def tc_profile_interval(tcs: np.ndarray, crit: np.ndarray, chi: np.ndarray, dof: int
+                        ) -> tuple[tuple[float, float], list[bool], np.ndarray, float]:
+    """Tc's 95 % profile interval from a profile evaluated at the increasing ``tcs`` (s):
+    ``crit`` the criterion minimised (-2 ln L or a chi-square), ``chi`` the chi-square there
+    (its value at the best over ``dof`` is the overdispersion, at least 1). The set is the Tc
+    whose criterion is within over x chi2_0.95(1) of the least, bracketed by the next evaluated
+    Tc either side (the crossing lies between); an end of the set at the first or last Tc
+    evaluated is the range's, not the data's: open. Returns ((lo, hi), [lower open, upper
+    open], the indices of the bracketed set, over). One rule for the candidate test's profile
+    (allan_gm) and the joint fit's (:func:`_gm_profile`, :func:`_gm_result`)."""
+    crit = np.asarray(crit, dtype=float)
+    best = int(np.argmin(crit))
+    over = max(1.0, float(chi[best]) / max(int(dof), 1))
+    thr = float(crit[best]) + over * float(chi2.ppf(0.95, 1))
+    inside = np.flatnonzero(crit <= thr)
+    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
+    return ((float(tcs[inside].min()), float(tcs[inside].max())),
+            [bool(crit[0] <= thr), bool(crit[-1] <= thr)], inside, over)
+
+
+def extend_tc_profile_below(tcs: np.ndarray, c: np.ndarray,
+                            at: Callable[[float], tuple[float, float]], floor: float, dof: int,
+                            per_octave: int = GM_GRID_PER_OCTAVE, step: float | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """A Tc profile continued below its lowest Tc an octave at a time (``per_octave`` points,
+    the grid's step where it has one), down to ``floor`` (s), while its 95 % set
+    (:func:`tc_profile_interval`) still reaches the lowest Tc evaluated: an interval cut by the
+    range searched would be reported as the data's. ``step``: ln of the ratio between the new
+    points (default: the first two Tc's). ``c``: rows (chi-square, criterion) at
+    ``tcs``; ``at(tc)`` gives that row at a new Tc. A Tc below the first tau is identified
+    only weakly, by the curve's slope there (for tau >> Tc, g = 2 Tc/tau (1 - 3 Tc/(2 tau) +
+    ...)), hence the floor (the fit's: its first tau / GM_BELOW_FIRST_TAU). Returns the
+    extended (tcs, c)."""
+    if step is None:
+        step = math.log(tcs[1] / tcs[0]) if tcs.size > 1 else math.log(2.0) / per_octave
+    while tcs[0] > floor * (1.0 + 1e-9):
+        if not tc_profile_interval(tcs, c[:, 1], c[:, 0], dof)[1][0]:
+            break
+        new = tcs[0] * np.exp(-step * np.arange(per_octave, 0, -1))
+        if new[0] <= floor * (1.0 + 1e-9):  # the last octave: ends at the floor
+            new = np.append(floor, new[new > floor * (1.0 + 1e-9)])
+        tcs = np.concatenate((new, tcs))
+        c = np.concatenate((np.array([at(float(tc)) for tc in new]).reshape(-1, 2), c))
+    return tcs, c
+
+
 def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
                 active: list[int], upper_all: np.ndarray, cov_at: Callable[[float], dict | None],
                 iterations: int, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
@@ -1280,29 +1326,12 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
     floor = min(lo, float(tau[0]) / GM_BELOW_FIRST_TAU)
     dof = max(1, tau.size - len(active) - 1)
 
-    def extend(grid: np.ndarray, c: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-        """The profile continued below the range an octave at a time, down to ``floor``, while
-        its 95 % set (as _gm_result reads it) reaches the lowest Tc tried: an interval cut by
-        the range would be reported as the data's."""
-        step = math.log(grid[1] / grid[0]) if grid.size > 1 else math.log(2.0) / GM_GRID_PER_OCTAVE
-        while grid[0] > floor * (1.0 + 1e-9):
-            best = int(np.argmin(c[:, 1]))
-            over = max(1.0, float(c[best, 0]) / dof)
-            if c[0, 1] - c[best, 1] > over * float(chi2.ppf(0.95, 1)):
-                break
-            new = grid[0] * np.exp(-step * np.arange(GM_GRID_PER_OCTAVE, 0, -1))
-            if new[0] <= floor * (1.0 + 1e-9):  # the last octave: ends at the floor
-                new = np.append(floor, new[new > floor * (1.0 + 1e-9)])
-            grid = np.concatenate((new, grid))
-            c = np.concatenate((np.array([at(tc, eps) for tc in new]).reshape(-1, 2), c))
-        return grid, c
-
     c = np.array([at(tc, 0.0) for tc in grid])  # columns: chi-square, -2 ln L
-    grid, c = extend(grid, c, 0.0)
+    grid, c = extend_tc_profile_below(grid, c, lambda tc: at(tc, 0.0), floor, dof)
     eps, stat = err_at(float(grid[int(np.argmin(c[:, 1]))]))
     if eps > 0:  # the profile with the model's own error (its weights decide the fit)
         c = np.array([at(tc, eps) for tc in grid])
-        grid, c = extend(grid, c, eps)
+        grid, c = extend_tc_profile_below(grid, c, lambda tc: at(tc, eps), floor, dof)
     i = int(np.argmin(c[:, 1]))
     fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]),
                               math.log(grid[min(i + 2, grid.size - 1)]), GM_FINE_POINTS))
@@ -1341,10 +1370,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
     scatter of sigma_GM, which is the Cramer-Rao bound's. Also the curve's limit and whether
     the fit was held at it."""
     tcs, c = prof["tc_s"], prof.get("neg2lnl", prof["chi2"])
-    best = int(np.argmin(c))
-    over = max(1.0, float(prof["chi2"][best]) / prof["dof"])
-    inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
-    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
+    tc_ci, tc_open, inside, over = tc_profile_interval(tcs, c, prof["chi2"], prof["dof"])
     ig = active.index(GM_IDX)
 
     def interval(pj: float, sdj: float, conf: float) -> tuple[float, float] | None:
@@ -1369,10 +1395,6 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             continue
         if p[ig] > 0:
             along.append((math.log(float(tcs[k])), float(p[ig])))
-    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
-    # an end whose 95 % set reaches the last Tc tried is the range's, not the data's: open
-    crit = c.min() + over * float(chi2.ppf(0.95, 1))
-    tc_open = [bool(c[0] <= crit), bool(c[-1] <= crit)]
     sd_marg = sd_gm
     x = np.array([a for a, _ in along])
     if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
