@@ -1561,8 +1561,8 @@ def filter_region(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray,
       fading deficit; B's rise doubles per octave, K's quadruples: the Astro Pi gyros' 0.51,
       1.10, 2.02 are no filter), and
     * the rise is beyond the estimates' noise: S's 95 % upper end at tau0 is below its 95 %
-      lower end at m = 4 (each tau's own chi-square band from its EDF; white noise: about 3 in
-      1000 records).
+      lower end at m = 4 (each tau's own chi-square band from its EDF; none found on the 20
+      unfiltered records of benchmarks/allan_aafilter.py).
 
     The region then runs to the first octave m = 2^k (k >= 1) where the deficit c / m left,
     c = 4 x (the rise from 2 to 4), is at most FILTER_DEFICIT_SD standard deviations of that
@@ -1570,9 +1570,9 @@ def filter_region(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray,
     its own noise -- or, before that, where the rise from one octave to the next grows past
     the one before / FILTER_DECAY by more than twice its noise (another process takes over:
     B, K, a bump; the ADIS16405 az's curve: rises 0.26, 0.17, 0.03, then 0.13 of S(tau0)
-    from m = 8 on: m < 8). A longer capture resolves a smaller deficit, so its region reaches further
-    (a 5-minute record at 100 Hz through a 2nd-order Butterworth at 0.8 Nyquist: m < 8;
-    hours: m < 32). Returns {n_taus, tau_from_s, tau_to_s, m_to (the first m fitted), the
+    from m = 8 on: m < 8). A longer capture resolves a smaller deficit, so its region reaches
+    further (a 5-minute record at 100 Hz through a 2nd-order Butterworth at 0.8 Nyquist: m < 8
+    or 16; the 2.8 h ADIS16405 gyros: m < 64). Returns {n_taus, tau_from_s, tau_to_s, m_to (the first m fitted), the
     octave S values relative to S at m_to's octave, c}; None without tau0, a curve that does
     not start at tau0, fewer than four octaves, or no filter found."""
     tau, s2, e = (np.asarray(v, dtype=float) for v in (tau, s2, edf))
