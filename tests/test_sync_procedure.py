@@ -26,7 +26,7 @@ def test_the_procedure_ends_with_results_sync(tap_run) -> None:
     rec, stdout = tap_run
     lines = stdout.splitlines()
     assert lines[-1] == f"recording: {rec}"
-    assert "sync: timing subsample, axis z; wrote /results/sync" in lines
+    assert "sync: timing subsample, axis az; wrote /results/sync" in lines
     with h5py.File(rec, "r") as f:
         g = f["results/sync"]
         s = json.loads(g.attrs["json"])

@@ -17,11 +17,24 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, RunFailure
+from ..sensor_axes import ACCEL_AXES, canonical
 from ..recording.recorder import write_results as store_results
 from ..recording.recording_reader import check_finite, open_recording, sample_rate
 from ..solvers import clock_model, tap_detect, tap_match
 
-AXES = {"x": 0, "y": 1, "z": 2}
+#: the tap axis: an accelerometer axis in the one spelling (rigctl.sensor_axes), its column
+AXES = {a: i for i, a in enumerate(ACCEL_AXES)}
+
+
+def tap_axis(name: str) -> str:
+    """The tap axis ``name`` in the one spelling ('ax', 'ay', 'az'); also read: the bare 'x',
+    'y', 'z' that ``--axis`` took before, and the old aliases (``acc_z``, any case). InputError
+    for anything else, a gyro axis included (taps are found in the specific force)."""
+    key = name.strip().lower()
+    axis = canonical(f"a{key}" if key in ("x", "y", "z") else key)
+    if axis not in AXES:
+        raise InputError(f"tap axis {name!r}: one of ax, ay, az (the accelerometer's x, y, z)")
+    return axis
 GPS_WEEK_S = 604800.0
 
 
@@ -248,11 +261,11 @@ class SyncRun:
     pulse_time_s: np.ndarray
 
 
-def sync_recording(path: str | Path, opts: SyncOptions | None = None, *, axis: str = "z",
+def sync_recording(path: str | Path, opts: SyncOptions | None = None, *, axis: str = "az",
                    timescale: str = "run", options: dict[str, Any] | None = None) -> SyncRun:
     """Read a recording, synchronise its IMU clock to the pulses and write /results/sync.
 
-    ``axis``: the tap axis (x, y, z); ``timescale``: pulse times from /pulses/time ("run") or
+    ``axis``: the tap axis (ax, ay, az; :func:`tap_axis` reads older spellings); ``timescale``: pulse times from /pulses/time ("run") or
     gps_week/gps_seconds ("gps"). ``options``: what to store as the run's options (default: the
     options used). InputError for a recording or option that cannot be used (nothing written);
     RunFailure when the recording holds too few taps or matches, or /results cannot be written.
@@ -260,8 +273,7 @@ def sync_recording(path: str | Path, opts: SyncOptions | None = None, *, axis: s
     path = Path(path)
     opts = opts or SyncOptions()
     check_options(opts)
-    if axis not in AXES:
-        raise InputError(f"axis {axis!r}: one of x, y, z")
+    axis = tap_axis(axis)
     if timescale not in ("run", "gps"):
         raise InputError(f"timescale {timescale!r}: run or gps")
     counter, accel, rate, pulses = read_inputs(path, AXES[axis], timescale)
@@ -299,7 +311,7 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
 
 def solve_recording(recording: str | Path, log: Callable[..., None]) -> None:
     """The ``sync`` solve step: synchronise the closed recording with the default options (tap
-    axis z, pulse times on the run's timescale) and log the summary. A recording that cannot be
+    axis az, pulse times on the run's timescale) and log the summary. A recording that cannot be
     synchronised is logged (a warning when it lacks what a sync needs, such as pulses; an error
     when its taps cannot be matched) and the recording stays complete, as for the calibration."""
     try:
@@ -311,6 +323,6 @@ def solve_recording(recording: str | Path, log: Callable[..., None]) -> None:
         log("error", f"sync failed: {exc}")
         return
     s = run.result.summary
-    log("info", f"sync: timing {s['timing']}, axis z; wrote /results/sync")
+    log("info", f"sync: timing {s['timing']}, axis az; wrote /results/sync")
     for line in summary_lines(s):
         log("info", f"sync: {line}")

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..analysis.sync import AXES, SyncOptions, result_arrays, summary_lines, sync_recording
+from ..analysis.sync import SyncOptions, result_arrays, summary_lines, sync_recording, tap_axis
 
 
 def register(subparsers: Any) -> None:
@@ -18,7 +18,9 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("sync", help="tap-hammer time synchronisation of a recording",
                               description=__doc__)
     p.add_argument("recording", type=Path, help="recording .h5 (opened r+; /results/sync written)")
-    p.add_argument("--axis", choices=sorted(AXES), default="z", help="tap axis (default z)")
+    p.add_argument("--axis", type=str, default="az",
+                   help="tap axis: ax, ay or az, the accelerometer axis the hammer strikes along "
+                        "(default az; the older x, y, z are read too)")
     p.add_argument("--plot-dir", type=Path, default=None, help="write PNG plots here")
     p.add_argument("--response", choices=["auto", "none", "learn", "second-order"],
                    default="auto", help="sensor response for sub-sample timing (default auto)")
@@ -36,6 +38,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """CLI entry: 0 ok; errors are raised (rigctl.errors: 2 invalid input, 1 failure)."""
     path: Path = args.recording
+    args.axis = tap_axis(args.axis)
     opts = SyncOptions(response=args.response, natural_freq_hz=args.natural_freq_hz,
                        damping=args.damping,
                        wander=None if args.wander == "none" else args.wander,
