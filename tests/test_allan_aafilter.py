@@ -13,6 +13,7 @@ point is kept without averaging, so its PSD at f -> 0 keeps the aliased power.
 """
 from __future__ import annotations
 
+import html
 import math
 
 import numpy as np
@@ -22,6 +23,7 @@ from scipy.signal import butter, lfilter
 from allan_synth import synth_rate
 from test_allan_check_bounds import FS, _adev, _edf
 from rigctl.analysis.allan import excluded_sentences
+from rigctl.report.report_html import _excluded_html
 from rigctl.solvers import allan_fit as F
 
 N_ARW = 0.2 / 60.0 * math.pi / 180.0  # rad/sqrt(s)
@@ -78,6 +80,9 @@ def test_filtered_record_n_holds_the_outputs_level_and_the_check_passes(seed: in
     text = " ".join(excluded_sentences(c))
     assert f"tau {tau[0]:.3g}-{f['tau_to_s']:.3g} s left out of the fit" in text
     assert "low-pass filter" in text
+    # ... and the report's Allan section says the same
+    page = " ".join(_excluded_html({"gx": {"fit": {"check": c}}}))
+    assert "gx: " + html.escape(text.split(";")[0]) in page
 
 
 @pytest.mark.parametrize("seed", [100, 101])

@@ -1812,7 +1812,9 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
                                 "the deviation,", reasons=False)
     elif runs:
         out += _check_sentences(check, f"{what} leaves the curve's 95 % band")
-    return out + _small_sentence(check) + _past_sentence(check) + excluded_sentences(check)
+    # (the runs inside a filter's region by less than 10 %: the filter's, not chance)
+    return (out + _small_sentence(_without_filter_runs(check, None, ("outside_small",)))
+            + _past_sentence(check) + excluded_sentences(check))
 
 
 def chi2_carrier_text(check: dict) -> str:
@@ -1870,12 +1872,12 @@ def _front_sentence(check: dict) -> list[str]:
 
 def _filter_sentence(check: dict) -> list[str]:
     """The low-pass filter's taus the fit left out (rigctl.solvers.allan_fit.filter_region),
-    named with why."""
+    named with why, and how far below the fitted total the check finds the curve there."""
     f = check.get("filter_excluded")
     if not f:
         return []
-    inside = _in_filter_region(check)
-    below = [o for o in inside if o["data_over_fit"] < 1.0]
+    below = [o for o in _in_filter_region(check, "outside") + _in_filter_region(check, "outside_small")
+             if o["data_over_fit"] < 1.0]
     named = ""
     if below:
         w = min(below, key=lambda o: o["data_over_fit"])
@@ -1889,13 +1891,31 @@ def _filter_sentence(check: dict) -> list[str]:
             + named]
 
 
-def _in_filter_region(check: dict) -> list[dict]:
-    """The self-check's runs (``outside``) that lie within the filter's region left out of
-    the fit (``filter_excluded``)."""
+def _in_filter_region(check: dict, key: str) -> list[dict]:
+    """The self-check's runs (``key``: ``outside``, ``outside_small``) that lie within the
+    filter's region left out of the fit (``filter_excluded``)."""
     f = check.get("filter_excluded")
     if not f:
         return []
-    return [o for o in check.get("outside") or [] if o["tau_to_s"] <= f["tau_to_s"] * (1 + 1e-9)]
+    return [o for o in check.get(key) or [] if o["tau_to_s"] <= f["tau_to_s"] * (1 + 1e-9)]
+
+
+def _without_filter_runs(check: dict, tau: Any, keys: tuple[str, ...]) -> dict:
+    """The check with its runs inside the filter's region (``keys``) taken out, and
+    ``n_outside`` less their taus (``tau``: the curve's): those are the filter's, named by
+    :func:`excluded_sentences`, not chance."""
+    out = dict(check)
+    for key in keys:
+        inside = _in_filter_region(check, key)
+        if not inside:
+            continue
+        out[key] = [o for o in check[key] if o not in inside]
+        if key == "outside":
+            t = np.asarray(tau if tau is not None else [], dtype=float)
+            n_in = sum(int(np.count_nonzero((t >= o["tau_from_s"]) & (t <= o["tau_to_s"])))
+                       for o in inside)
+            out["n_outside"] = max(check["n_outside"] - n_in, 0)
+    return out
 
 
 def excluded_sentences(check: dict) -> list[str]:
@@ -1942,21 +1962,15 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     check = r["fit"].get("check") or {}
     if not check.get("ok"):  # a chi-square beyond its 99 % point fails too (check_warnings)
         return []
-    # the runs inside a filter's region left out of the fit are the filter's, named by
-    # excluded_sentences, not chance
-    filt = _in_filter_region(check)
-    if filt:
-        tau = np.asarray(r["tau_s"] if r.get("tau_s") is not None else [], dtype=float)
-        n_in = sum(int(np.count_nonzero((tau >= o["tau_from_s"]) & (tau <= o["tau_to_s"])))
-                   for o in filt)
-        check = {**check, "outside": [o for o in check["outside"] if o not in filt],
-                 "n_outside": max(check["n_outside"] - n_in, 0)}
-    runs = check.get("outside") or []
+    # the runs inside a filter's region left out of the fit are the filter's (named by
+    # excluded_sentences), not chance
+    rest = _without_filter_runs(check, r.get("tau_s"), ("outside", "outside_small"))
+    runs = rest.get("outside") or []
     head = ("the fitted total is outside the 95 % band, as chance allows for a fit consistent "
             "with the curve,")
     out = bounds_sentence(check, r.get("sensor", "gyro"))
-    out += [] if not runs else _check_sentences(check, head, reasons=False)
-    return out + _small_sentence(check) + _past_sentence(check) + excluded_sentences(check)
+    out += [] if not runs else _check_sentences(rest, head, reasons=False)
+    return out + _small_sentence(rest) + _past_sentence(check) + excluded_sentences(check)
 
 
 def bounds_sentence(check: dict, sensor: str) -> list[str]:
