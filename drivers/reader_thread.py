@@ -43,6 +43,7 @@ class ReconnectingReader:
         self._configured = threading.Event()
         self._fatal: BaseException | None = None
         self._down_since: float | None = None  # time.monotonic() when the link was lost
+        self._streamed = False                 # configured at least once (outages count from then)
         self._thread: threading.Thread | None = None
 
     def _start_reader(self, wait_s: float, what: str) -> None:
@@ -66,18 +67,31 @@ class ReconnectingReader:
     def _on_link_lost(self) -> None:
         pass
 
+    def _outage_began(self) -> None:
+        """In the thread, once per outage, after :meth:`_on_link_lost`: the link of a configured
+        device was lost (a reader that hands out data marks where, see StreamReader)."""
+
+    def _outage_ended(self, down_since: float, up_at: float) -> None:
+        """In the thread: the device is configured again after an outage from ``down_since`` to
+        ``up_at`` (time.monotonic(), s)."""
+
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
                 if not self._configured.is_set():
                     self._configure()
-                    self._down_since = None
+                    if self._down_since is not None and self._streamed:
+                        self._outage_ended(self._down_since, time.monotonic())
+                    self._down_since, self._streamed = None, True
                 self._pump()
             except LinkLost:
                 self._configured.clear()
+                new_outage = self._down_since is None and self._streamed
                 if self._down_since is None:
                     self._down_since = time.monotonic()
                 self._on_link_lost()
+                if new_outage:
+                    self._outage_began()
                 self._stop.wait(max(0.01, self.link.backoff.wait_s()))
             except (self.config_error, DeviceFault) as exc:  # e.g. another unit on the port
                 self._fatal = exc

@@ -231,7 +231,62 @@ class StreamReader(ReconnectingReader):
     def _raise_if_down(self) -> None:
         """No data: LinkLost once the link has been down for ``link_timeout_s`` (wall)."""
         if (down := self.link_down_s()) is not None and down > self.link_timeout_s:
+            with self._cond:
+                for outage in self._outages:
+                    outage[3] = True            # said: the outage's end raises no second LinkLost
             raise LinkLost(self.name, f"no data from {self.link.url} for {down:.1f} s (reconnecting)")
+
+    # ------------------------------------------------------------ outages in what read hands out
+    def _init_reader(self) -> None:
+        super()._init_reader()
+        #: link outages not yet accounted for by ``read``, oldest first: [batches of ``_pending``
+        #: stored before it, time.monotonic() it began, time.monotonic() the device was configured
+        #: again (None: still down), whether a read has raised LinkLost for it]
+        self._outages: list[list] = []
+
+    def _outage_began(self) -> None:
+        with self._cond:        # after _on_link_lost: the frames cut by the loss are stored before it
+            self._outages.append([len(self._pending), self._down_since, None, False])
+
+    def _outage_ended(self, down_since: float, up_at: float) -> None:
+        with self._cond:
+            for outage in self._outages:
+                if outage[2] is None:
+                    outage[2] = up_at
+
+    def _take_pending(self) -> list:
+        """With ``_cond`` held: the stored batches ``read`` hands out now (taken from
+        ``_pending``), in the order of the link's history, whenever the engine reads.
+
+        The batches stored before a link outage go out on their own; then, while the link is down,
+        none (``read`` raises LinkLost once it has been down for ``link_timeout_s``); once the
+        device is configured again, a read raises LinkLost for an outage longer than
+        ``link_timeout_s`` that no read has reported yet, and the next ones hand out what came
+        after it. So a cut link is a link loss at any pace of the reads: before, a read that came
+        only after the reconnect (a loaded host: the engine's thread held off for the whole
+        outage) returned the frames from both sides of it in one block, and the engine paused on
+        'IMU data gap: N samples missing inside a read' without ever seeing the link lost."""
+        while self._outages:
+            before, down_since, up_at, said = self._outages[0]
+            if before > 0:
+                taken, self._pending = self._pending[:before], self._pending[before:]
+                for outage in self._outages:
+                    outage[0] -= before
+                return taken
+            if up_at is None:
+                return []
+            self._outages.pop(0)
+            if up_at - down_since > self.link_timeout_s and not said:
+                raise LinkLost(self.name, f"link to {self.link.url} lost for {up_at - down_since:.1f} s "
+                                          "(reconnected since)")
+        taken, self._pending = self._pending, []
+        return taken
+
+    def _put_back(self, batch) -> None:
+        """With ``_cond`` held: ``batch``, taken by :meth:`_take_pending`, goes back first."""
+        self._pending.insert(0, batch)
+        for outage in self._outages:
+            outage[0] += 1
 
     def __enter__(self):
         return self
@@ -444,7 +499,7 @@ class StreamImu(StreamReader):
             raise self._fatal
         with self._cond:
             self._wait_aligned()
-            batches, self._pending = self._pending, []
+            batches = self._take_pending()
         if not batches:
             self._raise_if_down()
             return ImuBlock.empty()
@@ -464,7 +519,7 @@ class StreamImu(StreamReader):
         if stamp.size and stamp[-1] > now:
             cut = int(np.searchsorted(stamp, now, side="right"))
             with self._cond:
-                self._pending.insert(0, (t[cut:], acc[cut:], gyr[cut:], temp[cut:]))
+                self._put_back((t[cut:], acc[cut:], gyr[cut:], temp[cut:]))
             t, acc, gyr, temp, stamp = t[:cut], acc[:cut], gyr[:cut], temp[:cut], stamp[:cut]
         keep = self._monotone(stamp)
         if not keep.all():

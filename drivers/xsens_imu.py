@@ -35,7 +35,9 @@ windows line up with its clock even when the rig runs many times faster than rea
 Link loss: the thread reconnects with backoff and reconfigures the device; samples of the outage
 show up as a counter gap. ``read`` raises :class:`rigctl.devices.LinkLost` once the link has been
 down for ``link_timeout_s`` (wall) -- the engine's cue to pause -- and returns data again after
-the reconnect. A configuration the device refuses (e.g. rate too high for the baud rate) raises
+the reconnect. A read that comes only after the reconnect (the engine held off the CPU for the
+whole outage) still sees the loss in order: the frames from before the cut, then LinkLost for an
+outage longer than ``link_timeout_s``, then the frames after it (StreamReader._take_pending). A configuration the device refuses (e.g. rate too high for the baud rate) raises
 :class:`XsensConfigError` from :meth:`connect`.
 
 Identity: in config mode (after GoToConfig, before the output configuration) the driver sends
@@ -290,7 +292,7 @@ class XsensImu(StreamReader):
             raise self._fatal
         with self._cond:
             self._wait_aligned()
-            batches, self._pending = self._pending, []
+            batches = self._take_pending()
         if not batches:
             self._raise_if_down()
             return ImuBlock.empty()

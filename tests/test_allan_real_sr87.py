@@ -192,6 +192,44 @@ def test_a_range_that_cuts_the_interval_is_extended_below_or_said_open(sr87) -> 
     assert tc_interval(t).endswith(", >3]"), tc_interval(t)
 
 
+def test_an_open_tc_end_is_marked_in_every_output(sr87) -> None:
+    """The open end of a Tc interval (the fit's range 1-3 s, below the data's Tc: the upper end
+    is the range's) is written "[lo, >3]" wherever the interval is printed: the term table's
+    text, the coefficients' JSON (``tau_c_ci95_open``, read back), the --kalibr comment block and
+    the HTML report's term table. Before, only the text and the warning marked it (the Kalibr
+    comment and the coefficients' JSON carried a bare "[2.86, 3]")."""
+    from rigctl.analysis.allan_text import gm_term_line
+    from rigctl.analysis.noise_export import gm_comment
+    from rigctl.jsonable import jsonable
+    from rigctl.report.report import RunData
+    from rigctl.report.report_html import s_allan
+    from rigctl.solvers import noise_coefficients as NC
+
+    r = sr87["default"]
+    tau, dev, e = (np.asarray(r[k], float) for k in ("tau_s", "adev_rad/s", "edf"))
+    fit = F.fit_terms(tau, dev, e, "gyro", tau0=TAU0, n_phase=sr87["y"].size + 1,
+                      gm={"tc_grid_s": [1.0, 3.0]})
+    t = fit["gm_term"]
+    assert t["tc_ci95_open"] == [False, True], t
+    lo = t["tc_ci95_s"][0]
+    want = f"[{lo:.4g}, >3]"
+    t.update({"sigma_unit": "deg/h", "sigma_deg_per_h": 1.0, "sigma_ci95_deg_per_h": [0.5, 2.0]})
+    assert want in gm_term_line(fit), gm_term_line(fit)
+    co = json.loads(json.dumps(jsonable(NC.to_json(fit["coefficients"]))))
+    assert co["gm"][0]["tau_c_ci95_open"] == [False, True], co["gm"]
+    back = NC.from_json(co).gm[0]
+    assert back.tau_c_ci95_open == (False, True) and back.tc_interval_text(4) == want
+    result = {"axes": {"gx": {"fit": {"coefficients": co}}}}
+    kal = "\n".join(gm_comment(result))
+    assert f"Tc {t['tc_s']:.4g} s {want} (95 %)" in kal, kal
+    js = json.loads(json.dumps(jsonable({**fit, "coefficients": co})))
+    d = RunData(recording=Path("sr87.h5"), root_attrs={}, meta={}, status="", events=[],
+                table=None, segments=None, imu={}, results={"allan": {"json": {}}},
+                cache={"allan_curves": {"gx": {"fit": js, "sensor": "gyro"}}})
+    html = s_allan(d, {})
+    assert want.replace(">", "&gt;") in html or want in html, html[:3000]
+
+
 def test_octave_names_the_hump_it_cannot_fit(sr87) -> None:
     """--taus octave: 7 informative taus, too few for the Gauss-Markov candidate; the self-check
     fails and names the run a stationary bump, unexplained (never a bare failure)."""

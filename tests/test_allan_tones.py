@@ -62,6 +62,23 @@ def test_tone_detected_at_its_frequency_and_amplitude() -> None:
         assert TN.detect_tones(np.random.default_rng(10 + seed).standard_normal(n), FS)["tones"] == []
 
 
+@pytest.mark.parametrize("n, nper, fs", [(360_000, 1 << 14, FS), (1 << 20, 1 << 16, FS),
+                                         (100_037, 4096, 400.0), (20_000, 1001, 3.0)])
+def test_welch_hann_is_scipys_welch_bit_for_bit(n: int, nper: int, fs: float) -> None:
+    """TN.welch_hann against scipy.signal.welch with the options detect_tones used with it:
+    every frequency and every PSD value equal, with an offset (the mean removed per segment),
+    a tone, a tail shorter than a segment (left out) and an odd segment length (no fs/2 bin)."""
+    from scipy.signal import welch
+
+    rng = np.random.default_rng(n)
+    y = 0.5 + rng.standard_normal(n) * 1e-3 + 1e-4 * np.sin(2 * np.pi * 13.1 * np.arange(n) / fs)
+    f_want, p_want = welch(y, fs=fs, window="hann", nperseg=nper, noverlap=0,
+                           detrend="constant", scaling="density")
+    f_got, p_got = TN.welch_hann(y, fs, nper)
+    np.testing.assert_array_equal(f_got, f_want)
+    np.testing.assert_array_equal(p_got, p_want)
+
+
 def _fit_n(path: Path, taus: str) -> tuple[dict, dict]:
     r = AL.compute(str(path), ["gx"], taus)["axes"]["gx"]
     return r["fit"], r["tones"]

@@ -122,7 +122,8 @@ def test_solver_commands_import_without_numba_or_scipy_stats() -> None:
     (rigctl.solvers.allan_kernels imports allan_kernels_jit at first use); asking for HAVE_NUMBA
     then imports it: the kernels are still there. No command imports scipy.stats (~0.45 s):
     the solvers' distribution functions are rigctl.solvers.distributions (tap_match imports
-    scipy.stats where it fits a line)."""
+    scipy.stats where it fits a line); nor does looking for tones, as every Allan fit does
+    (allan_tones.welch_hann, not scipy.signal.welch, which imports scipy.stats)."""
     code = ("import sys\n"
             "from rigctl import cli\n"
             "for c in ('calibrate', 'allan', 'report', 'history', 'batch', 'sync', 'thermal', 'certificate',\n"
@@ -130,8 +131,14 @@ def test_solver_commands_import_without_numba_or_scipy_stats() -> None:
             "    cli.build_parser([c], everything=False)\n"
             "import rigctl.run.runner, rigctl.service.daemon\n"
             "print('numba' in sys.modules, sorted(m for m in sys.modules if m.startswith('scipy.stats')))\n"
+            "import numpy as np\n"
+            "from rigctl.solvers import allan_tones\n"
+            "y = np.random.default_rng(1).standard_normal(200_000)\n"
+            "y += 0.05 * np.sin(2 * np.pi * 13.1 * np.arange(y.size) / 100.0)\n"
+            "print(len(allan_tones.detect_tones(y, 100.0)['tones']),"
+            " sorted(m for m in sys.modules if m.startswith(('scipy.signal', 'scipy.stats'))))\n"
             "from rigctl.solvers import allan_kernels as K\n"
             "print(K.HAVE_NUMBA, 'numba' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
-    assert r.stdout.split("\n")[:2] == ["False []", "True True"], r.stdout
+    assert r.stdout.split("\n")[:3] == ["False []", "1 []", "True True"], r.stdout

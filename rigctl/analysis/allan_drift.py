@@ -624,19 +624,19 @@ def gm_added_sentence(fit: dict) -> str:
 
 
 def tc_interval(t: dict[str, Any], digits: int = 3) -> str:
-    """Tc's 95 % interval as "[lo, hi]", an end whose profile set reaches the end of the Tc
-    range searched written open ("[<lo, hi]", "[lo, >hi]": the range's end, not the data's)."""
-    (lo, hi), (o_lo, o_hi) = t["tc_ci95_s"], t.get("tc_ci95_open") or (False, False)
-    return f"[{'<' if o_lo else ''}{lo:.{digits}g}, {'>' if o_hi else ''}{hi:.{digits}g}]"
+    """Tc's 95 % interval of a Gauss-Markov result (the fit's ``gm_term`` or the candidate's
+    ``gauss_markov``) as "[lo, hi]", an end whose profile set reaches the end of the Tc range
+    searched written open ("[<lo, hi]", "[lo, >hi]": the range's end, not the data's;
+    :func:`rigctl.solvers.noise_coefficients.tc_interval_text`)."""
+    return NC.tc_interval_text(t["tc_ci95_s"], t.get("tc_ci95_open"), digits)
 
 
 def gm_reason(gm: dict) -> str:
     """The candidate's sentence in the self-check's reason for a stationary bump."""
     unit = gm["sigma_gm_unit"]
     s, (s_lo, s_hi) = gm[f"sigma_gm_{DU.slug(unit)}"], gm[f"sigma_gm_ci95_{DU.slug(unit)}"]
-    tc_lo, tc_hi = gm["tc_ci95_s"]
     rb, ra = gm["ratio_before"], gm["ratio_after"]
-    return (f"a Gauss-Markov process with Tc ~ {gm['tc_s']:.3g} s [{tc_lo:.3g}, {tc_hi:.3g}] "
+    return (f"a Gauss-Markov process with Tc ~ {gm['tc_s']:.3g} s {tc_interval(gm)} "
             f"and sigma_GM {s:.3g} {unit} [{s_lo:.3g}, {s_hi:.3g}] (95 %) fits the bump: "
             f"chi2/dof {gm['chi2_before']:.1f}/{gm['dof_before']} -> "
             f"{gm['chi2_after']:.1f}/{gm['dof_after']}, data/total {rb[0]:.2f}-{rb[1]:.2f} -> "

@@ -152,7 +152,7 @@ def gm_comment(result: Mapping[str, Any]) -> list[str]:
         co = as_coefficients(r["fit"]["coefficients"])
         for g in co.gm:
             lo, hi = g.sigma.interval95
-            tc = "" if g.tau_c_ci95 is None else f" [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]"
+            tc = "" if g.tau_c_ci95 is None else f" {g.tc_interval_text(4)}"
             kind = "" if g.sigma.resolved else " (bound)"
             rows.append(f"#   {a}: sigma_GM {_e(g.sigma.cautious)}{kind} [{_e(lo)}, {_e(hi)}] "
                         f"(rad/s or m/s^2), Tc {g.tau_c_s:.4g} s{tc} (95 %)")

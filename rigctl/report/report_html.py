@@ -456,10 +456,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
             sig_e, tc_e = crb.get("sigma") or {}, crb.get("tc") or {}
             rows.append([axis, "Gauss-Markov sigma_GM", unit, _term_cell(g.sigma.scaled(fac)),
                          None, _need_cell(sig_e, not sig_e.get("bounded"))])
-            gt = cv["fit"].get("gm_term") or {}
-            tc = (f"{g.tau_c_s:.4g}" if g.tau_c_ci95 is None else
-                  f"{g.tau_c_s:.4g} {tc_interval(gt, 4)}" if gt.get("tc_ci95_s") else
-                  f"{g.tau_c_s:.4g} [{g.tau_c_ci95[0]:.4g}, {g.tau_c_ci95[1]:.4g}]")
+            tc = f"{g.tau_c_s:.4g} {g.tc_interval_text(4)}".rstrip()
             rows.append([axis, "Gauss-Markov correlation time Tc", "s", tc, None,
                          _need_cell(tc_e, not tc_e.get("bounded"))])
     if rows:
@@ -481,7 +478,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
         unit = gm.get("sigma_gm_unit", "")
         slug = unit.replace("/", "_per_").replace("(", "_").replace(")", "").replace("^", "")
         s_ci = gm.get(f"sigma_gm_ci95_{slug}") or [None, None]
-        gm_rows.append([axis, f"{gm['tc_s']:.3g} [{gm['tc_ci95_s'][0]:.3g}, {gm['tc_ci95_s'][1]:.3g}]",
+        gm_rows.append([axis, f"{gm['tc_s']:.3g} {tc_interval(gm)}",
                         f"{gm[f'sigma_gm_{slug}']:.3g} [{_g3(s_ci[0])}, {_g3(s_ci[1])}] {unit}",
                         f"{gm['chi2_before']:.1f}/{gm['dof_before']} -> "
                         f"{gm['chi2_after']:.1f}/{gm['dof_after']}",

@@ -1394,7 +1394,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
         ub = min(math.sqrt(max(p_gm, 0.0) + _Z95_ONE * max(sd_gm, 0.0)), lim)
         sig = NC.Coefficient(min(math.sqrt(max(p_gm, 0.0)), ub), upper95=ub,
                              bound_from="curve" if ub >= lim else "fit")
-    coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci)
+    coef = NC.GaussMarkov(sig, tc, tau_c_ci95=tc_ci, tau_c_ci95_open=(tc_open[0], tc_open[1]))
     term = {"name": "first-order Gauss-Markov process", "tc_s": tc, "tc_ci95_s": list(tc_ci),
             "tc_ci95_open": tc_open,
             "tc_profile_s": [float(tcs[0]), float(tcs[-1])], "tc_points": int(tcs.size),

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import fft
 from scipy.ndimage import median_filter
 from .distributions import chi2, f as fdist
 
@@ -72,6 +73,41 @@ def tones_avar(tau0: float, m: np.ndarray, tones: list[dict]) -> np.ndarray:
     return out
 
 
+def welch_hann(y: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """One-sided Welch power spectral density of the real samples ``y`` (sample rate ``fs``
+    in Hz; PSD in units(y)^2/Hz at the frequencies f_j = j fs / nperseg, j = 0 .. nperseg/2)
+    over the K = len(y) // nperseg adjacent segments without overlap, each with its mean removed
+    and a periodic Hann window w_n = 1/2 - 1/2 cos(2 pi n / nperseg)::
+
+        P_j = (c_j / K) sum_k |sum_n w_n (y_kn - mean_k) exp(-2 pi i j n / nperseg)|^2
+              / (fs sum_n w_n^2),     c_j = 2 except at 0 Hz and (nperseg even) fs/2, c_j = 1
+
+    This is ``scipy.signal.welch(y, fs, window="hann", nperseg=nperseg, noverlap=0,
+    detrend="constant", scaling="density")`` with scipy's own arithmetic (scipy 1.17:
+    ``get_window``, ``ShortTimeFFT.spectrogram`` with the window scaled to 'psd', ``csd``'s
+    doubling and mean), bit for bit (tests/test_allan_tones.py compares them), without
+    importing scipy.signal, which pulls in scipy.stats: ~0.45 s of CPU in every ``rigctl
+    allan``, ``run`` and daemon solve step that looked for tones."""
+    y = np.asarray(y, dtype=np.float64)
+    k = y.size // nperseg
+    # get_window("hann", nperseg): the symmetric window of nperseg + 1 points, last one dropped
+    phase = np.linspace(-np.pi, np.pi, nperseg + 1, dtype=np.float64)
+    w = np.zeros(nperseg + 1, dtype=np.float64)
+    w += 0.5 * np.cos(0 * phase)
+    w += 0.5 * np.cos(1 * phase)
+    w = w[:-1]
+    # ShortTimeFFT.scale_to("psd"): w / sqrt(sum(|w|^2) / T), T = 1 / fs, a Python sum as there
+    w = w * (1 / np.sqrt(sum(w ** 2) / (1 / fs)))
+    s = np.empty((nperseg // 2 + 1, k))
+    for i in range(k):
+        seg = y[i * nperseg:(i + 1) * nperseg]
+        seg = seg - np.mean(seg, -1, keepdims=True)
+        x = fft.rfft(seg * w, n=nperseg, axis=-1)
+        s[:, i] = x.real ** 2 + x.imag ** 2
+    s[1:-1 if nperseg % 2 == 0 else None] *= 2
+    return fft.rfftfreq(nperseg, 1 / fs), s.mean(axis=-1)
+
+
 def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     """Tones in the rate samples ``y`` (sample rate ``fs``): see the module docstring.
     Returns {"tones": [{freq_hz, amp_si, psd_ratio, bins}...] strongest first, "nperseg",
@@ -87,11 +123,7 @@ def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     if y.size < 16 * nper or nper < 4 * LEVEL_BINS:
         out["skipped"] = "too few samples for a periodogram"
         return out
-    from scipy.signal import welch  # here: every process that imports the Allan fit (calibrate,
-    # report, batch, ...) paid ~0.12 s of CPU for it at import, most never asking for tones
-
-    f, p = welch(y, fs=fs, window="hann", nperseg=nper, noverlap=0,
-                 detrend="constant", scaling="density")
+    f, p = welch_hann(y, fs, nper)
     k = y.size // nper
     nu = 2.0 * k
     nu_level = nu * LEVEL_BINS / math.pi

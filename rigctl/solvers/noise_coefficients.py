@@ -171,11 +171,19 @@ def _coef(x: Any) -> Coefficient:
 class GaussMarkov:
     """A first-order Gauss-Markov term: stationary standard deviation ``sigma`` (u) and
     correlation time ``tau_c_s`` (s); ``tau_c_ci95``: Tc's 95 % interval (s) where it was
-    estimated (the Allan fit), None where given."""
+    estimated (the Allan fit), None where given; ``tau_c_ci95_open``: (lower, upper) True where
+    that end is the end of the Tc range searched, not the data's (the profile's 95 % set still
+    reached it): the true end lies beyond it, written "[<lo, hi]" / "[lo, >hi]"."""
 
     sigma: Coefficient
     tau_c_s: float
     tau_c_ci95: tuple[float, float] | None = None
+    tau_c_ci95_open: tuple[bool, bool] = (False, False)
+
+    def tc_interval_text(self, digits: int = 3) -> str:
+        """Tc's 95 % interval as text (:func:`tc_interval_text`; '' where none)."""
+        return "" if self.tau_c_ci95 is None else tc_interval_text(self.tau_c_ci95,
+                                                                   self.tau_c_ci95_open, digits)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sigma", _coef(self.sigma))
@@ -357,6 +365,16 @@ def coefficient_json(c: Coefficient) -> dict[str, Any]:
             ((f.name, getattr(c, f.name)) for f in fields(c)) if v is not None}
 
 
+def tc_interval_text(ci: Sequence[float], open_ends: Sequence[bool] | None = None,
+                     digits: int = 3) -> str:
+    """A Gauss-Markov Tc's 95 % interval (s) as "[lo, hi]", an end that is the end of the Tc
+    range searched, not the data's, written open: "[<lo, hi]", "[lo, >hi]". The one spelling
+    of every output (text, warnings, JSON readers, the HTML report, the Kalibr comments)."""
+    o_lo, o_hi = (bool(v) for v in (open_ends or (False, False)))
+    return (f"[{'<' if o_lo else ''}{float(ci[0]):.{digits}g}, "
+            f"{'>' if o_hi else ''}{float(ci[1]):.{digits}g}]")
+
+
 def coefficient_from(d: Mapping[str, Any]) -> Coefficient:
     """Inverse of :func:`coefficient_json`."""
     def pair(x: Any) -> tuple[float, float] | None:
@@ -373,7 +391,8 @@ def to_json(m: NoiseCoefficients) -> dict[str, Any]:
                            **{t: coefficient_json(getattr(m, t)) for t in TERMS}}
     if m.gm:
         out["gm"] = [{"sigma": coefficient_json(g.sigma), "tau_c_s": g.tau_c_s,
-                      **({} if g.tau_c_ci95 is None else {"tau_c_ci95_s": list(g.tau_c_ci95)})}
+                      **({} if g.tau_c_ci95 is None else {"tau_c_ci95_s": list(g.tau_c_ci95),
+                                                          "tau_c_ci95_open": list(g.tau_c_ci95_open)})}
                      for g in m.gm]
     if m.white_by_group is not None:
         out["white_by_group"] = {str(k): float(v) for k, v in m.white_by_group.items()}
@@ -386,7 +405,9 @@ def from_json(d: Mapping[str, Any]) -> NoiseCoefficients:
                              gm=tuple(GaussMarkov(coefficient_from(g["sigma"]), float(g["tau_c_s"]),
                                                   None if g.get("tau_c_ci95_s") is None else
                                                   (float(g["tau_c_ci95_s"][0]),
-                                                   float(g["tau_c_ci95_s"][1])))
+                                                   float(g["tau_c_ci95_s"][1])),
+                                                  tuple(bool(v) for v in g.get(
+                                                      "tau_c_ci95_open") or (False, False)))
                                       for g in d.get("gm") or ()),
                              flicker_tau_min_s=float(d.get("flicker_tau_min_s", 1.0)),
                              flicker_tau_max_s=float(d.get("flicker_tau_max_s", 1.0e4)),
