@@ -230,6 +230,8 @@ class _AxisStream:
         # and no concatenation, which would hold them twice at the peak
         self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
+        self.n_total = n_rate  # the samples the record will give (the noise IDs' N)
+        self.head_released = False  # (head_noise_ids took all it is read for: dropped)
         self._nid: dict[tuple[int, int], int] = {}  # noise IDs taken early (head_noise_ids)
         self._tones: dict[str, Any] | None = None  # tone detection taken early (head_noise_ids)
         self._dec = np.empty(n_rate // self.dec + 1)
@@ -419,6 +421,8 @@ class _AxisStream:
             return hit
         if m % self.dec == 0:
             return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        if self.head_released:  # head_noise_ids released it only with every one of these taken
+            raise RuntimeError(f"noise ID at m={m}, N={n} not taken before the head was released")
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
 
     def dec_noise_ids(self) -> None:
@@ -443,7 +447,7 @@ class _AxisStream:
 
     def head_full(self) -> bool:
         """The full-resolution head is complete (it does not change any more)."""
-        return self.n_head >= min(HEAD_POINTS, self._head.size)
+        return self.head_released or self.n_head >= min(HEAD_POINTS, self._head.size)
 
     def head_noise_ids(self, n_phase: int) -> None:
         """The noise IDs that read the head (factors not a multiple of ``dec``), for a record
@@ -459,8 +463,28 @@ class _AxisStream:
                 self._nid[(m, n)] = NID.noise_id(self._head[: self.n_head], m, "oadev", n)
             except (ValueError, ArithmeticError):
                 pass  # left to the analysis, which reports it as before
-        if EARLY_TONES:
-            self._tones = _detect_tones(self)
+        if not EARLY_TONES:
+            return
+        y = _tone_rate(self)  # (a copy: the head can go before the periodogram runs)
+        self._release_head(n_phase)
+        self._tones = _detect_tones(self, y)
+
+    def _release_head(self, n_phase: int) -> None:
+        """Drop the full-resolution head (33.5 MB per axis at HEAD_POINTS) once nothing will
+        read it again, instead of holding it to the axis' analysis: the rest of the record
+        streams without the six heads (they were ~200 MB of a 12 h x 6-axis run's peak,
+        docs/allan.md), and the periodogram of the tones (:meth:`head_noise_ids`, from its
+        own copy of the rate) runs without it. Only when the noise IDs were taken for the
+        phase points the analysis will have (``n_phase``: every sample of the range summed;
+        not with windows left out) and each of them found (an error leaves the head to the
+        analysis, which reports it)."""
+        if n_phase != self.n_total + 1 or not self.head_full():
+            return
+        for m in self.ms.tolist():
+            if m % self.dec and (m, NID.n_terms("oadev", n_phase, m)) not in self._nid:
+                return
+        self._head = np.empty(0)
+        self.head_released = True
 
     def tone_detection(self) -> dict[str, Any]:
         """The periodogram's tone detection (:func:`_detect_tones`): taken early with the
@@ -543,15 +567,23 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray, stride: i
 TONE_POINTS = 1 << 21
 
 
-def _detect_tones(stream: _AxisStream) -> dict[str, Any]:
-    """:func:`rigctl.solvers.allan_tones.detect_tones` on the axis' rate samples (the
-    full-resolution head of the phase, its first TONE_POINTS samples), SI."""
-    x = stream._head[: min(stream.n_head, TONE_POINTS + 1)]
-    if x.size < 2:
+def _tone_rate(stream: _AxisStream) -> np.ndarray:
+    """The rate samples the tone detection reads (SI): the first TONE_POINTS of the axis,
+    from the differences of its full-resolution phase head (a new array)."""
+    y = np.diff(stream._head[: min(stream.n_head, TONE_POINTS + 1)])
+    y /= stream.tau0  # (in place: one 16 MB array per axis at the tones' peak, not two)
+    return y
+
+
+def _detect_tones(stream: _AxisStream, y: np.ndarray | None = None) -> dict[str, Any]:
+    """:func:`rigctl.solvers.allan_tones.detect_tones` on the axis' rate samples ``y``
+    (:func:`_tone_rate`, taken here if not given), SI."""
+    if y is None:
+        y = _tone_rate(stream)
+    if y.size < 1:
         return {"tones": [], "skipped": "no samples"}
-    tau0 = stream.tau0
-    out = TN.detect_tones(np.diff(x) / tau0, 1.0 / tau0)
-    out["samples_used"] = int(x.size - 1)
+    out = TN.detect_tones(y, 1.0 / stream.tau0)
+    out["samples_used"] = int(y.size)
     return out
 
 
