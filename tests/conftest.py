@@ -131,6 +131,7 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     "wire_acl", "wire_imu_errors", "wire_modbus", "wire_novatel", "wire_vectornav",
     "wire_xsens_identity", "wire_xsens_server", "hil_faults", "hil_pulses_config", "hil_runs",
     "thermal_wire", "hil_time_offsets", "hil_power_cycle", "pty_host_stall", "slow_stream_pace", "link_loss_order",
+    "safe_state_slow_table",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
     "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets

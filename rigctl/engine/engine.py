@@ -1110,18 +1110,54 @@ class Engine:
         """Stop the table (rate zero, mode off) and record it until still or ``wait_s``. In a
         pause (``seen``: its suspenders so far) a suspender that trips meanwhile is
         recorded and named as in the pause's own polls (:meth:`_note_trips`)."""
-        clock = self.rig.clock
         try:
             self.rig.table.stop()
         except Exception as exc:  # noqa: BLE001 - a faulted / unreachable table: keep pausing
             self.log("warning", f"could not command the table to stop: {exc}")
-        t0 = clock.now()
-        while clock.now() - t0 < wait_s:
+
+        def poll() -> TableState:
             state = self.poll(check=False)
             if seen is not None:
                 self._note_trips(seen)
+            return state
+        self._wait_still(poll, wait_s)
+
+    def _wait_still(self, poll: Callable[[], TableState], wait_s: float) -> bool:
+        """After a stop command: ``poll()`` until the table reports no motion (True), or until it
+        has moved on for ``wait_s`` of its own time since its first reading (False).
+
+        Measured on the table's time (``TableState.time``), as :meth:`settle` measures its
+        timeout: an emulated table can fall behind the run's clock (its physics starved of CPU),
+        and ``wait_s`` of the run's clock -- 20 ms of wall time for 2 s at 100x -- ended the end of
+        run's safe state while the table was still slowing down ('the table still reports motion
+        after the stop command', a wired run at load ~20 failed on it). A table whose time stands
+        still (a controller that answers with a frozen clock) ends the wait after
+        :data:`SETTLE_STILL_TIMEOUTS` x ``wait_s`` of the run's clock and :attr:`still_wall_s` of
+        wall time, as in :meth:`settle`; a table that cannot be read at all (the poll keeps its
+        last state: link lost) after ``wait_s`` of the run's clock, as before."""
+        clock = self.rig.clock
+        t0 = clock.now()
+        first: float | None = None      # the table's time at its first reading, s
+        advanced = (-math.inf, t0, time.monotonic())  # (the table's latest time, the run's clock, wall)
+        while True:
+            before = self.last_state
+            state = poll()
             if not state.any_has(AxisStatus.MOVING):
-                return
+                return True
+            now = clock.now()
+            if state is before or not math.isfinite(float(state.time)):   # not read: the run's clock
+                if now - t0 >= wait_s:
+                    return False
+            else:
+                t_table = float(state.time)
+                first = t_table if first is None else first
+                if t_table > advanced[0] + 1e-6:
+                    advanced = (t_table, now, time.monotonic())
+                if t_table - first >= wait_s:
+                    return False
+                if now - advanced[1] > SETTLE_STILL_TIMEOUTS * wait_s and \
+                        time.monotonic() - advanced[2] > self.still_wall_s:
+                    return False
             clock.sleep(self.settle_poll_s)
 
     def suspend(self, step: Step, sus: Suspend, between_steps: bool = False) -> None:
@@ -1271,17 +1307,13 @@ class Engine:
             except Exception as exc:  # noqa: BLE001
                 self.log("error", f"could not open the interlocks: {exc}")
         clock = self.rig.clock
-        t0 = clock.now()
         try:
-            while True:
-                state = self.poll(check=False, safe_state=True)
-                if not state.any_has(AxisStatus.MOVING):
-                    self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
-                    return True
-                if clock.now() - t0 >= wait_s:
-                    self.log("error", "the table still reports motion after the stop command")
-                    return False
-                clock.sleep(self.settle_poll_s)
+            if self._wait_still(lambda: self.poll(check=False, safe_state=True), wait_s):
+                self.rec.add_event(clock.now(), "safe-state", "table stopped, servo off")
+                return True
+            self.log("error", f"the table still reports motion after the stop command ({wait_s:g} s of "
+                              "its time)")
+            return False
         except Exception as exc:  # noqa: BLE001
             self.log("error", f"could not read the table after stopping it: {exc}")
             return False
