@@ -1844,7 +1844,9 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
                                 "the deviation,", reasons=False)
     elif runs:
         out += _check_sentences(check, f"{what} leaves the curve's 95 % band")
-    return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+    # (the runs inside a filter's region by less than 10 %: the filter's, not chance)
+    return (out + _small_sentence(_without_filter_runs(check, None, ("outside_small",)))
+            + _past_sentence(check) + excluded_sentences(check))
 
 
 def chi2_carrier_text(check: dict) -> str:
@@ -1900,6 +1902,59 @@ def _front_sentence(check: dict) -> list[str]:
             f"quantization levels); the terms are fitted from {f['top_tau_s']:.3g} s on"]
 
 
+def _filter_sentence(check: dict) -> list[str]:
+    """The low-pass filter's taus the fit left out (rigctl.solvers.allan_fit.filter_region),
+    named with why, and how far below the fitted total the check finds the curve there."""
+    f = check.get("filter_excluded")
+    if not f:
+        return []
+    below = [o for o in _in_filter_region(check, "outside") + _in_filter_region(check, "outside_small")
+             if o["data_over_fit"] < 1.0]
+    named = ""
+    if below:
+        w = min(below, key=lambda o: o["data_over_fit"])
+        named = (f"; the self-check finds the curve below the fitted total there "
+                 f"({over_fit_text(w['data_over_fit'], w['worst_tau_s'])}), as a filter makes it")
+    return [f"tau {f['tau_from_s']:.3g}-{f['tau_to_s']:.3g} s left out of the fit: the curve "
+            "falls faster than tau^-1/2 there, sigma^2 tau rising to the white-noise level by a "
+            "deficit that fades per octave (the sensor's low-pass filter, not an IEEE 952 term; "
+            f"sigma^2 tau at tau0 x{f['s_over_s_fit'][0]:.3f} of its value at "
+            f"{f['tau_to_fit_s']:.3g} s); the terms are fitted from {f['tau_to_fit_s']:.3g} s on"
+            + named]
+
+
+def _in_filter_region(check: dict, key: str) -> list[dict]:
+    """The self-check's runs (``key``: ``outside``, ``outside_small``) that lie within the
+    filter's region left out of the fit (``filter_excluded``)."""
+    f = check.get("filter_excluded")
+    if not f:
+        return []
+    return [o for o in check.get(key) or [] if o["tau_to_s"] <= f["tau_to_s"] * (1 + 1e-9)]
+
+
+def _without_filter_runs(check: dict, tau: Any, keys: tuple[str, ...]) -> dict:
+    """The check with its runs inside the filter's region (``keys``) taken out, and
+    ``n_outside`` less their taus (``tau``: the curve's): those are the filter's, named by
+    :func:`excluded_sentences`, not chance."""
+    out = dict(check)
+    for key in keys:
+        inside = _in_filter_region(check, key)
+        if not inside:
+            continue
+        out[key] = [o for o in check[key] if o not in inside]
+        if key == "outside":
+            t = np.asarray(tau if tau is not None else [], dtype=float)
+            n_in = sum(int(np.count_nonzero((t >= o["tau_from_s"]) & (t <= o["tau_to_s"])))
+                       for o in inside)
+            out["n_outside"] = max(check["n_outside"] - n_in, 0)
+    return out
+
+
+def excluded_sentences(check: dict) -> list[str]:
+    """The taus left out of the fit (a rising front, a low-pass filter's region), named."""
+    return _front_sentence(check) + _filter_sentence(check)
+
+
 def _spans(runs: list[dict]) -> str:
     return ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
                      else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
@@ -1937,14 +1992,17 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     """The taus outside the band when the fit as a whole is consistent with the curve (a few of
     ~70 taus outside a 95 % band are expected by chance): named, as a note."""
     check = r["fit"].get("check") or {}
-    runs = check.get("outside") or []
     if not check.get("ok"):  # a chi-square beyond its 99 % point fails too (check_warnings)
         return []
+    # the runs inside a filter's region left out of the fit are the filter's (named by
+    # excluded_sentences), not chance
+    rest = _without_filter_runs(check, r.get("tau_s"), ("outside", "outside_small"))
+    runs = rest.get("outside") or []
     head = ("the fitted total is outside the 95 % band, as chance allows for a fit consistent "
             "with the curve,")
     out = bounds_sentence(check, r.get("sensor", "gyro"))
-    out += [] if not runs else _check_sentences(check, head, reasons=False)
-    return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+    out += [] if not runs else _check_sentences(rest, head, reasons=False)
+    return out + _small_sentence(rest) + _past_sentence(check) + excluded_sentences(check)
 
 
 def bounds_sentence(check: dict, sensor: str) -> list[str]:
