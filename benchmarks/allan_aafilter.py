@@ -1,5 +1,5 @@
-"""The self-check on filtered IMU-like noise: an anti-aliasing low-pass (docs/allan.md, "The
-sensor's anti-aliasing filter and the self-check").
+"""The fit and its self-check on filtered IMU-like noise: an anti-aliasing low-pass
+(docs/allan.md, "The sensor's anti-aliasing filter: its taus left out of the fit").
 
 Records: benchmarks/allan_gm_spectral.py's ``wf_bw`` (white N 0.2 deg/sqrt(h) + flicker B 5 deg/h
 + random walk K 3 deg/h/sqrt(h) drawn at 1 kHz, a 2nd-order Butterworth at 40 Hz, every 10th
@@ -10,9 +10,11 @@ tests/test_allan_check_bounds.py (40 log-spaced taus, exact overlapping ADEV, NI
 
 Per family: how often the check fails, where (the run at tau0 "data below the fit", and the run
 that carries the chi-square), the cause the check names, S = sigma^2 tau / N^2 at m = 1, 2, 4
-(1 on a white-noise line), and N against its truth (95 % interval holds it, ratio); then the
-same fit with the taus of m < 2, 4, 8, 16 samples left out (a measured alternative, not what
-rigctl does).
+(1 on a white-noise line), N against its truth and against the output's own white level (95 %
+interval holds it, ratio), and the filter's region rigctl left out of the fit
+(``check.filter_excluded``: on how many records, its first fitted m); then, for comparison,
+the same fit given only the taus of m >= 2, 4, 8, 16 samples (a fixed start: what rigctl does
+not do; its region is read from the curve, allan_fit.filter_region).
 
     python benchmarks/allan_aafilter.py [--records 20]
 
@@ -59,7 +61,9 @@ def one(kind: str, seed: int, m_min: int, n_out: float) -> dict:
     runs = c["outside"]
     first = [r for r in runs if r["tau_from_s"] <= tau[0] * 1.001 and "below" in r["side"]]
     carried = c.get("chi2_carried_by") or {}
+    fe = c.get("filter_excluded")
     return {"fail": not c["ok"], "first_below": bool(first),
+            "filter_m_to": fe["m_to"] if fe else None,
             "named_filter": any("low-pass" in r["likely"] for r in runs),
             "first_ratio": first[0]["data_over_fit"] if first else None,
             "carried_short": bool(carried) and carried["tau_to_s"] <= 0.05 + 1e-9,
@@ -88,6 +92,9 @@ def main() -> None:
                    "n_ratio_min_med_max": [round(min(nr), 3), round(float(np.median(nr)), 3),
                                            round(max(nr), 3)]}
             if m_min == 1:
+                mt = [r["filter_m_to"] for r in rs if r["filter_m_to"] is not None]
+                row["filter_excluded"] = len(mt)
+                row["filter_first_fitted_m"] = {str(int(v)): mt.count(v) for v in sorted(set(mt))}
                 fr = [r["first_ratio"] for r in rs if r["first_ratio"] is not None]
                 sh = [r["carried_share"] for r in rs if r["carried_short"]]
                 s = np.array([r["s_over_n2"] for r in rs])

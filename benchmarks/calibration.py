@@ -44,6 +44,8 @@ import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from allan_quickstart_cov import clopper_pearson  # noqa: E402  (exact binomial interval)
 from test_calibrate_emulated import PROFILES  # noqa: E402
 
 CODE = ("import sys, rigctl.sim.profiles as P; P.DEFAULT_PATH = sys.argv[1]; "
@@ -128,6 +130,21 @@ def overnight(tmp: Path, profile: str, hours: float, seed: int = 1000) -> Path:
     return next(out.glob("*/recording.h5"))
 
 
+#: the declared parameters' groups the coverage is reported for (names as in /truth)
+GROUPS = ("accel_bias", "gyro_bias", "scale", "misalignment", "quadratic")
+
+
+def param_group(name: str) -> str:
+    """The coverage group of a declared parameter: accel_bias, gyro_bias, scale (M's diagonal),
+    misalignment (M off the diagonal) or quadratic."""
+    if "_bias_" in name:
+        return name.split("_bias_")[0] + "_bias"
+    if "_M_" in name:
+        ij = name.split("_M_")[1][:2]
+        return "scale" if ij[0] == ij[1] else "misalignment"
+    return "quadratic"
+
+
 def _summary(sess: dict, truth: dict) -> dict:
     cl = sess["closed_loop"]
     fin = cl.final
@@ -138,7 +155,9 @@ def _summary(sess: dict, truth: dict) -> dict:
            "p": fin.chi2_p_value, "flagged": bool(cl.effects or cl.unexplained),
            "effects": cl.effect_names, "unexplained": len(cl.unexplained),
            "covered": int(sum(cover)), "n_params": len(cover),
-           "bias_covered": int(sum(c for c, e in zip(cover, cl.truth_errors) if "bias" in e["name"]))}
+           "bias_covered": int(sum(c for c, e in zip(cover, cl.truth_errors) if "bias" in e["name"])),
+           "by_group": {g: [int(sum(c for c, e in zip(cover, cl.truth_errors) if param_group(e["name"]) == g)),
+                            sum(param_group(e["name"]) == g for e in cl.truth_errors)] for g in GROUPS}}
     for k in ("accel24", "gyro_rate"):
         r = sess.get(k)
         if r is not None:
@@ -185,7 +204,8 @@ def _true_b(tp: dict) -> list[float]:
     return [d["B"]["value"] for s in ("accel", "gyro") for d in tp[f"{s}_noise"]]
 
 
-def corr_study(seeds: int, profiles: list[str], keep: str | None = None, night_h: float = 12.0) -> dict:
+def corr_study(seeds: int, profiles: list[str], keep: str | None = None, night_h: float = 12.0
+               ) -> tuple[dict, dict]:
     rows = []
     modes = ("independent", "session", "coeffs") + (("overnight",) if night_h > 0 else ())
     with tempfile.TemporaryDirectory() as d:
@@ -227,7 +247,21 @@ def corr_study(seeds: int, profiles: list[str], keep: str | None = None, night_h
             summary[f"{prof}_{mode}"] = {"chi2_per_dof_median": med, "frac_in_99_band": band,
                                          "frac_no_flag": noflag, "coverage95_pooled": cov,
                                          "bias_coverage95": bcov}
-    return summary
+    print()
+    print("coverage of the 95 % intervals per parameter group: covered/intervals, % [Clopper-Pearson 95 %]")
+    groups: dict = {}
+    for prof in [*profiles, "all"]:
+        sub = [r for r in rows if prof in ("all", r["profile"])]
+        for mode in modes:
+            cells = []
+            for g in GROUPS:
+                k = sum(r[mode]["by_group"][g][0] for r in sub)
+                n = sum(r[mode]["by_group"][g][1] for r in sub)
+                lo, hi = clopper_pearson(k, n) if n else (float("nan"),) * 2
+                cells.append(f"{g} {k}/{n} {100 * k / max(n, 1):.1f} [{100 * lo:.1f}, {100 * hi:.1f}]")
+                groups[f"{prof}_{mode}_{g}_coverage95"] = [k, n, lo, hi]
+            print(f"{prof:<14} {mode:<12} " + "; ".join(cells))
+    return summary, groups
 
 
 def main() -> None:
@@ -243,8 +277,9 @@ def main() -> None:
     a = ap.parse_args()
     summary: dict = {}
     if a.corr_seeds > 0:
-        corr = corr_study(a.corr_seeds, [p for p in a.profiles.split(",") if p], a.recordings,
-                          a.overnight_hours)
+        corr, groups = corr_study(a.corr_seeds, [p for p in a.profiles.split(",") if p], a.recordings,
+                                  a.overnight_hours)
+        summary.update(groups)  # [covered, intervals, Clopper-Pearson low, high] per group
         for k, v in corr.items():
             if not k.endswith("_independent"):
                 summary[f"{k}_bias_coverage95"] = v["bias_coverage95"]

@@ -302,3 +302,36 @@ def test_a_curve_no_term_describes_is_not_tested_and_does_not_crash() -> None:
     gm = GM.gm_candidate(tau, adev, edf, 0.01, 13577)
     assert gm["tested"] is False and gm["detected"] is False
     assert "singular" in gm["skipped"]
+
+
+@pytest.mark.parametrize("seed", [3, 6])
+def test_a_tc_below_the_range_searched_is_inside_the_candidates_interval(seed: int) -> None:
+    """White noise (N = 1e-3) + a Gauss-Markov process of Tc 0.04 s (sigma 3e-3), 0.1 h at
+    100 Hz: the candidate's range starts at 2 x its first tested tau / 1.89 = 0.042 s, above
+    the truth. Its Tc interval is continued below the range (allan_fit.extend_tc_profile_below,
+    the fit's rule): it reaches below the range, holds the truth and overlaps white + GM's
+    profile-likelihood interval read here in numpy (diagonal weights, 2 model^2 / EDF, on the
+    same taus of 4 samples or more), whose lower end is below the range too (the premise).
+    Measured: seed 3 rigctl 0.051 s [0.026, 0.125], numpy 0.052 [0.041, 0.065]; seed 6 0.0625
+    [0.031, 0.149], numpy 0.038 [0.029, 0.048] (rigctl's wider: it fits Q, B, K and a ramp
+    beside). Before, the interval was cut at the range, [0.042.., ...], the truth outside
+    (benchmarks/allan_gm.py, 20 series: 0 of the 11 found, now 11 of 11)."""
+    from allan_independent import white_gm_profile
+
+    n = 36_000
+    rng = np.random.default_rng(seed)
+    y = 1e-3 / math.sqrt(TAU0) * rng.standard_normal(n) + ar1(n, 0.04 / TAU0, 3e-3, rng)
+    tau, dev, edf = _curve(y, n)
+    k = tau >= 4 * TAU0 * (1 - 1e-9)
+    ind = white_gm_profile(tau[k], dev[k] ** 2, edf[k],
+                           np.exp(np.linspace(math.log(0.004), math.log(1.0), 400)))
+    r = GM.gm_candidate(tau, dev, edf, TAU0, n + 1)
+    assert r["detected"], r
+    rng_lo = r["tc_grid_s"][0]
+    assert ind["tc_ci95"][0] < rng_lo and not any(ind["open"]), (ind, rng_lo)  # the premise
+    lo, hi = r["tc_ci95_s"]
+    msg = f"Tc {r['tc_s']:.4f} [{lo:.4f}, {hi:.4f}], range {r['tc_grid_s']}; numpy {ind}"
+    assert lo < rng_lo and lo <= 0.04 <= hi and lo <= r["tc_s"] <= hi, msg
+    assert lo <= ind["tc_ci95"][1] and ind["tc_ci95"][0] <= hi, msg
+    # closed below: the profile went on past its lower end
+    assert r["tc_profile_s"][0] <= lo and r["tc_ci95_open"] == [False, False], (msg, r)

@@ -281,19 +281,48 @@ def _small_chunks_spying(monkeypatch: pytest.MonkeyPatch, look) -> list:
 def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """The noise IDs read from the full-resolution head, taken while the record still streams,
-    are the ones the analysis takes after the last chunk (and they are used)."""
+    are the ones the analysis takes after the last chunk (and they are used); the early task
+    then drops the head (:meth:`_AxisStream._release_head`: the analysis is handed a stream
+    without it), with the same noise IDs, EDFs and tones."""
     rec = tmp_path / "r.h5"
     _recording(rec, 160_000, True)
-    used = _small_chunks_spying(monkeypatch, lambda stream: len(stream._nid))
+    used = _small_chunks_spying(monkeypatch, lambda stream: (
+        len(stream._nid), stream.head_released, stream._head.nbytes))
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
         res = AA.compute(str(rec), ["gx", "az"], 95)
-        got[early] = {a: (np.asarray(r["alpha"]), np.asarray(r["edf"])) for a, r in res["axes"].items()}
-    assert used[:2] == [0, 0] and min(used[2:]) >= 20
+        got[early] = {a: (np.asarray(r["alpha"]), np.asarray(r["edf"]), r["tones"])
+                      for a, r in res["axes"].items()}
+    assert [u[0] for u in used[:2]] == [0, 0] and min(u[0] for u in used[2:4]) >= 20
+    assert [u[1:] for u in used[:4]] == [(False, (50_000 + 1) * 8)] * 2 + [(True, 0)] * 2
     for a in got[False]:
         assert np.array_equal(got[False][a][0], got[True][a][0])
         assert np.array_equal(got[False][a][1], got[True][a][1])
+        assert got[False][a][2] == got[True][a][2]
+
+
+def test_head_kept_where_early_noise_ids_are_not_the_analysis(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a window left out (``drop``: an excursion) the analysis' N is not the one the
+    early task took the head's noise IDs for: the head is kept to the analysis, which reads
+    it, and the noise IDs and EDFs are those without the early task. (Bridged: skipped, the
+    window's two stretches would put a Gauss-Markov candidate's gapped covariances, seconds
+    of CPU, into the test.)"""
+    rec = tmp_path / "r.h5"
+    _recording(rec, 160_000, False)
+    seen = _small_chunks_spying(monkeypatch, lambda st: (st.head_released, st._head.nbytes))
+    got = {}
+    for early in (False, True):
+        monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
+        r = AA.compute_once(str(rec), ["gx"], 95, gaps="bridge",
+                            drop=[(90_000, 91_000)])["axes"]["gx"]
+        got[early] = (np.asarray(r["alpha"]), np.asarray(r["edf"]))
+    assert seen == [(False, (50_000 + 1) * 8)] * 2
+    assert np.array_equal(got[False][0], got[True][0])
+    assert np.array_equal(got[False][1], got[True][1])
+
+
 
 
 def test_early_tones_same_as_after_the_last_chunk(tmp_path: Path,

@@ -230,6 +230,8 @@ class _AxisStream:
         # and no concatenation, which would hold them twice at the peak
         self._head = np.empty(min(HEAD_POINTS, n_rate) + 1)
         self.n_head = 0
+        self.n_total = n_rate  # the samples the record will give (the noise IDs' N)
+        self.head_released = False  # (head_noise_ids took all it is read for: dropped)
         self._nid: dict[tuple[int, int], int] = {}  # noise IDs taken early (head_noise_ids)
         self._tones: dict[str, Any] | None = None  # tone detection taken early (head_noise_ids)
         self._dec = np.empty(n_rate // self.dec + 1)
@@ -419,6 +421,8 @@ class _AxisStream:
             return hit
         if m % self.dec == 0:
             return NID.noise_id(self._dec[: self.n_dec], m // self.dec, "oadev", n)
+        if self.head_released:  # head_noise_ids released it only with every one of these taken
+            raise RuntimeError(f"noise ID at m={m}, N={n} not taken before the head was released")
         return NID.noise_id(self._head[: self.n_head], m, "oadev", n)
 
     def dec_noise_ids(self) -> None:
@@ -443,7 +447,7 @@ class _AxisStream:
 
     def head_full(self) -> bool:
         """The full-resolution head is complete (it does not change any more)."""
-        return self.n_head >= min(HEAD_POINTS, self._head.size)
+        return self.head_released or self.n_head >= min(HEAD_POINTS, self._head.size)
 
     def head_noise_ids(self, n_phase: int) -> None:
         """The noise IDs that read the head (factors not a multiple of ``dec``), for a record
@@ -459,8 +463,28 @@ class _AxisStream:
                 self._nid[(m, n)] = NID.noise_id(self._head[: self.n_head], m, "oadev", n)
             except (ValueError, ArithmeticError):
                 pass  # left to the analysis, which reports it as before
-        if EARLY_TONES:
-            self._tones = _detect_tones(self)
+        if not EARLY_TONES:
+            return
+        y = _tone_rate(self)  # (a copy: the head can go before the periodogram runs)
+        self._release_head(n_phase)
+        self._tones = _detect_tones(self, y)
+
+    def _release_head(self, n_phase: int) -> None:
+        """Drop the full-resolution head (33.5 MB per axis at HEAD_POINTS) once nothing will
+        read it again, instead of holding it to the axis' analysis: the rest of the record
+        streams without the six heads (they were ~200 MB of a 12 h x 6-axis run's peak,
+        docs/allan.md), and the periodogram of the tones (:meth:`head_noise_ids`, from its
+        own copy of the rate) runs without it. Only when the noise IDs were taken for the
+        phase points the analysis will have (``n_phase``: every sample of the range summed;
+        not with windows left out) and each of them found (an error leaves the head to the
+        analysis, which reports it)."""
+        if n_phase != self.n_total + 1 or not self.head_full():
+            return
+        for m in self.ms.tolist():
+            if m % self.dec and (m, NID.n_terms("oadev", n_phase, m)) not in self._nid:
+                return
+        self._head = np.empty(0)
+        self.head_released = True
 
     def tone_detection(self) -> dict[str, Any]:
         """The periodogram's tone detection (:func:`_detect_tones`): taken early with the
@@ -543,15 +567,23 @@ def edf_skipping_gaps(alpha: int, m: int, stretch_samples: np.ndarray, stride: i
 TONE_POINTS = 1 << 21
 
 
-def _detect_tones(stream: _AxisStream) -> dict[str, Any]:
-    """:func:`rigctl.solvers.allan_tones.detect_tones` on the axis' rate samples (the
-    full-resolution head of the phase, its first TONE_POINTS samples), SI."""
-    x = stream._head[: min(stream.n_head, TONE_POINTS + 1)]
-    if x.size < 2:
+def _tone_rate(stream: _AxisStream) -> np.ndarray:
+    """The rate samples the tone detection reads (SI): the first TONE_POINTS of the axis,
+    from the differences of its full-resolution phase head (a new array)."""
+    y = np.diff(stream._head[: min(stream.n_head, TONE_POINTS + 1)])
+    y /= stream.tau0  # (in place: one 16 MB array per axis at the tones' peak, not two)
+    return y
+
+
+def _detect_tones(stream: _AxisStream, y: np.ndarray | None = None) -> dict[str, Any]:
+    """:func:`rigctl.solvers.allan_tones.detect_tones` on the axis' rate samples ``y``
+    (:func:`_tone_rate`, taken here if not given), SI."""
+    if y is None:
+        y = _tone_rate(stream)
+    if y.size < 1:
         return {"tones": [], "skipped": "no samples"}
-    tau0 = stream.tau0
-    out = TN.detect_tones(np.diff(x) / tau0, 1.0 / tau0)
-    out["samples_used"] = int(x.size - 1)
+    out = TN.detect_tones(y, 1.0 / stream.tau0)
+    out["samples_used"] = int(y.size)
     return out
 
 
@@ -1812,7 +1844,9 @@ def check_warnings(r: dict[str, Any]) -> list[str]:
                                 "the deviation,", reasons=False)
     elif runs:
         out += _check_sentences(check, f"{what} leaves the curve's 95 % band")
-    return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+    # (the runs inside a filter's region by less than 10 %: the filter's, not chance)
+    return (out + _small_sentence(_without_filter_runs(check, None, ("outside_small",)))
+            + _past_sentence(check) + excluded_sentences(check))
 
 
 def chi2_carrier_text(check: dict) -> str:
@@ -1868,6 +1902,59 @@ def _front_sentence(check: dict) -> list[str]:
             f"quantization levels); the terms are fitted from {f['top_tau_s']:.3g} s on"]
 
 
+def _filter_sentence(check: dict) -> list[str]:
+    """The low-pass filter's taus the fit left out (rigctl.solvers.allan_fit.filter_region),
+    named with why, and how far below the fitted total the check finds the curve there."""
+    f = check.get("filter_excluded")
+    if not f:
+        return []
+    below = [o for o in _in_filter_region(check, "outside") + _in_filter_region(check, "outside_small")
+             if o["data_over_fit"] < 1.0]
+    named = ""
+    if below:
+        w = min(below, key=lambda o: o["data_over_fit"])
+        named = (f"; the self-check finds the curve below the fitted total there "
+                 f"({over_fit_text(w['data_over_fit'], w['worst_tau_s'])}), as a filter makes it")
+    return [f"tau {f['tau_from_s']:.3g}-{f['tau_to_s']:.3g} s left out of the fit: the curve "
+            "falls faster than tau^-1/2 there, sigma^2 tau rising to the white-noise level by a "
+            "deficit that fades per octave (the sensor's low-pass filter, not an IEEE 952 term; "
+            f"sigma^2 tau at tau0 x{f['s_over_s_fit'][0]:.3f} of its value at "
+            f"{f['tau_to_fit_s']:.3g} s); the terms are fitted from {f['tau_to_fit_s']:.3g} s on"
+            + named]
+
+
+def _in_filter_region(check: dict, key: str) -> list[dict]:
+    """The self-check's runs (``key``: ``outside``, ``outside_small``) that lie within the
+    filter's region left out of the fit (``filter_excluded``)."""
+    f = check.get("filter_excluded")
+    if not f:
+        return []
+    return [o for o in check.get(key) or [] if o["tau_to_s"] <= f["tau_to_s"] * (1 + 1e-9)]
+
+
+def _without_filter_runs(check: dict, tau: Any, keys: tuple[str, ...]) -> dict:
+    """The check with its runs inside the filter's region (``keys``) taken out, and
+    ``n_outside`` less their taus (``tau``: the curve's): those are the filter's, named by
+    :func:`excluded_sentences`, not chance."""
+    out = dict(check)
+    for key in keys:
+        inside = _in_filter_region(check, key)
+        if not inside:
+            continue
+        out[key] = [o for o in check[key] if o not in inside]
+        if key == "outside":
+            t = np.asarray(tau if tau is not None else [], dtype=float)
+            n_in = sum(int(np.count_nonzero((t >= o["tau_from_s"]) & (t <= o["tau_to_s"])))
+                       for o in inside)
+            out["n_outside"] = max(check["n_outside"] - n_in, 0)
+    return out
+
+
+def excluded_sentences(check: dict) -> list[str]:
+    """The taus left out of the fit (a rising front, a low-pass filter's region), named."""
+    return _front_sentence(check) + _filter_sentence(check)
+
+
 def _spans(runs: list[dict]) -> str:
     return ", ".join(f"{o['tau_from_s']:.3g}" if o["tau_from_s"] == o["tau_to_s"]
                      else f"{o['tau_from_s']:.3g}-{o['tau_to_s']:.3g}" for o in runs)
@@ -1905,14 +1992,17 @@ def check_notes(r: dict[str, Any]) -> list[str]:
     """The taus outside the band when the fit as a whole is consistent with the curve (a few of
     ~70 taus outside a 95 % band are expected by chance): named, as a note."""
     check = r["fit"].get("check") or {}
-    runs = check.get("outside") or []
     if not check.get("ok"):  # a chi-square beyond its 99 % point fails too (check_warnings)
         return []
+    # the runs inside a filter's region left out of the fit are the filter's (named by
+    # excluded_sentences), not chance
+    rest = _without_filter_runs(check, r.get("tau_s"), ("outside", "outside_small"))
+    runs = rest.get("outside") or []
     head = ("the fitted total is outside the 95 % band, as chance allows for a fit consistent "
             "with the curve,")
     out = bounds_sentence(check, r.get("sensor", "gyro"))
-    out += [] if not runs else _check_sentences(check, head, reasons=False)
-    return out + _small_sentence(check) + _past_sentence(check) + _front_sentence(check)
+    out += [] if not runs else _check_sentences(rest, head, reasons=False)
+    return out + _small_sentence(rest) + _past_sentence(check) + excluded_sentences(check)
 
 
 def bounds_sentence(check: dict, sensor: str) -> list[str]:

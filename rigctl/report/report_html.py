@@ -468,6 +468,7 @@ def s_allan(d: RunData, plots: dict[str, Path]) -> str:
                 "bound, computed at the bound: at least that long).</p>"]
     out += _chi2_findings_html(curves)
     out += _bounds_html(curves)
+    out += _excluded_html(curves)
     out += _excursions_html(curves)
     out += _quiet_stretch_html(curves)
     gm_rows = []
@@ -522,6 +523,18 @@ def _bounds_html(curves: dict[str, dict]) -> list[str]:
     for axis, cv in curves.items():
         fit = cv.get("fit") or {}
         for sentence in bounds_sentence(fit.get("check") or {}, fit.get("sensor", "gyro")):
+            out.append(f"<p>{esc(axis)}: {esc(sentence)}</p>")
+    return out
+
+
+def _excluded_html(curves: dict[str, dict]) -> list[str]:
+    """The taus each axis' fit left out (a rising front, a low-pass filter's region) and why
+    (rigctl.analysis.allan.excluded_sentences: the CLI's and the results' spelling)."""
+    from ..analysis.allan import excluded_sentences
+
+    out = []
+    for axis, cv in curves.items():
+        for sentence in excluded_sentences(((cv.get("fit") or {}).get("check")) or {}):
             out.append(f"<p>{esc(axis)}: {esc(sentence)}</p>")
     return out
 

@@ -732,8 +732,15 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # left out of the fit, so that every tau set fits the same part of the curve; the
     # self-check and the curve's limits on each term still see every tau
     front = rising_front(tau, np.sqrt(s2), e)
+    # ... and so is a low-pass filter's region (filter_region: the leading taus below the
+    # white-noise line by a deficit that fades per octave, found from the curve): the terms are
+    # fitted from the taus past it, the self-check still judges it and names it
+    filt = None if front else filter_region(tau, s2, e, tau0)
+    is_front = bool(front)
+    if filt is not None:
+        front = filt["n_taus"]
     if tau.size - front < 2:
-        front = 0
+        front, filt, is_front = 0, None, False
     tau_front, s2_front, e_front = tau, s2, e
     tau, s2, e = tau[front:], s2[front:], e[front:]
     tau_all, s2_all, e_all = tau, s2, e
@@ -1162,7 +1169,10 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
     # the rising front left out of the fit (rising_front): its taus, which the check names
     check["front_excluded"] = ({"n_taus": int(front), "tau_from_s": float(tau_front[0]),
                                 "tau_to_s": float(tau_front[front - 1]),
-                                "top_tau_s": float(tau_front[front])} if front else None)
+                                "top_tau_s": float(tau_front[front])} if is_front else None)
+    # the low-pass filter's region left out of the fit (filter_region): its taus, which the
+    # check names ("data below the fit": the filter)
+    check["filter_excluded"] = filt
     # the statistic of the model as reported (the resolved terms), as before ...
     r_rep = _whitened_residual(full_a, s2, e, cov_terms, cols_rep, p_rep)[0]
     dof_rep = max(1, tau.size - int(np.count_nonzero(p_rep > 0)))
@@ -1237,6 +1247,52 @@ def _gm_limit(tc: float, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndar
     return lim
 
 
+def tc_profile_interval(tcs: np.ndarray, crit: np.ndarray, chi: np.ndarray, dof: int
+                        ) -> tuple[tuple[float, float], list[bool], np.ndarray, float]:
+    """Tc's 95 % profile interval from a profile evaluated at the increasing ``tcs`` (s):
+    ``crit`` the criterion minimised (-2 ln L or a chi-square), ``chi`` the chi-square there
+    (its value at the best over ``dof`` is the overdispersion, at least 1). The set is the Tc
+    whose criterion is within over x chi2_0.95(1) of the least, bracketed by the next evaluated
+    Tc either side (the crossing lies between); an end of the set at the first or last Tc
+    evaluated is the range's, not the data's: open. Returns ((lo, hi), [lower open, upper
+    open], the indices of the bracketed set, over). One rule for the candidate test's profile
+    (allan_gm) and the joint fit's (:func:`_gm_profile`, :func:`_gm_result`)."""
+    crit = np.asarray(crit, dtype=float)
+    best = int(np.argmin(crit))
+    over = max(1.0, float(chi[best]) / max(int(dof), 1))
+    thr = float(crit[best]) + over * float(chi2.ppf(0.95, 1))
+    inside = np.flatnonzero(crit <= thr)
+    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
+    return ((float(tcs[inside].min()), float(tcs[inside].max())),
+            [bool(crit[0] <= thr), bool(crit[-1] <= thr)], inside, over)
+
+
+def extend_tc_profile_below(tcs: np.ndarray, c: np.ndarray,
+                            at: Callable[[float], tuple[float, float]], floor: float, dof: int,
+                            per_octave: int = GM_GRID_PER_OCTAVE, step: float | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """A Tc profile continued below its lowest Tc an octave at a time (``per_octave`` points,
+    the grid's step where it has one), down to ``floor`` (s), while its 95 % set
+    (:func:`tc_profile_interval`) still reaches the lowest Tc evaluated: an interval cut by the
+    range searched would be reported as the data's. ``step``: ln of the ratio between the new
+    points (default: the first two Tc's). ``c``: rows (chi-square, criterion) at
+    ``tcs``; ``at(tc)`` gives that row at a new Tc. A Tc below the first tau is identified
+    only weakly, by the curve's slope there (for tau >> Tc, g = 2 Tc/tau (1 - 3 Tc/(2 tau) +
+    ...)), hence the floor (the fit's: its first tau / GM_BELOW_FIRST_TAU). Returns the
+    extended (tcs, c)."""
+    if step is None:
+        step = math.log(tcs[1] / tcs[0]) if tcs.size > 1 else math.log(2.0) / per_octave
+    while tcs[0] > floor * (1.0 + 1e-9):
+        if not tc_profile_interval(tcs, c[:, 1], c[:, 0], dof)[1][0]:
+            break
+        new = tcs[0] * np.exp(-step * np.arange(per_octave, 0, -1))
+        if new[0] <= floor * (1.0 + 1e-9):  # the last octave: ends at the floor
+            new = np.append(floor, new[new > floor * (1.0 + 1e-9)])
+        tcs = np.concatenate((new, tcs))
+        c = np.concatenate((np.array([at(float(tc)) for tc in new]).reshape(-1, 2), c))
+    return tcs, c
+
+
 def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a: np.ndarray,
                 active: list[int], upper_all: np.ndarray, cov_at: Callable[[float], dict | None],
                 iterations: int, tau_all: np.ndarray, s2_all: np.ndarray, inf95: np.ndarray,
@@ -1280,29 +1336,12 @@ def _gm_profile(gm: dict, tau: np.ndarray, s2: np.ndarray, e: np.ndarray, full_a
     floor = min(lo, float(tau[0]) / GM_BELOW_FIRST_TAU)
     dof = max(1, tau.size - len(active) - 1)
 
-    def extend(grid: np.ndarray, c: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
-        """The profile continued below the range an octave at a time, down to ``floor``, while
-        its 95 % set (as _gm_result reads it) reaches the lowest Tc tried: an interval cut by
-        the range would be reported as the data's."""
-        step = math.log(grid[1] / grid[0]) if grid.size > 1 else math.log(2.0) / GM_GRID_PER_OCTAVE
-        while grid[0] > floor * (1.0 + 1e-9):
-            best = int(np.argmin(c[:, 1]))
-            over = max(1.0, float(c[best, 0]) / dof)
-            if c[0, 1] - c[best, 1] > over * float(chi2.ppf(0.95, 1)):
-                break
-            new = grid[0] * np.exp(-step * np.arange(GM_GRID_PER_OCTAVE, 0, -1))
-            if new[0] <= floor * (1.0 + 1e-9):  # the last octave: ends at the floor
-                new = np.append(floor, new[new > floor * (1.0 + 1e-9)])
-            grid = np.concatenate((new, grid))
-            c = np.concatenate((np.array([at(tc, eps) for tc in new]).reshape(-1, 2), c))
-        return grid, c
-
     c = np.array([at(tc, 0.0) for tc in grid])  # columns: chi-square, -2 ln L
-    grid, c = extend(grid, c, 0.0)
+    grid, c = extend_tc_profile_below(grid, c, lambda tc: at(tc, 0.0), floor, dof)
     eps, stat = err_at(float(grid[int(np.argmin(c[:, 1]))]))
     if eps > 0:  # the profile with the model's own error (its weights decide the fit)
         c = np.array([at(tc, eps) for tc in grid])
-        grid, c = extend(grid, c, eps)
+        grid, c = extend_tc_profile_below(grid, c, lambda tc: at(tc, eps), floor, dof)
     i = int(np.argmin(c[:, 1]))
     fine = np.exp(np.linspace(math.log(grid[max(i - 2, 0)]),
                               math.log(grid[min(i + 2, grid.size - 1)]), GM_FINE_POINTS))
@@ -1341,10 +1380,7 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
     scatter of sigma_GM, which is the Cramer-Rao bound's. Also the curve's limit and whether
     the fit was held at it."""
     tcs, c = prof["tc_s"], prof.get("neg2lnl", prof["chi2"])
-    best = int(np.argmin(c))
-    over = max(1.0, float(prof["chi2"][best]) / prof["dof"])
-    inside = np.flatnonzero(c / over <= c.min() / over + float(chi2.ppf(0.95, 1)))
-    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, tcs.size - 1) + 1)
+    tc_ci, tc_open, inside, over = tc_profile_interval(tcs, c, prof["chi2"], prof["dof"])
     ig = active.index(GM_IDX)
 
     def interval(pj: float, sdj: float, conf: float) -> tuple[float, float] | None:
@@ -1369,10 +1405,6 @@ def _gm_result(prof: dict, tc: float, p_gm: float, sd_gm: float, sensor: str,
             continue
         if p[ig] > 0:
             along.append((math.log(float(tcs[k])), float(p[ig])))
-    tc_ci = (float(tcs[inside].min()), float(tcs[inside].max()))
-    # an end whose 95 % set reaches the last Tc tried is the range's, not the data's: open
-    crit = c.min() + over * float(chi2.ppf(0.95, 1))
-    tc_open = [bool(c[0] <= crit), bool(c[-1] <= crit)]
     sd_marg = sd_gm
     x = np.array([a for a, _ in along])
     if x.size >= 2 and np.ptp(x) > 0 and math.isfinite(sd_gm):
@@ -1526,6 +1558,88 @@ def _filter_taus(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,
             m_to = max(m_to, 2.0 ** ks[k])
     out[idx[tau[idx] < tau0 * m_to * (1.0 - 1e-9)]] = True
     return out
+
+
+#: a filter's deficit is left in the fit from the octave where it is at most this many
+#: standard deviations of that tau's sigma^2 estimate (filter_region)
+FILTER_DEFICIT_SD = 1.0
+
+
+def filter_region(tau: np.ndarray, s2: np.ndarray, edf: np.ndarray,
+                  tau0: float | None) -> dict | None:
+    """The leading taus a sensor's low-pass (anti-aliasing) filter pulls below the white-noise
+    line, detected from the curve, or None: the taus the fit leaves out (docs/allan.md, "The
+    sensor's anti-aliasing filter: its taus left out of the fit").
+
+    A filter whose correlation is short against tau makes the rate's Allan variance
+    sigma^2(tau) = N^2 / tau - c / tau^2 + ... (c > 0: the filter's correlation at its lags),
+    i.e. S = sigma^2 tau = N^2 - c / tau rises towards N^2 by a deficit that halves per
+    octave -- the curve falls faster than tau^-1/2 there -- not an IEEE 952 term, whose parts
+    are all non-negative (Q's 3 Q^2 / tau^2 has the other sign). Read at m = 1, 2, 4, ...
+    samples (S interpolated in log tau over the well-determined taus, which must start at
+    tau0), a filter is found when
+
+    * S rises from m = 1 to 2 and the rise from 2 to 4 is at most FILTER_DECAY of it (a
+      fading deficit; B's rise doubles per octave, K's quadruples: the Astro Pi gyros' 0.51,
+      1.10, 2.02 are no filter), and
+    * the rise is beyond the estimates' noise: S's 95 % upper end at tau0 is below its 95 %
+      lower end at m = 4 (each tau's own chi-square band from its EDF; none found on the 20
+      unfiltered records of benchmarks/allan_aafilter.py).
+
+    The region then runs to the first octave m = 2^k (k >= 1) where the deficit c / m left,
+    c = 4 x (the rise from 2 to 4), is at most FILTER_DEFICIT_SD standard deviations of that
+    tau's sigma^2 estimate (S sqrt(2 / EDF)): past it the filter biases no tau by more than
+    its own noise -- or, before that, where the rise from one octave to the next grows past
+    the one before / FILTER_DECAY by more than twice its noise (another process takes over:
+    B, K, a bump; the ADIS16405 az's curve: rises 0.26, 0.17, 0.03, then 0.13 of S(tau0)
+    from m = 8 on: m < 8). A longer capture resolves a smaller deficit, so its region reaches
+    further (a 5-minute record at 100 Hz through a 2nd-order Butterworth at 0.8 Nyquist: m < 8
+    or 16; the 2.8 h ADIS16405 gyros: m < 64). Returns {n_taus, tau_from_s, tau_to_s, m_to (the first m fitted), the
+    octave S values relative to S at m_to's octave, c}; None without tau0, a curve that does
+    not start at tau0, fewer than four octaves, or no filter found."""
+    tau, s2, e = (np.asarray(v, dtype=float) for v in (tau, s2, edf))
+    if tau0 is None or tau.size < 3:
+        return None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lo = np.sqrt(s2 * e / chi2.ppf(0.975, e))
+        hi = np.sqrt(s2 * e / chi2.ppf(0.025, e))
+    idx = np.flatnonzero(_informative_prefix(hi <= INFORMATIVE_RATIO * lo))
+    if idx.size < 3:
+        return None
+    lm = np.log2(tau[idx] / tau0)
+    if abs(lm[0]) > 1e-6:
+        return None
+    ks = np.arange(0, int(np.floor(lm[-1] + 1e-9)) + 1)
+    if ks.size < 4:
+        return None
+    big_s = np.interp(ks, lm, s2[idx] * tau[idx])
+    d = np.diff(big_s)
+    if not (d[0] > 0 and d[1] <= FILTER_DECAY * d[0]):
+        return None
+    s_hi0 = float(hi[idx[0]] ** 2 * tau[idx[0]])
+    s_lo4 = float(np.interp(2.0, lm, lo[idx] ** 2 * tau[idx]))
+    if not s_hi0 < s_lo4:
+        return None
+    c = 4.0 * max(float(d[1]), 0.0)  # S = N^2 - c / m from m = 2 on: rise 2 -> 4 is c / 4
+    sd = big_s * np.sqrt(2.0 / np.interp(ks, lm, e[idx]))
+
+    def grows(k: int) -> bool:
+        """The rise from 2^k to 2^(k+1) outgrows the fading deficit beyond the noise: another
+        process (B, K, a bump, a tone) takes over from this octave on."""
+        return bool(d[k] > max(float(d[k - 1]), 0.0) / FILTER_DECAY
+                    + 2.0 * math.hypot(sd[k], sd[k + 1]))
+
+    k = 1
+    while k < ks.size - 1 and c / 2.0 ** ks[k] > FILTER_DEFICIT_SD * sd[k] and not grows(k):
+        k += 1
+    m_to = float(2.0 ** ks[k])
+    sel = tau < tau0 * m_to * (1.0 - 1e-9)
+    n = int(np.count_nonzero(sel))
+    if n == 0:
+        return None
+    return {"n_taus": n, "tau_from_s": float(tau[0]), "tau_to_s": float(tau[n - 1]),
+            "m_to": m_to, "tau_to_fit_s": float(tau0 * m_to),
+            "s_over_s_fit": [float(v) for v in big_s[:k + 1] / big_s[k]], "c_rel": c / big_s[k]}
 
 
 def _point_limits(tau: np.ndarray, s2: np.ndarray, inf: np.ndarray,

@@ -207,17 +207,38 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     fine = 2.0 ** (np.arange(j0, j1 + 1) / (8 * GM_GRID_PER_OCTAVE)) if not screen else grid
     runs = sorted(runs + [at(tc, eps) for tc in fine if not np.any(np.isclose(tc, grid))],
                   key=lambda r: r["tc"])
-    grid = np.array([r["tc"] for r in runs])
     i = int(np.argmin([r["c1"] for r in runs]))
-    stat = max(runs[i]["c0"] - runs[i]["c1"], 0.0) / over
+    # the test: its statistic at the best Tc of the range searched (the looks counted there)
+    tested = runs[i]
+    stat = max(tested["c0"] - tested["c1"], 0.0) / over
     p = min(1.0, n_looks * 0.5 * float(chi2.sf(stat, 1))) if stat > 0 else 1.0
-    top = runs[i]
-    # Tc's 95 % interval: the Tc whose alternative chi-square is within chi2_0.95(1) of the best
-    # (profile likelihood, scaled by the overdispersion), bracketed: its ends are the first
-    # evaluated Tc outside that set on either side (the crossing lies between)
-    c1s = np.array([r["c1"] for r in runs]) / over
-    inside = np.flatnonzero(c1s <= c1s.min() + float(chi2.ppf(0.95, 1)))
-    inside = np.arange(max(inside.min() - 1, 0), min(inside.max() + 1, len(runs) - 1) + 1)
+    # Tc and its 95 % interval: the profile of the alternative's chi-square (scaled by the
+    # overdispersion), bracketed by the next evaluated Tc, by the fit's rule
+    # (allan_fit.tc_profile_interval); where its set reaches the range's lowest Tc the profile
+    # is continued below it on the lattice, down to the first tau tested / GM_BELOW_FIRST_TAU
+    # (allan_fit.extend_tc_profile_below, the fit's own continuation), and an end still at the
+    # last Tc evaluated is open (the range's, not the data's). Before, the interval was cut
+    # at the range: simulated Tc 0.04 s (range from 0.042 s) inside it 0 of 11 times.
+    if not screen:
+        lattice = 8 * GM_GRID_PER_OCTAVE
+        below: dict[float, dict] = {}
+
+        def at_below(tc: float) -> tuple[float, float]:
+            r = at(2.0 ** (round(math.log2(tc) * lattice) / lattice), eps)  # the kernel's lattice
+            below[tc] = r
+            return r["c1"], r["c1"]
+
+        floor = 2.0 ** (math.floor(math.log2(t[0] / F.GM_BELOW_FIRST_TAU) * GM_GRID_PER_OCTAVE)
+                        / GM_GRID_PER_OCTAVE)
+        tcs0 = np.array([r["tc"] for r in runs])
+        c0s = np.array([[r["c1"], r["c1"]] for r in runs])
+        tcs1, _ = F.extend_tc_profile_below(tcs0, c0s, at_below, min(floor, tcs0[0]), dof1,
+                                            step=math.log(2.0) / GM_GRID_PER_OCTAVE)
+        runs = [below[tc] for tc in tcs1[:tcs1.size - tcs0.size]] + runs
+    grid = np.array([r["tc"] for r in runs])
+    c1s = np.array([r["c1"] for r in runs])
+    tc_ci, tc_open, inside, _ = F.tc_profile_interval(grid, c1s, c1s, dof1)
+    top = runs[int(np.argmin(c1s))]
     # sigma_GM: the GLS sd of its coefficient at each Tc of that set; the interval the union
     pos = top["q1"] > 0
     cis = []
@@ -247,12 +268,14 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     dof_a = max(1, t.size - int(np.count_nonzero(top["q1"])))
     out.update({
         "tested": True, "screen": screen,
-        "detected": bool(p < GM_TEST_ALPHA and interior and top["q1"][-1] > 0),
+        "detected": bool(p < GM_TEST_ALPHA and interior and tested["q1"][-1] > 0),
         "p_value": p, "statistic": stat, "n_looks": n_looks, "best_at_grid_end": not interior,
         "tc_s": float(top["tc"]),
-        "tc_ci95_s": [float(grid[inside].min()), float(grid[inside].max())],
-        # the Tc range searched (the lattice points inside it are the ones evaluated)
+        "tc_ci95_s": list(tc_ci), "tc_ci95_open": tc_open,
+        # the Tc range the test searched (the lattice points inside it are the ones
+        # evaluated), and the range profiled for the interval (continued below it)
         "tc_grid_s": [float(tc_lo), float(tc_hi)],
+        "tc_profile_s": [float(grid[0]), float(grid[-1])],
         "sigma_gm_si": math.sqrt(max(float(top["q1"][-1]), 0.0)),
         "sigma_gm_sd_var_si": sd_top,
         "sigma_gm_ci95_si": ([min(c[0] for c in cis), max(c[1] for c in cis)] if cis

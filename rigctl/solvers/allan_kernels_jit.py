@@ -9,9 +9,13 @@ ImportError (numba is the ``fast`` extra).
 """
 from __future__ import annotations
 
+import gc
+import threading
+
 import numba
 import numpy as np
 from numba import njit, prange
+from numba.core import event as _event
 
 
 def _probe() -> None:  # pragma: no cover - never compiled: decorated to find a cache place
@@ -52,6 +56,32 @@ def _cache_place() -> bool:
 
 
 _CACHE = _cache_place()
+
+
+class _CollectAfterCompile(_event.Listener):
+    """numba's compiler makes cyclic garbage (its IR, typing and LLVM objects: ~413,000
+    objects for the kernels of one ``rigctl allan``), which waits for the cyclic collector;
+    while it is paused (``rigctl allan``: :func:`rigctl.analysis.allan.collector_paused_for_command`)
+    it waited for the exit, beside the stream. So at the end of each outermost compilation
+    on a thread (a kernel not in numba's on-disk cache: the first run after an install or a
+    change of the source; none when the kernels are loaded from the cache) the youngest
+    generation is collected while the collector is paused (where it runs, it collects as
+    usual). On the 12 h x 2 kHz x 6-axis file with an empty cache: peak RSS 766 -> 700 MB,
+    0.33 s of CPU for 8 collections beside ~14 s of compilation (docs/allan.md)."""
+
+    def __init__(self) -> None:
+        self._depth = threading.local()
+
+    def on_start(self, event: _event.Event) -> None:
+        self._depth.n = getattr(self._depth, "n", 0) + 1
+
+    def on_end(self, event: _event.Event) -> None:
+        self._depth.n -= 1
+        if self._depth.n == 0 and not gc.isenabled():
+            gc.collect(0)  # (with the collector paused every object made since is young)
+
+
+_event.register("numba:compile", _CollectAfterCompile())
 
 
 @njit(fastmath=True, cache=_CACHE, nogil=True)

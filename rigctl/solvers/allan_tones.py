@@ -114,7 +114,10 @@ def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     "segments", "edf", "threshold_ratio", "bins_tested", "alpha"}; no tones for fewer than
     16 segments of 4 LEVEL_BINS samples."""
     y = np.asarray(y, dtype=np.float64)
-    y = y[np.isfinite(y)]
+    finite = np.isfinite(y)
+    if not finite.all():  # (a copy only where one is left out)
+        y = y[finite]
+    del finite
     out = {"tones": [], "alpha": alpha, "method": "Welch (Hann, no overlap), local median "
            "level, Bonferroni F test"}
     nper = MAX_SEG
