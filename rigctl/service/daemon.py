@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import importlib.util
 import json
 import os
 import signal
@@ -516,6 +517,11 @@ class Daemon:
 
 # -- CLI -------------------------------------------------------------------------------------------
 def cmd_serve(args: argparse.Namespace) -> int:
+    if args.http:  # before the daemon takes its runs directory and socket
+        missing = [m for m in ("starlette", "uvicorn") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise InputError(f"--http {args.http}: the web page and HTTP API need {' and '.join(missing)}, "
+                             "which is not installed", hint="install the web extra: pip install -e '.[web]'")
     cfg_path = resolve_config_path(args.config)
     d = Daemon(Path(args.runs), cfg_path, Path(args.socket) if args.socket else control.default_socket_path())
     if args.http:
