@@ -9,7 +9,9 @@ checkpoint (:func:`rigctl.run.runner.resume_run`), then the queue continues.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
+import os
 import signal
 import threading
 import time
@@ -67,6 +69,14 @@ class Daemon:
         self.runs_dir.mkdir(parents=True, exist_ok=True)
         self.config_path = Path(config_path).resolve()
         self.cfg = load_config(self.config_path)
+        self._lock_fd = self._lock_runs_dir()  # before the job list is read or the log written
+        try:
+            self._init(socket_path, console, options)
+        except BaseException:
+            self._unlock_runs_dir()
+            raise
+
+    def _init(self, socket_path: Path, console: Any, options: RunOptions | None) -> None:
         self.socket_path = Path(socket_path)
         from ..run.runner import RunOptions
         self.base_options = options or RunOptions()
@@ -95,6 +105,30 @@ class Daemon:
             lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
 
     # -- persistence -------------------------------------------------------------------------
+    def _lock_runs_dir(self) -> int:
+        """An exclusive lock on ``<runs>/.rigctl-daemon/daemon.lock`` for the daemon's life (the
+        kernel drops it when the process dies, kill -9 too): a second daemon on the same runs
+        directory (another socket, another session's $XDG_RUNTIME_DIR) would otherwise read the
+        first's running job as cut off and resume it into the same recording."""
+        path = self._state_dir() / "daemon.lock"
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 64).decode(errors="replace").strip()
+            os.close(fd)
+            raise RunFailure(f"{self.runs_dir}: another rigctl serve{f' (pid {holder})' if holder else ''} "
+                             "already runs jobs in this runs directory (rigctl status shows it); stop it "
+                             "first, or give this one another --runs DIR") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        return fd
+
+    def _unlock_runs_dir(self) -> None:
+        fd, self._lock_fd = getattr(self, "_lock_fd", None), None
+        if fd is not None:
+            os.close(fd)  # releases the flock
+
     def _state_dir(self) -> Path:
         d = self.runs_dir / ".rigctl-daemon"
         d.mkdir(mode=0o700, exist_ok=True)
@@ -448,6 +482,7 @@ class Daemon:
         self.server.close()
         self.notifier.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
+        self._unlock_runs_dir()
 
     def serve(self) -> None:
         """``rigctl serve``: serve and run the queued jobs in this thread -- the main one, where
@@ -494,6 +529,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             d.start_http(host, port, args.http_token_file, args.http_open_read, procs)
         except OSError as exc:
             d.server.close()
+            d._unlock_runs_dir()
             raise RunFailure(f"--http {args.http}: {exc.strerror or exc}") from None
     # a hang-up (the terminal or SSH session closed) detaches the console; the daemon goes on
     signal.signal(signal.SIGHUP, lambda *_: detach_all("hang-up (SIGHUP)", notify=False))
