@@ -124,7 +124,7 @@ SHARED_FIXTURE_FILES = {
 #: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
-    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
+    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http_browser", "daemon_http_load",
     "daemon_notify", "daemon_wire", "daemon_wire_config", "daemon_wire_disk", "daemon_wire_memory",
     "daemon_wire_serve",
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
@@ -133,12 +133,16 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     "thermal_wire", "hil_time_offsets", "hil_power_cycle", "pty_host_stall", "slow_stream_pace", "link_loss_order",
     "safe_state_slow_table",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
-    "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
+    "cli", "cli_console", "report_tmux", "results_db_concurrency", "engine_latency",
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets
     # the clock back (sim/world.py ADVANCE_BUDGET_WALL_S), and the file asserts none at 5x, a
     # SIGTERM answered within 10 s and no poll longer than 2 s, all in wall time
     "run_fast_clock", "sim_speed",
 ))
+# Not here, though they run a daemon or resume runs: test_daemon_http (an in-process daemon on
+# configs/sim.yaml's virtual clock, HTTP on loopback; its waits, up to 90 s for a 24-position
+# job, guard against hangs and are no deadlines) and test_runner_identity (in-process runs and
+# resumes in virtual time, a daemon's refused resume job): CPU only.
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
 assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
