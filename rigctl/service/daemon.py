@@ -202,13 +202,15 @@ class Daemon:
         eng = self.engine
         state, reason = self.states.state, self.states.reason
         sig = self.job_signals
+        since = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since))
         if self.current is not None and state == "idle" and sig is not None and sig.analysing:
             state, reason = "analysing", (f"job {self.current.id}: analysing its complete, closed recording "
                                           "(the procedure's solve steps)")
         elif self.current is not None and state == "idle":  # between taking the job and the first step
             state, reason = "starting", f"job {self.current.id}: opening the rig and checking its devices"
-        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason,
-                               "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
+            # since the job was taken, not since the daemon went idle (maybe hours before)
+            since = self.current.started_utc[:19] + "Z" if self.current.started_utc else since
+        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason, "since_utc": since,
                                "queued": len(self.queue), "queue_running": self.queue_running,
                                "job": asdict(self.current) if self.current else None}
         if eng is not None:
