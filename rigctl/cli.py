@@ -15,7 +15,7 @@ from . import __version__
 from .config.config import RigConfig, load_config, resolve_config_path
 from .engine.device_check import check_devices
 from .engine.estimate import data_volume_bytes, estimate
-from .engine.procedure import load_procedure, parse_overrides
+from .engine.procedure import Procedure, load_procedure, parse_overrides
 from .engine.rig import describe
 from .run.console import guarded_std_streams
 from .errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, InputError, Interrupted, RigctlError,
@@ -43,10 +43,24 @@ def _load(args: argparse.Namespace):
     return cfg_path, cfg, proc
 
 
+def taps_without_pulses(proc: Procedure, cfg: RigConfig, cfg_path: Path) -> str | None:
+    """The warning for a procedure with a ``taps`` step on a config without a pulse input (the
+    default emulator's): the taps are recorded but ``rigctl sync`` finds no pulses to match."""
+    taps = [n for n, s in enumerate(proc.steps, 1) if s.kind == "taps"]
+    if not taps or cfg.pulses.driver != "none":
+        return None
+    return (f"warning: {proc.path}: step {taps[0]} (taps) needs a pulse input, and config {cfg_path} has none "
+            "(pulses: driver: none), so rigctl sync will find no pulses; configure one (docs/hardware.md) "
+            "or, on the emulator, give --config configs/sim-taps.yaml (a tap hammer and a GNSS mark input)")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .run.runner import RUN_LOG, resume_command, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
+    warn = taps_without_pulses(proc, cfg, cfg_path)
+    if warn:
+        print(warn, file=sys.stderr, flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
     if result.exit_code == EXIT_OK:
         return EXIT_OK
@@ -93,6 +107,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
     print(f"total duration: about {format_duration(total)} ({total:.0f} s)")
     print(f"expected data volume: about {format_bytes(data_volume_bytes(total, cfg))} "
           f"(IMU at {cfg.imu_rate_hz:g} Hz)")
+    warn = taps_without_pulses(proc, cfg, cfg_path)
+    if warn:
+        print(warn, file=sys.stderr, flush=True)
     print("valid")
     return 0
 
