@@ -9,7 +9,6 @@ checkpoint (:func:`rigctl.run.runner.resume_run`), then the queue continues.
 from __future__ import annotations
 
 import argparse
-import fcntl
 import importlib.util
 import json
 import os
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from . import control
-from ..recording.checkpoint import write_atomic
+from ..recording.checkpoint import try_lock, write_atomic
 from ..config.config import load_config, resolve_config_path
 from ..run.console import detach_all
 from ..engine.procedure import load_procedure, parse_overrides
@@ -111,18 +110,11 @@ class Daemon:
         kernel drops it when the process dies, kill -9 too): a second daemon on the same runs
         directory (another socket, another session's $XDG_RUNTIME_DIR) would otherwise read the
         first's running job as cut off and resume it into the same recording."""
-        path = self._state_dir() / "daemon.lock"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 64).decode(errors="replace").strip()
-            os.close(fd)
+        fd, holder = try_lock(self._state_dir() / "daemon.lock")
+        if fd is None:
             raise RunFailure(f"{self.runs_dir}: another rigctl serve{f' (pid {holder})' if holder else ''} "
                              "already runs jobs in this runs directory (rigctl status shows it); stop it "
-                             "first, or give this one another --runs DIR") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+                             "first, or give this one another --runs DIR")
         return fd
 
     def _unlock_runs_dir(self) -> None:
