@@ -43,6 +43,25 @@ def _load(args: argparse.Namespace):
     return cfg_path, cfg, proc
 
 
+def check_out_dir(out: Path) -> None:
+    """``rigctl run --out DIR``: a directory the run folder can be made in (or one that can be
+    created: its nearest existing parent a writable directory), else one line naming the option,
+    the path and why, exit 2 -- before the rig is opened; nothing is created here."""
+    from .recording.recording_reader import unwritable_reason
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, not a directory",
+                         hint="give the directory the run folders go in (default: runs)")
+    base = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if base is not None and not base.is_dir():
+        raise InputError(f"--out {out}: cannot be created: {base} is a file, not a directory",
+                         hint="give the directory the run folders go in (default: runs)")
+    why = unwritable_reason(base) if base is not None else None
+    if why:
+        raise InputError(f"--out {out}: cannot write in {base} ({why})",
+                         hint="give a writable directory for the run folders")
+
+
 def taps_without_pulses(proc: Procedure, cfg: RigConfig, cfg_path: Path) -> str | None:
     """The warning for a procedure with a ``taps`` step on a config without a pulse input (the
     default emulator's): the taps are recorded but ``rigctl sync`` finds no pulses to match."""
@@ -57,6 +76,7 @@ def taps_without_pulses(proc: Procedure, cfg: RigConfig, cfg_path: Path) -> str 
 def cmd_run(args: argparse.Namespace) -> int:
     from .run.runner import RUN_LOG, resume_command, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
+    check_out_dir(Path(args.out))
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
     warn = taps_without_pulses(proc, cfg, cfg_path)
     if warn:
