@@ -114,10 +114,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
         print("parameters: " + ", ".join(f"{k}={v}" for k, v in proc.parameters.items()))
     plan = estimate(proc.steps, cfg)
     elapsed = 0.0
+    width = max([70, *(len(e.step.describe()) for e in plan)])  # one column for every step (rates are longer)
     for n, e in enumerate(plan, 1):
         elapsed += e.total_s
         extra = f"sample {format_duration(e.step.sample_s)}" if e.step.is_motion else "after the run"
-        print(f"{n:4d}  {e.step.describe():<70s} {extra:<18s} ~{format_duration(e.total_s):>12s}"
+        print(f"{n:4d}  {e.step.describe():<{width}s} {extra:<18s} ~{format_duration(e.total_s):>12s}"
               f"  (t+{format_duration(elapsed)})")
     total = sum(e.total_s for e in plan)
     counts: dict[str, int] = {}
