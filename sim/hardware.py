@@ -572,6 +572,8 @@ class Hardware:
                 if nt is not None and self.world.k - int(round(nt * self.world.rate_hz)) > backlog:
                     continue                                    # the stream is far behind: wait
                 with self.lock:
+                    if time.monotonic() < self._paused_until:   # paused since the check above
+                        continue
                     cap = self.table._t() + chunk_s
                     if self._limit is not None:             # a host slower than speed asks
                         w0, t0, x = self._limit
@@ -675,8 +677,18 @@ class Hardware:
         """The hardware loop stops for ``wall_s`` of wall time (``wall_s * speed`` of rig time), as
         when it is starved of CPU: the world, the table's controller time and the IMU stream
         stand still while the ports keep answering (table reads see the state of the last tick);
-        then it catches up."""
+        then it catches up.
+
+        The world's clock is capped at the world's time meanwhile: a command to a device brings
+        the world to the clock first (PhysicsTable._now), and with the cap of the loop's last
+        tick (up to a chunk of MAX_BATCH samples ahead, 200 s of rig time at 100 Hz) the stop
+        command of a 'paused' table advanced the world by the wall time since the pause, x
+        ``speed``, and the table then read as stopped: a host stall of 2.5 ms at 100x was enough
+        (tests/test_safe_state_slow_table.py at load ~12). ``wall_s`` 0 ends a pause now."""
         self._paused_until = time.monotonic() + float(wall_s)
+        if wall_s > 0:
+            with self.lock:
+                self.world_clock.cap = self.table._t()
 
     def drop_replies(self, n: int = 1) -> None:
         """The ACL table swallows its next ``n`` replies (Modbus: use :meth:`stall` beyond the
