@@ -124,7 +124,7 @@ SHARED_FIXTURE_FILES = {
 #: waits belongs here; any file not listed runs beside another file in phase 1
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
-    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http", "daemon_http_browser", "daemon_http_load",
+    "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http_browser", "daemon_http_load",
     "daemon_notify", "daemon_wire", "daemon_wire_config", "daemon_wire_disk", "daemon_wire_memory",
     "daemon_wire_serve",
     # emulated devices on ptys and TCP at 50x-500x, byte floods, hardware-in-the-loop runs
@@ -133,12 +133,16 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     "thermal_wire", "hil_time_offsets", "hil_power_cycle", "pty_host_stall", "slow_stream_pace", "link_loss_order",
     "safe_state_slow_table",
     # terminals (pty, tmux), scaled-clock runs with wall-clock limits, concurrent database writers
-    "cli", "cli_console", "report_tmux", "runner_identity", "results_db_concurrency", "engine_latency",
+    "cli", "cli_console", "report_tmux", "results_db_concurrency", "engine_latency",
     # the in-process emulator on a scaled clock: a catch-up longer than 0.05 s of wall time sets
     # the clock back (sim/world.py ADVANCE_BUDGET_WALL_S), and the file asserts none at 5x, a
     # SIGTERM answered within 10 s and no poll longer than 2 s, all in wall time
     "run_fast_clock", "sim_speed",
 ))
+# Not here, though they run a daemon or resume runs: test_daemon_http (an in-process daemon on
+# configs/sim.yaml's virtual clock, HTTP on loopback; its waits, up to 90 s for a 24-position
+# job, guard against hangs and are no deadlines) and test_runner_identity (in-process runs and
+# resumes in virtual time, a daemon's refused resume job): CPU only.
 
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
 assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
@@ -268,6 +272,82 @@ def pytest_configure(config):
 
     for name in PACKAGE_SOURCES:
         compileall.compile_dir(str(ROOT / name), quiet=2)
+    _cache_test_modules(config)
+
+
+#: processes that rewrite the test modules' asserts in _cache_test_modules (the CI machine's cores)
+REWRITE_PROCESSES = 2
+
+
+def _rewrite_into_cache(paths: list[str]) -> None:
+    """pytest's assertion rewrite of ``paths`` into the pyc cache pytest reads (a forked child of
+    _cache_test_modules: ``_REWRITE_CONFIG`` is the parent's config)."""
+    from _pytest.assertion.rewrite import PYC_TAIL, _rewrite_test, _write_pyc, assertstate_key, get_cache_dir
+
+    config = _REWRITE_CONFIG
+    state = config.stash[assertstate_key]
+    try:
+        for p in map(Path, paths):
+            cache = get_cache_dir(p)
+            cache.mkdir(exist_ok=True)
+            source_hash, co = _rewrite_test(p, config)
+            _write_pyc(state, co, source_hash, cache / (p.name[:-3] + PYC_TAIL))
+    except Exception:  # noqa: BLE001 - e.g. a syntax error: the import reports it, as without the cache
+        os._exit(1)
+    os._exit(0)  # no atexit or pytest teardown in the forked child
+
+
+_REWRITE_CONFIG = None
+
+
+def _cache_test_modules(config) -> None:
+    """Rewrite and compile tests/ once in the controller, before the workers collect.
+
+    pytest rewrites the asserts of every test module it imports (an AST pass in Python: ~19 s of
+    CPU for the ~200 files here) and caches the result beside the module, but not when bytecode
+    writing is off (PYTHONDONTWRITEBYTECODE, CI's environment): each xdist worker rewrote all of
+    them again at collection, 28.9 s of CPU for `pytest --collect-only` against 9.4 s with the
+    cache (measured). Here the test modules are rewritten into pytest's own cache
+    (tests/__pycache__/*-pytest-*.pyc, keyed by the source's hash, so an edited file is rewritten
+    again at import) by REWRITE_PROCESSES forked processes, and the helper modules the tests
+    import (helpers.py, hil_support.py, ...) are compiled. The workers then read the cache as a
+    second run of pytest does. Anything that fails here (a read-only tree, another pytest's
+    internals) leaves the workers rewriting as before: the same tests run either way."""
+    global _REWRITE_CONFIG
+    import compileall
+    import multiprocessing
+    import sys
+
+    tests = ROOT / "tests"
+    if not sys.dont_write_bytecode or config.getoption("assertmode", "rewrite") != "rewrite":
+        return  # pytest keeps its own cache (or does not rewrite)
+    if config.getoption("dist", "no") == "no" or config.args_source != pytest.Config.ArgsSource.TESTPATHS:
+        return  # no workers, or the files named on the command line only: rewritten as imported
+    try:
+        from _pytest.assertion.rewrite import assertstate_key
+        config.stash[assertstate_key]
+    except (ImportError, KeyError):
+        return
+    mods = sorted(tests.glob("*.py"))
+    rewritten = [str(p) for p in mods if p.name.startswith("test_") or p.name == "conftest.py"]
+    for p in mods:
+        if str(p) not in rewritten:
+            compileall.compile_file(str(p), quiet=2)
+    _REWRITE_CONFIG = config
+    try:
+        ctx = multiprocessing.get_context("fork")
+        # the largest files first, dealt out in turn: the processes end together
+        rewritten.sort(key=lambda f: -os.path.getsize(f))
+        procs = [ctx.Process(target=_rewrite_into_cache, args=(rewritten[i::REWRITE_PROCESSES],))
+                 for i in range(REWRITE_PROCESSES)]
+        for pr in procs:
+            pr.start()
+        for pr in procs:
+            pr.join()
+    except (OSError, ValueError):
+        pass
+    finally:
+        _REWRITE_CONFIG = None
 
 
 _SUMMARY: list[str] = []

@@ -269,3 +269,83 @@ def test_a_handler_error_keeps_its_exit_code_and_a_bug_its_traceback(tmp_path):
     bugs = [kw["traceback"] for kind, msg, kw in logged if kind == "error"]
     assert len(bugs) == 1 and "Traceback" in bugs[0] and "1 // 0" in bugs[0], logged
     assert not any("traceback" in kw for kind, msg, kw in logged if kind != "error")
+
+
+def _serve_refused(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    """`rigctl serve ARGS` that must refuse to start: it exits within 30 s (a daemon that starts
+    instead runs until the timeout kills it, and the test fails on that)."""
+    cfg = derived_config(tmp_path, name="sim.yaml")
+    try:
+        return subprocess.run([*rigctl_cmd(), "serve", "--config", str(cfg), *args], capture_output=True,
+                              text=True, timeout=30, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired as exc:
+        pytest.fail(f"rigctl serve {' '.join(args)} started instead of refusing: {exc.stderr!r}")
+
+
+def test_a_second_daemon_on_the_same_runs_directory_refuses_and_leaves_the_first_alone(daemon, tmp_path):
+    """A second `rigctl serve` on the runs directory of a running one (another socket: another
+    session's $XDG_RUNTIME_DIR) refuses, names the first's pid, and neither rewrites the first's
+    job list nor writes in its log: before, it marked the first's running job 'crashed' and queued
+    a resume of the same run directory, and with its own socket went on to run that resume."""
+    d, sock = daemon
+    state = tmp_path / "runs" / ".rigctl-daemon"
+    jobs_before = (state / "jobs.json").read_bytes() if (state / "jobs.json").exists() else None
+    log_before = (state / "daemon.log.jsonl").read_bytes()
+    other = sock.parent.parent / "other.sock"
+    r = _serve_refused(tmp_path, "--runs", str(tmp_path / "runs"), "--socket", str(other))
+    assert r.returncode == 1, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "another rigctl serve" in lines[0] and f"pid {os.getpid()}" in lines[0], r.stderr
+    assert "internal error" not in r.stderr and "Traceback" not in r.stderr
+    assert not other.exists()
+    assert ((state / "jobs.json").read_bytes() if (state / "jobs.json").exists() else None) == jobs_before
+    assert (state / "daemon.log.jsonl").read_bytes() == log_before
+    assert control.request(sock, "ping")["ok"]  # the first daemon still answers
+
+
+def test_serve_on_a_socket_or_port_in_use_says_so_in_one_line(daemon, tmp_path):
+    """`rigctl serve` on the socket of a running daemon, and `--http` on a port another program
+    listens on: one line naming the socket / address and what to do, exit 1 -- before, each was an
+    'internal error' (RuntimeError; for the port, from joining a thread never started)."""
+    _d, sock = daemon
+    r = _serve_refused(tmp_path, "--runs", str(tmp_path / "runs-b"), "--socket", str(sock))
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.count("\n") == 1 and "already listens on this socket" in r.stderr and str(sock) in r.stderr, r.stderr
+    assert "internal error" not in r.stderr
+
+    pytest.importorskip("uvicorn")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        r = _serve_refused(tmp_path, "--runs", str(tmp_path / "runs-c"), "--socket", str(sock.parent.parent / "c.sock"),
+                           "--http", f"127.0.0.1:{port}")
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.count("\n") == 1 and f"--http 127.0.0.1:{port}" in r.stderr and "in use" in r.stderr, r.stderr
+    assert "internal error" not in r.stderr
+    # the refused daemon let go of its runs directory: a daemon can start there now
+    again = Daemon(tmp_path / "runs-c", derived_config(tmp_path, name="sim.yaml"), sock.parent.parent / "d.sock",
+                   console=io.StringIO())
+    again._close("test over")
+
+
+def test_status_starting_counts_from_when_the_job_was_taken(tmp_path):
+    """`rigctl status` between taking a job and its first step says `starting since` the time
+    the job was taken -- before, the time the daemon had gone idle (the daemon's start, or the
+    end of the previous job hours ago), so a job just submitted looked stuck for hours."""
+    base = Path(tempfile.mkdtemp(prefix="rigctl-test-", dir="/tmp"))
+    d = Daemon(tmp_path / "runs", derived_config(tmp_path), base / "ctl" / "rigctl.sock", console=io.StringIO())
+    try:
+        idle_since = d.handle("status", {})["since_utc"]
+        job = d._new_job("run", procedure=str(tmp_path / "p.yaml"))
+        job.state, job.started_utc = "running", "2031-05-06T07:08:09.654321Z"  # taken by the worker
+        d.current = job
+        reply = d.handle("status", {})
+        assert reply["state"] == "starting" and reply["since_utc"] == "2031-05-06T07:08:09Z" != idle_since
+        d.server.start()  # what `rigctl status` prints of it
+        r = subprocess.run([*rigctl_cmd(), "status", "--socket", str(base / "ctl" / "rigctl.sock")],
+                           capture_output=True, text=True, timeout=60)
+        assert "starting since 07:08:09Z" in r.stdout, r.stdout + r.stderr
+    finally:
+        d._close("test over")
+        shutil.rmtree(base, ignore_errors=True)

@@ -388,3 +388,57 @@ def test_an_imported_bag_is_dated_by_its_own_stamps(bags, tmp_path, capsys):
     _, _, meta2 = _read(rec2)
     assert meta2["started_utc"].startswith(today) and meta2["capture_time"].startswith("unknown")
     assert meta["capture_time"] == "the file's own time stamps (wall clock)"
+
+
+def _rosbag1_index_pos(data: bytes) -> int:
+    """index_pos from a rosbag1 file's bag header record (the first record after the 13-byte
+    magic: u32 header length, fields 'u32 length, name=value', op 0x03), parsed here."""
+    pos = 13
+    (hlen,) = np.frombuffer(data[pos:pos + 4], "<u4")
+    i = pos + 4
+    while i < pos + 4 + hlen:
+        (flen,) = np.frombuffer(data[i:i + 4], "<u4")
+        name, _, value = data[i + 4:i + 4 + flen].partition(b"=")
+        if name == b"index_pos":
+            return int(np.frombuffer(value, "<u8")[0])
+        i += 4 + flen
+    raise AssertionError("no index_pos in the bag header")
+
+
+@pytest.mark.parametrize("compression", [None, "bz2"])
+def test_cut_off_rosbag1_keeps_the_complete_chunks(tmp_path, capsys, compression):
+    """A ROS 1 bag whose index was never written (`rosbag record` killed, a full disk, an
+    incomplete copy) -- rosbags refuses it ('Bag index looks damaged'), so the import read
+    nothing and the capture was lost without ROS's `rosbag reindex`. Cut where its index
+    begins: every message is there (all samples back, bit for bit); cut in the middle: a
+    prefix of the samples, the complete chunks', with a warning (read under the name
+    NAME.bag.active that a killed `rosbag record` leaves, too)."""
+    s = _samples()
+    store = get_typestore(Stores.ROS1_NOETIC)
+    bag = tmp_path / "full.bag"
+    w = Writer1(bag)
+    w.chunk_threshold = 24_000  # several chunks in this short bag (1 MiB by default)
+    if compression:
+        w.set_compression(Writer1.CompressionFormat.BZ2)
+    with w:
+        _fill(w, store, store.serialize_ros1, s)
+    full = bag.read_bytes()
+    index_pos = _rosbag1_index_pos(full)
+    assert 0 < index_pos < len(full)
+    for name, size in (("noindex", index_pos), ("half", len(full) // 2)):
+        # the half-written one under the name `rosbag record` gives the file while it records
+        cut = tmp_path / (f"{name}.bag" if name == "noindex" else f"{name}.bag.active")
+        cut.write_bytes(full[:size])
+        rec = tmp_path / f"{name}.h5"
+        code, out, err = _rigctl(capsys, str(cut), "--topic", "/imu", "-o", str(rec))
+        assert code == 0, err
+        assert "warning: the bag has no usable index" in out, out
+        imu, _, _ = _read(rec)
+        n = len(imu["time"])
+        if name == "noindex":
+            assert n == len(s["stamp"]) and "dropped" not in out
+            assert np.array_equal(imu["counter"], (s["stamp"] - s["stamp"][0]) // 5_000_000)
+        else:
+            assert 500 < n < len(s["stamp"]) and "a chunk cut short, dropped" in out
+        assert np.array_equal(imu["specific_force"], s["acc"][:n]) and np.array_equal(imu["angular_rate"], s["gyr"][:n])
+        assert np.array_equal(imu["time"], (s["stamp"][:n] - s["stamp"][0]) / 1e9)

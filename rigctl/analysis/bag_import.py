@@ -283,8 +283,115 @@ def _rosbags_reader(path: Path) -> Iterator[Any]:
         reader.close()
 
 
+def _rosbag1_records(buf: bytes | memoryview, pos: int = 0) -> Iterator[tuple[dict[str, bytes], memoryview, int]]:
+    """The records of a rosbag1 byte stream from ``pos``: (header fields, data, end offset), up
+    to the first one the bytes do not hold whole (a file cut off there)."""
+    view = memoryview(buf)
+    n = len(view)
+    while pos + 4 <= n:
+        (hlen,) = struct.unpack_from("<I", view, pos)
+        if pos + 8 + hlen > n:
+            return
+        fields: dict[str, bytes] = {}
+        i, hend = pos + 4, pos + 4 + hlen
+        while i + 4 <= hend:
+            (flen,) = struct.unpack_from("<I", view, i)
+            name, _, value = bytes(view[i + 4:i + 4 + flen]).partition(b"=")
+            fields[name.decode("latin-1")] = value
+            i += 4 + flen
+        (dlen,) = struct.unpack_from("<I", view, hend)
+        if hend + 4 + dlen > n:
+            return
+        yield fields, view[hend + 4:hend + 4 + dlen], hend + 4 + dlen
+        pos = hend + 4 + dlen
+
+
+def _rosbag1_chunk(fields: dict[str, bytes], data: memoryview) -> bytes:
+    kind = fields.get("compression", b"none").decode("latin-1")
+    if kind == "none":
+        return bytes(data)
+    if kind == "bz2":
+        import bz2
+        return bz2.decompress(data)
+    if kind == "lz4":
+        import lz4.frame  # rosbags' own dependency for lz4 bags
+        return lz4.frame.decompress(data)
+    raise ValueError(f"chunk compression {kind!r} is not one of none, bz2, lz4")
+
+
+def _read_rosbag1_unindexed(path: Path, topic: str | None, progress: Progress | None, why: str) -> "_Raw":
+    """A ROS 1 bag without a usable index -- ``rosbag record`` killed, a full disk, an incomplete
+    copy: its chunks read from the start as far as they go (what ``rosbag reindex`` would
+    recover), every message of the complete chunks kept; the connection records inside the chunks
+    carry each topic's type and message definition."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    from rosbags.typesys.msg import normalize_msgtype
+
+    data = path.read_bytes()
+    conns: dict[int, tuple[str, str, str]] = {}   # id -> topic, type, message definition
+    seen: dict[str, TopicInfo] = {}
+    cols: dict[str, _Collector] = {}
+    n = chunks = 0
+    end = len(ROSBAG1_MAGIC)
+    for fields, payload, end in _rosbag1_records(data, len(ROSBAG1_MAGIC)):
+        if fields.get("op") != b"\x05":
+            continue  # the bag header, index records, chunk infos
+        chunks += 1
+        for rec, body, _ in _rosbag1_records(_rosbag1_chunk(fields, payload)):
+            op = rec.get("op")
+            if op == b"\x07":
+                (cid,) = struct.unpack("<I", rec["conn"])
+                info = dict(f.partition(b"=")[::2] for f in _ros1_fields(body))
+                conns[cid] = (rec.get("topic", b"").decode(), normalize_msgtype(info.get(b"type", b"").decode()),
+                              info.get(b"message_definition", b"").decode())
+            elif op == b"\x02":
+                (cid,) = struct.unpack("<I", rec["conn"])
+                tname, mtype, msgdef = conns.get(cid, ("", "", ""))
+                t = seen.setdefault(tname, TopicInfo(tname, mtype, 0))
+                t.count = (t.count or 0) + 1
+                if mtype == IMU_TYPE and (topic is None or topic == tname):
+                    if tname not in cols:
+                        store = get_typestore(Stores.EMPTY)
+                        store.register(get_types_from_msg(msgdef, IMU_TYPE))
+                        cols[tname] = _Collector("ros1", lambda raw, st=store: st.deserialize_ros1(raw, IMU_TYPE))
+                    sec, nsec = struct.unpack("<II", rec["time"])
+                    cols[tname].add(sec * 1_000_000_000 + nsec, body)
+                n += 1
+                if progress is not None and n % BLOCK == 0:
+                    progress(n, 0)
+    if n == 0:
+        raise InputError(f"not a readable ROS bag ({why}), and no complete chunk of messages in it", path,
+                         hint="give a rosbag1 file, a rosbag2 directory or an MCAP file")
+    topics = sorted(seen.values(), key=lambda t: t.topic)
+    chosen = choose_topic(path, topics, topic)
+    col = cols[chosen.topic]
+    left = len(data) - end
+    truncated = (f"the bag has no usable index ({why}): read from the start as far as it goes, "
+                 f"{n} messages in {chunks} complete chunks"
+                 + (f"; the last {left} bytes, a chunk cut short, dropped" if left > 0 else ""))
+    return _Raw("rosbag1", topics, chosen, col.arrays(), col.frame_id or "", truncated)
+
+
+def _ros1_fields(body: memoryview) -> Iterator[bytes]:
+    """The length-prefixed fields of a rosbag1 connection header (name=value)."""
+    i = 0
+    while i + 4 <= len(body):
+        (flen,) = struct.unpack_from("<I", body, i)
+        yield bytes(body[i + 4:i + 4 + flen])
+        i += 4 + flen
+
+
 def _read_rosbags(path: Path, kind: str, topic: str | None, progress: Progress | None
                   ) -> "_Raw":
+    if kind == "rosbag1" and path.name.endswith(".bag.active"):
+        return _read_rosbag1_unindexed(path, topic, progress, "a *.bag.active file: rosbag record did not finish it")
+    if kind == "rosbag1":
+        try:
+            with _rosbags_reader(path):
+                pass
+        except InputError as exc:
+            return _read_rosbag1_unindexed(path, topic, progress, str(exc.message).removeprefix(
+                "not a readable ROS bag (").removesuffix(")"))
     with _rosbags_reader(path) as reader:
         conns = reader.connections
         topics: dict[str, TopicInfo] = {}
@@ -531,7 +638,8 @@ def read_imu(path: str | Path, topic: str | None = None, time_source: str = "hea
         raise InputError("not a ROS bag or MCAP file (neither a rosbag1 file, a rosbag2 directory "
                          "with metadata.yaml, nor an MCAP file)", path,
                          hint="give a .bag, a rosbag2 directory or a .mcap file; CSV needs --columns")
-    if kind != "mcap" and path.is_file() and path.suffix != {"rosbag1": ".bag"}.get(kind, ".db3"):
+    active = kind == "rosbag1" and path.name.endswith(".bag.active")  # rosbag record's file while it ran
+    if kind != "mcap" and path.is_file() and not active and path.suffix != {"rosbag1": ".bag"}.get(kind, ".db3"):
         want = {"rosbag1": ".bag"}.get(kind, ".db3")
         raise InputError(f"a {'ROS 1 bag' if kind == 'rosbag1' else 'rosbag2 sqlite3 file'} must be "
                          f"named *{want} to be read", path, hint=f"rename or link it to *{want}")

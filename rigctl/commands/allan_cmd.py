@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from rigctl.analysis import noise_export, production
@@ -23,6 +24,7 @@ from rigctl.analysis.verdicts import format_verdicts
 from rigctl.commands.cli_options import add_production_options, check_output_files
 from rigctl.config.spec import load_spec
 from rigctl.errors import InputError
+from rigctl.recording.recording_reader import check_results_writable
 from rigctl.sensor_axes import canonical
 from rigctl.solvers import allan as A
 
@@ -82,6 +84,7 @@ def _run(args: argparse.Namespace) -> int:
                          hint="add --kalibr imu.yaml")
     check_output_files(("--plot", args.plot), ("--kalibr", args.kalibr), ("--json", args.json),
                        ("--csv", args.csv))
+    check_results_writable(Path(args.recording), "rigctl allan", "allan")
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None  # invalid: exit 2 now
     production.check_database_option(args.db, "rigctl allan")
     rng, where, warn = choose_range(args.recording, axes, args.whole)

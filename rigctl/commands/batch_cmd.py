@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import importlib.util
 import json
 import time
 from pathlib import Path
@@ -40,6 +41,10 @@ def expand(patterns: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``rigctl batch``."""
+    missing = [m for m in ("dask", "distributed") if importlib.util.find_spec(m) is None]
+    if missing:  # before anything is printed or analysed
+        raise InputError(f"rigctl batch needs {' and '.join(missing)}, which is not installed",
+                         hint="install the batch extra: pip install -e '.[batch]'")
     recs = expand(args.recordings)
     if not recs:
         raise InputError(f"no recording matches {' '.join(args.recordings)}",

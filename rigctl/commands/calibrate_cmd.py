@@ -6,6 +6,7 @@ Exit codes: 0 done, 2 invalid input, 1 failure.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ from ..analysis import production
 from ..analysis.calibration import calibrate, check_noise_choice
 from .cli_options import add_production_options, check_output_files, stage_printer
 from ..errors import InputError, RunFailure
+from ..recording.recording_reader import check_results_writable
 from ..config.spec import load_spec
 
 
@@ -21,6 +23,7 @@ def run(args: argparse.Namespace) -> int:
     """``rigctl calibrate``: 0 done, 2 invalid input, 1 failure."""
     check_noise_choice(args.noise)  # before the analysis: its error line comes first
     check_output_files(("--json", args.json))
+    check_results_writable(Path(args.recording), "rigctl calibrate", "calibration")
     spec = load_spec(args.spec, args.decision_rule) if args.spec else None
     production.check_database_option(args.db, "rigctl calibrate")
     try:

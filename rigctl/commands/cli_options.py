@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import InputError
+from ..recording.recording_reader import unwritable_reason
 from ..solvers.conformity import RULES
 from ..units import format_duration
 
@@ -26,8 +27,9 @@ def add_production_options(p: argparse.ArgumentParser) -> None:
 
 def check_output_files(*options: tuple[str, str | None]) -> None:
     """Refuse, before the analysis (minutes on a long capture), an output file option
-    ((option, path) pairs; None: not given) whose directory does not exist or that is a
-    directory: one line, exit 2, instead of a failure after the work is done."""
+    ((option, path) pairs; None: not given) whose directory does not exist or cannot be
+    written, or that is a directory: one line, exit 2, instead of a failure after the work is
+    done."""
     for opt, name in options:
         if not name:
             continue
@@ -37,6 +39,10 @@ def check_output_files(*options: tuple[str, str | None]) -> None:
         if not out.resolve().parent.is_dir():
             raise InputError(f"{opt}: output directory does not exist", out.parent,
                              hint="create it, or give a file in an existing directory")
+        why = unwritable_reason(out.resolve().parent)
+        if why:
+            raise InputError(f"{opt}: cannot write in this directory ({why})", out.parent,
+                             hint="give a file in a writable directory")
 
 
 def stage_printer(command: str, recording: str) -> Callable[[str], None]:

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..recording.recording_reader import check_results_writable
 from ..analysis.sync import SyncOptions, result_arrays, summary_lines, sync_recording, tap_axis
 
 
@@ -38,6 +39,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """CLI entry: 0 ok; errors are raised (rigctl.errors: 2 invalid input, 1 failure)."""
     path: Path = args.recording
+    check_results_writable(path, "rigctl sync", "sync")
     args.axis = tap_axis(args.axis)
     opts = SyncOptions(response=args.response, natural_freq_hz=args.natural_freq_hz,
                        damping=args.damping,

@@ -83,6 +83,28 @@ def check_path(p: Path) -> None:
                          hint="an incomplete copy or a full disk; copy it again from the run directory")
 
 
+def unwritable_reason(p: Path) -> str | None:
+    """Why the file or directory ``p`` cannot be written ('read-only file system', 'no write
+    permission'), or None when it can (or does not exist: its creation reports its own error)."""
+    try:
+        if os.statvfs(p).f_flag & os.ST_RDONLY:
+            return "read-only file system"
+    except OSError:
+        return None
+    return None if os.access(p, os.W_OK) else "no write permission"
+
+
+def check_results_writable(p: Path, command: str, group: str) -> None:
+    """InputError, before the analysis, when ``command`` could not store /results/``group`` in
+    the recording ``p`` (a read-only share, another user's run): one line saying so and what to
+    do, instead of an HDF5 'unable to open file' after minutes of work."""
+    why = unwritable_reason(p) if p.is_file() else None
+    if why:
+        raise InputError(f"cannot store the results in it ({why})", p,
+                         hint=f"{command} writes /results/{group} into the recording: copy it to a "
+                              "writable directory and analyse the copy")
+
+
 def _open_h5(p: Path) -> h5py.File:
     try:
         return h5py.File(p, "r")

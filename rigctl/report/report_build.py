@@ -6,7 +6,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+from ..errors import InputError
 from ..recording.checkpoint import write_atomic
+from ..recording.recording_reader import unwritable_reason
 from . import report_html, report_plots
 from .report import REPORT_HTML, ReportDependencyError, load_run, require_matplotlib, resolve_run
 
@@ -22,6 +24,10 @@ def build_report(run: str | Path, out_dir: str | Path | None = None,
     data = load_run(rec, run_dir)
     out = Path(out_dir) if out_dir is not None else run_dir
     out.mkdir(parents=True, exist_ok=True)
+    why = unwritable_reason(out)
+    if why:
+        raise InputError(f"cannot write the report here ({why})", out,
+                         hint="give --out DIR, a writable directory")
     plots = report_plots.make_plots(data, out, log)
     html = report_html.render(data, plots)
     target = out / REPORT_HTML

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..errors import EXIT_FAILED, EXIT_INVALID, RigctlError
+from ..errors import EXIT_FAILED, EXIT_INVALID, RigctlError, RunFailure
 
 PROTOCOL_VERSION = 1
 MAX_MESSAGE = 64 * 1024
@@ -160,7 +160,8 @@ class ControlServer:
             if not stat.S_ISSOCK(self.path.lstat().st_mode):
                 raise FileExistsError(f"{self.path} exists and is not a socket")
             if ping(self.path):
-                raise RuntimeError(f"a daemon already listens on {self.path}")
+                raise RunFailure(f"{self.path}: a rigctl daemon already listens on this socket (rigctl status "
+                                 "shows it; stop it first, or give this one another --socket)")
             self.path.unlink()
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)
@@ -179,7 +180,8 @@ class ControlServer:
 
     def close(self) -> None:
         self._stop.set()
-        self.thread.join(timeout=2)
+        if self.thread.ident is not None:  # closed before start() too (rigctl serve stopped early)
+            self.thread.join(timeout=2)
         self.sock.close()
         try:
             self.path.unlink()

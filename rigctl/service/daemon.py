@@ -9,7 +9,9 @@ checkpoint (:func:`rigctl.run.runner.resume_run`), then the queue continues.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import signal
 import threading
 import time
@@ -21,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from . import control
-from ..recording.checkpoint import write_atomic
+from ..recording.checkpoint import try_lock, write_atomic
 from ..config.config import load_config, resolve_config_path
 from ..run.console import detach_all
 from ..engine.procedure import load_procedure, parse_overrides
@@ -67,6 +69,14 @@ class Daemon:
         self.runs_dir.mkdir(parents=True, exist_ok=True)
         self.config_path = Path(config_path).resolve()
         self.cfg = load_config(self.config_path)
+        self._lock_fd = self._lock_runs_dir()  # before the job list is read or the log written
+        try:
+            self._init(socket_path, console, options)
+        except BaseException:
+            self._unlock_runs_dir()
+            raise
+
+    def _init(self, socket_path: Path, console: Any, options: RunOptions | None) -> None:
         self.socket_path = Path(socket_path)
         from ..run.runner import RunOptions
         self.base_options = options or RunOptions()
@@ -95,6 +105,23 @@ class Daemon:
             lambda old, new, why: self.log("state", f"daemon {old} -> {new}" + (f": {why}" if why else "")))
 
     # -- persistence -------------------------------------------------------------------------
+    def _lock_runs_dir(self) -> int:
+        """An exclusive lock on ``<runs>/.rigctl-daemon/daemon.lock`` for the daemon's life (the
+        kernel drops it when the process dies, kill -9 too): a second daemon on the same runs
+        directory (another socket, another session's $XDG_RUNTIME_DIR) would otherwise read the
+        first's running job as cut off and resume it into the same recording."""
+        fd, holder = try_lock(self._state_dir() / "daemon.lock")
+        if fd is None:
+            raise RunFailure(f"{self.runs_dir}: another rigctl serve{f' (pid {holder})' if holder else ''} "
+                             "already runs jobs in this runs directory (rigctl status shows it); stop it "
+                             "first, or give this one another --runs DIR")
+        return fd
+
+    def _unlock_runs_dir(self) -> None:
+        fd, self._lock_fd = getattr(self, "_lock_fd", None), None
+        if fd is not None:
+            os.close(fd)  # releases the flock
+
     def _state_dir(self) -> Path:
         d = self.runs_dir / ".rigctl-daemon"
         d.mkdir(mode=0o700, exist_ok=True)
@@ -167,13 +194,15 @@ class Daemon:
         eng = self.engine
         state, reason = self.states.state, self.states.reason
         sig = self.job_signals
+        since = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since))
         if self.current is not None and state == "idle" and sig is not None and sig.analysing:
             state, reason = "analysing", (f"job {self.current.id}: analysing its complete, closed recording "
                                           "(the procedure's solve steps)")
         elif self.current is not None and state == "idle":  # between taking the job and the first step
             state, reason = "starting", f"job {self.current.id}: opening the rig and checking its devices"
-        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason,
-                               "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
+            # since the job was taken, not since the daemon went idle (maybe hours before)
+            since = self.current.started_utc[:19] + "Z" if self.current.started_utc else since
+        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason, "since_utc": since,
                                "queued": len(self.queue), "queue_running": self.queue_running,
                                "job": asdict(self.current) if self.current else None}
         if eng is not None:
@@ -448,6 +477,7 @@ class Daemon:
         self.server.close()
         self.notifier.close()
         self.log("info", f"rigctl daemon stopped ({reason})")
+        self._unlock_runs_dir()
 
     def serve(self) -> None:
         """``rigctl serve``: serve and run the queued jobs in this thread -- the main one, where
@@ -481,6 +511,11 @@ class Daemon:
 
 # -- CLI -------------------------------------------------------------------------------------------
 def cmd_serve(args: argparse.Namespace) -> int:
+    if args.http:  # before the daemon takes its runs directory and socket
+        missing = [m for m in ("starlette", "uvicorn") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise InputError(f"--http {args.http}: the web page and HTTP API need {' and '.join(missing)}, "
+                             "which is not installed", hint="install the web extra: pip install -e '.[web]'")
     cfg_path = resolve_config_path(args.config)
     d = Daemon(Path(args.runs), cfg_path, Path(args.socket) if args.socket else control.default_socket_path())
     if args.http:
@@ -494,6 +529,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             d.start_http(host, port, args.http_token_file, args.http_open_read, procs)
         except OSError as exc:
             d.server.close()
+            d._unlock_runs_dir()
             raise RunFailure(f"--http {args.http}: {exc.strerror or exc}") from None
     # a hang-up (the terminal or SSH session closed) detaches the console; the daemon goes on
     signal.signal(signal.SIGHUP, lambda *_: detach_all("hang-up (SIGHUP)", notify=False))

@@ -10,7 +10,6 @@ ImportError (numba is the ``fast`` extra).
 from __future__ import annotations
 
 import gc
-import threading
 
 import numba
 import numpy as np
@@ -63,21 +62,23 @@ class _CollectAfterCompile(_event.Listener):
     objects for the kernels of one ``rigctl allan``), which waits for the cyclic collector;
     while it is paused (``rigctl allan``: :func:`rigctl.analysis.allan.collector_paused_for_command`)
     it waited for the exit, beside the stream. So at the end of each outermost compilation
-    on a thread (a kernel not in numba's on-disk cache: the first run after an install or a
+    (a kernel not in numba's on-disk cache: the first run after an install or a
     change of the source; none when the kernels are loaded from the cache) the youngest
     generation is collected while the collector is paused (where it runs, it collects as
     usual). On the 12 h x 2 kHz x 6-axis file with an empty cache: peak RSS 766 -> 700 MB,
     0.33 s of CPU for 8 collections beside ~14 s of compilation (docs/allan.md)."""
 
     def __init__(self) -> None:
-        self._depth = threading.local()
+        # numba triggers its compile events under its global compiler lock (one compilation at a
+        # time in the process, nested ones on the same thread), so one counter is exact
+        self._depth = 0
 
     def on_start(self, event: _event.Event) -> None:
-        self._depth.n = getattr(self._depth, "n", 0) + 1
+        self._depth += 1
 
     def on_end(self, event: _event.Event) -> None:
-        self._depth.n -= 1
-        if self._depth.n == 0 and not gc.isenabled():
+        self._depth -= 1
+        if self._depth == 0 and not gc.isenabled():
             gc.collect(0)  # (with the collector paused every object made since is young)
 
 
