@@ -594,7 +594,8 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
         wall = time.monotonic() - wall0
         if rec is not None:
             log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
-                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
+                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall, opening the rig and "
+                        "closing the recording included")
         if status == "complete":
             a_code, a_message = _analyse(run_dir, recording, ckpt, log, signals)
             if a_code != EXIT_OK:
