@@ -186,3 +186,55 @@ def test_fewer_segments_than_protected_columns():
     assert len(models) == 6 and sub.cov.shape == (6, 20, 20)
     for m, truth in zip(models, [ACC] * 3 + [GYR] * 3):
         assert 0.7 < m.N.value / truth["N"] < 1.4, (m.N.value, truth["N"])
+
+
+def test_a_random_walk_at_its_boundary_carries_its_bound_to_the_biases():
+    """A K the data only bound (estimate 0, one-sided 95 % bound Kb) must still reach the bias's
+    variance through the random walk's extrapolation to power-on, and only the bias's.
+
+    Written out here: K^2 ~ N(0, s^2) truncated at 0 with s = Kb^2 / z_0.95 (what the bound
+    says), mean E = scipy's truncnorm mean; the bias estimator's row a of V X^T Sigma^-1 (GLS on
+    accel x alone: no declared parameter is shared between channels) with Sigma from the white
+    and flicker terms only; the random walk's covariance of non-overlapping window means from
+    t0 = 0 by hand (E[mean_i W mean_j W] = min(s, t) averaged: a_i + T_i/3 on the diagonal, the
+    earlier window's mid time off it). Expected bias variance V_bb + E a C_rw a^T."""
+    from dataclasses import replace
+    from rigctl.solvers.noise_coefficients import Coefficient
+
+    st, truth = correlated_session(25)
+    kb = 3.0e-5  # 10 x the profile's K
+    acc = triad("accel", "given", N=ACC["N"], B=ACC["B"], K=0.0)
+    bounded = tuple(replace(m, K=Coefficient(0.0, upper95=kb, bound_from="fit")) for m in acc)
+    gyr = triad("gyro", "given", **GYR)
+    sn.apply_session_noise(st, acc, gyr)
+    plain = closed_loop(st, truth=truth).final
+    sn.apply_session_noise(st, bounded, gyr)
+    res = closed_loop(st, truth=truth)
+    fin = res.final
+    assert res.effects == [] and fin.names == plain.names
+    np.testing.assert_array_equal(fin.values, plain.values)  # the estimate is not touched
+
+    a, b = np.asarray(st.t_start), np.asarray(st.t_end)
+    assert np.all(a[1:] >= b[:-1])  # non-overlapping, in time order
+    m, T = (a + b) / 2, b - a
+    C_rw = np.minimum.outer(m, m)
+    np.fill_diagonal(C_rw, a + T / 3)
+    X3, names = declared_design(st)
+    cols = [j for j in range(len(names)) if np.any(X3[:, 0, j])]
+    X = X3[:, 0, cols]
+    Si = np.linalg.inv(_window_cov(a, b, ACC["N"], ACC["B"], 0.0))
+    V = np.linalg.inv(X.T @ Si @ X)
+    jb = [names[j] for j in cols].index(next(n for n in names if n.startswith("accel_bias_x")))
+    row = (V @ X.T @ Si)[jb]
+    s = kb**2 / scipy.stats.norm.ppf(0.95)
+    e_k2 = scipy.stats.truncnorm.mean(0.0, np.inf, loc=0.0, scale=s)
+    i = fin.names.index(names[cols[jb]])
+    np.testing.assert_allclose(plain.sigma[i] ** 2, V[jb, jb], rtol=1e-6)
+    expected = V[jb, jb] + e_k2 * row @ C_rw @ row
+    assert expected > 1.5 * V[jb, jb]  # the term matters here
+    np.testing.assert_allclose(fin.sigma[i] ** 2, expected, rtol=1e-6)
+    # every other parameter's uncertainty as before; the accel biases alone widen
+    acc_bias = [k for k, n in enumerate(fin.names) if n.startswith("accel_bias_")]
+    others = [k for k in range(len(fin.names)) if k not in acc_bias]
+    np.testing.assert_array_equal(fin.sigma[others], plain.sigma[others])
+    assert np.all(fin.sigma[acc_bias] > plain.sigma[acc_bias])

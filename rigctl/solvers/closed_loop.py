@@ -46,13 +46,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import distributions as _dist
+from . import segment_cov as sc
 from .accel24 import accel_columns
 from ..jsonable import jsonable
 from .calibration_result import CalibrationResult, fit_linear
 from .effect_library import LIBRARY, Effect
 from .gyro_rate import gyro_columns
 from .gls_problem import (_chi2_drop, _cv_groups, _fit, _identifiable, _Problem, loso_cv, noise_floor,
-                          satterthwaite_dof)
+                          satterthwaite_dof, variance_gradient)
 from .segments import CHANNELS, SegmentTable
 
 MG_PER_M_S2 = 1.0 / 9.80665e-3
@@ -309,6 +310,8 @@ def closed_loop(
                                         "(e.g. time and temperature collinear during warm-up)"})
     final = fit_linear(current, prob.y, prob.s, cur_names, method="closed_loop_final", cov=prob.W)
     q_fin = prob.qr(current)
+    if final.status == "ok":
+        _carry_power_on(prob, current, final, seg)
     noise = seg.extra.get("noise_components")
     if final.status == "ok" and noise is not None and np.shape(noise["comps"])[1] == len(seg):
         nu = satterthwaite_dof(prob, current, final.covariance, noise)
@@ -350,6 +353,32 @@ def closed_loop(
                     "error_before": declared.value(nm) - t, "sigma_before": declared.sigma_of(nm),
                     "error_after": final.value(nm) - t, "sigma_after": final.sigma_of(nm)})
     return res
+
+
+def _carry_power_on(prob: _Problem, X: NDArray[np.float64], fit: CalibrationResult, seg: SegmentTable) -> None:
+    """Add to each bias's variance the power-on term of a random walk the covariance left at 0
+    (:func:`rigctl.solvers.noise_coefficients.power_on_k2`): K_bound^2 (V X^T Sigma^-1 C_rw
+    Sigma^-1 X V)_jj, the variance that a random walk of that size from t0 adds to this
+    estimator's bias j (its extrapolation to power-on). The estimate, every other parameter's
+    variance and the fit's chi2 stay as they are: only the biases' intervals widen."""
+    po = seg.extra.get("power_on_k2")
+    if not po or seg.t_start is None or seg.t_end is None or not any(po["k2"]):
+        return
+    rw = sc.cov_random_walk(np.asarray(seg.t_start, dtype=np.float64),
+                            np.asarray(seg.t_end, dtype=np.float64), float(po["t0"]))[None]
+    cov = fit.covariance.copy()
+    Xn = np.nan_to_num(X)
+    for j, nm in enumerate(fit.names):
+        if "_bias_" not in nm:
+            continue
+        chans = np.unique(prob.channel[Xn[:, j] != 0])
+        if chans.size != 1 or not po["k2"][int(chans[0])]:
+            continue
+        g = variance_gradient(prob, X, fit.covariance, int(chans[0]), rw)
+        if g is not None:
+            cov[j, j] += po["k2"][int(chans[0])] * float(g[0, j])
+    fit.covariance = cov
+    fit.extra["power_on_k2"] = [float(v) for v in po["k2"]]
 
 
 def _stat(c: dict[str, Any]) -> str:

@@ -181,6 +181,23 @@ def noise_floor(prob: _Problem, q: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
+def variance_gradient(prob: _Problem, X: NDArray[np.float64], cov_beta: NDArray[np.float64], c: int,
+                      comps: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """(n_comp, p) diagonals of dV/d theta_k = V X^T Sigma^-1 C_k Sigma^-1 X V for unit
+    components ``comps`` (n_comp, K, K) over the table's segments added to channel ``c``'s block
+    of Sigma, V = ``cov_beta``: how much each parameter's variance grows per unit of theta_k
+    (with the estimate beta itself unchanged: the sandwich of the GLS estimator under Sigma +
+    theta_k C_k). None when channel c has no row."""
+    rows = np.flatnonzero(prob.channel == c)
+    if rows.size == 0:
+        return None
+    A = prob.inv_factor() if not prob.W.diagonal else np.diag(1.0 / prob.s)
+    Wc = A[:, rows].T @ (A @ np.nan_to_num(X)) @ np.nan_to_num(cov_beta)  # (n_c, p)
+    seg = prob.group[rows]
+    return np.stack([np.einsum("ij,ik,kj->j", Wc, comps[k][np.ix_(seg, seg)], Wc)
+                     for k in range(comps.shape[0])])
+
+
 def satterthwaite_dof(prob: _Problem, X: NDArray[np.float64], cov_beta: NDArray[np.float64],
                       noise: dict | None) -> NDArray[np.float64] | None:
     """(p,) degrees of freedom of each parameter's variance when the noise model was estimated.
@@ -201,19 +218,12 @@ def satterthwaite_dof(prob: _Problem, X: NDArray[np.float64], cov_beta: NDArray[
     if noise is None:
         return None
     comps = np.asarray(noise["comps"])
-    A = prob.inv_factor() if not prob.W.diagonal else np.diag(1.0 / prob.s)
-    AX = A @ np.nan_to_num(X)
     cb = np.nan_to_num(cov_beta)
     var_v = np.zeros(cb.shape[0])
     for c, tcov in enumerate(noise["theta_cov"]):
-        rows = np.flatnonzero(prob.channel == c)
-        if rows.size == 0:
-            continue
-        seg = prob.group[rows]
-        Wc = A[:, rows].T @ AX @ cb  # (n_c, p): C_k enters as Wc^T C_k Wc
-        g = np.stack([np.einsum("ij,ik,kj->j", Wc, comps[k][np.ix_(seg, seg)], Wc)
-                      for k in range(comps.shape[0])], axis=1)  # (p, n_comp)
-        var_v += np.einsum("jk,kl,jl->j", g, np.asarray(tcov), g)
+        g = variance_gradient(prob, X, cov_beta, c, comps)  # (n_comp, p)
+        if g is not None:
+            var_v += np.einsum("kj,kl,lj->j", g, np.asarray(tcov), g)
     vjj = np.diag(cb)
     with np.errstate(divide="ignore", invalid="ignore"):
         nu = np.where(var_v > 0, 2.0 * vjj**2 / var_v, np.inf)

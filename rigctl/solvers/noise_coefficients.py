@@ -342,6 +342,24 @@ def resolved_values(m: NoiseCoefficients) -> dict[str, float]:
     return {t: (c.value if c.resolved else 0.0) for t, c in ((t, getattr(m, t)) for t in TERMS)}
 
 
+def power_on_k2(m: NoiseCoefficients) -> float:
+    """K^2 (SI^2) that the biases' extrapolation to power-on carries beyond the covariance's.
+
+    The covariance uses a bounded term's estimate (:meth:`NoiseCoefficients.values`). Where that
+    estimate of the random walk sits on its boundary 0 (REML's K of one session, often: docs/
+    calibration.md, Limits) the power-on term K^2 (t - t0) would vanish from the biases' variance,
+    although the data permit K up to its one-sided 95 % bound. The biases then carry K^2's
+    expectation under what the bound says of it (rigctl.solvers.conformity.Estimate "bound":
+    K^2 ~ N(0, s^2) truncated at 0, s = upper95^2 / z_0.95): E[K^2] = s sqrt(2 / pi), about
+    0.49 upper95^2 -- a bias's variance is linear in K^2, so this is its variance averaged over
+    K. 0 for a resolved K or a bounded one estimated above 0 (the covariance already holds it).
+    The same rule for the session's model and an Allan capture's."""
+    k = m.K
+    if k.resolved or k.value > 0.0 or not k.upper95:
+        return 0.0
+    return float(k.upper95) ** 2 / 1.6448536269514722 * float(np.sqrt(2.0 / np.pi))
+
+
 def to_config(axes: Sequence[NoiseCoefficients], sensor: str) -> dict[str, Any]:
     """A profile's ``noise:`` section for these axes (inverse of :meth:`rigctl.sim.profiles.NoiseSection.coefficients`; SI values;
     Gauss-Markov terms must be the same on the three axes)."""

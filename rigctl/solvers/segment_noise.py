@@ -64,7 +64,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import distributions as _dist
 from . import segment_cov as sc
-from .noise_coefficients import Coefficient, NoiseCoefficients, coefficient_json
+from .noise_coefficients import Coefficient, NoiseCoefficients, coefficient_json, power_on_k2
 from .segment_stats import N_BATCHES
 
 
@@ -453,6 +453,8 @@ def apply_session_noise(seg: Any, acc_model: Sequence[NoiseCoefficients] | None 
                                              seg.batch_means[:, c],
                                              None if seg.rest is None else seg.rest["mean"][:, c]))
     seg.set_cov(np.stack([m.cov(a, b, seg.kind, t0) for m in models]))
+    # a random walk at its boundary 0: the biases carry its bound to power-on (closed_loop)
+    seg.extra["power_on_k2"] = {"k2": [power_on_k2(m) for m in models], "t0": float(t0)}
     if terms is not None and all(m.theta_cov is not None for m in models):
         # for the Satterthwaite degrees of freedom of the calibration's intervals
         seg.extra["noise_components"] = {"comps": terms.comps, "theta_cov": [m.theta_cov for m in models]}
