@@ -87,11 +87,8 @@ def record(tmp: Path, seed: int, profile: str) -> tuple[Path, dict]:
     """Emulated 24-position + rate-test recording (no solve step) of one profile and seed
     (reused when ``tmp`` already holds it: see --recordings)."""
     out = tmp / f"corr-{profile}-{seed}"
-    found = sorted(out.glob("*/recording.h5"))
-    if found:
-        with h5py.File(found[0], "r") as f:
-            if f["run/status"][0] == b"complete":
-                return found[0], json.loads(f["truth"].attrs["params_json"])["imu"]
+    if (done := _complete_recording(out)) is not None:
+        return done
     proc = tmp / "record.yaml"
     proc.write_text(yaml.safe_dump({"procedure": "bench-record", "steps": [
         {"include": str(ROOT / "procedures" / "24pos.yaml")}, {"include": str(ROOT / "procedures" / "rates.yaml")}]}))
@@ -103,10 +100,24 @@ def record(tmp: Path, seed: int, profile: str) -> tuple[Path, dict]:
     (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     subprocess.run([sys.executable, "-m", "rigctl.cli", "run", str(proc), "--config", str(tmp / "cfg.yaml"),
                     "--out", str(out)], check=True, capture_output=True, cwd=ROOT)
-    rec = next(out.glob("*/recording.h5"))
-    with h5py.File(rec, "r") as f:
-        truth = json.loads(f["truth"].attrs["params_json"])["imu"]
-    return rec, truth
+    done = _complete_recording(out)
+    if done is None:
+        raise RuntimeError(f"{out}: the run ended without a complete recording")
+    return done
+
+
+def _complete_recording(out: Path) -> tuple[Path, dict] | None:
+    """The newest complete recording under ``out`` (a run directory each) and the emulator's
+    truth for the IMU, or None: a part-done recording left by an interrupted run (its status
+    not 'complete', or unreadable) is passed over, not analysed."""
+    for rec in sorted(out.glob("*/recording.h5"), reverse=True):   # run dirs start with a UTC stamp
+        try:
+            with h5py.File(rec, "r") as f:
+                if f["run/status"][0] == b"complete":
+                    return rec, json.loads(f["truth"].attrs["params_json"])["imu"]
+        except (OSError, KeyError):
+            continue
+    return None
 
 
 def overnight(tmp: Path, profile: str, hours: float, seed: int = 1000) -> Path:

@@ -15,7 +15,7 @@ from . import __version__
 from .config.config import RigConfig, load_config, resolve_config_path
 from .engine.device_check import check_devices
 from .engine.estimate import data_volume_bytes, estimate
-from .engine.procedure import load_procedure, parse_overrides
+from .engine.procedure import Procedure, load_procedure, parse_overrides
 from .engine.rig import describe
 from .run.console import guarded_std_streams
 from .errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, InputError, Interrupted, RigctlError,
@@ -43,10 +43,44 @@ def _load(args: argparse.Namespace):
     return cfg_path, cfg, proc
 
 
+def check_out_dir(out: Path) -> None:
+    """``rigctl run --out DIR``: a directory the run folder can be made in (or one that can be
+    created: its nearest existing parent a writable directory), else one line naming the option,
+    the path and why, exit 2 -- before the rig is opened; nothing is created here."""
+    from .recording.recording_reader import unwritable_reason
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, not a directory",
+                         hint="give the directory the run folders go in (default: runs)")
+    base = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if base is not None and not base.is_dir():
+        raise InputError(f"--out {out}: cannot be created: {base} is a file, not a directory",
+                         hint="give the directory the run folders go in (default: runs)")
+    why = unwritable_reason(base) if base is not None else None
+    if why:
+        raise InputError(f"--out {out}: cannot write in {base} ({why})",
+                         hint="give a writable directory for the run folders")
+
+
+def taps_without_pulses(proc: Procedure, cfg: RigConfig, cfg_path: Path) -> str | None:
+    """The warning for a procedure with a ``taps`` step on a config without a pulse input (the
+    default emulator's): the taps are recorded but ``rigctl sync`` finds no pulses to match."""
+    taps = [n for n, s in enumerate(proc.steps, 1) if s.kind == "taps"]
+    if not taps or cfg.pulses.driver != "none":
+        return None
+    return (f"warning: {proc.path}: step {taps[0]} (taps) needs a pulse input, and config {cfg_path} has none "
+            "(pulses: driver: none), so rigctl sync will find no pulses; configure one (docs/hardware.md) "
+            "or, on the emulator, give --config configs/sim-taps.yaml (a tap hammer and a GNSS mark input)")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .run.runner import RUN_LOG, resume_command, run_procedure  # the solvers (scipy): only for a run, not for client verbs
     cfg_path, cfg, proc = _load(args)
+    check_out_dir(Path(args.out))
     print(f"rigctl {__version__}: config {cfg_path}: {describe(cfg)}", flush=True)
+    warn = taps_without_pulses(proc, cfg, cfg_path)
+    if warn:
+        print(warn, file=sys.stderr, flush=True)
     result = run_procedure(proc, cfg, Path(args.out), overrides=parse_overrides(args.param))
     if result.exit_code == EXIT_OK:
         return EXIT_OK
@@ -80,10 +114,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
         print("parameters: " + ", ".join(f"{k}={v}" for k, v in proc.parameters.items()))
     plan = estimate(proc.steps, cfg)
     elapsed = 0.0
+    width = max([70, *(len(e.step.describe()) for e in plan)])  # one column for every step (rates are longer)
     for n, e in enumerate(plan, 1):
         elapsed += e.total_s
         extra = f"sample {format_duration(e.step.sample_s)}" if e.step.is_motion else "after the run"
-        print(f"{n:4d}  {e.step.describe():<70s} {extra:<18s} ~{format_duration(e.total_s):>12s}"
+        print(f"{n:4d}  {e.step.describe():<{width}s} {extra:<18s} ~{format_duration(e.total_s):>12s}"
               f"  (t+{format_duration(elapsed)})")
     total = sum(e.total_s for e in plan)
     counts: dict[str, int] = {}
@@ -93,6 +128,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
     print(f"total duration: about {format_duration(total)} ({total:.0f} s)")
     print(f"expected data volume: about {format_bytes(data_volume_bytes(total, cfg))} "
           f"(IMU at {cfg.imu_rate_hz:g} Hz)")
+    warn = taps_without_pulses(proc, cfg, cfg_path)
+    if warn:
+        print(warn, file=sys.stderr, flush=True)
     print("valid")
     return 0
 

@@ -279,7 +279,7 @@ class Progress(_Display):
         rig = (self.now_s - self.t_first) if self.now_s is not None and self.t_first is not None else 0.0
         wall = self.wall() - self.wall_first if self.wall_first is not None else 0.0
         text = (f"{status}: {len(self.finished)}/{len(self.order)} steps, "
-                f"{format_duration(rig)} of rig time in {format_duration(wall)} wall, "
+                f"{format_duration(rig)} of rig time in {format_duration(wall)} wall over the steps, "
                 f"dropped {self.dropped} samples")
         self._clear()
         self._line(text)

@@ -199,7 +199,9 @@ def test_adis16405_accel_floor_and_self_check(adis: dict, axis: str) -> None:
     # not IEEE 952 alone: the chi-square far beyond its 99 % point. (The model error it needed
     # was 0.18-0.27 of sigma^2 while the fit took the anti-aliasing filter's taus; with them
     # left out, az's is 0.008 -- its chi-square 406 on 37 dof, carried by 0.14-0.69 s, where
-    # it was 32075: docs/allan.md, "The sensor's anti-aliasing filter")
+    # it was 32075: docs/allan.md, "The sensor's anti-aliasing filter"; that is a 10 Hz
+    # vibration band, found and reported but not yet in the fit: "Vibration bands" there and
+    # test_adis16405_accel_vibration_band_found_and_carries_az_chi_square below)
     assert check["p_value"] < 1e-6 and not check["ok"]
     # the periodic component: the strongest peak of a plain periodogram (2^15-sample Hann
     # segments averaged) between 0.1 and 10 Hz is the strongest tone found
@@ -227,6 +229,90 @@ def test_adis16405_accel_floor_and_self_check(adis: dict, axis: str) -> None:
     # than 15 % off the curve somewhere in 0.3-2 s
     near = sel & (tau >= 0.3) & (tau <= 2.0)
     assert np.any(np.abs(ind[near] / np.sqrt(ieee[near]) - 1.0) > 0.15)
+
+
+def _welch_numpy(y: np.ndarray, nper: int) -> tuple[np.ndarray, np.ndarray]:
+    """One-sided Welch PSD written here: periodic Hann, segments of nper without overlap,
+    each segment's mean removed, averaged."""
+    k = y.size // nper
+    seg = y[: k * nper].reshape(k, nper)
+    seg = seg - seg.mean(axis=1, keepdims=True)
+    w = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(nper) / nper)
+    p = np.mean(np.abs(np.fft.rfft(seg * w, axis=1)) ** 2, axis=0) * 2.0 / (FS * np.sum(w * w))
+    return np.fft.rfftfreq(nper, TAU0), p
+
+
+def _band_numpy(y: np.ndarray, span: tuple[float, float], refs: tuple[tuple[float, float], ...]
+                ) -> tuple[float, float, float, list[dict]]:
+    """A band's read written here: the 2048-sample Welch PSD's excess over a straight line
+    through its means over the two reference stretches ``refs`` (Hz, either side), over
+    ``span``: (rms = sqrt(excess x bin width), the excess-weighted centre, the largest
+    PSD / line, each bin's positive excess as a sinusoid {freq_hz, amp_si} of that power)."""
+    f, p = _welch_numpy(y, 2048)
+    (a0, a1), (b0, b1) = refs
+    sa, sb = (f >= a0) & (f <= a1), (f >= b0) & (f <= b1)
+    fa, fb, pa, pb = f[sa].mean(), f[sb].mean(), p[sa].mean(), p[sb].mean()
+    line = pa + (pb - pa) * (f - fa) / (fb - fa)
+    s = (f >= span[0]) & (f <= span[1])
+    df = float(f[1] - f[0])
+    exc = p[s] - line[s]
+    pos = np.maximum(exc, 0.0)
+    comps = [{"freq_hz": float(fj), "amp_si": math.sqrt(2.0 * e * df)} for fj, e in zip(f[s], pos) if e > 0]
+    return (math.sqrt(float(exc.sum()) * df), float((f[s] * pos).sum() / pos.sum()),
+            float(np.max(p[s] / line[s])), comps)
+
+
+def test_adis16405_accel_vibration_band_found_and_carries_az_chi_square(adis: dict) -> None:
+    """The ADIS16405 az's self-check (chi-square 406 on 37 dof with the filter's taus left
+    out, carried by 0.14-0.69 s, the curve 1.001-1.011x the fitted total) is a vibration
+    band: random power at ~9.4-12 Hz on all three accelerometers (1.5x the white level on az,
+    2.3x ay, 3.5x ax; the z gyro has one at ~20 Hz, 15x; gx and gy none), too broad for a
+    tone. Read here with numpy (Welch of 2048 samples, the excess over a line through 6-8.5
+    and 13-16 Hz, summed over 9-12.5 Hz; measured az 0.449e-2 m/s^2 rms at 10.42 Hz, ay
+    0.541e-2 at 10.25, ax 0.904e-2 at 10.24) and found by rigctl (tones.bands: az 0.378e-2
+    at 10.26 Hz over 9.42-11.1 Hz; its read stops where the PSD first dips below the level,
+    so it misses part of the tail to 12 Hz: 0.75-1.05x the read here). Its Allan term, from
+    the numpy excess, carried in the fit (the tones' mechanism) takes az's chi-square from
+    406 to 82 (measured): its positive term at m = 3-16 (up to 3 % of sigma^2 at 0.04 s)
+    had hidden the low-pass filter's fading, so the filter's region ended at m = 8 (S rising
+    0.03 then 0.13 of S(tau0) an octave) and its deficit was fitted; with the band carried the
+    region reaches m = 64. rigctl does not carry the band yet (on ax and ay it changes more
+    than the short taus: docs/allan.md, 'Vibration bands'): its warning says so, and the
+    check still fails."""
+    from rigctl.analysis.allan import band_warnings
+
+    for i, axis in enumerate(("ax", "ay", "az")):
+        r = adis["res"]["axes"][axis]
+        rms, centre, peak, comps = _band_numpy(adis["accel"][:, i], (9.0, 12.5), ((6.0, 8.5), (13.0, 16.0)))
+        assert peak > 1.3, (axis, peak)  # the data: a band, on every accelerometer
+        bands = r["tones"]["bands"]
+        assert len(bands) == 1, (axis, bands)
+        b = bands[0]
+        assert abs(b["freq_hz"] - centre) < 0.25 and 0.75 < b["rms_si"] / rms < 1.05, (axis, b, rms, centre)
+        assert not any(abs(t["freq_hz"] - b["freq_hz"]) < 1.0 for t in r["tones"]["tones"])
+        line = band_warnings(r)
+        assert len(line) == 1 and "NOT in the fitted model" in line[0] and f"{b['freq_hz']:.4g} Hz" in line[0]
+    for i, axis in enumerate(("gx", "gy")):  # no band on the x and y gyros, by either read
+        assert _band_numpy(adis["gyro"][:, i], (9.0, 12.5), ((6.0, 8.5), (13.0, 16.0)))[2] < 1.2
+        assert not adis["res"]["axes"][axis]["tones"]["bands"], axis
+    # az: the band carries most of the chi-square (numpy's band through the fit's tones)
+    r = adis["res"]["axes"]["az"]
+    check = r["fit"]["check"]
+    assert not check["ok"] and check["chi2"] > 5 * check["dof"]
+    assert check["filter_excluded"]["m_to"] <= 8
+    comps = _band_numpy(adis["accel"][:, 2], (9.0, 12.5), ((6.0, 8.5), (13.0, 16.0)))[3]
+    tones = [{"freq_hz": t["freq_hz"], "amp_si": t["amp_si"]} for t in r["tones"]["tones"]]
+    fit = F.fit_terms(np.asarray(r["tau_s"]), _reported(r), np.asarray(r["edf"]), "accel",
+                      tau0=TAU0, n_phase=r["n_samples"] + 1, tones=tones + comps)
+    c2 = fit["check"]
+    assert c2["chi2"] < 0.3 * check["chi2"], (c2["chi2"], check["chi2"])
+    assert c2["filter_excluded"]["m_to"] > 8
+    # ... and N stays on the white level read off the spectrum (numpy, 2-8 Hz, one-sided
+    # PSD / 2), within 2 %, as the reported fit's
+    f, p = _welch_numpy(adis["accel"][:, 2], 2048)
+    n_spec = math.sqrt(float(np.mean(p[(f >= 2.0) & (f <= 8.0)])) / 2.0)
+    for co in (fit["coefficients"], r["fit"]["coefficients"]):
+        assert abs(co.N.value / n_spec - 1.0) < 0.02, (co.N.value, n_spec)
 
 
 def test_no_bound_above_what_the_curve_allows(adis: dict, mtig: dict) -> None:

@@ -168,3 +168,43 @@ def test_plot_draws_the_tones(tmp_path: Path) -> None:
     labels = ax.get_legend_handles_labels()[1]
     plt.close(fig)
     assert "tones (47.3 Hz)" in labels and "fitted total with tones" in labels
+
+
+def _band_noise(rng: np.random.Generator, n: int, f_lo: float, f_hi: float, rms: float) -> np.ndarray:
+    """Gaussian noise whose power lies in [f_lo, f_hi] Hz only (flat there, zero elsewhere:
+    built on the FFT grid), scaled to the given rms (its own sample rms, numpy)."""
+    f = np.fft.rfftfreq(n, 1.0 / FS)
+    spec = (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * ((f >= f_lo) & (f <= f_hi))
+    x = np.fft.irfft(spec, n)
+    return x * rms / np.sqrt(np.mean(x * x))
+
+
+def test_vibration_band_found_as_a_band_and_a_tone_as_a_tone() -> None:
+    """A band of random power at 9.5-11 Hz (rms 0.3 of the white noise's per-sample sd: 4x
+    the white level in the band) beside a 3 Hz tone and white noise: the tone is a tone, the
+    band a band (not a tone: it raises the tones' local level), its span and rms those of the
+    noise made here (its power over the white level: rms within 10 %, centre within 0.1 Hz),
+    and white noise alone, or through a 2nd-order low-pass at 0.4 Nyquist, has no band (0 in
+    6 + 6 series of 1e6 samples here; 0 in 50 when written: white, Butterworth at 40 and 20
+    Hz of a 1 kHz stream kept every 10th sample, white + flicker + random walk, quantized)."""
+    from scipy.signal import butter, lfilter
+
+    n = 1_000_000
+    rng = np.random.default_rng(7)
+    band = _band_noise(rng, n, 9.5, 11.0, 0.3)
+    tone = 0.05 * np.sin(2 * np.pi * 3.0 * np.arange(n) / FS + 0.3)
+    out = TN.detect_tones(rng.standard_normal(n) + band + tone, FS)
+    assert [round(t["freq_hz"], 2) for t in out["tones"]] == [3.0], out["tones"]
+    assert len(out["bands"]) == 1, out["bands"]
+    b = out["bands"][0]
+    assert 9.2 <= b["f_lo_hz"] <= 9.6 and 10.9 <= b["f_hi_hz"] <= 11.3, b
+    assert abs(b["freq_hz"] - 10.25) < 0.1 and abs(b["rms_si"] / 0.3 - 1.0) < 0.10, b
+    assert all(abs(c["freq_hz"] - 3.0) > 0.1 for c in b["components"])
+    found = 0
+    for s in range(6):
+        r = np.random.default_rng(100 + s)
+        w = r.standard_normal(n)
+        found += len(TN.detect_tones(w, FS)["bands"])
+        bb, aa = butter(2, 0.4)
+        found += len(TN.detect_tones(lfilter(bb, aa, w), FS)["bands"])
+    assert found == 0

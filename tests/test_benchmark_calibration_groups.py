@@ -45,3 +45,29 @@ def test_the_27_declared_parameters_fall_in_their_groups() -> None:
     assert counts == {"accel_bias": 3, "gyro_bias": 3, "scale": 6, "misalignment": 12, "quadratic": 3}
     diag = [n for n in names if "_M_" in n and n.split("_M_")[1][0] == n.split("_M_")[1][1]]
     assert all(bench.param_group(n) == "scale" for n in diag) and len(diag) == int(np.sum(np.eye(3))) * 2
+
+
+def _h5_run(path: Path, status: bytes, truth: dict | None) -> None:
+    import json
+
+    import h5py
+    path.parent.mkdir(parents=True)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("run/status", data=[status])
+        if truth is not None:
+            f.create_dataset("truth", data=0).attrs["params_json"] = json.dumps({"imu": truth})
+
+
+def test_a_part_done_recording_is_passed_over(tmp_path: Path) -> None:
+    """--recordings reuse: a recording an interrupted run left beside a complete one is never the
+    one analysed, whichever sorts first; an unreadable file is passed over too."""
+    out = tmp_path / "corr-tactical-3"
+    _h5_run(out / "20261128T010000Z-bench-record" / "recording.h5", b"running", None)  # interrupted
+    assert bench._complete_recording(out) is None
+    _h5_run(out / "20261128T020000Z-bench-record" / "recording.h5", b"complete", {"seed": 3})  # the rerun
+    rec, truth = bench._complete_recording(out)
+    assert rec.parent.name.startswith("20261128T020000Z") and truth == {"seed": 3}
+    (out / "20261128T030000Z-bench-record").mkdir()
+    (out / "20261128T030000Z-bench-record" / "recording.h5").write_bytes(b"\x89HDF\r\n cut")
+    assert bench._complete_recording(out)[1] == {"seed": 3}
+    assert bench._complete_recording(tmp_path / "corr-tactical-4") is None

@@ -327,3 +327,25 @@ def test_serve_on_a_socket_or_port_in_use_says_so_in_one_line(daemon, tmp_path):
     again = Daemon(tmp_path / "runs-c", derived_config(tmp_path, name="sim.yaml"), sock.parent.parent / "d.sock",
                    console=io.StringIO())
     again._close("test over")
+
+
+def test_status_starting_counts_from_when_the_job_was_taken(tmp_path):
+    """`rigctl status` between taking a job and its first step says `starting since` the time
+    the job was taken -- before, the time the daemon had gone idle (the daemon's start, or the
+    end of the previous job hours ago), so a job just submitted looked stuck for hours."""
+    base = Path(tempfile.mkdtemp(prefix="rigctl-test-", dir="/tmp"))
+    d = Daemon(tmp_path / "runs", derived_config(tmp_path), base / "ctl" / "rigctl.sock", console=io.StringIO())
+    try:
+        idle_since = d.handle("status", {})["since_utc"]
+        job = d._new_job("run", procedure=str(tmp_path / "p.yaml"))
+        job.state, job.started_utc = "running", "2031-05-06T07:08:09.654321Z"  # taken by the worker
+        d.current = job
+        reply = d.handle("status", {})
+        assert reply["state"] == "starting" and reply["since_utc"] == "2031-05-06T07:08:09Z" != idle_since
+        d.server.start()  # what `rigctl status` prints of it
+        r = subprocess.run([*rigctl_cmd(), "status", "--socket", str(base / "ctl" / "rigctl.sock")],
+                           capture_output=True, text=True, timeout=60)
+        assert "starting since 07:08:09Z" in r.stdout, r.stdout + r.stderr
+    finally:
+        d._close("test over")
+        shutil.rmtree(base, ignore_errors=True)

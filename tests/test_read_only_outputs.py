@@ -88,3 +88,20 @@ def test_commands_refuse_a_read_only_recording_before_the_work(read_only_run, tm
     assert "analysing" not in out
     with h5py.File(rec, "r") as f:
         assert sorted(f.get("results", {}).keys()) == before
+    # rigctl run --out into the read-only directory: refused before the rig opens
+    code, out, err = _main("run", str(ROOT / "procedures" / "warmup.yaml"), "-p", "warmup=5 s", "--out", str(run.parent))
+    assert code == 2 and err.count("\n") == 1 and f"--out {run.parent}" in err and reason in err, err
+    assert out == ""
+
+
+def test_run_out_that_is_a_file_is_refused_before_the_rig_opens(tmp_path):
+    """`rigctl run --out FILE` (or a path under a file): one line naming --out, exit 2, before
+    the config line; before, 'failed: FILE: File exists' / 'Not a directory', exit 1."""
+    f = tmp_path / "afile"
+    f.write_text("")
+    proc = str(ROOT / "procedures" / "warmup.yaml")
+    for out_dir in (f, f / "sub"):
+        code, out, err = _main("run", proc, "-p", "warmup=5 s", "--out", str(out_dir))
+        assert code == 2 and err.count("\n") == 1 and f"--out {out_dir}" in err and "not a directory" in err, err
+        assert out == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

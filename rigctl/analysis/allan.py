@@ -596,6 +596,9 @@ def _tones(stream: _AxisStream, sensor: str) -> dict[str, Any]:
     for t in out["tones"]:
         t[f"amp_{unit}"] = t["amp_si"] * fac
         t["amp_unit"] = unit
+    for bd in out.get("bands") or []:
+        bd[f"rms_{unit}"] = bd["rms_si"] * fac
+        bd["rms_unit"] = unit
     return out
 
 
@@ -2111,6 +2114,7 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
                      f"{sp['window_samples']} neighbours")
     for line in tone_notes(r):
         notes.append(line)
+    warns += band_warnings(r)
     q = r.get("quantization")
     # a float32 recording is "quantized" too (one ulp, ~1e-9 of N^2): worth no note
     src = (q or {}).get("step_source") or {}
@@ -2144,6 +2148,25 @@ def screening_notes(r: dict[str, Any]) -> tuple[list[str], list[str]]:
     return warns, notes
 
 
+#: how a vibration band is found, in a note's words (rigctl.solvers.allan_tones.detect_bands)
+BAND_MIN_TEXT = (f"at least {TN.BAND_MIN_BINS} contiguous bins beyond the tones' test against "
+                 "the local level, tones' lobes left out")
+
+
+def band_share(r: dict[str, Any]) -> tuple[float, float] | None:
+    """The largest share of sigma^2 that the vibration bands' Allan term takes on the axis'
+    curve (:func:`rigctl.solvers.allan_tones.tones_avar` of the bands' components), and its
+    tau (s); None without bands or a curve."""
+    comps = [c for b in ((r.get("tones") or {}).get("bands") or []) for c in b["components"]]
+    tau, m = np.asarray(r.get("tau_s", []), dtype=float), np.asarray(r.get("m", []), dtype=float)
+    dev = np.asarray(r.get(f"adev_{r.get('_si', '')}", []), dtype=float)
+    if not comps or not tau.size or dev.size != tau.size:
+        return None
+    share = TN.tones_avar(float(tau[0] / m[0]), m, comps) / np.maximum(dev ** 2, 1e-300)
+    i = int(np.argmax(share))
+    return float(share[i]), float(tau[i])
+
+
 def tone_notes(r: dict[str, Any]) -> list[str]:
     """One sentence per tone found before the fit (frequency, amplitude in the deviation's
     field unit, the largest share of sigma^2 its Allan term takes, and that it was added to
@@ -2162,6 +2185,28 @@ def tone_notes(r: dict[str, Any]) -> list[str]:
             f"{tn['alpha']:g} per axis){share}: a tone is not an IEEE 952 term, so its Allan "
             "term a^2 sin^4(pi f m tau0) / (m sin(pi f tau0))^2 (amplitude from the spectrum) "
             "is part of the fitted model"]
+
+
+def band_warnings(r: dict[str, Any]) -> list[str]:
+    """One sentence for the vibration bands found before the fit (span, centre, rms in the
+    deviation's field unit, the largest share of sigma^2 their Allan term takes) and that
+    they are not in the fitted model; [] if none."""
+    bands = (r.get("tones") or {}).get("bands") or []
+    if not bands:
+        return []
+    unit = DEV_UNITS[r["sensor"]][0]
+    bs = "; ".join(f"{b['f_lo_hz']:.3g}-{b['f_hi_hz']:.3g} Hz: centre {b['freq_hz']:.4g} Hz, "
+                   f"rms {b[f'rms_{unit}']:.3g} {unit}, up to {b['peak_ratio']:.3g}x the level"
+                   for b in bands)
+    bsh = band_share(r)
+    where = (f"; its Allan term (from the spectrum) up to {100 * bsh[0]:.2g} % of sigma^2, "
+             f"at tau {bsh[1]:.3g} s" if bsh else "")
+    return [f"{len(bands)} vibration band(s) in the samples ({bs}; a periodogram of "
+            f"{bands[0]['bin_hz']:.3g} Hz bins, {BAND_MIN_TEXT}{where}): narrowband random "
+            "power, neither white nor a tone, and NOT in the fitted model; beside its own Allan "
+            "term it can hide a low-pass filter's fading from the filter region's read "
+            "(docs/allan.md, 'Vibration bands'), so a self-check that fails at the short taus "
+            "may be its doing"]
 
 
 def summary_line(r: dict[str, Any]) -> str:

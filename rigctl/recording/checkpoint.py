@@ -15,6 +15,7 @@ the superblock checksum (Jenkins' lookup3, as HDF5 uses).
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -59,6 +60,23 @@ class Checkpoint:
 
 def sha256_text(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def try_lock(path: Path) -> tuple[int | None, str]:
+    """Take an exclusive lock on ``path`` (created 0600) without waiting: ``(fd, "")`` when taken
+    -- the file then holds this process's pid; close ``fd`` to release it (the kernel releases it
+    when the process dies, kill -9 too) -- or ``(None, pid)`` with the holder's pid ('' if
+    unknown) when another process, or another open of this one, holds it."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 64).decode(errors="replace").strip()
+        os.close(fd)
+        return None, holder
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd, ""
 
 
 def write_atomic(path: Path, data: bytes) -> None:

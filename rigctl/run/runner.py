@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import re
 import _thread
 import signal
@@ -34,7 +35,7 @@ from ..config.config import RigConfig, load_config
 from ..engine.device_check import check_devices
 from ..devices import DeviceFault, imu_identity
 from ..engine.engine import Engine, Interrupted, Rig, RunError, rewarm_due
-from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError, RigctlError
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, InputError, RigctlError, RunFailure
 from ..engine.estimate import estimate
 from ..engine.procedure import Procedure, Step, load_procedure
 from ..progress import Progress, make_progress
@@ -593,7 +594,8 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
         wall = time.monotonic() - wall0
         if rec is not None:
             log("info", f"run {status}: {rec.n_segments} segments, {rec.n_imu} IMU samples, "
-                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall")
+                        f"{format_duration(sim_time)} of rig time in {wall:.1f} s wall, opening the rig and "
+                        "closing the recording included")
         if status == "complete":
             a_code, a_message = _analyse(run_dir, recording, ckpt, log, signals)
             if a_code != EXIT_OK:
@@ -602,6 +604,27 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
             log("info", f"recording: {recording}")
         log.close()
     return RunResult(code, run_dir, recording, status, message, analysis=_analysis_outcome(ckpt))
+
+
+#: the lock file a process running or resuming a run holds in its directory
+RUN_LOCK = ".rigctl-run.lock"
+
+
+@contextmanager
+def hold_run_dir(run_dir: Path) -> Iterator[None]:
+    """Hold the run directory's lock (:data:`RUN_LOCK`) while a run or a resume writes it: a
+    second `rigctl resume` of the same run -- in another terminal, or while the run itself still
+    goes on -- would otherwise write a second session into the same recording beside the first
+    (times going back, steps twice). RunFailure naming the holder's pid when another has it."""
+    fd, holder = ckpt_mod.try_lock(run_dir / RUN_LOCK)
+    if fd is None:
+        raise RunFailure(f"{run_dir}: another rigctl process{f' (pid {holder})' if holder else ''} is running "
+                         "or resuming this run; wait for it to end (rigctl resume continues a run only "
+                         "once nothing writes it)")
+    try:
+        yield
+    finally:
+        os.close(fd)
 
 
 def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
@@ -614,6 +637,12 @@ def run_procedure(proc: Procedure, cfg: RigConfig, out_parent: Path,
     if opts.check_devices:  # before anything is created: a run that cannot start leaves nothing
         check_devices(cfg).raise_for_problems()
     run_dir = make_run_dir(out_parent, proc.name)
+    with hold_run_dir(run_dir):  # a `rigctl resume` of it while it runs is refused
+        return _run_new(proc, cfg, run_dir, console, opts, install_signals, overrides)
+
+
+def _run_new(proc: Procedure, cfg: RigConfig, run_dir: Path, console: Any, opts: RunOptions,
+             install_signals: bool, overrides: dict[str, Any] | None) -> RunResult:
     (run_dir / CONFIG_SNAPSHOT).write_text(cfg.text, encoding="utf-8")
     progress = opts.progress or make_progress(ConsoleStream.wrap(console if console is not None else sys.stdout))
     log = RunLog(run_dir / RUN_LOG, progress.console)
@@ -669,8 +698,12 @@ def resume_run(run_dir: str | Path, runs_root: str | Path, console: Any = None,
 
     A complete run whose analysis did not end (an interruption while the solvers ran) gets the
     analysis only."""
-    opts = options or RunOptions()
     d = check_run_dir(run_dir, runs_root)
+    with hold_run_dir(d):  # before the checkpoint is read: one writer at a time
+        return _resume(d, console, install_signals, options or RunOptions())
+
+
+def _resume(d: Path, console: Any, install_signals: bool, opts: RunOptions) -> RunResult:
     ck = ckpt_mod.load(d)  # CheckpointError is an InputError
     if ck.status == "complete":
         if ck.analysis in ("running", "interrupted", "failed"):

@@ -9,7 +9,7 @@ checkpoint (:func:`rigctl.run.runner.resume_run`), then the queue continues.
 from __future__ import annotations
 
 import argparse
-import fcntl
+import importlib.util
 import json
 import os
 import signal
@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from . import control
-from ..recording.checkpoint import write_atomic
+from ..recording.checkpoint import try_lock, write_atomic
 from ..config.config import load_config, resolve_config_path
 from ..run.console import detach_all
 from ..engine.procedure import load_procedure, parse_overrides
@@ -110,18 +110,11 @@ class Daemon:
         kernel drops it when the process dies, kill -9 too): a second daemon on the same runs
         directory (another socket, another session's $XDG_RUNTIME_DIR) would otherwise read the
         first's running job as cut off and resume it into the same recording."""
-        path = self._state_dir() / "daemon.lock"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 64).decode(errors="replace").strip()
-            os.close(fd)
+        fd, holder = try_lock(self._state_dir() / "daemon.lock")
+        if fd is None:
             raise RunFailure(f"{self.runs_dir}: another rigctl serve{f' (pid {holder})' if holder else ''} "
                              "already runs jobs in this runs directory (rigctl status shows it); stop it "
-                             "first, or give this one another --runs DIR") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+                             "first, or give this one another --runs DIR")
         return fd
 
     def _unlock_runs_dir(self) -> None:
@@ -201,13 +194,15 @@ class Daemon:
         eng = self.engine
         state, reason = self.states.state, self.states.reason
         sig = self.job_signals
+        since = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since))
         if self.current is not None and state == "idle" and sig is not None and sig.analysing:
             state, reason = "analysing", (f"job {self.current.id}: analysing its complete, closed recording "
                                           "(the procedure's solve steps)")
         elif self.current is not None and state == "idle":  # between taking the job and the first step
             state, reason = "starting", f"job {self.current.id}: opening the rig and checking its devices"
-        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason,
-                               "since_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.states.since)),
+            # since the job was taken, not since the daemon went idle (maybe hours before)
+            since = self.current.started_utc[:19] + "Z" if self.current.started_utc else since
+        out: dict[str, Any] = {"ok": True, "state": state, "reason": reason, "since_utc": since,
                                "queued": len(self.queue), "queue_running": self.queue_running,
                                "job": asdict(self.current) if self.current else None}
         if eng is not None:
@@ -516,6 +511,11 @@ class Daemon:
 
 # -- CLI -------------------------------------------------------------------------------------------
 def cmd_serve(args: argparse.Namespace) -> int:
+    if args.http:  # before the daemon takes its runs directory and socket
+        missing = [m for m in ("starlette", "uvicorn") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise InputError(f"--http {args.http}: the web page and HTTP API need {' and '.join(missing)}, "
+                             "which is not installed", hint="install the web extra: pip install -e '.[web]'")
     cfg_path = resolve_config_path(args.config)
     d = Daemon(Path(args.runs), cfg_path, Path(args.socket) if args.socket else control.default_socket_path())
     if args.http:

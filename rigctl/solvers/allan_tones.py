@@ -52,6 +52,13 @@ LOBE_BINS = 4
 MAX_SEG = 1 << 16
 #: at most this many tones are reported (the strongest)
 MAX_TONES = 8
+#: vibration bands: a second periodogram whose segments are this many times shorter than the
+#: tones' (bins this many times wider, this many times more segments): a band of ~0.1-5 Hz
+#: raises the tones' local level (so it is no tone) but stands out of this one's
+BAND_SEG_DIV = 16
+#: at least this many contiguous significant bins of that periodogram make a band (wider than
+#: any line's Hann main lobe; the tones' own lobes are not tested)
+BAND_MIN_BINS = 3
 
 
 def tone_avar(tau0: float, m: np.ndarray, freq_hz: float, amp: float) -> np.ndarray:
@@ -156,4 +163,78 @@ def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
                       "amp_si": math.sqrt(2.0 * power), "psd_ratio": float(ratio[i])})
     tones.sort(key=lambda t: -t["amp_si"])
     out["tones"] = tones[:MAX_TONES]
+    out["bands"] = detect_bands(y, fs, out["tones"], nper // BAND_SEG_DIV, alpha)
     return out
+
+
+def detect_bands(y: np.ndarray, fs: float, tones: list[dict], nperseg: int,
+                 alpha: float = ALPHA) -> list[dict]:
+    """Vibration bands in the rate samples ``y``: narrowband random power (a resonance, a
+    motor whose speed wanders) spread over more than a line's main lobe, so that it raises
+    :func:`detect_tones`' local level and is no tone, but is not white either (docs/allan.md,
+    "Tones", the ADIS16405 accelerometers' 10 Hz band). The same test as the tones' on a
+    Welch periodogram of ``nperseg``-sample segments (Hann, no overlap; K segments, each bin
+    chi2_2K / 2K for a smooth spectrum), the local level the running median over LEVEL_BINS
+    bins, a bin significant above the F(2K, 2K LEVEL_BINS / pi) quantile at alpha / (bins
+    tested); bins within 2.5 bins of a tone (its main lobe) and within LEVEL_BINS / 2 of 0 Hz
+    and fs/2 are not tested. BAND_MIN_BINS or more contiguous significant bins make a band's
+    core; the band runs on to either side while the PSD stays above the level. Its power is
+    the PSD above the level summed over its bins (times the bin width); each bin's excess
+    P_j - L_j is a component of the band's Allan term, a sinusoid of power (P_j - L_j) df
+    at f_j: sum_j 2 (P_j - L_j) df sin^4(pi f_j m tau0) / (m sin(pi f_j tau0))^2, the Allan
+    variance of that excess spectrum (its integral against the estimator's transfer
+    function) on the bins. Returns [{f_lo_hz, f_hi_hz, freq_hz (excess-weighted centroid),
+    rms_si, peak_ratio, bins, components: [{freq_hz, amp_si}]}]; [] where the segments would
+    be shorter than 4 LEVEL_BINS samples."""
+    if nperseg < 4 * LEVEL_BINS or y.size < 16 * nperseg:
+        return []
+    f, p = welch_hann(y, fs, nperseg)
+    k = y.size // nperseg
+    nu = 2.0 * k
+    nu_level = nu * LEVEL_BINS / math.pi
+    level = median_filter(p, size=LEVEL_BINS, mode="nearest") / (chi2.median(nu) / nu)
+    df = float(f[1] - f[0])
+    half = LEVEL_BINS // 2
+    test = np.zeros(p.size, dtype=bool)
+    test[half: p.size - half] = True
+    for t in tones:
+        test &= np.abs(f - float(t["freq_hz"])) > 2.5 * df
+    n_test = int(np.count_nonzero(test))
+    if n_test == 0:
+        return []
+    thr = float(fdist.isf(alpha / n_test, nu, nu_level))
+    above = test & (level > 0) & (p > thr * level)
+    spans: list[list[int]] = []
+    i = 0
+    while i < p.size:
+        if not above[i]:
+            i += 1
+            continue
+        j = i
+        while j < p.size and above[j]:
+            j += 1
+        if j - i >= BAND_MIN_BINS:
+            a, b = i, j
+            while a > 0 and test[a - 1] and p[a - 1] > level[a - 1]:
+                a -= 1
+            while b < p.size and test[b] and p[b] > level[b]:
+                b += 1
+            if spans and a <= spans[-1][1]:
+                spans[-1][1] = b
+            else:
+                spans.append([a, b])
+        i = j
+    bands = []
+    for a, b in spans:
+        exc = np.maximum(p[a:b] - level[a:b], 0.0)
+        bands.append({"f_lo_hz": float(f[a]), "f_hi_hz": float(f[b - 1]),
+                      "freq_hz": float((f[a:b] * exc).sum() / exc.sum()),
+                      "rms_si": math.sqrt(float(exc.sum()) * df),
+                      "peak_ratio": float(np.max(p[a:b] / level[a:b])), "bins": int(b - a),
+                      "bin_hz": df, "threshold_ratio": thr,
+                      "components": [{"freq_hz": float(f[a + q]),
+                                      "amp_si": math.sqrt(2.0 * float(exc[q]) * df)}
+                                     for q in range(b - a) if exc[q] > 0]})
+    bands.sort(key=lambda bd: -bd["rms_si"])
+    return bands
+
