@@ -118,6 +118,23 @@ def run_rigctl(*args: str, timeout: float = 120, **kw: Any) -> subprocess.Comple
                           cwd=kw.pop("cwd", ROOT), env=env, **kw)
 
 
+def rigctl_in_process(*args: str) -> subprocess.CompletedProcess:
+    """``rigctl ARGS`` through :func:`rigctl.cli.main` in this process, stdout and stderr captured:
+    what :func:`run_rigctl` returns, without a new interpreter and its imports (~4 s of CPU of a
+    ``rigctl calibrate`` subprocess's 6.4 s, against ~2.5 s for the same calibration in process).
+    For what a command computes and writes; a test about the process (exit status as the shell
+    sees it, the console, signals) runs the real command."""
+    import contextlib
+    import io
+
+    from rigctl import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main(list(args))
+    return subprocess.CompletedProcess(["rigctl", *args], code, out.getvalue(), err.getvalue())
+
+
 #: a short procedure for the full-disk tests (in-process and over the wire)
 DISK_PROCEDURE = """procedure: disk
 steps:

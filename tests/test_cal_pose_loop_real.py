@@ -23,13 +23,16 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from helpers import run_rigctl
+from helpers import rigctl_in_process
 
 G_XSENS = 9.81744
 
 
+# imports and calibrations through rigctl.cli.main in this process (helpers.rigctl_in_process: the
+# same commands and arguments without a new interpreter's imports); these tests are about the
+# numbers, not the process
 def _calibrate(rec: Path) -> tuple[str, dict]:
-    proc = run_rigctl("calibrate", str(rec), "--explain", "--json", str(rec.with_suffix(".json")), timeout=300)
+    proc = rigctl_in_process("calibrate", str(rec), "--explain", "--json", str(rec.with_suffix(".json")))
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     return proc.stdout, json.loads(rec.with_suffix(".json").read_text())
@@ -55,7 +58,7 @@ def xsens(ref_data, tmp_path_factory):
     np.savetxt(csv, np.column_stack([a[:, 0], a[:, 1:] - 32768, g[:, 1:] - 32768]), delimiter=",",
                header="t,ax,ay,az,gx,gy,gz", comments="", fmt="%.6f")
     rec = tmp / "xsens.h5"
-    proc = run_rigctl("import", str(csv), "-o", str(rec), "--rate", "100", "--columns",
+    proc = rigctl_in_process("import", str(csv), "-o", str(rec), "--rate", "100", "--columns",
                       "time=t,acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz",
                       "--units", "acc=counts:1/415 m/s^2,gyr=counts:1/4770 rad/s,time=s",
                       "--t-init", "50", "--gravity", str(G_XSENS))
@@ -130,7 +133,7 @@ def test_xsens_scales_match_the_mti_and_status_is_not_ok(xsens):
 def test_mpu6050_gyro_range_exceeded(ref_data, tmp_path):
     d = ref_data / "mpu6050-multipos"
     rec = tmp_path / "mpu.h5"
-    proc = run_rigctl("import", str(d / "calibration_data_example_data_calibration.csv"), "-o", str(rec),
+    proc = rigctl_in_process("import", str(d / "calibration_data_example_data_calibration.csv"), "-o", str(rec),
                       "--columns", "acc_x=ax,acc_y=ay,acc_z=az,gyr_x=gx,gyr_y=gy,gyr_z=gz", "--skip-rows", "4",
                       "--units", "acc=counts:1/16384 g,gyr=counts:1/131 deg/s", "--rate", "100", "--t-init", "36.5")
     assert proc.returncode == 0, proc.stderr
@@ -148,7 +151,7 @@ def test_mpu6050_gyro_range_exceeded(ref_data, tmp_path):
 def test_imucal_faces_no_g_sensitivity(ref_data, tmp_path):
     d = ref_data / "imucal-ferraris"
     rec = tmp_path / "imucal.h5"
-    proc = run_rigctl("import", str(d / "example_data_annotated_session.csv"), "-o", str(rec), "--columns",
+    proc = rigctl_in_process("import", str(d / "example_data_annotated_session.csv"), "-o", str(rec), "--columns",
                       "acc_x=acc_x,acc_y=acc_y,acc_z=acc_z,gyr_x=gyr_x,gyr_y=gyr_y,gyr_z=gyr_z,section=part",
                       "--units", "acc=counts:1/2048 g,gyr=counts:1/16.4 deg/s", "--rate", "204.8",
                       "--gravity", "9.81")

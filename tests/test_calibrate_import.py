@@ -28,7 +28,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import run_rigctl
+from helpers import rigctl_in_process, run_rigctl
 from rigctl.solvers.sensor_model import invert_quadratic
 
 ACC_LSB = 9.80665 / 2048.0
@@ -36,13 +36,16 @@ GYR_LSB = math.radians(1.0 / 16.4)
 IMUCAL_COLS = "acc_x=acc_x,acc_y=acc_y,acc_z=acc_z,gyr_x=gyr_x,gyr_y=gyr_y,gyr_z=gyr_z"
 
 
+# The sessions are imported and calibrated through rigctl.cli.main in this process (the same
+# commands and arguments, without a new interpreter's ~1-4 s of imports each); the import errors
+# below run the real command: exit status 2 and one line on stderr as the shell sees them.
 def _import(*args: str) -> None:
-    proc = run_rigctl("import", *args)
+    proc = rigctl_in_process("import", *args)
     assert proc.returncode == 0, proc.stderr
 
 
 def _calibrate(rec: Path) -> tuple[str, dict]:
-    proc = run_rigctl("calibrate", str(rec))
+    proc = rigctl_in_process("calibrate", str(rec))
     assert proc.returncode == 0, proc.stderr
     return proc.stdout, json.loads(rec.with_name(rec.stem + ".calibration.json").read_text())
 
