@@ -205,3 +205,30 @@ def test_compile_garbage_collected_while_the_collector_is_paused():
         if was:
             gc.enable()
     assert left < 300, left
+
+
+def test_an_end_without_its_start_does_not_stop_the_collection():
+    """The listener registered while a compilation was under way (allan_kernels_jit imported on
+    one thread while another compiled) sees that compilation's end without its start; the next
+    compilation's garbage is still collected at its end with the collector paused."""
+    import gc
+
+    from rigctl.solvers import allan_kernels_jit as J
+
+    listener = J._CollectAfterCompile()
+    listener.on_end(None)  # the end of a compilation whose start came before registration
+    was = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        listener.on_start(None)
+        for _ in range(1000):  # cyclic garbage, as a compilation leaves
+            a: list = []
+            a.append(a)
+        del a
+        listener.on_end(None)
+        left = gc.collect()
+    finally:
+        if was:
+            gc.enable()
+    assert left < 100, left

@@ -79,16 +79,16 @@ def _rows(db: Path) -> dict[tuple[str, str], tuple]:
 
 @pytest.fixture(scope="session")
 def serial(lot_runs) -> tuple[Path, list[str]]:
-    """Eight serial `rigctl calibrate REC --spec S` calls into serial.sqlite; their outputs. The
-    first is the real command (a subprocess), the other seven rigctl.cli.main in this process
-    (rigctl_in_process: the same code and arguments, ~4 s of CPU less each); the batch runs below
-    must equal all eight row by row, the subprocess's included."""
+    """Eight serial `rigctl calibrate REC --spec S` calls into serial.sqlite, each the real command
+    (a subprocess); their outputs. The batch runs below must equal all eight row by row, exactly.
+    (Not rigctl.cli.main in the test worker: in a clean-clone CI run its results differed from the
+    batch's in the last bits -- 0.01989879399944967 against 0.019898793999449455 mg -- where
+    fresh processes agree exactly; the cause is not traced.)"""
     root, recs = lot_runs
     db = root / "serial.sqlite"
     outs = []
-    for i, rec in enumerate(recs):
-        r = (run_rigctl if i == 0 else rigctl_in_process)("calibrate", str(rec), "--spec", str(root / "spec.yaml"),
-                                                          "--db", str(db))
+    for rec in recs:
+        r = run_rigctl("calibrate", str(rec), "--spec", str(root / "spec.yaml"), "--db", str(db))
         assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
         outs.append(r.stdout)
     return db, outs

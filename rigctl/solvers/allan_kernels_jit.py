@@ -77,7 +77,10 @@ class _CollectAfterCompile(_event.Listener):
         self._depth += 1
 
     def on_end(self, event: _event.Event) -> None:
-        self._depth -= 1
+        # (never below 0: a compilation already under way when this module was imported -- on
+        # another thread -- ends without the start this listener saw, and would otherwise leave
+        # the count at -1 for good, so that no later compilation was collected)
+        self._depth = max(self._depth - 1, 0)
         if self._depth == 0 and not gc.isenabled():
             gc.collect(0)  # (with the collector paused every object made since is young)
 
