@@ -192,6 +192,7 @@ class Progress(_Display):
         super().__init__(stream, **kw)
         self.estimates: dict[int, float] = {}
         self.order: list[int] = []
+        self.done_before = 0  # motion steps an earlier session finished (a resume)
         self.finished: set[int] = set()
         self.step: Any = None
         self.step_key: int | None = None
@@ -207,8 +208,11 @@ class Progress(_Display):
         self.console = _Console(self)
 
     # -- engine API ----------------------------------------------------------------------------
-    def start(self, plan_estimates: Iterable[Any] = (), title: str = "") -> None:
-        """Register the plan: items with ``.step`` and ``.total_s`` (s); solve steps count 0."""
+    def start(self, plan_estimates: Iterable[Any] = (), title: str = "", done_before: int = 0) -> None:
+        """Register the plan: items with ``.step`` and ``.total_s`` (s); solve steps count 0.
+        ``done_before``: motion steps of the procedure an earlier session finished (a resume):
+        the steps are numbered in the whole procedure, [6/25] for its sixth, not [1/20]."""
+        self.done_before = done_before
         for n, e in enumerate(plan_estimates):
             step = getattr(e, "step", None)
             if step is not None and not getattr(step, "is_motion", True):
@@ -219,7 +223,9 @@ class Progress(_Display):
         self.wall_first = self.wall()
         total = sum(self.estimates.values())
         head = f"{title}: " if title else ""
-        self._line(f"{head}{len(self.order)} steps, about {format_duration(total)} of rig time")
+        left = (f"{len(self.order)} steps" if not done_before else
+                f"{len(self.order)} of {done_before + len(self.order)} steps left")
+        self._line(f"{head}{left}, about {format_duration(total)} of rig time")
 
     def step_started(self, step: Any) -> None:
         """A step begins (its rig start time is the latest ``update`` time)."""
@@ -278,7 +284,7 @@ class Progress(_Display):
         """The run ended with ``status`` (complete, interrupted, failed)."""
         rig = (self.now_s - self.t_first) if self.now_s is not None and self.t_first is not None else 0.0
         wall = self.wall() - self.wall_first if self.wall_first is not None else 0.0
-        text = (f"{status}: {len(self.finished)}/{len(self.order)} steps, "
+        text = (f"{status}: {self.done_before + len(self.finished)}/{self.done_before + len(self.order)} steps, "
                 f"{format_duration(rig)} of rig time in {format_duration(wall)} wall over the steps, "
                 f"dropped {self.dropped} samples")
         self._clear()
@@ -337,10 +343,10 @@ class Progress(_Display):
 
     def _position(self, key: int | None = None) -> str:
         key = self.step_key if key is None else key
-        n = len(self.order)
+        n, before = len(self.order), self.done_before
         if key in self.order:
-            return f"[{self.order.index(key) + 1}/{n}]"
-        return f"[{len(self.finished) + 1}/{n}]" if n else "[-]"
+            return f"[{before + self.order.index(key) + 1}/{before + n}]"
+        return f"[{before + len(self.finished) + 1}/{before + n}]" if n else "[-]"
 
     def _remaining_text(self) -> str:
         left = self.remaining_s()
@@ -422,7 +428,7 @@ class NullProgress(Progress):
     def __init__(self, stream: IO[str] | None = None) -> None:
         super().__init__(stream=stream if stream is not None else _Sink(), tty=False)
 
-    def start(self, plan_estimates: Iterable[Any] = (), title: str = "") -> None:
+    def start(self, plan_estimates: Iterable[Any] = (), title: str = "", done_before: int = 0) -> None:
         pass
 
     def step_started(self, step: Any) -> None:

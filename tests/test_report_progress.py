@@ -201,3 +201,23 @@ def test_work_progress_bar_on_a_terminal_lines_otherwise() -> None:
     silent = io.StringIO()
     WorkProgress("off", 10, stream=silent, enabled=False).update(5)
     assert silent.getvalue() == ""
+
+
+def test_a_resumed_run_numbers_its_steps_in_the_whole_procedure(plan) -> None:
+    """A resume after five finished motion steps: its first step is [6/25], not [1/20], and the
+    counts say how many are left of the whole (the runner passes done_before)."""
+    motion = [e for e in plan if e.step.is_motion]
+    assert len(motion) == 25
+    rest = [e for e in plan if e.step.index >= motion[5].step.index]
+    out, wall = io.StringIO(), Wall()
+    p = Progress(out, wall=wall, interval_s=10.0)
+    p.start(rest, "24pos", done_before=5)
+    p.update(0.0, _state(0.0), 0, 0)
+    p.step_started(motion[5].step)
+    p.update(motion[5].total_s, _state(1.0), 100, 0)
+    p.step_finished(motion[5].step, Seg(0, 100))
+    p.finish("complete")
+    lines = out.getvalue().strip("\n").split("\n")
+    assert lines[0].startswith("24pos: 20 of 25 steps left, about "), lines[0]
+    assert [ln.split(" ", 1)[0] for ln in lines if " started: " in ln or " done: " in ln] == ["[6/25]", "[6/25]"]
+    assert lines[-1].startswith("complete: 6/25 steps"), lines[-1]

@@ -512,7 +512,10 @@ def _drive_signalled(proc: Procedure, cfg: RigConfig, run_dir: Path, log: Any, c
                 if opts.on_engine:
                     opts.on_engine(engine)
                 try:
-                    progress.start([e for e in estimate(proc.steps, cfg) if e.step.index >= start], proc.name)
+                    plan = estimate(proc.steps, cfg)
+                    progress.start([e for e in plan if e.step.index >= start], proc.name,
+                                   done_before=sum(e.step.index < start and getattr(e.step, "is_motion", True)
+                                                   for e in plan))
                     # resuming: the cut-off left the table as it was; stop it before any motion
                     engine.run(proc.steps, start, on_step=on_step,
                                stop_first=f"session {ckpt.sessions}" if resuming else None)
