@@ -115,6 +115,21 @@ def welch_hann(y: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.n
     return fft.rfftfreq(nperseg, 1 / fs), s.mean(axis=-1)
 
 
+def _local_level(y: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, ...]:
+    """The periodogram both tests read (:func:`detect_tones`, :func:`detect_bands`): Welch
+    (Hann, ``nperseg``-sample segments, no overlap; K = len(y) // nperseg segments) ``f`` (Hz)
+    and ``p``; the local level, the running median over LEVEL_BINS bins over chi2_nu's median
+    / nu (nu = 2K); the bins tested (not within LEVEL_BINS / 2 of 0 Hz or fs / 2); nu and the
+    level's EDF nu LEVEL_BINS / pi."""
+    f, p = welch_hann(y, fs, nperseg)
+    nu = 2.0 * (y.size // nperseg)
+    level = median_filter(p, size=LEVEL_BINS, mode="nearest") / (chi2.median(nu) / nu)
+    half = LEVEL_BINS // 2
+    test = np.zeros(p.size, dtype=bool)
+    test[half: p.size - half] = True
+    return f, p, level, test, nu, nu * LEVEL_BINS / math.pi
+
+
 def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     """Tones in the rate samples ``y`` (sample rate ``fs``): see the module docstring.
     Returns {"tones": [{freq_hz, amp_si, psd_ratio, bins}...] strongest first, "nperseg",
@@ -133,14 +148,8 @@ def detect_tones(y: np.ndarray, fs: float, alpha: float = ALPHA) -> dict:
     if y.size < 16 * nper or nper < 4 * LEVEL_BINS:
         out["skipped"] = "too few samples for a periodogram"
         return out
-    f, p = welch_hann(y, fs, nper)
+    f, p, level, test, nu, nu_level = _local_level(y, fs, nper)
     k = y.size // nper
-    nu = 2.0 * k
-    nu_level = nu * LEVEL_BINS / math.pi
-    level = median_filter(p, size=LEVEL_BINS, mode="nearest") / (chi2.median(nu) / nu)
-    half = LEVEL_BINS // 2
-    test = np.zeros(p.size, dtype=bool)
-    test[half: p.size - half] = True
     n_test = int(np.count_nonzero(test))
     thr = float(fdist.isf(alpha / max(n_test, 1), nu, nu_level))
     ratio = np.where(level > 0, p / np.where(level > 0, level, 1.0), 0.0)
@@ -188,15 +197,8 @@ def detect_bands(y: np.ndarray, fs: float, tones: list[dict], nperseg: int,
     be shorter than 4 LEVEL_BINS samples."""
     if nperseg < 4 * LEVEL_BINS or y.size < 16 * nperseg:
         return []
-    f, p = welch_hann(y, fs, nperseg)
-    k = y.size // nperseg
-    nu = 2.0 * k
-    nu_level = nu * LEVEL_BINS / math.pi
-    level = median_filter(p, size=LEVEL_BINS, mode="nearest") / (chi2.median(nu) / nu)
+    f, p, level, test, nu, nu_level = _local_level(y, fs, nperseg)
     df = float(f[1] - f[0])
-    half = LEVEL_BINS // 2
-    test = np.zeros(p.size, dtype=bool)
-    test[half: p.size - half] = True
     for t in tones:
         test &= np.abs(f - float(t["freq_hz"])) > 2.5 * df
     n_test = int(np.count_nonzero(test))
