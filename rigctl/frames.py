@@ -25,6 +25,8 @@ specific force in m/s^2.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -95,6 +97,20 @@ def earth_rate_enu(latitude_rad: float) -> NDArray[np.float64]:
     return EARTH_RATE_RAD_S * np.array([0.0, np.cos(latitude_rad), np.sin(latitude_rad)])
 
 
+@functools.lru_cache(maxsize=16)
+def _normal_gravity_cached(latitude_rad: float, height_m: float) -> float:
+    """:func:`normal_gravity`, once per site (body_references runs at every emulator poll)."""
+    return normal_gravity(latitude_rad, height_m)
+
+
+@functools.lru_cache(maxsize=16)
+def _earth_rate_cached(latitude_rad: float) -> NDArray[np.float64]:
+    """:func:`earth_rate_enu`, once per latitude, read-only (it is shared)."""
+    w = earth_rate_enu(latitude_rad)
+    w.flags.writeable = False
+    return w
+
+
 def gimbal_rate_body(angles: ArrayLike, gimbal_rates: ArrayLike) -> NDArray[np.float64]:
     """Angular rate of the body relative to the (non-rotating) table base, in the body frame.
 
@@ -146,10 +162,15 @@ def body_references(
         (f_b, w_b): (..., 3) specific force in m/s^2 and angular rate in rad/s.
     """
     c_bn = gimbal_dcm(angles)
-    g_val = normal_gravity(latitude_rad, height_m) if g is None else float(g)
+    try:  # once per site (a hashable latitude and height: the usual floats)
+        g_site = _normal_gravity_cached(latitude_rad, height_m)
+        w_site = _earth_rate_cached(latitude_rad)
+    except TypeError:
+        g_site, w_site = normal_gravity(latitude_rad, height_m), earth_rate_enu(latitude_rad)
+    g_val = g_site if g is None else float(g)
     c_nb = np.swapaxes(c_bn, -1, -2)
     f_b = c_nb @ np.array([0.0, 0.0, g_val])
-    w_b = c_nb @ earth_rate_enu(latitude_rad)
+    w_b = c_nb @ w_site
     if gimbal_rates is not None:
         w_b = w_b + gimbal_rate_body(angles, gimbal_rates)
     return f_b, w_b

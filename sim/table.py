@@ -205,7 +205,7 @@ class Profile:
         t = np.asarray(t, dtype=float)
         pieces = self._arrays()
         if t.size and t.min() >= self.t[-1]:  # all in the last piece (an axis at rest, mostly)
-            tp, pp, vp, ap = (float(x) for x in pieces[:, -1])
+            tp, pp, vp, ap = pieces[:, -1].tolist()
             dt = t - tp
             return pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, np.full(t.shape, ap)
         idx = np.searchsorted(pieces[0], t, side="right") - 1  # <= n - 1
