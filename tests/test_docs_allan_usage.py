@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from helpers import ROOT, run_rigctl
+from helpers import ROOT, rigctl_in_process
 
 DOC = (ROOT / "docs" / "allan.md").read_text(encoding="utf-8")
 SECTION = DOC.split("## Using rigctl allan\n", 1)[1].split("\n## ", 1)[0]
@@ -28,7 +28,7 @@ def rec(tmp_path_factory) -> Path:
     proc = out / "capture.yaml"
     proc.write_text(f"procedure: allan-docs\nsteps:\n  - include: {ROOT / 'procedures' / 'warmup.yaml'}\n"
                     "  - capture: {duration: 2 min, label: overnight static}\n")
-    r = run_rigctl("run", str(proc), "-p", "warmup=10 s", "--out", str(out / "runs"), timeout=300)
+    r = rigctl_in_process("run", str(proc), "-p", "warmup=10 s", "--out", str(out / "runs"))
     assert r.returncode == 0, r.stderr[-2000:]
     (path,) = (out / "runs").glob("*/recording.h5")
     return path
@@ -43,9 +43,14 @@ def test_the_section_documents_every_output_option():
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-def test_documented_command_runs_and_writes_what_the_table_says(command: str, rec: Path, tmp_path: Path):
+def test_documented_command_runs_and_writes_what_the_table_says(command: str, rec: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch):
     args = [a.replace("$REC", str(rec)) for a in shlex.split(command)][1:]
-    r = run_rigctl(*args, "--db", "none", cwd=tmp_path, timeout=300)
+    # in this process (what the command computes and writes, not the process; a subprocess
+    # spent ~4 s of CPU per command on the interpreter's imports), run from tmp_path as the
+    # section's relative output names are
+    monkeypatch.chdir(tmp_path)
+    r = rigctl_in_process(*args, "--db", "none")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
     axes = args[args.index("--axes") + 1].split(",") if "--axes" in args else ["gx", "gy", "gz", "ax", "ay", "az"]
