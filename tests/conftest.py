@@ -73,6 +73,22 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
             "ind": independent_fit(y), "rec": rec}
 
 
+@pytest.fixture(scope="session")
+def declared_only_hour(tmp_path_factory) -> tuple[Path, dict]:
+    """One hour at rest, 100 Hz, of the emulator's declared_only profile with test_noise_coefficients'
+    GYRO and ACCEL coefficients (the profile's B, per-axis N, K ten times the profile's so that
+    the hour resolves it), recorded once per session (helpers.emulated_capture, seed 11): (the
+    recording, its /truth's imu). test_noise_coefficients and test_allan_kalibr both analyse it,
+    each on its own copy (SHARED_FIXTURE_FILES: one worker makes it once)."""
+    from helpers import emulated_capture
+    from rigctl.solvers.noise_coefficients import to_config
+    from test_noise_coefficients import ACCEL, GYRO, PROCEDURE
+
+    return emulated_capture(tmp_path_factory.mktemp("declared_only_hour"), {
+        "profile": "declared_only", "overrides": {"gyro": {"noise": to_config(GYRO, "gyro")},
+                                                  "accel": {"noise": to_config(ACCEL, "accel")}}}, PROCEDURE)
+
+
 @pytest.fixture
 def sock_dir():
     """A fresh directory under /tmp, removed afterwards: short enough for the AF_UNIX socket
@@ -122,6 +138,8 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
     "tests/test_allan_gm_real.py": "mtig_gx_allan",
     "tests/test_allan_gm_fit.py": "mtig_gx_allan",
+    "tests/test_noise_coefficients.py": "declared_only_hour",
+    "tests/test_allan_kalibr.py": "declared_only_hour",
 }
 
 #: files whose tests keep deadlines in wall time: one at a time on the real-time worker, with only
@@ -159,8 +177,7 @@ assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
 PARALLEL_FIRST: tuple[str, ...] = tuple(f"tests/test_{name}.py" for name in (
     "production_batch", "cli_hostile", "cal_pose_loop_synth", "calibrate_correlated",
     "report_quickstart", "calibrate_emulated", "thermal", "daemon_procedures", "capture_memory",
-    "allan_kalibr",
-)) + ("full_calibration_run", "mtig_gx_allan")
+)) + ("declared_only_hour", "full_calibration_run", "mtig_gx_allan")
 
 try:
     from xdist.scheduler import LoadScopeScheduling
