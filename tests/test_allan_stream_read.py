@@ -331,15 +331,16 @@ def test_head_kept_where_early_noise_ids_are_not_the_analysis(
     window's two stretches would put a Gauss-Markov candidate's gapped covariances, seconds
     of CPU, into the test.)"""
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, False)
-    seen = _small_chunks_spying(monkeypatch, lambda st: (st.head_released, st._head.nbytes))
+    _recording(rec, N_SCALED, False, scale=SCALE)  # (the shrunk layout: see SCALE)
+    seen = _small_chunks_spying(monkeypatch, lambda st: (st.head_released, st._head.nbytes),
+                                SCALE)
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
         r = AA.compute_once(str(rec), ["gx"], 95, gaps="bridge",
-                            drop=[(90_000, 91_000)])["axes"]["gx"]
+                            drop=[(90_000 // SCALE, 91_000 // SCALE)])["axes"]["gx"]
         got[early] = (np.asarray(r["alpha"]), np.asarray(r["edf"]))
-    assert seen == [(False, (50_000 + 1) * 8)] * 2
+    assert seen == [(False, (50_000 // SCALE + 1) * 8)] * 2
     assert np.array_equal(got[False][0], got[True][0])
     assert np.array_equal(got[False][1], got[True][1])
 
