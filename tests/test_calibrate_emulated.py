@@ -10,7 +10,7 @@ Shortened (-p warmup=1 min, -p sample=10 s, 100 Hz) so the three runs take ~30 s
   P(>3 | 95 % coverage) ~ 0.05 -- but the seed is fixed, so the test is deterministic); chi2/dof
   in [0.7, 1.4]. The run's own output ends with the calibration and the before/after table.
 * effects: a derived device profile (written here, selected through
-  rigctl.sim.profiles.DEFAULT_PATH in the rigctl process, because imu.sim accepts only a
+  rigctl.sim.profiles.DEFAULT_PATH in this process, because imu.sim accepts only a
   profile name) with g-sensitivity, accelerometer scale asymmetry, lever arm and gyro scale
   nonlinearity present and undeclared: each is flagged (p_adj < 0.01), named, its magnitude's
   95 % interval covers the truth, residual RMS <= 1.2 x the noise floor, errors shrink.
@@ -20,8 +20,6 @@ Shortened (-p warmup=1 min, -p sample=10 s, 100 Hz) so the three runs take ~30 s
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -77,23 +75,27 @@ def _payload(rec: Path) -> dict:
 def clean_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("clean")
     cfg = derived_config(tmp_path_factory.mktemp("cfg"), **WHITE_NOISE_ONLY)
-    proc = run_rigctl("run", "procedures/full-calibration.yaml", "--config", str(cfg), *SHORT,
-                      "--out", str(out), timeout=300)
+    # rigctl.cli.main in this process (helpers.rigctl_in_process): the run's output and recording
+    # are tested, not the process (the refusal in test_apply_cal_... runs the real command)
+    proc = rigctl_in_process("run", str(ROOT / "procedures" / "full-calibration.yaml"), "--config", str(cfg),
+                             *SHORT, "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     return proc.stdout, _recording(out)
 
 
-def _run_profile(tmp: Path, name: str) -> tuple[str, Path]:
+def _run_profile(tmp: Path, name: str, monkeypatch: pytest.MonkeyPatch) -> tuple[str, Path]:
+    """`rigctl run` (rigctl.cli.main in this process) with the derived profile file in place of
+    configs/imu-profiles.yaml (rigctl.sim.profiles.DEFAULT_PATH, restored by ``monkeypatch``)."""
+    import rigctl.sim.profiles as P
+
     prof = tmp / "profiles.yaml"
     prof.write_text(yaml.safe_dump({"profiles": PROFILES, "random": {"base": name, "noise_spread": 2.0}}))
     cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     cfg["imu"]["sim"] = {"profile": name}
     (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    code = ("import sys, rigctl.sim.profiles as P; P.DEFAULT_PATH = sys.argv[1]; "
-            "from rigctl.cli import main; sys.exit(main(sys.argv[2:]))")
-    proc = subprocess.run([sys.executable, "-c", code, str(prof), "run", "procedures/full-calibration.yaml",
-                           "--config", str(tmp / "cfg.yaml"), *SHORT, "--out", str(tmp / "runs")],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    monkeypatch.setattr(P, "DEFAULT_PATH", prof)
+    proc = rigctl_in_process("run", str(ROOT / "procedures" / "full-calibration.yaml"),
+                             "--config", str(tmp / "cfg.yaml"), *SHORT, "--out", str(tmp / "runs"))
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout, _recording(tmp / "runs")
 
@@ -176,8 +178,8 @@ def test_apply_cal_corrects_and_refuses_to_overwrite(clean_run, tmp_path):
             assert abs(q["value"] - expect) < 0.05 * (q["ci95_high"] - q["ci95_low"]), (name, q)
 
 
-def test_undeclared_effects_found_named_and_refitted(tmp_path):
-    out, rec = _run_profile(tmp_path, "effects_test")
+def test_undeclared_effects_found_named_and_refitted(tmp_path, monkeypatch):
+    out, rec = _run_profile(tmp_path, "effects_test", monkeypatch)
     assert "Closed loop: effects found" in out and "final" in out
     cl = _loop_checks(_payload(rec))
     found = {e["name"]: e for e in cl["effects"]}
@@ -198,8 +200,8 @@ def test_undeclared_effects_found_named_and_refitted(tmp_path):
     assert after < 0.01 * before and after / len(cl["truth_errors"]) < 2.0
 
 
-def test_warmup_drift_found(tmp_path):
-    out, rec = _run_profile(tmp_path, "warmup_test")
+def test_warmup_drift_found(tmp_path, monkeypatch):
+    out, rec = _run_profile(tmp_path, "warmup_test", monkeypatch)
     cl = _loop_checks(_payload(rec))
     names = [e["name"] for e in cl["effects"]]
     assert all(e["p_adj"] < 0.01 for e in cl["effects"])
@@ -217,9 +219,8 @@ def test_static_only_run_says_gyro_scale_needs_rates(clean_run, tmp_path):
     misalignments through Earth rate alone: the output says so and names the procedures that
     would determine them; a recording with rate segments carries no such note."""
     out = tmp_path / "runs"
-    proc = run_rigctl("run", "procedures/24pos.yaml", "--config",
-                      str(derived_config(tmp_path, **WHITE_NOISE_ONLY)),
-                      *SHORT, "--out", str(out), timeout=300)
+    proc = rigctl_in_process("run", str(ROOT / "procedures" / "24pos.yaml"), "--config",
+                             str(derived_config(tmp_path, **WHITE_NOISE_ONLY)), *SHORT, "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     cal = rigctl_in_process("calibrate", str(_recording(out)))  # its printed note: in process
     assert cal.returncode == 0, cal.stderr
