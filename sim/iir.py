@@ -84,6 +84,39 @@ def lfilter(b: NDArray[np.float64] | list[float], a: NDArray[np.float64] | list[
     return y, z
 
 
+def lfilter_prepared(b: NDArray[np.float64], a: NDArray[np.float64], x: NDArray[np.float64],
+                     zi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`lfilter` for coefficients already in its normal form: b and a 1-D C-contiguous
+    float64 arrays of one length n >= 2 with a[0] == 1 (as :func:`prepare` makes them), zi of n - 1
+    float64 states. The same values bit for bit, without re-checking and copying the
+    coefficients at every call (the emulated turntable filters a few samples per poll)."""
+    if not HAVE_NUMBA:  # pragma: no cover - exercised only without the extra
+        return lfilter(b, a, x, zi)
+    if not (x.dtype == np.float64 and x.ndim == 1 and x.flags.c_contiguous and x.flags.writeable
+            and x.flags.aligned):
+        x = np.require(x, np.float64, ["C", "A", "W"])
+        if x.ndim != 1:
+            raise ValueError("lfilter: x must be 1-D")
+    z = np.array(zi, dtype=np.float64)
+    y = np.empty_like(x)
+    _df2t(b, a, x, z, y)
+    return y, z
+
+
+def prepare(b: NDArray[np.float64] | list[float], a: NDArray[np.float64] | list[float]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(b, a) in the form :func:`lfilter_prepared` takes: float64, padded to one length, divided
+    by a[0] (exactly what :func:`lfilter` does to them at each call)."""
+    b = np.array(b, dtype=np.float64)
+    a = np.array(a, dtype=np.float64)
+    if a.ndim != 1 or b.ndim != 1 or a.size < 2 or a[0] == 0.0:
+        raise ValueError("lfilter: b and a must be 1-D, a of length >= 2 with a[0] != 0")
+    n = max(a.size, b.size)
+    if b.size != a.size or a[0] != 1.0:
+        b = np.concatenate([b, np.zeros(n - b.size)]) / a[0]
+        a = np.concatenate([a, np.zeros(n - a.size)]) / a[0]
+    return np.ascontiguousarray(b), np.ascontiguousarray(a)
+
+
 def cont2discrete_zoh(num: list[float], den: list[float], dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``scipy.signal.cont2discrete((num, den), dt, method="zoh")[:2]`` for a proper transfer
     function num(s)/den(s) (len(num) <= len(den), den of degree >= 1, num's leading coefficient

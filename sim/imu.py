@@ -96,11 +96,11 @@ class DeclaredImuModel:
             R = np.zeros(n) if temperature_rate is None else temperature_rate
             f = f + self.thermal.error("accel", f_true, T, H, R)
             w = w + self.thermal.error("gyro", w_true, T, H, R)
-        n_acc, n_gyr = terms_of(self.accel_noise, "N"), terms_of(self.gyro_noise, "N")
-        if np.any(n_acc > 0):
-            f = f + self.rng.standard_normal((n, 3)) * (n_acc * math.sqrt(self.rate_hz))
-        if np.any(n_gyr > 0):
-            w = w + self.rng.standard_normal((n, 3)) * (n_gyr * math.sqrt(self.rate_hz))
+        s_acc, s_gyr = self._white_sigmas()
+        if s_acc is not None:
+            f = f + self.rng.standard_normal((n, 3)) * s_acc
+        if s_gyr is not None:
+            w = w + self.rng.standard_normal((n, 3)) * s_gyr
         if "accel" in self._slow:
             f = f + self._slow["accel"].next(n)
         if "gyro" in self._slow:
@@ -108,6 +108,20 @@ class DeclaredImuModel:
         if self.thermal is not None and self.thermal.temperature_noise_c > 0:
             T = T + self._temp_rng.standard_normal(n) * self.thermal.temperature_noise_c
         return f, w, T
+
+    _white_key = (None, None, None)  # (accel_noise, gyro_noise, rate_hz) the sigmas were made for
+    _white = (None, None)
+
+    def _white_sigmas(self) -> tuple[NDArray | None, NDArray | None]:
+        """Per-sample white-noise sigmas (3,) of the accelerometers and gyros, N sqrt(rate_hz)
+        (None where no axis has N > 0), computed again only when the noise terms or the rate
+        change (apply runs at every emulator poll)."""
+        ka, kg, kr = self._white_key
+        if ka is not self.accel_noise or kg is not self.gyro_noise or kr != self.rate_hz:
+            n_acc, n_gyr = terms_of(self.accel_noise, "N"), terms_of(self.gyro_noise, "N")
+            self._white = tuple(n * math.sqrt(self.rate_hz) if np.any(n > 0) else None for n in (n_acc, n_gyr))
+            self._white_key = (self.accel_noise, self.gyro_noise, self.rate_hz)
+        return self._white
 
     def power_cycle(self) -> tuple[NDArray, NDArray]:
         """The unit lost power and is back: a new turn-on bias b_on ~ N(0, sigma^2) per axis

@@ -40,9 +40,13 @@ import numpy as np
 from numpy.typing import NDArray
 from rigctl.devices import AxisStatus
 
-from .iir import cont2discrete_zoh, lfilter
+from .iir import cont2discrete_zoh, lfilter, lfilter_prepared, prepare
 
 OFF, POSITION, RATE = 0, 1, 2
+_READY, _FAULT, _SERVO_ON, _OPERATION_ENABLED = (int(AxisStatus.READY), int(AxisStatus.FAULT), int(AxisStatus.SERVO_ON),
+                                                 int(AxisStatus.OPERATION_ENABLED))
+_PROFILE_COMPLETE, _MOVING, _AT_RATE, _TARGET_REACHED = (int(AxisStatus.PROFILE_COMPLETE), int(AxisStatus.MOVING),
+                                                         int(AxisStatus.AT_RATE), int(AxisStatus.TARGET_REACHED))
 
 
 @dataclass
@@ -200,6 +204,10 @@ class Profile:
         (p0, v0) moving uniformly. A piece is never run backwards from its start."""
         t = np.asarray(t, dtype=float)
         pieces = self._arrays()
+        if t.size and t.min() >= self.t[-1]:  # all in the last piece (an axis at rest, mostly)
+            tp, pp, vp, ap = pieces[:, -1].tolist()
+            dt = t - tp
+            return pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, np.full(t.shape, ap)
         idx = np.searchsorted(pieces[0], t, side="right") - 1  # <= n - 1
         idx = np.maximum(idx, 0)
         tp, pp, vp, ap = pieces[:, idx]
@@ -235,6 +243,8 @@ class TableAxis:
         self._b_e, self._a_e = cont2discrete_zoh([-1.0], den, dt)
         self._b_de, self._a_de = cont2discrete_zoh([-1.0, 0.0], den, dt)
         self._b_e, self._b_de = np.ravel(self._b_e), np.ravel(self._b_de)
+        # the two filters in lfilter's normal form, once (advance() runs them at every poll)
+        self._f_e, self._f_de = prepare(self._b_e, self._a_e), prepare(self._b_de, self._a_de)
         self._zi_e = np.zeros(2)
         self._zi_de = np.zeros(2)
         # load the compiled filter now, while the world is built before the run clock starts
@@ -247,6 +257,7 @@ class TableAxis:
         #: servo state at the recent grid points (time, e, e', the acceleration held over the
         #: following step, ripple angle), for :meth:`at`; trimmed by :meth:`forget_before`
         self._hist = np.empty((5, 0))
+        self._hist_ripple = False  # a ripple angle was ever stored in _hist (else its row is 0)
         self._t_first: float | None = None  # first grid time ever (at rest before it)
 
     def command(self, t: float, mode: int, value: float) -> None:
@@ -295,8 +306,8 @@ class TableAxis:
             p, v, a = self.profile.smoothed(t, self.t_jerk)
         else:
             p, v, a = self.profile.evaluate(t)
-        e, self._zi_e = lfilter(self._b_e, self._a_e, a, self._zi_e)
-        de, self._zi_de = lfilter(self._b_de, self._a_de, a, self._zi_de)
+        e, self._zi_e = lfilter_prepared(*self._f_e, a, self._zi_e)
+        de, self._zi_de = lfilter_prepared(*self._f_de, a, self._zi_de)
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e
         sv = self.servo
@@ -310,9 +321,16 @@ class TableAxis:
             self.last_t = float(t[-1])
             if self._t_first is None:
                 self._t_first = float(t[0])
-            new = np.vstack([t, e, de, np.broadcast_to(a, t.shape),
-                             np.zeros(t.size) if xr is None else xr])
-            self._hist = np.hstack([self._hist, new])
+            # one (5, m + n) array of the kept rows and the new ones (the same values as
+            # hstack(hist, vstack(rows)), without the intermediate arrays)
+            h = self._hist
+            m = h.shape[1]
+            hist = np.empty((5, m + t.size))
+            hist[:, :m] = h
+            hist[0, m:], hist[1, m:], hist[2, m:], hist[3, m:] = t, e, de, a
+            hist[4, m:] = 0.0 if xr is None else xr
+            self._hist_ripple = self._hist_ripple or xr is not None
+            self._hist = hist
         return x, w, acc
 
     def at(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
@@ -338,7 +356,8 @@ class TableAxis:
         if not h.shape[1]:
             zero = np.zeros(t.shape)
             return p, v, zero
-        if t.size and h[0, 0] > self._t_first and t.min() < h[0, 0] - 1e-9 * self.dt:
+        tmin = t.min() if t.size else math.inf
+        if h[0, 0] > self._t_first and tmin < h[0, 0] - 1e-9 * self.dt:
             raise RuntimeError(f"table state asked for t = {t.min():.6f} s, before the kept "
                                f"history ({h[0, 0]:.6f} s): forget_before() was called too late")
         j = np.searchsorted(h[0], t + 1e-9 * self.dt, side="right") - 1  # <= h.shape[1] - 1
@@ -352,13 +371,14 @@ class TableAxis:
         elif live.any():
             e, de = e0.copy(), de0.copy()
             e[live], de[live] = self._propagate(e0[live], de0[live], u[live], d[live])
-        before = t < self._t_first - 1e-9 * self.dt
-        if before.any():
+        before = None  # samples before the first grid point (at rest), only when there are any
+        if tmin < self._t_first - 1e-9 * self.dt:
+            before = t < self._t_first - 1e-9 * self.dt
             e, de = np.where(before, 0.0, e), np.where(before, 0.0, de)
         x, w = p + e, v + de
         acc = -self._2zwn * de - self._wn2 * e
         sv = self.servo
-        if sv.ripple_per_rev or sv.ripple_fraction or np.any(xr0 != 0.0):
+        if sv.ripple_per_rev or sv.ripple_fraction or (self._hist_ripple and np.any(xr0 != 0.0)):
             rr = v * (sv.ripple_per_rev * np.sin(p + sv.ripple_per_rev_phase)
                       + sv.ripple_fraction * np.sin(2 * np.pi * sv.ripple_hz * t + sv.ripple_phase))
             decay = 0.5 * self._2zwn
@@ -366,7 +386,7 @@ class TableAxis:
             moving = v != 0.0
             xr = np.where(moving, xr0 + rr * d, rest)
             wr = np.where(moving, rr, -decay * rest)
-            if np.any(before):
+            if before is not None:
                 xr, wr = np.where(before, 0.0, xr), np.where(before, 0.0, wr)
             x, w = x + xr, w + wr
         return x, w, acc
@@ -428,19 +448,28 @@ class TableAxis:
             self.in_window_since = None
 
     def status(self, t: float) -> int:
-        s = AxisStatus.READY
+        s = _READY  # plain ints: IntFlag arithmetic costs microseconds per operation
         if self.fault:
-            return int(s | AxisStatus.FAULT)
+            return s | _FAULT
         if self.mode != OFF:
-            s |= AxisStatus.SERVO_ON | AxisStatus.OPERATION_ENABLED
+            s |= _SERVO_ON | _OPERATION_ENABLED
         if t >= self.end:
-            s |= AxisStatus.PROFILE_COMPLETE
+            s |= _PROFILE_COMPLETE
         if abs(self.last[1]) > self.servo.at_rate_window:
-            s |= AxisStatus.MOVING
+            s |= _MOVING
         held = self.in_window_since is not None and t - self.in_window_since >= self.servo.dwell_s
         if held and t >= self.end:
-            s |= AxisStatus.AT_RATE if self.mode == RATE else AxisStatus.TARGET_REACHED
-        return int(s)
+            s |= _AT_RATE if self.mode == RATE else _TARGET_REACHED
+        return s
+
+
+def _columns(cols: list[tuple[NDArray, NDArray, NDArray]], n: int) -> tuple[NDArray, NDArray, NDArray]:
+    """The axes' (angle, rate, acceleration) as three (n, 3) arrays, axis k in column k (what
+    np.stack(..., axis=1) makes, with fewer calls)."""
+    out = np.empty((3, n, 3))
+    for k, c in enumerate(cols):
+        out[0, :, k], out[1, :, k], out[2, :, k] = c
+    return out[0], out[1], out[2]
 
 
 class SimTurntable:
@@ -460,16 +489,18 @@ class SimTurntable:
 
     def advance(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
         """(n, 3) actual angles, gimbal rates and gimbal accelerations on the grid ``t``."""
-        cols = [ax.advance(t) for ax in self.axes]
-        return (np.stack([c[0] for c in cols], axis=1), np.stack([c[1] for c in cols], axis=1),
-                np.stack([c[2] for c in cols], axis=1))
+        return _columns([ax.advance(t) for ax in self.axes], np.shape(t)[0])
+
+    def step(self, t: NDArray[np.float64]) -> None:
+        """:meth:`advance` without assembling its (n, 3) arrays (for a caller that reads the
+        state through :meth:`at` and :meth:`measured`)."""
+        for ax in self.axes:
+            ax.advance(t)
 
     def at(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
         """(n, 3) actual angles, gimbal rates and accelerations at any times ``t`` within the
         kept history (:meth:`TableAxis.at`): the table's state at the IMU's sample instants."""
-        cols = [ax.at(t) for ax in self.axes]
-        return (np.stack([c[0] for c in cols], axis=1), np.stack([c[1] for c in cols], axis=1),
-                np.stack([c[2] for c in cols], axis=1))
+        return _columns([ax.at(t) for ax in self.axes], np.shape(t)[0])
 
     def forget_before(self, t: float) -> None:
         """No :meth:`at` call will ask for times before ``t``: drop what only those needed."""

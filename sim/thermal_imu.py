@@ -121,11 +121,15 @@ class ThermalErrors:
         r = o.rate
         self.rate = {"accel": _vec(r.accel_bias_mg_per_K_per_min, MG * 60.0),
                      "gyro": _vec(r.gyro_bias_deg_h_per_K_per_min, DEG_H * 60.0)}
+        # which terms are non-zero, once (error() runs at every emulator poll)
+        self._nonzero = {sensor: ([bool(np.any(b) or np.any(M)) for b, M in terms],
+                                  bool(np.any(self.hyst[sensor])), bool(np.any(self.rate[sensor])))
+                         for sensor, terms in self.poly.items()}
+        self._active = any(any(p) or h or r for p, h, r in self._nonzero.values())
 
     @property
     def active(self) -> bool:
-        return any(np.any(b) or np.any(M) for terms in self.poly.values() for b, M in terms) or \
-            any(np.any(v) for v in self.hyst.values()) or any(np.any(v) for v in self.rate.values())
+        return self._active
 
     def error(self, sensor: str, x: np.ndarray, T: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Additive error (n, 3) of ``sensor`` for true input x (n, 3), temperature T (n,) degC,
@@ -133,13 +137,14 @@ class ThermalErrors:
         dT = (np.asarray(T, float) - self.reference_c)[:, None]
         out = np.zeros_like(x)
         p = np.ones_like(dT)
-        for b, M in self.poly[sensor]:
+        poly_on, hyst_on, rate_on = self._nonzero[sensor]
+        for (b, M), on in zip(self.poly[sensor], poly_on):
             p = p * dT
-            if np.any(b) or np.any(M):
+            if on:
                 out += p * (b + x @ M.T)
-        if np.any(self.hyst[sensor]):
+        if hyst_on:
             out += np.asarray(H, float)[:, None] * self.hyst[sensor]
-        if np.any(self.rate[sensor]):
+        if rate_on:
             out += np.asarray(R, float)[:, None] * self.rate[sensor]
         return out
 

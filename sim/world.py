@@ -226,7 +226,7 @@ class SimWorld:
         while True:
             j_stop = min(j_end, self._j + MAX_BLOCK)
             if j_stop > self._j:
-                self.table.advance(np.arange(self._j, j_stop) * self.h)
+                self.table.step(np.arange(self._j, j_stop) * self.h)
                 self._j = j_stop
             until = now if j_stop == j_end else (j_stop - 1) * self.h
             if isinstance(self.imu_model, DeclaredImuModel):

@@ -5,6 +5,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections import OrderedDict
 from pathlib import Path
 
 import pytest
@@ -72,6 +73,22 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
             "ind": independent_fit(y), "rec": rec}
 
 
+@pytest.fixture(scope="session")
+def declared_only_hour(tmp_path_factory) -> tuple[Path, dict]:
+    """One hour at rest, 100 Hz, of the emulator's declared_only profile with test_noise_coefficients'
+    GYRO and ACCEL coefficients (the profile's B, per-axis N, K ten times the profile's so that
+    the hour resolves it), recorded once per session (helpers.emulated_capture, seed 11): (the
+    recording, its /truth's imu). test_noise_coefficients and test_allan_kalibr both analyse it,
+    each on its own copy (SHARED_FIXTURE_FILES: one worker makes it once)."""
+    from helpers import emulated_capture
+    from rigctl.solvers.noise_coefficients import to_config
+    from test_noise_coefficients import ACCEL, GYRO, PROCEDURE
+
+    return emulated_capture(tmp_path_factory.mktemp("declared_only_hour"), {
+        "profile": "declared_only", "overrides": {"gyro": {"noise": to_config(GYRO, "gyro")},
+                                                  "accel": {"noise": to_config(ACCEL, "accel")}}}, PROCEDURE)
+
+
 @pytest.fixture
 def sock_dir():
     """A fresh directory under /tmp, removed afterwards: short enough for the AF_UNIX socket
@@ -100,15 +117,19 @@ def small_fs(tmp_path):
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
-# -- parallel runs: two phases ------------------------------------------------------------------
+# -- parallel runs: a real-time worker and background workers --------------------------------------
 # pyproject's addopts start two pytest-xdist workers (-n 2 --dist loadfile) and pytest_xdist_make_scheduler
-# below hands them _TwoPhaseScheduling: a test file is one unit of work (its module- and session-scoped
-# fixtures are made once, as in a serial run). Phase 1: the files not in REALTIME_FILES run on both
-# workers, the slowest first. Phase 2: once every phase-1 file has finished and the other worker has
-# exited, the REALTIME_FILES run one after another on one worker, alone on the cores, as in a serial
-# run: they keep deadlines in wall time (pty floods, 50x-500x rig clocks, kill -9 windows, HTTP
-# load, browsers, terminals) and missed them with a second worker on a 2-core machine. `-n 0` runs
-# everything serially; with the xdist plugin absent (-p no:xdist) the addopts fail, see README.
+# below hands them _RealtimeFirstScheduling: a test file is one unit of work (its module- and
+# session-scoped fixtures are made once, as in a serial run). The first worker (gw0, the real-time
+# worker) runs the REALTIME_FILES first, one after another, at normal priority; they keep deadlines in
+# wall time (pty floods, 50x-500x rig clocks, kill -9 windows, HTTP load, browsers, terminals). Every
+# other worker runs the other files meanwhile at background priority (_background_priority: its own
+# session and autogroup at nice 19, SCHED_IDLE, idle I/O class), so that it takes only the CPU time
+# the real-time tests leave unused: with a second worker at normal priority those tests missed their
+# deadlines on a 2-core machine, and with them alone on the cores (the previous scheme) a core sat
+# idle for the ~12 minutes they take. Once the real-time files are done gw0 takes the other files
+# too. `-n 0` runs everything serially; with the xdist plugin absent (-p no:xdist) the addopts fail,
+# see README.
 
 #: files that share an expensive session-scoped fixture of this conftest: one worker runs them all
 SHARED_FIXTURE_FILES = {
@@ -117,11 +138,14 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
     "tests/test_allan_gm_real.py": "mtig_gx_allan",
     "tests/test_allan_gm_fit.py": "mtig_gx_allan",
+    "tests/test_noise_coefficients.py": "declared_only_hour",
+    "tests/test_allan_kalibr.py": "declared_only_hour",
 }
 
-#: files whose tests keep deadlines in wall time: phase 2, one at a time, with no other test running.
-#: A new test file on ptys, TCP devices, a scaled or real clock, subprocess daemons or wall-clock
-#: waits belongs here; any file not listed runs beside another file in phase 1
+#: files whose tests keep deadlines in wall time: one at a time on the real-time worker, with only
+#: background-priority work beside them. A new test file on ptys, TCP devices, a scaled or real
+#: clock, subprocess daemons or wall-clock waits belongs here; any file not listed runs on either
+#: worker
 REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
     # subprocess daemons, scaled clocks, kill -9, HTTP load, a browser, notifications
     "daemon_analysis_interrupt", "daemon_control", "daemon_crash", "daemon_http_browser", "daemon_http_load",
@@ -147,77 +171,72 @@ REALTIME_FILES = frozenset(f"tests/test_{name}.py" for name in (
 _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
 assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
 
-#: phase-1 files by their CPU seconds (own + subprocesses) in a full run, largest first, so that the
-#: two workers end together (116 s production_batch ... 28 s the full_calibration_run group); the
+#: the other files by their CPU seconds (own + subprocesses) in a full run, largest first, so that
+#: the two workers end together (116 s production_batch ... 28 s the full_calibration_run group); the
 #: files not listed (under 15 s each) follow in collection order
 PARALLEL_FIRST: tuple[str, ...] = tuple(f"tests/test_{name}.py" for name in (
     "production_batch", "cli_hostile", "cal_pose_loop_synth", "calibrate_correlated",
     "report_quickstart", "calibrate_emulated", "thermal", "daemon_procedures", "capture_memory",
-    "allan_kalibr",
-)) + ("full_calibration_run", "mtig_gx_allan")
+)) + ("declared_only_hour", "full_calibration_run", "mtig_gx_allan")
 
 try:
     from xdist.scheduler import LoadScopeScheduling
 except ImportError:  # a venv installed before pytest-xdist joined the test extras
     LoadScopeScheduling = None
 
+#: the xdist worker that runs REALTIME_FILES at normal priority
+REALTIME_WORKER = "gw0"
+
 if LoadScopeScheduling is not None:
-    class _TwoPhaseScheduling(LoadScopeScheduling):
-        """--dist loadfile (with SHARED_FIXTURE_FILES as one unit) in two phases: the other files
-        on every worker, then REALTIME_FILES on one worker alone.
+    class _RealtimeFirstScheduling(LoadScopeScheduling):
+        """--dist loadfile (with SHARED_FIXTURE_FILES as one unit): the REALTIME_FILES on the
+        real-time worker first, the other files (PARALLEL_FIRST's order) on every worker.
 
         An xdist worker runs a test only once it holds the next one (or is told to shut down), so
-        a worker counts as done only when it has exited: when the queue reaches the real-time
-        units, each worker that asks for work is shut down (it runs the tests it holds and exits)
-        while another one still takes work; the last one (``_rt``) gets the real-time units once
-        all the others have been removed, so it holds at most one phase-1 test back meanwhile."""
+        each worker is kept at most two tests ahead. If the real-time worker goes (a crash), the
+        next worker that asks for work takes the remaining real-time files."""
 
         def __init__(self, config, log=None):
             super().__init__(config, log)
-            self._rt = None
+            self._rt_queue: OrderedDict[str, dict[str, bool]] = OrderedDict()
+            self._rt_node = None  # the worker that runs the real-time files (None: not chosen yet)
 
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
             return SHARED_FIXTURE_FILES.get(path, path)
 
-        @staticmethod
-        def _realtime(scope: str) -> bool:
-            return scope in REALTIME_FILES
+        def _assign(self, node, queue) -> None:
+            scope, work_unit = queue.popitem(last=False)
+            self.assigned_work.setdefault(node, {})[scope] = work_unit
+            collection = self.registered_collections[node]
+            node.send_runtest_some([collection.index(nodeid) for nodeid, done in work_unit.items()
+                                    if not done])
 
         def _reschedule(self, node) -> None:
-            if node.shutting_down:
+            if node.shutting_down or self._pending_of(self.assigned_work[node]) > 2:
                 return
-            if not self.workqueue:
+            if self._rt_node is None and self._rt_queue:
+                # gw0 while it lives; after a crash, whichever worker asks first
+                named = [n for n in self.assigned_work if n.gateway.id == REALTIME_WORKER]
+                self._rt_node = named[0] if named else node
+            if self._rt_queue and node is self._rt_node:
+                self._assign(node, self._rt_queue)
+            elif self.workqueue:
+                self._assign(node, self.workqueue)
+            else:
                 node.shutdown()
-                return
-            if self._pending_of(self.assigned_work[node]) > 2:
-                return
-            if not self._realtime(next(iter(self.workqueue))):
-                self._assign_work_unit(node)
-                return
-            # phase 2: the last worker still taking work runs it; any other one finishes and exits
-            if self._rt is None:
-                if any(n is not node and not n.shutting_down for n in self.assigned_work):
-                    node.shutdown()
-                    return
-                self._rt = node
-            if node is not self._rt:
-                node.shutdown()
-                return
-            if len(self.assigned_work) > 1:  # another worker is still finishing its phase-1 files
-                return
-            while self.workqueue and self._pending_of(self.assigned_work[node]) <= 2:
-                self._assign_work_unit(node)
 
         def remove_node(self, node):
+            if node is self._rt_node:
+                self._rt_node = None  # crashed (or done): the next worker to ask takes what is left
             crashitem = super().remove_node(node)
-            if node is self._rt:
-                self._rt = None  # crashed: the next worker to ask takes phase 2
-                for other in list(self.assigned_work):
-                    self._reschedule(other)
-            elif self._rt is not None and self._rt in self.assigned_work:
-                self._reschedule(self._rt)
+            for other in list(self.assigned_work):
+                self._reschedule(other)
             return crashitem
+
+        @property
+        def tests_finished(self) -> bool:
+            return not self._rt_queue and super().tests_finished
 
         def schedule(self) -> None:
             assert self.collection_is_completed
@@ -235,12 +254,8 @@ if LoadScopeScheduling is not None:
             for nodeid in self.collection:
                 units.setdefault(self._split_scope(nodeid), {})[nodeid] = False
             rank = {f: i for i, f in enumerate(PARALLEL_FIRST)}
-            order = sorted(units, key=lambda u: (self._realtime(u), rank.get(u, len(rank))))
-            for scope in order:
-                self.workqueue[scope] = units[scope]
-            for _ in range(max(0, len(self.nodes) - len(self.workqueue))):
-                unused, _ = self.assigned_work.popitem()
-                unused.shutdown()
+            for scope in sorted(units, key=lambda u: rank.get(u, len(rank))):
+                (self._rt_queue if scope in REALTIME_FILES else self.workqueue)[scope] = units[scope]
             for node in self.nodes:
                 self._reschedule(node)
             for node in self.nodes:
@@ -248,7 +263,36 @@ if LoadScopeScheduling is not None:
 
     @pytest.hookimpl(optionalhook=True)
     def pytest_xdist_make_scheduler(config, log):
-        return _TwoPhaseScheduling(config, log) if config.getoption("dist") == "loadfile" else None
+        return _RealtimeFirstScheduling(config, log) if config.getoption("dist") == "loadfile" else None
+
+
+def _background_priority() -> list[str]:
+    """Put this process (a background xdist worker) and the processes it starts at background
+    priority: a session of its own, whose autogroup gets nice 19 (with the kernel's autogroups on,
+    CPU time is shared between sessions first, so SCHED_IDLE alone would still take half the cores
+    from a daemon the real-time worker starts in its own session), the SCHED_IDLE policy within it,
+    and the idle I/O class. Returns what could not be done (each step is independent)."""
+    failed = []
+    try:
+        os.setsid()
+    except OSError as e:
+        failed.append(f"setsid: {e}")
+    try:
+        with open("/proc/self/autogroup", "w") as fh:
+            fh.write("19")
+    except OSError as e:
+        failed.append(f"autogroup nice: {e}")
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (OSError, AttributeError) as e:
+        failed.append(f"SCHED_IDLE: {e}")
+    try:
+        r = subprocess.run(["ionice", "-c", "3", "-p", str(os.getpid())], capture_output=True, text=True)
+        if r.returncode:
+            failed.append(f"ionice: {r.stderr.strip()}")
+    except OSError as e:
+        failed.append(f"ionice: {e}")
+    return failed
 
 
 #: the source trees of the installed package (pyproject's package-dir: rigctl, rigctl.drivers,
@@ -267,6 +311,8 @@ def pytest_configure(config):
     compileall checks each source's mtime and size as the import system does, so an edited file
     is compiled again here (or, if this fails, e.g. a read-only tree, in each process as before)."""
     if hasattr(config, "workerinput"):  # an xdist worker: the controller did it
+        if config.workerinput.get("rigctl_background"):  # pytest_configure_node
+            config.workeroutput["background_priority_failed"] = _background_priority()
         return
     import compileall
 
@@ -359,6 +405,23 @@ def pytest_runtest_logreport(report):
     if report.when == "call":
         _SUMMARY.extend(line for key, lines in report.user_properties if key == "rigctl_summary"
                         for line in lines)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """With _RealtimeFirstScheduling (--dist loadfile), every worker but the real-time one runs
+    at background priority (its pytest_configure, _background_priority)."""
+    node.workerinput["rigctl_background"] = (node.config.getoption("dist") == "loadfile"
+                                             and node.gateway.id != REALTIME_WORKER)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """A background worker that could not lower its priority says so in the summary: the
+    real-time tests then had a competitor on the cores."""
+    failed = getattr(node, "workeroutput", {}).get("background_priority_failed")
+    if failed:
+        _SUMMARY.append(f"background worker {node.gateway.id}: priority not fully lowered ({'; '.join(failed)})")
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):

@@ -92,19 +92,30 @@ def derived_config(tmp_path: Path, name: str = "sim.yaml", **changes: Any) -> Pa
 
 def emulated_capture(tmp: Path, imu_sim: dict[str, Any], procedure: str, seed: int = 11) -> tuple[Path, dict]:
     """``rigctl run`` of ``procedure`` (YAML text) on configs/sim.yaml with ``imu.sim`` replaced:
-    (the recording, its /truth's ``imu`` parameters)."""
+    (the recording, its /truth's ``imu`` parameters). The run goes through
+    :func:`rigctl_in_process` (its paths are absolute): the callers test the recording, not the
+    process."""
     cfg = yaml.safe_load((ROOT / "configs" / "sim.yaml").read_text())
     cfg["seed"] = seed
     cfg["imu"]["sim"] = imu_sim
     (tmp / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     (tmp / "procedure.yaml").write_text(procedure)
-    r = run_rigctl("run", str(tmp / "procedure.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
-                   str(tmp / "runs"), timeout=600)
+    r = rigctl_in_process("run", str(tmp / "procedure.yaml"), "--config", str(tmp / "cfg.yaml"), "--out",
+                          str(tmp / "runs"))
     assert r.returncode == 0, r.stderr[-2000:]
     (rec,) = sorted((tmp / "runs").glob("*/recording.h5"))
     with h5py.File(rec, "r") as f:
         truth = json.loads(f["truth"].attrs["params_json"])["imu"]
     return rec, truth
+
+
+def copy_recording(rec: Path, dest: Path) -> Path:
+    """A copy of a shared session fixture's recording (e.g. conftest's declared_only_hour) in
+    ``dest``: what one file's commands write into it (/results) stays out of the others' view."""
+    import shutil
+
+    dest.mkdir(parents=True, exist_ok=True)
+    return Path(shutil.copy2(rec, dest / rec.name))
 
 
 def rigctl_cmd() -> list[str]:

@@ -120,21 +120,43 @@ def test_phase_cols3_bit_identical() -> None:
     assert got[0].tolist() == [cuts[3], 5000]
 
 
-def _recording(path: Path, n: int, gaps: bool, seed: int = 4) -> None:
+def _recording(path: Path, n: int, gaps: bool, seed: int = 4, scale: int = 1) -> None:
+    """``scale`` > 1: the 160 000-row layout shrunk by that factor (the spikes' and gaps' rows
+    and the file's chunk rows divided by it; two adjacent spikes stay adjacent), for a
+    same-results test whose CHUNK_ROWS, HEAD_POINTS and DEC_POINTS shrink with it (SCALE)."""
     rng = np.random.default_rng(seed)
     fs = 200.0
     g = rng.standard_normal((n, 3)) * 1e-3 + np.cumsum(rng.standard_normal((n, 3)), 0) * 1e-7
     a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
     for k in (1_000, 45_000, 45_001, 70_123, 100_000, 140_000, 159_990):  # spikes
+        k = k // scale if k != 45_001 else 45_000 // scale + 1
         if k >= n:
             continue
         g[k, k % 3] += 0.2
         a[k, (k + 1) % 3] -= 0.5
     idx = np.arange(n, dtype=np.uint64)
     if gaps:
-        idx[60_000:] += 5
-        idx[123_457:] += 1
-    write_recording(path, fs, counter=idx, angular_rate=g, specific_force=a, chunk_rows=8192)
+        idx[60_000 // scale:] += 5
+        idx[123_457 // scale:] += 1
+    write_recording(path, fs, counter=idx, angular_rate=g, specific_force=a,
+                    chunk_rows=8192 // scale)
+
+
+#: the same-results tests' shrink factor: 40 000 rows in 5 000-row chunks (8 chunks, more than
+#: the 2 workers; the gaps one at a chunk boundary and one inside a chunk; spikes on chunk
+#: boundaries, side by side and 10 rows from the end; each read across the file's 2048-row
+#: chunks), a 4096-point head and the phase decimated by 64 -- the 160 000-row layout divided
+#: by 4. What they compare (the same numbers from two ways of streaming) does not depend on the
+#: record's length; the analyses after the stream (the Gauss-Markov candidate's gapped
+#: covariances above all) cost less on the shorter record
+SCALE = 4
+N_SCALED = 160_000 // SCALE
+
+
+def _scaled_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000 // SCALE)
+    monkeypatch.setattr(AA, "HEAD_POINTS", (1 << 14) // SCALE)
+    monkeypatch.setattr(AA, "DEC_POINTS", (1 << 12) // SCALE)
 
 
 def _flat(r: dict) -> dict:
@@ -160,12 +182,10 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, gaps)
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
+    _recording(rec, N_SCALED, gaps, scale=SCALE)
     # the noise ID's copies: a short head and the phase decimated by 64 (taken inside the
     # cascade on the fused path, by a strided pass on the other)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
-    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    _scaled_chunks(monkeypatch)
     got = {}
     decs: list = []
     orig = AA.analyse_axis
@@ -187,7 +207,7 @@ def test_fused_pass_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
             assert res["gaps"]["count"] == 2
     assert len(got[True]["dec"]) == len(axes)
     for u in got[False]["dec"]:  # (the axes are analysed on two threads, in any order)
-        assert u.size == 160_000 // 64 + 1
+        assert u.size == N_SCALED // 64 + 1
         assert any(np.array_equal(u, v) for v in got[True]["dec"])
     for a in axes:
         for k, v in got[False][a].items():
@@ -261,11 +281,12 @@ def test_cascade_same_terms_as_the_strided_levels() -> None:
             assert abs(got[lag] / lev.sums[lag] - 1) < 1e-13, (lev.s, lag)
 
 
-def _small_chunks_spying(monkeypatch: pytest.MonkeyPatch, look) -> list:
+def _small_chunks_spying(monkeypatch: pytest.MonkeyPatch, look, scale: int = 1) -> list:
     """Stream in 20,000-row chunks with a 50,000-point head (complete within the third chunk)
-    and record ``look(stream)`` for each axis the analysis is handed after the last chunk."""
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000)
+    and record ``look(stream)`` for each axis the analysis is handed after the last chunk
+    (``scale``: both divided by it, for a record shrunk by it)."""
+    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000 // scale)
+    monkeypatch.setattr(AA, "HEAD_POINTS", 50_000 // scale)
     monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
     seen: list = []
     orig = AA.analyse_axis
@@ -285,9 +306,9 @@ def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
     then drops the head (:meth:`_AxisStream._release_head`: the analysis is handed a stream
     without it), with the same noise IDs, EDFs and tones."""
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, True)
+    _recording(rec, N_SCALED, True, scale=SCALE)  # (the shrunk layout: see SCALE)
     used = _small_chunks_spying(monkeypatch, lambda stream: (
-        len(stream._nid), stream.head_released, stream._head.nbytes))
+        len(stream._nid), stream.head_released, stream._head.nbytes), SCALE)
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
@@ -295,7 +316,7 @@ def test_early_noise_ids_same_as_after_the_last_chunk(tmp_path: Path,
         got[early] = {a: (np.asarray(r["alpha"]), np.asarray(r["edf"]), r["tones"])
                       for a, r in res["axes"].items()}
     assert [u[0] for u in used[:2]] == [0, 0] and min(u[0] for u in used[2:4]) >= 20
-    assert [u[1:] for u in used[:4]] == [(False, (50_000 + 1) * 8)] * 2 + [(True, 0)] * 2
+    assert [u[1:] for u in used[:4]] == [(False, (50_000 // SCALE + 1) * 8)] * 2 + [(True, 0)] * 2
     for a in got[False]:
         assert np.array_equal(got[False][a][0], got[True][a][0])
         assert np.array_equal(got[False][a][1], got[True][a][1])
@@ -310,15 +331,16 @@ def test_head_kept_where_early_noise_ids_are_not_the_analysis(
     window's two stretches would put a Gauss-Markov candidate's gapped covariances, seconds
     of CPU, into the test.)"""
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, False)
-    seen = _small_chunks_spying(monkeypatch, lambda st: (st.head_released, st._head.nbytes))
+    _recording(rec, N_SCALED, False, scale=SCALE)  # (the shrunk layout: see SCALE)
+    seen = _small_chunks_spying(monkeypatch, lambda st: (st.head_released, st._head.nbytes),
+                                SCALE)
     got = {}
     for early in (False, True):
         monkeypatch.setattr(AA, "EARLY_NOISE_ID", early)
         r = AA.compute_once(str(rec), ["gx"], 95, gaps="bridge",
-                            drop=[(90_000, 91_000)])["axes"]["gx"]
+                            drop=[(90_000 // SCALE, 91_000 // SCALE)])["axes"]["gx"]
         got[early] = (np.asarray(r["alpha"]), np.asarray(r["edf"]))
-    assert seen == [(False, (50_000 + 1) * 8)] * 2
+    assert seen == [(False, (50_000 // SCALE + 1) * 8)] * 2
     assert np.array_equal(got[False][0], got[True][0])
     assert np.array_equal(got[False][1], got[True][1])
 
@@ -410,10 +432,8 @@ def test_pipelined_chunks_same_results(tmp_path: Path, monkeypatch: pytest.Monke
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, gaps)
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
-    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    _recording(rec, N_SCALED, gaps, scale=SCALE)
+    _scaled_chunks(monkeypatch)
     early: list = []
     orig = AA._AxisStream.head_noise_ids
     monkeypatch.setattr(AA._AxisStream, "head_noise_ids",
@@ -423,7 +443,7 @@ def test_pipelined_chunks_same_results(tmp_path: Path, monkeypatch: pytest.Monke
         monkeypatch.setattr(AA, "PIPELINED", pipelined)
         early.clear()
         res = AA.compute(str(rec), axes, 95, outliers=outliers)
-        assert len(early) == len(axes) and max(early) < 160_000  # before the last chunk
+        assert len(early) == len(axes) and max(early) < N_SCALED  # before the last chunk
         got[pipelined] = {a: _flat(r) for a, r in res["axes"].items()}
         assert sum(r["spikes"]["count"] for r in res["axes"].values()) >= len(axes)
     for a in axes:
@@ -447,10 +467,8 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
-    _recording(rec, 160_000, gaps)
-    monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
-    monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
-    monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)
+    _recording(rec, N_SCALED, gaps, scale=SCALE)
+    _scaled_chunks(monkeypatch)
     monkeypatch.setattr(AA, "LEAD_CHUNKS", lead_chunks)
     lead = AA.AXES[axes[0]][0]
     made: list = []  # the axes' streams, in the order of ``axes``
@@ -567,19 +585,20 @@ def test_gc_paused_while_streaming(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             gc.disable()
 
 
-def _recorder_file(path: Path, n: int, fs: float = 200.0) -> None:
+def _recorder_file(path: Path, n: int, fs: float = 200.0, scale: int = 1) -> None:
     """A recording written by rigctl's Recorder, 1000 rows per flush: its 8192-row chunks of
     the /imu datasets alternate in the file, at byte offsets that are not multiples of 8;
-    with spikes and two gaps in the counter."""
+    with spikes and two gaps in the counter (their rows divided by ``scale``)."""
     rng = np.random.default_rng(11)
     g = rng.standard_normal((n, 3)) * 1e-3 + np.cumsum(rng.standard_normal((n, 3)), 0) * 1e-7
     a = rng.standard_normal((n, 3)) * 2e-3 + [0.0, 0.0, 9.80665]
     for k in (1_000, 45_000, 70_123, 100_000, 140_000):
+        k //= scale
         g[k, k % 3] += 0.2
         a[k, (k + 1) % 3] -= 0.5
     idx = np.arange(n, dtype=np.uint64)
-    idx[60_000:] += 5
-    idx[123_457:] += 1
+    idx[60_000 // scale:] += 5
+    idx[123_457 // scale:] += 1
     rec = Recorder(path, {"procedure_name": "mapped rows"}, None, imu_rate_hz=fs,
                    flush_interval_s=0.0)
     for s in range(0, n, 1000):
@@ -598,7 +617,10 @@ def test_mapped_rows_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "rec.h5"
-    _recorder_file(rec, 160_000)
+    # 80 000 rows (the spikes' and gaps' rows halved): 4 chunks of 20 000 rows, more than the
+    # 2 workers, each read across 3 or 4 of the recorder's 8192-row chunks (the chunk size
+    # stays: a view of several pieces is what is compared); the gapped analyses cost less
+    _recorder_file(rec, 80_000, scale=2)
     monkeypatch.setattr(AA, "CHUNK_ROWS", 20_000)
     monkeypatch.setattr(AA, "HEAD_POINTS", 1 << 14)
     monkeypatch.setattr(AA, "DEC_POINTS", 1 << 12)

@@ -74,3 +74,24 @@ def test_normal_gravity_known_values():
     assert normal_gravity(math.pi / 2) == pytest.approx(9.8321849378, abs=1e-7)
     # free-air gradient about -3.086e-6 s^-2
     assert (normal_gravity(LAT, 1000.0) - normal_gravity(LAT)) == pytest.approx(-3.086e-3, rel=2e-3)
+
+
+def test_rotation_matrices_are_the_row_formula_bit_for_bit():
+    """frames._rot fills its matrices in place (the emulator builds them at every poll); it must
+    give the values and the memory layout (hence the matmul path and its rounding) of the plain
+    formula: the rows as nested lists, moved to the last two axes."""
+    from rigctl.frames import _rot
+
+    rng = np.random.default_rng(5)
+    for shape in ((), (1,), (7,), (4, 3)):
+        th = rng.uniform(-7.0, 7.0, shape)
+        c, s = np.cos(th), np.sin(th)
+        one, zero = np.ones_like(th), np.zeros_like(th)
+        rows = {"x": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
+                "y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
+                "z": [[c, -s, zero], [s, c, zero], [zero, zero, one]]}
+        for axis, r in rows.items():
+            want = np.moveaxis(np.array(r, dtype=np.float64), (0, 1), (-2, -1))
+            got = _rot(axis, th)
+            assert got.shape == want.shape and got.strides == want.strides
+            assert got.tobytes() == want.tobytes()

@@ -14,6 +14,7 @@ import re
 import shutil
 import sqlite3
 import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -77,21 +78,41 @@ def _rows(db: Path) -> dict[tuple[str, str], tuple]:
         con.close()
 
 
+#: `rigctl calibrate REC --spec SPEC --db DB` for each REC in turn, through rigctl.cli.main in one
+#: fresh interpreter: a JSON list of {code, out, err}
+SERIAL_SCRIPT = r"""
+import contextlib, io, json, sys
+from rigctl.cli import main
+runs = []
+for rec in sys.argv[3:]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["calibrate", rec, "--spec", sys.argv[1], "--db", sys.argv[2]])
+    runs.append({"code": code, "out": out.getvalue(), "err": err.getvalue()})
+print(json.dumps(runs))
+"""
+
+
 @pytest.fixture(scope="session")
 def serial(lot_runs) -> tuple[Path, list[str]]:
-    """Eight serial `rigctl calibrate REC --spec S` calls into serial.sqlite, each the real command
-    (a subprocess); their outputs. The batch runs below must equal all eight row by row, exactly.
-    (Not rigctl.cli.main in the test worker: in a clean-clone CI run its results differed from the
-    batch's in the last bits -- 0.01989879399944967 against 0.019898793999449455 mg -- where
-    fresh processes agree exactly; the cause is not traced.)"""
+    """Eight serial `rigctl calibrate REC --spec S` calls into serial.sqlite, one after another
+    in one fresh process (SERIAL_SCRIPT: rigctl.cli.main, as the command runs it, without seven
+    more interpreters and imports); their outputs. The batch runs below must equal all eight row
+    by row, exactly: the batch's own worker processes (Dask's multiprocessing scheduler, fresh
+    processes) calibrate several recordings each in the same way. (Not rigctl.cli.main in the
+    test worker: in a clean-clone CI run its results differed from the batch's in the last bits
+    -- 0.01989879399944967 against 0.019898793999449455 mg -- where fresh processes agree
+    exactly; the cause is not traced.)"""
     root, recs = lot_runs
     db = root / "serial.sqlite"
-    outs = []
-    for rec in recs:
-        r = run_rigctl("calibrate", str(rec), "--spec", str(root / "spec.yaml"), "--db", str(db))
-        assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
-        outs.append(r.stdout)
-    return db, outs
+    r = subprocess.run([sys.executable, "-c", SERIAL_SCRIPT, str(root / "spec.yaml"), str(db), *map(str, recs)],
+                       capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
+    runs = json.loads(r.stdout.strip().splitlines()[-1])
+    assert len(runs) == len(recs)
+    for c in runs:
+        assert c["code"] == 0, c["out"][-1500:] + c["err"][-1500:]
+    return db, [c["out"] for c in runs]
 
 
 def _shown(out: str, name: str) -> tuple[float, float, str]:
@@ -186,9 +207,10 @@ def test_batch_on_a_distributed_cluster_equals_serial(lot_runs, serial, tmp_path
     root, _ = lot_runs
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster:
-        r = run_rigctl("batch", str(root / "runs" / "*" / "*" / "recording.h5"), "--spec",
-                       str(root / "spec.yaml"), "--scheduler", cluster.scheduler_address,
-                       "--db", str(tmp_path / "dist.sqlite"), "--out", str(tmp_path / "s"), timeout=300)
+        # the batch's client in this process (the calibrations run on the cluster's worker processes)
+        r = rigctl_in_process("batch", str(root / "runs" / "*" / "*" / "recording.h5"), "--spec",
+                              str(root / "spec.yaml"), "--scheduler", cluster.scheduler_address,
+                              "--db", str(tmp_path / "dist.sqlite"), "--out", str(tmp_path / "s"))
         assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
         workers = {w["host"] for w in cluster.scheduler_info["workers"].values()}
     assert "dask.distributed at tcp://127.0.0.1" in r.stdout and workers == {"127.0.0.1"}
@@ -217,7 +239,7 @@ def test_history_drift_against_numpy(lot_runs, serial, tmp_path):
     rows = con.execute("SELECT a.recorded_utc, r.value, r.u FROM results r JOIN analyses a ON a.id = r.analysis_id "
                        "WHERE r.parameter = 'accel_bias_x' ORDER BY a.recorded_utc").fetchall()
     con.close()
-    r = run_rigctl("history", unit[0][0], "--db", str(db))
+    r = rigctl_in_process("history", unit[0][0], "--db", str(db))
     assert r.returncode == 0, r.stderr
     block = r.stdout.split("accel_bias_x [mg]")[1].split("\n\n")[0]
     m = re.search(r"drift: (?:not resolved: )?(\S+) \+- (\S+) mg/year(, its 95 % interval includes zero)? "
@@ -240,7 +262,7 @@ def test_history_drift_against_numpy(lot_runs, serial, tmp_path):
     k95 = student_t.ppf(0.975, 1) if scale > 1.0 else Z95
     assert (m.group(3) is not None) == (abs(coef[0]) <= k95 * np.sqrt(cov[0, 0]) * scale)
     assert block.split("drift:")[1].startswith(" not resolved: ") == (m.group(3) is not None)
-    r = run_rigctl("history", "no-such-unit", "--db", str(db))
+    r = rigctl_in_process("history", "no-such-unit", "--db", str(db))
     assert r.returncode == 2 and "no results for unit" in r.stderr and unit[0][0] in r.stderr
 
 
@@ -307,7 +329,8 @@ def test_postgresql_holds_the_same_rows(lot_runs, serial, postgres):
 
     _, recs = lot_runs
     for rec in recs[:3]:
-        r = run_rigctl("calibrate", str(rec), "--db", postgres, "--noise", "auto")
+        # in this process: the rows are compared to 1e-9, not exactly (the serial ones are subprocesses)
+        r = rigctl_in_process("calibrate", str(rec), "--db", postgres, "--noise", "auto")
         assert r.returncode == 0, r.stderr[-1500:]
         assert "results database: postgresql+psycopg://rigctl@127.0.0.1" in r.stdout
     eng = sa.create_engine(postgres)
@@ -326,5 +349,5 @@ def test_postgresql_holds_the_same_rows(lot_runs, serial, postgres):
     for k in pg:  # the serial rows were calibrated with the same spec-free pipeline: numbers equal
         # the same pipeline recalibrated: equal up to BLAS summation order (seen: 2e-12 relative)
         assert pg[k] == pytest.approx(mine[k], rel=1e-9, abs=0.0), k
-    r = run_rigctl("history", sorted(units)[0], "--db", postgres)
+    r = rigctl_in_process("history", sorted(units)[0], "--db", postgres)
     assert r.returncode == 0 and "accel_bias_x [mg]" in r.stdout, r.stderr

@@ -164,3 +164,31 @@ def test_servo_options_from_the_config(tmp_path):
     assert [a["encoder_noise_rad"] for a in axes] == pytest.approx([math.radians(1e-4)] * 3)
     assert [a["rate_ripple_per_rev_fraction"] for a in axes] == [1e-4, 0, 0]
     assert world.table.axes[2].t_jerk == pytest.approx(math.radians(400) / math.radians(4000))
+
+
+def test_profile_values_do_not_depend_on_the_other_times_asked():
+    """Profile.evaluate takes a shortcut when every time asked lies in the last piece (an axis
+    at rest after its move, most polls): a time gives the same bits whether asked alone (the
+    shortcut), with times inside the move (the piecewise path) or before the profile's start."""
+    from rigctl.sim.table import Profile
+
+    rate = Profile.to_rate(1.0, 0.3, -0.4, 0.7, 1.3)  # its last piece moves at 0.7 rad/s
+    rate.prev = Profile.to_rate(0.0, 0.0, 0.2, 0.0, 1.0)
+    position = Profile.to_position(1.0, 0.3, 0.0, 2.1, 0.8, 1.7)
+    position.prev = rate.prev
+    for prof in (position, rate):
+        _same_bits_alone_and_together(prof)
+
+
+def _same_bits_alone_and_together(prof) -> None:
+    assert len(prof.t) >= 2
+    t_all = np.r_[np.linspace(-0.5, prof.end + 1.0, 257), prof.end, prof.end + 1e-9]
+    together = prof.evaluate(t_all)
+    for i, ti in enumerate(t_all):
+        alone = prof.evaluate(np.array([ti]))
+        for k in range(3):
+            assert together[k][i].tobytes() == alone[k][0].tobytes(), (ti, k)
+    late = t_all[t_all >= prof.t[-1]]
+    assert late.size > 40  # the shortcut taken with many times too
+    for k, got in enumerate(prof.evaluate(late)):
+        assert got.tobytes() == np.array([together[k][list(t_all).index(x)] for x in late]).tobytes()

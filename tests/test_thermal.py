@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import derived_config, run_rigctl
+from helpers import ROOT, derived_config, rigctl_in_process
 from rigctl.solvers.noise_coefficients import NoiseCoefficients
 from rigctl.frames import body_references
 from rigctl.engine.procedure import load_procedure
@@ -321,7 +321,7 @@ def test_chamber_steps_are_validated(tmp_path):
 
 # --------------------------------------------------------------------------- end to end
 def _cli(capsys, *args: str) -> tuple[int, str]:
-    """A rigctl command in this process (the run itself goes through a subprocess)."""
+    """A rigctl command in this process."""
     from rigctl.cli import main
 
     capsys.readouterr()
@@ -335,10 +335,11 @@ def test_ramp_run_and_calibrate_with_hysteresis(tmp_path, capsys):
                          imu__sim__thermal={**SIM_THERMAL, "hysteresis": HYST_SHORT},
                          chamber__sim={"heat_max_c_per_min": 10, "cool_max_c_per_min": 10,
                                        "product_tau_s": 30})
-    r = run_rigctl("run", "procedures/thermal-ramp.yaml", "--config", str(cfg), "--out", str(tmp_path / "runs"),
-                   "-p", "rate=6", "-p", "low_c=0", "-p", "high_c=45", "-p", "up_cycles=2", "-p", "down_cycles=3",
-                   "-p", "back_cycles=2",
-                   "-p", "sample=6 s", "-p", "revolutions=1", timeout=240)
+    # rigctl.cli.main in this process (helpers.rigctl_in_process): the recording is tested, not the process
+    r = rigctl_in_process("run", str(ROOT / "procedures" / "thermal-ramp.yaml"), "--config", str(cfg),
+                          "--out", str(tmp_path / "runs"),
+                          "-p", "rate=6", "-p", "low_c=0", "-p", "high_c=45", "-p", "up_cycles=2", "-p", "down_cycles=3",
+                          "-p", "back_cycles=2", "-p", "sample=6 s", "-p", "revolutions=1")
     assert r.returncode == 0, r.stderr[-2000:]
     rec = next((tmp_path / "runs").glob("*/recording.h5"))
     with h5py.File(rec, "r") as f:

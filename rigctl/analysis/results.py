@@ -21,7 +21,6 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from scipy.optimize import brentq
 
 from ..display_units import Display, display, noise_name
 from ..solvers import distributions as stats
@@ -75,6 +74,8 @@ def _dof_from_k(k: float) -> float | None:
     """The Student-t dof whose 95 % two-sided factor is k (None: normal, k = 1.96)."""
     if not k > Z95 * (1 + 1e-9):
         return None
+    from scipy.optimize import brentq  # here, not at import: scipy.optimize costs ~0.5 s of CPU
+
     return float(brentq(lambda nu: stats.t.ppf(0.975, nu) - k, 0.05, 1e7))
 
 

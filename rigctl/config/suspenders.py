@@ -42,6 +42,7 @@ from ..settings import Settings, duration, internal, number, setting
 from ..yamlio import LocDict
 
 TABLE_TRIP_BITS = (AxisStatus.FAULT, AxisStatus.INTERLOCK_OPEN, AxisStatus.FOLLOWING_ERROR)
+_TABLE_TRIP_MASK = int(AxisStatus.FAULT | AxisStatus.INTERLOCK_OPEN | AxisStatus.FOLLOWING_ERROR)
 
 #: On a clock faster than the wall, "no IMU sample" trips the ``imu-gap`` suspender only after at
 #: least this much wall time as well, s: the samples' delay between the device and the engine is
@@ -125,6 +126,8 @@ def describe_table_trip(state: TableState) -> str | None:
     """A readable reason when any axis reports a fault bit, else None."""
     names = ("outer", "middle", "inner")
     for i, word in enumerate(state.status):
+        if not int(word) & _TABLE_TRIP_MASK:  # (plain ints first: this runs at every poll)
+            continue
         bits = [b.name.lower().replace("_", " ") for b in TABLE_TRIP_BITS if int(word) & b]
         if bits:
             return (f"table {names[i]} axis reports {' and '.join(bits)} (status 0x{int(word):04x}); "

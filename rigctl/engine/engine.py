@@ -226,6 +226,10 @@ SETTLE_STILL_TIMEOUTS = 10
 SETTLE_STILL_WALL_S = 60.0
 
 
+#: the status bits settle_check tests, as plain ints (IntFlag operations cost microseconds, at every poll)
+_FAULT, _AT_RATE, _TARGET_REACHED = int(AxisStatus.FAULT), int(AxisStatus.AT_RATE), int(AxisStatus.TARGET_REACHED)
+
+
 def angle_error(measured: np.ndarray, commanded: np.ndarray) -> np.ndarray:
     """measured - commanded wrapped to (-pi, pi], rad."""
     d = np.asarray(measured) - np.asarray(commanded)
@@ -239,9 +243,9 @@ def settle_check(state: TableState, step: Step) -> str | None:
     want_rate = np.where(rate_axes, step.rates, 0.0)
     for i in range(3):
         status = int(state.status[i])
-        if status & AxisStatus.FAULT:
+        if status & _FAULT:
             return f"axis {i + 1} reports a fault (status 0x{status:04x})"
-        flag = AxisStatus.AT_RATE if rate_axes[i] else AxisStatus.TARGET_REACHED
+        flag = _AT_RATE if rate_axes[i] else _TARGET_REACHED
         if not status & flag:
             return f"axis {i + 1} not yet {'at rate' if rate_axes[i] else 'in position'}"
     pos_err = angle_error(state.angle, step.angles)

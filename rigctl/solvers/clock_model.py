@@ -27,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from .distributions import t as student_t
 
 from rigctl.solvers.tap_match import outlier_mask, robust_sigma
@@ -120,6 +119,9 @@ def _robust_fit(x: np.ndarray, y: np.ndarray, wander: str | None, knots: np.ndar
     z = y - x
     c_ols, *_ = np.linalg.lstsq(a, z, rcond=None)
     scale = max(robust_sigma(z - a @ c_ols), floor_s / 5)
+    from scipy.optimize import least_squares  # here: importing scipy.optimize costs ~0.5 s of CPU,
+    # which every command that imports rigctl.analysis.sync (``rigctl --help`` too) paid before
+
     res = least_squares(lambda c: a @ c - z, c_ols, loss=loss, f_scale=scale)
     r = z - a @ res.x
     out, limit = outlier_mask(r, k, floor_s)
