@@ -438,7 +438,7 @@ class Recorder:
                 continue
             for dname, parts in cols.items():
                 data = np.concatenate(parts) if len(parts) > 1 else parts[0]  # rows first
-                ds = self._dataset(f, gname, dname)
+                ds = f[gname][dname]
                 n0 = ds.shape[0]
                 ds.resize(n0 + data.shape[0], axis=0)
                 ds[n0:] = data
@@ -446,16 +446,6 @@ class Recorder:
         self._buffered_rows = 0
         f.flush()
         self._last_flush = time.monotonic()
-
-    def _dataset(self, f: h5py.File, gname: str, dname: str) -> h5py.Dataset:
-        """``f[gname][dname]``, looked up once per open file (h5py's lookup by name costs
-        ~0.1 ms, and flush() writes a dozen datasets a few times a second)."""
-        if getattr(self, "_ds_file", None) is not f:
-            self._ds_file, self._ds_cache = f, {}
-        ds = self._ds_cache.get((gname, dname))
-        if ds is None:
-            ds = self._ds_cache[(gname, dname)] = f[gname][dname]
-        return ds
 
     @staticmethod
     def _append_rows(group: h5py.Group, cols: dict[str, Any]) -> None:
