@@ -1,6 +1,6 @@
 """ACL-flavoured ASCII turntable protocol without a transport: the parser, the formatter, the
-emulated server's core on random bytes and the ideal table's rate (no wall-clock deadline: the
-parallel phase; the server on a pty and TCP is in tests/test_wire_acl.py, REALTIME_FILES)."""
+emulated server's core on random bytes and the ideal table's rate (no wall-clock deadline: any
+worker; the server on a pty and TCP is in tests/test_wire_acl.py, REALTIME_FILES)."""
 from __future__ import annotations
 
 import math

@@ -1,6 +1,6 @@
 """The console is not the run (issue 16, items 1-3): the cases without a wall-clock deadline
 (moved verbatim from tests/test_cli_console.py, whose runs on a scaled clock and devices that
-reply in wall time keep REALTIME_FILES' serial phase; these run beside other files).
+reply in wall time are REALTIME_FILES, on the real-time worker; these run on any worker).
 
 * ``validate | head -1`` prints no traceback;
 * devices are asked before a run starts: a missing serial port, a refused TCP port and a port

@@ -1,6 +1,6 @@
 """The command line, end to end, as a user runs it: the commands that keep no wall-clock
-deadline (help, validate, bad input, a whole run on the emulator's virtual clock). They run in
-the parallel phase; tests/test_cli.py keeps the run read while it is written on a scaled clock
+deadline (help, validate, bad input, a whole run on the emulator's virtual clock). They run on
+any worker; tests/test_cli.py keeps the run read while it is written on a scaled clock
 (REALTIME_FILES, tests/conftest.py)."""
 import os
 import subprocess

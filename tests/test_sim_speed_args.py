@@ -1,5 +1,5 @@
 """``rigctl sim up --speed X`` with a bad X: one line each, exit 2, before any emulator starts (no
-wall-clock deadline: the parallel phase; the speeds a host cannot keep up with are in
+wall-clock deadline: any worker; the speeds a host cannot keep up with are in
 tests/test_sim_speed.py, REALTIME_FILES)."""
 from __future__ import annotations
 
