@@ -62,26 +62,11 @@ def lfilter(b: NDArray[np.float64] | list[float], a: NDArray[np.float64] | list[
     (len(a) >= 2): (y, zf), y[k] = sum b[i] x[k-i] - sum_{i>=1} a[i] y[k-i] (a[0] = 1 after
     normalisation), zi and zf the max(len(a), len(b)) - 1 delay states. Same values, bit for
     bit, as scipy's."""
-    # writeable C-contiguous float64 arrays: the one signature the cache holds (a read-only or
-    # strided argument would make numba compile another, while the run clock runs)
-    b = np.array(b, dtype=np.float64)
-    a = np.array(a, dtype=np.float64)
     if not HAVE_NUMBA:  # pragma: no cover - exercised only without the extra
         from scipy import signal
-        return signal.lfilter(b, a, x, zi=zi)
-    if a.ndim != 1 or b.ndim != 1 or a.size < 2 or a[0] == 0.0:
-        raise ValueError("lfilter: b and a must be 1-D, a of length >= 2 with a[0] != 0")
-    n = max(a.size, b.size)
-    if b.size != a.size or a[0] != 1.0:  # (dividing by 1 changes no bit: skipped)
-        b = np.concatenate([b, np.zeros(n - b.size)]) / a[0]
-        a = np.concatenate([a, np.zeros(n - a.size)]) / a[0]
-    x = np.require(x, np.float64, ["C", "A", "W"])
-    if x.ndim != 1:
-        raise ValueError("lfilter: x must be 1-D")
-    z = np.array(zi, dtype=np.float64).reshape(n - 1)
-    y = np.empty_like(x)
-    _df2t(b, a, x, z, y)
-    return y, z
+        return signal.lfilter(np.array(b, dtype=np.float64), np.array(a, dtype=np.float64), x, zi=zi)
+    b, a = prepare(b, a)
+    return lfilter_prepared(b, a, x, np.asarray(zi, dtype=np.float64).reshape(b.size - 1))
 
 
 def lfilter_prepared(b: NDArray[np.float64], a: NDArray[np.float64], x: NDArray[np.float64],
@@ -92,6 +77,8 @@ def lfilter_prepared(b: NDArray[np.float64], a: NDArray[np.float64], x: NDArray[
     coefficients at every call (the emulated turntable filters a few samples per poll)."""
     if not HAVE_NUMBA:  # pragma: no cover - exercised only without the extra
         return lfilter(b, a, x, zi)
+    # writeable C-contiguous float64 arrays: the one signature the cache holds (a read-only or
+    # strided argument would make numba compile another, while the run clock runs)
     if not (x.dtype == np.float64 and x.ndim == 1 and x.flags.c_contiguous and x.flags.writeable
             and x.flags.aligned):
         x = np.require(x, np.float64, ["C", "A", "W"])
@@ -105,7 +92,8 @@ def lfilter_prepared(b: NDArray[np.float64], a: NDArray[np.float64], x: NDArray[
 
 def prepare(b: NDArray[np.float64] | list[float], a: NDArray[np.float64] | list[float]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(b, a) in the form :func:`lfilter_prepared` takes: float64, padded to one length, divided
-    by a[0] (exactly what :func:`lfilter` does to them at each call)."""
+    by a[0] (what :func:`lfilter` does to them at each call; dividing by a[0] = 1 changes no bit
+    and is skipped)."""
     b = np.array(b, dtype=np.float64)
     a = np.array(a, dtype=np.float64)
     if a.ndim != 1 or b.ndim != 1 or a.size < 2 or a[0] == 0.0:

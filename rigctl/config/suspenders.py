@@ -42,7 +42,7 @@ from ..settings import Settings, duration, internal, number, setting
 from ..yamlio import LocDict
 
 TABLE_TRIP_BITS = (AxisStatus.FAULT, AxisStatus.INTERLOCK_OPEN, AxisStatus.FOLLOWING_ERROR)
-_TABLE_TRIP_MASK = int(AxisStatus.FAULT | AxisStatus.INTERLOCK_OPEN | AxisStatus.FOLLOWING_ERROR)
+_TABLE_TRIP_MASK = sum(int(b) for b in TABLE_TRIP_BITS)  # (distinct single bits)
 
 #: On a clock faster than the wall, "no IMU sample" trips the ``imu-gap`` suspender only after at
 #: least this much wall time as well, s: the samples' delay between the device and the engine is
