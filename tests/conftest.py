@@ -5,7 +5,6 @@ import os
 import shutil
 import subprocess
 import tempfile
-from collections import OrderedDict
 from pathlib import Path
 
 import pytest
@@ -198,45 +197,32 @@ if LoadScopeScheduling is not None:
 
         def __init__(self, config, log=None):
             super().__init__(config, log)
-            self._rt_queue: OrderedDict[str, dict[str, bool]] = OrderedDict()
             self._rt_node = None  # the worker that runs the real-time files (None: not chosen yet)
 
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
             return SHARED_FIXTURE_FILES.get(path, path)
 
-        def _assign(self, node, queue) -> None:
-            scope, work_unit = queue.popitem(last=False)
-            self.assigned_work.setdefault(node, {})[scope] = work_unit
-            collection = self.registered_collections[node]
-            node.send_runtest_some([collection.index(nodeid) for nodeid, done in work_unit.items()
-                                    if not done])
-
         def _reschedule(self, node) -> None:
             if node.shutting_down or self._pending_of(self.assigned_work[node]) > 2:
                 return
-            if self._rt_node is None and self._rt_queue:
+            rt = next((u for u in self.workqueue if u in REALTIME_FILES), None)
+            if rt is not None and self._rt_node is None:
                 # gw0 while it lives; after a crash, whichever worker asks first
                 named = [n for n in self.assigned_work if n.gateway.id == REALTIME_WORKER]
                 self._rt_node = named[0] if named else node
-            if self._rt_queue and node is self._rt_node:
-                self._assign(node, self._rt_queue)
-            elif self.workqueue:
-                self._assign(node, self.workqueue)
-            else:
+            unit = rt if node is self._rt_node and rt is not None else \
+                next((u for u in self.workqueue if u not in REALTIME_FILES), None)
+            if unit is None:
                 node.shutdown()
+                return
+            self.workqueue.move_to_end(unit, last=False)  # the unit _assign_work_unit takes
+            self._assign_work_unit(node)
 
         def remove_node(self, node):
             if node is self._rt_node:
                 self._rt_node = None  # crashed (or done): the next worker to ask takes what is left
-            crashitem = super().remove_node(node)
-            for other in list(self.assigned_work):
-                self._reschedule(other)
-            return crashitem
-
-        @property
-        def tests_finished(self) -> bool:
-            return not self._rt_queue and super().tests_finished
+            return super().remove_node(node)  # (it reschedules the other workers)
 
         def schedule(self) -> None:
             assert self.collection_is_completed
@@ -255,7 +241,7 @@ if LoadScopeScheduling is not None:
                 units.setdefault(self._split_scope(nodeid), {})[nodeid] = False
             rank = {f: i for i, f in enumerate(PARALLEL_FIRST)}
             for scope in sorted(units, key=lambda u: rank.get(u, len(rank))):
-                (self._rt_queue if scope in REALTIME_FILES else self.workqueue)[scope] = units[scope]
+                self.workqueue[scope] = units[scope]
             for node in self.nodes:
                 self._reschedule(node)
             for node in self.nodes:
