@@ -51,6 +51,13 @@ def _save(fig: Any, path: Path) -> Path:
 def save_whole(fig: Any, path: Path, dpi: int) -> None:
     """``fig`` in ``path`` (the format its suffix names; PNG without one), whole or not at all:
     rendered in memory, then written by :func:`rigctl.recording.checkpoint.write_atomic`."""
+    from matplotlib.layout_engine import PlaceHolderLayoutEngine
+
+    # fig.tight_layout() leaves a placeholder layout engine, and savefig draws a figure with
+    # any layout engine twice (once to lay it out, once to render); a placeholder lays out
+    # nothing, so the first draw (a third of the save) is dropped: the same pixels, bytes
+    if isinstance(fig.get_layout_engine(), PlaceHolderLayoutEngine):
+        fig.set_layout_engine(None)
     buf = io.BytesIO()
     fig.savefig(buf, dpi=dpi, format=path.suffix[1:].lower() or "png")
     write_atomic(path, buf.getvalue())
