@@ -384,7 +384,16 @@ def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
     with the term *at the bound* in the covariance (its own variance grows with it), the
     Neyman construction for an estimate whose spread depends on the parameter."""
 
+    done: dict[bytes, tuple[np.ndarray, float]] = {}
+
     def solve(model: np.ndarray) -> tuple[np.ndarray, float]:
+        # a pure function of the model: the bound's fixed point, once reached, repeats it
+        key = np.asarray(model, dtype=float).tobytes()
+        if key not in done:
+            done[key] = _solve(model)
+        return done[key]
+
+    def _solve(model: np.ndarray) -> tuple[np.ndarray, float]:
         lw = _whiten(_model_cov(cov_terms, np.maximum(model, 0.0), cols, a, edf, model_err,
                                 inflate))
         aw = solve_triangular(lw, a, lower=True)
