@@ -186,7 +186,9 @@ class SerialLink:
         """Whatever arrives within ``timeout_s`` (returns as soon as any byte is there)."""
         ser = self.ensure()
         try:
-            ser.timeout = self.timeout_s if timeout_s is None else timeout_s
+            t = self.timeout_s if timeout_s is None else timeout_s
+            if ser.timeout != t:  # pyserial's setter reconfigures the port (tcgetattr +
+                ser.timeout = t   # tcsetattr) even for the same value: ~9 % of a stream reader
             n = ser.in_waiting
             return ser.read(min(max(n, 1), max_bytes))
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:

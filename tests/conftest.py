@@ -117,7 +117,7 @@ def small_fs(tmp_path):
 
 
 # -- parallel runs: a real-time worker and background workers --------------------------------------
-# pyproject's addopts start two pytest-xdist workers (-n 2 --dist loadfile) and pytest_xdist_make_scheduler
+# pyproject's addopts start three pytest-xdist workers (-n 3 --dist loadfile) and pytest_xdist_make_scheduler
 # below hands them _RealtimeFirstScheduling: a test file is one unit of work (its module- and
 # session-scoped fixtures are made once, as in a serial run). The first worker (gw0, the real-time
 # worker) runs the REALTIME_FILES first, one after another, at normal priority; they keep deadlines in
@@ -126,8 +126,10 @@ def small_fs(tmp_path):
 # session and autogroup at nice 19, SCHED_IDLE, idle I/O class), so that it takes only the CPU time
 # the real-time tests leave unused: with a second worker at normal priority those tests missed their
 # deadlines on a 2-core machine, and with them alone on the cores (the previous scheme) a core sat
-# idle for the ~12 minutes they take. Once the real-time files are done gw0 takes the other files
-# too. `-n 0` runs everything serially; with the xdist plugin absent (-p no:xdist) the addopts fail,
+# idle for the ~12 minutes they take. Two background workers on two cores: the real-time tests
+# wait (on sockets, ptys, sleeps, their daemons) for part of their time, and with one background
+# worker that time was lost -- 180 % of the two cores busy in the clean-clone CI at ea637c5, 250
+# core-seconds idle. Once the real-time files are done gw0 takes the other files too. `-n 0` runs everything serially; with the xdist plugin absent (-p no:xdist) the addopts fail,
 # see README.
 
 #: files that share an expensive session-scoped fixture of this conftest: one worker runs them all
@@ -171,7 +173,7 @@ _missing = sorted(f for f in REALTIME_FILES if not (ROOT / f).is_file())
 assert not _missing, f"REALTIME_FILES names files that do not exist: {_missing}"
 
 #: the other files by their CPU seconds (own + subprocesses) in a full run, largest first, so that
-#: the two workers end together (116 s production_batch ... 28 s the full_calibration_run group); the
+#: the workers end together (116 s production_batch ... 28 s the full_calibration_run group); the
 #: files not listed (under 15 s each) follow in collection order
 PARALLEL_FIRST: tuple[str, ...] = tuple(f"tests/test_{name}.py" for name in (
     "production_batch", "cli_hostile", "cal_pose_loop_synth", "calibrate_correlated",

@@ -95,7 +95,7 @@ def read_session(path: Path) -> dict[str, Any]:
                "temp": f["imu/temperature"][()] if "imu/temperature" in f else None}
         lat = f["meta"].attrs.get("latitude_deg", np.nan) if "meta" in f else np.nan
         out["latitude_rad"] = None if not np.isfinite(float(lat)) else float(np.radians(float(lat)))
-        s = f["segments"]
+        s = {k: f["segments"][k][()] for k in ("kind", "status", "first_sample", "last_sample", "label")}
         rows = [i for i in range(s["kind"].shape[0]) if s["kind"][i] == b"orientation"
                 and s["status"][i] == b"complete"]
         out["intervals"] = [(int(s["first_sample"][i]), int(s["last_sample"][i])) for i in rows]

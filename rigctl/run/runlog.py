@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-from ..recording.recorder import utc_now
+from ..clock import utc_now
 from ..recording.shield import shielded
 
 

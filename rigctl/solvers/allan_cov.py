@@ -424,7 +424,10 @@ def _gm_cached(tau0: float, ms_key: bytes, n_phase: int, tc: float) -> dict:
     return out
 
 
-@functools.lru_cache(maxsize=64)
+#: the gapped ones alike: at 64 the candidate's grid passes (its second pass with the model
+#: error, the refinement) found their Tc cycled out: IEEE 952 noise with one gap
+#: (test_allan_gm_gaps, nbk), 349 computations of 148 distinct (taus, Tc), 0.1-0.2 s each
+@functools.lru_cache(maxsize=GM_CACHE_SIZE)
 def _gm_gapped_cached(tau0: float, ms_key: bytes, len_key: bytes, cnt_key: bytes,
                       tc: float) -> dict:
     out = _gm_gapped(tau0, np.frombuffer(ms_key, dtype=float),

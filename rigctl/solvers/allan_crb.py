@@ -163,12 +163,20 @@ MAX_CAPTURE_S = 3.6e7
 
 def duration_for(coeffs: Mapping[str, float], term: str, rel_sd: float, rate_hz: float,
                  t_min_s: float = 600.0, t_max_s: float = MAX_CAPTURE_S,
-                 gm: tuple[float, float] | None = None) -> float:
+                 gm: tuple[float, float] | None = None,
+                 memo: dict[float, dict[str, float]] | None = None) -> float:
     """Shortest capture (s) whose bound for ``term`` is at most ``rel_sd`` (inf if even
     ``t_max_s`` does not reach it), with the Gauss-Markov term ``gm`` = (sigma_GM, Tc) in the
-    model when given (:func:`crb_rel_sd`). Bisection on log T (the bound falls monotonically)."""
+    model when given (:func:`crb_rel_sd`). Bisection on log T (the bound falls monotonically).
+    ``memo``: {duration: crb_rel_sd's result} for these ``coeffs``, ``rate_hz`` and ``gm``,
+    shared by the calls for the model's several terms (their searches start at the same
+    durations): each duration's bounds are computed once."""
+    cache: dict[float, dict[str, float]] = {} if memo is None else memo
+
     def sd(t: float) -> float:
-        return crb_rel_sd(coeffs, t, rate_hz, gm=gm)[term]
+        if t not in cache:
+            cache[t] = crb_rel_sd(coeffs, t, rate_hz, gm=gm)
+        return cache[t][term]
 
     if sd(t_max_s) > rel_sd:
         return math.inf

@@ -173,6 +173,22 @@ def _whiten(cov: np.ndarray) -> np.ndarray:
         return np.diag(np.where(d > 0, d, 1e-300))
 
 
+#: _whiten's first diagonal jitter (the same float: 10.0 ** -9 as numpy computes it there)
+_JITTER0 = float((10.0 ** np.arange(-9, -1))[0])
+
+
+def _whiten_diag(var: np.ndarray) -> np.ndarray:
+    """``_whiten(np.diag(var))`` without the factorization: the Cholesky factor of a diagonal
+    correlation plus the jitter is the diagonal of its square roots (the same numbers: no
+    off-diagonal term enters a pivot), scaled back by the sd. Variances that are not all
+    finite and positive take :func:`_whiten` itself."""
+    var = np.asarray(var, dtype=float)
+    d = np.sqrt(var)
+    if not (d.size and np.all(np.isfinite(d)) and np.all(d > 0)):
+        return _whiten(np.diag(var))
+    return np.diag(d * np.sqrt(var / (d * d) + _JITTER0))
+
+
 def _model_cov(cov_terms: dict | None, p: np.ndarray, cols: list[int], a: np.ndarray,
                edf: np.ndarray, model_err: float = 0.0, inflate: np.ndarray | None = None
                ) -> np.ndarray:
@@ -368,7 +384,16 @@ def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
     with the term *at the bound* in the covariance (its own variance grows with it), the
     Neyman construction for an estimate whose spread depends on the parameter."""
 
+    done: dict[bytes, tuple[np.ndarray, float]] = {}
+
     def solve(model: np.ndarray) -> tuple[np.ndarray, float]:
+        # a pure function of the model: the bound's fixed point, once reached, repeats it
+        key = np.asarray(model, dtype=float).tobytes()
+        if key not in done:
+            done[key] = _solve(model)
+        return done[key]
+
+    def _solve(model: np.ndarray) -> tuple[np.ndarray, float]:
         lw = _whiten(_model_cov(cov_terms, np.maximum(model, 0.0), cols, a, edf, model_err,
                                 inflate))
         aw = solve_triangular(lw, a, lower=True)
@@ -525,7 +550,7 @@ def b_presence_test(tau: np.ndarray, s2: np.ndarray, e: np.ndarray,
 
     def data_whitener(eps: float) -> np.ndarray:
         # the data's own diagonal, 2 s2^2 / edf, plus the model error
-        return _whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
+        return _whiten_diag(2.0 * y ** 2 / ee + (eps * y) ** 2)
 
     def whiten_at(q: np.ndarray, eps: float = 0.0) -> np.ndarray:
         # the filter term and the ramp: the N, B, K (and GM) correlations, scaled
@@ -1092,10 +1117,16 @@ def _fit_terms(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, sensor: str =
             coeff_sq[t] = pj
             # the interval: nu read at each candidate value, not at p_j (_neyman_chi2_ci)
             ij, a_act = active.index(j), full_a[:, active]
+            # both intervals start at nu(p_j) and a fixed point repeats its value: each
+            # candidate value's sd is computed once (a pure function of it)
+            sd_memo: dict[float, float] = {}
 
-            def sd_at(v: float, ij: int = ij, a_act: np.ndarray = a_act) -> float:
-                return _sd_at(a_act, s2, e, active, cov_terms, p, ij, v, chi2_red,
-                              model_err, inflate)
+            def sd_at(v: float, ij: int = ij, a_act: np.ndarray = a_act,
+                      memo: dict[float, float] = sd_memo) -> float:
+                if v not in memo:
+                    memo[v] = _sd_at(a_act, s2, e, active, cov_terms, p, ij, v, chi2_red,
+                                     model_err, inflate)
+                return memo[v]
 
             coefs[t] = NC.Coefficient(math.sqrt(pj), _neyman_chi2_ci(pj, sd_at, 0.683),
                                       _neyman_chi2_ci(pj, sd_at, 0.95), edf=nu)
@@ -2194,6 +2225,7 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
         except (ValueError, np.linalg.LinAlgError):
             continue
         entries = [(out_terms[t], t) for t in report]
+        memo: dict[float, dict[str, float]] = {}  # this model's bounds per duration
         if with_gm and gm_keys["tc"] in best:
             for k, key in gm_keys.items():
                 gm_out[k] = {"bounded": g is gm_bound}
@@ -2204,7 +2236,8 @@ def _add_crb(out_terms: dict, coefs: dict, tau0: float, n_phase: int,
             if key != "Q" and best[key] > TARGET_REL_SD:  # how long a capture would resolve it
                 try:
                     need = R.duration_for(coeffs, key, TARGET_REL_SD, 1.0 / tau0,
-                                          t_min_s=min(600.0, 0.5 * length), gm=g)
+                                          t_min_s=min(600.0, 0.5 * length), gm=g,
+                                          memo=memo)
                 except (ValueError, np.linalg.LinAlgError):
                     continue
                 entry["capture_h_for_25pct"] = need / 3600.0

@@ -143,9 +143,11 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     a0 = F.design_matrix(t)
     lower = np.array([-np.inf, 0.0, 0.0, 0.0, 0.0, 0.0])
 
-    def solve(a: np.ndarray, lw: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    def solve(a: np.ndarray, lw: np.ndarray, bw: np.ndarray | None = None
+              ) -> tuple[np.ndarray, float, np.ndarray]:
         aw = solve_triangular(lw, a, lower=True)
-        bw = solve_triangular(lw, y, lower=True)
+        if bw is None:
+            bw = solve_triangular(lw, y, lower=True)
         sc = np.linalg.norm(aw, axis=0)
         sc[sc == 0] = 1.0
         k = a.shape[1]
@@ -174,18 +176,36 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
             cov = cov + np.diag((eps * mod) ** 2)
         return F._whiten(cov)
 
+    # at(tc, eps) is a pure function of its arguments: each pair is computed once (the model
+    # error's search ends at a value it evaluated at the best Tc, which the grid then repeats)
+    done: dict[tuple[float, float], dict] = {}
+
     def at(tc: float, eps: float) -> dict:
+        key = (float(tc), float(eps))
+        if key not in done:
+            done[key] = _at(tc, eps)
+        return done[key]
+
+    def _at(tc: float, eps: float) -> dict:
         a = np.column_stack((a0, gm_avar(t, 1.0, tc)))
         tk = None if screen else tc
         ct = (C.gapped_term_covariances(tau0, ms_t, np.asarray(stretch_samples), tk)
               if gapped else C.term_covariances(tau0, ms_t, int(n_phase), tk))
-        lw = F._whiten(np.diag(2.0 * y ** 2 / ee + (eps * y) ** 2))
+        lw = F._whiten_diag(2.0 * y ** 2 / ee + (eps * y) ** 2)
         for _ in range(iterations):
             q, _, _ = solve(a, lw)
             lw = whiten_at(a, q, eps, ct)
-        q1, c1, aw = solve(a, lw)
-        q0, c0, _ = solve(a0, lw)
-        return {"tc": tc, "q1": q1, "c1": c1, "q0": q0, "c0": c0, "aw": aw, "a": a}
+        bw = solve_triangular(lw, y, lower=True)
+        q1, c1, aw = solve(a, lw, bw)
+        # the null fit (IEEE terms alone, same whitener): read only at the Tc the test and
+        # the report use (null()), so solved there only
+        return {"tc": tc, "q1": q1, "c1": c1, "aw": aw, "a": a, "lw": lw, "bw": bw}
+
+    def null(r: dict) -> dict:
+        """``r`` with the null fit's q0, c0 (solved once, on r's whitener)."""
+        if "c0" not in r:
+            r["q0"], r["c0"], _ = solve(a0, r["lw"], r["bw"])
+        return r
 
     runs = [at(tc, 0.0) for tc in grid]
     best = min(runs, key=lambda r: r["c1"])
@@ -209,7 +229,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
                   key=lambda r: r["tc"])
     i = int(np.argmin([r["c1"] for r in runs]))
     # the test: its statistic at the best Tc of the range searched (the looks counted there)
-    tested = runs[i]
+    tested = null(runs[i])
     stat = max(tested["c0"] - tested["c1"], 0.0) / over
     p = min(1.0, n_looks * 0.5 * float(chi2.sf(stat, 1))) if stat > 0 else 1.0
     # Tc and its 95 % interval: the profile of the alternative's chi-square (scaled by the
@@ -238,7 +258,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
     grid = np.array([r["tc"] for r in runs])
     c1s = np.array([r["c1"] for r in runs])
     tc_ci, tc_open, inside, _ = F.tc_profile_interval(grid, c1s, c1s, dof1)
-    top = runs[int(np.argmin(c1s))]
+    top = null(runs[int(np.argmin(c1s))])
     # sigma_GM: the GLS sd of its coefficient at each Tc of that set; the interval the union
     pos = top["q1"] > 0
     cis = []

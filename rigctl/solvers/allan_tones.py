@@ -50,6 +50,8 @@ LEVEL_BINS = 129
 LOBE_BINS = 4
 #: longest Welch segment (samples)
 MAX_SEG = 1 << 16
+#: welch_hann transforms this many samples' segments at once
+WELCH_BLOCK = 1 << 18
 #: at most this many tones are reported (the strongest)
 MAX_TONES = 8
 #: vibration bands: a second periodogram whose segments are this many times shorter than the
@@ -106,11 +108,15 @@ def welch_hann(y: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.n
     # ShortTimeFFT.scale_to("psd"): w / sqrt(sum(|w|^2) / T), T = 1 / fs, a Python sum as there
     w = w * (1 / np.sqrt(sum(w ** 2) / (1 / fs)))
     s = np.empty((nperseg // 2 + 1, k))
-    for i in range(k):
-        seg = y[i * nperseg:(i + 1) * nperseg]
+    # the segments as rows, WELCH_BLOCK samples of them per transform (each row's mean, window
+    # and transform the same arithmetic as one segment's alone; memory bounded)
+    rows = max(1, WELCH_BLOCK // nperseg)
+    for i in range(0, k, rows):
+        j = min(k, i + rows)
+        seg = y[i * nperseg:j * nperseg].reshape(j - i, nperseg)
         seg = seg - np.mean(seg, -1, keepdims=True)
         x = fft.rfft(seg * w, n=nperseg, axis=-1)
-        s[:, i] = x.real ** 2 + x.imag ** 2
+        s[:, i:j] = (x.real ** 2 + x.imag ** 2).T
     s[1:-1 if nperseg % 2 == 0 else None] *= 2
     return fft.rfftfreq(nperseg, 1 / fs), s.mean(axis=-1)
 
