@@ -10,7 +10,6 @@ import os
 import sys
 import traceback
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 from . import __version__

@@ -690,7 +690,7 @@ class _MotionProduct:
     length L and multiplied pairwise (log2 L vectorised levels).
 
     The layout is worked out once per set of motions: ``src``, the motions' sample indices in
-    the order :meth:`product` takes the rates (:meth:`__call__` gathers them). Each level is the
+    the order :meth:`product` takes the rates (``w[src]``). Each level is the
     Hamilton product of quaternions (x, y, z, w), a_w b_v + b_w a_v + a_v x b_v and
     a_w b_w - a_v . b_v, written per component on (rows, K) planes (np.cross's and np.sum's
     operations in their order: the same bits as on (K, L, 4) arrays, several times faster);
@@ -705,10 +705,6 @@ class _MotionProduct:
         pos = np.arange(self.n)[:, None]
         self.real = pos < lens[None, :]  # (n, K): a sample, not padding
         self.src = (bounds[:, 0][None, :] + pos)[self.real]  # their sample indices, (n, K) order
-
-    def __call__(self, w: Arr, dt: float) -> Arr:
-        """The K rotations from the rates ``w`` (n_samples, 3) that ``bounds`` indexes."""
-        return self.product(w[self.src], dt)
 
     def product(self, ws: Arr, dt: float) -> Arr:
         """The K rotations from the rates already gathered (``w[src]``)."""
@@ -728,11 +724,6 @@ class _MotionProduct:
             z = aw * bz + bw * az + (ax * by - ay * bx)
             q = aw * bw - (ax * bx + ay * by + az * bz)
         return Rotation.from_quat(np.stack([x[0], y[0], z[0], q[0]], axis=-1)).as_matrix()
-
-
-def _rot_matrices(w: Arr, bounds: Arr, dt: float) -> Arr:
-    """Rotation (body_start -> body_end) of each motion (:class:`_MotionProduct`). bounds: (K, 2)."""
-    return _MotionProduct(bounds)(w, dt)
 
 
 SPLIT = "accel_cross_quadratic_split"
