@@ -26,6 +26,7 @@ Extra effects (each switchable in :mod:`rigctl.sim.error_model`):
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
@@ -220,13 +221,28 @@ class ClockModel:
 
 
 # ---------------------------------------------------------------------------- table geometry
-def rotation_matrices(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rodrigues: (n,3,3) rotations by angle (n,) rad about the unit vector axis (3,)."""
-    k = np.asarray(axis, dtype=float)
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+
+
+@lru_cache(maxsize=64)
+def _rodrigues_terms(axis_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """K = [k x] and K @ K of the unit vector along the axis whose float64 bytes are given
+    (read-only; a table's axes are the same at every poll, so they are made once)."""
+    k = np.frombuffer(axis_bytes, dtype=float)
     k = k / np.linalg.norm(k)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    KK = K @ K
+    K.setflags(write=False)
+    KK.setflags(write=False)
+    return K, KK
+
+
+def rotation_matrices(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues: (n,3,3) rotations by angle (n,) rad about the unit vector axis (3,)."""
+    K, KK = _rodrigues_terms(np.ascontiguousarray(axis, dtype=float).tobytes())
     a = np.asarray(angle, dtype=float)[:, None, None]
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
+    return _EYE3 + np.sin(a) * K + (1 - np.cos(a)) * KK
 
 
 def gimbal_axes(nonorth_rad: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -253,6 +269,18 @@ def base_to_local(level_x_rad: float = 0.0, level_y_rad: float = 0.0, north_rad:
     return rz @ ry @ rx
 
 
+@lru_cache(maxsize=16)
+def _table_frames(geometry_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(:func:`gimbal_axes`, :func:`base_to_local`) of one table geometry (the float64 bytes of
+    nonorth_rad (3), level_x_rad, level_y_rad, north_rad), read-only: the same for every poll of
+    a run, so made once."""
+    g = np.frombuffer(geometry_bytes, dtype=float)
+    ax, base = gimbal_axes(g[:3].tolist()), base_to_local(*g[3:].tolist())
+    ax.setflags(write=False)
+    base.setflags(write=False)
+    return ax, base
+
+
 def table_attitude_and_rate(angles: np.ndarray, rates: np.ndarray, nonorth_rad: Sequence[float] = (0, 0, 0),
                             level_x_rad: float = 0.0, level_y_rad: float = 0.0,
                             north_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -263,11 +291,11 @@ def table_attitude_and_rate(angles: np.ndarray, rates: np.ndarray, nonorth_rad: 
     w_b = R_i^T R_m^T (th_o' a_o) + R_i^T (th_m' a_m) + th_i' a_i.
     """
     angles, rates = np.atleast_2d(angles), np.atleast_2d(rates)
-    ax = gimbal_axes(nonorth_rad)
+    ax, base = _table_frames(np.array([*nonorth_rad, level_x_rad, level_y_rad, north_rad], dtype=float).tobytes())
     Ro = rotation_matrices(ax[0], angles[:, 0])
     Rm = rotation_matrices(ax[1], angles[:, 1])
     Ri = rotation_matrices(ax[2], angles[:, 2])
-    C = base_to_local(level_x_rad, level_y_rad, north_rad) @ Ro @ Rm @ Ri
+    C = base @ Ro @ Rm @ Ri
     RiT, RmT = np.swapaxes(Ri, 1, 2), np.swapaxes(Rm, 1, 2)
     w = (np.einsum("nij,nj->ni", RiT, np.einsum("nij,nj->ni", RmT, rates[:, :1] * ax[0]))
          + np.einsum("nij,nj->ni", RiT, rates[:, 1:2] * ax[1]) + rates[:, 2:3] * ax[2])

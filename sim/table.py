@@ -33,6 +33,7 @@ Angles in rad, rates rad/s, accelerations rad/s^2.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -391,6 +392,34 @@ class TableAxis:
             x, w = x + xr, w + wr
         return x, w, acc
 
+    def at_one(self, t: float) -> tuple[float, float]:
+        """(angle, rate) at one time ``t``: :meth:`at` of ``np.array([t])``, the same values. Its
+        common case -- no jerk limit, no ripple ever stored, ``t`` inside the kept history, after
+        the first grid point and in the current profile -- in scalar arithmetic (the same
+        operations in the same order; the table is read at every poll, and the array path's
+        per-call cost is most of a one-sample read); any other case through :meth:`at`."""
+        t = float(t)
+        h, sv, prof = self._hist, self.servo, self.profile
+        eps = 1e-9 * self.dt
+        if (self.t_jerk > 0 or not h.shape[1] or sv.ripple_per_rev or sv.ripple_fraction or self._hist_ripple
+                or t < prof.t[0] or t < self._t_first - eps  # type: ignore[operator]
+                or (h[0, 0] > self._t_first and t < h[0, 0] - eps)):
+            x, w, _ = self.at(np.array([t]))
+            return float(x[0]), float(w[0])
+        # the profile (Profile.evaluate): the piece holding t, never one before the first
+        i = max(bisect.bisect_right(prof.t, t) - 1, 0)
+        tp, pp, vp, ap = prof.t[i], prof.p[i], prof.v[i], prof.a[i]
+        dt = t - tp
+        p, v = pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt
+        # the servo error from the grid point t_j <= t (as at())
+        j = max(int(np.searchsorted(h[0], t + eps, side="right")) - 1, 0)
+        tj, e0, de0, u = h[0, j].item(), h[1, j].item(), h[2, j].item(), h[3, j].item()
+        d = t - tj
+        e, de = e0, de0
+        if d != 0.0 and (e0 != 0.0 or de0 != 0.0 or u != 0.0):
+            e, de = self._propagate(e0, de0, u, d)  # type: ignore[arg-type]
+        return float(p + e), float(v + de)
+
     def _propagate(self, e0: NDArray, de0: NDArray, u: NDArray, d: NDArray) -> tuple[NDArray, NDArray]:
         """Servo error state (e, e') after d seconds from (e0, de0) under constant input u
         (see :meth:`at`): exact for e'' + 2 zeta w_n e' + w_n^2 e = -u."""
@@ -515,8 +544,7 @@ class SimTurntable:
             q, a = ax.servo.encoder_lsb, ax.last[0]
             r = ax.last[1]
             if t > ax.last_t and ax._hist.shape[1]:
-                xa, wa, _ = ax.at(np.array([t]))
-                a, r = float(xa[0]), float(wa[0])
+                a, r = ax.at_one(t)
             if ax.servo.encoder_noise > 0:
                 a += ax.servo.encoder_noise * float(self.rng.standard_normal())
             a = round(a / q) * q if q > 0 else a

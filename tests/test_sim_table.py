@@ -192,3 +192,40 @@ def _same_bits_alone_and_together(prof) -> None:
     assert late.size > 40  # the shortcut taken with many times too
     for k, got in enumerate(prof.evaluate(late)):
         assert got.tobytes() == np.array([together[k][list(t_all).index(x)] for x in late]).tobytes()
+
+
+def test_one_sample_read_is_the_array_path_bit_for_bit():
+    """TableAxis.at_one (the encoder read at every poll) gives the bits of at(np.array([t])) --
+    servos under-, over- and critically damped, jerk-limited, with ripple, after commands in
+    every mode, with history forgotten, inside and before the kept history (both raise)."""
+    from rigctl.sim.table import OFF, TableAxis
+
+    rng = np.random.default_rng(7)
+    n_fast = n_cmp = 0
+    for _ in range(60):
+        sp = ServoParams(natural_hz=rng.uniform(2, 8), damping=float(rng.choice([0.6, 1.0, 1.3])),
+                         jerk_max=float(rng.choice([math.inf, math.inf, 50.0])),
+                         ripple_per_rev=float(rng.choice([0.0, 0.0, 1e-3])))
+        dt = float(rng.choice([0.001, 0.005]))
+        ax = TableAxis(sp, 5.0, 3.0, bool(rng.integers(2)), dt)
+        now = 0.0
+        for _ in range(4):
+            ax.command(now + rng.uniform(0, 0.3), int(rng.choice([POSITION, RATE, OFF])), float(rng.uniform(-3, 3)))
+            grid = now + dt * np.arange(1, int(rng.integers(1, 300)) + 1)
+            ax.advance(grid)
+            now = float(grid[-1])
+            if rng.random() < 0.3:
+                ax.forget_before(now - rng.uniform(0, 0.2))
+            for t in now + rng.uniform(-0.4, dt, 10):
+                try:
+                    x, w, _ = ax.at(np.array([t]))
+                    want = np.array([x[0], w[0]])
+                except RuntimeError:
+                    with pytest.raises(RuntimeError):
+                        ax.at_one(t)
+                    continue
+                got = np.array(ax.at_one(t))
+                assert got.tobytes() == want.tobytes(), (t, got, want)
+                n_cmp += 1
+                n_fast += sp.jerk_max == math.inf and not sp.ripple_per_rev
+    assert n_cmp > 1000 and n_fast > 500  # both paths exercised

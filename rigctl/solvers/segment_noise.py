@@ -225,54 +225,92 @@ class WindowTerms:
                            self.basis[idx], self.t0, self.bank, self.rest_comps, self.rest_X)
 
 
-def _reml_block(theta: NDArray[np.float64], y: NDArray[np.float64], X: NDArray[np.float64],
-                comps: NDArray[np.float64], derivs: bool
-                ) -> tuple[float, NDArray[np.float64] | None, NDArray[np.float64] | None]:
-    """-l_R of y = X beta + e, Cov e = sum_j theta_j comps_j; gradient and expected information."""
+def _reml_factor(theta: NDArray[np.float64], y: NDArray[np.float64], X: NDArray[np.float64],
+                 comps: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]] | None:
+    """-l_R of y = X beta + e, Cov e = sum_j theta_j comps_j, with what its derivatives need
+    (P and P y); None when the covariance is not positive definite."""
     S = np.tensordot(theta, comps, axes=1)
     try:
         L = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
-        return np.inf, None, None
+        return None
     Li = scipy.linalg.solve_triangular(L, np.eye(len(y)), lower=True, check_finite=False)
     q, rr = np.linalg.qr(Li @ X)
     A = Li - q @ (q.T @ Li)  # (I - q q^T) L^-1
     P = A.T @ A
     Py = P @ y
     f = float(np.sum(np.log(np.diag(L))) + np.sum(np.log(np.abs(np.diag(rr)))) + 0.5 * y @ Py)
-    if not derivs:
-        return f, None, None
+    return f, P, Py
+
+
+def _reml_derivs(P: NDArray[np.float64], Py: NDArray[np.float64], comps: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gradient and expected information of -l_R from :func:`_reml_factor`'s P and P y."""
     PC = np.einsum("ij,cjk->cik", P, comps)
     grad = 0.5 * (np.einsum("cii->c", PC) - np.einsum("i,cij,j->c", Py, comps, Py))
-    return f, grad, 0.5 * np.einsum("aij,bji->ab", PC, PC)
+    return grad, 0.5 * np.einsum("aij,bji->ab", PC, PC)
+
+
+@dataclass
+class _Factored:
+    """:func:`_objective_value` at one theta: f and what the derivatives need (the within
+    part's G^-1 and G^-1 u, each block's P and P y), so that the derivatives at an accepted
+    step reuse the factorisations the step search made (the same values as computing them
+    again)."""
+
+    f: float
+    Gi: NDArray[np.float64]
+    Giu: NDArray[np.float64]
+    blocks: list[tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+
+def _objective_value(theta: NDArray[np.float64], u: NDArray[np.float64], terms: WindowTerms,
+                     blocks: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
+                     ) -> _Factored | None:
+    """f = -l_w - sum over blocks of l_R (module docstring) with its factorisations; None when a
+    covariance is not positive definite (f = inf)."""
+    pad = (~terms.mask)[:, :, None] & np.eye(terms.mask.shape[1], dtype=bool)[None]
+    G = np.tensordot(theta, terms.within, axes=1) + pad  # (K, m, m); padding -> identity
+    try:
+        Lw = np.linalg.cholesky(G)
+    except np.linalg.LinAlgError:
+        return None
+    Gi = np.linalg.inv(G)
+    Giu = np.einsum("kij,kj->ki", Gi, u)
+    f = float(np.sum(np.log(np.diagonal(Lw, axis1=1, axis2=2))) + 0.5 * np.sum(u * Giu))
+    facs = []
+    for y, X, comps in blocks:
+        fac = _reml_factor(theta, y, X, comps)
+        if fac is None:
+            return None
+        f += fac[0]
+        facs.append((fac[1], fac[2]))
+    return _Factored(f, Gi, Giu, facs)
+
+
+def _objective_derivs(fac: _Factored, terms: WindowTerms,
+                      blocks: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gradient and expected information of f at the theta of ``fac``."""
+    GC = np.einsum("kij,ckjl->ckil", fac.Gi, terms.within)  # (n_c, K, m, m)
+    grad = 0.5 * (np.einsum("ckii->c", GC) - np.einsum("ki,ckij,kj->c", fac.Giu, terms.within, fac.Giu))
+    hess = 0.5 * np.einsum("akij,bkji->ab", GC, GC)
+    for (_, _, comps), (P, Py) in zip(blocks, fac.blocks):
+        gb, hb = _reml_derivs(P, Py, comps)
+        grad, hess = grad + gb, hess + hb
+    return grad, hess
 
 
 def _objective(theta: NDArray[np.float64], u: NDArray[np.float64], terms: WindowTerms,
                blocks: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
                derivs: bool) -> tuple[float, NDArray[np.float64] | None, NDArray[np.float64] | None]:
     """f = -l_w - sum over blocks of l_R (module docstring); gradient and expected information."""
-    pad = (~terms.mask)[:, :, None] & np.eye(terms.mask.shape[1], dtype=bool)[None]
-    G = np.tensordot(theta, terms.within, axes=1) + pad  # (K, m, m); padding -> identity
-    try:
-        Lw = np.linalg.cholesky(G)
-    except np.linalg.LinAlgError:
+    fac = _objective_value(theta, u, terms, blocks)
+    if fac is None:
         return np.inf, None, None
-    Gi = np.linalg.inv(G)
-    Giu = np.einsum("kij,kj->ki", Gi, u)
-    f = float(np.sum(np.log(np.diagonal(Lw, axis1=1, axis2=2))) + 0.5 * np.sum(u * Giu))
-    grad = hess = None
-    if derivs:
-        GC = np.einsum("kij,ckjl->ckil", Gi, terms.within)  # (n_c, K, m, m)
-        grad = 0.5 * (np.einsum("ckii->c", GC) - np.einsum("ki,ckij,kj->c", Giu, terms.within, Giu))
-        hess = 0.5 * np.einsum("akij,bkji->ab", GC, GC)
-    for y, X, comps in blocks:
-        fb, gb, hb = _reml_block(theta, y, X, comps, derivs)
-        if not np.isfinite(fb):
-            return np.inf, None, None
-        f += fb
-        if derivs:
-            grad, hess = grad + gb, hess + hb
-    return f, grad, hess
+    if not derivs:
+        return fac.f, None, None
+    return (fac.f, *_objective_derivs(fac, terms, blocks))
 
 
 def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: ArrayLike,
@@ -328,7 +366,8 @@ def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: Ar
         step, accepted = 1.0, False
         while step > 1e-8:
             tn = np.maximum(th + step * d, lb)
-            fn = _objective(tn, u, terms, blocks, False)[0]
+            fac = _objective_value(tn, u, terms, blocks)
+            fn = np.inf if fac is None else fac.f
             if fn <= f:
                 accepted = True
                 break
@@ -338,7 +377,8 @@ def estimate_channel_noise(y: ArrayLike, X: ArrayLike, terms: WindowTerms, z: Ar
             break
         df = f - fn
         th = tn
-        f, g, H = _objective(th, u, terms, blocks, True)
+        # f, gradient and information at the accepted step, from its factorisations
+        f, (g, H) = fac.f, _objective_derivs(fac, terms, blocks)  # type: ignore[union-attr]
         if df < 1e-9 * max(1.0, abs(f)) and np.max(np.abs(step * d) / scale) < 1e-6:
             converged = True
             break
