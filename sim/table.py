@@ -207,6 +207,11 @@ class Profile:
         pieces = self._arrays()
         if t.size and t.min() >= self.t[-1]:  # all in the last piece (an axis at rest, mostly)
             tp, pp, vp, ap = pieces[:, -1].tolist()
+            if vp == 0.0 and ap == 0.0:
+                # at rest: with dt = t - tp >= 0 (never -0.0), vp dt and 0.5 ap dt dt are the
+                # signed zeros vp and 0.5 ap, so the expressions below are these constants --
+                # the same floats, signed zeros included, without the array arithmetic
+                return (np.full(t.shape, pp + vp + 0.5 * ap), np.full(t.shape, vp + ap), np.full(t.shape, ap))
             dt = t - tp
             return pp + vp * dt + 0.5 * ap * dt * dt, vp + ap * dt, np.full(t.shape, ap)
         idx = np.searchsorted(pieces[0], t, side="right") - 1  # <= n - 1

@@ -301,3 +301,38 @@ def test_a_rising_front_is_left_out_of_the_fit_for_every_tau_set() -> None:
             assert F.rising_front(tau, np.sqrt(other), edf) == 0, name
     o, d = got["octave"], got["dense"]
     assert o.ci95[0] <= d.ci95[1] and d.ci95[0] <= o.ci95[1], (o, d)
+
+
+def test_bvls_is_scipys_lsq_linear_bit_for_bit() -> None:
+    """allan_fit.bvls is scipy's lsq_linear(method="bvls") without its wrapper: on the fits'
+    kind of problem (40 taus x 4-6 scaled Allan columns Q, N, B, K, R, GM; Q free or >= 0,
+    the others >= 0, with and without finite upper limits, noisy curves that put terms on
+    their bounds) the same solution, compared bit for bit with scipy's (the reference)."""
+    from scipy.optimize import lsq_linear
+
+    rng = np.random.default_rng(7)
+    loops = 0
+    for case in range(600):
+        tau = np.geomspace(0.01, 3000.0, 40) * rng.uniform(0.5, 2.0)
+        k = int(rng.integers(4, 7))
+        cols = [3.0 / tau ** 2, 1.0 / tau, np.full(tau.shape, 0.44), tau / 3.0, tau ** 2 / 2.0,
+                1.0 / (1.0 + (tau / rng.uniform(0.1, 100.0)) ** 2)][:k]
+        a = np.column_stack(cols)
+        truth = rng.uniform(0.0, 1.0, k) * (rng.uniform(size=k) < 0.6)
+        truth[1] += 0.01  # white noise always there: a curve > 0
+        y = (a @ truth) * np.exp(rng.normal(0.0, rng.choice([0.01, 0.1, 0.5]), tau.size))
+        w = 1.0 / np.maximum(y, 1e-300)
+        aw, bw = a * w[:, None], y * w
+        sc = np.linalg.norm(aw, axis=0)
+        aw = aw / sc
+        lb = np.zeros(k)
+        if case % 2:
+            lb[0] = -np.inf
+        ub = np.full(k, np.inf)
+        if case % 3 == 0:
+            ub = np.where(rng.uniform(size=k) < 0.5, rng.uniform(0.01, 2.0, k) * sc, np.inf)
+            ub = np.maximum(ub, 1e-300)
+        ref = lsq_linear(aw, bw, bounds=(lb, ub), method="bvls")
+        loops += ref.nit > 0
+        np.testing.assert_array_equal(F.bvls(aw, bw, lb, ub), ref.x)
+    assert loops > 100  # the bounded loop, not only the unbounded solution, is compared

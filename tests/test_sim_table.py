@@ -229,3 +229,21 @@ def test_one_sample_read_is_the_array_path_bit_for_bit():
                 n_cmp += 1
                 n_fast += sp.jerk_max == math.inf and not sp.ripple_per_rev
     assert n_cmp > 1000 and n_fast > 500  # both paths exercised
+
+
+def test_profile_at_rest_is_the_general_arithmetic_bit_for_bit():
+    """Profile.evaluate's at-rest shortcut (last piece, zero rate and acceleration) gives the
+    floats of p + v dt + a dt^2 / 2, v + a dt, a -- signed zeros included -- for dt >= 0."""
+    import itertools
+
+    from rigctl.sim.table import Profile
+
+    t0 = 2.5
+    t = t0 + np.array([0.0, 1e-12, 0.5, 3.0, 1e5])
+    for p0, v0, a0 in itertools.product([0.0, -0.0, 1.5, -2.25, 1e-300, -1e-300, 3e10], [0.0, -0.0], [0.0, -0.0]):
+        prof = Profile(t0, p0, v0)
+        prof.a[-1] = a0
+        dt = t - t0
+        want = (p0 + v0 * dt + 0.5 * a0 * dt * dt, v0 + a0 * dt, np.full(t.shape, a0))
+        for got, w in zip(prof.evaluate(t), want):
+            assert got.tobytes() == w.tobytes(), (p0, v0, a0, got, w)

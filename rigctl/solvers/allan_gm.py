@@ -38,7 +38,6 @@ import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.optimize import lsq_linear
 from .distributions import chi2
 
 from . import allan_cov as C
@@ -151,8 +150,7 @@ def _gm_candidate(tau: np.ndarray, adev: np.ndarray, edf: np.ndarray, tau0: floa
         sc = np.linalg.norm(aw, axis=0)
         sc[sc == 0] = 1.0
         k = a.shape[1]
-        res = lsq_linear(aw / sc, bw, bounds=(lower[:k], np.full(k, np.inf)), method="bvls")
-        q = res.x / sc
+        q = F.bvls(aw / sc, bw, lower[:k], np.full(k, np.inf)) / sc
         r = bw - aw @ q
         return q, float(r @ r), aw
 
