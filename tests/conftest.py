@@ -38,8 +38,9 @@ def mtig_gx_allan(ref_data, tmp_path_factory) -> dict:
     through `rigctl import` + `rigctl allan --db none --json` in process, once per session:
     {"y": the rates, "text": allan's stdout, "res": the JSON's axes.gx, "ind": the independent
     white + GM read (test_allan_gm_real.independent_fit), "rec": the recording (with allan's
-    /results/allan)}. test_allan_gm_real and
-    test_allan_gm_fit both check this run (SHARED_FIXTURE_FILES: one worker makes it once)."""
+    /results/allan; a test that analyses it again does so on a copy,
+    helpers.copy_recording)}. test_allan_gm_real, test_allan_gm_fit and test_allan_gm all check
+    this run (SHARED_FIXTURE_FILES: one worker makes it once)."""
     import io
     import json
     from contextlib import redirect_stderr, redirect_stdout
@@ -139,6 +140,7 @@ SHARED_FIXTURE_FILES = {
     "tests/test_report_html.py": "full_calibration_run",
     "tests/test_allan_gm_real.py": "mtig_gx_allan",
     "tests/test_allan_gm_fit.py": "mtig_gx_allan",
+    "tests/test_allan_gm.py": "mtig_gx_allan",
     "tests/test_noise_coefficients.py": "declared_only_hour",
     "tests/test_allan_kalibr.py": "declared_only_hour",
 }
