@@ -339,10 +339,15 @@ class ImuErrorModel:
 
     # ------------------------------------------------------------------------------------------
     def table_geometry(self) -> dict:
-        """Keyword arguments for effects.table_attitude_and_rate (zeros when the effect is off)."""
-        g = self.geometry or TableGeometry()
-        return {"nonorth_rad": list(_vec(g.nonorth_rad)), "level_x_rad": float(_or(g.level_x_rad, 0.0)),
-                "level_y_rad": float(_or(g.level_y_rad, 0.0)), "north_rad": float(_or(g.north_rad, 0.0))}
+        """Keyword arguments for effects.table_attitude_and_rate (zeros when the effect is off);
+        worked out once per geometry (a frozen TableGeometry; the emulator asks at every block)."""
+        cached = self.__dict__.get("_geometry_kw")
+        if cached is None or cached[0] is not self.geometry:
+            g = self.geometry or TableGeometry()
+            kw = {"nonorth_rad": list(_vec(g.nonorth_rad)), "level_x_rad": float(_or(g.level_x_rad, 0.0)),
+                  "level_y_rad": float(_or(g.level_y_rad, 0.0)), "north_rad": float(_or(g.north_rad, 0.0))}
+            cached = self._geometry_kw = (self.geometry, kw)
+        return {k: (list(v) if isinstance(v, list) else v) for k, v in cached[1].items()}
 
     def truth(self) -> dict:
         """Every true parameter, JSON-serialisable, SI, units in the key names."""

@@ -311,7 +311,10 @@ class SimWorld:
 
     def _model_block(self, g: SampleGrid) -> None:
         ang, rates, acc = self.table.at(g.t_eval)  # the table at the IMU's (delayed) instants
-        f_b, w_b = table_body_references(ang, rates, self.cfg.latitude, self.cfg.gravity,
+        site = self.__dict__.get("_site")
+        if site is None or site[0] is not self.cfg:  # the frozen config's latitude and g, once
+            site = self._site = (self.cfg, self.cfg.latitude, self.cfg.gravity)
+        f_b, w_b = table_body_references(ang, rates, site[1], site[2],
                                          **self.imu_model.table_geometry())
         f_b, w_b = self._wobble(ang, rates, f_b, w_b)
         w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles

@@ -229,3 +229,54 @@ def test_one_sample_read_is_the_array_path_bit_for_bit():
                 n_cmp += 1
                 n_fast += sp.jerk_max == math.inf and not sp.ripple_per_rev
     assert n_cmp > 1000 and n_fast > 500  # both paths exercised
+
+
+def test_profile_at_rest_is_the_general_arithmetic_bit_for_bit():
+    """Profile.evaluate's at-rest shortcut (last piece, zero rate and acceleration) gives the
+    floats of p + v dt + a dt^2 / 2, v + a dt, a -- signed zeros included -- for dt >= 0."""
+    import itertools
+
+    from rigctl.sim.table import Profile
+
+    t0 = 2.5
+    t = t0 + np.array([0.0, 1e-12, 0.5, 3.0, 1e5])
+    for p0, v0, a0 in itertools.product([0.0, -0.0, 1.5, -2.25, 1e-300, -1e-300, 3e10], [0.0, -0.0], [0.0, -0.0]):
+        prof = Profile(t0, p0, v0)
+        prof.a[-1] = a0
+        dt = t - t0
+        want = (p0 + v0 * dt + 0.5 * a0 * dt * dt, v0 + a0 * dt, np.full(t.shape, a0))
+        for got, w in zip(prof.evaluate(t), want):
+            assert got.tobytes() == w.tobytes(), (p0, v0, a0, got, w)
+
+
+def test_quiet_history_shortcut_is_the_general_path_bit_for_bit():
+    """TableAxis.at on a history whose servo error has underflowed to zero (an axis at rest for
+    long) skips the propagation; its values are those of the general path (the same call with
+    the shortcut disabled), byte for byte, and axes that rest long enough do take it."""
+    from rigctl.sim.table import OFF, TableAxis
+
+    rng = np.random.default_rng(11)
+    quiet = 0
+    for _ in range(12):
+        sp = ServoParams(natural_hz=float(rng.uniform(6, 10)), damping=float(rng.choice([0.6, 1.0, 1.3])))
+        dt = 0.01
+        ax = TableAxis(sp, 5.0, 3.0, bool(rng.integers(2)), dt)
+        now = 0.0
+        for _ in range(6):
+            if rng.random() < 0.5:
+                ax.command(now + rng.uniform(0, 0.3), int(rng.choice([POSITION, RATE, OFF])), float(rng.uniform(-2, 2)))
+            grid = now + dt * np.arange(1, int(rng.choice([5, 50, 6000])) + 1)
+            ax.advance(grid)
+            now = float(grid[-1])
+            ax.forget_before(now - rng.uniform(0.3, 0.5))  # the reads below stay inside the kept history
+            for _ in range(10):
+                t = now + rng.uniform(-0.3, dt, int(rng.choice([1, 5, 50])))
+                if not ax._hist_quiet:
+                    continue
+                quiet += 1
+                got = ax.at(t)
+                ax._hist_quiet = False
+                want = ax.at(t)
+                ax._hist_quiet = True
+                assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want)), t
+    assert quiet > 50
