@@ -264,6 +264,9 @@ class TableAxis:
         #: following step, ripple angle), for :meth:`at`; trimmed by :meth:`forget_before`
         self._hist = np.empty((5, 0))
         self._hist_ripple = False  # a ripple angle was ever stored in _hist (else its row is 0)
+        #: every kept grid point has e = e' = +0.0 and a = 0 (an axis that has rested long enough
+        #: for its servo error to underflow to zero): at() has nothing to propagate
+        self._hist_quiet = True
         self._t_first: float | None = None  # first grid time ever (at rest before it)
 
     def command(self, t: float, mode: int, value: float) -> None:
@@ -300,6 +303,8 @@ class TableAxis:
             j = int(np.searchsorted(h[0], t, side="right")) - 1
             if j > 0:
                 self._hist = h[:, j:].copy()
+                if not self._hist_quiet:
+                    self._hist_quiet = _quiet(self._hist)
 
     @property
     def end(self) -> float:
@@ -337,6 +342,8 @@ class TableAxis:
             hist[4, m:] = 0.0 if xr is None else xr
             self._hist_ripple = self._hist_ripple or xr is not None
             self._hist = hist
+            if self._hist_quiet:
+                self._hist_quiet = _quiet(hist[:, m:])
         return x, w, acc
 
     def at(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
@@ -366,6 +373,12 @@ class TableAxis:
         if h[0, 0] > self._t_first and tmin < h[0, 0] - 1e-9 * self.dt:
             raise RuntimeError(f"table state asked for t = {t.min():.6f} s, before the kept "
                                f"history ({h[0, 0]:.6f} s): forget_before() was called too late")
+        sv = self.servo
+        if (self._hist_quiet and not (sv.ripple_per_rev or sv.ripple_fraction or self._hist_ripple)
+                and not tmin < self._t_first - 1e-9 * self.dt):
+            # e0 = de0 = +0.0 and u = 0 at every grid point: nothing is live below, e = de = +0.0,
+            # so x, w, acc are p + 0.0, v + 0.0 and the constant (-2 zeta w_n) 0.0 - w_n^2 0.0
+            return p + 0.0, v + 0.0, np.full(t.shape, -self._2zwn * 0.0 - self._wn2 * 0.0)
         j = np.searchsorted(h[0], t + 1e-9 * self.dt, side="right") - 1  # <= h.shape[1] - 1
         j = np.maximum(j, 0)
         tj, e0, de0, u, xr0 = h[:, j]
@@ -495,6 +508,11 @@ class TableAxis:
         if held and t >= self.end:
             s |= _AT_RATE if self.mode == RATE else _TARGET_REACHED
         return s
+
+
+def _quiet(h: NDArray[np.float64]) -> bool:
+    """Grid points h (5, m) all with servo error e = e' = +0.0 (not -0.0) and acceleration 0."""
+    return not (h[1:4].any() or np.signbit(h[1:3]).any())
 
 
 def _columns(cols: list[tuple[NDArray, NDArray, NDArray]], n: int) -> tuple[NDArray, NDArray, NDArray]:

@@ -250,3 +250,39 @@ def test_gapped_long_stretches_through_the_contiguous_kernel(monkeypatch: pytest
     assert np.max(err[exact]) < 1e-7, err
     assert np.max(err) < 8e-3, err
     assert np.max(np.abs(np.diag(got) / np.diag(want) - 1.0)) < 2e-3, np.diag(got) / np.diag(want)
+
+
+def test_compiled_gauss_legendre_sums_are_the_numpy_ones() -> None:
+    """The contiguous kernel's Gauss-Legendre pairs are summed by a compiled loop
+    (allan_cov_kernels.gm_gl_sums) where numba is there, by numpy (allan_cov._gm_gl_numpy)
+    otherwise: the same numbers. Compared here pair by pair on a 1 h record's 40 factors from
+    4 to 4e4 samples (the Gauss-Legendre pairs: m_a + m_b > 64), for Tc from 0.02 s to
+    5e4 s (the last ones where the kernel is evaluated directly, h > 1e3 (m_a + m_b), which
+    stays numpy): bit for bit where numpy's exp is libm's (no AVX-512, as on the CI machine;
+    checked on a probe here), else within numpy's vectorized exp's rounding (1e-8 of the
+    largest sum of the kind: some are differences of large terms)."""
+    kc = pytest.importorskip("rigctl.solvers.allan_cov_kernels")
+    if not kc.HAVE_NUMBA:
+        pytest.skip("the compiled loop needs numba")
+    n_phase = 360_001
+    ms = np.unique(np.round(np.geomspace(4, 4e4, 40)))
+    g = C._gm_nodes(TAU0, ms.tobytes(), n_phase)["gl"]
+    probe = -np.geomspace(1e-6, 700.0, 5000)
+    libm = np.array_equal(np.exp(probe), [math.exp(v) for v in probe])
+    rows = np.arange(g["s"].size)
+    n_direct = 0
+    for tc in (0.02, 0.3, 2.0, 17.0, 150.0, 5e4):
+        h = tc / TAU0
+        direct = h > C._GM_SPLIT_MAX * g["s"]
+        n_direct += int(np.count_nonzero(direct))
+        ref = C._gm_gl_numpy(g, rows, direct, TAU0, tc, h)
+        got = kc.gm_gl_sums(tc, h, g["d_tap"], g["left"], g["coef"], g["k"], g["a_i"], g["b_i"],
+                            g["r"]["N"], g["r"]["B"], g["r"]["K"], g["wq"], direct)
+        assert np.all(got[direct] == 0.0)  # left to numpy
+        for i, pair in enumerate(C.GPAIRS[1:]):
+            a, b = ref[pair][~direct], got[~direct, i]
+            if libm:
+                np.testing.assert_array_equal(b, a, err_msg=f"{pair} at Tc {tc}")
+            else:
+                np.testing.assert_allclose(b, a, rtol=1e-8, atol=1e-8 * np.max(np.abs(a)))
+    assert n_direct > 0  # the direct range was reached (and left to numpy)

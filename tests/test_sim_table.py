@@ -247,3 +247,36 @@ def test_profile_at_rest_is_the_general_arithmetic_bit_for_bit():
         want = (p0 + v0 * dt + 0.5 * a0 * dt * dt, v0 + a0 * dt, np.full(t.shape, a0))
         for got, w in zip(prof.evaluate(t), want):
             assert got.tobytes() == w.tobytes(), (p0, v0, a0, got, w)
+
+
+def test_quiet_history_shortcut_is_the_general_path_bit_for_bit():
+    """TableAxis.at on a history whose servo error has underflowed to zero (an axis at rest for
+    long) skips the propagation; its values are those of the general path (the same call with
+    the shortcut disabled), byte for byte, and axes that rest long enough do take it."""
+    from rigctl.sim.table import OFF, TableAxis
+
+    rng = np.random.default_rng(11)
+    quiet = 0
+    for _ in range(12):
+        sp = ServoParams(natural_hz=float(rng.uniform(6, 10)), damping=float(rng.choice([0.6, 1.0, 1.3])))
+        dt = 0.01
+        ax = TableAxis(sp, 5.0, 3.0, bool(rng.integers(2)), dt)
+        now = 0.0
+        for _ in range(6):
+            if rng.random() < 0.5:
+                ax.command(now + rng.uniform(0, 0.3), int(rng.choice([POSITION, RATE, OFF])), float(rng.uniform(-2, 2)))
+            grid = now + dt * np.arange(1, int(rng.choice([5, 50, 6000])) + 1)
+            ax.advance(grid)
+            now = float(grid[-1])
+            ax.forget_before(now - rng.uniform(0.3, 0.5))  # the reads below stay inside the kept history
+            for _ in range(10):
+                t = now + rng.uniform(-0.3, dt, int(rng.choice([1, 5, 50])))
+                if not ax._hist_quiet:
+                    continue
+                quiet += 1
+                got = ax.at(t)
+                ax._hist_quiet = False
+                want = ax.at(t)
+                ax._hist_quiet = True
+                assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want)), t
+    assert quiet > 50

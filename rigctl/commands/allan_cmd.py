@@ -130,8 +130,7 @@ def export(args: argparse.Namespace, result: dict[str, Any]) -> None:
 
 def register(subparsers: Any) -> None:
     """Add the ``allan`` subcommand (sets ``func=run``)."""
-    p = subparsers.add_parser("allan", help="Allan analysis of a recording's IMU channels",
-                              description=__doc__.splitlines()[0])
+    p = subparsers.add_parser("allan", description=__doc__.splitlines()[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are written into it)")
     p.add_argument("--axes", default=None,
                    help="comma-separated axes from gx,gy,gz,ax,ay,az (the older gyro_x, gyr_x, accel_x, "

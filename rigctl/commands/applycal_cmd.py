@@ -56,8 +56,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``apply-cal`` sub-command."""
-    p = subparsers.add_parser("apply-cal", help="write a recording with calibrated IMU data",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("apply-cal", description=__doc__.split("\n\n")[0])
     p.add_argument("recording", help="rigctl HDF5 recording (read only)")
     p.add_argument("-o", "--output", required=True, help="corrected recording to write (.h5)")
     p.add_argument("--calibration", help="calibration JSON written by rigctl calibrate")

@@ -95,8 +95,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``batch`` sub-command."""
-    p = subparsers.add_parser("batch", help="calibrate / Allan-analyse many recordings on Dask",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("batch", description=__doc__.split("\n\n")[0])
     p.add_argument("recordings", nargs="+", help="glob pattern(s), quoted: 'runs/*/recording.h5'")
     p.add_argument("--analyses", default="calibrate", help="calibrate, allan or calibrate,allan (default calibrate)")
     g = p.add_mutually_exclusive_group()

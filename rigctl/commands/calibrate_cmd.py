@@ -43,8 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``calibrate`` sub-command."""
-    p = subparsers.add_parser("calibrate", help="calibrate a recording (uncertainty, closed loop)",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("calibrate", description=__doc__.split("\n\n")[0])
     p.add_argument("recording", help="rigctl HDF5 recording (results are stored in it)")
     p.add_argument("--explain", action="store_true", help="print the closed loop's chain of decisions")
     p.add_argument("--json", help="JSON output path (default: RECORDING.calibration.json beside it)")

@@ -33,8 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``certificate`` sub-command."""
-    p = subparsers.add_parser("certificate", help="the run's calibration certificate (PDF)",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("certificate", description=__doc__.split("\n\n")[0])
     p.add_argument("run", help="run directory or recording .h5 (calibrated)")
     p.add_argument("--spec", metavar="SPEC.yaml", help="acceptance limits: verdicts on the certificate")
     p.add_argument("--decision-rule", choices=RULES, default=None, help="guarded or simple (default: the spec's)")

@@ -122,8 +122,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``history`` sub-command."""
-    p = subparsers.add_parser("history", help="a unit's parameters across its calibrations, with drift",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("history", description=__doc__.split("\n\n")[0])
     p.add_argument("unit", help="unit ID (/meta imu_serial, else imu_device_id; `rigctl calibrate` prints it)")
     p.add_argument("--db", metavar="URL|FILE", help="results database (default RUNS/results.sqlite)")
     p.add_argument("--runs", default="runs", help="the runs directory whose results.sqlite to read (default runs)")

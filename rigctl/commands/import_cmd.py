@@ -79,8 +79,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``import`` sub-command."""
-    p = subparsers.add_parser("import", help="convert a foreign IMU log (CSV, ROS bag, MCAP) into a rigctl "
-                              "recording", description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("import", description=__doc__.split("\n\n")[0])
     p.add_argument("file", help="CSV file (or .csv.gz), ROS 1 bag, rosbag2 directory (sqlite3 or mcap storage) or MCAP file")
     p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
     p.add_argument("--columns",

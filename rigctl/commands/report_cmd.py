@@ -25,8 +25,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``report`` subcommand (``func=run``)."""
-    p = subparsers.add_parser("report", help="write report.html (plots embedded) for a run",
-                              description=__doc__.splitlines()[0])
+    p = subparsers.add_parser("report", description=__doc__.splitlines()[0])
     p.add_argument("run", help="run directory or recording .h5")
     p.add_argument("--out", default=None,
                    help="directory for report.html and the PNGs (default: the run directory)")

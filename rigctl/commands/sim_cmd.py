@@ -120,8 +120,8 @@ class PaceWatch:
                 f"use --speed {suggested_speed(achieved):g} or less")
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("sim", help="emulated hardware on real wires (rigctl sim up)")
+def register(sub: Any) -> None:
+    p = sub.add_parser("sim")
     ssub = p.add_subparsers(dest="sim_command", metavar="SIMCOMMAND")
     ssub.required = True
     up = ssub.add_parser("up", help="start the emulated table/IMU/GNSS servers and print their endpoints")

@@ -16,8 +16,7 @@ from ..analysis.sync import SyncOptions, result_arrays, summary_lines, sync_reco
 
 def register(subparsers: Any) -> None:
     """Add the ``sync`` subcommand (``func=run``)."""
-    p = subparsers.add_parser("sync", help="tap-hammer time synchronisation of a recording",
-                              description=__doc__)
+    p = subparsers.add_parser("sync", description=__doc__)
     p.add_argument("recording", type=Path, help="recording .h5 (opened r+; /results/sync written)")
     p.add_argument("--axis", type=str, default="az",
                    help="tap axis: ax, ay or az, the accelerometer axis the hammer strikes along "

@@ -59,8 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add the ``thermal`` sub-command."""
-    p = subparsers.add_parser("thermal", help="bias and scale against temperature of a record held still in "
-                              "several poses (no table)", description=__doc__.split("\n\n")[0],
+    p = subparsers.add_parser("thermal", description=__doc__.split("\n\n")[0],
                               epilog="\n\n".join(__doc__.split("\n\n")[1:5]).replace("::", ":"),
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", help="rigctl HDF5 recording with an IMU temperature column (read only)")

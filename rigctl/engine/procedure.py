@@ -29,7 +29,7 @@ from ..frames import north_pointing_angles
 from ..settings import Settings, as_written, mapping, number, parse, setting, text
 from ..settings import duration as seconds
 from ..errors import InputError, InputErrors
-from ..yamlio import LocDict, LocList, load_file
+from ..yamlio import LocDict, LocList, load_file_text
 
 #: step kinds that command the climatic chamber (docs/thermal.md)
 CHAMBER_KINDS = ("chamber-set", "chamber-ramp", "chamber-wait")
@@ -419,13 +419,13 @@ class _Compiler:
         self.steps_line = 1
 
     # -- files -------------------------------------------------------------------------------
-    def load(self, path: Path, inc_parent: Any = None, inc_key: Any = None) -> tuple[ProcedureFile, LocDict]:
-        resolved = path.resolve()
+    def load(self, path: Path, resolved: Path, inc_parent: Any = None,
+             inc_key: Any = None) -> tuple[ProcedureFile, LocDict]:
         if resolved in self.stack:
             chain = " -> ".join(p.name for p in [*self.stack, resolved])
             raise S.error(inc_parent, inc_key, f"include cycle: {chain}", "remove the circular include")
         try:
-            raw = load_file(path)
+            raw, text = load_file_text(path)
         except InputError as exc:
             if inc_parent is not None and exc.message == "file not found":
                 raise S.error(inc_parent, inc_key, f"included file {str(path)!r} not found",
@@ -438,7 +438,7 @@ class _Compiler:
                              "see docs/procedures.md")
         m = S.require_mapping(raw, "a procedure")
         f = parse(ProcedureFile, m, "the procedure")
-        self.sources[str(path)] = path.read_text(encoding="utf-8")
+        self.sources[str(path)] = text
         return f, m
 
     def declare_params(self, params: LocDict | None) -> None:
@@ -502,11 +502,12 @@ class _Compiler:
     # -- steps -------------------------------------------------------------------------------
     def compile_file(self, path: Path, defaults: SamplingSettings | None = None,
                      inc_parent: Any = None, inc_key: Any = None) -> str:
-        f, m = self.load(path, inc_parent, inc_key)
+        resolved = path.resolve()
+        f, m = self.load(path, resolved, inc_parent, inc_key)
         self.declare_params(f.parameters)
         if not self.stack:
             self.description = f.description
-        self.stack.append(path.resolve())
+        self.stack.append(resolved)
         try:
             local = defaults or SamplingSettings()
             if "defaults" in m:

@@ -697,7 +697,7 @@ def register(sub: Any) -> None:
             p.add_argument("--json", action="store_true",
                            help="print the daemon's answer as one JSON document (status --watch: one per line)")
 
-    p = sub.add_parser("serve", help="run the daemon in the foreground (owns the rig, runs queued jobs)")
+    p = sub.add_parser("serve")
     sock(p, client=False)
     p.add_argument("--config", help="rig config YAML (default: configs/sim.yaml)")
     p.add_argument("--runs", default="runs", help="directory for run folders (default: runs)")
@@ -710,28 +710,25 @@ def register(sub: Any) -> None:
     p.add_argument("--procedures", help="directory of procedures the web page may queue "
                    "(default: ./procedures, else the project's)")
     p.set_defaults(func=cmd_serve)
-    p = sub.add_parser("submit", help="queue a procedure on the daemon")
+    p = sub.add_parser("submit")
     sock(p)
     p.add_argument("procedure")
     p.add_argument("-p", "--param", action="append", metavar="NAME=VALUE")
     p.add_argument("--position", type=int, help="place in the queue (1 = next to run; default: last)")
     p.set_defaults(func=cmd_submit)
-    p = sub.add_parser("status", help="the daemon's state, job, step and active suspenders")
+    p = sub.add_parser("status")
     sock(p)
     p.add_argument("--watch", action="store_true", help="repeat until interrupted")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between updates with --watch")
     p.set_defaults(func=cmd_status)
-    p = sub.add_parser("queue", help="list the daemon's jobs, or edit the queue (remove, move, clear, "
-                       "stop, start, history)")
+    p = sub.add_parser("queue")
     sock(p)
     p.add_argument("action", nargs="?", choices=QUEUE_ACTIONS, help="remove JOB | move JOB POSITION | clear | "
                    "stop (after the current job) | start | history [N]; none: list")
     p.add_argument("values", nargs="*", type=int, help="JOB, POSITION (1 = next to run) or N")
     p.set_defaults(func=cmd_queue)
-    for name, text in (("pause", "pause the running job"),
-                       ("abort", "abort the running job (table to safe state)"),
-                       ("logs", "the running (or last) job's log")):
-        p = sub.add_parser(name, help=text)
+    for name in ("pause", "abort", "logs"):
+        p = sub.add_parser(name)
         sock(p)
         if name == "logs":
             p.add_argument("-n", "--lines", type=int, default=50)
@@ -739,7 +736,7 @@ def register(sub: Any) -> None:
             p.add_argument("--deferred", action="store_true",
                            help="pause at the end of the step in flight (nothing re-runs) instead of at once")
         p.set_defaults(func=cmd_simple)
-    p = sub.add_parser("resume", help="resume the paused job, or with RUN continue a cut-off run")
+    p = sub.add_parser("resume")
     sock(p)
     p.add_argument("run", nargs="?", help="a run directory cut off by a crash or power loss")
     p.add_argument("--runs", default=None,

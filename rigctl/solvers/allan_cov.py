@@ -402,7 +402,9 @@ def gm_term_covariances(tau0: float, ms: np.ndarray, n_phase: int, tc: float) ->
     within 7.9e-3, both from the white-FM-like part's sum-vs-integral difference, which N's
     own kernel has too (2.6e-4 and 2e-2 there); against a brute force from the exact phase
     covariance see tests/test_allan_gmcov.py. (Q, G) is summed exactly at white PM's taps
-    past DISCRETE_MAX, as Q's other pairs (:func:`_q_tap_sums`). Cost: 0.1-0.2 s per Tc for 40 taus of a 1 h, 100 Hz record, 1.5 s for the first
+    past DISCRETE_MAX, as Q's other pairs (:func:`_q_tap_sums`). The Gauss-Legendre sums run compiled
+    where numba is there (allan_cov_kernels.gm_gl_sums, the same numbers as :func:`_gm_gl_numpy`).
+    Cost: ~0.05 s per Tc for 40 taus of a 1.4 h, 100 Hz record (~0.1 s with numpy), 1.5 s for the first
     (the mesh, kept per (tau0, ms, n_phase)); the matrices are kept per Tc too (the fits try
     one Tc after another and come back to them)."""
     return _gm_cached(float(tau0), np.asarray(ms, dtype=float).tobytes(), int(n_phase),
@@ -526,7 +528,47 @@ def _gm_nodes(tau0: float, ms_key: bytes, n_phase: int) -> dict:
                      "a_i": a_i, "b_i": b_i, "left": left, "coef": coef,
                      "d_tap": d_left + d_right,
                      "k_lo": k_lo[:, 0], "k_hi": k_hi[:, 0]}
+        # white PM's pairs with G exactly at the taps (each distinct tap once): R_Q there and
+        # the pair counts do not depend on Tc
+        gma, gmb = ma, mb
+        eq = taps[:, :, None] == taps[:, None, :]
+        out["gl"]["q_taps"] = taps
+        out["gl"]["q_rq"] = _r_lags("Q", gma, gmb, taps, tau0)
+        out["gl"]["q_wt"] = _weight(big_m[ca][:, None], big_m[cb][:, None], taps) * ~np.any(
+            np.tril(eq, -1), axis=2)
     return out
+
+
+def _gm_gl_numpy(g: dict, rows: np.ndarray, direct: np.ndarray, tau0: float, tc: float,
+                 h: float) -> dict:
+    """The Gauss-Legendre pairs ``rows`` of :func:`_gm_contiguous` with numpy: their lag sums
+    {(t, "G"): values} for t = N, B, K, G (``direct``: those rows' R_G from the kernel
+    directly). Row by row the numbers that allan_cov_kernels.gm_gl_sums computes."""
+    def gr(name: str) -> np.ndarray:
+        return g[name][rows]
+
+    # R_G = 2 Tc R_N + R_E, R_E = -Tc^2 sum_taps c e^(-|k - tap| / h): on a mesh interval
+    # [a_i, b_i] (no tap inside) the taps left of it give A_i e^(-(k - a_i) / h), those
+    # right of it B_i e^(-(b_i - k) / h)
+    # (each tap's c e^(-d / h) on the side it lies, +0.0 on the other: the products of
+    # the coefficient-or-zero arrays this was written with, number for number)
+    left = gr("left")
+    ce = np.exp(-gr("d_tap") / h)
+    ce *= g["coef"]
+    a_l = np.sum(np.where(left, ce, 0.0), axis=2)[:, :, None]
+    b_r = np.sum(np.where(left, 0.0, ce), axis=2)[:, :, None]
+    del ce
+    k = gr("k")
+    x = k - gr("a_i")[:, :, None]  # from the interval's ends
+    y = gr("b_i")[:, :, None] - k
+    r = {t: g["r"][t][rows] for t in ("N", "B", "K")}
+    rg = 2.0 * tc * r["N"] - tc * tc * (a_l * np.exp(-x / h) + b_r * np.exp(-y / h))
+    if np.any(direct):
+        rg[direct] = _r_lags("G", gr("ma")[direct][:, None, None],
+                             gr("mb")[direct][:, None, None], k[direct], tau0, tc)
+    r["G"] = rg
+    wq = gr("wq")
+    return {(t, u): np.sum(r[t] * r[u] * wq, axis=(1, 2)) for t, u in GPAIRS[1:]}
 
 
 def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict:
@@ -568,37 +610,23 @@ def _gm_contiguous(tau0: float, ms: np.ndarray, n_phase: int, tc: float) -> dict
         out[("G", "G")][d["a"], d["b"]] += tails(d["a"], d["b"], d["left"], d["right"])
     g = nodes.get("gl")
     if g is not None:
-        # R_G = 2 Tc R_N + R_E, R_E = -Tc^2 sum_taps c e^(-|k - tap| / h): on a mesh interval
-        # [a_i, b_i] (no tap inside) the taps left of it give A_i e^(-(k - a_i) / h), those
-        # right of it B_i e^(-(b_i - k) / h)
-        # (each tap's c e^(-d / h) on the side it lies, +0.0 on the other: the products of
-        # the coefficient-or-zero arrays this was written with, number for number)
-        ce = np.exp(-g["d_tap"] / h)
-        ce *= g["coef"]
-        a_l = np.sum(np.where(g["left"], ce, 0.0), axis=2)[:, :, None]
-        b_r = np.sum(np.where(g["left"], 0.0, ce), axis=2)[:, :, None]
-        del ce
-        x = g["k"] - g["a_i"][:, :, None]  # from the interval's ends
-        y = g["b_i"][:, :, None] - g["k"]
-        rg = 2.0 * tc * g["r"]["N"] - tc * tc * (a_l * np.exp(-x / h) + b_r * np.exp(-y / h))
+        # (see _gm_gl_numpy: R_G from R_N and the taps' exponentials, per mesh interval)
         direct = h > _GM_SPLIT_MAX * g["s"]
-        if np.any(direct):
-            rg[direct] = _r_lags("G", g["ma"][direct][:, None, None],
-                                 g["mb"][direct][:, None, None], g["k"][direct], tau0, tc)
-        r = dict(g["r"])
-        r["G"] = rg
-        for t, u in GPAIRS:
-            if t == "Q":  # white PM: exactly at its taps, below
-                continue
-            out[(t, u)][g["a"], g["b"]] = np.sum(r[t] * r[u] * g["wq"], axis=(1, 2))
+        if _kc().HAVE_NUMBA:  # compiled: the same numbers (allan_cov_kernels.gm_gl_sums)
+            sums = _kc().gm_gl_sums(tc, h, g["d_tap"], g["left"], g["coef"], g["k"], g["a_i"],
+                                    g["b_i"], g["r"]["N"], g["r"]["B"], g["r"]["K"], g["wq"],
+                                    direct)
+            for i, pair in enumerate(GPAIRS[1:]):
+                out[pair][g["a"], g["b"]] = sums[:, i]
+            rows = np.flatnonzero(direct)  # the kernel directly: numpy, below
+        else:
+            rows = np.arange(direct.size)
+        if rows.size:
+            for pair, v in _gm_gl_numpy(g, rows, direct[rows], tau0, tc, h).items():
+                out[pair][g["a"][rows], g["b"][rows]] = v
         gma, gmb = g["ma"][:, None], g["mb"][:, None]
-        taps = np.concatenate([j * gma - l * gmb for j in range(3) for l in range(3)], axis=1)
-        eq = taps[:, :, None] == taps[:, None, :]
-        wt = _weight(big_m[g["a"]][:, None], big_m[g["b"]][:, None], taps) * ~np.any(
-            np.tril(eq, -1), axis=2)
         out[("Q", "G")][g["a"], g["b"]] = np.sum(
-            _r_lags("Q", gma, gmb, taps, tau0) * _r_lags("G", gma, gmb, taps, tau0, tc) * wt,
-            axis=1)
+            g["q_rq"] * _r_lags("G", gma, gmb, g["q_taps"], tau0, tc) * g["q_wt"], axis=1)
         out[("G", "G")][g["a"], g["b"]] += tails(g["a"], g["b"], g["k_lo"], g["k_hi"])
     norm = 2.0 / (4.0 * np.outer(tau ** 2 * big_m, tau ** 2 * big_m))
     for p in GPAIRS:
@@ -625,8 +653,8 @@ GM_LONG_LENGTHS = 4
 
 
 def _kc():
-    """:mod:`rigctl.solvers.allan_cov_kernels`, imported where the pair loop is asked for (it
-    imports numba, ~0.25 s of CPU, which a process without a gapped Gauss-Markov fit need not pay)."""
+    """:mod:`rigctl.solvers.allan_cov_kernels`, imported where a Gauss-Markov kernel is asked for
+    (it imports numba, ~0.25 s of CPU, which a process without a Gauss-Markov term need not pay)."""
     from . import allan_cov_kernels
 
     return allan_cov_kernels

@@ -1,4 +1,5 @@
-"""Compiled kernel for the gapped Gauss-Markov covariance pairs (numba, optional).
+"""Compiled kernels for the Gauss-Markov covariance pairs (numba, optional): the gapped pair
+loop (:func:`gm_pair_sums`) and the contiguous kernel's Gauss-Legendre sums (:func:`gm_gl_sums`).
 
 :func:`gm_pair_sums` is the pair loop of :func:`rigctl.solvers.allan_cov._gm_gapped_loop_numpy`
 compiled: the same lags, mesh and quadrature, the kernels in the same order of operations
@@ -287,6 +288,159 @@ if HAVE_NUMBA:
                 out[p, i] = s[i] + c[i]
             out[p, 4] += _tail(right, kn[kn.size - 1], 1.0, amp_r[p], h, kn, val, tail, glx, glw)
             out[p, 4] += _tail(left, kn[0], -1.0, amp_l[p], h, kn, val, tail, glx, glw)
+
+
+    @njit(cache=_CACHE, nogil=True)
+    def _pairwise_block(buf, start, n):  # pragma: no cover - compiled
+        """numpy's pairwise sum (npy_pairwise_sum) of buf[start:start + n], n <= 128: one
+        running sum below 8 values, else eight accumulators added as a tree, then the rest."""
+        if n < 8:
+            res = 0.0
+            for i in range(n):
+                res += buf[start + i]
+            return res
+        r0 = buf[start]
+        r1 = buf[start + 1]
+        r2 = buf[start + 2]
+        r3 = buf[start + 3]
+        r4 = buf[start + 4]
+        r5 = buf[start + 5]
+        r6 = buf[start + 6]
+        r7 = buf[start + 7]
+        i = 8
+        while i < n - (n % 8):
+            r0 += buf[start + i]
+            r1 += buf[start + i + 1]
+            r2 += buf[start + i + 2]
+            r3 += buf[start + i + 3]
+            r4 += buf[start + i + 4]
+            r5 += buf[start + i + 5]
+            r6 += buf[start + i + 6]
+            r7 += buf[start + i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += buf[start + i]
+            i += 1
+        return res
+
+    @njit(cache=_CACHE, nogil=True)
+    def _pairwise(buf, n):  # pragma: no cover - compiled
+        """numpy's pairwise sum of buf[:n] (npy_pairwise_sum, the order np.sum adds a
+        contiguous run in): blocks of at most 128 values (_pairwise_block), halves split at a
+        multiple of 8, added pairwise up the tree. Without recursion (numba does not cache a
+        recursive function): the blocks are the tree's leaves, found left to right, their
+        sums combined on a stack as the recursion would add them."""
+        # stack of (start, n, value, state): state 0 = to expand, 1 = left done
+        st_start = np.empty(64, np.int64)
+        st_n = np.empty(64, np.int64)
+        st_val = np.empty(64)
+        st_state = np.zeros(64, np.int64)
+        top = 0
+        st_start[0] = 0
+        st_n[0] = n
+        st_state[0] = 0
+        result = 0.0
+        have = False  # a finished subtree's value waiting in ``result``
+        while top >= 0:
+            if have:
+                if top < 0:
+                    break
+                if st_state[top] == 0:
+                    # the left half finished: keep it, expand the right half
+                    st_val[top] = result
+                    st_state[top] = 1
+                    n2 = st_n[top] // 2
+                    n2 -= n2 % 8
+                    top += 1
+                    st_start[top] = st_start[top - 1] + n2
+                    st_n[top] = st_n[top - 1] - n2
+                    st_state[top] = 0
+                    have = False
+                else:
+                    result = st_val[top] + result
+                    top -= 1
+                continue
+            m = st_n[top]
+            if m <= 128:
+                result = _pairwise_block(buf, st_start[top], m)
+                top -= 1
+                have = True
+                continue
+            # expand: the left half first (the node waits in state 0 for it)
+            n2 = m // 2
+            n2 -= n2 % 8
+            top += 1
+            st_start[top] = st_start[top - 1]
+            st_n[top] = n2
+            st_state[top] = 0
+        return result
+
+    @njit(cache=_CACHE, nogil=True)
+    def _gl_sums(tc, h, d_tap, left, coef, k, a_i, b_i, r_n, r_b, r_k, wq, skip,
+                 out):  # pragma: no cover - compiled
+        n_p, n_i, n_q = k.shape
+        n_t = coef.size
+        c1 = 2.0 * tc
+        c2 = tc * tc
+        tv = np.empty(n_t)
+        ce_t = np.empty(n_t)
+        bufs = np.empty((4, n_i * n_q))
+        for p in range(n_p):
+            if skip[p]:
+                continue
+            for i in range(n_i):
+                # the taps' c e^(-d / h), left of the interval and right of it, each side
+                # summed as np.sum(np.where(left, ce, 0.0), axis=2) adds them. Past 746 h
+                # e^(-d / h) is 0.0 (libm's exp underflows below -745.14): not computed, and
+                # c times it is 0.0 c, the same signed zero
+                for j in range(n_t):
+                    u = -d_tap[p, i, j] / h
+                    ce = math.exp(u) if u > -746.0 else 0.0
+                    ce *= coef[j]
+                    ce_t[j] = ce
+                    tv[j] = ce if left[p, i, j] else 0.0
+                a_l = 0.0 + _pairwise_block(tv, 0, n_t)
+                for j in range(n_t):
+                    tv[j] = 0.0 if left[p, i, j] else ce_t[j]
+                b_r = 0.0 + _pairwise_block(tv, 0, n_t)
+                for q in range(n_q):
+                    kk = k[p, i, q]
+                    x = kk - a_i[p, i]
+                    y = b_i[p, i] - kk
+                    # (a side whose sum is a zero: a_l e^(-x / h) is that zero, e^(-x / h) in
+                    # [0, 1], not computed)
+                    ea = a_l * math.exp(-x / h) if a_l != 0.0 else a_l
+                    eb = b_r * math.exp(-y / h) if b_r != 0.0 else b_r
+                    rg = c1 * r_n[p, i, q] - c2 * (ea + eb)
+                    w = wq[p, i, q]
+                    m = i * n_q + q
+                    bufs[0, m] = r_n[p, i, q] * rg * w
+                    bufs[1, m] = r_b[p, i, q] * rg * w
+                    bufs[2, m] = r_k[p, i, q] * rg * w
+                    bufs[3, m] = rg * rg * w
+            for t in range(4):
+                out[p, t] = 0.0 + _pairwise(bufs[t], n_i * n_q)
+
+
+def gm_gl_sums(tc: float, h: float, d_tap: np.ndarray, left: np.ndarray, coef: np.ndarray,
+               k: np.ndarray, a_i: np.ndarray, b_i: np.ndarray, r_n: np.ndarray,
+               r_b: np.ndarray, r_k: np.ndarray, wq: np.ndarray, skip: np.ndarray
+               ) -> np.ndarray:
+    """The contiguous Gauss-Markov kernel's Gauss-Legendre lag sums
+    (:func:`rigctl.solvers.allan_cov._gm_contiguous`, its mesh from ``_gm_nodes``): per pair
+    (rows; those where ``skip`` left at 0) sum over the nodes of R_t R_G W for t = N, B, K, G,
+    R_G = 2 Tc R_N - Tc^2 (A e^(-(k - a_i) / h) + B e^(-(b_i - k) / h)) with A, B the taps'
+    c e^(-d / h) left and right of each interval. The same operations in the same order as
+    that function's numpy expressions, its sums in numpy's pairwise order (_pairwise), with
+    libm's exp, which is numpy's own where numpy has no vectorized exp of its own (no
+    AVX-512): then the same numbers bit for bit; without numba the caller keeps numpy.
+    Returns (pairs x 4): (N, G), (B, G), (K, G), (G, G)."""
+    out = np.zeros((k.shape[0], 4))
+    if k.shape[0]:
+        _gl_sums(float(tc), float(h), d_tap, left, coef, k, a_i, b_i, r_n, r_b, r_k, wq,
+                 skip, out)
+    return out
 
 
 def gm_pair_sums(tau0: float, tc: float, ma: np.ndarray, mb: np.ndarray, k_lo: np.ndarray,
