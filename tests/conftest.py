@@ -89,6 +89,24 @@ def declared_only_hour(tmp_path_factory) -> tuple[Path, dict]:
                                                   "accel": {"noise": to_config(ACCEL, "accel")}}}, PROCEDURE)
 
 
+@pytest.fixture(scope="session")
+def declared_only_hour_allan(declared_only_hour, tmp_path_factory) -> tuple[Path, dict, Path]:
+    """declared_only_hour analysed once per session: `rigctl allan REC --kalibr imu.yaml --json
+    allan.json --csv allan.csv --db none` (in process, helpers.rigctl_in_process) on a copy of the
+    recording. (the analysed recording, with /results/allan; its /truth's imu; the directory of
+    imu.yaml, allan.json and allan.csv). test_allan_kalibr checks the exports, test_noise_coefficients
+    the stored /results/allan and the noise model calibrate takes from it; each copies what it
+    reads (helpers.copy_recording), so no test sees what another wrote."""
+    from helpers import copy_recording, rigctl_in_process
+
+    out = tmp_path_factory.mktemp("declared_only_hour_allan")
+    rec = copy_recording(declared_only_hour[0], out)
+    r = rigctl_in_process("allan", str(rec), "--kalibr", str(out / "imu.yaml"), "--json",
+                          str(out / "allan.json"), "--csv", str(out / "allan.csv"), "--db", "none")
+    assert r.returncode == 0, r.stderr[-2000:]
+    return rec, declared_only_hour[1], out
+
+
 @pytest.fixture
 def sock_dir():
     """A fresh directory under /tmp, removed afterwards: short enough for the AF_UNIX socket

@@ -3,8 +3,10 @@
 
 The capture: 1 h at 100 Hz of the emulator's declared_only profile (white noise N, flicker B,
 random walk K) with K raised ten-fold so that a 1-hour capture resolves it (K dominates beyond
-~30 s) and N different on each axis: conftest's declared_only_hour, the one test_noise_coefficients
-analyses too (a copy of it here). Truth from the recording's /truth. Checks, independent of
+~30 s) and N different on each axis: conftest's declared_only_hour, analysed once per session by
+conftest's declared_only_hour_allan (`rigctl allan --kalibr --json --csv` with the defaults), whose
+stored results test_noise_coefficients checks too (copies of the recording and the exports
+here). Truth from the recording's /truth. Checks, independent of
 rigctl's conversion code:
 
 * noise densities within 5 % of the truth of the axis with the largest N, the one Kalibr's single
@@ -34,16 +36,23 @@ K_GYRO, K_ACC = 1e-5, 3e-5  # rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz): ten times the pr
 
 
 @pytest.fixture(scope="module")
-def capture(declared_only_hour, tmp_path_factory) -> tuple[Path, dict]:
-    rec, truth = declared_only_hour
+def capture(declared_only_hour_allan, tmp_path_factory) -> tuple[Path, dict]:
+    """(this file's copy of the recording, with the default run's /results/allan; /truth's imu)"""
+    rec, truth, _ = declared_only_hour_allan
     return copy_recording(rec, tmp_path_factory.mktemp("kalibr")), truth
 
 
 @pytest.fixture(scope="module")
-def default_run(capture, tmp_path_factory) -> tuple[dict, dict, str, Path]:
-    """`rigctl allan REC --kalibr --json --csv` with the defaults: (imu.yaml, JSON, yaml text, dir)."""
+def default_run(declared_only_hour_allan, tmp_path_factory) -> tuple[dict, dict, str, Path]:
+    """`rigctl allan REC --kalibr --json --csv --db none` with the defaults (the session's run,
+    conftest's declared_only_hour_allan; its files copied here): (imu.yaml, JSON, yaml text, dir)."""
+    import shutil
+
     out = tmp_path_factory.mktemp("allan")
-    return (*_allan(capture[0], out), out)
+    for name in ("imu.yaml", "allan.json", "allan.csv"):
+        shutil.copy2(declared_only_hour_allan[2] / name, out / name)
+    text = (out / "imu.yaml").read_text()
+    return yaml.safe_load(text), json.loads((out / "allan.json").read_text()), text, out
 
 
 def _allan(rec: Path, out: Path, *extra: str) -> tuple[dict, dict, str]:

@@ -26,7 +26,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import copy_recording, rigctl_in_process
+from helpers import copy_recording
 from rigctl.analysis.allan import load_noise
 from rigctl.analysis.calibration import _noise
 from rigctl.sim.profiles import ImuProfile
@@ -82,14 +82,13 @@ ACCEL = triad("accel", "test", N=[5.9e-4, 7.5e-4, 4.5e-4], B=1.47e-4, K=3.0e-5)
 
 
 @pytest.fixture(scope="module")
-def chain(declared_only_hour, tmp_path_factory) -> tuple[Path, dict]:
-    """The capture on GYRO and ACCEL (conftest's declared_only_hour, shared with
-    test_allan_kalibr; a copy of it here) and its `rigctl allan`."""
-    rec = copy_recording(declared_only_hour[0], tmp_path_factory.mktemp("noise_chain"))
-    truth = declared_only_hour[1]
-    r = rigctl_in_process("allan", str(rec), "--db", "none")  # the stored results are tested, not the process
-    assert r.returncode == 0, r.stderr[-2000:]
-    return rec, truth
+def chain(declared_only_hour_allan, tmp_path_factory) -> tuple[Path, dict]:
+    """The capture on GYRO and ACCEL (conftest's declared_only_hour) and its `rigctl allan`
+    (conftest's declared_only_hour_allan: the defaults, in process -- the stored results are
+    tested, not the process; test_allan_kalibr checks that run's exports): a copy of the
+    analysed recording here, and /truth's imu."""
+    rec, truth, _ = declared_only_hour_allan
+    return copy_recording(rec, tmp_path_factory.mktemp("noise_chain")), truth
 
 
 def test_config_to_emulator_to_recording_to_allan_to_calibration(chain) -> None:
