@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from pathlib import Path
 
 import h5py
@@ -452,6 +453,10 @@ def test_pipelined_chunks_same_results(tmp_path: Path, monkeypatch: pytest.Monke
             assert (np.array_equal(v, w) if isinstance(v, np.ndarray) else v == w), (a, k)
 
 
+#: s each sum of the slower dataset is held in test_lead_dataset_same_results
+LAG_S = 0.05
+
+
 @pytest.mark.parametrize("lead_chunks,gaps,axes", [
     (1, False, list(AA.AXES)), (3, True, ["az", "gx", "gy"]),
     (100, False, ["ax", "ay", "az", "gx", "gy", "gz"])])
@@ -461,9 +466,8 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     chunks), its axes analysed while the other dataset still streams, gives the numbers of
     the loop that waits for every dataset at the end of each chunk (AA.PIPELINED False),
     bit for bit, with gaps skipped; the lead dataset is never read more than LEAD_CHUNKS
-    chunks ahead of the other, and (when it may run ahead over the whole record) its analyses
-    start before the other's last chunk is summed: while the other dataset's one pass runs
-    alone, a worker has nothing of higher rank to take)."""
+    chunks ahead of the other, and (when it may run ahead over the whole record and the other
+    dataset is the slower) its analyses start before the other's last chunk is summed."""
     if not K.HAVE_NUMBA:
         pytest.skip("numba (the fast extra) not installed")
     rec = tmp_path / "r.h5"
@@ -477,8 +481,20 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                                     AA.analyse_axis)
     monkeypatch.setattr(AA._AxisStream, "__init__",
                         lambda self, *a: (orig_init(self, *a), made.append(self))[0])
-    monkeypatch.setattr(AA._AxisStream, "add_written",
-                        lambda self, n: (orig_add(self, n), events.append(("sum", self)))[0])
+    # (the pipelined run, when the lead may run ahead over the whole record) the other dataset is
+    # made the slower one, each of its sums held LAG_S on its worker: the case LEAD_DATASET is
+    # for. Of two equally quick datasets either may finish first (the machine's timing: at
+    # cbc1ff8 the gyro dataset did, on a CI worker at background priority), and then its axes
+    # are rightly analysed first.
+    lag = {"on": False}
+
+    def add_written(self, n: int) -> None:
+        if lag["on"] and AA.AXES[axes[made.index(self)]][0] != lead:
+            time.sleep(LAG_S)
+        orig_add(self, n)
+        events.append(("sum", self))
+
+    monkeypatch.setattr(AA._AxisStream, "add_written", add_written)
     monkeypatch.setattr(AA, "analyse_axis",
                         lambda st, sensor, *a: (events.append(("analyse", st)),
                                                 orig_an(st, sensor, *a))[1])
@@ -489,6 +505,7 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     got = {}
     for pipelined in (False, True):
         monkeypatch.setattr(AA, "PIPELINED", pipelined)
+        lag["on"] = pipelined and lead_chunks >= 8
         made.clear()
         events.clear()
         reads.clear()
@@ -500,6 +517,9 @@ def test_lead_dataset_same_results(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     last_other = max(i for i, (k, st) in enumerate(events)
                      if k == "sum" and ds_of[id(st)] != lead)
     if lead_chunks >= 8:  # (a tighter lead: whether they do depends on the timing)
+        # (the other dataset's 8 chunks x 3 sums held LAG_S each: ~1.2 s in which the lead's
+        # 8 chunks need a few ms of CPU; with LEAD_DATASET False this fails: every analysis
+        # waits for the last chunk of both)
         assert ds_of[id(events[first_an][1])] == lead and first_an < last_other
     # the lead dataset is never read more than lead_chunks chunks ahead of the other
     n_read: dict = {}
