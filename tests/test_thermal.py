@@ -213,25 +213,27 @@ def _seed_fits(seed: int, hysteresis: dict | None = None) -> tuple[dict, dict]:
 
 
 def _seed_fits_star(args: tuple) -> tuple[dict, dict]:
-    return _seed_fits(*args)
+    from rigctl.solvers.allan_stream import blas_single_thread
+
+    with blas_single_thread():  # one BLAS thread: the fit's small matrices lose to thread contention
+        return _seed_fits(*args)
 
 
 HYST_SEEDS = (101, 102, 103)
 
 
 @pytest.fixture(scope="module")
-def pooled_fits(monkeypatch_module):
-    """20 seeds without hysteresis and 3 with, on a pool of two fresh processes (the machine's two
-    cores; spawned so that one BLAS thread each takes effect -- the fit's small matrices lose to
-    thread contention on a loaded machine)."""
+def pooled_fits():
+    """20 seeds without hysteresis and 3 with, on a pool of two processes (the machine's two
+    cores), forked from this one (its imports inherited, not made again as by spawned ones); each
+    job runs with one BLAS thread (:func:`_seed_fits_star`) -- the fit's small matrices lose to
+    thread contention on a loaded machine."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    monkeypatch_module.setenv("OPENBLAS_NUM_THREADS", "1")
-    monkeypatch_module.setenv("OMP_NUM_THREADS", "1")
     jobs = [(s, None) for s in HYST_SEEDS] + [(s, None) for s in range(20)]
     jobs[:3] = [(s, HYST_SHORT) for s in HYST_SEEDS]
-    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
         out = list(pool.map(_seed_fits_star, jobs))
     return {"hysteresis": out[:3], "plain": out[3:]}
 
@@ -239,13 +241,6 @@ def pooled_fits(monkeypatch_module):
 @pytest.fixture(scope="module")
 def twenty_seeds(pooled_fits):
     return pooled_fits["plain"]
-
-
-@pytest.fixture(scope="module")
-def monkeypatch_module():
-    mp = pytest.MonkeyPatch()
-    yield mp
-    mp.undo()
 
 
 def test_intervals_cover_the_truth_over_20_seeds(twenty_seeds):

@@ -96,11 +96,11 @@ def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult,
 
     The variable v (per segment) enters channel c as a candidate column x; its whitened form
     L^-1 x projected off the model's whitened span (orthonormal basis q) is correlated with the
-    whitened residuals of channel c: r, t = r sqrt(df/(1 - r^2)), df = n_c - 2. Plus the lag-1
-    serial correlation of channel c's whitened residuals in time order (one-sided). A variable
-    the model already spans (projected |x|^2 below 1e-20 of its whitened |x|^2, e.g. a constant
-    temperature in a channel's bias) is not scanned: what is left of it is rounding, whose
-    correlation with the residuals means nothing.
+    whitened residuals of channel c: r, t = r sqrt(df/(1 - r^2)), df = n_c - 2. A variable the
+    model already holds (an accelerometer channel's f_x, f_y, f_z through its scale and
+    misalignment, a constant temperature through the bias ...) is skipped: projected off, less
+    than 1e-10 of its whitened norm is left, rounding whose "r" would be noise. Plus the lag-1
+    serial correlation of channel c's whitened residuals in time order (one-sided).
     """
     var = _variables(seg)
     e_all = fit.normalized_residuals
@@ -116,15 +116,15 @@ def residual_scan(seg: SegmentTable, prob: _Problem, fit: CalibrationResult,
             x = np.zeros(prob.y.size)
             x[m] = v[g]
             xw = prob.white(x)
-            n0 = xw @ xw  # before the projection: a column the model spans leaves only rounding
-            if q is not None:
+            n0 = float(xw @ xw)  # before the projection: a variable in the model's span has
+            if q is not None:    # only rounding left after it (its "r" would be noise)
                 xw = xw - q @ (q.T @ xw)
             else:
                 xw[m] -= xw[m].mean()
             xc = xw[m]
             den = np.sqrt((xc @ xc) * (r @ r))
             if den == 0 or (xc @ xc) < 1e-20 * (n0 + 1e-300):
-                continue  # not scanned: the model already spans it (e.g. a constant temperature)
+                continue
             rr = float(np.clip((xc @ r) / den, -1.0, 1.0))
             tstat = rr * np.sqrt((nr - 2) / max(1e-300, 1.0 - rr**2))
             rows.append({"channel": CHANNELS[c], "variable": vn, "r": rr, "t": abs(tstat), "df": nr - 2})
