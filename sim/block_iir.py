@@ -29,7 +29,7 @@ from functools import lru_cache
 import numpy as np
 
 try:  # the ``fast`` extra: the cascade sample by sample in a compiled loop
-    from numba import njit
+    from rigctl.jit import njit
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without the extra

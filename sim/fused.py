@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 try:
-    from numba import njit
+    from rigctl.jit import njit
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without the extra

@@ -447,11 +447,12 @@ class Hardware:
         self.table = PhysicsTable(self.world, self.lock, self.cfg.limits)
         self.tap = ImuTap(self.world, self.lock)
         # the world's first step, before any port or thread exists and before the clock starts:
-        # it loads the noise kernels (numba: 0.6 s from its cache, 3.4 s compiling on a clean
-        # clone, seconds more on a loaded host). Taken by the physics loop's first tick instead,
-        # under the hardware lock, it held back the first table commands of a client that
-        # connected as soon as the ports were up (`rigctl sim up` at 100x under load: 0.2-1.3 s
-        # for the reply to the first command after 'ready', past the wired config's 0.5 s timeout)
+        # it loads the noise kernels (numba: ~0.1 s from its cache through rigctl.jit, 3.4 s
+        # compiling on a clean clone, seconds more on a loaded host). Taken by the physics
+        # loop's first tick instead, under the hardware lock, it held back the first table
+        # commands of a client that connected as soon as the ports were up (`rigctl sim up` at
+        # 100x under load: 0.2-1.3 s for the reply to the first command after 'ready', past the
+        # wired config's 0.5 s timeout)
         self.world_clock.cap = 0.0
         self.world.advance()
         self.world_clock.cap = math.inf

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 try:  # the ``fast`` extra
-    from numba import njit
+    from rigctl.jit import njit
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without the extra

@@ -78,7 +78,7 @@ from . import block_iir as _bi
 from .block_iir import BlockCascade
 
 if _bi.HAVE_NUMBA:
-    from numba import njit
+    from rigctl.jit import njit
 
     @njit(cache=True, nogil=True)
     def _walk(raw16, mean, s, kappa, quantized, state, row):  # pragma: no cover - compiled

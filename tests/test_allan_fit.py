@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rigctl.solvers import allan as A
+from rigctl.solvers import allan_cov as C
 from rigctl.solvers import allan_edf as E
 from rigctl.solvers import allan_fit as F
 from rigctl.solvers.noise_coefficients import as_coefficients, in_field_units
@@ -336,3 +337,48 @@ def test_bvls_is_scipys_lsq_linear_bit_for_bit() -> None:
         loops += ref.nit > 0
         np.testing.assert_array_equal(F.bvls(aw, bw, lb, ub), ref.x)
     assert loops > 100  # the bounded loop, not only the unbounded solution, is compared
+
+
+def test_solve_triangular_is_scipys_bit_for_bit() -> None:
+    """allan_fit.solve_triangular is scipy.linalg.solve_triangular(lw, b, lower=True) without
+    its wrapper: on the fits' kind of problem (the lower Cholesky factor of a 40-tau Allan
+    covariance, C- and Fortran-ordered, from _whiten; b a design of 1-6 columns or one curve)
+    the same numbers bit for bit, compared with scipy's (the reference); the same errors for
+    a non-finite input (ValueError) and a singular factor (LinAlgError); other inputs (ints,
+    lower=False) handed to scipy's function."""
+    from scipy.linalg import solve_triangular as scipy_st
+
+    rng = np.random.default_rng(3)
+    tau = np.geomspace(0.01, 900.0, 40)  # a 1 h record at 100 Hz: up to T / 4
+    ms = np.round(tau / 0.01)
+    ct = C.term_covariances(0.01, ms, 360_001)
+    for case in range(60):
+        coeff = {t: float(v) for t, v in zip(C.TERMS4, rng.uniform(0.0, 1.0, 4) ** 4)}
+        coeff["N"] += 1e-2
+        lw = F._whiten(C.combine(ct, coeff))
+        assert np.all(np.diag(lw) > 0)
+        lw = np.asfortranarray(lw) if case % 2 else np.ascontiguousarray(lw)
+        assert lw.flags.f_contiguous == bool(case % 2)
+        k = int(rng.integers(1, 7))
+        for b in (rng.standard_normal((40, k)) * 10.0 ** rng.uniform(-20, 5, k),
+                  rng.standard_normal(40)):
+            np.testing.assert_array_equal(F.solve_triangular(lw, b, lower=True),
+                                          scipy_st(lw, b, lower=True))
+    bad = np.array(lw)
+    bad[3, 1] = np.nan
+    for args in ((bad, b), (lw, np.where(np.arange(40) == 5, np.inf, b))):
+        with pytest.raises(ValueError):
+            scipy_st(*args, lower=True)
+        with pytest.raises(ValueError):
+            F.solve_triangular(*args, lower=True)
+    sing = np.array(lw)
+    sing[7, 7] = 0.0
+    with pytest.raises(np.linalg.LinAlgError):
+        scipy_st(sing, b, lower=True)
+    with pytest.raises(np.linalg.LinAlgError):
+        F.solve_triangular(sing, b, lower=True)
+    ints = np.tril(rng.integers(1, 5, (6, 6)))
+    np.testing.assert_array_equal(F.solve_triangular(ints, np.arange(6.0)),
+                                  scipy_st(ints, np.arange(6.0), lower=True))
+    np.testing.assert_array_equal(F.solve_triangular(lw.T, b, lower=False),
+                                  scipy_st(lw.T, b, lower=False))

@@ -32,7 +32,7 @@ from .allan_kernels import HAVE_NUMBA
 N_SUMS = 5
 
 if HAVE_NUMBA:
-    from numba import njit
+    from ..jit import njit
 
     from .allan_kernels import _CACHE
 

@@ -37,11 +37,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import solve_triangular
 from .distributions import chi2
 
 from . import allan_cov as C
 from . import allan_fit as F
+from .allan_fit import solve_triangular  # scipy's, without its wrapper's cost
 from . import allan_tones as TN
 from .allan_stream import blas_single_thread
 

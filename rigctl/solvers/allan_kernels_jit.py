@@ -13,8 +13,10 @@ import gc
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from numba.core import event as _event
+
+from rigctl.jit import njit  # (absolute: tests/test_allan_kernels_cache.py imports a copy of this module)
 
 
 def _probe() -> None:  # pragma: no cover - never compiled: decorated to find a cache place
