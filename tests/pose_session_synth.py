@@ -150,6 +150,9 @@ def make_session(seed: int, effect: str | None = None, n_poses: int = 40, fs: fl
 def write_csv(path: Path, seed: int, effect: str | None = None, **kw: float) -> Path:
     """The session as a CSV (t, ax..gz in m/s^2 and rad/s, temp in degC) and its sections JSON."""
     x, segs = make_session(seed, effect, **kw)
-    np.savetxt(path, x, delimiter=",", header="t,ax,ay,az,gx,gy,gz,temp", comments="", fmt="%.9g")
+    # np.savetxt(path, x, delimiter=",", header=..., comments="", fmt="%.9g")'s bytes, formatted
+    # with one % over every row instead of one per row
+    row = ",".join(["%.9g"] * x.shape[1]) + "\n"
+    path.write_text("t,ax,ay,az,gx,gy,gz,temp\n" + (row * x.shape[0]) % tuple(x.ravel().tolist()))
     path.with_suffix(".json").write_text(json.dumps(segs))
     return path

@@ -45,6 +45,7 @@ from ..recording.segment_builder import CAL_KINDS, build_segment_table, open_rec
 from ..jsonable import jsonable
 from ..sensor_axes import ACCEL_AXES, GYRO_AXES
 from ..solvers.calibration_result import CalibrationResult
+from ..solvers.allan_stream import blas_single_thread
 from ..solvers.noise_coefficients import Triad
 from .allan import load_noise
 from .restarts import restart_lines, restart_notes, truth_across_power_cycles
@@ -295,8 +296,22 @@ def calibrate(path: str | Path, noise: str = "auto", store: bool = True, json_pa
     """Calibrate a recording, store /results/calibration and the JSON; (payload, text, explain).
     With ``spec`` the verdicts are computed, printed and stored with the results. ``thermal_degree``:
     the polynomial degrees of a thermal calibration (None: default; N, 'B,S,M' or 'auto').
-    ``progress``: called with a line as each long stage starts (a thermal calibration's)."""
-    p = Path(path)
+    ``progress``: called with a line as each long stage starts (a thermal calibration's).
+
+    The solvers run with the bundled OpenBLAS at one thread in the calling thread
+    (:func:`~rigctl.solvers.allan_stream.blas_single_thread`): their matrices are small (tens to
+    a few hundred rows), OpenBLAS' helper threads only spin on them (a table session's
+    calibration took twice the CPU with two threads), and the numbers are those of a one-core
+    machine wherever it runs (OpenBLAS' threaded Cholesky, inverse and triangular solve round
+    differently from its single-threaded ones from about 66 rows on)."""
+    with blas_single_thread():
+        return _calibrate(Path(path), noise, store, json_path, spec, thermal_degree, progress)
+
+
+def _calibrate(p: Path, noise: str, store: bool, json_path: str | Path | None, spec: Spec | None,
+               thermal_degree: str | None, progress: Callable[[str], None] | None
+               ) -> tuple[dict[str, Any], str, str]:
+    """:func:`calibrate`'s work."""
     # -- thermal hook (docs/thermal.md): a chamber run across temperature is calibrated by
     # rigctl/analysis/thermal.py into /results/thermal (and RECORDING.thermal.json)
     from . import thermal

@@ -258,6 +258,11 @@ def _split_rows(path: Path, skip_rows: int) -> tuple[list[list[str]], str, int]:
     if delim is None:
         rows = [ln.split() for ln in lines[first:]]
         name = "whitespace"
+    elif '"' not in text and "\0" not in text and max(map(len, lines[first:])) <= csv.field_size_limit():
+        # without a quote character, a NUL or a line over the csv module's field limit,
+        # csv.reader's fields are the line split at the delimiter (an empty line: no field)
+        rows = [ln.split(delim) if ln else [] for ln in lines[first:]]
+        name = {",": "comma", "\t": "tab", ";": "semicolon"}[delim]
     else:
         try:
             rows = list(csv.reader(lines[first:], delimiter=delim))
@@ -312,7 +317,9 @@ def read_table(path: Path, mapping: dict[str, str], skip_rows: int,
             raise InputError(f"column {col!r} (for {key}) is not in the header {header}", path, header_line,
                              hint=hint)
     out: dict[str, np.ndarray] = {}
-    keep = [k for k, r in enumerate(body) if any(c.strip() for c in r)
+    # a row with a field that is not blank (its fields joined: the same test as any field's
+    # strip() being non-empty, one call per row) and not a comment
+    keep = [k for k, r in enumerate(body) if "".join(r).strip()
             and not r[0].lstrip().startswith(("#", "%"))]
     if not numeric_header and len(keep) > 1:  # a units line under the header (s, deg/s, g, ...)
         r0 = body[keep[0]]

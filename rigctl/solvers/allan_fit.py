@@ -52,6 +52,11 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cholesky, solve_triangular
 from scipy.optimize import nnls
+
+try:  # the routine scipy.optimize.lsq_linear(method="bvls") calls (see bvls below)
+    from scipy.optimize._lsq.bvls import bvls as _scipy_bvls
+except ImportError:  # pragma: no cover - a scipy that moved it: its wrapper instead
+    _scipy_bvls = None
 from .distributions import chi2, norm
 
 from . import allan_cov as C
@@ -132,105 +137,21 @@ def fitted_avar(fit_or_coeffs: Any, tau: np.ndarray) -> np.ndarray:
 
 def bvls(a: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
     """``scipy.optimize.lsq_linear(a, b, bounds=(lb, ub), method="bvls").x`` (its default tol
-    1e-10, the exact solver) without its wrapper: the same steps in the same order (the
-    unbounded solution with lstsq(rcond=-1), returned if within the bounds; else scipy's
-    bvls loop, its lstsq(rcond=None) on the free variables, its cost-change and KKT
-    stopping rules), the same numbers bit for bit (tests/test_allan_fit.py compares them);
-    what scipy computes only to report (step norms, messages, the result object, the
-    checks of its arguments) is left out. The fits solve thousands of these 40 x 6
-    problems, where the wrapper was most of the cost. ``lb``, ``ub``: float arrays, lb < ub."""
-    lstsq = np.linalg.lstsq
-    x = lstsq(a, b, rcond=-1)[0]
+    1e-10, the exact solver) without its wrapper: lsq_linear's own steps, the unbounded
+    solution with lstsq(rcond=-1), returned if within the bounds, else scipy's bvls routine
+    (scipy.optimize._lsq.bvls, the function lsq_linear calls) from it; the same numbers bit
+    for bit (tests/test_allan_fit.py compares them). The checks of the arguments, the
+    gradient and cost of an unbounded solution, the messages and the result object are left
+    out: the fits solve thousands of these 40 x 6 problems, where the wrapper was most of
+    the cost. ``lb``, ``ub``: float arrays, lb < ub."""
+    x = np.linalg.lstsq(a, b, rcond=-1)[0]
     if np.all((x >= lb) & (x <= ub)):
         return x
-    tol = 1e-10
-    n = a.shape[1]
-    on_bound = np.zeros(n)
-    mask = x <= lb
-    x[mask] = lb[mask]
-    on_bound[mask] = -1
-    mask = x >= ub
-    x[mask] = ub[mask]
-    on_bound[mask] = 1
-    free_set = on_bound == 0
-    active_set = ~free_set
-    free_set, = np.nonzero(free_set)
-    r = a.dot(x) - b
-    cost = 0.5 * np.dot(r, r)
-    g = a.T.dot(r)
-    iteration = 0
-    # scipy's initialization loop: the least-squares solution on the free variables, those
-    # outside their bounds set there, until it is feasible
-    while free_set.size > 0:
-        iteration += 1
-        z = lstsq(a[:, free_set], b - a.dot(x * active_set), rcond=None)[0]
-        lbv = z < lb[free_set]
-        ubv = z > ub[free_set]
-        v = lbv | ubv
-        if np.any(lbv):
-            ind = free_set[lbv]
-            x[ind] = lb[ind]
-            active_set[ind] = True
-            on_bound[ind] = -1
-        if np.any(ubv):
-            ind = free_set[ubv]
-            x[ind] = ub[ind]
-            active_set[ind] = True
-            on_bound[ind] = 1
-        x[free_set[~v]] = z[~v]
-        r = a.dot(x) - b
-        cost = 0.5 * np.dot(r, r)
-        g = a.T.dot(r)
-        if np.any(v):
-            free_set = free_set[~v]
-        else:
-            break
-    max_iter = n + iteration
+    if _scipy_bvls is None:  # a scipy without the module: through its wrapper
+        from scipy.optimize import lsq_linear
 
-    def optimality() -> float:  # scipy's compute_kkt_optimality
-        g_kkt = g * on_bound
-        free = on_bound == 0
-        g_kkt[free] = np.abs(g[free])
-        return np.max(g_kkt)
-
-    opt = optimality()
-    stop = False
-    for _ in range(iteration, max_iter):
-        if opt < tol or stop:
-            break
-        on_bound[np.argmax(g * on_bound)] = 0
-        while True:
-            free = on_bound == 0
-            active_set = ~free
-            free_set, = np.nonzero(free)
-            x_free = x[free_set]
-            lb_free = lb[free_set]
-            ub_free = ub[free_set]
-            z = lstsq(a[:, free_set], b - a.dot(x * active_set), rcond=None)[0]
-            lbv, = np.nonzero(z < lb_free)
-            ubv, = np.nonzero(z > ub_free)
-            v = np.hstack((lbv, ubv))
-            if v.size > 0:
-                alphas = np.hstack((lb_free[lbv] - x_free[lbv],
-                                    ub_free[ubv] - x_free[ubv])) / (z[v] - x_free[v])
-                i = np.argmin(alphas)
-                i_free = v[i]
-                alpha = alphas[i]
-                x_free *= 1 - alpha
-                x_free += alpha * z
-                x[free_set] = x_free
-                on_bound[free_set[i_free]] = -1 if i < lbv.size else 1
-            else:
-                x[free_set] = z
-                break
-        r = a.dot(x) - b
-        cost_new = 0.5 * np.dot(r, r)
-        if cost - cost_new < tol * cost:
-            stop = True
-        cost = cost_new
-        g = a.T.dot(r)
-        opt = optimality()
-    return x
+        return lsq_linear(a, b, bounds=(lb, ub), method="bvls").x
+    return _scipy_bvls(a, b, x, lb, ub, 1e-10, None, 0).x
 
 
 def _nnls_cols(a: np.ndarray, b: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
