@@ -36,11 +36,12 @@ import numpy as np
 from helpers import ROOT, rigctl_cmd
 
 from rigctl import cli
-from rigctl.recording.checkpoint import HDF5_SIGNATURE, lookup3
+from rigctl.recording.checkpoint import HDF5_SIGNATURE, lookup3, write_atomic
 from rigctl.config.config import load_config
 from rigctl.engine.procedure import load_procedure
 from rigctl.recording.recorder import LAYOUT
 from rigctl.run.runner import run_procedure
+from rigctl.report import report_allan, report_plots
 from rigctl.solvers import allan_fit
 
 #: limit of one in-process case, s of progress time (run_case): the case's CPU time (all its
@@ -187,6 +188,40 @@ class SharedWork:
             with self.lock:
                 self.done[key] = copy.deepcopy(out)
         return out
+
+
+class SharedAllanFigure:
+    """The report's Allan figure (report_plots.plot_allan) drawn once per identical curves: the
+    figure is a function of the curves alone (report_allan.allan_curves: what plot_allan draws,
+    computed here first, with the report's log, and cached in the run's data as plot_allan then
+    reads it); the first report with given curves (compared byte for byte: their pickle) draws
+    it, a later one gets the same PNG bytes written where plot_allan writes them (whole or not
+    at all, as its save does). No curves: plot_allan itself (it draws nothing)."""
+
+    def __init__(self, fn):
+        self.fn, self.done = fn, {}
+        self.calls = self.hits = 0
+
+    def __call__(self, data, out, log=None):
+        curves = report_allan.allan_curves(data, log)
+        if not curves:
+            return self.fn(data, out, log)
+        try:
+            key = hashlib.sha256(pickle.dumps(curves, protocol=5)).digest()
+        except (pickle.PicklingError, TypeError, AttributeError):
+            return self.fn(data, out, log)
+        self.calls += 1
+        kept = self.done.get(key)
+        if kept is None:
+            path = self.fn(data, out, log)
+            if path is not None:
+                self.done[key] = (path.name, path.read_bytes())
+            return path
+        self.hits += 1
+        name, png = kept
+        path = Path(out) / name
+        write_atomic(path, png)
+        return path
 
 
 # -- recordings --------------------------------------------------------------------------------------
@@ -632,6 +667,10 @@ def test_the_whole_cli_under_hostile_input(tmp_path, request, monkeypatch):
     # curves of each (SharedWork: same arguments byte for byte)
     fits = SharedWork(allan_fit.fit_terms)
     monkeypatch.setattr(allan_fit, "fit_terms", fits)
+    # ... and so the reports of those recordings draw the same Allan figure (the same stored
+    # curves): drawn once (SharedAllanFigure: same curves byte for byte)
+    figures = SharedAllanFigure(report_plots.plot_allan)
+    monkeypatch.setattr(report_plots, "plot_allan", figures)
     failures: list[str] = []
     t0 = time.monotonic()
     slowest: list[tuple[float, str]] = []
@@ -657,7 +696,8 @@ def test_the_whole_cli_under_hostile_input(tmp_path, request, monkeypatch):
                + ", ".join(f"{k}: {v}" for k, v in sorted(by_code.items()))
                + f"; failures: {len(failures)}; tracebacks: "
                + str(sum("traceback" in f for f in failures))
-               + f"; Allan fits: {fits.calls}, {fits.hits} of them shared",
+               + f"; Allan fits: {fits.calls}, {fits.hits} of them shared; Allan figures: "
+               + f"{figures.calls}, {figures.hits} of them shared",
                "slowest: " + "; ".join(f"{s:.2f} s {a[:70]}" for s, a in slowest[:3])]
     request.node.user_properties.append(("rigctl_summary", summary))  # shown at the end (conftest)
     print("\n".join(summary))
