@@ -160,3 +160,35 @@ def test_calibrate_session_entry_point():
     assert out["closed_loop"].effect_names == ["lever_arm"]
     d = json.loads(json.dumps(session_to_dict(out), allow_nan=False))
     assert set(d) == {"accel24", "gyro_bias_static", "gyro_rate", "closed_loop"}
+
+
+def test_a_variable_the_model_spans_is_not_scanned():
+    """A constant temperature lies in each channel's bias column: projected off the model's span
+    only rounding is left (checked here with numpy's least squares), and the scan must not report
+    a correlation with it (it once named it as the residuals' pattern, r = -0.41 of rounding). A
+    temperature that varies is still scanned on every channel."""
+    from rigctl.solvers.closed_loop import declared_design, residual_scan
+    from rigctl.solvers.gls_problem import _fit, _Problem
+
+    def scan(temperature):
+        st, _ = make_session(101)
+        st.temperature = temperature
+        prob = _Problem.from_table(st)
+        X3, names = declared_design(st)
+        X = prob.rows(X3)
+        fit = _fit(prob, X, names, "scan")
+        rows = [r for r in residual_scan(st, prob, fit, prob.qr(X)) if r["variable"] == "temperature"]
+        return st, prob, X, rows
+
+    st, prob, X, rows = scan(np.full(len(make_session(101)[0]), 31.7))
+    # independent check that the model spans it: each channel's column (the constant on that
+    # channel's rows) is fitted exactly by the declared design's columns
+    for c in range(6):
+        col = np.where(prob.channel == c, 31.7, 0.0)
+        assert col.any()
+        coef, *_ = np.linalg.lstsq(X, col, rcond=None)
+        assert np.linalg.norm(X @ coef - col) < 1e-9 * np.linalg.norm(col)
+    assert rows == [], rows
+    ramp = np.linspace(20.0, 40.0, len(st)) + 3.0 * np.sin(np.arange(len(st)))
+    _, _, _, rows = scan(ramp)
+    assert sorted(r["channel"] for r in rows) == sorted(["ax", "ay", "az", "gx", "gy", "gz"]), rows

@@ -38,6 +38,7 @@ from ..jsonable import jsonable
 from ..sensor_axes import axis_name
 from ..solvers import distributions as stats
 from ..solvers import thermal as th
+from ..solvers.allan_stream import blas_single_thread
 from ..yamlio import load_file
 from . import thermal as AT
 from .calibration_text import noise_summary
@@ -128,8 +129,18 @@ def static_fit(path: str | Path, settle_s: float = 0.0, window_s: float = AT.STA
                one_pose: bool = False, force_static: bool = False, reference_c: float = 25.0,
                progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The result of ``rigctl thermal`` (module docstring): JSON-ready, values in field units with
-    their SI originals. ``progress``: called with a line as each stage of the fit starts."""
-    p = Path(path)
+    their SI originals. ``progress``: called with a line as each stage of the fit starts.
+    The solvers run with one OpenBLAS thread, as ``rigctl calibrate``'s (docs/calibration.md
+    section 7: small matrices, on which the helper threads only spin)."""
+    with blas_single_thread():
+        return _static_fit(Path(path), settle_s, window_s, bias_degree, loop, poses_file, one_pose,
+                           force_static, reference_c, progress)
+
+
+def _static_fit(p: Path, settle_s: float, window_s: float, bias_degree: int, loop: bool,
+                poses_file: str | Path | None, one_pose: bool, force_static: bool, reference_c: float,
+                progress: Callable[[str], None] | None) -> dict[str, Any]:
+    """:func:`static_fit`'s work."""
     if not 1 <= bias_degree <= AT.MAX_FIT_DEGREE:
         raise InputError(f"--bias-degree {bias_degree}: give 1 .. {AT.MAX_FIT_DEGREE} (the temperature "
                          "coefficients per K, per K^2, ...)")

@@ -537,31 +537,44 @@ def _bound_fit(a: np.ndarray, s2: np.ndarray, edf: np.ndarray, cols: list[int],
     with the term *at the bound* in the covariance (its own variance grows with it), the
     Neyman construction for an estimate whose spread depends on the parameter."""
 
-    done: dict[bytes, tuple[np.ndarray, float]] = {}
+    done: dict[bytes, tuple[np.ndarray, float] | None] = {}
 
-    def solve(model: np.ndarray) -> tuple[np.ndarray, float]:
+    def solve(model: np.ndarray) -> tuple[np.ndarray, float] | None:
         # a pure function of the model: the bound's fixed point, once reached, repeats it
         key = np.asarray(model, dtype=float).tobytes()
         if key not in done:
             done[key] = _solve(model)
         return done[key]
 
-    def _solve(model: np.ndarray) -> tuple[np.ndarray, float]:
-        lw = _whiten(_model_cov(cov_terms, np.maximum(model, 0.0), cols, a, edf, model_err,
-                                inflate))
+    def _solve(model: np.ndarray) -> tuple[np.ndarray, float] | None:
+        cov = _model_cov(cov_terms, np.maximum(model, 0.0), cols, a, edf, model_err, inflate)
+        if not np.all(np.diag(cov) > 0):
+            # a model whose total is zero at some tau (its variance 2 sigma^4 / edf
+            # underflows) has no covariance there and no whitener: None (seen on a channel of
+            # period 3 samples, whose sigma^2 is ~1e-40 at every third tau: the unconstrained
+            # estimate drove every term below zero, and the factor was singular)
+            return None
+        lw = _whiten(cov)
         aw = solve_triangular(lw, a, lower=True)
         bw = solve_triangular(lw, s2, lower=True)
         cj = _param_cov(aw)
         return cj @ aw.T @ bw, float(np.sqrt(max(cj[-1, -1], 0.0) * max(1.0, chi2_red)))
 
+    sd = math.inf  # no usable model at all: nothing known of the term
     for _ in range(iterations):
-        p, sd = solve(p)
+        got = solve(p)
+        if got is None:  # as _gls does: keep the last iterate
+            break
+        p, sd = got
     pj = float(p[-1])
     pu = max(pj, 0.0) + _Z95_ONE * sd
     for _ in range(2 * iterations):
         model = np.array(p, dtype=float)
         model[-1] = pu
-        pu = max(pj, 0.0) + _Z95_ONE * solve(model)[1]
+        got = solve(model)
+        if got is None:
+            break
+        pu = max(pj, 0.0) + _Z95_ONE * got[1]
     return pj, (pu - max(pj, 0.0)) / _Z95_ONE
 
 
