@@ -12,9 +12,9 @@ the cached library and linking it needs only what the target context set up when
 (NRT_*) symbols, which ``rtsys.initialize`` registers. The kernels decorated here load their
 cached overloads that way; the machine code is the same file numba would load, so every result is
 the same bit for bit. A kernel that is not in the cache is compiled by numba as before (its
-compiler refreshes the target itself: numba.core.compiler.compile_extra), and where numba's
-internals differ from what this expects (another numba version) the kernel keeps numba's own
-loader. Parallel kernels keep working: their thread pool is started by the library's
+compiler refreshes the target itself: numba.core.compiler.compile_extra), and on a numba
+release not in :data:`VERIFIED_NUMBA` (or whose internals differ from what this expects) the
+kernel keeps numba's own loader. Parallel kernels keep working: their thread pool is started by the library's
 ``reload_init`` (numba's ``_reload_parfors``), which the load runs.
 
 Importing this module imports numba; without numba (the ``fast`` extra) it raises ImportError,
@@ -27,10 +27,19 @@ from typing import Any, Callable
 
 import numba
 
+#: numba releases (major.minor) on which loading without the refresh was checked (the cached
+#: library links with the symbols the target context registered when it was made: no unresolved
+#: symbol, which LLVM would report by aborting the process, not by a Python exception). On any
+#: other release the kernels keep numba's own loader; check a new release with
+#: tests/test_jit_load.py and add it here.
+VERIFIED_NUMBA = ("0.68",)
+
 try:  # numba's internals this uses (where they moved, the kernels keep numba's own loader)
     from numba.core import caching
     from numba.core.runtime import rtsys
 except ImportError:  # pragma: no cover - another numba layout
+    caching = rtsys = None
+if ".".join(numba.__version__.split(".")[:2]) not in VERIFIED_NUMBA:  # pragma: no cover
     caching = rtsys = None
 
 

@@ -35,6 +35,7 @@ from rigctl.yamlio import LocDict
 from rigctl.settings import Settings, items, matrix3, number, numbers, parse, setting, subsection, text
 from rigctl.solvers.noise_coefficients import GaussMarkov, Triad, terms_of, to_json, triad
 
+from . import declared_kernels as _dk
 from .effects import turn_on_bias
 from .noise import NoiseGenerator
 from .thermal_imu import ThermalErrors, ThermalSettings
@@ -88,14 +89,11 @@ class DeclaredImuModel:
         ``temperature`` (n,) degC: the IMU's temperature (a chamber), else ``temperature_c``;
         with ``thermal`` errors, ``hysteresis`` (n,) and ``temperature_rate`` (n,) K/s too."""
         n = f_true.shape[0]
-        f = self.accel_bias + self.turn_on_accel + f_true @ self.accel_matrix.T + self.accel_quadratic * f_true**2
-        w = self.gyro_bias + self.turn_on_gyro + w_true @ self.gyro_matrix.T
         T = np.full(n, self.temperature_c) if temperature is None else np.asarray(temperature, float)
-        if self.thermal is not None and self.thermal.active:
-            H = np.zeros(n) if hysteresis is None else hysteresis
-            R = np.zeros(n) if temperature_rate is None else temperature_rate
-            f = f + self.thermal.error("accel", f_true, T, H, R)
-            w = w + self.thermal.error("gyro", w_true, T, H, R)
+        if n >= 2 and _dk.ready(DeclaredImuModel):  # the same floats, compiled (sim/declared_kernels.py)
+            f, w = _dk.declared_deterministic(self, f_true, w_true, T, hysteresis, temperature_rate)
+        else:
+            f, w = self.deterministic_numpy(f_true, w_true, T, hysteresis, temperature_rate)
         s_acc, s_gyr = self._white_sigmas()
         if s_acc is not None:
             f = f + self.rng.standard_normal((n, 3)) * s_acc
@@ -108,6 +106,20 @@ class DeclaredImuModel:
         if self.thermal is not None and self.thermal.temperature_noise_c > 0:
             T = T + self._temp_rng.standard_normal(n) * self.thermal.temperature_noise_c
         return f, w, T
+
+    def deterministic_numpy(self, f_true: NDArray, w_true: NDArray, T: NDArray, hysteresis: NDArray | None,
+                            temperature_rate: NDArray | None) -> tuple[NDArray, NDArray]:
+        """:meth:`apply` before its noise, in numpy: bias and turn-on bias, matrix, quadratic term
+        and the thermal errors at temperature T (n,) (what sim/declared_kernels.py compiles)."""
+        n = f_true.shape[0]
+        f = self.accel_bias + self.turn_on_accel + f_true @ self.accel_matrix.T + self.accel_quadratic * f_true**2
+        w = self.gyro_bias + self.turn_on_gyro + w_true @ self.gyro_matrix.T
+        if self.thermal is not None and self.thermal.active:
+            H = np.zeros(n) if hysteresis is None else hysteresis
+            R = np.zeros(n) if temperature_rate is None else temperature_rate
+            f = f + self.thermal.error("accel", f_true, T, H, R)
+            w = w + self.thermal.error("gyro", w_true, T, H, R)
+        return f, w
 
     _white_key = (None, None, None)  # (accel_noise, gyro_noise, rate_hz) the sigmas were made for
     _white = (None, None)

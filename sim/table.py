@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 from rigctl.devices import AxisStatus
 
+from . import table_kernels as _tk
 from .iir import cont2discrete_zoh, lfilter, lfilter_prepared, prepare
 
 OFF, POSITION, RATE = 0, 1, 2
@@ -269,6 +270,11 @@ class TableAxis:
         self._hist_quiet = True
         self._t_first: float | None = None  # first grid time ever (at rest before it)
 
+    @classmethod
+    def probe(cls, natural_hz: float, damping: float, dt: float) -> "TableAxis":
+        """A continuous axis (300 deg/s, 400 deg/s^2) for sim/table_kernels.py's comparison."""
+        return cls(ServoParams(natural_hz=natural_hz, damping=damping), math.radians(300), math.radians(400), True, dt)
+
     def command(self, t: float, mode: int, value: float) -> None:
         """New demand at time ``t``: POSITION (angle rad), RATE (rad/s) or OFF (controlled stop)."""
         p0, v0, _ = (float(x[0]) for x in self.profile.evaluate(np.array([t])))
@@ -313,6 +319,26 @@ class TableAxis:
 
     def advance(self, t: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
         """Actual angle, rate, acceleration on the grid ``t`` (uniform, step dt, after last_t)."""
+        sv = self.servo
+        if (t.size and not (self.t_jerk > 0 or sv.ripple_per_rev or sv.ripple_fraction or self._ripple_angle)
+                and t[0] >= self.profile.t[0] and _tk.on(TableAxis)):
+            # the common case compiled, the same floats (sim/table_kernels.py)
+            x, w, acc, self._zi_e, self._zi_de, hist, last_out, inside, quiet = _tk.advance(self, t)
+            self.last = (float(x[-1]), float(w[-1]), float(acc[-1]))
+            if inside:  # as _update_window
+                if last_out >= 0:
+                    self.in_window_since = float(t[last_out + 1])
+                elif self.in_window_since is None:
+                    self.in_window_since = float(t[0])
+            else:
+                self.in_window_since = None
+            self.last_t = float(t[-1])
+            if self._t_first is None:
+                self._t_first = float(t[0])
+            self._hist = hist
+            if self._hist_quiet:
+                self._hist_quiet = quiet
+            return x, w, acc
         if self.t_jerk > 0:
             p, v, a = self.profile.smoothed(t, self.t_jerk)
         else:
@@ -361,6 +387,13 @@ class TableAxis:
         ``at(t_j)`` and ``at(t_j + dt)`` are the grid values. Before the first grid point the
         axis is at rest."""
         t = np.asarray(t, dtype=float)
+        h, sv = self._hist, self.servo
+        if (t.ndim == 1 and t.size and h.shape[1] and self.t_jerk == 0
+                and not (sv.ripple_per_rev or sv.ripple_fraction or self._hist_ripple) and _tk.on(TableAxis)):
+            tmin = t.min()
+            if not (tmin < self._t_first - 1e-9 * self.dt or tmin < self.profile.t[0]
+                    or (h[0, 0] > self._t_first and tmin < h[0, 0] - 1e-9 * self.dt)):
+                return _tk.at(self, t)  # the common case compiled, the same floats (sim/table_kernels.py)
         if self.t_jerk > 0:
             p, v, _ = self.profile.smoothed(t, self.t_jerk)
         else:

@@ -21,10 +21,11 @@ from numpy.typing import NDArray
 from rigctl import schema as S
 from rigctl.config.config import RigConfig
 from rigctl.devices import AxisStatus, Clock, DeviceFault, ImuBlock, LinkLost, NoPulses, TableState
-from rigctl.frames import body_references, gimbal_rate_body
+from rigctl.frames import _earth_rate_cached, _normal_gravity_cached, body_references, gimbal_rate_body
 from rigctl.settings import Settings, per_axis, section, yaml_keys
 from rigctl.yamlio import LocDict
 
+from . import declared_kernels
 from .faults import FaultInjector
 from .effects import table_body_references
 from .imu import DeclaredImuModel, build_imu_model
@@ -266,14 +267,26 @@ class SimWorld:
             idx = np.arange(self.k, self.k + n)
             t = idx * self.dt
             ang, rates, _acc = self.table.at(t)
-            f_b, w_b = body_references(ang, rates, self.cfg.latitude, self.cfg.height_m,
-                                       self.cfg.gravity)
+            f_b, w_b = self._body_references(ang, rates)
             f_b, w_b = self._wobble(ang, rates, f_b, w_b)
             T, H, R = self._thermal_at(t)
             f, w, temp = self.imu_model.apply(t, self._taps(t, f_b), w_b, temperature=T,
                                               hysteresis=H, temperature_rate=R)
             self._emit(t, idx.astype(np.uint64), f, w, temp, t)
             self.k += n
+
+    def _body_references(self, ang: NDArray, rates: NDArray) -> tuple[NDArray, NDArray]:
+        """:func:`rigctl.frames.body_references` at the config's site; blocks of two samples or
+        more compiled (sim/declared_kernels.py: the same floats) where that is exact here."""
+        site = self.__dict__.get("_refs_site")
+        if site is None or site[0] is not self.cfg:  # the frozen config's site, once
+            cfg = self.cfg
+            site = self._refs_site = (cfg, cfg.latitude, cfg.height_m, cfg.gravity)
+        _, lat, height, g = site
+        if ang.shape[0] >= 2 and declared_kernels.ready(DeclaredImuModel):
+            g_site = _normal_gravity_cached(lat, height) if g is None else float(g)
+            return declared_kernels.body_references(ang, rates, g_site, _earth_rate_cached(lat))
+        return body_references(ang, rates, lat, height, g)
 
     def _model_until(self, until: float) -> None:
         """Full error model: every sample whose true time (its own clock) is <= ``until``."""
@@ -314,10 +327,12 @@ class SimWorld:
         site = self.__dict__.get("_site")
         if site is None or site[0] is not self.cfg:  # the frozen config's latitude and g, once
             site = self._site = (self.cfg, self.cfg.latitude, self.cfg.gravity)
-        f_b, w_b = table_body_references(ang, rates, site[1], site[2],
-                                         **self.imu_model.table_geometry())
+        kernels = ang.shape[0] >= 2 and declared_kernels.ready(DeclaredImuModel)  # the same floats, compiled
+        refs = declared_kernels.table_body_references if kernels else table_body_references
+        f_b, w_b = refs(ang, rates, site[1], site[2], **self.imu_model.table_geometry())
         f_b, w_b = self._wobble(ang, rates, f_b, w_b)
-        w_dot = gimbal_rate_body(ang, acc)  # d/dt of the table rate at frozen angles
+        # d/dt of the table rate at frozen angles
+        w_dot = declared_kernels.gimbal_rate_body(ang, acc) if kernels else gimbal_rate_body(ang, acc)
         f_b = self._taps(g.t_eval, f_b)  # taps happen at the IMU, before its front end
         T = self._thermal_at(g.t_internal)[0] if self.chamber_drives_imu else None
         f, w, temp = self.imu_model.apply(g.t_internal, f_b, w_b, temperature=T, w_dot=w_dot)

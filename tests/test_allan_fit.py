@@ -382,3 +382,36 @@ def test_solve_triangular_is_scipys_bit_for_bit() -> None:
                                   scipy_st(ints, np.arange(6.0), lower=True))
     np.testing.assert_array_equal(F.solve_triangular(lw.T, b, lower=False),
                                   scipy_st(lw.T, b, lower=False))
+
+
+def test_cholesky_is_scipys_bit_for_bit() -> None:
+    """allan_fit.cholesky is scipy.linalg.cholesky(a, lower=True) without its wrapper: on
+    _whiten's kind of input (a 40-tau Allan correlation plus a small jitter, C- and
+    Fortran-ordered) the same factor bit for bit (scipy's the reference); the same errors for
+    a non-finite input (ValueError) and an indefinite one (LinAlgError); ints and lower=False
+    through scipy's function."""
+    from scipy.linalg import cholesky as scipy_ch
+
+    rng = np.random.default_rng(5)
+    tau = np.geomspace(0.01, 900.0, 40)
+    ct = C.term_covariances(0.01, np.round(tau / 0.01), 360_001)
+    for case in range(60):
+        coeff = {t: float(v) for t, v in zip(C.TERMS4, rng.uniform(0.0, 1.0, 4) ** 4)}
+        coeff["N"] += 1e-2
+        cov = C.combine(ct, coeff)
+        d = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(d, d) + 10.0 ** rng.uniform(-9, -3) * np.eye(40)
+        corr = np.asfortranarray(corr) if case % 2 else np.ascontiguousarray(corr)
+        np.testing.assert_array_equal(F.cholesky(corr, lower=True), scipy_ch(corr, lower=True))
+    bad = np.array(corr)
+    bad[2, 3] = bad[3, 2] = np.inf
+    indefinite = np.array(corr)
+    indefinite[9, 9] = -1.0
+    for arg, err in ((bad, ValueError), (indefinite, np.linalg.LinAlgError)):
+        with pytest.raises(err):
+            scipy_ch(arg, lower=True)
+        with pytest.raises(err):
+            F.cholesky(arg, lower=True)
+    spd = np.array([[4, 2], [2, 3]])
+    np.testing.assert_array_equal(F.cholesky(spd), scipy_ch(spd, lower=True))
+    np.testing.assert_array_equal(F.cholesky(corr, lower=False), scipy_ch(corr, lower=False))

@@ -64,6 +64,11 @@ def test_cached_kernels_load_without_the_target_refresh_and_compute_the_same():
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["light_hits"] == 2 and out["light_misses"] == 0, out   # both loaded from the cache
-    assert out["light_refreshes"] == 0, out                           # ... without the refresh
+    import numba
+    from rigctl import jit
+    if ".".join(numba.__version__.split(".")[:2]) in jit.VERIFIED_NUMBA:
+        assert out["light_refreshes"] == 0, out                       # ... without the refresh
+    else:  # a release the light loader was not checked on: numba's own loader, which refreshes
+        assert out["light_refreshes"] >= 1, out
     assert out["numba_hits"] == 2 and out["numba_refreshes"] >= 1, out  # numba's own loader refreshes
     assert out["same"], out

@@ -235,8 +235,10 @@ def test_batch_on_a_distributed_cluster_equals_serial(lot_runs, serial, tmp_path
         assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
         workers = {w["host"] for w in cluster.scheduler_info["workers"].values()}
     assert "dask.distributed at tcp://127.0.0.1" in r.stdout and workers == {"127.0.0.1"}
-    # dask.distributed's nanny starts workers with OMP/OPENBLAS_NUM_THREADS=1: BLAS sums in
-    # another order than the 2-thread serial run, so the last bits differ (seen: 6e-13 relative)
+    # dask.distributed's nanny starts workers with OMP/OPENBLAS_NUM_THREADS=1; before rigctl
+    # calibrate ran its solvers single-threaded too (docs/calibration.md section 7) the 2-thread
+    # serial run's last bits differed (seen: 6e-13 relative); since then identical (checked
+    # once with rel=0)
     _compare(serial[0], tmp_path / "dist.sqlite", rel=1e-9)
 
 

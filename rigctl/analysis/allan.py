@@ -37,6 +37,7 @@ from ..solvers import allan_fit as F
 from ..solvers import allan_checks as CHK
 from ..solvers import allan_kernels as KER
 from ..solvers import allan_noise_id as NID
+from ..solvers.allan_stream import blas_single_thread
 from ..solvers import allan_tones as TN
 from ..solvers import noise_coefficients as NC
 from ..solvers.noise_coefficients import NoiseCoefficients, as_coefficients, from_json, in_field_units
@@ -164,6 +165,14 @@ class _PriorityPool:
         return (_result(f) for f in futs)
 
     def _work(self) -> None:
+        # every task with OpenBLAS at one thread in this worker (thread-local): the analysis'
+        # matrices are small, and a call's rounding must not depend on whether OpenBLAS ran it
+        # on one thread or two (the step test's 150 x 150 factorisations differed in the last
+        # digits from run to run of the same record)
+        with blas_single_thread():
+            self._work_loop()
+
+    def _work_loop(self) -> None:
         while True:
             with self._cond:
                 while not self._heap and not self._closed:
@@ -718,7 +727,9 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     the whole record's fit and self-check are left as they are). Each axis' short
     excursions (:mod:`rigctl.analysis.allan_excursions`) are reported; with
     ``excursions="exclude"`` (the default) those inside a quiet stretch are left out of its
-    fit, as gaps handled by ``gaps`` (``"report"``: kept in it) (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`)."""
+    fit, as gaps handled by ``gaps`` (``"report"``: kept in it) (:func:`rigctl.analysis.allan_quiet.add_quiet_stretches`).
+    The analysis runs with OpenBLAS at one thread (in this thread and the workers'), so that the
+    same record gives the same numbers to the last digit on every run and machine."""
     if excursions not in QS.EXCURSION_MODES:
         raise InputError(f"excursions={excursions!r}: choose from {', '.join(QS.EXCURSION_MODES)}")
     if warmup not in AD.WARMUP_MODES:
@@ -726,6 +737,16 @@ def compute(path: str, axes: list[str], taus: A.TauSpec = 95, exact: bool = Fals
     if temperature not in AD.TEMPERATURE_MODES:
         raise InputError(f"temperature={temperature!r}: choose from "
                          f"{', '.join(AD.TEMPERATURE_MODES)}")
+    with blas_single_thread():  # this thread's share as the workers' (_PriorityPool._work)
+        return _compute(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
+                        warmup, temperature, when_streaming, quiet_stretch, excursions)
+
+
+def _compute(path: str, axes: list[str], taus: A.TauSpec, exact: bool,
+             sample_range: tuple[int, int] | None, progress_stream: Any, outliers: str, gaps: str,
+             warmup: str, temperature: str, when_streaming: Callable[[], Any] | None,
+             quiet_stretch: bool, excursions: str) -> dict[str, Any]:
+    """:func:`compute`'s work, its arguments checked."""
     out = _with_warmup(path, axes, taus, exact, sample_range, progress_stream, outliers, gaps,
                        warmup, when_streaming)
     out["temperature"] = temperature

@@ -50,8 +50,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from scipy.linalg import cholesky, solve_triangular as _solve_triangular
-from scipy.linalg.lapack import dtrtrs
+from scipy.linalg import cholesky as _cholesky, solve_triangular as _solve_triangular
+from scipy.linalg.lapack import dpotrf, dtrtrs
 from scipy.optimize import nnls
 from .distributions import chi2, norm
 
@@ -129,6 +129,26 @@ def fitted_avar(fit_or_coeffs: Any, tau: np.ndarray) -> np.ndarray:
         if g.sigma.resolved:
             out = out + gm_column(tau, g.tau_c_s) * g.sigma.value ** 2
     return out
+
+
+def cholesky(a: np.ndarray, lower: bool = True) -> np.ndarray:
+    """``scipy.linalg.cholesky(a, lower=True)`` for a square float array: its own steps -- the
+    input checked finite (the same ValueError), LAPACK's dpotrf (clean: the other triangle
+    zeroed), its LinAlgError / ValueError on info != 0 -- without its wrapper's batch dispatch
+    (40 x 40: 22.5 -> 16.7 us; _whiten factors ~200 covariances per fit_terms call). Anything
+    else (another dtype or shape, lower=False, an empty array) goes to scipy's function."""
+    a1 = np.asarray_chkfinite(a)
+    if not (lower and a1.dtype == np.float64 and a1.ndim == 2 and a1.size
+            and a1.shape[0] == a1.shape[1]):
+        return _cholesky(a, lower=lower)
+    c, info = dpotrf(a1, lower=True, overwrite_a=False, clean=True)
+    if info > 0:
+        raise np.linalg.LinAlgError(
+            f"{info}-th leading minor of the array is not positive definite")
+    if info < 0:
+        raise ValueError(
+            f'LAPACK reported an illegal value in {-info}-th argument on entry to "POTRF".')
+    return c
 
 
 def solve_triangular(lw: np.ndarray, b: np.ndarray, lower: bool = True) -> np.ndarray:
