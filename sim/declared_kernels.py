@@ -55,6 +55,58 @@ if HAVE_NUMBA:
         return sig, codegen
 
     @njit(cache=True, nogil=True)
+    def _gemm3(X, Y, out):  # pragma: no cover - compiled
+        """out = X @ Y for 3 x 3 C-contiguous matrices as BLAS forms each element."""
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for q in range(3):
+                    acc = _fma(X[i, q], Y[q, j], acc)
+                out[i, j] = acc * 1.0 + 0.0
+
+    @njit(cache=True, nogil=True)
+    def _inner_gimbals(a1, a2, Ry, Rx):  # pragma: no cover - compiled
+        """Ry = R_y(a1), Rx = R_x(a2) (frames' rotation matrices; the zeros already in place)."""
+        c, s = math.cos(a1), math.sin(a1)
+        Ry[1, 1] = 1.0
+        Ry[2, 2] = c
+        Ry[2, 0] = -s
+        Ry[0, 2] = s
+        Ry[0, 0] = c
+        c, s = math.cos(a2), math.sin(a2)
+        Rx[0, 0] = 1.0
+        Rx[1, 1] = c
+        Rx[1, 2] = -s
+        Rx[2, 1] = s
+        Rx[2, 2] = c
+
+    @njit(cache=True, nogil=True)
+    def _gimbal_rate_row(Rx, Ry, r0, r1, r2, i):  # pragma: no cover - compiled
+        """Component i of gimbal_rate_body: sum_jk Rx^T[i, j] Ry^T[j, k] (0, 0, r0)[k]
+        + sum_j Rx^T[i, j] (0, r1, 0)[j] + (r2, 0, 0)[i] (numpy's einsums: products left to
+        right, summed in index order from 0.0)."""
+        e3 = 0.0
+        for j in range(3):
+            for k in range(3):
+                e3 += Rx[j, i] * Ry[k, j] * (r0 if k == 2 else 0.0)
+        e2 = 0.0
+        for j in range(3):
+            e2 += Rx[j, i] * (r1 if j == 1 else 0.0)
+        return e3 + e2 + (r2 if i == 0 else 0.0)
+
+    @njit(cache=True, nogil=True)
+    def _gravity_earth_rate(C, g, w_site, i):  # pragma: no cover - compiled
+        """Component i of C^T (0, 0, g) and of C^T Omega (numpy's loop: multiply-adds from 0.0)."""
+        f = 0.0
+        f += C[0, i] * 0.0
+        f += C[1, i] * 0.0
+        f += C[2, i] * g
+        w = 0.0
+        for q in range(3):
+            w += C[q, i] * w_site[q]
+        return f, w
+
+    @njit(cache=True, nogil=True)
     def _body_references(ang, rates, g, w_site, f_out, w_out):  # pragma: no cover - compiled
         """frames.body_references(ang, rates, ...) row by row (module docstring)."""
         P = np.empty((3, 3))
@@ -69,51 +121,18 @@ if HAVE_NUMBA:
             Rz[0, 1] = -s
             Rz[1, 0] = s
             Rz[1, 1] = c
-            c, s = math.cos(ang[r, 1]), math.sin(ang[r, 1])
-            Ry[1, 1] = 1.0
-            Ry[2, 2] = c
-            Ry[2, 0] = -s
-            Ry[0, 2] = s
-            Ry[0, 0] = c
-            c, s = math.cos(ang[r, 2]), math.sin(ang[r, 2])
-            Rx[0, 0] = 1.0
-            Rx[1, 1] = c
-            Rx[1, 2] = -s
-            Rx[2, 1] = s
-            Rx[2, 2] = c
+            _inner_gimbals(ang[r, 1], ang[r, 2], Ry, Rx)
             for i in range(3):
                 for j in range(3):
                     acc = 0.0
                     for k in range(3):
                         acc += Rz[i, k] * Ry[k, j]
                     P[i, j] = acc
-            for i in range(3):
-                for j in range(3):
-                    acc = 0.0
-                    for k in range(3):
-                        acc = _fma(P[i, k], Rx[k, j], acc)
-                    D[i, j] = acc * 1.0 + 0.0
+            _gemm3(P, Rx, D)
             r0, r1, r2 = rates[r, 0], rates[r, 1], rates[r, 2]
             for i in range(3):
-                # C^T (0, 0, g) and C^T Omega: numpy's loop, from 0.0
-                f = 0.0
-                f += D[0, i] * 0.0
-                f += D[1, i] * 0.0
-                f += D[2, i] * g
-                f_out[r, i] = f
-                w = 0.0
-                for k in range(3):
-                    w += D[k, i] * w_site[k]
-                # gimbal_rate_body: sum_jk Rx^T[i, j] Ry^T[j, k] (0, 0, r0)[k]
-                #                   + sum_j Rx^T[i, j] (0, r1, 0)[j] + (r2, 0, 0)[i]
-                e3 = 0.0
-                for j in range(3):
-                    for k in range(3):
-                        e3 += Rx[j, i] * Ry[k, j] * (r0 if k == 2 else 0.0)
-                e2 = 0.0
-                for j in range(3):
-                    e2 += Rx[j, i] * (r1 if j == 1 else 0.0)
-                w_out[r, i] = w + (e3 + e2 + (r2 if i == 0 else 0.0))
+                f_out[r, i], w = _gravity_earth_rate(D, g, w_site, i)
+                w_out[r, i] = w + _gimbal_rate_row(Rx, Ry, r0, r1, r2, i)
 
     @njit(cache=True, nogil=True)
     def _gimbal_rate_body(ang, rates, out):  # pragma: no cover - compiled
@@ -121,38 +140,10 @@ if HAVE_NUMBA:
         Ry = np.zeros((3, 3))
         Rx = np.zeros((3, 3))
         for r in range(ang.shape[0]):
-            c, s = math.cos(ang[r, 1]), math.sin(ang[r, 1])
-            Ry[1, 1] = 1.0
-            Ry[2, 2] = c
-            Ry[2, 0] = -s
-            Ry[0, 2] = s
-            Ry[0, 0] = c
-            c, s = math.cos(ang[r, 2]), math.sin(ang[r, 2])
-            Rx[0, 0] = 1.0
-            Rx[1, 1] = c
-            Rx[1, 2] = -s
-            Rx[2, 1] = s
-            Rx[2, 2] = c
+            _inner_gimbals(ang[r, 1], ang[r, 2], Ry, Rx)
             r0, r1, r2 = rates[r, 0], rates[r, 1], rates[r, 2]
             for i in range(3):
-                e3 = 0.0
-                for j in range(3):
-                    for k in range(3):
-                        e3 += Rx[j, i] * Ry[k, j] * (r0 if k == 2 else 0.0)
-                e2 = 0.0
-                for j in range(3):
-                    e2 += Rx[j, i] * (r1 if j == 1 else 0.0)
-                out[r, i] = e3 + e2 + (r2 if i == 0 else 0.0)
-
-    @njit(cache=True, nogil=True)
-    def _gemm3(X, Y, out):  # pragma: no cover - compiled
-        """out = X @ Y for 3 x 3 C-contiguous matrices as BLAS forms each element."""
-        for i in range(3):
-            for j in range(3):
-                acc = 0.0
-                for q in range(3):
-                    acc = _fma(X[i, q], Y[q, j], acc)
-                out[i, j] = acc * 1.0 + 0.0
+                out[r, i] = _gimbal_rate_row(Rx, Ry, r0, r1, r2, i)
 
     @njit(cache=True, nogil=True)
     def _table_body_references(ang, rates, ax, base, Ks, KKs, g, w_site, f_out, w_out):  # pragma: no cover
@@ -189,14 +180,7 @@ if HAVE_NUMBA:
                 for j in range(3):
                     e2 += R[2, j, i] * (r1 * ax[1, j])
                 wt = (e1 + e2) + r2 * ax[2, i]
-                f = 0.0
-                f += C[0, i] * 0.0
-                f += C[1, i] * 0.0
-                f += C[2, i] * g
-                f_out[r, i] = f
-                w = 0.0
-                for q in range(3):
-                    w += C[q, i] * w_site[q]
+                f_out[r, i], w = _gravity_earth_rate(C, g, w_site, i)
                 w_out[r, i] = w + wt
 
     @njit(cache=True, nogil=True)
