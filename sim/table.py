@@ -325,13 +325,7 @@ class TableAxis:
             # the common case compiled, the same floats (sim/table_kernels.py)
             x, w, acc, self._zi_e, self._zi_de, hist, last_out, inside, quiet = _tk.advance(self, t)
             self.last = (float(x[-1]), float(w[-1]), float(acc[-1]))
-            if inside:  # as _update_window
-                if last_out >= 0:
-                    self.in_window_since = float(t[last_out + 1])
-                elif self.in_window_since is None:
-                    self.in_window_since = float(t[0])
-            else:
-                self.in_window_since = None
+            self._set_window(t, bool(inside), int(last_out))
             self.last_t = float(t[-1])
             if self._t_first is None:
                 self._t_first = float(t[0])
@@ -518,10 +512,15 @@ class TableAxis:
             inside = np.abs(w - self.target) <= self.servo.at_rate_window
         else:
             inside = np.abs(w) <= self.servo.at_rate_window
-        if inside[-1]:
-            outside = np.flatnonzero(~inside)
-            if outside.size:
-                self.in_window_since = float(t[outside[-1] + 1])
+        outside = np.flatnonzero(~inside)
+        self._set_window(t, bool(inside[-1]), int(outside[-1]) if outside.size else -1)
+
+    def _set_window(self, t: NDArray, inside_last: bool, last_out: int) -> None:
+        """in_window_since after the grid ``t``: whether its last point is inside the window and
+        the index of its last point outside (-1: none)."""
+        if inside_last:
+            if last_out >= 0:
+                self.in_window_since = float(t[last_out + 1])
             elif self.in_window_since is None:
                 self.in_window_since = float(t[0])
         else:
